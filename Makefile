@@ -1,0 +1,29 @@
+# Two entry points for a fresh machine:
+#   make demo  -- set up .venv, generate the synthetic route, train FDNet (cpu preset), evaluate vs baselines
+#   make test  -- set up .venv and run the test suite
+# torch is pinned in the same pip command as everything that depends on it, so pip takes the
+# CPU wheel and never pulls a multi-GB CUDA build.
+PYTHON ?= python3
+VENV ?= .venv
+BIN := $(VENV)/bin
+TORCH_PIN := torch==2.13.0
+STAMP := $(VENV)/.fdnet-installed
+
+.PHONY: setup demo test clean
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --quiet --upgrade pip
+	$(BIN)/pip install --quiet "$(TORCH_PIN)" -e ".[dev,onnx]"
+	touch $(STAMP)
+
+setup: $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/fdnet demo --out demo-out
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q tests
+
+clean:
+	rm -rf $(VENV) demo-out

@@ -1,0 +1,23 @@
+"""fdnet: appearance-invariant visual place recognition.
+
+FDNet (Qin et al., "Appearance-invariant place recognition by adversarially learning
+disentangled representation") plus the paper's baselines, matching and evaluation.
+
+Quick use::
+
+    import fdnet
+    model = fdnet.load("runs/my-run")          # a run directory written by `fdnet train`
+    vectors = model.describe(images)           # (N, H, W, C) float32 in [0, 1] -> (N, L)
+"""
+
+__version__ = "0.1.0"
+
+__all__ = ["load", "__version__"]
+
+
+def load(run_dir, device: str = "cpu"):
+    """Load a trained FDNet run directory and return its descriptor (``.describe(images)``)."""
+    # Imported lazily so `import fdnet` stays cheap (no torch) for metrics-only users.
+    from fdnet.descriptors.fdnet_descriptor import FDNetDescriptor
+
+    return FDNetDescriptor.from_run(run_dir, device=device)

@@ -1,0 +1,5 @@
+import sys
+
+from fdnet.cli import main
+
+sys.exit(main())

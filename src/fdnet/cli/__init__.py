@@ -1,0 +1,66 @@
+"""`fdnet` command line: a thin layer over the package.
+
+Each sub-command lives in its own module under ``fdnet.cli`` and exposes
+``register(subparsers)``, which adds its parser and sets ``func`` (called with the parsed args).
+Modules import heavy dependencies inside ``func`` so ``fdnet --help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import importlib.util
+import sys
+
+from fdnet import __version__
+from fdnet.errors import FdnetError
+
+# Order = order in `fdnet --help`.
+COMMAND_MODULES = [
+    "synth",
+    "train",
+    "extract",
+    "evaluate",
+    "match",
+    "groundtruth",
+    "vocabulary",
+    "methods",
+    "benchmark",
+    "demo",
+]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="fdnet",
+        description="Appearance-invariant visual place recognition (FDNet and baselines).",
+    )
+    parser.add_argument("--version", action="version", version=f"fdnet {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMAND_MODULES:
+        module_name = f"fdnet.cli.{name}"
+        if importlib.util.find_spec(module_name) is None:
+            continue
+        importlib.import_module(module_name).register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        result = args.func(args)
+    except FdnetError as exc:
+        print(f"fdnet {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"fdnet {args.command}: interrupted", file=sys.stderr)
+        return 130
+    return int(result or 0)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

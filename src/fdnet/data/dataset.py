@@ -1,0 +1,130 @@
+"""Datasets: a route traversed under several conditions.
+
+On disk the common layout is one sub-folder per condition (``summer/``, ``winter/``...), whose
+file names sort in traversal order. A :class:`Traverse` is one condition's ordered images; a
+:class:`RouteDataset` is the set of traverses of one route.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from fdnet.data.images import IMAGE_EXTENSIONS, list_images
+from fdnet.errors import DataError
+
+
+@dataclass
+class Traverse:
+    """One condition's images in traversal order.
+
+    ``frame_ids`` are the original positions of the images in the full traverse; they survive
+    slicing and filtering so frame-aligned ground truth stays correct.
+    ``positions`` (optional, (N, 2) metres) and ``timestamps`` (optional) come from adapters.
+    """
+
+    name: str
+    paths: list[Path]
+    frame_ids: np.ndarray | None = None
+    positions: np.ndarray | None = None
+    timestamps: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        self.paths = [Path(p) for p in self.paths]
+        if self.frame_ids is None:
+            self.frame_ids = np.arange(len(self.paths))
+        self.frame_ids = np.asarray(self.frame_ids, dtype=np.int64)
+        if len(self.frame_ids) != len(self.paths):
+            raise ValueError("frame_ids must have one entry per path")
+
+    def __len__(self) -> int:
+        return len(self.paths)
+
+    def select(self, indices: Sequence[int] | np.ndarray) -> "Traverse":
+        """A new traverse holding only ``indices`` (in that order)."""
+        idx = np.asarray(indices, dtype=np.int64)
+        return Traverse(
+            name=self.name,
+            paths=[self.paths[i] for i in idx],
+            frame_ids=self.frame_ids[idx],
+            positions=None if self.positions is None else self.positions[idx],
+            timestamps=None if self.timestamps is None else self.timestamps[idx],
+        )
+
+    def frames(self, start: int | None, end: int | None) -> "Traverse":
+        """Images whose position in this traverse is in [start, end) (Python slice semantics)."""
+        return self.select(np.arange(len(self))[slice(start, end)])
+
+    @classmethod
+    def from_folder(cls, folder: str | os.PathLike, name: str | None = None) -> "Traverse":
+        folder = Path(folder)
+        return cls(name=name or folder.name, paths=list_images(folder))
+
+
+@dataclass
+class RouteDataset:
+    """A route seen under several conditions: condition name -> :class:`Traverse`."""
+
+    root: Path
+    traverses: dict[str, Traverse] = field(default_factory=dict)
+
+    @property
+    def conditions(self) -> list[str]:
+        return list(self.traverses)
+
+    def __getitem__(self, condition: str) -> Traverse:
+        try:
+            return self.traverses[condition]
+        except KeyError:
+            raise DataError(
+                f"{self.root}: no condition {condition!r}; available: {', '.join(self.conditions) or 'none'}"
+            ) from None
+
+    @classmethod
+    def from_folder(cls, root: str | os.PathLike, conditions: Sequence[str] | None = None) -> "RouteDataset":
+        """Read ``root/<condition>/*.png|jpg...``; ``conditions`` picks and orders sub-folders."""
+        root = Path(root)
+        if not root.is_dir():
+            raise DataError(f"{root}: dataset folder not found")
+        if conditions is None:
+            conditions = sorted(
+                p.name
+                for p in root.iterdir()
+                if p.is_dir() and not p.name.startswith(".")
+                and any(c.suffix.lower() in IMAGE_EXTENSIONS for c in p.iterdir())
+            )
+            if not conditions:
+                raise DataError(f"{root}: no condition sub-folders with images (expected root/<condition>/*.png)")
+        traverses = {}
+        for name in conditions:
+            folder = root / name
+            if not folder.is_dir():
+                available = sorted(p.name for p in root.iterdir() if p.is_dir())
+                raise DataError(f"{folder}: condition folder not found; available: {', '.join(available) or 'none'}")
+            traverses[name] = Traverse.from_folder(folder, name)
+        return cls(root=root, traverses=traverses)
+
+    def frames(self, start: int | None, end: int | None) -> "RouteDataset":
+        """The same slice of every condition (e.g. to split a route into train and test)."""
+        return RouteDataset(self.root, {k: t.frames(start, end) for k, t in self.traverses.items()})
+
+
+def parse_frame_range(text: str | None) -> tuple[int | None, int | None]:
+    """``"START:END"`` -> (start, end), END exclusive; either side may be empty."""
+    if text is None or text == "":
+        return None, None
+    if ":" not in text:
+        raise DataError(f"frame range {text!r}: expected START:END (END exclusive), e.g. 0:1576")
+    start_s, end_s = text.split(":", 1)
+    try:
+        start = int(start_s) if start_s.strip() else None
+        end = int(end_s) if end_s.strip() else None
+    except ValueError:
+        raise DataError(f"frame range {text!r}: START and END must be integers") from None
+    if start is not None and end is not None and end <= start:
+        raise DataError(f"frame range {text!r}: END must be greater than START")
+    return start, end

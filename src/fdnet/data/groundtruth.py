@@ -1,0 +1,207 @@
+"""Ground truth: which references count as a correct match for each query.
+
+Three ways to build it, one type to use it:
+
+* frame-aligned (Nordland, Gardens Point, Alderley, FAS): query frame ``i`` matches reference
+  frames within ``tolerance`` frames of ``i``;
+* positions (Oxford RobotCar, St Lucia, own routes): references within ``tolerance_m`` metres;
+* an explicit list per query (VPR-Bench style CSV ``query_index,reference_indices``).
+
+Stored sparsely (one sorted index array per query) so 100k x 100k maps fit in memory.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from fdnet.errors import DataError
+from fdnet.io import atomic_write_text
+
+
+@dataclass
+class GroundTruth:
+    positives: list[np.ndarray]
+    num_references: int
+    description: str = ""
+
+    def __post_init__(self) -> None:
+        self.positives = [np.unique(np.asarray(p, dtype=np.int64)) for p in self.positives]
+
+    # ------------------------------------------------------------------ queries
+    @property
+    def num_queries(self) -> int:
+        return len(self.positives)
+
+    @property
+    def has_match(self) -> np.ndarray:
+        """(Q,) bool: queries with at least one correct reference."""
+        return np.array([len(p) > 0 for p in self.positives], dtype=bool)
+
+    def is_correct(self, query: int, reference: int) -> bool:
+        p = self.positives[query]
+        i = np.searchsorted(p, reference)
+        return bool(i < len(p) and p[i] == reference)
+
+    def correct_mask(self, retrieved: np.ndarray) -> np.ndarray:
+        """(Q, k) retrieved reference indices -> (Q, k) bool, True where correct."""
+        retrieved = np.asarray(retrieved)
+        if retrieved.ndim == 1:
+            retrieved = retrieved[:, None]
+        if retrieved.shape[0] != self.num_queries:
+            raise DataError(
+                f"ground truth has {self.num_queries} queries but {retrieved.shape[0]} were matched"
+            )
+        out = np.zeros(retrieved.shape, dtype=bool)
+        for q, p in enumerate(self.positives):
+            if len(p):
+                out[q] = np.isin(retrieved[q], p)
+        return out
+
+    def dense(self) -> np.ndarray:
+        """(Q, R) bool matrix (for small sets and plots)."""
+        m = np.zeros((self.num_queries, self.num_references), dtype=bool)
+        for q, p in enumerate(self.positives):
+            m[q, p] = True
+        return m
+
+    def subset(self, query_indices: Sequence[int] | None = None,
+               reference_indices: Sequence[int] | None = None) -> "GroundTruth":
+        """Restrict to some queries and references, re-indexing the references."""
+        q_idx = np.arange(self.num_queries) if query_indices is None else np.asarray(query_indices)
+        if reference_indices is None:
+            return GroundTruth([self.positives[q] for q in q_idx], self.num_references, self.description)
+        r_idx = np.asarray(reference_indices)
+        remap = np.full(self.num_references, -1, dtype=np.int64)
+        remap[r_idx] = np.arange(len(r_idx))
+        positives = []
+        for q in q_idx:
+            mapped = remap[self.positives[q]]
+            positives.append(mapped[mapped >= 0])
+        return GroundTruth(positives, len(r_idx), self.description)
+
+    # ------------------------------------------------------------------ builders
+    @classmethod
+    def from_frames(cls, query_frames: Sequence[int] | np.ndarray, reference_frames: Sequence[int] | np.ndarray,
+                    tolerance: int) -> "GroundTruth":
+        """Frame-aligned: query with frame id f matches references with |frame id - f| <= tolerance.
+
+        Frame ids (not list positions) are compared, so filtered or sliced traverses stay aligned.
+        """
+        if tolerance < 0:
+            raise DataError(f"frame tolerance must be >= 0, got {tolerance}")
+        qf = np.asarray(query_frames, dtype=np.int64)
+        rf = np.asarray(reference_frames, dtype=np.int64)
+        order = np.argsort(rf, kind="stable")
+        sorted_rf = rf[order]
+        lo = np.searchsorted(sorted_rf, qf - tolerance, side="left")
+        hi = np.searchsorted(sorted_rf, qf + tolerance, side="right")
+        positives = [np.sort(order[a:b]) for a, b in zip(lo, hi)]
+        return cls(positives, len(rf), f"frame-aligned, tolerance {tolerance} frames")
+
+    @classmethod
+    def aligned(cls, num_queries: int, num_references: int, tolerance: int) -> "GroundTruth":
+        """Frame-aligned traverses of the given lengths, frame i <-> frame i."""
+        return cls.from_frames(np.arange(num_queries), np.arange(num_references), tolerance)
+
+    @classmethod
+    def from_positions(cls, query_xy: np.ndarray, reference_xy: np.ndarray, tolerance_m: float) -> "GroundTruth":
+        """References within ``tolerance_m`` metres (Euclidean, planar metres) of each query."""
+        from scipy.spatial import cKDTree
+
+        q = np.asarray(query_xy, dtype=np.float64)
+        r = np.asarray(reference_xy, dtype=np.float64)
+        if q.ndim != 2 or r.ndim != 2 or q.shape[1] != r.shape[1]:
+            raise DataError(f"positions must be (N, 2) arrays, got {q.shape} and {r.shape}")
+        tree = cKDTree(r)
+        positives = [np.asarray(p, dtype=np.int64) for p in tree.query_ball_point(q, r=tolerance_m)]
+        return cls(positives, len(r), f"positions, tolerance {tolerance_m:g} m")
+
+    # ------------------------------------------------------------------ CSV
+    @classmethod
+    def from_csv(cls, path: str | os.PathLike, num_references: int | None = None,
+                 num_queries: int | None = None) -> "GroundTruth":
+        """Read ``query_index,reference_indices`` (space-separated list; empty = no match).
+
+        Queries missing from the file have no match. Indices are checked against
+        ``num_references``/``num_queries`` when given.
+        """
+        path = Path(path)
+        try:
+            text = path.read_text()
+        except FileNotFoundError:
+            raise DataError(f"{path}: ground-truth file not found") from None
+        except UnicodeDecodeError:
+            raise DataError(f"{path}: not a text CSV file") from None
+        rows = list(csv.reader(io.StringIO(text)))
+        if not rows:
+            raise DataError(f"{path}: empty ground-truth file")
+        start = 0
+        header = [h.strip().lower() for h in rows[0]]
+        if header and header[0] in ("query_index", "query", "query_idx"):
+            start = 1
+        entries: dict[int, np.ndarray] = {}
+        for line_no, row in enumerate(rows[start:], start=start + 1):
+            if not row or all(not c.strip() for c in row):
+                continue
+            if len(row) < 1 or len(row) > 2:
+                raise DataError(f"{path}, line {line_no}: expected 'query_index,reference_indices', got {row!r}")
+            try:
+                q = int(row[0].strip())
+                refs = [int(v) for v in (row[1].split() if len(row) > 1 else [])]
+            except ValueError:
+                raise DataError(f"{path}, line {line_no}: non-integer value in {','.join(row)!r}") from None
+            if q < 0 or (num_queries is not None and q >= num_queries):
+                raise DataError(f"{path}, line {line_no}: query index {q} out of range"
+                                + (f" (0..{num_queries - 1})" if num_queries is not None else ""))
+            bad = [r for r in refs if r < 0 or (num_references is not None and r >= num_references)]
+            if bad:
+                raise DataError(f"{path}, line {line_no}: reference index {bad[0]} out of range"
+                                + (f" (0..{num_references - 1})" if num_references is not None else ""))
+            if q in entries:
+                raise DataError(f"{path}, line {line_no}: query {q} listed twice")
+            entries[q] = np.asarray(refs, dtype=np.int64)
+        if not entries:
+            raise DataError(f"{path}: no ground-truth rows")
+        n_q = num_queries if num_queries is not None else max(entries) + 1
+        n_r = num_references
+        if n_r is None:
+            n_r = 1 + max((int(p.max()) for p in entries.values() if len(p)), default=-1)
+        positives = [entries.get(q, np.zeros(0, dtype=np.int64)) for q in range(n_q)]
+        return cls(positives, n_r, f"explicit list from {path.name}")
+
+    def to_csv(self, path: str | os.PathLike) -> None:
+        lines = ["query_index,reference_indices"]
+        lines += [f"{q},{' '.join(str(int(r)) for r in p)}" for q, p in enumerate(self.positives)]
+        atomic_write_text(path, "\n".join(lines) + "\n")
+
+    def summary(self) -> dict:
+        counts = np.array([len(p) for p in self.positives])
+        return {
+            "num_queries": self.num_queries,
+            "num_references": self.num_references,
+            "queries_with_match": int((counts > 0).sum()),
+            "mean_matches_per_query": float(counts.mean()) if len(counts) else 0.0,
+        }
+
+
+def latlon_to_metres(lat: np.ndarray, lon: np.ndarray, origin: tuple[float, float] | None = None) -> np.ndarray:
+    """Degrees -> local planar metres (equirectangular about ``origin``, default the mean).
+
+    Accurate to well under 0.1 % over the few kilometres of a VPR route, which is far below
+    any matching tolerance; a full UTM projection would need pyproj for no practical gain.
+    """
+    lat = np.asarray(lat, dtype=np.float64)
+    lon = np.asarray(lon, dtype=np.float64)
+    lat0, lon0 = origin if origin is not None else (float(lat.mean()), float(lon.mean()))
+    earth_radius = 6_371_008.8
+    x = np.radians(lon - lon0) * earth_radius * math.cos(math.radians(lat0))
+    y = np.radians(lat - lat0) * earth_radius
+    return np.stack([x, y], axis=1)

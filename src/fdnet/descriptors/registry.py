@@ -1,0 +1,55 @@
+"""Method name -> descriptor class, imported lazily so light methods never import torch."""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+
+from fdnet.errors import ConfigError
+
+# name: (module, class, one-line summary)
+_METHODS: dict[str, tuple[str, str, str]] = {
+    "raw": ("fdnet.descriptors.classic", "RawThumbnail", "downsampled grey thumbnail, cosine"),
+    "sad": ("fdnet.descriptors.classic", "SeqSLAMFrontEnd", "SeqSLAM front end: patch-normalised thumbnail, sum of absolute differences"),
+    "hog": ("fdnet.descriptors.classic", "HOGDescriptor", "histogram of oriented gradients (scikit-image), cosine"),
+    "fdnet": ("fdnet.descriptors.fdnet_descriptor", "FDNetDescriptor", "FDNet content vector (needs --checkpoint RUN_DIR)"),
+    "gist": ("fdnet.descriptors.gist", "GistDescriptor", "Gist: Gabor energies on a 4x4 grid (512-d)"),
+    "dbow": ("fdnet.descriptors.dbow", "DBoWDescriptor", "ORB bag of words, vocabulary tree, TF-IDF, L1 score"),
+    "conv3": ("fdnet.descriptors.conv3", "Conv3Descriptor", "pretrained CNN mid-level map + Gaussian random projection"),
+    "netvlad": ("fdnet.descriptors.netvlad", "NetVLADDescriptor", "NetVLAD on the pretrained backbone (needs --checkpoint)"),
+    "calc": ("fdnet.descriptors.calc", "CALCDescriptor", "CALC: auto-encoder reconstructing HOG (needs --checkpoint)"),
+    "landmarks": ("fdnet.descriptors.landmarks", "LandmarksDescriptor", "region proposals + CNN features, mutual NN matching"),
+    "hybridnet": ("fdnet.descriptors.hybridnet", "HybridNetDescriptor", "HybridNet conv4 (needs converted --weights)"),
+}
+
+
+def available_methods() -> dict[str, str]:
+    """Method name -> one-line summary."""
+    return {name: summary for name, (_, _, summary) in _METHODS.items()}
+
+
+def descriptor_class(name: str):
+    try:
+        module_name, class_name, _ = _METHODS[name]
+    except KeyError:
+        raise ConfigError(f"unknown method {name!r}; available: {', '.join(_METHODS)}") from None
+    module = importlib.import_module(module_name)
+    return getattr(module, class_name)
+
+
+def create(name: str, **options):
+    """Build descriptor ``name``; ``options`` are its constructor's keyword settings
+    (e.g. ``checkpoint=``, ``weights=``, ``vocabulary=``, ``dim=``). ``None`` values are dropped so
+    command-line defaults do not override a method's own."""
+    cls = descriptor_class(name)
+    options = {k: v for k, v in options.items() if v is not None}
+    params = inspect.signature(cls.__init__).parameters
+    accepts_any = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
+    if not accepts_any:
+        valid = [p for p in params if p != "self"]
+        unknown = sorted(set(options) - set(valid))
+        if unknown:
+            raise ConfigError(
+                f"method {name!r} has no setting(s) {', '.join(unknown)}; its settings: {', '.join(valid) or 'none'}"
+            )
+    return cls(**options)
