@@ -5,12 +5,12 @@ from fdnet.matching.sequence import enhance_contrast, sequence_similarity
 
 def test_sequence_matching_recovers_noisy_diagonal(rng):
     # A diagonal offset by 5 frames buried in noise: single images are often wrong,
-    # sequences of 8 frames are almost always right (away from the first frames).
+    # sequences of 8 frames are nearly always right (away from the first frames).
     s = rng.normal(size=(80, 100)).astype(np.float32)
     s[np.arange(80), np.arange(80) + 5] += 2.0
     single = (s.argmax(1) == np.arange(80) + 5)[10:].mean()
     seq = (sequence_similarity(s, length=8).argmax(1) == np.arange(80) + 5)[10:].mean()
-    assert seq > 0.95 > single
+    assert seq > 0.9 and single < 0.5
 
 
 def test_sequence_of_length_one_is_identity(rng):
