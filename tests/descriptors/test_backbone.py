@@ -1,0 +1,87 @@
+"""The pretrained EfficientNet-Lite0 trunk: real ImageNet weights, shapes, bf16 closeness."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fdnet.descriptors import backbone
+from fdnet.errors import ConfigError
+
+
+def _cos(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    a = a.reshape(len(a), -1)
+    b = b.reshape(len(b), -1)
+    return np.sum(a * b, 1) / (np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1))
+
+
+def test_pretrained_weights_are_loaded_not_random():
+    import torch
+
+    model = backbone.pretrained_model()
+    assert backbone.pretrained_model() is model  # cached per process
+    fresh = backbone.build_efficientnet_lite0(pretrained=False)
+    # every parameter tensor of the pretrained model differs from a random initialisation
+    w_pre = model._conv_stem.weight
+    w_rand = fresh._conv_stem.weight
+    assert not torch.allclose(w_pre, w_rand)
+    assert not model.training
+    assert not any(p.requires_grad for p in model.parameters())
+
+
+def test_maps_have_documented_shape_and_stride(rng):
+    images = rng.random((2, 64, 96, 3), dtype=np.float32)
+    for block in (4, backbone.CONV3_LIKE_BLOCK, 15):
+        fe = backbone.FeatureExtractor(block=block, bf16=False)
+        maps = fe.features(images)
+        assert maps.dtype == np.float32
+        assert maps.shape == (2, fe.channels, *fe.map_size((64, 96)))
+    assert backbone.FeatureExtractor(bf16=False).map_size((224, 224)) == (14, 14)
+
+
+def test_bf16_maps_stay_close_to_float32(rng):
+    images = rng.random((2, 96, 96, 3), dtype=np.float32)
+    exact = backbone.FeatureExtractor(bf16=False).features(images)
+    fast = backbone.FeatureExtractor(bf16=True).features(images)
+    assert fast.dtype == np.float32
+    assert _cos(exact, fast).min() > 0.98
+
+
+def test_deterministic_and_batch_independent(rng):
+    images = rng.random((3, 64, 64, 3), dtype=np.float32)
+    fe = backbone.FeatureExtractor(bf16=False)
+    whole = fe.features(images)
+    np.testing.assert_allclose(fe.features(images), whole)
+    np.testing.assert_allclose(fe.features(images[1:2])[0], whole[1], rtol=1e-4, atol=1e-4)
+
+
+def test_pretrained_features_separate_real_places():
+    """ImageNet features of the same place (left vs right camera) are more alike than of
+    places 60 frames apart: the weights carry real visual knowledge."""
+    from conftest import require_shared
+    from fdnet.data.images import load_images
+
+    root = require_shared("gardens_point")
+    left = load_images([root / "day_left" / f"Image{i:03d}.jpg" for i in (20, 80, 140)], (224, 224))
+    right = load_images([root / "day_right" / f"Image{i:03d}.jpg" for i in (20, 80, 140)], (224, 224))
+    fe = backbone.FeatureExtractor()
+    a = fe.features(left).reshape(3, -1)
+    b = fe.features(right).reshape(3, -1)
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    b /= np.linalg.norm(b, axis=1, keepdims=True)
+    sim = a @ b.T
+    assert (np.argmax(sim, axis=1) == np.arange(3)).all()
+
+
+def test_bad_block_is_a_config_error():
+    with pytest.raises(ConfigError, match="blocks 0..15"):
+        backbone.FeatureExtractor(block=16)
+
+
+def test_threads_are_restored():
+    import torch
+
+    before = torch.get_num_threads()
+    with backbone.torch_threads(1):
+        assert torch.get_num_threads() == 1
+    assert torch.get_num_threads() == before
