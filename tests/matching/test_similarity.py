@@ -42,3 +42,16 @@ def test_top_k_custom_similarity_and_k_larger_than_map(rng):
 def test_top_k_rejects_empty_map():
     with pytest.raises(ValueError):
         top_k(np.zeros((1, 2), np.float32), np.zeros((0, 2), np.float32), 1)
+
+
+def test_top_k_of_matrix_equals_streaming_top_k(rng):
+    from fdnet.matching.similarity import top_k_of_matrix
+
+    q = rng.normal(size=(20, 4)).astype(np.float32)
+    r = rng.normal(size=(30, 4)).astype(np.float32)
+    a_idx, a_s = top_k_of_matrix(q @ r.T, 4)
+    b_idx, b_s = top_k(q, r, 4)
+    np.testing.assert_array_equal(a_idx, b_idx)
+    np.testing.assert_allclose(a_s, b_s, rtol=1e-6)
+    full_idx, _ = top_k_of_matrix(q @ r.T, 30)
+    np.testing.assert_array_equal(full_idx, np.argsort(-(q @ r.T), axis=1, kind="stable"))

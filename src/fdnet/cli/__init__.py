@@ -22,6 +22,7 @@ COMMAND_MODULES = [
     "extract",
     "evaluate",
     "match",
+    "database",
     "groundtruth",
     "vocabulary",
     "methods",

@@ -43,6 +43,8 @@ class PlaceDatabase:
     dot_product: bool = True
     index_settings: IndexSettings = field(default_factory=IndexSettings)
     similarity: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
+    #: how to rebuild the descriptor (``fdnet.descriptors.create(method, **method_options)``)
+    method_options: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.names: list[str] = []
@@ -51,8 +53,9 @@ class PlaceDatabase:
         self._index = VectorIndex(self.dim, self.index_settings) if self.dot_product else None
 
     @classmethod
-    def for_descriptor(cls, descriptor, index: IndexSettings | None = None) -> "PlaceDatabase":
-        return cls(dim=descriptor.dim, method=descriptor.name, method_settings=descriptor.settings(),
+    def for_descriptor(cls, descriptor, index: IndexSettings | None = None,
+                       method_options: dict | None = None) -> "PlaceDatabase":
+        return cls(method_options=dict(method_options or {}),dim=descriptor.dim, method=descriptor.name, method_settings=descriptor.settings(),
                    dot_product=descriptor.dot_product_similarity,
                    index_settings=index or IndexSettings(),
                    similarity=None if descriptor.dot_product_similarity else descriptor.similarity)
@@ -128,6 +131,7 @@ class PlaceDatabase:
             "dim": self.dim,
             "method": self.method,
             "method_settings": self.method_settings,
+            "method_options": self.method_options,
             "dot_product": self.dot_product,
             "index": vars(self.index_settings),
             "names": self.names,
@@ -158,6 +162,7 @@ class PlaceDatabase:
             raise ConfigError(f"{folder}: database was built with method {meta['method']!r}, "
                               f"not {descriptor.name!r}")
         db = cls(dim=meta["dim"], method=meta["method"], method_settings=meta.get("method_settings", {}),
+                 method_options=meta.get("method_options", {}),
                  dot_product=meta["dot_product"], index_settings=IndexSettings(**meta.get("index", {})),
                  similarity=None if descriptor is None or descriptor.dot_product_similarity else descriptor.similarity)
         positions = [tuple(p) if p is not None else None for p in meta.get("positions", [])]

@@ -65,3 +65,17 @@ def top_k(queries: np.ndarray, references: np.ndarray, k: int = 1,
         best_idx[i:i + block_queries] = np.take_along_axis(run_idx, order, axis=1)
         best_score[i:i + block_queries] = np.take_along_axis(run_score, order, axis=1)
     return best_idx, best_score
+
+
+def top_k_of_matrix(similarity: np.ndarray, k: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Best ``k`` columns per row of an already computed (Q, R) matrix, best first
+    (ties: lower index first)."""
+    s = np.asarray(similarity, dtype=np.float32)
+    k = int(min(k, s.shape[1]))
+    if k <= 0:
+        raise ValueError("k must be >= 1 and the matrix must have at least one column")
+    part = np.argpartition(-s, k - 1, axis=1)[:, :k] if k < s.shape[1] else np.tile(np.arange(s.shape[1]), (len(s), 1))
+    part_scores = np.take_along_axis(s, part, axis=1)
+    order = np.lexsort((part, -part_scores), axis=1)
+    idx = np.take_along_axis(part, order, axis=1)
+    return idx.astype(np.int64), np.take_along_axis(s, idx, axis=1)
