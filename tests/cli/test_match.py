@@ -1,0 +1,83 @@
+"""`fdnet match` and `fdnet database` on images the test makes."""
+
+import csv
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from fdnet.cli import main
+
+
+def make_route(folder, n=12, seed=0, brightness=1.0):
+    """n distinct random-texture places; the same seed gives the same places."""
+    folder.mkdir(parents=True)
+    rng = np.random.default_rng(seed)
+    for i in range(n):
+        img = rng.integers(0, 256, size=(24, 32, 3)).astype(np.float32) * brightness
+        Image.fromarray(np.clip(img, 0, 255).astype(np.uint8)).save(folder / f"frame_{i:03d}.png")
+    return folder
+
+
+def read_rows(path):
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+@pytest.mark.parametrize("index", ["exact", "flat", "hnsw"])
+def test_match_writes_ranked_candidates(tmp_path, index):
+    ref = make_route(tmp_path / "ref")
+    qry = make_route(tmp_path / "qry", brightness=0.7)  # same places, darker
+    out = tmp_path / "matches.csv"
+    assert main(["match", "--reference", str(ref), "--query", str(qry), "--method", "raw",
+                 "--top-k", "3", "--index", index, "--out", str(out)]) == 0
+    rows = read_rows(out)
+    assert len(rows) == 12 * 3
+    best = [r for r in rows if r["rank"] == "1"]
+    assert all(r["query"] == r["reference"] for r in best)
+    scores = [float(r["score"]) for r in rows if r["query"] == "frame_000.png"]
+    assert scores == sorted(scores, reverse=True)
+
+
+def test_match_with_sequences_and_non_dot_product_method(tmp_path, capsys):
+    ref = make_route(tmp_path / "ref")
+    qry = make_route(tmp_path / "qry", brightness=0.8)
+    out = tmp_path / "seq.csv"
+    assert main(["match", "--reference", str(ref), "--query", str(qry), "--method", "sad",
+                 "--sequence-length", "3", "--out", str(out)]) == 0
+    best = [r for r in read_rows(out) if r["rank"] == "1"]
+    assert all(r["query"] == r["reference"] for r in best)
+    # SAD is not a dot product: a faiss index would rank by the wrong measure.
+    assert main(["match", "--reference", str(ref), "--query", str(qry), "--method", "sad",
+                 "--index", "flat", "--out", str(out)]) == 2
+    assert "dot product" in capsys.readouterr().err
+
+
+def test_match_bad_input_is_a_clear_error(tmp_path, capsys):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    ref = make_route(tmp_path / "ref")
+    assert main(["match", "--reference", str(ref), "--query", str(empty), "--method", "raw",
+                 "--out", str(tmp_path / "x.csv")]) == 2
+    err = capsys.readouterr().err
+    assert str(empty) in err and "no images" in err
+    assert main(["match", "--reference", str(ref), "--query", str(ref), "--method", "nope",
+                 "--out", str(tmp_path / "x.csv")]) == 2
+    assert "unknown method" in capsys.readouterr().err
+
+
+def test_database_build_add_query(tmp_path):
+    first = make_route(tmp_path / "first", n=8, seed=1)
+    second = make_route(tmp_path / "second", n=5, seed=2)
+    db = tmp_path / "db"
+    assert main(["database", "build", "--images", str(first), "--method", "raw", "--out", str(db)]) == 0
+    assert main(["database", "add", "--db", str(db), "--images", str(second)]) == 0
+    out = tmp_path / "q.csv"
+    assert main(["database", "query", "--db", str(db), "--images", str(second), "--top-k", "2",
+                 "--out", str(out)]) == 0
+    best = [r for r in read_rows(out) if r["rank"] == "1"]
+    assert [r["place"].endswith(r["query"]) and "second" in r["place"] for r in best] == [True] * 5
+    # Excluding the 5 most recent places forces matches into the first batch.
+    assert main(["database", "query", "--db", str(db), "--images", str(second), "--exclude-last", "5",
+                 "--out", str(out)]) == 0
+    assert all("first" in r["place"] for r in read_rows(out))
