@@ -6,9 +6,10 @@ import argparse
 import os
 
 
-def add_method_arguments(parser: argparse.ArgumentParser, multiple: bool = False) -> None:
-    """--method plus the options any method may take (passed to ``fdnet.descriptors.create``)."""
-    parser.add_argument("--method", required=True,
+def add_method_arguments(parser: argparse.ArgumentParser, multiple: bool = False, required: bool = True) -> None:
+    """--method plus the options any method may take (passed to ``fdnet.descriptors.create``).
+    ``required=False`` for commands where --method is one of several input modes."""
+    parser.add_argument("--method", required=required,
                         help="descriptor method" + (" (comma-separated for several)" if multiple else "")
                         + "; `fdnet methods` lists them")
     parser.add_argument("--checkpoint", help="run directory of a trained method (fdnet, netvlad, calc)")
