@@ -1,0 +1,234 @@
+"""`fdnet evaluate`: score methods (or a precomputed similarity matrix) against ground truth.
+
+Two input modes:
+
+* methods on images: ``--data DIR --reference COND --query COND --method NAME[,NAME...]``; DIR
+  has one sub-folder per condition, ground truth is frame alignment within ``--tolerance`` frames,
+  or the explicit list of ``--ground-truth CSV`` (``query_index,reference_indices``);
+* a precomputed matrix: ``--similarity FILE.npy --ground-truth FILE.csv`` (or the frame-aligned
+  ground truth of ``--data/--reference/--query``, which also lets ``--plots`` show images).
+
+Prints a table (protocol named in its header); ``--json`` writes the numbers (one object per
+method, ``{"results": [...]}`` for several); ``--plots DIR`` writes the PR curves, similarity
+matrices and example matches as PNG.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+
+from fdnet.cli.common import add_method_arguments
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "evaluate",
+        help="evaluate methods or a similarity matrix: R@N, R@100P, P@maxR, AUC-PR, timings",
+        description="Evaluate place-recognition methods on a reference/query split (or a precomputed "
+                    "query x reference similarity matrix) under a named protocol.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    data = p.add_argument_group("data")
+    data.add_argument("--data", help="dataset folder with one sub-folder per condition")
+    data.add_argument("--reference", help="condition (sub-folder of --data) used as the map")
+    data.add_argument("--query", help="condition (sub-folder of --data) used as queries")
+    data.add_argument("--tolerance", type=int, default=0,
+                      help="frame-aligned ground truth: query frame i matches reference frames i +- N")
+    data.add_argument("--frames", metavar="START:END", help="evaluate only these frames (END exclusive)")
+    data.add_argument("--ground-truth", metavar="CSV",
+                      help="explicit ground truth 'query_index,reference_indices' (space-separated "
+                           "list) instead of frame alignment")
+    methods = p.add_argument_group("methods")
+    add_method_arguments(methods, multiple=True, required=False)
+    methods.add_argument("--batch-size", type=int, default=64, help="images described per batch")
+    methods.add_argument("--sequence-length", type=int, default=0,
+                         help="rank by SeqSLAM sequence similarity over this many consecutive queries "
+                              "(0 = single image)")
+    methods.add_argument("--threads", type=int, help="torch CPU threads (default: all cores)")
+    matrix = p.add_argument_group("precomputed similarity")
+    matrix.add_argument("--similarity", metavar="FILE.npy",
+                        help="a (queries x references) score matrix, higher = more similar")
+    matrix.add_argument("--distance", action="store_true",
+                        help="the --similarity file holds distances (lower = more similar)")
+    matrix.add_argument("--name", help="method name reported for --similarity (default: file name)")
+    out = p.add_argument_group("metrics and output")
+    out.add_argument("--protocol", choices=["recall-over-queries", "vprbench"], default="recall-over-queries",
+                     help="PR definition: recall over queries with a true match (paper, VPR_Tutorial) or "
+                          "VPR-Bench's (recall over correct top-1 matches, sklearn AUC)")
+    out.add_argument("--thresholds", type=int,
+                     help="recall-over-queries: sweep N uniform thresholds over min-max-normalised "
+                          "scores (the paper uses 500) instead of every distinct score")
+    out.add_argument("--json", metavar="FILE", help="write the results as JSON")
+    out.add_argument("--no-curve", action="store_true", help="leave the PR curve points out of the JSON")
+    out.add_argument("--plots", metavar="DIR", help="write PR curves, similarity matrices and example matches")
+    out.add_argument("--examples", type=int, default=6, help="queries shown in the example-matches figure")
+    p.set_defaults(func=run)
+
+
+def build_split(args):
+    """The :class:`EvaluationSplit` the arguments describe (``--data/--reference/--query`` with
+    frame alignment or ``--ground-truth``, sliced by ``--frames``). The one place a split is
+    made, so other dataset formats can be hooked in here."""
+    from fdnet.data.dataset import RouteDataset, parse_frame_range
+    from fdnet.data.groundtruth import GroundTruth
+    from fdnet.data.split import EvaluationSplit, aligned_split
+    from fdnet.errors import ConfigError
+
+    if not (args.reference and args.query):
+        raise ConfigError("--data needs --reference COND and --query COND (sub-folders of --data)")
+    start, end = parse_frame_range(args.frames)
+    dataset = RouteDataset.from_folder(args.data, [args.reference, args.query]
+                                       if args.reference != args.query else [args.reference])
+    if args.ground_truth is None:
+        return aligned_split(dataset, args.reference, args.query, args.tolerance, start, end)
+    ref_full, query_full = dataset[args.reference], dataset[args.query]
+    gt = GroundTruth.from_csv(args.ground_truth, num_references=len(ref_full), num_queries=len(query_full))
+    ref, query = ref_full.frames(start, end), query_full.frames(start, end)
+    if len(ref) == 0 or len(query) == 0:
+        raise ConfigError(f"--frames {args.frames} selects no images of {dataset.root}")
+    gt = gt.subset(query.frame_ids, ref.frame_ids)
+    return EvaluationSplit(ref, query, gt, f"{dataset.root.name}: {args.query} -> {args.reference}, "
+                                           f"{gt.description}")
+
+
+def load_similarity(path: str, distance: bool = False):
+    """A plain numeric 2-D .npy matrix, finite everywhere; never unpickles. Distances are negated."""
+    import zipfile
+    from pathlib import Path
+
+    import numpy as np
+
+    from fdnet.errors import DataError
+
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: similarity file not found")
+    try:
+        matrix = np.load(path, allow_pickle=False)
+    except ValueError as exc:
+        if "pickle" in str(exc):
+            raise DataError(f"{path}: holds Python objects (pickled data), which are never loaded; save a "
+                            f"plain numeric array with numpy.save") from None
+        raise DataError(f"{path}: not a readable .npy file ({exc})") from None
+    except (OSError, EOFError, zipfile.BadZipFile) as exc:
+        raise DataError(f"{path}: not a readable .npy file ({exc.__class__.__name__}: {exc})") from None
+    if not isinstance(matrix, np.ndarray):
+        matrix.close()
+        raise DataError(f"{path}: is an .npz archive; expected one .npy array (queries x references)")
+    if not (np.issubdtype(matrix.dtype, np.floating) or np.issubdtype(matrix.dtype, np.integer)):
+        raise DataError(f"{path}: expected a numeric (float or integer) matrix, got dtype {matrix.dtype}")
+    if matrix.ndim != 2:
+        raise DataError(f"{path}: expected a 2-D (queries x references) matrix, got shape {matrix.shape}")
+    if matrix.size == 0:
+        raise DataError(f"{path}: the matrix is empty (shape {matrix.shape})")
+    bad = ~np.isfinite(matrix) if np.issubdtype(matrix.dtype, np.floating) else None
+    if bad is not None and bad.any():
+        q, r = np.argwhere(bad)[0]
+        raise DataError(f"{path}: {int(bad.sum())} NaN or infinite entries (first at query {q}, "
+                        f"reference {r}); every query-reference pair needs a score")
+    matrix = matrix.astype(np.float64)
+    return -matrix if distance else matrix
+
+
+def _safe(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", name) or "method"
+
+
+def _write_plots(results, protocol: str, folder: str, examples: int) -> list:
+    from pathlib import Path
+
+    from fdnet.evaluation import plots
+
+    folder = Path(folder)
+    written = [plots.plot_pr_curves({r.method: (r.metrics[protocol].curve, r.metrics[protocol].auc_pr)
+                                     for r in results}, folder / "pr_curves.png",
+                                    title=f"{results[0].dataset or 'PR curves'} [{protocol}]")]
+    for r in results:
+        if r.similarity is not None:
+            written.append(plots.plot_similarity_matrix(r.similarity, folder / f"similarity_{_safe(r.method)}.png",
+                                                        r.ground_truth, best=r.retrieved[:, 0], title=r.method))
+        if r.query_paths is not None and r.reference_paths is not None:
+            correct = r.ground_truth.correct_mask(r.retrieved[:, :1])[:, 0]
+            written.append(plots.plot_example_matches(r.query_paths, r.reference_paths, r.retrieved[:, 0], correct,
+                                                      folder / f"matches_{_safe(r.method)}.png", count=examples,
+                                                      title=f"{r.method}: query (top) and best match"))
+    return written
+
+
+def run(args) -> int:
+    import sys
+    from pathlib import Path
+
+    from fdnet.errors import ConfigError, DataError
+
+    if args.similarity and args.method:
+        raise ConfigError("give either --similarity FILE.npy or --method NAME, not both")
+    if not args.similarity and not args.method:
+        raise ConfigError("nothing to evaluate: give --method NAME with --data, or --similarity FILE.npy")
+    if args.thresholds is not None and args.protocol != "recall-over-queries":
+        raise ConfigError("--thresholds applies to --protocol recall-over-queries only (vprbench uses "
+                          "every top-1 score, as VPR-Bench does)")
+    if args.thresholds is not None and args.thresholds < 2:
+        raise ConfigError(f"--thresholds must be at least 2, got {args.thresholds}")
+    if args.tolerance < 0:
+        raise ConfigError(f"--tolerance must be >= 0, got {args.tolerance}")
+    protocols = (args.protocol,)
+    keep_matrix = bool(args.plots)
+
+    def log(message: str) -> None:
+        print(message, file=sys.stderr)
+
+    results = []
+    if args.similarity:
+        from fdnet.data.groundtruth import GroundTruth
+        from fdnet.evaluation.experiment import evaluate_matrix
+
+        matrix = load_similarity(args.similarity, args.distance)
+        split = build_split(args) if args.data else None
+        if split is not None:
+            gt = split.ground_truth
+        elif args.ground_truth:
+            gt = GroundTruth.from_csv(args.ground_truth, num_references=matrix.shape[1],
+                                      num_queries=matrix.shape[0])
+        else:
+            raise ConfigError("--similarity needs ground truth: --ground-truth CSV, or --data with "
+                              "--reference/--query (frame-aligned, --tolerance)")
+        if matrix.shape != (gt.num_queries, gt.num_references):
+            raise DataError(f"{args.similarity}: matrix is {matrix.shape[0]} x {matrix.shape[1]} but the ground "
+                              f"truth is for {gt.num_queries} queries x {gt.num_references} references")
+        name = args.name or re.sub(r"_similarity$", "", Path(args.similarity).stem)
+        results.append(evaluate_matrix(
+            matrix, gt, name, protocols, args.thresholds,
+            dataset=split.description if split else f"{Path(args.similarity).name} vs {gt.description}",
+            query_paths=split.query.paths if split else None,
+            reference_paths=split.reference.paths if split else None))
+    else:
+        from fdnet.cli.common import create_descriptor, set_threads
+        from fdnet.evaluation.experiment import evaluate_method
+
+        if not args.data:
+            raise ConfigError("--method needs --data DIR (one sub-folder per condition)")
+        if args.batch_size < 1:
+            raise ConfigError(f"--batch-size must be >= 1, got {args.batch_size}")
+        names = [n.strip() for n in args.method.split(",") if n.strip()]
+        split = build_split(args)
+        set_threads(args.threads)
+        descriptors = [create_descriptor(name, args) for name in names]  # fail fast on a bad name
+        log(f"evaluating {', '.join(names)} on {split.description}: {len(split.query)} queries x "
+            f"{len(split.reference)} references")
+        for descriptor in descriptors:
+            results.append(evaluate_method(descriptor, split, protocols, args.thresholds,
+                                           batch_size=args.batch_size, sequence_length=args.sequence_length,
+                                           keep_similarity=keep_matrix, progress=sys.stderr.isatty(), log=log))
+
+    from fdnet.evaluation.report import format_table, write_json
+
+    print(format_table(results, args.protocol))
+    if args.json:
+        write_json(args.json, results, args.protocol, include_curve=not args.no_curve)
+        log(f"wrote {args.json}")
+    if args.plots:
+        for path in _write_plots(results, args.protocol, args.plots, args.examples):
+            log(f"wrote {path}")
+    return 0

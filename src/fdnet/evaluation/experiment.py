@@ -1,0 +1,211 @@
+"""Run one descriptor on one evaluation split and measure it: the experiment runner.
+
+The pipeline, for any method (only the :class:`~fdnet.descriptors.base.Descriptor` interface is
+used, never a method's name):
+
+1. ``descriptor.fit(reference paths)`` when ``descriptor.needs_fit`` (e.g. a DBoW vocabulary
+   learnt on the map; reported, because it means the method saw the map before matching);
+2. describe reference and query images in batches (``describe_paths``), timing the model only:
+   ms/image over references and queries together;
+3. rank references for every query by ``descriptor.similarity`` -- blocked top-k
+   (:func:`fdnet.matching.similarity.top_k`) so no (Q, R) matrix is needed, or the full matrix
+   when sequence matching or plots need it -- timing it as ms/query;
+4. metrics under each requested protocol (:mod:`fdnet.evaluation.metrics`).
+
+Results of a precomputed similarity matrix (no descriptor) use :func:`evaluate_matrix`, so the
+report and plots treat both alike.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from fdnet.data.groundtruth import GroundTruth
+from fdnet.data.split import EvaluationSplit
+from fdnet.descriptors.base import Descriptor, describe_paths
+from fdnet.errors import ConfigError, DataError
+from fdnet.evaluation.metrics import (
+    DEFAULT_NS,
+    RECALL_OVER_QUERIES,
+    Metrics,
+    evaluate_retrieval,
+    top_k_of_matrix,
+)
+from fdnet.matching.similarity import similarity_matrix, top_k
+
+#: largest Q x R matrix kept for plots (float32: 400 MB); larger maps are ranked blockwise only
+MAX_MATRIX_ENTRIES = 100_000_000
+
+
+@dataclass
+class MethodResult:
+    """One method on one split: metrics per protocol plus what is needed to report and plot."""
+
+    method: str
+    metrics: dict[str, Metrics]
+    retrieved: np.ndarray
+    scores: np.ndarray
+    ground_truth: GroundTruth
+    settings: dict = field(default_factory=dict)
+    dataset: str = ""
+    timing: dict = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+    similarity: np.ndarray | None = None
+    query_paths: list[Path] | None = None
+    reference_paths: list[Path] | None = None
+
+    @property
+    def protocols(self) -> list[str]:
+        return list(self.metrics)
+
+    def to_dict(self, protocol: str | None = None, include_curve: bool = True) -> dict:
+        """The JSON object of this result under ``protocol`` (default: the first evaluated).
+
+        Keys: ``method``, ``protocol``, ``num_queries``, ``recall_at_100_precision``,
+        ``precision_at_max_recall``, ``auc_pr``, ``recall_at_n`` ({"1", "5", "10", "20"}),
+        ``top1_accuracy``, ``protocol_definition``, ``thresholds``, ``num_queries_with_match``,
+        ``num_references``, ``dataset``, ``ground_truth``, ``settings``, ``timing``
+        (``ms_per_image``, ``ms_per_query``...), ``notes`` and ``pr_curve``.
+        """
+        protocol = protocol or self.protocols[0]
+        m = self.metrics[protocol].to_dict(include_curve=False)
+        out = {"method": self.method, **m,
+               "num_references": int(self.ground_truth.num_references),
+               "dataset": self.dataset,
+               "ground_truth": self.ground_truth.description,
+               "settings": self.settings,
+               "timing": self.timing}
+        notes = self.notes + m.pop("notes", [])
+        out.pop("notes", None)
+        if notes:
+            out["notes"] = notes
+        if include_curve:
+            out["pr_curve"] = self.metrics[protocol].curve.to_dict()
+        return out
+
+
+def _metrics(retrieved, scores, gt, protocols, thresholds, ns) -> dict[str, Metrics]:
+    return {p: evaluate_retrieval(retrieved, scores, gt, p, thresholds=thresholds if p == RECALL_OVER_QUERIES
+                                  else None, ns=ns) for p in protocols}
+
+
+def evaluate_method(
+    descriptor: Descriptor,
+    split: EvaluationSplit,
+    protocols: Sequence[str] = (RECALL_OVER_QUERIES,),
+    thresholds: int | None = None,
+    ns: Sequence[int] = DEFAULT_NS,
+    batch_size: int = 64,
+    sequence_length: int = 0,
+    keep_similarity: bool = False,
+    progress: bool = False,
+    log: Callable[[str], None] | None = None,
+) -> MethodResult:
+    """Describe, match and score ``descriptor`` on ``split`` (see the module docstring).
+
+    ``thresholds`` is the recall-over-queries sweep (None = exact, 500 = the paper's);
+    ``sequence_length`` > 1 ranks by SeqSLAM sequence similarity over the full matrix
+    (:func:`fdnet.matching.sequence.sequence_similarity`); ``keep_similarity`` keeps the (Q, R)
+    matrix on the result for plots (skipped, with a note, beyond ``MAX_MATRIX_ENTRIES``).
+    """
+    say = log or (lambda message: None)
+    ref_paths, query_paths = list(split.reference.paths), list(split.query.paths)
+    notes: list[str] = []
+    timing: dict = {}
+
+    if descriptor.needs_fit:
+        say(f"{descriptor.name}: fitting on the {len(ref_paths)} reference images before matching")
+        t0 = time.perf_counter()
+        descriptor.fit(ref_paths)
+        timing["seconds_fit"] = time.perf_counter() - t0
+        notes.append(f"fitted on the {len(ref_paths)} reference images of this split")
+
+    ref_timing: dict = {}
+    query_timing: dict = {}
+    refs = describe_paths(descriptor, ref_paths, batch_size, progress=progress, timing=ref_timing)
+    queries = describe_paths(descriptor, query_paths, batch_size, progress=progress, timing=query_timing)
+    num_images = ref_timing["num_images"] + query_timing["num_images"]
+    seconds_describe = ref_timing["seconds_describe"] + query_timing["seconds_describe"]
+    timing["ms_per_image"] = 1000.0 * seconds_describe / max(num_images, 1)
+
+    k = max(ns)
+    matrix_entries = len(queries) * len(refs)
+    need_matrix = sequence_length > 1
+    if need_matrix and matrix_entries > MAX_MATRIX_ENTRIES:
+        raise ConfigError(f"sequence matching needs the full {len(queries)} x {len(refs)} similarity matrix, "
+                          f"larger than {MAX_MATRIX_ENTRIES:,} entries; evaluate a shorter --frames range")
+    similarity = None
+    t0 = time.perf_counter()
+    if need_matrix:
+        from fdnet.matching.sequence import sequence_similarity
+
+        similarity = sequence_similarity(similarity_matrix(queries, refs, descriptor.similarity), sequence_length)
+        retrieved, scores = top_k_of_matrix(similarity, k)
+    else:
+        retrieved, scores = top_k(queries, refs, k, similarity=descriptor.similarity)
+    timing["ms_per_query"] = 1000.0 * (time.perf_counter() - t0) / max(len(queries), 1)
+    timing["num_references"] = len(refs)
+    timing["num_queries"] = len(queries)
+    if sequence_length > 1:
+        notes.append(f"ranked by SeqSLAM sequence similarity over {sequence_length} consecutive queries")
+
+    if keep_similarity and similarity is None:
+        if matrix_entries <= MAX_MATRIX_ENTRIES:
+            similarity = similarity_matrix(queries, refs, descriptor.similarity)
+        else:
+            notes.append(f"similarity matrix not kept for plots ({len(queries)} x {len(refs)} is too large)")
+
+    settings = dict(descriptor.settings())
+    settings.setdefault("dim", int(descriptor.dim))
+    if sequence_length > 1:
+        settings["sequence_length"] = int(sequence_length)
+    return MethodResult(
+        method=descriptor.name,
+        metrics=_metrics(retrieved, scores, split.ground_truth, protocols, thresholds, ns),
+        retrieved=retrieved,
+        scores=scores,
+        ground_truth=split.ground_truth,
+        settings=settings,
+        dataset=split.description,
+        timing=timing,
+        notes=notes,
+        similarity=similarity if keep_similarity else None,
+        query_paths=query_paths,
+        reference_paths=ref_paths,
+    )
+
+
+def evaluate_matrix(
+    similarity: np.ndarray,
+    ground_truth: GroundTruth,
+    method: str,
+    protocols: Sequence[str] = (RECALL_OVER_QUERIES,),
+    thresholds: int | None = None,
+    ns: Sequence[int] = DEFAULT_NS,
+    dataset: str = "",
+    query_paths: Sequence[Path] | None = None,
+    reference_paths: Sequence[Path] | None = None,
+) -> MethodResult:
+    """A precomputed (Q, R) similarity matrix (higher = more similar) as a :class:`MethodResult`."""
+    s = np.asarray(similarity)
+    if s.shape != (ground_truth.num_queries, ground_truth.num_references):
+        raise DataError(f"similarity matrix is {s.shape[0]} x {s.shape[1]} but the ground truth is for "
+                        f"{ground_truth.num_queries} queries x {ground_truth.num_references} references")
+    retrieved, scores = top_k_of_matrix(s, max(ns))
+    return MethodResult(
+        method=method,
+        metrics=_metrics(retrieved, scores, ground_truth, protocols, thresholds, ns),
+        retrieved=retrieved,
+        scores=scores,
+        ground_truth=ground_truth,
+        settings={"source": "precomputed similarity matrix"},
+        dataset=dataset,
+        similarity=s,
+        query_paths=None if query_paths is None else [Path(p) for p in query_paths],
+        reference_paths=None if reference_paths is None else [Path(p) for p in reference_paths],
+    )

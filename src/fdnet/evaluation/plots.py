@@ -1,0 +1,126 @@
+"""Figures: PR curves of several methods, a similarity matrix with its ground truth, example matches.
+
+matplotlib with the non-interactive Agg backend (no display needed); every PNG is written
+atomically. The similarity matrix figure follows the paper's Fig. 8 (queries x references, bright =
+similar) with the ground truth drawn over it; the example grid follows VPR_Tutorial's
+``show_correct_and_wrong_matches`` (query beside its best match, framed green if correct, red if not).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from fdnet.data.groundtruth import GroundTruth
+from fdnet.io import atomic_path
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path: str | os.PathLike) -> Path:
+    plt = _pyplot()
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def plot_pr_curves(curves: dict, path: str | os.PathLike, title: str = "") -> Path:
+    """Several methods' PR curves on one figure.
+
+    ``curves``: method name -> :class:`~fdnet.evaluation.metrics.PRCurve` (or a ``(recall,
+    precision)`` pair); the legend shows each method's AUC when given as ``{name: (curve, auc)}``.
+    """
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(5.5, 4.5))
+    for name, entry in curves.items():
+        label = name
+        if isinstance(entry, tuple) and len(entry) == 2 and hasattr(entry[0], "recall"):
+            entry, auc = entry
+            label = f"{name} (AUC {auc:.3f})"
+        recall, precision = (entry.recall, entry.precision) if hasattr(entry, "recall") else entry
+        ax.plot(recall, precision, label=label, drawstyle="default")
+    ax.set_xlabel("recall")
+    ax.set_ylabel("precision")
+    ax.set_xlim(0, 1.02)
+    ax.set_ylim(0, 1.02)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="lower left", fontsize="small")
+    if title:
+        ax.set_title(title, fontsize="medium")
+    return _save(fig, path)
+
+
+def plot_similarity_matrix(similarity: np.ndarray, path: str | os.PathLike,
+                           ground_truth: GroundTruth | None = None,
+                           best: np.ndarray | None = None, title: str = "") -> Path:
+    """The (Q, R) matrix as an image (rows = queries), ground-truth cells outlined in translucent
+    white and each query's best match marked: green dot if correct, red cross if not."""
+    plt = _pyplot()
+    s = np.asarray(similarity, dtype=np.float32)
+    fig, ax = plt.subplots(figsize=(6, 6 * min(max(s.shape[0] / max(s.shape[1], 1), 0.3), 3)))
+    image = ax.imshow(s, cmap="viridis", aspect="auto", interpolation="nearest")
+    fig.colorbar(image, ax=ax, fraction=0.046, pad=0.04, label="similarity")
+    if ground_truth is not None:
+        gt = ground_truth.dense().astype(np.float32)
+        overlay = np.zeros((*gt.shape, 4), dtype=np.float32)
+        overlay[..., :3] = 1.0
+        overlay[..., 3] = 0.35 * gt
+        ax.imshow(overlay, aspect="auto", interpolation="nearest")
+    if best is not None:
+        best = np.asarray(best).reshape(-1)
+        rows = np.arange(len(best))
+        if ground_truth is not None:
+            ok = ground_truth.correct_mask(best[:, None])[:, 0]
+            ax.scatter(best[ok], rows[ok], s=6, c="lime", marker="o", label="best match, correct")
+            ax.scatter(best[~ok], rows[~ok], s=8, c="red", marker="x", label="best match, wrong")
+            ax.legend(loc="upper right", fontsize="x-small")
+        else:
+            ax.scatter(best, rows, s=6, c="white", marker="o")
+    ax.set_xlabel("reference")
+    ax.set_ylabel("query")
+    if title:
+        ax.set_title(title, fontsize="medium")
+    return _save(fig, path)
+
+
+def plot_example_matches(query_paths: Sequence[str | os.PathLike], reference_paths: Sequence[str | os.PathLike],
+                         best: np.ndarray, correct: np.ndarray, path: str | os.PathLike,
+                         count: int = 6, title: str = "", image_size: tuple[int, int] = (120, 160)) -> Path:
+    """A grid of ``count`` queries (evenly spaced over the traverse): query on top, its best match
+    below, framed green if the match is correct and red if not."""
+    from fdnet.data.images import load_image
+
+    plt = _pyplot()
+    best = np.asarray(best).reshape(-1)
+    correct = np.asarray(correct, dtype=bool).reshape(-1)
+    count = max(1, min(count, len(query_paths)))
+    chosen = np.unique(np.linspace(0, len(query_paths) - 1, count).round().astype(int))
+    fig, axes = plt.subplots(2, len(chosen), figsize=(2.2 * len(chosen), 4.2), squeeze=False)
+    for col, q in enumerate(chosen):
+        colour = "limegreen" if correct[q] else "red"
+        pairs = ((0, query_paths[q], f"query {q}"), (1, reference_paths[best[q]], f"best: ref {best[q]} ({'correct' if correct[q] else 'wrong'})"))
+        for row, image_path, label in pairs:
+            ax = axes[row, col]
+            ax.imshow(load_image(image_path, image_size))
+            ax.set_title(label, fontsize="x-small")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if row == 1:
+                for spine in ax.spines.values():
+                    spine.set_edgecolor(colour)
+                    spine.set_linewidth(4)
+    if title:
+        fig.suptitle(title, fontsize="medium")
+    return _save(fig, path)

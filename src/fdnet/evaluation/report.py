@@ -1,0 +1,68 @@
+"""Results for people (a fixed-width table) and for programs (JSON, written atomically).
+
+JSON layout: one method -> one object (see :meth:`MethodResult.to_dict`) with at least
+``method``, ``protocol``, ``num_queries``, ``recall_at_100_precision``, ``precision_at_max_recall``,
+``auc_pr`` and ``recall_at_n`` (keyed "1", "5", "10", "20"); several methods in one run ->
+``{"results": [one such object per method]}``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from typing import Sequence
+
+from fdnet.evaluation.experiment import MethodResult
+from fdnet.evaluation.metrics import PROTOCOLS
+from fdnet.io import atomic_write_text
+
+_COLUMNS = ("R@1", "R@5", "R@10", "R@20", "R@100P", "P@maxR", "AUC-PR", "ms/image", "ms/query")
+
+
+def _number(value, digits: int = 3) -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "-"
+    return f"{value:.{digits}f}"
+
+
+def format_table(results: Sequence[MethodResult], protocol: str | None = None) -> str:
+    """One row per method; the protocol (and its definition), data and ground truth in the header."""
+    if not results:
+        return "(no results)"
+    protocol = protocol or results[0].protocols[0]
+    first = results[0].metrics[protocol]
+    lines = [f"protocol: {protocol} -- {PROTOCOLS[protocol]}"]
+    if first.thresholds != "exact":
+        lines.append(f"thresholds: {first.thresholds} over min-max-normalised best-match scores")
+    if results[0].dataset:
+        lines.append(f"data: {results[0].dataset}")
+    lines.append(f"ground truth: {results[0].ground_truth.description}; {first.num_queries} queries "
+                 f"({first.num_queries_with_match} with a true match) x {results[0].ground_truth.num_references} "
+                 f"references")
+    width = max(8, *(len(r.method) for r in results))
+    header = f"{'method':<{width}}  " + "  ".join(f"{c:>8}" for c in _COLUMNS)
+    lines += [header, "-" * len(header)]
+    for r in results:
+        m = r.metrics[protocol]
+        cells = [_number(m.recall_at_n.get(n)) for n in (1, 5, 10, 20)]
+        cells += [_number(m.recall_at_100_precision), _number(m.precision_at_max_recall), _number(m.auc_pr)]
+        cells += [_number(r.timing.get("ms_per_image"), 2), _number(r.timing.get("ms_per_query"), 3)]
+        lines.append(f"{r.method:<{width}}  " + "  ".join(f"{c:>8}" for c in cells))
+    notes = [f"{r.method}: {n}" for r in results for n in r.notes + r.metrics[protocol].notes]
+    lines += [f"note: {n}" for n in notes]
+    return "\n".join(lines)
+
+
+def results_json(results: Sequence[MethodResult], protocol: str | None = None,
+                 include_curve: bool = True) -> dict:
+    """The JSON document: the object of the only result, or ``{"results": [...]}`` for several."""
+    objects = [r.to_dict(protocol, include_curve=include_curve) for r in results]
+    return objects[0] if len(objects) == 1 else {"results": objects}
+
+
+def write_json(path: str | os.PathLike, results: Sequence[MethodResult], protocol: str | None = None,
+               include_curve: bool = True) -> None:
+    """Write :func:`results_json` to ``path`` atomically (a crash never leaves half a file)."""
+    document = results_json(results, protocol, include_curve)
+    atomic_write_text(path, json.dumps(document, indent=2, allow_nan=False) + "\n")
