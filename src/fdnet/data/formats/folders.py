@@ -1,0 +1,127 @@
+"""The plain layout: one sub-folder per condition, file names in traversal order.
+
+``root/<condition>/*.jpg|png...``; the same position in two conditions is the same place
+(frame-aligned ground truth with a tolerance in frames), unless an explicit ground-truth CSV
+(``query_index,reference_indices``) is given. This is how ``../shared/data/nordland_trimmed``
+and ``gardens_point`` are laid out, and how a user's own multi-condition route usually is.
+
+Gardens Point Walking (Glover 2014) is recognised by its condition names (``day_left``,
+``day_right``, ``night_right``): its default tolerance is +-2 frames and its default pair
+``night_right`` -> ``day_right``, as VPR-Bench (Zaffar et al., IJCV 2021) evaluates it. Any other
+folder defaults to tolerance 0 (exact position).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from fdnet.data.dataset import RouteDataset, Traverse
+from fdnet.data.groundtruth import GroundTruth
+from fdnet.data.split import EvaluationSplit
+from fdnet.errors import ConfigError, DataError
+
+from fdnet.data.formats._common import (
+    DatasetFormat, describe, has_images, image_files, pick_conditions, resolve_split,
+)
+
+GARDENS_POINT = {"day_left", "day_right", "night_right"}
+
+
+@dataclass
+class FoldersOptions:
+    tolerance: int | None = None  # frames; None = 2 for Gardens Point, else 0
+    ground_truth: str | None = None  # explicit CSV (relative to the dataset folder or absolute)
+
+
+def condition_folders(root: Path) -> list[str]:
+    if not root.is_dir():
+        raise DataError(f"{root}: dataset folder not found")
+    return sorted(p.name for p in root.iterdir()
+                  if p.is_dir() and not p.name.startswith(".") and has_images(p))
+
+
+def read_traverse(folder: Path, name: str | None = None) -> Traverse:
+    """A condition folder, naturally sorted; frame ids are positions (position = place)."""
+    return Traverse(name=name or folder.name, paths=image_files(folder))
+
+
+def is_gardens_point(conditions: Sequence[str]) -> bool:
+    return len(conditions) >= 2 and set(conditions) <= GARDENS_POINT
+
+
+def default_pair(root: Path, conditions: list[str], reference: str | None,
+                 query: str | None) -> tuple[str, str]:
+    if reference and query:
+        return reference, query
+    if is_gardens_point(conditions) and {"day_right", "night_right"} <= set(conditions):
+        return reference or "day_right", query or "night_right"
+    others = [c for c in conditions if c not in (reference, query)]
+    if len(conditions) == 2:
+        reference = reference or next(c for c in conditions if c != query)
+        query = query or next(c for c in conditions if c != reference)
+        return reference, query
+    raise ConfigError(f"{root}: has {len(conditions)} conditions ({', '.join(conditions)}); name the "
+                      f"pair with --reference and --query" + (f" (e.g. {others[0]})" if others else ""))
+
+
+class FoldersFormat(DatasetFormat):
+    name = "folders"
+    summary = "one sub-folder per condition, frame-aligned by position (or an explicit ground-truth CSV)"
+    Options = FoldersOptions
+    splits = {}
+
+    def detect(self, root: Path) -> bool:
+        try:
+            return len(condition_folders(root)) >= 2
+        except DataError:
+            return False
+
+    def _tolerance(self, conditions: list[str], options: FoldersOptions) -> int:
+        if options.tolerance is not None:
+            return int(options.tolerance)
+        return 2 if is_gardens_point(conditions) else 0
+
+    def evaluation_split(self, root, reference, query, split, options: FoldersOptions) -> EvaluationSplit:
+        conditions = condition_folders(root)
+        if len(conditions) < 2 and not (reference and query):
+            raise DataError(f"{root}: needs at least two condition sub-folders with images, found "
+                            f"{len(conditions)} ({', '.join(conditions) or 'none'})")
+        reference, query = default_pair(root, conditions, reference, query)
+        pick_conditions(conditions, [reference, query], root)
+        ref_full, qry_full = read_traverse(root / reference), read_traverse(root / query)
+
+        if options.ground_truth:
+            gt_path = Path(options.ground_truth)
+            gt_path = gt_path if gt_path.is_absolute() else root / gt_path
+            gt_full = GroundTruth.from_csv(gt_path, num_references=len(ref_full), num_queries=len(qry_full))
+            start, end = resolve_split(split, {}, len(qry_full), str(root))
+            q_idx = np.arange(len(qry_full))[slice(start, end)]
+            r_idx = np.arange(len(ref_full))[slice(start, end)]
+            gt = gt_full.subset(q_idx, r_idx)
+            qry, ref = qry_full.select(q_idx), ref_full.select(r_idx)
+            return EvaluationSplit(ref, qry, gt, describe(root, qry, ref, gt))
+
+        if len(ref_full) != len(qry_full):
+            raise DataError(
+                f"frame-aligned ground truth needs the same number of frames in every condition, but "
+                f"{root / reference} has {len(ref_full)} images and {root / query} has {len(qry_full)}; "
+                f"give an explicit ground-truth CSV (ground_truth=FILE) instead")
+        start, end = resolve_split(split, {}, len(ref_full), str(root))
+        ref, qry = ref_full.frames(start, end), qry_full.frames(start, end)
+        gt = GroundTruth.from_frames(qry.frame_ids, ref.frame_ids, self._tolerance(conditions, options))
+        return EvaluationSplit(ref, qry, gt, describe(root, qry, ref, gt))
+
+    def training_dataset(self, root, split, conditions, options) -> RouteDataset:
+        available = condition_folders(root)
+        chosen = pick_conditions(available, conditions, root)
+        traverses = {c: read_traverse(root / c) for c in chosen}
+        length = min(len(t) for t in traverses.values())
+        start, end = resolve_split(split, {}, length, str(root))
+        return RouteDataset(root, {c: t.frames(start, end) for c, t in traverses.items()})
+
+
+FORMAT = FoldersFormat()
