@@ -109,8 +109,9 @@ def plot_example_matches(query_paths: Sequence[str | os.PathLike], reference_pat
     chosen = np.unique(np.linspace(0, len(query_paths) - 1, count).round().astype(int))
     fig, axes = plt.subplots(2, len(chosen), figsize=(2.2 * len(chosen), 4.2), squeeze=False)
     for col, q in enumerate(chosen):
-        colour = "limegreen" if correct[q] else "red"
-        pairs = ((0, query_paths[q], f"query {q}"), (1, reference_paths[best[q]], f"best: ref {best[q]} ({'correct' if correct[q] else 'wrong'})"))
+        colour, verdict = ("limegreen", "correct") if correct[q] else ("red", "wrong")
+        pairs = ((0, query_paths[q], f"query {q}"),
+                 (1, reference_paths[best[q]], f"best: ref {best[q]} ({verdict})"))
         for row, image_path, label in pairs:
             ax = axes[row, col]
             ax.imshow(load_image(image_path, image_size))

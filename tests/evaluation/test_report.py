@@ -1,0 +1,43 @@
+"""Report table and JSON writer."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from fdnet.data.groundtruth import GroundTruth
+from fdnet.evaluation.experiment import evaluate_matrix
+from fdnet.evaluation.metrics import VPRBENCH
+from fdnet.evaluation.report import format_table, results_json, write_json
+
+REQUIRED = {"recall_at_100_precision", "precision_at_max_recall", "auc_pr", "recall_at_n", "protocol",
+            "method", "num_queries"}
+
+
+def _results():
+    s = np.eye(5) + 0.01 * np.arange(5)
+    gt = GroundTruth.aligned(5, 5, 0)
+    return [evaluate_matrix(s, gt, "perfect", (VPRBENCH,)),
+            evaluate_matrix(np.roll(s, 1, axis=1), gt, "shifted", (VPRBENCH,))]
+
+
+def test_table_names_protocol_and_methods():
+    table = format_table(_results())
+    assert table.splitlines()[0].startswith("protocol: vprbench")
+    rows = {line.split()[0]: line.split() for line in table.splitlines()[3:]}
+    assert "R@100P" in table and "ms/query" in table
+    assert rows["perfect"][1] == "1.000" and rows["shifted"][1] == "0.000"
+
+
+def test_json_one_and_several(tmp_path):
+    one = results_json(_results()[:1])
+    assert REQUIRED <= set(one)
+    assert set(one["recall_at_n"]) == {"1", "5", "10", "20"}
+    assert one["protocol"] == "vprbench" and one["auc_pr"] == 1.0
+    path = tmp_path / "out" / "results.json"
+    write_json(path, _results())
+    several = json.loads(path.read_text())
+    assert [r["method"] for r in several["results"]] == ["perfect", "shifted"]
+    assert all(REQUIRED <= set(r) for r in several["results"])
+    assert list(tmp_path.joinpath("out").iterdir()) == [path]  # no temporary file left behind
