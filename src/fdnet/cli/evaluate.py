@@ -94,7 +94,6 @@ def build_split(args):
 
 def load_similarity(path: str, distance: bool = False):
     """A plain numeric 2-D .npy matrix, finite everywhere; never unpickles. Distances are negated."""
-    import zipfile
     from pathlib import Path
 
     import numpy as np
@@ -104,18 +103,21 @@ def load_similarity(path: str, distance: bool = False):
     path = Path(path)
     if not path.is_file():
         raise DataError(f"{path}: similarity file not found")
+    with open(path, "rb") as f:
+        magic = f.read(6)
+    if magic[:2] == b"PK":
+        raise DataError(f"{path}: is an .npz archive; expected one .npy array (queries x references)")
+    if magic != b"\x93NUMPY":
+        raise DataError(f"{path}: not a .npy file (no NumPy header); save the matrix with numpy.save")
     try:
         matrix = np.load(path, allow_pickle=False)
     except ValueError as exc:
         if "pickle" in str(exc):
-            raise DataError(f"{path}: holds Python objects (pickled data), which are never loaded; save a "
-                            f"plain numeric array with numpy.save") from None
+            raise DataError(f"{path}: holds Python objects (dtype object), which are never unpickled; save "
+                            f"a plain numeric array") from None
         raise DataError(f"{path}: not a readable .npy file ({exc})") from None
-    except (OSError, EOFError, zipfile.BadZipFile) as exc:
+    except (OSError, EOFError) as exc:
         raise DataError(f"{path}: not a readable .npy file ({exc.__class__.__name__}: {exc})") from None
-    if not isinstance(matrix, np.ndarray):
-        matrix.close()
-        raise DataError(f"{path}: is an .npz archive; expected one .npy array (queries x references)")
     if not (np.issubdtype(matrix.dtype, np.floating) or np.issubdtype(matrix.dtype, np.integer)):
         raise DataError(f"{path}: expected a numeric (float or integer) matrix, got dtype {matrix.dtype}")
     if matrix.ndim != 2:

@@ -1,0 +1,240 @@
+"""`fdnet evaluate` in-process: both input modes, JSON keys, plots and bad-input errors."""
+
+from __future__ import annotations
+
+import json
+import pickle
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from conftest import require_shared
+from fdnet.cli import main
+from fdnet.descriptors import registry
+from fdnet.descriptors.base import Descriptor, l2_normalize
+
+REQUIRED = {"recall_at_100_precision", "precision_at_max_recall", "auc_pr", "recall_at_n", "protocol",
+            "method", "num_queries"}
+
+
+class TinyPixels(Descriptor):
+    """Mean-centred 8x8 grey pixels compared by cosine (a stand-in method for CLI tests)."""
+
+    name = "tiny-pixels"
+
+    def __init__(self, size: int = 8):
+        self.input_size = (size, size)
+
+    @property
+    def dim(self) -> int:
+        return self.input_size[0] * self.input_size[1]
+
+    def settings(self) -> dict:
+        return {"input_size": list(self.input_size)}
+
+    def describe(self, images):
+        grey = images.mean(axis=3).reshape(len(images), -1)
+        return l2_normalize(grey - grey.mean(axis=1, keepdims=True))
+
+
+@pytest.fixture
+def tiny_method(monkeypatch):
+    # registered under this module's import name so `--method tiny-pixels` resolves through the registry
+    monkeypatch.setitem(registry._METHODS, "tiny-pixels", (__name__, "TinyPixels", "test stand-in"))
+    return "tiny-pixels"
+
+
+@pytest.fixture
+def route(tmp_path, rng):
+    root = tmp_path / "route"
+    for cond in ("day", "dusk"):
+        (root / cond).mkdir(parents=True)
+    for i in range(10):
+        pattern = rng.random((16, 16))
+        dusk = np.clip(0.5 * pattern + 0.03 * rng.standard_normal(pattern.shape), 0, 1)
+        Image.fromarray((pattern * 255).astype(np.uint8)).save(root / "day" / f"{i:03d}.png")
+        Image.fromarray((dusk * 255).astype(np.uint8)).save(root / "dusk" / f"{i:03d}.png")
+    return root
+
+
+@pytest.fixture
+def matrix_files(tmp_path):
+    # 4 queries x 5 references; best matches 0 (correct), 4 (wrong), 2 (correct), 3 (correct)
+    s = np.full((4, 5), 0.1)
+    s[0, 0], s[1, 4], s[1, 1], s[2, 2], s[3, 3] = 0.9, 0.8, 0.5, 0.7, 0.6
+    npy = tmp_path / "toy_similarity.npy"
+    np.save(npy, s)
+    csv = tmp_path / "gt.csv"
+    csv.write_text("query_index,reference_indices\n0,0\n1,1\n2,2\n3,3\n")
+    return npy, csv
+
+
+def test_similarity_mode_json(matrix_files, tmp_path, capsys):
+    npy, csv = matrix_files
+    out = tmp_path / "r.json"
+    assert main(["evaluate", "--similarity", str(npy), "--ground-truth", str(csv), "--protocol", "vprbench",
+                 "--json", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "protocol: vprbench" in printed and "toy" in printed
+    result = json.loads(out.read_text())
+    assert REQUIRED <= set(result)
+    assert result["method"] == "toy" and result["protocol"] == "vprbench" and result["num_queries"] == 4
+    assert set(result["recall_at_n"]) == {"1", "5", "10", "20"}
+    assert result["recall_at_n"]["1"] == 0.75
+    # worked by hand in tests/evaluation/test_metrics.py::test_vprbench_by_hand
+    assert result["auc_pr"] == pytest.approx(1 / 3 + 1 / 3 * (0.5 + 2 / 3) / 2 + 1 / 3 * (2 / 3 + 0.75) / 2)
+    assert result["recall_at_100_precision"] == pytest.approx(1 / 3)
+
+
+def test_similarity_mode_thresholds_and_distance(matrix_files, tmp_path):
+    npy, csv = matrix_files
+    out = tmp_path / "r.json"
+    assert main(["evaluate", "--similarity", str(npy), "--ground-truth", str(csv), "--thresholds", "2",
+                 "--json", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert result["protocol"] == "recall-over-queries" and result["thresholds"] == "2 uniform"
+    assert result["auc_pr"] == pytest.approx(0.25 + 0.5 * (1 + 0.75) / 2)
+    dist = tmp_path / "dist.npy"
+    np.save(dist, -np.load(npy))
+    out2 = tmp_path / "d.json"
+    assert main(["evaluate", "--similarity", str(dist), "--distance", "--ground-truth", str(csv),
+                 "--thresholds", "2", "--json", str(out2)]) == 0
+    assert json.loads(out2.read_text())["auc_pr"] == result["auc_pr"]
+
+
+def _error(capsys, argv) -> str:
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    return err
+
+
+def test_bad_similarity_files(matrix_files, tmp_path, capsys):
+    npy, csv = matrix_files
+    gt = ["--ground-truth", str(csv)]
+    missing = tmp_path / "missing.npy"
+    assert f"{missing}: similarity file not found" in _error(capsys, ["evaluate", "--similarity", str(missing), *gt])
+
+    flat = tmp_path / "flat.npy"
+    np.save(flat, np.zeros(20))
+    assert "expected a 2-D" in _error(capsys, ["evaluate", "--similarity", str(flat), *gt])
+
+    nan = tmp_path / "nan.npy"
+    s = np.load(npy)
+    s[2, 3] = np.nan
+    np.save(nan, s)
+    err = _error(capsys, ["evaluate", "--similarity", str(nan), *gt])
+    assert str(nan) in err and "NaN" in err and "query 2, reference 3" in err
+
+    objects = tmp_path / "objects.npy"
+    np.save(objects, np.array([[{"a": 1}]], dtype=object), allow_pickle=True)
+    err = _error(capsys, ["evaluate", "--similarity", str(objects), *gt])
+    assert str(objects) in err and "never unpickled" in err
+
+    pickled = tmp_path / "pickled.npy"
+    pickled.write_bytes(pickle.dumps({"not": "an array"}))
+    assert f"{pickled}: not a .npy file" in _error(capsys, ["evaluate", "--similarity", str(pickled), *gt])
+
+    archive = tmp_path / "archive.npz"
+    np.savez(archive, s=np.zeros((4, 5)))
+    assert "npz archive" in _error(capsys, ["evaluate", "--similarity", str(archive), *gt])
+
+    truncated = tmp_path / "truncated.npy"
+    truncated.write_bytes(npy.read_bytes()[:100])
+    assert f"{truncated}: not a readable .npy file" in _error(capsys, ["evaluate", "--similarity", str(truncated), *gt])
+
+    wrong_shape = tmp_path / "wrong.npy"
+    np.save(wrong_shape, np.zeros((3, 5)))
+    err = _error(capsys, ["evaluate", "--similarity", str(wrong_shape), *gt])
+    assert f"{csv}, line 5: query index 3 out of range" in err  # the CSV has more queries than rows
+
+    narrow = tmp_path / "narrow.npy"
+    np.save(narrow, np.zeros((4, 3)))
+    err = _error(capsys, ["evaluate", "--similarity", str(narrow), *gt])
+    assert str(csv) in err and "out of range" in err
+
+    bad_csv = tmp_path / "bad.csv"
+    bad_csv.write_text("query_index,reference_indices\n0,zero\n")
+    err = _error(capsys, ["evaluate", "--similarity", str(npy), "--ground-truth", str(bad_csv)])
+    assert f"{bad_csv}, line 2" in err
+
+
+def test_bad_combinations(matrix_files, route, capsys):
+    npy, csv = matrix_files
+    assert "nothing to evaluate" in _error(capsys, ["evaluate", "--ground-truth", str(csv)])
+    assert "either --similarity" in _error(capsys, ["evaluate", "--similarity", str(npy), "--method", "raw"])
+    assert "needs ground truth" in _error(capsys, ["evaluate", "--similarity", str(npy)])
+    assert "recall-over-queries only" in _error(
+        capsys, ["evaluate", "--similarity", str(npy), "--ground-truth", str(csv), "--protocol", "vprbench",
+                 "--thresholds", "500"])
+    assert "unknown method 'nope'" in _error(
+        capsys, ["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk", "--method", "nope"])
+    err = _error(capsys, ["evaluate", "--data", str(route), "--reference", "day", "--query", "night",
+                          "--method", "raw"])
+    assert "night" in err and "condition folder not found" in err
+
+
+def test_method_mode_several_methods_json_and_plots(tiny_method, route, tmp_path, capsys):
+    out = tmp_path / "several.json"
+    plots = tmp_path / "plots"
+    argv = ["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk",
+            "--method", f"{tiny_method},{tiny_method}", "--method-set", "size=4", "--tolerance", "0",
+            "--threads", "1", "--json", str(out), "--plots", str(plots)]
+    assert main(argv) == 0
+    table = capsys.readouterr().out
+    assert "protocol: recall-over-queries" in table and "ms/image" in table
+    results = json.loads(out.read_text())["results"]
+    assert len(results) == 2 and all(REQUIRED <= set(r) for r in results)
+    assert results[0]["settings"]["input_size"] == [4, 4]
+    assert results[0]["num_queries"] == 10 and results[0]["timing"]["ms_per_image"] >= 0
+    names = {p.name for p in plots.iterdir()}
+    assert {"pr_curves.png", "similarity_tiny-pixels.png", "matches_tiny-pixels.png"} <= names
+
+
+def test_method_mode_frames_and_explicit_ground_truth(tiny_method, route, tmp_path):
+    # explicit list: query i matches reference i (full-traverse indices), sliced by --frames 2:8
+    csv = tmp_path / "gt.csv"
+    csv.write_text("query_index,reference_indices\n" + "".join(f"{i},{i}\n" for i in range(10)))
+    out = tmp_path / "r.json"
+    assert main(["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk", "--method",
+                 tiny_method, "--ground-truth", str(csv), "--frames", "2:8", "--json", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert result["num_queries"] == 6 and result["num_references"] == 6
+    assert result["recall_at_n"]["1"] == 1.0 and result["recall_at_100_precision"] == 1.0
+
+
+@pytest.mark.shared_data
+def test_corridor_vprbench_hog_through_the_cli(tmp_path):
+    corridor = require_shared("corridor")
+    out = tmp_path / "hog.json"
+    assert main(["evaluate", "--similarity", str(corridor / "vprbench_precomputed" / "HOG_similarity.npy"),
+                 "--ground-truth", str(corridor / "ground_truth.csv"), "--protocol", "vprbench",
+                 "--json", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert round(result["auc_pr"], 3) == 0.697 and round(result["top1_accuracy"], 3) == 0.477
+
+
+@pytest.mark.shared_data
+def test_gardens_point_slice(tiny_method, tmp_path):
+    gardens = require_shared("gardens_point")
+    out = tmp_path / "gp.json"
+    assert main(["evaluate", "--data", str(gardens), "--reference", "day_right", "--query", "night_right",
+                 "--method", tiny_method, "--method-set", "size=16", "--frames", "100:140",
+                 "--tolerance", "2", "--threads", "1", "--json", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert result["num_queries"] == 40 and result["num_references"] == 40
+    assert "tolerance 2" in result["ground_truth"]
+
+    # the same numbers straight from the descriptor's similarity matrix and frame-aligned truth
+    from fdnet.data.groundtruth import GroundTruth
+    from fdnet.data.images import list_images
+    from fdnet.descriptors.base import describe_paths
+    from fdnet.evaluation.metrics import evaluate_similarity
+
+    d = TinyPixels(16)
+    q = describe_paths(d, list_images(gardens / "night_right")[100:140])
+    r = describe_paths(d, list_images(gardens / "day_right")[100:140])
+    direct = evaluate_similarity(q @ r.T, GroundTruth.aligned(40, 40, 2))
+    assert result["recall_at_n"] == {str(k): pytest.approx(v) for k, v in direct.recall_at_n.items()}
+    assert result["auc_pr"] == pytest.approx(direct.auc_pr, abs=1e-6)
