@@ -17,7 +17,7 @@ outside the track's time span are an error (``drop_uncovered=true`` drops them i
 are not undistorted (the paper does not say it did).
 
 Protocol (Qin et al. 5.2.1, Table 1): 2014-12-16-09-14-09 (day, reference) against
-2014-12-10-18-10-50 (night, query), images taken at 5 frames per second (``fps``; or every
+2014-12-10-18-10-50 (night, query), images taken at 5 frames per second (``fps``; ``fps=0`` keeps all; or every
 ``spacing_m`` metres travelled), tolerance 30 m, 1758 training and 754 test images. The paper
 says the route is "approximately three kilometers" but not which part: ``train`` = the first
 1758 subsampled frames of each traversal and ``test`` the next 754; use ``--split START:END``
@@ -51,7 +51,7 @@ TRAIN_FRAMES, TEST_FRAMES = 1758, 754
 @dataclass
 class OxfordOptions:
     tolerance_m: float = 30.0
-    fps: float | None = 5.0  # keep images at most this many per second
+    fps: float = 5.0  # images per second to keep; 0 keeps every image
     spacing_m: float | None = None  # or: keep one image every spacing_m metres (overrides fps)
     camera: str = "stereo/centre"
     bayer_pattern: str = "gbrg"  # SDK: stereo gbrg, mono rggb
@@ -143,10 +143,10 @@ def subsample(stamps: np.ndarray, xy: np.ndarray, fps: float | None, spacing_m: 
                 keep.append(i)
                 last = travelled[i]
         return np.asarray(keep, dtype=np.int64)
-    if fps is None:
+    if fps is None or fps == 0:
         return np.arange(len(stamps))
-    if fps <= 0:
-        raise ConfigError(f"fps must be > 0, got {fps}")
+    if fps < 0:
+        raise ConfigError(f"fps must be >= 0 (0 keeps every image), got {fps}")
     # The image nearest to each tick of a 1/fps clock: a 16 Hz camera at 5 fps then keeps 5
     # images a second on average (a greedy "at least 1/fps apart" rule would keep only 4).
     if len(stamps) == 1:

@@ -1,0 +1,91 @@
+"""Nordland: per-season folders (frames aligned by the number in their names) and the partitioned
+release (train/test, sections)."""
+
+import pytest
+
+from conftest import require_shared
+from fdnet.data.formats import detect_format, open_split, open_training
+from fdnet.errors import DataError
+
+from .conftest import write_frames
+
+
+def make_trimmed(root, n=12, step=10, seasons=("summer", "winter")):
+    """Like ../shared/data/nordland_trimmed: every 10th frame of the 1 fps sequence."""
+    for season in seasons:
+        write_frames(root / season, [f"images-{(i + 1) * step:05d}.png" for i in range(n)])
+    return root
+
+
+def test_per_season_frames_align_by_number(tmp_path):
+    root = make_trimmed(tmp_path / "nordland")
+    # winter misses frame 30: alignment by number must not shift the rest
+    (root / "winter" / "images-00030.png").unlink()
+    assert detect_format(root) == "nordland"
+    split = open_split(root, split="all", filter_frames=False)
+    assert (split.reference.name, split.query.name) == ("summer", "winter")
+    assert len(split.query) == 11 and len(split.reference) == 11  # the split keeps common frames
+    assert all(p.tolist() == [i] for i, p in enumerate(split.ground_truth.positives))
+    # tolerance 5 frames of the 1 fps sequence < one 10-frame step: exact matches only
+    assert split.ground_truth.summary()["mean_matches_per_query"] == 1.0
+    wide = open_split(root, split="all", filter_frames=False, tolerance=10)
+    assert wide.ground_truth.positives[3].tolist() == [2, 3, 4]
+
+
+def test_named_splits(tmp_path, monkeypatch):
+    import fdnet.data.formats.nordland as nordland
+
+    monkeypatch.setattr(nordland, "TEST_FRAMES", 4)
+    monkeypatch.setitem(nordland.SPLITS, "test", lambda n: (max(n - 4, 0), None))
+    monkeypatch.setitem(nordland.SPLITS, "train", lambda n: (0, max(n - 4, 0)))
+    root = make_trimmed(tmp_path / "nordland", seasons=("spring", "summer", "fall", "winter"))
+    test = open_split(root, filter_frames=False)  # default split: test
+    assert test.query.frame_ids.tolist() == [90, 100, 110, 120]
+    train = open_training(root, filter_frames=False)
+    assert train.conditions == ["spring", "summer", "fall", "winter"]
+    assert train["fall"].frame_ids.tolist() == [10, 20, 30, 40, 50, 60, 70, 80]
+
+
+def test_decorated_season_folder_names(tmp_path):
+    for season in ("nordland_summer_images", "nordland_winter_images"):
+        write_frames(tmp_path / season / "images", [f"{i}.png" for i in range(1, 4)])
+    split = open_split(tmp_path, split="all", filter_frames=False)
+    assert split.reference.name == "summer" and split.query.frame_ids.tolist() == [1, 2, 3]
+
+
+def make_partitioned(root):
+    for part, sections in (("train", {"section1": range(1, 6)}), ("test", {"section1": range(100, 103),
+                                                                          "section2": range(200, 202)})):
+        for season in ("summer", "winter"):
+            for section, numbers in sections.items():
+                write_frames(root / part / f"{season}_images_{part}" / section, [f"{n}.png" for n in numbers])
+    return root
+
+
+def test_partitioned_release(tmp_path):
+    root = make_partitioned(tmp_path / "partitioned")
+    assert detect_format(root) == "nordland"
+    test = open_split(root)  # test partition, no filtering (the release is already filtered)
+    assert test.query.frame_ids.tolist() == [100, 101, 102, 200, 201]
+    assert [p.name for p in test.query.paths][:2] == ["100.png", "101.png"]
+    assert test.ground_truth.positives[4].tolist() == [3, 4]  # 201 vs 200, 201 (5-frame tolerance)
+    assert test.ground_truth.positives[2].tolist() == [0, 1, 2]  # 102: never 200 in the next section
+    train = open_training(root)
+    assert train["summer"].frame_ids.tolist() == [1, 2, 3, 4, 5]
+
+
+def test_missing_frame_numbers(tmp_path):
+    write_frames(tmp_path / "summer", ["a.png", "b.png"])
+    write_frames(tmp_path / "winter", ["a.png", "b.png"])
+    with pytest.raises(DataError, match="carries no frame number"):
+        open_split(tmp_path, dataset_format="nordland", filter_frames=False, split="all")
+
+
+@pytest.mark.shared_data
+def test_real_nordland_trimmed():
+    root = require_shared("nordland_trimmed")
+    split = open_split(root, filter_frames=False)
+    assert len(split.query) == len(split.reference) == 1000  # test = last 1000 frames
+    assert split.query.frame_ids[0] == 15770 and split.ground_truth.summary()["mean_matches_per_query"] == 1.0
+    train = open_training(root, filter_frames=False)
+    assert len(train["summer"]) == 1576 and train["winter"].frame_ids[-1] == 15760
