@@ -1,0 +1,27 @@
+"""`fdnet vocabulary build`."""
+
+from __future__ import annotations
+
+from conftest import require_shared
+from fdnet.cli import main
+from fdnet.descriptors.dbow import DBoWDescriptor
+
+
+def test_build_writes_a_loadable_vocabulary(tmp_path, capsys):
+    root = require_shared("gardens_point")
+    out = tmp_path / "voc.safetensors"
+    code = main(["vocabulary", "build", "--images", str(root / "day_left"), str(root / "night_right"),
+                 "--out", str(out), "--max-images", "6", "--depth", "2", "--size", "144", "256"])
+    assert code == 0
+    assert "words" in capsys.readouterr().out
+    d = DBoWDescriptor(vocabulary=out, input_size=(144, 256))
+    assert 2 <= d.dim <= 100
+    assert d.vocabulary.info["training_images"] == 6
+
+
+def test_missing_folder_is_a_clear_error(tmp_path, capsys):
+    code = main(["vocabulary", "build", "--images", str(tmp_path / "nope"), "--out", str(tmp_path / "v")])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "nope" in err and "Traceback" not in err
+    assert not (tmp_path / "v").exists()
