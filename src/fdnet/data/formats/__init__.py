@@ -9,7 +9,8 @@ file names, columns) have the paper's values as defaults and can be overridden b
 ``test``, ``all``; see ``describe_formats()``) or ``START:END``.
 
 One module per layout: ``nordland``, ``alderley``, ``oxford_robotcar``, ``st_lucia``, ``fas``,
-``vprbench``, ``vpr_tutorial``, ``folders`` (one sub-folder per condition).
+``vprbench``, ``vpr_tutorial``, ``vg_benchmark`` (UTM in file names), ``folders`` (one sub-folder
+per condition).
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from fdnet.data.formats._common import DatasetFormat, check_image_sizes
 FORMAT_MODULES = {
     "vprbench": "fdnet.data.formats.vprbench",
     "vpr_tutorial": "fdnet.data.formats.vpr_tutorial",
+    "vg_benchmark": "fdnet.data.formats.vg_benchmark",
     "oxford_robotcar": "fdnet.data.formats.oxford_robotcar",
     "alderley": "fdnet.data.formats.alderley",
     "fas": "fdnet.data.formats.fas",
@@ -39,7 +41,8 @@ FORMAT_MODULES = {
 }
 ALIASES = {"robotcar": "oxford_robotcar", "oxford": "oxford_robotcar", "stlucia": "st_lucia",
            "vpr-bench": "vprbench", "vpr_bench": "vprbench", "vpr-tutorial": "vpr_tutorial",
-           "freiburg": "fas", "folder": "folders", "plain": "folders"}
+           "freiburg": "fas", "folder": "folders", "plain": "folders", "gsv": "vg_benchmark",
+           "vg-benchmark": "vg_benchmark"}
 
 
 def format_names() -> list[str]:
