@@ -1,0 +1,133 @@
+"""FDNet: content encoder, appearance encoder, decoder and pairwise appearance discriminator.
+
+Qin et al., "Appearance-invariant place recognition by adversarially learning disentangled
+representation" (sections 3 and 4.1). ``FDNetConfig`` holds every architecture setting; where
+the paper is silent the choice is documented on the field and can be changed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from fdnet.errors import ConfigError
+from fdnet.models.decoder import Decoder
+from fdnet.models.discriminator import PairDiscriminator
+from fdnet.models.encoder import Encoder
+
+INPUT_NORMS = ("none", "per_image")
+CRITIC_INPUTS = ("l2", "raw")
+
+
+@dataclass
+class FDNetConfig:
+    #: (height, width) the images are resized to; each must be divisible by 2 ** len(widths)
+    input_size: tuple[int, int] = (224, 224)
+    #: output channels of the encoding blocks (one block each); the decoder mirrors them.
+    #: The paper's Fig. 3 is not legible on block count; 4 blocks of 64..512 is DCGAN's layout.
+    widths: tuple[int, ...] = (64, 128, 256, 512)
+    #: L, the length of the content and appearance vectors (paper: 256/512/1024/2048)
+    vector_length: int = 512
+    encoder_dropout: float = 0.5
+    critic_hidden: int = 512
+    critic_dropout: float = 0.25
+    #: what the encoders see: "none" = RGB scaled to [-1, 1] (decoder output tanh);
+    #: "per_image" = each image standardised to zero mean, unit variance (decoder output linear),
+    #: which removes global brightness/contrast, as SeqSLAM's patch normalisation does
+    input_norm: str = "none"
+    #: what D_a sees: "l2" = L2-normalised content vectors (the descriptor is compared by cosine,
+    #: so only the direction matters; an unnormalised v_c lets the encoder fool the critic by
+    #: scaling), "raw" = the encoder output as the paper's text implies
+    critic_input: str = "l2"
+
+
+def validate_architecture(config: FDNetConfig) -> None:
+    """Raise ConfigError for settings the architecture cannot take (before building anything)."""
+    if len(config.input_size) != 2:
+        raise ConfigError(f"model.input_size: expected (height, width), got {config.input_size!r}")
+    if not config.widths:
+        raise ConfigError("model.widths: need at least one encoding block")
+    if any(w <= 0 for w in config.widths):
+        raise ConfigError(f"model.widths: channel widths must be positive, got {list(config.widths)}")
+    if config.vector_length <= 0:
+        raise ConfigError(f"model.vector_length: must be positive, got {config.vector_length}")
+    scale = 2 ** len(config.widths)
+    height, width = (int(v) for v in config.input_size)
+    for name, value in (("height", height), ("width", width)):
+        if value < scale or value % scale:
+            raise ConfigError(
+                f"model.input_size: {name} {value} cannot go through {len(config.widths)} stride-2 blocks; "
+                f"it must be a positive multiple of 2^{len(config.widths)} = {scale} "
+                f"(e.g. {max(scale, round(value / scale) * scale)}), or use fewer blocks (model.widths)"
+            )
+    if config.input_norm not in INPUT_NORMS:
+        raise ConfigError(f"model.input_norm: {config.input_norm!r}; choose one of {', '.join(INPUT_NORMS)}")
+    if config.critic_input not in CRITIC_INPUTS:
+        raise ConfigError(f"model.critic_input: {config.critic_input!r}; choose one of {', '.join(CRITIC_INPUTS)}")
+    for name in ("encoder_dropout", "critic_dropout"):
+        if not 0.0 <= getattr(config, name) < 1.0:
+            raise ConfigError(f"model.{name}: must be in [0, 1), got {getattr(config, name)}")
+
+
+def init_weights(module: nn.Module) -> None:
+    """Paper: all weights from N(0, 0.02). BatchNorm scales from N(1, 0.02) and biases zero, as
+    in DCGAN (Radford et al. 2016), whose initialisation the paper's value comes from."""
+    if isinstance(module, (nn.Conv2d, nn.ConvTranspose2d, nn.Linear)):
+        nn.init.normal_(module.weight, 0.0, 0.02)
+        if module.bias is not None:
+            nn.init.zeros_(module.bias)
+    elif isinstance(module, (nn.BatchNorm1d, nn.BatchNorm2d)):
+        nn.init.normal_(module.weight, 1.0, 0.02)
+        nn.init.zeros_(module.bias)
+
+
+class FDNet(nn.Module):
+    """The four networks of FDNet, with the preprocessing they share.
+
+    ``forward`` is not defined: training uses the parts (see ``fdnet.training.trainer``) and
+    inference uses :meth:`content` (the place descriptor, paper section 4.2).
+    """
+
+    def __init__(self, config: FDNetConfig) -> None:
+        super().__init__()
+        validate_architecture(config)
+        self.config = config
+        size, widths, length = config.input_size, tuple(config.widths), config.vector_length
+        self.content_encoder = Encoder(size, widths, length, config.encoder_dropout)
+        self.appearance_encoder = Encoder(size, widths, length, config.encoder_dropout)
+        output = "tanh" if config.input_norm == "none" else "none"
+        self.decoder = Decoder(size, widths, length, output=output)
+        self.discriminator = PairDiscriminator(length, config.critic_hidden, config.critic_dropout)
+        self.apply(init_weights)
+
+    def named_parts(self) -> dict[str, nn.Module]:
+        """The modules saved in a run directory, by name."""
+        return {
+            "content_encoder": self.content_encoder,
+            "appearance_encoder": self.appearance_encoder,
+            "decoder": self.decoder,
+            "discriminator": self.discriminator,
+        }
+
+    def preprocess(self, images: torch.Tensor) -> torch.Tensor:
+        """(N, 3, H, W) in [0, 1] -> what the encoders see and the decoder reconstructs."""
+        if self.config.input_norm == "per_image":
+            mean = images.mean(dim=(1, 2, 3), keepdim=True)
+            std = images.std(dim=(1, 2, 3), keepdim=True)
+            # The floor keeps near-black frames (tunnels) from turning pixel noise into contrast.
+            return (images - mean) / std.clamp_min(0.02)
+        return images * 2.0 - 1.0
+
+    def critic_features(self, content: torch.Tensor) -> torch.Tensor:
+        if self.config.critic_input == "l2":
+            return nn.functional.normalize(content, dim=1)
+        return content
+
+    def content(self, images: torch.Tensor) -> torch.Tensor:
+        """(N, 3, H, W) in [0, 1] -> (N, L) content vectors v_c (not normalised)."""
+        return self.content_encoder(self.preprocess(images))
+
+    def appearance(self, images: torch.Tensor) -> torch.Tensor:
+        return self.appearance_encoder(self.preprocess(images))

@@ -1,0 +1,254 @@
+"""Training configuration: one dataclass tree, three presets, YAML/CLI overrides.
+
+``TrainConfig`` is written to ``RUN_DIR/config.yaml`` so every run says how it was made. Presets:
+
+* ``paper`` - the paper's settings (section 4.1): 224x224 input, batch 4 per domain, Adam
+  lr 1e-4 beta1 0.5, 5000 auto-encoder + 8000 discriminator pretraining steps, then 60000 joint
+  steps with 2 discriminator updates per encoder/decoder update. Meant for a GPU
+  (``runtime.device=cuda``).
+* ``cpu`` - sized to reach a useful model in at most ~20 minutes on 2 shared CPU cores at
+  64x32 (Nordland's size; the docs/results.md log says how it was chosen).
+* ``tiny`` - a few seconds, for tests.
+
+Any field can be overridden: ``--set schedule.joint_steps=3000`` or ``--config my.yaml``
+(a YAML file holding any subset of the tree, applied on top of the preset).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from fdnet.config import from_dict, replace_dotted, to_dict
+from fdnet.errors import ConfigError
+from fdnet.models.fdnet import FDNetConfig, validate_architecture
+
+
+@dataclass
+class DataConfig:
+    #: dataset folder (one sub-folder per condition); recorded for reference
+    root: str = ""
+    #: conditions (sub-folders) to train on; empty = all of them
+    conditions: tuple[str, ...] = ()
+    #: "START:END" slice of every condition used for training ("" = all frames)
+    frames: str = ""
+    #: B, images per condition in a mini-batch (paper: 4)
+    batch_per_domain: int = 4
+
+
+@dataclass
+class ScheduleConfig:
+    """Steps = mini-batches. The stages run one after the other (paper section 4.1)."""
+
+    pretrain_autoencoder_steps: int = 5000
+    pretrain_critic_steps: int = 8000
+    joint_steps: int = 60000
+    #: discriminator updates per encoder/decoder update in the joint stage (paper: 2)
+    critic_updates_per_step: int = 2
+
+
+@dataclass
+class LossConfig:
+    """Weights of L_r, L_a and L_e^adv in the encoder/decoder objective (paper eq. 10 uses 1, 1, 1)."""
+
+    reconstruction_weight: float = 1.0
+    appearance_weight: float = 1.0
+    adversarial_weight: float = 1.0
+    triplet_margin: float = 0.1
+    gradient_penalty_weight: float = 10.0
+    #: include the triplet loss L_a while pretraining the auto-encoder (the paper's pretraining
+    #: stage says "encoder and decoder"; L_a shapes the appearance encoder from the start)
+    appearance_in_pretraining: bool = True
+
+
+@dataclass
+class OptimConfig:
+    #: Adam, paper: lr 1e-4, beta1 ("momentum") 0.5
+    lr: float = 1e-4
+    critic_lr: float = 1e-4
+    #: multiplies the encoder/decoder learning rate in the joint stage
+    joint_lr_scale: float = 1.0
+    beta1: float = 0.5
+    beta2: float = 0.999
+
+
+@dataclass
+class RuntimeConfig:
+    seed: int = 0
+    #: "cpu" or "cuda"
+    device: str = "cpu"
+    #: torch threads (0 = leave torch's default)
+    threads: int = 0
+    #: bfloat16 autocast for the encoders/decoder (CPU AMX or GPU); losses stay float32
+    bf16: bool = False
+    channels_last: bool = False
+    #: write a resumable checkpoint every N steps (and always at the end / on Ctrl-C)
+    checkpoint_every: int = 1000
+    #: append losses to log.csv every N steps
+    log_every: int = 10
+    #: BatchNorm/dropout mode of the content encoder when it computes vectors for a
+    #: discriminator update: "train" (batch statistics, dropout on, as in the encoder's own
+    #: update) or "eval" (running statistics, no dropout, as at test time)
+    critic_encoder_mode: str = "train"
+
+
+@dataclass
+class ValidationConfig:
+    """Optional periodic validation: R@1 of reference vs query condition on held-out frames.
+
+    It uses place correspondences (frame-aligned ground truth) of the validation frames only to
+    pick the best checkpoint; training itself never sees them. Keep these frames out of any test
+    split you report.
+    """
+
+    reference: str = ""
+    query: str = ""
+    frames: str = ""
+    tolerance: int = 0
+    every: int = 250
+
+
+@dataclass
+class TrainConfig:
+    preset: str = "paper"
+    model: FDNetConfig = field(default_factory=FDNetConfig)
+    data: DataConfig = field(default_factory=DataConfig)
+    schedule: ScheduleConfig = field(default_factory=ScheduleConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
+    validation: ValidationConfig = field(default_factory=ValidationConfig)
+
+    @property
+    def total_steps(self) -> int:
+        s = self.schedule
+        return s.pretrain_autoencoder_steps + s.pretrain_critic_steps + s.joint_steps
+
+    def stage_at(self, step: int) -> str:
+        """Stage of (0-based) ``step``: "autoencoder", "critic" or "joint"."""
+        s = self.schedule
+        if step < s.pretrain_autoencoder_steps:
+            return "autoencoder"
+        if step < s.pretrain_autoencoder_steps + s.pretrain_critic_steps:
+            return "critic"
+        return "joint"
+
+
+def _paper() -> TrainConfig:
+    return TrainConfig(
+        preset="paper",
+        # 224 / 2^5 = 7: five blocks leave a 7x7 map, as DCGAN-style encoders at 224 do.
+        model=FDNetConfig(input_size=(224, 224), widths=(64, 128, 256, 512, 512), vector_length=512),
+        data=DataConfig(batch_per_domain=4),
+        schedule=ScheduleConfig(5000, 8000, 60000, 2),
+        runtime=RuntimeConfig(checkpoint_every=2000, log_every=50),
+    )
+
+
+def _cpu() -> TrainConfig:
+    # Chosen from the runs logged in docs/results.md: half-width blocks (32..256) are ~5x cheaper
+    # than 64..512 on 2 cores, 64x32 keeps Nordland at its native size.
+    return TrainConfig(
+        preset="cpu",
+        model=FDNetConfig(input_size=(32, 64), widths=(32, 64, 128, 256), vector_length=512,
+                          critic_hidden=512, input_norm="none", critic_input="l2"),
+        data=DataConfig(batch_per_domain=8),
+        schedule=ScheduleConfig(pretrain_autoencoder_steps=1500, pretrain_critic_steps=300,
+                                joint_steps=2500, critic_updates_per_step=2),
+        loss=LossConfig(adversarial_weight=0.1),
+        runtime=RuntimeConfig(threads=2, bf16=True, channels_last=True, checkpoint_every=500,
+                              log_every=10),
+    )
+
+
+def _tiny() -> TrainConfig:
+    return TrainConfig(
+        preset="tiny",
+        model=FDNetConfig(input_size=(16, 32), widths=(8, 16), vector_length=16, critic_hidden=16),
+        data=DataConfig(batch_per_domain=2),
+        schedule=ScheduleConfig(pretrain_autoencoder_steps=3, pretrain_critic_steps=2, joint_steps=3,
+                                critic_updates_per_step=2),
+        runtime=RuntimeConfig(threads=1, checkpoint_every=4, log_every=1),
+        validation=ValidationConfig(every=4),
+    )
+
+
+PRESETS = {"paper": _paper, "cpu": _cpu, "tiny": _tiny}
+
+
+def preset(name: str) -> TrainConfig:
+    try:
+        return PRESETS[name]()
+    except KeyError:
+        raise ConfigError(f"unknown preset {name!r}; available: {', '.join(PRESETS)}") from None
+
+
+def _flatten(data: dict, prefix: str = "") -> dict[str, Any]:
+    out = {}
+    for key, value in data.items():
+        if isinstance(value, dict):
+            out.update(_flatten(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def apply_yaml(config: TrainConfig, path: str | Path) -> TrainConfig:
+    """Apply a YAML file holding any subset of the settings tree on top of ``config``."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: config file not found") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML ({exc})") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping of settings at the top level")
+    try:
+        return replace_dotted(config, _flatten(data))
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+
+
+def validate(config: TrainConfig) -> None:
+    """Every check that does not need the data: raise ConfigError before anything is built."""
+    validate_architecture(config.model)
+    s = config.schedule
+    for name in ("pretrain_autoencoder_steps", "pretrain_critic_steps", "joint_steps"):
+        if getattr(s, name) < 0:
+            raise ConfigError(f"schedule.{name} must be >= 0, got {getattr(s, name)}")
+    if s.critic_updates_per_step < 0:
+        raise ConfigError(f"schedule.critic_updates_per_step must be >= 0, got {s.critic_updates_per_step}")
+    if config.data.batch_per_domain < 2:
+        raise ConfigError(f"data.batch_per_domain must be >= 2, got {config.data.batch_per_domain}")
+    if config.runtime.critic_encoder_mode not in ("train", "eval"):
+        raise ConfigError(f"runtime.critic_encoder_mode: {config.runtime.critic_encoder_mode!r}; choose train or eval")
+    if config.runtime.device not in ("cpu", "cuda") and not config.runtime.device.startswith("cuda:"):
+        raise ConfigError(f"runtime.device: {config.runtime.device!r}; choose cpu or cuda")
+    for name in ("checkpoint_every", "log_every"):
+        if getattr(config.runtime, name) <= 0:
+            raise ConfigError(f"runtime.{name} must be >= 1")
+    v = config.validation
+    if bool(v.reference) != bool(v.query):
+        raise ConfigError("validation: give both a reference and a query condition (or neither)")
+    if v.reference and v.every <= 0:
+        raise ConfigError("validation.every must be >= 1")
+    if config.loss.triplet_margin < 0 or config.loss.gradient_penalty_weight < 0:
+        raise ConfigError("loss.triplet_margin and loss.gradient_penalty_weight must be >= 0")
+
+
+def model_keys() -> list[str]:
+    """Dotted names of the settings that define the architecture (must match to load weights)."""
+    return [f"model.{f.name}" for f in dataclasses.fields(FDNetConfig)]
+
+
+def config_from_dict(data: dict) -> TrainConfig:
+    return from_dict(TrainConfig, data)
+
+
+__all__ = ["TrainConfig", "DataConfig", "ScheduleConfig", "LossConfig", "OptimConfig", "RuntimeConfig",
+           "ValidationConfig", "PRESETS", "preset", "apply_yaml", "validate", "model_keys", "to_dict"]
