@@ -43,7 +43,9 @@ def register(sub) -> None:
     p.add_argument("--reference", default=None,
                    help="--aligned: reference image folder; --dataset: reference condition")
     p.add_argument("--query", default=None, help="--aligned: query image folder; --dataset: query condition")
-    p.add_argument("--dataset-format", default=None, help="--dataset: layout name (default: detected)")
+    p.add_argument("--dataset-format", default=None,
+                   help="--dataset: layout name (default: detected): nordland, alderley, oxford_robotcar, "
+                        "st_lucia, fas, vprbench, vpr_tutorial, vg_benchmark, folders")
     p.add_argument("--split", default=None, help="--dataset: named split (train/test/all) or START:END")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="--dataset: a protocol setting of the format, e.g. tolerance=3 (repeatable)")

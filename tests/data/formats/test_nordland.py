@@ -89,3 +89,30 @@ def test_real_nordland_trimmed():
     assert split.query.frame_ids[0] == 15770 and split.ground_truth.summary()["mean_matches_per_query"] == 1.0
     train = open_training(root, filter_frames=False)
     assert len(train["summer"]) == 1576 and train["winter"].frame_ids[-1] == 15760
+
+
+def test_paper_filter_drops_a_frame_from_every_season(tmp_path, monkeypatch):
+    """The filter (fdnet.data.filters, another module) may drop a frame in one season only; the
+    adapter drops that frame number from all seasons so they stay aligned."""
+    import sys
+    import types
+
+    from fdnet.data.dataset import RouteDataset
+
+    calls = []
+
+    def filter_route(route, **options):
+        calls.append(sorted(route.traverses))
+        out = dict(route.traverses)
+        winter = out["winter"]
+        out["winter"] = winter.select([i for i, f in enumerate(winter.frame_ids) if f != 30])  # a tunnel
+        return RouteDataset(route.root, out)
+
+    monkeypatch.setitem(sys.modules, "fdnet.data.filters", types.SimpleNamespace(filter_route=filter_route))
+    import fdnet.data
+
+    monkeypatch.setattr(fdnet.data, "filters", sys.modules["fdnet.data.filters"], raising=False)
+    root = make_trimmed(tmp_path / "nordland", n=6)
+    split = open_split(root, split="all")  # filter_frames defaults to on for the per-season layout
+    assert calls == [["summer", "winter"]]
+    assert split.reference.frame_ids.tolist() == split.query.frame_ids.tolist() == [10, 20, 40, 50, 60]
