@@ -19,3 +19,12 @@ def test_fas_pairs_by_file_name(tmp_path):
     part = open_split(root, split="4:6", tolerance=0)
     assert part.reference.frame_ids.tolist() == [7, 8]
     assert [p.tolist() for p in part.ground_truth.positives] == [[0], [1]]
+
+
+def test_fas_frames_named_by_timestamp_fall_back_to_positions(tmp_path):
+    root = tmp_path / "fas"
+    write_frames(root / "mapping", [f"{1000 + i}.5.png" for i in range(5)])  # "5" repeats: no frame numbers
+    write_frames(root / "Localization_2", [f"{2000 + i}.5.png" for i in range(3)])
+    (root / "gt.txt").write_text("0 2\n1 3\n2 4\n")  # positions, 0-based
+    split = open_split(root, split="all", tolerance=0)
+    assert [p.tolist() for p in split.ground_truth.positives] == [[2], [3], [4]]

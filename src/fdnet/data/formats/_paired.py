@@ -30,10 +30,16 @@ def swap(corr: Correspondences) -> Correspondences:
 
 
 def read_numbered(folder: Path, name: str) -> Traverse:
-    """Frames named by number (Image00001.jpg): frame ids are those numbers."""
+    """Frames named by number (Image00001.jpg): frame ids are those numbers. Names without one
+    distinct number each (e.g. timestamps with a fraction) fall back to positions 0, 1, 2...; a
+    correspondence file of file names works either way."""
     folder = image_folder(folder)
     paths = image_files(folder)
-    return Traverse(name, paths, frame_ids=frame_numbers(paths, folder))
+    try:
+        ids = frame_numbers(paths, folder)
+    except DataError:
+        ids = np.arange(len(paths))
+    return Traverse(name, paths, frame_ids=ids)
 
 
 class PairedFormat(DatasetFormat):

@@ -18,7 +18,9 @@ Not confirmed from public sources here (settings, not guesses): the ground-truth
 (looked up as ``groundtruth.txt``, ``gt.txt``, ``ground_truth.csv``, ``*Localization*2*``,
 ``*gt*``; ``correspondences=FILE`` names it), its column order (Localization frame first;
 ``first_column``/``second_column`` swap), whether it holds frame numbers or file names (both
-are read), and which 3130/1347 pairs the paper used (taken here in traversal order).
+are read; numbers are matched to the numbers in the image names, or to 0-based positions when the
+names carry no distinct number), and which 3130/1347 pairs the paper used (taken here in
+traversal order).
 """
 
 from __future__ import annotations
