@@ -38,7 +38,7 @@ from fdnet.data.split import EvaluationSplit
 from fdnet.errors import DataError
 
 from fdnet.data.formats._common import (
-    DatasetFormat, describe, filter_dark_and_stationary, frame_numbers, has_images, image_files,
+    DatasetFormat, describe, filter_dark_and_stationary, frame_numbers, image_files,
     image_folder, natural_key, pick_conditions, resolve_split,
 )
 
