@@ -31,12 +31,15 @@ def list_images(folder: str | os.PathLike) -> list[Path]:
     return paths
 
 
-def _to_float_rgb(img: Image.Image, path: Path) -> np.ndarray:
+def _to_float_rgb(img: Image.Image, path: Path, source_mode: str | None = None) -> np.ndarray:
     mode = img.mode
     if mode in ("I;16", "I;16B", "I;16L", "I"):
-        # 16-bit (or 32-bit integer) grey: scale by the type's range, not by 255.
+        # 16-bit (or 32-bit integer) grey: scale by the type's range, not by 255. ``source_mode``
+        # is the file's own mode: a 16-bit image converted to "I" for resizing is still 16-bit,
+        # even when it is so dark that no value exceeds 255.
         arr = np.asarray(img, dtype=np.float64)
-        scale = 65535.0 if mode.startswith("I;16") or arr.max() > 255 else 255.0
+        sixteen_bit = mode.startswith("I;16") or (source_mode or "").startswith("I;16")
+        scale = 65535.0 if sixteen_bit or arr.max() > 255 else 255.0
         arr = np.clip(arr / scale, 0.0, 1.0).astype(np.float32)
         return np.repeat(arr[..., None], 3, axis=2)
     if mode == "F":
@@ -62,6 +65,7 @@ def load_image(path: str | os.PathLike, size: tuple[int, int] | None = None) -> 
     try:
         with Image.open(path) as img:
             img.load()
+            source_mode = img.mode
             if size is not None:
                 height, width = int(size[0]), int(size[1])
                 if height <= 0 or width <= 0:
@@ -74,7 +78,7 @@ def load_image(path: str | os.PathLike, size: tuple[int, int] | None = None) -> 
                     if img.mode == "P":
                         img = img.convert("RGBA")
                     img = img.resize((width, height), resample)
-            return _to_float_rgb(img, path)
+            return _to_float_rgb(img, path, source_mode)
     except FileNotFoundError:
         raise DataError(f"{path}: image file not found") from None
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
