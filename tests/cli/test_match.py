@@ -81,3 +81,19 @@ def test_database_build_add_query(tmp_path):
     assert main(["database", "query", "--db", str(db), "--images", str(second), "--exclude-last", "5",
                  "--out", str(out)]) == 0
     assert all("first" in r["place"] for r in read_rows(out))
+
+
+def test_file_options_go_to_the_methods_that_take_them(tmp_path, capsys):
+    import argparse
+
+    from fdnet.cli.common import method_options
+
+    args = argparse.Namespace(method="fdnet,sad,dbow", checkpoint=["runs/a"], weights=[],
+                              vocabulary=["dbow=voc.npz"], method_set=["dbow:branching=4", "batch=2"])
+    assert method_options(args, "fdnet") == {"checkpoint": "runs/a", "batch": 2}
+    assert method_options(args, "sad") == {"batch": 2}
+    assert method_options(args, "dbow") == {"vocabulary": "voc.npz", "branching": 4, "batch": 2}
+    ref = make_route(tmp_path / "ref", n=3)
+    assert main(["match", "--reference", str(ref), "--query", str(ref), "--method", "sad",
+                 "--checkpoint", "runs/x", "--out", str(tmp_path / "x.csv")]) == 2
+    assert "none of the methods sad takes a checkpoint" in capsys.readouterr().err

@@ -61,7 +61,13 @@ def run_build(args) -> int:
         raise ConfigError(f"method {descriptor.name!r} must be given what it learns from (e.g. --vocabulary) "
                           "to build a database that later queries can reuse")
     paths, vectors = _describe(descriptor, args.images)
-    options = {k: v for k, v in method_options(args).items() if v is not None}
+    from pathlib import Path
+
+    from fdnet.cli.common import FILE_OPTIONS
+
+    options = method_options(args, args.method)
+    # Absolute paths: later `add`/`query` calls may run from another directory.
+    options.update({k: str(Path(v).resolve()) for k, v in options.items() if k in FILE_OPTIONS})
     db = PlaceDatabase.for_descriptor(descriptor, IndexSettings(kind=args.index), method_options=options)
     db.add(vectors, [str(p) for p in paths])
     db.save(args.out)
