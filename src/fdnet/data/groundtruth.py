@@ -135,7 +135,8 @@ class GroundTruth:
         """
         path = Path(path)
         try:
-            text = path.read_text()
+            # utf-8-sig: spreadsheet programs start CSV files with a byte-order mark.
+            text = path.read_text(encoding="utf-8-sig")
         except FileNotFoundError:
             raise DataError(f"{path}: ground-truth file not found") from None
         except UnicodeDecodeError:
