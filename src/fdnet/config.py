@@ -118,7 +118,11 @@ def replace_dotted(config: T, overrides: dict[str, Any]) -> T:
             node = node[part]
         if parts[-1] not in node:
             raise ConfigError(f"override {key}: unknown setting {parts[-1]!r}; valid: {', '.join(node)}")
-        node[parts[-1]] = yaml.safe_load(value) if isinstance(value, str) else value
+        current = node[parts[-1]]
+        # Text settings keep the text as given: YAML would read "0:37" as the base-60 number 2265.
+        if isinstance(value, str) and not isinstance(current, str):
+            value = yaml.safe_load(value)
+        node[parts[-1]] = value
     return from_dict(type(config), data)
 
 
