@@ -41,3 +41,13 @@ def test_json_one_and_several(tmp_path):
     assert [r["method"] for r in several["results"]] == ["perfect", "shifted"]
     assert all(REQUIRED <= set(r) for r in several["results"])
     assert list(tmp_path.joinpath("out").iterdir()) == [path]  # no temporary file left behind
+
+
+def test_json_accepts_numpy_and_path_settings(tmp_path):
+    from pathlib import Path
+
+    result = _results()[0]
+    result.settings = {"size": np.int64(3), "mean": np.zeros(2, dtype=np.float32), "weights": Path("/w.pt")}
+    write_json(tmp_path / "r.json", [result])
+    assert json.loads((tmp_path / "r.json").read_text())["settings"] == {"size": 3, "mean": [0.0, 0.0],
+                                                                          "weights": "/w.pt"}

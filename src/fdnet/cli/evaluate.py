@@ -15,7 +15,6 @@ matrices and example matches as PNG.
 
 from __future__ import annotations
 
-import argparse
 import re
 
 from fdnet.cli.common import add_method_arguments
@@ -27,21 +26,20 @@ def register(sub) -> None:
         help="evaluate methods or a similarity matrix: R@N, R@100P, P@maxR, AUC-PR, timings",
         description="Evaluate place-recognition methods on a reference/query split (or a precomputed "
                     "query x reference similarity matrix) under a named protocol.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     data = p.add_argument_group("data")
     data.add_argument("--data", help="dataset folder with one sub-folder per condition")
     data.add_argument("--reference", help="condition (sub-folder of --data) used as the map")
     data.add_argument("--query", help="condition (sub-folder of --data) used as queries")
     data.add_argument("--tolerance", type=int, default=0,
-                      help="frame-aligned ground truth: query frame i matches reference frames i +- N")
+                      help="frame-aligned ground truth: query frame i matches reference frames i +- N (default 0)")
     data.add_argument("--frames", metavar="START:END", help="evaluate only these frames (END exclusive)")
     data.add_argument("--ground-truth", metavar="CSV",
                       help="explicit ground truth 'query_index,reference_indices' (space-separated "
                            "list) instead of frame alignment")
     methods = p.add_argument_group("methods")
     add_method_arguments(methods, multiple=True, required=False)
-    methods.add_argument("--batch-size", type=int, default=64, help="images described per batch")
+    methods.add_argument("--batch-size", type=int, default=64, help="images described per batch (default 64)")
     methods.add_argument("--sequence-length", type=int, default=0,
                          help="rank by SeqSLAM sequence similarity over this many consecutive queries "
                               "(0 = single image)")
@@ -55,14 +53,14 @@ def register(sub) -> None:
     out = p.add_argument_group("metrics and output")
     out.add_argument("--protocol", choices=["recall-over-queries", "vprbench"], default="recall-over-queries",
                      help="PR definition: recall over queries with a true match (paper, VPR_Tutorial) or "
-                          "VPR-Bench's (recall over correct top-1 matches, sklearn AUC)")
+                          "VPR-Bench's (recall over correct top-1 matches, sklearn AUC); default recall-over-queries")
     out.add_argument("--thresholds", type=int,
                      help="recall-over-queries: sweep N uniform thresholds over min-max-normalised "
                           "scores (the paper uses 500) instead of every distinct score")
     out.add_argument("--json", metavar="FILE", help="write the results as JSON")
     out.add_argument("--no-curve", action="store_true", help="leave the PR curve points out of the JSON")
     out.add_argument("--plots", metavar="DIR", help="write PR curves, similarity matrices and example matches")
-    out.add_argument("--examples", type=int, default=6, help="queries shown in the example-matches figure")
+    out.add_argument("--examples", type=int, default=6, help="queries shown in the example-matches figure (default 6)")
     p.set_defaults(func=run)
 
 

@@ -61,8 +61,19 @@ def results_json(results: Sequence[MethodResult], protocol: str | None = None,
     return objects[0] if len(objects) == 1 else {"results": objects}
 
 
+def _plain(value):
+    """JSON fallback for what descriptor settings may hold (numpy scalars/arrays, paths)."""
+    import numpy as np
+
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    return str(value)
+
+
 def write_json(path: str | os.PathLike, results: Sequence[MethodResult], protocol: str | None = None,
                include_curve: bool = True) -> None:
     """Write :func:`results_json` to ``path`` atomically (a crash never leaves half a file)."""
     document = results_json(results, protocol, include_curve)
-    atomic_write_text(path, json.dumps(document, indent=2, allow_nan=False) + "\n")
+    atomic_write_text(path, json.dumps(document, indent=2, allow_nan=False, default=_plain) + "\n")
