@@ -112,7 +112,38 @@ def test_paper_filter_drops_a_frame_from_every_season(tmp_path, monkeypatch):
     import fdnet.data
 
     monkeypatch.setattr(fdnet.data, "filters", sys.modules["fdnet.data.filters"], raising=False)
-    root = make_trimmed(tmp_path / "nordland", n=6)
-    split = open_split(root, split="all")  # filter_frames defaults to on for the per-season layout
-    assert calls == [["summer", "winter"]]
+    root = make_trimmed(tmp_path / "nordland", n=6, seasons=("spring", "summer", "winter"))
+    cache = tmp_path / "cache"
+    # filter_frames defaults to on for the per-season layout; it sees every season, not just the pair
+    split = open_split(root, split="all", filter_cache=str(cache))
+    assert calls == [["spring", "summer", "winter"]]
     assert split.reference.frame_ids.tolist() == split.query.frame_ids.tolist() == [10, 20, 40, 50, 60]
+    assert "frame filter: kept 5 of 6 frames" in split.description
+    # the kept frame numbers are cached: a second open does not run the detectors again
+    again = open_split(root, reference="spring", query="winter", split="all", filter_cache=str(cache))
+    assert len(calls) == 1 and again.query.frame_ids.tolist() == [10, 20, 40, 50, 60]
+    assert len(list(cache.iterdir())) == 1
+
+
+@pytest.mark.shared_data
+def test_real_nordland_tunnels_filtered(tmp_path):
+    """The real filter on a 240-frame stretch of nordland_trimmed that enters and leaves tunnels
+    (links to the real files, so the test stays fast)."""
+    pytest.importorskip("fdnet.data.filters")
+    from fdnet.data.images import load_images, to_grey
+
+    source = require_shared("nordland_trimmed")
+    root = tmp_path / "nordland"
+    for season in ("summer", "winter"):
+        (root / season).mkdir(parents=True)
+        for path in sorted((source / season).iterdir())[:240]:
+            (root / season / path.name).symlink_to(path)
+    kept = open_split(root, split="all", filter_cache=str(tmp_path / "cache"))
+    assert kept.query.frame_ids.tolist() == kept.reference.frame_ids.tolist()
+    assert 0 < 240 - len(kept.query) < 120, kept.description
+    black = set()  # nearly black (tunnel) frames of either season
+    for season in ("summer", "winter"):
+        paths = sorted((root / season).iterdir())
+        brightness = to_grey(load_images(paths, (16, 32))).reshape(len(paths), -1).mean(axis=1)
+        black |= {int(p.stem.split("-")[1]) for p, b in zip(paths, brightness) if b < 0.03}
+    assert len(black) >= 10 and not black & set(kept.query.frame_ids.tolist())

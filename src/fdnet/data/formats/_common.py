@@ -296,29 +296,80 @@ def check_correspondences_cover(corr: Correspondences, query: Traverse, referenc
 
 # ----------------------------------------------------------------------------- frame filter
 
-def filter_dark_and_stationary(dataset: RouteDataset, **options) -> RouteDataset:
+def filter_dark_and_stationary(dataset: RouteDataset, cache_dir: str | os.PathLike | None = None,
+                               **options) -> tuple[RouteDataset, str]:
     """The paper's removal of tunnel (dark) and stationary (near-duplicate) frames, applied so the
     conditions stay aligned: a frame number dropped in any condition is dropped in all of them.
 
-    The detectors themselves live in :mod:`fdnet.data.filters` (another part of the project).
+    The conditions must be position-aligned (same frames in the same order). The detectors live
+    in :mod:`fdnet.data.filters` (another part of the project) and read every frame, which takes
+    minutes on a full 1 fps release; the kept frame numbers are therefore cached as JSON under
+    ``cache_dir`` (default ``$FDNET_CACHE/filters`` or ``~/.cache/fdnet/filters``), keyed by the
+    files (names, sizes, modification times) and the settings. Returns the filtered route and a
+    one-line summary of what was dropped.
     """
+    import hashlib
+    import json
+
+    from fdnet.io import atomic_write_text
+
     try:
         from fdnet.data import filters
     except ImportError:
         raise NotAvailableError(
             "tunnel/stationary frame filtering needs fdnet.data.filters, which is not installed in "
             "this copy; pass filter_frames=false to use every frame") from None
-    filtered = filters.filter_route(dataset, **options)
-    keep = None
-    for traverse in filtered.traverses.values():
-        ids = set(int(f) for f in traverse.frame_ids)
-        keep = ids if keep is None else keep & ids
-    keep = keep or set()
+    fingerprint = hashlib.sha1()
+    fingerprint.update(json.dumps({"rule": "fdnet-filter-v1", "options": options}, sort_keys=True,
+                                  default=str).encode())
+    for name, traverse in sorted(dataset.traverses.items()):
+        fingerprint.update(name.encode())
+        for path in traverse.paths:
+            st = path.stat()
+            fingerprint.update(f"{path.resolve()}|{st.st_size}|{st.st_mtime_ns}".encode())
+    base = Path(cache_dir) if cache_dir else Path(
+        os.environ.get("FDNET_CACHE") or Path.home() / ".cache" / "fdnet") / "filters"
+    cache_file = base / f"{fingerprint.hexdigest()}.json"
+    cached = None
+    if cache_file.is_file():
+        try:
+            cached = json.loads(cache_file.read_text())
+        except (OSError, ValueError):
+            cached = None  # unreadable cache: recompute
+    if cached is not None:
+        keep = set(int(f) for f in cached["kept_frame_ids"])
+        summary = cached["summary"]
+    else:
+        result = filters.filter_route(dataset, **options)
+        filtered, report = result if isinstance(result, tuple) else (result, None)
+        keep = None
+        for traverse in filtered.traverses.values():
+            ids = set(int(f) for f in traverse.frame_ids)
+            keep = ids if keep is None else keep & ids
+        keep = keep or set()
+        total = max((len(t) for t in dataset.traverses.values()), default=0)
+        summary = report.summary() if report is not None and hasattr(report, "summary") else \
+            f"kept {len(keep)} of {total} frames"
+        atomic_write_text(cache_file, json.dumps({"kept_frame_ids": sorted(keep), "summary": summary}))
     out = {}
     for name, traverse in dataset.traverses.items():
         mask = np.fromiter((int(f) in keep for f in traverse.frame_ids), dtype=bool, count=len(traverse))
         out[name] = traverse.select(np.flatnonzero(mask))
-    return RouteDataset(dataset.root, out)
+    return RouteDataset(dataset.root, out), summary
+
+
+def common_frames(route: RouteDataset) -> RouteDataset:
+    """Keep, in every condition, only the frame numbers all conditions have (order preserved)."""
+    common = None
+    for t in route.traverses.values():
+        ids = set(int(f) for f in t.frame_ids)
+        common = ids if common is None else common & ids
+    common = common or set()
+    out = {}
+    for name, t in route.traverses.items():
+        mask = np.fromiter((int(f) in common for f in t.frame_ids), dtype=bool, count=len(t))
+        out[name] = t.select(np.flatnonzero(mask))
+    return RouteDataset(route.root, out)
 
 
 def describe(root: Path, query: Traverse, reference: Traverse, gt: GroundTruth, extra: str = "") -> str:

@@ -38,7 +38,7 @@ from fdnet.data.split import EvaluationSplit
 from fdnet.errors import DataError
 
 from fdnet.data.formats._common import (
-    DatasetFormat, describe, filter_dark_and_stationary, frame_numbers, image_files,
+    DatasetFormat, common_frames, describe, filter_dark_and_stationary, frame_numbers, image_files,
     image_folder, natural_key, pick_conditions, resolve_split,
 )
 
@@ -56,6 +56,7 @@ SECTION_OFFSET = 1_000_000
 class NordlandOptions:
     tolerance: int = 5  # frames of the 1 fps sequence (Table 1)
     filter_frames: bool | None = None  # drop tunnel/stationary frames; None = yes unless partitioned
+    filter_cache: str | None = None  # where kept frame numbers are cached (default $FDNET_CACHE/filters)
 
 
 def season_of(name: str) -> str | None:
@@ -135,61 +136,63 @@ class NordlandFormat(DatasetFormat):
 
     # -- reading -----------------------------------------------------------------------------
     def _route(self, root: Path, conditions, split: str | None, options: NordlandOptions,
-               partition_for_ranges: str) -> RouteDataset:
-        """The chosen seasons, filtered, then cut to ``split``."""
+               partition_for_ranges: str) -> tuple[RouteDataset, str]:
+        """The chosen seasons, filtered, then cut to ``split``; plus a note on the filtering.
+
+        The filter looks at every season present (a frame dark in any season is dropped from all),
+        so the frames of, say, the test split are the same whichever pair is evaluated.
+        """
         if is_partitioned(root):
             partition = split if split in ("train", "test") else partition_for_ranges
             folders = _partition_folders(root, partition)
             if not folders:
                 raise DataError(f"{root / partition}: no <season>_images_{partition} folders "
                                 f"(partitioned Nordland layout)")
-            chosen = pick_conditions([s for s in SEASONS if s in folders], conditions, root / partition)
-            route = RouteDataset(root, {s: read_partition_season(folders[s], s) for s in chosen})
-            if options.filter_frames:
-                route = filter_dark_and_stationary(route)
-            if split in ("train", "test"):
-                return route
-            return self._cut(route, split, {}, root)
-        folders = season_folders(root)
-        if len(folders) < 1:
-            raise DataError(f"{root}: no season folders (expected spring/, summer/, fall/, winter/ "
-                            f"or {root}/train|test/<season>_images_*)")
-        chosen = pick_conditions([s for s in SEASONS if s in folders], conditions, root)
-        route = RouteDataset(root, {s: read_season(folders[s], s) for s in chosen})
-        if options.filter_frames is None or options.filter_frames:
-            route = filter_dark_and_stationary(route)
-        return self._cut(route, split, SPLITS, root)
+            available = [s for s in SEASONS if s in folders]
+            chosen = pick_conditions(available, conditions, root / partition)
+            route = RouteDataset(root, {s: read_partition_season(folders[s], s) for s in available})
+            filter_on = bool(options.filter_frames)  # the partition is already filtered
+            rules: dict = {}
+        else:
+            folders = season_folders(root)
+            if not folders:
+                raise DataError(f"{root}: no season folders (expected spring/, summer/, fall/, winter/ "
+                                f"or {root}/train|test/<season>_images_*)")
+            available = [s for s in SEASONS if s in folders]
+            chosen = pick_conditions(available, conditions, root)
+            route = RouteDataset(root, {s: read_season(folders[s], s) for s in available})
+            filter_on = options.filter_frames is None or bool(options.filter_frames)
+            rules = SPLITS
+        route = common_frames(route)
+        note = ""
+        if filter_on:
+            route, note = filter_dark_and_stationary(route, cache_dir=options.filter_cache)
+        route = RouteDataset(root, {s: route[s] for s in chosen})
+        if is_partitioned(root) and split in ("train", "test"):
+            return route, note
+        return self._cut(route, split, rules, root), note
 
     @staticmethod
     def _cut(route: RouteDataset, split, rules, root: Path) -> RouteDataset:
-        """Apply a split on frame numbers common to all seasons, so every season gets the same
-        stretch of railway even if one season misses a frame."""
-        common = None
-        for t in route.traverses.values():
-            ids = set(int(f) for f in t.frame_ids)
-            common = ids if common is None else common & ids
-        order = np.array(sorted(common or []), dtype=np.int64)
-        start, end = resolve_split(split, rules, len(order), str(root))
-        chosen = set(order[slice(start, end)].tolist())
-        out = {}
-        for name, t in route.traverses.items():
-            mask = np.fromiter((int(f) in chosen for f in t.frame_ids), dtype=bool, count=len(t))
-            out[name] = t.select(np.flatnonzero(mask))
-        return RouteDataset(route.root, out)
+        """Apply a split to the (common, aligned) frames of every season."""
+        length = min(len(t) for t in route.traverses.values())
+        start, end = resolve_split(split, rules, length, str(root))
+        return route.frames(start, end)
 
     # -- protocol ----------------------------------------------------------------------------
     def evaluation_split(self, root, reference, query, split, options: NordlandOptions) -> EvaluationSplit:
         reference = reference or "summer"
         query = query or "winter"
-        route = self._route(root, [reference, query], split, options, partition_for_ranges="test")
+        route, note = self._route(root, [reference, query], split, options, partition_for_ranges="test")
         ref, qry = route[reference], route[query]
         if len(ref) == 0 or len(qry) == 0:
             raise DataError(f"{root}: split {split!r} leaves no frames of {reference} or {query}")
         gt = GroundTruth.from_frames(qry.frame_ids, ref.frame_ids, options.tolerance)
-        return EvaluationSplit(ref, qry, gt, describe(root, qry, ref, gt))
+        extra = f"split {split or 'all'}" + (f", frame filter: {note}" if note else "")
+        return EvaluationSplit(ref, qry, gt, describe(root, qry, ref, gt, extra))
 
     def training_dataset(self, root, split, conditions, options) -> RouteDataset:
-        return self._route(root, conditions, split, options, partition_for_ranges="train")
+        return self._route(root, conditions, split, options, partition_for_ranges="train")[0]
 
 
 FORMAT = NordlandFormat()
