@@ -182,10 +182,10 @@ def train_calc(config, run_dir: str | Path, resume: bool = False, max_minutes: f
                         f"({train.batch_size}); add images or lower train.batch_size")
 
     model_cfg = config.model
+    rng = np.random.default_rng(train.seed)
+    torch.manual_seed(train.seed)  # before building: the initial weights come from it
     network = calc.build_network(model_cfg)
     optimizer = _make_optimizer(network.parameters(), train)
-    rng = np.random.default_rng(train.seed)
-    torch.manual_seed(train.seed)
     step, history, seconds_before = 0, [], 0.0
     if resume:
         load_weights(run_dir, {"calc": network})
