@@ -19,6 +19,7 @@ from fdnet.errors import FdnetError
 COMMAND_MODULES = [
     "synth",
     "train",
+    "train_baseline",
     "extract",
     "evaluate",
     "match",
