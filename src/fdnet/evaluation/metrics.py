@@ -147,8 +147,8 @@ def top_k_of_matrix(similarity: np.ndarray, k: int) -> tuple[np.ndarray, np.ndar
     # Rows where more than k entries reach the k-th best value have a tie at the boundary, and
     # argpartition may have kept a higher index than a tied lower one: redo those rows exactly.
     tied = np.flatnonzero((s >= kth[:, None]).sum(axis=1) > k)
-    for row in tied:
-        cand[row] = np.argsort(-s[row], kind="stable")[:k]
+    if len(tied):
+        cand[tied] = np.argsort(-s[tied], axis=1, kind="stable")[:, :k]
     cand_scores = np.take_along_axis(s, cand, axis=1)
     order = np.lexsort((cand, -cand_scores), axis=1)
     idx = np.take_along_axis(cand, order, axis=1).astype(np.int64)
