@@ -174,3 +174,12 @@ def test_shape_mismatch_is_a_clear_error():
         evaluate_similarity(s[:, :4], gt)
     with pytest.raises(DataError, match="unknown protocol"):
         evaluate_similarity(s, gt, "bogus")
+
+
+def test_top_k_of_matrix_equals_a_stable_full_sort(rng):
+    # integer scores: ties everywhere, including at the k-th position
+    s = rng.integers(0, 4, (50, 40))
+    idx, scores = top_k_of_matrix(s, 7)
+    expected = np.argsort(-s, axis=1, kind="stable")[:, :7]
+    np.testing.assert_array_equal(idx, expected)
+    np.testing.assert_array_equal(scores, np.take_along_axis(s, expected, axis=1))
