@@ -3,7 +3,7 @@
 import pytest
 
 from fdnet.data.formats import detect_format, open_split, open_training
-from fdnet.errors import DataError
+from fdnet.errors import ConfigError, DataError
 
 from .conftest import write_frames
 
@@ -69,3 +69,17 @@ def test_missing_day_folder(tmp_path):
     (root / "FRAMESB").rmdir()
     with pytest.raises(DataError, match="missing the day image folder"):
         open_split(root, dataset_format="alderley")
+
+
+def test_numbering_by_position(tmp_path):
+    """A file that counts frames by position while the image names carry other numbers."""
+    root = tmp_path / "alderley"
+    write_frames(root / "FRAMESA", [f"Image{i:05d}.jpg" for i in range(101, 105)])
+    write_frames(root / "FRAMESB", [f"Image{i:05d}.jpg" for i in range(201, 206)])
+    (root / "framematches.csv").write_text("0,1\n1,2\n2,3\n3,4\n")
+    with pytest.raises(DataError, match="none of its query frames"):
+        open_split(root, split="all")  # read as image numbers, nothing matches
+    split = open_split(root, split="all", tolerance=0, numbering="positions")
+    assert [p.tolist() for p in split.ground_truth.positives] == [[1], [2], [3], [4]]
+    with pytest.raises(ConfigError, match="numbering 'zero'"):
+        open_split(root, numbering="zero")

@@ -16,7 +16,7 @@ import numpy as np
 
 from fdnet.data.dataset import RouteDataset, Traverse
 from fdnet.data.split import EvaluationSplit
-from fdnet.errors import DataError
+from fdnet.errors import ConfigError, DataError
 
 from fdnet.data.formats._common import (
     Correspondences, DatasetFormat, SplitRule, check_correspondences_cover, describe,
@@ -104,6 +104,14 @@ class PairedFormat(DatasetFormat):
         if reference == query:
             raise DataError(f"{root}: reference and query are both {reference!r}")
         ref, qry = self.read_condition(root, reference), self.read_condition(root, query)
+        numbering = getattr(options, "numbering", "names")
+        if numbering in ("positions", "positions1"):
+            first = 0 if numbering == "positions" else 1
+            for t in (ref, qry):
+                t.frame_ids = np.arange(first, first + len(t))
+        elif numbering != "names":
+            raise ConfigError(f"numbering {numbering!r}: expected names (the numbers in the image "
+                              f"names), positions (0-based) or positions1 (1-based)")
         corr = read_correspondences(self.correspondence_file(root, options.correspondences),
                                     options.first_column, options.second_column)
         if query == self.second:

@@ -19,7 +19,8 @@ Not confirmed from public sources here (make them settings, not guesses):
 * its column order: assumed FRAMESA then FRAMESB (``first_column``/``second_column`` swap them);
 * that FRAMESA is the night drive and FRAMESB the day drive (the condition names ``night``/``day``
   are aliases of those folders; ``--reference FRAMESA`` works too);
-* that the numbers in the file are the numbers in the image names (a file of image names also works).
+* that the numbers in the file are the numbers in the image names (``numbering=positions`` or
+  ``positions1`` reads them as 0- or 1-based positions; a file of image names also works).
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ class AlderleyOptions:
     correspondences: str | None = None  # file (relative to the dataset folder or absolute)
     first_column: int = 0  # column of FRAMESA (night) frame numbers
     second_column: int = 1  # column of FRAMESB (day) frame numbers
+    numbering: str = "names"  # the file's numbers are: names (numbers in image names), positions (0-based), positions1
 
 
 class AlderleyFormat(PairedFormat):

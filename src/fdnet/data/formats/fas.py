@@ -39,6 +39,7 @@ class FASOptions:
     correspondences: str | None = None
     first_column: int = 0  # column of the localization (query) frames
     second_column: int = 1  # column of the Mapping frames
+    numbering: str = "names"  # the file's numbers are: names (numbers in image names), positions (0-based), positions1
 
 
 class FASFormat(PairedFormat):
