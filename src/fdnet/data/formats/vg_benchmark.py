@@ -78,7 +78,7 @@ class VGBenchmarkFormat(DatasetFormat):
         for folder in [root, *(root / "images" / p for p in PARTS)]:
             db = folder / "database"
             if db.is_dir() and (folder / "queries").is_dir():
-                return any(p.name.startswith("@") for p in db.iterdir())
+                return next(db.rglob("@*"), None) is not None  # stops at the first hit
         return False
 
     def _part_and_range(self, split: str | None, default: str):
