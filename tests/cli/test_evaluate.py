@@ -238,3 +238,20 @@ def test_gardens_point_slice(tiny_method, tmp_path):
     direct = evaluate_similarity(q @ r.T, GroundTruth.aligned(40, 40, 2))
     assert result["recall_at_n"] == {str(k): pytest.approx(v) for k, v in direct.recall_at_n.items()}
     assert result["auc_pr"] == pytest.approx(direct.auc_pr, abs=1e-6)
+
+
+def test_evaluate_with_dataset_format_vprbench_corridor(tmp_path):
+    from conftest import require_shared
+
+    corridor = require_shared("corridor")
+    out = tmp_path / "r.json"
+    assert main(["evaluate", "--data", str(corridor), "--dataset-format", "vprbench", "--method", "raw",
+                 "--protocol", "vprbench", "--json", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert result["num_queries"] == 111 and result["protocol"] == "vprbench"
+
+
+def test_split_without_dataset_format_is_an_error(tmp_path, capsys):
+    assert main(["evaluate", "--data", str(tmp_path), "--reference", "a", "--query", "b", "--method", "raw",
+                 "--split", "test"]) == 2
+    assert "--dataset-format" in capsys.readouterr().err

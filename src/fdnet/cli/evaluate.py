@@ -31,8 +31,16 @@ def register(sub) -> None:
     data.add_argument("--data", help="dataset folder with one sub-folder per condition")
     data.add_argument("--reference", help="condition (sub-folder of --data) used as the map")
     data.add_argument("--query", help="condition (sub-folder of --data) used as queries")
-    data.add_argument("--tolerance", type=int, default=0,
-                      help="frame-aligned ground truth: query frame i matches reference frames i +- N (default 0)")
+    data.add_argument("--tolerance", type=int, default=None,
+                      help="frame-aligned ground truth: query frame i matches reference frames i +- N (default 0; "
+                           "with --dataset-format, the format's paper tolerance)")
+    data.add_argument("--dataset-format", metavar="NAME",
+                      help="read --data in a published layout (nordland, alderley, oxford_robotcar, st_lucia, "
+                           "fas, vprbench, vpr_tutorial, vg_benchmark, folders, or auto to detect) with the "
+                           "paper's protocol; see docs/datasets.md")
+    data.add_argument("--split", help="with --dataset-format: a named split (train/test/all) or START:END")
+    data.add_argument("--format-set", action="append", default=[], metavar="KEY=VALUE",
+                      help="with --dataset-format: a protocol setting of the format, e.g. tolerance_m=25")
     data.add_argument("--frames", metavar="START:END", help="evaluate only these frames (END exclusive)")
     data.add_argument("--ground-truth", metavar="CSV",
                       help="explicit ground truth 'query_index,reference_indices' (space-separated "
@@ -73,13 +81,27 @@ def build_split(args):
     from fdnet.data.split import EvaluationSplit, aligned_split
     from fdnet.errors import ConfigError
 
+    if args.dataset_format:
+        from fdnet.config import parse_overrides
+        from fdnet.data.formats import open_split
+
+        options = parse_overrides(args.format_set)
+        if args.tolerance is not None:
+            options["tolerance"] = args.tolerance
+        if args.frames and args.split:
+            raise ConfigError("give --split or --frames, not both")
+        return open_split(args.data, args.reference, args.query,
+                          dataset_format=None if args.dataset_format == "auto" else args.dataset_format,
+                          split=args.split or args.frames, **options)
+    if args.split or args.format_set:
+        raise ConfigError("--split and --format-set need --dataset-format")
     if not (args.reference and args.query):
         raise ConfigError("--data needs --reference COND and --query COND (sub-folders of --data)")
     start, end = parse_frame_range(args.frames)
     dataset = RouteDataset.from_folder(args.data, [args.reference, args.query]
                                        if args.reference != args.query else [args.reference])
     if args.ground_truth is None:
-        return aligned_split(dataset, args.reference, args.query, args.tolerance, start, end)
+        return aligned_split(dataset, args.reference, args.query, args.tolerance or 0, start, end)
     ref_full, query_full = dataset[args.reference], dataset[args.query]
     gt = GroundTruth.from_csv(args.ground_truth, num_references=len(ref_full), num_queries=len(query_full))
     ref, query = ref_full.frames(start, end), query_full.frames(start, end)
@@ -171,7 +193,7 @@ def run(args) -> int:
                           "every top-1 score, as VPR-Bench does)")
     if args.thresholds is not None and args.thresholds < 2:
         raise ConfigError(f"--thresholds must be at least 2, got {args.thresholds}")
-    if args.tolerance < 0:
+    if args.tolerance is not None and args.tolerance < 0:
         raise ConfigError(f"--tolerance must be >= 0, got {args.tolerance}")
     protocols = (args.protocol,)
     keep_matrix = bool(args.plots)
