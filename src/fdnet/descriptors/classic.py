@@ -78,7 +78,7 @@ class RawThumbnail(Descriptor):
         return self.input_size[0] * self.input_size[1]
 
     def describe(self, images: np.ndarray) -> np.ndarray:
-        grey = to_grey(_at_size(images, self.input_size, self.name)).reshape(len(images), -1)
+        grey = to_grey(_at_size(images, self.input_size, self.name)).reshape(len(images), self.dim)
         grey = grey - grey.mean(axis=1, keepdims=True)
         return l2_normalize(grey)
 
@@ -142,7 +142,7 @@ class SeqSLAMFrontEnd(Descriptor):
 
     def describe(self, images: np.ndarray) -> np.ndarray:
         grey = to_grey(_at_size(images, self.input_size, self.name))
-        return patch_normalize(grey, self.patch_size).reshape(len(grey), -1).astype(np.float32)
+        return patch_normalize(grey, self.patch_size).reshape(len(grey), self.dim).astype(np.float32)
 
     def similarity(self, queries: np.ndarray, references: np.ndarray, block: int = 1024) -> np.ndarray:
         """(Q, D), (R, D) -> (Q, R) negative mean absolute difference.

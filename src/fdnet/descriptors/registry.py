@@ -11,7 +11,7 @@ from fdnet.errors import ConfigError
 _METHODS: dict[str, tuple[str, str, str]] = {
     "raw": ("fdnet.descriptors.classic", "RawThumbnail", "downsampled grey thumbnail, cosine"),
     "sad": ("fdnet.descriptors.classic", "SeqSLAMFrontEnd", "SeqSLAM front end: patch-normalised thumbnail, sum of absolute differences"),
-    "hog": ("fdnet.descriptors.classic", "HOGDescriptor", "histogram of oriented gradients (scikit-image), cosine"),
+    "hog": ("fdnet.descriptors.classic", "HOGDescriptor", "histogram of oriented gradients (OpenCV, VPR-Bench settings), cosine"),
     "fdnet": ("fdnet.descriptors.fdnet_descriptor", "FDNetDescriptor", "FDNet content vector (needs --checkpoint RUN_DIR)"),
     "gist": ("fdnet.descriptors.gist", "GistDescriptor", "Gist: Gabor energies on a 4x4 grid (512-d)"),
     "dbow": ("fdnet.descriptors.dbow", "DBoWDescriptor", "ORB bag of words, vocabulary tree, TF-IDF, L1 score"),
