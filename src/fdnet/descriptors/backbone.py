@@ -35,7 +35,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import threading
-from typing import Iterator
+from typing import Callable, Iterator
 
 import numpy as np
 
@@ -65,6 +65,21 @@ INPUT_MEAN = (0.5, 0.5, 0.5)
 INPUT_STD = (0.5, 0.5, 0.5)
 
 _lock = threading.Lock()
+
+
+def invalid_settings_are_config_errors(init: Callable) -> Callable:
+    """Decorator for the baseline descriptors' constructors: a setting of the wrong type or value
+    (e.g. ``--method-set gist:image_size=big``) becomes a one-line :class:`ConfigError` naming the
+    method instead of a traceback. ``functools.wraps`` keeps the signature visible to the registry."""
+
+    @functools.wraps(init)
+    def wrapper(self, *args, **kwargs):
+        try:
+            return init(self, *args, **kwargs)
+        except (TypeError, ValueError) as exc:
+            raise ConfigError(f"{self.name}: invalid setting ({exc})") from None
+
+    return wrapper
 
 
 def _import_packages():

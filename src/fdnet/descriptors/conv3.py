@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fdnet.descriptors.backbone import invalid_settings_are_config_errors
 from fdnet.descriptors.base import Descriptor, l2_normalize
 from fdnet.errors import ConfigError
 
@@ -54,6 +55,7 @@ class Conv3Descriptor(Descriptor):
     name = "conv3"
     dot_product_similarity = True
 
+    @invalid_settings_are_config_errors
     def __init__(self, dim: int = 512, block: int = 7, input_size: tuple[int, int] | None = None,
                  weights: str | Path | None = None, seed: int = 0, bf16: bool | None = None,
                  threads: int | None = None):

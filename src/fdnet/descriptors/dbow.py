@@ -41,6 +41,7 @@ import numpy as np
 import yaml
 
 from fdnet.data.images import load_images, to_grey
+from fdnet.descriptors.backbone import invalid_settings_are_config_errors
 from fdnet.descriptors.base import Descriptor
 from fdnet.errors import ConfigError, DataError, NotAvailableError
 from fdnet.io import atomic_path
@@ -288,6 +289,7 @@ class DBoWDescriptor(Descriptor):
     name = "dbow"
     dot_product_similarity = False
 
+    @invalid_settings_are_config_errors
     def __init__(self, vocabulary: str | Path | None = None, branching: int = 10, depth: int = 4,
                  input_size: tuple[int, int] = (288, 512), nfeatures: int = 500,
                  scale_factor: float = 1.2, nlevels: int = 8, edge_threshold: int = 19,

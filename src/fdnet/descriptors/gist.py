@@ -26,6 +26,7 @@ import numpy as np
 import scipy.fft
 
 from fdnet.data.images import to_grey
+from fdnet.descriptors.backbone import invalid_settings_are_config_errors
 from fdnet.descriptors.base import Descriptor, l2_normalize
 from fdnet.errors import ConfigError
 
@@ -85,6 +86,7 @@ class GistDescriptor(Descriptor):
     name = "gist"
     dot_product_similarity = True
 
+    @invalid_settings_are_config_errors
     def __init__(self, image_size: int = 128, orientations: tuple[int, ...] = (8, 8, 8, 8),
                  grid: int = 4, fc_prefilt: float = 4.0, boundary: int = 32, batch: int = 8):
         image_size = int(image_size)

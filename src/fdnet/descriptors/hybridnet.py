@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fdnet.descriptors.backbone import invalid_settings_are_config_errors
 from fdnet.descriptors.base import Descriptor, l2_normalize
 from fdnet.errors import ConfigError, NotAvailableError
 
@@ -48,6 +49,7 @@ class HybridNetDescriptor(Descriptor):
     name = "hybridnet"
     dot_product_similarity = True
 
+    @invalid_settings_are_config_errors
     def __init__(self, weights: str | Path | None = None, layer: str = "conv4", dim: int = 0,
                  seed: int = 0, mean_bgr: tuple[float, float, float] = (104.0, 117.0, 123.0),
                  input_size: tuple[int, int] = (227, 227), threads: int | None = None):

@@ -44,6 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fdnet.descriptors.backbone import invalid_settings_are_config_errors
 from fdnet.descriptors.base import Descriptor
 from fdnet.errors import ConfigError, NotAvailableError
 
@@ -174,6 +175,7 @@ class LandmarksDescriptor(Descriptor):
     name = "landmarks"
     dot_product_similarity = False
 
+    @invalid_settings_are_config_errors
     def __init__(self, max_regions: int = 50, region_dim: int = 512, pool_grid: int = 4, block: int = 7,
                  input_size: tuple[int, int] = (240, 320), edge_model: str | Path | None = None,
                  min_box_area: int = 500, proposal_scale: float = 0.5, seed: int = 0, bf16: bool | None = None,
