@@ -21,6 +21,7 @@ COMMAND_MODULES = [
     "train",
     "train_baseline",
     "extract",
+    "export",
     "evaluate",
     "match",
     "database",

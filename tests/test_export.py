@@ -1,0 +1,38 @@
+"""ONNX export of a (tiny) trained run gives the same vectors as the PyTorch descriptor."""
+
+import numpy as np
+import pytest
+
+from fdnet.cli import main
+
+onnxruntime = pytest.importorskip("onnxruntime", reason="optional extra fdnet[onnx] not installed")
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    root = tmp_path_factory.mktemp("export")
+    assert main(["synth", "--out", str(root / "route"), "--frames", "12", "--conditions", "summer,night"]) == 0
+    assert main(["train", "--data", str(root / "route"), "--preset", "tiny", "--out", str(root / "run"),
+                 "--no-progress"]) == 0
+    return root / "run"
+
+
+def test_export_matches_pytorch_descriptor(tiny_run, tmp_path, capsys):
+    import fdnet
+
+    out = tmp_path / "fdnet.onnx"
+    assert main(["export", "--checkpoint", str(tiny_run), "--out", str(out)]) == 0
+    assert "max abs difference" in capsys.readouterr().out
+    model = fdnet.load(tiny_run)
+    h, w = model.input_size
+    images = np.random.default_rng(1).random((3, h, w, 3), dtype=np.float32)
+    session = onnxruntime.InferenceSession(str(out), providers=["CPUExecutionProvider"])
+    onnx_vectors = session.run(["content"], {"images": images.transpose(0, 3, 1, 2).copy()})[0]
+    np.testing.assert_allclose(onnx_vectors, model.describe(images), atol=1e-4)
+    np.testing.assert_allclose(np.linalg.norm(onnx_vectors, axis=1), 1.0, atol=1e-5)
+
+
+def test_export_of_missing_run_is_a_clear_error(tmp_path, capsys):
+    assert main(["export", "--checkpoint", str(tmp_path / "nope"), "--out", str(tmp_path / "x.onnx")]) == 2
+    assert "nope" in capsys.readouterr().err
+    assert not (tmp_path / "x.onnx").exists()
