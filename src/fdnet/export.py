@@ -9,6 +9,7 @@ fdnet code. The export is checked against PyTorch with onnxruntime on random ima
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -49,9 +50,10 @@ def export_onnx(run_dir: str | os.PathLike, out: str | os.PathLike, opset: int =
     height, width = descriptor.input_size
     example = torch.rand(2, 3, height, width, generator=torch.Generator().manual_seed(seed))
     out = Path(out)
-    with atomic_path(out) as tmp:
+    with atomic_path(out) as tmp, warnings.catch_warnings():
         # The TorchScript-based exporter: no extra dependency (onnxscript) and stable for plain
-        # conv/linear graphs like this one.
+        # conv/linear graphs like this one; its deprecation notice is not the user's concern.
+        warnings.simplefilter("ignore", DeprecationWarning)
         torch.onnx.export(module, (example,), str(tmp), input_names=["images"], output_names=["content"],
                           dynamic_axes={"images": {0: "batch"}, "content": {0: "batch"}},
                           opset_version=opset, dynamo=False)
