@@ -45,7 +45,7 @@ def test_vlad_layer_matches_reference_formula():
     """The batched layer equals the original's per-cluster loop: soft-assign, residual sums,
     intra-normalisation, final L2."""
     torch.manual_seed(0)
-    model = netvlad.NetVLADModelConfig(clusters=5, last_block=8)
+    model = netvlad.NetVLADModelConfig(clusters=5, frozen_block=7, last_block=8)
     net = netvlad.build_network(model, pretrained=False)
     layer = net.vlad
     x = torch.randn(3, 112, 4, 6)
@@ -63,7 +63,7 @@ def test_vlad_layer_matches_reference_formula():
 
 
 def test_alpha_initialisation(rng):
-    net = netvlad.build_network(netvlad.NetVLADModelConfig(clusters=4, last_block=8), pretrained=False)
+    net = netvlad.build_network(netvlad.NetVLADModelConfig(clusters=4, frozen_block=7, last_block=8), pretrained=False)
     centroids = rng.normal(size=(4, 112)).astype(np.float32)
     local = rng.normal(size=(200, 112)).astype(np.float32)
     local /= np.linalg.norm(local, axis=1, keepdims=True)
@@ -115,8 +115,8 @@ def test_training_errors(tmp_path):
         train_netvlad(tiny(route, negative_distance=20), tmp_path / "b", log=quiet)
     with pytest.raises(ConfigError, match="must be >= the tolerance"):
         train_netvlad(tiny(route, tolerance=5, negative_distance=2), tmp_path / "c", log=quiet)
-    with pytest.raises(ConfigError, match="frozen_block < last_block"):
-        train_netvlad(replace_dotted(tiny(route), {"model.last_block": 7}), tmp_path / "d", log=quiet)
+    with pytest.raises(ConfigError, match="frozen_block <= last_block"):
+        train_netvlad(replace_dotted(tiny(route), {"model.last_block": 6}), tmp_path / "d", log=quiet)
     (route / "dark" / "0000.png").unlink()
     with pytest.raises(DataError, match="same frames in every training condition"):
         train_netvlad(tiny(route), tmp_path / "e", log=quiet)

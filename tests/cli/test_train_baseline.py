@@ -1,0 +1,65 @@
+"""`fdnet train-baseline`: flags to config, training, resume, and one-line errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import yaml
+from PIL import Image
+
+from fdnet.cli import main
+
+
+@pytest.fixture
+def route(tmp_path):
+    rng = np.random.default_rng(0)
+    for name in ("summer", "winter"):
+        (tmp_path / "route" / name).mkdir(parents=True)
+    for i in range(12):
+        place = np.kron(rng.random((6, 8, 3)), np.ones((8, 8, 1)))
+        for name, img in (("summer", place), ("winter", 0.6 * place + 0.3)):
+            Image.fromarray((np.clip(img, 0, 1) * 255).astype(np.uint8)).save(tmp_path / "route" / name / f"{i:03d}.png")
+    return tmp_path / "route"
+
+
+def test_calc_train_and_resume(route, tmp_path, capsys):
+    out = tmp_path / "run"
+    # "1:10" is a base-60 integer to YAML; the frame range must reach the config as text
+    rc = main(["train-baseline", "calc", "--data", str(route), "--out", str(out), "--preset", "tiny",
+               "--frames", "1:10", "--conditions", "summer,winter", "--steps", "2", "--threads", "1",
+               "--set", "train.batch_size=4"])
+    assert rc == 0
+    config = yaml.safe_load((out / "config.yaml").read_text())
+    assert config["method"] == "calc" and config["data"]["frames"] == "1:10"
+    assert config["data"]["conditions"] == ["summer", "winter"] and config["train"]["batch_size"] == 4
+    assert "--method calc --checkpoint" in capsys.readouterr().out
+
+    assert main(["train-baseline", "calc", "--out", str(out), "--resume", "--steps", "3", "--threads", "1"]) == 0
+    history = (out / "history.csv").read_text().splitlines()
+    assert history[-1].startswith("3,")
+    # resuming with other model settings is refused, naming the setting
+    assert main(["train-baseline", "calc", "--out", str(out), "--resume", "--set", "model.channels=8,8,4"]) == 2
+    assert "model.channels" in capsys.readouterr().err
+
+
+def test_netvlad_train(route, tmp_path):
+    out = tmp_path / "nv"
+    rc = main(["train-baseline", "netvlad", "--data", str(route), "--out", str(out), "--preset", "tiny",
+               "--tolerance", "1", "--steps", "2", "--threads", "1"])
+    assert rc == 0
+    config = yaml.safe_load((out / "config.yaml").read_text())
+    assert config["method"] == "netvlad" and config["data"]["tolerance"] == 1
+    assert (out / "model.safetensors").is_file() and (out / "training_state.pt").is_file()
+
+
+def test_errors_are_one_line(route, tmp_path, capsys):
+    assert main(["train-baseline", "netvlad", "--data", str(route), "--conditions", "summer",
+                 "--out", str(tmp_path / "a"), "--preset", "tiny"]) == 2
+    assert "at least two" in capsys.readouterr().err
+    assert main(["train-baseline", "calc", "--data", str(route), "--out", str(tmp_path / "b"),
+                 "--set", "train.no_such=1"]) == 2
+    assert "no_such" in capsys.readouterr().err
+    assert main(["train-baseline", "calc", "--data", str(tmp_path / "missing"), "--out", str(tmp_path / "c")]) == 2
+    assert "not found" in capsys.readouterr().err
+    assert main(["train-baseline", "calc", "--out", str(tmp_path / "none"), "--resume"]) == 2
+    assert "run directory not found" in capsys.readouterr().err
