@@ -49,6 +49,9 @@ class ScheduleConfig:
     joint_steps: int = 60000
     #: discriminator updates per encoder/decoder update in the joint stage (paper: 2)
     critic_updates_per_step: int = 2
+    #: draw a new batch for every discriminator update of a joint step (else the updates of one
+    #: step share one batch's content vectors and differ in the pairs drawn)
+    critic_fresh_batches: bool = False
 
 
 @dataclass
@@ -150,17 +153,18 @@ def _paper() -> TrainConfig:
 
 
 def _cpu() -> TrainConfig:
-    # Chosen from the runs logged in docs/results.md: half-width blocks (32..256) are ~5x cheaper
-    # than 64..512 on 2 cores, 64x32 keeps Nordland at its native size.
+    # Chosen from the timings logged in docs/results.md: on 2 cores shared with other jobs,
+    # quarter-width blocks (16..128) are several times cheaper than 64..512, one torch thread
+    # avoids OpenMP spin-waiting against other processes, and 64x32 is Nordland's native size.
     return TrainConfig(
         preset="cpu",
-        model=FDNetConfig(input_size=(32, 64), widths=(32, 64, 128, 256), vector_length=512,
+        model=FDNetConfig(input_size=(32, 64), widths=(16, 32, 64, 128), vector_length=512,
                           critic_hidden=512, input_norm="none", critic_input="l2"),
         data=DataConfig(batch_per_domain=8),
-        schedule=ScheduleConfig(pretrain_autoencoder_steps=1500, pretrain_critic_steps=300,
-                                joint_steps=2500, critic_updates_per_step=2),
+        schedule=ScheduleConfig(pretrain_autoencoder_steps=1000, pretrain_critic_steps=200,
+                                joint_steps=1000, critic_updates_per_step=2),
         loss=LossConfig(adversarial_weight=0.1),
-        runtime=RuntimeConfig(threads=2, bf16=True, channels_last=True, checkpoint_every=500,
+        runtime=RuntimeConfig(threads=1, bf16=True, channels_last=True, checkpoint_every=250,
                               log_every=10),
     )
 

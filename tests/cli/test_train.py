@@ -1,0 +1,48 @@
+"""`fdnet train` / `fdnet extract` on a tiny synthetic dataset."""
+
+import numpy as np
+from PIL import Image
+
+from fdnet.cli import main
+
+
+def _dataset(root, n=8):
+    rng = np.random.default_rng(1)
+    for k, name in enumerate(("day", "night")):
+        (root / name).mkdir(parents=True)
+        for i in range(n):
+            Image.fromarray((rng.random((20, 40)) * (255 - 120 * k)).astype(np.uint8)).save(root / name / f"im{i:03d}.png")
+    return root
+
+
+def test_train_resume_extract(tmp_path, capsys):
+    data = _dataset(tmp_path / "data")
+    out = tmp_path / "run"
+    assert main(["train", "--data", str(data), "--preset", "tiny", "--out", str(out), "--no-progress",
+                 "--set", "schedule.joint_steps=1", "--validate-reference", "day", "--validate-query", "night",
+                 "--validate-tolerance", "1"]) == 0
+    assert "finished at step 6/6" in capsys.readouterr().out
+    assert main(["train", "--data", str(data), "--out", str(out), "--resume", "--no-progress",
+                 "--set", "schedule.joint_steps=2"]) == 0
+    assert "finished at step 7/7" in capsys.readouterr().out
+    assert main(["extract", "--checkpoint", str(out), "--images", str(data / "night"),
+                 "--out", str(tmp_path / "v.npz"), "--threads", "1"]) == 0
+    z = np.load(tmp_path / "v.npz")
+    assert z["content"].shape == (8, 16) and z["appearance"].shape == (8, 16)
+    assert list(z["names"]) == [f"im{i:03d}.png" for i in range(8)]
+    np.testing.assert_allclose(np.linalg.norm(z["content"], axis=1), 1.0, rtol=1e-5)
+
+
+def test_clear_errors_exit_2(tmp_path, capsys):
+    data = _dataset(tmp_path / "data")
+    assert main(["train", "--data", str(data), "--preset", "nope", "--out", str(tmp_path / "r")]) == 2
+    assert "unknown preset 'nope'" in capsys.readouterr().err
+    assert main(["train", "--data", str(data), "--preset", "tiny", "--out", str(tmp_path / "r"),
+                 "--set", "model.input_size=[18,40]"]) == 2
+    assert "height 18" in capsys.readouterr().err
+    assert main(["train", "--data", str(data), "--preset", "tiny", "--out", str(tmp_path / "r"),
+                 "--conditions", "day"]) == 2
+    assert "at least two conditions" in capsys.readouterr().err
+    assert main(["train", "--data", str(data), "--out", str(tmp_path / "none"), "--resume"]) == 2
+    assert "no run to resume" in capsys.readouterr().err
+    assert not (tmp_path / "r" / "model.safetensors").exists()

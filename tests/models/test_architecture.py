@@ -1,0 +1,69 @@
+"""FDNet architecture: shapes (square and 2:1 inputs), parameter independence, init, bad sizes."""
+
+import pytest
+import torch
+
+from fdnet.errors import ConfigError
+from fdnet.models import FDNet, FDNetConfig, validate_architecture
+
+
+@pytest.mark.parametrize("size", [(16, 32), (32, 16), (16, 16)])
+def test_shapes_square_and_non_square(size):
+    model = FDNet(FDNetConfig(input_size=size, widths=(4, 8), vector_length=12, critic_hidden=8)).eval()
+    x = torch.rand(3, 3, *size)
+    v_c, v_a = model.content(x), model.appearance(x)
+    assert v_c.shape == (3, 12) and v_a.shape == (3, 12)
+    out = model.decoder(v_c, v_a)
+    assert out.shape == (3, 3, *size)
+    assert model.discriminator(v_c, v_a).shape == (3,)
+
+
+def test_nordland_cpu_layout_64x32():
+    model = FDNet(FDNetConfig(input_size=(32, 64), widths=(4, 8, 8, 8), vector_length=16, critic_hidden=8))
+    assert model.content_encoder.feature_shape == (8, 2, 4)
+    assert model.decoder(torch.zeros(2, 16), torch.zeros(2, 16)).shape == (2, 3, 32, 64)
+
+
+def test_encoders_do_not_share_weights():
+    model = FDNet(FDNetConfig(input_size=(16, 16), widths=(4,), vector_length=4, critic_hidden=4))
+    c = dict(model.content_encoder.named_parameters())
+    a = dict(model.appearance_encoder.named_parameters())
+    assert c.keys() == a.keys()
+    assert all(c[k].data_ptr() != a[k].data_ptr() for k in c)
+    assert not torch.equal(c["fc.weight"], a["fc.weight"])
+
+
+def test_init_is_normal_0_002():
+    torch.manual_seed(0)
+    model = FDNet(FDNetConfig(input_size=(32, 32), widths=(16, 32), vector_length=64, critic_hidden=64))
+    w = model.content_encoder.fc.weight
+    assert abs(float(w.mean())) < 2e-3 and abs(float(w.std()) - 0.02) < 2e-3
+
+
+def test_outputs_tanh_or_linear():
+    tanh = FDNet(FDNetConfig(input_size=(8, 8), widths=(4,), vector_length=4, critic_hidden=4))
+    assert isinstance(tanh.decoder.blocks[-1][-1], torch.nn.Tanh)
+    lin = FDNet(FDNetConfig(input_size=(8, 8), widths=(4,), vector_length=4, critic_hidden=4, input_norm="per_image"))
+    assert isinstance(lin.decoder.blocks[-1][-1], torch.nn.ConvTranspose2d)
+    x = torch.rand(2, 3, 8, 8)
+    z = lin.preprocess(x)
+    assert torch.allclose(z.mean(dim=(1, 2, 3)), torch.zeros(2), atol=1e-5)
+
+
+@pytest.mark.parametrize("size, widths, match", [
+    ((30, 64), (8, 8), "height 30"),
+    ((32, 60), (8, 8, 8), "width 60"),
+    ((8, 8), (4, 4, 4, 4), "multiple of 2\\^4 = 16"),
+])
+def test_impossible_input_size_is_a_config_error(size, widths, match):
+    with pytest.raises(ConfigError, match=match):
+        validate_architecture(FDNetConfig(input_size=size, widths=widths))
+    with pytest.raises(ConfigError):
+        FDNet(FDNetConfig(input_size=size, widths=widths))
+
+
+def test_unknown_options_are_config_errors():
+    with pytest.raises(ConfigError, match="input_norm"):
+        validate_architecture(FDNetConfig(input_size=(16, 16), widths=(4,), input_norm="zca"))
+    with pytest.raises(ConfigError, match="critic_input"):
+        validate_architecture(FDNetConfig(input_size=(16, 16), widths=(4,), critic_input="cosine"))
