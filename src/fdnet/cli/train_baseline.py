@@ -29,8 +29,10 @@ def register(sub) -> None:
                    help="ground-truth tolerance in frames (NetVLAD's positives; default 0)")
     p.add_argument("--steps", type=int, help="number of training steps (default: the preset's)")
     p.add_argument("--max-minutes", type=float, help="stop (and save) after this much wall-clock time")
-    p.add_argument("--preset", choices=("default", "tiny"), default="default",
-                   help="default: the CPU-sized setting; tiny: a seconds-long run for tests")
+    p.add_argument("--preset", choices=("default", "small", "tiny"), default="default",
+                   help="default: the method's standard setting (CALC: the original network); "
+                        "small: CALC at half resolution and width (CALC only); tiny: a seconds-long "
+                        "run for tests")
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", default=[],
                    help="override a setting, e.g. --set train.lr=1e-4 --set model.clusters=32 (repeatable)")
@@ -52,11 +54,14 @@ def build_config(args):
     import dataclasses
 
     from fdnet.config import parse_overrides, replace_dotted
+    from fdnet.errors import ConfigError
 
     module = _method_module(args.method)
     if args.resume:
         config = module.load_run_config(args.out)
     else:
+        if args.preset not in module.PRESETS:
+            raise ConfigError(f"--preset {args.preset}: {args.method} has presets {', '.join(module.PRESETS)}")
         config = module.PRESETS[args.preset]()
     # Data flags are set on the dataclass directly rather than through replace_dotted, whose YAML
     # parsing would read a frame range such as "10:20" as a base-60 integer.

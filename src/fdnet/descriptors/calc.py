@@ -75,6 +75,10 @@ class CALCModelConfig:
     #: Empty list = the original's (first hidden layer as long as the descriptor, then 2048).
     decoder_hidden: list[int] = field(default_factory=list)
     hog: HOGTargetConfig = field(default_factory=HOGTargetConfig)
+    #: "he": He-normal convolutions with zero biases; "original": every weight and bias N(0, 0.01)
+    #: as in the reference code, which with Adam let all bottleneck ReLUs die within a few dozen
+    #: steps here (every descriptor all-zero)
+    init: str = "he"
 
 
 @dataclass
@@ -87,6 +91,8 @@ class CALCTrainConfig:
     lr: float = 1e-3
     momentum: float = 0.9
     weight_decay: float = 5e-4
+    #: start the decoder's output bias at the training set's mean HOG (not in the original)
+    init_output_bias: bool = True
     #: probability that the original (not the warp) is the input and the warp's HOG the target
     swap_probability: float = 0.5
     #: bfloat16 autocast for the training forward pass (when the CPU supports it natively); off by
@@ -115,7 +121,16 @@ def tiny_config() -> CALCRunConfig:
     return config
 
 
-PRESETS = {"default": CALCRunConfig, "tiny": tiny_config}
+def small_config() -> CALCRunConfig:
+    """Not the original's network: half-resolution input (60x80) and half-width convolutions
+    (32, 64, 4 channels -> a 216-d descriptor, HOG target 576-d), about 14x cheaper per image, so
+    a CPU run of minutes sees many more warped pairs."""
+    config = CALCRunConfig()
+    config.model = dataclasses.replace(config.model, input_size=(60, 80), channels=(32, 64, 4))
+    return config
+
+
+PRESETS = {"default": CALCRunConfig, "small": small_config, "tiny": tiny_config}
 
 
 # ----------------------------------------------------------------------------- HOG and warps
@@ -196,8 +211,16 @@ def build_network(config: CALCModelConfig):
             self.decoder = nn.Sequential(*layers)
             for module in self.modules():
                 if isinstance(module, (nn.Conv2d, nn.Linear)):
-                    nn.init.normal_(module.weight, 0.0, 0.01)
-                    nn.init.normal_(module.bias, 0.0, 0.01)
+                    if model.init == "original" or isinstance(module, nn.Linear):
+                        nn.init.normal_(module.weight, 0.0, 0.01)
+                        nn.init.normal_(module.bias, 0.0, 0.01)
+                    elif model.init == "he":
+                        # He init keeps conv activations input-driven rather than bias-driven, so the
+                        # 4-channel bottleneck's ReLUs do not all die in the first steps
+                        nn.init.kaiming_normal_(module.weight, nonlinearity="relu")
+                        nn.init.zeros_(module.bias)
+                    else:
+                        raise ConfigError(f"CALC model.init: {model.init!r} is not one of he, original")
 
         def encode(self, x):
             return self.encoder(x).flatten(1)

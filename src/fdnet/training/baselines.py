@@ -204,11 +204,18 @@ def train_calc(config, run_dir: str | Path, resume: bool = False, max_minutes: f
         f"{model_cfg.input_size[0]}x{model_cfg.input_size[1]}, HOG targets {targets.shape[1]}-d, "
         f"descriptor {network.descriptor_dim}-d ({time.perf_counter() - t_load:.1f} s to prepare)")
 
+    if not resume and train.init_output_bias:
+        # Start the decoder at the mean HOG (sigmoid^-1 of it) instead of 0.5 everywhere: the large
+        # first-step error otherwise drives most bottleneck ReLUs dead before anything is learnt.
+        mean = np.clip(targets.mean(axis=0), 1e-3, 1 - 1e-3)
+        with torch.no_grad():
+            network.decoder[-2].bias.copy_(torch.from_numpy(np.log(mean / (1 - mean)).astype(np.float32)))
+
     use_bf16 = bool(train.bf16) and bf16_supported()
     stopper = _Stopper(train.steps, max_minutes)
     height, width = model_cfg.input_size
     t_start = time.perf_counter()
-    running = []
+    running, running_active = [], []
 
     def save() -> None:
         elapsed = seconds_before + time.perf_counter() - t_start
@@ -235,7 +242,8 @@ def train_calc(config, run_dir: str | Path, resume: bool = False, max_minutes: f
         x = torch.from_numpy(inputs.astype(np.float32) / 255.0)[:, None].contiguous(memory_format=torch.channels_last)
         y = torch.from_numpy(target)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=use_bf16):
-            prediction = network(x)
+            code = network.encode(x)
+            prediction = network.decoder(code)
         loss = calc.euclidean_loss(prediction.float(), y)
         if not torch.isfinite(loss):
             raise FloatingPointError(f"CALC loss became {loss.item()} at step {step}; lower train.lr")
@@ -244,11 +252,18 @@ def train_calc(config, run_dir: str | Path, resume: bool = False, max_minutes: f
         optimizer.step()
         step += 1
         running.append(float(loss.item()))
+        # share of bottleneck values above zero: 0 means every ReLU died and descriptors are all-zero
+        running_active.append(float((code.detach() > 0).float().mean()))
         if step % train.log_every == 0 or stopper.done(step):
             elapsed = seconds_before + time.perf_counter() - t_start
-            history.append({"step": step, "loss": float(np.mean(running)), "seconds": elapsed})
-            log(f"step {step}/{train.steps} loss {np.mean(running):.4f} ({elapsed:.0f} s)")
-            running = []
+            history.append({"step": step, "loss": float(np.mean(running)),
+                            "active_units": float(np.mean(running_active)), "seconds": elapsed})
+            log(f"step {step}/{train.steps} loss {np.mean(running):.4f} active bottleneck units "
+                f"{np.mean(running_active):.2f} ({elapsed:.0f} s)")
+            if np.mean(running_active) == 0.0:
+                log("warning: every CALC bottleneck unit is zero (dead ReLUs); descriptors carry no "
+                    "information. Lower train.lr or restart with model.init=he")
+            running, running_active = [], []
         if step % train.checkpoint_every == 0:
             save()
     save()
