@@ -26,8 +26,10 @@ def test_batch_hard_triplet_takes_farthest_positive_and_nearest_negative():
 def test_batch_hard_triplet_gradient_pulls_and_pushes():
     v = torch.tensor([[0.0], [1.0], [3.0], [5.0]], requires_grad=True)
     losses.batch_hard_triplet_loss(v, torch.tensor([0, 0, 1, 1]), margin=0.1).backward()
-    # only anchor 3 is active: its positive (5) is pulled toward it, its negative (1) pushed away
-    assert v.grad[3, 0] > 0 and v.grad[1, 0] < 0
+    # only anchor 3 is active: gradient descent moves its positive (5) down toward 3 and its
+    # nearest negative (1) down, away from 3; the farther negative (0) gets no gradient
+    assert v.grad[3, 0] > 0 and v.grad[1, 0] > 0 and v.grad[0, 0] == 0
+    assert v.grad[1, 0] == pytest.approx(2 * (3 - 1) / 4)
 
 
 def test_batch_hard_triplet_needs_positives():

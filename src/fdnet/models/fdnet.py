@@ -17,7 +17,7 @@ from fdnet.models.decoder import Decoder
 from fdnet.models.discriminator import PairDiscriminator
 from fdnet.models.encoder import Encoder
 
-INPUT_NORMS = ("none", "per_image")
+INPUT_NORMS = ("none", "per_image", "per_patch")
 CRITIC_INPUTS = ("l2", "raw")
 
 
@@ -35,8 +35,12 @@ class FDNetConfig:
     critic_dropout: float = 0.25
     #: what the encoders see: "none" = RGB scaled to [-1, 1] (decoder output tanh);
     #: "per_image" = each image standardised to zero mean, unit variance (decoder output linear),
-    #: which removes global brightness/contrast, as SeqSLAM's patch normalisation does
+    #: which removes global brightness/contrast; "per_patch" = each non-overlapping
+    #: ``patch_size`` x ``patch_size`` patch standardised on its own, SeqSLAM's patch normalisation
+    #: (Milford & Wyeth 2012), which also removes local illumination (night, shadows)
     input_norm: str = "none"
+    #: patch side for input_norm "per_patch" (input height and width must be multiples of it)
+    patch_size: int = 8
     #: what D_a sees: "l2" = L2-normalised content vectors (the descriptor is compared by cosine,
     #: so only the direction matters; an unnormalised v_c lets the encoder fool the critic by
     #: scaling), "raw" = the encoder output as the paper's text implies
@@ -64,6 +68,9 @@ def validate_architecture(config: FDNetConfig) -> None:
             )
     if config.input_norm not in INPUT_NORMS:
         raise ConfigError(f"model.input_norm: {config.input_norm!r}; choose one of {', '.join(INPUT_NORMS)}")
+    if config.input_norm == "per_patch" and (config.patch_size <= 0 or height % config.patch_size
+                                             or width % config.patch_size):
+        raise ConfigError(f"model.patch_size: {config.patch_size} must divide the input size {height}x{width}")
     if config.critic_input not in CRITIC_INPUTS:
         raise ConfigError(f"model.critic_input: {config.critic_input!r}; choose one of {', '.join(CRITIC_INPUTS)}")
     for name in ("encoder_dropout", "critic_dropout"):
@@ -118,6 +125,14 @@ class FDNet(nn.Module):
             std = images.std(dim=(1, 2, 3), keepdim=True)
             # The floor keeps near-black frames (tunnels) from turning pixel noise into contrast.
             return (images - mean) / std.clamp_min(0.02)
+        if self.config.input_norm == "per_patch":
+            n, c, h, w = images.shape
+            p = self.config.patch_size
+            patches = images.reshape(n, c, h // p, p, w // p, p)
+            mean = patches.mean(dim=(1, 3, 5), keepdim=True)
+            std = patches.std(dim=(1, 3, 5), keepdim=True)
+            # A low floor: night patches have little contrast and it is exactly what must be kept.
+            return ((patches - mean) / std.clamp_min(0.005)).reshape(n, c, h, w)
         return images * 2.0 - 1.0
 
     def critic_features(self, content: torch.Tensor) -> torch.Tensor:
