@@ -21,9 +21,15 @@ The conditions (layout kept, pixels changed a lot)
     * ``night``: near-black sky with stars; buildings, trees and hills dimly moonlit (so their
       outlines are brighter than the sky, the reverse of daytime); lit and unlit windows,
       glowing street lamps with pools of light on the road, low contrast, more sensor noise.
-    Extra condition names are refused. Each condition also gets its own small nuisances: a fixed
-    lateral camera offset, per-frame jitter of position and height, exposure gain and noise,
-    and its own clouds, so identical pixels never occur across conditions.
+    Extra condition names are refused. Each condition also gets its own nuisances: a fixed
+    lateral camera offset (summer 0, autumn +0.08, winter -0.10, night +0.12 frame heights, i.e.
+    up to a quarter of the step between frames), per-frame jitter of position and height,
+    exposure gain and noise, and its own clouds, so identical pixels never occur across
+    conditions and exact pixel alignment is never available.
+
+Measured difficulty (seed 0, 300 frames, 64x128, tolerance 1, queries -> summer, R@1; chance 0.01):
+    raw  autumn 0.68, winter 0.05, night 0.03;  sad autumn 0.60, winter 0.06, night 0.04;
+    hog  autumn 0.28, winter 0.10, night 0.03.
 
 Rendering is vectorised numpy: every layer (hills, street) is drawn once per condition as a
 long panorama, then each frame is a crop of each layer at its own parallax speed. A few hundred
@@ -194,16 +200,18 @@ _LOOKS = {
                     False, False, 4, (1.0, 1.0, 1.0), 0.0, 0.012, 0.0, 0.05),
     "autumn": _Look((0.50, 0.58, 0.72), (0.85, 0.80, 0.70), (0.50, 0.38, 0.18), (0.50, 0.38, 0.16),
                     (0.30, 0.30, 0.31), (0.85, 0.85, 0.80), 0.9, 0.9, (0.18, 0.22, 0.28), "autumn",
-                    False, False, 9, (0.80, 0.80, 0.82), 0.12, 0.015, 0.03, 0.08),
+                    False, False, 9, (0.80, 0.80, 0.82), 0.12, 0.015, 0.08, 0.08),
     "winter": _Look((0.68, 0.70, 0.74), (0.80, 0.81, 0.83), (0.92, 0.93, 0.96), (0.94, 0.95, 0.97),
                     (0.58, 0.58, 0.62), (0.80, 0.80, 0.82), 0.8, 0.45, (0.25, 0.27, 0.30), "bare",
-                    True, False, 0, (0.75, 0.76, 0.78), 0.18, 0.02, -0.04, 0.08),
-    # Night: moonlit, so outlines stay (learnable) but are brighter than the sky, the reverse of
-    # daytime, which defeats patch-normalised pixel comparison (SAD R@1 night->summer 0.22 with
-    # a 0.1 ambient and a lighter sky, 0.09 with this).
-    "night": _Look((0.005, 0.005, 0.02), (0.02, 0.02, 0.05), (0.06, 0.07, 0.08), (0.05, 0.07, 0.05),
-                   (0.07, 0.07, 0.08), (0.12, 0.12, 0.11), 0.3, 0.3, (0.02, 0.02, 0.03), "green",
-                   False, True, 0, (0.0, 0.0, 0.0), 0.0, 0.03, 0.05, 0.15),
+                    True, False, 0, (0.75, 0.76, 0.78), 0.18, 0.02, -0.1, 0.08),
+    # Night: lit by street lighting, so outlines stay (shared with day) but are brighter than the
+    # near-black sky, the reverse of daytime, and lit windows invert the day's dark glass; with
+    # the condition's lateral offset this defeats patch-normalised pixel comparison (SAD R@1
+    # night->summer, frames 200:300, tolerance 1: 0.22 with a dark 0.1 ambient, lighter sky and
+    # 0.05 offset; 0.05 with these settings, chance 0.03).
+    "night": _Look((0.005, 0.005, 0.02), (0.02, 0.02, 0.05), (0.14, 0.155, 0.17), (0.125, 0.155, 0.125),
+                   (0.155, 0.155, 0.17), (0.23, 0.23, 0.22), 0.7, 0.3, (0.02, 0.02, 0.03), "green",
+                   False, True, 0, (0.0, 0.0, 0.0), 0.0, 0.03, 0.12, 0.15),
 }
 _LIT_WINDOW = np.array([1.0, 0.82, 0.45], dtype=np.float32)
 _LAMP_LIGHT = np.array([1.0, 0.9, 0.6], dtype=np.float32)
