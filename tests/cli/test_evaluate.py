@@ -255,3 +255,18 @@ def test_split_without_dataset_format_is_an_error(tmp_path, capsys):
     assert main(["evaluate", "--data", str(tmp_path), "--reference", "a", "--query", "b", "--method", "raw",
                  "--split", "test"]) == 2
     assert "--dataset-format" in capsys.readouterr().err
+
+
+def test_filter_frames_drops_dark_frames_from_both_conditions(tmp_path, capsys):
+    rng = np.random.default_rng(0)
+    for cond in ("a", "b"):
+        (tmp_path / cond).mkdir()
+        for i in range(12):
+            level = 0.0 if i in (3, 4) else 1.0  # frames 3 and 4 are a "tunnel"
+            img = (rng.integers(0, 256, (16, 32, 3)) * level).astype(np.uint8)
+            Image.fromarray(img).save(tmp_path / cond / f"f{i:02d}.png")
+    out = tmp_path / "r.json"
+    assert main(["evaluate", "--data", str(tmp_path), "--reference", "a", "--query", "b", "--method", "raw",
+                 "--filter-frames", "--json", str(out)]) == 0
+    assert json.loads(out.read_text())["num_queries"] == 10
+    assert "dropped 2 dark" in capsys.readouterr().err

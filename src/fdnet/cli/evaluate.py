@@ -34,6 +34,9 @@ def register(sub) -> None:
     data.add_argument("--tolerance", type=int, default=None,
                       help="frame-aligned ground truth: query frame i matches reference frames i +- N (default 0; "
                            "with --dataset-format, the format's paper tolerance)")
+    data.add_argument("--filter-frames", action="store_true",
+                      help="frame-aligned folders: drop dark (tunnel) and near-duplicate (stationary) frames from "
+                           "both conditions after --frames, as the paper does (fdnet.data.filters defaults)")
     data.add_argument("--dataset-format", metavar="NAME",
                       help="read --data in a published layout (nordland, alderley, oxford_robotcar, st_lucia, "
                            "fas, vprbench, vpr_tutorial, vg_benchmark, folders, or auto to detect) with the "
@@ -101,7 +104,18 @@ def build_split(args):
     dataset = RouteDataset.from_folder(args.data, [args.reference, args.query]
                                        if args.reference != args.query else [args.reference])
     if args.ground_truth is None:
+        if args.filter_frames:
+            import sys
+
+            from fdnet.data.filters import filter_route
+
+            dataset, report = filter_route(dataset.frames(start, end))
+            print(f"frame filter: {report.summary()}", file=sys.stderr)
+            start = end = None
         return aligned_split(dataset, args.reference, args.query, args.tolerance or 0, start, end)
+    if args.filter_frames:
+        raise ConfigError("--filter-frames applies to frame-aligned folders; with --ground-truth CSV, filter "
+                          "the images before writing the ground truth")
     ref_full, query_full = dataset[args.reference], dataset[args.query]
     gt = GroundTruth.from_csv(args.ground_truth, num_references=len(ref_full), num_queries=len(query_full))
     ref, query = ref_full.frames(start, end), query_full.frames(start, end)
