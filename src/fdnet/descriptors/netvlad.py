@@ -28,8 +28,9 @@ Where this implementation differs (each a setting in :class:`NetVLADModelConfig`
   CPU training take minutes; blocks ``frozen_block+1 .. last_block`` (default: block 10 only,
   the last block of the 112-channel stride-16 stage) are fine-tuned with the NetVLAD layer, as
   the original fine-tunes VGG's last conv layers only (conv5_1-3). Fine-tuning the whole
-  112-channel stage (``frozen_block: 7``) cost ~3x more per step on 2 cores (measured: about
-  15 s per 8-triplet step on the shared, oversubscribed CI machine). BatchNorm statistics of the
+  112-channel stage (``frozen_block: 7``) took about 15 s per 8-triplet step in our runs against
+  about 1 s for block 10 alone (on a shared 2-core machine whose load differed between the two
+  runs, so the ratio is indicative only). BatchNorm statistics of the
   fine-tuned blocks stay frozen (batches of a few triplets are too small to estimate them);
 * clusters: 64 (the original's) x 112 channels = 7168-d, no PCA by default (the original reduced
   32768-d to 4096 with PCA + whitening; ``pca_dim`` does that here, and needs at least that many
