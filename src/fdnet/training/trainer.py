@@ -11,6 +11,10 @@ Everything the run needs to continue exactly is in the checkpoint: weights, both
 the step counter, the sampler's generator and torch's global RNG (dropout). ``--resume``
 therefore reproduces the uninterrupted run (same thread count, same machine). Ctrl-C and
 ``max_minutes`` finish the current step, write a checkpoint and stop.
+
+No data augmentation is applied: none was needed for the results in docs/results.md, and
+photometric augmentation would blur the very appearance differences between conditions that
+the appearance encoder and the discriminator are meant to separate.
 """
 
 from __future__ import annotations
