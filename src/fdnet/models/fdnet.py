@@ -41,6 +41,10 @@ class FDNetConfig:
     input_norm: str = "none"
     #: patch side for input_norm "per_patch" (input height and width must be multiples of it)
     patch_size: int = 8
+    #: floor of the standard deviation an image (per_image) or patch (per_patch) is divided by;
+    #: None = 0.02 for per_image, 0.005 for per_patch. Lower = near-black frames (tunnels)
+    #: become amplified sensor noise instead of one flat image
+    min_std: float | None = None
     #: what D_a sees: "l2" = L2-normalised content vectors (the descriptor is compared by cosine,
     #: so only the direction matters; an unnormalised v_c lets the encoder fool the critic by
     #: scaling), "raw" = the encoder output as the paper's text implies
@@ -124,7 +128,8 @@ class FDNet(nn.Module):
             mean = images.mean(dim=(1, 2, 3), keepdim=True)
             std = images.std(dim=(1, 2, 3), keepdim=True)
             # The floor keeps near-black frames (tunnels) from turning pixel noise into contrast.
-            return (images - mean) / std.clamp_min(0.02)
+            floor = 0.02 if self.config.min_std is None else self.config.min_std
+            return (images - mean) / std.clamp_min(floor)
         if self.config.input_norm == "per_patch":
             n, c, h, w = images.shape
             p = self.config.patch_size
@@ -132,7 +137,8 @@ class FDNet(nn.Module):
             mean = patches.mean(dim=(1, 3, 5), keepdim=True)
             std = patches.std(dim=(1, 3, 5), keepdim=True)
             # A low floor: night patches have little contrast and it is exactly what must be kept.
-            return ((patches - mean) / std.clamp_min(0.005)).reshape(n, c, h, w)
+            floor = 0.005 if self.config.min_std is None else self.config.min_std
+            return ((patches - mean) / std.clamp_min(floor)).reshape(n, c, h, w)
         return images * 2.0 - 1.0
 
     def critic_features(self, content: torch.Tensor) -> torch.Tensor:
