@@ -219,13 +219,18 @@ def build_network(config: CALCModelConfig):
             self.decoder = nn.Sequential(*layers)
             for module in self.modules():
                 if isinstance(module, (nn.Conv2d, nn.Linear)):
-                    if model.init == "original" or isinstance(module, nn.Linear):
+                    if model.init == "original":
                         nn.init.normal_(module.weight, 0.0, 0.01)
                         nn.init.normal_(module.bias, 0.0, 0.01)
-                    elif model.init == "he":
+                    elif model.init == "he" and isinstance(module, nn.Conv2d):
                         # He init keeps conv activations input-driven rather than bias-driven, so the
                         # 4-channel bottleneck's ReLUs do not all die in the first steps
                         nn.init.kaiming_normal_(module.weight, nonlinearity="relu")
+                        nn.init.zeros_(module.bias)
+                    elif model.init == "he":
+                        # Xavier for the sigmoid decoder: with N(0, 0.01) the gradient reaching the
+                        # encoder through three sigmoid layers was so small the encoder never moved
+                        nn.init.xavier_uniform_(module.weight)
                         nn.init.zeros_(module.bias)
                     else:
                         raise ConfigError(f"CALC model.init: {model.init!r} is not one of he, original")
