@@ -32,8 +32,10 @@ Where this implementation differs (all are settings in :class:`CALCTrainConfig` 
   in runs of minutes (the two were not compared here); ``optimizer: sgd`` restores the SGD;
 * initialisation: the original draws every weight and bias from N(0, 0.01). With that and
   Adam, every bottleneck ReLU died within ~40 steps in our runs (all descriptors exactly zero,
-  retrieval at chance), so by default the convolutions are He-initialised with zero biases and
-  the decoder's output bias starts at the training set's mean HOG (``model.init: original`` and
+  retrieval at chance), and with N(0, 0.01) decoder weights the gradient reaching the encoder was
+  so small that it stayed at its initial weights (max change 1e-6 over 290 steps). So by default
+  the convolutions are He-initialised with zero biases, the decoder's layers Xavier-initialised,
+  and the output bias starts at the training set's mean HOG (``model.init: original`` and
   ``train.init_output_bias: false`` restore the original); training logs the share of active
   bottleneck units and warns when it reaches zero;
 * warps are drawn afresh at every step (the original wrote one fixed warp per image into an
