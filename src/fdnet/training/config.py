@@ -161,7 +161,9 @@ def _cpu() -> TrainConfig:
     return TrainConfig(
         preset="cpu",
         model=FDNetConfig(input_size=(32, 64), widths=(16, 32, 64, 128), vector_length=512,
-                          critic_hidden=512, input_norm="none", critic_input="l2"),
+                          # per-image standardisation: nord5 in docs/results.md (R@1 0.306 vs 0.269
+                          # with [-1, 1] input on Nordland's test frames)
+                          critic_hidden=512, input_norm="per_image", critic_input="l2"),
         data=DataConfig(batch_per_domain=8),
         schedule=ScheduleConfig(pretrain_autoencoder_steps=1000, pretrain_critic_steps=200,
                                 joint_steps=1000, critic_updates_per_step=2),
