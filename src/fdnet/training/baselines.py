@@ -111,6 +111,22 @@ def _write_history(run_dir: Path, history: list[dict]) -> None:
     atomic_write_text(run_dir / HISTORY_FILE, "\n".join(lines) + "\n")
 
 
+def _resume(run_dir, name: str, network, optimizer, rng, log) -> tuple[int, list, float]:
+    """Restore weights, optimiser and both RNG streams of run ``name``; return (step, history,
+    seconds trained so far), so the run continues exactly where it stopped."""
+    import torch
+
+    from fdnet.training.checkpoint import load_training_state, load_weights
+
+    load_weights(run_dir, {name: network})
+    state = load_training_state(run_dir, {name: optimizer})
+    step, seconds = int(state["step"]), float(state.get("seconds", 0.0))
+    _set_rng_state(rng, state["numpy_rng"])
+    torch.set_rng_state(state["torch_rng"])
+    log(f"resuming {name} from step {step}")
+    return step, _read_history(run_dir), seconds
+
+
 def _read_history(run_dir: Path) -> list[dict]:
     path = run_dir / HISTORY_FILE
     if not path.is_file():
@@ -161,7 +177,7 @@ def train_calc(config, run_dir: str | Path, resume: bool = False, max_minutes: f
 
     from fdnet.descriptors import calc
     from fdnet.descriptors.backbone import bf16_supported
-    from fdnet.training.checkpoint import load_training_state, load_weights, save_run
+    from fdnet.training.checkpoint import save_run
 
     run_dir = Path(run_dir)
     train = config.train
@@ -188,13 +204,7 @@ def train_calc(config, run_dir: str | Path, resume: bool = False, max_minutes: f
     optimizer = _make_optimizer(network.parameters(), train)
     step, history, seconds_before = 0, [], 0.0
     if resume:
-        load_weights(run_dir, {"calc": network})
-        state = load_training_state(run_dir, {"calc": optimizer})
-        step, seconds_before = int(state["step"]), float(state.get("seconds", 0.0))
-        _set_rng_state(rng, state["numpy_rng"])
-        torch.set_rng_state(state["torch_rng"])
-        history = _read_history(run_dir)
-        log(f"resuming CALC from step {step}")
+        step, history, seconds_before = _resume(run_dir, "calc", network, optimizer, rng, log)
 
     t_load = time.perf_counter()
     images = load_in_chunks(paths, tuple(model_cfg.input_size), calc.to_grey_u8)
@@ -346,7 +356,7 @@ def train_netvlad(config, run_dir: str | Path, resume: bool = False, max_minutes
 
     from fdnet.descriptors import netvlad
     from fdnet.descriptors.backbone import FeatureExtractor, bf16_supported
-    from fdnet.training.checkpoint import load_training_state, load_weights, save_run
+    from fdnet.training.checkpoint import save_run
 
     run_dir = Path(run_dir)
     model_cfg, train, data = config.model, config.train, config.data
@@ -395,13 +405,7 @@ def train_netvlad(config, run_dir: str | Path, resume: bool = False, max_minutes
     optimizer = _make_optimizer(parameters, train)
     step, history, seconds_before = 0, [], 0.0
     if resume:
-        load_weights(run_dir, {"netvlad": network})
-        state = load_training_state(run_dir, {"netvlad": optimizer})
-        step, seconds_before = int(state["step"]), float(state.get("seconds", 0.0))
-        _set_rng_state(rng, state["numpy_rng"])
-        torch.set_rng_state(state["torch_rng"])
-        history = _read_history(run_dir)
-        log(f"resuming NetVLAD from step {step}")
+        step, history, seconds_before = _resume(run_dir, "netvlad", network, optimizer, rng, log)
     else:
         network.eval()
         _kmeans_init(network, all_maps, train, rng, log)
