@@ -141,7 +141,8 @@ def save_yaml(config: Any, path: str | Path) -> None:
     atomic_write_text(path, yaml.safe_dump(to_dict(config), sort_keys=False))
 
 
-def load_yaml(cls: type[T], path: str | Path) -> T:
+def read_yaml_mapping(path: str | Path) -> dict:
+    """The top-level mapping of a YAML settings file, with errors naming the file."""
     path = Path(path)
     try:
         data = yaml.safe_load(path.read_text()) or {}
@@ -151,4 +152,8 @@ def load_yaml(cls: type[T], path: str | Path) -> T:
         raise ConfigError(f"{path}: not valid YAML ({exc})") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping of settings at the top level")
-    return from_dict(cls, data, where=str(path))
+    return data
+
+
+def load_yaml(cls: type[T], path: str | Path) -> T:
+    return from_dict(cls, read_yaml_mapping(path), where=str(path))

@@ -23,9 +23,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
 
-from fdnet.config import from_dict, replace_dotted, to_dict
+from fdnet.config import from_dict, read_yaml_mapping, replace_dotted, to_dict
 from fdnet.errors import ConfigError
 from fdnet.models.fdnet import FDNetConfig, validate_architecture
 
@@ -207,15 +206,7 @@ def _flatten(data: dict, prefix: str = "") -> dict[str, Any]:
 
 def apply_yaml(config: TrainConfig, path: str | Path) -> TrainConfig:
     """Apply a YAML file holding any subset of the settings tree on top of ``config``."""
-    path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: config file not found") from None
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: not valid YAML ({exc})") from None
-    if not isinstance(data, dict):
-        raise ConfigError(f"{path}: expected a mapping of settings at the top level")
+    data = read_yaml_mapping(path)
     try:
         return replace_dotted(config, _flatten(data))
     except ConfigError as exc:
