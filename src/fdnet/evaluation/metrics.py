@@ -46,6 +46,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from fdnet.matching.similarity import top_k_of_matrix  # noqa: F401  (re-exported: metrics API)
+
 from fdnet.data.groundtruth import GroundTruth
 from fdnet.errors import DataError
 
@@ -130,31 +132,6 @@ class Metrics:
 
 
 # ---------------------------------------------------------------------------- ranking
-def top_k_of_matrix(similarity: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """(Q, R) similarity -> (indices, scores), both (Q, k), best first.
-
-    Ties keep the lower reference index first, like ``np.argmax`` (VPR-Bench's top-1) and
-    :func:`fdnet.matching.similarity.top_k`. Hand-written because numpy has no stable top-k:
-    argpartition narrows to k candidates per row (ties at the k-th value are widened so no
-    lower-index tie is dropped), then a lexsort orders them.
-    """
-    s = np.asarray(similarity)
-    r = s.shape[1]
-    k = int(min(max(k, 1), r))
-    cand = np.argpartition(-s, k - 1, axis=1)[:, :k] if k < r else np.broadcast_to(np.arange(r), s.shape)
-    cand = np.array(cand)
-    kth = np.take_along_axis(s, cand, axis=1).min(axis=1)
-    # Rows where more than k entries reach the k-th best value have a tie at the boundary, and
-    # argpartition may have kept a higher index than a tied lower one: redo those rows exactly.
-    tied = np.flatnonzero((s >= kth[:, None]).sum(axis=1) > k)
-    if len(tied):
-        cand[tied] = np.argsort(-s[tied], axis=1, kind="stable")[:, :k]
-    cand_scores = np.take_along_axis(s, cand, axis=1)
-    order = np.lexsort((cand, -cand_scores), axis=1)
-    idx = np.take_along_axis(cand, order, axis=1).astype(np.int64)
-    return idx, np.take_along_axis(s, idx, axis=1)
-
-
 # ---------------------------------------------------------------------------- PR curves
 def pr_curve_vprbench(scores: np.ndarray, correct: np.ndarray) -> tuple[PRCurve, float]:
     """VPR-Bench's PR curve and AUC-PR from top-1 ``scores`` and their ``correct`` labels.

@@ -67,15 +67,26 @@ def top_k(queries: np.ndarray, references: np.ndarray, k: int = 1,
     return best_idx, best_score
 
 
-def top_k_of_matrix(similarity: np.ndarray, k: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """Best ``k`` columns per row of an already computed (Q, R) matrix, best first
-    (ties: lower index first)."""
-    s = np.asarray(similarity, dtype=np.float32)
-    k = int(min(k, s.shape[1]))
-    if k <= 0:
-        raise ValueError("k must be >= 1 and the matrix must have at least one column")
-    part = np.argpartition(-s, k - 1, axis=1)[:, :k] if k < s.shape[1] else np.tile(np.arange(s.shape[1]), (len(s), 1))
-    part_scores = np.take_along_axis(s, part, axis=1)
-    order = np.lexsort((part, -part_scores), axis=1)
-    idx = np.take_along_axis(part, order, axis=1)
-    return idx.astype(np.int64), np.take_along_axis(s, idx, axis=1)
+def top_k_of_matrix(similarity: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """(Q, R) similarity -> (indices, scores), both (Q, k), best first.
+
+    Ties keep the lower reference index first, like ``np.argmax`` (VPR-Bench's top-1) and
+    :func:`fdnet.matching.similarity.top_k`. Hand-written because numpy has no stable top-k:
+    argpartition narrows to k candidates per row (ties at the k-th value are widened so no
+    lower-index tie is dropped), then a lexsort orders them.
+    """
+    s = np.asarray(similarity)
+    r = s.shape[1]
+    k = int(min(max(k, 1), r))
+    cand = np.argpartition(-s, k - 1, axis=1)[:, :k] if k < r else np.broadcast_to(np.arange(r), s.shape)
+    cand = np.array(cand)
+    kth = np.take_along_axis(s, cand, axis=1).min(axis=1)
+    # Rows where more than k entries reach the k-th best value have a tie at the boundary, and
+    # argpartition may have kept a higher index than a tied lower one: redo those rows exactly.
+    tied = np.flatnonzero((s >= kth[:, None]).sum(axis=1) > k)
+    if len(tied):
+        cand[tied] = np.argsort(-s[tied], axis=1, kind="stable")[:, :k]
+    cand_scores = np.take_along_axis(s, cand, axis=1)
+    order = np.lexsort((cand, -cand_scores), axis=1)
+    idx = np.take_along_axis(cand, order, axis=1).astype(np.int64)
+    return idx, np.take_along_axis(s, idx, axis=1)
