@@ -46,10 +46,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fdnet.matching.similarity import top_k_of_matrix  # noqa: F401  (re-exported: metrics API)
-
 from fdnet.data.groundtruth import GroundTruth
 from fdnet.errors import DataError
+from fdnet.matching.similarity import top_k_of_matrix  # noqa: F401  (re-exported: metrics API)
 
 VPRBENCH = "vprbench"
 RECALL_OVER_QUERIES = "recall-over-queries"
