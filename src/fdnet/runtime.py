@@ -50,16 +50,20 @@ class Row:
     extra: dict = field(default_factory=dict)
 
 
-def fdnet_extraction(input_size=(224, 224), widths=(64, 128, 256, 512), vector_length=512,
-                     batch: int = 32, repeats: int = 5) -> dict[str, float]:
-    """ms/image of FDNet's content encoder (the whole descriptor path) in fp32 eager and
-    bf16 autocast + channels_last, at batch ``batch`` and at batch 1 (latency)."""
+def fdnet_extraction(vector_length=512, batch: int = 32, repeats: int = 5) -> dict[str, float]:
+    """ms/image of FDNet's content encoder (the whole descriptor path) at the ``paper`` preset's
+    architecture (224x224) in fp32 eager and bf16 autocast + channels_last, at batch ``batch``
+    and at batch 1 (latency)."""
+    import dataclasses
+
     import torch
 
-    from fdnet.models.fdnet import FDNet, FDNetConfig
+    from fdnet.models.fdnet import FDNet
+    from fdnet.training.config import preset
 
-    model = FDNet(FDNetConfig(input_size=tuple(input_size), widths=tuple(widths),
-                              vector_length=vector_length)).eval()
+    config = dataclasses.replace(preset("paper").model, vector_length=vector_length)
+    model = FDNet(config).eval()
+    input_size = config.input_size
     encoder = model.content_encoder
     out = {}
     for b in (batch, 1):
