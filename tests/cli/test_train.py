@@ -46,3 +46,21 @@ def test_clear_errors_exit_2(tmp_path, capsys):
     assert main(["train", "--data", str(data), "--out", str(tmp_path / "none"), "--resume"]) == 2
     assert "no run to resume" in capsys.readouterr().err
     assert not (tmp_path / "r" / "model.safetensors").exists()
+
+
+def test_train_with_dataset_format_and_named_split(tmp_path, capsys):
+    from fdnet.training.checkpoint import load_config
+    from fdnet.training.config import TrainConfig
+
+    root = _dataset(tmp_path / "data", n=10)
+    out = tmp_path / "run"
+    assert main(["train", "--data", str(root), "--dataset-format", "folders", "--split", "0:6",
+                 "--preset", "tiny", "--out", str(out), "--no-progress"]) == 0
+    assert "(6, 6 images)" in capsys.readouterr().out
+    config = load_config(out, TrainConfig)
+    assert (config.data.dataset_format, config.data.split) == ("folders", "0:6")
+    # --resume reads the same split from the run's own config
+    assert main(["train", "--data", str(root), "--out", str(out), "--resume", "--no-progress"]) == 0
+    assert main(["train", "--data", str(root), "--dataset-format", "folders", "--frames", "0:6",
+                 "--preset", "tiny", "--out", str(tmp_path / "r2")]) == 2
+    assert "--split" in capsys.readouterr().err

@@ -16,6 +16,9 @@ def register(sub) -> None:
     p.add_argument("--preset", default=None, help="paper | cpu | tiny (default cpu; with --resume, the run's own)")
     p.add_argument("--conditions", help="comma-separated conditions to train on (default: all sub-folders)")
     p.add_argument("--frames", help="START:END slice of every condition to train on (END exclusive)")
+    p.add_argument("--dataset-format", help="read --data in a published layout (nordland, alderley, oxford_robotcar, "
+                   "st_lucia, fas, vprbench, vpr_tutorial, vg_benchmark, folders, or auto); see docs/datasets.md")
+    p.add_argument("--split", help="with --dataset-format: a named split (default: the format's train split) or START:END")
     p.add_argument("--config", help="YAML file of settings applied on top of the preset")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override one setting, e.g. --set schedule.joint_steps=3000 (repeatable)")
@@ -55,6 +58,10 @@ def build_config(args):
         flags["data.conditions"] = [c.strip() for c in args.conditions.split(",") if c.strip()]
     if args.frames is not None:
         flags["data.frames"] = args.frames
+    if args.dataset_format is not None:
+        flags["data.dataset_format"] = args.dataset_format
+    if args.split is not None:
+        flags["data.split"] = args.split
     for flag, key in (("validate_reference", "validation.reference"), ("validate_query", "validation.query"),
                       ("validate_frames", "validation.frames"), ("validate_tolerance", "validation.tolerance"),
                       ("validate_every", "validation.every")):
@@ -74,8 +81,21 @@ def run(args) -> int:
         import torch
 
         torch.set_num_threads(config.runtime.threads)
-    data = load_training_images(args.data, config.data.conditions, config.data.frames,
-                                config.model.input_size, config.data.batch_per_domain)
+    if config.data.dataset_format:
+        from fdnet.data.formats import open_training
+        from fdnet.errors import ConfigError
+        from fdnet.training.trainer import route_training_images
+
+        if config.data.frames:
+            raise ConfigError("with --dataset-format, choose frames with --split (a name or START:END), not --frames")
+        fmt = config.data.dataset_format
+        route = open_training(args.data, None if fmt == "auto" else fmt, config.data.split or None,
+                              list(config.data.conditions) or None)
+        data = route_training_images(route, config.model.input_size, config.data.batch_per_domain,
+                                     config.data.split)
+    else:
+        data = load_training_images(args.data, config.data.conditions, config.data.frames,
+                                    config.model.input_size, config.data.batch_per_domain)
     validation = load_validation_images(args.data, config)
     print(f"fdnet train: preset {config.preset}, conditions {', '.join(data.names)} "
           f"({', '.join(str(len(x)) for x in data.images)} images), input {tuple(config.model.input_size)}, "

@@ -37,6 +37,11 @@ class DataConfig:
     conditions: tuple[str, ...] = ()
     #: "START:END" slice of every condition used for training ("" = all frames)
     frames: str = ""
+    #: a published layout read by ``fdnet.data.formats`` ("" = one sub-folder per condition)
+    dataset_format: str = ""
+    #: with ``dataset_format``: a named split ("train", "test", "all") or "START:END" ("" = the
+    #: format's training default)
+    split: str = ""
     #: B, images per condition in a mini-batch (paper: 4)
     batch_per_domain: int = 4
 

@@ -64,7 +64,14 @@ def load_training_images(root: str | Path, conditions, frames: str, size, batch_
     """Read ``root/<condition>/`` (the frame slice of each) at ``size``; checks counts first."""
     dataset = RouteDataset.from_folder(root, list(conditions) or None)
     start, end = parse_frame_range(frames)
-    dataset = dataset.frames(start, end)
+    return route_training_images(dataset.frames(start, end), size, batch_per_domain, frames)
+
+
+def route_training_images(dataset: RouteDataset, size, batch_per_domain: int,
+                          frames: str = "") -> TrainingImages:
+    """The images of every condition of ``dataset`` (e.g. a dataset adapter's training split)
+    at ``size``; checks counts first."""
+    root = dataset.root
     if len(dataset.conditions) < 2:
         raise DataError(
             f"{root}: FDNet needs at least two conditions (sub-folders) to train on; "
