@@ -180,18 +180,26 @@ class Correspondences:
     by_name: bool
 
 
+def read_text_lines(path: Path, what: str, not_text: str,
+                    comments: tuple[str, ...] = ("#",)) -> list[tuple[int, str]]:
+    """(line number, line) of the non-blank, non-comment lines of a text file; a missing or
+    binary file is a DataError naming it (``what`` / ``not_text`` say what was expected)."""
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise DataError(f"{path}: {what} not found") from None
+    except UnicodeDecodeError:
+        raise DataError(f"{path}: {not_text}") from None
+    return [(i + 1, line) for i, line in enumerate(text.splitlines())
+            if line.strip() and not line.lstrip().startswith(comments)]
+
+
 def read_correspondences(path: Path, query_column: int = 0, reference_column: int = 1) -> Correspondences:
     """Read a two-(or more-)column correspondence file: CSV, TSV or whitespace separated, with or
     without a header line. Integer values are frame numbers; anything else is taken as file names.
     Errors name the file and line."""
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise DataError(f"{path}: correspondence (ground-truth) file not found") from None
-    except UnicodeDecodeError:
-        raise DataError(f"{path}: not a text file; expected rows 'query_frame,reference_frame'") from None
-    lines = [(i + 1, line) for i, line in enumerate(text.splitlines())
-             if line.strip() and not line.lstrip().startswith(("#", "%"))]
+    lines = read_text_lines(path, "correspondence (ground-truth) file",
+                            "not a text file; expected rows 'query_frame,reference_frame'", ("#", "%"))
     if not lines:
         raise DataError(f"{path}: empty correspondence file")
     sample = lines[0][1]

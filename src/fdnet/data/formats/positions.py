@@ -25,6 +25,7 @@ from typing import Sequence
 
 import numpy as np
 
+from fdnet.data.formats._common import read_text_lines
 from fdnet.data.groundtruth import GroundTruth, latlon_to_metres
 from fdnet.errors import DataError
 
@@ -69,14 +70,7 @@ def read_positions(path: str | os.PathLike, image_column: str | None = None,
                    columns: Sequence[str] | str | None = None) -> PositionTable:
     """Read a position file (see the module docstring for the accepted columns)."""
     path = Path(path)
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise DataError(f"{path}: position file not found") from None
-    except UnicodeDecodeError:
-        raise DataError(f"{path}: not a text (CSV) file") from None
-    lines = [(i + 1, line) for i, line in enumerate(text.splitlines()) if line.strip()
-             and not line.lstrip().startswith("#")]
+    lines = read_text_lines(path, "position file", "not a text (CSV) file")
     if not lines:
         raise DataError(f"{path}: empty position file")
     delimiter = _sniff_delimiter(lines[0][1])
