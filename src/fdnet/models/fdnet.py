@@ -16,6 +16,7 @@ from fdnet.errors import ConfigError
 from fdnet.models.decoder import Decoder
 from fdnet.models.discriminator import PairDiscriminator
 from fdnet.models.encoder import Encoder
+from fdnet.models.trunk import BACKBONES, FrozenTrunk, trunk_map_size, trunk_stride
 
 INPUT_NORMS = ("none", "per_image", "per_patch")
 CRITIC_INPUTS = ("l2", "raw")
@@ -49,6 +50,20 @@ class FDNetConfig:
     #: so only the direction matters; an unnormalised v_c lets the encoder fool the critic by
     #: scaling), "raw" = the encoder output as the paper's text implies
     critic_input: str = "l2"
+    #: "none" = the paper's encoders on pixels; "efficientnet-lite0" = a frozen ImageNet trunk in
+    #: front of both encoders, whose map they encode and the decoder reconstructs (an extension
+    #: for small training sets, see :mod:`fdnet.models.trunk`); input_size is then the image size
+    #: given to the trunk, and input_norm applies to the trunk's map ("none" or "per_image")
+    backbone: str = "none"
+    #: with a backbone: its last block used (EfficientNet-Lite0: 4 = 40 ch at stride 8,
+    #: 7 = 80 ch at stride 16, the conv3-like map)
+    backbone_block: int = 7
+
+    def encoder_input_size(self) -> tuple[int, int]:
+        """(H, W) of what the encoders read: the image, or the trunk's map of it."""
+        if self.backbone == "none":
+            return tuple(int(v) for v in self.input_size)
+        return trunk_map_size(self.input_size, self.backbone_block)
 
 
 def validate_architecture(config: FDNetConfig) -> None:
@@ -61,13 +76,24 @@ def validate_architecture(config: FDNetConfig) -> None:
         raise ConfigError(f"model.widths: channel widths must be positive, got {list(config.widths)}")
     if config.vector_length <= 0:
         raise ConfigError(f"model.vector_length: must be positive, got {config.vector_length}")
+    if config.backbone not in BACKBONES:
+        raise ConfigError(f"model.backbone: {config.backbone!r}; choose one of {', '.join(BACKBONES)}")
     scale = 2 ** len(config.widths)
     height, width = (int(v) for v in config.input_size)
+    if config.backbone != "none":
+        if config.input_norm == "per_patch":
+            raise ConfigError(f"model.input_norm: per_patch cannot be used with model.backbone={config.backbone} "
+                              "(it normalises pixel patches; the trunk sees the image as on ImageNet); "
+                              "use none or per_image (which standardises the trunk's map)")
+        stride = trunk_stride(config.backbone_block)
+        scale *= stride
     for name, value in (("height", height), ("width", width)):
         if value < scale or value % scale:
             raise ConfigError(
-                f"model.input_size: {name} {value} cannot go through {len(config.widths)} stride-2 blocks; "
-                f"it must be a positive multiple of 2^{len(config.widths)} = {scale} "
+                f"model.input_size: {name} {value} cannot go through {len(config.widths)} stride-2 blocks"
+                + (f" after the backbone's stride {stride}" if config.backbone != "none" else "")
+                + f"; it must be a positive multiple of "
+                + (f"{stride} x " if config.backbone != "none" else "") + f"2^{len(config.widths)} = {scale} "
                 f"(e.g. {max(scale, round(value / scale) * scale)}), or use fewer blocks (model.widths)"
             )
     if config.input_norm not in INPUT_NORMS:
@@ -105,13 +131,20 @@ class FDNet(nn.Module):
         super().__init__()
         validate_architecture(config)
         self.config = config
-        size, widths, length = config.input_size, tuple(config.widths), config.vector_length
-        self.content_encoder = Encoder(size, widths, length, config.encoder_dropout)
-        self.appearance_encoder = Encoder(size, widths, length, config.encoder_dropout)
-        output = "tanh" if config.input_norm == "none" else "none"
-        self.decoder = Decoder(size, widths, length, output=output)
+        size, widths, length = config.encoder_input_size(), tuple(config.widths), config.vector_length
+        trunk = None if config.backbone == "none" else FrozenTrunk(config.backbone_block)
+        channels = 3 if trunk is None else trunk.channels
+        self.content_encoder = Encoder(size, widths, length, config.encoder_dropout, in_channels=channels)
+        self.appearance_encoder = Encoder(size, widths, length, config.encoder_dropout, in_channels=channels)
+        # The decoder reconstructs exactly what the encoders see: [-1, 1] pixels (tanh), or
+        # standardised pixels / trunk maps (linear).
+        output = "tanh" if config.input_norm == "none" and trunk is None else "none"
+        self.decoder = Decoder(size, widths, length, out_channels=channels, output=output)
         self.discriminator = PairDiscriminator(length, config.critic_hidden, config.critic_dropout)
         self.apply(init_weights)
+        # Attached after init_weights, which would overwrite its ImageNet weights. Not in
+        # named_parts(): run directories hold only what training changed.
+        self.trunk = trunk
 
     def named_parts(self) -> dict[str, nn.Module]:
         """The modules saved in a run directory, by name."""
@@ -123,23 +156,25 @@ class FDNet(nn.Module):
         }
 
     def preprocess(self, images: torch.Tensor) -> torch.Tensor:
-        """(N, 3, H, W) in [0, 1] -> what the encoders see and the decoder reconstructs."""
+        """(N, 3, H, W) in [0, 1] -> what the encoders see and the decoder reconstructs: the image
+        (or, with a backbone, the trunk's map of it) after ``input_norm``."""
+        x = images if self.trunk is None else self.trunk(images)
         if self.config.input_norm == "per_image":
-            mean = images.mean(dim=(1, 2, 3), keepdim=True)
-            std = images.std(dim=(1, 2, 3), keepdim=True)
+            mean = x.mean(dim=(1, 2, 3), keepdim=True)
+            std = x.std(dim=(1, 2, 3), keepdim=True)
             # The floor keeps near-black frames (tunnels) from turning pixel noise into contrast.
             floor = 0.02 if self.config.min_std is None else self.config.min_std
-            return (images - mean) / std.clamp_min(floor)
+            return (x - mean) / std.clamp_min(floor)
         if self.config.input_norm == "per_patch":
-            n, c, h, w = images.shape
+            n, c, h, w = x.shape
             p = self.config.patch_size
-            patches = images.reshape(n, c, h // p, p, w // p, p)
+            patches = x.reshape(n, c, h // p, p, w // p, p)
             mean = patches.mean(dim=(1, 3, 5), keepdim=True)
             std = patches.std(dim=(1, 3, 5), keepdim=True)
             # A low floor: night patches have little contrast and it is exactly what must be kept.
             floor = 0.005 if self.config.min_std is None else self.config.min_std
             return ((patches - mean) / std.clamp_min(floor)).reshape(n, c, h, w)
-        return images * 2.0 - 1.0
+        return x * 2.0 - 1.0 if self.trunk is None else x
 
     def critic_features(self, content: torch.Tensor) -> torch.Tensor:
         if self.config.critic_input == "l2":

@@ -1,0 +1,77 @@
+"""The optional frozen ImageNet trunk in front of FDNet's encoders (models/trunk.py)."""
+
+import re
+
+import numpy as np
+import pytest
+import torch
+
+from fdnet.config import replace_dotted
+from fdnet.errors import ConfigError
+from fdnet.models import FDNet, FDNetConfig
+from fdnet.models.trunk import FrozenTrunk, trunk_map_size
+from fdnet.training.checkpoint import load_weights
+from fdnet.training.config import preset
+from fdnet.training.trainer import Trainer, load_training_images
+
+from tests.training.test_trainer import make_dataset
+
+# block 4: stride 8, 40 channels; a 32x64 image gives a 4x8 map, one FDNet block makes it 2x4
+SMALL = dict(input_size=(32, 64), widths=(16,), vector_length=16, critic_hidden=16,
+             backbone="efficientnet-lite0", backbone_block=4)
+
+
+def test_map_size_and_channels():
+    assert trunk_map_size((128, 256), 7) == (8, 16)
+    assert trunk_map_size((30, 60), 4) == (4, 8)  # "same" padding rounds up
+    model = FDNet(FDNetConfig(**SMALL))
+    assert model.preprocess(torch.rand(2, 3, 32, 64)).shape == (2, 40, 4, 8)
+    assert model.content(torch.rand(2, 3, 32, 64)).shape == (2, 16)
+
+
+def test_trunk_stays_frozen_in_eval_mode_and_out_of_run_directories():
+    model = FDNet(FDNetConfig(**SMALL))
+    model.train()
+    assert model.content_encoder.training and not model.trunk.training
+    assert not any(p.requires_grad for p in model.trunk.parameters())
+    saved = {t.data_ptr() for part in model.named_parts().values() for t in part.state_dict().values()}
+    assert saved.isdisjoint(t.data_ptr() for t in model.trunk.state_dict().values())
+
+
+def test_trunk_matches_the_pretrained_feature_extractor():
+    from fdnet.descriptors.backbone import FeatureExtractor
+
+    images = np.random.default_rng(0).random((2, 32, 64, 3), dtype=np.float32)
+    ours = FrozenTrunk(4)(torch.from_numpy(images).permute(0, 3, 1, 2))
+    reference = FeatureExtractor(block=4, bf16=False).features(images)
+    np.testing.assert_allclose(ours.numpy(), reference, rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize("overrides, message", [
+    (dict(input_size=(40, 64)), "multiple of 8 x 2^1 = 16"),
+    (dict(input_norm="per_patch"), "per_patch cannot be used"),
+    (dict(backbone="resnet50"), "model.backbone"),
+    (dict(backbone_block=16), "block 16 does not exist"),
+])
+def test_bad_backbone_settings_are_config_errors(overrides, message):
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        FDNet(FDNetConfig(**{**SMALL, **overrides}))
+
+
+def test_training_with_a_trunk_changes_the_encoders_but_not_the_trunk(tmp_path):
+    make_dataset(tmp_path / "data", size=(32, 64))
+    config = replace_dotted(preset("tiny"), {f"model.{k}": v for k, v in SMALL.items()})
+    data = load_training_images(tmp_path / "data", (), "", config.model.input_size, config.data.batch_per_domain)
+    trainer = Trainer(config, data, tmp_path / "run", tensorboard=False)
+    trunk_before = {k: v.clone() for k, v in trainer.model.trunk.state_dict().items()}
+    encoder_before = {k: v.clone() for k, v in trainer.model.content_encoder.state_dict().items()}
+    trainer.fit(progress=False)
+    for key, value in trainer.model.trunk.state_dict().items():
+        assert torch.equal(value, trunk_before[key]), key
+    assert any(not torch.equal(v, encoder_before[k]) for k, v in trainer.model.content_encoder.state_dict().items())
+    # the run directory rebuilds the same descriptor (trunk from the package, parts from the run)
+    fresh = FDNet(config.model)
+    load_weights(tmp_path / "run", fresh.named_parts())
+    x = torch.rand(3, 3, 32, 64)
+    trainer.model.eval(), fresh.eval()
+    torch.testing.assert_close(trainer.model.content(x), fresh.content(x))
