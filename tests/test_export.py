@@ -36,3 +36,19 @@ def test_export_of_missing_run_is_a_clear_error(tmp_path, capsys):
     assert main(["export", "--checkpoint", str(tmp_path / "nope"), "--out", str(tmp_path / "x.onnx")]) == 2
     assert "nope" in capsys.readouterr().err
     assert not (tmp_path / "x.onnx").exists()
+
+
+def test_export_includes_the_backbone_trunk(tiny_run, tmp_path):
+    """A run with model.backbone exports trunk + encoder as one graph, equal to PyTorch's vectors."""
+    import fdnet
+
+    run = tmp_path / "run"
+    assert main(["train", "--data", str(tiny_run.parent / "route"), "--preset", "tiny", "--out", str(run),
+                 "--no-progress", "--set", "model.backbone=efficientnet-lite0", "--set", "model.backbone_block=4",
+                 "--set", "model.input_size=[32,64]", "--set", "model.widths=[16]"]) == 0
+    out = tmp_path / "trunk.onnx"
+    assert main(["export", "--checkpoint", str(run), "--out", str(out)]) == 0
+    images = np.random.default_rng(2).random((2, 32, 64, 3), dtype=np.float32)
+    session = onnxruntime.InferenceSession(str(out), providers=["CPUExecutionProvider"])
+    onnx_vectors = session.run(["content"], {"images": images.transpose(0, 3, 1, 2).copy()})[0]
+    np.testing.assert_allclose(onnx_vectors, fdnet.load(run).describe(images), atol=1e-4)

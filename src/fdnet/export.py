@@ -54,6 +54,9 @@ def export_onnx(run_dir: str | os.PathLike, out: str | os.PathLike, opset: int =
         # The TorchScript-based exporter: no extra dependency (onnxscript) and stable for plain
         # conv/linear graphs like this one; its deprecation notice is not the user's concern.
         warnings.simplefilter("ignore", DeprecationWarning)
+        # The backbone's "same" padding is computed from the input size in Python; the graph is
+        # traced at the run's fixed input size, so the tracer's warnings about it do not apply.
+        warnings.simplefilter("ignore", torch.jit.TracerWarning)
         torch.onnx.export(module, (example,), str(tmp), input_names=["images"], output_names=["content"],
                           dynamic_axes={"images": {0: "batch"}, "content": {0: "batch"}},
                           opset_version=opset, dynamo=False)
