@@ -2,6 +2,7 @@
 
 import csv
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -109,3 +110,22 @@ def test_bad_input_fails_before_training(tmp_path):
         validate(replace_dotted(preset("tiny"), {"model.input_size": [18, 32]}))
     with pytest.raises(ConfigError, match="unknown preset"):
         preset("huge")
+
+
+def test_best_checkpoint_breaks_recall_ties_by_auc(tmp_path, monkeypatch):
+    import fdnet.training.trainer as trainer_module
+
+    trainer = _trainer(tmp_path)
+    scores = iter([(0.5, 0.2), (0.9, 0.3), (0.9, 0.6), (0.9, 0.4), (0.8, 0.9)])
+
+    def fake_metrics(*args, **kwargs):
+        r1, auc = next(scores)
+        return {"recall@1": r1, "recall@5": r1, "recall@100p": 0.0, "auc": auc}
+
+    monkeypatch.setattr(trainer_module, "validation_metrics", fake_metrics)
+    trainer.validation = SimpleNamespace(description="fake")
+    for step in range(5):
+        trainer.step = step
+        trainer.validate_now()
+    assert trainer.best == {"step": 2, "recall@1": 0.9, "auc": 0.6}
+    assert "step: 2" in (tmp_path / "run" / "best" / "validation.yaml").read_text()
