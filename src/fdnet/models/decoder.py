@@ -43,6 +43,13 @@ class Decoder(nn.Module):
                  out_channels: int = 3, output: str = "tanh") -> None:
         super().__init__()
         scale = 2 ** len(widths)
+        if not widths:
+            # No upsampling blocks (an encoder reading a backbone's map directly): one linear
+            # layer back to the map, which is signed and unbounded, so no BatchNorm or activation.
+            self.feature_shape = (out_channels, int(input_size[0]), int(input_size[1]))
+            self.fc = nn.Linear(2 * vector_length, out_channels * int(input_size[0]) * int(input_size[1]))
+            self.blocks = nn.Identity()
+            return
         self.feature_shape = (widths[-1], int(input_size[0]) // scale, int(input_size[1]) // scale)
         c, h, w = self.feature_shape
         self.fc = nn.Sequential(

@@ -28,6 +28,8 @@ class FDNetConfig:
     input_size: tuple[int, int] = (224, 224)
     #: output channels of the encoding blocks (one block each); the decoder mirrors them.
     #: The paper's Fig. 3 is not legible on block count; 4 blocks of 64..512 is DCGAN's layout.
+    #: With a backbone it may be empty: E_c and E_a are then one linear layer on the trunk's map
+    #: (at N(0, 0.02) initialisation a Gaussian random projection of it, i.e. Conv3 + GRP).
     widths: tuple[int, ...] = (64, 128, 256, 512)
     #: L, the length of the content and appearance vectors (paper: 256/512/1024/2048)
     vector_length: int = 512
@@ -70,8 +72,8 @@ def validate_architecture(config: FDNetConfig) -> None:
     """Raise ConfigError for settings the architecture cannot take (before building anything)."""
     if len(config.input_size) != 2:
         raise ConfigError(f"model.input_size: expected (height, width), got {config.input_size!r}")
-    if not config.widths:
-        raise ConfigError("model.widths: need at least one encoding block")
+    if not config.widths and config.backbone == "none":
+        raise ConfigError("model.widths: need at least one encoding block (zero blocks only with a model.backbone)")
     if any(w <= 0 for w in config.widths):
         raise ConfigError(f"model.widths: channel widths must be positive, got {list(config.widths)}")
     if config.vector_length <= 0:
