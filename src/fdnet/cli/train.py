@@ -13,7 +13,7 @@ def register(sub) -> None:
                        "Writes RUN_DIR/{config.yaml, model.safetensors, training_state.pt, log.csv, best/}.")
     p.add_argument("--data", required=True, help="dataset folder with one sub-folder per condition")
     p.add_argument("--out", required=True, help="run directory to write (or to continue with --resume)")
-    p.add_argument("--preset", default=None, help="paper | cpu | tiny (default cpu; with --resume, the run's own)")
+    p.add_argument("--preset", default=None, help="paper | cpu | cpu-scratch | tiny (default cpu; with --resume, the run's own)")
     p.add_argument("--conditions", help="comma-separated conditions to train on (default: all sub-folders)")
     p.add_argument("--frames", help="START:END slice of every condition to train on (END exclusive)")
     p.add_argument("--dataset-format", help="read --data in a published layout (nordland, alderley, oxford_robotcar, "
