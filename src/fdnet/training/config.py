@@ -161,47 +161,48 @@ def _paper() -> TrainConfig:
     )
 
 
+def _two_cores(name: str, model: FDNetConfig, schedule: ScheduleConfig) -> TrainConfig:
+    """What the CPU presets share: B = 8 per condition, L_e^adv weight 0.1 against a critic fed
+    L2-normalised content vectors (docs/results.md, learnt 1), one torch thread (OpenMP
+    spin-waiting against other processes on 2 shared cores made steps ~6x slower), bf16 autocast
+    and channels_last."""
+    return TrainConfig(
+        preset=name, model=model, data=DataConfig(batch_per_domain=8), schedule=schedule,
+        loss=LossConfig(adversarial_weight=0.1),
+        runtime=RuntimeConfig(threads=1, bf16=True, channels_last=True, checkpoint_every=250, log_every=10),
+    )
+
+
 def _cpu() -> TrainConfig:
     # FDNet on a frozen ImageNet trunk (model.backbone; an extension, see fdnet.models.trunk):
     # from scratch, the paper's pixel encoders did not beat SAD on Gardens Point's 100 training
     # images per condition (cpu-scratch below; docs/results.md, gp2-gp7), and reached Nordland
-    # test R@1 0.31; on the trunk's map FDNet reaches 0.47 (Nordland) and 0.7 (Gardens Point)
-    # in ~12 minutes on 2 cores (runs nb2, gpb2 in docs/results.md). 128x256 keeps Nordland's 1:2
-    # aspect; block 7 is the conv3-like stride-16 map (80 x 8 x 16). The trunk's maps are
+    # test R@1 0.31; on the trunk's map FDNet reaches 0.47 (Nordland) and 0.68 (Gardens Point)
+    # in ~8-12 minutes on 2 cores (runs nordF, gpF in docs/results.md). 128x256 keeps Nordland's
+    # 1:2 aspect; block 7 is the conv3-like stride-16 map (80 x 8 x 16). The trunk's maps are
     # computed once per run, so a step costs about what the scratch preset's did.
-    return TrainConfig(
-        preset="cpu",
-        model=FDNetConfig(input_size=(128, 256), widths=(128, 256), vector_length=512,
-                          critic_hidden=512, input_norm="per_image", critic_input="l2",
-                          backbone="efficientnet-lite0", backbone_block=7),
-        data=DataConfig(batch_per_domain=8),
-        # The joint stage is where the descriptor improves (docs/results.md "What was learnt" 1):
+    return _two_cores(
+        "cpu",
+        FDNetConfig(input_size=(128, 256), widths=(128, 256), vector_length=512, critic_hidden=512,
+                    input_norm="per_image", critic_input="l2", backbone="efficientnet-lite0", backbone_block=7),
+        # The joint stage is where the descriptor improves (docs/results.md "What was learnt" 1, 12):
         # a short auto-encoder pretraining, then 3000 joint steps (nb2 vs nb1: R@1 0.47 vs 0.37).
-        schedule=ScheduleConfig(pretrain_autoencoder_steps=500, pretrain_critic_steps=200,
-                                joint_steps=3000, critic_updates_per_step=2),
-        loss=LossConfig(adversarial_weight=0.1),
-        runtime=RuntimeConfig(threads=1, bf16=True, channels_last=True, checkpoint_every=250,
-                              log_every=10),
+        ScheduleConfig(pretrain_autoencoder_steps=500, pretrain_critic_steps=200, joint_steps=3000,
+                       critic_updates_per_step=2),
     )
 
 
 def _cpu_scratch() -> TrainConfig:
-    # The paper's architecture (pixel encoders learnt from scratch), sized for 2 CPU cores.
-    # Chosen from the timings logged in docs/results.md: on 2 cores shared with other jobs,
-    # quarter-width blocks (16..128) are several times cheaper than 64..512, one torch thread
-    # avoids OpenMP spin-waiting against other processes, and 64x32 is Nordland's native size.
-    return TrainConfig(
-        preset="cpu-scratch",
-        model=FDNetConfig(input_size=(32, 64), widths=(16, 32, 64, 128), vector_length=512,
-                          # per-image standardisation: nord5 in docs/results.md (R@1 0.306 vs 0.269
-                          # with [-1, 1] input on Nordland's test frames)
-                          critic_hidden=512, input_norm="per_image", critic_input="l2"),
-        data=DataConfig(batch_per_domain=8),
-        schedule=ScheduleConfig(pretrain_autoencoder_steps=1000, pretrain_critic_steps=200,
-                                joint_steps=1000, critic_updates_per_step=2),
-        loss=LossConfig(adversarial_weight=0.1),
-        runtime=RuntimeConfig(threads=1, bf16=True, channels_last=True, checkpoint_every=250,
-                              log_every=10),
+    # The paper's architecture (pixel encoders learnt from scratch), sized for 2 CPU cores:
+    # quarter-width blocks (16..128) are several times cheaper than 64..512, and 64x32 is
+    # Nordland's native size. Per-image standardisation: nord5 in docs/results.md (R@1 0.306 vs
+    # 0.269 with [-1, 1] input on Nordland's test frames).
+    return _two_cores(
+        "cpu-scratch",
+        FDNetConfig(input_size=(32, 64), widths=(16, 32, 64, 128), vector_length=512, critic_hidden=512,
+                    input_norm="per_image", critic_input="l2"),
+        ScheduleConfig(pretrain_autoencoder_steps=1000, pretrain_critic_steps=200, joint_steps=1000,
+                       critic_updates_per_step=2),
     )
 
 
