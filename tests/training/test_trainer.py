@@ -55,15 +55,21 @@ def test_tiny_trains_with_finite_losses_and_round_trips(tmp_path):
     assert load_training_state(tmp_path / "run")["step"] == trainer.config.total_steps
 
 
-def test_resume_continues_at_the_right_step_and_matches_one_run(tmp_path):
-    whole = _trainer(tmp_path, "whole")
+# the tiny preset as is, and with a frozen trunk (whose maps the trainer caches)
+TRUNK = {"model.backbone": "efficientnet-lite0", "model.backbone_block": 4, "model.input_size": (32, 64),
+         "model.widths": (16,)}
+
+
+@pytest.mark.parametrize("model", [{}, TRUNK], ids=["pixels", "trunk"])
+def test_resume_continues_at_the_right_step_and_matches_one_run(tmp_path, model):
+    whole = _trainer(tmp_path, "whole", **model)
     whole.fit(progress=False)
 
-    half = _trainer(tmp_path, "half", **{"schedule.joint_steps": 1})  # stops inside the joint stage
+    half = _trainer(tmp_path, "half", **model, **{"schedule.joint_steps": 1})  # stops inside the joint stage
     half.fit(progress=False)
     assert half.step == 6
     # same model settings, longer schedule: resume picks up at step 6 and runs to the end
-    resumed = _trainer(tmp_path, "half", resume=True)
+    resumed = _trainer(tmp_path, "half", resume=True, **model)
     assert resumed.step == 6
     resumed.fit(progress=False)
     assert resumed.step == whole.step == 8
