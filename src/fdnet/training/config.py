@@ -8,7 +8,7 @@
   (``runtime.device=cuda``).
 * ``cpu`` - sized to reach a useful model in at most ~20 minutes on 2 CPU cores: FDNet's
   encoders on the map of a frozen ImageNet trunk (EfficientNet-Lite0, ``model.backbone``),
-  128x256 input; Nordland test R@1 0.47 (SAD 0.057), Gardens Point 0.7 (SAD 0.31).
+  128x256 input, L = 2048; Nordland test R@1 0.56 (SAD 0.057), Gardens Point 0.69 (SAD 0.31).
 * ``cpu-scratch`` - the paper's pixel encoders learnt from scratch at 32x64, for 2 CPU cores
   (Nordland R@1 0.31 in 3 minutes; below SAD on Gardens Point).
   docs/results.md logs every run behind these numbers. Under heavy load from other processes
@@ -177,13 +177,15 @@ def _cpu() -> TrainConfig:
     # FDNet on a frozen ImageNet trunk (model.backbone; an extension, see fdnet.models.trunk):
     # from scratch, the paper's pixel encoders did not beat SAD on Gardens Point's 100 training
     # images per condition (cpu-scratch below; docs/results.md, gp2-gp7), and reached Nordland
-    # test R@1 0.31; on the trunk's map FDNet reaches 0.47 (Nordland) and 0.68 (Gardens Point)
-    # in ~8-12 minutes on 2 cores (runs nordF, gpF in docs/results.md). 128x256 keeps Nordland's
+    # test R@1 0.31; on the trunk's map FDNet reaches 0.56 (Nordland) and 0.69 (Gardens Point)
+    # in 13-16 minutes on 2 cores (runs nb6, gpb8 in docs/results.md). 128x256 keeps Nordland's
     # 1:2 aspect; block 7 is the conv3-like stride-16 map (80 x 8 x 16). The trunk's maps are
     # computed once per run, so a step costs about what the scratch preset's did.
     return _two_cores(
         "cpu",
-        FDNetConfig(input_size=(128, 256), widths=(128, 256), vector_length=512, critic_hidden=512,
+        # L = 2048, the longest of the paper's lengths: Nordland test R@1 0.557 vs 0.472 at 512
+        # (nb6 vs nordF), Gardens Point unchanged (0.69 vs 0.68, gpb8 vs gpF).
+        FDNetConfig(input_size=(128, 256), widths=(128, 256), vector_length=2048, critic_hidden=512,
                     input_norm="per_image", critic_input="l2", backbone="efficientnet-lite0", backbone_block=7),
         # The joint stage is where the descriptor improves (docs/results.md "What was learnt" 1, 12):
         # a short auto-encoder pretraining, then 3000 joint steps (nb2 vs nb1: R@1 0.47 vs 0.37).
