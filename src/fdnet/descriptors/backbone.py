@@ -133,6 +133,13 @@ def check_block(block: int) -> int:
     return block
 
 
+def map_size(input_size, block: int) -> tuple[int, int]:
+    """(h, w) of the map after ``block`` for an (H, W) input ("same" padding: ceil(H / stride))."""
+    stride = BLOCK_STRIDE[check_block(block)]
+    h, w = input_size
+    return -(-int(h) // stride), -(-int(w) // stride)
+
+
 def trunk_forward(model, x, block: int):
     """Run the stem and blocks ``0..block`` (inclusive) of an EfficientNet model on ``x`` (N,3,H,W)
     and return the map after ``block``. Mirrors ``EfficientNet.extract_features`` (without drop-
@@ -217,9 +224,8 @@ class FeatureExtractor:
         return BLOCK_STRIDE[self.block]
 
     def map_size(self, input_size: tuple[int, int]) -> tuple[int, int]:
-        """(h, w) of the map for an (H, W) input ("same" padding: ceil(H / stride))."""
-        h, w = input_size
-        return -(-int(h) // self.stride), -(-int(w) // self.stride)
+        """(h, w) of the map for an (H, W) input."""
+        return map_size(input_size, self.block)
 
     def features_tensor(self, images: np.ndarray):
         """(N, H, W, 3) -> torch float32 (N, C, h, w) map (contiguous, NCHW)."""

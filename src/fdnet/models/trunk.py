@@ -21,7 +21,7 @@ import torch
 from torch import nn
 
 from fdnet.descriptors.backbone import (
-    BLOCK_CHANNELS, BLOCK_STRIDE, INPUT_MEAN, INPUT_STD, build_efficientnet_lite0, check_block, trunk_forward,
+    BLOCK_CHANNELS, BLOCK_STRIDE, INPUT_MEAN, INPUT_STD, build_efficientnet_lite0, check_block, map_size, trunk_forward,
 )
 
 BACKBONES = ("none", "efficientnet-lite0")
@@ -33,9 +33,8 @@ def trunk_stride(block: int) -> int:
 
 
 def trunk_map_size(input_size, block: int) -> tuple[int, int]:
-    """(h, w) of the trunk's map for an (H, W) input ("same" padding: ceil(H / stride))."""
-    stride = trunk_stride(block)
-    return tuple(-(-int(v) // stride) for v in input_size)
+    """(h, w) of the trunk's map for an (H, W) input (the backbone module's rule)."""
+    return map_size(input_size, block)
 
 
 class FrozenTrunk(nn.Module):
