@@ -111,6 +111,52 @@ def test_csv_empty_missing_and_binary(tmp_path):
         GroundTruth.from_csv(tmp_path / "bin.csv")
 
 
+def test_csv_with_names_round_trip_and_two_column_files_still_read(tmp_path):
+    gt = GroundTruth([np.array([2, 0]), np.array([], dtype=np.int64)], num_references=3)
+    path = tmp_path / "gt.csv"
+    gt.to_csv(path, query_names=["q 1.png", "q,2.png"], reference_names=["r1.png", "r2.png", "r10.png"])
+    assert path.read_text().splitlines() == [
+        "query_index,reference_indices,query_name,reference_names",
+        "0,0 2,q 1.png,r1.png/r10.png",      # names in the order of the indices
+        '1,,"q,2.png",']                     # a comma in a name is quoted, as CSV does
+    back = GroundTruth.from_csv(path, num_references=3, num_queries=2)
+    assert _lists(back) == [[0, 2], []]
+    back.check_names(["/x/q 1.png", "/x/q,2.png"], ["/y/r1.png", "/y/r2.png", "/y/r10.png"])
+    # the VPR-Bench form (no names) is read as before and has nothing to check
+    (tmp_path / "plain.csv").write_text("0,1\n1,0\n")
+    plain = GroundTruth.from_csv(tmp_path / "plain.csv", num_references=2, num_queries=2)
+    assert plain.listed_names is None
+    plain.check_names(["a.png", "b.png"], ["c.png", "d.png"])
+
+
+def test_names_that_do_not_match_the_images_name_row_file_and_both_names(tmp_path):
+    gt = GroundTruth([np.array([0]), np.array([1]), np.array([2])], num_references=3)
+    path = tmp_path / "gt.csv"
+    names = ["frame_1.png", "frame_2.png", "frame_10.png"]
+    gt.to_csv(path, query_names=names, reference_names=names)
+    back = GroundTruth.from_csv(path, num_references=3, num_queries=3)
+    text_order = ["frame_1.png", "frame_10.png", "frame_2.png"]  # the same files, sorted as text
+    with pytest.raises(DataError, match=r"gt.csv, line 3: query 1 is 'frame_2.png' in the ground truth but "
+                                        r"'frame_10.png' in /q; .*other images, or in another order"):
+        back.check_names([f"/q/{n}" for n in text_order], [f"/r/{n}" for n in names])
+    with pytest.raises(DataError, match=r"line 3: reference 1 is 'frame_2.png' in the ground truth but "
+                                        r"'frame_10.png' in /r"):
+        back.check_names([f"/q/{n}" for n in names], [f"/r/{n}" for n in text_order])
+    with pytest.raises(DataError, match="has rows for 3 queries but /q has 4 query images"):
+        back.check_names([f"/q/{n}" for n in [*names, "frame_11.png"]], [f"/r/{n}" for n in names])
+
+
+@pytest.mark.parametrize("body, message", [
+    ("0,1,a.png\n", "line 2: expected 4 columns"),
+    ("0,1 2,a.png,r1.png\n", "line 2: 2 reference indices but 1 reference names"),
+])
+def test_named_csv_errors(tmp_path, body, message):
+    path = tmp_path / "gt.csv"
+    path.write_text("query_index,reference_indices,query_name,reference_names\n" + body)
+    with pytest.raises(DataError, match=message):
+        GroundTruth.from_csv(path)
+
+
 def test_correct_mask_dense_subset_summary():
     gt = GroundTruth([np.array([0, 1]), np.array([3]), np.array([], dtype=np.int64)], num_references=4)
     mask = gt.correct_mask(np.array([[1, 2], [2, 3], [0, 1]]))

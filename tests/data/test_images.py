@@ -7,7 +7,7 @@ import pytest
 from PIL import Image
 
 from conftest import require_shared
-from fdnet.data.images import list_images, load_image, load_images, to_grey
+from fdnet.data.images import image_size, list_images, load_image, load_images, natural_key, to_grey
 from fdnet.errors import DataError
 
 
@@ -125,6 +125,49 @@ def test_list_images_sorted_filtered_and_errors(tmp_path, rgb8):
         list_images(empty)
     with pytest.raises(DataError, match="not a folder"):
         list_images(tmp_path / "missing")
+
+
+def test_list_images_natural_order_of_unpadded_frame_numbers(tmp_path):
+    names = [f"frame_{i}.png" for i in range(1, 13)]
+    for name in reversed(names):
+        (tmp_path / name).write_bytes(b"x")
+    assert [p.name for p in list_images(tmp_path)] == names   # frame_2 before frame_10
+
+
+def test_natural_key_is_total_case_sensitive_and_numeric():
+    names = ["b2.png", "B10.png", "a10.png", "a2.png", "a02.png", "B9.png"]
+    # digits as numbers; text case-sensitively ("B" < "a" < "b", as plain sorting); leading zeros
+    # tie on the number and the plain name breaks the tie ("a02" < "a2")
+    assert sorted(names, key=natural_key) == ["B9.png", "B10.png", "a02.png", "a2.png", "a10.png", "b2.png"]
+    assert natural_key("frame_01.png") != natural_key("frame_1.png")
+    assert sorted(["x²1", "x10", "x9"], key=natural_key) == ["x9", "x10", "x²1"]  # no int("²")
+
+
+def test_list_images_recursive_and_hidden_files(tmp_path):
+    for rel in ["b/1.png", "a/10.png", "a/2.png", "a/._2.png", ".cache/0.png", "3.png"]:
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_bytes(b"x")
+    assert [p.relative_to(tmp_path).as_posix() for p in list_images(tmp_path, recursive=True)] == \
+        ["3.png", "a/2.png", "a/10.png", "b/1.png"]
+    assert [p.name for p in list_images(tmp_path)] == ["3.png"]
+
+
+@pytest.mark.parametrize("warnings_as_errors", [False, True])
+@pytest.mark.parametrize("side, pillow_reaction", [(12, "warns"), (20, "raises")])
+def test_images_over_the_pixel_limit_are_data_errors_naming_the_file(tmp_path, monkeypatch, side,
+                                                                     pillow_reaction, warnings_as_errors):
+    """Pillow warns above MAX_IMAGE_PIXELS and raises above twice that; fdnet refuses both, with the
+    file and its pixel count, whether or not warnings are errors (python -W error)."""
+    import warnings
+
+    path = _save(tmp_path / "huge.png", np.zeros((side, side, 3), np.uint8))
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 100)  # a 12x12 image is then "too big" (144 > 100)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error" if warnings_as_errors else "ignore", Image.DecompressionBombWarning)
+        for read in (load_image, image_size, lambda p: load_images([p], (4, 4))):
+            with pytest.raises(DataError, match=rf"huge.png: image has {side * side} pixels.*limit of 100 pixels"):
+                read(path)
+    assert load_image(_save(tmp_path / "small.png", np.zeros((10, 10, 3), np.uint8))).shape == (10, 10, 3)
 
 
 def test_to_grey_bt601(rng):

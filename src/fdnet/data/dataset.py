@@ -1,7 +1,7 @@
 """Datasets: a route traversed under several conditions.
 
 On disk the common layout is one sub-folder per condition (``summer/``, ``winter/``...), whose
-file names sort in traversal order. A :class:`Traverse` is one condition's ordered images; a
+file names sort in traversal order (the natural order of :func:`fdnet.data.images.list_images`). A :class:`Traverse` is one condition's ordered images; a
 :class:`RouteDataset` is the set of traverses of one route.
 """
 
@@ -14,7 +14,7 @@ from typing import Sequence
 
 import numpy as np
 
-from fdnet.data.images import IMAGE_EXTENSIONS, list_images
+from fdnet.data.images import has_images, list_images
 from fdnet.errors import DataError
 
 
@@ -94,8 +94,7 @@ class RouteDataset:
             conditions = sorted(
                 p.name
                 for p in root.iterdir()
-                if p.is_dir() and not p.name.startswith(".")
-                and any(c.suffix.lower() in IMAGE_EXTENSIONS for c in p.iterdir())
+                if not p.name.startswith(".") and has_images(p)
             )
             if not conditions:
                 raise DataError(f"{root}: no condition sub-folders with images (expected root/<condition>/*.png)")

@@ -21,7 +21,11 @@ kept traverses keep their ``frame_ids``, so ``GroundTruth.from_frames`` still pa
 
 from __future__ import annotations
 
+import hashlib
+import json
+import os
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -177,3 +181,72 @@ def filter_route(dataset: RouteDataset, dark_threshold: float | None = 0.1,
     )
     filtered = RouteDataset(dataset.root, {name: t.select(kept) for name, t in dataset.traverses.items()})
     return filtered, report
+
+
+FILTER_RULE = "fdnet-filter-v2"  # change when the detectors change, so old cache entries are not reused
+
+
+def default_cache_dir() -> Path:
+    return Path(os.environ.get("FDNET_CACHE") or Path.home() / ".cache" / "fdnet") / "filters"
+
+
+def _cache_file(dataset: RouteDataset, settings: FilterSettings, cache_dir: str | os.PathLike | None) -> Path:
+    """Cache entry named by the settings and every file (path, size, modification time), so an
+    edited, added or removed image means a new entry."""
+    fingerprint = hashlib.sha1()
+    fingerprint.update(json.dumps({"rule": FILTER_RULE, "dark_threshold": settings.dark_threshold,
+                                   "duplicate_threshold": settings.duplicate_threshold,
+                                   "thumbnail_size": list(settings.thumbnail_size)}, sort_keys=True).encode())
+    for name, traverse in sorted(dataset.traverses.items()):
+        fingerprint.update(name.encode())
+        for path in traverse.paths:
+            st = path.stat()
+            fingerprint.update(f"{path.resolve()}|{st.st_size}|{st.st_mtime_ns}".encode())
+    base = Path(cache_dir) if cache_dir else default_cache_dir()
+    return base / f"{fingerprint.hexdigest()}.json"
+
+
+def _read_cache(cache_file: Path, num_frames: int) -> tuple[np.ndarray, str] | None:
+    try:
+        cached = json.loads(cache_file.read_text())
+        kept = np.asarray(cached["kept_positions"], dtype=np.int64)
+        summary = str(cached["summary"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None  # absent or unreadable: recompute
+    if kept.ndim != 1 or (len(kept) and (kept.min() < 0 or kept.max() >= num_frames)):
+        return None
+    return kept, summary
+
+
+def filter_frames(dataset: RouteDataset, dark_threshold: float | None = 0.1,
+                  duplicate_threshold: float | None = 0.01, thumbnail_size: tuple[int, int] = (16, 32),
+                  cache_dir: str | os.PathLike | None = None, use_cache: bool = True) -> tuple[RouteDataset, str]:
+    """The paper's removal of tunnel (dark) and near-duplicate (stationary) frames from a
+    frame-aligned route, as every command and adapter applies it: a position dropped in any
+    condition is dropped from all (:func:`filter_route`).
+
+    The kept positions are cached as JSON under ``cache_dir`` (default ``$FDNET_CACHE/filters``
+    or ``~/.cache/fdnet/filters``), keyed by the settings and the files (paths, sizes,
+    modification times); a cache that cannot be written is skipped, not an error. Returns the
+    filtered route (``frame_ids`` kept) and a one-line summary of what was dropped.
+    """
+    settings = FilterSettings(dark_threshold, duplicate_threshold, tuple(thumbnail_size))
+    num_frames = max((len(t) for t in dataset.traverses.values()), default=0)
+    cache_file = _cache_file(dataset, settings, cache_dir) if use_cache else None
+    cached = _read_cache(cache_file, num_frames) if cache_file is not None else None
+    if cached is not None and all(len(t) == num_frames for t in dataset.traverses.values()):
+        kept, summary = cached
+    else:
+        _, report = filter_route(dataset, settings.dark_threshold, settings.duplicate_threshold,
+                                 settings.thumbnail_size)
+        kept, summary = np.asarray(report.kept, dtype=np.int64), report.summary()
+        if cache_file is not None:
+            from fdnet.io import atomic_write_text
+
+            try:
+                atomic_write_text(cache_file, json.dumps({"kept_positions": kept.tolist(), "summary": summary,
+                                                          "report": report.to_dict()}))
+            except OSError:
+                pass  # a read-only home or cache folder only costs the next run the detector pass
+    filtered = RouteDataset(dataset.root, {name: t.select(kept) for name, t in dataset.traverses.items()})
+    return filtered, summary

@@ -1,13 +1,18 @@
-"""Reading images into float arrays, whatever their format.
+"""Reading images into float arrays, whatever their format, and the one order of a folder's images.
 
 Every image enters the pipeline as float32 RGB in [0, 1], shape (H, W, 3), resized to the size
 the caller asks for; grey, RGBA, palette and 16-bit files are converted here so no descriptor
 has to care. Errors name the file.
+
+**Image order.** :func:`list_images` is the only place a condition's images are listed, and
+:func:`natural_key` the only order: every command, dataset adapter and ground-truth file uses
+it, so index ``i`` means the same image everywhere (see ``docs/datasets.md``, "Image order").
 """
 
 from __future__ import annotations
 
 import os
+import re
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Sequence
@@ -19,16 +24,108 @@ from fdnet.errors import DataError
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp")
 
+# ASCII digits only: ``\d`` would also match other scripts' digits, and ``str.isdigit`` accepts
+# superscripts that int() rejects; published datasets number frames with 0-9.
+_DIGIT_RUNS = re.compile(r"([0-9]+)")
 
-def list_images(folder: str | os.PathLike) -> list[Path]:
-    """Image files directly inside ``folder``, sorted by name (= traversal order)."""
+
+def natural_key(name: str | os.PathLike) -> tuple:
+    """Sort key of the natural order: ``frame_2`` before ``frame_10``.
+
+    Runs of digits compare as numbers, everything else case-sensitively as text (``B`` before
+    ``a``, as plain sorting does). Names that differ only in leading zeros (``frame_01``,
+    ``frame_1``) compare equal as numbers, so the plain name breaks the tie: the order is total
+    and does not depend on the order the file system lists files in.
+    """
+    name = os.fspath(name)
+    # split() alternates text and digit runs and always starts with text (possibly ""), so the
+    # i-th elements of two keys have the same type and tuples compare without a TypeError.
+    parts = _DIGIT_RUNS.split(name)
+    return tuple(int(part) if i % 2 else part for i, part in enumerate(parts)), name
+
+
+def _is_hidden(relative: Path) -> bool:
+    # ".DS_Store", macOS "._frame.png" resource forks, ".thumbnails/": never images of the route
+    return any(part.startswith(".") for part in relative.parts)
+
+
+def list_images(folder: str | os.PathLike, recursive: bool = False) -> list[Path]:
+    """The image files of one condition, in traversal order: the natural order of their names.
+
+    Image files are those with an extension in :data:`IMAGE_EXTENSIONS` (any case); hidden files
+    (and, with ``recursive``, files under hidden folders) are left out. Names are compared with
+    :func:`natural_key`: digit runs as numbers, the rest case-sensitively as text, ties (names that
+    differ only in leading zeros) broken by the plain name. So ``frame_1.png, frame_2.png, ...,
+    frame_10.png`` come in that order, and zero-padded names come in plain text order.
+    ``recursive=True`` lists the whole tree, ordered by the path below ``folder``
+    (``a/2.png`` before ``a/10.png`` before ``b/1.png``).
+
+    Index ``i`` of this list is image ``i`` everywhere in fdnet: in ground-truth CSVs, similarity
+    matrices, ``fdnet match`` output and ``fdnet extract`` arrays.
+    """
     folder = Path(folder)
     if not folder.is_dir():
-        raise DataError(f"{folder}: not a folder of images")
-    paths = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS)
+        reason = "it is a file" if folder.exists() else "folder not found"
+        raise DataError(f"{folder}: not a folder of images ({reason})")
+    candidates = folder.rglob("*") if recursive else folder.iterdir()
+    paths = [p for p in candidates
+             if p.suffix.lower() in IMAGE_EXTENSIONS and not _is_hidden(p.relative_to(folder)) and p.is_file()]
     if not paths:
         raise DataError(f"{folder}: contains no images (looked for {', '.join(IMAGE_EXTENSIONS)})")
-    return paths
+    return sorted(paths, key=lambda p: natural_key(p.relative_to(folder).as_posix()))
+
+
+def has_images(folder: str | os.PathLike) -> bool:
+    """Whether ``folder`` directly holds at least one image :func:`list_images` would list."""
+    folder = Path(folder)
+    try:
+        return folder.is_dir() and any(
+            p.suffix.lower() in IMAGE_EXTENSIONS and not p.name.startswith(".") and p.is_file()
+            for p in folder.iterdir())
+    except OSError:
+        return False
+
+
+_BOMB_PIXELS = re.compile(r"\((\d+) pixels\)")
+
+
+def _too_many_pixels(path: Path, pixels: int | None, detail: str = "") -> DataError:
+    limit = Image.MAX_IMAGE_PIXELS
+    count = f"{pixels:,} pixels" if pixels is not None else "more pixels than allowed"
+    return DataError(
+        f"{path}: image has {count}{detail}, over the limit of {limit:,} pixels "
+        f"(PIL.Image.MAX_IMAGE_PIXELS); refusing to decode it, as it may be a decompression bomb")
+
+
+def _open(path: Path) -> Image.Image:
+    """``Image.open`` whose decompression-bomb refusals are DataErrors naming the file.
+
+    Pillow warns between ``MAX_IMAGE_PIXELS`` and twice that and raises above; fdnet refuses both
+    (no place-recognition input has a quarter of a gigapixel), keeping Pillow's limit.
+    """
+    try:
+        img = Image.open(path)
+    except (Image.DecompressionBombError, Image.DecompressionBombWarning) as exc:
+        # The warning arrives as an exception when warnings are errors (python -W error).
+        found = _BOMB_PIXELS.search(str(exc))
+        raise _too_many_pixels(path, int(found.group(1)) if found else None) from None
+    limit = Image.MAX_IMAGE_PIXELS
+    if limit is not None and img.width * img.height > limit:
+        img.close()
+        raise _too_many_pixels(path, img.width * img.height, f" ({img.width}x{img.height})")
+    return img
+
+
+def image_size(path: str | os.PathLike) -> tuple[int, int]:
+    """(width, height) of an image from its header only (pixels are not decoded)."""
+    path = Path(path)
+    try:
+        with _open(path) as img:
+            return img.size
+    except FileNotFoundError:
+        raise DataError(f"{path}: image file not found") from None
+    except (UnidentifiedImageError, OSError) as exc:
+        raise DataError(f"{path}: cannot read image header ({exc})") from None
 
 
 def _to_float_rgb(img: Image.Image, path: Path, source_mode: str | None = None) -> np.ndarray:
@@ -63,7 +160,7 @@ def load_image(path: str | os.PathLike, size: tuple[int, int] | None = None) -> 
     """
     path = Path(path)
     try:
-        with Image.open(path) as img:
+        with _open(path) as img:
             img.load()
             source_mode = img.mode
             if size is not None:

@@ -1,6 +1,7 @@
 """Nordland: per-season folders (frames aligned by the number in their names) and the partitioned
 release (train/test, sections)."""
 
+import numpy as np
 import pytest
 
 from conftest import require_shared
@@ -92,33 +93,28 @@ def test_real_nordland_trimmed():
 
 
 def test_paper_filter_drops_a_frame_from_every_season(tmp_path, monkeypatch):
-    """The filter (fdnet.data.filters, another module) may drop a frame in one season only; the
-    adapter drops that frame number from all seasons so they stay aligned."""
-    import sys
-    import types
-
+    """The adapter runs the one frame filter (fdnet.data.filters.filter_frames) over every season
+    present, drops a position dark in any season from all of them, and caches what it kept."""
+    from fdnet.data import filters
     from fdnet.data.dataset import RouteDataset
 
     calls = []
 
-    def filter_route(route, **options):
+    def filter_route(route, *settings):
+        # a tunnel in winter at frame 30 (position 2): the real detectors are tested in test_filters.py
         calls.append(sorted(route.traverses))
-        out = dict(route.traverses)
-        winter = out["winter"]
-        out["winter"] = winter.select([i for i, f in enumerate(winter.frame_ids) if f != 30])  # a tunnel
-        return RouteDataset(route.root, out)
+        kept = np.array([i for i, f in enumerate(route["winter"].frame_ids) if f != 30])
+        report = filters.FilterReport(num_frames=len(route["winter"]), kept=kept, dark={"winter": np.array([2])})
+        return RouteDataset(route.root, {k: t.select(kept) for k, t in route.traverses.items()}), report
 
-    monkeypatch.setitem(sys.modules, "fdnet.data.filters", types.SimpleNamespace(filter_route=filter_route))
-    import fdnet.data
-
-    monkeypatch.setattr(fdnet.data, "filters", sys.modules["fdnet.data.filters"], raising=False)
+    monkeypatch.setattr(filters, "filter_route", filter_route)
     root = make_trimmed(tmp_path / "nordland", n=6, seasons=("spring", "summer", "winter"))
     cache = tmp_path / "cache"
     # filter_frames defaults to on for the per-season layout; it sees every season, not just the pair
     split = open_split(root, split="all", filter_cache=str(cache))
     assert calls == [["spring", "summer", "winter"]]
     assert split.reference.frame_ids.tolist() == split.query.frame_ids.tolist() == [10, 20, 40, 50, 60]
-    assert "frame filter: kept 5 of 6 frames" in split.description
+    assert "frame filter: kept 5 of 6 frames: dropped 1 dark" in split.description
     # the kept frame numbers are cached: a second open does not run the detectors again
     again = open_split(root, reference="spring", query="winter", split="all", filter_cache=str(cache))
     assert len(calls) == 1 and again.query.frame_ids.tolist() == [10, 20, 40, 50, 60]

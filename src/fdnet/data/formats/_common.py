@@ -1,5 +1,7 @@
-"""Pieces every dataset adapter needs: file ordering, frame numbers, named splits, size checks,
-frame-correspondence files, and the paper's tunnel/stationary frame filter.
+"""Pieces every dataset adapter needs: frame numbers, named splits, size checks and
+frame-correspondence files. The image order (``list_images``, ``natural_key``) belongs to
+:mod:`fdnet.data.images` (re-exported here, ``image_files`` being its former name) and the
+tunnel/stationary frame filter to :mod:`fdnet.data.filters` (``filter_frames``).
 
 Kept in one place so that each adapter module reads as "where the files are, what the protocol
 is", not as plumbing.
@@ -19,40 +21,15 @@ import numpy as np
 
 from fdnet.data.dataset import RouteDataset, Traverse, parse_frame_range
 from fdnet.data.groundtruth import GroundTruth
-from fdnet.data.images import IMAGE_EXTENSIONS
-from fdnet.errors import ConfigError, DataError, NotAvailableError
+from fdnet.data.images import has_images, image_size, list_images, natural_key  # noqa: F401 (re-exported)
+from fdnet.errors import ConfigError, DataError
 
 # ----------------------------------------------------------------------------- file order
 
-_DIGITS = re.compile(r"(\d+)")
 _LAST_NUMBER = re.compile(r"(\d+)(?!.*\d)")
 
-
-def natural_key(name: str) -> tuple:
-    """Sort key that orders ``2.png`` before ``10.png`` (several published layouts, e.g. the
-    partitioned Nordland and FAS, number frames without zero padding)."""
-    return tuple(int(part) if part.isdigit() else part.lower() for part in _DIGITS.split(name))
-
-
-def image_files(folder: str | os.PathLike, recursive: bool = False) -> list[Path]:
-    """Image files in ``folder`` in traversal order (natural sort of the path below ``folder``)."""
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise DataError(f"{folder}: folder not found")
-    candidates = folder.rglob("*") if recursive else folder.iterdir()
-    paths = [p for p in candidates if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS
-             and not p.name.startswith(".")]
-    if not paths:
-        raise DataError(f"{folder}: contains no images (looked for {', '.join(IMAGE_EXTENSIONS)})")
-    return sorted(paths, key=lambda p: natural_key(str(p.relative_to(folder))))
-
-
-def has_images(folder: Path) -> bool:
-    try:
-        return folder.is_dir() and any(
-            p.suffix.lower() in IMAGE_EXTENSIONS for p in folder.iterdir() if p.is_file())
-    except OSError:
-        return False
+# The one image order lives in fdnet.data.images; ``image_files`` is its former name here.
+image_files = list_images
 
 
 def frame_number(path: str | os.PathLike) -> int | None:
@@ -112,18 +89,10 @@ def check_image_sizes(traverse: Traverse, where: Path | None = None) -> tuple[in
 
     Reads only each file's header (Pillow decodes pixels lazily), so 30k frames take seconds.
     """
-    from PIL import Image, UnidentifiedImageError
-
     first_size = None
     first_path = None
     for path in traverse.paths:
-        try:
-            with Image.open(path) as img:
-                size = img.size
-        except FileNotFoundError:
-            raise DataError(f"{path}: image file not found") from None
-        except (UnidentifiedImageError, OSError) as exc:
-            raise DataError(f"{path}: cannot read image header ({exc})") from None
+        size = image_size(path)
         if first_size is None:
             first_size, first_path = size, path
         elif size != first_size:
@@ -302,69 +271,7 @@ def check_correspondences_cover(corr: Correspondences, query: Traverse, referenc
             f"check the file and the column order (query_column/reference_column settings)")
 
 
-# ----------------------------------------------------------------------------- frame filter
-
-def filter_dark_and_stationary(dataset: RouteDataset, cache_dir: str | os.PathLike | None = None,
-                               **options) -> tuple[RouteDataset, str]:
-    """The paper's removal of tunnel (dark) and stationary (near-duplicate) frames, applied so the
-    conditions stay aligned: a frame number dropped in any condition is dropped in all of them.
-
-    The conditions must be position-aligned (same frames in the same order). The detectors live
-    in :mod:`fdnet.data.filters` (another part of the project) and read every frame, which takes
-    minutes on a full 1 fps release; the kept frame numbers are therefore cached as JSON under
-    ``cache_dir`` (default ``$FDNET_CACHE/filters`` or ``~/.cache/fdnet/filters``), keyed by the
-    files (names, sizes, modification times) and the settings. Returns the filtered route and a
-    one-line summary of what was dropped.
-    """
-    import hashlib
-    import json
-
-    from fdnet.io import atomic_write_text
-
-    try:
-        from fdnet.data import filters
-    except ImportError:
-        raise NotAvailableError(
-            "tunnel/stationary frame filtering needs fdnet.data.filters, which is not installed in "
-            "this copy; pass filter_frames=false to use every frame") from None
-    fingerprint = hashlib.sha1()
-    fingerprint.update(json.dumps({"rule": "fdnet-filter-v1", "options": options}, sort_keys=True,
-                                  default=str).encode())
-    for name, traverse in sorted(dataset.traverses.items()):
-        fingerprint.update(name.encode())
-        for path in traverse.paths:
-            st = path.stat()
-            fingerprint.update(f"{path.resolve()}|{st.st_size}|{st.st_mtime_ns}".encode())
-    base = Path(cache_dir) if cache_dir else Path(
-        os.environ.get("FDNET_CACHE") or Path.home() / ".cache" / "fdnet") / "filters"
-    cache_file = base / f"{fingerprint.hexdigest()}.json"
-    cached = None
-    if cache_file.is_file():
-        try:
-            cached = json.loads(cache_file.read_text())
-        except (OSError, ValueError):
-            cached = None  # unreadable cache: recompute
-    if cached is not None:
-        keep = set(int(f) for f in cached["kept_frame_ids"])
-        summary = cached["summary"]
-    else:
-        result = filters.filter_route(dataset, **options)
-        filtered, report = result if isinstance(result, tuple) else (result, None)
-        keep = None
-        for traverse in filtered.traverses.values():
-            ids = set(int(f) for f in traverse.frame_ids)
-            keep = ids if keep is None else keep & ids
-        keep = keep or set()
-        total = max((len(t) for t in dataset.traverses.values()), default=0)
-        summary = report.summary() if report is not None and hasattr(report, "summary") else \
-            f"kept {len(keep)} of {total} frames"
-        atomic_write_text(cache_file, json.dumps({"kept_frame_ids": sorted(keep), "summary": summary}))
-    out = {}
-    for name, traverse in dataset.traverses.items():
-        mask = np.fromiter((int(f) in keep for f in traverse.frame_ids), dtype=bool, count=len(traverse))
-        out[name] = traverse.select(np.flatnonzero(mask))
-    return RouteDataset(dataset.root, out), summary
-
+# ----------------------------------------------------------------------------- frame alignment
 
 def common_frames(route: RouteDataset) -> RouteDataset:
     """Keep, in every condition, only the frame numbers all conditions have (order preserved)."""

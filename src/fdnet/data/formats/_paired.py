@@ -15,12 +15,13 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from fdnet.data.dataset import RouteDataset, Traverse
+from fdnet.data.images import list_images
 from fdnet.data.split import EvaluationSplit
 from fdnet.errors import ConfigError, DataError
 
 from fdnet.data.formats._common import (
     Correspondences, DatasetFormat, SplitRule, check_correspondences_cover, describe,
-    find_child, frame_numbers, ground_truth_from_correspondences, image_files, image_folder,
+    find_child, frame_numbers, ground_truth_from_correspondences, image_folder,
     read_correspondences, resolve_split,
 )
 
@@ -34,7 +35,7 @@ def read_numbered(folder: Path, name: str) -> Traverse:
     distinct number each (e.g. timestamps with a fraction) fall back to positions 0, 1, 2...; a
     correspondence file of file names works either way."""
     folder = image_folder(folder)
-    paths = image_files(folder)
+    paths = list_images(folder)
     try:
         ids = frame_numbers(paths, folder)
     except DataError:

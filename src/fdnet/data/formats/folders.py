@@ -1,8 +1,10 @@
 """The plain layout: one sub-folder per condition, file names in traversal order.
 
-``root/<condition>/*.jpg|png...``; the same position in two conditions is the same place
-(frame-aligned ground truth with a tolerance in frames), unless an explicit ground-truth CSV
-(``query_index,reference_indices``) is given. This is how ``../shared/data/nordland_trimmed``
+``root/<condition>/*.jpg|png...``, images in :func:`fdnet.data.images.list_images` order; the
+same position in two conditions is the same place (frame-aligned ground truth with a tolerance in
+frames, :func:`fdnet.data.split.aligned_split`), unless an explicit ground-truth CSV
+(``query_index,reference_indices`` over all images of the two folders, then cut to the split:
+:func:`fdnet.data.split.listed_split`) is given. This is how ``../shared/data/nordland_trimmed``
 and ``gardens_point`` are laid out, and how a user's own multi-condition route usually is.
 
 Gardens Point Walking (Glover 2014) is recognised by its condition names (``day_left``,
@@ -17,16 +19,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
-import numpy as np
-
 from fdnet.data.dataset import RouteDataset, Traverse
-from fdnet.data.groundtruth import GroundTruth
-from fdnet.data.split import EvaluationSplit
+from fdnet.data.images import has_images, list_images
+from fdnet.data.split import EvaluationSplit, aligned_split, listed_split
 from fdnet.errors import ConfigError, DataError
 
-from fdnet.data.formats._common import (
-    DatasetFormat, describe, has_images, image_files, pick_conditions, resolve_split,
-)
+from fdnet.data.formats._common import DatasetFormat, pick_conditions, resolve_split
 
 GARDENS_POINT = {"day_left", "day_right", "night_right"}
 
@@ -45,8 +43,8 @@ def condition_folders(root: Path) -> list[str]:
 
 
 def read_traverse(folder: Path, name: str | None = None) -> Traverse:
-    """A condition folder, naturally sorted; frame ids are positions (position = place)."""
-    return Traverse(name=name or folder.name, paths=image_files(folder))
+    """A condition folder in the one image order; frame ids are positions (position = place)."""
+    return Traverse(name=name or folder.name, paths=list_images(folder))
 
 
 def is_gardens_point(conditions: Sequence[str]) -> bool:
@@ -92,28 +90,14 @@ class FoldersFormat(DatasetFormat):
                             f"{len(conditions)} ({', '.join(conditions) or 'none'})")
         reference, query = default_pair(root, conditions, reference, query)
         pick_conditions(conditions, [reference, query], root)
-        ref_full, qry_full = read_traverse(root / reference), read_traverse(root / query)
-
+        route = RouteDataset(root, {name: read_traverse(root / name) for name in (reference, query)})
         if options.ground_truth:
             gt_path = Path(options.ground_truth)
             gt_path = gt_path if gt_path.is_absolute() else root / gt_path
-            gt_full = GroundTruth.from_csv(gt_path, num_references=len(ref_full), num_queries=len(qry_full))
-            start, end = resolve_split(split, {}, len(qry_full), str(root))
-            q_idx = np.arange(len(qry_full))[slice(start, end)]
-            r_idx = np.arange(len(ref_full))[slice(start, end)]
-            gt = gt_full.subset(q_idx, r_idx)
-            qry, ref = qry_full.select(q_idx), ref_full.select(r_idx)
-            return EvaluationSplit(ref, qry, gt, describe(root, qry, ref, gt))
-
-        if len(ref_full) != len(qry_full):
-            raise DataError(
-                f"frame-aligned ground truth needs the same number of frames in every condition, but "
-                f"{root / reference} has {len(ref_full)} images and {root / query} has {len(qry_full)}; "
-                f"give an explicit ground-truth CSV (ground_truth=FILE) instead")
-        start, end = resolve_split(split, {}, len(ref_full), str(root))
-        ref, qry = ref_full.frames(start, end), qry_full.frames(start, end)
-        gt = GroundTruth.from_frames(qry.frame_ids, ref.frame_ids, self._tolerance(conditions, options))
-        return EvaluationSplit(ref, qry, gt, describe(root, qry, ref, gt))
+            start, end = resolve_split(split, {}, len(route[query]), str(root))
+            return listed_split(route, reference, query, gt_path, start, end)
+        start, end = resolve_split(split, {}, len(route[reference]), str(root))
+        return aligned_split(route, reference, query, self._tolerance(conditions, options), start, end)
 
     def training_dataset(self, root, split, conditions, options) -> RouteDataset:
         available = condition_folders(root)

@@ -33,14 +33,15 @@ from pathlib import Path
 import numpy as np
 
 from fdnet.data.dataset import RouteDataset, Traverse
+from fdnet.data.filters import filter_frames
 from fdnet.data.groundtruth import GroundTruth
 from fdnet.data.split import EvaluationSplit
 from fdnet.errors import DataError
 
 from fdnet.data.formats._common import (
-    DatasetFormat, common_frames, describe, filter_dark_and_stationary, frame_numbers, image_files,
-    image_folder, natural_key, pick_conditions, resolve_split,
+    DatasetFormat, common_frames, describe, frame_numbers, image_folder, pick_conditions, resolve_split,
 )
+from fdnet.data.images import list_images, natural_key
 
 SEASONS = ("spring", "summer", "fall", "winter")
 _SEASON_WORDS = {"spring": "spring", "summer": "summer", "fall": "fall", "autumn": "fall", "winter": "winter"}
@@ -100,7 +101,7 @@ def _partition_folders(root: Path, partition: str) -> dict[str, Path]:
 
 
 def read_season(folder: Path, season: str) -> Traverse:
-    paths = image_files(folder)
+    paths = list_images(folder)
     return Traverse(season, paths, frame_ids=frame_numbers(paths, folder))
 
 
@@ -112,7 +113,7 @@ def read_partition_season(folder: Path, season: str) -> Traverse:
     paths: list[Path] = []
     ids: list[np.ndarray] = []
     for k, section in enumerate(sections):
-        section_paths = image_files(section)
+        section_paths = list_images(section)
         paths += section_paths
         ids.append(frame_numbers(section_paths, section) + k * SECTION_OFFSET)
     all_ids = np.concatenate(ids)
@@ -166,7 +167,7 @@ class NordlandFormat(DatasetFormat):
         route = common_frames(route)
         note = ""
         if filter_on:
-            route, note = filter_dark_and_stationary(route, cache_dir=options.filter_cache)
+            route, note = filter_frames(route, cache_dir=options.filter_cache)
         route = RouteDataset(root, {s: route[s] for s in chosen})
         if is_partitioned(root) and split in ("train", "test"):
             return route, note

@@ -37,6 +37,7 @@ import numpy as np
 
 from fdnet.data.dataset import RouteDataset, Traverse
 from fdnet.data.groundtruth import GroundTruth
+from fdnet.data.images import list_images
 from fdnet.data.split import EvaluationSplit
 from fdnet.errors import ConfigError, DataError
 from fdnet.io import atomic_write_bytes
@@ -185,8 +186,9 @@ class OxfordRobotCarFormat(DatasetFormat):
         if not image_dir.is_dir():
             raise DataError(f"{image_dir}: folder not found; traversals here: "
                             f"{', '.join(run_folders(root, options.camera)) or 'none'}")
-        raw = sorted((p for p in image_dir.iterdir() if p.suffix.lower() == ".png" and p.stem.isdigit()),
-                     key=lambda p: int(p.stem))
+        # Digit-only names are microsecond timestamps: their natural order is time order.
+        raw = [p for p in list_images(image_dir) if p.suffix.lower() == ".png"
+               and p.stem.isascii() and p.stem.isdigit()]
         if not raw:
             raise DataError(f"{image_dir}: no <timestamp>.png images")
         stamps = np.array([int(p.stem) for p in raw], dtype=np.int64)

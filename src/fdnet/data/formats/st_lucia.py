@@ -29,11 +29,12 @@ from pathlib import Path
 
 from fdnet.data.dataset import RouteDataset, Traverse
 from fdnet.data.groundtruth import GroundTruth
+from fdnet.data.images import list_images
 from fdnet.data.split import EvaluationSplit
 from fdnet.errors import ConfigError, DataError
 
 from fdnet.data.formats._common import (
-    DatasetFormat, describe, find_child, fixed, image_files, image_folder, pick_conditions,
+    DatasetFormat, describe, find_child, fixed, image_folder, pick_conditions,
     resolve_split,
 )
 from fdnet.data.formats.positions import PositionTable, align_to_images, read_positions, to_metres
@@ -93,7 +94,7 @@ class StLuciaFormat(DatasetFormat):
         if not run.is_dir():
             raise DataError(f"{run}: run folder not found; runs here: {', '.join(run_folders(root)) or 'none'}")
         folder = image_folder(run)
-        paths = image_files(folder)
+        paths = list_images(folder)
         table = read_positions(gps_file(run, options.gps_file), options.image_column, options.gps_columns)
         rows = align_to_images(table, paths, folder)
         return Traverse(name, paths), PositionTable(table.path, table.kind, table.values[rows])

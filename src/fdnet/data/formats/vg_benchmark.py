@@ -9,7 +9,9 @@ Pittsburgh, Tokyo 24/7, SF-XL... are commonly distributed::
 Each file name carries its UTM position: the fields after the first and second ``@`` are easting
 and northing in metres (the toolkits' comment: "path/to/file/@utm_easting@utm_northing@...@.jpg").
 Positives are the database images within ``tolerance_m`` (25 m, the benchmark's default) of a
-query. Images are found recursively and ordered by path, as the benchmark's ``sorted(glob(...))``.
+query. Images are found recursively and listed in fdnet's one image order (natural order of the
+path below the folder, :func:`fdnet.data.images.list_images`); for the benchmark's fixed-width
+``@%.2f@`` names it is the plain path order of the benchmark's ``sorted(glob(...))``.
 The named splits are the folders under ``images/`` (``test`` by default, ``val``, ``train``).
 """
 
@@ -23,7 +25,7 @@ import numpy as np
 from fdnet.data.dataset import RouteDataset, Traverse, parse_frame_range
 from fdnet.data.groundtruth import GroundTruth
 from fdnet.data.split import EvaluationSplit
-from fdnet.data.images import IMAGE_EXTENSIONS
+from fdnet.data.images import list_images
 from fdnet.errors import DataError
 
 from fdnet.data.formats._common import DatasetFormat, describe
@@ -52,9 +54,7 @@ def _split_folder(root: Path, split: str) -> Path:
 def read_utm_folder(folder: Path, name: str) -> Traverse:
     if not folder.is_dir():
         raise DataError(f"{folder}: folder not found (the geo-localization layout has database/ and queries/)")
-    paths = sorted(p for p in folder.rglob("*") if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS)
-    if not paths:
-        raise DataError(f"{folder}: contains no images")
+    paths = list_images(folder, recursive=True)
     xy = np.empty((len(paths), 2), dtype=np.float64)
     for i, p in enumerate(paths):
         fields = p.name.split("@")

@@ -21,19 +21,20 @@ A ``START:END`` split selects queries; the database stays whole.
 
 from __future__ import annotations
 
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from fdnet.data.arrays import load_npz_member
 from fdnet.data.dataset import RouteDataset, Traverse
 from fdnet.data.groundtruth import GroundTruth
+from fdnet.data.images import list_images
 from fdnet.data.split import EvaluationSplit
 from fdnet.errors import ConfigError, DataError
 
 from fdnet.data.formats._common import (
-    DatasetFormat, describe, has_images, image_files, pick_conditions, resolve_split,
+    DatasetFormat, describe, has_images, pick_conditions, resolve_split,
 )
 
 KNOWN_PAIRS = {  # (reference = tutorial's database, query)
@@ -54,19 +55,9 @@ def _image_folders(root: Path) -> list[str]:
 
 def load_gt_matrix(path: Path, key: str, num_references: int, num_queries: int) -> np.ndarray:
     """(num_references, num_queries) bool matrix from the tutorial's GT.npz."""
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            if key not in data.files:
-                raise DataError(f"{path}: has no array {key!r} (arrays: {', '.join(data.files)})")
-            matrix = np.asarray(data[key])
-    except FileNotFoundError:
-        raise DataError(f"{path}: ground-truth file not found (the VPR_Tutorial datasets ship GT.npz)") from None
-    except (ValueError, OSError, zipfile.BadZipFile) as exc:
-        raise DataError(f"{path}: not a readable .npz ({exc})") from None
-    if hasattr(matrix, "toarray"):  # pragma: no cover - sparse matrices are not stored by np.savez
-        matrix = matrix.toarray()
-    if matrix.ndim != 2:
-        raise DataError(f"{path}: {key} must be a 2-D matrix, got shape {matrix.shape}")
+    if not path.is_file():
+        raise DataError(f"{path}: ground-truth file not found (the VPR_Tutorial datasets ship GT.npz)")
+    matrix = load_npz_member(path, key, ndim=2, what="ground-truth matrix")
     if matrix.shape == (num_references, num_queries):
         return matrix.astype(bool)
     if matrix.shape == (num_queries, num_references):
@@ -99,8 +90,8 @@ class VPRTutorialFormat(DatasetFormat):
 
     def evaluation_split(self, root, reference, query, split, options: VPRTutorialOptions) -> EvaluationSplit:
         reference, query = self._pair(root, reference, query)
-        ref = Traverse(reference, image_files(root / reference))
-        qry = Traverse(query, image_files(root / query))
+        ref = Traverse(reference, list_images(root / reference))
+        qry = Traverse(query, list_images(root / query))
         key = "GTsoft" if options.use_soft else "GThard"
         gt_path = Path(options.ground_truth)
         gt_path = gt_path if gt_path.is_absolute() else root / gt_path
@@ -115,7 +106,7 @@ class VPRTutorialFormat(DatasetFormat):
 
     def training_dataset(self, root, split, conditions, options) -> RouteDataset:
         folders = pick_conditions(_image_folders(root), conditions, root)
-        traverses = {c: Traverse(c, image_files(root / c)) for c in folders}
+        traverses = {c: Traverse(c, list_images(root / c)) for c in folders}
         start, end = resolve_split(split, {}, min(len(t) for t in traverses.values()), str(root))
         return RouteDataset(root, {c: t.frames(start, end) for c, t in traverses.items()})
 

@@ -17,6 +17,7 @@ its zero-padded names. A ``START:END`` split selects queries; the reference map 
 
 from __future__ import annotations
 
+import os
 import pickle
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,10 +26,11 @@ import numpy as np
 
 from fdnet.data.dataset import RouteDataset, Traverse
 from fdnet.data.groundtruth import GroundTruth
+from fdnet.data.images import list_images
 from fdnet.data.split import EvaluationSplit
 from fdnet.errors import DataError
 
-from fdnet.data.formats._common import DatasetFormat, describe, has_images, image_files, resolve_split
+from fdnet.data.formats._common import DatasetFormat, describe, has_images, resolve_split
 
 GT_FILES = ("ground_truth.csv", "ground_truth_new.npy", "ground_truth.npy")
 
@@ -54,26 +56,26 @@ class _NumpyOnlyUnpickler(pickle.Unpickler):
 
 
 def load_object_npy(path: Path) -> np.ndarray:
-    """``np.load(path, allow_pickle=True)`` without running code from the file."""
-    fmt = np.lib.format
+    """``np.load(path, allow_pickle=True)`` without running code from the file; the header is
+    checked first (:mod:`fdnet.data.arrays`), so a forged shape allocates nothing."""
+    from fdnet.data.arrays import check_npy_claim, load_npy, physical_memory_bytes, read_npy_header
+
     try:
         with open(path, "rb") as f:
-            version = fmt.read_magic(f)
-            if version == (1, 0):
-                shape, fortran, dtype = fmt.read_array_header_1_0(f)
-            elif version == (2, 0):
-                shape, fortran, dtype = fmt.read_array_header_2_0(f)
-            else:
-                shape, fortran, dtype = fmt._read_array_header(f, version)  # 3.0: no public reader
+            shape, _, dtype = read_npy_header(f, str(path))
             if not dtype.hasobject:
-                f.seek(0)
-                return np.load(f, allow_pickle=False)
+                return load_npy(path, what="ground-truth")
+            check_npy_claim(shape, dtype, str(path), os.fstat(f.fileno()).st_size - f.tell(),
+                            physical_memory_bytes(), what="ground-truth array")
             array = _NumpyOnlyUnpickler(f, encoding="latin1").load()
     except FileNotFoundError:
         raise DataError(f"{path}: ground-truth file not found") from None
     except (ValueError, OSError, EOFError, pickle.UnpicklingError) as exc:
         raise DataError(f"{path}: not a readable VPR-Bench ground-truth .npy ({exc})") from None
-    return np.asarray(array, dtype=object).reshape(shape)
+    try:
+        return np.asarray(array, dtype=object).reshape(shape)
+    except ValueError:
+        raise DataError(f"{path}: the pickled rows do not have the shape {shape} its header claims") from None
 
 
 def ground_truth_from_npy(path: Path, num_queries: int, num_references: int) -> GroundTruth:
@@ -123,7 +125,7 @@ class VPRBenchFormat(DatasetFormat):
         for sub in ("ref", "query"):
             if not (root / sub).is_dir():
                 raise DataError(f"{root / sub}: folder not found; the VPR-Bench layout has query/ and ref/")
-        return (Traverse("ref", image_files(root / "ref")), Traverse("query", image_files(root / "query")))
+        return (Traverse("ref", list_images(root / "ref")), Traverse("query", list_images(root / "query")))
 
     def evaluation_split(self, root, reference, query, split, options) -> EvaluationSplit:
         ref, qry = self._traverses(root)
