@@ -18,6 +18,6 @@ __all__ = ["load", "__version__"]
 def load(run_dir, device: str = "cpu"):
     """Load a trained FDNet run directory and return its descriptor (``.describe(images)``)."""
     # Imported lazily so `import fdnet` stays cheap (no torch) for metrics-only users.
-    from fdnet.descriptors.fdnet_descriptor import FDNetDescriptor
+    from fdnet.methods.fdnet.descriptor import FDNetDescriptor
 
     return FDNetDescriptor.from_run(run_dir, device=device)

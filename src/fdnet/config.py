@@ -157,3 +157,22 @@ def read_yaml_mapping(path: str | Path) -> dict:
 
 def load_yaml(cls: type[T], path: str | Path) -> T:
     return from_dict(cls, read_yaml_mapping(path), where=str(path))
+
+
+def _flatten(data: dict, prefix: str = "") -> dict[str, Any]:
+    out = {}
+    for key, value in data.items():
+        if isinstance(value, dict):
+            out.update(_flatten(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def apply_yaml(config: T, path: str | Path) -> T:
+    """Apply a YAML file holding any subset of the settings tree on top of ``config``."""
+    data = read_yaml_mapping(path)
+    try:
+        return replace_dotted(config, _flatten(data))
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None

@@ -37,7 +37,7 @@ def export_onnx(run_dir: str | os.PathLike, out: str | os.PathLike, opset: int =
     ``max_abs_diff`` compares onnxruntime with PyTorch on 4 random images (None without check)."""
     import torch
 
-    from fdnet.descriptors.fdnet_descriptor import FDNetDescriptor
+    from fdnet.methods.fdnet.descriptor import FDNetDescriptor
     from fdnet.io import atomic_path
 
     try:

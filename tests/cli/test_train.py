@@ -22,9 +22,18 @@ def test_train_resume_extract(tmp_path, capsys):
                  "--set", "schedule.joint_steps=1", "--validate-reference", "day", "--validate-query", "night",
                  "--validate-tolerance", "1"]) == 0
     assert "finished at step 6/6" in capsys.readouterr().out
+    # a changed setting on --resume is refused with the list of differences ...
     assert main(["train", "--data", str(data), "--out", str(out), "--resume", "--no-progress",
+                 "--set", "schedule.joint_steps=2"]) == 2
+    err = capsys.readouterr().err
+    assert "fdnet train: error:" in err and "schedule.joint_steps: saved 1, requested 2" in err and "--override" in err
+    # ... and applied with --override, recorded with the step it took effect
+    assert main(["train", "--data", str(data), "--out", str(out), "--resume", "--override", "--no-progress",
                  "--set", "schedule.joint_steps=2"]) == 0
     assert "finished at step 7/7" in capsys.readouterr().out
+    from fdnet import runs
+
+    assert runs.read_changes(out)[0]["step"] == 6
     assert main(["extract", "--checkpoint", str(out), "--images", str(data / "night"),
                  "--out", str(tmp_path / "v.npz"), "--threads", "1"]) == 0
     z = np.load(tmp_path / "v.npz")
@@ -42,15 +51,35 @@ def test_clear_errors_exit_2(tmp_path, capsys):
     assert "height 18" in capsys.readouterr().err
     assert main(["train", "--data", str(data), "--preset", "tiny", "--out", str(tmp_path / "r"),
                  "--conditions", "day"]) == 2
-    assert "at least two conditions" in capsys.readouterr().err
+    assert "at least 2 conditions" in capsys.readouterr().err
     assert main(["train", "--data", str(data), "--out", str(tmp_path / "none"), "--resume"]) == 2
     assert "no run to resume" in capsys.readouterr().err
-    assert not (tmp_path / "r" / "model.safetensors").exists()
+    for bad in ("optim.lr=nan", "optim.lr=-1e-4"):
+        assert main(["train", "--data", str(data), "--preset", "tiny", "--out", str(tmp_path / "r"),
+                     "--set", bad]) == 2
+        assert "optim.lr" in capsys.readouterr().err
+    assert main(["train", "--data", str(data), "--preset", "tiny", "--out", "/proc/fdnet-run"]) == 2
+    assert "/proc/fdnet-run" in capsys.readouterr().err
+    from fdnet import runs
+
+    assert not runs.is_run(tmp_path / "r")
+
+
+def test_a_run_directory_in_use_is_refused_with_the_holders_pid(tmp_path, capsys):
+    import os
+
+    from fdnet import runs
+
+    data = _dataset(tmp_path / "data")
+    with runs.RunLock(tmp_path / "run", command="fdnet train"):
+        assert main(["train", "--data", str(data), "--preset", "tiny", "--out", str(tmp_path / "run"),
+                     "--no-progress"]) == 2
+    assert f"in use by process {os.getpid()}" in capsys.readouterr().err
 
 
 def test_train_with_dataset_format_and_named_split(tmp_path, capsys):
-    from fdnet.training.checkpoint import load_config
-    from fdnet.training.config import TrainConfig
+    from fdnet.runs import load_config
+    from fdnet.methods.fdnet.config import TrainConfig
 
     root = _dataset(tmp_path / "data", n=10)
     out = tmp_path / "run"

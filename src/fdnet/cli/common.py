@@ -96,3 +96,75 @@ def set_threads(threads: int | None) -> None:
     import torch
 
     torch.set_num_threads(threads or os.cpu_count() or 1)
+
+
+def add_training_arguments(parser: argparse.ArgumentParser, data_required: bool = True) -> None:
+    """The flags every trained method's command shares (``fdnet train``, ``fdnet train-baseline``)."""
+    parser.add_argument("--data", required=data_required,
+                        help="dataset folder with one sub-folder per condition (or a published layout, "
+                             "with --dataset-format)" + ("" if data_required else "; optional with --resume"))
+    parser.add_argument("--out", required=True, help="run directory to write (or to continue with --resume)")
+    parser.add_argument("--conditions", help="comma-separated conditions to train on (default: all sub-folders)")
+    parser.add_argument("--frames", help="START:END slice of every condition to train on (END exclusive); "
+                                         "keep the test frames out")
+    parser.add_argument("--dataset-format", help="read --data in a published layout (nordland, alderley, "
+                        "oxford_robotcar, st_lucia, fas, vprbench, vpr_tutorial, vg_benchmark, folders, or auto); "
+                        "see docs/datasets.md")
+    parser.add_argument("--split", help="with --dataset-format: a named split (default: the format's train split) "
+                                        "or START:END")
+    parser.add_argument("--config", help="YAML file of settings applied on top of the preset")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override one setting, e.g. --set optim.lr=1e-4 (repeatable)")
+    parser.add_argument("--max-minutes", type=float, help="stop cleanly (with a checkpoint) after M minutes")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue the run in --out from its newest complete checkpoint")
+    parser.add_argument("--override", action="store_true",
+                        help="with --resume: accept settings that differ from the run's (recorded in "
+                             "RUN_DIR/changes.yaml with the step they took effect)")
+    parser.add_argument("--validate-reference", help="condition used as reference for periodic validation")
+    parser.add_argument("--validate-query", help="condition used as query for periodic validation")
+    parser.add_argument("--validate-frames", help="START:END frames for validation (keep them out of your test split)")
+    parser.add_argument("--validate-tolerance", type=int, help="frame tolerance of a correct validation match")
+    parser.add_argument("--validate-every", type=int, help="validate every N steps")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def apply_training_arguments(config, args: argparse.Namespace):
+    """Run config <- --config YAML <- data/validation flags <- --set overrides.
+
+    Data flags are set on the dataclasses directly: through ``replace_dotted`` a frame range such
+    as "10:20" given to a non-text field would be read by YAML as a base-60 integer.
+    """
+    import dataclasses
+
+    from fdnet.config import apply_yaml, parse_overrides, replace_dotted
+
+    if getattr(args, "config", None):
+        config = apply_yaml(config, args.config)
+    data = config.data
+    if args.data is not None:
+        data = dataclasses.replace(data, root=str(args.data))
+    if args.conditions is not None:
+        data = dataclasses.replace(data, conditions=tuple(c.strip() for c in args.conditions.split(",") if c.strip()))
+    for flag in ("frames", "dataset_format", "split"):
+        if getattr(args, flag, None) is not None:
+            data = dataclasses.replace(data, **{flag: str(getattr(args, flag))})
+    validation = config.validation
+    for flag, field_name in (("validate_reference", "reference"), ("validate_query", "query"),
+                             ("validate_frames", "frames"), ("validate_tolerance", "tolerance"),
+                             ("validate_every", "every")):
+        if getattr(args, flag, None) is not None:
+            validation = dataclasses.replace(validation, **{field_name: getattr(args, flag)})
+    config = dataclasses.replace(config, data=data, validation=validation)
+    return replace_dotted(config, parse_overrides(args.set))
+
+
+def check_resume_target(args: argparse.Namespace) -> None:
+    """``--resume`` needs a run in --out; ``--override`` needs ``--resume``."""
+    from fdnet import runs
+    from fdnet.errors import ConfigError
+
+    if args.override and not args.resume:
+        raise ConfigError("--override only applies with --resume")
+    if args.resume and not runs.is_run(args.out):
+        raise ConfigError(f"{args.out}: no run to resume (no complete checkpoint); drop --resume to start one")

@@ -9,7 +9,7 @@ similarity. The FDNet paper (section 5.1.2) projects conv3 to the FDNet vector l
 Differences from the original:
 - Default network: AlexNet/Caffe weights cannot be fetched here, so by default the map is
   EfficientNet-Lite0's block 7 (ImageNet; stride 16 like AlexNet conv3, 8 of 16 blocks deep:
-  see :mod:`fdnet.descriptors.backbone`), 80 x 14 x 14 = 15680 values at 224x224.
+  see :mod:`fdnet.backbones`), 80 x 14 x 14 = 15680 values at 224x224.
   With ``weights=FILE`` (a torchvision-layout AlexNet state dict) the original conv3 at 227x227
   is used instead.
 - GRP: projected to ``dim`` (default 512) by a matrix with i.i.d. N(0, 1/dim) entries (the
@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fdnet.descriptors.backbone import invalid_settings_are_config_errors
+from fdnet.errors import invalid_settings_are_config_errors
 from fdnet.descriptors.base import Descriptor, l2_normalize
 from fdnet.errors import ConfigError
 
@@ -73,7 +73,7 @@ class Conv3Descriptor(Descriptor):
             self.input_size = tuple(input_size) if input_size else (227, 227)
             self._map_shape = self._alexnet_map_shape(self.input_size)
         else:
-            from fdnet.descriptors.backbone import FeatureExtractor
+            from fdnet.backbones import FeatureExtractor
 
             self._alexnet = None
             self._extractor = FeatureExtractor(block=block, bf16=bf16, threads=threads)
@@ -114,7 +114,7 @@ class Conv3Descriptor(Descriptor):
 
         if self._alexnet is None:
             return self._extractor.features_tensor(images)
-        from fdnet.descriptors.backbone import torch_threads
+        from fdnet.backbones import torch_threads
 
         with torch_threads(self.threads), torch.inference_mode():
             return self._alexnet.model(self._alexnet.input_tensor(images)).float()

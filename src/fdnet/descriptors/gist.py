@@ -26,7 +26,7 @@ import numpy as np
 import scipy.fft
 
 from fdnet.data.images import to_grey
-from fdnet.descriptors.backbone import invalid_settings_are_config_errors
+from fdnet.errors import invalid_settings_are_config_errors
 from fdnet.descriptors.base import Descriptor, l2_normalize
 from fdnet.errors import ConfigError
 

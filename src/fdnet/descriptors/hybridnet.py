@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fdnet.descriptors.backbone import invalid_settings_are_config_errors
+from fdnet.errors import invalid_settings_are_config_errors
 from fdnet.descriptors.base import Descriptor, l2_normalize
 from fdnet.errors import ConfigError, NotAvailableError
 
@@ -93,7 +93,7 @@ class HybridNetDescriptor(Descriptor):
     def describe(self, images: np.ndarray) -> np.ndarray:
         import torch
 
-        from fdnet.descriptors.backbone import torch_threads
+        from fdnet.backbones import torch_threads
 
         x = self.trunk.input_tensor(np.asarray(images, dtype=np.float32), self.mean_bgr)
         with torch_threads(self.threads), torch.inference_mode():

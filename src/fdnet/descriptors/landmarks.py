@@ -27,7 +27,7 @@ Differences from the original, and why:
 - Region features: the paper crops each box and runs the CNN on it (100 forward passes per image);
   we run the backbone once per image and pool each box from its feature map with RoIAlign-style
   bilinear sampling (Fast R-CNN's idea), ``pool_grid`` x ``pool_grid`` cells, then GRP to
-  ``region_dim``. The CNN is EfficientNet-Lite0 block 7 (see :mod:`fdnet.descriptors.backbone`),
+  ``region_dim``. The CNN is EfficientNet-Lite0 block 7 (see :mod:`fdnet.backbones`),
   not AlexNet conv3. Defaults: 50 regions and 512-d (paper: up to 100 and 1024-d) to keep packed
   vectors of 2,000 images around 200 MB; both are settings.
 
@@ -44,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fdnet.descriptors.backbone import invalid_settings_are_config_errors
+from fdnet.errors import invalid_settings_are_config_errors
 from fdnet.descriptors.base import Descriptor
 from fdnet.errors import ConfigError, NotAvailableError
 
@@ -180,7 +180,7 @@ class LandmarksDescriptor(Descriptor):
                  input_size: tuple[int, int] = (240, 320), edge_model: str | Path | None = None,
                  min_box_area: int = 500, proposal_scale: float = 0.5, seed: int = 0, bf16: bool | None = None,
                  threads: int | None = None, block_queries: int = 8):
-        from fdnet.descriptors.backbone import FeatureExtractor
+        from fdnet.backbones import FeatureExtractor
         from fdnet.descriptors.conv3 import gaussian_random_projection
 
         self.max_regions = int(max_regions)

@@ -1,6 +1,7 @@
-"""FDNet training: losses, the domain-balanced sampler, configs/presets, run directories
-(checkpoints) and the staged adversarial trainer.
+"""Training, the side path that produces run directories: the one loop every trained method runs
+on (:mod:`fdnet.training.loop`), training data (:mod:`fdnet.training.data`), composable losses,
+the domain-balanced sampler and the CSV/TensorBoard log. Each method's own step lives in
+``fdnet.methods.<name>.training``.
 
-Submodules are imported on use (``from fdnet.training.checkpoint import save_run``) so that
-importing one piece does not pull in the others.
+Inference (descriptors, ``fdnet.load``, export) never imports this package.
 """

@@ -9,16 +9,15 @@ from pathlib import Path
 from fdnet.io import atomic_write_text
 
 LOG_FILE = "log.csv"
-COLUMNS = ["step", "stage", "elapsed_s", "reconstruction", "appearance", "encoder_adversarial",
-           "critic", "wasserstein", "val_recall@1", "val_recall@100p"]
 
 
 class TrainingLog:
     """Appends rows to ``RUN_DIR/log.csv`` (one flushed line per write: a crash loses at most the
     line being written) and mirrors numbers to TensorBoard if ``torch.utils.tensorboard`` works."""
 
-    def __init__(self, run_dir: str | Path, tensorboard: bool = True) -> None:
+    def __init__(self, run_dir: str | Path, columns: list[str], tensorboard: bool = True) -> None:
         self.path = Path(run_dir) / LOG_FILE
+        self.columns = list(columns)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.writer = None
         if tensorboard:
@@ -34,10 +33,11 @@ class TrainingLog:
         if not self.path.exists():
             return
         with self.path.open(newline="") as handle:
+            # A kill -9 mid-write can leave a partial last line; it is dropped with the rest.
             rows = list(csv.DictReader(handle))
         kept = [r for r in rows if r.get("step", "").isdigit() and int(r["step"]) <= step]
         buffer = io.StringIO()
-        writer = csv.DictWriter(buffer, fieldnames=COLUMNS)
+        writer = csv.DictWriter(buffer, fieldnames=self.columns)
         writer.writeheader()
         writer.writerows(kept)
         atomic_write_text(self.path, buffer.getvalue())
@@ -45,10 +45,10 @@ class TrainingLog:
     def write(self, row: dict) -> None:
         new = not self.path.exists()
         with self.path.open("a", newline="") as handle:
-            writer = csv.DictWriter(handle, fieldnames=COLUMNS)
+            writer = csv.DictWriter(handle, fieldnames=self.columns)
             if new:
                 writer.writeheader()
-            writer.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items() if k in COLUMNS})
+            writer.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items() if k in self.columns})
         if self.writer is not None:
             for key, value in row.items():
                 if isinstance(value, float):

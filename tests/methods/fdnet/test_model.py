@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from fdnet.errors import ConfigError
-from fdnet.models import FDNet, FDNetConfig, validate_architecture
+from fdnet.methods.fdnet.model import FDNet, FDNetConfig, validate_architecture
 
 
 @pytest.mark.parametrize("size", [(16, 32), (32, 16), (16, 16)])

@@ -23,7 +23,7 @@ Where this implementation differs (each a setting in :class:`NetVLADModelConfig`
 :class:`NetVLADTrainConfig`):
 
 * backbone: EfficientNet-Lite0 ImageNet weights (the only pretrained weights available here;
-  see :mod:`fdnet.descriptors.backbone`) instead of VGG-16. The trunk up to ``frozen_block``
+  see :mod:`fdnet.backbones`) instead of VGG-16. The trunk up to ``frozen_block``
   (default 9) is frozen and its maps are computed once per training image, which is what makes
   CPU training take minutes; blocks ``frozen_block+1 .. last_block`` (default: block 10 only,
   the last block of the 112-channel stride-16 stage) are fine-tuned with the NetVLAD layer, as
@@ -44,88 +44,15 @@ Where this implementation differs (each a setting in :class:`NetVLADModelConfig`
 
 from __future__ import annotations
 
-import dataclasses
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from fdnet.descriptors.base import Descriptor, l2_normalize
 from fdnet.errors import ConfigError
-from fdnet.training.baselines import TrainingDataConfig, load_method_config
-
-METHOD = "netvlad"
-
-
-@dataclass
-class NetVLADModelConfig:
-    #: (height, width) images are resized to
-    input_size: tuple[int, int] = (180, 320)
-    #: EfficientNet-Lite0 blocks 0..frozen_block are frozen (their maps are cached in training)
-    frozen_block: int = 9
-    #: blocks frozen_block+1..last_block are fine-tuned (none when equal: only the NetVLAD layer
-    #: learns); NetVLAD pools the output of last_block
-    last_block: int = 10
-    #: number of VLAD clusters K (descriptor length K x channels of last_block before PCA)
-    clusters: int = 64
-    #: PCA + whitening to this length after training (0 = off)
-    pca_dim: int = 0
-
-
-@dataclass
-class NetVLADTrainConfig:
-    #: queries (triplets) per step
-    batch_size: int = 8
-    steps: int = 600
-    #: "adam" or "sgd" (momentum, weight_decay apply to sgd)
-    optimizer: str = "adam"
-    lr: float = 1e-4
-    momentum: float = 0.9
-    weight_decay: float = 1e-3
-    #: triplet margin on squared L2 distances between unit vectors (the original's m = 0.1)
-    margin: float = 0.1
-    #: references more than this many frames from the query are negatives (positives: within
-    #: data.tolerance); frames in between are neither
-    negative_distance: int = 10
-    #: negatives sampled per query before picking the hardest (the port's 1000)
-    negatives_sampled: int = 1000
-    #: hardest negatives used per query
-    hard_negatives: int = 1
-    #: steps between recomputing every training descriptor for mining
-    cache_refresh: int = 100
-    #: local features sampled for the k-means initialisation of the clusters
-    kmeans_samples: int = 50000
-    #: bfloat16 autocast for the frozen trunk and the mining cache (no gradients there)
-    bf16: bool = True
-    seed: int = 0
-    checkpoint_every: int = 200
-    log_every: int = 20
-
-
-@dataclass
-class NetVLADRunConfig:
-    method: str = METHOD
-    model: NetVLADModelConfig = field(default_factory=NetVLADModelConfig)
-    train: NetVLADTrainConfig = field(default_factory=NetVLADTrainConfig)
-    data: TrainingDataConfig = field(default_factory=TrainingDataConfig)
-
-
-def tiny_config() -> NetVLADRunConfig:
-    """A few-second setting for tests: small input, 8 clusters, one fine-tuned block."""
-    config = NetVLADRunConfig()
-    config.model = dataclasses.replace(config.model, input_size=(64, 112), frozen_block=7, last_block=8,
-                                       clusters=8)
-    config.train = dataclasses.replace(config.train, batch_size=4, steps=6, negatives_sampled=50,
-                                       cache_refresh=3, kmeans_samples=2000, checkpoint_every=3,
-                                       log_every=2, negative_distance=4)
-    return config
-
-
-PRESETS = {"default": NetVLADRunConfig, "tiny": tiny_config}
-
+from fdnet.methods.netvlad.config import NetVLADModelConfig
 
 def check_model_config(model: NetVLADModelConfig) -> None:
-    from fdnet.descriptors.backbone import NUM_BLOCKS, check_block
+    from fdnet.backbones import NUM_BLOCKS, check_block
 
     check_block(model.frozen_block)
     check_block(model.last_block)
@@ -145,7 +72,7 @@ def build_network(model: NetVLADModelConfig, pretrained: bool = True):
     from torch import nn
     from torch.nn import functional as F
 
-    from fdnet.descriptors.backbone import BLOCK_CHANNELS, build_efficientnet_lite0
+    from fdnet.backbones import BLOCK_CHANNELS, build_efficientnet_lite0
 
     check_model_config(model)
 
@@ -222,64 +149,3 @@ def build_network(model: NetVLADModelConfig, pretrained: bool = True):
                 self.pca_projection.copy_(torch.from_numpy(whitening.astype(np.float32)))
 
     return NetVLADNet()
-
-
-def load_run_config(run_dir: str | Path) -> NetVLADRunConfig:
-    """Read a NetVLAD run's config, with a clear error for anything that is not a NetVLAD run."""
-    return load_method_config(run_dir, NetVLADRunConfig, METHOD)
-
-
-class NetVLADDescriptor(Descriptor):
-    """NetVLAD vector (optionally PCA-whitened), L2-normalised, compared by cosine.
-
-    ``checkpoint``: a run directory written by ``fdnet train-baseline netvlad``. The frozen trunk
-    comes from the installed EfficientNet-Lite0 ImageNet weights, the fine-tuned blocks and the
-    VLAD layer from the run. ``bf16``: autocast (default: on where the CPU has native bf16).
-    ``threads``: torch threads while describing.
-    """
-
-    name = "netvlad"
-
-    def __init__(self, checkpoint: str | Path | None = None, bf16: bool | None = None,
-                 threads: int | None = None):
-        from fdnet.descriptors.backbone import FeatureExtractor
-        from fdnet.training.checkpoint import load_weights
-
-        if checkpoint is None:
-            raise ConfigError("method 'netvlad' needs a trained model: --checkpoint RUN_DIR "
-                              "(train one with `fdnet train-baseline netvlad --data DIR --out RUN_DIR`)")
-        self.checkpoint = Path(checkpoint)
-        self.config = load_run_config(self.checkpoint)
-        model = self.config.model
-        self.input_size = tuple(int(v) for v in model.input_size)
-        # pretrained=False: every fine-tuned weight comes from the checkpoint
-        self.network = build_network(model, pretrained=False).eval()
-        metadata = load_weights(self.checkpoint, {"netvlad": self.network})
-        self.step = int(metadata.get("step", 0))
-        self.extractor = FeatureExtractor(block=model.frozen_block, bf16=bf16, threads=threads)
-        self.bf16 = self.extractor.bf16
-        self.threads = threads
-
-    @property
-    def dim(self) -> int:
-        return self.network.descriptor_dim
-
-    def describe(self, images: np.ndarray) -> np.ndarray:
-        import torch
-
-        from fdnet.descriptors.backbone import torch_threads
-
-        images = np.asarray(images, dtype=np.float32)
-        if images.shape[1:3] != self.input_size:
-            raise ConfigError(f"NetVLAD expects images of size {self.input_size}, got {images.shape[1:3]}")
-        maps = self.extractor.features_tensor(images)
-        with torch_threads(self.threads), torch.inference_mode():
-            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.bf16):
-                out = self.network(maps.contiguous(memory_format=torch.channels_last) if self.bf16 else maps)
-        return l2_normalize(out.float().numpy())
-
-    def settings(self) -> dict:
-        model = self.config.model
-        return {"input_size": list(self.input_size), "checkpoint": str(self.checkpoint), "step": self.step,
-                "dim": self.dim, "clusters": model.clusters, "frozen_block": model.frozen_block,
-                "last_block": model.last_block, "pca_dim": model.pca_dim, "bf16": self.bf16}

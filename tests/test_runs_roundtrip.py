@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from fdnet.errors import ConfigError
-from fdnet.training.checkpoint import (
+from fdnet.runs import (
     check_config, load_config, load_training_state, load_weights, save_run,
 )
 
@@ -71,12 +71,3 @@ def test_not_a_run_directory(tmp_path):
         load_weights(tmp_path / "nope", {"net": _model()})
     with pytest.raises(ConfigError, match="not a run directory"):
         load_weights(tmp_path, {"net": _model()})
-
-
-def test_mismatched_save_ids_refuse_resume(tmp_path):
-    model = _model()
-    save_run(tmp_path / "a", {"net": model}, _Cfg(), state={"step": 1})
-    save_run(tmp_path / "b", {"net": model}, _Cfg(), state={"step": 2})
-    (tmp_path / "a" / "training_state.pt").write_bytes((tmp_path / "b" / "training_state.pt").read_bytes())
-    with pytest.raises(ConfigError, match="different saves"):
-        load_training_state(tmp_path / "a")

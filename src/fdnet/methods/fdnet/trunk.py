@@ -5,7 +5,7 @@ hundred training images a user often has per condition (Gardens Point: 100), an 
 from scratch sees too little to generalise; the usual remedy in VPR (NetVLAD, HybridNet, CALC's
 successors) is to start from ImageNet features. ``FDNetConfig.backbone = "efficientnet-lite0"``
 puts the first ``backbone_block + 1`` blocks of EfficientNet-Lite0 (the only ImageNet weights
-available offline here, see :mod:`fdnet.descriptors.backbone`) in front of both encoders. The
+available offline here, see :mod:`fdnet.backbones`) in front of both encoders. The
 whole FDNet objective is unchanged but acts on the trunk's feature map instead of pixels: the
 encoders read the map, the decoder reconstructs the map (L_r is the MSE between maps), and the
 critic and triplet loss act on the content and appearance vectors as before.
@@ -20,7 +20,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from fdnet.descriptors.backbone import (
+from fdnet.backbones import (
     BLOCK_CHANNELS, BLOCK_STRIDE, INPUT_MEAN, INPUT_STD, build_efficientnet_lite0, check_block, map_size, trunk_forward,
 )
 

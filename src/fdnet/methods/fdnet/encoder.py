@@ -27,7 +27,7 @@ class Encoder(nn.Module):
     """(N, C, H, W) image -> (N, L) vector.
 
     ``input_size`` is (H, W); H and W must be divisible by ``2 ** len(widths)`` (checked by
-    :func:`fdnet.models.fdnet.validate_architecture` before anything is built).
+    :func:`fdnet.methods.fdnet.model.validate_architecture` before anything is built).
     """
 
     def __init__(self, input_size: Sequence[int], widths: Sequence[int], vector_length: int,

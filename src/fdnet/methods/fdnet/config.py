@@ -27,24 +27,14 @@ from pathlib import Path
 from typing import Any
 
 
-from fdnet.config import from_dict, read_yaml_mapping, replace_dotted, to_dict
+from fdnet.config import apply_yaml, from_dict, to_dict
 from fdnet.errors import ConfigError
-from fdnet.models.fdnet import FDNetConfig, validate_architecture
+from fdnet.methods.fdnet.model import FDNetConfig, validate_architecture
+from fdnet.methods.settings import DataConfig, ValidationConfig, check_finite
 
 
 @dataclass
-class DataConfig:
-    #: dataset folder (one sub-folder per condition); recorded for reference
-    root: str = ""
-    #: conditions (sub-folders) to train on; empty = all of them
-    conditions: tuple[str, ...] = ()
-    #: "START:END" slice of every condition used for training ("" = all frames)
-    frames: str = ""
-    #: a published layout read by ``fdnet.data.formats`` ("" = one sub-folder per condition)
-    dataset_format: str = ""
-    #: with ``dataset_format``: a named split ("train", "test", "all") or "START:END" ("" = the
-    #: format's training default)
-    split: str = ""
+class FDNetDataConfig(DataConfig):
     #: B, images per condition in a mini-batch (paper: 4)
     batch_per_domain: int = 4
 
@@ -91,8 +81,8 @@ class OptimConfig:
 @dataclass
 class RuntimeConfig:
     seed: int = 0
-    #: "cpu" or "cuda"
-    device: str = "cpu"
+    #: "auto" (CUDA when a GPU is present, else the CPU), "cpu", "cuda" or "cuda:N"
+    device: str = "auto"
     #: torch threads (0 = leave torch's default)
     threads: int = 0
     #: bfloat16 autocast for the encoders/decoder (CPU AMX or GPU); losses stay float32
@@ -109,26 +99,10 @@ class RuntimeConfig:
 
 
 @dataclass
-class ValidationConfig:
-    """Optional periodic validation: R@1 of reference vs query condition on held-out frames.
-
-    It uses place correspondences (frame-aligned ground truth) of the validation frames only to
-    pick the best checkpoint; training itself never sees them. Keep these frames out of any test
-    split you report.
-    """
-
-    reference: str = ""
-    query: str = ""
-    frames: str = ""
-    tolerance: int = 0
-    every: int = 250
-
-
-@dataclass
 class TrainConfig:
     preset: str = "paper"
     model: FDNetConfig = field(default_factory=FDNetConfig)
-    data: DataConfig = field(default_factory=DataConfig)
+    data: FDNetDataConfig = field(default_factory=FDNetDataConfig)
     schedule: ScheduleConfig = field(default_factory=ScheduleConfig)
     loss: LossConfig = field(default_factory=LossConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
@@ -155,7 +129,7 @@ def _paper() -> TrainConfig:
         preset="paper",
         # 224 / 2^5 = 7: five blocks leave a 7x7 map, as DCGAN-style encoders at 224 do.
         model=FDNetConfig(input_size=(224, 224), widths=(64, 128, 256, 512, 512), vector_length=512),
-        data=DataConfig(batch_per_domain=4),
+        data=FDNetDataConfig(batch_per_domain=4),
         schedule=ScheduleConfig(5000, 8000, 60000, 2),
         runtime=RuntimeConfig(checkpoint_every=2000, log_every=50),
     )
@@ -167,14 +141,14 @@ def _two_cores(name: str, model: FDNetConfig, schedule: ScheduleConfig) -> Train
     spin-waiting against other processes on 2 shared cores made steps ~6x slower), bf16 autocast
     and channels_last."""
     return TrainConfig(
-        preset=name, model=model, data=DataConfig(batch_per_domain=8), schedule=schedule,
+        preset=name, model=model, data=FDNetDataConfig(batch_per_domain=8), schedule=schedule,
         loss=LossConfig(adversarial_weight=0.1),
         runtime=RuntimeConfig(threads=1, bf16=True, channels_last=True, checkpoint_every=250, log_every=10),
     )
 
 
 def _cpu() -> TrainConfig:
-    # FDNet on a frozen ImageNet trunk (model.backbone; an extension, see fdnet.models.trunk):
+    # FDNet on a frozen ImageNet trunk (model.backbone; an extension, see fdnet.methods.fdnet.trunk):
     # from scratch, the paper's pixel encoders did not beat SAD on Gardens Point's 100 training
     # images per condition (cpu-scratch below; docs/results.md, gp2-gp7), and reached Nordland
     # test R@1 0.31; on the trunk's map FDNet reaches 0.56 (Nordland) and 0.69 (Gardens Point)
@@ -212,7 +186,7 @@ def _tiny() -> TrainConfig:
     return TrainConfig(
         preset="tiny",
         model=FDNetConfig(input_size=(16, 32), widths=(8, 16), vector_length=16, critic_hidden=16),
-        data=DataConfig(batch_per_domain=2),
+        data=FDNetDataConfig(batch_per_domain=2),
         schedule=ScheduleConfig(pretrain_autoencoder_steps=3, pretrain_critic_steps=2, joint_steps=3,
                                 critic_updates_per_step=2),
         runtime=RuntimeConfig(threads=1, checkpoint_every=4, log_every=1),
@@ -230,25 +204,6 @@ def preset(name: str) -> TrainConfig:
         raise ConfigError(f"unknown preset {name!r}; available: {', '.join(PRESETS)}") from None
 
 
-def _flatten(data: dict, prefix: str = "") -> dict[str, Any]:
-    out = {}
-    for key, value in data.items():
-        if isinstance(value, dict):
-            out.update(_flatten(value, f"{prefix}{key}."))
-        else:
-            out[f"{prefix}{key}"] = value
-    return out
-
-
-def apply_yaml(config: TrainConfig, path: str | Path) -> TrainConfig:
-    """Apply a YAML file holding any subset of the settings tree on top of ``config``."""
-    data = read_yaml_mapping(path)
-    try:
-        return replace_dotted(config, _flatten(data))
-    except ConfigError as exc:
-        raise ConfigError(f"{path}: {exc}") from None
-
-
 def validate(config: TrainConfig) -> None:
     """Every check that does not need the data: raise ConfigError before anything is built."""
     validate_architecture(config.model)
@@ -262,8 +217,8 @@ def validate(config: TrainConfig) -> None:
         raise ConfigError(f"data.batch_per_domain must be >= 2, got {config.data.batch_per_domain}")
     if config.runtime.critic_encoder_mode not in ("train", "eval"):
         raise ConfigError(f"runtime.critic_encoder_mode: {config.runtime.critic_encoder_mode!r}; choose train or eval")
-    if config.runtime.device not in ("cpu", "cuda") and not config.runtime.device.startswith("cuda:"):
-        raise ConfigError(f"runtime.device: {config.runtime.device!r}; choose cpu or cuda")
+    if config.runtime.device not in ("auto", "cpu", "cuda") and not config.runtime.device.startswith("cuda:"):
+        raise ConfigError(f"runtime.device: {config.runtime.device!r}; choose auto, cpu, cuda or cuda:N")
     for name in ("checkpoint_every", "log_every"):
         if getattr(config.runtime, name) <= 0:
             raise ConfigError(f"runtime.{name} must be >= 1")
@@ -274,6 +229,13 @@ def validate(config: TrainConfig) -> None:
         raise ConfigError("validation.every must be >= 1")
     if config.loss.triplet_margin < 0 or config.loss.gradient_penalty_weight < 0:
         raise ConfigError("loss.triplet_margin and loss.gradient_penalty_weight must be >= 0")
+    for name in ("lr", "critic_lr", "joint_lr_scale", "beta1", "beta2"):
+        check_finite(f"optim.{name}", getattr(config.optim, name), positive=name in ("lr", "critic_lr", "joint_lr_scale"))
+    for name in ("reconstruction_weight", "appearance_weight", "adversarial_weight", "triplet_margin",
+                 "gradient_penalty_weight"):
+        check_finite(f"loss.{name}", getattr(config.loss, name))
+    if not (0.0 <= config.optim.beta1 < 1.0 and 0.0 <= config.optim.beta2 < 1.0):
+        raise ConfigError(f"optim.beta1/beta2 must lie in [0, 1), got {config.optim.beta1}, {config.optim.beta2}")
 
 
 def model_keys() -> list[str]:
@@ -285,5 +247,5 @@ def config_from_dict(data: dict) -> TrainConfig:
     return from_dict(TrainConfig, data)
 
 
-__all__ = ["TrainConfig", "DataConfig", "ScheduleConfig", "LossConfig", "OptimConfig", "RuntimeConfig",
+__all__ = ["TrainConfig", "FDNetDataConfig", "DataConfig", "ScheduleConfig", "LossConfig", "OptimConfig", "RuntimeConfig",
            "ValidationConfig", "PRESETS", "preset", "apply_yaml", "validate", "model_keys", "to_dict"]

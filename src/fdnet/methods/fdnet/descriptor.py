@@ -26,9 +26,9 @@ class FDNetDescriptor(Descriptor):
             raise NotAvailableError("method 'fdnet' needs a trained run: --checkpoint RUN_DIR (make one with `fdnet train`)")
         import torch
 
-        from fdnet.models.fdnet import FDNet
-        from fdnet.training.checkpoint import load_config, load_weights
-        from fdnet.training.config import TrainConfig
+        from fdnet.methods.fdnet.model import FDNet
+        from fdnet.runs import load_config, load_weights
+        from fdnet.methods.fdnet.config import TrainConfig
 
         self.run_dir = Path(checkpoint)
         self.config = load_config(self.run_dir, TrainConfig)

@@ -2,16 +2,25 @@
 
 from __future__ import annotations
 
+import csv
+
 import numpy as np
 import pytest
 import torch
 from PIL import Image
 
 from fdnet.config import replace_dotted
-from fdnet.descriptors import calc
+from fdnet import runs
 from fdnet.descriptors.base import describe_paths
 from fdnet.errors import ConfigError, DataError
-from fdnet.training.baselines import train_calc
+from fdnet.methods.calc import config as calc_config
+from fdnet.methods.calc import model as calc
+from fdnet.methods.calc.descriptor import CALCDescriptor
+from fdnet.methods.calc.training import train
+
+
+def train_calc(config, run_dir, resume=False, **kwargs):
+    return train(config, run_dir, resume=resume, progress=False, **kwargs)
 
 from conftest import require_shared
 
@@ -31,7 +40,7 @@ def make_route(root, frames=12, size=(48, 64), seed=0):
 
 
 def tiny(root, steps=4, **train):
-    config = calc.tiny_config()
+    config = calc_config.tiny_config()
     config.data.root = str(root)
     overrides = {"train.steps": steps, **{f"train.{k}": v for k, v in train.items()}}
     return replace_dotted(config, overrides)
@@ -39,7 +48,7 @@ def tiny(root, steps=4, **train):
 
 def test_original_dimensions():
     # 120x160 grey input -> 4x14x19 = 1064-d bottleneck; HOG target 3648 values (the original's)
-    model = calc.CALCModelConfig()
+    model = calc_config.CALCModelConfig()
     assert calc.hog_length(model) == 3648
     net = calc.build_network(model)
     assert net.descriptor_dim == 1064
@@ -57,9 +66,11 @@ def test_perspective_warp_only_zooms_in(rng):
 
 def test_train_describe_resume(tmp_path):
     route = make_route(tmp_path / "route")
-    summary = train_calc(tiny(route, steps=4), tmp_path / "run", log=lambda s: None)
-    assert summary["steps"] == 4 and np.isfinite(summary["loss"])
-    desc = calc.CALCDescriptor(checkpoint=tmp_path / "run", bf16=False)
+    summary = train_calc(tiny(route, steps=4), tmp_path / "run")
+    assert summary["status"] == "finished" and summary["step"] == 4
+    losses = [float(r["loss"]) for r in csv.DictReader((tmp_path / "run" / "log.csv").open())]
+    assert losses and np.isfinite(losses).all()
+    desc = CALCDescriptor(checkpoint=tmp_path / "run", bf16=False)
     assert desc.input_size == (60, 80) and desc.step == 4
     paths = sorted((route / "bright").glob("*.png"))
     vectors = describe_paths(desc, paths)
@@ -67,9 +78,12 @@ def test_train_describe_resume(tmp_path):
     np.testing.assert_allclose(np.linalg.norm(vectors, axis=1), 1.0, atol=1e-5)
 
     # resuming 2 + 2 steps gives the same weights as 4 steps in one go
-    train_calc(tiny(route, steps=2, checkpoint_every=2), tmp_path / "split", log=lambda s: None)
-    train_calc(tiny(route, steps=4, checkpoint_every=2), tmp_path / "split", resume=True, log=lambda s: None)
-    again = calc.CALCDescriptor(checkpoint=tmp_path / "split", bf16=False)
+    train_calc(tiny(route, steps=2, checkpoint_every=2), tmp_path / "split")
+    with pytest.raises(ConfigError, match="train.steps: saved 2, requested 4.*--override"):
+        train_calc(tiny(route, steps=4, checkpoint_every=2), tmp_path / "split", resume=True)
+    train_calc(tiny(route, steps=4, checkpoint_every=2), tmp_path / "split", resume=True, override=True)
+    assert runs.read_changes(tmp_path / "split")[0]["step"] == 2
+    again = CALCDescriptor(checkpoint=tmp_path / "split", bf16=False)
     for (name, a), (_, b) in zip(desc.network.state_dict().items(), again.network.state_dict().items()):
         torch.testing.assert_close(a, b, msg=name)
 
@@ -82,42 +96,45 @@ def test_training_moves_the_encoder(tmp_path):
     config = tiny(route, steps=8)
     torch.manual_seed(config.train.seed)
     initial = calc.build_network(config.model).state_dict()
-    train_calc(config, tmp_path / "run", log=lambda s: None)
-    trained = calc.CALCDescriptor(checkpoint=tmp_path / "run", bf16=False).network.state_dict()
+    train_calc(config, tmp_path / "run")
+    trained = CALCDescriptor(checkpoint=tmp_path / "run", bf16=False).network.state_dict()
     for name in ("encoder.0.weight", "encoder.4.weight", "encoder.8.weight"):
         assert (trained[name] - initial[name]).abs().max() > 1e-3, name
-    history = (tmp_path / "run" / "history.csv").read_text().splitlines()
-    assert float(history[-1].split(",")[2]) > 0  # share of active bottleneck units
+    rows = list(csv.DictReader((tmp_path / "run" / "log.csv").open()))
+    assert float(rows[-1]["active_units"]) > 0  # share of active bottleneck units
 
 
 def test_training_errors(tmp_path):
     route = make_route(tmp_path / "route", frames=3)
     with pytest.raises(DataError, match="fewer than one batch"):
-        train_calc(tiny(route, batch_size=32), tmp_path / "run", log=lambda s: None)
-    train_calc(tiny(route, steps=1, batch_size=2), tmp_path / "run", log=lambda s: None)
-    with pytest.raises(ConfigError, match="already holds a training run"):
-        train_calc(tiny(route, steps=1, batch_size=2), tmp_path / "run", log=lambda s: None)
+        train_calc(tiny(route, batch_size=32), tmp_path / "run")
+    train_calc(tiny(route, steps=1, batch_size=2), tmp_path / "run")
+    with pytest.raises(ConfigError, match="already holds a run"):
+        train_calc(tiny(route, steps=1, batch_size=2), tmp_path / "run")
     changed = replace_dotted(tiny(route, steps=2, batch_size=2), {"model.channels": [8, 8, 4]})
     with pytest.raises(ConfigError, match="model.channels"):
-        train_calc(changed, tmp_path / "run", resume=True, log=lambda s: None)
+        train_calc(changed, tmp_path / "run", resume=True)
+    with pytest.raises(ConfigError, match="train.lr"):
+        train_calc(tiny(route, lr=float("nan")), tmp_path / "nan")
     with pytest.raises(ConfigError, match="no training data"):
-        train_calc(calc.tiny_config(), tmp_path / "other", log=lambda s: None)
+        train_calc(calc_config.tiny_config(), tmp_path / "other")
 
 
 def test_descriptor_checkpoint_errors(tmp_path):
     with pytest.raises(ConfigError, match="--checkpoint"):
-        calc.CALCDescriptor()
+        CALCDescriptor()
     with pytest.raises(ConfigError, match="run directory not found"):
-        calc.CALCDescriptor(checkpoint=tmp_path / "missing")
+        CALCDescriptor(checkpoint=tmp_path / "missing")
     (tmp_path / "empty").mkdir()
     with pytest.raises(ConfigError, match="not a run directory"):
-        calc.CALCDescriptor(checkpoint=tmp_path / "empty")
+        CALCDescriptor(checkpoint=tmp_path / "empty")
+    from fdnet.methods.netvlad.config import tiny_config as netvlad_tiny
+    from fdnet.methods.netvlad.model import build_network as netvlad_network
+
     other = tmp_path / "netvlad_run"
-    other.mkdir()
-    (other / "config.yaml").write_text("method: netvlad\n")
-    (other / "model.safetensors").write_bytes(b"")
+    runs.save_weights(other, {"netvlad": netvlad_network(netvlad_tiny().model, pretrained=False)}, netvlad_tiny())
     with pytest.raises(ConfigError, match="'netvlad' run, not a calc run"):
-        calc.CALCDescriptor(checkpoint=other)
+        CALCDescriptor(checkpoint=other)
 
 
 @pytest.mark.shared_data
@@ -130,10 +147,10 @@ def test_gardens_point_above_chance(tmp_path):
 
     root = require_shared("gardens_point")
     config = tiny(root, steps=30)
-    config.data.conditions = ["day_left", "day_right"]
+    config.data.conditions = ("day_left", "day_right")
     config.data.frames = "0:40"
-    train_calc(config, tmp_path / "run", log=lambda s: None)
-    desc = calc.CALCDescriptor(checkpoint=tmp_path / "run")
+    train_calc(config, tmp_path / "run")
+    desc = CALCDescriptor(checkpoint=tmp_path / "run")
     route = RouteDataset.from_folder(root, ["day_left", "day_right"]).frames(100, 140)
     refs = describe_paths(desc, route["day_right"].paths)
     queries = describe_paths(desc, route["day_left"].paths)

@@ -8,13 +8,14 @@ import torch
 
 from fdnet.config import replace_dotted
 from fdnet.errors import ConfigError
-from fdnet.models import FDNet, FDNetConfig
-from fdnet.models.trunk import FrozenTrunk, trunk_map_size
-from fdnet.training.checkpoint import load_weights
-from fdnet.training.config import preset
-from fdnet.training.trainer import Trainer, load_training_images
+from fdnet.methods.fdnet.model import FDNet, FDNetConfig
+from fdnet.methods.fdnet.trunk import FrozenTrunk, trunk_map_size
+from fdnet.runs import load_weights
+from fdnet.methods.fdnet.config import preset
+from fdnet.methods.fdnet.training import FDNetTraining, load_training_images
+from fdnet.training.loop import Trainer
 
-from tests.training.test_trainer import make_dataset
+from tests.training.test_loop import make_dataset
 
 # block 4: stride 8, 40 channels; a 32x64 image gives a 4x8 map, one FDNet block makes it 2x4
 SMALL = dict(input_size=(32, 64), widths=(16,), vector_length=16, critic_hidden=16,
@@ -39,7 +40,7 @@ def test_trunk_stays_frozen_in_eval_mode_and_out_of_run_directories():
 
 
 def test_trunk_matches_the_pretrained_feature_extractor():
-    from fdnet.descriptors.backbone import FeatureExtractor
+    from fdnet.backbones import FeatureExtractor
 
     images = np.random.default_rng(0).random((2, 32, 64, 3), dtype=np.float32)
     ours = FrozenTrunk(4)(torch.from_numpy(images).permute(0, 3, 1, 2))
@@ -60,9 +61,11 @@ def test_bad_backbone_settings_are_config_errors(overrides, message):
 
 def test_training_with_a_trunk_changes_the_encoders_but_not_the_trunk(tmp_path):
     make_dataset(tmp_path / "data", size=(32, 64))
-    config = replace_dotted(preset("tiny"), {f"model.{k}": v for k, v in SMALL.items()})
-    data = load_training_images(tmp_path / "data", (), "", config.model.input_size, config.data.batch_per_domain)
-    trainer = Trainer(config, data, tmp_path / "run", tensorboard=False)
+    config = replace_dotted(preset("tiny"), {"data.root": str(tmp_path / "data"),
+                                             **{f"model.{k}": v for k, v in SMALL.items()}})
+    method = FDNetTraining(config, load_training_images(config))
+    trainer = Trainer(method, tmp_path / "run", tensorboard=False)
+    trainer.model = method.model
     trunk_before = {k: v.clone() for k, v in trainer.model.trunk.state_dict().items()}
     encoder_before = {k: v.clone() for k, v in trainer.model.content_encoder.state_dict().items()}
     trainer.fit(progress=False)

@@ -48,100 +48,12 @@ Where this implementation differs (all are settings in :class:`CALCTrainConfig` 
 
 from __future__ import annotations
 
-import dataclasses
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from fdnet.descriptors.base import Descriptor, l2_normalize
 from fdnet.errors import ConfigError
-from fdnet.training.baselines import TrainingDataConfig, load_method_config
-
-METHOD = "calc"
-
-
-@dataclass
-class HOGTargetConfig:
-    """OpenCV HOGDescriptor settings of the reconstruction target, (width, height) as OpenCV
-    takes them. Defaults are the original's (3648 values for a 160x120 image)."""
-
-    win_size: tuple[int, int] = (16, 32)
-    block_size: tuple[int, int] = (16, 16)
-    block_stride: tuple[int, int] = (16, 16)
-    cell_size: tuple[int, int] = (8, 8)
-    nbins: int = 2
-    #: stride of the dense window grid (OpenCV's default for ``compute`` is the cell size)
-    win_stride: tuple[int, int] = (8, 8)
-
-
-@dataclass
-class CALCModelConfig:
-    #: (height, width) of the grey input; the original's is 120x160
-    input_size: tuple[int, int] = (120, 160)
-    #: output channels of conv1, conv2 and conv3 (the bottleneck)
-    channels: tuple[int, int, int] = (64, 128, 4)
-    #: hidden fully connected layers of the decoder; the output layer has the HOG length.
-    #: Empty list = the original's (first hidden layer as long as the descriptor, then 2048).
-    decoder_hidden: list[int] = field(default_factory=list)
-    hog: HOGTargetConfig = field(default_factory=HOGTargetConfig)
-    #: "he": He-normal convolutions with zero biases; "original": every weight and bias N(0, 0.01)
-    #: as in the reference code, which with Adam let all bottleneck ReLUs die within a few dozen
-    #: steps here (every descriptor all-zero)
-    init: str = "he"
-
-
-@dataclass
-class CALCTrainConfig:
-    #: the original used 256 on GPUs; 32 keeps CPU steps short (the step time scales with it)
-    batch_size: int = 32
-    steps: int = 600
-    #: "adam" (default, fast in short runs) or "sgd" (the original's: lr 9e-4, momentum 0.9)
-    optimizer: str = "adam"
-    lr: float = 1e-3
-    momentum: float = 0.9
-    weight_decay: float = 5e-4
-    #: start the decoder's output bias at the training set's mean HOG (not in the original)
-    init_output_bias: bool = True
-    #: probability that the original (not the warp) is the input and the warp's HOG the target
-    swap_probability: float = 0.5
-    #: bfloat16 autocast for the training forward pass (when the CPU supports it natively); off by
-    #: default: on this network it made training steps slower, not faster (measured on 2 cores)
-    bf16: bool = False
-    seed: int = 0
-    checkpoint_every: int = 250
-    log_every: int = 50
-
-
-@dataclass
-class CALCRunConfig:
-    method: str = METHOD
-    model: CALCModelConfig = field(default_factory=CALCModelConfig)
-    train: CALCTrainConfig = field(default_factory=CALCTrainConfig)
-    data: TrainingDataConfig = field(default_factory=TrainingDataConfig)
-
-
-def tiny_config() -> CALCRunConfig:
-    """A few-second setting for tests: 60x80 input, narrow layers, small decoder."""
-    config = CALCRunConfig()
-    config.model = dataclasses.replace(config.model, input_size=(60, 80), channels=(8, 16, 4),
-                                       decoder_hidden=[128])
-    config.train = dataclasses.replace(config.train, batch_size=8, steps=20, checkpoint_every=10,
-                                       log_every=5)
-    return config
-
-
-def small_config() -> CALCRunConfig:
-    """Not the original's network: half-resolution input (60x80) and half-width convolutions
-    (32, 64, 4 channels -> a 216-d descriptor, HOG target 576-d), about 14x cheaper per image, so
-    a CPU run of minutes sees many more warped pairs."""
-    config = CALCRunConfig()
-    config.model = dataclasses.replace(config.model, input_size=(60, 80), channels=(32, 64, 4))
-    return config
-
-
-PRESETS = {"default": CALCRunConfig, "small": small_config, "tiny": tiny_config}
-
+from fdnet.methods.calc.config import CALCModelConfig, HOGTargetConfig
 
 # ----------------------------------------------------------------------------- HOG and warps
 def hog_descriptor(config: HOGTargetConfig):
@@ -249,63 +161,3 @@ def build_network(config: CALCModelConfig):
 def euclidean_loss(prediction, target):
     """Caffe's EuclideanLoss: sum of squared differences / (2 * batch)."""
     return ((prediction - target) ** 2).sum() / (2 * prediction.shape[0])
-
-
-# ----------------------------------------------------------------------------- checkpoints
-def load_run_config(run_dir: str | Path) -> CALCRunConfig:
-    """Read a CALC run's config, with a clear error for anything that is not a CALC run."""
-    return load_method_config(run_dir, CALCRunConfig, METHOD)
-
-
-class CALCDescriptor(Descriptor):
-    """CALC bottleneck (conv3 output, flattened), L2-normalised, compared by cosine.
-
-    ``checkpoint``: a run directory written by ``fdnet train-baseline calc``. ``bf16``: autocast
-    (default: on where the CPU has native bf16). ``threads``: torch threads while describing.
-    """
-
-    name = "calc"
-
-    def __init__(self, checkpoint: str | Path | None = None, bf16: bool | None = None,
-                 threads: int | None = None):
-        import torch
-
-        from fdnet.descriptors.backbone import bf16_supported
-        from fdnet.training.checkpoint import load_weights
-
-        if checkpoint is None:
-            raise ConfigError("method 'calc' needs a trained model: --checkpoint RUN_DIR "
-                              "(train one with `fdnet train-baseline calc --data DIR --out RUN_DIR`)")
-        self.checkpoint = Path(checkpoint)
-        self.config = load_run_config(self.checkpoint)
-        self.input_size = tuple(int(v) for v in self.config.model.input_size)
-        self.network = build_network(self.config.model).eval()
-        metadata = load_weights(self.checkpoint, {"calc": self.network})
-        self.step = int(metadata.get("step", 0))
-        self.bf16 = bf16_supported() if bf16 is None else bool(bf16)
-        self.threads = threads
-        self._torch = torch
-
-    @property
-    def dim(self) -> int:
-        return self.network.descriptor_dim
-
-    def describe(self, images: np.ndarray) -> np.ndarray:
-        from fdnet.descriptors.backbone import torch_threads
-
-        torch = self._torch
-        grey = to_grey_u8(images).astype(np.float32) / 255.0
-        x = torch.from_numpy(np.ascontiguousarray(grey))[:, None]
-        if x.shape[-2:] != self.input_size:
-            raise ConfigError(f"CALC expects images of size {self.input_size}, got {tuple(x.shape[-2:])}")
-        with torch_threads(self.threads), torch.inference_mode():
-            if self.bf16:
-                with torch.autocast("cpu", dtype=torch.bfloat16):
-                    out = self.network.encode(x.contiguous(memory_format=torch.channels_last))
-            else:
-                out = self.network.encode(x)
-        return l2_normalize(out.float().numpy())
-
-    def settings(self) -> dict:
-        return {"input_size": list(self.input_size), "checkpoint": str(self.checkpoint), "step": self.step,
-                "dim": self.dim, "bf16": self.bf16}

@@ -7,9 +7,9 @@ import torch
 import fdnet
 from fdnet.descriptors import create
 from fdnet.errors import DataError, NotAvailableError
-from fdnet.models import FDNet
-from fdnet.training.checkpoint import save_run
-from fdnet.training.config import preset
+from fdnet.methods.fdnet.model import FDNet
+from fdnet.runs import save_run
+from fdnet.methods.fdnet.config import preset
 
 
 @pytest.fixture

@@ -1,0 +1,45 @@
+"""Trained methods, one package each: ``fdnet`` (the paper's method), ``calc`` and ``netvlad``.
+
+Every package holds its ``config`` (dataclasses written to ``RUN_DIR/config.yaml``), ``model``
+(the networks), ``descriptor`` (inference: a run directory -> vectors) and ``training`` (its
+step on the shared loop in :mod:`fdnet.training.loop`). Inference modules never import
+``training``; this module only names the packages, so importing it is cheap.
+"""
+
+from __future__ import annotations
+
+import importlib
+from pathlib import Path
+
+from fdnet.errors import ConfigError
+
+#: method name -> package
+TRAINED_METHODS = {"fdnet": "fdnet.methods.fdnet", "calc": "fdnet.methods.calc", "netvlad": "fdnet.methods.netvlad"}
+
+
+def method_module(method: str, part: str):
+    """``fdnet.methods.<method>.<part>`` (part: config, model, descriptor, training)."""
+    if method not in TRAINED_METHODS:
+        raise ConfigError(f"unknown trained method {method!r}; available: {', '.join(TRAINED_METHODS)}")
+    return importlib.import_module(f"{TRAINED_METHODS[method]}.{part}")
+
+
+def load_method_config(run_dir, cls, method: str):
+    """Read a baseline run's config into ``cls``, first checking that the run directory holds a run
+    of ``method`` (a CALC run given to NetVLAD is an error that says so)."""
+    import yaml
+
+    from fdnet import runs
+
+    run_dir = Path(run_dir)
+    if runs.is_run(run_dir):
+        path = runs.latest_checkpoint(run_dir) / runs.CONFIG_FILE
+        try:
+            saved_method = (yaml.safe_load(path.read_text()) or {}).get("method")
+        except (yaml.YAMLError, AttributeError, OSError):
+            saved_method = None
+        if saved_method != method:
+            what = f"a {saved_method!r} run" if saved_method else "not a baseline run (no 'method' setting)"
+            raise ConfigError(f"{path}: is {what}, not a {method} run; give --checkpoint the --out folder "
+                              f"of `fdnet train-baseline {method}`")
+    return runs.load_config(run_dir, cls)

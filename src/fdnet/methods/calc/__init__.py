@@ -1,0 +1,1 @@
+"""CALC (Merrill and Huang, RSS 2018): an auto-encoder reconstructing HOG, trained without labels."""

@@ -1,0 +1,263 @@
+"""FDNet's training step on the shared loop (paper eq. 10, Algorithm 1, section 4.1).
+
+Stages, one after the other, counted in mini-batches ("steps"):
+
+1. ``autoencoder``: E_c, E_a and the decoder on w_r * L_r (+ w_a * L_a);
+2. ``critic``: D_a alone on L_d^adv (WGAN-GP), the encoders frozen;
+3. ``joint``: per step, ``critic_updates_per_step`` updates of D_a, then one update of E_c, E_a
+   and the decoder on w_r L_r + w_a L_a + w_adv L_e^adv (paper: 2:1). By default the D_a updates
+   of one step share one batch's content vectors and each draws new labelled pairs;
+   ``schedule.critic_fresh_batches`` draws a new batch for every D_a update.
+
+What the checkpoint needs beyond weights and Adam states (the loop saves torch's global RNG,
+used by dropout): the sampler's generator and the conditions trained on.
+
+No data augmentation is applied: none was needed for the results in docs/results.md, and
+photometric augmentation would blur the very appearance differences between conditions that
+the appearance encoder and the discriminator are meant to separate.
+"""
+
+from __future__ import annotations
+
+import contextlib
+
+import numpy as np
+import torch
+
+from fdnet.errors import ConfigError
+from fdnet.methods.fdnet.config import TrainConfig, validate
+from fdnet.methods.fdnet.model import FDNet
+from fdnet.training import losses
+from fdnet.training.data import TrainingImages, route_images, training_route
+from fdnet.training.loop import LoopSettings, TrainingMethod
+from fdnet.training.sampler import DomainBalancedSampler
+
+
+def _autocast(config: TrainConfig, device: torch.device):
+    if not config.runtime.bf16:
+        return contextlib.nullcontext()
+    return torch.autocast(device.type, dtype=torch.bfloat16)
+
+
+def resolve_device(name: str) -> torch.device:
+    """``auto`` takes CUDA when there is a GPU; ``cuda`` without one is a ConfigError."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    device = torch.device(name)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError(f"runtime.device={name} but no CUDA device is available here")
+    return device
+
+
+def load_training_images(config: TrainConfig) -> TrainingImages:
+    """The run's training images (``config.data``) at the model's input size."""
+    return route_images(training_route(config.data), config.model.input_size,
+                        min_per_condition=config.data.batch_per_domain, min_conditions=2,
+                        why=f"FDNet (data.batch_per_domain = {config.data.batch_per_domain})")
+
+
+class FDNetTraining(TrainingMethod):
+    """Owns FDNet's model, both optimisers and the domain-balanced sampler of one run."""
+
+    name = "fdnet"
+    log_columns = ("reconstruction", "appearance", "encoder_adversarial", "critic", "wasserstein")
+
+    def __init__(self, config: TrainConfig, data: TrainingImages) -> None:
+        validate(config)
+        self.config = config
+        self.data = data
+        self.input_size = tuple(int(v) for v in config.model.input_size)
+        rt = config.runtime
+        if rt.threads > 0:
+            torch.set_num_threads(rt.threads)
+        self.device = resolve_device(rt.device)
+        torch.manual_seed(rt.seed)
+        self.model = FDNet(config.model).to(self.device)
+        if rt.channels_last:
+            self.model = self.model.to(memory_format=torch.channels_last)
+        betas = (config.optim.beta1, config.optim.beta2)
+        autoencoder_params = [p for name, m in self.model.named_parts().items() if name != "discriminator"
+                              for p in m.parameters()]
+        # fused=True: one kernel per tensor instead of ~10 passes; 3-4x faster on a loaded 2-core CPU,
+        # where the Adam update of the 7M auto-encoder weights otherwise costs as much as the convs.
+        self.opt_autoencoder = torch.optim.Adam(autoencoder_params, lr=config.optim.lr, betas=betas, fused=True)
+        self.opt_critic = torch.optim.Adam(self.model.discriminator.parameters(), lr=config.optim.critic_lr,
+                                           betas=betas, fused=True)
+        self.generator = torch.Generator().manual_seed(rt.seed + 1)
+        self.sampler = DomainBalancedSampler([len(x) for x in data.images], config.data.batch_per_domain,
+                                             data.names, self.generator)
+        self.domains = self.sampler.domain_labels().to(self.device)
+        self.images = [x.to(self.device) for x in data.images]
+        # With a frozen trunk, what the encoders read never changes (no augmentation), so it is
+        # computed once: the trunk costs ~10 ms/image on a CPU core, more than the FDNet step.
+        self.cached_inputs = None if self.model.trunk is None else [self._preprocess(x) for x in self.images]
+
+    # ------------------------------------------------------------------ loop interface
+    def modules(self) -> dict[str, torch.nn.Module]:
+        return self.model.named_parts()
+
+    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        return {"autoencoder": self.opt_autoencoder, "critic": self.opt_critic}
+
+    def loop_settings(self) -> LoopSettings:
+        rt = self.config.runtime
+        return LoopSettings(self.config.total_steps, rt.checkpoint_every, rt.log_every,
+                            self.config.validation.every)
+
+    def stage(self, step: int) -> str:
+        return self.config.stage_at(step)
+
+    def state(self) -> dict:
+        return {"sampler_generator": self.generator.get_state(), "conditions": list(self.data.names)}
+
+    def load_state(self, state: dict) -> None:
+        if list(state.get("conditions", self.data.names)) != list(self.data.names):
+            raise ConfigError(f"the run was trained on conditions {state['conditions']}, now given {self.data.names}")
+        self.generator.set_state(state["sampler_generator"])
+
+    def validation_vectors(self, images: torch.Tensor) -> np.ndarray:
+        rt = self.config.runtime
+        vectors = content_vectors(self.model, images, self.device, rt.bf16, rt.channels_last)
+        return torch.nn.functional.normalize(vectors, dim=1).numpy()
+
+    # ------------------------------------------------------------------ one step
+    def _preprocess(self, images: torch.Tensor, chunk: int = 64) -> torch.Tensor:
+        """uint8 (N, 3, H, W) -> what the encoders read (``FDNet.preprocess``), in chunks."""
+        out = []
+        for start in range(0, len(images), chunk):
+            x = images[start:start + chunk].float().div_(255.0)
+            if self.config.runtime.channels_last:
+                x = x.contiguous(memory_format=torch.channels_last)
+            with torch.no_grad(), _autocast(self.config, self.device):
+                out.append(self.model.preprocess(x).float())
+        return torch.cat(out)
+
+    def _batch(self) -> torch.Tensor:
+        """One domain-balanced mini-batch of encoder inputs (preprocessed images or trunk maps)."""
+        idx = self.sampler.sample()
+        if self.cached_inputs is not None:
+            return torch.cat([inputs[i.to(inputs.device)] for inputs, i in zip(self.cached_inputs, idx)])
+        return self._preprocess(torch.cat([imgs[i.to(imgs.device)] for imgs, i in zip(self.images, idx)]))
+
+    def _set_lr(self, stage: str) -> None:
+        scale = self.config.optim.joint_lr_scale if stage == "joint" else 1.0
+        for group in self.opt_autoencoder.param_groups:
+            group["lr"] = self.config.optim.lr * scale
+
+    def _critic_features(self) -> torch.Tensor:
+        """Content vectors of a fresh batch for D_a updates (no gradient to the encoder)."""
+        model, cfg = self.model, self.config
+        x = self._batch()
+        encoder = model.content_encoder
+        mode = encoder.training
+        encoder.train(cfg.runtime.critic_encoder_mode == "train")
+        with torch.no_grad(), _autocast(cfg, self.device):
+            content = model.critic_features(model.content_encoder(x).float())
+        encoder.train(mode)
+        return content
+
+    def _critic_update(self, content: torch.Tensor) -> dict[str, float]:
+        """One D_a update on (detached) content vectors, with freshly drawn labelled pairs."""
+        cfg = self.config
+        same, different = losses.sample_pairs(self.domains, self.generator)
+        loss, distance = losses.critic_loss(
+            self.model.discriminator.forward_pairs, losses.pair_vectors(content, same),
+            losses.pair_vectors(content, different), cfg.loss.gradient_penalty_weight, self.generator,
+        )
+        self.opt_critic.zero_grad(set_to_none=True)
+        loss.backward()
+        self.opt_critic.step()
+        return {"critic": float(loss.detach()), "wasserstein": float(distance)}
+
+    def _autoencoder_update(self, step: int, adversarial: bool, appearance: bool) -> dict[str, float]:
+        model, cfg = self.model, self.config
+        target = self._batch()
+        with _autocast(cfg, self.device):
+            content = model.content_encoder(target)
+            appearance_vec = model.appearance_encoder(target)
+            reconstruction = model.decoder(content, appearance_vec)
+        rec = losses.reconstruction_loss(target, reconstruction)
+        total = cfg.loss.reconstruction_weight * rec
+        out = {"reconstruction": float(rec.detach())}
+        if appearance:
+            app = losses.batch_hard_triplet_loss(appearance_vec.float(), self.domains, cfg.loss.triplet_margin)
+            total = total + cfg.loss.appearance_weight * app
+            out["appearance"] = float(app.detach())
+        if adversarial:
+            features = model.critic_features(content.float())
+            same, different = losses.sample_pairs(self.domains, self.generator)
+            critic = model.discriminator
+            critic.requires_grad_(False)  # only E_c learns from L_e^adv here
+            adv = losses.encoder_adversarial_loss(critic.forward_pairs, losses.pair_vectors(features, same),
+                                                  losses.pair_vectors(features, different))
+            critic.requires_grad_(True)
+            total = total + cfg.loss.adversarial_weight * adv
+            out["encoder_adversarial"] = float(adv.detach())
+        if not torch.isfinite(total):
+            raise FloatingPointError(f"loss became {float(total)} at step {step}; lower optim.lr or the loss weights")
+        self.opt_autoencoder.zero_grad(set_to_none=True)
+        total.backward()
+        self.opt_autoencoder.step()
+        return out
+
+    def train_step(self, step: int) -> dict[str, float]:
+        stage = self.config.stage_at(step)
+        self._set_lr(stage)
+        self.model.train()
+        out: dict[str, float] = {}
+        if stage == "autoencoder":
+            out.update(self._autoencoder_update(step, adversarial=False,
+                                                appearance=self.config.loss.appearance_in_pretraining))
+        elif stage == "critic":
+            out.update(self._critic_update(self._critic_features()))
+        else:
+            # The D_a updates of one step share one batch's content vectors (each draws new
+            # pairs), or take a batch each with schedule.critic_fresh_batches: one encoder
+            # forward instead of several is ~20% of a step on a 2-core CPU.
+            content = None
+            for _ in range(self.config.schedule.critic_updates_per_step):
+                if content is None or self.config.schedule.critic_fresh_batches:
+                    content = self._critic_features()
+                out.update(self._critic_update(content))
+            out.update(self._autoencoder_update(step, adversarial=True, appearance=True))
+        return out
+
+
+def content_vectors(model: FDNet, images: torch.Tensor, device: torch.device, bf16: bool = False,
+                    channels_last: bool = False, batch: int = 256, appearance: bool = False) -> torch.Tensor:
+    """uint8 (N, 3, H, W) -> float32 (N, L) content (or appearance) vectors, eval mode."""
+    was_training = model.training
+    model.eval()
+    out = []
+    with torch.inference_mode():
+        for start in range(0, len(images), batch):
+            x = images[start:start + batch].to(device).float().div_(255.0)
+            if channels_last:
+                x = x.contiguous(memory_format=torch.channels_last)
+            with torch.autocast(device.type, dtype=torch.bfloat16) if bf16 else contextlib.nullcontext():
+                v = model.appearance(x) if appearance else model.content(x)
+            out.append(v.float().cpu())
+    model.train(was_training)
+    return torch.cat(out) if out else torch.zeros((0, model.config.vector_length))
+
+
+def train(config: TrainConfig, run_dir, resume: bool = False, override: bool = False,
+          max_minutes: float | None = None, progress: bool = True, command: str = "fdnet train") -> dict:
+    """Train FDNet as ``config`` says into ``run_dir`` (what ``fdnet train`` calls)."""
+    from fdnet.training.data import load_validation_images
+    from fdnet.training.loop import run_training
+
+    validate(config)  # settings errors before any image is read
+
+    def build():
+        if config.runtime.threads > 0:
+            torch.set_num_threads(config.runtime.threads)
+        data = load_training_images(config)
+        validation = load_validation_images(config.data.root, config.validation, config.model.input_size)
+        print(f"fdnet train: preset {config.preset}, conditions {', '.join(data.names)} "
+              f"({', '.join(str(len(x)) for x in data.images)} images), input {tuple(config.model.input_size)}, "
+              f"{config.total_steps} steps -> {run_dir}", flush=True)
+        return FDNetTraining(config, data), validation
+
+    return run_training(build, run_dir, resume=resume, override=override, max_minutes=max_minutes,
+                        progress=progress, command=command)

@@ -1,0 +1,68 @@
+"""NetVLAD's place descriptor: a trained run directory -> L2-normalised vectors (cosine)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from fdnet.descriptors.base import Descriptor, l2_normalize
+from fdnet.errors import ConfigError
+from fdnet.methods.netvlad.config import load_run_config
+from fdnet.methods.netvlad.model import build_network
+
+
+class NetVLADDescriptor(Descriptor):
+    """NetVLAD vector (optionally PCA-whitened), L2-normalised, compared by cosine.
+
+    ``checkpoint``: a run directory written by ``fdnet train-baseline netvlad``. The frozen trunk
+    comes from the installed EfficientNet-Lite0 ImageNet weights, the fine-tuned blocks and the
+    VLAD layer from the run. ``bf16``: autocast (default: on where the CPU has native bf16).
+    ``threads``: torch threads while describing.
+    """
+
+    name = "netvlad"
+
+    def __init__(self, checkpoint: str | Path | None = None, bf16: bool | None = None,
+                 threads: int | None = None):
+        from fdnet.backbones import FeatureExtractor
+        from fdnet.runs import load_weights
+
+        if checkpoint is None:
+            raise ConfigError("method 'netvlad' needs a trained model: --checkpoint RUN_DIR "
+                              "(train one with `fdnet train-baseline netvlad --data DIR --out RUN_DIR`)")
+        self.checkpoint = Path(checkpoint)
+        self.config = load_run_config(self.checkpoint)
+        model = self.config.model
+        self.input_size = tuple(int(v) for v in model.input_size)
+        # pretrained=False: every fine-tuned weight comes from the checkpoint
+        self.network = build_network(model, pretrained=False).eval()
+        metadata = load_weights(self.checkpoint, {"netvlad": self.network})
+        self.step = int(metadata.get("step", 0))
+        self.extractor = FeatureExtractor(block=model.frozen_block, bf16=bf16, threads=threads)
+        self.bf16 = self.extractor.bf16
+        self.threads = threads
+
+    @property
+    def dim(self) -> int:
+        return self.network.descriptor_dim
+
+    def describe(self, images: np.ndarray) -> np.ndarray:
+        import torch
+
+        from fdnet.backbones import torch_threads
+
+        images = np.asarray(images, dtype=np.float32)
+        if images.shape[1:3] != self.input_size:
+            raise ConfigError(f"NetVLAD expects images of size {self.input_size}, got {images.shape[1:3]}")
+        maps = self.extractor.features_tensor(images)
+        with torch_threads(self.threads), torch.inference_mode():
+            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.bf16):
+                out = self.network(maps.contiguous(memory_format=torch.channels_last) if self.bf16 else maps)
+        return l2_normalize(out.float().numpy())
+
+    def settings(self) -> dict:
+        model = self.config.model
+        return {"input_size": list(self.input_size), "checkpoint": str(self.checkpoint), "step": self.step,
+                "dim": self.dim, "clusters": model.clusters, "frozen_block": model.frozen_block,
+                "last_block": model.last_block, "pca_dim": model.pca_dim, "bf16": self.bf16}

@@ -1,0 +1,60 @@
+"""Settings every trained method shares: which images it trains on and how it validates.
+
+Each method's run config (``FDNetRunConfig``... see ``fdnet.methods.<name>.config``) holds these
+beside its own model and training settings, and is written to ``RUN_DIR/config.yaml``. This
+module is plain dataclasses (no torch, no training code), so inference can read a run's config.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass
+class DataConfig:
+    """Which images a run trains on (recorded in the run; ``--resume`` reads the same ones)."""
+
+    #: dataset folder (one sub-folder per condition, or a published layout with dataset_format)
+    root: str = ""
+    #: conditions (sub-folders) to train on; empty = all of them
+    conditions: tuple[str, ...] = ()
+    #: "START:END" slice of every condition used for training ("" = all frames)
+    frames: str = ""
+    #: a published layout read by ``fdnet.data.formats`` ("" = one sub-folder per condition)
+    dataset_format: str = ""
+    #: with ``dataset_format``: a named split ("train", "test", "all") or "START:END" ("" = the
+    #: format's training default)
+    split: str = ""
+
+
+@dataclass
+class ValidationConfig:
+    """Optional periodic validation: R@1 of reference vs query condition on held-out frames.
+
+    It uses place correspondences (frame-aligned ground truth) of the validation frames only to
+    pick the best checkpoint (``best/``); training itself never sees them. Keep these frames out
+    of any test split you report.
+    """
+
+    reference: str = ""
+    query: str = ""
+    frames: str = ""
+    tolerance: int = 0
+    every: int = 250
+
+
+def check_finite(name: str, value, positive: bool = False) -> None:
+    """A numeric setting must be a finite number (``--set optim.lr=nan`` would otherwise train
+    silently into NaN weights); ``positive``: also > 0, else >= 0."""
+    from fdnet.errors import ConfigError
+
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{name}: expected a number, got {value!r}") from None
+    if number != number or number in (float("inf"), float("-inf")):
+        raise ConfigError(f"{name}: must be a finite number, got {value!r}")
+    if positive and number <= 0:
+        raise ConfigError(f"{name}: must be > 0, got {value!r}")
+    if not positive and number < 0:
+        raise ConfigError(f"{name}: must be >= 0, got {value!r}")

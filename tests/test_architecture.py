@@ -1,0 +1,142 @@
+"""The package's structure: no import cycles, inference never imports training code, the
+pretrained backbone is a leaf.
+
+Imports are read from the source with ``ast`` (module-level and function-level imports alike: a
+lazy import is still a dependency), at module granularity.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+PACKAGE_ROOT = Path(__file__).resolve().parents[1] / "src" / "fdnet"
+
+
+def module_name(path: Path) -> str:
+    parts = list(path.relative_to(PACKAGE_ROOT.parent).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+    return ".".join(parts)
+
+
+def all_modules() -> dict[str, Path]:
+    return {module_name(p): p for p in PACKAGE_ROOT.rglob("*.py")}
+
+
+def imports_of(path: Path, modules: dict[str, Path]) -> set[str]:
+    """fdnet modules ``path`` imports (``from fdnet.a import b`` counts fdnet.a.b when that is a
+    module, else fdnet.a)."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    this = module_name(path)
+    package = this if path.name == "__init__.py" else this.rpartition(".")[0]
+    found: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                if alias.name.startswith("fdnet"):
+                    found.add(alias.name)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.rsplit(".", node.level - 1)[0] if node.level > 1 else package
+                target = f"{base}.{node.module}" if node.module else base
+            else:
+                target = node.module or ""
+            if not target.startswith("fdnet"):
+                continue
+            for alias in node.names:
+                candidate = f"{target}.{alias.name}"
+                found.add(candidate if candidate in modules else target)
+    return {m for m in found if m in modules and m != this}
+
+
+def import_graph() -> dict[str, set[str]]:
+    modules = all_modules()
+    return {name: imports_of(path, modules) for name, path in modules.items()}
+
+
+def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    state: dict[str, int] = {}
+    stack: list[str] = []
+
+    def visit(node: str) -> list[str] | None:
+        state[node] = 1
+        stack.append(node)
+        for nxt in sorted(graph.get(node, ())):
+            if state.get(nxt) == 1:
+                return stack[stack.index(nxt):] + [nxt]
+            if nxt not in state:
+                cycle = visit(nxt)
+                if cycle:
+                    return cycle
+        stack.pop()
+        state[node] = 2
+        return None
+
+    for node in sorted(graph):
+        if node not in state:
+            cycle = visit(node)
+            if cycle:
+                return cycle
+    return None
+
+
+def reachable(graph: dict[str, set[str]], start: str) -> set[str]:
+    seen, todo = set(), [start]
+    while todo:
+        node = todo.pop()
+        for nxt in graph.get(node, ()):
+            if nxt not in seen:
+                seen.add(nxt)
+                todo.append(nxt)
+    return seen
+
+
+def test_no_import_cycle_among_fdnet_modules():
+    cycle = find_cycle(import_graph())
+    assert cycle is None, "import cycle: " + " -> ".join(cycle)
+
+
+def test_cycle_finder_finds_a_planted_cycle():
+    assert find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
+    assert find_cycle({"a": {"b"}, "b": set()}) is None
+
+
+INFERENCE_ENTRY_POINTS = [
+    "fdnet",  # fdnet.load
+    "fdnet.export",
+    "fdnet.descriptors.registry",
+    "fdnet.methods.fdnet.descriptor",
+    "fdnet.methods.calc.descriptor",
+    "fdnet.methods.netvlad.descriptor",
+    "fdnet.matching.database",
+    "fdnet.cli.extract",
+    "fdnet.cli.evaluate",
+    "fdnet.cli.match",
+    "fdnet.cli.export",
+]
+
+
+@pytest.mark.parametrize("entry", INFERENCE_ENTRY_POINTS)
+def test_inference_never_imports_training_code(entry):
+    graph = import_graph()
+    assert entry in graph, f"{entry} is not a module of the package"
+    reached = reachable(graph, entry) | {entry}
+    training = sorted(m for m in reached if m == "fdnet.training" or m.startswith("fdnet.training.")
+                      or m.endswith(".training"))
+    assert not training, f"{entry} reaches training code: {training}"
+
+
+def test_pretrained_backbone_is_a_leaf():
+    graph = import_graph()
+    inside = sorted(m for m in graph["fdnet.backbones"] if m not in ("fdnet.errors",))
+    assert not inside, f"fdnet.backbones imports {inside}; it must depend on nothing but fdnet.errors"
+
+
+def test_every_trained_method_is_one_package_with_the_same_parts():
+    for method in ("fdnet", "calc", "netvlad"):
+        folder = PACKAGE_ROOT / "methods" / method
+        for part in ("config", "model", "descriptor", "training"):
+            assert (folder / f"{part}.py").is_file(), f"fdnet.methods.{method} has no {part} module"
