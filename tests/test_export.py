@@ -38,6 +38,19 @@ def test_export_of_missing_run_is_a_clear_error(tmp_path, capsys):
     assert not (tmp_path / "x.onnx").exists()
 
 
+def test_export_to_an_unwritable_path_fails_before_any_work(tiny_run, tmp_path, capsys, monkeypatch):
+    import fdnet.methods.fdnet.descriptor as descriptor_module
+
+    def must_not_load(*args, **kwargs):
+        raise AssertionError("the model was loaded before the output path was checked")
+
+    monkeypatch.setattr(descriptor_module.FDNetDescriptor, "from_run", must_not_load)
+    (tmp_path / "file").write_text("x")
+    assert main(["export", "--checkpoint", str(tiny_run), "--out", str(tmp_path / "file" / "x.onnx")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("fdnet export: error:") and "x.onnx" in err
+
+
 def test_export_includes_the_backbone_trunk(tiny_run, tmp_path):
     """A run with model.backbone exports trunk + encoder as one graph, equal to PyTorch's vectors."""
     import fdnet

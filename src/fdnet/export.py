@@ -37,8 +37,10 @@ def export_onnx(run_dir: str | os.PathLike, out: str | os.PathLike, opset: int =
     ``max_abs_diff`` compares onnxruntime with PyTorch on 4 random images (None without check)."""
     import torch
 
+    from fdnet.io import atomic_path, ensure_writable
     from fdnet.methods.fdnet.descriptor import FDNetDescriptor
-    from fdnet.io import atomic_path
+
+    ensure_writable(out, what="ONNX file")  # before the minutes of tracing and checking
 
     try:
         import onnx  # noqa: F401  (the exporter needs it)

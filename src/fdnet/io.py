@@ -95,7 +95,8 @@ def ensure_writable(path: str | os.PathLike, what: str = "output", directory: bo
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise ConfigError(f"{folder}: cannot create the {what} folder ({exc.strerror or exc})") from None
+        where = "" if directory else f" (its folder {folder})"
+        raise ConfigError(f"{target}: cannot create the {what} folder{where}: {exc.strerror or exc}") from None
     try:
         fd, probe = tempfile.mkstemp(prefix=".fdnet-write-test.", dir=folder)
         os.close(fd)

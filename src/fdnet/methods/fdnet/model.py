@@ -125,7 +125,7 @@ def init_weights(module: nn.Module) -> None:
 class FDNet(nn.Module):
     """The four networks of FDNet, with the preprocessing they share.
 
-    ``forward`` is not defined: training uses the parts (see ``fdnet.training.trainer``) and
+    ``forward`` is not defined: training uses the parts (see ``fdnet.methods.fdnet.training``) and
     inference uses :meth:`content` (the place descriptor, paper section 4.2).
     """
 
