@@ -1,86 +1,176 @@
-"""`fdnet database`: a persistent place database for loop closure / relocalisation."""
+"""`fdnet database`: a persistent place database (one SQLite file) for loop closure and
+relocalisation. See docs/database.md for the format and its guarantees."""
 
 from __future__ import annotations
+
+import argparse
 
 from fdnet.cli.common import add_method_arguments
 
 
+def _positive_int(text: str) -> int:
+    value = _whole_number(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def _non_negative_int(text: str) -> int:
+    value = _whole_number(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or more, got {value}")
+    return value
+
+
+def _whole_number(text: str) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number, got {text!r}") from None
+
+
 def register(sub) -> None:
-    p = sub.add_parser("database", help="build, extend and query a persistent place database")
+    p = sub.add_parser("database", help="build, extend, query, inspect and migrate a persistent place database")
     actions = p.add_subparsers(dest="action", metavar="ACTION", required=True)
 
-    build = actions.add_parser("build", help="describe a folder of images and save them as a database")
+    build = actions.add_parser("build", help="describe a folder of images and write them as a new database file")
     build.add_argument("--images", required=True, help="folder of map images (traversal order)")
-    build.add_argument("--out", required=True, help="database folder to write")
+    build.add_argument("--out", required=True, help="database file to write, e.g. map.db")
+    build.add_argument("--overwrite", action="store_true",
+                       help="replace an existing place database at --out (in one transaction)")
     add_method_arguments(build)
     build.add_argument("--index", choices=["flat", "hnsw", "ivf"], default="flat",
                        help="faiss index for dot-product methods (flat = exact)")
     build.set_defaults(func=run_build)
 
-    add = actions.add_parser("add", help="describe more images and append them to a database")
-    add.add_argument("--db", required=True, help="database folder")
+    add = actions.add_parser(
+        "add", help="describe more images and append them to a database (one transaction)",
+        description="Describe the images with the descriptor the database records and append them in one "
+                    "transaction. The method options are optional: give them to describe with another copy of "
+                    "that model (e.g. its run directory moved); its fingerprint must match the database's.")
+    add.add_argument("--db", required=True, help="database file")
     add.add_argument("--images", required=True, help="folder of images to append")
+    add.add_argument("--allow-duplicates", action="store_true",
+                     help="add images whose name is already in the database (default: skip and report them)")
+    add_method_arguments(add, required=False)
     add.set_defaults(func=run_add)
 
     query = actions.add_parser("query", help="rank the database's places for each query image")
-    query.add_argument("--db", required=True, help="database folder")
+    query.add_argument("--db", required=True, help="database file")
     query.add_argument("--images", required=True, help="folder of query images")
-    query.add_argument("--top-k", type=int, default=5)
-    query.add_argument("--exclude-last", type=int, default=0,
+    query.add_argument("--top-k", type=_positive_int, default=5, help="candidates per query (at least 1)")
+    query.add_argument("--exclude-last", type=_non_negative_int, default=0,
                        help="ignore the most recently added N places (a robot's own recent frames)")
     query.add_argument("--min-score", type=float, default=None, help="only report candidates scoring at least this")
     query.add_argument("--out", help="CSV to write (query,rank,place,place_index,score); default: print")
     query.set_defaults(func=run_query)
 
+    info = actions.add_parser("info", help="print the database's identity and size as one JSON object")
+    info.add_argument("--db", required=True, help="database file")
+    info.set_defaults(func=run_info)
 
-def _describe(descriptor, folder):
-    from fdnet.data.images import list_images
+    migrate = actions.add_parser("migrate", help="convert an old-format folder (database.json + vectors.npy) "
+                                                 "into a database file")
+    migrate.add_argument("--from", dest="source", required=True, help="old-format database folder")
+    migrate.add_argument("--out", required=True, help="database file to write, e.g. map.db")
+    migrate.add_argument("--overwrite", action="store_true", help="replace an existing place database at --out")
+    migrate.set_defaults(func=run_migrate)
+
+
+def _describe(descriptor, paths):
     from fdnet.descriptors.base import describe_paths
 
-    paths = list_images(folder)
-    return paths, describe_paths(descriptor, paths, progress=True)
+    return describe_paths(descriptor, paths, progress=True)
 
 
-def _open(db_folder):
+def _place_names(paths) -> list[str]:
+    # Absolute: the same image added from another working directory is still the same place.
+    return [str(p.resolve()) for p in paths]
+
+
+def _file_options(args, method: str) -> dict:
+    from pathlib import Path
+
+    from fdnet.cli.common import FILE_OPTIONS, method_options
+
+    options = method_options(args, method)
+    # Absolute paths: later `add`/`query` calls may run from another directory.
+    options.update({k: str(Path(v).resolve()) for k, v in options.items() if k in FILE_OPTIONS})
+    return options
+
+
+def _recorded_descriptor(db):
+    """The descriptor the database's method_options rebuild; its fingerprint must still be the
+    database's (weights retrained in place, or a vocabulary replaced, would change it)."""
     from fdnet.descriptors import create
+    from fdnet.errors import ConfigError, FdnetError
+
+    try:
+        return create(db.method, **db.method_options)
+    except FdnetError as exc:
+        raise ConfigError(f"{db.path}: cannot rebuild its {db.method!r} descriptor from the recorded options "
+                          f"{db.method_options} ({exc})") from None
+
+
+def _open_with_descriptor(path, args=None):
+    from fdnet.cli.common import FILE_OPTIONS
     from fdnet.matching.database import PlaceDatabase
 
-    meta_db = PlaceDatabase.load(db_folder)
-    descriptor = create(meta_db.method, **meta_db.method_options)
-    return PlaceDatabase.load(db_folder, descriptor=descriptor), descriptor
+    with PlaceDatabase.open(path) as recorded:
+        given = args is not None and (args.method or args.method_set
+                                      or any(getattr(args, k) for k in FILE_OPTIONS))
+        descriptor = (_create_descriptor(args.method or recorded.method, args) if given
+                      else _recorded_descriptor(recorded))
+    return PlaceDatabase.open(path, descriptor=descriptor), descriptor
+
+
+def _create_descriptor(method: str, args):
+    from fdnet.descriptors import create
+
+    return create(method, **_file_options(args, method))
 
 
 def run_build(args) -> int:
-    from fdnet.cli.common import create_descriptor, method_options
+    from fdnet.data.images import list_images
     from fdnet.errors import ConfigError
-    from fdnet.matching.database import PlaceDatabase
+    from fdnet.io import ensure_writable
+    from fdnet.matching.database import PlaceDatabase, check_can_create, short_fingerprint
     from fdnet.matching.index import IndexSettings
 
-    descriptor = create_descriptor(args.method, args)
+    # Every refusal the output path can cause comes before minutes of describing images.
+    check_can_create(args.out, args.overwrite)
+    ensure_writable(args.out, what="place database")
+    descriptor = _create_descriptor(args.method, args)
     if descriptor.needs_fit:
         raise ConfigError(f"method {descriptor.name!r} must be given what it learns from (e.g. --vocabulary) "
                           "to build a database that later queries can reuse")
-    paths, vectors = _describe(descriptor, args.images)
-    from pathlib import Path
-
-    from fdnet.cli.common import FILE_OPTIONS
-
-    options = method_options(args, args.method)
-    # Absolute paths: later `add`/`query` calls may run from another directory.
-    options.update({k: str(Path(v).resolve()) for k, v in options.items() if k in FILE_OPTIONS})
-    db = PlaceDatabase.for_descriptor(descriptor, IndexSettings(kind=args.index), method_options=options)
-    db.add(vectors, [str(p) for p in paths])
-    db.save(args.out)
-    print(f"wrote {args.out}: {len(db)} places, {descriptor.name} ({descriptor.dim}-d)")
+    paths = list_images(args.images)
+    vectors = _describe(descriptor, paths)
+    db = PlaceDatabase.create(args.out, descriptor, index=IndexSettings(kind=args.index),
+                              method_options=_file_options(args, args.method), overwrite=args.overwrite,
+                              vectors=vectors, names=_place_names(paths))
+    with db:
+        places = len(db)
+    print(f"wrote {args.out}: {places} places, {descriptor.name} ({descriptor.dim}-d), "
+          f"fingerprint {short_fingerprint(db.fingerprint)}")
     return 0
 
 
 def run_add(args) -> int:
-    db, descriptor = _open(args.db)
-    paths, vectors = _describe(descriptor, args.images)
-    db.add(vectors, [str(p) for p in paths])
-    db.save(args.db)
-    print(f"{args.db}: added {len(paths)} places, {len(db)} in all")
+    from fdnet.data.images import list_images
+
+    db, descriptor = _open_with_descriptor(args.db, args)
+    with db:
+        paths = list_images(args.images)
+        names = _place_names(paths)
+        known = set() if args.allow_duplicates else db.existing_names(names)
+        todo = [i for i, name in enumerate(names) if name not in known]
+        vectors = _describe(descriptor, [paths[i] for i in todo])
+        result = db.add(vectors, [names[i] for i in todo], fingerprint=descriptor.fingerprint(),
+                        allow_duplicates=args.allow_duplicates)
+    skipped = len(known) + len(result.skipped)
+    note = f" (skipped {skipped} already in the database; --allow-duplicates adds them)" if skipped else ""
+    print(f"{args.db}: added {result.added} places{note}, {result.places} in all, data version {result.data_version}")
     return 0
 
 
@@ -89,11 +179,24 @@ def run_query(args) -> int:
     import io
     import sys
 
-    from fdnet.io import atomic_write_text
+    import numpy as np
 
-    db, descriptor = _open(args.db)
-    paths, vectors = _describe(descriptor, args.images)
-    results = db.query(vectors, k=args.top_k, exclude_last=args.exclude_last)
+    from fdnet.data.images import list_images
+    from fdnet.errors import DataError
+    from fdnet.io import atomic_write_text, ensure_writable
+
+    if args.out:
+        ensure_writable(args.out, what="query CSV")
+    db, descriptor = _open_with_descriptor(args.db)
+    with db:
+        paths = list_images(args.images)
+        vectors = _describe(descriptor, paths)
+        bad = np.flatnonzero(~np.isfinite(vectors).all(axis=1))
+        if len(bad):
+            raise DataError(f"{paths[bad[0]]}: its {descriptor.name} vector is not finite (NaN or inf); "
+                            f"{len(bad)} query image(s) affected")
+        results = db.query(vectors, k=args.top_k, exclude_last=args.exclude_last)
+        places = len(db)
     buffer = io.StringIO()
     writer = csv.writer(buffer)
     writer.writerow(["query", "rank", "place", "place_index", "score"])
@@ -103,7 +206,36 @@ def run_query(args) -> int:
                 writer.writerow([path.name, rank, m.name, m.index, f"{m.score:.6f}"])
     if args.out:
         atomic_write_text(args.out, buffer.getvalue())
-        print(f"wrote {args.out}: {len(paths)} queries against {len(db)} places")
+        print(f"wrote {args.out}: {len(paths)} queries against {places} places")
     else:
         sys.stdout.write(buffer.getvalue())
+    return 0
+
+
+def run_info(args) -> int:
+    import json
+
+    from fdnet.matching.database import PlaceDatabase
+
+    with PlaceDatabase.open(args.db) as db:
+        info = db.info()
+    print(json.dumps(info, indent=2, sort_keys=True))
+    return 0
+
+
+def run_migrate(args) -> int:
+    from fdnet.io import ensure_writable
+    from fdnet.matching.database import check_can_create, migrate_old_format
+
+    check_can_create(args.out, args.overwrite)
+    ensure_writable(args.out, what="place database")
+    report = migrate_old_format(args.source, args.out, overwrite=args.overwrite)
+    print(f"wrote {args.out}: {report.places} places from {args.source}")
+    if report.dropped_non_finite:
+        listed = ", ".join(report.dropped_non_finite[:5])
+        more = f" and {len(report.dropped_non_finite) - 5} more" if len(report.dropped_non_finite) > 5 else ""
+        print(f"dropped {len(report.dropped_non_finite)} place(s) whose stored vector was NaN/inf "
+              f"(they could never be matched): {listed}{more}")
+    if report.duplicate_names:
+        print(f"kept {report.duplicate_names} repeated place name(s), as the old database held them")
     return 0

@@ -62,8 +62,69 @@ class Descriptor(ABC):
         """(Q, D), (R, D) -> (Q, R) float32, higher = more similar."""
         return np.asarray(queries, dtype=np.float32) @ np.asarray(references, dtype=np.float32).T
 
+    def fingerprint(self) -> str:
+        """sha256 hex of what makes this descriptor's vectors what they are: its name, its
+        settings, and the bytes of every weight it holds (the state_dict of each torch module and
+        every numpy array among its attributes, and one level inside fdnet helper objects such as
+        a backbone trunk or a vocabulary). Two run directories with different weights differ;
+        reloading the same one gives the same fingerprint. A place database stores it so vectors
+        from another model are refused rather than silently mixed."""
+        import hashlib
+        import json
+
+        digest = hashlib.sha256()
+        digest.update(f"method={self.name}\n".encode())
+        digest.update(json.dumps(self.settings(), sort_keys=True, default=str).encode())
+        for label, data in _weight_bytes(self, "self", depth=1, seen=set()):
+            digest.update(f"\n{label}\n".encode())
+            digest.update(data)
+        return digest.hexdigest()
+
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.settings()})"
+
+
+def _weight_bytes(value, label: str, depth: int, seen: set):
+    """Yield (label, bytes) for every weight tensor or array reachable from ``value``, in an
+    order that depends only on attribute names (so the fingerprint is deterministic). Labels
+    carry dtype and shape: the same bytes reinterpreted are different weights."""
+    import sys
+
+    if id(value) in seen:
+        return
+    torch = sys.modules.get("torch")  # no torch loaded means no torch module can be held
+    if isinstance(value, np.ndarray):
+        if not value.dtype.hasobject:  # object arrays hold pointers, not weights
+            seen.add(id(value))
+            yield f"{label}:{value.dtype.str}{list(value.shape)}", np.ascontiguousarray(value).tobytes()
+        return
+    if torch is not None and isinstance(value, (torch.nn.Module, torch.Tensor)):
+        seen.add(id(value))
+        tensors = value.state_dict() if isinstance(value, torch.nn.Module) else {"": value}
+        for key in sorted(tensors):
+            t = tensors[key].detach().cpu().contiguous()
+            # Viewed as bytes: numpy has no bfloat16, and this keeps the exact stored bits.
+            data = t.reshape(-1).view(torch.uint8).numpy().tobytes()
+            yield f"{label}.{key}:{t.dtype}{list(t.shape)}", data
+        return
+    if isinstance(value, dict):
+        seen.add(id(value))
+        for key in sorted(value, key=str):
+            yield from _weight_bytes(value[key], f"{label}[{key!s}]", depth, seen)
+        return
+    if isinstance(value, (list, tuple)):
+        seen.add(id(value))
+        for i, item in enumerate(value):
+            yield from _weight_bytes(item, f"{label}[{i}]", depth, seen)
+        return
+    attributes = getattr(value, "__dict__", None)
+    if attributes is None or depth < 0:
+        return
+    if label != "self" and not type(value).__module__.startswith("fdnet."):
+        return  # only our own helper objects: walking arbitrary library objects is unbounded
+    seen.add(id(value))
+    for key in sorted(attributes):
+        yield from _weight_bytes(attributes[key], f"{label}.{key}", depth - 1, seen)
 
 
 def describe_paths(

@@ -1,0 +1,198 @@
+"""`fdnet database build|add|query|info|migrate` on images and files the tests make."""
+
+import csv
+import json
+import sqlite3
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from fdnet.cli import main
+from fdnet.descriptors import create
+from fdnet.descriptors.classic import RawThumbnail
+
+
+def make_route(folder, n=6, seed=0):
+    """n distinct random-texture places; the same seed gives the same places."""
+    folder.mkdir(parents=True)
+    rng = np.random.default_rng(seed)
+    for i in range(n):
+        Image.fromarray(rng.integers(0, 256, size=(24, 32, 3)).astype(np.uint8)).save(folder / f"frame_{i:03d}.png")
+    return folder
+
+
+def read_rows(path):
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def info(db, capsys):
+    capsys.readouterr()
+    assert main(["database", "info", "--db", str(db)]) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+@pytest.fixture
+def no_describing(monkeypatch):
+    """Make describing an image fail the test: a refusal must come before that work."""
+    def describe(self, images):
+        raise AssertionError("images were described before the refusal")
+
+    monkeypatch.setattr(RawThumbnail, "describe", describe)
+
+
+@pytest.fixture
+def built(tmp_path):
+    db = tmp_path / "map.db"
+    assert main(["database", "build", "--images", str(make_route(tmp_path / "first", seed=1)),
+                 "--method", "raw", "--out", str(db)]) == 0
+    return db
+
+
+def test_build_add_query_info(tmp_path, built, capsys):
+    second = make_route(tmp_path / "second", n=4, seed=2)
+    assert main(["database", "add", "--db", str(built), "--images", str(second)]) == 0
+    out = tmp_path / "q.csv"
+    assert main(["database", "query", "--db", str(built), "--images", str(second), "--top-k", "2",
+                 "--out", str(out)]) == 0
+    rows = read_rows(out)
+    assert list(rows[0]) == ["query", "rank", "place", "place_index", "score"]
+    best = [r for r in rows if r["rank"] == "1"]
+    assert [r["place"] == str(second.resolve() / r["query"]) for r in best] == [True] * 4
+    assert [r["place_index"] for r in best] == ["6", "7", "8", "9"]
+    summary = info(built, capsys)
+    assert {"places", "method", "dim", "fingerprint", "settings", "schema_version", "data_version",
+            "index"} <= set(summary)
+    assert (summary["places"], summary["method"], summary["dim"], summary["data_version"]) == (10, "raw", 2048, 2)
+    assert summary["fingerprint"] == create("raw").fingerprint() and summary["index"]["kind"] == "flat"
+
+
+def test_re_adding_images_skips_and_reports_them_unless_allowed(tmp_path, built, capsys):
+    more = make_route(tmp_path / "more", n=2, seed=3)
+    capsys.readouterr()
+    assert main(["database", "add", "--db", str(built), "--images", str(tmp_path / "first")]) == 0
+    assert "added 0 places (skipped 6 already in the database" in capsys.readouterr().out
+    assert main(["database", "add", "--db", str(built), "--images", str(more)]) == 0
+    assert "added 2 places, 8 in all" in capsys.readouterr().out
+    assert main(["database", "add", "--db", str(built), "--images", str(more)]) == 0
+    assert "added 0 places (skipped 2 already" in capsys.readouterr().out
+    assert main(["database", "add", "--db", str(built), "--images", str(more), "--allow-duplicates"]) == 0
+    assert "added 2 places, 10 in all" in capsys.readouterr().out
+    assert info(built, capsys)["places"] == 10
+
+
+def test_add_refuses_another_models_vectors(tmp_path, built, capsys):
+    # Same method and dimension (32x64 and 64x32 thumbnails are both 2048-d), different model.
+    assert main(["database", "add", "--db", str(built), "--images", str(make_route(tmp_path / "x", n=2, seed=5)),
+                 "--method-set", "size=64x32"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"fdnet database: error: {built}: descriptor fingerprint mismatch")
+    assert create("raw").fingerprint()[:12] in err and create("raw", size="64x32").fingerprint()[:12] in err
+    assert info(built, capsys)["places"] == 6
+
+
+def test_add_refuses_nan_vectors_naming_the_image(tmp_path, built, capsys, monkeypatch):
+    def nan_for_the_second(self, images):
+        v = np.ones((len(images), self.dim), np.float32) / np.sqrt(self.dim)
+        v[1:2] = np.nan
+        return v
+
+    monkeypatch.setattr(RawThumbnail, "describe", nan_for_the_second)
+    images = make_route(tmp_path / "nan", n=3, seed=6)
+    assert main(["database", "add", "--db", str(built), "--images", str(images)]) == 2
+    err = capsys.readouterr().err
+    assert "non-finite" in err and "frame_001.png" in err and "nothing was added" in err
+    assert info(built, capsys)["places"] == 6
+
+
+def test_build_over_an_existing_database_needs_overwrite(tmp_path, built, capsys, monkeypatch):
+    with monkeypatch.context() as patch:
+        patch.setattr(RawThumbnail, "describe", lambda self, images: pytest.fail("described before refusing"))
+        assert main(["database", "build", "--images", str(tmp_path / "first"), "--method", "raw",
+                     "--out", str(built)]) == 2
+    assert f"fdnet database: error: {built}: already exists; pass --overwrite" in capsys.readouterr().err
+    other = make_route(tmp_path / "other", n=3, seed=7)
+    assert main(["database", "build", "--images", str(other), "--method", "raw", "--out", str(built),
+                 "--overwrite"]) == 0
+    assert info(built, capsys)["places"] == 3
+
+
+@pytest.mark.parametrize("flag, value, message", [("--top-k", "0", "must be at least 1"),
+                                                   ("--exclude-last", "-1", "must be 0 or more")])
+def test_query_rejects_impossible_counts(tmp_path, built, capsys, flag, value, message):
+    with pytest.raises(SystemExit) as stopped:
+        main(["database", "query", "--db", str(built), "--images", str(tmp_path / "first"), flag, value])
+    assert stopped.value.code == 2
+    assert f"argument {flag}: {message}" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("make, message", [
+    (lambda p: p.write_bytes(b""), "an empty file, not an fdnet place database"),
+    (lambda p: p.write_bytes(np.random.default_rng(0).bytes(3000)), "not an fdnet place database (not a SQLite file)"),
+    (lambda p: sqlite3.connect(p).execute("CREATE TABLE photos (id INTEGER)"),
+     "a SQLite database but not an fdnet place database (it has tables: photos)"),
+])
+def test_a_file_that_is_not_a_place_database(tmp_path, capsys, make, message):
+    path = tmp_path / "thing.db"
+    make(path)
+    for action in (["info"], ["add", "--images", str(tmp_path)], ["query", "--images", str(tmp_path)]):
+        assert main(["database", action[0], "--db", str(path), *action[1:]]) == 2
+        assert capsys.readouterr().err == f"fdnet database: error: {path}: {message}\n"
+
+
+def write_old_folder(folder, vectors, place_names, **changes):
+    """An old-format database as the previous PlaceDatabase.save wrote it (Ellipsis = leave a
+    field out)."""
+    folder.mkdir()
+    np.save(folder / "vectors.npy", np.asarray(vectors, np.float32))
+    meta = {"format_version": 1, "dim": int(np.shape(vectors)[1]), "method": "raw",
+            "method_settings": create("raw").settings(), "method_options": {}, "dot_product": True,
+            "index": {"kind": "flat"}, "names": place_names, "positions": [None] * len(place_names)}
+    meta.update(changes)
+    (folder / "database.json").write_text(json.dumps({k: v for k, v in meta.items() if v is not Ellipsis}))
+    return folder
+
+
+def test_migrate_an_old_folder_then_query_it(tmp_path, capsys):
+    images = make_route(tmp_path / "map", n=4, seed=8)
+    from fdnet.descriptors.base import describe_paths
+
+    paths = sorted(images.iterdir())
+    old = write_old_folder(tmp_path / "old", describe_paths(create("raw"), paths), [str(p) for p in paths])
+    assert main(["database", "query", "--db", str(old), "--images", str(images)]) == 2
+    assert f"convert it once with: fdnet database migrate --from {old} --out {old}.db" in capsys.readouterr().err
+    new = tmp_path / "new.db"
+    assert main(["database", "migrate", "--from", str(old), "--out", str(new)]) == 0
+    summary = info(new, capsys)
+    assert (summary["places"], summary["fingerprint"]) == (4, create("raw").fingerprint())
+    assert main(["database", "query", "--db", str(new), "--images", str(images), "--top-k", "1"]) == 0
+    rows = list(csv.DictReader(capsys.readouterr().out.splitlines()))
+    assert [r["place"] for r in rows] == [str(p) for p in paths]
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"dim": ...}, "field 'dim' is missing"),
+    ({"names": "frame.png"}, "field 'names' must be a list of image names, got str"),
+    ({"dot_product": "yes"}, "field 'dot_product' must be true or false"),
+    ({"positions": [[0, 0], "here"]}, "field 'positions' entry 1 must be [x, y] or null"),
+    ({"index": {"kind": "kd-tree"}}, "index kind 'kd-tree' is not one of flat, hnsw, ivf"),
+    ({"method_settings": {"input_size": [16, 16]}}, "vectors were made by another model"),
+])
+def test_migrate_refuses_a_broken_old_folder(tmp_path, capsys, change, message):
+    old = write_old_folder(tmp_path / "old", np.zeros((2, 2048)), ["a.png", "b.png"], **change)
+    assert main(["database", "migrate", "--from", str(old), "--out", str(tmp_path / "new.db")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"fdnet database: error: {old / 'database.json'}: ") and message in err
+    assert not (tmp_path / "new.db").exists()
+
+
+def test_unwritable_outputs_fail_before_describing(tmp_path, built, capsys, no_describing):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a folder")
+    assert main(["database", "build", "--images", str(tmp_path / "first"), "--method", "raw",
+                 "--out", str(blocker / "map.db")]) == 2
+    assert "cannot create the place database folder" in capsys.readouterr().err
+    assert main(["database", "query", "--db", str(built), "--images", str(tmp_path / "first"),
+                 "--out", str(blocker / "q.csv")]) == 2
+    assert "cannot create the query CSV folder" in capsys.readouterr().err
