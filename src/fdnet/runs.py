@@ -1,0 +1,711 @@
+"""Crash-safe run directories: checkpoint generations, a run lock and a record of resumed changes.
+
+A run directory is self-describing (a model loads from nothing but its path) and survives kill -9,
+Ctrl-C, power loss and a full disk during a save::
+
+    RUN_DIR/
+      .lock                       held (flock) while a training writes here; pid, host, command
+      changes.yaml                settings changed on ``--resume --override``, with the step
+      checkpoints/
+        step-000001000/           one generation = one unit, written together, published together
+          model.safetensors       weights of every named module ("<module>.<param>" keys)
+          training_state.pt       optimiser states + resume state (absent in weights-only ones)
+          config.yaml             the dataclass config that built the model
+        step-000002000/           the newest complete generation is the current one
+        .tmp-2100-<id>/           a save in progress (or a crashed one, removed at the next save)
+
+A generation is written completely into a ``.tmp-*`` folder beside the others, every file and the
+folder fsynced and read back, then published by one ``rename`` (atomic on POSIX) and the parent
+folder fsynced. Until that rename the previous generation is untouched and current; older ones
+beyond ``keep`` are removed only after the new one is published. Every file of a generation
+carries the same ``save_id`` (weights metadata, training state, a comment line in config.yaml),
+so a reader can prove the three belong together. Readers take the newest generation that is
+complete (:func:`latest_checkpoint`); folders starting with "." are never read.
+
+Older runs (``model.safetensors`` etc. directly in ``RUN_DIR``) are read as before. Every load
+function accepts a run directory, a generation folder or a legacy run directory.
+
+This module must not import :mod:`fdnet.training`: inference code loads trained models with it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import datetime
+import errno
+import io
+import operator
+import os
+import re
+import shutil
+import socket
+import time
+import uuid
+from pathlib import Path
+from typing import Any, Iterator, Mapping, TypeVar
+
+import torch
+import yaml
+from safetensors import SafetensorError, safe_open
+from safetensors.torch import load_file
+from safetensors.torch import save as safetensors_bytes
+
+from fdnet.config import load_yaml, to_dict
+from fdnet.errors import ConfigError
+from fdnet.io import atomic_write_text, fsync_directory
+
+try:
+    import fcntl
+except ImportError:  # Windows: loading runs works; RunLock says it cannot lock (see there)
+    fcntl = None
+
+T = TypeVar("T")
+
+WEIGHTS_FILE = "model.safetensors"
+CONFIG_FILE = "config.yaml"
+STATE_FILE = "training_state.pt"
+CHECKPOINTS_DIR = "checkpoints"
+LOCK_FILE = ".lock"
+CHANGES_FILE = "changes.yaml"
+FORMAT_VERSION = "2"
+
+# Generation kinds, stored in the weights' metadata: a "weights" generation has no training state
+# on purpose (best/, exports), so a missing training_state.pt is not a sign of a broken save.
+KIND_TRAINING = "training"
+KIND_WEIGHTS = "weights"
+
+_TMP_PREFIX = ".tmp-"
+_TRASH_PREFIX = ".trash-"
+_SAVE_LOCK_FILE = ".save.lock"
+# step-000001000, or step-000001000.2 for the 2nd replacement of the same step (see _unique_name).
+_GENERATION_NAME = re.compile(r"^step-(\d+)(?:\.(\d+))?$")
+_CONFIG_STAMP = re.compile(r"^# fdnet-run/\S+ save_id=([0-9a-f]+) step=(\d+)")
+
+
+# ---------------------------------------------------------------------------- generations on disk
+
+@dataclasses.dataclass(frozen=True)
+class _Generation:
+    path: Path
+    step: int
+    replacement: int  # 0 for step-N, k for step-N.k: later replacements of the same step sort newer
+
+    @property
+    def order(self) -> tuple[int, int]:
+        return (self.step, self.replacement)
+
+
+def _generations(checkpoints_dir: Path) -> list[_Generation]:
+    """Published generation folders, newest first (by step, then by replacement)."""
+    found = []
+    try:
+        entries = list(checkpoints_dir.iterdir())
+    except (FileNotFoundError, NotADirectoryError):
+        return []
+    for entry in entries:
+        match = _GENERATION_NAME.match(entry.name)
+        if match and entry.is_dir():
+            found.append(_Generation(entry, int(match.group(1)), int(match.group(2) or 0)))
+    return sorted(found, key=lambda g: g.order, reverse=True)
+
+
+def list_checkpoints(run_dir: str | Path) -> list[Path]:
+    """Published generation folders of ``run_dir``, newest first (complete or not; see
+    :func:`latest_checkpoint` for the one a reader should take)."""
+    return [g.path for g in _generations(Path(run_dir) / CHECKPOINTS_DIR)]
+
+
+def _weights_metadata(path: Path) -> dict[str, str]:
+    # safe_open reads only the header, and refuses a file shorter than the header says (a torn
+    # write), so this is a cheap completeness test as well as the metadata reader.
+    with safe_open(str(path), framework="pt") as handle:
+        return dict(handle.metadata() or {})
+
+
+def _read_state(path: Path) -> dict:
+    # mmap: the tensors are not read, only the structure; weights_only: no arbitrary code.
+    payload = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    if not isinstance(payload, dict):
+        raise ValueError(f"expected a dict, found {type(payload).__name__}")
+    return payload
+
+
+def _config_stamp(path: Path) -> tuple[str, int] | None:
+    """(save_id, step) from config.yaml's first line, None for a legacy config without one."""
+    with open(path, encoding="utf-8") as handle:
+        match = _CONFIG_STAMP.match(handle.readline())
+    return (match.group(1), int(match.group(2))) if match else None
+
+
+def _incomplete_reason(folder: Path) -> str | None:
+    """Why ``folder`` is not a complete generation, or None when it is one."""
+    try:
+        metadata = _weights_metadata(folder / WEIGHTS_FILE)
+    except FileNotFoundError:
+        return f"no {WEIGHTS_FILE}"
+    except (SafetensorError, OSError) as exc:
+        return f"{WEIGHTS_FILE} unreadable ({exc})"
+    save_id = metadata.get("save_id")
+    if not save_id:
+        return f"{WEIGHTS_FILE} has no save_id"
+    try:
+        stamp = _config_stamp(folder / CONFIG_FILE)
+    except FileNotFoundError:
+        return f"no {CONFIG_FILE}"
+    except (OSError, UnicodeDecodeError) as exc:
+        return f"{CONFIG_FILE} unreadable ({exc})"
+    if stamp is None or stamp[0] != save_id:
+        return f"{CONFIG_FILE} belongs to another save than {WEIGHTS_FILE}"
+    try:
+        yaml.safe_load((folder / CONFIG_FILE).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        return f"{CONFIG_FILE} unreadable ({exc.__class__.__name__})"
+    if metadata.get("kind") == KIND_WEIGHTS:
+        return None
+    try:
+        payload = _read_state(folder / STATE_FILE)
+    except FileNotFoundError:
+        return f"no {STATE_FILE}"
+    except Exception as exc:  # torch raises several types for a torn or foreign file
+        return f"{STATE_FILE} unreadable ({exc.__class__.__name__})"
+    if payload.get("save_id") != save_id:
+        return f"{STATE_FILE} belongs to another save than {WEIGHTS_FILE}"
+    return None
+
+
+def latest_checkpoint(run_dir: str | Path) -> Path:
+    """Folder of the newest complete checkpoint of ``run_dir``.
+
+    Generations ``run_dir/checkpoints/step-*`` are tried newest first; the first whose files are
+    all readable and carry the same ``save_id`` is returned. A folder holding ``model.safetensors``
+    itself (an older run's layout, or a generation folder given directly) is returned as it is
+    when no newer-layout generation is complete. Raises ConfigError naming ``run_dir`` when there
+    is nothing complete to read.
+    """
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise ConfigError(f"{run_dir}: run directory not found")
+    checkpoints_dir = run_dir / CHECKPOINTS_DIR
+    rejected = []
+    for generation in _generations(checkpoints_dir):
+        reason = _incomplete_reason(generation.path)
+        if reason is None:
+            return generation.path
+        rejected.append(f"{generation.path.name}: {reason}")
+    if (run_dir / WEIGHTS_FILE).is_file():
+        return run_dir
+    if checkpoints_dir.is_dir():
+        detail = "; ".join(rejected[:3]) if rejected else "no step-* folder was ever published"
+        raise ConfigError(f"{run_dir}: no complete checkpoint in {CHECKPOINTS_DIR}/ ({detail})")
+    raise ConfigError(
+        f"{run_dir}: not a run directory (no {CHECKPOINTS_DIR}/ or {WEIGHTS_FILE}; "
+        "expected the --out folder of a training run)"
+    )
+
+
+def is_run(run_dir: str | Path) -> bool:
+    """True when ``run_dir`` holds at least one complete checkpoint (or an older run's files)."""
+    try:
+        latest_checkpoint(run_dir)
+    except ConfigError:
+        return False
+    return True
+
+
+def _with_latest(run_dir: str | Path, read):
+    """``read(latest_checkpoint(run_dir))``, resolved again if a concurrent save pruned the folder
+    between choosing it and reading it (a reader never blocks a training)."""
+    for attempt in range(3):
+        folder = latest_checkpoint(run_dir)
+        try:
+            return read(folder)
+        except OSError as exc:
+            if folder.is_dir() or attempt == 2:
+                raise ConfigError(f"{folder}: cannot read the checkpoint ({exc.strerror or exc})") from None
+        except ConfigError:
+            if folder.is_dir() or attempt == 2:
+                raise
+
+
+# ---------------------------------------------------------------------------- saving
+
+def _flatten_weights(modules: Mapping[str, torch.nn.Module]) -> dict[str, torch.Tensor]:
+    tensors: dict[str, torch.Tensor] = {}
+    for name, module in modules.items():
+        if "." in name:
+            raise ValueError(f"module name {name!r} must not contain '.'")
+        for key, value in module.state_dict().items():
+            # clone(): safetensors refuses tensors that share storage (tied weights, views).
+            tensors[f"{name}.{key}"] = value.detach().to("cpu").contiguous().clone()
+    return tensors
+
+
+def _config_text(config: Any, save_id: str, step: int) -> str:
+    data = to_dict(config) if dataclasses.is_dataclass(config) else to_dict(dict(config))
+    # The stamp is a YAML comment, so load_yaml (which rejects unknown keys) still reads the file.
+    return (f"# fdnet-run/{FORMAT_VERSION} save_id={save_id} step={step}\n"
+            + yaml.safe_dump(data, sort_keys=False))
+
+
+def _write_synced(path: Path, data: bytes | memoryview) -> None:
+    # Serialised in memory first and written here, so that a full disk is an OSError with its
+    # errno (torch.save and safetensors report it as opaque RuntimeError / SafetensorError text).
+    with open(path, "wb") as handle:
+        handle.write(data)
+        handle.flush()
+        os.fsync(handle.fileno())
+
+
+@contextlib.contextmanager
+def _save_lock(checkpoints_dir: Path) -> Iterator[None]:
+    """Serialise saves into one checkpoints/ folder (also across processes), so that the leftover
+    ``.tmp-*`` folders removed at the start of a save can only be those of crashed saves."""
+    if fcntl is None:
+        yield
+        return
+    fd = os.open(str(checkpoints_dir / _SAVE_LOCK_FILE), os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        except OSError as exc:
+            # A filesystem without locks (some network mounts): the run's own RunLock already
+            # keeps a second training out, so carry on without this extra guard.
+            if exc.errno not in (errno.ENOLCK, errno.EOPNOTSUPP, errno.EINVAL):
+                raise
+        yield
+    finally:
+        os.close(fd)  # closing releases the flock
+
+
+def _remove_folder(folder: Path, checkpoints_dir: Path, strict: bool = False) -> None:
+    """Remove a generation: first renamed to a dot-folder (one atomic step, so no reader ever
+    sees it half deleted), then deleted; a crash in between leaves a .trash-* that the next save
+    removes. ``strict=False``: a folder that cannot be moved stays for the next save's pruning."""
+    trash = checkpoints_dir / f"{_TRASH_PREFIX}{folder.name}-{uuid.uuid4().hex[:8]}"
+    try:
+        os.rename(folder, trash)
+    except FileNotFoundError:
+        return
+    except OSError:
+        if strict:
+            raise
+        return
+    fsync_directory(checkpoints_dir)
+    shutil.rmtree(trash, ignore_errors=True)
+
+
+def _remove_leftovers(checkpoints_dir: Path) -> None:
+    for entry in checkpoints_dir.iterdir():
+        if entry.name.startswith((_TMP_PREFIX, _TRASH_PREFIX)):
+            shutil.rmtree(entry, ignore_errors=True)
+
+
+def _unique_name(checkpoints_dir: Path, step: int, existing: list[_Generation]) -> str:
+    """``step-<step>``, or ``step-<step>.<k>`` sorting after every existing folder of that step
+    (a same-step save is published beside the old one, which is removed only afterwards)."""
+    replacement = max((g.replacement for g in existing if g.step == step), default=-1) + 1
+    while True:
+        name = f"step-{step:09d}" if replacement == 0 else f"step-{step:09d}.{replacement}"
+        if not (checkpoints_dir / name).exists():
+            return name
+        replacement += 1
+
+
+def _as_step(value: Any) -> int:
+    try:
+        step = operator.index(value)  # int, numpy integer, 0-d integer tensor
+    except TypeError:
+        step = None
+    if step is None or isinstance(value, bool) or step < 0:
+        raise ValueError(f"checkpoint step must be a non-negative integer, got {value!r}")
+    return step
+
+
+def _publish(run_dir: str | Path, modules: Mapping[str, torch.nn.Module], config: Any,
+             optimizers: Mapping[str, torch.optim.Optimizer] | None, state: Mapping[str, Any] | None,
+             step: int, kind: str, keep: int) -> Path:
+    if isinstance(keep, bool) or not isinstance(keep, int) or keep < 1:
+        raise ValueError(f"keep must be a positive integer, got {keep!r}")
+    # Everything that can fail for a programming reason happens before anything is written.
+    tensors = _flatten_weights(modules)
+    save_id = uuid.uuid4().hex
+    metadata = {
+        "format": f"fdnet-run/{FORMAT_VERSION}",
+        "kind": kind,
+        "modules": ",".join(modules),
+        "config_class": type(config).__name__,
+        "save_id": save_id,
+        "step": str(step),
+    }
+    files = {WEIGHTS_FILE: safetensors_bytes(tensors, metadata=metadata)}
+    del tensors
+    if kind == KIND_TRAINING:
+        buffer = io.BytesIO()
+        torch.save({
+            "format": FORMAT_VERSION,
+            "save_id": save_id,
+            "step": step,
+            "optimizers": {name: opt.state_dict() for name, opt in (optimizers or {}).items()},
+            "state": dict(state or {}),
+        }, buffer)
+        files[STATE_FILE] = buffer.getbuffer()
+    files[CONFIG_FILE] = _config_text(config, save_id, step).encode("utf-8")
+
+    run_dir = Path(run_dir)
+    checkpoints_dir = run_dir / CHECKPOINTS_DIR
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        if not checkpoints_dir.is_dir():
+            checkpoints_dir.mkdir()
+            fsync_directory(run_dir)
+    except OSError as exc:
+        raise ConfigError(f"{checkpoints_dir}: cannot create the checkpoint folder ({exc.strerror or exc})") from None
+
+    with _save_lock(checkpoints_dir):
+        _remove_leftovers(checkpoints_dir)
+        tmp = checkpoints_dir / f"{_TMP_PREFIX}{step}-{save_id}"
+        try:
+            tmp.mkdir()
+            for name, data in files.items():
+                _write_synced(tmp / name, data)
+            fsync_directory(tmp)
+            # Read the unit back before it may become current: a state that weights_only=True
+            # cannot load (e.g. a numpy array) would otherwise only show up at --resume.
+            reason = _incomplete_reason(tmp)
+            if reason is not None:
+                raise ValueError(
+                    f"{tmp}: the checkpoint for step {step} cannot be read back ({reason}); a training "
+                    "state may hold only tensors, numbers, strings, lists and dicts")
+
+            existing = _generations(checkpoints_dir)
+            # Generations of a later step belong to a history the caller has abandoned (it resumed
+            # from an earlier checkpoint, or best/ is being re-chosen after such a resume). They
+            # would shadow the new one as "newest", so they go before the publishing rename; a
+            # crash in between leaves the earlier generation the caller resumed from as current.
+            for generation in existing:
+                if generation.step > step:
+                    _remove_folder(generation.path, checkpoints_dir, strict=True)
+            final = checkpoints_dir / _unique_name(checkpoints_dir, step, existing)
+            os.rename(tmp, final)  # the one step that makes the new generation current
+            fsync_directory(checkpoints_dir)
+        except OSError as exc:
+            shutil.rmtree(tmp, ignore_errors=True)
+            current = next((g.path.name for g in _generations(checkpoints_dir)
+                            if _incomplete_reason(g.path) is None), None)
+            reason = "no space left on the device" if exc.errno == errno.ENOSPC else (exc.strerror or str(exc))
+            still = f"{current} is still the current checkpoint" if current else "no earlier checkpoint exists"
+            raise ConfigError(
+                f"{checkpoints_dir}: cannot save the checkpoint for step {step} ({reason}); {still}"
+            ) from exc
+        except BaseException:  # incl. Ctrl-C: never leave our partial folder behind
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+
+        # Pruning only now that the new generation is published: keep it plus the keep-1 newest
+        # complete older ones (an incomplete one is never worth keeping, and never counts).
+        # Older folders of the same step are replaced, not kept.
+        kept = 1
+        for generation in _generations(checkpoints_dir):
+            if generation.path == final:
+                continue
+            if generation.step != step and kept < keep and _incomplete_reason(generation.path) is None:
+                kept += 1
+                continue
+            _remove_folder(generation.path, checkpoints_dir)
+    return final
+
+
+def save_checkpoint(run_dir: str | Path, modules: Mapping[str, torch.nn.Module], config: Any,
+                    optimizers: Mapping[str, torch.optim.Optimizer] | None = None,
+                    state: Mapping[str, Any] | None = None, keep: int = 2) -> Path:
+    """Publish one resumable checkpoint (weights + training state + config) as one unit.
+
+    Written completely into ``run_dir/checkpoints/.tmp-<step>-<id>/``, every file fsynced and read
+    back, then made current by one rename to ``run_dir/checkpoints/step-<step:09d>/`` (parent
+    fsynced). The previous complete checkpoint stays until then; older ones beyond ``keep`` are
+    pruned only afterwards; leftovers of crashed saves are removed first. ``state`` holds plain
+    tensors, numbers, strings, lists and dicts (read back with ``torch.load(weights_only=True)``);
+    ``state["step"]`` is the generation's step (0 if absent). Saving a step again replaces the
+    old folder safely (the new one is published under a unique name, then the old one removed);
+    generations of later steps than this one (an abandoned history) are removed.
+    ``config`` is a dataclass or a plain dict. Returns the published folder.
+
+    A write error (e.g. a full disk) raises ConfigError naming the folder, with the previous
+    checkpoint left current and no partial folder that a reader would take.
+    """
+    step = _as_step((state or {}).get("step", 0))
+    return _publish(run_dir, modules, config, optimizers, state, step, KIND_TRAINING, keep)
+
+
+def save_weights(run_dir: str | Path, modules: Mapping[str, torch.nn.Module], config: Any,
+                 step: int = 0, keep: int = 1) -> Path:
+    """Publish an inference-only checkpoint (weights + config, no optimiser state) as one unit,
+    the same way as :func:`save_checkpoint`; for ``best/`` and exports. ``step`` is recorded in
+    the weights' metadata (which step the weights are from)."""
+    return _publish(run_dir, modules, config, None, None, _as_step(step), KIND_WEIGHTS, keep)
+
+
+def save_run(run_dir: str | Path, modules: Mapping[str, torch.nn.Module], config: Any,
+             optimizers: Mapping[str, torch.optim.Optimizer] | None = None,
+             state: Mapping[str, Any] | None = None) -> Path:
+    """The former ``fdnet.training.checkpoint.save_run`` call: a resumable checkpoint when
+    ``optimizers`` or ``state`` is given, a weights-only one otherwise (one generation kept)."""
+    if optimizers is None and state is None:
+        return save_weights(run_dir, modules, config)
+    return save_checkpoint(run_dir, modules, config, optimizers=optimizers, state=state)
+
+
+# ---------------------------------------------------------------------------- loading
+
+def load_config(run_dir: str | Path, cls: type[T]) -> T:
+    """Read the current checkpoint's config.yaml into dataclass ``cls`` (unknown keys are a
+    ConfigError naming the file)."""
+    return _with_latest(run_dir, lambda folder: load_yaml(cls, folder / CONFIG_FILE))
+
+
+def config_differences(saved: Any, requested: Any, keys: list[str] | None = None) -> list[str]:
+    """``"a.b: saved X, requested Y"`` for every differing setting (only dotted ``keys`` if given)."""
+    def flat(d: Any, prefix: str = "") -> dict[str, Any]:
+        d = to_dict(d) if dataclasses.is_dataclass(d) else d
+        out: dict[str, Any] = {}
+        for k, v in d.items():
+            if isinstance(v, dict):
+                out.update(flat(v, f"{prefix}{k}."))
+            else:
+                out[f"{prefix}{k}"] = v
+        return out
+
+    a, b = flat(saved), flat(requested)
+    names = keys if keys is not None else sorted(set(a) | set(b))
+    return [f"{k}: saved {a.get(k)!r}, requested {b.get(k)!r}" for k in names if a.get(k) != b.get(k)]
+
+
+def check_config(run_dir: str | Path, saved: Any, requested: Any, keys: list[str] | None = None) -> None:
+    """Raise ConfigError listing the settings where ``requested`` differs from ``saved``."""
+    diffs = config_differences(saved, requested, keys)
+    if diffs:
+        try:
+            where = latest_checkpoint(run_dir) / CONFIG_FILE
+        except ConfigError:
+            where = Path(run_dir) / CONFIG_FILE
+        raise ConfigError(
+            f"{where}: the checkpoint was trained with other settings than requested ("
+            + "; ".join(diffs) + ")"
+        )
+
+
+def _load_weights_from(folder: Path, modules: Mapping[str, torch.nn.Module],
+                       device: str | torch.device) -> dict[str, str]:
+    path = folder / WEIGHTS_FILE
+    try:
+        tensors = load_file(str(path), device=str(device))
+        metadata = _weights_metadata(path)
+    except FileNotFoundError:
+        raise
+    except (SafetensorError, OSError) as exc:
+        raise ConfigError(f"{path}: cannot read weights ({exc})") from None
+    for name, module in modules.items():
+        prefix = f"{name}."
+        own = {k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)}
+        if not own:
+            saved = metadata.get("modules", "?")
+            raise ConfigError(f"{path}: has no weights for module {name!r} (it holds: {saved})")
+        expected = module.state_dict()
+        missing = sorted(set(expected) - set(own))
+        extra = sorted(set(own) - set(expected))
+        if missing or extra:
+            raise ConfigError(
+                f"{path}: module {name!r} does not match the checkpoint "
+                f"(missing {missing[:3]}{'...' if len(missing) > 3 else ''}, "
+                f"unexpected {extra[:3]}{'...' if len(extra) > 3 else ''}); "
+                "the run was trained with other architecture settings"
+            )
+        for key, value in expected.items():
+            if tuple(value.shape) != tuple(own[key].shape):
+                raise ConfigError(
+                    f"{path}: {name}.{key} has shape {tuple(own[key].shape)} in the checkpoint but "
+                    f"{tuple(value.shape)} in the model; the run was trained with other settings "
+                    "(input size, widths or vector length)"
+                )
+    # Only after every module matched, so a mismatch leaves all modules as they were.
+    for name, module in modules.items():
+        prefix = f"{name}."
+        module.load_state_dict({k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)},
+                               strict=True)
+    metadata["checkpoint"] = str(folder)
+    return metadata
+
+
+def load_weights(run_dir: str | Path, modules: Mapping[str, torch.nn.Module],
+                 device: str | torch.device = "cpu") -> dict[str, str]:
+    """Load the current checkpoint's weights into ``modules`` (all must be present, with the same
+    tensor names and shapes). Returns the weights' metadata: ``step``, ``save_id``, ``modules``,
+    ``kind`` (absent in older runs) and ``checkpoint`` (the folder read)."""
+    return _with_latest(run_dir, lambda folder: _load_weights_from(folder, modules, device))
+
+
+def _load_training_state_from(folder: Path, optimizers: Mapping[str, torch.optim.Optimizer] | None
+                              ) -> dict[str, Any]:
+    path = folder / STATE_FILE
+    if not path.is_file():
+        try:
+            kind = _weights_metadata(folder / WEIGHTS_FILE).get("kind")
+        except (SafetensorError, OSError):
+            kind = None
+        what = "a weights-only checkpoint" if kind == KIND_WEIGHTS else f"no {STATE_FILE}"
+        raise ConfigError(f"{folder}: {what}; this run cannot be resumed (final, best or exported weights)")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except FileNotFoundError:
+        raise
+    except Exception as exc:  # torch raises several types for a corrupt or foreign file
+        raise ConfigError(f"{path}: cannot read training state ({exc.__class__.__name__}: {exc})") from None
+    try:
+        weights_id = _weights_metadata(folder / WEIGHTS_FILE).get("save_id")
+    except (SafetensorError, OSError) as exc:
+        raise ConfigError(f"{folder / WEIGHTS_FILE}: cannot read weights ({exc})") from None
+    if weights_id != payload.get("save_id"):
+        raise ConfigError(
+            f"{path}: training state and {WEIGHTS_FILE} come from different saves "
+            "(interrupted while checkpointing?); cannot resume exactly"
+        )
+    saved_optimizers = payload.get("optimizers", {})
+    for name, opt in (optimizers or {}).items():
+        if name not in saved_optimizers:
+            raise ConfigError(f"{path}: no optimiser state for {name!r} (has: {', '.join(saved_optimizers) or 'none'})")
+        try:
+            opt.load_state_dict(saved_optimizers[name])
+        except (ValueError, KeyError) as exc:
+            raise ConfigError(f"{path}: optimiser state for {name!r} does not fit this optimiser ({exc})") from None
+    return payload["state"]
+
+
+def load_training_state(run_dir: str | Path,
+                        optimizers: Mapping[str, torch.optim.Optimizer] | None = None) -> dict[str, Any]:
+    """Return the current checkpoint's resume ``state`` dict and load the saved optimiser states
+    into ``optimizers``. ConfigError when the checkpoint is weights-only, or (older runs) when its
+    training state belongs to a different save than its weights."""
+    return _with_latest(run_dir, lambda folder: _load_training_state_from(folder, optimizers))
+
+
+# ---------------------------------------------------------------------------- run lock
+
+def _now() -> str:
+    return datetime.datetime.now().astimezone().isoformat(timespec="seconds")
+
+
+class RunLock:
+    """Exclusive lock on a run directory while a training writes to it.
+
+    ``fcntl.flock(LOCK_EX | LOCK_NB)`` on ``run_dir/.lock``, which then holds the holder's pid,
+    host and command. A second holder (another process, or a second RunLock in this one) gets a
+    ConfigError naming the holder. The kernel drops the lock when its process ends, kill -9
+    included, so a stale ``.lock`` file never blocks a resume. The file is never deleted: deleting
+    a lock file lets two processes lock two different files of the same name. Processes forked
+    while the lock is held (DataLoader workers) share it until they exit too.
+    """
+
+    def __init__(self, run_dir: str | Path, command: str = "fdnet train"):
+        self.run_dir = Path(run_dir)
+        self.path = self.run_dir / LOCK_FILE
+        self.command = command
+        self._fd: int | None = None
+
+    def _holder(self) -> dict:
+        # The holder writes its details right after locking; give it a moment if we came between.
+        for _ in range(10):
+            try:
+                data = yaml.safe_load(self.path.read_text(encoding="utf-8"))
+            except (OSError, UnicodeDecodeError, yaml.YAMLError):
+                data = None
+            if isinstance(data, dict) and "pid" in data:
+                return data
+            time.sleep(0.02)
+        return {}
+
+    def acquire(self) -> "RunLock":
+        if self._fd is not None:
+            raise RuntimeError(f"{self.path}: this RunLock is already held")
+        if fcntl is None:
+            raise ConfigError(f"{self.run_dir}: cannot lock the run directory on this platform "
+                              "(needs fcntl: Linux, macOS)")
+        try:
+            self.run_dir.mkdir(parents=True, exist_ok=True)
+            fd = os.open(str(self.path), os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        except OSError as exc:
+            raise ConfigError(f"{self.path}: cannot create the run directory's lock file "
+                              f"({exc.strerror or exc})") from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            holder = self._holder()
+            if not holder:
+                raise ConfigError(f"{self.run_dir} is in use by another process (see {self.path}); "
+                                  "wait for it to finish or stop it") from None
+            where = "" if holder.get("host") in (None, socket.gethostname()) else f" on {holder['host']}"
+            raise ConfigError(
+                f"{self.run_dir} is in use by process {holder.get('pid')}{where} "
+                f"({holder.get('command', '?')}, started {holder.get('started', '?')}); "
+                "wait for it to finish or stop it"
+            ) from None
+        except OSError as exc:
+            os.close(fd)
+            raise ConfigError(f"{self.path}: cannot lock the run directory ({exc.strerror or exc}); "
+                              "its filesystem may not support file locks") from None
+        info = yaml.safe_dump({"pid": os.getpid(), "host": socket.gethostname(),
+                               "command": self.command, "started": _now()}, sort_keys=False)
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, info.encode("utf-8"), 0)
+        self._fd = fd
+        return self
+
+    def release(self) -> None:
+        if self._fd is None:
+            return
+        fd, self._fd = self._fd, None
+        try:
+            os.ftruncate(fd, 0)  # no stale holder details once the run is free
+        finally:
+            os.close(fd)  # releases the flock
+
+    @property
+    def held(self) -> bool:
+        return self._fd is not None
+
+    def __enter__(self) -> "RunLock":
+        return self.acquire()
+
+    def __exit__(self, *exc_info) -> None:
+        self.release()
+
+
+# ---------------------------------------------------------------------------- changes on resume
+
+def read_changes(run_dir: str | Path) -> list[dict]:
+    """Entries of ``run_dir/changes.yaml`` (``step``, ``time``, ``command``, ``changes``), oldest
+    first; [] when the run was never resumed with other settings."""
+    path = Path(run_dir) / CHANGES_FILE
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        return []
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        raise ConfigError(f"{path}: cannot read the record of changed settings ({exc})") from None
+    if data is None:
+        return []
+    if not isinstance(data, list) or not all(isinstance(e, dict) for e in data):
+        raise ConfigError(f"{path}: expected a list of entries (step, time, command, changes)")
+    return data
+
+
+def record_changes(run_dir: str | Path, step: int, differences: list[str], command: str = "") -> None:
+    """Append to ``run_dir/changes.yaml`` (rewritten atomically) that the settings in
+    ``differences`` (as from :func:`config_differences`) changed at ``step``, when a run is
+    resumed with ``--override``; the run's history stays true. Nothing is written for no change."""
+    if not differences:
+        return
+    entries = read_changes(run_dir)
+    entries.append({"step": int(step), "time": _now(), "command": command, "changes": list(differences)})
+    atomic_write_text(Path(run_dir) / CHANGES_FILE, yaml.safe_dump(entries, sort_keys=False))
