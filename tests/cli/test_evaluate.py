@@ -257,7 +257,8 @@ def test_split_without_dataset_format_is_an_error(tmp_path, capsys):
     assert "--dataset-format" in capsys.readouterr().err
 
 
-def test_filter_frames_drops_dark_frames_from_both_conditions(tmp_path, capsys):
+def test_filter_frames_drops_dark_frames_from_both_conditions(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("FDNET_CACHE", str(tmp_path / "cache"))  # the filter caches what it kept
     rng = np.random.default_rng(0)
     for cond in ("a", "b"):
         (tmp_path / cond).mkdir()
@@ -270,3 +271,135 @@ def test_filter_frames_drops_dark_frames_from_both_conditions(tmp_path, capsys):
                  "--filter-frames", "--json", str(out)]) == 0
     assert json.loads(out.read_text())["num_queries"] == 10
     assert "dropped 2 dark" in capsys.readouterr().err
+    assert len(list((tmp_path / "cache" / "filters").iterdir())) == 1
+
+
+# ----------------------------------------------------------------------------- image order and ground truth
+
+def _write_grey(path, pixels):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(pixels).save(path)
+
+
+def _text_order(names):
+    return sorted(names)
+
+
+@pytest.mark.parametrize("reference_rows, query_rows", [("natural", "natural"), ("text", "natural")])
+def test_unpadded_names_ground_truth_from_positions_end_to_end(tmp_path, reference_rows, query_rows):
+    """frame_1 ... frame_12 (natural order differs from text order). The query traverse drives the
+    route backwards, so query frame_k is at the place of reference frame_(13-k); three queries
+    show a look-alike of another place. `fdnet groundtruth --positions` then `fdnet evaluate
+    --ground-truth` must pair every query with its own place: R@1 = 9/12, whatever order the
+    position files list their rows in."""
+    n = 12
+    rng = np.random.default_rng(3)
+    places = [rng.integers(0, 256, (32, 64), dtype=np.uint8) for _ in range(n)]  # distinct views
+    names = [f"frame_{k}.png" for k in range(1, n + 1)]
+    true_place = {k: n - k for k in range(1, n + 1)}          # 0-based place of query frame_k
+    shown_place = dict(true_place)
+    for k in (2, 5, 11):                                      # look-alikes: top-1 will be wrong
+        shown_place[k] = (true_place[k] + 6) % n
+    route = tmp_path / "route"
+    for k in range(1, n + 1):
+        _write_grey(route / "ref" / f"frame_{k}.png", places[k - 1])
+        _write_grey(route / "qry" / f"frame_{k}.png", (places[shown_place[k]] * 0.8).astype(np.uint8))
+
+    def position_file(path, row_order, easting_of):
+        listed = names if row_order == "natural" else _text_order(names)
+        path.write_text("image,easting,northing\n" + "".join(
+            f"{name},{500000 + easting_of(int(name[6:-4]))},6000000\n" for name in listed))
+        return str(path)
+
+    ref_csv = position_file(tmp_path / "ref.csv", reference_rows, lambda k: 10 * (k - 1))
+    qry_csv = position_file(tmp_path / "qry.csv", query_rows, lambda k: 10 * true_place[k])
+    gt = tmp_path / "gt.csv"
+    assert main(["groundtruth", "--positions", ref_csv, qry_csv, "--tolerance-m", "4", "--out", str(gt)]) == 0
+    out = tmp_path / "r.json"
+    assert main(["evaluate", "--data", str(route), "--reference", "ref", "--query", "qry", "--method", "raw",
+                 "--ground-truth", str(gt), "--json", str(out)]) == 0
+    expected = np.mean([shown_place[k] == true_place[k] for k in range(1, n + 1)])
+    assert expected == 0.75
+    assert json.loads(out.read_text())["recall_at_n"]["1"] == pytest.approx(expected)
+
+
+def test_dataset_format_with_missing_ground_truth_file_is_an_error(route, capsys):
+    missing = route.parent / "missing.csv"
+    err = _error(capsys, ["evaluate", "--data", str(route), "--dataset-format", "folders", "--reference", "day",
+                          "--query", "dusk", "--method", "raw", "--ground-truth", str(missing)])
+    assert f"{missing}: ground-truth file not found" in err
+
+
+def test_dataset_format_uses_the_given_ground_truth(tiny_method, route, tmp_path):
+    def r_at_1(*extra):
+        out = tmp_path / "r.json"
+        assert main(["evaluate", "--data", str(route), "--dataset-format", "folders", "--reference", "day",
+                     "--query", "dusk", "--method", tiny_method, "--json", str(out), *extra]) == 0
+        return json.loads(out.read_text())
+
+    assert r_at_1()["recall_at_n"]["1"] == 1.0                   # frame-aligned: every top-1 is right
+    shifted = tmp_path / "shifted.csv"                            # query i is place i+1: none is
+    shifted.write_text("query_index,reference_indices\n" + "".join(f"{i},{(i + 1) % 10}\n" for i in range(10)))
+    result = r_at_1("--ground-truth", str(shifted))
+    assert result["recall_at_n"]["1"] == 0.0 and "shifted.csv" in result["ground_truth"]
+    # over the chosen split: 4 queries x 4 references, the list's indices are the split's
+    part = tmp_path / "part.csv"
+    part.write_text("query_index,reference_indices\n0,0\n1,1\n2,3\n3,2\n")
+    result = r_at_1("--split", "3:7", "--ground-truth", str(part))
+    assert (result["num_queries"], result["num_references"]) == (4, 4)
+    assert result["recall_at_n"]["1"] == 0.5
+
+
+def test_dataset_format_ground_truth_sized_for_another_split_is_an_error(route, tmp_path, capsys):
+    full = tmp_path / "full.csv"
+    full.write_text("query_index,reference_indices\n" + "".join(f"{i},{i}\n" for i in range(10)))
+    err = _error(capsys, ["evaluate", "--data", str(route), "--dataset-format", "folders", "--reference", "day",
+                          "--query", "dusk", "--split", "0:5", "--method", "raw", "--ground-truth", str(full)])
+    assert f"{full}, line 7: query index 5 out of range (0..4)" in err
+
+
+def test_ground_truth_names_that_do_not_match_the_folders_are_an_error(route, tmp_path, capsys):
+    from fdnet.data.groundtruth import GroundTruth
+
+    names = [f"{i:03d}.png" for i in range(10)]
+    gt = tmp_path / "gt.csv"
+    # what `fdnet groundtruth` writes for a query folder listed in the opposite order
+    gt.write_text("query_index,reference_indices,query_name,reference_names\n" + "".join(
+        f"{i},{i},{names[::-1][i]},{names[i]}\n" for i in range(10)))
+    err = _error(capsys, ["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk",
+                          "--method", "raw", "--ground-truth", str(gt)])
+    assert f"{gt}, line 2: query 0 is '009.png' in the ground truth but '000.png' in {route / 'dusk'}" in err
+    err = _error(capsys, ["evaluate", "--data", str(route), "--dataset-format", "folders", "--reference", "day",
+                          "--query", "dusk", "--method", "raw", "--ground-truth", str(gt)])
+    assert f"{gt}, line 2: query 0 is '009.png'" in err
+    # the same names in the right order are accepted
+    GroundTruth.aligned(10, 10, 0).to_csv(gt, query_names=names, reference_names=names)
+    assert main(["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk", "--method", "raw",
+                 "--ground-truth", str(gt)]) == 0
+
+
+def test_similarity_with_a_forged_header_is_refused(matrix_files, tmp_path, capsys):
+    _, csv = matrix_files
+    forged = tmp_path / "forged.npy"
+    with open(forged, "wb") as handle:
+        np.lib.format.write_array_header_1_0(handle, {"descr": "<f4", "fortran_order": False,
+                                                      "shape": (10**6, 10**6)})
+        handle.write(b"\0" * 16)
+    err = _error(capsys, ["evaluate", "--similarity", str(forged), "--ground-truth", str(csv)])
+    assert str(forged) in err and "(1000000, 1000000)" in err and "3.6 TiB" in err
+
+
+@pytest.mark.parametrize("option", ["--json", "--plots"])
+def test_unwritable_outputs_fail_before_any_work(route, tmp_path, capsys, monkeypatch, option):
+    import fdnet.evaluation.experiment as experiment
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("the evaluation ran before the output path was checked")
+
+    monkeypatch.setattr(experiment, "evaluate_method", no_work)
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    target = blocker / "results"     # its parent is a regular file: nothing can be created there
+    err = _error(capsys, ["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk",
+                          "--method", "raw", option, str(target)])
+    assert str(target.parent) in err and "cannot create" in err

@@ -31,7 +31,7 @@ def test_positions_in_metres_no_warning(tmp_path, capsys):
     qry = write(tmp_path / "qry.csv", "name,easting,northing\nc,500004,6000000\n")
     out = tmp_path / "gt.csv"
     assert main(["groundtruth", "--positions", ref, qry, "--tolerance-m", "5", "--out", str(out)]) == 0
-    assert out.read_text() == "query_index,reference_indices\n0,0\n"
+    assert out.read_text() == "query_index,reference_indices,query_name,reference_names\n0,0,c,a\n"
     assert "warning" not in capsys.readouterr().err
 
 
@@ -46,7 +46,7 @@ def test_aligned_counts_and_folders(tmp_path):
             Image.fromarray(np.zeros((4, 4, 3), np.uint8)).save(tmp_path / name / f"{i}.png")
     assert main(["groundtruth", "--aligned", "--reference", str(tmp_path / "day"), "--query",
                  str(tmp_path / "night"), "--out", str(out)]) == 0
-    assert out.read_text().splitlines()[1:] == ["0,0", "1,1", "2,2"]
+    assert out.read_text().splitlines()[1:] == ["0,0,0.png,0.png", "1,1,1.png,1.png", "2,2,2.png,2.png"]
 
 
 def test_dataset_folder_with_setting(tmp_path, capsys):
@@ -57,7 +57,8 @@ def test_dataset_folder_with_setting(tmp_path, capsys):
     out = tmp_path / "gt.csv"
     assert main(["groundtruth", "--dataset", str(tmp_path / "route"), "--set", "tolerance=2",
                  "--split", "1:4", "--out", str(out)]) == 0
-    assert out.read_text().splitlines()[1:] == ["0,0 1 2", "1,0 1 2", "2,0 1 2"]
+    assert out.read_text().splitlines()[1:] == ["0,0 1 2,1.png,1.png/2.png/3.png", "1,0 1 2,2.png,1.png/2.png/3.png",
+                                                "2,0 1 2,3.png,1.png/2.png/3.png"]
 
 
 @pytest.mark.parametrize("text, message", [
@@ -80,3 +81,42 @@ def test_inconsistent_flags(tmp_path, capsys):
     assert main(["groundtruth", "--aligned", "--num-queries", "3", "--num-references", "3",
                  "--tolerance-m", "4", "--out", str(tmp_path / "g.csv")]) == 2
     assert "--tolerance-m is for --positions" in capsys.readouterr().err
+
+
+def test_positions_rows_in_any_order_give_indices_in_natural_file_order(tmp_path):
+    """Rows are put in natural order of their image names (frame_2 before frame_10), the order
+    every command lists the folder in, and the names are written beside the indices."""
+    ref = write(tmp_path / "ref.csv", "image,easting,northing\n" + "".join(
+        f"frame_{k}.png,{10 * k},0\n" for k in (10, 1, 2, 11, 3)))          # any row order
+    qry = write(tmp_path / "qry.csv", "image,easting,northing\nframe_2.png,100,0\nframe_1.png,20,0\n")
+    out = tmp_path / "gt.csv"
+    assert main(["groundtruth", "--positions", ref, qry, "--tolerance-m", "1", "--out", str(out)]) == 0
+    assert out.read_text().splitlines() == [
+        "query_index,reference_indices,query_name,reference_names",
+        "0,1,frame_1.png,frame_2.png",      # references in natural order: 1, 2, 3, 10, 11
+        "1,3,frame_2.png,frame_10.png"]
+
+
+def test_positions_matched_to_image_folders(tmp_path):
+    for name in ("ref", "qry"):
+        for k in (1, 2, 10):
+            (tmp_path / name).mkdir(exist_ok=True)
+            Image.fromarray(np.zeros((4, 4, 3), np.uint8)).save(tmp_path / name / f"f{k}.png")
+    # no image column: one row per image, in the folder's (natural) order
+    ref = write(tmp_path / "ref.csv", "easting,northing\n0,0\n10,0\n20,0\n")
+    qry = write(tmp_path / "qry.csv", "easting,northing\n20,0\n0,0\n10,0\n")
+    out = tmp_path / "gt.csv"
+    assert main(["groundtruth", "--positions", ref, qry, "--reference", str(tmp_path / "ref"), "--query",
+                 str(tmp_path / "qry"), "--tolerance-m", "1", "--out", str(out)]) == 0
+    assert out.read_text().splitlines()[1:] == ["0,2,f1.png,f10.png", "1,0,f2.png,f1.png", "2,1,f10.png,f2.png"]
+
+
+def test_unwritable_out_fails_before_any_work(tmp_path, capsys):
+    ref = write(tmp_path / "ref.csv", "image,easting,northing\na.png,0,0\n")
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    out = blocker / "gt.csv"
+    # the query position file is missing too: the output is refused first
+    assert main(["groundtruth", "--positions", ref, str(tmp_path / "absent.csv"), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert str(out) in err and "cannot create the ground-truth CSV" in err and "Traceback" not in err

@@ -97,3 +97,40 @@ def test_file_options_go_to_the_methods_that_take_them(tmp_path, capsys):
     assert main(["match", "--reference", str(ref), "--query", str(ref), "--method", "sad",
                  "--checkpoint", "runs/x", "--out", str(tmp_path / "x.csv")]) == 2
     assert "none of the methods sad takes a checkpoint" in capsys.readouterr().err
+
+
+def test_match_lists_unpadded_names_in_natural_order_with_indices_and_names(tmp_path):
+    """Rows carry query and reference indices (positions in natural order: frame_2 before
+    frame_10) beside the file names."""
+    rng = np.random.default_rng(4)
+    names = [f"frame_{k}.png" for k in range(1, 13)]
+    for folder in ("ref", "qry"):
+        (tmp_path / folder).mkdir()
+    for name in names:
+        img = rng.integers(0, 256, size=(24, 32, 3)).astype(np.uint8)
+        Image.fromarray(img).save(tmp_path / "ref" / name)
+        Image.fromarray((img * 0.7).astype(np.uint8)).save(tmp_path / "qry" / name)
+    out = tmp_path / "matches.csv"
+    assert main(["match", "--reference", str(tmp_path / "ref"), "--query", str(tmp_path / "qry"),
+                 "--method", "raw", "--top-k", "2", "--out", str(out)]) == 0
+    rows = read_rows(out)
+    assert list(rows[0]) == ["query_index", "query", "rank", "reference_index", "reference", "score"]
+    best = [r for r in rows if r["rank"] == "1"]
+    assert [(r["query_index"], r["query"]) for r in best] == [(str(i), n) for i, n in enumerate(names)]
+    assert all(r["reference_index"] == r["query_index"] and r["reference"] == r["query"] for r in best)
+
+
+def test_match_unwritable_out_fails_before_describing_images(tmp_path, capsys, monkeypatch):
+    import fdnet.cli.common as common
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("a descriptor was made before the output path was checked")
+
+    monkeypatch.setattr(common, "create_descriptor", no_work)
+    ref = make_route(tmp_path / "ref", n=3)
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    out = blocker / "matches.csv"   # its parent is a regular file
+    assert main(["match", "--reference", str(ref), "--query", str(ref), "--method", "raw", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("fdnet match: error: ") and str(out) in err and "cannot create the matches CSV" in err

@@ -4,9 +4,16 @@ Two input modes:
 
 * methods on images: ``--data DIR --reference COND --query COND --method NAME[,NAME...]``; DIR
   has one sub-folder per condition, ground truth is frame alignment within ``--tolerance`` frames,
-  or the explicit list of ``--ground-truth CSV`` (``query_index,reference_indices``);
+  or the explicit list of ``--ground-truth CSV`` (``query_index,reference_indices``, indices over
+  all images of the two folders in natural order, :func:`fdnet.data.images.list_images`);
+  with ``--dataset-format NAME`` the adapter's split and protocol, and ``--ground-truth`` then
+  replaces the adapter's ground truth for the chosen split (indices over the split's images);
 * a precomputed matrix: ``--similarity FILE.npy --ground-truth FILE.csv`` (or the frame-aligned
   ground truth of ``--data/--reference/--query``, which also lets ``--plots`` show images).
+
+A ground-truth CSV that names its images (``fdnet groundtruth`` writes ``query_name`` and
+``reference_names``) is checked against the images evaluated: a different order or other files
+stop the command with the first mismatching row. Output paths are checked before any work.
 
 Prints a table (protocol named in its header); ``--json`` writes the numbers (one object per
 method, ``{"results": [...]}`` for several); ``--plots DIR`` writes the PR curves, similarity
@@ -36,7 +43,9 @@ def register(sub) -> None:
                            "with --dataset-format, the format's paper tolerance)")
     data.add_argument("--filter-frames", action="store_true",
                       help="frame-aligned folders: drop dark (tunnel) and near-duplicate (stationary) frames from "
-                           "both conditions after --frames, as the paper does (fdnet.data.filters defaults)")
+                           "both conditions after --frames, as the paper does (fdnet.data.filters defaults, "
+                           "kept frames cached under $FDNET_CACHE/filters); with --dataset-format nordland: "
+                           "its filter_frames setting")
     data.add_argument("--dataset-format", metavar="NAME",
                       help="read --data in a published layout (nordland, alderley, oxford_robotcar, st_lucia, "
                            "fas, vprbench, vpr_tutorial, vg_benchmark, folders, or auto to detect) with the "
@@ -47,7 +56,9 @@ def register(sub) -> None:
     data.add_argument("--frames", metavar="START:END", help="evaluate only these frames (END exclusive)")
     data.add_argument("--ground-truth", metavar="CSV",
                       help="explicit ground truth 'query_index,reference_indices' (space-separated "
-                           "list) instead of frame alignment")
+                           "list; indices in natural file-name order) instead of frame alignment; with "
+                           "--dataset-format it replaces the format's ground truth for the chosen split. "
+                           "Names in the CSV (fdnet groundtruth writes them) must match the images")
     methods = p.add_argument_group("methods")
     add_method_arguments(methods, multiple=True, required=False)
     methods.add_argument("--batch-size", type=int, default=64, help="images described per batch (default 64)")
@@ -75,27 +86,65 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def build_split(args):
-    """The :class:`EvaluationSplit` the arguments describe (``--data/--reference/--query`` with
-    frame alignment or ``--ground-truth``, sliced by ``--frames``). The one place a split is
-    made, so other dataset formats can be hooked in here."""
-    from fdnet.data.dataset import RouteDataset, parse_frame_range
-    from fdnet.data.groundtruth import GroundTruth
-    from fdnet.data.split import EvaluationSplit, aligned_split
+def _ground_truth_path(args):
+    """``--ground-truth`` as a path (relative to where the command runs), or None. A file that is
+    not there is an error naming it, whatever else was given."""
+    from pathlib import Path
+
+    from fdnet.errors import DataError
+
+    if args.ground_truth is None:
+        return None
+    path = Path(args.ground_truth)
+    if not path.is_file():
+        raise DataError(f"{path}: ground-truth file not found" if not path.exists()
+                        else f"{path}: is not a file; expected a ground-truth CSV")
+    return path.resolve()
+
+
+def _format_split(args, ground_truth):
+    """``--dataset-format``: the adapter's split; ``--ground-truth`` replaces its ground truth for
+    the chosen split (indices over the split's images, as ``fdnet groundtruth --dataset`` writes)."""
+    import dataclasses
+
+    from fdnet.config import parse_overrides
+    from fdnet.data.formats import detect_format, get_format, open_split
     from fdnet.errors import ConfigError
 
-    if args.dataset_format:
-        from fdnet.config import parse_overrides
-        from fdnet.data.formats import open_split
+    if args.frames and args.split:
+        raise ConfigError("give --split or --frames, not both")
+    name = detect_format(args.data) if args.dataset_format == "auto" else args.dataset_format
+    fields = {f.name for f in dataclasses.fields(get_format(name).Options)}
+    options = parse_overrides(args.format_set)
+    if args.tolerance is not None:
+        options["tolerance"] = args.tolerance
+    if args.filter_frames:
+        if "filter_frames" not in fields:
+            raise ConfigError(f"--filter-frames: the {name} format has no frame filter (formats with one: "
+                              f"nordland); without --dataset-format it applies to plain condition folders")
+        options["filter_frames"] = "true"
+    if ground_truth is not None and options.get("ground_truth"):
+        raise ConfigError(f"two explicit ground truths: --ground-truth {args.ground_truth} and "
+                          f"--format-set ground_truth={options['ground_truth']}; give one")
+    return open_split(args.data, args.reference, args.query, dataset_format=name,
+                      split=args.split or args.frames, listed_ground_truth=ground_truth, **options)
 
-        options = parse_overrides(args.format_set)
-        if args.tolerance is not None:
-            options["tolerance"] = args.tolerance
-        if args.frames and args.split:
-            raise ConfigError("give --split or --frames, not both")
-        return open_split(args.data, args.reference, args.query,
-                          dataset_format=None if args.dataset_format == "auto" else args.dataset_format,
-                          split=args.split or args.frames, **options)
+
+def build_split(args):
+    """The :class:`EvaluationSplit` the arguments describe. Without ``--dataset-format``:
+    ``--data/--reference/--query`` frame-aligned (:func:`fdnet.data.split.aligned_split`, after
+    the frame filter with ``--filter-frames``) or with ``--ground-truth`` over all images of the
+    two folders (:func:`fdnet.data.split.listed_split`), sliced by ``--frames``. With it: the
+    dataset adapter's split, its ground truth replaced by ``--ground-truth`` when given."""
+    import sys
+
+    from fdnet.data.dataset import RouteDataset, parse_frame_range
+    from fdnet.data.split import aligned_split, listed_split
+    from fdnet.errors import ConfigError
+
+    ground_truth = _ground_truth_path(args)
+    if args.dataset_format:
+        return _format_split(args, ground_truth)
     if args.split or args.format_set:
         raise ConfigError("--split and --format-set need --dataset-format")
     if not (args.reference and args.query):
@@ -103,59 +152,36 @@ def build_split(args):
     start, end = parse_frame_range(args.frames)
     dataset = RouteDataset.from_folder(args.data, [args.reference, args.query]
                                        if args.reference != args.query else [args.reference])
-    if args.ground_truth is None:
+    if ground_truth is not None:
         if args.filter_frames:
-            import sys
-
-            from fdnet.data.filters import filter_route
-
-            dataset, report = filter_route(dataset.frames(start, end))
-            print(f"frame filter: {report.summary()}", file=sys.stderr)
-            start = end = None
-        return aligned_split(dataset, args.reference, args.query, args.tolerance or 0, start, end)
+            raise ConfigError("--filter-frames applies to frame-aligned folders; with --ground-truth CSV, filter "
+                              "the images before writing the ground truth")
+        return listed_split(dataset, args.reference, args.query, ground_truth, start, end)
     if args.filter_frames:
-        raise ConfigError("--filter-frames applies to frame-aligned folders; with --ground-truth CSV, filter "
-                          "the images before writing the ground truth")
-    ref_full, query_full = dataset[args.reference], dataset[args.query]
-    gt = GroundTruth.from_csv(args.ground_truth, num_references=len(ref_full), num_queries=len(query_full))
-    ref, query = ref_full.frames(start, end), query_full.frames(start, end)
-    if len(ref) == 0 or len(query) == 0:
-        raise ConfigError(f"--frames {args.frames} selects no images of {dataset.root}")
-    gt = gt.subset(query.frame_ids, ref.frame_ids)
-    return EvaluationSplit(ref, query, gt, f"{dataset.root.name}: {args.query} -> {args.reference}, "
-                                           f"{gt.description}")
+        from fdnet.data.filters import filter_frames
+
+        dataset, summary = filter_frames(dataset.frames(start, end))
+        print(f"frame filter: {summary}", file=sys.stderr)
+        start = end = None
+    return aligned_split(dataset, args.reference, args.query, args.tolerance or 0, start, end)
 
 
 def load_similarity(path: str, distance: bool = False):
-    """A plain numeric 2-D .npy matrix, finite everywhere; never unpickles. Distances are negated."""
+    """A plain numeric 2-D .npy matrix, finite everywhere; never unpickles, and refuses a header
+    claiming more data than the file holds before allocating anything. Distances are negated."""
     from pathlib import Path
 
     import numpy as np
 
+    from fdnet.data.arrays import load_npy
     from fdnet.errors import DataError
 
     path = Path(path)
     if not path.is_file():
         raise DataError(f"{path}: similarity file not found")
-    with open(path, "rb") as f:
-        magic = f.read(6)
-    if magic[:2] == b"PK":
-        raise DataError(f"{path}: is an .npz archive; expected one .npy array (queries x references)")
-    if magic != b"\x93NUMPY":
-        raise DataError(f"{path}: not a .npy file (no NumPy header); save the matrix with numpy.save")
-    try:
-        matrix = np.load(path, allow_pickle=False)
-    except ValueError as exc:
-        if "pickle" in str(exc):
-            raise DataError(f"{path}: holds Python objects (dtype object), which are never unpickled; save "
-                            f"a plain numeric array") from None
-        raise DataError(f"{path}: not a readable .npy file ({exc})") from None
-    except (OSError, EOFError) as exc:
-        raise DataError(f"{path}: not a readable .npy file ({exc.__class__.__name__}: {exc})") from None
+    matrix = load_npy(path, ndim=2, what="similarity matrix (queries x references)")
     if not (np.issubdtype(matrix.dtype, np.floating) or np.issubdtype(matrix.dtype, np.integer)):
         raise DataError(f"{path}: expected a numeric (float or integer) matrix, got dtype {matrix.dtype}")
-    if matrix.ndim != 2:
-        raise DataError(f"{path}: expected a 2-D (queries x references) matrix, got shape {matrix.shape}")
     if matrix.size == 0:
         raise DataError(f"{path}: the matrix is empty (shape {matrix.shape})")
     bad = ~np.isfinite(matrix) if np.issubdtype(matrix.dtype, np.floating) else None
@@ -197,6 +223,7 @@ def run(args) -> int:
     from pathlib import Path
 
     from fdnet.errors import ConfigError, DataError
+    from fdnet.io import ensure_writable
 
     if args.similarity and args.method:
         raise ConfigError("give either --similarity FILE.npy or --method NAME, not both")
@@ -209,6 +236,12 @@ def run(args) -> int:
         raise ConfigError(f"--thresholds must be at least 2, got {args.thresholds}")
     if args.tolerance is not None and args.tolerance < 0:
         raise ConfigError(f"--tolerance must be >= 0, got {args.tolerance}")
+    # Outputs are checked before minutes of describing images, not after.
+    if args.json:
+        ensure_writable(args.json, what="JSON results")
+    if args.plots:
+        ensure_writable(args.plots, what="plots", directory=True)
+    _ground_truth_path(args)
     protocols = (args.protocol,)
     keep_matrix = bool(args.plots)
 
@@ -225,6 +258,7 @@ def run(args) -> int:
         if split is not None:
             gt = split.ground_truth
         elif args.ground_truth:
+            # no images here, so a CSV's names (if any) cannot be checked; its indices are the matrix's
             gt = GroundTruth.from_csv(args.ground_truth, num_references=matrix.shape[1],
                                       num_queries=matrix.shape[0])
         else:

@@ -1,17 +1,23 @@
-"""`fdnet groundtruth`: write the explicit ground-truth CSV (``query_index,reference_indices``) that
-every command accepts, for a user's own route or for a dataset folder.
+"""`fdnet groundtruth`: write the explicit ground-truth CSV that every command accepts, for a user's
+own route or for a dataset folder: ``query_index,reference_indices`` plus, when the images are
+known, ``query_name,reference_names`` (so ``fdnet evaluate`` can check the indices still mean
+those images). Indices are positions in natural file-name order (``frame_2`` before
+``frame_10``), the order every fdnet command lists images in.
 
 Three sources:
 
-* ``--positions REFERENCE.csv QUERY.csv --tolerance-m 25``: one row per image in traversal order,
-  a header naming an image column and ``lat,lon`` (degrees) or ``easting,northing`` (metres);
-  output rows are the query file's rows;
+* ``--positions REFERENCE.csv QUERY.csv --tolerance-m 25``: a header naming ``lat,lon`` (degrees)
+  or ``easting,northing`` (metres) and optionally an image column. With ``--reference DIR
+  --query DIR`` rows are matched to the folders' images (by the image column, or one row per
+  image in order); without folders, rows with an image column are put in natural order of the
+  image names, and rows without one are taken to be the images in that order;
 * ``--aligned --tolerance-frames N`` with ``--num-queries/--num-references`` or two image folders
   ``--reference DIR --query DIR``: frame i of the query is frame i of the reference;
-* ``--dataset ROOT [--dataset-format NAME] [--split test]``: a dataset adapter's ground truth.
+* ``--dataset ROOT [--dataset-format NAME] [--split test]``: a dataset adapter's ground truth,
+  indices over the split's images.
 
 Prints a summary (queries with at least one true match, mean matches per query) and warns when
-more than ``--warn-unmatched`` of the queries have none.
+more than ``--warn-unmatched`` of the queries have none. ``--out`` is checked before any work.
 """
 
 from __future__ import annotations
@@ -41,8 +47,9 @@ def register(sub) -> None:
     p.add_argument("--num-queries", type=int, default=None, help="--aligned: number of query images")
     p.add_argument("--num-references", type=int, default=None, help="--aligned: number of reference images")
     p.add_argument("--reference", default=None,
-                   help="--aligned: reference image folder; --dataset: reference condition")
-    p.add_argument("--query", default=None, help="--aligned: query image folder; --dataset: query condition")
+                   help="--aligned, --positions: reference image folder; --dataset: reference condition")
+    p.add_argument("--query", default=None,
+                   help="--aligned, --positions: query image folder; --dataset: query condition")
     p.add_argument("--dataset-format", default=None,
                    help="--dataset: layout name (default: detected): nordland, alderley, oxford_robotcar, "
                         "st_lucia, fas, vprbench, vpr_tutorial, vg_benchmark, folders")
@@ -55,36 +62,82 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
+def _positions_in_image_order(table, folder):
+    """(table with one row per image in natural file-name order, the images' file names or None).
+
+    With a folder, rows are matched to its images (by the image column, or one row per image in
+    order). Without one, rows that name their image are sorted into the order the folder will be
+    listed in; rows that do not are taken to be in that order already (no names to write)."""
+    from pathlib import Path
+
+    import numpy as np
+
+    from fdnet.data.formats.positions import PositionTable, align_to_images
+    from fdnet.data.images import list_images, natural_key
+    from fdnet.errors import DataError
+
+    if folder is not None:
+        paths = list_images(folder)
+        rows = align_to_images(table, paths, Path(folder))
+        names = [p.name for p in paths]
+    elif table.images is not None:
+        names = [Path(name).name for name in table.images]
+        seen: dict[str, int] = {}
+        for k, name in enumerate(names):
+            if name in seen:
+                raise DataError(f"{table.path}, line {table.lines[k]}: image {name} is listed twice "
+                                f"(first on line {table.lines[seen[name]]})")
+            seen[name] = k
+        rows = np.asarray(sorted(range(len(names)), key=lambda k: natural_key(names[k])), dtype=np.int64)
+        names = [names[k] for k in rows]
+    else:
+        return table, None
+    ordered = PositionTable(table.path, table.kind, table.values[rows],
+                            None if table.images is None else [table.images[k] for k in rows])
+    return ordered, names
+
+
 def _from_positions(args):
     from fdnet.data.formats.positions import positions_ground_truth, read_positions
+    from fdnet.errors import ConfigError
 
+    if bool(args.reference) != bool(args.query):
+        raise ConfigError("--positions with image folders needs both --reference DIR and --query DIR")
     ref_csv, query_csv = args.positions
-    reference = read_positions(ref_csv, image_column=args.image_column)
-    query = read_positions(query_csv, image_column=args.image_column)
+    reference, ref_names = _positions_in_image_order(read_positions(ref_csv, image_column=args.image_column),
+                                                     args.reference)
+    query, query_names = _positions_in_image_order(read_positions(query_csv, image_column=args.image_column),
+                                                   args.query)
+    if (ref_names is None) != (query_names is None):
+        without = ref_csv if ref_names is None else query_csv
+        raise ConfigError(f"{without}: has no image column but the other position file has one; give both "
+                          f"an image column, or give the image folders with --reference DIR --query DIR")
     tolerance = 25.0 if args.tolerance_m is None else args.tolerance_m
-    return positions_ground_truth(reference, query, tolerance)
+    return positions_ground_truth(reference, query, tolerance), query_names, ref_names
 
 
 def _from_alignment(args):
-    from fdnet.data.formats._common import image_files
     from fdnet.data.groundtruth import GroundTruth
+    from fdnet.data.images import list_images
     from fdnet.errors import ConfigError
 
     tolerance = 0 if args.tolerance_frames is None else args.tolerance_frames
+    query_names = reference_names = None
     if args.reference or args.query:
         if not (args.reference and args.query):
             raise ConfigError("--aligned with folders needs both --reference DIR and --query DIR")
         if args.num_queries is not None or args.num_references is not None:
             raise ConfigError("give either --reference/--query folders or --num-queries/--num-references, not both")
-        num_references = len(image_files(args.reference))
-        num_queries = len(image_files(args.query))
+        reference_names = [p.name for p in list_images(args.reference)]
+        query_names = [p.name for p in list_images(args.query)]
+        num_references, num_queries = len(reference_names), len(query_names)
     else:
         if args.num_queries is None or args.num_references is None:
             raise ConfigError("--aligned needs --num-queries and --num-references (or --reference DIR --query DIR)")
         num_queries, num_references = args.num_queries, args.num_references
     if num_queries <= 0 or num_references <= 0:
         raise ConfigError(f"--num-queries and --num-references must be positive, got {num_queries}, {num_references}")
-    return GroundTruth.aligned(num_queries, num_references, tolerance)
+    return GroundTruth.aligned(num_queries, num_references, tolerance), query_names, reference_names
 
 
 def _from_dataset(args):
@@ -96,23 +149,29 @@ def _from_dataset(args):
                        **parse_overrides(args.set))
     print(f"{split.description}: {len(split.query)} queries ({split.query.name}), "
           f"{len(split.reference)} references ({split.reference.name})")
-    return split.ground_truth
+    return (split.ground_truth, [p.name for p in split.query.paths],
+            [p.name for p in split.reference.paths])
 
 
 def run(args) -> int:
     from fdnet.errors import ConfigError
+    from fdnet.io import ensure_writable
 
+    ensure_writable(args.out, what="ground-truth CSV")
     if args.positions:
         if args.tolerance_frames is not None:
             raise ConfigError("--tolerance-frames is for --aligned; with --positions use --tolerance-m")
-        gt = _from_positions(args)
+        gt, query_names, reference_names = _from_positions(args)
     elif args.aligned:
         if args.tolerance_m is not None:
             raise ConfigError("--tolerance-m is for --positions; with --aligned use --tolerance-frames")
-        gt = _from_alignment(args)
+        gt, query_names, reference_names = _from_alignment(args)
     else:
-        gt = _from_dataset(args)
-    gt.to_csv(args.out)
+        gt, query_names, reference_names = _from_dataset(args)
+    gt.to_csv(args.out, query_names, reference_names)
+    if query_names is None:
+        print("note: no image names to write (no image column and no image folders), so readers cannot "
+              "check that the indices mean the images they evaluate", file=sys.stderr)
     summary = gt.summary()
     n = summary["num_queries"]
     with_match = summary["queries_with_match"]

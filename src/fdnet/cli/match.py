@@ -1,4 +1,8 @@
-"""`fdnet match`: rank reference images (the map) for each query image."""
+"""`fdnet match`: rank reference images (the map) for each query image.
+
+Images are listed in fdnet's one order (:func:`fdnet.data.images.list_images`: natural order of
+file names), and every output row carries both the indices and the file names.
+"""
 
 from __future__ import annotations
 
@@ -21,7 +25,9 @@ def register(sub) -> None:
                    help="exact blocked search (default) or a faiss index (dot-product methods only)")
     p.add_argument("--sequence-length", type=int, default=0,
                    help="SeqSLAM sequence matching over this many consecutive queries (0 = single image)")
-    p.add_argument("--out", required=True, help="CSV to write: query,rank,reference,reference_index,score")
+    p.add_argument("--out", required=True,
+                   help="CSV to write: query_index,query,rank,reference_index,reference,score (indices are "
+                        "positions in natural file-name order, names the image file names)")
     p.add_argument("--batch-size", type=int, default=64)
     p.set_defaults(func=run)
 
@@ -34,13 +40,14 @@ def run(args) -> int:
     from fdnet.data.images import list_images
     from fdnet.descriptors.base import describe_paths
     from fdnet.errors import ConfigError
-    from fdnet.io import atomic_write_text
+    from fdnet.io import atomic_write_text, ensure_writable
     from fdnet.matching.index import IndexSettings, VectorIndex
     from fdnet.matching.sequence import sequence_similarity
     from fdnet.matching.similarity import similarity_matrix, top_k, top_k_of_matrix
 
     if args.top_k < 1:
         raise ConfigError("--top-k must be at least 1")
+    ensure_writable(args.out, what="matches CSV")  # before describing every image, not after
     ref_paths, query_paths = list_images(args.reference), list_images(args.query)
     descriptor = create_descriptor(args.method, args)
     if descriptor.needs_fit:
@@ -66,11 +73,11 @@ def run(args) -> int:
 
     buffer = io.StringIO()
     writer = csv.writer(buffer)
-    writer.writerow(["query", "rank", "reference", "reference_index", "score"])
+    writer.writerow(["query_index", "query", "rank", "reference_index", "reference", "score"])
     for q, (row_i, row_s) in enumerate(zip(indices, scores)):
         for rank, (i, s) in enumerate(zip(row_i, row_s), start=1):
             if i >= 0:
-                writer.writerow([query_paths[q].name, rank, ref_paths[i].name, int(i), f"{float(s):.6f}"])
+                writer.writerow([q, query_paths[q].name, rank, int(i), ref_paths[i].name, f"{float(s):.6f}"])
     atomic_write_text(args.out, buffer.getvalue())
     print(f"wrote {args.out}: top-{args.top_k} of {len(ref_paths)} references for {len(query_paths)} queries "
           f"({descriptor.name})")

@@ -94,15 +94,24 @@ def _resolve(root, dataset_format) -> tuple[Path, DatasetFormat]:
 
 def open_split(root: str | os.PathLike, reference: str | None = None, query: str | None = None,
                dataset_format: str | None = None, split: str | None = None, check_sizes: bool = True,
-               **protocol_options) -> EvaluationSplit:
+               listed_ground_truth: str | os.PathLike | None = None, **protocol_options) -> EvaluationSplit:
     """Reference map, queries and ground truth of a dataset folder under its paper protocol.
 
     ``split``: a named split (``test`` is the default where the paper has one) or ``START:END``.
     ``check_sizes``: fail early when a condition mixes image sizes (reads only file headers).
+    ``listed_ground_truth``: an explicit ground-truth CSV that replaces the format's ground truth
+    for the chosen split: its indices are positions in the split's query and reference images
+    (what ``fdnet groundtruth --dataset ROOT --split S`` writes); size and names are checked.
+    (Not to be confused with the ``ground_truth`` setting of some formats, which names the
+    dataset's own ground-truth file.)
     """
     root, fmt = _resolve(root, dataset_format)
     options = _options(fmt, protocol_options)
-    result = fmt.evaluation_split(root, reference, query, split or fmt.default_eval_split, options)
+    split = split or fmt.default_eval_split
+    if listed_ground_truth is not None:
+        result = fmt.listed_evaluation_split(root, reference, query, split, options, Path(listed_ground_truth))
+    else:
+        result = fmt.evaluation_split(root, reference, query, split, options)
     if check_sizes:
         for traverse in (result.reference, result.query):
             check_image_sizes(traverse)

@@ -320,6 +320,16 @@ class DatasetFormat:
                          options) -> RouteDataset:
         raise NotImplementedError  # pragma: no cover - interface
 
+    def listed_evaluation_split(self, root: Path, reference: str | None, query: str | None,
+                                split: str | None, options, ground_truth: Path) -> "EvaluationSplit":  # noqa: F821
+        """The split's images with an explicit ground-truth CSV in place of the format's own
+        (indices over the split's images). Formats whose own ground truth can fail where an
+        explicit list would not (e.g. frame alignment of unequal folders) override this."""
+        from fdnet.data.split import with_listed_ground_truth
+
+        return with_listed_ground_truth(self.evaluation_split(root, reference, query, split, options),
+                                        ground_truth)
+
 
 def pick_conditions(available: Sequence[str], wanted: Sequence[str] | None, root: Path) -> list[str]:
     if not wanted:

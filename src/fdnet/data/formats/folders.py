@@ -21,10 +21,10 @@ from typing import Sequence
 
 from fdnet.data.dataset import RouteDataset, Traverse
 from fdnet.data.images import has_images, list_images
-from fdnet.data.split import EvaluationSplit, aligned_split, listed_split
+from fdnet.data.split import EvaluationSplit, aligned_split, listed_split, read_listed_ground_truth
 from fdnet.errors import ConfigError, DataError
 
-from fdnet.data.formats._common import DatasetFormat, pick_conditions, resolve_split
+from fdnet.data.formats._common import DatasetFormat, describe, pick_conditions, resolve_split
 
 GARDENS_POINT = {"day_left", "day_right", "night_right"}
 
@@ -83,7 +83,7 @@ class FoldersFormat(DatasetFormat):
             return int(options.tolerance)
         return 2 if is_gardens_point(conditions) else 0
 
-    def evaluation_split(self, root, reference, query, split, options: FoldersOptions) -> EvaluationSplit:
+    def _route(self, root: Path, reference, query) -> tuple[list[str], RouteDataset, str, str]:
         conditions = condition_folders(root)
         if len(conditions) < 2 and not (reference and query):
             raise DataError(f"{root}: needs at least two condition sub-folders with images, found "
@@ -91,6 +91,25 @@ class FoldersFormat(DatasetFormat):
         reference, query = default_pair(root, conditions, reference, query)
         pick_conditions(conditions, [reference, query], root)
         route = RouteDataset(root, {name: read_traverse(root / name) for name in (reference, query)})
+        return conditions, route, reference, query
+
+    def listed_evaluation_split(self, root, reference, query, split, options: FoldersOptions,
+                                ground_truth: Path) -> EvaluationSplit:
+        """Both folders cut to ``split``, with an explicit list over the cut images (no frame
+        alignment is computed, so the folders may hold different numbers of images)."""
+        if options.ground_truth:
+            raise ConfigError(f"two explicit ground truths: the ground_truth={options.ground_truth} setting "
+                              f"and {ground_truth}; give one")
+        _, route, reference, query = self._route(root, reference, query)
+        start, end = resolve_split(split, {}, len(route[query]), str(root))
+        ref, qry = route[reference].frames(start, end), route[query].frames(start, end)
+        if len(ref) == 0 or len(qry) == 0:
+            raise DataError(f"{root}: split {split!r} selects no images of {reference} or {query}")
+        gt = read_listed_ground_truth(ground_truth, ref, qry)
+        return EvaluationSplit(ref, qry, gt, describe(root, qry, ref, gt))
+
+    def evaluation_split(self, root, reference, query, split, options: FoldersOptions) -> EvaluationSplit:
+        conditions, route, reference, query = self._route(root, reference, query)
         if options.ground_truth:
             gt_path = Path(options.ground_truth)
             gt_path = gt_path if gt_path.is_absolute() else root / gt_path

@@ -30,7 +30,7 @@ from fdnet.data.arrays import load_npz_member
 from fdnet.data.dataset import RouteDataset, Traverse
 from fdnet.data.groundtruth import GroundTruth
 from fdnet.data.images import list_images
-from fdnet.data.split import EvaluationSplit
+from fdnet.data.split import EvaluationSplit, read_listed_ground_truth
 from fdnet.errors import ConfigError, DataError
 
 from fdnet.data.formats._common import (
@@ -87,6 +87,17 @@ class VPRTutorialFormat(DatasetFormat):
             return reference or folders[0], query or folders[1]
         raise ConfigError(f"{root}: image folders {', '.join(folders) or 'none'}; name the database "
                           f"and query folders with --reference and --query")
+
+    def listed_evaluation_split(self, root, reference, query, split, options, ground_truth) -> EvaluationSplit:
+        """The split's queries and the whole database with an explicit list over them; GT.npz is
+        not needed."""
+        reference, query = self._pair(root, reference, query)
+        ref = Traverse(reference, list_images(root / reference))
+        qry = Traverse(query, list_images(root / query))
+        start, end = resolve_split(split, {}, len(qry), str(root))
+        qry = qry.frames(start, end)
+        gt = read_listed_ground_truth(ground_truth, ref, qry)
+        return EvaluationSplit(ref, qry, gt, describe(root, qry, ref, gt))
 
     def evaluation_split(self, root, reference, query, split, options: VPRTutorialOptions) -> EvaluationSplit:
         reference, query = self._pair(root, reference, query)

@@ -27,7 +27,7 @@ import numpy as np
 from fdnet.data.dataset import RouteDataset, Traverse
 from fdnet.data.groundtruth import GroundTruth
 from fdnet.data.images import list_images
-from fdnet.data.split import EvaluationSplit
+from fdnet.data.split import EvaluationSplit, read_listed_ground_truth
 from fdnet.errors import DataError
 
 from fdnet.data.formats._common import DatasetFormat, describe, has_images, resolve_split
@@ -133,11 +133,20 @@ class VPRBenchFormat(DatasetFormat):
         if gt_path.suffix.lower() == ".npy":
             gt = ground_truth_from_npy(gt_path, len(qry), len(ref))
         else:
-            gt = GroundTruth.from_csv(gt_path, num_references=len(ref), num_queries=len(qry))
+            gt = read_listed_ground_truth(gt_path, ref, qry)
         start, end = resolve_split(split, {}, len(qry), str(root))
         if (start, end) != (None, None):
             q_idx = np.arange(len(qry))[slice(start, end)]
             qry, gt = qry.select(q_idx), gt.subset(q_idx)
+        return EvaluationSplit(ref, qry, gt, describe(root, qry, ref, gt))
+
+    def listed_evaluation_split(self, root, reference, query, split, options, ground_truth) -> EvaluationSplit:
+        """The split's queries and the whole map with an explicit list over them; the dataset's
+        own ground-truth file is not needed."""
+        ref, qry = self._traverses(root)
+        start, end = resolve_split(split, {}, len(qry), str(root))
+        qry = qry.frames(start, end)
+        gt = read_listed_ground_truth(ground_truth, ref, qry)
         return EvaluationSplit(ref, qry, gt, describe(root, qry, ref, gt))
 
     def training_dataset(self, root, split, conditions, options) -> RouteDataset:
