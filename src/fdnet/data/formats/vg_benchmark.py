@@ -10,8 +10,10 @@ Each file name carries its UTM position: the fields after the first and second `
 and northing in metres (the toolkits' comment: "path/to/file/@utm_easting@utm_northing@...@.jpg").
 Positives are the database images within ``tolerance_m`` (25 m, the benchmark's default) of a
 query. Images are found recursively and listed in fdnet's one image order (natural order of the
-path below the folder, :func:`fdnet.data.images.list_images`); for the benchmark's fixed-width
-``@%.2f@`` names it is the plain path order of the benchmark's ``sorted(glob(...))``.
+path below the folder, :func:`fdnet.data.images.list_images`). Where every numeric field of the
+names has the same width (zero-padded, as in the example above) that is the benchmark's own
+``sorted(glob(...))`` order; otherwise a similarity matrix computed by the benchmark's code may
+have its rows in another order (compare with ``fdnet evaluate --similarity`` only after checking).
 The named splits are the folders under ``images/`` (``test`` by default, ``val``, ``train``).
 """
 
