@@ -99,7 +99,7 @@ def _ground_truth_path(args):
     if not path.is_file():
         raise DataError(f"{path}: ground-truth file not found" if not path.exists()
                         else f"{path}: is not a file; expected a ground-truth CSV")
-    return path.resolve()
+    return path  # as typed, so errors name the file the way the user wrote it
 
 
 def _format_split(args, ground_truth):
