@@ -13,7 +13,9 @@ def test_demo_runs_end_to_end_with_tiny_preset(tmp_path, capsys):
         assert [r["method"] for r in results] == ["fdnet", "sad"]
         assert all(0.0 <= r["recall_at_n"]["1"] <= 1.0 for r in results)
         assert (out / f"plots-{pair}" / "pr_curves.png").stat().st_size > 0
-    assert (out / "fdnet-run" / "model.safetensors").exists()
+    from fdnet import runs
+
+    assert runs.is_run(out / "fdnet-run")
     assert "SYNTHETIC" in (out / "route" / "README.txt").read_text()
     printed = capsys.readouterr().out
     assert "R@1" in printed and "demo finished" in printed
