@@ -214,3 +214,24 @@ def test_best_checkpoint_breaks_recall_ties_by_auc(tmp_path, monkeypatch):
         trainer.validate_now()
     assert trainer.best == {"step": 2, "recall@1": 0.9, "auc": 0.6}
     assert "step: 2" in (tmp_path / "run" / "best" / "validation.yaml").read_text()
+
+
+def test_algorithm1_batch_use_samples_one_batch_per_joint_step(tmp_path):
+    trainer = _trainer(tmp_path, **{"schedule.one_batch_per_step": True, "loss.reconstruction_reduction": "sum",
+                                    "loss.triplet_vectors": "l2", "model.critic_input": "raw"})
+    method = trainer.method
+    drawn = []
+    real = method.sampler.sample
+
+    def counting():
+        drawn.append(1)
+        return real()
+
+    method.sampler.sample = counting
+    for step in range(trainer.settings.total_steps):
+        before = len(drawn)
+        numbers = method.train_step(step)
+        assert all(math.isfinite(v) for v in numbers.values())
+        if method.stage(step) == "joint":
+            assert len(drawn) - before == 1, "Algorithm 1: one mini-batch X_b per joint step"
+            assert {"critic", "encoder_adversarial", "reconstruction", "appearance"} <= set(numbers)

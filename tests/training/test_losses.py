@@ -82,3 +82,17 @@ def test_gradient_penalty_uses_interpolates_between_labels():
     assert losses.gradient_penalty(critic, same, different).item() == pytest.approx(0.0, abs=1e-6)
     far = torch.tensor([[3.0, 0.0]])
     assert losses.gradient_penalty(critic, far, far).item() == pytest.approx(4.0)
+
+
+def test_reconstruction_sum_is_eq3_per_image_and_mean_is_per_value():
+    import torch
+
+    from fdnet.training.losses import reconstruction_loss
+
+    target = torch.zeros(2, 3, 4, 5)
+    recon = torch.ones(2, 3, 4, 5)
+    recon[1] *= 2.0
+    assert float(reconstruction_loss(target, recon, "sum")) == pytest.approx((60 * 1 + 60 * 4) / 2)
+    assert float(reconstruction_loss(target, recon, "mean")) == pytest.approx((1 + 4) / 2)
+    with pytest.raises(ValueError):
+        reconstruction_loss(target, recon, "max")

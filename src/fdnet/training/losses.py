@@ -30,9 +30,16 @@ import torch
 from torch import nn
 
 
-def reconstruction_loss(target: torch.Tensor, reconstruction: torch.Tensor) -> torch.Tensor:
-    """L_r: mean squared error (paper eq. 3, averaged instead of summed)."""
-    return nn.functional.mse_loss(reconstruction.float(), target.float())
+def reconstruction_loss(target: torch.Tensor, reconstruction: torch.Tensor, reduction: str = "mean") -> torch.Tensor:
+    """L_r. ``"sum"``: paper eq. 3, ||x - x~||^2 summed over every value of an image, averaged
+    over the batch (so the batch size does not rescale the loss); ``"mean"``: mean squared error
+    per value."""
+    squared = (reconstruction.float() - target.float()) ** 2
+    if reduction == "sum":
+        return squared.flatten(1).sum(1).mean()
+    if reduction == "mean":
+        return squared.mean()
+    raise ValueError(f"reconstruction reduction {reduction!r}: choose mean or sum")
 
 
 def squared_distances(vectors: torch.Tensor) -> torch.Tensor:

@@ -51,6 +51,11 @@ class ScheduleConfig:
     #: draw a new batch for every discriminator update of a joint step (else the updates of one
     #: step share one batch's content vectors and differ in the pairs drawn)
     critic_fresh_batches: bool = False
+    #: Algorithm 1's batch use: each joint step samples ONE mini-batch X_b; the encoder/decoder
+    #: update comes first, then the D_a updates, all on X_b (pairs drawn from X_b each time).
+    #: False: the D_a updates take their own batch (or one each, critic_fresh_batches) before the
+    #: encoder/decoder update takes another, which sees twice the images per step
+    one_batch_per_step: bool = False
 
 
 @dataclass
@@ -65,6 +70,15 @@ class LossConfig:
     #: include the triplet loss L_a while pretraining the auto-encoder (the paper's pretraining
     #: stage says "encoder and decoder"; L_a shapes the appearance encoder from the start)
     appearance_in_pretraining: bool = True
+    #: L_r per image: "sum" = eq. 3's squared L2 norm ||x - x~||^2 summed over every value of the
+    #: image (averaged over the batch); "mean" = the mean squared error per value. With eq. 10's
+    #: weights 1/1/1 the choice sets the balance: at 224x224x3, "sum" makes L_r outweigh L_a
+    #: about 54x at initialisation (the paper's balance), "mean" makes L_a outweigh L_r ~2800x
+    reconstruction_reduction: str = "mean"
+    #: vectors the triplet loss L_a compares: "raw" = v_a as the encoder outputs it (paper eq. 5);
+    #: "l2" = unit v_a, so the fixed margin cannot be met just by conditions drifting apart in
+    #: scale (with raw v_a the loss sat at 0 for most of a cpu-preset run)
+    triplet_vectors: str = "raw"
 
 
 @dataclass
@@ -125,12 +139,21 @@ class TrainConfig:
 
 
 def _paper() -> TrainConfig:
+    """The paper, setting by setting (section 4.1, eq. 3, eq. 10, Algorithm 1). Where the paper is
+    silent the choice is marked: the number of encoding blocks and the decoder's first layer."""
     return TrainConfig(
         preset="paper",
-        # 224 / 2^5 = 7: five blocks leave a 7x7 map, as DCGAN-style encoders at 224 do.
-        model=FDNetConfig(input_size=(224, 224), widths=(64, 128, 256, 512, 512), vector_length=512),
+        # 224 / 2^5 = 7: five blocks leave a 7x7 map, as DCGAN-style encoders at 224 do (the
+        # block count is not legible in the paper's Fig. 3). The critic reads v_c as the encoder
+        # outputs it (section 3.3), not a normalised copy.
+        model=FDNetConfig(input_size=(224, 224), widths=(64, 128, 256, 512, 512), vector_length=512,
+                          critic_input="raw"),
         data=FDNetDataConfig(batch_per_domain=4),
-        schedule=ScheduleConfig(5000, 8000, 60000, 2),
+        # 5000 auto-encoder + 8000 D_a pretraining steps, 60000 joint steps at 2 D_a updates per
+        # encoder/decoder update, each joint step on one mini-batch (Algorithm 1).
+        schedule=ScheduleConfig(5000, 8000, 60000, 2, one_batch_per_step=True),
+        # Eq. 10 with weights 1, 1, 1 and eq. 3's summed squared error per image.
+        loss=LossConfig(reconstruction_reduction="sum"),
         runtime=RuntimeConfig(checkpoint_every=2000, log_every=50),
     )
 
@@ -229,6 +252,10 @@ def validate(config: TrainConfig) -> None:
         raise ConfigError("validation.every must be >= 1")
     if config.loss.triplet_margin < 0 or config.loss.gradient_penalty_weight < 0:
         raise ConfigError("loss.triplet_margin and loss.gradient_penalty_weight must be >= 0")
+    if config.loss.reconstruction_reduction not in ("mean", "sum"):
+        raise ConfigError(f"loss.reconstruction_reduction: {config.loss.reconstruction_reduction!r}; choose mean or sum")
+    if config.loss.triplet_vectors not in ("raw", "l2"):
+        raise ConfigError(f"loss.triplet_vectors: {config.loss.triplet_vectors!r}; choose raw or l2")
     for name in ("lr", "critic_lr", "joint_lr_scale", "beta1", "beta2"):
         check_finite(f"optim.{name}", getattr(config.optim, name), positive=name in ("lr", "critic_lr", "joint_lr_scale"))
     for name in ("reconstruction_weight", "appearance_weight", "adversarial_weight", "triplet_margin",

@@ -4,10 +4,13 @@ Stages, one after the other, counted in mini-batches ("steps"):
 
 1. ``autoencoder``: E_c, E_a and the decoder on w_r * L_r (+ w_a * L_a);
 2. ``critic``: D_a alone on L_d^adv (WGAN-GP), the encoders frozen;
-3. ``joint``: per step, ``critic_updates_per_step`` updates of D_a, then one update of E_c, E_a
-   and the decoder on w_r L_r + w_a L_a + w_adv L_e^adv (paper: 2:1). By default the D_a updates
-   of one step share one batch's content vectors and each draws new labelled pairs;
-   ``schedule.critic_fresh_batches`` draws a new batch for every D_a update.
+3. ``joint``: per step, ``critic_updates_per_step`` updates of D_a and one update of E_c, E_a
+   and the decoder on w_r L_r + w_a L_a + w_adv L_e^adv (paper: 2:1). With
+   ``schedule.one_batch_per_step`` (the ``paper`` preset, Algorithm 1) the step samples one
+   mini-batch X_b, updates the encoders/decoder on it, then D_a on its content vectors (new
+   labelled pairs each time). Otherwise the D_a updates come first, sharing one batch's content
+   vectors (or one batch each, ``schedule.critic_fresh_batches``), and the encoder/decoder update
+   draws a batch of its own.
 
 What the checkpoint needs beyond weights and Adam states (the loop saves torch's global RNG,
 used by dropout): the sampler's generator and the conditions trained on.
@@ -144,10 +147,11 @@ class FDNetTraining(TrainingMethod):
         for group in self.opt_autoencoder.param_groups:
             group["lr"] = self.config.optim.lr * scale
 
-    def _critic_features(self) -> torch.Tensor:
-        """Content vectors of a fresh batch for D_a updates (no gradient to the encoder)."""
+    def _critic_features(self, x: torch.Tensor | None = None) -> torch.Tensor:
+        """Content vectors of batch ``x`` (default: a fresh one) for D_a updates (no gradient to
+        the encoder)."""
         model, cfg = self.model, self.config
-        x = self._batch()
+        x = self._batch() if x is None else x
         encoder = model.content_encoder
         mode = encoder.training
         encoder.train(cfg.runtime.critic_encoder_mode == "train")
@@ -169,18 +173,22 @@ class FDNetTraining(TrainingMethod):
         self.opt_critic.step()
         return {"critic": float(loss.detach()), "wasserstein": float(distance)}
 
-    def _autoencoder_update(self, step: int, adversarial: bool, appearance: bool) -> dict[str, float]:
+    def _autoencoder_update(self, step: int, adversarial: bool, appearance: bool,
+                            target: torch.Tensor | None = None) -> dict[str, float]:
         model, cfg = self.model, self.config
-        target = self._batch()
+        target = self._batch() if target is None else target
         with _autocast(cfg, self.device):
             content = model.content_encoder(target)
             appearance_vec = model.appearance_encoder(target)
             reconstruction = model.decoder(content, appearance_vec)
-        rec = losses.reconstruction_loss(target, reconstruction)
+        rec = losses.reconstruction_loss(target, reconstruction, cfg.loss.reconstruction_reduction)
         total = cfg.loss.reconstruction_weight * rec
         out = {"reconstruction": float(rec.detach())}
         if appearance:
-            app = losses.batch_hard_triplet_loss(appearance_vec.float(), self.domains, cfg.loss.triplet_margin)
+            app_vectors = appearance_vec.float()
+            if cfg.loss.triplet_vectors == "l2":
+                app_vectors = torch.nn.functional.normalize(app_vectors, dim=1)
+            app = losses.batch_hard_triplet_loss(app_vectors, self.domains, cfg.loss.triplet_margin)
             total = total + cfg.loss.appearance_weight * app
             out["appearance"] = float(app.detach())
         if adversarial:
@@ -210,6 +218,12 @@ class FDNetTraining(TrainingMethod):
                                                 appearance=self.config.loss.appearance_in_pretraining))
         elif stage == "critic":
             out.update(self._critic_update(self._critic_features()))
+        elif self.config.schedule.one_batch_per_step:
+            batch = self._batch()
+            out.update(self._autoencoder_update(step, adversarial=True, appearance=True, target=batch))
+            content = self._critic_features(batch)
+            for _ in range(self.config.schedule.critic_updates_per_step):
+                out.update(self._critic_update(content))
         else:
             # The D_a updates of one step share one batch's content vectors (each draws new
             # pairs), or take a batch each with schedule.critic_fresh_batches: one encoder
