@@ -29,6 +29,7 @@ COMMAND_MODULES = [
     "vocabulary",
     "methods",
     "benchmark",
+    "reproduce",
     "demo",
 ]
 

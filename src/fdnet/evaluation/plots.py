@@ -3,7 +3,9 @@
 matplotlib with the non-interactive Agg backend (no display needed); every PNG is written
 atomically. The similarity matrix figure follows the paper's Fig. 8 (queries x references, bright =
 similar) with the ground truth drawn over it; the example grid follows VPR_Tutorial's
-``show_correct_and_wrong_matches`` (query beside its best match, framed green if correct, red if not).
+``show_correct_and_wrong_matches`` (query beside its best match, framed green if correct, red if not),
+and with several methods the paper's Fig. 9 (a row per method). The ``draw_*`` functions draw on
+one axis so multi-panel figures (``fdnet reproduce``) reuse them.
 """
 
 from __future__ import annotations
@@ -18,7 +20,8 @@ from fdnet.data.groundtruth import GroundTruth
 from fdnet.io import atomic_path
 
 
-def _pyplot():
+def pyplot():
+    """matplotlib.pyplot on the Agg backend (imported here so plotting stays an optional cost)."""
     import matplotlib
 
     matplotlib.use("Agg", force=True)
@@ -27,8 +30,9 @@ def _pyplot():
     return plt
 
 
-def _save(fig, path: str | os.PathLike) -> Path:
-    plt = _pyplot()
+def save_figure(fig, path: str | os.PathLike) -> Path:
+    """Write ``fig`` as a PNG atomically and close it."""
+    plt = pyplot()
     path = Path(path)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
@@ -36,14 +40,8 @@ def _save(fig, path: str | os.PathLike) -> Path:
     return path
 
 
-def plot_pr_curves(curves: dict, path: str | os.PathLike, title: str = "") -> Path:
-    """Several methods' PR curves on one figure.
-
-    ``curves``: method name -> :class:`~fdnet.evaluation.metrics.PRCurve` (or a ``(recall,
-    precision)`` pair); the legend shows each method's AUC when given as ``{name: (curve, auc)}``.
-    """
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(5.5, 4.5))
+def draw_pr_curves(ax, curves: dict) -> None:
+    """Several methods' PR curves on one matplotlib axis (see :func:`plot_pr_curves`)."""
     for name, entry in curves.items():
         label = name
         if isinstance(entry, tuple) and len(entry) == 2 and hasattr(entry[0], "recall"):
@@ -57,26 +55,39 @@ def plot_pr_curves(curves: dict, path: str | os.PathLike, title: str = "") -> Pa
     ax.set_ylim(0, 1.02)
     ax.grid(alpha=0.3)
     ax.legend(loc="lower left", fontsize="small")
+
+
+def plot_pr_curves(curves: dict, path: str | os.PathLike, title: str = "") -> Path:
+    """Several methods' PR curves on one figure.
+
+    ``curves``: method name -> :class:`~fdnet.evaluation.metrics.PRCurve` (or a ``(recall,
+    precision)`` pair); the legend shows each method's AUC when given as ``{name: (curve, auc)}``.
+    """
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(5.5, 4.5))
+    draw_pr_curves(ax, curves)
     if title:
         ax.set_title(title, fontsize="medium")
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
-def plot_similarity_matrix(similarity: np.ndarray, path: str | os.PathLike,
-                           ground_truth: GroundTruth | None = None,
-                           best: np.ndarray | None = None, title: str = "") -> Path:
-    """The (Q, R) matrix as an image (rows = queries), ground-truth cells outlined in translucent
-    white and each query's best match marked: green dot if correct, red cross if not."""
-    plt = _pyplot()
+def draw_similarity_matrix(ax, similarity: np.ndarray, ground_truth: GroundTruth | None = None,
+                           best: np.ndarray | None = None):
+    """The (Q, R) matrix on one matplotlib axis (see :func:`plot_similarity_matrix`); returns the
+    image, for a colour bar. Beyond ~300 rows or columns a cell is smaller than a screen pixel, so
+    the ground-truth cells are widened until the true-match band stays visible."""
     s = np.asarray(similarity, dtype=np.float32)
-    fig, ax = plt.subplots(figsize=(6, 6 * min(max(s.shape[0] / max(s.shape[1], 1), 0.3), 3)))
     image = ax.imshow(s, cmap="viridis", aspect="auto", interpolation="nearest")
-    fig.colorbar(image, ax=ax, fraction=0.046, pad=0.04, label="similarity")
     if ground_truth is not None:
-        gt = ground_truth.dense().astype(np.float32)
+        gt = ground_truth.dense()
+        widen = int(np.ceil(max(gt.shape) / 300))
+        if widen > 1:
+            from scipy.ndimage import maximum_filter
+
+            gt = maximum_filter(gt, size=widen)
         overlay = np.zeros((*gt.shape, 4), dtype=np.float32)
         overlay[..., :3] = 1.0
-        overlay[..., 3] = 0.35 * gt
+        overlay[..., 3] = 0.35 * gt.astype(np.float32)
         ax.imshow(overlay, aspect="auto", interpolation="nearest")
     if best is not None:
         best = np.asarray(best).reshape(-1)
@@ -90,9 +101,66 @@ def plot_similarity_matrix(similarity: np.ndarray, path: str | os.PathLike,
             ax.scatter(best, rows, s=6, c="white", marker="o")
     ax.set_xlabel("reference")
     ax.set_ylabel("query")
+    return image
+
+
+def plot_similarity_matrix(similarity: np.ndarray, path: str | os.PathLike,
+                           ground_truth: GroundTruth | None = None,
+                           best: np.ndarray | None = None, title: str = "") -> Path:
+    """The (Q, R) matrix as an image (rows = queries), ground-truth cells outlined in translucent
+    white and each query's best match marked: green dot if correct, red cross if not."""
+    plt = pyplot()
+    s = np.asarray(similarity, dtype=np.float32)
+    fig, ax = plt.subplots(figsize=(6, 6 * min(max(s.shape[0] / max(s.shape[1], 1), 0.3), 3)))
+    image = draw_similarity_matrix(ax, s, ground_truth, best)
+    fig.colorbar(image, ax=ax, fraction=0.046, pad=0.04, label="similarity")
     if title:
         ax.set_title(title, fontsize="medium")
-    return _save(fig, path)
+    return save_figure(fig, path)
+
+
+def evenly_spaced(total: int, count: int) -> np.ndarray:
+    """``count`` indices spread evenly over ``range(total)``, first and last included (the queries
+    an example figure shows)."""
+    count = max(1, min(count, total))
+    return np.unique(np.linspace(0, total - 1, count).round().astype(int))
+
+
+def plot_match_grid(query_paths: Sequence[str | os.PathLike], reference_paths: Sequence[str | os.PathLike],
+                    matches: dict[str, tuple[np.ndarray, np.ndarray]], path: str | os.PathLike,
+                    count: int = 6, title: str = "", image_size: tuple[int, int] = (120, 160)) -> Path:
+    """``count`` queries (evenly spaced over the traverse) in columns: the query on top, then one
+    row per method (``matches``: method -> (best reference per query, correct per query)) with
+    that method's best match, framed green if correct and red if not (the paper's Fig. 9)."""
+    from fdnet.data.images import load_image
+
+    plt = pyplot()
+    chosen = evenly_spaced(len(query_paths), count)
+    rows = [(method, np.asarray(best).reshape(-1), np.asarray(correct, dtype=bool).reshape(-1))
+            for method, (best, correct) in matches.items()]
+    fig, axes = plt.subplots(1 + len(rows), len(chosen), figsize=(2.2 * len(chosen), 2.1 * (1 + len(rows))),
+                             squeeze=False)
+    for col, q in enumerate(chosen):
+        cells = [(query_paths[q], f"query {q}", None)]
+        for _, best, correct in rows:
+            colour, verdict = ("limegreen", "correct") if correct[q] else ("red", "wrong")
+            cells.append((reference_paths[best[q]], f"best: ref {best[q]} ({verdict})", colour))
+        for row, (image_path, label, colour) in enumerate(cells):
+            ax = axes[row, col]
+            ax.imshow(load_image(image_path, image_size))
+            ax.set_title(label, fontsize="x-small")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if colour is not None:
+                for spine in ax.spines.values():
+                    spine.set_edgecolor(colour)
+                    spine.set_linewidth(4)
+    for row, (method, _, _) in enumerate(rows, start=1):
+        if method:
+            axes[row, 0].set_ylabel(method, fontsize="small")
+    if title:
+        fig.suptitle(title, fontsize="medium")
+    return save_figure(fig, path)
 
 
 def plot_example_matches(query_paths: Sequence[str | os.PathLike], reference_paths: Sequence[str | os.PathLike],
@@ -100,28 +168,4 @@ def plot_example_matches(query_paths: Sequence[str | os.PathLike], reference_pat
                          count: int = 6, title: str = "", image_size: tuple[int, int] = (120, 160)) -> Path:
     """A grid of ``count`` queries (evenly spaced over the traverse): query on top, its best match
     below, framed green if the match is correct and red if not."""
-    from fdnet.data.images import load_image
-
-    plt = _pyplot()
-    best = np.asarray(best).reshape(-1)
-    correct = np.asarray(correct, dtype=bool).reshape(-1)
-    count = max(1, min(count, len(query_paths)))
-    chosen = np.unique(np.linspace(0, len(query_paths) - 1, count).round().astype(int))
-    fig, axes = plt.subplots(2, len(chosen), figsize=(2.2 * len(chosen), 4.2), squeeze=False)
-    for col, q in enumerate(chosen):
-        colour, verdict = ("limegreen", "correct") if correct[q] else ("red", "wrong")
-        pairs = ((0, query_paths[q], f"query {q}"),
-                 (1, reference_paths[best[q]], f"best: ref {best[q]} ({verdict})"))
-        for row, image_path, label in pairs:
-            ax = axes[row, col]
-            ax.imshow(load_image(image_path, image_size))
-            ax.set_title(label, fontsize="x-small")
-            ax.set_xticks([])
-            ax.set_yticks([])
-            if row == 1:
-                for spine in ax.spines.values():
-                    spine.set_edgecolor(colour)
-                    spine.set_linewidth(4)
-    if title:
-        fig.suptitle(title, fontsize="medium")
-    return _save(fig, path)
+    return plot_match_grid(query_paths, reference_paths, {"": (best, correct)}, path, count, title, image_size)

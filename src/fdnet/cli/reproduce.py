@@ -1,0 +1,182 @@
+"""`fdnet reproduce`: the paper's experiments on a dataset, one self-contained HTML report.
+
+Parses the flags into :class:`fdnet.reproduce.ReproduceSettings` and calls
+:func:`fdnet.reproduce.reproduce`; docs/reproduce.md describes the experiments.
+"""
+
+from __future__ import annotations
+
+import shlex
+
+EXPERIMENT_NAMES = "comparison, lengths, similarity, disentanglement, viewpoint, runtime, examples"
+
+# (group, flag, add_argument keywords). One table serves the parser and the command line the
+# report records, so the recorded command always has the flags the parser knows.
+ARGUMENTS = (
+    ("data", "--data", dict(required=True, metavar="DIR",
+                            help="dataset folder: one sub-folder per condition, or a published layout with "
+                                 "--dataset-format")),
+    ("data", "--dataset-format", dict(metavar="NAME",
+                                      help="read --data in a published layout (nordland, alderley, oxford_robotcar, "
+                                           "st_lucia, fas, vprbench, vpr_tutorial, vg_benchmark, folders, auto) "
+                                           "with the paper's protocol; see docs/datasets.md")),
+    ("data", "--conditions", dict(metavar="A,B,...",
+                                  help="conditions to compare, every ordered pair (default: all sub-folders; with "
+                                       "--dataset-format: the format's default pair)")),
+    ("data", "--frames", dict(metavar="START:END",
+                              help="evaluate only these frames of every condition (END exclusive)")),
+    ("data", "--split", dict(help="with --dataset-format: a named split (default: the format's test split)")),
+    ("data", "--tolerance", dict(type=int, help="frame tolerance of a correct match (plain folders: default 0; "
+                                                "formats: the paper's)")),
+    ("data", "--format-set", dict(action="append", default=[], metavar="KEY=VALUE",
+                                  help="with --dataset-format: a protocol setting of the format (repeatable)")),
+    ("methods", "--checkpoint", dict(action="append", required=True, metavar="RUN_DIR",
+                                     help="the FDNet run (from `fdnet train`), also read by the trunk baseline; "
+                                          "other trained methods as METHOD=RUN_DIR (netvlad=..., calc=...), "
+                                          "repeatable")),
+    ("methods", "--methods", dict(metavar="LIST",
+                                  help="comma-separated methods (default: fdnet, trunk and every baseline; those "
+                                       "that cannot run here are listed in the report with the reason)")),
+    ("methods", "--weights", dict(action="append", default=[], metavar="[METHOD=]PATH",
+                                  help="weights file a method accepts (conv3 AlexNet, hybridnet), repeatable")),
+    ("methods", "--vocabulary", dict(action="append", default=[], metavar="[dbow=]FILE",
+                                     help="DBoW vocabulary (default: learnt from each pair's references)")),
+    ("methods", "--method-set", dict(action="append", default=[], metavar="[METHOD:]KEY=VALUE",
+                                     help="a method setting, e.g. conv3:dim=512 (repeatable)")),
+    ("experiments", "--experiments", dict(metavar="LIST",
+                                          help=f"experiments to run (default all): {EXPERIMENT_NAMES}")),
+    ("experiments", "--length-runs", dict(metavar="L=DIR,...",
+                                          help="lengths: the FDNet runs per vector length, e.g. "
+                                               "256=runs/L256,512=runs/L512,1024=runs/L1024,2048=runs/L2048")),
+    ("experiments", "--length-preset", dict(metavar="PRESET",
+                                            help="lengths: train the runs not given by --length-runs with this "
+                                                 "preset (paper, cpu, cpu-scratch, tiny) into OUT/length-runs/")),
+    ("experiments", "--length-train-frames", dict(metavar="START:END",
+                                                  help="lengths: frames to train on (plain folders: required, "
+                                                       "outside --frames; formats: a split, default train)")),
+    ("experiments", "--length-set", dict(action="append", default=[], metavar="KEY=VALUE",
+                                         help="lengths: a training setting for the trained runs, e.g. "
+                                              "schedule.joint_steps=500 (repeatable)")),
+    ("experiments", "--viewpoint-pair", dict(metavar="REFERENCE,QUERY",
+                                             help="viewpoint: the pair to crop (default: the first pair)")),
+    ("experiments", "--overlaps", dict(default="100,90,75,65", metavar="LIST",
+                                       help="viewpoint: overlaps in percent (default 100,90,75,65)")),
+    ("experiments", "--examples", dict(type=int, default=5, help="examples: queries per pair (default 5)")),
+    ("experiments", "--runtime-images", dict(type=int, default=32,
+                                             help="runtime and lengths: images timed per method (default 32)")),
+    ("experiments", "--embedding-points", dict(type=int, default=300,
+                                               help="disentanglement: at most this many images per condition in "
+                                                    "the PCA/t-SNE embeddings (default 300)")),
+    ("output", "--out", dict(required=True, metavar="OUT_DIR",
+                             help="folder for report.html, one JSON per experiment, figures/ and cache/")),
+    ("output", "--batch-size", dict(type=int, default=32, help="images described per batch (default 32)")),
+    ("output", "--threads", dict(type=int, help="torch CPU threads (default: all cores)")),
+    ("output", "--no-progress", dict(action="store_true", help="no progress bars")),
+)
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "reproduce",
+        help="run the paper's experiments and write one self-contained HTML report",
+        description="Run the paper's experiments (" + EXPERIMENT_NAMES + ") on a dataset and write "
+                    "OUT_DIR/report.html (figures embedded, opens offline), one JSON of numbers per experiment "
+                    "and the figures. Descriptors are cached in OUT_DIR/cache: rerun one experiment with "
+                    "--experiments NAME, add a method, or resume an interrupted run at little cost.",
+    )
+    groups = {name: p.add_argument_group(name) for name in ("data", "methods", "experiments", "output")}
+    for group, flag, keywords in ARGUMENTS:
+        groups[group].add_argument(flag, **keywords)
+    p.set_defaults(func=run)
+
+
+def command_line(args) -> str:
+    """The command as the parser understood it, flags in the parser's order."""
+    parts = ["fdnet", "reproduce"]
+    for _, flag, keywords in ARGUMENTS:
+        value = getattr(args, flag[2:].replace("-", "_"))
+        if keywords.get("action") == "store_true":
+            parts += [flag] if value else []
+        elif keywords.get("action") == "append":
+            for item in value or []:
+                parts += [flag, str(item)]
+        elif value is not None and value != keywords.get("default"):
+            parts += [flag, str(value)]
+    return shlex.join(parts)
+
+
+def _names(text: str | None) -> list[str] | None:
+    return None if text is None else [n.strip() for n in text.split(",") if n.strip()]
+
+
+def _length_runs(text: str | None) -> dict:
+    from pathlib import Path
+
+    from fdnet.errors import ConfigError
+
+    runs = {}
+    for item in _names(text) or []:
+        length, sep, folder = item.partition("=")
+        if not sep or not length.strip().isdigit() or not folder.strip():
+            raise ConfigError(f"--length-runs {item!r}: expected L=RUN_DIR, e.g. 512=runs/L512")
+        runs[int(length)] = Path(folder.strip())
+    return runs
+
+
+def _overlaps(text: str) -> tuple[float, ...]:
+    from fdnet.errors import ConfigError
+
+    values = []
+    for item in _names(text) or []:
+        try:
+            value = float(item)
+        except ValueError:
+            raise ConfigError(f"--overlaps {text!r}: {item!r} is not a number (percent, e.g. 100,90,75,65)") from None
+        values.append(value / 100.0 if value > 1.0 else value)
+    if not values:
+        raise ConfigError("--overlaps is empty")
+    return tuple(values)
+
+
+def run(args) -> int:
+    import argparse
+    import sys
+    from pathlib import Path
+
+    from fdnet.cli.common import method_options, set_threads
+    from fdnet.config import parse_overrides
+    from fdnet.descriptors.registry import available_methods
+    from fdnet.errors import ConfigError
+    from fdnet.reproduce import DEFAULT_METHODS, ReproduceSettings, reproduce
+
+    known = available_methods()
+    prefixed = [c for c in args.checkpoint if c.partition("=")[0] in known and c.partition("=")[1]]
+    fdnet_runs = [c for c in args.checkpoint if c not in prefixed] + \
+        [c.partition("=")[2] for c in prefixed if c.startswith("fdnet=")]
+    if len(fdnet_runs) != 1:
+        raise ConfigError("--checkpoint: give the FDNet run directory exactly once (RUN_DIR or fdnet=RUN_DIR); "
+                          "other trained methods as METHOD=RUN_DIR")
+    methods = _names(args.methods)
+    considered = methods or list(DEFAULT_METHODS)
+    others = argparse.Namespace(method=",".join(considered), weights=args.weights, vocabulary=args.vocabulary,
+                                method_set=args.method_set,
+                                checkpoint=[c for c in prefixed if not c.startswith("fdnet=")])
+    options = {name: method_options(others, name) for name in considered if name in known}
+    viewpoint = _names(args.viewpoint_pair)
+    if viewpoint is not None and len(viewpoint) != 2:
+        raise ConfigError(f"--viewpoint-pair {args.viewpoint_pair!r}: expected REFERENCE,QUERY")
+    settings = ReproduceSettings(
+        data=Path(args.data), out=Path(args.out), checkpoint=Path(fdnet_runs[0]),
+        dataset_format=args.dataset_format, conditions=_names(args.conditions), frames=args.frames,
+        split=args.split, tolerance=args.tolerance, format_options=parse_overrides(args.format_set),
+        methods=methods, method_options=options, experiments=_names(args.experiments),
+        length_runs=_length_runs(args.length_runs), length_preset=args.length_preset,
+        length_train_frames=args.length_train_frames, length_overrides=parse_overrides(args.length_set),
+        viewpoint_pair=tuple(viewpoint) if viewpoint else None, overlaps=_overlaps(args.overlaps),
+        examples=args.examples, runtime_images=args.runtime_images, embedding_points=args.embedding_points,
+        batch_size=args.batch_size, progress=not args.no_progress and sys.stderr.isatty(),
+        command=command_line(args))
+    set_threads(args.threads)
+    report = reproduce(settings)
+    print(f"fdnet reproduce: report in {report}")
+    return 0

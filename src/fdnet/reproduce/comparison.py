@@ -1,0 +1,112 @@
+"""Experiment ``comparison`` (paper Tables 3 and 4, Figs 7 and 14-17): every method on every
+ordered pair of conditions under the paper's protocol (500 uniform thresholds, recall over queries).
+
+Per pair: R@100P and P@maxR (the paper's two columns), R@1/5/10 and AUC-PR for FDNet, the trunk
+alone and every baseline, the best of each column marked, and the paper's own numbers beside ours
+when the paper reports the same dataset pair; one figure of all methods' PR curves.
+"""
+
+from __future__ import annotations
+
+from fdnet.reproduce.sections import Figure, Heading, Paragraph, Table, best_cells, number, pair_name
+
+NAME = "comparison"
+TITLE = "Method comparison over every ordered pair of conditions"
+PAPER = "Tables 3 and 4 (recall at 100% precision, precision at maximum recall); Figs 7, 14-17 (PR curves)"
+
+#: (column title, key of the result JSON); recall_at_n keys are "1", "5", "10"
+COLUMNS = (("R@100P", "recall_at_100_precision"), ("P@maxR", "precision_at_max_recall"), ("R@1", "1"),
+           ("R@5", "5"), ("R@10", "10"), ("AUC-PR", "auc_pr"))
+
+
+def unavailable(ctx) -> str | None:
+    return None
+
+
+def run(ctx) -> dict:
+    from fdnet.evaluation import plots
+    from fdnet.evaluation.report import format_table
+    from fdnet.reproduce.paper import paper_pair
+    from fdnet.reproduce.runner import PROTOCOL, THRESHOLDS
+
+    pairs = []
+    for pair in ctx.pairs:
+        results = [ctx.result(handle, pair.split, pair.slug) for handle in ctx.available()]
+        ctx.log(f"[{NAME}] {pair.label}\n" + format_table(results, PROTOCOL))
+        figure = plots.plot_pr_curves(
+            {r.method: (r.metrics[PROTOCOL].curve, r.metrics[PROTOCOL].auc_pr) for r in results},
+            ctx.figure_path(f"pr_{pair.slug}.png"),
+            title=f"{pair.label} ({PROTOCOL}, {THRESHOLDS} thresholds)")
+        paper = paper_pair(ctx.dataset, pair.reference, pair.query)
+        gt = pair.split.ground_truth
+        pairs.append({
+            "reference": pair.reference, "query": pair.query, "description": pair.split.description,
+            "ground_truth": gt.description, "num_queries": gt.num_queries,
+            "num_queries_with_match": int(gt.has_match.sum()), "num_references": gt.num_references,
+            "results": [r.to_dict(PROTOCOL) for r in results],
+            "paper_source": paper[0] if paper else None,
+            "paper": paper[1] if paper else None,
+            "figure": ctx.relative(figure),
+        })
+    return {"pairs": pairs, "skipped": ctx.skipped(), "paper_dataset": ctx.dataset}
+
+
+def _value(result: dict, key: str):
+    return result["recall_at_n"].get(key) if key.isdigit() else result.get(key)
+
+
+def _rank(rows: list[list], column: int, method: str) -> str:
+    values = sorted({row[column] for row in rows if row[column] is not None}, reverse=True)
+    mine = next((row[column] for row in rows if row[0] == method), None)
+    if mine is None:
+        return "-"
+    return f"{values.index(mine) + 1} of {len(rows)}"
+
+
+def render(document: dict) -> list:
+    blocks: list = [Paragraph(
+        "Each query's best match is accepted when its score passes a threshold; 500 thresholds "
+        "uniform over the min-max-normalised best-match scores give the PR curve (paper 5.1.2). "
+        "R@100P = largest recall at precision 1; P@maxR = precision at the largest recall; "
+        "R@N = queries with a true match among their N best; AUC-PR = area under the PR curve. "
+        "Bold with a star: the best of our methods in that column.")]
+    if not document.get("paper_dataset"):
+        blocks.append(Paragraph("The paper reports no results on this dataset, so no paper numbers are shown "
+                                "(it has Nordland in Table 3; Alderley, Oxford RobotCar, St Lucia and FAS in Table 4).",
+                                note=True))
+    for skipped in document.get("skipped", []):
+        blocks.append(Paragraph(f"{skipped['method']}: not run here ({skipped['reason']})", note=True))
+    for pair in document["pairs"]:
+        blocks.append(Heading(f"{pair_name(pair['query'], pair['reference'])} (query \u2192 reference): "
+                              f"{pair['num_queries']} queries ({pair['num_queries_with_match']} with a true match) "
+                              f"x {pair['num_references']} references; {pair['ground_truth']}"))
+        paper = pair.get("paper") or {}
+        rows = [[r["method"]] + [_value(r, key) for _, key in COLUMNS] for r in pair["results"]]
+        marked = best_cells(rows, list(range(1, len(COLUMNS) + 1)))
+        header = ["method"] + [title for title, _ in COLUMNS]
+        if paper:
+            header += ["paper R@100P", "paper P@maxR"]
+        cells = []
+        for row in rows:
+            line = [row[0]] + [number(v) for v in row[1:]]
+            if paper:
+                theirs = paper.get(row[0])
+                line += [number(theirs["recall_at_100_precision"]), number(theirs["precision_at_max_recall"])] \
+                    if theirs else ["-", "-"]
+            cells.append(line)
+        ours = {row[0] for row in rows}
+        for method, theirs in paper.items():
+            if method not in ours:
+                cells.append([f"{method} ({theirs['paper_name']}, paper only)"] + ["-"] * len(COLUMNS)
+                             + [number(theirs["recall_at_100_precision"]), number(theirs["precision_at_max_recall"])])
+        caption = f"{pair_name(pair['query'], pair['reference'])}"
+        if paper:
+            caption += (f"; paper columns: {pair['paper_source']}, the paper's own numbers (its query/reference "
+                        f"direction is not stated, so they stand beside both directions)")
+        blocks.append(Table(header, cells, caption, marked))
+        if "fdnet" in ours:
+            blocks.append(Paragraph(f"FDNet ranks {_rank(rows, 3, 'fdnet')} by R@1 and {_rank(rows, 1, 'fdnet')} "
+                                    f"by R@100P on this pair."))
+        blocks.append(Figure(pair["figure"], f"PR curves, {pair_name(pair['query'], pair['reference'])} "
+                                             f"(legend: AUC-PR)"))
+    return blocks

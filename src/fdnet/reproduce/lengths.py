@@ -1,0 +1,182 @@
+"""Experiment ``lengths`` (paper Fig. 6, Table 2): FDNet with content vectors of length
+L = 256, 512, 1024 and 2048.
+
+The four FDNet runs are given (``length_runs``: L -> run directory), or trained here with a preset
+(``length_preset``, on ``length_train_frames`` of the data, ``model.vector_length`` = L, further
+settings from ``length_overrides``) into ``OUT/length-runs/L<L>/``; an interrupted training resumes
+from its last checkpoint on the next run, and a finished one is reused. Per length: PR curves on
+every pair (Fig. 6), R@100P and R@1, extraction ms/image and matching ms/query on this machine
+beside the paper's Table 2.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+from fdnet.errors import ConfigError
+from fdnet.reproduce.sections import Figure, Paragraph, Table, best_cells, number, pair_name
+
+NAME = "lengths"
+TITLE = "Vector length L = 256, 512, 1024, 2048"
+PAPER = "Fig. 6 (PR curves per vector length, Nordland), Table 2 (extraction and matching time per length)"
+
+LENGTHS = (256, 512, 1024, 2048)
+
+
+def unavailable(ctx) -> str | None:
+    s = ctx.settings
+    if not s.length_runs and not s.length_preset:
+        return ("needs four FDNet runs: --length-runs 256=DIR,512=DIR,1024=DIR,2048=DIR, or --length-preset PRESET "
+                "(with --length-train-frames START:END) to train them here")
+    return None
+
+
+def _frames_overlap(a: str | None, b: str | None) -> bool:
+    from fdnet.data.dataset import parse_frame_range
+
+    (a0, a1), (b0, b1) = parse_frame_range(a), parse_frame_range(b)
+    inf = float("inf")
+    return max(a0 or 0, b0 or 0) < min(inf if a1 is None else a1, inf if b1 is None else b1)
+
+
+def training_config(settings, length: int):
+    """The preset's run config for FDNet_L on ``settings.data`` (training frames only)."""
+    from fdnet.config import replace_dotted
+    from fdnet.methods.fdnet.config import preset
+
+    config = preset(settings.length_preset)
+    data = dataclasses.replace(config.data, root=str(settings.data),
+                               conditions=tuple(settings.conditions or ()),
+                               dataset_format=settings.dataset_format or "")
+    if settings.dataset_format:
+        data = dataclasses.replace(data, split=settings.length_train_frames or "")
+    else:
+        data = dataclasses.replace(data, frames=settings.length_train_frames)
+    config = dataclasses.replace(config, data=data)
+    return replace_dotted(config, {"model.vector_length": length, **settings.length_overrides})
+
+
+def check_training(settings) -> None:
+    """Refuse to train on the frames the experiments evaluate on."""
+    if settings.dataset_format:
+        return  # the format's train split (or --length-train-frames as its split) is the paper's
+    if not settings.length_train_frames:
+        raise ConfigError("--length-preset needs --length-train-frames START:END (frames to train on, outside "
+                          "the evaluated --frames)")
+    if _frames_overlap(settings.length_train_frames, settings.frames):
+        raise ConfigError(f"--length-train-frames {settings.length_train_frames} overlaps the evaluated frames "
+                          f"--frames {settings.frames or 'all'}: train and test on different frames")
+
+
+def _train(ctx, length: int, folder: Path) -> None:
+    from fdnet import runs
+
+    if runs.is_run(folder):
+        existing = ctx.factory("fdnet", checkpoint=str(folder))
+        if existing.step is not None and existing.step >= existing.config.total_steps:
+            ctx.log(f"[{NAME}] L = {length}: finished run in {folder}, reused")
+            return
+    from fdnet.methods.fdnet.training import train
+
+    ctx.log(f"[{NAME}] L = {length}: training with preset {ctx.settings.length_preset} into {folder}")
+    train(training_config(ctx.settings, length), folder, resume=runs.is_run(folder),
+          progress=ctx.settings.progress, command=ctx.settings.command or "fdnet reproduce")
+
+
+def length_runs(ctx) -> dict[int, Path]:
+    s = ctx.settings
+    chosen = {int(k): Path(v) for k, v in s.length_runs.items()}
+    if s.length_preset:
+        check_training(s)
+        for length in LENGTHS:
+            if length not in chosen:
+                folder = ctx.out / "length-runs" / f"L{length}"
+                _train(ctx, length, folder)
+                chosen[length] = folder
+    return dict(sorted(chosen.items()))
+
+
+def run(ctx) -> dict:
+    from fdnet import runtime
+    from fdnet.data.images import load_images
+    from fdnet.evaluation import plots
+    from fdnet.reproduce.runner import PROTOCOL
+    from fdnet.reproduce.runtime import ranking_ms_per_query
+
+    options = {k: v for k, v in ctx.settings.method_options.get("fdnet", {}).items() if k != "checkpoint"}
+    handles = {}
+    for length, folder in length_runs(ctx).items():
+        handle = ctx.add_method(f"fdnet_L{length}", "fdnet", {**options, "checkpoint": str(folder)},
+                                 required=True, compared=False)
+        if handle.descriptor.dim != length:
+            raise ConfigError(f"{folder}: was given as the L = {length} run but its content vector has "
+                              f"length {handle.descriptor.dim}")
+        handles[length] = handle
+
+    plt = plots.pyplot()
+    columns = min(3, len(ctx.pairs))
+    rows = -(-len(ctx.pairs) // columns)
+    fig, axes = plt.subplots(rows, columns, figsize=(4.8 * columns, 4.3 * rows), squeeze=False)
+    accuracy = []
+    for ax, pair in zip(axes.flat, ctx.pairs):
+        curves = {}
+        for length, handle in handles.items():
+            metrics = ctx.result(handle, pair.split, pair.slug).metrics[PROTOCOL]
+            curves[f"L = {length}"] = (metrics.curve, metrics.auc_pr)
+            accuracy.append({"length": length, "reference": pair.reference, "query": pair.query,
+                             "recall_at_100_precision": metrics.recall_at_100_precision,
+                             "precision_at_max_recall": metrics.precision_at_max_recall,
+                             "recall_at_1": metrics.recall_at_n[1], "auc_pr": metrics.auc_pr})
+        plots.draw_pr_curves(ax, curves)
+        ax.set_title(pair.label, fontsize="medium")
+    for ax in list(axes.flat)[len(ctx.pairs):]:
+        ax.axis("off")
+    fig.tight_layout()
+    figure = plots.save_figure(fig, ctx.figure_path("pr_lengths.png"))
+
+    first = ctx.pairs[0].split
+    paths = first.query.paths[:ctx.settings.runtime_images]
+    timing = []
+    for length, handle in handles.items():
+        descriptor = handle.descriptor
+        images = load_images(paths, descriptor.input_size)
+        queries, references = ctx.pair_vectors(handle, first)
+        paper = runtime.PAPER_TABLE2.get(length, (None, None))
+        timing.append({"length": length, "run": str(handle.options["checkpoint"]), "step": descriptor.step,
+                       "preset": descriptor.config.preset,
+                       "ms_per_image": runtime.descriptor_extraction(descriptor, images, repeats=3),
+                       "ms_per_query": ranking_ms_per_query(descriptor, queries, references),
+                       "paper_ms_per_image": paper[0], "paper_ms_per_query": paper[1]})
+    return {"lengths": list(handles), "accuracy": accuracy, "timing": timing, "figure": ctx.relative(figure),
+            "pairs": [{"reference": p.reference, "query": p.query} for p in ctx.pairs],
+            "num_images_timed": len(paths), "map_size": len(first.reference),
+            "missing": [length for length in LENGTHS if length not in handles]}
+
+
+def render(document: dict) -> list:
+    blocks: list = []
+    if document.get("missing"):
+        blocks.append(Paragraph(f"No run given for L = {', '.join(map(str, document['missing']))}.", note=True))
+    pairs = document["pairs"]
+    by_key = {(a["length"], a["reference"], a["query"]): a for a in document["accuracy"]}
+    for key, title in (("recall_at_100_precision", "R@100P"), ("recall_at_1", "R@1")):
+        rows = [[f"FDNet_{length}"] + [by_key[(length, p["reference"], p["query"])][key] for p in pairs]
+                for length in document["lengths"]]
+        marked = best_cells(rows, list(range(1, len(pairs) + 1)))
+        blocks.append(Table(["vector length"] + [f"{pair_name(p['query'], p['reference'])}" for p in pairs],
+                            [[r[0]] + [number(v) for v in r[1:]] for r in rows],
+                            f"{title} per vector length and pair (paper protocol)", marked))
+    rows = [[f"FDNet_{t['length']}", f"{t['preset']} (step {t['step']})", number(t["ms_per_image"], 2),
+             number(t["paper_ms_per_image"], 1),
+             number(t["paper_ms_per_image"] / t["ms_per_image"] if t["paper_ms_per_image"] else None, 2),
+             number(t["ms_per_query"], 4), number(t["paper_ms_per_query"], 2),
+             number(t["paper_ms_per_query"] / t["ms_per_query"] if t["paper_ms_per_query"] else None, 2)]
+            for t in document["timing"]]
+    blocks.append(Table(["vector length", "run", "ms/image", "paper ms/image (TITAN X)", "paper / ours",
+                         "ms/query", "paper ms/query", "paper / ours"], rows,
+                        f"Extraction over {document['num_images_timed']} decoded images and matching against "
+                        f"{document['map_size']} references on this machine (see the runtime section for the "
+                        f"hardware); the paper's Table 2 beside, ratio above 1 = faster here"))
+    blocks.append(Figure(document["figure"], "PR curves per vector length, one panel per pair (Fig. 6)"))
+    return blocks

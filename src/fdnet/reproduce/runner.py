@@ -1,0 +1,417 @@
+"""The runner of ``fdnet reproduce``: settings, the evaluation pairs, the methods, and a context the
+experiments share (cached vectors, similarity matrices and metrics computed once per run).
+
+Every experiment module (``comparison``, ``lengths``, ``similarity``, ``disentanglement``,
+``viewpoint``, ``runtime``, ``examples``) has ``NAME``, ``TITLE``, ``PAPER`` (the figures/tables it
+reproduces), ``unavailable(ctx)`` (why it cannot run, or None), ``run(ctx) -> dict`` (the numbers,
+written to ``OUT/<NAME>.json``; figures under ``OUT/figures/<NAME>/``) and ``render(document)``
+(the report section's blocks, from that JSON alone, so a section survives reruns of the others).
+After each experiment the report is rendered again, so an interrupted run still leaves a report of
+what finished, and a rerun resumes from the descriptor cache (``OUT/cache/``).
+"""
+
+from __future__ import annotations
+
+import datetime
+import importlib
+import itertools
+import json
+import re
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from fdnet import __version__
+from fdnet.data.split import EvaluationSplit
+from fdnet.errors import ConfigError, FdnetError
+from fdnet.evaluation.metrics import PROTOCOLS, RECALL_OVER_QUERIES
+from fdnet.io import atomic_write_text, ensure_writable
+from fdnet.evaluation.report import _plain
+from fdnet.reproduce.cache import DescriptorCache, image_list_key
+from fdnet.reproduce.sections import EXPERIMENTS, MANIFEST
+
+#: FDNet, the trunk alone and every baseline; those that cannot run here (no trained model, no
+#: weights) are listed in the report with the reason, unless named explicitly with --methods
+DEFAULT_METHODS = ("fdnet", "trunk", "sad", "hog", "gist", "dbow", "conv3", "landmarks", "netvlad", "calc",
+                   "hybridnet")
+
+#: the paper's protocol (section 5.1.2): 500 uniform thresholds, recall over queries
+PROTOCOL = RECALL_OVER_QUERIES
+THRESHOLDS = 500
+
+
+@dataclass
+class ReproduceSettings:
+    """What ``fdnet reproduce`` was asked to do (the CLI fills this from its flags)."""
+
+    data: Path
+    out: Path
+    checkpoint: Path | None = None
+    dataset_format: str | None = None
+    conditions: list[str] | None = None
+    frames: str | None = None
+    split: str | None = None
+    tolerance: int | None = None
+    format_options: dict = field(default_factory=dict)
+    methods: list[str] | None = None
+    method_options: dict[str, dict] = field(default_factory=dict)
+    experiments: list[str] | None = None
+    length_runs: dict[int, Path] = field(default_factory=dict)
+    length_preset: str | None = None
+    length_train_frames: str | None = None
+    length_overrides: dict = field(default_factory=dict)
+    viewpoint_pair: tuple[str, str] | None = None  # (reference, query)
+    overlaps: tuple[float, ...] = (1.0, 0.9, 0.75, 0.65)
+    examples: int = 5
+    runtime_images: int = 32
+    embedding_points: int = 300
+    batch_size: int = 32
+    progress: bool = False
+    command: str = ""
+
+
+@dataclass
+class Pair:
+    """One ordered pair of conditions: ``query`` images matched against the ``reference`` map."""
+
+    reference: str
+    query: str
+    split: EvaluationSplit
+
+    @property
+    def label(self) -> str:
+        return f"{self.query} -> {self.reference}"
+
+    @property
+    def slug(self) -> str:
+        return re.sub(r"[^A-Za-z0-9_.-]+", "_", f"{self.query}_vs_{self.reference}")
+
+
+def build_pairs(settings: ReproduceSettings) -> list[Pair]:
+    """Every ordered pair of the chosen conditions. Plain folders: frame-aligned within
+    ``tolerance`` frames, ``frames`` slicing every condition. With a dataset format: the adapter's
+    split and ground truth for each pair (only its default pair when no conditions are named)."""
+    from fdnet.data.dataset import RouteDataset, parse_frame_range
+    from fdnet.data.split import aligned_split
+
+    if settings.dataset_format:
+        from fdnet.data.formats import detect_format, open_split
+
+        if settings.frames and settings.split:
+            raise ConfigError("give --split or --frames, not both")
+        name = detect_format(settings.data) if settings.dataset_format == "auto" else settings.dataset_format
+        options = dict(settings.format_options)
+        if settings.tolerance is not None:
+            options["tolerance"] = settings.tolerance
+        split = settings.split or settings.frames
+        if not settings.conditions:
+            one = open_split(settings.data, dataset_format=name, split=split, **options)
+            return [Pair(one.reference.name, one.query.name, one)]
+        return [Pair(r, q, open_split(settings.data, r, q, dataset_format=name, split=split, **options))
+                for r, q in itertools.permutations(settings.conditions, 2)]
+    if settings.split or settings.format_options:
+        raise ConfigError("--split and --format-set need --dataset-format")
+    dataset = RouteDataset.from_folder(settings.data, settings.conditions)
+    if len(dataset.conditions) < 2:
+        raise ConfigError(f"{settings.data}: needs at least two conditions to compare, found "
+                          f"{', '.join(dataset.conditions) or 'none'}")
+    start, end = parse_frame_range(settings.frames)
+    return [Pair(r, q, aligned_split(dataset, r, q, settings.tolerance or 0, start, end))
+            for r, q in itertools.permutations(dataset.conditions, 2)]
+
+
+class MethodHandle:
+    """One method of this run, built once. ``descriptor`` is None when it cannot run here
+    (``reason`` says why). A method that learns from the map (``needs_fit``) gets one fitted copy
+    per reference image list; its vectors are cached under the unfitted fingerprint plus that list,
+    so a rerun that finds them cached does not fit again."""
+
+    def __init__(self, label: str, name: str, options: dict, factory: Callable, compared: bool = True) -> None:
+        self.label, self.name, self.options, self.factory = label, name, dict(options), factory
+        #: one of the methods compared in every experiment (False: e.g. the lengths study's runs)
+        self.compared = compared
+        self.descriptor = None
+        self.reason: str | None = None
+        self._fitted: dict[str, object] = {}
+        self._identity: dict | None = None
+
+    def build(self, required: bool) -> None:
+        try:
+            self.descriptor = self.factory(self.name, **self.options)
+        except FdnetError as exc:
+            if required:
+                raise
+            self.reason = str(exc)
+
+    @property
+    def available(self) -> bool:
+        return self.descriptor is not None
+
+    @property
+    def identity(self) -> dict:
+        if self._identity is None:
+            d = self.descriptor
+            self._identity = {"method": d.name, "settings": d.settings(), "fingerprint": d.fingerprint()}
+        return self._identity
+
+    def fitted(self, fit_paths: Sequence[Path] | None):
+        """The descriptor ready to describe (fitted on ``fit_paths`` when it learns from the map)."""
+        d = self.descriptor
+        if not d.needs_fit:
+            return d
+        if fit_paths is None:
+            raise ConfigError(f"{self.label} learns from the reference images; no reference set was given")
+        key = image_list_key(fit_paths)
+        if key not in self._fitted:
+            fresh = self.factory(self.name, **self.options)
+            fresh.fit(list(fit_paths))
+            self._fitted[key] = fresh
+        return self._fitted[key]
+
+
+class _AppearanceView:
+    """A descriptor whose ``describe`` is FDNet's ``describe_appearance`` (for batching/loading)."""
+
+    def __init__(self, descriptor) -> None:
+        self.inner = descriptor
+        self.name = f"{descriptor.name} appearance"
+        self.input_size = descriptor.input_size
+        self.dim = descriptor.dim
+
+    def describe(self, images):
+        return self.inner.describe_appearance(images)
+
+
+class Context:
+    """What the experiments share in one run: settings, pairs, methods, the cache, the log."""
+
+    def __init__(self, settings: ReproduceSettings, pairs: list[Pair], factory: Callable,
+                 log: Callable[[str], None]) -> None:
+        self.settings = settings
+        self.pairs = pairs
+        self.factory = factory
+        self.log = log
+        self.out = Path(settings.out)
+        self.cache = DescriptorCache(self.out / "cache" / "descriptors")
+        self.handles: dict[str, MethodHandle] = {}
+        self._similarities: dict[tuple[str, str], np.ndarray] = {}
+        self._results: dict[tuple[str, str], object] = {}
+        from fdnet.reproduce.paper import dataset_key
+
+        self.dataset = dataset_key(settings.dataset_format, Path(settings.data).resolve().name)
+        self.experiment = ""
+
+    # --------------------------------------------------------------------- methods
+    def add_method(self, label: str, name: str, options: dict, required: bool, compared: bool = True) -> MethodHandle:
+        handle = MethodHandle(label, name, options, self.factory, compared)
+        handle.build(required)
+        if handle.reason:
+            self.log(f"{label}: not run ({handle.reason})")
+        self.handles[label] = handle
+        return handle
+
+    def methods(self) -> list[MethodHandle]:
+        """The compared methods (not the extra FDNet runs of the lengths study), in order."""
+        return [h for h in self.handles.values() if h.compared]
+
+    def available(self) -> list[MethodHandle]:
+        return [h for h in self.methods() if h.available]
+
+    def skipped(self) -> list[dict]:
+        return [{"method": h.label, "reason": h.reason} for h in self.methods() if not h.available]
+
+    # --------------------------------------------------------------------- vectors
+    def vectors(self, handle: MethodHandle, paths: Sequence[Path], fit_paths: Sequence[Path] | None = None,
+                kind: str = "content", what: str = "") -> np.ndarray:
+        """``handle``'s vectors of ``paths`` (``kind`` "content", or "appearance" for FDNet's
+        v_a), from the cache or described now."""
+        from fdnet.descriptors.base import describe_paths
+
+        paths = list(paths)
+        d = handle.descriptor
+        parts = {**handle.identity, "kind": kind, "images": image_list_key(paths),
+                 "fitted_on": image_list_key(fit_paths) if d.needs_fit else None}
+
+        def compute() -> np.ndarray:
+            self.log(f"[{self.experiment}] {handle.label}: describing {what or 'images'} ({len(paths)} images"
+                     f"{', ' + kind if kind != 'content' else ''})")
+            describer = handle.fitted(fit_paths)
+            if kind == "appearance":
+                describer = _AppearanceView(describer)
+            return describe_paths(describer, paths, self.settings.batch_size, progress=self.settings.progress)
+
+        return self.cache.vectors(parts, compute, label=f"{handle.label}/{kind}/{what}")
+
+    def pair_vectors(self, handle: MethodHandle, split: EvaluationSplit) -> tuple[np.ndarray, np.ndarray]:
+        """(query vectors, reference vectors) of one split; learning methods fit on its references."""
+        refs = split.reference.paths
+        q = self.vectors(handle, split.query.paths, refs, what=split.query.name)
+        r = self.vectors(handle, refs, refs, what=split.reference.name)
+        return q, r
+
+    def similarity(self, handle: MethodHandle, split: EvaluationSplit, key: str) -> np.ndarray:
+        """(Q, R) similarity of one split by the method's own comparison (kept for this run)."""
+        from fdnet.matching.similarity import similarity_matrix
+
+        memo = (handle.label, key)
+        if memo not in self._similarities:
+            q, r = self.pair_vectors(handle, split)
+            compare = handle.fitted(split.reference.paths).similarity if handle.descriptor.needs_fit \
+                else handle.descriptor.similarity
+            self._similarities[memo] = similarity_matrix(q, r, compare)
+        return self._similarities[memo]
+
+    def result(self, handle: MethodHandle, split: EvaluationSplit, key: str):
+        """The :class:`~fdnet.evaluation.experiment.MethodResult` of one split under the paper's
+        protocol (500 thresholds), with the descriptor's settings."""
+        from fdnet.evaluation.experiment import evaluate_matrix
+
+        memo = (handle.label, key)
+        if memo not in self._results:
+            result = evaluate_matrix(self.similarity(handle, split, key), split.ground_truth, handle.label,
+                                     (PROTOCOL,), THRESHOLDS, dataset=split.description,
+                                     query_paths=split.query.paths, reference_paths=split.reference.paths)
+            result.settings = dict(handle.descriptor.settings())
+            self._results[memo] = result
+        return self._results[memo]
+
+    # --------------------------------------------------------------------- outputs
+    def figure_path(self, name: str) -> Path:
+        return self.out / "figures" / self.experiment / name
+
+    def relative(self, path: Path) -> str:
+        return Path(path).relative_to(self.out).as_posix()
+
+
+def condition_traverses(pairs: Sequence[Pair]) -> dict:
+    """Condition name -> its traverse (the first pair that holds it), in first-seen order."""
+    out: dict = {}
+    for pair in pairs:
+        for traverse in (pair.split.reference, pair.split.query):
+            out.setdefault(traverse.name, traverse)
+    return out
+
+
+def matched_reference(split: EvaluationSplit, query: int) -> int | None:
+    """The reference showing the same place as ``query``: the true match with the same frame id
+    when there is one (frame-aligned traverses), else the middle of its true matches; None when
+    the query has no true match."""
+    positives = split.ground_truth.positives[query]
+    if not len(positives):
+        return None
+    same_frame = positives[split.reference.frame_ids[positives] == split.query.frame_ids[query]]
+    return int(same_frame[0]) if len(same_frame) else int(positives[len(positives) // 2])
+
+
+def experiment_module(name: str):
+    return importlib.import_module(f"fdnet.reproduce.{name}")
+
+
+def _check(settings: ReproduceSettings) -> list[str]:
+    """Settings errors before any work; returns the experiments to run."""
+    from fdnet.descriptors.registry import available_methods
+
+    chosen = list(settings.experiments or EXPERIMENTS)
+    unknown = [e for e in chosen if e not in EXPERIMENTS]
+    if unknown:
+        raise ConfigError(f"unknown experiment(s) {', '.join(unknown)}; choose from {', '.join(EXPERIMENTS)}")
+    known = available_methods()
+    bad = [m for m in settings.methods or [] if m not in known]
+    if bad:
+        raise ConfigError(f"unknown method(s) {', '.join(bad)}; available: {', '.join(known)}")
+    if settings.methods is not None and not settings.methods:
+        raise ConfigError("--methods is empty")
+    for overlap in settings.overlaps:
+        if not 0.0 < overlap <= 1.0:
+            raise ConfigError(f"overlap {overlap}: must be in (0, 1] (e.g. 1,0.9,0.75,0.65)")
+    for name, value in (("--examples", settings.examples), ("--runtime-images", settings.runtime_images),
+                        ("--batch-size", settings.batch_size), ("--embedding-points", settings.embedding_points)):
+        if value < 1:
+            raise ConfigError(f"{name} must be >= 1, got {value}")
+    if settings.tolerance is not None and settings.tolerance < 0:
+        raise ConfigError(f"--tolerance must be >= 0, got {settings.tolerance}")
+    if not Path(settings.data).is_dir():
+        raise ConfigError(f"{settings.data}: dataset folder not found")
+    return chosen
+
+
+def _default_factory(name: str, **options):
+    from fdnet.descriptors import create
+
+    return create(name, **options)
+
+
+def _stderr(message: str) -> None:
+    print(f"fdnet reproduce: {message}", file=sys.stderr, flush=True)
+
+
+def reproduce(settings: ReproduceSettings, factory: Callable | None = None,
+              log: Callable[[str], None] | None = None) -> Path:
+    """Run the chosen experiments (default all) and write ``OUT/report.html``; returns its path.
+
+    ``factory(name, **options)`` builds a descriptor (default :func:`fdnet.descriptors.create`).
+    """
+    from fdnet.reproduce.report import write_report
+
+    log = log or _stderr
+    chosen = _check(settings)
+    out = ensure_writable(settings.out, what="reproduce output", directory=True)
+    pairs = build_pairs(settings)
+    log(f"{len(pairs)} condition pair(s): {'; '.join(p.label for p in pairs)}")
+    ctx = Context(settings, pairs, factory or _default_factory, log)
+    methods = settings.methods or list(DEFAULT_METHODS)
+    for name in methods:
+        options = dict(settings.method_options.get(name, {}))
+        if name in ("fdnet", "trunk") and settings.checkpoint is not None:
+            options.setdefault("checkpoint", str(settings.checkpoint))
+        # named explicitly, or the FDNet run the command was given: a failure to load is an error
+        required = settings.methods is not None or (name == "fdnet" and settings.checkpoint is not None)
+        ctx.add_method(name, name, options, required=required)
+    if not ctx.available():
+        raise ConfigError("none of the methods can run here: " + "; ".join(
+            f"{s['method']}: {s['reason']}" for s in ctx.skipped()))
+
+    manifest = {
+        "fdnet_version": __version__,
+        "command": settings.command,
+        "created": _now(),
+        "dataset": str(settings.data),
+        "dataset_format": settings.dataset_format or "folders (one sub-folder per condition)",
+        "pairs": [{"reference": p.reference, "query": p.query, "description": p.split.description,
+                   "num_queries": len(p.split.query), "num_references": len(p.split.reference)} for p in pairs],
+        "protocol": PROTOCOL,
+        "protocol_definition": PROTOCOLS[PROTOCOL],
+        "thresholds": f"{THRESHOLDS} uniform over min-max-normalised best-match scores (paper 5.1.2)",
+        "checkpoint": str(settings.checkpoint) if settings.checkpoint else None,
+        "experiments_run": chosen,
+    }
+    atomic_write_text(out / MANIFEST, json.dumps(manifest, indent=2) + "\n")
+    for name in chosen:
+        module = experiment_module(name)
+        ctx.experiment = name
+        reason = module.unavailable(ctx)
+        if reason and settings.experiments:
+            raise ConfigError(f"experiment {name}: {reason}")
+        log(f"[{name}] {module.TITLE}" + (f": not run ({reason})" if reason else ""))
+        started = time.monotonic()
+        document = {"not_run": reason} if reason else module.run(ctx)
+        document = {"experiment": name, "title": module.TITLE, "paper": module.PAPER,
+                    "fdnet_version": __version__, "command": settings.command, "created": _now(),
+                    "dataset": str(settings.data), "checkpoint": manifest["checkpoint"],
+                    "protocol": PROTOCOL, **document}
+        atomic_write_text(out / f"{name}.json", json.dumps(document, indent=1, allow_nan=False,
+                                                            default=_plain) + "\n")
+        write_report(out)
+        log(f"[{name}] done in {time.monotonic() - started:.1f} s")
+    log(f"described {len(ctx.cache.computed)} image set(s), reused {ctx.cache.hits} from the cache")
+    report = write_report(out)
+    log(f"wrote {report}")
+    return report
+
+
+def _now() -> str:
+    return datetime.datetime.now().astimezone().isoformat(timespec="seconds")
