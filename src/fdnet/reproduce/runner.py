@@ -126,9 +126,11 @@ def build_pairs(settings: ReproduceSettings) -> list[Pair]:
 
 class MethodHandle:
     """One method of this run, built once. ``descriptor`` is None when it cannot run here
-    (``reason`` says why). A method that learns from the map (``needs_fit``) gets one fitted copy
-    per reference image list; its vectors are cached under the unfitted fingerprint plus that list,
-    so a rerun that finds them cached does not fit again."""
+    (``reason`` says why). A method that learns from the map (``needs_fit``, e.g. DBoW without a
+    vocabulary) gets one fitted copy per reference image list, made when first needed; its vectors
+    are cached under the unfitted fingerprint plus that list (fitting is deterministic), so a rerun
+    does not describe them again. It is fitted again for its comparison, which may depend on what
+    it learnt."""
 
     def __init__(self, label: str, name: str, options: dict, factory: Callable, compared: bool = True) -> None:
         self.label, self.name, self.options, self.factory = label, name, dict(options), factory

@@ -10,7 +10,7 @@ reported, on whatever else the machine is doing.
 
 from __future__ import annotations
 
-from fdnet.reproduce.sections import Paragraph, Table, number, pair_name
+from fdnet.reproduce.sections import Figure, Paragraph, Table, number, pair_name
 
 NAME = "runtime"
 TITLE = "Runtime: extraction and matching"
@@ -85,11 +85,38 @@ def run(ctx) -> dict:
             "extraction_ratio_paper_over_ours": _ratio(paper.get("ms_per_image"), ms_image),
             "matching_ratio_paper_over_ours": _ratio(paper.get("ms_per_query"), ms_query),
         })
-    return {"machine": machine_description(), "gemm_gflops_fp32": runtime.gemm_gflops(repeats=3),
+    figure = _bars(ctx, methods)
+    return {"machine": machine_description(), "figure": ctx.relative(figure), "gemm_gflops_fp32": runtime.gemm_gflops(repeats=3),
             "reference": pair.reference, "query": pair.query, "num_images_timed": len(paths),
             "num_queries": len(split.query),
             "map_size": len(split.reference), "methods": methods, "paper_hardware": PAPER_HARDWARE,
             "skipped": ctx.skipped()}
+
+
+def _bars(ctx, methods: list[dict]):
+    """Ours beside the paper's, per method, on a log scale (times span four orders of magnitude)."""
+    import numpy as np
+
+    from fdnet.evaluation import plots
+
+    plt = plots.pyplot()
+    names = [m["method"] for m in methods]
+    y = np.arange(len(names))
+    fig, axes = plt.subplots(1, 2, figsize=(11, 0.45 * len(names) + 1.6), squeeze=False)
+    for ax, key, title in ((axes[0, 0], "ms_per_image", "extraction, ms/image"),
+                           (axes[0, 1], "ms_per_query", "matching, ms/query")):
+        ours = [m[key] for m in methods]
+        paper = [m[f"paper_{key}"] or 0.0 for m in methods]
+        ax.barh(y - 0.2, ours, height=0.4, label="this machine")
+        ax.barh(y + 0.2, paper, height=0.4, label="paper (Table 5)")
+        ax.set_yticks(y, names)
+        ax.invert_yaxis()
+        ax.set_xscale("log")
+        ax.set_title(title, fontsize="medium")
+        ax.grid(axis="x", alpha=0.3)
+    axes[0, 0].legend(fontsize="small")
+    fig.tight_layout()
+    return plots.save_figure(fig, ctx.figure_path("runtime.png"))
 
 
 def render(document: dict) -> list:
@@ -115,6 +142,8 @@ def render(document: dict) -> list:
     blocks.append(Table(["method", "dim", "input (HxW)", "ms/image", "ms/query", "paper row",
                          "paper ms/image (TITAN X)", "paper / ours", "paper ms/query", "paper / ours"], rows,
                         "Extraction and matching time per method"))
+    blocks.append(Figure(document["figure"], "Extraction and matching time per method, this machine beside the "
+                                             "paper's Table 5 (log scale; no bar where the paper has no figure)"))
     if any(m["method"] == "fdnet" and m["dim"] != 512 for m in document["methods"]):
         blocks.append(Paragraph("The paper's FDNet row is L = 512; this run's FDNet has the length in the dim "
                                 "column (see the lengths section for each L).", note=True))

@@ -1,0 +1,166 @@
+"""`fdnet reproduce` end to end on a synthetic route with tiny trained runs: every experiment's
+numbers, the report in a real headless Chromium, a rerun of one experiment from the cache, and
+bad input refused with exit code 2."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import tempfile
+from pathlib import Path
+
+import pytest
+
+from fdnet.cli import main
+from fdnet.reproduce.sections import EXPERIMENTS
+
+# FDNet on a frozen trunk (so the trunk baseline has a run to read), in seconds
+TRUNK_RUN = ["--set", "model.backbone=efficientnet-lite0", "--set", "model.backbone_block=4",
+             "--set", "model.input_size=[32,64]", "--set", "model.widths=[16]"]
+
+
+@pytest.fixture(scope="module")
+def made(tmp_path_factory):
+    """A route (summer, night; 24 frames), a trained run, and the full report on frames 12:24
+    (the length study trains its four runs on frames 0:12)."""
+    root = tmp_path_factory.mktemp("reproduce")
+    route, run, out = root / "route", root / "run", root / "out"
+    assert main(["synth", "--out", str(route), "--frames", "24", "--conditions", "summer,night"]) == 0
+    assert main(["train", "--data", str(route), "--preset", "tiny", "--out", str(run), "--frames", "0:12",
+                 "--no-progress", *TRUNK_RUN]) == 0
+    args = ["reproduce", "--data", str(route), "--checkpoint", str(run), "--methods", "fdnet,trunk,sad",
+            "--frames", "12:24", "--length-preset", "tiny", "--length-train-frames", "0:12",
+            "--examples", "3", "--runtime-images", "4", "--threads", "1", "--no-progress", "--out", str(out)]
+    assert main(args) == 0
+    return {"route": route, "run": run, "out": out, "args": args}
+
+
+def document(out: Path, name: str) -> dict:
+    return json.loads((out / f"{name}.json").read_text())
+
+
+def test_every_experiment_writes_its_numbers(made):
+    out = made["out"]
+    comparison = document(out, "comparison")
+    assert [(p["query"], p["reference"]) for p in comparison["pairs"]] == [("summer", "night"), ("night", "summer")]
+    for pair in comparison["pairs"]:
+        assert [r["method"] for r in pair["results"]] == ["fdnet", "trunk", "sad"]
+        assert all(r["thresholds"] == "500 uniform" and r["num_queries"] == 12 for r in pair["results"])
+        assert pair["paper"] is None  # the paper has no synthetic route
+    # the command as parsed, flags in the parser's order
+    assert comparison["command"] == (
+        f"fdnet reproduce --data {made['route']} --frames 12:24 --checkpoint {made['run']} --methods fdnet,trunk,sad "
+        f"--length-preset tiny --length-train-frames 0:12 --examples 3 --runtime-images 4 --out {out} --threads 1 "
+        f"--no-progress")
+    lengths = document(out, "lengths")
+    assert lengths["lengths"] == [256, 512, 1024, 2048] and len(lengths["accuracy"]) == 8
+    assert [t["paper_ms_per_image"] for t in lengths["timing"]] == [20.9, 21.2, 22.6, 28.7]
+    assert all(t["ms_per_image"] > 0 for t in lengths["timing"])
+    assert (out / "length-runs" / "L1024" / "checkpoints").is_dir()
+    disentanglement = document(out, "disentanglement")
+    assert {(e["vector"], e["embedding"]) for e in disentanglement["embeddings"]} == {
+        ("appearance", "pca"), ("appearance", "tsne"), ("content", "pca"), ("content", "tsne")}
+    assert all(-1 <= e["silhouette_full"] <= 1 for e in disentanglement["embeddings"])
+    assert disentanglement["content_differences"][0]["num_places"] == 12
+    viewpoint = document(out, "viewpoint")
+    assert [o["overlap"] for o in viewpoint["methods"][0]["overlaps"]] == [1.0, 0.9, 0.75, 0.65]
+    assert [r["overlap"] for r in viewpoint["response"]["rows"]] == [1.0, 0.9, 0.75, 0.65]
+    assert viewpoint["response"]["rows"][0]["content_cosine_distance"] == pytest.approx(0, abs=1e-5)
+    runtime = document(out, "runtime")
+    assert runtime["machine"]["logical_cores"] >= 1
+    assert {m["method"]: m["paper_ms_per_image"] for m in runtime["methods"]} == {"fdnet": 21.2, "trunk": None,
+                                                                                   "sad": None}
+    similarity = document(out, "similarity")
+    assert similarity["pairs"][0]["shape"] == [12, 12]
+    examples = document(out, "examples")
+    assert examples["pairs"][0]["queries"] == [0, 6, 11]
+    for name in EXPERIMENTS:
+        figures = list((out / "figures" / name).glob("*.png"))
+        assert figures, f"{name} drew no figure"
+
+
+def _chromium():
+    """A Selenium-driven headless Chromium (Debian's chromium + chromium-driver), or skip."""
+    webdriver = pytest.importorskip("selenium.webdriver", reason="selenium is not installed (pip install -e '.[dev]')")
+    from selenium.webdriver.chrome.service import Service
+
+    browser, driver = shutil.which("chromium") or "/usr/bin/chromium", shutil.which("chromedriver") or \
+        "/usr/bin/chromedriver"
+    if not (Path(browser).exists() and Path(driver).exists()):
+        pytest.skip("no Chromium here: install Debian's chromium and chromium-driver (.ci/run does so as root)")
+    options = webdriver.ChromeOptions()
+    options.binary_location = browser
+    profile = tempfile.mkdtemp(prefix="fdnet-chromium-")
+    # The network here is closed: without these Chromium keeps trying to reach Google's services.
+    for flag in ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                 "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                 "--window-size=1280,1000", f"--user-data-dir={profile}"):
+        options.add_argument(flag)
+    options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
+    return webdriver.Chrome(service=Service(driver), options=options), profile
+
+
+def test_the_report_renders_in_headless_chromium(made):
+    browser, profile = _chromium()
+    try:
+        browser.get((made["out"] / "report.html").resolve().as_uri())
+        sections = browser.execute_script("return [...document.querySelectorAll('section')].map(s => s.id)")
+        assert sections == list(EXPERIMENTS)
+        images = browser.execute_script("""
+            return [...document.images].map(img => {
+                img.scrollIntoView();
+                const box = img.getBoundingClientRect();
+                return {src: img.src.slice(0, 22), complete: img.complete, natural: img.naturalWidth,
+                        width: box.width, height: box.height,
+                        section: img.closest('section') ? img.closest('section').id : null};
+            })""")
+        assert {image["section"] for image in images} == set(EXPERIMENTS)
+        for image in images:
+            assert image["src"] == "data:image/png;base64,"
+            assert image["complete"] and image["natural"] > 0, f"an image in {image['section']} did not decode"
+            assert image["width"] > 0 and image["height"] > 0, f"an image in {image['section']} is not displayed"
+        tables = browser.execute_script("return document.querySelectorAll('section table').length")
+        assert tables >= len(EXPERIMENTS)
+        errors = [entry for entry in browser.get_log("browser") if entry["level"] == "SEVERE"]
+        assert errors == []
+    finally:
+        browser.quit()
+        shutil.rmtree(profile, ignore_errors=True)
+
+
+def test_rerunning_one_experiment_describes_nothing_again(made, capsys):
+    out = made["out"]
+    before = document(out, "comparison")
+    assert main([*made["args"], "--experiments", "similarity"]) == 0
+    assert "described 0 image set(s)" in capsys.readouterr().err
+    assert document(out, "comparison") == before
+    html = (out / "report.html").read_text()
+    assert all(f'<section id="{name}">' in html for name in EXPERIMENTS)
+    assert "--experiments similarity" in html
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--experiments", "tables"], "unknown experiment(s) tables"),
+    (["--checkpoint", "other_run"], "give the FDNet run directory exactly once"),
+    (["--length-runs", "512"], "expected L=RUN_DIR"),
+    (["--overlaps", "100,x"], "'x' is not a number"),
+    (["--viewpoint-pair", "summer"], "expected REFERENCE,QUERY"),
+])
+def test_bad_input_is_one_error_line_and_exit_2(made, tmp_path, capsys, extra, message):
+    args = ["reproduce", "--data", str(made["route"]), "--checkpoint", str(made["run"]), "--methods", "sad",
+            "--out", str(tmp_path / "out"), *extra]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("fdnet reproduce: error: ") and message in err
+
+
+def test_missing_data_and_unwritable_output_name_the_path(made, tmp_path, capsys):
+    missing = tmp_path / "nowhere"
+    assert main(["reproduce", "--data", str(missing), "--checkpoint", str(made["run"]), "--out",
+                 str(tmp_path / "out")]) == 2
+    assert f"{missing}: dataset folder not found" in capsys.readouterr().err
+    blocked = tmp_path / "file"
+    blocked.write_text("")
+    assert main(["reproduce", "--data", str(made["route"]), "--checkpoint", str(made["run"]), "--out",
+                 str(blocked)]) == 2
+    assert f"{blocked}: reproduce output folder exists and is not a folder" in capsys.readouterr().err

@@ -1,0 +1,50 @@
+"""The descriptor cache: one entry per (what made the vectors, image list); a changed image, an
+unreadable entry or another model is described again."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from fdnet.reproduce.cache import DescriptorCache, image_list_key
+
+
+def test_image_list_key_follows_the_files(tmp_path):
+    a, b = tmp_path / "a.png", tmp_path / "b.png"
+    a.write_bytes(b"one")
+    b.write_bytes(b"two")
+    key = image_list_key([a, b])
+    assert image_list_key([a, b]) == key
+    assert image_list_key([b, a]) != key
+    assert image_list_key([a]) != key
+    os.utime(b, ns=(0, 10**9))  # rewritten images change their modification time
+    assert image_list_key([a, b]) != key
+
+
+def test_vectors_are_described_once_per_key(tmp_path):
+    cache = DescriptorCache(tmp_path / "cache")
+    calls = []
+
+    def describe():
+        calls.append(1)
+        return np.arange(6, dtype=np.float64).reshape(2, 3)
+
+    parts = {"method": "m", "fingerprint": "f1", "images": "k"}
+    first = cache.vectors(parts, describe, label="m/summer")
+    again = DescriptorCache(tmp_path / "cache").vectors(parts, describe)
+    assert len(calls) == 1 and again.dtype == np.float32
+    np.testing.assert_array_equal(first, again)
+    cache.vectors({**parts, "fingerprint": "f2"}, describe)  # other weights
+    assert len(calls) == 2 and cache.computed == ["m/summer", ""] and cache.hits == 0
+    assert not list((tmp_path / "cache").glob(".*.tmp"))
+
+
+def test_an_unreadable_entry_is_described_again(tmp_path):
+    cache = DescriptorCache(tmp_path)
+    parts = {"method": "m"}
+    cache.vectors(parts, lambda: np.ones((1, 2)))
+    cache.path(parts).write_bytes(b"\x93NUMPY broken")
+    out = cache.vectors(parts, lambda: np.zeros((1, 2)))
+    np.testing.assert_array_equal(out, np.zeros((1, 2)))
+    np.testing.assert_array_equal(np.load(cache.path(parts)), np.zeros((1, 2)))
