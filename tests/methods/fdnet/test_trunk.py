@@ -78,3 +78,44 @@ def test_training_with_a_trunk_changes_the_encoders_but_not_the_trunk(tmp_path):
     x = torch.rand(3, 3, 32, 64)
     trainer.model.eval(), fresh.eval()
     torch.testing.assert_close(trainer.model.content(x), fresh.content(x))
+
+
+RESIDUAL = {**SMALL, "content_head": "trunk_residual", "residual_rank": 4}
+
+
+def test_residual_content_head_starts_exactly_at_the_centred_trunk_descriptor():
+    model = FDNet(FDNetConfig(**RESIDUAL)).eval()
+    images = torch.rand(5, 3, 32, 64)
+    maps = model.preprocess(images)
+    model.content_encoder.set_mean(maps)
+    expected = maps.flatten(1) - maps.flatten(1).mean(0)
+    torch.testing.assert_close(model.content(images), expected)
+    assert model.content_length == maps[0].numel()
+    # the discriminator and decoder take the longer content vector
+    assert model.discriminator.net[0].in_features == 2 * model.content_length
+
+
+def test_residual_content_head_needs_a_trunk_and_a_positive_rank():
+    with pytest.raises(ConfigError, match="needs a model.backbone"):
+        FDNet(FDNetConfig(input_size=(32, 64), widths=(8, 16), content_head="trunk_residual"))
+    with pytest.raises(ConfigError, match="residual_rank"):
+        FDNet(FDNetConfig(**{**RESIDUAL, "residual_rank": 0}))
+    with pytest.raises(ConfigError, match="content_head"):
+        FDNet(FDNetConfig(**{**RESIDUAL, "content_head": "mlp"}))
+
+
+def test_training_the_residual_head_moves_only_its_low_rank_part_and_keeps_the_mean(tmp_path):
+    from fdnet.methods.fdnet.descriptor import FDNetDescriptor
+
+    make_dataset(tmp_path / "data", size=(32, 64))
+    config = replace_dotted(preset("tiny"), {"data.root": str(tmp_path / "data"),
+                                             **{f"model.{k}": v for k, v in RESIDUAL.items()}})
+    method = FDNetTraining(config, load_training_images(config))
+    trainer = Trainer(method, tmp_path / "run", tensorboard=False)
+    head = method.model.content_encoder
+    assert float(head.mean.abs().sum()) > 0, "start() sets the mean of the training maps"
+    trainer.fit(progress=False)
+    assert float(head.u.abs().sum()) > 0, "the adversarial/reconstruction gradient reached U"
+    descriptor = FDNetDescriptor(tmp_path / "run")
+    assert descriptor.dim == head.vector_length
+    torch.testing.assert_close(descriptor.model.content_encoder.mean, head.mean)

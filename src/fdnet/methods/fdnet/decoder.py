@@ -40,20 +40,23 @@ class Decoder(nn.Module):
     """(N, L_content + L_appearance) -> (N, C, H, W)."""
 
     def __init__(self, input_size: Sequence[int], widths: Sequence[int], vector_length: int,
-                 out_channels: int = 3, output: str = "tanh") -> None:
+                 out_channels: int = 3, output: str = "tanh", content_length: int | None = None) -> None:
         super().__init__()
         scale = 2 ** len(widths)
+        # v_c and v_a have the paper's one length L, unless the content head is the trunk's
+        # flattened map (content_length).
+        inputs = (vector_length if content_length is None else int(content_length)) + vector_length
         if not widths:
             # No upsampling blocks (an encoder reading a backbone's map directly): one linear
             # layer back to the map, which is signed and unbounded, so no BatchNorm or activation.
             self.feature_shape = (out_channels, int(input_size[0]), int(input_size[1]))
-            self.fc = nn.Linear(2 * vector_length, out_channels * int(input_size[0]) * int(input_size[1]))
+            self.fc = nn.Linear(inputs, out_channels * int(input_size[0]) * int(input_size[1]))
             self.blocks = nn.Identity()
             return
         self.feature_shape = (widths[-1], int(input_size[0]) // scale, int(input_size[1]) // scale)
         c, h, w = self.feature_shape
         self.fc = nn.Sequential(
-            nn.Linear(2 * vector_length, c * h * w, bias=False),
+            nn.Linear(inputs, c * h * w, bias=False),
             nn.BatchNorm1d(c * h * w),
             nn.LeakyReLU(0.2, inplace=True),
         )

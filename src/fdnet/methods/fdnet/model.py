@@ -20,6 +20,7 @@ from fdnet.methods.fdnet.trunk import BACKBONES, FrozenTrunk, trunk_map_size, tr
 
 INPUT_NORMS = ("none", "per_image", "per_patch")
 CRITIC_INPUTS = ("l2", "raw")
+CONTENT_HEADS = ("encoder", "trunk_residual")
 
 
 @dataclass
@@ -60,6 +61,14 @@ class FDNetConfig:
     #: with a backbone: its last block used (EfficientNet-Lite0: 4 = 40 ch at stride 8,
     #: 7 = 80 ch at stride 16, the conv3-like map)
     backbone_block: int = 7
+    #: E_c: "encoder" = the paper's (encoding blocks + a fully connected layer to L);
+    #: "trunk_residual" (needs a backbone) = the trunk's flattened map, centred on the training
+    #: maps' mean, minus a learnt rank-``residual_rank`` part: v_c = x - U V^T x. U starts at
+    #: zero, so training starts exactly at the trunk's descriptor and can only remove what the
+    #: adversarial critic finds condition-specific; v_c then has the map's length, not L
+    content_head: str = "encoder"
+    #: rank of the removable part of the trunk_residual head
+    residual_rank: int = 32
 
     def encoder_input_size(self) -> tuple[int, int]:
         """(H, W) of what the encoders read: the image, or the trunk's map of it."""
@@ -103,6 +112,13 @@ def validate_architecture(config: FDNetConfig) -> None:
     if config.input_norm == "per_patch" and (config.patch_size <= 0 or height % config.patch_size
                                              or width % config.patch_size):
         raise ConfigError(f"model.patch_size: {config.patch_size} must divide the input size {height}x{width}")
+    if config.content_head not in CONTENT_HEADS:
+        raise ConfigError(f"model.content_head: {config.content_head!r}; choose one of {', '.join(CONTENT_HEADS)}")
+    if config.content_head == "trunk_residual":
+        if config.backbone == "none":
+            raise ConfigError("model.content_head=trunk_residual needs a model.backbone (it starts at the trunk's map)")
+        if config.residual_rank < 1:
+            raise ConfigError(f"model.residual_rank: must be >= 1, got {config.residual_rank}")
     if config.critic_input not in CRITIC_INPUTS:
         raise ConfigError(f"model.critic_input: {config.critic_input!r}; choose one of {', '.join(CRITIC_INPUTS)}")
     for name in ("encoder_dropout", "critic_dropout"):
@@ -122,6 +138,33 @@ def init_weights(module: nn.Module) -> None:
         nn.init.zeros_(module.bias)
 
 
+class TrunkResidualContent(nn.Module):
+    """E_c as the trunk's descriptor minus a learnt low-rank part: v_c = x - U (V^T x), with
+    x = flatten(map) - mean. ``mean`` (a buffer, saved with the weights) is set once from the
+    training maps (:meth:`set_mean`); U starts at zero, so the untrained head is exactly the
+    centred trunk descriptor. A rank-r correction can take at most r directions out of a
+    ~10^4-d map, so the adversarial game cannot destroy the place information the trunk has; it
+    can only remove the directions that tell conditions apart (e.g. the difference of the
+    conditions' mean maps, worth +0.09 R@1 on Nordland's validation frames in closed form)."""
+
+    def __init__(self, feature_shape: tuple[int, int, int], rank: int) -> None:
+        super().__init__()
+        length = int(feature_shape[0] * feature_shape[1] * feature_shape[2])
+        self.vector_length = length
+        self.register_buffer("mean", torch.zeros(length))
+        self.u = nn.Parameter(torch.zeros(length, rank))
+        self.v = nn.Parameter(torch.empty(length, rank))
+        nn.init.orthogonal_(self.v)
+
+    @torch.no_grad()
+    def set_mean(self, maps: torch.Tensor) -> None:
+        self.mean.copy_(maps.float().flatten(1).mean(0))
+
+    def forward(self, maps: torch.Tensor) -> torch.Tensor:
+        x = maps.flatten(1).float() - self.mean
+        return x - (x @ self.v) @ self.u.T
+
+
 class FDNet(nn.Module):
     """The four networks of FDNet, with the preprocessing they share.
 
@@ -136,14 +179,26 @@ class FDNet(nn.Module):
         size, widths, length = config.encoder_input_size(), tuple(config.widths), config.vector_length
         trunk = None if config.backbone == "none" else FrozenTrunk(config.backbone_block)
         channels = 3 if trunk is None else trunk.channels
-        self.content_encoder = Encoder(size, widths, length, config.encoder_dropout, in_channels=channels)
         self.appearance_encoder = Encoder(size, widths, length, config.encoder_dropout, in_channels=channels)
+        if config.content_head == "trunk_residual":
+            self.content_encoder = TrunkResidualContent((channels, *size), config.residual_rank)
+            content_length = self.content_encoder.vector_length
+        else:
+            self.content_encoder = Encoder(size, widths, length, config.encoder_dropout, in_channels=channels)
+            content_length = length
+        self.content_length = content_length
         # The decoder reconstructs exactly what the encoders see: [-1, 1] pixels (tanh), or
         # standardised pixels / trunk maps (linear).
         output = "tanh" if config.input_norm == "none" and trunk is None else "none"
-        self.decoder = Decoder(size, widths, length, out_channels=channels, output=output)
-        self.discriminator = PairDiscriminator(length, config.critic_hidden, config.critic_dropout)
-        self.apply(init_weights)
+        self.decoder = Decoder(size, widths, length, out_channels=channels, output=output,
+                               content_length=content_length)
+        self.discriminator = PairDiscriminator(content_length, config.critic_hidden, config.critic_dropout)
+        # N(0, 0.02) everywhere except the residual head, whose zero U / orthogonal V make it
+        # start at the trunk's descriptor.
+        for module in (self.appearance_encoder, self.decoder, self.discriminator):
+            module.apply(init_weights)
+        if isinstance(self.content_encoder, Encoder):
+            self.content_encoder.apply(init_weights)
         # Attached after init_weights, which would overwrite its ImageNet weights. Not in
         # named_parts(): run directories hold only what training changed.
         self.trunk = trunk

@@ -110,6 +110,16 @@ class FDNetTraining(TrainingMethod):
     def stage(self, step: int) -> str:
         return self.config.stage_at(step)
 
+    def start(self) -> None:
+        from fdnet.methods.fdnet.model import TrunkResidualContent
+
+        head = self.model.content_encoder
+        if isinstance(head, TrunkResidualContent):
+            # Centre on the mean map of every training image, all conditions pooled: the centred
+            # trunk descriptor is where the residual head starts.
+            inputs = self.cached_inputs or [self._preprocess(x) for x in self.images]
+            head.set_mean(torch.cat(inputs))
+
     def state(self) -> dict:
         return {"sampler_generator": self.generator.get_state(), "conditions": list(self.data.names)}
 
@@ -252,7 +262,7 @@ def content_vectors(model: FDNet, images: torch.Tensor, device: torch.device, bf
                 v = model.appearance(x) if appearance else model.content(x)
             out.append(v.float().cpu())
     model.train(was_training)
-    return torch.cat(out) if out else torch.zeros((0, model.config.vector_length))
+    return torch.cat(out) if out else torch.zeros((0, model.content_length))
 
 
 def train(config: TrainConfig, run_dir, resume: bool = False, override: bool = False,
