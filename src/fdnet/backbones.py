@@ -101,13 +101,176 @@ def build_efficientnet_lite0(pretrained: bool = True):
 
 
 @functools.lru_cache(maxsize=1)
-def pretrained_model():
-    """The process-wide frozen EfficientNet-Lite0 (eval mode, no gradients). Do not modify."""
+def _pretrained_cpu():
     with _lock:
         model = build_efficientnet_lite0(pretrained=True)
         for p in model.parameters():
             p.requires_grad_(False)
         return model
+
+
+_on_devices: dict = {}
+
+
+def pretrained_model(device=None):
+    """The process-wide frozen EfficientNet-Lite0 (eval mode, no gradients) on ``device`` (a
+    ``torch.device``; None = the CPU): one copy per device, made on first use. Do not modify."""
+    model = _pretrained_cpu()
+    if device is None:
+        return model
+    import torch
+
+    device = torch.device(device)
+    if device.type == "cpu":
+        return model
+    key = str(device)
+    with _lock:
+        if key not in _on_devices:
+            import copy
+
+            _on_devices[key] = copy.deepcopy(model).to(device).eval()
+        return _on_devices[key]
+
+
+# ---------------------------------------------------------------------------------- devices
+def check_device_spec(spec: str | None, where: str = "--device") -> str:
+    """The device setting as text, checked for form only (no torch import): ``auto``, ``cpu``,
+    ``cuda`` or ``cuda:N``. ``None`` means ``auto``."""
+    from fdnet.errors import ConfigError
+
+    text = "auto" if spec is None else str(spec).strip().lower()
+    if text in ("auto", "cpu", "cuda"):
+        return text
+    if text.startswith("cuda:") and text[5:].isdigit():
+        return f"cuda:{int(text[5:])}"
+    raise ConfigError(f"{where} {spec!r}: choose auto, cpu, cuda or cuda:N")
+
+
+def resolve_device(spec=None, where: str = "--device"):
+    """``auto``/``cpu``/``cuda``/``cuda:N`` (or a ``torch.device``) -> ``torch.device``.
+
+    ``auto`` is the current CUDA device when torch sees one, else the CPU. Asking for a GPU that
+    is not there is a :class:`~fdnet.errors.ConfigError` naming the setting, not a crash later.
+    """
+    import torch
+
+    from fdnet.errors import ConfigError
+
+    if isinstance(spec, torch.device):
+        text = str(spec)
+    else:
+        text = check_device_spec(spec, where)
+    if text == "auto":
+        return torch.device("cuda", torch.cuda.current_device()) if torch.cuda.is_available() else torch.device("cpu")
+    device = torch.device(text)
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ConfigError(f"{where} {text}: no CUDA GPU is available here (torch {torch.__version__}"
+                              f"{'' if torch.version.cuda else ', a CPU-only build'}); use --device cpu or auto")
+        count = torch.cuda.device_count()
+        if device.index is not None and device.index >= count:
+            raise ConfigError(f"{where} {text}: this machine has {count} GPU(s), cuda:0..cuda:{count - 1}")
+        if device.index is None:
+            device = torch.device("cuda", torch.cuda.current_device())
+    elif device.type != "cpu":
+        raise ConfigError(f"{where} {text}: choose auto, cpu, cuda or cuda:N")
+    return device
+
+
+def bf16_native(device) -> bool:
+    """Whether ``device`` runs bfloat16 matmuls/convolutions natively: a CUDA GPU that supports
+    bf16 (Ampere and newer), or a CPU with AVX-512 BF16 / AMX (oneDNN's check)."""
+    import torch
+
+    device = torch.device(device)
+    if device.type == "cuda":
+        try:
+            with torch.cuda.device(device):
+                return bool(torch.cuda.is_bf16_supported())
+        except (RuntimeError, AssertionError):  # pragma: no cover - no GPU
+            return False
+    try:
+        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):  # pragma: no cover - older/odd builds
+        return False
+
+
+def autocast(device, enabled: bool):
+    """bfloat16 autocast on ``device`` (a no-op context when not ``enabled``)."""
+    import contextlib
+
+    import torch
+
+    if not enabled:
+        return contextlib.nullcontext()
+    return torch.autocast(torch.device(device).type, dtype=torch.bfloat16)
+
+
+def images_to_device(images, device, channels_last: bool = False, mean=None, std=None):
+    """(N, H, W, 3) images -> float32 (N, 3, H, W) tensor on ``device``, in [0, 1] or, with
+    ``mean``/``std`` (per channel, on the [0, 1] scale), normalised.
+
+    uint8 images (what the loading pipeline makes) travel to the device as uint8 and are
+    converted there (``x / 255`` in float32: the same values as
+    :func:`fdnet.data.images.load_image`'s float path); float images in [0, 1] travel as they
+    are. A numpy array or a CPU tensor is accepted; pinned CPU tensors are copied asynchronously.
+    The NHWC -> NCHW permute is a view, so ``channels_last`` costs no copy.
+    """
+    import numpy as np
+    import torch
+
+    if isinstance(images, np.ndarray):
+        if images.dtype != np.uint8:
+            images = np.asarray(images, dtype=np.float32)
+        x = torch.from_numpy(np.ascontiguousarray(images))
+    elif isinstance(images, torch.Tensor):
+        x = images
+    else:
+        x = torch.from_numpy(np.ascontiguousarray(np.asarray(images, dtype=np.float32)))
+    if x.ndim != 4 or x.shape[-1] != 3:
+        raise ValueError(f"expected images of shape (N, H, W, 3), got {tuple(x.shape)}")
+    device = torch.device(device)
+    x = x.to(device, non_blocking=x.device.type == "cpu" and x.is_pinned())
+    x = x.permute(0, 3, 1, 2)
+    if x.dtype == torch.uint8:
+        x = x.float().div_(255.0)
+    elif x.dtype != torch.float32:
+        x = x.float()
+    if mean is not None:
+        m = torch.as_tensor(mean, dtype=torch.float32, device=device).view(1, 3, 1, 1)
+        s = torch.as_tensor(std, dtype=torch.float32, device=device).view(1, 3, 1, 1)
+        x = (x - m) / s
+    return x.contiguous(memory_format=torch.channels_last if channels_last else torch.contiguous_format)
+
+
+def synchronize(device) -> None:
+    """Wait for ``device``'s queued work (for timing; a no-op on the CPU)."""
+    import torch
+
+    device = torch.device(device)
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+class DeviceCopies:
+    """Copies of a descriptor's numpy weights (e.g. a random projection) on its device, made
+    once. It has no ``__dict__`` (``__slots__``), so :meth:`Descriptor.fingerprint`'s walk does
+    not see it: these are the same weights as the numpy array already fingerprinted, in another
+    place, and where a descriptor runs must not change what its vectors are."""
+
+    __slots__ = ("_copies",)
+
+    def __init__(self) -> None:
+        self._copies = {}
+
+    def get(self, array, device):
+        import torch
+
+        key = (id(array), str(device))
+        if key not in self._copies:
+            self._copies[key] = (array, torch.from_numpy(array).to(device))
+        return self._copies[key][1]
+
 
 
 def check_block(block: int) -> int:
@@ -137,14 +300,10 @@ def trunk_forward(model, x, block: int):
     return x
 
 
-def bf16_supported() -> bool:
-    """True when this CPU runs bfloat16 matmuls/convolutions natively (AVX-512 BF16 / AMX)."""
-    import torch
-
-    try:
-        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
-    except (AttributeError, RuntimeError):  # pragma: no cover - older/odd builds
-        return False
+def bf16_supported(device=None) -> bool:
+    """True when ``device`` (default: this CPU) runs bfloat16 matmuls/convolutions natively
+    (CPU: AVX-512 BF16 / AMX; GPU: Ampere or newer). See :func:`fdnet.runtime.bf16_native`."""
+    return bf16_native("cpu" if device is None else device)
 
 
 @contextlib.contextmanager
@@ -165,40 +324,33 @@ def torch_threads(threads: int | None) -> Iterator[None]:
         torch.set_num_threads(previous)
 
 
-def to_input_tensor(images: np.ndarray, channels_last: bool = False):
-    """(N, H, W, 3) float32 RGB in [0, 1] -> normalised (N, 3, H, W) torch tensor."""
-    import torch
-
-    images = np.asarray(images, dtype=np.float32)
-    if images.ndim != 4 or images.shape[-1] != 3:
-        raise ValueError(f"expected images of shape (N, H, W, 3), got {images.shape}")
-    x = torch.from_numpy(np.ascontiguousarray(images)).permute(0, 3, 1, 2)
-    mean = torch.tensor(INPUT_MEAN, dtype=torch.float32).view(1, 3, 1, 1)
-    std = torch.tensor(INPUT_STD, dtype=torch.float32).view(1, 3, 1, 1)
-    x = (x - mean) / std
-    if channels_last:
-        x = x.contiguous(memory_format=torch.channels_last)
-    else:
-        x = x.contiguous()
-    return x
+def to_input_tensor(images: np.ndarray, channels_last: bool = False, device=None):
+    """(N, H, W, 3) RGB, float32 in [0, 1] or uint8 -> normalised (N, 3, H, W) torch tensor on
+    ``device`` (default the CPU); uint8 images are converted on the device
+    (:func:`fdnet.runtime.images_to_device`)."""
+    return images_to_device(images, "cpu" if device is None else device, channels_last=channels_last,
+                            mean=INPUT_MEAN, std=INPUT_STD)
 
 
 class FeatureExtractor:
     """Frozen EfficientNet-Lite0 trunk up to ``block``: images in, float32 feature maps out.
 
-    ``bf16``: run under ``torch.autocast("cpu", bfloat16)`` with channels_last tensors. ``None``
-    (default) turns it on when the CPU has native bf16 (AVX-512 BF16/AMX), where it is several
-    times faster; maps stay close to float32 (cosine similarity of flattened maps > 0.99, see
-    tests/descriptors/test_backbone.py). ``threads``: torch intra-op threads while extracting
-    (None = leave the process setting alone).
+    ``device``: where it runs (``auto``, ``cpu``, ``cuda``, ``cuda:N`` or a ``torch.device``;
+    default ``cpu``, the CLI passes ``--device``). Images may be float32 in [0, 1] or uint8; they
+    are normalised on the device. ``bf16``: run under bfloat16 autocast with channels_last
+    tensors. ``None`` (default) turns it on when the device has native bf16 (CPU: AVX-512
+    BF16/AMX, where it is several times faster; GPU: Ampere and newer); maps stay close to
+    float32 (cosine similarity of flattened maps > 0.99, see tests/test_backbones.py).
+    ``threads``: torch intra-op threads while extracting (None = leave the process setting alone).
     """
 
     def __init__(self, block: int = CONV3_LIKE_BLOCK, bf16: bool | None = None,
-                 threads: int | None = None):
+                 threads: int | None = None, device=None):
         self.block = check_block(block)
-        self.bf16 = bf16_supported() if bf16 is None else bool(bf16)
+        self.device = resolve_device("cpu" if device is None else device)
+        self.bf16 = bf16_supported(self.device) if bf16 is None else bool(bf16)
         self.threads = threads
-        self.model = pretrained_model()
+        self.model = pretrained_model(self.device)
 
     @property
     def channels(self) -> int:
@@ -213,21 +365,19 @@ class FeatureExtractor:
         return map_size(input_size, self.block)
 
     def features_tensor(self, images: np.ndarray):
-        """(N, H, W, 3) -> torch float32 (N, C, h, w) map (contiguous, NCHW)."""
+        """(N, H, W, 3) float32 in [0, 1] or uint8 -> torch float32 (N, C, h, w) map on the
+        extractor's device (contiguous, NCHW)."""
         import torch
 
-        x = to_input_tensor(images, channels_last=self.bf16)
         with torch_threads(self.threads), torch.inference_mode():
-            if self.bf16:
-                with torch.autocast("cpu", dtype=torch.bfloat16):
-                    y = trunk_forward(self.model, x, self.block)
-            else:
+            x = to_input_tensor(images, channels_last=self.bf16, device=self.device)
+            with autocast(self.device, self.bf16):
                 y = trunk_forward(self.model, x, self.block)
             return y.float().contiguous()
 
     def features(self, images: np.ndarray) -> np.ndarray:
         """(N, H, W, 3) -> numpy float32 (N, C, h, w)."""
-        return self.features_tensor(images).numpy()
+        return self.features_tensor(images).cpu().numpy()
 
     def settings(self) -> dict:
         return {"backbone": "efficientnet-lite0 (ImageNet)", "block": self.block, "bf16": self.bf16}

@@ -86,9 +86,44 @@ def method_options(args: argparse.Namespace, method: str | None = None) -> dict:
 
 
 def create_descriptor(name: str, args: argparse.Namespace):
+    """Method ``name`` with its options from ``args`` and the command's ``--device`` (which goes
+    to the torch methods only; see :func:`fdnet.descriptors.create`)."""
     from fdnet.descriptors import create
 
-    return create(name, **method_options(args, name))
+    options = method_options(args, name)
+    if getattr(args, "device", None) is not None:
+        options.setdefault("device", args.device)
+    return create(name, **options)
+
+
+def add_device_argument(parser: argparse.ArgumentParser) -> None:
+    """``--device`` for commands that run a model for inference."""
+    from fdnet.runtime import DEVICE_HELP
+
+    parser.add_argument("--device", default="auto", metavar="auto|cpu|cuda|cuda:N",
+                        help=DEVICE_HELP + ". Torch methods (fdnet, conv3, trunk, netvlad, calc, hybridnet) run "
+                             "there, images travel to it as uint8; the numpy/OpenCV methods run on the CPU")
+
+
+def add_pipeline_arguments(parser: argparse.ArgumentParser, batch_size: int = 64) -> None:
+    """``--batch-size`` and ``--workers`` of the streaming image pipeline."""
+    parser.add_argument("--batch-size", type=int, default=batch_size,
+                        help=f"images described per batch (default {batch_size})")
+    parser.add_argument("--workers", type=int, default=None,
+                        help="image decoding processes running alongside the model (default: one per spare "
+                             "core, at least 1; 0 = decode in the main process)")
+
+
+def check_pipeline_arguments(args: argparse.Namespace) -> None:
+    from fdnet.errors import ConfigError
+    from fdnet.runtime import check_device_spec
+
+    if getattr(args, "batch_size", 1) is not None and getattr(args, "batch_size", 1) < 1:
+        raise ConfigError(f"--batch-size must be >= 1, got {args.batch_size}")
+    if getattr(args, "workers", None) is not None and args.workers < 0:
+        raise ConfigError(f"--workers must be >= 0, got {args.workers}")
+    if hasattr(args, "device"):
+        args.device = check_device_spec(args.device)
 
 
 def set_threads(threads: int | None) -> None:
@@ -127,6 +162,10 @@ def add_training_arguments(parser: argparse.ArgumentParser, data_required: bool 
     parser.add_argument("--validate-tolerance", type=int, help="frame tolerance of a correct validation match")
     parser.add_argument("--validate-every", type=int, help="validate every N steps")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--device", default=None, metavar="auto|cpu|cuda|cuda:N",
+                        help="where training runs: FDNet's runtime.device (same as --set runtime.device=...; "
+                             "its default is auto, a GPU when there is one). CALC and NetVLAD train on the "
+                             "CPU only: for them --device accepts auto or cpu and is otherwise refused")
 
 
 def apply_training_arguments(config, args: argparse.Namespace):
@@ -156,6 +195,18 @@ def apply_training_arguments(config, args: argparse.Namespace):
         if getattr(args, flag, None) is not None:
             validation = dataclasses.replace(validation, **{field_name: getattr(args, flag)})
     config = dataclasses.replace(config, data=data, validation=validation)
+    device = getattr(args, "device", None)
+    if device is not None:
+        from fdnet.errors import ConfigError
+        from fdnet.runtime import check_device_spec
+
+        device = check_device_spec(device)
+        runtime = getattr(config, "runtime", None)
+        if runtime is not None and hasattr(runtime, "device"):
+            config = dataclasses.replace(config, runtime=dataclasses.replace(runtime, device=device))
+        elif device not in ("auto", "cpu"):
+            raise ConfigError(f"--device {device}: this method's training has no device setting and runs on the "
+                              "CPU (use --device cpu, or evaluate its run with --device there)")
     return replace_dotted(config, parse_overrides(args.set))
 
 

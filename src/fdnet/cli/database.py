@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 
-from fdnet.cli.common import add_method_arguments
+from fdnet.cli.common import add_device_argument, add_method_arguments, add_pipeline_arguments
 
 
 def _positive_int(text: str) -> int:
@@ -39,8 +39,16 @@ def register(sub) -> None:
     build.add_argument("--overwrite", action="store_true",
                        help="replace an existing place database at --out (in one transaction)")
     add_method_arguments(build)
-    build.add_argument("--index", choices=["flat", "hnsw", "ivf"], default="flat",
-                       help="faiss index for dot-product methods (flat = exact)")
+    build.add_argument("--index", choices=["flat", "hnsw", "ivf", "ivfpq"], default="flat",
+                       help="faiss index for dot-product methods: flat = exact (default); ivf (IVF-Flat), "
+                            "ivfpq (IVF-PQ, compressed) and hnsw are approximate, for maps of 10^5-10^6 places. "
+                            "Approximate indexes are built at the end of build and cached beside the file "
+                            "(FILE.fdnet-index, derived data: deleting it only costs a rebuild)")
+    build.add_argument("--index-set", action="append", default=[], metavar="KEY=VALUE",
+                       help="an index setting (repeatable): ivf_lists, ivf_probe, pq_bytes, refine, train_points, "
+                            "hnsw_neighbors, hnsw_ef_construction, hnsw_ef_search (see docs/performance.md)")
+    add_pipeline_arguments(build)
+    add_device_argument(build)
     build.set_defaults(func=run_build)
 
     add = actions.add_parser(
@@ -53,6 +61,8 @@ def register(sub) -> None:
     add.add_argument("--allow-duplicates", action="store_true",
                      help="add images whose name is already in the database (default: skip and report them)")
     add_method_arguments(add, required=False)
+    add_pipeline_arguments(add)
+    add_device_argument(add)
     add.set_defaults(func=run_add)
 
     query = actions.add_parser("query", help="rank the database's places for each query image")
@@ -63,6 +73,8 @@ def register(sub) -> None:
                        help="ignore the most recently added N places (a robot's own recent frames)")
     query.add_argument("--min-score", type=float, default=None, help="only report candidates scoring at least this")
     query.add_argument("--out", help="CSV to write (query,rank,place,place_index,score); default: print")
+    add_pipeline_arguments(query)
+    add_device_argument(query)
     query.set_defaults(func=run_query)
 
     info = actions.add_parser("info", help="print the database's identity and size as one JSON object")
@@ -77,10 +89,41 @@ def register(sub) -> None:
     migrate.set_defaults(func=run_migrate)
 
 
-def _describe(descriptor, paths):
+def _describe(descriptor, paths, args):
     from fdnet.descriptors.base import describe_paths
 
-    return describe_paths(descriptor, paths, progress=True)
+    return describe_paths(descriptor, paths, args.batch_size, progress=True, workers=args.workers)
+
+
+def _spool(descriptor, paths, args, folder):
+    """Describe ``paths`` through the streaming pipeline into a spool file in ``folder`` (a few
+    batches in memory whatever the folder's size). Non-finite vectors stop it here, naming the
+    images, before the database is touched."""
+    from fdnet.descriptors.pipeline import VectorSpool, describe_stream
+    from fdnet.errors import DataError
+
+    import numpy as np
+
+    spool = VectorSpool(folder, descriptor.dim)
+    try:
+        for start, vectors in describe_stream(descriptor, paths, args.batch_size, workers=args.workers,
+                                              progress=True):
+            vectors = np.asarray(vectors, dtype=np.float32)
+            bad = np.flatnonzero(~np.isfinite(vectors).all(axis=1))
+            if len(bad):
+                listed = ", ".join(str(paths[start + i]) for i in bad[:5])
+                raise DataError(f"refusing {len(bad)} non-finite vector(s) (NaN or inf) for {listed}; "
+                                "nothing was added (a NaN place can never be matched)")
+            spool.write(vectors)
+    except BaseException:
+        spool.close()
+        raise
+    return spool
+
+
+def _spooled_batches(spool, names):
+    for start, vectors in spool.chunks():
+        yield vectors, names[start:start + len(vectors)]
 
 
 def _place_names(paths) -> list[str]:
@@ -96,23 +139,25 @@ def _file_options(args, method: str) -> dict:
     options = method_options(args, method)
     # Absolute paths: later `add`/`query` calls may run from another directory.
     options.update({k: str(Path(v).resolve()) for k, v in options.items() if k in FILE_OPTIONS})
+    # --method-set device=...: where it runs is the command's business, not the database's
+    options.pop("device", None)
     return options
 
 
-def _recorded_descriptor(db):
+def _recorded_descriptor(db, args=None):
     """The descriptor the database's method_options rebuild; its fingerprint must still be the
     database's (weights retrained in place, or a vocabulary replaced, would change it)."""
     from fdnet.descriptors import create
     from fdnet.errors import ConfigError, FdnetError
 
     try:
-        return create(db.method, **db.method_options)
+        return create(db.method, **db.method_options, **(_device(args) if args is not None else {}))
     except FdnetError as exc:
         raise ConfigError(f"{db.path}: cannot rebuild its {db.method!r} descriptor from the recorded options "
                           f"{db.method_options} ({exc})") from None
 
 
-def _open_with_descriptor(path, args=None):
+def _open_with_descriptor(path, args=None, device_args=None):
     from fdnet.cli.common import FILE_OPTIONS
     from fdnet.matching.database import PlaceDatabase
 
@@ -120,54 +165,81 @@ def _open_with_descriptor(path, args=None):
         given = args is not None and (args.method or args.method_set
                                       or any(getattr(args, k) for k in FILE_OPTIONS))
         descriptor = (_create_descriptor(args.method or recorded.method, args) if given
-                      else _recorded_descriptor(recorded))
+                      else _recorded_descriptor(recorded, device_args or args))
     return PlaceDatabase.open(path, descriptor=descriptor), descriptor
 
 
 def _create_descriptor(method: str, args):
     from fdnet.descriptors import create
 
-    return create(method, **_file_options(args, method))
+    return create(method, **_file_options(args, method), **_device(args))
+
+
+def _device(args) -> dict:
+    # where it runs is not what it is: never stored in the database's method_options
+    return {"device": args.device} if getattr(args, "device", None) else {}
 
 
 def run_build(args) -> int:
+    import time
+    from pathlib import Path
+
+    from fdnet.cli.common import check_pipeline_arguments
     from fdnet.data.images import list_images
     from fdnet.errors import ConfigError
     from fdnet.io import ensure_writable
     from fdnet.matching.database import PlaceDatabase, check_can_create, short_fingerprint
-    from fdnet.matching.index import IndexSettings
+    from fdnet.matching.index import parse_index_settings
 
     # Every refusal the output path can cause comes before minutes of describing images.
+    check_pipeline_arguments(args)
+    index = parse_index_settings(args.index, args.index_set)
     check_can_create(args.out, args.overwrite)
     ensure_writable(args.out, what="place database")
     descriptor = _create_descriptor(args.method, args)
     if descriptor.needs_fit:
         raise ConfigError(f"method {descriptor.name!r} must be given what it learns from (e.g. --vocabulary) "
                           "to build a database that later queries can reuse")
+    if index.kind != "flat" and not descriptor.dot_product_similarity:
+        raise ConfigError(f"--index {index.kind}: method {descriptor.name!r} does not compare vectors by dot "
+                          "product, so it is searched exhaustively with its own similarity; use --index flat")
     paths = list_images(args.images)
-    vectors = _describe(descriptor, paths)
-    db = PlaceDatabase.create(args.out, descriptor, index=IndexSettings(kind=args.index),
-                              method_options=_file_options(args, args.method), overwrite=args.overwrite,
-                              vectors=vectors, names=_place_names(paths))
+    names = _place_names(paths)
+    with _spool(descriptor, paths, args, Path(args.out).resolve().parent) as spool:
+        db = PlaceDatabase.create(args.out, descriptor, index=index,
+                                  method_options=_file_options(args, args.method), overwrite=args.overwrite,
+                                  batches=_spooled_batches(spool, names))
     with db:
         places = len(db)
+        note = ""
+        if db.index_cache_path is not None and places:
+            t0 = time.perf_counter()
+            built = db.build_index()
+            note = (f"; {index.kind} index built in {time.perf_counter() - t0:.1f} s"
+                    + (f", cached in {db.index_cache_path}" if db.index_cache_path.exists() else "")
+                    if built is not None else "")
     print(f"wrote {args.out}: {places} places, {descriptor.name} ({descriptor.dim}-d), "
-          f"fingerprint {short_fingerprint(db.fingerprint)}")
+          f"fingerprint {short_fingerprint(db.fingerprint)}{note}")
     return 0
 
 
 def run_add(args) -> int:
+    from pathlib import Path
+
+    from fdnet.cli.common import check_pipeline_arguments
     from fdnet.data.images import list_images
 
+    check_pipeline_arguments(args)
     db, descriptor = _open_with_descriptor(args.db, args)
     with db:
         paths = list_images(args.images)
         names = _place_names(paths)
         known = set() if args.allow_duplicates else db.existing_names(names)
         todo = [i for i, name in enumerate(names) if name not in known]
-        vectors = _describe(descriptor, [paths[i] for i in todo])
-        result = db.add(vectors, [names[i] for i in todo], fingerprint=descriptor.fingerprint(),
-                        allow_duplicates=args.allow_duplicates)
+        # described into a spool first (bounded memory), then stored in ONE transaction
+        with _spool(descriptor, [paths[i] for i in todo], args, Path(args.db).resolve().parent) as spool:
+            result = db.add_batches(_spooled_batches(spool, [names[i] for i in todo]),
+                                    fingerprint=descriptor.fingerprint(), allow_duplicates=args.allow_duplicates)
     skipped = len(known) + len(result.skipped)
     note = f" (skipped {skipped} already in the database; --allow-duplicates adds them)" if skipped else ""
     print(f"{args.db}: added {result.added} places{note}, {result.places} in all, data version {result.data_version}")
@@ -185,12 +257,15 @@ def run_query(args) -> int:
     from fdnet.errors import DataError
     from fdnet.io import atomic_write_text, ensure_writable
 
+    from fdnet.cli.common import check_pipeline_arguments
+
+    check_pipeline_arguments(args)
     if args.out:
         ensure_writable(args.out, what="query CSV")
-    db, descriptor = _open_with_descriptor(args.db)
+    db, descriptor = _open_with_descriptor(args.db, device_args=args)
     with db:
         paths = list_images(args.images)
-        vectors = _describe(descriptor, paths)
+        vectors = _describe(descriptor, paths, args)
         bad = np.flatnonzero(~np.isfinite(vectors).all(axis=1))
         if len(bad):
             raise DataError(f"{paths[bad[0]]}: its {descriptor.name} vector is not finite (NaN or inf); "

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import re
 
-from fdnet.cli.common import add_method_arguments
+from fdnet.cli.common import add_device_argument, add_method_arguments
 
 
 def register(sub) -> None:
@@ -62,6 +62,10 @@ def register(sub) -> None:
     methods = p.add_argument_group("methods")
     add_method_arguments(methods, multiple=True, required=False)
     methods.add_argument("--batch-size", type=int, default=64, help="images described per batch (default 64)")
+    methods.add_argument("--workers", type=int, default=None,
+                         help="image decoding processes running alongside the model (default: one per spare "
+                              "core, at least 1; 0 = decode in the main process)")
+    add_device_argument(methods)
     methods.add_argument("--sequence-length", type=int, default=0,
                          help="rank by SeqSLAM sequence similarity over this many consecutive queries "
                               "(0 = single image)")
@@ -279,8 +283,9 @@ def run(args) -> int:
 
         if not args.data:
             raise ConfigError("--method needs --data DIR (one sub-folder per condition)")
-        if args.batch_size < 1:
-            raise ConfigError(f"--batch-size must be >= 1, got {args.batch_size}")
+        from fdnet.cli.common import check_pipeline_arguments
+
+        check_pipeline_arguments(args)
         names = [n.strip() for n in args.method.split(",") if n.strip()]
         split = build_split(args)
         set_threads(args.threads)
@@ -290,7 +295,8 @@ def run(args) -> int:
         for descriptor in descriptors:
             results.append(evaluate_method(descriptor, split, protocols, args.thresholds,
                                            batch_size=args.batch_size, sequence_length=args.sequence_length,
-                                           keep_similarity=keep_matrix, progress=sys.stderr.isatty(), log=log))
+                                           keep_similarity=keep_matrix, progress=sys.stderr.isatty(), log=log,
+                                           workers=args.workers))
 
     from fdnet.evaluation.report import format_table, write_json
 

@@ -2,11 +2,19 @@
 
 Images are listed in fdnet's one order (:func:`fdnet.data.images.list_images`: natural order of
 file names), and every output row carries both the indices and the file names.
+
+``--index`` picks the search: ``exact`` (blocked numpy top-k, any method), or a faiss index for
+dot-product methods (``flat`` exact, ``ivf``, ``ivfpq``, ``hnsw`` approximate, for maps of
+10^5-10^6 places; :mod:`fdnet.matching.index`). ``--index-file FILE`` keeps the built index: a
+later run with the same method (fingerprint), reference images and build settings loads it
+instead of describing the map again.
 """
 
 from __future__ import annotations
 
-from fdnet.cli.common import add_method_arguments
+from fdnet.cli.common import add_device_argument, add_method_arguments, add_pipeline_arguments
+
+INDEX_CHOICES = ["exact", "flat", "hnsw", "ivf", "ivfpq"]
 
 
 def register(sub) -> None:
@@ -21,54 +29,128 @@ def register(sub) -> None:
     p.add_argument("--query", required=True, help="folder of query images")
     add_method_arguments(p)
     p.add_argument("--top-k", type=int, default=5, help="candidates per query (default 5)")
-    p.add_argument("--index", choices=["exact", "flat", "hnsw", "ivf"], default="exact",
-                   help="exact blocked search (default) or a faiss index (dot-product methods only)")
+    p.add_argument("--index", choices=INDEX_CHOICES, default="exact",
+                   help="exact blocked search (default, any method) or a faiss index (dot-product methods "
+                        "only): flat (exact), ivf (IVF-Flat), ivfpq (IVF-PQ, compressed), hnsw (graph)")
+    p.add_argument("--index-set", action="append", default=[], metavar="KEY=VALUE",
+                   help="an index setting (repeatable): ivf_lists, ivf_probe, pq_bytes, refine, train_points, "
+                        "hnsw_neighbors, hnsw_ef_construction, hnsw_ef_search")
+    p.add_argument("--index-file", metavar="FILE",
+                   help="keep the built faiss index in FILE (written atomically); when FILE holds the index of "
+                        "the same method, reference images and build settings, it is loaded and the map is "
+                        "not described again")
     p.add_argument("--sequence-length", type=int, default=0,
                    help="SeqSLAM sequence matching over this many consecutive queries (0 = single image)")
     p.add_argument("--out", required=True,
                    help="CSV to write: query_index,query,rank,reference_index,reference,score (indices are "
                         "positions in natural file-name order, names the image file names)")
-    p.add_argument("--batch-size", type=int, default=64)
+    add_pipeline_arguments(p)
+    add_device_argument(p)
     p.set_defaults(func=run)
+
+
+def _names_digest(paths) -> str:
+    import hashlib
+
+    digest = hashlib.sha256()
+    for path in paths:
+        digest.update(str(path.name).encode() + b"\0")
+    return digest.hexdigest()
+
+
+def _cached_index(path, descriptor, ref_paths, settings):
+    """The index in ``path`` when it was built for this descriptor, these reference names and
+    these build settings; else None (with the reason printed)."""
+    from pathlib import Path
+
+    from fdnet.matching.index import SEARCH_SETTINGS, VectorIndex
+
+    if not Path(path).is_file():
+        return None
+    header = VectorIndex.read_header(path)
+    meta = header.get("metadata", {})
+    build = {k: v for k, v in vars(settings).items() if k not in SEARCH_SETTINGS}
+    saved = {k: v for k, v in header["settings"].items() if k not in SEARCH_SETTINGS}
+    reasons = []
+    if meta.get("fingerprint") != descriptor.fingerprint():
+        reasons.append("another method or model")
+    if meta.get("references") != _names_digest(ref_paths) or header["count"] != len(ref_paths):
+        reasons.append("other reference images")
+    if saved != build:
+        reasons.append(f"other build settings ({saved})")
+    if reasons:
+        print(f"{path}: holds an index of {', '.join(reasons)}; building a new one")
+        return None
+    return VectorIndex.load(path, search={k: getattr(settings, k) for k in SEARCH_SETTINGS})
 
 
 def run(args) -> int:
     import csv
     import io
+    import sys
+    import time
 
-    from fdnet.cli.common import create_descriptor
+    from fdnet.cli.common import check_pipeline_arguments, create_descriptor
     from fdnet.data.images import list_images
     from fdnet.descriptors.base import describe_paths
+    from fdnet.descriptors.pipeline import describe_stream
     from fdnet.errors import ConfigError
     from fdnet.io import atomic_write_text, ensure_writable
-    from fdnet.matching.index import IndexSettings, VectorIndex
+    from fdnet.matching.index import VectorIndex, parse_index_settings
     from fdnet.matching.sequence import sequence_similarity
     from fdnet.matching.similarity import similarity_matrix, top_k, top_k_of_matrix
 
     if args.top_k < 1:
         raise ConfigError("--top-k must be at least 1")
+    check_pipeline_arguments(args)
+    if args.index == "exact" and (args.index_set or args.index_file):
+        raise ConfigError("--index-set and --index-file apply to the faiss indexes (--index flat|ivf|ivfpq|hnsw)")
+    settings = parse_index_settings(args.index, args.index_set) if args.index != "exact" else None
     ensure_writable(args.out, what="matches CSV")  # before describing every image, not after
+    if args.index_file:
+        ensure_writable(args.index_file, what="index file")
     ref_paths, query_paths = list_images(args.reference), list_images(args.query)
     descriptor = create_descriptor(args.method, args)
+    if settings is not None and not descriptor.dot_product_similarity:
+        raise ConfigError(f"method {descriptor.name!r} does not compare vectors by dot product, so a "
+                          "faiss index would rank by the wrong measure; use --index exact")
+    if args.sequence_length > 1 and args.index != "exact":
+        raise ConfigError("--sequence-length needs the full similarity matrix; use --index exact")
     if descriptor.needs_fit:
         print(f"{descriptor.name}: learning from the {len(ref_paths)} reference images (none supplied)")
         descriptor.fit(ref_paths)
-    refs = describe_paths(descriptor, ref_paths, args.batch_size, progress=True)
-    queries = describe_paths(descriptor, query_paths, args.batch_size, progress=True)
 
-    if args.sequence_length > 1:
-        if args.index != "exact":
-            raise ConfigError("--sequence-length needs the full similarity matrix; use --index exact")
-        sim = sequence_similarity(similarity_matrix(queries, refs, descriptor.similarity), args.sequence_length)
-        indices, scores = top_k_of_matrix(sim, args.top_k)
-    elif args.index == "exact":
-        indices, scores = top_k(queries, refs, args.top_k, similarity=descriptor.similarity)
+    def describe(paths):
+        return describe_paths(descriptor, paths, args.batch_size, progress=sys.stderr.isatty(),
+                              workers=args.workers)
+
+    if settings is None:
+        refs = describe(ref_paths)
+        queries = describe(query_paths)
+        if args.sequence_length > 1:
+            sim = sequence_similarity(similarity_matrix(queries, refs, descriptor.similarity), args.sequence_length)
+            indices, scores = top_k_of_matrix(sim, args.top_k)
+        else:
+            indices, scores = top_k(queries, refs, args.top_k, similarity=descriptor.similarity)
     else:
-        if not descriptor.dot_product_similarity:
-            raise ConfigError(f"method {descriptor.name!r} does not compare vectors by dot product, so a "
-                              "faiss index would rank by the wrong measure; use --index exact")
-        index = VectorIndex(descriptor.dim, IndexSettings(kind=args.index))
-        index.add(refs)
+        index = _cached_index(args.index_file, descriptor, ref_paths, settings) if args.index_file else None
+        if index is None:
+            index = VectorIndex(descriptor.dim, settings)
+            for _, vectors in describe_stream(descriptor, ref_paths, args.batch_size, workers=args.workers,
+                                              progress=sys.stderr.isatty()):
+                index.add(vectors)  # the map goes into the index chunk by chunk
+            t0 = time.perf_counter()
+            index.build()
+            built = time.perf_counter() - t0
+            if args.index_file:
+                index.save(args.index_file, metadata={"fingerprint": descriptor.fingerprint(),
+                                                      "references": _names_digest(ref_paths),
+                                                      "method": descriptor.name})
+                print(f"built the {settings.kind} index of {len(ref_paths)} references ({built:.1f} s), "
+                      f"saved to {args.index_file}")
+        else:
+            print(f"loaded the {settings.kind} index of {len(ref_paths)} references from {args.index_file}")
+        queries = describe(query_paths)
         indices, scores = index.search(queries, args.top_k)
 
     buffer = io.StringIO()

@@ -152,12 +152,33 @@ def _to_float_rgb(img: Image.Image, path: Path, source_mode: str | None = None) 
     return np.asarray(img.convert("RGB"), dtype=np.float32) / 255.0
 
 
-def load_image(path: str | os.PathLike, size: tuple[int, int] | None = None) -> np.ndarray:
+def _to_uint8_rgb(img: Image.Image, path: Path, source_mode: str | None = None) -> np.ndarray:
+    """8-bit images: exactly the bytes whose ``/ 255`` is :func:`_to_float_rgb`'s result. Images
+    with more than 8 bits per channel (16-bit, 32-bit integer, float) are rounded to 8 bits."""
+    if img.mode in ("I;16", "I;16B", "I;16L", "I", "F"):
+        return np.rint(_to_float_rgb(img, path, source_mode) * 255.0).astype(np.uint8)
+    if img.mode in ("RGBA", "LA", "PA") or (img.mode == "P" and "transparency" in img.info):
+        img = img.convert("RGBA")
+        background = Image.new("RGBA", img.size, (0, 0, 0, 255))
+        img = Image.alpha_composite(background, img)
+    return np.asarray(img.convert("RGB"), dtype=np.uint8)
+
+
+def load_image_uint8(path: str | os.PathLike, size: tuple[int, int] | None = None) -> np.ndarray:
+    """:func:`load_image` as uint8 RGB (H, W, 3): a quarter of the bytes, for pipelines that send
+    images to a device and convert them there. For 8-bit files (nearly all), ``x / 255`` in
+    float32 is exactly what :func:`load_image` returns; 16-bit and float files are rounded to 8
+    bits."""
+    return load_image(path, size, _convert=_to_uint8_rgb)
+
+
+def load_image(path: str | os.PathLike, size: tuple[int, int] | None = None, *, _convert=None) -> np.ndarray:
     """Read one image as float32 RGB in [0, 1], shape (H, W, 3).
 
     ``size`` is (height, width); when given the image is resized with area-averaging
     (Pillow's BOX filter when shrinking, bilinear when enlarging).
     """
+    convert = _convert or _to_float_rgb
     path = Path(path)
     try:
         with _open(path) as img:
@@ -175,7 +196,7 @@ def load_image(path: str | os.PathLike, size: tuple[int, int] | None = None) -> 
                     if img.mode == "P":
                         img = img.convert("RGBA")
                     img = img.resize((width, height), resample)
-            return _to_float_rgb(img, path, source_mode)
+            return convert(img, path, source_mode)
     except FileNotFoundError:
         raise DataError(f"{path}: image file not found") from None
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:

@@ -108,7 +108,9 @@ class AlexNetTrunk:
     """torchvision-layout AlexNet up to (and including the ReLU of) ``layer`` ("conv1".."conv5"),
     loaded from the user's weights file."""
 
-    def __init__(self, weights: str | Path, layer: str = "conv3"):
+    def __init__(self, weights: str | Path, layer: str = "conv3", device=None):
+        from fdnet.backbones import resolve_device
+
         if layer not in ALEXNET_CONV_INDEX:
             raise ConfigError(f"AlexNet layer {layer!r} unknown; one of {', '.join(ALEXNET_CONV_INDEX)}")
         path = Path(weights)
@@ -116,18 +118,16 @@ class AlexNetTrunk:
         state = load_state_dict_file(path, "AlexNet")
         _load_into(full, state, "features.", path, "AlexNet (torchvision layout)")
         self.layer = layer
-        self.model = full[:ALEXNET_CONV_INDEX[layer] + 2].eval()
+        self.device = resolve_device("cpu" if device is None else device)
+        self.model = full[:ALEXNET_CONV_INDEX[layer] + 2].eval().to(self.device)
         for p in self.model.parameters():
             p.requires_grad_(False)
 
     def input_tensor(self, images):
-        import numpy as np
-        import torch
+        """(N, H, W, 3) RGB, float32 in [0, 1] or uint8 -> ImageNet-normalised NCHW on the device."""
+        from fdnet.backbones import images_to_device
 
-        x = torch.from_numpy(np.ascontiguousarray(images, dtype=np.float32)).permute(0, 3, 1, 2)
-        mean = torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1)
-        std = torch.tensor(IMAGENET_STD).view(1, 3, 1, 1)
-        return ((x - mean) / std).contiguous()
+        return images_to_device(images, self.device, mean=IMAGENET_MEAN, std=IMAGENET_STD)
 
 
 def build_caffenet_features():
@@ -152,14 +152,17 @@ class CaffeNetTrunk:
 
     ORDER = ("conv1", "conv2", "conv3", "conv4", "conv5")
 
-    def __init__(self, weights: str | Path, layer: str = "conv4", what: str = "HybridNet"):
+    def __init__(self, weights: str | Path, layer: str = "conv4", what: str = "HybridNet", device=None):
+        from fdnet.backbones import resolve_device
+
         if layer not in self.ORDER:
             raise ConfigError(f"{what} layer {layer!r} unknown; one of {', '.join(self.ORDER)}")
         path = Path(weights)
         self.convs = build_caffenet_features()
         state = load_state_dict_file(path, what)
         _load_into(self.convs, state, "", path, f"{what} (CaffeNet layout, keys conv1.weight ... conv5.bias)")
-        self.convs.eval()
+        self.device = resolve_device("cpu" if device is None else device)
+        self.convs.eval().to(self.device)
         for p in self.convs.parameters():
             p.requires_grad_(False)
         self.layer = layer
@@ -176,12 +179,12 @@ class CaffeNetTrunk:
                 x = F.local_response_norm(x, size=5, alpha=1e-4, beta=0.75, k=1.0)
         return x  # pragma: no cover - layer is always one of ORDER
 
-    @staticmethod
-    def input_tensor(images, mean_bgr=CAFFE_MEAN_BGR):
-        """(N, H, W, 3) RGB [0, 1] -> Caffe input: BGR, 0..255, mean subtracted."""
-        import numpy as np
+    def input_tensor(self, images, mean_bgr=CAFFE_MEAN_BGR):
+        """(N, H, W, 3) RGB, float32 [0, 1] or uint8 -> Caffe input on the trunk's device: BGR,
+        0..255, mean subtracted."""
         import torch
 
-        x = torch.from_numpy(np.ascontiguousarray(images, dtype=np.float32)).permute(0, 3, 1, 2)
-        x = x.flip(1) * 255.0
-        return (x - torch.tensor(mean_bgr, dtype=torch.float32).view(1, 3, 1, 1)).contiguous()
+        from fdnet.backbones import images_to_device
+
+        x = images_to_device(images, self.device).flip(1) * 255.0
+        return (x - torch.tensor(mean_bgr, dtype=torch.float32, device=x.device).view(1, 3, 1, 1)).contiguous()

@@ -11,14 +11,12 @@ refuses it instead of silently computing the wrong thing.
 
 from __future__ import annotations
 
-import time
 from abc import ABC, abstractmethod
 from pathlib import Path
 from typing import ClassVar, Sequence
 
 import numpy as np
 
-from fdnet.data.images import load_images
 
 
 def l2_normalize(x: np.ndarray, eps: float = 1e-12) -> np.ndarray:
@@ -32,6 +30,10 @@ class Descriptor(ABC):
     name: ClassVar[str] = "descriptor"
     #: True when ``similarity`` is the dot product of the vectors (indexable with faiss)
     dot_product_similarity: ClassVar[bool] = True
+    #: True when ``describe`` also takes uint8 images (0..255, what the streaming pipeline then
+    #: loads: a quarter of the bytes, converted on the descriptor's device). The torch
+    #: descriptors do; float32 in [0, 1] is always accepted.
+    accepts_uint8: ClassVar[bool] = False
 
     #: (height, width) images are resized to before ``describe``
     input_size: tuple[int, int]
@@ -133,28 +135,29 @@ def describe_paths(
     batch_size: int = 64,
     progress: bool = False,
     timing: dict | None = None,
+    workers: int | None = None,
 ) -> np.ndarray:
-    """Load ``paths`` at the descriptor's input size in batches and describe them.
+    """Describe ``paths`` at the descriptor's input size, streaming them through
+    :func:`fdnet.descriptors.pipeline.describe_stream` (decoding in worker processes overlapped
+    with the model, a few batches in memory at a time) into one (N, dim) float32 array.
 
     When ``timing`` is a dict it receives ``seconds_describe`` (model time only, excluding image
-    decoding) and ``num_images``, for ms/image reports.
+    decoding) and ``num_images``, for ms/image reports. ``workers``: decoding processes (None =
+    one per spare core; 0 = decode in this process).
     """
-    paths = list(paths)
-    chunks = []
-    spent = 0.0
-    iterator = range(0, len(paths), batch_size)
-    if progress:
-        from tqdm import tqdm
+    from fdnet.descriptors.pipeline import describe_stream
 
-        iterator = tqdm(iterator, desc=f"describe [{descriptor.name}]", unit="batch", leave=False)
-    for start in iterator:
-        images = load_images(paths[start:start + batch_size], descriptor.input_size)
-        t0 = time.perf_counter()
-        chunks.append(np.asarray(descriptor.describe(images), dtype=np.float32))
-        spent += time.perf_counter() - t0
-    if timing is not None:
-        timing["seconds_describe"] = spent
-        timing["num_images"] = len(paths)
-    if not chunks:
+    paths = list(paths)
+    out = None
+    for start, vectors in describe_stream(descriptor, paths, batch_size, workers=workers, progress=progress,
+                                          timing=timing):
+        vectors = np.asarray(vectors, dtype=np.float32)
+        if out is None:
+            out = np.empty((len(paths), vectors.shape[1]), dtype=np.float32)
+        out[start:start + len(vectors)] = vectors
+    if out is None:
+        if timing is not None:
+            timing.setdefault("seconds_describe", 0.0)
+            timing.setdefault("num_images", 0)
         return np.zeros((0, descriptor.dim), dtype=np.float32)
-    return np.concatenate(chunks, axis=0)
+    return out

@@ -49,26 +49,32 @@ class Conv3Descriptor(Descriptor):
     Settings: ``dim`` (projected length, default 512 = FDNet's; 0 = keep the raw flattened map),
     ``block`` (EfficientNet-Lite0 block, default 7), ``input_size`` (default 224x224; 227x227 with
     AlexNet weights), ``weights`` (torchvision AlexNet state dict: use its conv3 instead),
-    ``seed`` (projection), ``bf16`` (None = auto, backbone only), ``threads``.
+    ``seed`` (projection), ``bf16`` (None = auto, backbone only), ``threads``, ``device``
+    (``auto``/``cpu``/``cuda``/``cuda:N``; the projection runs there too). Takes uint8 images.
     """
 
     name = "conv3"
     dot_product_similarity = True
+    accepts_uint8 = True
 
     @invalid_settings_are_config_errors
     def __init__(self, dim: int = 512, block: int = 7, input_size: tuple[int, int] | None = None,
                  weights: str | Path | None = None, seed: int = 0, bf16: bool | None = None,
-                 threads: int | None = None):
+                 threads: int | None = None, device: str | None = None):
+        from fdnet.backbones import DeviceCopies, resolve_device
+
         self.out_dim = int(dim)
         if self.out_dim < 0:
             raise ConfigError(f"conv3: dim must be >= 0 (0 = no projection), got {dim}")
         self.seed = int(seed)
         self.threads = threads
+        self.device = resolve_device("auto" if device is None else device, where=f"{self.name}: device")
+        self._on_device = DeviceCopies()
         self.weights = str(weights) if weights else None
         if self.weights:
             from fdnet.descriptors.alexnet import AlexNetTrunk
 
-            self._alexnet = AlexNetTrunk(self.weights, "conv3")
+            self._alexnet = AlexNetTrunk(self.weights, "conv3", device=self.device)
             self._extractor = None
             self.input_size = tuple(input_size) if input_size else (227, 227)
             self._map_shape = self._alexnet_map_shape(self.input_size)
@@ -76,7 +82,7 @@ class Conv3Descriptor(Descriptor):
             from fdnet.backbones import FeatureExtractor
 
             self._alexnet = None
-            self._extractor = FeatureExtractor(block=block, bf16=bf16, threads=threads)
+            self._extractor = FeatureExtractor(block=block, bf16=bf16, threads=threads, device=self.device)
             self.input_size = tuple(input_size) if input_size else (224, 224)
             self._map_shape = (self._extractor.channels, *self._extractor.map_size(self.input_size))
         self.input_size = (int(self.input_size[0]), int(self.input_size[1]))
@@ -109,7 +115,8 @@ class Conv3Descriptor(Descriptor):
         return out
 
     def feature_maps(self, images: np.ndarray):
-        """(N, H, W, 3) -> torch float32 (N, C, h, w) conv3(-like) maps."""
+        """(N, H, W, 3) float32 in [0, 1] or uint8 -> torch float32 (N, C, h, w) conv3(-like)
+        maps on the descriptor's device."""
         import torch
 
         if self._alexnet is None:
@@ -120,10 +127,22 @@ class Conv3Descriptor(Descriptor):
             return self._alexnet.model(self._alexnet.input_tensor(images)).float()
 
     def describe(self, images: np.ndarray) -> np.ndarray:
-        images = np.asarray(images, dtype=np.float32)
+        """(N, H, W, 3) at ``input_size``, float32 in [0, 1] or uint8 -> (N, dim) unit vectors."""
+        images = np.asarray(images)
+        if images.dtype != np.uint8:
+            images = images.astype(np.float32, copy=False)
         if images.shape[1:3] != self.input_size:
             raise ValueError(f"conv3 expects images at {self.input_size}, got {images.shape[1:3]}")
-        flat = self.feature_maps(images).reshape(len(images), -1).numpy()
-        if self._projection is not None:
-            flat = flat @ self._projection
-        return l2_normalize(flat)
+        maps = self.feature_maps(images).reshape(len(images), -1)
+        if maps.device.type == "cpu":
+            # numpy on the CPU, exactly as before devices existed (same BLAS, same vectors)
+            flat = maps.numpy()
+            if self._projection is not None:
+                flat = flat @ self._projection
+            return l2_normalize(flat)
+        import torch
+
+        with torch.inference_mode():
+            if self._projection is not None:
+                maps = maps @ self._on_device.get(self._projection, maps.device)
+            return l2_normalize(maps.cpu().numpy())

@@ -43,24 +43,29 @@ class HybridNetDescriptor(Descriptor):
     Settings: ``weights`` (required), ``layer`` (default "conv4"), ``dim`` (0 = raw map; > 0 =
     seeded GRP to that length), ``seed``, ``mean_bgr`` (Caffe pixel mean, 0..255; default the
     ImageNet mean 104, 117, 123; HybridNet's own mean file may differ slightly), ``input_size``
-    (227x227), ``threads``.
+    (227x227), ``threads``, ``device`` (``auto``/``cpu``/``cuda``/``cuda:N``). Takes uint8 images.
     """
 
     name = "hybridnet"
     dot_product_similarity = True
+    accepts_uint8 = True
 
     @invalid_settings_are_config_errors
     def __init__(self, weights: str | Path | None = None, layer: str = "conv4", dim: int = 0,
                  seed: int = 0, mean_bgr: tuple[float, float, float] = (104.0, 117.0, 123.0),
-                 input_size: tuple[int, int] = (227, 227), threads: int | None = None):
+                 input_size: tuple[int, int] = (227, 227), threads: int | None = None,
+                 device: str | None = None):
         if not weights:
             raise NotAvailableError("hybridnet: no weights given. " + HOW_TO_SUPPLY_WEIGHTS)
         if not Path(weights).is_file():
             raise NotAvailableError(f"{weights}: HybridNet weights file not found. " + HOW_TO_SUPPLY_WEIGHTS)
         from fdnet.descriptors.alexnet import CaffeNetTrunk
+        from fdnet.backbones import DeviceCopies, resolve_device
 
+        self.device = resolve_device("auto" if device is None else device, where=f"{self.name}: device")
+        self._on_device = DeviceCopies()
         self.weights = str(weights)
-        self.trunk = CaffeNetTrunk(self.weights, layer=layer, what="HybridNet")
+        self.trunk = CaffeNetTrunk(self.weights, layer=layer, what="HybridNet", device=self.device)
         self.layer = layer
         self.mean_bgr = tuple(float(m) for m in mean_bgr)
         if len(self.mean_bgr) != 3:
@@ -72,7 +77,7 @@ class HybridNetDescriptor(Descriptor):
         import torch
 
         with torch.inference_mode():
-            probe = self.trunk.forward(torch.zeros(1, 3, *self.input_size))
+            probe = self.trunk.forward(torch.zeros(1, 3, *self.input_size, device=self.device))
         self._map_shape = tuple(probe.shape[1:])
         self.feature_dim = int(np.prod(self._map_shape))
         self._projection = None
@@ -95,9 +100,17 @@ class HybridNetDescriptor(Descriptor):
 
         from fdnet.backbones import torch_threads
 
-        x = self.trunk.input_tensor(np.asarray(images, dtype=np.float32), self.mean_bgr)
+        images = np.asarray(images)
+        if images.dtype != np.uint8:
+            images = images.astype(np.float32, copy=False)
         with torch_threads(self.threads), torch.inference_mode():
-            flat = self.trunk.forward(x).reshape(len(images), -1).float().numpy()
+            x = self.trunk.input_tensor(images, self.mean_bgr)
+            maps = self.trunk.forward(x).reshape(len(images), -1).float()
+            if maps.device.type != "cpu":
+                if self._projection is not None:
+                    maps = maps @ self._on_device.get(self._projection, maps.device)
+                return l2_normalize(maps.cpu().numpy())
+            flat = maps.numpy()
         if self._projection is not None:
             flat = flat @ self._projection
         return l2_normalize(flat)

@@ -38,13 +38,27 @@ def descriptor_class(name: str):
     return getattr(module, class_name)
 
 
+def takes_device(name: str) -> bool:
+    """Whether method ``name`` runs on a torch device (has a ``device`` setting)."""
+    return "device" in inspect.signature(descriptor_class(name).__init__).parameters
+
+
 def create(name: str, **options):
     """Build descriptor ``name``; ``options`` are its constructor's keyword settings
-    (e.g. ``checkpoint=``, ``weights=``, ``vocabulary=``, ``dim=``). ``None`` values are dropped so
-    command-line defaults do not override a method's own."""
+    (e.g. ``checkpoint=``, ``weights=``, ``vocabulary=``, ``dim=``, ``device=``). ``None`` values
+    are dropped so command-line defaults do not override a method's own.
+
+    ``device`` (``auto``, ``cpu``, ``cuda``, ``cuda:N``) goes to the methods that run on torch
+    (fdnet, conv3, trunk, netvlad, calc, hybridnet); the others (numpy/OpenCV: raw, sad, hog,
+    gist, dbow, landmarks) run on the CPU whatever it says, so ``--method fdnet,sad --device
+    cuda`` works. It is checked for every method, so a malformed one is always an error."""
     cls = descriptor_class(name)
     options = {k: v for k, v in options.items() if v is not None}
     params = inspect.signature(cls.__init__).parameters
+    if "device" in options and "device" not in params:
+        from fdnet.backbones import check_device_spec
+
+        check_device_spec(options.pop("device"), where=f"{name}: device")
     accepts_any = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
     if not accepts_any:
         valid = [p for p in params if p != "self"]

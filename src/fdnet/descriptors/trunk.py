@@ -25,7 +25,7 @@ class TrunkDescriptor(Conv3Descriptor):
     @invalid_settings_are_config_errors
     def __init__(self, checkpoint: str | Path | None = None, block: int | None = None,
                  input_size: tuple[int, int] | None = None, bf16: bool | None = None,
-                 threads: int | None = None):
+                 threads: int | None = None, device: str | None = None):
         self.checkpoint = str(checkpoint) if checkpoint else None
         if checkpoint is not None:
             from fdnet import runs
@@ -38,7 +38,8 @@ class TrunkDescriptor(Conv3Descriptor):
             block = model.backbone_block if block is None else block
             input_size = tuple(model.input_size) if input_size is None else input_size
         super().__init__(dim=0, block=DEFAULT_BLOCK if block is None else int(block),
-                         input_size=tuple(input_size or DEFAULT_INPUT_SIZE), bf16=bf16, threads=threads)
+                         input_size=tuple(input_size or DEFAULT_INPUT_SIZE), bf16=bf16, threads=threads,
+                         device=device)
 
     def settings(self) -> dict:
         out = super().settings()

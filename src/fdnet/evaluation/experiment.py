@@ -5,12 +5,17 @@ used, never a method's name):
 
 1. ``descriptor.fit(reference paths)`` when ``descriptor.needs_fit`` (e.g. a DBoW vocabulary
    learnt on the map; reported, because it means the method saw the map before matching);
-2. describe reference and query images in batches (``describe_paths``), timing the model only:
-   ms/image over references and queries together;
+2. describe reference and query images through the streaming pipeline (``describe_paths``:
+   decoding in worker processes overlapped with the model, a few batches of images in memory),
+   timing the model only: ms/image over references and queries together;
 3. rank references for every query by ``descriptor.similarity`` -- blocked top-k
-   (:func:`fdnet.matching.similarity.top_k`) so no (Q, R) matrix is needed, or the full matrix
-   when sequence matching or plots need it -- timing it as ms/query;
-4. metrics under each requested protocol (:mod:`fdnet.evaluation.metrics`).
+   (:func:`fdnet.matching.similarity.top_k`) so no (Q, R) matrix is needed -- timing it as
+   ms/query. Sequence matching uses the full matrix when it is small (at most
+   ``MAX_MATRIX_ENTRIES``) and blocks of query rows beyond
+   (:func:`fdnet.matching.sequence.sequence_top_k`, the same numbers); the full matrix is only
+   ever kept when asked (``keep_similarity``, for plots) and small;
+4. metrics under each requested protocol (:mod:`fdnet.evaluation.metrics`), which need only each
+   query's ranked top-N and their scores.
 
 Results of a precomputed similarity matrix (no descriptor) use :func:`evaluate_matrix`, so the
 report and plots treat both alike.
@@ -28,7 +33,7 @@ import numpy as np
 from fdnet.data.groundtruth import GroundTruth
 from fdnet.data.split import EvaluationSplit
 from fdnet.descriptors.base import Descriptor, describe_paths
-from fdnet.errors import ConfigError, DataError
+from fdnet.errors import DataError
 from fdnet.evaluation.metrics import (
     DEFAULT_NS,
     RECALL_OVER_QUERIES,
@@ -105,13 +110,17 @@ def evaluate_method(
     keep_similarity: bool = False,
     progress: bool = False,
     log: Callable[[str], None] | None = None,
+    workers: int | None = None,
+    max_matrix_entries: int = MAX_MATRIX_ENTRIES,
 ) -> MethodResult:
     """Describe, match and score ``descriptor`` on ``split`` (see the module docstring).
 
     ``thresholds`` is the recall-over-queries sweep (None = exact, 500 = the paper's);
-    ``sequence_length`` > 1 ranks by SeqSLAM sequence similarity over the full matrix
-    (:func:`fdnet.matching.sequence.sequence_similarity`); ``keep_similarity`` keeps the (Q, R)
-    matrix on the result for plots (skipped, with a note, beyond ``MAX_MATRIX_ENTRIES``).
+    ``sequence_length`` > 1 ranks by SeqSLAM sequence similarity
+    (:func:`fdnet.matching.sequence.sequence_similarity`; in blocks of query rows beyond
+    ``max_matrix_entries``); ``keep_similarity`` keeps the (Q, R) matrix on the result for plots
+    (skipped, with a note, beyond ``max_matrix_entries``). ``workers``: image decoding processes
+    (None = one per spare core, 0 = none).
     """
     say = log or (lambda message: None)
     ref_paths, query_paths = list(split.reference.paths), list(split.query.paths)
@@ -127,25 +136,27 @@ def evaluate_method(
 
     ref_timing: dict = {}
     query_timing: dict = {}
-    refs = describe_paths(descriptor, ref_paths, batch_size, progress=progress, timing=ref_timing)
-    queries = describe_paths(descriptor, query_paths, batch_size, progress=progress, timing=query_timing)
+    refs = describe_paths(descriptor, ref_paths, batch_size, progress=progress, timing=ref_timing, workers=workers)
+    queries = describe_paths(descriptor, query_paths, batch_size, progress=progress, timing=query_timing,
+                             workers=workers)
     num_images = ref_timing["num_images"] + query_timing["num_images"]
     seconds_describe = ref_timing["seconds_describe"] + query_timing["seconds_describe"]
     timing["ms_per_image"] = 1000.0 * seconds_describe / max(num_images, 1)
 
     k = max(ns)
     matrix_entries = len(queries) * len(refs)
-    need_matrix = sequence_length > 1
-    if need_matrix and matrix_entries > MAX_MATRIX_ENTRIES:
-        raise ConfigError(f"sequence matching needs the full {len(queries)} x {len(refs)} similarity matrix, "
-                          f"larger than {MAX_MATRIX_ENTRIES:,} entries; evaluate a shorter --frames range")
+    small = matrix_entries <= max_matrix_entries
     similarity = None
     t0 = time.perf_counter()
-    if need_matrix:
+    if sequence_length > 1 and small:
         from fdnet.matching.sequence import sequence_similarity
 
         similarity = sequence_similarity(similarity_matrix(queries, refs, descriptor.similarity), sequence_length)
         retrieved, scores = top_k_of_matrix(similarity, k)
+    elif sequence_length > 1:
+        from fdnet.matching.sequence import sequence_top_k
+
+        retrieved, scores = sequence_top_k(queries, refs, k, sequence_length, similarity=descriptor.similarity)
     else:
         retrieved, scores = top_k(queries, refs, k, similarity=descriptor.similarity)
     timing["ms_per_query"] = 1000.0 * (time.perf_counter() - t0) / max(len(queries), 1)
@@ -155,7 +166,7 @@ def evaluate_method(
         notes.append(f"ranked by SeqSLAM sequence similarity over {sequence_length} consecutive queries")
 
     if keep_similarity and similarity is None:
-        if matrix_entries <= MAX_MATRIX_ENTRIES:
+        if small:
             similarity = similarity_matrix(queries, refs, descriptor.similarity)
         else:
             notes.append(f"similarity matrix not kept for plots ({len(queries)} x {len(refs)} is too large)")

@@ -26,12 +26,12 @@ import uuid
 from dataclasses import dataclass, field, fields
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Callable, Iterator, Sequence
+from typing import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
 from fdnet.errors import ConfigError, DataError
-from fdnet.matching.index import INDEX_KINDS, IndexSettings, VectorIndex
+from fdnet.matching.index import INDEX_KINDS, IndexSettings, VectorIndex, check_settings
 from fdnet.matching.similarity import top_k
 
 #: ``PRAGMA user_version`` of the files this code writes; a newer file is refused, not guessed at.
@@ -46,6 +46,10 @@ SQLITE_MAGIC = b"SQLite format 3\x00"
 OLD_FORMAT_FILES = ("database.json", "vectors.npy")
 #: Stay well under SQLite's limit on bound parameters per statement.
 _NAMES_PER_QUERY = 500
+#: Rows read from the file per fetch while loading places (bounded memory besides the index).
+_ROWS_PER_FETCH = 65536
+#: Suffix of the derived index cache beside a database file (approximate kinds only).
+INDEX_CACHE_SUFFIX = ".fdnet-index"
 
 _SCHEMA = """
 CREATE TABLE fdnet_database (
@@ -259,11 +263,7 @@ def _index_settings(value, where: str, error: type = DataError) -> IndexSettings
     settings = IndexSettings(**value)
     if not isinstance(settings.kind, str) or settings.kind not in INDEX_KINDS:
         raise error(f"{where}: index kind {settings.kind!r} is not one of {', '.join(INDEX_KINDS)}")
-    for name in ("hnsw_neighbors", "hnsw_ef_search", "ivf_lists", "ivf_probe"):
-        number = getattr(settings, name)
-        if isinstance(number, bool) or not isinstance(number, int) or number < 0:
-            raise error(f"{where}: index setting {name} must be a non-negative integer, got {number!r}")
-    return settings
+    return check_settings(settings, where, error)
 
 
 def _read_identity(path, conn: sqlite3.Connection) -> _Identity:
@@ -316,9 +316,13 @@ class PlaceDatabase:
         self._names: list[str] = []
         self._positions: list[tuple[float, float] | None] = []
         self._metadata: list[str | None] = []
+        # Vectors kept in this process only for methods searched with their own similarity;
+        # a dot-product database keeps them in its index (reading them back on request).
         self._vector_chunks: list[np.ndarray] = []
         # Made on the first read, so a process that only adds never imports faiss.
         self._index: VectorIndex | None = None
+        # Places the derived index cache file held when it was loaded or written (see _refresh).
+        self._cached_places = 0
 
     # ------------------------------------------------------------------ identity
     @property
@@ -362,9 +366,15 @@ class PlaceDatabase:
                method_options: dict | None = None, overwrite: bool = False,
                vectors: np.ndarray | None = None, names: Sequence[str] | None = None,
                positions: Sequence[tuple[float, float] | None] | np.ndarray | None = None,
-               metadata: Sequence[dict | None] | None = None, allow_duplicates: bool = False) -> "PlaceDatabase":
+               metadata: Sequence[dict | None] | None = None, allow_duplicates: bool = False,
+               batches: Iterable | None = None) -> "PlaceDatabase":
         """Write a new database for ``descriptor``'s vectors, with an optional first batch of
         places, in one transaction: a crash leaves no half-made database behind.
+
+        ``batches`` (instead of ``vectors``/``names``...) gives the first places as an iterable of
+        ``(vectors, names)`` or ``(vectors, names, positions, metadata)`` chunks, all stored in
+        the same transaction (see :meth:`add_batches`): a map of any size, a chunk in memory at a
+        time.
 
         ``method_options`` rebuild the descriptor later (``fdnet.descriptors.create(method,
         **method_options)``). An existing file is refused unless ``overwrite``; then an existing
@@ -388,6 +398,8 @@ class PlaceDatabase:
         similarity = None if identity.dot_product else descriptor.similarity
         db = cls(target, None, identity, similarity)
         # Before the file is touched: a refused first batch must not leave a file behind.
+        if batches is not None and vectors is not None:
+            raise ConfigError("give the first places as vectors/names or as batches, not both")
         batch = None if vectors is None else db._prepare(vectors, names, positions, metadata, None)
         if target != MEMORY:
             Path(target).parent.mkdir(parents=True, exist_ok=True)
@@ -426,6 +438,8 @@ class PlaceDatabase:
                          identity.fdnet_version))
                     if batch is not None:
                         db._insert(conn, batch, allow_duplicates)
+                    elif batches is not None:
+                        db._insert_batches(conn, batches, allow_duplicates)
         except BaseException:
             conn.close()
             raise
@@ -507,6 +521,42 @@ class PlaceDatabase:
                 self._check_same_database(conn)
                 return self._insert(conn, batch, allow_duplicates)
 
+    def add_batches(self, batches: Iterable, *, fingerprint: str | None = None,
+                    allow_duplicates: bool = False) -> AddResult:
+        """Store many chunks of places in ONE transaction: all of them are added or none (an
+        ``add`` of a million images, a chunk in memory at a time). Each chunk is
+        ``(vectors, names)`` or ``(vectors, names, positions, metadata)``, checked as :meth:`add`
+        checks a batch; a refused chunk rolls back the chunks before it. The data version goes up
+        once. Chunks should be ready data (e.g. read back from a spool file): the write lock is
+        held while they are consumed, so describing images inside the iterable would make other
+        writers wait.
+        """
+        if fingerprint is not None:
+            _check_fingerprint(self.path, self._identity, fingerprint, None)
+        with _sqlite_errors(self.path, "adding places"):
+            with _transaction(self._conn, "IMMEDIATE") as conn:
+                self._check_same_database(conn)
+                return self._insert_batches(conn, batches, allow_duplicates)
+
+    def _insert_batches(self, conn: sqlite3.Connection, batches: Iterable, allow_duplicates: bool) -> AddResult:
+        added, skipped = 0, []
+        for chunk in batches:
+            if not isinstance(chunk, (tuple, list)) or len(chunk) not in (2, 4):
+                raise ConfigError(f"{self.path}: a batch must be (vectors, names) or (vectors, names, positions, "
+                                  "metadata)")
+            vectors, names = chunk[0], chunk[1]
+            positions, metadata = (chunk[2], chunk[3]) if len(chunk) == 4 else (None, None)
+            prepared = self._prepare(vectors, names, positions, metadata, None)
+            if prepared["names"]:
+                kept, refused = self._insert_rows(conn, prepared, allow_duplicates)
+                added += kept
+                skipped.extend(refused)
+        if added:
+            conn.execute("UPDATE fdnet_database SET data_version = data_version + 1")
+        version = conn.execute("SELECT data_version FROM fdnet_database").fetchone()[0]
+        total = conn.execute("SELECT count(*) FROM places").fetchone()[0]
+        return AddResult(added, skipped, int(total), int(version))
+
     def _prepare(self, vectors, names, positions, metadata, fingerprint) -> dict:
         """Check a batch completely before the transaction starts, so a refusal changes nothing."""
         if fingerprint is not None:
@@ -560,6 +610,15 @@ class PlaceDatabase:
                             "open it again")
 
     def _insert(self, conn: sqlite3.Connection, batch: dict, allow_duplicates: bool) -> AddResult:
+        added, skipped = self._insert_rows(conn, batch, allow_duplicates)
+        if added:
+            conn.execute("UPDATE fdnet_database SET data_version = data_version + 1")
+        version = conn.execute("SELECT data_version FROM fdnet_database").fetchone()[0]
+        total = conn.execute("SELECT count(*) FROM places").fetchone()[0]
+        return AddResult(added, skipped, int(total), int(version))
+
+    def _insert_rows(self, conn: sqlite3.Connection, batch: dict, allow_duplicates: bool) -> tuple[int, list[str]]:
+        """Insert a prepared batch (inside the caller's transaction): (places added, names skipped)."""
         names = batch["names"]
         keep = list(range(len(names)))
         skipped: list[str] = []
@@ -575,44 +634,124 @@ class PlaceDatabase:
         conn.executemany("INSERT INTO places (name, x, y, metadata, vector) VALUES (?, ?, ?, ?, ?)",
                          [(names[i], batch["x"][i], batch["y"][i], batch["metadata"][i], batch["blobs"][i])
                           for i in keep])
-        if keep:
-            conn.execute("UPDATE fdnet_database SET data_version = data_version + 1")
-        version = conn.execute("SELECT data_version FROM fdnet_database").fetchone()[0]
-        total = conn.execute("SELECT count(*) FROM places").fetchone()[0]
-        return AddResult(len(keep), skipped, int(total), int(version))
+        return len(keep), skipped
 
     # ------------------------------------------------------------------ reading
+    @property
+    def index_cache_path(self) -> Path | None:
+        """Where the derived index of an approximate kind (hnsw, ivf, ivfpq) is cached: beside
+        the database file, ``map.db.fdnet-index``. None for ``flat`` (rebuilding it is a copy)
+        and in-memory databases."""
+        if self.path == MEMORY or not self.dot_product or self.index_settings.kind == "flat":
+            return None
+        return Path(f"{self.path}{INDEX_CACHE_SUFFIX}")
+
+    def _load_cached_index(self, conn: sqlite3.Connection) -> tuple[VectorIndex | None, int]:
+        """The cached index and the last place id it holds, when the cache belongs to this
+        database (same database_id, build settings and fingerprint) and holds exactly the places
+        with id <= that id; otherwise (None, 0) and the index is rebuilt from the file."""
+        cache = self.index_cache_path
+        if cache is None or not cache.is_file():
+            return None, 0
+        try:
+            header = VectorIndex.read_header(cache)
+            meta = header.get("metadata", {})
+            build = {k: v for k, v in vars(self.index_settings).items() if k not in ("ivf_probe", "hnsw_ef_search",
+                                                                                     "refine")}
+            cached = {k: v for k, v in header["settings"].items() if k in build}
+            last_id, count = int(meta.get("last_id", -1)), int(header["count"])
+            if (meta.get("database_id") != self._identity.database_id or cached != build
+                    or meta.get("fingerprint") != self.fingerprint or header["dim"] != self.dim):
+                return None, 0
+            if conn.execute("SELECT count(*) FROM places WHERE id <= ?", (last_id,)).fetchone()[0] != count:
+                return None, 0
+            search = {k: getattr(self.index_settings, k) for k in ("ivf_probe", "hnsw_ef_search", "refine")}
+            index = VectorIndex.load(cache, search=search)
+        except (DataError, ConfigError, ValueError, TypeError, KeyError):
+            return None, 0  # a damaged or foreign cache is only a cache: rebuild
+        self._cached_places = count
+        return index, last_id
+
+    def _save_index_cache(self, force: bool = False) -> bool:
+        """Write the index to its cache file when it was built here or grew by 5 % (at least
+        1000 places) since the cache was read; a cache that cannot be written is skipped."""
+        cache = self.index_cache_path
+        if cache is None or self._index is None or len(self._index) == 0:
+            return False
+        grown = len(self._index) - self._cached_places
+        if not force and self._cached_places and grown < max(1000, 0.05 * self._cached_places):
+            return False
+        try:
+            self._index.save(cache, metadata={"database_id": self._identity.database_id,
+                                              "data_version": self._loaded_version, "last_id": self._last_id,
+                                              "fingerprint": self.fingerprint, "database": Path(self.path).name})
+        except OSError:
+            return False
+        self._cached_places = len(self._index)
+        return True
+
+    def build_index(self) -> VectorIndex | None:
+        """Load every place and build (train) the search index now rather than at the first query,
+        and for hnsw/ivf/ivfpq write its cache beside the file (``index_cache_path``) so later
+        processes load it instead of building it again. Returns the index (None for methods
+        searched exhaustively with their own similarity)."""
+        self._refresh()
+        if self._index is not None:
+            self._index.build()
+            self._save_index_cache()
+        return self._index
+
     def _refresh(self) -> None:
-        """Load the places committed since the last call, from one consistent snapshot."""
+        """Load the places committed since the last call, from one consistent snapshot, a
+        bounded number of rows at a time. Vectors of a dot-product database go into its index
+        (loaded from the cache file when it is current, then extended by the newer places)."""
+        built_here = False
         with _sqlite_errors(self.path, "reading places"):
             with _transaction(self._conn, "DEFERRED") as conn:
                 self._check_same_database(conn)
                 version = conn.execute("SELECT data_version FROM fdnet_database").fetchone()[0]
                 if version == self._loaded_version:
                     return
-                rows = conn.execute("SELECT id, name, x, y, metadata, vector FROM places WHERE id > ? ORDER BY id",
-                                    (self._last_id,)).fetchall()
-        if not rows:
-            self._loaded_version = version
-            return
+                vectors_after = self._last_id
+                if self.dot_product and self._index is None:
+                    self._index, cached_last = self._load_cached_index(conn)
+                    vectors_after = max(vectors_after, cached_last)
+                    if self._index is None:
+                        self._index = VectorIndex(self.dim, self.index_settings)
+                        built_here = True
+                rows = conn.execute("SELECT id, name, x, y, metadata FROM places WHERE id > ? ORDER BY id",
+                                    (self._last_id,))
+                last = self._last_id
+                while chunk := rows.fetchmany(_ROWS_PER_FETCH):
+                    self._names.extend(r[1] for r in chunk)
+                    self._positions.extend(None if r[2] is None else (float(r[2]), float(r[3])) for r in chunk)
+                    self._metadata.extend(r[4] for r in chunk)
+                    last = chunk[-1][0]
+                for vectors in self._read_vectors(conn, vectors_after, last):
+                    if self.dot_product:
+                        self._index.add(vectors)
+                    else:
+                        self._vector_chunks.append(vectors)
+                self._last_id = last
+                self._loaded_version = version
+        if built_here and self._index is not None and self._index.trainable and len(self._index) >= 10_000:
+            # an approximate index worth caching: train it once, here, and keep it
+            self._index.build()
+            self._save_index_cache(force=True)
+
+    def _read_vectors(self, conn: sqlite3.Connection, after_id: int, up_to_id: int) -> Iterator[np.ndarray]:
+        """Stored vectors of the places with after_id < id <= up_to_id, in id order, in chunks."""
+        rows = conn.execute("SELECT id, name, vector FROM places WHERE id > ? AND id <= ? ORDER BY id",
+                            (after_id, up_to_id))
         width = 4 * self.dim
-        for row in rows:
-            if not isinstance(row[5], bytes) or len(row[5]) != width:
-                raise DataError(f"{self.path}: place {row[1]!r} (id {row[0]}) has a vector of "
-                                f"{len(row[5]) if isinstance(row[5], bytes) else type(row[5]).__name__} bytes, "
-                                f"expected {width} ({self.dim} float32); the file is damaged")
-        vectors = np.frombuffer(b"".join(r[5] for r in rows), dtype="<f4").reshape(len(rows), self.dim)
-        vectors = vectors.astype(np.float32)
-        if self.dot_product:
-            if self._index is None:
-                self._index = VectorIndex(self.dim, self.index_settings)
-            self._index.add(vectors)
-        self._vector_chunks.append(vectors)
-        self._names.extend(r[1] for r in rows)
-        self._positions.extend(None if r[2] is None else (float(r[2]), float(r[3])) for r in rows)
-        self._metadata.extend(r[4] for r in rows)
-        self._last_id = rows[-1][0]
-        self._loaded_version = version
+        while chunk := rows.fetchmany(_ROWS_PER_FETCH):
+            for row in chunk:
+                if not isinstance(row[2], bytes) or len(row[2]) != width:
+                    raise DataError(f"{self.path}: place {row[1]!r} (id {row[0]}) has a vector of "
+                                    f"{len(row[2]) if isinstance(row[2], bytes) else type(row[2]).__name__} bytes, "
+                                    f"expected {width} ({self.dim} float32); the file is damaged")
+            yield np.frombuffer(b"".join(r[2] for r in chunk), dtype="<f4").reshape(len(chunk), self.dim).astype(
+                np.float32)
 
     @property
     def names(self) -> list[str]:
@@ -626,7 +765,14 @@ class PlaceDatabase:
 
     @property
     def vectors(self) -> np.ndarray:
+        """Every stored vector, in insertion order (read from the file for dot-product databases,
+        whose vectors otherwise live only in the index)."""
         self._refresh()
+        if self.dot_product:
+            with _sqlite_errors(self.path, "reading vectors"):
+                with _transaction(self._conn, "DEFERRED") as conn:
+                    chunks = list(self._read_vectors(conn, 0, self._last_id))
+            return np.concatenate(chunks) if chunks else np.zeros((0, self.dim), dtype=np.float32)
         if not self._vector_chunks:
             return np.zeros((0, self.dim), dtype=np.float32)
         if len(self._vector_chunks) > 1:

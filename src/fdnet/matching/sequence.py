@@ -67,3 +67,34 @@ def sequence_similarity(similarity: np.ndarray, length: int = 10,
         mean = np.where(count > 0, total / np.maximum(count, 1), -np.inf)
         best[q] = mean.max(axis=0)
     return best
+
+
+def sequence_top_k(queries: np.ndarray, references: np.ndarray, k: int, length: int = 10,
+                   similarity=None, velocities: tuple[float, ...] | np.ndarray = (0.8, 0.9, 1.0, 1.1, 1.25),
+                   contrast_window: int = 0, max_entries: int = 16_000_000) -> tuple[np.ndarray, np.ndarray]:
+    """Best ``k`` references per query by sequence similarity, without the (Q, R) matrix.
+
+    The same numbers as ``top_k_of_matrix(sequence_similarity(similarity_matrix(...)), k)``:
+    each query's row depends only on the single-image similarity rows of the ``length - 1``
+    queries before it, so blocks of query rows are computed with that many rows of overlap and
+    reduced to their top ``k`` at once. Memory: about ``max_entries`` similarity values.
+    """
+    from fdnet.matching.similarity import _dot, top_k_of_matrix
+
+    fn = similarity or _dot
+    q = np.asarray(queries)
+    r = np.asarray(references)
+    num_q, num_r = len(q), len(r)
+    k = int(min(max(k, 1), num_r))
+    overlap = max(int(length), 1) - 1
+    block = max(1, int(max_entries) // max(num_r, 1) - overlap)
+    best_idx = np.zeros((num_q, k), dtype=np.int64)
+    best_score = np.zeros((num_q, k), dtype=np.float32)
+    for start in range(0, num_q, block):
+        first = max(0, start - overlap)
+        rows = np.asarray(fn(q[first:start + block], r), dtype=np.float32)
+        seq = sequence_similarity(rows, length, velocities, contrast_window)[start - first:]
+        idx, scores = top_k_of_matrix(seq, k)
+        best_idx[start:start + len(seq)] = idx
+        best_score[start:start + len(seq)] = scores
+    return best_idx, best_score

@@ -16,17 +16,21 @@ class CALCDescriptor(Descriptor):
     """CALC bottleneck (conv3 output, flattened), L2-normalised, compared by cosine.
 
     ``checkpoint``: a run directory written by ``fdnet train-baseline calc``. ``bf16``: autocast
-    (default: on where the CPU has native bf16). ``threads``: torch threads while describing.
+    (default: on where the device has native bf16). ``threads``: torch threads while describing.
+    ``device``: ``auto`` (a GPU when there is one), ``cpu``, ``cuda`` or ``cuda:N``; the grey
+    uint8 images go there and are converted there.
     """
 
     name = "calc"
+    accepts_uint8 = True
 
     def __init__(self, checkpoint: str | Path | None = None, bf16: bool | None = None,
-                 threads: int | None = None):
+                 threads: int | None = None, device: str | None = None):
         import torch
 
         from fdnet.backbones import bf16_supported
         from fdnet.runs import load_weights
+        from fdnet.backbones import resolve_device
 
         if checkpoint is None:
             raise ConfigError("method 'calc' needs a trained model: --checkpoint RUN_DIR "
@@ -34,10 +38,12 @@ class CALCDescriptor(Descriptor):
         self.checkpoint = Path(checkpoint)
         self.config = load_run_config(self.checkpoint)
         self.input_size = tuple(int(v) for v in self.config.model.input_size)
+        self.device = resolve_device("auto" if device is None else device, where="calc: device")
         self.network = build_network(self.config.model).eval()
         metadata = load_weights(self.checkpoint, {"calc": self.network})
+        self.network.to(self.device)
         self.step = int(metadata.get("step", 0))
-        self.bf16 = bf16_supported() if bf16 is None else bool(bf16)
+        self.bf16 = bf16_supported(self.device) if bf16 is None else bool(bf16)
         self.threads = threads
         self._torch = torch
 
@@ -48,18 +54,22 @@ class CALCDescriptor(Descriptor):
     def describe(self, images: np.ndarray) -> np.ndarray:
         from fdnet.backbones import torch_threads
 
+        from fdnet.backbones import autocast
+
         torch = self._torch
-        grey = to_grey_u8(images).astype(np.float32) / 255.0
-        x = torch.from_numpy(np.ascontiguousarray(grey))[:, None]
-        if x.shape[-2:] != self.input_size:
-            raise ConfigError(f"CALC expects images of size {self.input_size}, got {tuple(x.shape[-2:])}")
+        images = np.asarray(images)
+        if images.dtype == np.uint8:
+            # the float path's values exactly (u8 / 255 in float32), then CALC's own grey bytes
+            images = images.astype(np.float32) / np.float32(255.0)
+        grey = to_grey_u8(images)
+        if grey.shape[-2:] != self.input_size:
+            raise ConfigError(f"CALC expects images of size {self.input_size}, got {tuple(grey.shape[-2:])}")
         with torch_threads(self.threads), torch.inference_mode():
-            if self.bf16:
-                with torch.autocast("cpu", dtype=torch.bfloat16):
-                    out = self.network.encode(x.contiguous(memory_format=torch.channels_last))
-            else:
-                out = self.network.encode(x)
-        return l2_normalize(out.float().numpy())
+            # grey uint8 crosses to the device; / 255 there gives what the CPU path computed
+            x = torch.from_numpy(np.ascontiguousarray(grey))[:, None].to(self.device).float().div_(255.0)
+            with autocast(self.device, self.bf16):
+                out = self.network.encode(x.contiguous(memory_format=torch.channels_last) if self.bf16 else x)
+            return l2_normalize(out.float().cpu().numpy())
 
     def settings(self) -> dict:
         return {"input_size": list(self.input_size), "checkpoint": str(self.checkpoint), "step": self.step,

@@ -3,6 +3,12 @@ cosine similarity (paper section 4.2, eq. 11), i.e. the dot product of the unit 
 
 ``RUN_DIR`` is the ``--out`` folder of ``fdnet train`` (final weights) or its ``best/``
 sub-folder (the checkpoint with the best validation R@1, when training validated).
+
+``device``: ``auto`` (default: a GPU when there is one), ``cpu``, ``cuda`` or ``cuda:N``. Images
+(float32 in [0, 1], or uint8 as the streaming pipeline loads them) go to the device as they are
+and are converted there. ``bf16``: bfloat16 autocast with channels_last tensors (False by
+default, so vectors and database fingerprints stay what they were; None = on where the device
+runs bf16 natively, what ``fdnet extract`` uses).
 """
 
 from __future__ import annotations
@@ -19,8 +25,9 @@ from fdnet.errors import DataError, NotAvailableError
 class FDNetDescriptor(Descriptor):
     name: ClassVar[str] = "fdnet"
     dot_product_similarity: ClassVar[bool] = True
+    accepts_uint8: ClassVar[bool] = True
 
-    def __init__(self, checkpoint: str | Path | None = None, device: str = "cpu", bf16: bool = False,
+    def __init__(self, checkpoint: str | Path | None = None, device: str | None = "auto", bf16: bool | None = False,
                  batch_size: int = 256) -> None:
         if checkpoint is None:
             raise NotAvailableError("method 'fdnet' needs a trained run: --checkpoint RUN_DIR (make one with `fdnet train`)")
@@ -30,59 +37,84 @@ class FDNetDescriptor(Descriptor):
         from fdnet.runs import load_config, load_weights
         from fdnet.methods.fdnet.config import TrainConfig
 
+        from fdnet.backbones import bf16_native, resolve_device
+
         self.run_dir = Path(checkpoint)
         self.config = load_config(self.run_dir, TrainConfig)
-        self.device = torch.device(device)
-        self.bf16 = bool(bf16)
+        self.device = resolve_device("auto" if device is None else device, where="fdnet: device")
+        self.bf16 = bf16_native(self.device) if bf16 is None else bool(bf16)
         self.batch_size = int(batch_size)
         model = FDNet(self.config.model)
         metadata = load_weights(self.run_dir, model.named_parts(), device="cpu")
         self.model = model.to(self.device).eval()
+        if self.bf16:
+            # bf16 convolutions are fastest on channels_last tensors (oneDNN, cuDNN); the stored
+            # weights keep their values (and the fingerprint its bytes)
+            self.model = self.model.to(memory_format=torch.channels_last)
         self.step = int(metadata["step"]) if metadata.get("step", "").isdigit() else None
         self.input_size = tuple(int(v) for v in self.config.model.input_size)
 
     @classmethod
-    def from_run(cls, run_dir: str | Path, device: str = "cpu", bf16: bool = False) -> "FDNetDescriptor":
+    def from_run(cls, run_dir: str | Path, device: str | None = "cpu", bf16: bool | None = False) -> "FDNetDescriptor":
         return cls(checkpoint=run_dir, device=device, bf16=bf16)
 
     @property
     def dim(self) -> int:
-        return int(self.config.model.vector_length)
+        return int(self.model.content_length)
 
-    def _vectors(self, images: np.ndarray, appearance: bool) -> np.ndarray:
-        import contextlib
-
-        import torch
-
-        images = np.asarray(images, dtype=np.float32)
+    def _check(self, images) -> np.ndarray:
+        images = np.asarray(images)
+        if images.dtype != np.uint8:
+            images = images.astype(np.float32, copy=False)
         if images.ndim != 4 or images.shape[-1] != 3:
             raise DataError(f"fdnet: expected images of shape (N, H, W, 3), got {images.shape}")
         if tuple(images.shape[1:3]) != self.input_size:
             raise DataError(f"fdnet: images are {images.shape[1]}x{images.shape[2]} (HxW) but this run takes "
                             f"{self.input_size[0]}x{self.input_size[1]}; load them at descriptor.input_size")
-        out = []
+        return images
+
+    def _vectors(self, images: np.ndarray, parts: tuple[str, ...]) -> list[np.ndarray]:
+        """The requested vectors (``content``, ``appearance``) of ``images``, one model input per
+        batch: the images cross to the device once for both."""
+        import torch
+
+        from fdnet.backbones import autocast, images_to_device
+
+        images = self._check(images)
+        out: dict[str, list] = {part: [] for part in parts}
         with torch.inference_mode():
             for start in range(0, len(images), self.batch_size):
-                x = torch.from_numpy(images[start:start + self.batch_size]).permute(0, 3, 1, 2).to(self.device)
-                cast = (torch.autocast(self.device.type, dtype=torch.bfloat16) if self.bf16
-                        else contextlib.nullcontext())
-                with cast:
-                    v = self.model.appearance(x) if appearance else self.model.content(x)
-                out.append(v.float().cpu().numpy())
-        if not out:
-            return np.zeros((0, self.dim), dtype=np.float32)
-        return np.concatenate(out).astype(np.float32)
+                # NHWC images viewed as NCHW are channels_last already (what the model always got)
+                x = images_to_device(images[start:start + self.batch_size], self.device, channels_last=True)
+                with autocast(self.device, self.bf16):
+                    for part in parts:
+                        v = self.model.appearance(x) if part == "appearance" else self.model.content(x)
+                        out[part].append(v.float())
+        result = []
+        for part in parts:
+            if not out[part]:
+                result.append(np.zeros((0, self.dim), dtype=np.float32))
+            else:
+                result.append(torch.cat(out[part]).cpu().numpy().astype(np.float32, copy=False))
+        return result
 
     def describe(self, images: np.ndarray) -> np.ndarray:
-        """(N, H, W, 3) in [0, 1] at ``input_size`` -> (N, L) unit content vectors."""
+        """(N, H, W, 3) at ``input_size``, float32 in [0, 1] or uint8 -> (N, L) unit content vectors."""
         from fdnet.descriptors.base import l2_normalize
 
-        return l2_normalize(self._vectors(images, appearance=False))
+        return l2_normalize(self._vectors(images, ("content",))[0])
 
     def describe_appearance(self, images: np.ndarray) -> np.ndarray:
         """(N, L) appearance vectors v_a, as the encoder outputs them (the triplet loss compares
         them by squared Euclidean distance, so they are not normalised)."""
-        return self._vectors(images, appearance=True)
+        return self._vectors(images, ("appearance",))[0]
+
+    def describe_both(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(unit content vectors, appearance vectors) of the same images, sent to the device once."""
+        from fdnet.descriptors.base import l2_normalize
+
+        content, appearance = self._vectors(images, ("content", "appearance"))
+        return l2_normalize(content), appearance
 
     def settings(self) -> dict:
         return {"input_size": list(self.input_size), "vector_length": self.dim, "checkpoint": str(self.run_dir),

@@ -17,16 +17,19 @@ class NetVLADDescriptor(Descriptor):
 
     ``checkpoint``: a run directory written by ``fdnet train-baseline netvlad``. The frozen trunk
     comes from the installed EfficientNet-Lite0 ImageNet weights, the fine-tuned blocks and the
-    VLAD layer from the run. ``bf16``: autocast (default: on where the CPU has native bf16).
-    ``threads``: torch threads while describing.
+    VLAD layer from the run. ``bf16``: autocast (default: on where the device has native bf16).
+    ``threads``: torch threads while describing. ``device``: ``auto`` (a GPU when there is one),
+    ``cpu``, ``cuda`` or ``cuda:N``. Takes uint8 images (converted on the device).
     """
 
     name = "netvlad"
+    accepts_uint8 = True
 
     def __init__(self, checkpoint: str | Path | None = None, bf16: bool | None = None,
-                 threads: int | None = None):
+                 threads: int | None = None, device: str | None = None):
         from fdnet.backbones import FeatureExtractor
         from fdnet.runs import load_weights
+        from fdnet.backbones import resolve_device
 
         if checkpoint is None:
             raise ConfigError("method 'netvlad' needs a trained model: --checkpoint RUN_DIR "
@@ -36,10 +39,12 @@ class NetVLADDescriptor(Descriptor):
         model = self.config.model
         self.input_size = tuple(int(v) for v in model.input_size)
         # pretrained=False: every fine-tuned weight comes from the checkpoint
+        self.device = resolve_device("auto" if device is None else device, where="netvlad: device")
         self.network = build_network(model, pretrained=False).eval()
         metadata = load_weights(self.checkpoint, {"netvlad": self.network})
+        self.network.to(self.device)
         self.step = int(metadata.get("step", 0))
-        self.extractor = FeatureExtractor(block=model.frozen_block, bf16=bf16, threads=threads)
+        self.extractor = FeatureExtractor(block=model.frozen_block, bf16=bf16, threads=threads, device=self.device)
         self.bf16 = self.extractor.bf16
         self.threads = threads
 
@@ -52,14 +57,18 @@ class NetVLADDescriptor(Descriptor):
 
         from fdnet.backbones import torch_threads
 
-        images = np.asarray(images, dtype=np.float32)
+        from fdnet.backbones import autocast
+
+        images = np.asarray(images)
+        if images.dtype != np.uint8:
+            images = images.astype(np.float32, copy=False)
         if images.shape[1:3] != self.input_size:
             raise ConfigError(f"NetVLAD expects images of size {self.input_size}, got {images.shape[1:3]}")
         maps = self.extractor.features_tensor(images)
         with torch_threads(self.threads), torch.inference_mode():
-            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.bf16):
+            with autocast(self.device, self.bf16):
                 out = self.network(maps.contiguous(memory_format=torch.channels_last) if self.bf16 else maps)
-        return l2_normalize(out.float().numpy())
+        return l2_normalize(out.float().cpu().numpy())
 
     def settings(self) -> dict:
         model = self.config.model

@@ -1,0 +1,294 @@
+"""The streaming image pipeline: decode and resize in DataLoader workers while the model runs,
+hand out descriptors in chunks, never hold a folder.
+
+For a folder of any size (10^6 images), memory stays bounded by a few batches: worker processes
+(``torch.utils.data.DataLoader``) decode and resize images while the descriptor describes the
+previous batch, at most ``workers * prefetch`` batches wait in between, and the vectors come out
+batch by batch (:func:`describe_stream`) for the caller to write where they go (an ``.npz``
+written in chunks by ``fdnet extract``, a spool file that ``fdnet database`` inserts in one
+transaction). :func:`fdnet.descriptors.base.describe_paths` collects them into one array for
+callers that need all vectors at once (matching, evaluation).
+
+Descriptors that declare ``accepts_uint8`` (the torch ones) get uint8 images: a quarter of the
+bytes of float32 in the queues and on the way to the device, converted and normalised there
+(:func:`fdnet.runtime.images_to_device`). Others get float32 in [0, 1], as always. For a CUDA
+device the batches are put in pinned memory so the copy overlaps.
+
+Errors: an image that cannot be read stops the stream with the :class:`~fdnet.errors.DataError`
+naming it, raised in the main process (not a worker's traceback).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+from typing import Callable, Iterator, Sequence
+
+import numpy as np
+
+from fdnet.errors import DataError
+
+#: batches each worker prepares ahead of the model (DataLoader's prefetch_factor)
+PREFETCH = 2
+
+
+def default_workers() -> int:
+    """Decoding processes when the caller does not say: one per spare core, at least 1, at most 8
+    (a 2-core machine: 1 worker decodes while torch runs on the cores)."""
+    return max(1, min(8, (os.cpu_count() or 2) - 1))
+
+
+class _Images:
+    """Dataset of image paths -> (index, image or None, error message or None). Errors travel as
+    values so the main process raises the DataError itself, with its one-line message."""
+
+    def __init__(self, paths: Sequence[Path], size: tuple[int, int], uint8: bool):
+        self.paths = list(paths)
+        self.size = (int(size[0]), int(size[1]))
+        self.uint8 = bool(uint8)
+
+    def __len__(self) -> int:
+        return len(self.paths)
+
+    def __getitem__(self, i: int):
+        from fdnet.data.images import load_image, load_image_uint8
+
+        try:
+            image = (load_image_uint8 if self.uint8 else load_image)(self.paths[i], self.size)
+        except DataError as exc:
+            return i, None, str(exc)
+        return i, image, None
+
+
+def _collate(items):
+    import torch
+
+    for _, image, error in items:
+        if error is not None:
+            return items[0][0], None, error
+    return items[0][0], torch.from_numpy(np.stack([image for _, image, _ in items])), None
+
+
+def iter_image_batches(paths: Sequence[str | os.PathLike], size: tuple[int, int], batch_size: int = 64,
+                       uint8: bool = False, workers: int | None = None,
+                       pin_memory: bool = False) -> Iterator[tuple[int, np.ndarray]]:
+    """Yield ``(start, images)`` for consecutive batches of ``paths`` in order: images (n, H, W, 3)
+    at ``size`` (height, width), uint8 or float32 in [0, 1]. ``workers``: decoding processes
+    (None = :func:`default_workers`; 0 = decode in this process, no overlap). At most
+    ``workers * PREFETCH`` decoded batches exist besides the one yielded."""
+    paths = [Path(p) for p in paths]
+    if batch_size < 1:
+        raise DataError(f"batch size must be at least 1, got {batch_size}")
+    if not paths:
+        return
+    workers = default_workers() if workers is None else max(0, int(workers))
+    if len(paths) <= batch_size:
+        workers = 0  # one batch: a worker process would only add its start-up time
+    if workers == 0:
+        dataset = _Images(paths, size, uint8)
+        for start in range(0, len(paths), batch_size):
+            _, batch, error = _collate([dataset[i] for i in range(start, min(start + batch_size, len(paths)))])
+            if error is not None:
+                raise DataError(error)
+            yield start, batch.numpy()
+        return
+    from torch.utils.data import DataLoader
+
+    loader = DataLoader(_Images(paths, size, uint8), batch_size=batch_size, shuffle=False,
+                        num_workers=workers, collate_fn=_collate, prefetch_factor=PREFETCH,
+                        pin_memory=pin_memory, persistent_workers=False)
+    iterator = iter(loader)
+    try:
+        for start, batch, error in iterator:
+            if error is not None:
+                raise DataError(error)
+            # .numpy() shares the (possibly pinned) memory: no copy
+            yield int(start), batch.numpy()
+    finally:
+        # Stop the worker processes now (an error, or a consumer that stops early), not at exit.
+        shutdown = getattr(iterator, "_shutdown_workers", None)
+        if shutdown is not None:
+            shutdown()
+
+
+def describe_stream(descriptor, paths: Sequence[str | os.PathLike], batch_size: int = 64,
+                    workers: int | None = None, progress: bool = False, timing: dict | None = None,
+                    describe: Callable[[np.ndarray], object] | None = None,
+                    what: str | None = None) -> Iterator[tuple[int, object]]:
+    """Yield ``(start, vectors)`` per batch of ``paths``: ``descriptor.describe`` of the images
+    (or ``describe(images)``, e.g. content and appearance vectors at once), in order.
+
+    ``progress`` shows a tqdm bar counting images with images/s. ``timing`` (a dict) receives
+    ``seconds_describe`` (model time only: decoding overlaps with it in the workers and is
+    excluded), ``seconds_wall`` and ``num_images``.
+    """
+    paths = list(paths)
+    describe = describe or descriptor.describe
+    device = getattr(descriptor, "device", None)
+    pin = getattr(device, "type", None) == "cuda"
+    uint8 = bool(getattr(descriptor, "accepts_uint8", False))
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(paths), desc=what or f"describe [{descriptor.name}]", unit="img", leave=False,
+                   dynamic_ncols=True, smoothing=0.1)
+    spent = 0.0
+    t_start = time.perf_counter()
+    try:
+        for start, images in iter_image_batches(paths, descriptor.input_size, batch_size, uint8=uint8,
+                                                workers=workers, pin_memory=pin):
+            t0 = time.perf_counter()
+            out = describe(images)
+            spent += time.perf_counter() - t0
+            if bar is not None:
+                bar.update(len(images))
+            yield start, out
+    finally:
+        if bar is not None:
+            bar.close()
+        if timing is not None:
+            timing["seconds_describe"] = spent
+            timing["seconds_wall"] = time.perf_counter() - t_start
+            timing["num_images"] = len(paths)
+
+
+class NpzChunkWriter:
+    """An ``.npz`` written chunk by chunk, never whole in memory, and atomically.
+
+    Each large array has a shape known in advance (e.g. (N, L) vectors for N images); its rows
+    are appended in order (:meth:`write`) to a plain ``.npy`` file in a temporary folder beside
+    the target. :meth:`close` checks every array is complete, packs the ``.npy`` files
+    (uncompressed, ZIP64, so any size) plus small extra arrays into a temporary ``.npz`` beside
+    the target, syncs it and renames it over the target (:func:`fdnet.io.atomic_path`). A crash
+    or an error leaves the target as it was (and no temporary folder, except after kill -9:
+    a hidden ``.NAME.parts.*`` folder beside it). The result is an ordinary ``.npz``:
+    ``np.load(path)`` reads it without pickle.
+    """
+
+    def __init__(self, path, arrays: dict[str, tuple[tuple[int, ...], object]]):
+        import tempfile
+
+        from numpy.lib import format as npy_format
+
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._folder = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.parts.", dir=self.path.parent))
+        self._files: dict = {}
+        self._rows: dict[str, int] = {}
+        self._shapes: dict[str, tuple[int, ...]] = {}
+        self._dtypes: dict = {}
+        try:
+            for name, (shape, dtype) in arrays.items():
+                dtype = np.dtype(dtype)
+                shape = tuple(int(v) for v in shape)
+                handle = open(self._folder / f"{name}.npy", "wb")
+                self._files[name] = handle
+                header = {"descr": npy_format.dtype_to_descr(dtype), "fortran_order": False, "shape": shape}
+                npy_format.write_array_header_2_0(handle, header)
+                self._rows[name], self._shapes[name], self._dtypes[name] = 0, shape, dtype
+        except BaseException:
+            self.discard()
+            raise
+
+    def write(self, name: str, rows: np.ndarray) -> None:
+        """Append ``rows`` (the next rows of array ``name``, in order)."""
+        rows = np.ascontiguousarray(rows, dtype=self._dtypes[name])
+        shape = self._shapes[name]
+        if rows.shape[1:] != shape[1:]:
+            raise ValueError(f"{name}: rows of shape {rows.shape[1:]}, expected {shape[1:]}")
+        if self._rows[name] + len(rows) > shape[0]:
+            raise ValueError(f"{name}: more than the {shape[0]} rows announced")
+        self._files[name].write(rows.tobytes())
+        self._rows[name] += len(rows)
+
+    def close(self, extra: dict[str, np.ndarray] | None = None) -> None:
+        """Pack everything into the target, atomically (see the class docstring)."""
+        import io
+        import zipfile
+
+        from fdnet.io import atomic_path
+
+        try:
+            for name, handle in self._files.items():
+                handle.close()
+                if self._rows[name] != self._shapes[name][0]:
+                    raise ValueError(f"{name}: {self._rows[name]} rows written of {self._shapes[name][0]}")
+            with atomic_path(self.path) as tmp:
+                with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as archive:
+                    for name in self._files:
+                        archive.write(self._folder / f"{name}.npy", arcname=f"{name}.npy")
+                    for name, value in (extra or {}).items():
+                        buffer = io.BytesIO()
+                        np.save(buffer, np.asarray(value), allow_pickle=False)
+                        archive.writestr(f"{name}.npy", buffer.getvalue())
+        finally:
+            self.discard()
+
+    def discard(self) -> None:
+        """Drop the temporary parts (the target is untouched)."""
+        import shutil
+
+        for handle in self._files.values():
+            if not handle.closed:
+                handle.close()
+        shutil.rmtree(self._folder, ignore_errors=True)
+
+    def __enter__(self) -> "NpzChunkWriter":
+        return self
+
+    def __exit__(self, exc_type, *rest) -> None:
+        if exc_type is not None:
+            self.discard()
+
+
+class VectorSpool:
+    """Vectors written to a temporary file as they are made, read back in chunks: a place
+    database stores a folder of any size in one transaction without holding its vectors, and
+    without holding its write lock while images are described. The file lives in ``folder``
+    (hidden, removed by :meth:`close` or when the ``with`` block ends)."""
+
+    def __init__(self, folder, dim: int):
+        import tempfile
+
+        folder = Path(folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        fd, name = tempfile.mkstemp(prefix=".fdnet-spool.", suffix=".f32", dir=folder)
+        self.path = Path(name)
+        self._handle = os.fdopen(fd, "w+b")
+        self.dim = int(dim)
+        self.rows = 0
+
+    def write(self, rows: np.ndarray) -> None:
+        rows = np.ascontiguousarray(rows, dtype="<f4")
+        if rows.ndim != 2 or rows.shape[1] != self.dim:
+            raise ValueError(f"spool holds {self.dim}-d vectors, got {rows.shape}")
+        self._handle.write(rows.tobytes())
+        self.rows += len(rows)
+
+    def chunks(self, rows_per_chunk: int = 65536) -> Iterator[tuple[int, np.ndarray]]:
+        """``(start, rows)`` in the order written."""
+        self._handle.flush()
+        self._handle.seek(0)
+        width = 4 * self.dim
+        for start in range(0, self.rows, rows_per_chunk):
+            n = min(rows_per_chunk, self.rows - start)
+            data = self._handle.read(n * width)
+            if len(data) != n * width:
+                raise DataError(f"{self.path}: spool file truncated (disk full?)")
+            yield start, np.frombuffer(data, dtype="<f4").reshape(n, self.dim).astype(np.float32)
+
+    def close(self) -> None:
+        if not self._handle.closed:
+            self._handle.close()
+        try:
+            self.path.unlink()
+        except FileNotFoundError:
+            pass
+
+    def __enter__(self) -> "VectorSpool":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

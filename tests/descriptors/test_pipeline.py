@@ -1,0 +1,162 @@
+"""The streaming pipeline (issue 13 part 2): batches in order from DataLoader workers, errors
+named in the main process, vectors written in chunks, and memory bounded far below a folder's
+decoded size."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from fdnet.data.images import load_image, load_image_uint8
+from fdnet.descriptors.base import Descriptor, describe_paths
+from fdnet.descriptors.pipeline import NpzChunkWriter, VectorSpool, describe_stream, iter_image_batches
+from fdnet.errors import DataError
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def make_folder(folder: Path, n: int, size=(12, 16), seed=0) -> list[Path]:
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    paths = []
+    for i in range(n):
+        path = folder / f"frame_{i:05d}.png"
+        Image.fromarray(rng.integers(0, 256, size=(*size, 3), dtype=np.uint8)).save(path)
+        paths.append(path)
+    return paths
+
+
+class MeanColour(Descriptor):
+    """Per-image mean of each channel: cheap, so the test measures the pipeline."""
+
+    name = "mean-colour"
+
+    def __init__(self, input_size=(24, 32), uint8=False):
+        self.input_size = input_size
+        self.accepts_uint8 = uint8
+
+    @property
+    def dim(self) -> int:
+        return 3
+
+    def describe(self, images):
+        return np.asarray(images, dtype=np.float32).reshape(len(images), -1, 3).mean(axis=1)
+
+
+@pytest.mark.parametrize("workers", [0, 2])
+@pytest.mark.parametrize("uint8", [False, True])
+def test_batches_come_in_order_with_the_loaders_values(tmp_path, workers, uint8):
+    paths = make_folder(tmp_path / "f", 23)
+    seen = []
+    for start, batch in iter_image_batches(paths, (6, 8), batch_size=5, uint8=uint8, workers=workers):
+        assert batch.dtype == (np.uint8 if uint8 else np.float32) and batch.shape[1:] == (6, 8, 3)
+        loader = load_image_uint8 if uint8 else load_image
+        for i, image in enumerate(batch):
+            np.testing.assert_array_equal(image, loader(paths[start + i], (6, 8)))
+        seen.append((start, len(batch)))
+    assert seen == [(0, 5), (5, 5), (10, 5), (15, 5), (20, 3)]
+
+
+@pytest.mark.parametrize("workers", [0, 1])
+def test_describe_paths_equals_describing_all_images_at_once(tmp_path, workers):
+    paths = make_folder(tmp_path / "f", 40)
+    d = MeanColour()
+    timing = {}
+    streamed = describe_paths(d, paths, batch_size=7, timing=timing, workers=workers, progress=True)
+    from fdnet.data.images import load_images
+
+    np.testing.assert_allclose(streamed, d.describe(load_images(paths, d.input_size)), rtol=1e-6)
+    assert timing["num_images"] == 40 and timing["seconds_describe"] > 0
+    assert describe_paths(d, [], workers=workers).shape == (0, 3)
+
+
+@pytest.mark.parametrize("workers", [0, 2])
+def test_an_unreadable_image_is_a_data_error_naming_it(tmp_path, workers):
+    paths = make_folder(tmp_path / "f", 12)
+    paths[9].write_bytes(b"not an image")
+    with pytest.raises(DataError) as info:
+        list(describe_stream(MeanColour(), paths, batch_size=4, workers=workers))
+    assert str(paths[9]) in str(info.value) and "Traceback" not in str(info.value)
+
+
+def test_npz_chunk_writer_is_an_ordinary_npz_and_atomic(tmp_path):
+    out = tmp_path / "v.npz"
+    rows = np.arange(30, dtype=np.float32).reshape(10, 3)
+    with NpzChunkWriter(out, {"a": ((10, 3), np.float32), "b": ((10, 3), np.float32)}) as writer:
+        for start in range(0, 10, 4):
+            writer.write("a", rows[start:start + 4])
+            writer.write("b", -rows[start:start + 4])
+        writer.close({"names": np.array([f"n{i}" for i in range(10)])})
+    with np.load(out, allow_pickle=False) as z:
+        np.testing.assert_array_equal(z["a"], rows)
+        np.testing.assert_array_equal(z["b"], -rows)
+        assert list(z["names"][:2]) == ["n0", "n1"]
+    # an incomplete array is refused and the existing target is left as it was
+    before = out.read_bytes()
+    writer = NpzChunkWriter(out, {"a": ((10, 3), np.float32)})
+    writer.write("a", rows[:4])
+    with pytest.raises(ValueError, match="4 rows written of 10"):
+        writer.close()
+    assert out.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["v.npz"]   # no parts left behind
+
+
+def test_vector_spool_round_trip(tmp_path):
+    rows = np.random.default_rng(0).normal(size=(25, 4)).astype(np.float32)
+    with VectorSpool(tmp_path, 4) as spool:
+        spool.write(rows[:10])
+        spool.write(rows[10:])
+        back = list(spool.chunks(rows_per_chunk=7))
+        path = spool.path
+    assert [s for s, _ in back] == [0, 7, 14, 21]
+    np.testing.assert_array_equal(np.concatenate([c for _, c in back]), rows)
+    assert not path.exists()
+
+
+# ------------------------------------------------------------------ bounded memory
+MEMORY_SCRIPT = textwrap.dedent('''
+    import json, resource, sys
+    import numpy as np
+    sys.path.insert(0, sys.argv[3])
+    from test_pipeline import MeanColour
+    from fdnet.data.images import list_images
+    from fdnet.descriptors.base import describe_paths
+
+    workers = int(sys.argv[2])
+    paths = list_images(sys.argv[1])
+    d = MeanColour(input_size=(512, 512))          # 3 MB per decoded float32 image
+    describe_paths(d, paths[:16], batch_size=8, workers=0)  # warm up imports and allocators
+    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    vectors = describe_paths(d, paths, batch_size=8, workers=workers)
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    children = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024
+    print(json.dumps({"base": base, "peak": peak, "children": children, "rows": len(vectors),
+                      "decoded": len(paths) * 512 * 512 * 3 * 4}))
+''')
+
+
+@pytest.mark.parametrize("workers", [0, 1])
+def test_a_folder_streams_in_memory_far_below_its_decoded_size(tmp_path, workers):
+    """700 images decode to 2.2 GB of float32 at 512x512; describing them through the pipeline
+    must not grow the process (nor a decoding worker) by more than 300 MB, a seventh of that.
+    Holding every image (as loading the folder at once would) fails this by 1.9 GB."""
+    folder = tmp_path / "big"
+    make_folder(folder, 700, size=(16, 16))
+    script = tmp_path / "measure.py"
+    script.write_text(MEMORY_SCRIPT)
+    done = subprocess.run([sys.executable, str(script), str(folder), str(workers), str(Path(__file__).parent)],
+                          capture_output=True, text=True, timeout=600, cwd=REPO)
+    assert done.returncode == 0, done.stderr[-2000:]
+    m = json.loads(done.stdout.strip().splitlines()[-1])
+    cap = 300 * 2**20
+    assert m["rows"] == 700 and m["decoded"] > 6 * cap
+    assert m["peak"] - m["base"] < cap, m
+    if workers:
+        assert m["children"] < m["base"] + cap, m
