@@ -33,10 +33,14 @@ def run(ctx) -> dict:
     for pair in ctx.pairs:
         results = [ctx.result(handle, pair.split, pair.slug) for handle in ctx.available()]
         ctx.log(f"[{NAME}] {pair.label}\n" + format_table(results, PROTOCOL))
-        figure = plots.plot_pr_curves(
-            {r.method: (r.metrics[PROTOCOL].curve, r.metrics[PROTOCOL].auc_pr) for r in results},
-            ctx.figure_path(f"pr_{pair.slug}.png"),
-            title=f"{pair.label} ({PROTOCOL}, {THRESHOLDS} thresholds)")
+        plt = plots.pyplot()
+        fig, ax = plt.subplots(figsize=(7.5, 4.5))
+        plots.draw_pr_curves(ax, {r.method: (r.metrics[PROTOCOL].curve, r.metrics[PROTOCOL].auc_pr)
+                                  for r in results})
+        # beside the axes: with a dozen methods a legend inside covers the low-precision curves
+        ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize="small")
+        ax.set_title(f"{pair.label} ({PROTOCOL}, {THRESHOLDS} thresholds)", fontsize="medium")
+        figure = plots.save_figure(fig, ctx.figure_path(f"pr_{pair.slug}.png"))
         paper = paper_pair(ctx.dataset, pair.reference, pair.query)
         gt = pair.split.ground_truth
         pairs.append({

@@ -132,33 +132,46 @@ def _embeddings(vectors: dict[str, np.ndarray], max_points: int, metric: str) ->
     return out
 
 
-def _places_figure(ctx, handle, pair, path) -> tuple[list, object]:
-    """Fig. 12: the appearance vectors of a few places (queries of the first pair with a true
-    match, spread over the traverse) under every condition that shows them."""
+def _places_figure(ctx, handle, path) -> tuple[list, object]:
+    """Fig. 12: the appearance vectors of a few places under every condition. The places are
+    reference images of the first pair (spread over the traverse); each other condition shows
+    them through its pair with that reference condition."""
     from fdnet.evaluation import plots
 
-    split = pair.split
-    candidates = [q for q in range(len(split.query)) if matched_reference(split, q) is not None]
+    anchor = ctx.pairs[0].split.reference
+    views = {}  # condition -> (its split against the anchor, anchor index -> query index)
+    for pair in ctx.pairs:
+        if pair.reference == anchor.name and pair.query not in views:
+            found: dict[int, int] = {}
+            for q in range(len(pair.split.query)):
+                r = matched_reference(pair.split, q)
+                if r is not None:
+                    found.setdefault(r, q)
+            views[pair.query] = (pair.split, found)
+    everywhere = [r for r in range(len(anchor)) if all(r in found for _, found in views.values())]
+    candidates = everywhere or sorted(set().union(*(found for _, found in views.values())))
     if not candidates:
         return [], None
     picks = [candidates[i] for i in plots.evenly_spaced(len(candidates), PLACES_SHOWN)]
-    a_q = ctx.vectors(handle, split.query.paths, kind="appearance", what=split.query.name)
-    a_r = ctx.vectors(handle, split.reference.paths, kind="appearance", what=split.reference.name)
-    components = min(PLOTTED_COMPONENTS, a_q.shape[1])
+    anchor_vectors = ctx.vectors(handle, anchor.paths, kind="appearance", what=anchor.name)
     plt = plots.pyplot()
     fig, axes = plt.subplots(len(picks), 1, figsize=(9, 2.3 * len(picks)), squeeze=False)
+    components = min(PLOTTED_COMPONENTS, anchor_vectors.shape[1])
     places = []
-    for row, q in enumerate(picks):
-        r = matched_reference(split, q)
+    for row, r in enumerate(picks):
         ax = axes[row, 0]
-        ax.plot(a_r[r, :components], label=f"{pair.reference}: {split.reference.paths[r].name}", linewidth=1)
-        ax.plot(a_q[q, :components], label=f"{pair.query}: {split.query.paths[q].name}", linewidth=1)
+        lines = [(anchor.name, anchor.paths[r].name, anchor_vectors[r])]
+        for condition, (split, found) in views.items():
+            if r in found:
+                vectors = ctx.vectors(handle, split.query.paths, kind="appearance", what=condition)
+                lines.append((condition, split.query.paths[found[r]].name, vectors[found[r]]))
+        for condition, name, vector in lines:
+            ax.plot(vector[:components], label=f"{condition}: {name}", linewidth=1)
+            places.append({"place": f"T{row + 1}", "condition": condition, "image": name,
+                           "distance_to_first": float(np.linalg.norm(vector - anchor_vectors[r]))})
         ax.set_ylabel(f"T{row + 1}")
         ax.legend(loc="upper right", fontsize="x-small")
-        places.append({"place": f"T{row + 1}", "query": split.query.paths[q].name,
-                       "reference": split.reference.paths[r].name,
-                       "appearance_distance": float(np.linalg.norm(a_q[q] - a_r[r]))})
-    axes[-1, 0].set_xlabel(f"appearance vector component (first {components} of {a_q.shape[1]})")
+    axes[-1, 0].set_xlabel(f"appearance vector component (first {components} of {anchor_vectors.shape[1]})")
     fig.suptitle("Appearance vectors of the same places under each condition", fontsize="medium")
     fig.tight_layout()
     return places, plots.save_figure(fig, path)
@@ -190,7 +203,7 @@ def run(ctx) -> dict:
         fig.tight_layout()
         histogram_figure = plots.save_figure(fig, ctx.figure_path("content_differences.png"))
 
-    places, places_figure = _places_figure(ctx, handle, ctx.pairs[0], ctx.figure_path("appearance_places.png"))
+    places, places_figure = _places_figure(ctx, handle, ctx.figure_path("appearance_places.png"))
 
     traverses = condition_traverses(ctx.pairs)
     content = {c: ctx.vectors(handle, t.paths, what=c) for c, t in traverses.items()}
@@ -263,9 +276,10 @@ def render(document: dict) -> list:
                         "appearance the condition (ratio above 1)"))
     blocks.append(Heading("Appearance vectors of a few places (Fig. 12)"))
     if document.get("places_figure"):
-        blocks.append(Table(["place", "query image", "reference image", "appearance distance"],
-                            [[p["place"], p["query"], p["reference"], number(p["appearance_distance"])]
-                             for p in document["places"]], "The places drawn below"))
+        blocks.append(Table(["place", "condition", "image", "|v_a - v_a of the first condition|"],
+                            [[p["place"], p["condition"], p["image"], number(p["distance_to_first"])]
+                             for p in document["places"]],
+                            "The places drawn below: within a place, a distance is the change of condition"))
         blocks.append(Figure(document["places_figure"],
                              "Appearance vectors v_a of the same places under each condition"))
     blocks.append(Heading("2-D embeddings coloured by condition (Fig. 13)"))

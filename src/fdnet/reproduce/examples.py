@@ -33,7 +33,7 @@ def run(ctx) -> dict:
                          "best_names": [split.reference.paths[best[q]].name for q in chosen],
                          "correct": [bool(correct[q]) for q in chosen]})
         figure = plots.plot_match_grid(split.query.paths, split.reference.paths, matches,
-                                       ctx.figure_path(f"examples_{pair.slug}.png"), count=ctx.settings.examples,
+                                       ctx.figure_path(f"examples_{pair.slug}.jpg"), count=ctx.settings.examples,
                                        title=f"{pair.label}: query (top row), then each method's best match")
         pairs.append({"reference": pair.reference, "query": pair.query,
                       "queries": [int(q) for q in chosen],

@@ -77,11 +77,17 @@ def _train(ctx, length: int, folder: Path) -> None:
         if existing.step is not None and existing.step >= existing.config.total_steps:
             ctx.log(f"[{NAME}] L = {length}: finished run in {folder}, reused")
             return
+    import torch
+
     from fdnet.methods.fdnet.training import train
 
     ctx.log(f"[{NAME}] L = {length}: training with preset {ctx.settings.length_preset} into {folder}")
-    train(training_config(ctx.settings, length), folder, resume=runs.is_run(folder),
-          progress=ctx.settings.progress, command=ctx.settings.command or "fdnet reproduce")
+    threads = torch.get_num_threads()
+    try:
+        train(training_config(ctx.settings, length), folder, resume=runs.is_run(folder),
+              progress=ctx.settings.progress, command=ctx.settings.command or "fdnet reproduce")
+    finally:
+        torch.set_num_threads(threads)  # the preset sets its own; the experiments after keep --threads
 
 
 def length_runs(ctx) -> dict[int, Path]:

@@ -22,7 +22,8 @@ from fdnet.errors import DataError
 from fdnet.io import atomic_write_text
 from fdnet.reproduce.sections import EXPERIMENTS, Figure, Heading, MANIFEST, Paragraph, REPORT, Table
 
-PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+#: the figure formats the report embeds, by their first bytes
+IMAGE_TYPES = {b"\x89PNG\r\n\x1a\n": "image/png", b"\xff\xd8\xff": "image/jpeg"}
 
 STYLE = """
 body { font-family: system-ui, -apple-system, "Segoe UI", Roboto, sans-serif; margin: 0 auto; max-width: 1200px;
@@ -52,15 +53,16 @@ def _escape(text) -> str:
 
 
 def _image_uri(out: Path, relative: str) -> str | None:
-    """The figure as a data URI, or None when the file is missing or not a PNG."""
+    """The figure as a data URI, or None when the file is missing or neither PNG nor JPEG."""
     path = out / relative
     try:
         data = path.read_bytes()
     except OSError:
         return None
-    if not data.startswith(PNG_SIGNATURE):
-        return None
-    return "data:image/png;base64," + base64.b64encode(data).decode("ascii")
+    for signature, mime in IMAGE_TYPES.items():
+        if data.startswith(signature):
+            return f"data:{mime};base64," + base64.b64encode(data).decode("ascii")
+    return None
 
 
 def _table(block: Table) -> str:

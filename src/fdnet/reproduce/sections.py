@@ -40,7 +40,7 @@ class Table:
 
 @dataclass
 class Figure:
-    #: PNG path relative to the output folder
+    #: PNG or JPEG path relative to the output folder
     path: str
     caption: str
 

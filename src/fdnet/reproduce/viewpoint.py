@@ -128,7 +128,11 @@ def run(ctx) -> dict:
     fig, axes = plt.subplots(1, len(overlaps), figsize=(4.6 * len(overlaps), 4.3), squeeze=False)
     for ax, o in zip(axes[0], overlaps):
         plots.draw_pr_curves(ax, curves[o])
+        ax.get_legend().remove()
         ax.set_title(f"{o:.0%} overlap", fontsize="medium")
+    # one legend of method names for every panel, beside them (each panel's own would cover curves)
+    handles, _ = axes[0, 0].get_legend_handles_labels()
+    fig.legend(handles, list(curves[overlaps[0]]), loc="center left", bbox_to_anchor=(1.0, 0.5), fontsize="small")
     fig.suptitle(f"{pair.label}, half-width crops ({PROTOCOL}, 500 thresholds)", fontsize="medium")
     fig.tight_layout()
     pr_figure = plots.save_figure(fig, ctx.figure_path(f"pr_{pair.slug}.png"))
