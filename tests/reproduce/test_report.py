@@ -62,3 +62,21 @@ def test_a_missing_figure_is_said_not_shown_broken(tmp_path):
     html = write_report(tmp_path).read_text()
     assert "<img" not in html
     assert "Figure figures/comparison/pr.png is missing" in html
+
+
+def test_the_papers_numbers_stand_beside_ours_labelled_as_the_papers(tmp_path):
+    from fdnet.reproduce.paper import paper_pair
+
+    write_run(tmp_path)
+    document = json.loads((tmp_path / "comparison.json").read_text())
+    source, numbers = paper_pair("nordland", "summer", "winter")
+    document["paper_dataset"] = "nordland"
+    document["pairs"][0].update(paper=numbers, paper_source=source)
+    (tmp_path / "comparison.json").write_text(json.dumps(document))
+    html = write_report(tmp_path).read_text()
+    start = html.index('<section id="comparison">')
+    table = html[start:html.index("</table>", start)]
+    assert "<th>paper R@100P</th><th>paper P@maxR</th>" in table
+    assert "<td>fdnet</td>" in table and "<td>0.337</td><td>0.038</td>" in table  # FDNet_512, summer-winter
+    assert "netvlad (NetVLAD, paper only)" in table
+    assert "paper Table 3, Nordland summer-winter, the paper&#x27;s own numbers" in table

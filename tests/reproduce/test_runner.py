@@ -108,6 +108,18 @@ def test_settings_that_cannot_work_are_refused(route, tmp_path, changes, message
         reproduce(settings(route, tmp_path / "out", **changes), factory, quiet)
 
 
+@pytest.mark.parametrize("changes, message", [
+    (dict(length_preset="tiny", length_train_frames="0:6", frames="4:10"), "overlaps the evaluated frames"),
+    (dict(length_preset="tiny"), "needs --length-train-frames"),
+    (dict(length_runs={512: "no/such/run"}), "512=no/such/run: run directory not found"),
+    (dict(viewpoint_pair=("day", "fog")), "--viewpoint-pair day,fog: no such pair"),
+])
+def test_experiment_settings_are_checked_before_any_work(route, tmp_path, changes, message):
+    with pytest.raises(ConfigError, match=message):
+        reproduce(settings(route, tmp_path / "out", experiments=None, **changes), factory, quiet)
+    assert CALLS["pixels.describe"] == 0
+
+
 def test_an_output_path_that_is_a_file_is_refused_before_any_work(route, tmp_path):
     out = tmp_path / "out"
     out.write_text("not a folder")

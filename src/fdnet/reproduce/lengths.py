@@ -29,6 +29,11 @@ def unavailable(ctx) -> str | None:
     if not s.length_runs and not s.length_preset:
         return ("needs four FDNet runs: --length-runs 256=DIR,512=DIR,1024=DIR,2048=DIR, or --length-preset PRESET "
                 "(with --length-train-frames START:END) to train them here")
+    if s.length_preset:
+        check_training(s)  # training on the evaluated frames is an error before any work
+    for length, folder in s.length_runs.items():
+        if not Path(folder).is_dir():
+            raise ConfigError(f"--length-runs {length}={folder}: run directory not found")
     return None
 
 
@@ -94,7 +99,6 @@ def length_runs(ctx) -> dict[int, Path]:
     s = ctx.settings
     chosen = {int(k): Path(v) for k, v in s.length_runs.items()}
     if s.length_preset:
-        check_training(s)
         for length in LENGTHS:
             if length not in chosen:
                 folder = ctx.out / "length-runs" / f"L{length}"

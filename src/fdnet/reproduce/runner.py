@@ -391,13 +391,16 @@ def reproduce(settings: ReproduceSettings, factory: Callable | None = None,
         "checkpoint": str(settings.checkpoint) if settings.checkpoint else None,
         "experiments_run": chosen,
     }
+    # what cannot run is known before anything runs: an experiment asked for by name is an error
+    reasons = {name: experiment_module(name).unavailable(ctx) for name in chosen}
+    for name, reason in reasons.items():
+        if reason and settings.experiments:
+            raise ConfigError(f"experiment {name}: {reason}")
     atomic_write_text(out / MANIFEST, json.dumps(manifest, indent=2) + "\n")
     for name in chosen:
         module = experiment_module(name)
         ctx.experiment = name
-        reason = module.unavailable(ctx)
-        if reason and settings.experiments:
-            raise ConfigError(f"experiment {name}: {reason}")
+        reason = reasons[name]
         log(f"[{name}] {module.TITLE}" + (f": not run ({reason})" if reason else ""))
         started = time.monotonic()
         document = {"not_run": reason} if reason else module.run(ctx)

@@ -34,6 +34,7 @@ PLOTTED_COMPONENTS = 128
 
 
 def unavailable(ctx) -> str | None:
+    _pair(ctx)  # a --viewpoint-pair that is not among the pairs is an error before any work
     return None
 
 
