@@ -80,3 +80,11 @@ def test_the_papers_numbers_stand_beside_ours_labelled_as_the_papers(tmp_path):
     assert "<td>fdnet</td>" in table and "<td>0.337</td><td>0.038</td>" in table  # FDNet_512, summer-winter
     assert "netvlad (NetVLAD, paper only)" in table
     assert "paper Table 3, Nordland summer-winter, the paper&#x27;s own numbers" in table
+
+
+def test_a_section_from_another_version_is_said_not_fatal(tmp_path):
+    write_run(tmp_path)
+    (tmp_path / "similarity.json").write_text(json.dumps({"pairs": [{"unexpected": 1}]}))
+    html = write_report(tmp_path).read_text()
+    assert "similarity.json does not hold what this version of fdnet writes" in html
+    assert '<td class="best">0.750&nbsp;&#9733;</td>' in html  # the other sections are still there

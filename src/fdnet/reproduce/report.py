@@ -142,7 +142,13 @@ def _section(name: str, number: int, document: dict | None, manifest: dict | Non
         if manifest and document.get("command") and document.get("command") != manifest.get("command"):
             parts.append(f'<p class="note">This section was made by another command, at '
                          f'{_escape(document.get("created", ""))}: <code>{_escape(document["command"])}</code></p>')
-        parts.extend(_block(block, out) for block in module.render(document))
+        try:
+            blocks = module.render(document)
+        except (KeyError, TypeError, ValueError, IndexError):
+            # written by another version of fdnet, or edited: say so rather than lose the report
+            blocks = [Paragraph(f"{name}.json does not hold what this version of fdnet writes; rerun the "
+                                f"command with --experiments {name} to remake this section.", note=True)]
+        parts.extend(_block(block, out) for block in blocks)
     parts.append("</section>")
     return "\n".join(parts)
 
