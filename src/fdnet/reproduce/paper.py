@@ -3,8 +3,9 @@
 Tables 3 and 4 give, per dataset pair, recall at 100 % precision and precision at maximum recall
 (as fractions here; the paper prints percentages). The paper names a pair ("summer-winter") but
 not which condition is the query, so its numbers are shown for both directions of the pair.
-Table 5 gives extraction ms/image (NVIDIA TITAN X) and matching ms/query against the Nordland test
-map (Intel Xeon 2.10 GHz). Table 2 (FDNet per vector length) is :data:`fdnet.runtime.PAPER_TABLE2`.
+Tables 2 (FDNet per vector length) and 5 (every method: extraction ms/image on an NVIDIA TITAN X,
+matching ms/query on an Intel Xeon at 2.10 GHz) are :data:`fdnet.runtime.PAPER_TABLE2` and
+:data:`fdnet.runtime.PAPER_TABLE5`.
 """
 
 from __future__ import annotations
@@ -54,18 +55,6 @@ _TABLE4 = {
     "CALC": ((6.40, 19.30), (6.97, 20.30), (4.83, 16.97), (10.46, 15.69)),
 }
 
-#: Table 5: method -> (extraction ms/image on a TITAN X, matching ms/query on a Xeon 2.10 GHz)
-PAPER_TABLE5 = {
-    "Conv3": (136.0, 0.34),
-    "Gist": (223.0, 0.38),
-    "DBow3": (2.3, 0.013),
-    "Landmarks": (737.0, 19.0),
-    "Conv4_fine-tuned": (158.0, 0.36),
-    "NetVLAD": (980.0, 0.038),
-    "CALC": (39.0, 0.31),
-    "FDNet_512": (21.2, 0.35),
-}
-
 PAPER_HARDWARE = ("feature extraction on an NVIDIA TITAN X (12 GB), matching on an Intel Xeon CPU at 2.10 GHz, "
                   "averaged over 2000 Nordland images (paper section 5.4)")
 
@@ -106,9 +95,11 @@ def _numbers(table: dict, column: int) -> dict[str, dict[str, float]]:
 
 
 def paper_runtime(method: str) -> dict | None:
-    """The paper's Table 5 row for our method name, or None."""
-    for row, ours in PAPER_METHODS.items():
-        if ours == method and row in PAPER_TABLE5:
-            extraction, matching = PAPER_TABLE5[row]
-            return {"paper_name": row, "ms_per_image": extraction, "ms_per_query": matching}
-    return None
+    """The paper's Table 5 row (:data:`fdnet.runtime.PAPER_TABLE5`) for our method name, or None."""
+    from fdnet.runtime import PAPER_TABLE5
+
+    if method not in PAPER_TABLE5:
+        return None
+    extraction, matching = PAPER_TABLE5[method]
+    row = next(row for row, ours in PAPER_METHODS.items() if ours == method)
+    return {"paper_name": row, "ms_per_image": extraction, "ms_per_query": matching}
