@@ -119,3 +119,17 @@ def test_training_the_residual_head_moves_only_its_low_rank_part_and_keeps_the_m
     descriptor = FDNetDescriptor(tmp_path / "run")
     assert descriptor.dim == head.vector_length
     torch.testing.assert_close(descriptor.model.content_encoder.mean, head.mean)
+
+
+def test_condition_means_init_removes_the_direction_between_the_conditions():
+    torch.manual_seed(0)
+    model = FDNet(FDNetConfig(**{**RESIDUAL, "residual_init": "condition_means"})).eval()
+    a, b = torch.rand(6, 3, 32, 64), torch.rand(6, 3, 32, 64) * 0.5
+    maps = [model.preprocess(a), model.preprocess(b)]
+    model.content_encoder.set_mean(torch.cat(maps))
+    assert model.content_encoder.remove_condition_means(maps) == 1
+    content = [model.content(a), model.content(b)]
+    # after removal the two conditions' mean content vectors coincide
+    torch.testing.assert_close(content[0].mean(0), content[1].mean(0), atol=1e-4, rtol=0)
+    with pytest.raises(ConfigError, match="residual_init"):
+        FDNet(FDNetConfig(**{**RESIDUAL, "residual_init": "pca"}))

@@ -69,6 +69,11 @@ class FDNetConfig:
     content_head: str = "encoder"
     #: rank of the removable part of the trunk_residual head
     residual_rank: int = 32
+    #: where the trunk_residual head starts: "zero" (U = 0: the centred trunk descriptor) or
+    #: "condition_means" (the directions between the training conditions' mean maps already
+    #: removed; a closed form of what the critic looks for, computed from the same condition
+    #: labels FDNet trains with, no place labels); the adversarial stage refines either
+    residual_init: str = "zero"
 
     def encoder_input_size(self) -> tuple[int, int]:
         """(H, W) of what the encoders read: the image, or the trunk's map of it."""
@@ -119,6 +124,8 @@ def validate_architecture(config: FDNetConfig) -> None:
             raise ConfigError("model.content_head=trunk_residual needs a model.backbone (it starts at the trunk's map)")
         if config.residual_rank < 1:
             raise ConfigError(f"model.residual_rank: must be >= 1, got {config.residual_rank}")
+        if config.residual_init not in ("zero", "condition_means"):
+            raise ConfigError(f"model.residual_init: {config.residual_init!r}; choose zero or condition_means")
     if config.critic_input not in CRITIC_INPUTS:
         raise ConfigError(f"model.critic_input: {config.critic_input!r}; choose one of {', '.join(CRITIC_INPUTS)}")
     for name in ("encoder_dropout", "critic_dropout"):
@@ -145,7 +152,9 @@ class TrunkResidualContent(nn.Module):
     centred trunk descriptor. A rank-r correction can take at most r directions out of a
     ~10^4-d map, so the adversarial game cannot destroy the place information the trunk has; it
     can only remove the directions that tell conditions apart (e.g. the difference of the
-    conditions' mean maps, worth +0.09 R@1 on Nordland's validation frames in closed form)."""
+    conditions' mean maps, worth +0.09 R@1 on Nordland's validation frames in closed form).
+    L_r does not train it (the decoder reads a detached v_c): the head keeps the trunk's
+    information by construction, and reconstruction gradients would only move U at random."""
 
     def __init__(self, feature_shape: tuple[int, int, int], rank: int) -> None:
         super().__init__()
@@ -159,6 +168,19 @@ class TrunkResidualContent(nn.Module):
     @torch.no_grad()
     def set_mean(self, maps: torch.Tensor) -> None:
         self.mean.copy_(maps.float().flatten(1).mean(0))
+
+    @torch.no_grad()
+    def remove_condition_means(self, maps_per_condition: list[torch.Tensor]) -> int:
+        """Start with the directions between the conditions' mean maps removed (U = V = their
+        orthonormal basis in the first columns); returns how many directions that is."""
+        means = torch.stack([m.float().flatten(1).mean(0) for m in maps_per_condition])
+        spread = (means - means.mean(0)).T                      # (length, conditions)
+        basis, singular, _ = torch.linalg.svd(spread, full_matrices=False)
+        keep = int((singular > singular.max() * 1e-6).sum()) if singular.numel() else 0
+        keep = min(keep, self.u.shape[1])
+        self.u[:, :keep] = basis[:, :keep]
+        self.v[:, :keep] = basis[:, :keep]
+        return keep
 
     def forward(self, maps: torch.Tensor) -> torch.Tensor:
         x = maps.flatten(1).float() - self.mean

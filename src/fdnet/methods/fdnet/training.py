@@ -15,6 +15,12 @@ Stages, one after the other, counted in mini-batches ("steps"):
 What the checkpoint needs beyond weights and Adam states (the loop saves torch's global RNG,
 used by dropout): the sampler's generator and the conditions trained on.
 
+Distributed (torchrun, :mod:`fdnet.training.distributed`): rank r's sampler generator is seeded
+with ``runtime.seed + 1 + r`` (rank 0: ``seed + 1``, as a single process), so every rank draws its
+own domain-balanced batches, pairs and gradient-penalty interpolates; both optimisers step on
+gradients averaged over the ranks (not DistributedDataParallel: the critic's gradient penalty is a
+double backward, which DDP does not support).
+
 No data augmentation is applied: none was needed for the results in docs/results.md, and
 photometric augmentation would blur the very appearance differences between conditions that
 the appearance encoder and the discriminator are meant to separate.
@@ -31,6 +37,7 @@ from fdnet.errors import ConfigError
 from fdnet.methods.fdnet.config import TrainConfig, validate
 from fdnet.methods.fdnet.model import FDNet
 from fdnet.training import losses
+from fdnet.training.distributed import loss_text
 from fdnet.training.data import TrainingImages, route_images, training_route
 from fdnet.training.loop import LoopSettings, TrainingMethod
 from fdnet.training.sampler import DomainBalancedSampler
@@ -64,6 +71,7 @@ class FDNetTraining(TrainingMethod):
 
     name = "fdnet"
     log_columns = ("reconstruction", "appearance", "encoder_adversarial", "critic", "wasserstein")
+    rank_state_keys = ("sampler_generator",)  # each rank's own stream; the conditions are shared
 
     def __init__(self, config: TrainConfig, data: TrainingImages) -> None:
         validate(config)
@@ -86,7 +94,8 @@ class FDNetTraining(TrainingMethod):
         self.opt_autoencoder = torch.optim.Adam(autoencoder_params, lr=config.optim.lr, betas=betas, fused=True)
         self.opt_critic = torch.optim.Adam(self.model.discriminator.parameters(), lr=config.optim.critic_lr,
                                            betas=betas, fused=True)
-        self.generator = torch.Generator().manual_seed(rt.seed + 1)
+        # per rank (seed + 1 + rank): each rank of a distributed run draws other batches
+        self.generator = torch.Generator().manual_seed(self.distributed.rank_seed(rt.seed + 1))
         self.sampler = DomainBalancedSampler([len(x) for x in data.images], config.data.batch_per_domain,
                                              data.names, self.generator)
         self.domains = self.sampler.domain_labels().to(self.device)
@@ -119,6 +128,10 @@ class FDNetTraining(TrainingMethod):
             # trunk descriptor is where the residual head starts.
             inputs = self.cached_inputs or [self._preprocess(x) for x in self.images]
             head.set_mean(torch.cat(inputs))
+            if self.config.model.residual_init == "condition_means":
+                removed = head.remove_condition_means(inputs)
+                self.log(f"fdnet: content head starts with {removed} direction(s) between the conditions' "
+                         "mean maps removed")
 
     def state(self) -> dict:
         return {"sampler_generator": self.generator.get_state(), "conditions": list(self.data.names)}
@@ -180,6 +193,7 @@ class FDNetTraining(TrainingMethod):
         )
         self.opt_critic.zero_grad(set_to_none=True)
         loss.backward()
+        self.distributed.average_gradients(self.opt_critic)  # incl. the penalty's double backward
         self.opt_critic.step()
         return {"critic": float(loss.detach()), "wasserstein": float(distance)}
 
@@ -187,10 +201,12 @@ class FDNetTraining(TrainingMethod):
                             target: torch.Tensor | None = None) -> dict[str, float]:
         model, cfg = self.model, self.config
         target = self._batch() if target is None else target
+        residual_head = cfg.model.content_head == "trunk_residual"
         with _autocast(cfg, self.device):
             content = model.content_encoder(target)
             appearance_vec = model.appearance_encoder(target)
-            reconstruction = model.decoder(content, appearance_vec)
+            # The residual head keeps the trunk's information by construction; only L_e^adv moves it.
+            reconstruction = model.decoder(content.detach() if residual_head else content, appearance_vec)
         rec = losses.reconstruction_loss(target, reconstruction, cfg.loss.reconstruction_reduction)
         total = cfg.loss.reconstruction_weight * rec
         out = {"reconstruction": float(rec.detach())}
@@ -211,10 +227,11 @@ class FDNetTraining(TrainingMethod):
             critic.requires_grad_(True)
             total = total + cfg.loss.adversarial_weight * adv
             out["encoder_adversarial"] = float(adv.detach())
-        if not torch.isfinite(total):
-            raise FloatingPointError(f"loss became {float(total)} at step {step}; lower optim.lr or the loss weights")
         self.opt_autoencoder.zero_grad(set_to_none=True)
         total.backward()
+        # False when the loss is not finite here or on another rank: every rank stops at this step
+        if not self.distributed.average_gradients(self.opt_autoencoder, total):
+            raise FloatingPointError(f"loss became {loss_text(total)} at step {step}; lower optim.lr or the loss weights")
         self.opt_autoencoder.step()
         return out
 
