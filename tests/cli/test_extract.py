@@ -21,3 +21,61 @@ def test_out_under_proc_is_refused(tmp_path, capsys):
                  "--out", "/proc/fdnet-extract-test/vectors.npz"]) == 2
     err = capsys.readouterr().err
     assert "/proc/fdnet-extract-test/vectors.npz" in err and "cannot create the vectors file" in err
+
+
+def _tiny_run(path):
+    import torch
+
+    from fdnet.methods.fdnet.config import preset
+    from fdnet.methods.fdnet.model import FDNet
+    from fdnet.runs import save_run
+
+    config = preset("tiny")
+    torch.manual_seed(0)
+    save_run(path, FDNet(config.model).named_parts(), config, state={"step": 1})
+    return path
+
+
+def _images(folder, n):
+    import numpy as np
+    from PIL import Image
+
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(n):  # natural order: frame_2 before frame_10
+        Image.fromarray(rng.integers(0, 256, size=(20 + i % 3, 40, 3), dtype=np.uint8)).save(folder / f"frame_{i}.png")
+    return folder
+
+
+def test_extract_streams_batches_into_the_npz(tmp_path, capsys):
+    import numpy as np
+
+    from fdnet.data.images import list_images, load_images
+    from fdnet.descriptors import create
+
+    run = _tiny_run(tmp_path / "run")
+    images = _images(tmp_path / "images", 37)
+    out = tmp_path / "v.npz"
+    assert main(["extract", "--checkpoint", str(run), "--images", str(images), "--out", str(out), "--fp32",
+                 "--batch-size", "8", "--workers", "1", "--device", "cpu"]) == 0
+    assert "37 images" in capsys.readouterr().out
+    d = create("fdnet", checkpoint=run, device="cpu")
+    paths = list_images(images)
+    loaded = load_images(paths, d.input_size)
+    with np.load(out, allow_pickle=False) as z:
+        assert list(z["names"]) == [p.name for p in paths] and z["names"][2] == "frame_2.png"
+        np.testing.assert_allclose(z["content"], d.describe(loaded), rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(z["appearance"], d.describe_appearance(loaded), rtol=1e-5, atol=1e-5)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["images", "run", "v.npz"]  # no parts left
+
+
+def test_extract_stops_at_an_unreadable_image_and_leaves_nothing(tmp_path, capsys):
+    run = _tiny_run(tmp_path / "run")
+    images = _images(tmp_path / "images", 20)
+    (images / "frame_13.png").write_bytes(b"broken")
+    out = tmp_path / "v.npz"
+    assert main(["extract", "--checkpoint", str(run), "--images", str(images), "--out", str(out),
+                 "--batch-size", "4", "--workers", "1"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("fdnet extract: error: ") and "frame_13.png" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["images", "run"]

@@ -25,10 +25,13 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, help="output .npz file (written atomically)")
     add_pipeline_arguments(p, batch_size=256)
     add_device_argument(p)
-    p.add_argument("--bf16", action="store_true",
-                   help="bfloat16 autocast with channels_last (several times faster on CPUs with AVX512-BF16/AMX "
-                        "and on GPUs). Off by default: on an untrained cpu-preset FDNet it cost 1.5 points of "
-                        "R@1 on Gardens Point night->day (docs/performance.md)")
+    precision = p.add_mutually_exclusive_group()
+    precision.add_argument("--bf16", action="store_true",
+                           help="bfloat16 autocast with channels_last tensors (the default where the device runs "
+                                "bf16 natively: CPUs with AVX512-BF16/AMX, Ampere and newer GPUs; R@1 within 0.5 "
+                                "points of fp32 for a trained cpu-preset run, docs/performance.md)")
+    precision.add_argument("--fp32", action="store_true",
+                           help="float32 throughout (what `fdnet evaluate --method fdnet` computes by default)")
     p.add_argument("--threads", type=int, help="torch CPU threads (default: all cores)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -50,8 +53,8 @@ def run(args) -> int:
     ensure_writable(out, what="vectors file")  # before loading the model and every image
     paths = list_images(args.images)
     set_threads(args.threads)
-    model = FDNetDescriptor(checkpoint=args.checkpoint, device=args.device, bf16=args.bf16,
-                            batch_size=args.batch_size)
+    bf16 = True if args.bf16 else False if args.fp32 else None  # None: where the device runs it natively
+    model = FDNetDescriptor(checkpoint=args.checkpoint, device=args.device, bf16=bf16, batch_size=args.batch_size)
     shape = (len(paths), model.dim)
     timing: dict = {}
     with NpzChunkWriter(out, {"content": (shape, np.float32), "appearance": (shape, np.float32)}) as writer:
