@@ -93,6 +93,11 @@ def test_rerunning_one_experiment_keeps_the_other_sections(route, tmp_path):
     section = html[html.index('<section id="comparison">'):html.index('<section id="lengths">')]
     assert "<table>" in section and "made by another command" in section
     assert "fdnet reproduce --experiments examples" in html[:html.index("<section")]
+    # figures an earlier run drew for pairs or methods no longer run are removed
+    stale = out / "figures" / "examples" / "examples_old_pair.jpg"
+    stale.write_bytes(b"from an earlier run")
+    reproduce(settings(route, out, conditions=["day", "night"], experiments=["examples"]), factory, quiet)
+    assert not stale.exists() and len(list((out / "figures" / "examples").iterdir())) == 2
 
 
 @pytest.mark.parametrize("changes, message", [

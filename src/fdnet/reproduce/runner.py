@@ -206,6 +206,8 @@ class Context:
 
         self.dataset = dataset_key(settings.dataset_format, Path(settings.data).resolve().name)
         self.experiment = ""
+        #: figure files handed out in this run (see remove_stale_figures)
+        self.figures: set[Path] = set()
 
     # --------------------------------------------------------------------- methods
     def add_method(self, label: str, name: str, options: dict, required: bool, compared: bool = True) -> MethodHandle:
@@ -283,7 +285,18 @@ class Context:
 
     # --------------------------------------------------------------------- outputs
     def figure_path(self, name: str) -> Path:
-        return self.out / "figures" / self.experiment / name
+        path = self.out / "figures" / self.experiment / name
+        self.figures.add(path)
+        return path
+
+    def remove_stale_figures(self) -> None:
+        """Delete this experiment's figure files that this run did not draw (other pairs or
+        methods of an earlier run), so the folder holds what the JSON describes."""
+        folder = self.out / "figures" / self.experiment
+        if folder.is_dir():
+            for path in folder.iterdir():
+                if path.is_file() and path not in self.figures:
+                    path.unlink()
 
     def relative(self, path: Path) -> str:
         return Path(path).relative_to(self.out).as_posix()
@@ -410,6 +423,7 @@ def reproduce(settings: ReproduceSettings, factory: Callable | None = None,
                     "protocol": PROTOCOL, **document}
         atomic_write_text(out / f"{name}.json", json.dumps(document, indent=1, allow_nan=False,
                                                             default=_plain) + "\n")
+        ctx.remove_stale_figures()
         write_report(out)
         log(f"[{name}] done in {time.monotonic() - started:.1f} s")
     log(f"described {len(ctx.cache.computed)} image set(s), reused {ctx.cache.hits} from the cache")
