@@ -65,14 +65,39 @@ def median_seconds(fn: Callable[[], object], repeats: int = 5, warmup: int = 1) 
     return statistics.median(times)
 
 
-def gemm_gflops(size: int = 1024, repeats: int = 5) -> float:
-    """This machine's fp32 matrix-multiply speed (torch), a reference for comparing machines."""
+def gemm_gflops(size: int = 1024, repeats: int = 5, dtype: str = "fp32", device=None) -> float:
+    """This machine's matrix-multiply speed (torch, ``size``^3, fp32 or bf16) on ``device``
+    (default the CPU): the reference every extraction figure is compared with."""
     import torch
 
-    a = torch.randn(size, size)
-    b = torch.randn(size, size)
-    seconds = median_seconds(lambda: a @ b, repeats=repeats, warmup=2)
+    device = torch.device("cpu" if device is None else device)
+    kind = {"fp32": torch.float32, "bf16": torch.bfloat16}[dtype]
+    a = torch.randn(size, size, device=device).to(kind)
+    b = torch.randn(size, size, device=device).to(kind)
+
+    def run():
+        out = a @ b
+        synchronize(device)
+        return out
+
+    seconds = median_seconds(run, repeats=repeats, warmup=2)
     return 2 * size**3 / seconds / 1e9
+
+
+def content_flops(config) -> int:
+    """Floating-point operations (multiply and add counted separately) of ``FDNet.content`` for
+    one image of an FDNet model config, counted by ``torch.utils.flop_counter`` (convolutions
+    and matrix products; normalisation and activations are not counted)."""
+    import torch
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from fdnet.methods.fdnet.model import FDNet
+
+    model = FDNet(config).eval()
+    x = torch.rand(1, 3, *config.input_size)
+    with torch.inference_mode(), FlopCounterMode(display=False) as counter:
+        model.content(x)
+    return int(counter.get_total_flops())
 
 
 @dataclass
@@ -119,6 +144,84 @@ def fdnet_extraction(vector_length=512, batch: int = 32, repeats: int = 5) -> di
     return out
 
 
+def temporary_fdnet_run(folder, preset_name: str = "cpu", vector_length: int | None = None, seed: int = 0):
+    """A run directory in ``folder`` holding an FDNet of preset ``preset_name`` with random
+    weights (what it costs to run does not depend on them), so timings go through the public
+    API (:class:`~fdnet.methods.fdnet.descriptor.FDNetDescriptor`) exactly as a user's run does."""
+    import dataclasses
+    from pathlib import Path
+
+    import torch
+
+    from fdnet.methods.fdnet.config import preset
+    from fdnet.methods.fdnet.model import FDNet
+    from fdnet.runs import save_run
+
+    config = preset(preset_name)
+    if vector_length:
+        config = dataclasses.replace(config, model=dataclasses.replace(config.model, vector_length=vector_length))
+    torch.manual_seed(seed)
+    run = Path(folder) / f"{preset_name}-{config.model.vector_length}"
+    save_run(run, FDNet(config.model).named_parts(), config, state={"step": 0})
+    return run, config
+
+
+def descriptor_paths(run_dir, images_u8: np.ndarray, repeats: int = 3, device="cpu") -> dict[str, float]:
+    """ms/image of FDNet's descriptor (the public API) on preloaded images: ``fp32_eager`` is
+    the float32 path (float32 images, no autocast: what ``describe`` did before devices), and
+    ``extract`` what ``fdnet extract`` runs (uint8 images, bf16 autocast and channels_last where
+    the device runs bf16 natively)."""
+    from fdnet.methods.fdnet.descriptor import FDNetDescriptor
+
+    out = {}
+    fp32 = FDNetDescriptor(run_dir, device=device, bf16=False)
+    as_float = images_u8.astype(np.float32) / np.float32(255.0)
+    out["fp32_eager"] = median_seconds(lambda: fp32.describe(as_float), repeats=repeats) / len(images_u8) * 1e3
+    fast = FDNetDescriptor(run_dir, device=device, bf16=None)
+    out["extract"] = median_seconds(lambda: fast.describe(images_u8), repeats=repeats) / len(images_u8) * 1e3
+    out["extract_bf16"] = bool(fast.bf16)
+    return out
+
+
+def gpu_figures(device, run_dir, batch_sizes=(64, 256), seconds: float = 3.0) -> dict:
+    """Images/s of FDNet's descriptor on a GPU ``device``: through the public API
+    (``describe`` of uint8 numpy images on the host: transfer, conversion, model, normalisation
+    and the copy back) and forward-only (``FDNet.content`` on images already on the device),
+    in fp32 and bf16, per batch size. Each figure runs for about ``seconds``."""
+    import torch
+
+    from fdnet.methods.fdnet.descriptor import FDNetDescriptor
+
+    device = resolve_device(device)
+    out: dict = {"device": str(device), "name": torch.cuda.get_device_name(device)}
+    for bf16 in (False, True):
+        d = FDNetDescriptor(run_dir, device=device, bf16=bf16, batch_size=max(batch_sizes))
+        h, w = d.input_size
+        for b in batch_sizes:
+            host = np.random.default_rng(0).integers(0, 256, size=(b, h, w, 3), dtype=np.uint8)
+            on_device = torch.rand(b, 3, h, w, device=device).contiguous(memory_format=torch.channels_last)
+            label = f"{'bf16' if bf16 else 'fp32'}_batch{b}"
+
+            def api():
+                d.describe(host)
+
+            def forward():
+                with torch.inference_mode(), autocast(device, bf16):
+                    d.model.content(on_device)
+                synchronize(device)
+
+            for name, fn in (("api", api), ("forward", forward)):
+                fn()
+                synchronize(device)
+                count, t0 = 0, time.perf_counter()
+                while time.perf_counter() - t0 < seconds:
+                    fn()
+                    count += 1
+                synchronize(device)
+                out[f"{name}_{label}_images_per_s"] = count * b / (time.perf_counter() - t0)
+    return out
+
+
 def matching_per_query(num_references: int, dim: int, num_queries: int = 200,
                        seed: int = 0) -> dict[str, float]:
     """ms/query to find the best reference among ``num_references`` unit vectors: numpy exact
@@ -148,3 +251,76 @@ def matching_per_query(num_references: int, dim: int, num_queries: int = 200,
 def descriptor_extraction(descriptor, images: np.ndarray, repeats: int = 3) -> float:
     """ms/image of ``descriptor.describe`` on preloaded images (decoding excluded)."""
     return median_seconds(lambda: descriptor.describe(images), repeats=repeats) / len(images) * 1e3
+
+
+# ---------------------------------------------------------------------------- maps at scale
+def random_map(size: int, dim: int, seed: int = 0, chunk: int = 100_000) -> np.ndarray:
+    """``size`` random unit vectors of length ``dim`` (float32), made in chunks."""
+    rng = np.random.default_rng(seed)
+    out = np.empty((size, dim), dtype=np.float32)
+    for start in range(0, size, chunk):
+        block = rng.standard_normal((min(chunk, size - start), dim), dtype=np.float32)
+        block /= np.linalg.norm(block, axis=1, keepdims=True)
+        out[start:start + len(block)] = block
+    return out
+
+
+def revisit_queries(map_vectors: np.ndarray, count: int, noise: float = 0.5, seed: int = 1) -> np.ndarray:
+    """Queries made from map vectors plus noise (a revisited place lies near its stored
+    vector): stored vector + Gaussian noise of expected norm ``noise``, re-normalised. At 0.5 the
+    query's cosine to its place is about 0.9."""
+    rng = np.random.default_rng(seed)
+    pick = rng.choice(len(map_vectors), size=min(count, len(map_vectors)), replace=False)
+    dim = map_vectors.shape[1]
+    q = map_vectors[pick] + (noise / np.sqrt(dim)) * rng.standard_normal((len(pick), dim), dtype=np.float32)
+    return (q / np.linalg.norm(q, axis=1, keepdims=True)).astype(np.float32)
+
+
+def scale_rows(map_vectors: np.ndarray, queries: np.ndarray, kinds, settings: dict | None = None,
+               source: str = "random", single: int = 100, log=None) -> list[dict]:
+    """Per index kind: build time, memory, ms/query (all queries in one batch: ``ms_per_query``;
+    and one at a time over up to ``single`` of them: ``ms_per_query_single``) and recall@1
+    against exact search (faiss flat, computed first). ``settings``: kind -> IndexSettings
+    overrides."""
+    import faiss
+
+    from fdnet.matching.index import IndexSettings, VectorIndex
+
+    say = log or (lambda message: None)
+    size, dim = map_vectors.shape
+    t0 = time.perf_counter()
+    exact = faiss.IndexFlatIP(dim)
+    exact.add(map_vectors)
+    truth = exact.search(queries, 1)[1][:, 0]
+    say(f"  exact top-1 of {len(queries)} queries over {size:,} places: {time.perf_counter() - t0:.1f} s")
+    del exact
+    rows = []
+    for kind in kinds:
+        options = dict((settings or {}).get(kind, {}))
+        index = VectorIndex(dim, IndexSettings(kind=kind, **options))
+        t0 = time.perf_counter()
+        for start in range(0, size, 100_000):
+            index.add(map_vectors[start:start + 100_000])
+        index.build()
+        build_s = time.perf_counter() - t0
+        index.search(queries[:10], 1)  # warm-up
+        t0 = time.perf_counter()
+        found = index.search(queries, 1)[0][:, 0]
+        batched = (time.perf_counter() - t0) / len(queries) * 1e3
+        # one query at a time: up to ``single`` queries, or as many as fit in ~5 s (at least 5)
+        done, t0 = 0, time.perf_counter()
+        for q in queries[:single]:
+            index.search(q[None], 1)
+            done += 1
+            if done >= 5 and time.perf_counter() - t0 > 5.0:
+                break
+        one = (time.perf_counter() - t0) / max(done, 1) * 1e3
+        row = {"map_size": int(size), "index": kind, "dim": int(dim), "build_s": build_s,
+               "memory_mb": index.memory_bytes() / 2**20, "ms_per_query": batched, "ms_per_query_single": one,
+               "recall_at_1": float((found == truth).mean()), "queries": int(len(queries)), "source": source,
+               "settings": index.describe()}
+        say(f"  {kind:6s} build {build_s:8.1f} s  memory {row['memory_mb']:9.1f} MB  "
+            f"{batched:8.4f} ms/query batched  {one:8.3f} ms/query single  recall@1 {row['recall_at_1']:.3f}")
+        rows.append(row)
+        del index
+    return rows

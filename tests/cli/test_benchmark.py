@@ -2,25 +2,70 @@
 
 import json
 
+import numpy as np
+import pytest
+
 from fdnet.cli import main
 
 
 def test_quick_benchmark_reports_figures_and_ratios(tmp_path, capsys):
     out = tmp_path / "bench.json"
     assert main(["benchmark", "--quick", "--threads", "1", "--methods", "raw,sad", "--num-images", "4",
-                 "--map-size", "200", "--json", str(out)]) == 0
+                 "--map-size", "200", "--indexes", "flat,ivf", "--queries", "50", "--json", str(out)]) == 0
     report = json.loads(out.read_text())
-    assert report["gemm_gflops_fp32"] > 0
+    assert report["gemm_gflops_fp32"] > 0 and report["gemm_gflops_bf16"] > 0 and report["cpu"]
     fdnet_512 = report["fdnet_extraction_ms"]["512"]
     assert fdnet_512["paper_gpu"] == 21.2 and fdnet_512["bf16_batch32"] > 0
+    assert 4.5 < fdnet_512["gflop_per_image"] < 4.8          # the 4.6 GFLOP per image
+    assert fdnet_512["fraction_of_bf16_gemm"] > 0 and fdnet_512["fraction_of_fp32_gemm"] > 0
+    api = report["cpu_preset_descriptor_ms"]
+    assert api["fp32_eager"] > 0 and api["extract"] > 0 and api["speedup"] > 0 and api["images"] == 4
     assert report["matching_ms"]["512"]["paper_gpu"] == 0.35
     assert set(report["method_extraction_ms"]) == {"raw", "sad"}
     assert report["ratio_vs_sad"]["sad"] == 1.0
+    assert report["paper_table5"]["fdnet"] == {"extraction_ms": 21.2, "matching_ms": 0.35}
+    assert [(r["map_size"], r["index"], r["dim"]) for r in report["scale"]] == [(200, "flat", 512), (200, "ivf", 512)]
+    for row in report["scale"]:
+        assert set(row) >= {"map_size", "index", "dim", "build_s", "memory_mb", "ms_per_query", "recall_at_1"}
+        assert row["recall_at_1"] == 1.0 or row["index"] != "flat"
     printed = capsys.readouterr().out
-    assert "paper/ours" in printed and "GFLOP/s" in printed
+    assert "paper/ours" in printed and "GFLOP/s" in printed and "bf16 GEMM" in printed
+    if report["gpu"] is None:
+        assert "GPU figures unmeasured" in printed
+
+
+def test_scale_on_real_vectors_from_an_extract_file(tmp_path, capsys):
+    rng = np.random.default_rng(0)
+    vectors = rng.normal(size=(400, 24)).astype(np.float32)
+    np.savez(tmp_path / "v.npz", content=vectors, names=np.array([f"{i}.png" for i in range(400)]))
+    out = tmp_path / "b.json"
+    assert main(["benchmark", "--parts", "scale", "--threads", "1", "--map-size", "300", "--scale-dim", "24",
+                 "--indexes", "flat,ivfpq,hnsw", "--index-set", "ivfpq:pq_bytes=6", "--queries", "40",
+                 "--map-vectors", str(tmp_path / "v.npz"), "--json", str(out)]) == 0
+    rows = json.loads(out.read_text())["scale"]
+    assert [(r["map_size"], r["index"], r["source"]) for r in rows] == [
+        (300, "flat", "random"), (300, "ivfpq", "random"), (300, "hnsw", "random"),
+        (400, "flat", str(tmp_path / "v.npz")), (400, "ivfpq", str(tmp_path / "v.npz")),
+        (400, "hnsw", str(tmp_path / "v.npz"))]
+    assert rows[1]["settings"]["pq_bytes"] == 6 and all(r["dim"] == 24 for r in rows)
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["--map-size", "many"], "--map-size"),
+    (["--map-size", "1"], "at least 2 places"),
+    (["--indexes", "flat,lsh"], "unknown index 'lsh'"),
+    (["--index-set", "ivf:lists=3"], "--index-set"),
+    (["--parts", "scale,nothing"], "--parts"),
+    (["--parts", "scale", "--map-vectors", "missing.npy"], "missing.npy"),
+    (["--device", "gpu"], "--device"),
+])
+def test_bad_benchmark_settings_are_errors(tmp_path, capsys, argv, message):
+    assert main(["benchmark", "--parts", "scale", "--map-size", "50", "--queries", "5", *argv]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("fdnet benchmark: error: ") and message in err
 
 
 def test_benchmark_reports_a_method_it_cannot_run(tmp_path, capsys):
-    assert main(["benchmark", "--quick", "--threads", "1", "--methods", "hybridnet", "--num-images", "2",
-                 "--map-size", "100"]) == 0
+    assert main(["benchmark", "--quick", "--parts", "methods", "--threads", "1", "--methods", "hybridnet",
+                 "--num-images", "2"]) == 0
     assert "hybridnet  skipped" in capsys.readouterr().out

@@ -16,7 +16,7 @@ Kinds (``IndexSettings.kind``), all by inner product (cosine for unit vectors):
     :meth:`VectorIndex.build` is called).
 ``ivfpq``
     IVF-PQ: cells as ``ivf``, each vector compressed to ``pq_bytes`` bytes (product quantisation,
-    8 bits per sub-vector; default dim / 8). Memory ~pq_bytes + 8 bytes per place; scores are
+    8 bits per sub-vector, fewer below 9,984 vectors: :func:`pq_bits_for`; default dim / 8). Memory ~pq_bytes + 8 bytes per place; scores are
     approximate, ``refine`` > 0 re-ranks ``refine`` x k candidates by exact dot products (which
     keeps the full vectors too).
 ``hnsw``
@@ -81,6 +81,14 @@ def ivf_lists_for(count: int, settings: IndexSettings) -> int:
     else:
         lists = int(np.sqrt(count))
     return max(1, min(lists, count // 39))
+
+
+def pq_bits_for(count: int) -> int:
+    """Bits per PQ sub-vector code: 8 (256 centroids, faiss's usual) once there are 39 training
+    points per centroid (9,984 vectors); fewer for smaller maps, which could not train 256."""
+    if count >= 39 * 256:
+        return 8
+    return int(max(1, min(8, np.floor(np.log2(max(count, 2) / 39)))))
 
 
 def check_settings(settings: IndexSettings, where: str = "index settings", error: type = ConfigError) -> IndexSettings:
@@ -175,8 +183,11 @@ class VectorIndex:
         if self.settings.kind == "ivf":
             index = faiss.IndexIVFFlat(quantizer, self.dim, lists, faiss.METRIC_INNER_PRODUCT)
         else:
+            if count < 2:
+                raise ConfigError(f"an ivfpq index needs at least 2 vectors to train, got {count}")
             bytes_ = self.settings.pq_bytes or max(1, self.dim // 8)
-            index = faiss.IndexIVFPQ(quantizer, self.dim, lists, bytes_, 8, faiss.METRIC_INNER_PRODUCT)
+            index = faiss.IndexIVFPQ(quantizer, self.dim, lists, bytes_, pq_bits_for(count),
+                                     faiss.METRIC_INNER_PRODUCT)
         # faiss's k-means wants >= 39 points per centroid: per cell, and per PQ code (256 of them)
         wanted = self.settings.train_points or max(64 * lists, 39 * 256 if self.settings.kind == "ivfpq" else 0)
         if count:
@@ -268,6 +279,7 @@ class VectorIndex:
                 out["ivf_lists"] = int(index.nlist)
             if isinstance(index, faiss.IndexIVFPQ):
                 out["pq_bytes"] = int(index.pq.M)
+                out["pq_bits"] = int(index.pq.nbits)
         return out
 
     # ------------------------------------------------------------------ saving and loading
