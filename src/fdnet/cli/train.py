@@ -2,6 +2,10 @@
 
 FDNet is unsupervised with respect to place: it needs only which condition each image belongs
 to (its folder), never which images show the same place.
+
+``torchrun --nproc-per-node N -m fdnet train ...`` trains data-parallel on N processes (see
+:mod:`fdnet.training.distributed`): rank 0 builds the settings (it alone reads ``--config`` files
+and, on ``--resume``, the run's own settings) and broadcasts them, and it alone prints.
 """
 
 from __future__ import annotations
@@ -37,9 +41,17 @@ def build_config(args):
 
 
 def run(args) -> int:
+    from fdnet.training.distributed import launch
+
+    with launch() as dist:
+        config = dist.collectively(lambda: build_config(args), main_only=True)
+        with dist.quiet_unless_main():
+            return _train(args, config)
+
+
+def _train(args, config) -> int:
     from fdnet.methods.fdnet.training import train
 
-    config = build_config(args)
     try:
         summary = train(config, args.out, resume=args.resume, override=args.override,
                         max_minutes=args.max_minutes, progress=not args.no_progress)
@@ -50,7 +62,9 @@ def run(args) -> int:
         print(f"fdnet train: resumed with changed settings (recorded in {args.out}/changes.yaml): "
               + "; ".join(summary["changes"]))
     line = (f"fdnet train: {summary['status']} at step {summary['step']}/{summary['total_steps']} "
-            f"after {summary['elapsed_seconds'] / 60:.1f} min; run in {summary['run_dir']}")
+            f"after {summary['elapsed_seconds'] / 60:.1f} min"
+            + (f" on {summary['world_size']} processes" if summary["world_size"] > 1 else "")
+            + f"; run in {summary['run_dir']}")
     if summary["best_step"] >= 0:
         line += f"; best validation R@1 {summary['best_recall@1']:.3f} at step {summary['best_step']} (in best/)"
     print(line)

@@ -4,7 +4,8 @@ CALC learns without labels from every image of the chosen conditions; NetVLAD le
 frame-aligned ground truth between conditions (positives within ``--tolerance`` frames). Both
 run on the same training loop as FDNet (time budget, Ctrl-C, crash-safe checkpoints, exact
 resume, validation with best/, log.csv) and write a run directory for
-``fdnet evaluate --method calc|netvlad --checkpoint RUN_DIR``.
+``fdnet evaluate --method calc|netvlad --checkpoint RUN_DIR``. Under ``torchrun`` they train
+data-parallel like ``fdnet train`` (see :mod:`fdnet.training.distributed`).
 """
 
 from __future__ import annotations
@@ -68,17 +69,27 @@ def build_config(args):
 def run(args) -> int:
     import torch
 
-    from fdnet.methods import method_module
+    from fdnet.training.distributed import launch
 
     if args.threads is not None:
         torch.set_num_threads(max(1, args.threads))
-    config = build_config(args)
+    with launch() as dist:
+        # rank 0 reads the run's settings (--resume) and --config; the others get them by broadcast
+        config = dist.collectively(lambda: build_config(args), main_only=True)
+        with dist.quiet_unless_main():
+            return _train(args, config)
+
+
+def _train(args, config) -> int:
+    from fdnet.methods import method_module
+
     summary = method_module(args.method, "training").train(
         config, args.out, resume=args.resume, override=args.override, max_minutes=args.max_minutes,
         progress=not args.no_progress, command=f"fdnet train-baseline {args.method}")
     if summary["changes"]:
         print(f"{args.method}: resumed with changed settings (recorded in {args.out}/changes.yaml): "
               + "; ".join(summary["changes"]))
+    processes = f" on {summary['world_size']} processes" if summary["world_size"] > 1 else ""
     print(f"{args.method}: {summary['status']} at step {summary['step']}/{summary['total_steps']} after "
-          f"{summary['elapsed_seconds']:.0f} s; use it with --method {args.method} --checkpoint {args.out}")
+          f"{summary['elapsed_seconds']:.0f} s{processes}; use it with --method {args.method} --checkpoint {args.out}")
     return 0

@@ -13,11 +13,18 @@ for every method:
   at the end, at the time budget and on Ctrl-C;
 * exact resume: the method's own state plus torch's global RNG (dropout) are in the checkpoint;
 * periodic validation (R@1 of cosine matching, ties to the higher AUC) with ``best/``;
-* ``log.csv`` (rows after the resumed checkpoint are dropped) and a progress bar.
+* ``log.csv`` (rows after the resumed checkpoint are dropped) and a progress bar;
+* data-parallel training when started by ``torchrun`` (:mod:`fdnet.training.distributed`): rank 0
+  holds the lock, reads and writes the run directory, validates and logs; every rank's random
+  state is saved; the world size is recorded and a resume with another one refused unless
+  ``override``; stop decisions and failures are agreed so no rank waits for ever. A method takes
+  part through :attr:`TrainingMethod.distributed`: it averages its gradients before every
+  optimiser step and seeds its data streams per rank.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import signal
 import time
@@ -32,7 +39,9 @@ import torch
 from fdnet import runs
 from fdnet.errors import ConfigError
 from fdnet.io import atomic_write_text, ensure_writable
+from fdnet.training import distributed as dist_module
 from fdnet.training.data import ValidationImages
+from fdnet.training.distributed import DistributedContext
 from fdnet.training.logging import TrainingLog
 
 BEST_DIR = "best"
@@ -63,6 +72,16 @@ class TrainingMethod(ABC):
     input_size: tuple[int, int]
     #: where the method's messages go (the loop points it at the progress bar's writer)
     log: Callable[[str], None] = print
+    #: keys of :meth:`state` that differ between the ranks of a distributed run (their random
+    #: streams); each rank's are saved, the rest is rank 0's. None: the whole state is per rank.
+    rank_state_keys: ClassVar[tuple[str, ...] | None] = None
+
+    @property
+    def distributed(self) -> DistributedContext:
+        """The process's distributed context (a no-op for a single process). A method calls
+        ``self.distributed.average_gradients(optimizer)`` between ``backward()`` and
+        ``optimizer.step()``, and seeds its data streams with ``self.distributed.rank_seed(seed)``."""
+        return dist_module.current()
 
     @abstractmethod
     def modules(self) -> dict[str, torch.nn.Module]:
@@ -125,17 +144,24 @@ def set_numpy_rng_state(rng: np.random.Generator, text: str) -> None:
 
 class _StopRequest:
     """SIGINT handler that lets the current step finish (a half-applied optimiser step would
-    leave weights and step counter out of sync); the loop then checkpoints and stops."""
+    leave weights and step counter out of sync); the loop then checkpoints and stops.
 
-    def __init__(self) -> None:
+    Under torchrun SIGTERM is handled the same way: torchrun starts its workers in sessions of
+    their own, so Ctrl-C (or a scheduler's SIGTERM) reaches torchrun alone, which passes the
+    signal on to every worker and kills them 30 s later; the ranks agree to stop after the
+    current step and rank 0 checkpoints within that time."""
+
+    def __init__(self, signals: tuple[int, ...] = (signal.SIGINT,)) -> None:
         self.requested = False
-        self._previous = None
+        self._signals = signals
+        self._previous: dict[int, Any] = {}
 
     def __enter__(self):
-        try:
-            self._previous = signal.signal(signal.SIGINT, self._handle)
-        except ValueError:  # not in the main thread: Ctrl-C handling stays Python's default
-            self._previous = None
+        for signum in self._signals:
+            try:
+                self._previous[signum] = signal.signal(signum, self._handle)
+            except ValueError:  # not in the main thread: signal handling stays Python's default
+                pass
         return self
 
     def _handle(self, signum, frame) -> None:
@@ -144,15 +170,29 @@ class _StopRequest:
         self.requested = True
 
     def __exit__(self, *exc) -> None:
-        if self._previous is not None:
-            signal.signal(signal.SIGINT, self._previous)
+        for signum, previous in self._previous.items():
+            signal.signal(signum, previous)
+
+
+class _NoLog:
+    """The log of ranks other than 0: they write nothing into the run directory."""
+
+    def write(self, row: dict) -> None:
+        pass
+
+    def truncate_after(self, step: int) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
 
 
 class Trainer:
     """Runs one :class:`TrainingMethod` into one run directory (see the module docstring).
 
     Use :func:`run_training`, which also holds the run directory's lock; the class is public for
-    tests that step a run by hand.
+    tests that step a run by hand. In a distributed run every rank builds a Trainer; rank 0 reads
+    and writes the run directory, the others get what they need from it by broadcast.
     """
 
     def __init__(self, method: TrainingMethod, run_dir: str | Path, validation: ValidationImages | None = None,
@@ -160,7 +200,9 @@ class Trainer:
                  command: str = "") -> None:
         self.method = method
         self.run_dir = Path(run_dir)
-        self.validation = validation
+        self.dist = method.distributed
+        # validation, best/ and the log are rank 0's; the other ranks skip them in lockstep
+        self.validation = validation if self.dist.is_main else None
         self.settings = method.loop_settings()
         for name in ("checkpoint_every", "log_every"):
             if getattr(self.settings, name) < 1:
@@ -172,20 +214,43 @@ class Trainer:
         self.best = {"step": -1, "recall@1": -1.0, "auc": -1.0}
         self.last_validation: dict[str, float] = {}
         self.changes: list[str] = []
+        self._saved_step = -1  # the step of the checkpoint on disk that this trainer's state matches
         if resume:
             self._resume(override, command)
-        elif runs.is_run(self.run_dir):
-            raise ConfigError(f"{self.run_dir}: already holds a run; use --resume to continue it or choose another --out")
         else:
-            method.start()
+            self.dist.collectively(self._check_fresh, main_only=True)
+            self.dist.collectively(method.start)
+            # identical initial weights everywhere (data-dependent starts, e.g. NetVLAD's k-means
+            # on each rank's own sample, would otherwise differ)
+            self._broadcast_weights()
         columns = ["step", "stage", "elapsed_s", *method.log_columns, "val_recall@1", "val_recall@100p"]
-        self.log = TrainingLog(self.run_dir, columns, tensorboard=tensorboard)
-        if resume:
-            self.log.truncate_after(self.step)
+
+        def open_log():
+            if not self.dist.is_main:
+                return _NoLog()
+            log = TrainingLog(self.run_dir, columns, tensorboard=tensorboard)
+            if resume:
+                log.truncate_after(self.step)
+            return log
+
+        self.log = self.dist.collectively(open_log)
+
+    def _check_fresh(self) -> None:
+        if runs.is_run(self.run_dir):
+            raise ConfigError(f"{self.run_dir}: already holds a run; use --resume to continue it or choose another --out")
+
+    def _broadcast_weights(self) -> None:
+        for module in self.method.modules().values():
+            self.dist.broadcast_module(module)
 
     # ------------------------------------------------------------------ checkpoints
-    def _state(self) -> dict:
-        return {
+    def _own_random_state(self) -> dict:
+        """This rank's random streams: torch's RNG and the per-rank part of the method's state."""
+        return {"torch_rng": torch.get_rng_state(),
+                "method_state": dist_module.rank_part(self.method.state(), self.method.rank_state_keys)}
+
+    def _state(self, rank_states: list | None = None) -> dict:
+        state = {
             "step": self.step,
             "elapsed_seconds": self.elapsed,
             "stage": self.method.stage(max(self.step - 1, 0)),
@@ -194,15 +259,28 @@ class Trainer:
             "best_recall@1": float(self.best["recall@1"]),
             "best_auc": float(self.best["auc"]),
             "method_state": self.method.state(),
+            # how many processes trained it: a resume with another number is refused unless --override
+            "world_size": self.dist.world_size,
         }
+        if rank_states is not None:
+            state["rank_states"] = rank_states  # every rank's random streams, rank order
+        return state
 
     def save(self) -> Path:
-        """Publish a checkpoint of the current step. A write that fails (a full disk, a lost
-        mount) stops the run with the previous complete checkpoint still current."""
+        """Publish a checkpoint of the current step (in a distributed run: every rank calls it at
+        the same step; rank 0 writes). A write that fails (a full disk, a lost mount) stops the
+        run with the previous complete checkpoint still current."""
+        # On every rank, so a model changed here (NetVLAD's PCA) stays the same on all of them.
         self.method.before_save()
+        rank_states = self.dist.gather_objects(self._own_random_state()) if self.dist.enabled else None
+        published = self.dist.collectively(lambda: self._write(rank_states), main_only=True)
+        self._saved_step = self.step
+        return published
+
+    def _write(self, rank_states: list | None) -> Path:
         try:
             return runs.save_checkpoint(self.run_dir, self.method.modules(), self.method.config,
-                                        optimizers=self.method.optimizers(), state=self._state())
+                                        optimizers=self.method.optimizers(), state=self._state(rank_states))
         except (OSError, ConfigError) as exc:
             reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
             try:
@@ -213,7 +291,9 @@ class Trainer:
                               f"the previous complete checkpoint ({previous}) is intact: fix the cause "
                               "(e.g. free disk space) and continue with --resume") from None
 
-    def _resume(self, override: bool, command: str) -> None:
+    def _read_run(self, override: bool, command: str) -> dict:
+        """Rank 0: check the resume and load weights and optimiser states from the run directory.
+        Returns what every rank needs to continue (the other ranks receive it by broadcast)."""
         if not runs.is_run(self.run_dir):
             raise ConfigError(f"{self.run_dir}: nothing to resume (no complete checkpoint); start a new run without --resume")
         saved = runs.load_config(self.run_dir, type(self.method.config))
@@ -226,15 +306,52 @@ class Trainer:
                 "(the change is recorded in changes.yaml)")
         runs.load_weights(self.run_dir, self.method.modules())
         state = runs.load_training_state(self.run_dir, self.method.optimizers())
-        self.step = int(state["step"])
+        saved_world, world = int(state.get("world_size", 1)), self.dist.world_size
+        if saved_world != world:
+            if not override:
+                raise ConfigError(
+                    f"{self.run_dir}: the run was trained by {saved_world} process{'es' if saved_world > 1 else ''} "
+                    f"(world size {saved_world}) and is resumed by {world} (world size {world}); that changes the "
+                    f"effective batch and every process's random streams. Resume it with {saved_world} "
+                    f"process{'es' if saved_world > 1 else ''} (torchrun --nproc-per-node/--nnodes"
+                    f"{'' if saved_world > 1 else ', or plain fdnet'}), or add --override to continue with world size "
+                    f"{world} (recorded in changes.yaml)")
+            differences = [*differences, f"world_size: saved {saved_world}, requested {world}"]
         if differences:
-            runs.record_changes(self.run_dir, self.step, differences, command)
-            self.changes = differences
+            runs.record_changes(self.run_dir, int(state["step"]), differences, command)
+        optimizers = None
+        if self.dist.enabled:  # for the other ranks (CPU copies: a CUDA tensor would unpickle onto cuda:0)
+            optimizers = {name: _to_cpu(opt.state_dict()) for name, opt in self.method.optimizers().items()}
+        return {"state": state, "changes": differences, "optimizers": optimizers}
+
+    def _resume(self, override: bool, command: str) -> None:
+        dist, method = self.dist, self.method
+        fresh = method.state()  # this rank's own streams as seeded, for a rank the run has not seen
+        payload = dist.collectively(lambda: self._read_run(override, command), main_only=True)
+        if dist.enabled:
+            self._broadcast_weights()
+            if not dist.is_main:
+                for name, opt in method.optimizers().items():
+                    opt.load_state_dict(payload["optimizers"][name])
+        state = payload["state"]
+        self.step = int(state["step"])
+        self._saved_step = self.step
+        self.changes = list(payload["changes"])
         self.elapsed = float(state["elapsed_seconds"])
-        torch.set_rng_state(state["torch_rng"])
         self.best = {"step": int(state["best_step"]), "recall@1": float(state["best_recall@1"]),
                      "auc": float(state.get("best_auc", -1.0))}
-        self.method.load_state(state.get("method_state", {}))
+        keys = method.rank_state_keys
+        shared = state.get("method_state", {})
+        # A single-process save has no rank_states: its top-level streams are rank 0's.
+        saved_ranks = state.get("rank_states") or [{"torch_rng": state["torch_rng"],
+                                                    "method_state": dist_module.rank_part(shared, keys)}]
+        if dist.rank < len(saved_ranks):
+            own = saved_ranks[dist.rank]
+            torch.set_rng_state(own["torch_rng"])
+            method_state = dist_module.merge_rank_state(shared, own["method_state"], keys)
+        else:  # more processes than the run had (--override): this rank keeps its freshly seeded streams
+            method_state = dist_module.merge_rank_state(shared, fresh, keys)
+        dist.collectively(lambda: method.load_state(method_state))
 
     # ------------------------------------------------------------------ validation
     def validate_now(self) -> dict[str, float]:
@@ -257,13 +374,15 @@ class Trainer:
         """Train until the schedule ends, ``max_minutes`` pass or Ctrl-C; always checkpoint.
 
         Returns a summary dict (``status`` is "finished", "time limit" or "interrupted").
-        Re-raises KeyboardInterrupt after saving when interrupted.
+        Re-raises KeyboardInterrupt after saving when interrupted. In a distributed run every
+        rank stops at the same step: a stop that any rank sees (its Ctrl-C or SIGTERM, its clock
+        passing ``max_minutes``) is agreed on after every step.
         """
-        method, settings = self.method, self.settings
+        method, settings, dist = self.method, self.settings, self.dist
         total = settings.total_steps
         validate_every = settings.validate_every if self.validation is not None else 0
         bar = None
-        if progress:
+        if progress and dist.is_main:
             from tqdm import tqdm
 
             bar = tqdm(total=total, initial=self.step, unit="step", dynamic_ncols=True)
@@ -271,11 +390,14 @@ class Trainer:
         status = "finished"
         started = time.monotonic()
         base_elapsed = self.elapsed
-        last_saved = self.step if runs.is_run(self.run_dir) else -1
         interrupted = False
-        with _StopRequest() as stop:
+        signals = (signal.SIGINT, signal.SIGTERM) if dist.launched else (signal.SIGINT,)
+        with _StopRequest(signals) as stop:
             while self.step < total:
                 numbers = method.train_step(self.step)
+                # weights stay identical through the averaged gradients; running statistics are
+                # rank 0's on every rank after each step (DDP's broadcast_buffers)
+                dist.broadcast_buffers(method.modules().values())
                 self.step += 1
                 self.elapsed = base_elapsed + time.monotonic() - started
                 stage = method.stage(self.step - 1)
@@ -288,7 +410,6 @@ class Trainer:
                                     **numbers, **(row or {})})
                 if self.step % settings.checkpoint_every == 0:
                     self.save()
-                    last_saved = self.step
                 if bar is not None:
                     bar.update(1)
                     shown = {k[:5]: f"{v:.3g}" for k, v in numbers.items()}
@@ -296,25 +417,37 @@ class Trainer:
                         shown["valR@1"] = f"{self.last_validation['recall@1']:.3f}"
                     bar.set_description(stage)
                     bar.set_postfix(shown, refresh=False)
-                if stop.requested:
+                out_of_time = max_minutes is not None and time.monotonic() - started >= max_minutes * 60.0
+                stop_now, out_of_time = dist.agree(stop.requested, out_of_time)
+                if stop_now:
                     status, interrupted = "interrupted", True
                     break
-                if max_minutes is not None and time.monotonic() - started >= max_minutes * 60.0:
+                if out_of_time:
                     status = "time limit"
                     break
         if bar is not None:
             bar.close()
             method.log = print
-        if last_saved != self.step:
+        if self._saved_step != self.step:
             self.save()
         self.log.close()
         summary = {"status": status, "step": self.step, "total_steps": total,
                    "elapsed_seconds": self.elapsed, "run_dir": str(self.run_dir),
                    "best_step": self.best["step"], "best_recall@1": self.best["recall@1"],
-                   "changes": list(self.changes)}
+                   "changes": list(self.changes), "world_size": dist.world_size}
         if interrupted:
             raise KeyboardInterrupt(summary)
         return summary
+
+
+def _to_cpu(value):
+    if isinstance(value, torch.Tensor):
+        return value.detach().cpu()
+    if isinstance(value, dict):
+        return {k: _to_cpu(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return type(value)(_to_cpu(v) for v in value)
+    return value
 
 
 def run_training(build: Callable[[], tuple[TrainingMethod, ValidationImages | None]], run_dir: str | Path,
@@ -324,15 +457,31 @@ def run_training(build: Callable[[], tuple[TrainingMethod, ValidationImages | No
 
     The run directory's lock is taken, and a fresh run's or a resume's precondition checked,
     before ``build`` reads any image, so a second training on the same folder fails at once.
+
+    Started by torchrun (``WORLD_SIZE`` etc. in the environment), this joins the process group
+    unless the caller already did (:func:`fdnet.training.distributed.launch`). Rank 0 alone takes
+    the lock and checks the preconditions, for the whole run; the other ranks never touch the
+    lock file (they would only queue behind rank 0). Whatever fails on one rank, there or while
+    building, stops every rank with its message.
     """
     run_dir = Path(run_dir)
-    ensure_writable(run_dir, what="run directory", directory=True)
-    with runs.RunLock(run_dir, command=command):
-        if resume and not runs.is_run(run_dir):
-            raise ConfigError(f"{run_dir}: nothing to resume (no complete checkpoint); start a new run without --resume")
-        if not resume and runs.is_run(run_dir):
-            raise ConfigError(f"{run_dir}: already holds a run; use --resume to continue it or choose another --out")
-        method, validation = build()
+    with dist_module.launch() as dist, contextlib.ExitStack() as held:
+        def take_lock() -> None:
+            ensure_writable(run_dir, what="run directory", directory=True)
+            held.enter_context(runs.RunLock(run_dir, command=command))
+            if resume and not runs.is_run(run_dir):
+                raise ConfigError(f"{run_dir}: nothing to resume (no complete checkpoint); start a new run without --resume")
+            if not resume and runs.is_run(run_dir):
+                raise ConfigError(f"{run_dir}: already holds a run; use --resume to continue it or choose another --out")
+
+        dist.collectively(take_lock, main_only=True)
+
+        def build_here():
+            method, validation = build()
+            dist.check_device(getattr(method, "device", None))
+            return method, validation
+
+        method, validation = dist.collectively(build_here)
         trainer = Trainer(method, run_dir, validation=validation, resume=resume, override=override,
                           command=command)
         return trainer.fit(max_minutes=max_minutes, progress=progress)

@@ -3,7 +3,9 @@ the HOG of the other (original or warp) out (see :mod:`fdnet.methods.calc.model`
 
 Unsupervised: it uses every image of the configured conditions and frames, never which images
 show the same place. What a resume needs beyond weights and the optimiser: the numpy generator
-that draws images, warps and swaps.
+that draws images, warps and swaps. In a distributed run (torchrun) rank r's generator is seeded
+with ``train.seed + r``, so every rank draws other images, and the gradients are averaged over
+the ranks before each step.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from fdnet.methods.calc import model as calc
 from fdnet.methods.calc.config import CALCRunConfig
 from fdnet.methods.settings import check_finite
 from fdnet.training.data import TrainingImages, route_images, training_route
+from fdnet.training.distributed import loss_text
 from fdnet.training.loop import LoopSettings, TrainingMethod, numpy_rng_state, set_numpy_rng_state
 from fdnet.training.optimizers import make_optimizer
 
@@ -38,13 +41,14 @@ def validate(config: CALCRunConfig) -> None:
 class CALCTraining(TrainingMethod):
     name = "calc"
     log_columns = ("loss", "active_units")
+    rank_state_keys = ("numpy_rng",)
 
     def __init__(self, config: CALCRunConfig, data: TrainingImages) -> None:
         validate(config)
         self.config = config
         model_cfg, train = config.model, config.train
         self.input_size = tuple(int(v) for v in model_cfg.input_size)
-        self.rng = np.random.default_rng(train.seed)
+        self.rng = np.random.default_rng(self.distributed.rank_seed(train.seed))  # per rank: other images
         torch.manual_seed(train.seed)  # before building: the initial weights come from it
         self.network = calc.build_network(model_cfg)
         self.optimizer = make_optimizer(self.network.parameters(), train)
@@ -106,10 +110,11 @@ class CALCTraining(TrainingMethod):
             code = self.network.encode(x)
             prediction = self.network.decoder(code)
         loss = calc.euclidean_loss(prediction.float(), y)
-        if not torch.isfinite(loss):
-            raise FloatingPointError(f"CALC loss became {loss.item()} at step {step}; lower train.lr")
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
+        # False when the loss is not finite here or on another rank: every rank stops at this step
+        if not self.distributed.average_gradients(self.optimizer, loss):
+            raise FloatingPointError(f"CALC loss became {loss_text(loss)} at step {step}; lower train.lr")
         self.optimizer.step()
         # share of bottleneck values above zero: 0 means every ReLU died and descriptors are all-zero
         active = float((code.detach() > 0).float().mean())

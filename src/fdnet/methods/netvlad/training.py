@@ -5,7 +5,9 @@ hardest of a sample of negatives mined from a periodically refreshed descriptor 
 NetVLAD is supervised: positives are the frames within ``data.tolerance`` of the query's frame in
 another condition. The frozen trunk's maps are computed once per run. What a resume needs beyond
 weights and the optimiser: the numpy generator and the mining cache as it was (so the resumed
-run mines exactly what the uninterrupted one would have).
+run mines exactly what the uninterrupted one would have). In a distributed run (torchrun) rank r's
+generator is seeded with ``train.seed + r`` (other triplets on every rank; the cache, computed
+from the shared weights, is the same on all) and the gradients are averaged before each step.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from fdnet.methods.netvlad import model as netvlad
 from fdnet.methods.netvlad.config import NetVLADRunConfig
 from fdnet.methods.settings import check_finite
 from fdnet.training.data import TrainingImages, route_images, training_route
+from fdnet.training.distributed import loss_text
 from fdnet.training.loop import LoopSettings, TrainingMethod, numpy_rng_state, set_numpy_rng_state
 from fdnet.training.optimizers import make_optimizer
 
@@ -68,6 +71,7 @@ def validate(config: NetVLADRunConfig) -> None:
 class NetVLADTraining(TrainingMethod):
     name = "netvlad"
     log_columns = ("loss", "active_triplets")
+    rank_state_keys = ("numpy_rng",)  # the mining cache is the same on every rank
 
     def __init__(self, config: NetVLADRunConfig, data: TrainingImages) -> None:
         validate(config)
@@ -89,7 +93,7 @@ class NetVLADTraining(TrainingMethod):
             raise ConfigError(f"NetVLAD model.pca_dim {model_cfg.pca_dim} needs more training images than that "
                               f"(have {len(self.frame_ids) * len(data.names)}); lower it or set 0")
         self.use_bf16 = bool(train.bf16) and bf16_supported()
-        self.rng = np.random.default_rng(train.seed)
+        self.rng = np.random.default_rng(self.distributed.rank_seed(train.seed))  # per rank: other triplets
         torch.manual_seed(train.seed)
         self.network = netvlad.build_network(model_cfg, pretrained=True)
         t_prep = time.perf_counter()
@@ -213,10 +217,11 @@ class NetVLADTraining(TrainingMethod):
         d_neg = ((q[:, None, :] - n) ** 2).sum(2)
         hinge = torch.relu(d_pos - d_neg + train.margin)
         loss = hinge.mean()
-        if not torch.isfinite(loss):
-            raise FloatingPointError(f"NetVLAD loss became {loss.item()} at step {step}; lower train.lr")
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
+        # False when the loss is not finite here or on another rank: every rank stops at this step
+        if not self.distributed.average_gradients(self.optimizer, loss):
+            raise FloatingPointError(f"NetVLAD loss became {loss_text(loss)} at step {step}; lower train.lr")
         self.optimizer.step()
         return {"loss": float(loss.item()), "active_triplets": float((hinge > 0).float().mean().item())}
 
