@@ -122,10 +122,13 @@ def _embeddings(vectors: dict[str, np.ndarray], max_points: int, metric: str) ->
     x = np.concatenate(chosen).astype(np.float64)
     labels = np.array(names)
     perplexity = float(min(30, max(2, (len(x) - 1) // 3)))
+    # Exact gradients up to a thousand points: here about twice as fast as Barnes-Hut (1.9 vs 3.2 s
+    # for 120 points, 16 vs 35 s for 600), and no approximation.
+    tsne_method = "exact" if len(x) <= 1000 else "barnes_hut"
     out = {"labels": labels, "full_silhouette": finite_or_none(silhouette_score(x, labels, metric=metric))}
     for method, reducer in (("pca", PCA(n_components=2, random_state=0)),
                             ("tsne", TSNE(n_components=2, perplexity=perplexity, init="pca", random_state=0,
-                                          learning_rate="auto"))):
+                                          learning_rate="auto", method=tsne_method))):
         points = reducer.fit_transform(x)
         out[method] = points
         out[f"{method}_silhouette"] = finite_or_none(silhouette_score(points, labels))
