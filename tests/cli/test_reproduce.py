@@ -68,6 +68,7 @@ def test_every_experiment_writes_its_numbers(made):
     assert viewpoint["response"]["rows"][0]["content_cosine_distance"] == pytest.approx(0, abs=1e-5)
     runtime = document(out, "runtime")
     assert runtime["machine"]["logical_cores"] >= 1
+    assert runtime["machine"]["torch_threads"] == runtime["machine"]["blas_threads"] == 1  # --threads 1
     assert {m["method"]: m["paper_ms_per_image"] for m in runtime["methods"]} == {"fdnet": 21.2, "trunk": None,
                                                                                    "sad": None}
     similarity = document(out, "similarity")

@@ -70,7 +70,8 @@ ARGUMENTS = (
     ("output", "--out", dict(required=True, metavar="OUT_DIR",
                              help="folder for report.html, one JSON per experiment, figures/ and cache/")),
     ("output", "--batch-size", dict(type=int, default=32, help="images described per batch (default 32)")),
-    ("output", "--threads", dict(type=int, help="torch CPU threads (default: all cores)")),
+    ("output", "--threads", dict(type=int, help="CPU threads for torch, BLAS and scikit-learn (default: all "
+                                               "cores; on a shared machine 1 keeps timings meaningful)")),
     ("output", "--no-progress", dict(action="store_true", help="no progress bars")),
 )
 
@@ -174,7 +175,7 @@ def run(args) -> int:
         length_train_frames=args.length_train_frames, length_overrides=parse_overrides(args.length_set),
         viewpoint_pair=tuple(viewpoint) if viewpoint else None, overlaps=_overlaps(args.overlaps),
         examples=args.examples, runtime_images=args.runtime_images, embedding_points=args.embedding_points,
-        batch_size=args.batch_size, progress=not args.no_progress and sys.stderr.isatty(),
+        batch_size=args.batch_size, threads=args.threads, progress=not args.no_progress and sys.stderr.isatty(),
         command=command_line(args))
     set_threads(args.threads)
     report = reproduce(settings)

@@ -54,9 +54,12 @@ def machine_description() -> dict:
                     break
     except OSError:
         pass  # not Linux: platform's name stands
+    from threadpoolctl import threadpool_info
+
     gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
+    blas = [pool["num_threads"] for pool in threadpool_info() if pool.get("user_api") == "blas"]
     return {"cpu": cpu, "logical_cores": os.cpu_count(), "torch_threads": torch.get_num_threads(),
-            "gpu": gpu, "platform": platform.platform()}
+            "blas_threads": max(blas) if blas else None, "gpu": gpu, "platform": platform.platform()}
 
 
 def _ratio(paper: float | None, ours: float | None) -> float | None:
@@ -129,7 +132,8 @@ def render(document: dict) -> list:
     gpu = machine.get("gpu") or "none"
     blocks: list = [
         Paragraph(f"This machine: {machine['cpu']}, {machine['logical_cores']} logical cores, "
-                  f"{machine['torch_threads']} torch threads, GPU: {gpu} (descriptors run on the CPU unless a "
+                  f"{machine['torch_threads']} torch threads, {machine.get('blas_threads') or '?'} BLAS threads, "
+                  f"GPU: {gpu} (descriptors run on the CPU unless a "
                   f"method's device setting says otherwise); {machine['platform']}; fp32 GEMM "
                   f"{document['gemm_gflops_fp32']:.1f} GFLOP/s."),
         Paragraph(f"Extraction: median ms/image over {document['num_images_timed']} decoded images of "
