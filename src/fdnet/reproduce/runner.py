@@ -376,8 +376,10 @@ def reproduce(settings: ReproduceSettings, factory: Callable | None = None,
     """
     if not settings.threads:
         return _reproduce(settings, factory, log)
-    import scipy.linalg  # noqa: F401  (loaded first: a limit covers only the thread pools already loaded,
-    import sklearn.manifold  # noqa: F401  and these two bring their own BLAS and OpenMP)
+    # A limit covers only the thread pools already loaded; scipy and scikit-learn bring their own
+    # BLAS and OpenMP, so they are loaded first.
+    import scipy.linalg  # noqa: F401
+    import sklearn.manifold  # noqa: F401
     from threadpoolctl import threadpool_limits
 
     # BLAS threads beyond the cores that are free make small matrix products 100x slower on a
