@@ -276,12 +276,18 @@ def revisit_queries(map_vectors: np.ndarray, count: int, noise: float = 0.5, see
     return (q / np.linalg.norm(q, axis=1, keepdims=True)).astype(np.float32)
 
 
+#: search-time setting -> the index kinds it applies to (for ``scale_rows``'s ``sweep``)
+SWEEPABLE = {"ivf_probe": ("ivf", "ivfpq"), "hnsw_ef_search": ("hnsw",)}
+
+
 def scale_rows(map_vectors: np.ndarray, queries: np.ndarray, kinds, settings: dict | None = None,
-               source: str = "random", single: int = 100, log=None) -> list[dict]:
+               source: str = "random", single: int = 100, log=None, sweep: dict | None = None) -> list[dict]:
     """Per index kind: build time, memory, ms/query (all queries in one batch: ``ms_per_query``;
     and one at a time over up to ``single`` of them: ``ms_per_query_single``) and recall@1
     against exact search (faiss flat, computed first). ``settings``: kind -> IndexSettings
-    overrides."""
+    overrides. ``sweep``: search-time setting -> values (``ivf_probe`` for ivf/ivfpq,
+    ``hnsw_ef_search`` for hnsw): each built index is then measured once per value, without
+    rebuilding, one row each."""
     import faiss
 
     from fdnet.matching.index import IndexSettings, VectorIndex
@@ -303,24 +309,33 @@ def scale_rows(map_vectors: np.ndarray, queries: np.ndarray, kinds, settings: di
             index.add(map_vectors[start:start + 100_000])
         index.build()
         build_s = time.perf_counter() - t0
-        index.search(queries[:10], 1)  # warm-up
-        t0 = time.perf_counter()
-        found = index.search(queries, 1)[0][:, 0]
-        batched = (time.perf_counter() - t0) / len(queries) * 1e3
-        # one query at a time: up to ``single`` queries, or as many as fit in ~5 s (at least 5)
-        done, t0 = 0, time.perf_counter()
-        for q in queries[:single]:
-            index.search(q[None], 1)
-            done += 1
-            if done >= 5 and time.perf_counter() - t0 > 5.0:
-                break
-        one = (time.perf_counter() - t0) / max(done, 1) * 1e3
-        row = {"map_size": int(size), "index": kind, "dim": int(dim), "build_s": build_s,
-               "memory_mb": index.memory_bytes() / 2**20, "ms_per_query": batched, "ms_per_query_single": one,
-               "recall_at_1": float((found == truth).mean()), "queries": int(len(queries)), "source": source,
-               "settings": index.describe()}
-        say(f"  {kind:6s} build {build_s:8.1f} s  memory {row['memory_mb']:9.1f} MB  "
-            f"{batched:8.4f} ms/query batched  {one:8.3f} ms/query single  recall@1 {row['recall_at_1']:.3f}")
-        rows.append(row)
+        memory_mb = index.memory_bytes() / 2**20
+        variants = [{}]
+        for key, values in (sweep or {}).items():
+            if kind in SWEEPABLE.get(key, ()):
+                variants = [{key: int(v)} for v in values]
+        for variant in variants:
+            if variant:
+                index.set_search(**variant)
+            index.search(queries[:10], 1)  # warm-up
+            t0 = time.perf_counter()
+            found = index.search(queries, 1)[0][:, 0]
+            batched = (time.perf_counter() - t0) / len(queries) * 1e3
+            # one query at a time: up to ``single`` queries, or as many as fit in ~5 s (at least 5)
+            done, t0 = 0, time.perf_counter()
+            for q in queries[:single]:
+                index.search(q[None], 1)
+                done += 1
+                if done >= 5 and time.perf_counter() - t0 > 5.0:
+                    break
+            one = (time.perf_counter() - t0) / max(done, 1) * 1e3
+            row = {"map_size": int(size), "index": kind, "dim": int(dim), "build_s": build_s,
+                   "memory_mb": memory_mb, "ms_per_query": batched, "ms_per_query_single": one,
+                   "recall_at_1": float((found == truth).mean()), "queries": int(len(queries)), "source": source,
+                   "search": variant, "settings": index.describe()}
+            label = " ".join(f"{k}={v}" for k, v in variant.items())
+            say(f"  {kind:6s} {label:17s} build {build_s:7.1f} s  memory {memory_mb:9.1f} MB  "
+                f"{batched:8.4f} ms/query batched  {one:8.3f} single  recall@1 {row['recall_at_1']:.3f}")
+            rows.append(row)
         del index
     return rows

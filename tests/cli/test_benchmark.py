@@ -50,7 +50,19 @@ def test_scale_on_real_vectors_from_an_extract_file(tmp_path, capsys):
     assert rows[1]["settings"]["pq_bytes"] == 6 and all(r["dim"] == 24 for r in rows)
 
 
+def test_sweep_measures_one_built_index_at_several_search_settings(tmp_path):
+    out = tmp_path / "b.json"
+    assert main(["benchmark", "--parts", "scale", "--threads", "1", "--map-size", "2000", "--scale-dim", "16",
+                 "--indexes", "flat,ivf", "--sweep", "ivf_probe=1,8", "--queries", "50", "--json", str(out)]) == 0
+    rows = json.loads(out.read_text())["scale"]
+    assert [(r["index"], r["search"]) for r in rows] == [("flat", {}), ("ivf", {"ivf_probe": 1}),
+                                                         ("ivf", {"ivf_probe": 8})]
+    assert rows[1]["build_s"] == rows[2]["build_s"] and rows[2]["settings"]["settings"]["ivf_probe"] == 8
+    assert rows[2]["recall_at_1"] >= rows[1]["recall_at_1"]
+
+
 @pytest.mark.parametrize("argv,message", [
+    (["--sweep", "ivf_lists=4,8"], "--sweep"),
     (["--map-size", "many"], "--map-size"),
     (["--map-size", "1"], "at least 2 places"),
     (["--indexes", "flat,lsh"], "unknown index 'lsh'"),

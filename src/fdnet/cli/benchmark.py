@@ -43,6 +43,9 @@ def register(sub) -> None:
                    help=f"faiss indexes of the scale benchmark (default {DEFAULT_INDEXES})")
     p.add_argument("--index-set", action="append", default=[], metavar="KIND:KEY=VALUE",
                    help="an index setting for the scale benchmark, e.g. ivf:ivf_probe=32 (repeatable)")
+    p.add_argument("--sweep", action="append", default=[], metavar="KEY=V1,V2,...",
+                   help="measure each built index at several search-time settings without rebuilding it: "
+                        "ivf_probe (ivf, ivfpq) or hnsw_ef_search (hnsw), e.g. --sweep ivf_probe=16,32,64")
     p.add_argument("--queries", type=int, default=1000, help="queries per map in the scale benchmark (default 1000)")
     p.add_argument("--noise", type=float, default=0.5,
                    help="norm of the noise added to a map vector to make a query (default 0.5: cosine ~0.9 to "
@@ -138,6 +141,25 @@ def _index_overrides(args):
     return out
 
 
+def _sweeps(args) -> dict:
+    from fdnet.errors import ConfigError
+    from fdnet.runtime import SWEEPABLE
+
+    out = {}
+    for item in args.sweep:
+        key, sep, values = item.partition("=")
+        key = key.strip()
+        try:
+            numbers = [int(v) for v in values.split(",") if v.strip()]
+        except ValueError:
+            numbers = []
+        if not sep or key not in SWEEPABLE or not numbers or min(numbers) < 1:
+            raise ConfigError(f"--sweep {item!r}: expected KEY=V1,V2,... with KEY one of {', '.join(SWEEPABLE)} "
+                              "and whole numbers >= 1")
+        out[key] = numbers
+    return out
+
+
 def run(args) -> int:
     import json
     import platform
@@ -171,6 +193,7 @@ def run(args) -> int:
     if args.noise < 0:
         raise ConfigError(f"--noise must be >= 0, got {args.noise}")
     overrides = _index_overrides(args)
+    sweep = _sweeps(args)
     for flag, path in (("--map-vectors", args.map_vectors), ("--query-vectors", args.query_vectors)):
         if path is not None and not __import__("pathlib").Path(path).is_file():
             from fdnet.errors import DataError
@@ -345,7 +368,8 @@ def run(args) -> int:
                       f"vectors + noise {args.noise}; recall@1 against exact search")
                 vectors = runtime.random_map(n, dim)
                 queries = runtime.revisit_queries(vectors, args.queries, args.noise)
-                report["scale"] += runtime.scale_rows(vectors, queries, kinds, overrides, source="random", log=log)
+                report["scale"] += runtime.scale_rows(vectors, queries, kinds, overrides, source="random", log=log,
+                                                      sweep=sweep)
                 del vectors
             if args.map_vectors:
                 vectors = _read_vectors(args.map_vectors, "map vectors")
@@ -357,7 +381,7 @@ def run(args) -> int:
                 print(f"\nScale: {args.map_vectors}, {len(vectors):,} real {vectors.shape[1]}-d vectors, "
                       f"{len(queries)} queries")
                 report["scale"] += runtime.scale_rows(vectors, queries, kinds, overrides, source=str(args.map_vectors),
-                                                      log=log)
+                                                      log=log, sweep=sweep)
     finally:
         workdir.cleanup()
 

@@ -228,6 +228,19 @@ class VectorIndex:
         elif isinstance(index, faiss.IndexIVF):
             index.nprobe = max(1, min(self.settings.ivf_probe, index.nlist))
 
+    def set_search(self, **values) -> None:
+        """Change search-time settings (``ivf_probe``, ``hnsw_ef_search``, ``refine``) of a built
+        or loaded index, without rebuilding it."""
+        import dataclasses
+
+        for key in values:
+            if key not in SEARCH_SETTINGS:
+                raise ConfigError(f"{key} is fixed when the index is built; only {', '.join(SEARCH_SETTINGS)} "
+                                  "can change on a built index")
+        self.settings = check_settings(dataclasses.replace(self.settings, **values))
+        if self._index is not None:
+            self._apply_search_settings()
+
     def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         """Best ``k`` per query: (indices (Q, k) int64, scores (Q, k) float32); -1 where fewer exist."""
         self.build()
