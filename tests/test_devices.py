@@ -187,3 +187,11 @@ def test_bf16_is_as_accurate_as_fp32_for_retrieval():
         recall[bf16] = float((np.abs(best - np.arange(len(q))) <= 2).mean())
     assert abs(recall[True] - recall[False]) <= 0.005, recall
     assert recall[False] > 0.3  # a real retrieval, not noise
+
+
+def test_compiled_content_pads_short_batches_and_matches_eager(fdnet_run, rng):
+    eager = create("fdnet", checkpoint=fdnet_run, device="cpu", batch_size=4)
+    compiled = create("fdnet", checkpoint=fdnet_run, device="cpu", batch_size=4, compile=True)
+    u8 = rng.integers(0, 256, size=(6, 16, 32, 3), dtype=np.uint8)   # a full batch and a short one
+    np.testing.assert_allclose(compiled.describe(u8), eager.describe(u8), atol=1e-5)
+    assert compiled.fingerprint() == eager.fingerprint()

@@ -166,11 +166,13 @@ def temporary_fdnet_run(folder, preset_name: str = "cpu", vector_length: int | N
     return run, config
 
 
-def descriptor_paths(run_dir, images_u8: np.ndarray, repeats: int = 3, device="cpu") -> dict[str, float]:
+def descriptor_paths(run_dir, images_u8: np.ndarray, repeats: int = 3, device="cpu",
+                     compiled: bool = False) -> dict[str, float]:
     """ms/image of FDNet's descriptor (the public API) on preloaded images: ``fp32_eager`` is
     the float32 path (float32 images, no autocast: what ``describe`` did before devices), and
     ``extract`` what ``fdnet extract`` runs (uint8 images, bf16 autocast and channels_last where
-    the device runs bf16 natively)."""
+    the device runs bf16 natively); with ``compiled``, ``extract_compiled`` is ``fdnet extract
+    --compile`` (and ``compile_seconds`` what compiling took)."""
     from fdnet.methods.fdnet.descriptor import FDNetDescriptor
 
     out = {}
@@ -180,6 +182,12 @@ def descriptor_paths(run_dir, images_u8: np.ndarray, repeats: int = 3, device="c
     fast = FDNetDescriptor(run_dir, device=device, bf16=None)
     out["extract"] = median_seconds(lambda: fast.describe(images_u8), repeats=repeats) / len(images_u8) * 1e3
     out["extract_bf16"] = bool(fast.bf16)
+    if compiled:
+        t0 = time.perf_counter()
+        comp = FDNetDescriptor(run_dir, device=device, bf16=None, compile=True, batch_size=len(images_u8))
+        comp.describe(images_u8)
+        out["compile_seconds"] = time.perf_counter() - t0
+        out["extract_compiled"] = median_seconds(lambda: comp.describe(images_u8), repeats=repeats) / len(images_u8) * 1e3
     return out
 
 

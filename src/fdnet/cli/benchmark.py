@@ -58,6 +58,8 @@ def register(sub) -> None:
     p.add_argument("--query-vectors", metavar="FILE",
                    help="queries for --map-vectors (.npy/.npz); default: its vectors plus --noise")
     p.add_argument("--lengths", default="256,512,1024,2048", help="FDNet vector lengths to time")
+    p.add_argument("--compile", action="store_true",
+                   help="also time `fdnet extract --compile` (torch.compile; compiling takes about a minute)")
     p.add_argument("--quick", action="store_true", help="fewer repeats and only L=512 (for smoke tests)")
     p.add_argument("--json", help="write all figures as JSON")
     add_device_argument(p)
@@ -266,7 +268,8 @@ def run(args) -> int:
             run_dir, config = runtime.temporary_fdnet_run(workdir.name, "cpu")
             flops = runtime.content_flops(config.model)
             images = _images(args, tuple(config.model.input_size), uint8=True)
-            t = runtime.descriptor_paths(run_dir, images, repeats=max(1, repeats - 2), device="cpu")
+            t = runtime.descriptor_paths(run_dir, images, repeats=max(1, repeats - 2), device="cpu",
+                                         compiled=args.compile)
             speedup = t["fp32_eager"] / t["extract"]
             rate = flops / (t["extract"] * 1e-3) / 1e9
             reference = bf16_gflops if t["extract_bf16"] else gflops
@@ -283,6 +286,11 @@ def run(args) -> int:
                   f"{t['extract']:8.2f}   {speedup:.2f}x the fp32 eager path, {rate:.1f} GFLOP/s = "
                   f"{100 * rate / reference:.0f}% of the {'bf16' if t['extract_bf16'] else 'fp32'} GEMM rate; "
                   f"paper FDNet_512 on a TITAN X 21.2 ms: {21.2 / t['extract']:.1f}x")
+            if "extract_compiled" in t:
+                report["cpu_preset_descriptor_ms"]["speedup_compiled"] = t["fp32_eager"] / t["extract_compiled"]
+                print(f"  fdnet extract --compile                     {t['extract_compiled']:8.2f}   "
+                      f"{t['fp32_eager'] / t['extract_compiled']:.2f}x the fp32 eager path (compiling took "
+                      f"{t['compile_seconds']:.0f} s)")
 
         if "gpu" in parts:
             if device.type == "cuda":
