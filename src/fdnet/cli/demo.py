@@ -21,7 +21,8 @@ def register(sub) -> None:
     p.add_argument("--train-minutes", type=float, default=9.0,
                    help="training time budget in minutes (default 9; training stops early with a checkpoint)")
     p.add_argument("--preset", default="cpu", help="training preset (default cpu; tiny for a smoke test)")
-    p.add_argument("--methods", default="fdnet,sad,hog", help="methods to compare (default fdnet,sad,hog)")
+    p.add_argument("--methods", default="fdnet,trunk,sad,hog",
+                   help="methods to compare (default fdnet,trunk,sad,hog: trunk is the frozen map FDNet reads, the row to beat)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--resume", action="store_true", help="continue an interrupted demo training run")
     p.set_defaults(func=run)
@@ -60,6 +61,12 @@ def run(args) -> int:
         train = [a for a in train if a not in ("--preset", args.preset)] + ["--resume"]
     step("2/3 train FDNet on frames 0:%d of every condition (no place labels)" % train_end, train)
     methods = args.methods
+    from fdnet import runs
+    from fdnet.methods.fdnet.config import TrainConfig
+
+    if runs.load_config(run_dir, TrainConfig).model.backbone == "none":
+        # a preset whose encoders read pixels has no trunk to compare with
+        methods = ",".join(m for m in methods.split(",") if m.strip() != "trunk")
     for query in ("night", "winter"):
         step(f"3/3 evaluate {query} -> summer on frames {test} (tolerance 1 frame)",
              ["evaluate", "--data", str(route), "--reference", "summer", "--query", query,
