@@ -28,7 +28,8 @@ def made(tmp_path_factory):
     assert main(["synth", "--out", str(route), "--frames", "24", "--conditions", "summer,night"]) == 0
     assert main(["train", "--data", str(route), "--preset", "tiny", "--out", str(run), "--frames", "0:12",
                  "--no-progress", *TRUNK_RUN]) == 0
-    args = ["reproduce", "--data", str(route), "--checkpoint", str(run), "--methods", "fdnet,trunk,sad",
+    # hog: OpenCV loads a BLAS of its own on first use, which --threads must still cover
+    args = ["reproduce", "--data", str(route), "--checkpoint", str(run), "--methods", "fdnet,trunk,sad,hog",
             "--frames", "12:24", "--length-preset", "tiny", "--length-train-frames", "0:12",
             "--examples", "3", "--runtime-images", "4", "--threads", "1", "--no-progress", "--out", str(out)]
     assert main(args) == 0
@@ -44,12 +45,12 @@ def test_every_experiment_writes_its_numbers(made):
     comparison = document(out, "comparison")
     assert [(p["query"], p["reference"]) for p in comparison["pairs"]] == [("summer", "night"), ("night", "summer")]
     for pair in comparison["pairs"]:
-        assert [r["method"] for r in pair["results"]] == ["fdnet", "trunk", "sad"]
+        assert [r["method"] for r in pair["results"]] == ["fdnet", "trunk", "sad", "hog"]
         assert all(r["thresholds"] == "500 uniform" and r["num_queries"] == 12 for r in pair["results"])
         assert pair["paper"] is None  # the paper has no synthetic route
     # the command as parsed, flags in the parser's order
     assert comparison["command"] == (
-        f"fdnet reproduce --data {made['route']} --frames 12:24 --checkpoint {made['run']} --methods fdnet,trunk,sad "
+        f"fdnet reproduce --data {made['route']} --frames 12:24 --checkpoint {made['run']} --methods fdnet,trunk,sad,hog "
         f"--length-preset tiny --length-train-frames 0:12 --examples 3 --runtime-images 4 --out {out} --threads 1 "
         f"--no-progress")
     lengths = document(out, "lengths")
@@ -70,7 +71,7 @@ def test_every_experiment_writes_its_numbers(made):
     assert runtime["machine"]["logical_cores"] >= 1
     assert runtime["machine"]["torch_threads"] == runtime["machine"]["blas_threads"] == 1  # --threads 1
     assert {m["method"]: m["paper_ms_per_image"] for m in runtime["methods"]} == {"fdnet": 21.2, "trunk": None,
-                                                                                   "sad": None}
+                                                                                   "sad": None, "hog": None}
     similarity = document(out, "similarity")
     assert similarity["pairs"][0]["shape"] == [12, 12]
     examples = document(out, "examples")

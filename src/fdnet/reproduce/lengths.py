@@ -152,6 +152,7 @@ def run(ctx) -> dict:
         descriptor = handle.descriptor
         images = load_images(paths, descriptor.input_size)
         queries, references = ctx.pair_vectors(handle, first)
+        ctx.limit_threads()
         paper = runtime.PAPER_TABLE2.get(length, (None, None))
         timing.append({"length": length, "run": str(handle.options["checkpoint"]), "step": descriptor.step,
                        "preset": descriptor.config.preset,

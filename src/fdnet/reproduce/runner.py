@@ -285,6 +285,14 @@ class Context:
             self._results[memo] = result
         return self._results[memo]
 
+    def limit_threads(self) -> None:
+        """Apply ``--threads`` to every BLAS/OpenMP pool loaded so far, including those a method
+        loaded on first use (OpenCV bundles its own BLAS); called before anything is timed."""
+        if self.settings.threads:
+            from threadpoolctl import threadpool_limits
+
+            threadpool_limits(limits=self.settings.threads)
+
     # --------------------------------------------------------------------- outputs
     def figure_path(self, name: str) -> Path:
         path = self.out / "figures" / self.experiment / name
@@ -374,27 +382,11 @@ def reproduce(settings: ReproduceSettings, factory: Callable | None = None,
 
     ``factory(name, **options)`` builds a descriptor (default :func:`fdnet.descriptors.create`).
     """
-    if not settings.threads:
-        return _reproduce(settings, factory, log)
-    # A limit covers only the thread pools already loaded; scipy and scikit-learn bring their own
-    # BLAS and OpenMP, so they are loaded first.
-    import scipy.linalg  # noqa: F401
-    import sklearn.manifold  # noqa: F401
-    from threadpoolctl import threadpool_limits
-
-    # BLAS threads beyond the cores that are free make small matrix products 100x slower on a
-    # busy machine (a 100 x 10240 matrix-vector product: 0.06 ms with one thread, 9 ms with two
-    # on 2 loaded cores), which would be timed as the methods' matching cost.
-    with threadpool_limits(limits=settings.threads):
-        return _reproduce(settings, factory, log)
-
-
-def _reproduce(settings: ReproduceSettings, factory: Callable | None, log: Callable[[str], None] | None) -> Path:
     from fdnet.reproduce.report import write_report
 
     log = log or _stderr
     chosen = _check(settings)
-    out = ensure_writable(settings.out, what="reproduce output", directory=True)
+    ensure_writable(settings.out, what="reproduce output", directory=True)
     pairs = build_pairs(settings)
     log(f"{len(pairs)} condition pair(s): {'; '.join(p.label for p in pairs)}")
     ctx = Context(settings, pairs, factory or _default_factory, log)
@@ -409,7 +401,35 @@ def _reproduce(settings: ReproduceSettings, factory: Callable | None, log: Calla
     if not ctx.available():
         raise ConfigError("none of the methods can run here: " + "; ".join(
             f"{s['method']}: {s['reason']}" for s in ctx.skipped()))
+    # what cannot run is known before anything runs: an experiment asked for by name is an error
+    reasons = {name: experiment_module(name).unavailable(ctx) for name in chosen}
+    for name, reason in reasons.items():
+        if reason and settings.experiments:
+            raise ConfigError(f"experiment {name}: {reason}")
+    with _thread_limits(settings.threads):
+        return _run_experiments(ctx, chosen, reasons, write_report)
 
+
+def _thread_limits(threads: int | None):
+    """Limit BLAS and OpenMP thread pools to ``threads`` for the run (None: leave them); restored
+    on exit for the pools loaded now. BLAS threads beyond the cores that are free make small
+    matrix products 100x slower on a busy machine (a 100 x 10240 matrix-vector product: 0.06 ms
+    with one thread, 9 ms with two on 2 loaded cores), which would be timed as matching cost.
+    Libraries loaded later bring pools of their own: :meth:`Context.limit_threads` covers them."""
+    import contextlib
+
+    if not threads:
+        return contextlib.nullcontext()
+    # scipy and scikit-learn, which the experiments use, are loaded first so the limit covers them
+    import scipy.linalg  # noqa: F401
+    import sklearn.manifold  # noqa: F401
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(limits=threads)
+
+
+def _run_experiments(ctx: Context, chosen: list[str], reasons: dict, write_report: Callable) -> Path:
+    settings, out, log = ctx.settings, ctx.out, ctx.log
     manifest = {
         "fdnet_version": __version__,
         "command": settings.command,
@@ -417,18 +437,14 @@ def _reproduce(settings: ReproduceSettings, factory: Callable | None, log: Calla
         "dataset": str(settings.data),
         "dataset_format": settings.dataset_format or "folders (one sub-folder per condition)",
         "pairs": [{"reference": p.reference, "query": p.query, "description": p.split.description,
-                   "num_queries": len(p.split.query), "num_references": len(p.split.reference)} for p in pairs],
+                   "num_queries": len(p.split.query), "num_references": len(p.split.reference)}
+                  for p in ctx.pairs],
         "protocol": PROTOCOL,
         "protocol_definition": PROTOCOLS[PROTOCOL],
         "thresholds": f"{THRESHOLDS} uniform over min-max-normalised best-match scores (paper 5.1.2)",
         "checkpoint": str(settings.checkpoint) if settings.checkpoint else None,
         "experiments_run": chosen,
     }
-    # what cannot run is known before anything runs: an experiment asked for by name is an error
-    reasons = {name: experiment_module(name).unavailable(ctx) for name in chosen}
-    for name, reason in reasons.items():
-        if reason and settings.experiments:
-            raise ConfigError(f"experiment {name}: {reason}")
     atomic_write_text(out / MANIFEST, json.dumps(manifest, indent=2) + "\n")
     for name in chosen:
         module = experiment_module(name)

@@ -82,6 +82,8 @@ def run(ctx) -> dict:
         size = tuple(descriptor.input_size)
         if size not in images_by_size:
             images_by_size[size] = load_images(paths, size)
+        descriptor.describe(images_by_size[size][:1])  # loads what the method loads on first use
+        ctx.limit_threads()
         ms_image = runtime.descriptor_extraction(descriptor, images_by_size[size], repeats=3)
         queries, references = ctx.pair_vectors(handle, split)
         ms_query = ranking_ms_per_query(descriptor, queries, references)
