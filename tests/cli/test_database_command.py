@@ -196,3 +196,33 @@ def test_unwritable_outputs_fail_before_describing(tmp_path, built, capsys, no_d
     assert main(["database", "query", "--db", str(built), "--images", str(tmp_path / "first"),
                  "--out", str(blocker / "q.csv")]) == 2
     assert "cannot create the query CSV folder" in capsys.readouterr().err
+
+
+def test_build_with_an_approximate_index_caches_it_and_adds_in_one_transaction(tmp_path, capsys):
+    route = make_route(tmp_path / "route", n=60)
+    more = make_route(tmp_path / "more", n=8, seed=5)
+    db = tmp_path / "map.db"
+    assert main(["database", "build", "--images", str(route), "--method", "raw", "--out", str(db),
+                 "--index", "ivfpq", "--index-set", "pq_bytes=16", "--index-set", "refine=8", "--batch-size", "7",
+                 "--workers", "1",
+                 "--device", "cpu"]) == 0
+    printed = capsys.readouterr().out
+    assert "60 places" in printed and "ivfpq index built" in printed
+    cache = tmp_path / "map.db.fdnet-index"
+    assert cache.is_file()
+    assert info(db, capsys)["index"]["pq_bytes"] == 16
+    assert main(["database", "add", "--db", str(db), "--images", str(more), "--batch-size", "3"]) == 0
+    assert "added 8 places" in capsys.readouterr().out
+    assert info(db, capsys)["data_version"] == 2          # one version step for the whole add
+    out = tmp_path / "q.csv"
+    assert main(["database", "query", "--db", str(db), "--images", str(more), "--top-k", "1", "--out", str(out)]) == 0
+    assert [r["place"].rsplit("/", 1)[-1] for r in read_rows(out)] == [f"frame_{i:03d}.png" for i in range(8)]
+    # no spool files are left beside the database
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []
+
+
+def test_a_non_dot_product_method_is_refused_an_approximate_index(tmp_path, capsys, no_describing):
+    route = make_route(tmp_path / "route")
+    assert main(["database", "build", "--images", str(route), "--method", "sad", "--out", str(tmp_path / "m.db"),
+                 "--index", "ivf"]) == 2
+    assert "use --index flat" in capsys.readouterr().err

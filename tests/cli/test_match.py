@@ -134,3 +134,28 @@ def test_match_unwritable_out_fails_before_describing_images(tmp_path, capsys, m
     assert main(["match", "--reference", str(ref), "--query", str(ref), "--method", "raw", "--out", str(out)]) == 2
     err = capsys.readouterr().err
     assert err.startswith("fdnet match: error: ") and str(out) in err and "cannot create the matches CSV" in err
+
+
+def test_match_keeps_and_reuses_a_saved_index(tmp_path, capsys):
+    ref = make_route(tmp_path / "ref", n=50)
+    qry = make_route(tmp_path / "qry", n=50, brightness=0.7)
+    saved = tmp_path / "map.index"
+    outs = []
+    for run, extra in enumerate([[], [], ["--index-set", "ivf_lists=2"]]):
+        out = tmp_path / f"m{run}.csv"
+        assert main(["match", "--reference", str(ref), "--query", str(qry), "--method", "raw", "--index", "ivf",
+                     "--index-file", str(saved), "--top-k", "2", "--workers", "0", "--out", str(out), *extra]) == 0
+        outs.append(read_rows(out))
+        printed = capsys.readouterr().out
+        assert ("built the ivf index" in printed) == (run != 1)
+        assert ("loaded the ivf index" in printed) == (run == 1)
+    assert outs[0] == outs[1]
+    assert all(r["query"] == r["reference"] for r in outs[1] if r["rank"] == "1")
+    # the index of another map is not reused
+    other = make_route(tmp_path / "other", n=40, seed=3)
+    assert main(["match", "--reference", str(other), "--query", str(qry), "--method", "raw", "--index", "ivf",
+                 "--index-file", str(saved), "--out", str(tmp_path / "o.csv")]) == 0
+    assert "other reference images" in capsys.readouterr().out
+    assert main(["match", "--reference", str(ref), "--query", str(qry), "--method", "raw",
+                 "--index-file", str(saved), "--out", str(tmp_path / "x.csv")]) == 2
+    assert "--index-file apply to the faiss indexes" in capsys.readouterr().err

@@ -126,3 +126,15 @@ def test_descriptor_path_agrees_with_the_matrix_path(split):
     by_matrix = evaluate_similarity(s, split.ground_truth, VPRBENCH)
     assert by_runner.auc_pr == pytest.approx(by_matrix.auc_pr)
     assert by_runner.recall_at_n == by_matrix.recall_at_n
+
+
+def test_large_splits_are_ranked_without_the_full_matrix(split):
+    """Beyond max_matrix_entries no (Q, R) matrix is kept or made: sequence matching runs in
+    blocks of queries and gives the same ranking as the full matrix; plots are skipped with a note."""
+    full = evaluate_method(FittedL1(), split, sequence_length=3)
+    blocked = evaluate_method(FittedL1(), split, sequence_length=3, max_matrix_entries=30, keep_similarity=True)
+    np.testing.assert_array_equal(blocked.retrieved, full.retrieved)
+    np.testing.assert_allclose(blocked.scores, full.scores, rtol=1e-6)
+    assert blocked.similarity is None and any("too large" in n for n in blocked.notes)
+    plain = evaluate_method(TinyPixels(), split, workers=0)
+    assert plain.similarity is None   # never made unless asked for
