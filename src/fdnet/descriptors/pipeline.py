@@ -85,6 +85,10 @@ def iter_image_batches(paths: Sequence[str | os.PathLike], size: tuple[int, int]
     workers = default_workers() if workers is None else max(0, int(workers))
     if len(paths) <= batch_size:
         workers = 0  # one batch: a worker process would only add its start-up time
+    import multiprocessing
+
+    if multiprocessing.current_process().daemon:
+        workers = 0  # a daemonic process may not start worker processes
     if workers == 0:
         dataset = _Images(paths, size, uint8)
         for start in range(0, len(paths), batch_size):
