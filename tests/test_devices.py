@@ -195,3 +195,17 @@ def test_compiled_content_pads_short_batches_and_matches_eager(fdnet_run, rng):
     u8 = rng.integers(0, 256, size=(6, 16, 32, 3), dtype=np.uint8)   # a full batch and a short one
     np.testing.assert_allclose(compiled.describe(u8), eager.describe(u8), atol=1e-5)
     assert compiled.fingerprint() == eager.fingerprint()
+
+
+def test_a_failing_compile_falls_back_to_eager_once(fdnet_run, rng):
+    d = create("fdnet", checkpoint=fdnet_run, device="cpu", batch_size=4, compile=True)
+
+    def broken(x):
+        raise RuntimeError("no C++ compiler here")
+
+    d._content = broken
+    u8 = rng.integers(0, 256, size=(3, 16, 32, 3), dtype=np.uint8)
+    with pytest.warns(RuntimeWarning, match="no C\\+\\+ compiler here"):
+        v = d.describe(u8)
+    assert not d.compiled
+    np.testing.assert_allclose(v, create("fdnet", checkpoint=fdnet_run, device="cpu").describe(u8), atol=1e-6)

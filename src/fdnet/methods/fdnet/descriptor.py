@@ -98,7 +98,7 @@ class FDNetDescriptor(Descriptor):
                 x = images_to_device(batch, self.device, channels_last=True)
                 with autocast(self.device, self.bf16):
                     for part in parts:
-                        v = self.model.appearance(x) if part == "appearance" else self._content(x)
+                        v = self.model.appearance(x) if part == "appearance" else self._compiled_content(x)
                         out[part].append(v[:count].float())
         result = []
         for part in parts:
@@ -107,6 +107,23 @@ class FDNetDescriptor(Descriptor):
             else:
                 result.append(torch.cat(out[part]).cpu().numpy().astype(np.float32, copy=False))
         return result
+
+    def _compiled_content(self, x):
+        """``FDNet.content`` through torch.compile when asked; if compiling fails (no C++
+        compiler, an unsupported platform), say so once and run it eagerly from then on."""
+        if not self.compiled:
+            return self.model.content(x)
+        try:
+            return self._content(x)
+        except Exception as exc:  # torch._dynamo / inductor raise many types; all mean "not here"
+            import warnings
+
+            warnings.warn(f"fdnet: torch.compile of the content encoder failed ({type(exc).__name__}: "
+                          f"{str(exc).splitlines()[0] if str(exc) else ''}); running it without compiling",
+                          RuntimeWarning, stacklevel=2)
+            self.compiled = False
+            self._content = self.model.content
+            return self.model.content(x)
 
     def describe(self, images: np.ndarray) -> np.ndarray:
         """(N, H, W, 3) at ``input_size``, float32 in [0, 1] or uint8 -> (N, L) unit content vectors."""
