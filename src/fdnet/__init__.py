@@ -15,8 +15,9 @@ __version__ = "0.1.0"
 __all__ = ["load", "__version__"]
 
 
-def load(run_dir, device: str = "cpu"):
-    """Load a trained FDNet run directory and return its descriptor (``.describe(images)``)."""
+def load(run_dir, device: str = "auto"):
+    """Load a trained FDNet run directory (or its ``best/``) and return its descriptor
+    (``.describe(images)``); ``device`` "auto" takes a GPU when there is one."""
     # Imported lazily so `import fdnet` stays cheap (no torch) for metrics-only users.
     from fdnet.methods.fdnet.descriptor import FDNetDescriptor
 

@@ -60,7 +60,7 @@ class FDNetDescriptor(Descriptor):
         self._content = torch.compile(self.model.content, dynamic=False) if self.compiled else self.model.content
 
     @classmethod
-    def from_run(cls, run_dir: str | Path, device: str | None = "cpu", bf16: bool | None = False) -> "FDNetDescriptor":
+    def from_run(cls, run_dir: str | Path, device: str | None = "auto", bf16: bool | None = False) -> "FDNetDescriptor":
         return cls(checkpoint=run_dir, device=device, bf16=bf16)
 
     @property
