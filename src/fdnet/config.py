@@ -159,11 +159,12 @@ def load_yaml(cls: type[T], path: str | Path) -> T:
     return from_dict(cls, read_yaml_mapping(path), where=str(path))
 
 
-def _flatten(data: dict, prefix: str = "") -> dict[str, Any]:
+def flatten_dotted(data: dict, prefix: str = "") -> dict[str, Any]:
+    """``{"a": {"b": 1}}`` -> ``{"a.b": 1}`` (the names ``--set`` takes)."""
     out = {}
     for key, value in data.items():
         if isinstance(value, dict):
-            out.update(_flatten(value, f"{prefix}{key}."))
+            out.update(flatten_dotted(value, f"{prefix}{key}."))
         else:
             out[f"{prefix}{key}"] = value
     return out
@@ -173,6 +174,6 @@ def apply_yaml(config: T, path: str | Path) -> T:
     """Apply a YAML file holding any subset of the settings tree on top of ``config``."""
     data = read_yaml_mapping(path)
     try:
-        return replace_dotted(config, _flatten(data))
+        return replace_dotted(config, flatten_dotted(data))
     except ConfigError as exc:
         raise ConfigError(f"{path}: {exc}") from None

@@ -51,7 +51,7 @@ from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file
 from safetensors.torch import save as safetensors_bytes
 
-from fdnet.config import load_yaml, to_dict
+from fdnet.config import flatten_dotted, load_yaml, to_dict
 from fdnet.errors import ConfigError
 from fdnet.io import atomic_write_text, fsync_directory
 
@@ -466,15 +466,8 @@ def load_config(run_dir: str | Path, cls: type[T]) -> T:
 
 def config_differences(saved: Any, requested: Any, keys: list[str] | None = None) -> list[str]:
     """``"a.b: saved X, requested Y"`` for every differing setting (only dotted ``keys`` if given)."""
-    def flat(d: Any, prefix: str = "") -> dict[str, Any]:
-        d = to_dict(d) if dataclasses.is_dataclass(d) else d
-        out: dict[str, Any] = {}
-        for k, v in d.items():
-            if isinstance(v, dict):
-                out.update(flat(v, f"{prefix}{k}."))
-            else:
-                out[f"{prefix}{k}"] = v
-        return out
+    def flat(d: Any) -> dict[str, Any]:
+        return flatten_dotted(to_dict(d) if dataclasses.is_dataclass(d) else dict(d))
 
     a, b = flat(saved), flat(requested)
     names = keys if keys is not None else sorted(set(a) | set(b))
