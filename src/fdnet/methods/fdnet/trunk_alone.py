@@ -1,5 +1,7 @@
-"""The trunk alone: the frozen ImageNet map that FDNet's ``cpu`` preset reads, flattened and
-L2-normalised, compared by cosine. The number FDNet's content vector has to beat.
+"""The trunk alone (method ``trunk``): the frozen ImageNet map that FDNet's ``cpu`` preset reads,
+flattened and L2-normalised, compared by cosine. The number FDNet's content vector has to beat.
+It lives with FDNet because it reads an FDNet run's trunk settings; ``fdnet.descriptors`` then
+never imports a trained method's config.
 
 Given an FDNet run (``checkpoint``), it reads the map that run's encoders read (same backbone
 block and input size), so ``fdnet evaluate --method fdnet,trunk --checkpoint RUN`` compares the
