@@ -213,6 +213,15 @@ def is_run(run_dir: str | Path) -> bool:
     return True
 
 
+def check_run_state(run_dir: str | Path, resume: bool) -> None:
+    """What a training may do with ``run_dir``: ``--resume`` needs a complete checkpoint there,
+    a fresh run needs a folder without one (never overwrite a run)."""
+    if resume and not is_run(run_dir):
+        raise ConfigError(f"{run_dir}: no run to resume (no complete checkpoint); drop --resume to start one")
+    if not resume and is_run(run_dir):
+        raise ConfigError(f"{run_dir}: already holds a run; use --resume to continue it or choose another --out")
+
+
 def _with_latest(run_dir: str | Path, read):
     """``read(latest_checkpoint(run_dir))``, resolved again if a concurrent save pruned the folder
     between choosing it and reading it (a reader never blocks a training)."""

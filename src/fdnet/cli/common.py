@@ -217,5 +217,5 @@ def check_resume_target(args: argparse.Namespace) -> None:
 
     if args.override and not args.resume:
         raise ConfigError("--override only applies with --resume")
-    if args.resume and not runs.is_run(args.out):
-        raise ConfigError(f"{args.out}: no run to resume (no complete checkpoint); drop --resume to start one")
+    if args.resume:
+        runs.check_run_state(args.out, resume=True)

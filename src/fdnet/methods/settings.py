@@ -58,3 +58,11 @@ def check_finite(name: str, value, positive: bool = False) -> None:
         raise ConfigError(f"{name}: must be > 0, got {value!r}")
     if not positive and number < 0:
         raise ConfigError(f"{name}: must be >= 0, got {value!r}")
+
+
+def check_validation_pair(validation: ValidationConfig) -> None:
+    """Validation needs a reference and a query condition, or neither."""
+    from fdnet.errors import ConfigError
+
+    if bool(validation.reference) != bool(validation.query):
+        raise ConfigError("validation: give both a reference and a query condition (or neither)")

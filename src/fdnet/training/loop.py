@@ -236,8 +236,7 @@ class Trainer:
         self.log = self.dist.collectively(open_log)
 
     def _check_fresh(self) -> None:
-        if runs.is_run(self.run_dir):
-            raise ConfigError(f"{self.run_dir}: already holds a run; use --resume to continue it or choose another --out")
+        runs.check_run_state(self.run_dir, resume=False)
 
     def _broadcast_weights(self) -> None:
         for module in self.method.modules().values():
@@ -294,8 +293,7 @@ class Trainer:
     def _read_run(self, override: bool, command: str) -> dict:
         """Rank 0: check the resume and load weights and optimiser states from the run directory.
         Returns what every rank needs to continue (the other ranks receive it by broadcast)."""
-        if not runs.is_run(self.run_dir):
-            raise ConfigError(f"{self.run_dir}: nothing to resume (no complete checkpoint); start a new run without --resume")
+        runs.check_run_state(self.run_dir, resume=True)
         saved = runs.load_config(self.run_dir, type(self.method.config))
         differences = runs.config_differences(saved, self.method.config)
         if differences and not override:
@@ -469,10 +467,7 @@ def run_training(build: Callable[[], tuple[TrainingMethod, ValidationImages | No
         def take_lock() -> None:
             ensure_writable(run_dir, what="run directory", directory=True)
             held.enter_context(runs.RunLock(run_dir, command=command))
-            if resume and not runs.is_run(run_dir):
-                raise ConfigError(f"{run_dir}: nothing to resume (no complete checkpoint); start a new run without --resume")
-            if not resume and runs.is_run(run_dir):
-                raise ConfigError(f"{run_dir}: already holds a run; use --resume to continue it or choose another --out")
+            runs.check_run_state(run_dir, resume)
 
         dist.collectively(take_lock, main_only=True)
 

@@ -17,7 +17,7 @@ from fdnet.backbones import bf16_supported
 from fdnet.errors import ConfigError, DataError
 from fdnet.methods.calc import model as calc
 from fdnet.methods.calc.config import CALCRunConfig
-from fdnet.methods.settings import check_finite
+from fdnet.methods.settings import check_finite, check_validation_pair
 from fdnet.training.data import TrainingImages, route_images, training_route
 from fdnet.training.distributed import loss_text
 from fdnet.training.loop import LoopSettings, TrainingMethod, numpy_rng_state, set_numpy_rng_state
@@ -34,8 +34,7 @@ def validate(config: CALCRunConfig) -> None:
     for name in ("momentum", "weight_decay"):
         check_finite(f"train.{name}", getattr(train, name))
     v = config.validation
-    if bool(v.reference) != bool(v.query):
-        raise ConfigError("validation: give both a reference and a query condition (or neither)")
+    check_validation_pair(v)
 
 
 class CALCTraining(TrainingMethod):

@@ -31,7 +31,7 @@ from typing import Any
 from fdnet.config import apply_yaml, from_dict, to_dict
 from fdnet.errors import ConfigError
 from fdnet.methods.fdnet.model import FDNetConfig, validate_architecture
-from fdnet.methods.settings import DataConfig, ValidationConfig, check_finite
+from fdnet.methods.settings import DataConfig, ValidationConfig, check_finite, check_validation_pair
 
 
 @dataclass
@@ -253,8 +253,7 @@ def validate(config: TrainConfig) -> None:
         if getattr(config.runtime, name) <= 0:
             raise ConfigError(f"runtime.{name} must be >= 1")
     v = config.validation
-    if bool(v.reference) != bool(v.query):
-        raise ConfigError("validation: give both a reference and a query condition (or neither)")
+    check_validation_pair(v)
     if v.reference and v.every <= 0:
         raise ConfigError("validation.every must be >= 1")
     if config.loss.triplet_margin < 0 or config.loss.gradient_penalty_weight < 0:

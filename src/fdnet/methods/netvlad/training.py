@@ -22,7 +22,7 @@ from fdnet.backbones import FeatureExtractor, bf16_supported
 from fdnet.errors import ConfigError, DataError
 from fdnet.methods.netvlad import model as netvlad
 from fdnet.methods.netvlad.config import NetVLADRunConfig
-from fdnet.methods.settings import check_finite
+from fdnet.methods.settings import check_finite, check_validation_pair
 from fdnet.training.data import TrainingImages, route_images, training_route
 from fdnet.training.distributed import loss_text
 from fdnet.training.loop import LoopSettings, TrainingMethod, numpy_rng_state, set_numpy_rng_state
@@ -64,8 +64,7 @@ def validate(config: NetVLADRunConfig) -> None:
     check_finite("train.lr", train.lr, positive=True)
     check_finite("train.margin", train.margin)
     v = config.validation
-    if bool(v.reference) != bool(v.query):
-        raise ConfigError("validation: give both a reference and a query condition (or neither)")
+    check_validation_pair(v)
 
 
 class NetVLADTraining(TrainingMethod):
