@@ -147,6 +147,7 @@ def test_rerunning_one_experiment_describes_nothing_again(made, capsys):
     (["--length-runs", "512"], "expected L=RUN_DIR"),
     (["--overlaps", "100,x"], "'x' is not a number"),
     (["--viewpoint-pair", "summer"], "expected REFERENCE,QUERY"),
+    (["--device", "tpu"], "tpu"),
 ])
 def test_bad_input_is_one_error_line_and_exit_2(made, tmp_path, capsys, extra, message):
     args = ["reproduce", "--data", str(made["route"]), "--checkpoint", str(made["run"]), "--methods", "sad",

@@ -72,6 +72,9 @@ ARGUMENTS = (
     ("output", "--batch-size", dict(type=int, default=32, help="images described per batch (default 32)")),
     ("output", "--threads", dict(type=int, help="CPU threads for torch, BLAS and scikit-learn (default: all "
                                                "cores; on a shared machine 1 keeps timings meaningful)")),
+    ("output", "--device", dict(default="auto", metavar="auto|cpu|cuda|cuda:N",
+                                help="where the torch methods (fdnet, trunk, conv3, netvlad, calc, hybridnet) run "
+                                     "(default auto: a GPU when there is one); the others run on the CPU")),
     ("output", "--no-progress", dict(action="store_true", help="no progress bars")),
 )
 
@@ -150,6 +153,9 @@ def run(args) -> int:
     from fdnet.errors import ConfigError
     from fdnet.reproduce import DEFAULT_METHODS, ReproduceSettings, reproduce
 
+    from fdnet.backbones import check_device_spec
+
+    check_device_spec(args.device, where="--device")  # before any work
     known = available_methods()
     prefixed = [c for c in args.checkpoint if c.partition("=")[0] in known and c.partition("=")[1]]
     fdnet_runs = [c for c in args.checkpoint if c not in prefixed] + \
@@ -162,7 +168,7 @@ def run(args) -> int:
     others = argparse.Namespace(method=",".join(considered), weights=args.weights, vocabulary=args.vocabulary,
                                 method_set=args.method_set,
                                 checkpoint=[c for c in prefixed if not c.startswith("fdnet=")])
-    options = {name: method_options(others, name) for name in considered if name in known}
+    options = {name: {**method_options(others, name), "device": args.device} for name in considered if name in known}
     viewpoint = _names(args.viewpoint_pair)
     if viewpoint is not None and len(viewpoint) != 2:
         raise ConfigError(f"--viewpoint-pair {args.viewpoint_pair!r}: expected REFERENCE,QUERY")
