@@ -1,5 +1,3 @@
-import sys
+from fdnet.cli import run
 
-from fdnet.cli import main
-
-sys.exit(main())
+run()

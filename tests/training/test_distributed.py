@@ -40,8 +40,8 @@ def fit_then_dump(self, *args, **kwargs):
         torch.save(weights, os.path.join(os.environ["DUMP_DIR"], f"rank-{os.environ['RANK']}.pt"))
 
 loop.Trainer.fit = fit_then_dump
-from fdnet.cli import main
-sys.exit(main(sys.argv[1:]))
+from fdnet.cli import run
+run(sys.argv[1:])
 """
 
 
@@ -223,3 +223,23 @@ def test_a_non_finite_loss_stops_before_the_optimiser_step(tmp_path, data, monke
         method.train_step(0)
     assert all(torch.equal(before[k], v) for k, v in method.model.state_dict().items()
                if not k.endswith(("running_mean", "running_var", "num_batches_tracked")))
+
+
+def test_exit_process_after_a_process_group_runs_exit_handlers_flushes_and_keeps_the_code(tmp_path):
+    marker = tmp_path / "atexit-ran"
+    script = f"""
+import atexit, pathlib, sys
+from fdnet.training import distributed
+atexit.register(lambda: pathlib.Path({str(marker)!r}).write_text("yes"))
+distributed._joined_a_group = True
+sys.stdout.write("unflushed output")
+distributed.exit_process(3)
+print("not reached")
+"""
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 3 and result.stdout == "unflushed output", (result.stdout, result.stderr)
+    assert marker.read_text() == "yes"
+    # a process that never joined a group exits the ordinary way
+    plain = subprocess.run([sys.executable, "-c", "from fdnet.training import distributed; distributed.exit_process(4)"],
+                           capture_output=True, text=True, timeout=120)
+    assert plain.returncode == 4

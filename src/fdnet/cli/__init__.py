@@ -66,5 +66,15 @@ def main(argv: list[str] | None = None) -> int:
     return int(result or 0)
 
 
+def run(argv: list[str] | None = None) -> None:
+    """The ``fdnet`` command: :func:`main`, then the exit that a process of a distributed
+    training needs (:func:`fdnet.training.distributed.exit_process`)."""
+    code = main(argv)
+    distributed = sys.modules.get("fdnet.training.distributed")  # only a training imported it
+    if distributed is None:
+        sys.exit(code)
+    distributed.exit_process(code)
+
+
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    run()
