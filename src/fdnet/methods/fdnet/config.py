@@ -38,6 +38,10 @@ from fdnet.methods.settings import DataConfig, ValidationConfig, check_finite, c
 class FDNetDataConfig(DataConfig):
     #: B, images per condition in a mini-batch (paper: 4)
     batch_per_domain: int = 4
+    #: synthetic appearance conditions (an extension; the paper has none): for each real
+    #: condition C and each change K named here, a condition ``C~K`` of C's images with K applied
+    #: (night, snow, cast, contrast; see fdnet.training.appearance). Empty: the real conditions only
+    synthetic_conditions: tuple[str, ...] = ()
 
 
 @dataclass
@@ -243,6 +247,9 @@ def validate(config: TrainConfig) -> None:
             raise ConfigError(f"schedule.{name} must be >= 0, got {getattr(s, name)}")
     if s.critic_updates_per_step < 0:
         raise ConfigError(f"schedule.critic_updates_per_step must be >= 0, got {s.critic_updates_per_step}")
+    from fdnet.training.appearance import check_changes
+
+    check_changes(list(config.data.synthetic_conditions))
     if config.data.batch_per_domain < 2:
         raise ConfigError(f"data.batch_per_domain must be >= 2, got {config.data.batch_per_domain}")
     if config.runtime.critic_encoder_mode not in ("train", "eval"):

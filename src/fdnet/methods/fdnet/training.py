@@ -21,9 +21,10 @@ own domain-balanced batches, pairs and gradient-penalty interpolates; both optim
 gradients averaged over the ranks (not DistributedDataParallel: the critic's gradient penalty is a
 double backward, which DDP does not support).
 
-No data augmentation is applied: none was needed for the results in docs/results.md, and
-photometric augmentation would blur the very appearance differences between conditions that
-the appearance encoder and the discriminator are meant to separate.
+No per-batch augmentation is applied: random photometric changes within a condition would blur
+the very appearance differences between conditions that the appearance encoder and the
+discriminator are meant to separate. Instead ``data.synthetic_conditions`` adds whole conditions
+made by one named change each (:mod:`fdnet.training.appearance`), labelled as conditions of their own.
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ from fdnet.methods.fdnet.config import TrainConfig, validate
 from fdnet.methods.fdnet.model import FDNet
 from fdnet.training import losses
 from fdnet.training.distributed import loss_text
+from fdnet.training.appearance import with_synthetic_conditions
 from fdnet.training.data import TrainingImages, route_images, training_route
 from fdnet.training.loop import LoopSettings, TrainingMethod
 from fdnet.training.sampler import DomainBalancedSampler
@@ -60,10 +62,12 @@ def resolve_device(name: str) -> torch.device:
 
 
 def load_training_images(config: TrainConfig) -> TrainingImages:
-    """The run's training images (``config.data``) at the model's input size."""
-    return route_images(training_route(config.data), config.model.input_size,
+    """The run's training images (``config.data``) at the model's input size, with the synthetic
+    appearance conditions ``config.data.synthetic_conditions`` added."""
+    data = route_images(training_route(config.data), config.model.input_size,
                         min_per_condition=config.data.batch_per_domain, min_conditions=2,
                         why=f"FDNet (data.batch_per_domain = {config.data.batch_per_domain})")
+    return with_synthetic_conditions(data, config.data.synthetic_conditions, config.runtime.seed)
 
 
 class FDNetTraining(TrainingMethod):
