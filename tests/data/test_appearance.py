@@ -1,4 +1,4 @@
-"""Synthetic appearance conditions (fdnet.training.appearance) and their use by FDNet's training."""
+"""Synthetic appearance conditions (fdnet.data.appearance) and their use by FDNet's training."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from fdnet.config import replace_dotted
 from fdnet.errors import ConfigError
 from fdnet.methods.fdnet.config import preset, validate
 from fdnet.methods.fdnet.training import load_training_images
-from fdnet.training import appearance
+from fdnet.data import appearance
 from fdnet.training.data import TrainingImages
 
 from tests.training.test_loop import make_dataset

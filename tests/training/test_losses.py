@@ -96,3 +96,18 @@ def test_reconstruction_sum_is_eq3_per_image_and_mean_is_per_value():
     assert float(reconstruction_loss(target, recon, "mean")) == pytest.approx((1 + 4) / 2)
     with pytest.raises(ValueError):
         reconstruction_loss(target, recon, "max")
+
+
+def test_structure_loss_sees_within_domain_changes_only():
+    g = torch.Generator().manual_seed(0)
+    reference = torch.randn(6, 10, generator=g)
+    domains = torch.tensor([0, 0, 0, 1, 1, 1])
+    assert losses.structure_loss(reference * 3.0, reference, domains) < 1e-10, "scale does not matter"
+    # moving one domain as a whole (a shift of every vector of domain 1 by the same offset) changes
+    # cross-domain similarities a lot but within-domain ones less than an unrelated change does
+    shuffled = reference[torch.tensor([1, 2, 0, 4, 5, 3])]
+    assert losses.structure_loss(shuffled, reference, domains) > 0.01
+    only_cross = reference.clone()
+    only_cross[3:] = -only_cross[3:]  # flips cross-domain cosines, keeps within-domain ones
+    assert losses.structure_loss(only_cross, reference, domains) < 1e-10
+    assert losses.structure_loss(reference, reference, torch.arange(6)) == 0.0  # no pair within a domain

@@ -48,6 +48,19 @@ def squared_distances(vectors: torch.Tensor) -> torch.Tensor:
     return (diff * diff).sum(-1)
 
 
+def structure_loss(vectors: torch.Tensor, reference: torch.Tensor, domains: torch.Tensor) -> torch.Tensor:
+    """Mean squared difference between the cosine similarities of ``vectors`` and of
+    ``reference`` (same rows), over the pairs i != j of one domain: how much the within-domain
+    similarity structure changed. 0 when no domain has two rows."""
+    a = torch.nn.functional.normalize(vectors.flatten(1).float(), dim=1)
+    b = torch.nn.functional.normalize(reference.flatten(1).float(), dim=1)
+    same = domains.view(-1, 1) == domains.view(1, -1)
+    same.fill_diagonal_(False)
+    if not bool(same.any()):
+        return vectors.sum() * 0.0
+    return ((a @ a.T - b @ b.T)[same] ** 2).mean()
+
+
 def batch_hard_triplet_loss(vectors: torch.Tensor, domains: torch.Tensor, margin: float = 0.1) -> torch.Tensor:
     """L_a (paper eq. 5 with Algorithm 2's hard triplets), averaged over the B*N_d anchors.
 

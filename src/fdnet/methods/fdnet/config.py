@@ -40,7 +40,7 @@ class FDNetDataConfig(DataConfig):
     batch_per_domain: int = 4
     #: synthetic appearance conditions (an extension; the paper has none): for each real
     #: condition C and each change K named here, a condition ``C~K`` of C's images with K applied
-    #: (night, snow, cast, contrast; see fdnet.training.appearance). Empty: the real conditions only
+    #: (night, snow, cast, contrast; see fdnet.data.appearance). Empty: the real conditions only
     synthetic_conditions: tuple[str, ...] = ()
 
 
@@ -84,6 +84,12 @@ class LossConfig:
     #: "l2" = unit v_a, so the fixed margin cannot be met just by conditions drifting apart in
     #: scale (with raw v_a the loss sat at 0 for most of a cpu-preset run)
     triplet_vectors: str = "raw"
+    #: weight of L_s, which keeps the within-condition similarity structure of what the content
+    #: encoder reads (an extension; 0 = off, as in the paper): the mean squared difference between
+    #: the cosine similarities of v_c and of the encoder's centred, flattened input over pairs of
+    #: images of one condition. L_e^adv is free to change how conditions relate; L_s asks it not to
+    #: take out what tells places within a condition apart. Label-free: it uses condition labels only
+    structure_weight: float = 0.0
 
 
 @dataclass
@@ -247,7 +253,7 @@ def validate(config: TrainConfig) -> None:
             raise ConfigError(f"schedule.{name} must be >= 0, got {getattr(s, name)}")
     if s.critic_updates_per_step < 0:
         raise ConfigError(f"schedule.critic_updates_per_step must be >= 0, got {s.critic_updates_per_step}")
-    from fdnet.training.appearance import check_changes
+    from fdnet.data.appearance import check_changes
 
     check_changes(list(config.data.synthetic_conditions))
     if config.data.batch_per_domain < 2:
@@ -272,7 +278,7 @@ def validate(config: TrainConfig) -> None:
     for name in ("lr", "critic_lr", "joint_lr_scale", "beta1", "beta2"):
         check_finite(f"optim.{name}", getattr(config.optim, name), positive=name in ("lr", "critic_lr", "joint_lr_scale"))
     for name in ("reconstruction_weight", "appearance_weight", "adversarial_weight", "triplet_margin",
-                 "gradient_penalty_weight"):
+                 "gradient_penalty_weight", "structure_weight"):
         check_finite(f"loss.{name}", getattr(config.loss, name))
     if not (0.0 <= config.optim.beta1 < 1.0 and 0.0 <= config.optim.beta2 < 1.0):
         raise ConfigError(f"optim.beta1/beta2 must lie in [0, 1), got {config.optim.beta1}, {config.optim.beta2}")

@@ -24,7 +24,7 @@ double backward, which DDP does not support).
 No per-batch augmentation is applied: random photometric changes within a condition would blur
 the very appearance differences between conditions that the appearance encoder and the
 discriminator are meant to separate. Instead ``data.synthetic_conditions`` adds whole conditions
-made by one named change each (:mod:`fdnet.training.appearance`), labelled as conditions of their own.
+made by one named change each (:mod:`fdnet.data.appearance`), labelled as conditions of their own.
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ from fdnet.methods.fdnet.config import TrainConfig, validate
 from fdnet.methods.fdnet.model import FDNet
 from fdnet.training import losses
 from fdnet.training.distributed import loss_text
-from fdnet.training.appearance import with_synthetic_conditions
+from fdnet.data.appearance import with_synthetic_conditions
 from fdnet.training.data import TrainingImages, route_images, training_route
 from fdnet.training.loop import LoopSettings, TrainingMethod
 from fdnet.training.sampler import DomainBalancedSampler
@@ -74,7 +74,7 @@ class FDNetTraining(TrainingMethod):
     """Owns FDNet's model, both optimisers and the domain-balanced sampler of one run."""
 
     name = "fdnet"
-    log_columns = ("reconstruction", "appearance", "encoder_adversarial", "critic", "wasserstein")
+    log_columns = ("reconstruction", "appearance", "encoder_adversarial", "structure", "critic", "wasserstein")
     rank_state_keys = ("sampler_generator",)  # each rank's own stream; the conditions are shared
 
     def __init__(self, config: TrainConfig, data: TrainingImages) -> None:
@@ -231,6 +231,14 @@ class FDNetTraining(TrainingMethod):
             critic.requires_grad_(True)
             total = total + cfg.loss.adversarial_weight * adv
             out["encoder_adversarial"] = float(adv.detach())
+            if cfg.loss.structure_weight > 0:
+                # the reference is what the head reads, centred as the head centres it
+                centre = getattr(model.content_encoder, "mean", None)
+                reference = target.flatten(1).float()
+                reference = reference - (reference.mean(0) if centre is None else centre)
+                structure = losses.structure_loss(content.float(), reference, self.domains)
+                total = total + cfg.loss.structure_weight * structure
+                out["structure"] = float(structure.detach())
         self.opt_autoencoder.zero_grad(set_to_none=True)
         total.backward()
         # False when the loss is not finite here or on another rank: every rank stops at this step
