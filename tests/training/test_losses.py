@@ -111,3 +111,17 @@ def test_structure_loss_sees_within_domain_changes_only():
     only_cross[3:] = -only_cross[3:]  # flips cross-domain cosines, keeps within-domain ones
     assert losses.structure_loss(only_cross, reference, domains) < 1e-10
     assert losses.structure_loss(reference, reference, torch.arange(6)) == 0.0  # no pair within a domain
+
+
+def test_fdnet_joint_step_adds_the_structure_loss_only_when_weighted(tmp_path):
+    from fdnet.config import replace_dotted
+    from fdnet.methods.fdnet.config import preset
+    from fdnet.methods.fdnet.training import FDNetTraining, load_training_images
+    from tests.training.test_loop import make_dataset
+
+    config = replace_dotted(preset("tiny"), {"data.root": str(make_dataset(tmp_path / "data"))})
+    joint = config.schedule.pretrain_autoencoder_steps + config.schedule.pretrain_critic_steps
+    assert "structure" not in FDNetTraining(config, load_training_images(config)).train_step(joint)
+    weighted = replace_dotted(config, {"loss.structure_weight": 2.0})
+    out = FDNetTraining(weighted, load_training_images(weighted)).train_step(joint)
+    assert out["structure"] >= 0.0 and out["structure"] == out["structure"]
