@@ -54,6 +54,20 @@ PAPER_TABLE5 = {
 DEVICE_HELP = ("where models run: auto (a GPU when there is one, else the CPU; default), cpu, cuda or "
                "cuda:N")
 
+def cpu_model() -> str:
+    """The CPU's model name from /proc/cpuinfo (or what platform says where there is none)."""
+    import platform
+
+    try:
+        with open("/proc/cpuinfo") as handle:
+            for line in handle:
+                if line.lower().startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass  # not Linux: platform's name stands
+    return platform.processor() or platform.machine()
+
+
 def median_seconds(fn: Callable[[], object], repeats: int = 5, warmup: int = 1) -> float:
     for _ in range(warmup):
         fn()

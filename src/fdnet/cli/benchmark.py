@@ -85,20 +85,6 @@ def _images(args, size, uint8: bool = False):
     return images
 
 
-def cpu_model() -> str:
-    """The CPU's model name from /proc/cpuinfo (or what platform says)."""
-    import platform
-
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.lower().startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
 def _read_vectors(path: str, what: str):
     from pathlib import Path
 
@@ -221,7 +207,7 @@ def run(args) -> int:
     except ImportError:  # pragma: no cover - faiss is a dependency
         pass
     repeats = 2 if args.quick else 5
-    cpu = cpu_model()
+    cpu = runtime.cpu_model()
     report: dict = {"threads": args.threads, "machine": platform.processor() or platform.machine(), "cpu": cpu,
                     "torch": torch.__version__, "fdnet": __version__, "device": str(device),
                     "command": "fdnet " + " ".join(sys.argv[1:]) if sys.argv and "benchmark" in sys.argv else None}

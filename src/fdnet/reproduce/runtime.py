@@ -44,21 +44,13 @@ def machine_description() -> dict:
     import platform
 
     import torch
-
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as handle:
-            for line in handle:
-                if line.lower().startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass  # not Linux: platform's name stands
     from threadpoolctl import threadpool_info
+
+    from fdnet.runtime import cpu_model
 
     gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
     blas = [pool["num_threads"] for pool in threadpool_info() if pool.get("user_api") == "blas"]
-    return {"cpu": cpu, "logical_cores": os.cpu_count(), "torch_threads": torch.get_num_threads(),
+    return {"cpu": cpu_model(), "logical_cores": os.cpu_count(), "torch_threads": torch.get_num_threads(),
             "blas_threads": max(blas) if blas else None, "gpu": gpu, "platform": platform.platform()}
 
 
