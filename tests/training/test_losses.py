@@ -113,13 +113,19 @@ def test_structure_loss_sees_within_domain_changes_only():
     assert losses.structure_loss(reference, reference, torch.arange(6)) == 0.0  # no pair within a domain
 
 
-def test_fdnet_joint_step_adds_the_structure_loss_only_when_weighted(tmp_path):
+# the learnt encoder (batch-centred reference) and the residual head on a frozen trunk (the head's centring)
+RESIDUAL_HEAD = {"model.backbone": "efficientnet-lite0", "model.backbone_block": 4, "model.input_size": [32, 64],
+                 "model.widths": [16], "model.content_head": "trunk_residual"}
+
+
+@pytest.mark.parametrize("model", [{}, RESIDUAL_HEAD], ids=["learnt-encoder", "residual-head"])
+def test_fdnet_joint_step_adds_the_structure_loss_only_when_weighted(tmp_path, model):
     from fdnet.config import replace_dotted
     from fdnet.methods.fdnet.config import preset
     from fdnet.methods.fdnet.training import FDNetTraining, load_training_images
     from tests.training.test_loop import make_dataset
 
-    config = replace_dotted(preset("tiny"), {"data.root": str(make_dataset(tmp_path / "data"))})
+    config = replace_dotted(preset("tiny"), {"data.root": str(make_dataset(tmp_path / "data")), **model})
     joint = config.schedule.pretrain_autoencoder_steps + config.schedule.pretrain_critic_steps
     assert "structure" not in FDNetTraining(config, load_training_images(config)).train_step(joint)
     weighted = replace_dotted(config, {"loss.structure_weight": 2.0})

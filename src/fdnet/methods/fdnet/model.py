@@ -182,8 +182,12 @@ class TrunkResidualContent(nn.Module):
         self.v[:, :keep] = basis[:, :keep]
         return keep
 
+    def centred(self, maps: torch.Tensor) -> torch.Tensor:
+        """x: the flattened maps minus the training maps' mean, where the head starts (U = 0)."""
+        return maps.flatten(1).float() - self.mean
+
     def forward(self, maps: torch.Tensor) -> torch.Tensor:
-        x = maps.flatten(1).float() - self.mean
+        x = self.centred(maps)
         return x - (x @ self.v) @ self.u.T
 
 

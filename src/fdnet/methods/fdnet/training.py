@@ -232,10 +232,13 @@ class FDNetTraining(TrainingMethod):
             total = total + cfg.loss.adversarial_weight * adv
             out["encoder_adversarial"] = float(adv.detach())
             if cfg.loss.structure_weight > 0:
-                # the reference is what the head reads, centred as the head centres it
-                centre = getattr(model.content_encoder, "mean", None)
-                reference = target.flatten(1).float()
-                reference = reference - (reference.mean(0) if centre is None else centre)
+                # the reference is what the head reads: the residual head's own centring, or for a
+                # learnt encoder its flattened input centred on the batch
+                if residual_head:
+                    reference = model.content_encoder.centred(target)
+                else:
+                    reference = target.flatten(1).float()
+                    reference = reference - reference.mean(0)
                 structure = losses.structure_loss(content.float(), reference, self.domains)
                 total = total + cfg.loss.structure_weight * structure
                 out["structure"] = float(structure.detach())
