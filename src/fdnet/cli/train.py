@@ -41,12 +41,9 @@ def build_config(args):
 
 
 def run(args) -> int:
-    from fdnet.training.distributed import launch
+    from fdnet.training.distributed import run_with_settings_from_rank_0
 
-    with launch() as dist:
-        config = dist.collectively(lambda: build_config(args), main_only=True)
-        with dist.quiet_unless_main():
-            return _train(args, config)
+    return run_with_settings_from_rank_0(lambda: build_config(args), lambda config: _train(args, config))
 
 
 def _train(args, config) -> int:

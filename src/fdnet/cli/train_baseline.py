@@ -69,15 +69,11 @@ def build_config(args):
 def run(args) -> int:
     import torch
 
-    from fdnet.training.distributed import launch
+    from fdnet.training.distributed import run_with_settings_from_rank_0
 
     if args.threads is not None:
         torch.set_num_threads(max(1, args.threads))
-    with launch() as dist:
-        # rank 0 reads the run's settings (--resume) and --config; the others get them by broadcast
-        config = dist.collectively(lambda: build_config(args), main_only=True)
-        with dist.quiet_unless_main():
-            return _train(args, config)
+    return run_with_settings_from_rank_0(lambda: build_config(args), lambda config: _train(args, config))
 
 
 def _train(args, config) -> int:

@@ -388,6 +388,16 @@ def launch(environ: Mapping[str, str] | None = None) -> Iterator[DistributedCont
         context.destroy()
 
 
+def run_with_settings_from_rank_0(build: Callable[[], Any], work: Callable[[Any], T]) -> T:
+    """``work(settings)`` in every process of a torchrun launch (or in the one process of a plain
+    command), ``settings = build()`` computed by rank 0 alone and broadcast (it alone reads
+    ``--config`` files and, on ``--resume``, the run's own settings); only rank 0 prints."""
+    with launch() as context:
+        settings = context.collectively(build, main_only=True)
+        with context.quiet_unless_main():
+            return work(settings)
+
+
 def rank_part(state: dict, keys: Sequence[str] | None) -> dict:
     """The entries of a method state that are this rank's own (``keys``; all when None)."""
     return dict(state) if keys is None else {k: state[k] for k in keys if k in state}
