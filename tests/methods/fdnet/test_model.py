@@ -67,3 +67,24 @@ def test_unknown_options_are_config_errors():
         validate_architecture(FDNetConfig(input_size=(16, 16), widths=(4,), input_norm="zca"))
     with pytest.raises(ConfigError, match="critic_input"):
         validate_architecture(FDNetConfig(input_size=(16, 16), widths=(4,), critic_input="cosine"))
+
+
+TRUNK_HEAD = dict(input_size=(128, 256), widths=(16,), backbone="efficientnet-lite0", backbone_block=7,
+                  content_head="trunk_residual")
+
+
+@pytest.mark.parametrize("settings, match", [
+    (dict(backbone="none", content_head="encoder", backbone_block_candidates=(7, 14)), "needs model.backbone"),
+    (dict(content_head="encoder", backbone_block_candidates=(7, 14)), "trunk_residual"),
+    (dict(backbone_block_candidates=(10, 14)), r"backbone_block=7 is not among .*\[10, 14\]"),
+    (dict(backbone_block_candidates=(7, 7)), "names a block twice"),
+    (dict(backbone_block_candidates=(7, 16)), "block 16: backbone block 16 does not exist"),
+    (dict(input_size=(96, 192), backbone_block_candidates=(7, 14)), "block 14: model.input_size: height 96"),
+])
+def test_bad_trunk_block_candidates_are_config_errors(settings, match):
+    with pytest.raises(ConfigError, match=match):
+        validate_architecture(FDNetConfig(**{**TRUNK_HEAD, **settings}))
+
+
+def test_trunk_block_candidates_that_fit_are_valid():
+    validate_architecture(FDNetConfig(**TRUNK_HEAD, backbone_block_candidates=(7, 14)))

@@ -184,9 +184,12 @@ def _cpu() -> TrainConfig:
     # FDNet on a frozen ImageNet trunk (model.backbone; an extension, see fdnet.methods.fdnet.trunk):
     # from scratch, the paper's pixel encoders did not beat SAD on Gardens Point's 100 training
     # images per condition (cpu-scratch below; docs/results.md, gp2-gp7). 128x256 keeps
-    # Nordland's 1:2 aspect; block 7 is the conv3-like stride-16 map (80 x 8 x 16), the block
-    # that validated best on both datasets (docs/results.md, session 4). The trunk's maps are
-    # computed once per run.
+    # Nordland's 1:2 aspect. Block 7 is the conv3-like stride-16 map (80 x 8 x 16); block 14 the
+    # stride-32 map (192 x 4 x 8). With a validation pair a run starts on whichever of the two
+    # validates better (backbone_block_candidates): no one depth suits every route (Nordland's
+    # tiny frames need block 7's fine grid, 0.91 against 0.52; Gardens Point's hand-held walk
+    # block 14's coarse one, 0.80 against 0.65; docs/results.md, session 6). Without one, block 7.
+    # The trunk's maps are computed once per run.
     #
     # E_c is the residual head (content_head=trunk_residual): the learnt encoder of sessions 2-3
     # stayed below the trunk it reads (Nordland 0.557 vs 0.601); the head starts at the centred
@@ -197,6 +200,7 @@ def _cpu() -> TrainConfig:
         "cpu",
         FDNetConfig(input_size=(128, 256), widths=(128, 256), vector_length=2048, critic_hidden=512,
                     input_norm="per_image", critic_input="l2", backbone="efficientnet-lite0", backbone_block=7,
+                    backbone_block_candidates=(7, 14),
                     content_head="trunk_residual", residual_rank=32, residual_init="condition_means"),
         # 500 auto-encoder steps shape E_a and the decoder, 200 critic steps, then 300 joint steps:
         # in runs nres/gres (docs/results.md, session 4) the joint stage did not raise validation

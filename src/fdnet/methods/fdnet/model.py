@@ -7,6 +7,7 @@ the paper is silent the choice is documented on the field and can be changed.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import torch
@@ -61,6 +62,15 @@ class FDNetConfig:
     #: with a backbone: its last block used (EfficientNet-Lite0: 4 = 40 ch at stride 8,
     #: 7 = 80 ch at stride 16, the conv3-like map)
     backbone_block: int = 7
+    #: with a backbone, the residual content head and a validation pair: the trunk blocks a fresh
+    #: run chooses ``backbone_block`` from before it trains. Each candidate's closed-form content
+    #: start (the residual head after its data-dependent start, no gradient step) is scored on
+    #: the validation pair as checkpoints are for ``best/`` (R@1, ties to AUC), and the best one
+    #: is trained; the scores are kept in the checkpoints' state. Which depth keeps the place
+    #: depends on the data: a fine stride-16 map for Nordland's 64x32 frames seen 10 s apart, a
+    #: coarse stride-32 map for Gardens Point's hand-held walk (docs/results.md, session 6). ()
+    #: or no validation pair: ``backbone_block`` alone, which must be one of the candidates
+    backbone_block_candidates: tuple[int, ...] = ()
     #: E_c: "encoder" = the paper's (encoding blocks + a fully connected layer to L);
     #: "trunk_residual" (needs a backbone) = the trunk's flattened map, centred on the training
     #: maps' mean, minus a learnt rank-``residual_rank`` part: v_c = x - U V^T x. U starts at
@@ -117,6 +127,24 @@ def validate_architecture(config: FDNetConfig) -> None:
     if config.input_norm == "per_patch" and (config.patch_size <= 0 or height % config.patch_size
                                              or width % config.patch_size):
         raise ConfigError(f"model.patch_size: {config.patch_size} must divide the input size {height}x{width}")
+    if config.backbone_block_candidates:
+        candidates = [int(b) for b in config.backbone_block_candidates]
+        if config.backbone == "none" or config.content_head != "trunk_residual":
+            raise ConfigError("model.backbone_block_candidates: choosing a trunk block needs model.backbone and "
+                              "model.content_head=trunk_residual (it scores the residual head's closed-form start); "
+                              "set model.backbone_block_candidates=[] to use model.backbone_block alone")
+        if config.backbone_block not in candidates:
+            raise ConfigError(f"model.backbone_block={config.backbone_block} is not among "
+                              f"model.backbone_block_candidates={candidates} (it is the block used without a "
+                              "validation pair); add it, or set model.backbone_block_candidates=[] to use it alone")
+        if len(set(candidates)) != len(candidates):
+            raise ConfigError(f"model.backbone_block_candidates: {candidates} names a block twice")
+        for block in candidates:
+            if block != config.backbone_block:
+                try:
+                    validate_architecture(dataclasses.replace(config, backbone_block=block, backbone_block_candidates=()))
+                except ConfigError as exc:
+                    raise ConfigError(f"model.backbone_block_candidates: block {block}: {exc}") from None
     if config.content_head not in CONTENT_HEADS:
         raise ConfigError(f"model.content_head: {config.content_head!r}; choose one of {', '.join(CONTENT_HEADS)}")
     if config.content_head == "trunk_residual":

@@ -30,6 +30,7 @@ made by one named change each (:mod:`fdnet.data.appearance`), labelled as condit
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 
 import numpy as np
 import torch
@@ -107,6 +108,8 @@ class FDNetTraining(TrainingMethod):
         # With a frozen trunk, what the encoders read never changes (no augmentation), so it is
         # computed once: the trunk costs ~10 ms/image on a CPU core, more than the FDNet step.
         self.cached_inputs = None if self.model.trunk is None else [self._preprocess(x) for x in self.images]
+        #: validation scores of each candidate trunk block's start, by block (choose_backbone_block)
+        self.block_selection: dict[str, dict[str, float]] = {}
 
     # ------------------------------------------------------------------ loop interface
     def modules(self) -> dict[str, torch.nn.Module]:
@@ -138,12 +141,14 @@ class FDNetTraining(TrainingMethod):
                          "mean maps removed")
 
     def state(self) -> dict:
-        return {"sampler_generator": self.generator.get_state(), "conditions": list(self.data.names)}
+        return {"sampler_generator": self.generator.get_state(), "conditions": list(self.data.names),
+                "block_selection": self.block_selection}
 
     def load_state(self, state: dict) -> None:
         if list(state.get("conditions", self.data.names)) != list(self.data.names):
             raise ConfigError(f"the run was trained on conditions {state['conditions']}, now given {self.data.names}")
         self.generator.set_state(state["sampler_generator"])
+        self.block_selection = dict(state.get("block_selection", {}))
 
     def validation_vectors(self, images: torch.Tensor) -> np.ndarray:
         rt = self.config.runtime
@@ -297,6 +302,41 @@ def content_vectors(model: FDNet, images: torch.Tensor, device: torch.device, bf
     return torch.cat(out) if out else torch.zeros((0, model.content_length))
 
 
+def choose_backbone_block(config: TrainConfig, data: TrainingImages, validation,
+                          log=print) -> FDNetTraining:
+    """The FDNet training of the candidate trunk block (``model.backbone_block_candidates``) whose
+    closed-form content start scores best on ``validation``: R@1, ties to the higher AUC, then to
+    the earlier candidate, as ``best/`` is chosen. Each candidate is built as a run of its own and
+    started (:meth:`FDNetTraining.start`: the head's mean and condition-mean directions, no
+    gradient step); its scores are kept in ``block_selection``. The chosen one comes back in the
+    state a run of that block alone would have (torch's RNG as after building it), so choosing
+    does not change what training then does."""
+    from fdnet.training.loop import validation_metrics
+
+    best, scores = None, {}
+    for block in config.model.backbone_block_candidates:
+        candidate = dataclasses.replace(config, model=dataclasses.replace(config.model, backbone_block=int(block)))
+        method = FDNetTraining(candidate, data)
+        rng = torch.get_rng_state()
+        method.log = lambda message: None  # start() says what it removed; once, when training starts
+        method.start()
+        metrics = validation_metrics(method, validation)
+        scores[str(block)] = {k: float(v) for k, v in metrics.items()}
+        log(f"fdnet train: trunk block {block}: validation R@1 {metrics['recall@1']:.3f}, "
+            f"AUC {metrics['auc']:.3f} at the start")
+        key = (metrics["recall@1"], metrics["auc"])
+        if best is None or key > best[0]:
+            best = (key, method, rng)
+        del method
+    _, method, rng = best
+    torch.set_rng_state(rng)
+    method.block_selection = scores
+    del method.log  # back to the class's
+    log(f"fdnet train: training on trunk block {method.config.model.backbone_block} "
+        f"(of {', '.join(str(b) for b in config.model.backbone_block_candidates)})")
+    return method
+
+
 def train(config: TrainConfig, run_dir, resume: bool = False, override: bool = False,
           max_minutes: float | None = None, progress: bool = True, command: str = "fdnet train") -> dict:
     """Train FDNet as ``config`` says into ``run_dir`` (what ``fdnet train`` calls)."""
@@ -306,14 +346,29 @@ def train(config: TrainConfig, run_dir, resume: bool = False, override: bool = F
     validate(config)  # settings errors before any image is read
 
     def build():
+        run_config = config
         if config.runtime.threads > 0:
             torch.set_num_threads(config.runtime.threads)
+        candidates = config.model.backbone_block_candidates
+        if resume and candidates:
+            # the block chosen when the run started (the choice is not made again)
+            from fdnet import runs
+
+            chosen = runs.load_config(run_dir, TrainConfig).model.backbone_block
+            if chosen in candidates:
+                run_config = dataclasses.replace(config, model=dataclasses.replace(config.model, backbone_block=chosen))
         data = load_training_images(config)
         validation = load_validation_images(config.data.root, config.validation, config.model.input_size)
         print(f"fdnet train: preset {config.preset}, conditions {', '.join(data.names)} "
               f"({', '.join(str(len(x)) for x in data.images)} images), input {tuple(config.model.input_size)}, "
               f"{config.total_steps} steps -> {run_dir}", flush=True)
-        return FDNetTraining(config, data), validation
+        if candidates and not resume and validation is not None and len(candidates) > 1:
+            return choose_backbone_block(config, data, validation), validation
+        if candidates and not resume and validation is None and len(candidates) > 1:
+            print(f"fdnet train: no validation pair to choose a trunk block from "
+                  f"{', '.join(str(b) for b in candidates)}; training on model.backbone_block = "
+                  f"{config.model.backbone_block}", flush=True)
+        return FDNetTraining(run_config, data), validation
 
     return run_training(build, run_dir, resume=resume, override=override, max_minutes=max_minutes,
                         progress=progress, command=command)

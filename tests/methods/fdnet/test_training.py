@@ -1,0 +1,135 @@
+"""FDNet's training entry point: choosing the trunk block on the validation pair
+(``model.backbone_block_candidates``) before training, resuming on the chosen block, and the
+same choice on real Gardens Point frames. (The training step and the loop: tests/training.)"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from fdnet.config import replace_dotted
+from fdnet.methods.fdnet.config import TrainConfig, preset
+from fdnet.methods.fdnet.model import FDNet
+from fdnet.methods.fdnet.training import train
+from fdnet.runs import load_config, load_training_state, load_weights
+
+from conftest import require_shared
+
+# the tiny preset on a frozen trunk with the residual head; blocks 2 (stride 4) and 4 (stride 8)
+RESIDUAL_HEAD = {"model.backbone": "efficientnet-lite0", "model.backbone_block": 2, "model.input_size": [32, 64],
+                 "model.widths": [16], "model.content_head": "trunk_residual",
+                 "model.residual_init": "condition_means"}
+VALIDATION = {"validation.reference": "summer", "validation.query": "winter", "validation.tolerance": 0,
+              "validation.every": 4}
+
+
+def make_shifted_dataset(root, n=16, size=(32, 64)):
+    """summer: smooth random scenes; winter: the same scenes shifted sideways, darker and noisy,
+    so that the two blocks' starts match them differently well (scores that tie would not tell
+    the choice apart)."""
+    rng = np.random.default_rng(3)
+    coarse = rng.random((n, size[0] // 4, size[1] // 4 + 2))
+    for k, name in enumerate(("summer", "winter")):
+        (root / name).mkdir(parents=True)
+        for i in range(n):
+            scene = np.kron(coarse[i], np.ones((4, 4)))[:, 4 * k: 4 * k + size[1]]
+            image = scene if k == 0 else np.clip(0.6 * scene + 0.35 * rng.random(size), 0, 1)
+            Image.fromarray((image * 255).astype(np.uint8)).convert("RGB").save(root / name / f"{i:04d}.png")
+    return root
+
+
+def _config(tmp_path, **overrides) -> TrainConfig:
+    data = tmp_path / "data"
+    if not data.exists():
+        make_shifted_dataset(data)
+    return replace_dotted(preset("tiny"), {"data.root": str(data), **RESIDUAL_HEAD, **VALIDATION, **overrides})
+
+
+def _weights(run_dir) -> dict[str, torch.Tensor]:
+    model = FDNet(load_config(run_dir, TrainConfig).model)
+    load_weights(run_dir, model.named_parts())
+    return {k: v.clone() for k, v in model.state_dict().items()}
+
+
+def _rule(selection: dict, order: list[int]) -> int:
+    """R@1, ties to AUC, then to the earlier candidate."""
+    return max(order, key=lambda b: (selection[str(b)]["recall@1"], selection[str(b)]["auc"], -order.index(b)))
+
+
+def test_the_block_that_validates_best_is_trained_as_if_it_had_been_set(tmp_path, capsys):
+    picks = {}
+    for order in ([2, 4], [4, 2]):
+        run = tmp_path / f"run-{order[0]}"
+        config = _config(tmp_path, **{"model.backbone_block": order[0], "model.backbone_block_candidates": order})
+        train(config, run, progress=False)
+        selection = load_training_state(run)["method_state"]["block_selection"]
+        assert sorted(selection) == ["2", "4"]
+        chosen = load_config(run, TrainConfig).model.backbone_block
+        assert chosen == _rule(selection, order)
+        picks[tuple(order)] = (chosen, selection)
+    # the same scores whatever the order, so the same block unless they tie
+    (a, sel_a), (b, sel_b) = picks.values()
+    for block in ("2", "4"):
+        assert sel_a[block]["recall@1"] == pytest.approx(sel_b[block]["recall@1"])
+    if (sel_a["2"]["recall@1"], sel_a["2"]["auc"]) != (sel_a["4"]["recall@1"], sel_a["4"]["auc"]):
+        assert a == b
+    out = capsys.readouterr().out
+    assert "trunk block 2: validation R@1" in out and f"training on trunk block {a} (of 2, 4)" in out
+
+    # choosing changed nothing else: the run equals one of the chosen block alone, weight for weight
+    alone = tmp_path / "alone"
+    train(_config(tmp_path, **{"model.backbone_block": a}), alone, progress=False)
+    chosen_run = tmp_path / "run-2"  # candidates [2, 4]
+    for (name, x), y in zip(_weights(chosen_run).items(), _weights(alone).values()):
+        assert torch.equal(x, y), name
+
+
+def test_resume_keeps_the_chosen_block_without_choosing_again(tmp_path, capsys):
+    config = _config(tmp_path, **{"model.backbone_block_candidates": [2, 4]})
+    run = tmp_path / "run"
+    summary = train(config, run, max_minutes=0.0, progress=False)
+    assert summary["status"] == "time limit"
+    chosen = load_config(run, TrainConfig).model.backbone_block
+    selection = load_training_state(run)["method_state"]["block_selection"]
+    capsys.readouterr()
+    summary = train(config, run, resume=True, progress=False)  # the preset's block 2 as requested: no refusal
+    assert summary["status"] == "finished"
+    assert "at the start" not in capsys.readouterr().out  # no candidate was scored again
+    assert load_config(run, TrainConfig).model.backbone_block == chosen
+    assert load_training_state(run)["method_state"]["block_selection"] == selection
+
+
+def test_without_a_validation_pair_the_set_block_is_trained_and_that_is_said(tmp_path, capsys):
+    config = _config(tmp_path, **{"model.backbone_block": 4, "model.backbone_block_candidates": [2, 4],
+                                  "validation.reference": "", "validation.query": ""})
+    train(config, tmp_path / "run", progress=False)
+    assert load_config(tmp_path / "run", TrainConfig).model.backbone_block == 4
+    assert "no validation pair to choose a trunk block from 2, 4; training on model.backbone_block = 4" in capsys.readouterr().out
+    assert load_training_state(tmp_path / "run")["method_state"]["block_selection"] == {}
+
+
+@pytest.mark.shared_data
+def test_gardens_point_validation_chooses_the_coarse_block_and_nordland_the_fine_one(tmp_path, capsys):
+    """On the training range only: day_left -> night_right 0:100 (tolerance 2) prefers block 14,
+    Nordland summer/winter 1376:1576 (tolerance 0) block 7 (docs/results.md, session 6)."""
+    from fdnet.cli import main
+
+    gardens = require_shared("gardens_point")
+    assert main(["train", "--data", str(gardens), "--preset", "cpu", "--out", str(tmp_path / "g"),
+                 "--conditions", "day_right,night_right,day_left", "--frames", "0:100",
+                 "--validate-reference", "day_left", "--validate-query", "night_right", "--validate-frames", "0:100",
+                 "--validate-tolerance", "2", "--max-minutes", "0", "--no-progress"]) == 0
+    selection = load_training_state(tmp_path / "g")["method_state"]["block_selection"]
+    assert selection["14"]["recall@1"] > selection["7"]["recall@1"] + 0.05, selection
+    assert load_config(tmp_path / "g", TrainConfig).model.backbone_block == 14
+
+    nordland = require_shared("nordland_trimmed")
+    assert main(["train", "--data", str(nordland), "--preset", "cpu", "--out", str(tmp_path / "n"),
+                 "--conditions", "summer,winter", "--frames", "0:300",
+                 "--validate-reference", "summer", "--validate-query", "winter", "--validate-frames", "200:300",
+                 "--max-minutes", "0", "--no-progress"]) == 0
+    selection = load_training_state(tmp_path / "n")["method_state"]["block_selection"]
+    assert selection["7"]["recall@1"] > selection["14"]["recall@1"], selection
+    assert load_config(tmp_path / "n", TrainConfig).model.backbone_block == 7
