@@ -1,5 +1,8 @@
 """`fdnet train` / `fdnet extract` on a tiny synthetic dataset."""
 
+import os
+import signal
+
 import numpy as np
 from PIL import Image
 
@@ -93,3 +96,45 @@ def test_train_with_dataset_format_and_named_split(tmp_path, capsys):
     assert main(["train", "--data", str(root), "--dataset-format", "folders", "--frames", "0:6",
                  "--preset", "tiny", "--out", str(tmp_path / "r2")]) == 2
     assert "--split" in capsys.readouterr().err
+
+
+def _tiny_train(data, out, *extra):
+    return ["train", "--data", str(data), "--preset", "tiny", "--out", str(out), "--no-progress", *extra]
+
+
+def test_ctrl_c_before_the_first_checkpoint_says_nothing_was_saved(tmp_path, capsys, monkeypatch):
+    import fdnet.methods.fdnet.training as training
+
+    data, out = _dataset(tmp_path / "data"), tmp_path / "run"
+
+    def interrupted(config):
+        raise KeyboardInterrupt  # Ctrl-C while the images are read
+
+    monkeypatch.setattr(training, "load_training_images", interrupted)
+    assert main(_tiny_train(data, out)) == 130
+    printed = capsys.readouterr().out
+    assert "interrupted before the first checkpoint; nothing was saved" in printed and "--resume" not in printed
+    monkeypatch.undo()
+    assert main(_tiny_train(data, out)) == 0  # the same command starts the run
+
+
+def test_ctrl_c_during_training_points_to_the_checkpoint_that_resume_continues(tmp_path, capsys, monkeypatch):
+    from fdnet.methods.fdnet.training import FDNetTraining
+
+    data, out = _dataset(tmp_path / "data"), tmp_path / "run"
+    step = FDNetTraining.train_step
+
+    def interrupted_at_3(self, index):
+        if index == 3:  # Ctrl-C: the loop finishes the step, saves a checkpoint and stops
+            os.kill(os.getpid(), signal.SIGINT)
+        return step(self, index)
+
+    monkeypatch.setattr(FDNetTraining, "train_step", interrupted_at_3)
+    assert main(_tiny_train(data, out)) == 130
+    assert f"interrupted; the newest checkpoint is in {out} (continue with --resume)" in capsys.readouterr().out
+    from fdnet import runs
+
+    assert runs.load_training_state(out)["step"] == 4  # step 3 (0-based) finished, then saved
+    monkeypatch.undo()
+    assert main(_tiny_train(data, out, "--resume")) == 0
+    assert "finished at step 8/8" in capsys.readouterr().out

@@ -53,7 +53,14 @@ def _train(args, config) -> int:
         summary = train(config, args.out, resume=args.resume, override=args.override,
                         max_minutes=args.max_minutes, progress=not args.no_progress)
     except KeyboardInterrupt:
-        print(f"fdnet train: interrupted; checkpoint saved in {args.out} (continue with --resume)")
+        from fdnet import runs
+
+        # Ctrl-C while images are read (or trunk blocks scored) comes before any checkpoint
+        if runs.is_run(args.out):
+            print(f"fdnet train: interrupted; the newest checkpoint is in {args.out} (continue with --resume)")
+        else:
+            print(f"fdnet train: interrupted before the first checkpoint; nothing was saved in {args.out} "
+                  "(run the same command again to start)")
         raise
     if summary["changes"]:
         print(f"fdnet train: resumed with changed settings (recorded in {args.out}/changes.yaml): "
