@@ -156,7 +156,9 @@ def add_training_arguments(parser: argparse.ArgumentParser, data_required: bool 
     parser.add_argument("--override", action="store_true",
                         help="with --resume: accept settings that differ from the run's (recorded in "
                              "RUN_DIR/changes.yaml with the step they took effect)")
-    parser.add_argument("--validate-reference", help="condition used as reference for periodic validation")
+    parser.add_argument("--validate-reference",
+                        help="condition used as reference for periodic validation (which picks best/; FDNet's "
+                             "cpu preset also picks its trunk block on this pair before training)")
     parser.add_argument("--validate-query", help="condition used as query for periodic validation")
     parser.add_argument("--validate-frames", help="START:END frames for validation (keep them out of your test split)")
     parser.add_argument("--validate-tolerance", type=int, help="frame tolerance of a correct validation match")
