@@ -43,3 +43,14 @@ def test_bad_settings_are_named():
     with pytest.raises(ConfigError, match="KEY=VALUE"):
         parse_overrides(["steps"])
     assert to_dict(Outer())["inner"]["size"] == [32, 64]
+
+
+@pytest.mark.parametrize("setting, value, match", [
+    ("steps", [7], r"config.steps: expected a number, got \[7\]"),
+    ("inner.size", [[8], [16]], r"size: expected a number, got \[8\]"),
+    ("inner.rate", {"a": 1}, "rate: expected a number"),
+    ("name", ["a"], r"name: expected text, got \['a'\]"),
+])
+def test_nested_values_where_numbers_or_text_belong_are_named_errors(setting, value, match):
+    with pytest.raises(ConfigError, match=match):
+        replace_dotted(Outer(), {setting: value})

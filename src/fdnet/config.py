@@ -79,7 +79,7 @@ def _coerce(tp: Any, value: Any, where: str) -> Any:
             return False
         raise ConfigError(f"{where}: expected true/false, got {value!r}")
     if tp in (int, float):
-        if isinstance(value, bool):
+        if isinstance(value, bool) or not isinstance(value, (int, float, str)):
             raise ConfigError(f"{where}: expected a number, got {value!r}")
         try:
             number = float(value) if tp is float else int(str(value), 0) if isinstance(value, str) else value
@@ -91,6 +91,8 @@ def _coerce(tp: Any, value: Any, where: str) -> Any:
             number = int(number)
         return tp(number)
     if tp is str:
+        if isinstance(value, (list, tuple, dict)):
+            raise ConfigError(f"{where}: expected text, got {value!r}")
         return str(value)
     return value
 

@@ -102,6 +102,9 @@ def load_validation_images(root: str | Path, validation, size) -> ValidationImag
     start, end = parse_frame_range(v.frames)
     dataset = dataset.frames(start, end)
     ref, query = dataset[v.reference], dataset[v.query]
+    if not len(ref.paths) or not len(query.paths):
+        raise DataError(f"validation frames {v.frames}: select no images of {v.reference if not len(ref.paths) else v.query} "
+                        f"under {root}; choose a range inside the folder's images")
     gt = GroundTruth.from_frames(query.frame_ids, ref.frame_ids, v.tolerance)
     if not gt.has_match.any():
         raise DataError(f"validation {v.query}->{v.reference} frames {v.frames or 'all'}: no query has a match")

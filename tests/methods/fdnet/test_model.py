@@ -80,6 +80,7 @@ TRUNK_HEAD = dict(input_size=(128, 256), widths=(16,), backbone="efficientnet-li
     (dict(backbone_block_candidates=(7, 7)), "names a block twice"),
     (dict(backbone_block_candidates=(7, 16)), "block 16: backbone block 16 does not exist"),
     (dict(input_size=(96, 192), backbone_block_candidates=(7, 14)), "block 14: model.input_size: height 96"),
+    (dict(backbone_block_candidates=(0, 7)), "block 0: model: this architecture's largest layer would have"),
 ])
 def test_bad_trunk_block_candidates_are_config_errors(settings, match):
     with pytest.raises(ConfigError, match=match):
@@ -88,3 +89,21 @@ def test_bad_trunk_block_candidates_are_config_errors(settings, match):
 
 def test_trunk_block_candidates_that_fit_are_valid():
     validate_architecture(FDNetConfig(**TRUNK_HEAD, backbone_block_candidates=(7, 14)))
+
+
+def test_a_model_whose_largest_layer_would_not_fit_is_refused_before_building():
+    # block 0 at 128x256: a 131072-long flattened map feeding the decoder's first layer
+    with pytest.raises(ConfigError, match=r"largest layer would have 4\.31e\+09 weights .*deeper model.backbone_block"):
+        validate_architecture(FDNetConfig(**{**TRUNK_HEAD, "backbone_block": 0}))
+
+
+@pytest.mark.parametrize("name", ["cpu", "cpu-scratch", "tiny"])
+def test_the_largest_layer_estimate_is_the_built_models(name):
+    from fdnet.methods.fdnet.config import preset
+    from fdnet.methods.fdnet.model import MAX_LAYER_WEIGHTS, largest_layer_weights
+
+    config = preset(name).model
+    model = FDNet(config)
+    built = max(m.weight.numel() for m in model.modules() if isinstance(m, torch.nn.Linear))
+    assert largest_layer_weights(config) == built
+    assert built < MAX_LAYER_WEIGHTS / 4  # the presets fit with room to spare

@@ -92,11 +92,15 @@ def test_resume_keeps_the_chosen_block_without_choosing_again(tmp_path, capsys):
     summary = train(config, run, max_minutes=0.0, progress=False)
     assert summary["status"] == "time limit"
     chosen = load_config(run, TrainConfig).model.backbone_block
+    assert chosen == 4  # these images: block 2's start matches no winter image, block 4's all
+    assert ("training on trunk block 4 (of 2, 4); model.backbone_block = 2 is the block for runs without a "
+            "validation pair") in capsys.readouterr().out
     selection = load_training_state(run)["method_state"]["block_selection"]
-    capsys.readouterr()
-    summary = train(config, run, resume=True, progress=False)  # the preset's block 2 as requested: no refusal
+    summary = train(config, run, resume=True, progress=False)  # block 2 requested, as at the start: no refusal
     assert summary["status"] == "finished"
-    assert "at the start" not in capsys.readouterr().out  # no candidate was scored again
+    out = capsys.readouterr().out
+    assert "at the start" not in out  # no candidate was scored again
+    assert "continuing on trunk block 4, chosen when the run started" in out
     assert load_config(run, TrainConfig).model.backbone_block == chosen
     assert load_training_state(run)["method_state"]["block_selection"] == selection
 

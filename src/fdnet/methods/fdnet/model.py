@@ -17,6 +17,7 @@ from fdnet.errors import ConfigError
 from fdnet.methods.fdnet.decoder import Decoder
 from fdnet.methods.fdnet.discriminator import PairDiscriminator
 from fdnet.methods.fdnet.encoder import Encoder
+from fdnet.backbones import BLOCK_CHANNELS
 from fdnet.methods.fdnet.trunk import BACKBONES, FrozenTrunk, trunk_map_size, trunk_stride
 
 INPUT_NORMS = ("none", "per_image", "per_patch")
@@ -92,6 +93,27 @@ class FDNetConfig:
         return trunk_map_size(self.input_size, self.backbone_block)
 
 
+#: the most weights one layer may have: 4e8 float32 weights are 1.6 GB, about 6.4 GB with their
+#: gradient and Adam's two moments. A shallow trunk block at a large input makes the decoder's first
+#: layer (flattened map to flattened map) grow with the square of the map: block 0 at 128x256
+#: would be 1.7e10 weights, which fails in the allocator after minutes of loading images.
+MAX_LAYER_WEIGHTS = 400_000_000
+
+
+def largest_layer_weights(config: FDNetConfig) -> int:
+    """Weights in the largest fully connected layer the config builds (the decoder's first layer,
+    or the critic's first layer on a pair of content vectors)."""
+    height, width = config.encoder_input_size()
+    channels = 3 if config.backbone == "none" else BLOCK_CHANNELS[int(config.backbone_block)]
+    map_values = channels * height * width
+    content = map_values if config.content_head == "trunk_residual" else int(config.vector_length)
+    scale = 2 ** len(config.widths)
+    decoder_out = (int(config.widths[-1]) * (height // scale) * (width // scale)) if config.widths else map_values
+    decoder = (content + int(config.vector_length)) * decoder_out
+    critic = 2 * content * int(config.critic_hidden)
+    return max(decoder, critic)
+
+
 def validate_architecture(config: FDNetConfig) -> None:
     """Raise ConfigError for settings the architecture cannot take (before building anything)."""
     if len(config.input_size) != 2:
@@ -122,6 +144,14 @@ def validate_architecture(config: FDNetConfig) -> None:
                 + (f"{stride} x " if config.backbone != "none" else "") + f"2^{len(config.widths)} = {scale} "
                 f"(e.g. {max(scale, round(value / scale) * scale)}), or use fewer blocks (model.widths)"
             )
+    weights = largest_layer_weights(config)
+    if weights > MAX_LAYER_WEIGHTS:
+        raise ConfigError(
+            f"model: this architecture's largest layer would have {weights:.2e} weights ({weights * 16 / 1e9:.0f} GB "
+            f"with gradients and Adam's moments; at most {MAX_LAYER_WEIGHTS:.0e}): the flattened "
+            + (f"trunk map of block {config.backbone_block} " if config.backbone != "none" else "input ")
+            + f"at {height}x{width} is too long; use a deeper model.backbone_block, a smaller model.input_size "
+            "or more model.widths")
     if config.input_norm not in INPUT_NORMS:
         raise ConfigError(f"model.input_norm: {config.input_norm!r}; choose one of {', '.join(INPUT_NORMS)}")
     if config.input_norm == "per_patch" and (config.patch_size <= 0 or height % config.patch_size

@@ -332,8 +332,12 @@ def choose_backbone_block(config: TrainConfig, data: TrainingImages, validation,
     torch.set_rng_state(rng)
     method.block_selection = scores
     del method.log  # back to the class's
-    log(f"fdnet train: training on trunk block {method.config.model.backbone_block} "
-        f"(of {', '.join(str(b) for b in config.model.backbone_block_candidates)})")
+    chosen = method.config.model.backbone_block
+    note = "" if chosen == config.model.backbone_block else (
+        f"; model.backbone_block = {config.model.backbone_block} is the block for runs without a validation pair, "
+        "set model.backbone_block_candidates=[] to train it regardless")
+    log(f"fdnet train: training on trunk block {chosen} "
+        f"(of {', '.join(str(b) for b in config.model.backbone_block_candidates)}){note}")
     return method
 
 
@@ -356,6 +360,10 @@ def train(config: TrainConfig, run_dir, resume: bool = False, override: bool = F
 
             chosen = runs.load_config(run_dir, TrainConfig).model.backbone_block
             if chosen in candidates:
+                if chosen != config.model.backbone_block:
+                    print(f"fdnet train: continuing on trunk block {chosen}, chosen when the run started (its "
+                          f"weights are for that block; model.backbone_block = {config.model.backbone_block} "
+                          "applies to new runs)", flush=True)
                 run_config = dataclasses.replace(config, model=dataclasses.replace(config.model, backbone_block=chosen))
         data = load_training_images(config)
         validation = load_validation_images(config.data.root, config.validation, config.model.input_size)
