@@ -528,7 +528,7 @@ def _load_weights_from(folder: Path, modules: Mapping[str, torch.nn.Module],
                 raise ConfigError(
                     f"{path}: {name}.{key} has shape {tuple(own[key].shape)} in the checkpoint but "
                     f"{tuple(value.shape)} in the model; the run was trained with other settings "
-                    "(input size, widths or vector length)"
+                    "(input size, widths, vector length or trunk block: the model settings in its config.yaml)"
                 )
     # Only after every module matched, so a mismatch leaves all modules as they were.
     for name, module in modules.items():
