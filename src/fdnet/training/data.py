@@ -17,6 +17,7 @@ import torch
 from fdnet.data.dataset import RouteDataset, parse_frame_range
 from fdnet.data.groundtruth import GroundTruth
 from fdnet.data.images import load_images
+from fdnet.data.split import aligned_split
 from fdnet.errors import ConfigError, DataError
 
 
@@ -98,14 +99,15 @@ def load_validation_images(root: str | Path, validation, size) -> ValidationImag
     v = validation
     if not v.reference:
         return None
-    dataset = RouteDataset.from_folder(root, [v.reference, v.query])
+    # the one frame-aligned split (fdnet evaluate --data uses it too): equal frame counts,
+    # a frame range that selects images, ground truth from frame ids
     start, end = parse_frame_range(v.frames)
-    dataset = dataset.frames(start, end)
-    ref, query = dataset[v.reference], dataset[v.query]
-    if not len(ref.paths) or not len(query.paths):
-        raise DataError(f"validation frames {v.frames}: select no images of {v.reference if not len(ref.paths) else v.query} "
-                        f"under {root}; choose a range inside the folder's images")
-    gt = GroundTruth.from_frames(query.frame_ids, ref.frame_ids, v.tolerance)
+    try:
+        split = aligned_split(RouteDataset.from_folder(root, [v.reference, v.query]), v.reference, v.query,
+                              v.tolerance, start, end)
+    except DataError as exc:
+        raise DataError(f"validation {v.query}->{v.reference}: {exc}") from None
+    ref, query, gt = split.reference, split.query, split.ground_truth
     if not gt.has_match.any():
         raise DataError(f"validation {v.query}->{v.reference} frames {v.frames or 'all'}: no query has a match")
     return ValidationImages(load_uint8(ref.paths, size), load_uint8(query.paths, size), gt,
