@@ -13,11 +13,11 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from fdnet.backbones import BLOCK_CHANNELS
 from fdnet.errors import ConfigError
 from fdnet.methods.fdnet.decoder import Decoder
 from fdnet.methods.fdnet.discriminator import PairDiscriminator
 from fdnet.methods.fdnet.encoder import Encoder
-from fdnet.backbones import BLOCK_CHANNELS
 from fdnet.methods.fdnet.trunk import BACKBONES, FrozenTrunk, trunk_map_size, trunk_stride
 
 INPUT_NORMS = ("none", "per_image", "per_patch")

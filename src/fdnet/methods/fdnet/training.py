@@ -30,11 +30,11 @@ made by one named change each (:mod:`fdnet.data.appearance`), labelled as condit
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 
 import numpy as np
 import torch
 
+from fdnet.config import replace_dotted
 from fdnet.errors import ConfigError
 from fdnet.methods.fdnet.config import TrainConfig, validate
 from fdnet.methods.fdnet.model import FDNet
@@ -315,8 +315,7 @@ def choose_backbone_block(config: TrainConfig, data: TrainingImages, validation,
 
     best, scores = None, {}
     for block in config.model.backbone_block_candidates:
-        candidate = dataclasses.replace(config, model=dataclasses.replace(config.model, backbone_block=int(block)))
-        method = FDNetTraining(candidate, data)
+        method = FDNetTraining(replace_dotted(config, {"model.backbone_block": int(block)}), data)
         rng = torch.get_rng_state()
         method.log = lambda message: None  # start() says what it removed; once, when training starts
         method.start()
@@ -327,7 +326,6 @@ def choose_backbone_block(config: TrainConfig, data: TrainingImages, validation,
         key = (metrics["recall@1"], metrics["auc"])
         if best is None or key > best[0]:
             best = (key, method, rng)
-        del method
     _, method, rng = best
     torch.set_rng_state(rng)
     method.block_selection = scores
@@ -350,10 +348,10 @@ def train(config: TrainConfig, run_dir, resume: bool = False, override: bool = F
     validate(config)  # settings errors before any image is read
 
     def build():
-        run_config = config
         if config.runtime.threads > 0:
             torch.set_num_threads(config.runtime.threads)
         candidates = config.model.backbone_block_candidates
+        run_config = config
         if resume and candidates:
             # the block chosen when the run started (the choice is not made again)
             from fdnet import runs
@@ -364,15 +362,15 @@ def train(config: TrainConfig, run_dir, resume: bool = False, override: bool = F
                     print(f"fdnet train: continuing on trunk block {chosen}, chosen when the run started (its "
                           f"weights are for that block; model.backbone_block = {config.model.backbone_block} "
                           "applies to new runs)", flush=True)
-                run_config = dataclasses.replace(config, model=dataclasses.replace(config.model, backbone_block=chosen))
+                run_config = replace_dotted(config, {"model.backbone_block": chosen})
         data = load_training_images(config)
         validation = load_validation_images(config.data.root, config.validation, config.model.input_size)
         print(f"fdnet train: preset {config.preset}, conditions {', '.join(data.names)} "
               f"({', '.join(str(len(x)) for x in data.images)} images), input {tuple(config.model.input_size)}, "
               f"{config.total_steps} steps -> {run_dir}", flush=True)
-        if candidates and not resume and validation is not None and len(candidates) > 1:
-            return choose_backbone_block(config, data, validation), validation
-        if candidates and not resume and validation is None and len(candidates) > 1:
+        if len(candidates) > 1 and not resume:
+            if validation is not None:
+                return choose_backbone_block(config, data, validation), validation
             print(f"fdnet train: no validation pair to choose a trunk block from "
                   f"{', '.join(str(b) for b in candidates)}; training on model.backbone_block = "
                   f"{config.model.backbone_block}", flush=True)
