@@ -30,6 +30,9 @@ class Descriptor(ABC):
     name: ClassVar[str] = "descriptor"
     #: True when ``similarity`` is the dot product of the vectors (indexable with faiss)
     dot_product_similarity: ClassVar[bool] = True
+    #: the largest value ``similarity`` can return (1 for the cosine of unit vectors); the
+    #: ``ratio`` acceptance rule measures distances as ``ceiling - similarity``
+    similarity_ceiling: ClassVar[float] = 1.0
     #: True when ``describe`` also takes uint8 images (0..255, what the streaming pipeline then
     #: loads: a quarter of the bytes, converted on the descriptor's device). The torch
     #: descriptors do; float32 in [0, 1] is always accepted.

@@ -127,6 +127,8 @@ class SeqSLAMFrontEnd(Descriptor):
     """
 
     name: ClassVar[str] = "sad"
+    #: negative mean absolute difference: 0 for identical images, below 0 otherwise
+    similarity_ceiling: ClassVar[float] = 0.0
     dot_product_similarity: ClassVar[bool] = False
 
     def __init__(self, size=(32, 64), patch_size: int = 8):
