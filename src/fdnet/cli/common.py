@@ -19,12 +19,20 @@ def add_method_arguments(parser: argparse.ArgumentParser, multiple: bool = False
                         help="weights file a method accepts (conv3 AlexNet, hybridnet)" + per_method)
     parser.add_argument("--vocabulary", action="append", default=[],
                         help="DBoW vocabulary file (from `fdnet vocabulary build`)" + per_method)
+    parser.add_argument("--fit", action="append", default=[], metavar="[METHOD=]DIR",
+                        help="dataset folder a method that learns from images (dbow, trunk-whitened) learns from: "
+                             "every condition sub-folder, no labels (default: the reference images; the output's "
+                             "settings say which as fitted_on)" + per_method)
+    parser.add_argument("--fit-frames", action="append", default=[], metavar="[METHOD=]START:END",
+                        help="with --fit: only these frames of every condition (e.g. the training frames)")
     parser.add_argument("--method-set", action="append", default=[], metavar="[METHOD:]KEY=VALUE",
                         help="a method setting, e.g. --method-set dim=1024 or --method-set conv3:dim=1024 "
                              "(repeatable)")
 
 
-FILE_OPTIONS = ("checkpoint", "weights", "vocabulary")
+FILE_OPTIONS = ("checkpoint", "weights", "vocabulary", "fit")
+#: options given as [METHOD=]VALUE that go to the methods taking them: the files plus --fit-frames
+PER_METHOD_OPTIONS = (*FILE_OPTIONS, "fit_frames")
 
 
 def _for_method(values, method: str, known_methods) -> str | None:
@@ -64,13 +72,14 @@ def method_options(args: argparse.Namespace, method: str | None = None) -> dict:
 
     accepted = takes(method) if method is not None else None
     requested = [m.strip() for m in (getattr(args, "method", None) or "").split(",") if m.strip() in known]
-    for key in FILE_OPTIONS:
+    for key in PER_METHOD_OPTIONS:
         for value in getattr(args, key, None) or []:
             prefix, sep, _ = str(value).partition("=")
             if not (sep and prefix in known) and requested and not any(key in takes(m) for m in requested):
-                raise ConfigError(f"--{key} {value}: none of the methods {', '.join(requested)} takes a {key}")
+                raise ConfigError(f"--{key.replace('_', '-')} {value}: none of the methods {', '.join(requested)} "
+                                  f"takes a {key}")
     options = {}
-    for key in FILE_OPTIONS:
+    for key in PER_METHOD_OPTIONS:
         value = _for_method(getattr(args, key, None), method, known)
         explicit = any(str(v).startswith(f"{method}=") for v in (getattr(args, key, None) or []))
         if value is not None and (accepted is None or key in accepted or explicit):

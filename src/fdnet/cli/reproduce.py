@@ -41,6 +41,11 @@ ARGUMENTS = (
                                   help="weights file a method accepts (conv3 AlexNet, hybridnet), repeatable")),
     ("methods", "--vocabulary", dict(action="append", default=[], metavar="[dbow=]FILE",
                                      help="DBoW vocabulary (default: learnt from each pair's references)")),
+    ("methods", "--fit", dict(action="append", default=[], metavar="[METHOD=]DIR",
+                              help="dataset folder the methods that learn from images (dbow, trunk-whitened) learn "
+                                   "from, every condition sub-folder (default: each pair's reference images)")),
+    ("methods", "--fit-frames", dict(action="append", default=[], metavar="[METHOD=]START:END",
+                                     help="with --fit: only these frames of every condition (training frames)")),
     ("methods", "--method-set", dict(action="append", default=[], metavar="[METHOD:]KEY=VALUE",
                                      help="a method setting, e.g. conv3:dim=512 (repeatable)")),
     ("experiments", "--experiments", dict(metavar="LIST",
@@ -166,7 +171,7 @@ def run(args) -> int:
     methods = _names(args.methods)
     considered = methods or list(DEFAULT_METHODS)
     others = argparse.Namespace(method=",".join(considered), weights=args.weights, vocabulary=args.vocabulary,
-                                method_set=args.method_set,
+                                fit=args.fit, fit_frames=args.fit_frames, method_set=args.method_set,
                                 checkpoint=[c for c in prefixed if not c.startswith("fdnet=")])
     options = {name: {**method_options(others, name), "device": args.device} for name in considered if name in known}
     viewpoint = _names(args.viewpoint_pair)

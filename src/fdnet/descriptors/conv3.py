@@ -47,7 +47,8 @@ class Conv3Descriptor(Descriptor):
     """Conv3 + GRP (Sünderhauf et al. IROS 2015).
 
     Settings: ``dim`` (projected length, default 512 = FDNet's; 0 = keep the raw flattened map),
-    ``block`` (EfficientNet-Lite0 block, default 7), ``input_size`` (default 224x224; 227x227 with
+    ``block`` (block of ``backbone``, default 7), ``backbone`` (efficientnet-lite0, the default,
+    lite1 or lite2), ``input_size`` (default 224x224; 227x227 with
     AlexNet weights), ``weights`` (torchvision AlexNet state dict: use its conv3 instead),
     ``seed`` (projection), ``bf16`` (None = auto, backbone only), ``threads``, ``device``
     (``auto``/``cpu``/``cuda``/``cuda:N``; the projection runs there too). Takes uint8 images.
@@ -60,7 +61,7 @@ class Conv3Descriptor(Descriptor):
     @invalid_settings_are_config_errors
     def __init__(self, dim: int = 512, block: int = 7, input_size: tuple[int, int] | None = None,
                  weights: str | Path | None = None, seed: int = 0, bf16: bool | None = None,
-                 threads: int | None = None, device: str | None = None):
+                 threads: int | None = None, device: str | None = None, backbone: str = "efficientnet-lite0"):
         from fdnet.backbones import DeviceCopies, resolve_device
 
         self.out_dim = int(dim)
@@ -82,7 +83,8 @@ class Conv3Descriptor(Descriptor):
             from fdnet.backbones import FeatureExtractor
 
             self._alexnet = None
-            self._extractor = FeatureExtractor(block=block, bf16=bf16, threads=threads, device=self.device)
+            self._extractor = FeatureExtractor(block=block, bf16=bf16, threads=threads, device=self.device,
+                                               backbone=backbone)
             self.input_size = tuple(input_size) if input_size else (224, 224)
             self._map_shape = (self._extractor.channels, *self._extractor.map_size(self.input_size))
         self.input_size = (int(self.input_size[0]), int(self.input_size[1]))

@@ -283,7 +283,10 @@ class DBoWDescriptor(Descriptor):
 
     Settings: ``vocabulary`` (file from ``fdnet vocabulary build``; when absent ``fit`` learns one
     from the reference images), ``branching``/``depth`` (for a learned vocabulary), ``nfeatures``
-    and the other ORB settings, ``input_size`` (default 288x512), ``seed``.
+    and the other ORB settings, ``input_size`` (default 288x512), ``seed``, ``fit`` (a dataset
+    folder to learn the vocabulary from instead of the reference images: every condition
+    sub-folder, ``fit_frames=START:END`` of each; :mod:`fdnet.descriptors.fitting`).
+    ``settings()["fitted_on"]`` says what the vocabulary was learnt from.
     """
 
     name = "dbow"
@@ -293,7 +296,10 @@ class DBoWDescriptor(Descriptor):
     def __init__(self, vocabulary: str | Path | None = None, branching: int = 10, depth: int = 4,
                  input_size: tuple[int, int] = (288, 512), nfeatures: int = 500,
                  scale_factor: float = 1.2, nlevels: int = 8, edge_threshold: int = 19,
-                 patch_size: int = 19, fast_threshold: int = 10, seed: int = 0):
+                 patch_size: int = 19, fast_threshold: int = 10, seed: int = 0,
+                 fit: str | Path | None = None, fit_frames: str | None = None):
+        from fdnet.descriptors.fitting import check_fit_frames, fit_image_paths
+
         self.input_size = (int(input_size[0]), int(input_size[1]))
         self.orb = ORBSettings(int(nfeatures), float(scale_factor), int(nlevels), int(edge_threshold),
                                int(patch_size), int(fast_threshold))
@@ -304,6 +310,16 @@ class DBoWDescriptor(Descriptor):
         self.vocabulary: Vocabulary | None = Vocabulary.load(vocabulary) if vocabulary else None
         if self.vocabulary is not None:
             self.branching, self.depth = self.vocabulary.branching, self.vocabulary.depth
+        self.fit_folder = str(fit) if fit else None
+        self.fit_frames = check_fit_frames(fit_frames, "dbow")
+        if (self.fit_folder or self.fit_frames) and self.vocabulary is not None:
+            raise ConfigError("dbow: give either a vocabulary file or a folder to learn one from (--fit), not both")
+        if self.fit_frames and not self.fit_folder:
+            raise ConfigError(f"dbow: fit_frames ({self.fit_frames}) needs fit=DIR (--fit DIR) to take the frames of")
+        self.fitted_on = ("vocabulary file" if self.vocabulary is not None else None)
+        if self.fit_folder:
+            paths, self.fitted_on = fit_image_paths(self.fit_folder, self.fit_frames, where="dbow: --fit")
+            self.vocabulary = learn_vocabulary(paths, self.input_size, self.orb, self.branching, self.depth, self.seed)
 
     @property
     def needs_fit(self) -> bool:
@@ -316,10 +332,13 @@ class DBoWDescriptor(Descriptor):
         return self.vocabulary.num_words
 
     def settings(self) -> dict:
+        learnt = ("learned from " + (self.fitted_on if self.fit_folder else "the reference images")
+                  if self.vocabulary is not None else None)
         out = {"input_size": list(self.input_size), "orb": dict(self.orb.__dict__),
                "branching": self.branching, "depth": self.depth,
-               "vocabulary": self.vocabulary_path or ("learned from the reference images"
-                                                      if self.vocabulary is not None else None)}
+               "vocabulary": self.vocabulary_path or learnt, "fitted_on": self.fitted_on}
+        if self.fit_folder:
+            out.update({"fit": self.fit_folder, "fit_frames": self.fit_frames})
         if self.vocabulary is not None:
             out["num_words"] = self.vocabulary.num_words
             out["vocabulary_training_images"] = self.vocabulary.info.get("training_images")
@@ -336,6 +355,9 @@ class DBoWDescriptor(Descriptor):
         else:
             self.vocabulary = learn_vocabulary(list(images_or_paths), self.input_size, self.orb,
                                                self.branching, self.depth, self.seed)
+        from fdnet.descriptors.fitting import REFERENCE_IMAGES
+
+        self.fitted_on = f"{REFERENCE_IMAGES} ({self.vocabulary.info.get('training_images', 0)})"
         log.warning("dbow: no vocabulary given; learned one (k=%d, L=%d, %d words) from %d reference "
                     "images. Use `fdnet vocabulary build` to learn one from separate training images.",
                     self.branching, self.depth, self.vocabulary.num_words,

@@ -16,6 +16,7 @@ _METHODS: dict[str, tuple[str, str, str]] = {
     "gist": ("fdnet.descriptors.gist", "GistDescriptor", "Gist: Gabor energies on a 4x4 grid (512-d)"),
     "dbow": ("fdnet.descriptors.dbow", "DBoWDescriptor", "ORB bag of words, vocabulary tree, TF-IDF, L1 score"),
     "trunk": ("fdnet.methods.fdnet.trunk_alone", "TrunkDescriptor", "the frozen trunk FDNet reads, alone (the number to beat; --checkpoint takes an FDNet run's block and size)"),
+    "trunk-whitened": ("fdnet.methods.fdnet.trunk_alone", "TrunkWhitenedDescriptor", "the trunk's map PCA-whitened to dim=L (default 512), learnt from --fit DIR or the reference images"),
     "conv3": ("fdnet.descriptors.conv3", "Conv3Descriptor", "pretrained CNN mid-level map + Gaussian random projection"),
     "netvlad": ("fdnet.methods.netvlad.descriptor", "NetVLADDescriptor", "NetVLAD on the pretrained backbone (needs --checkpoint)"),
     "calc": ("fdnet.methods.calc.descriptor", "CALCDescriptor", "CALC: auto-encoder reconstructing HOG (needs --checkpoint)"),

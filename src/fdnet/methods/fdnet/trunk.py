@@ -21,30 +21,36 @@ import torch
 from torch import nn
 
 from fdnet.backbones import (
-    BLOCK_CHANNELS, BLOCK_STRIDE, INPUT_MEAN, INPUT_STD, build_efficientnet_lite0, check_block, map_size, trunk_forward,
+    BACKBONES as PRETRAINED_BACKBONES, DEFAULT_BACKBONE, INPUT_MEAN, INPUT_STD, block_channels, block_stride,
+    build_efficientnet_lite, check_block, map_size, trunk_forward,
 )
 
+#: what FDNet's model.backbone accepts today (model.py checks channels with the Lite0 table)
 BACKBONES = ("none", "efficientnet-lite0")
+#: every trunk this module can build: "none" plus each shipped EfficientNet-Lite
+ALL_BACKBONES = ("none", *PRETRAINED_BACKBONES)
 
 
-def trunk_stride(block: int) -> int:
+def trunk_stride(block: int, backbone: str = DEFAULT_BACKBONE) -> int:
     """Input size / map size after ``block`` (ConfigError for a block that does not exist)."""
-    return BLOCK_STRIDE[check_block(block)]
+    return block_stride(backbone, block)
 
 
-def trunk_map_size(input_size, block: int) -> tuple[int, int]:
+def trunk_map_size(input_size, block: int, backbone: str = DEFAULT_BACKBONE) -> tuple[int, int]:
     """(h, w) of the trunk's map for an (H, W) input (the backbone module's rule)."""
-    return map_size(input_size, block)
+    return map_size(input_size, block, backbone)
 
 
 class FrozenTrunk(nn.Module):
-    """(N, 3, H, W) RGB in [0, 1] -> (N, C, h, w) float32 map of EfficientNet-Lite0 after ``block``."""
+    """(N, 3, H, W) RGB in [0, 1] -> (N, C, h, w) float32 map of ``backbone`` (default
+    EfficientNet-Lite0) after ``block``."""
 
-    def __init__(self, block: int) -> None:
+    def __init__(self, block: int, backbone: str = DEFAULT_BACKBONE) -> None:
         super().__init__()
-        self.block = check_block(block)
-        self.channels = BLOCK_CHANNELS[self.block]
-        model = build_efficientnet_lite0(pretrained=True)
+        self.backbone = backbone
+        self.block = check_block(block, backbone)
+        self.channels = block_channels(backbone, self.block)
+        model = build_efficientnet_lite(backbone, pretrained=True)
         # Only the layers up to ``block`` run; dropping the rest keeps them out of .to() and memory.
         model._blocks = model._blocks[: self.block + 1]
         for name in ("_conv_head", "_bn1", "_fc", "_avg_pooling", "_dropout"):
