@@ -91,7 +91,7 @@ def test_similarity_mode_thresholds_and_distance(matrix_files, tmp_path):
     npy, csv = matrix_files
     out = tmp_path / "r.json"
     assert main(["evaluate", "--similarity", str(npy), "--ground-truth", str(csv), "--thresholds", "2",
-                 "--json", str(out)]) == 0
+                 "--accept", "raw", "--json", str(out)]) == 0
     result = json.loads(out.read_text())
     assert result["protocol"] == "recall-over-queries" and result["thresholds"] == "2 uniform"
     assert result["auc_pr"] == pytest.approx(0.25 + 0.5 * (1 + 0.75) / 2)
@@ -99,7 +99,7 @@ def test_similarity_mode_thresholds_and_distance(matrix_files, tmp_path):
     np.save(dist, -np.load(npy))
     out2 = tmp_path / "d.json"
     assert main(["evaluate", "--similarity", str(dist), "--distance", "--ground-truth", str(csv),
-                 "--thresholds", "2", "--json", str(out2)]) == 0
+                 "--thresholds", "2", "--accept", "raw", "--json", str(out2)]) == 0
     assert json.loads(out2.read_text())["auc_pr"] == result["auc_pr"]
 
 
@@ -221,7 +221,7 @@ def test_gardens_point_slice(tiny_method, tmp_path):
     out = tmp_path / "gp.json"
     assert main(["evaluate", "--data", str(gardens), "--reference", "day_right", "--query", "night_right",
                  "--method", tiny_method, "--method-set", "size=16", "--frames", "100:140",
-                 "--tolerance", "2", "--threads", "1", "--json", str(out)]) == 0
+                 "--tolerance", "2", "--threads", "1", "--accept", "raw", "--json", str(out)]) == 0
     result = json.loads(out.read_text())
     assert result["num_queries"] == 40 and result["num_references"] == 40
     assert "tolerance 2" in result["ground_truth"]
@@ -410,3 +410,55 @@ def test_filter_frames_with_a_format_that_has_no_filter_is_an_error(route, capsy
     err = _error(capsys, ["evaluate", "--data", str(route), "--dataset-format", "folders", "--reference", "day",
                           "--query", "dusk", "--method", "raw", "--filter-frames"])
     assert "--filter-frames: the folders format has no frame filter" in err
+
+
+def test_accept_rules_json_and_table(matrix_files, tmp_path, capsys):
+    npy, csv = matrix_files
+    out = tmp_path / "one.json"
+    # margin (default rule): best minus the best outside radius 1 -> q0 .8 (right), q1 .3 (wrong: 4 vs
+    # its true 1 at .5), q2 .6, q3 .5 -> the wrong one is the least confident: R@100P 3/4 (raw: 1/4)
+    assert main(["evaluate", "--similarity", str(npy), "--ground-truth", str(csv), "--accept-set", "radius=1",
+                 "--json", str(out)]) == 0
+    one = json.loads(out.read_text())
+    assert one["acceptance"] == "margin" and one["acceptance_settings"]["margin"]["radius"] == 1
+    assert one["recall_at_100_precision"] == pytest.approx(0.75)
+    assert one["recall_at_99_precision"] == pytest.approx(0.75) and one["recall_at_95_precision"] == pytest.approx(0.75)
+    assert "per_acceptance" not in one
+    capsys.readouterr()
+    several = tmp_path / "several.json"
+    assert main(["evaluate", "--similarity", str(npy), "--ground-truth", str(csv), "--accept", "raw,margin,ratio",
+                 "--accept-set", "radius=0", "--json", str(several)]) == 0
+    table = capsys.readouterr().out
+    rows = {line.split()[1]: line.split() for line in table.splitlines() if line.startswith("toy ")}
+    assert set(rows) == {"raw", "margin", "ratio"} and rows["raw"][6] == "0.250" and rows["margin"][6] == "0.750"
+    doc = json.loads(several.read_text())
+    assert doc["acceptance"] == "raw" and doc["recall_at_100_precision"] == pytest.approx(0.25)
+    per = doc["per_acceptance"]
+    assert per["margin"]["recall_at_100_precision"] == pytest.approx(0.75)
+    assert per["margin"]["settings"] == {"margin": {"radius": 0, "radius_s": None, "radius_m": None, "depth": None}}
+    # ratio 1 - (1 - best) / (1 - outside): q0 1 - .1/.9 = .89, q2 1 - .3/.9 = .67, q1 (wrong) 1 - .2/.5 = .6,
+    # q3 1 - .4/.9 = .56 -> R@100P 2/4
+    assert per["ratio"]["recall_at_100_precision"] == pytest.approx(0.5)
+    assert doc["recall_at_n"]["1"] == 0.75  # ranking does not depend on the rule
+
+
+def test_sequence_matching_with_the_margin_rule(tiny_method, route, tmp_path):
+    out = tmp_path / "seq.json"
+    assert main(["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk", "--method", tiny_method,
+                 "--sequence-length", "3", "--accept", "margin,raw", "--accept-set", "radius=1",
+                 "--json", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert result["acceptance"] == "margin" and result["settings"]["sequence_length"] == 3
+    assert set(result["per_acceptance"]) == {"margin", "raw"}
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--accept", "best"], "unknown acceptance rule 'best'"),
+    (["--accept", "margin", "--accept-set", "radius=-2"], "radius=-2: must be an integer >= 0"),
+    (["--accept", "raw", "--accept-set", "radius=2"], "no setting 'radius' in rule raw"),
+    (["--accept", "floor"], "is a gate"),
+])
+def test_bad_acceptance_rules_are_errors(matrix_files, capsys, extra, message):
+    npy, csv = matrix_files
+    err = _error(capsys, ["evaluate", "--similarity", str(npy), "--ground-truth", str(csv), *extra])
+    assert err.startswith("fdnet evaluate: error: ") and message in err

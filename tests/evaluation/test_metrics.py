@@ -14,6 +14,7 @@ from fdnet.evaluation.metrics import (
     evaluate_similarity,
     pr_curve_over_queries,
     recall_at_n,
+    recall_at_precision,
     top_k_of_matrix,
 )
 
@@ -183,3 +184,49 @@ def test_top_k_of_matrix_equals_a_stable_full_sort(rng):
     expected = np.argsort(-s, axis=1, kind="stable")[:, :7]
     np.testing.assert_array_equal(idx, expected)
     np.testing.assert_array_equal(scores, np.take_along_axis(s, expected, axis=1))
+
+
+def test_recall_at_99_and_95_precision_by_hand():
+    # 100 queries, scores 100..1; the 60th and 90th most confident are wrong: precision after
+    # 59 right = 1, at the 60th 59/60 = 0.983, after 89: 88/89 = 0.989, then 88/90 = 0.978 ...
+    scores = np.arange(100, 0, -1, dtype=float)
+    correct = np.ones(100, bool)
+    correct[[59, 89]] = False
+    curve, _ = pr_curve_over_queries(scores, correct, np.ones(100, bool))
+    assert recall_at_precision(curve, 1.0) == pytest.approx(0.59)
+    # precision >= 0.99 is lost at the 60th query (59/60) and never regained (max 88/89 < 0.99)
+    assert recall_at_precision(curve, 0.99) == pytest.approx(0.59)
+    # >= 0.95: every point qualifies (lowest 98/100 = 0.98): recall 0.98
+    assert recall_at_precision(curve, 0.95) == pytest.approx(0.98)
+
+
+def test_acceptance_scores_replace_the_best_match_score_but_not_the_ranking():
+    s, gt = _case_a()
+    idx, top = top_k_of_matrix(s, 5)
+    # a rule that trusts q1's match least and vouches for q1's 2nd candidate (its true reference 1)
+    score = np.array([0.9, 0.1, 0.7, 0.6])
+    match = np.array([0, 1, 2, 3])
+    m = evaluate_retrieval(idx, top, gt, RECALL_OVER_QUERIES, acceptance_scores=score, accepted_matches=match,
+                           acceptance="test")
+    assert m.acceptance == "test" and m.to_dict()["acceptance"] == "test"
+    assert m.recall_at_100_precision == 1.0 and m.recall_at_99_precision == 1.0 and m.auc_pr == pytest.approx(1.0)
+    assert m.recall_at_n[1] == 0.75 and m.top1_accuracy == 0.75  # ranking unchanged
+    # rejected queries (-inf) are never accepted: recall stops at 3/4
+    score[1] = -np.inf
+    m = evaluate_retrieval(idx, top, gt, RECALL_OVER_QUERIES, acceptance_scores=score, accepted_matches=match)
+    assert m.recall_at_100_precision == pytest.approx(0.75) and m.curve.recall.max() == pytest.approx(0.75)
+    # VPR-Bench puts every query on the curve: the rejected one sorts last
+    m = evaluate_retrieval(idx, top, gt, VPRBENCH, acceptance_scores=score, accepted_matches=match)
+    assert m.recall_at_100_precision == pytest.approx(1.0)
+
+
+def test_acceptance_scores_must_be_one_per_query_and_not_nan():
+    s, gt = _case_a()
+    idx, top = top_k_of_matrix(s, 5)
+    with pytest.raises(DataError, match="one value per query"):
+        evaluate_retrieval(idx, top, gt, acceptance_scores=np.zeros(3), accepted_matches=np.zeros(3, int))
+    with pytest.raises(DataError, match="NaN"):
+        evaluate_retrieval(idx, top, gt, acceptance_scores=np.array([1, np.nan, 0, 0]),
+                           accepted_matches=np.zeros(4, int))
+    with pytest.raises(DataError, match="go together"):
+        evaluate_retrieval(idx, top, gt, acceptance_scores=np.zeros(4))

@@ -27,7 +27,8 @@ def test_table_names_protocol_and_methods():
     assert table.splitlines()[0].startswith("protocol: vprbench")
     rows = {line.split()[0]: line.split() for line in table.splitlines()[3:]}
     assert "R@100P" in table and "ms/query" in table
-    assert rows["perfect"][1] == "1.000" and rows["shifted"][1] == "0.000"
+    # columns: method, acceptance rule, R@1, ...
+    assert rows["perfect"][1] == "raw" and rows["perfect"][2] == "1.000" and rows["shifted"][2] == "0.000"
 
 
 def test_json_one_and_several(tmp_path):

@@ -18,6 +18,12 @@ stop the command with the first mismatching row. Output paths are checked before
 Prints a table (protocol named in its header); ``--json`` writes the numbers (one object per
 method, ``{"results": [...]}`` for several); ``--plots DIR`` writes the PR curves, similarity
 matrices and example matches as PNG.
+
+``--accept RULE[,RULE...]`` names the acceptance rules whose scores the PR numbers threshold
+(:mod:`fdnet.decisions.acceptance`; one table row per method and rule; the JSON's top-level
+numbers are the first rule's, named by ``acceptance``, and ``per_acceptance`` holds every rule's
+when there are several). Default: ``margin`` (chosen on validation pairs, docs/decisions.md);
+under ``--protocol vprbench`` ``raw``, VPR-Bench's own definition.
 """
 
 from __future__ import annotations
@@ -83,6 +89,14 @@ def register(sub) -> None:
     out.add_argument("--thresholds", type=int,
                      help="recall-over-queries: sweep N uniform thresholds over min-max-normalised "
                           "scores (the paper uses 500) instead of every distinct score")
+    out.add_argument("--accept", metavar="RULE[,RULE...]",
+                     help="acceptance rules whose scores the PR curve thresholds (R@100P, R@99P, R@95P, P@maxR, "
+                          "AUC-PR per rule): raw (best-match similarity), margin (best minus the best outside a "
+                          "neighbourhood of the best), ratio (Lowe's ratio), or SCORE+GATE (e.g. margin+floor); "
+                          "default margin, raw under --protocol vprbench. Recall@N does not depend on it")
+    out.add_argument("--accept-set", action="append", default=[], metavar="[RULE:]KEY=VALUE",
+                     help="an acceptance rule setting (repeatable), e.g. radius=3 (neighbourhood in frames), "
+                          "ratio:ceiling=1, floor:min=0.5; docs/decisions.md lists them")
     out.add_argument("--json", metavar="FILE", help="write the results as JSON")
     out.add_argument("--no-curve", action="store_true", help="leave the PR curve points out of the JSON")
     out.add_argument("--plots", metavar="DIR", help="write PR curves, similarity matrices and example matches")
@@ -246,6 +260,10 @@ def run(args) -> int:
     if args.plots:
         ensure_writable(args.plots, what="plots", directory=True)
     _ground_truth_path(args)
+    from fdnet.decisions.acceptance import DEFAULT_ACCEPTANCE, parse_acceptance_list
+
+    default_rule = "raw" if args.protocol == "vprbench" else DEFAULT_ACCEPTANCE
+    acceptance = parse_acceptance_list(args.accept or default_rule, args.accept_set)  # fails before any work
     protocols = (args.protocol,)
     keep_matrix = bool(args.plots)
 
@@ -276,7 +294,9 @@ def run(args) -> int:
             matrix, gt, name, protocols, args.thresholds,
             dataset=split.description if split else f"{Path(args.similarity).name} vs {gt.description}",
             query_paths=split.query.paths if split else None,
-            reference_paths=split.reference.paths if split else None))
+            reference_paths=split.reference.paths if split else None,
+            # a distance matrix was negated: its largest possible similarity is 0
+            acceptance=acceptance, similarity_ceiling=0.0 if args.distance else 1.0))
     else:
         from fdnet.cli.common import create_descriptor, set_threads
         from fdnet.evaluation.experiment import evaluate_method
@@ -296,7 +316,7 @@ def run(args) -> int:
             results.append(evaluate_method(descriptor, split, protocols, args.thresholds,
                                            batch_size=args.batch_size, sequence_length=args.sequence_length,
                                            keep_similarity=keep_matrix, progress=sys.stderr.isatty(), log=log,
-                                           workers=args.workers))
+                                           workers=args.workers, acceptance=acceptance))
 
     from fdnet.evaluation.report import format_table, write_json
 

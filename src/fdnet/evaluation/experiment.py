@@ -14,8 +14,11 @@ used, never a method's name):
    ``MAX_MATRIX_ENTRIES``) and blocks of query rows beyond
    (:func:`fdnet.matching.sequence.sequence_top_k`, the same numbers); the full matrix is only
    ever kept when asked (``keep_similarity``, for plots) and small;
-4. metrics under each requested protocol (:mod:`fdnet.evaluation.metrics`), which need only each
-   query's ranked top-N and their scores.
+4. acceptance scores under each requested rule (:mod:`fdnet.decisions.acceptance`: ``raw``,
+   ``margin``...; the candidates retrieved are at least as many as the rules need, e.g. 2r + 2
+   for a margin of radius r), on the sequence candidates when sequence matching is on;
+5. metrics under each requested protocol and rule (:mod:`fdnet.evaluation.metrics`), which need
+   only each query's ranked top-N, their scores and the acceptance scores.
 
 Results of a precomputed similarity matrix (no descriptor) use :func:`evaluate_matrix`, so the
 report and plots treat both alike.
@@ -32,6 +35,7 @@ import numpy as np
 
 from fdnet.data.groundtruth import GroundTruth
 from fdnet.data.split import EvaluationSplit
+from fdnet.decisions.acceptance import AcceptanceSpec, Candidates, Decision, decide, parse_acceptance
 from fdnet.descriptors.base import Descriptor, describe_paths
 from fdnet.errors import DataError
 from fdnet.evaluation.metrics import (
@@ -49,7 +53,11 @@ MAX_MATRIX_ENTRIES = 100_000_000
 
 @dataclass
 class MethodResult:
-    """One method on one split: metrics per protocol plus what is needed to report and plot."""
+    """One method on one split: metrics per protocol plus what is needed to report and plot.
+
+    ``metrics`` (per protocol) are under the first acceptance rule asked for; ``by_acceptance``
+    holds every rule's (rule expression -> protocol -> Metrics), ``decisions`` every rule's
+    acceptance scores and matches."""
 
     method: str
     metrics: dict[str, Metrics]
@@ -63,10 +71,16 @@ class MethodResult:
     similarity: np.ndarray | None = None
     query_paths: list[Path] | None = None
     reference_paths: list[Path] | None = None
+    by_acceptance: dict[str, dict[str, Metrics]] = field(default_factory=dict)
+    decisions: dict[str, Decision] = field(default_factory=dict)
 
     @property
     def protocols(self) -> list[str]:
         return list(self.metrics)
+
+    @property
+    def acceptance_rules(self) -> list[str]:
+        return list(self.by_acceptance) or [next(iter(self.metrics.values())).acceptance]
 
     def to_dict(self, protocol: str | None = None, include_curve: bool = True) -> dict:
         """The JSON object of this result under ``protocol`` (default: the first evaluated).
@@ -75,7 +89,10 @@ class MethodResult:
         ``precision_at_max_recall``, ``auc_pr``, ``recall_at_n`` ({"1", "5", "10", "20"}),
         ``top1_accuracy``, ``protocol_definition``, ``thresholds``, ``num_queries_with_match``,
         ``num_references``, ``dataset``, ``ground_truth``, ``settings``, ``timing``
-        (``ms_per_image``, ``ms_per_query``...), ``notes`` and ``pr_curve``.
+        (``ms_per_image``, ``ms_per_query``...), ``notes`` and ``pr_curve``; ``acceptance`` names
+        the rule the PR numbers (R@100P, R@99P, R@95P, P@maxR, AUC-PR, the curve) use. With several
+        rules, those top-level numbers are the first rule's and ``per_acceptance`` maps every rule
+        to its own numbers (and settings).
         """
         protocol = protocol or self.protocols[0]
         m = self.metrics[protocol].to_dict(include_curve=False)
@@ -91,12 +108,51 @@ class MethodResult:
             out["notes"] = notes
         if include_curve:
             out["pr_curve"] = self.metrics[protocol].curve.to_dict()
+        rule = self.metrics[protocol].acceptance
+        if rule in self.decisions:
+            out["acceptance_settings"] = self.decisions[rule].settings
+        if len(self.by_acceptance) > 1:
+            out["per_acceptance"] = {name: _pr_summary(per[protocol], self.decisions.get(name), include_curve)
+                                     for name, per in self.by_acceptance.items()}
         return out
 
 
-def _metrics(retrieved, scores, gt, protocols, thresholds, ns) -> dict[str, Metrics]:
+def _pr_summary(m: Metrics, decision: Decision | None, include_curve: bool) -> dict:
+    out = {"recall_at_100_precision": m.recall_at_100_precision, "recall_at_99_precision": m.recall_at_99_precision,
+           "recall_at_95_precision": m.recall_at_95_precision, "precision_at_max_recall": m.precision_at_max_recall,
+           "auc_pr": m.auc_pr}
+    if decision is not None:
+        out["settings"] = decision.settings
+    if include_curve:
+        out["pr_curve"] = m.curve.to_dict()
+    return out
+
+
+def _acceptance_specs(acceptance) -> list[AcceptanceSpec]:
+    """None -> [raw]; strings are parsed with their default settings."""
+    if not acceptance:
+        return [parse_acceptance("raw")]
+    return [parse_acceptance(a) if isinstance(a, str) else a for a in acceptance]
+
+
+def _decide_and_score(retrieved, scores, gt, protocols, thresholds, ns, specs, candidates_context):
+    """(metrics of the first rule, by_acceptance, decisions) for ranked candidates."""
+    candidates = Candidates(retrieved, scores, **candidates_context)
+    by_acceptance: dict[str, dict[str, Metrics]] = {}
+    decisions: dict[str, Decision] = {}
+    for spec in specs:
+        decision = decide(spec, candidates)
+        decisions[spec.name] = decision
+        by_acceptance[spec.name] = _metrics(retrieved, scores, gt, protocols, thresholds, ns, decision)
+    return by_acceptance[specs[0].name], by_acceptance, decisions
+
+
+def _metrics(retrieved, scores, gt, protocols, thresholds, ns, decision: Decision | None = None
+             ) -> dict[str, Metrics]:
+    accept = {} if decision is None else {"acceptance_scores": decision.score, "accepted_matches": decision.match,
+                                          "acceptance": decision.rule}
     return {p: evaluate_retrieval(retrieved, scores, gt, p, thresholds=thresholds if p == RECALL_OVER_QUERIES
-                                  else None, ns=ns) for p in protocols}
+                                  else None, ns=ns, **accept) for p in protocols}
 
 
 def evaluate_method(
@@ -112,6 +168,7 @@ def evaluate_method(
     log: Callable[[str], None] | None = None,
     workers: int | None = None,
     max_matrix_entries: int = MAX_MATRIX_ENTRIES,
+    acceptance: Sequence[AcceptanceSpec | str] | None = None,
 ) -> MethodResult:
     """Describe, match and score ``descriptor`` on ``split`` (see the module docstring).
 
@@ -120,8 +177,10 @@ def evaluate_method(
     (:func:`fdnet.matching.sequence.sequence_similarity`; in blocks of query rows beyond
     ``max_matrix_entries``); ``keep_similarity`` keeps the (Q, R) matrix on the result for plots
     (skipped, with a note, beyond ``max_matrix_entries``). ``workers``: image decoding processes
-    (None = one per spare core, 0 = none).
+    (None = one per spare core, 0 = none). ``acceptance``: the rules whose scores the PR curve
+    thresholds (:mod:`fdnet.decisions.acceptance`; None = ``raw``), the first in ``metrics``.
     """
+    specs = _acceptance_specs(acceptance)
     say = log or (lambda message: None)
     ref_paths, query_paths = list(split.reference.paths), list(split.query.paths)
     notes: list[str] = []
@@ -143,7 +202,7 @@ def evaluate_method(
     seconds_describe = ref_timing["seconds_describe"] + query_timing["seconds_describe"]
     timing["ms_per_image"] = 1000.0 * seconds_describe / max(num_images, 1)
 
-    k = max(ns)
+    k = max(max(ns), *(spec.depth for spec in specs))
     matrix_entries = len(queries) * len(refs)
     small = matrix_entries <= max_matrix_entries
     similarity = None
@@ -175,9 +234,15 @@ def evaluate_method(
     settings.setdefault("dim", int(descriptor.dim))
     if sequence_length > 1:
         settings["sequence_length"] = int(sequence_length)
+    context = {"similarity_ceiling": float(descriptor.similarity_ceiling), "query_paths": query_paths,
+               "reference_paths": ref_paths}
+    metrics, by_acceptance, decisions = _decide_and_score(retrieved, scores, split.ground_truth, protocols,
+                                                          thresholds, ns, specs, context)
     return MethodResult(
         method=descriptor.name,
-        metrics=_metrics(retrieved, scores, split.ground_truth, protocols, thresholds, ns),
+        metrics=metrics,
+        by_acceptance=by_acceptance,
+        decisions=decisions,
         retrieved=retrieved,
         scores=scores,
         ground_truth=split.ground_truth,
@@ -201,16 +266,28 @@ def evaluate_matrix(
     dataset: str = "",
     query_paths: Sequence[Path] | None = None,
     reference_paths: Sequence[Path] | None = None,
+    acceptance: Sequence[AcceptanceSpec | str] | None = None,
+    similarity_ceiling: float = 1.0,
 ) -> MethodResult:
-    """A precomputed (Q, R) similarity matrix (higher = more similar) as a :class:`MethodResult`."""
+    """A precomputed (Q, R) similarity matrix (higher = more similar) as a :class:`MethodResult`.
+    ``acceptance`` as for :func:`evaluate_method`; ``similarity_ceiling`` the largest similarity
+    the matrix's method can produce (for the ``ratio`` rule)."""
     s = np.asarray(similarity)
     if s.shape != (ground_truth.num_queries, ground_truth.num_references):
         raise DataError(f"similarity matrix is {s.shape[0]} x {s.shape[1]} but the ground truth is for "
                         f"{ground_truth.num_queries} queries x {ground_truth.num_references} references")
-    retrieved, scores = top_k_of_matrix(s, max(ns))
+    specs = _acceptance_specs(acceptance)
+    retrieved, scores = top_k_of_matrix(s, max(max(ns), *(spec.depth for spec in specs)))
+    context = {"similarity_ceiling": float(similarity_ceiling),
+               "query_paths": None if query_paths is None else [Path(p) for p in query_paths],
+               "reference_paths": None if reference_paths is None else [Path(p) for p in reference_paths]}
+    metrics, by_acceptance, decisions = _decide_and_score(retrieved, scores, ground_truth, protocols, thresholds,
+                                                          ns, specs, context)
     return MethodResult(
         method=method,
-        metrics=_metrics(retrieved, scores, ground_truth, protocols, thresholds, ns),
+        metrics=metrics,
+        by_acceptance=by_acceptance,
+        decisions=decisions,
         retrieved=retrieved,
         scores=scores,
         ground_truth=ground_truth,

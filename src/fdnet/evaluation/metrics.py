@@ -36,8 +36,17 @@ curve. Every result names the one it used (``Metrics.protocol``) and its definit
 
 Summary numbers, the same for both protocols (paper 5.1.2; VPR_Tutorial ``recallAt100precision``):
 R@100P = the largest recall on the curve whose precision is exactly 1 (0 if even the most
-confident match is wrong); P@maxR = the precision at the largest recall the curve reaches (the
-best such precision when several thresholds reach it; the synthetic start point never counts).
+confident match is wrong); R@99P and R@95P the same at precision >= 0.99 and >= 0.95; P@maxR =
+the precision at the largest recall the curve reaches (the best such precision when several
+thresholds reach it; the synthetic start point never counts).
+
+**Acceptance scores.** By default the PR curve thresholds each query's best-match similarity (the
+``raw`` rule). :func:`evaluate_retrieval` can instead take one acceptance score per query and the
+reference it vouches for (:func:`fdnet.decisions.acceptance.decide`: ``margin``, ``ratio``...);
+the curve then thresholds those scores and a query counts as correct when *that* reference is.
+A score of ``-inf`` (rejected by a gate) is never accepted under ``recall-over-queries``; under
+``vprbench``, where every query's top-1 is on the curve, it sorts below every other score.
+Recall@N and top-1 accuracy always come from the ranking itself, whatever the rule.
 """
 
 from __future__ import annotations
@@ -105,6 +114,10 @@ class Metrics:
     curve: PRCurve
     thresholds: str = "exact"
     notes: list[str] = field(default_factory=list)
+    recall_at_99_precision: float = 0.0
+    recall_at_95_precision: float = 0.0
+    #: the acceptance rule whose scores the PR curve thresholds (``raw``: best-match similarity)
+    acceptance: str = "raw"
 
     @property
     def definition(self) -> str:
@@ -117,7 +130,10 @@ class Metrics:
             "thresholds": self.thresholds,
             "num_queries": self.num_queries,
             "num_queries_with_match": self.num_queries_with_match,
+            "acceptance": self.acceptance,
             "recall_at_100_precision": self.recall_at_100_precision,
+            "recall_at_99_precision": self.recall_at_99_precision,
+            "recall_at_95_precision": self.recall_at_95_precision,
             "precision_at_max_recall": self.precision_at_max_recall,
             "auc_pr": self.auc_pr,
             "recall_at_n": {str(n): v for n, v in self.recall_at_n.items()},
@@ -171,12 +187,14 @@ def pr_curve_over_queries(scores: np.ndarray, correct: np.ndarray, has_match: np
     order = np.argsort(-scores, kind="stable")
     desc = scores[order]
     cum_tp = np.concatenate([[0], np.cumsum(correct[order])])
+    # -inf = rejected by an acceptance gate: never a threshold, so never accepted
+    finite = desc[np.isfinite(desc)]
     if thresholds is None:
-        thr = np.unique(desc)[::-1]
+        thr = np.unique(finite)[::-1]
     else:
         if thresholds < 2:
             raise DataError(f"--thresholds must be at least 2, got {thresholds}")
-        thr = np.linspace(desc[0], desc[-1], int(thresholds))
+        thr = np.linspace(finite[0], finite[-1], int(thresholds)) if len(finite) else finite
     # number of queries accepted at each threshold (score >= t); -desc is ascending
     accepted = np.searchsorted(-desc, -thr, side="right")
     tp = cum_tp[accepted]
@@ -193,8 +211,15 @@ def pr_curve_over_queries(scores: np.ndarray, correct: np.ndarray, has_match: np
 
 def recall_at_100_precision(curve: PRCurve) -> float:
     """Largest recall at which precision is exactly 1 (0 when the best match is already wrong)."""
-    perfect = curve.precision >= 1.0
-    return float(curve.recall[perfect].max()) if perfect.any() else 0.0
+    return recall_at_precision(curve, 1.0)
+
+
+def recall_at_precision(curve: PRCurve, precision: float) -> float:
+    """Largest recall at which precision is at least ``precision`` (R@99P: 0.99). 0 when no
+    point reaches it."""
+    # a hair of slack so that 99/100 accepted counts at 0.99 despite float division
+    reached = curve.precision >= float(precision) - 1e-12
+    return float(curve.recall[reached].max()) if reached.any() else 0.0
 
 
 def precision_at_max_recall(curve: PRCurve) -> float:
@@ -230,9 +255,14 @@ def recall_at_n(correct_topk: np.ndarray, ns=DEFAULT_NS, over: np.ndarray | None
 # ---------------------------------------------------------------------------- protocols
 def evaluate_retrieval(retrieved: np.ndarray, scores: np.ndarray, ground_truth: GroundTruth,
                        protocol: str = RECALL_OVER_QUERIES, thresholds: int | None = None,
-                       ns=DEFAULT_NS) -> Metrics:
+                       ns=DEFAULT_NS, acceptance_scores: np.ndarray | None = None,
+                       accepted_matches: np.ndarray | None = None, acceptance: str = "raw") -> Metrics:
     """All metrics from ranked candidates: ``retrieved``/``scores`` (Q, k) best first, k >= max(ns)
-    (or all references). ``thresholds`` applies to ``recall-over-queries`` only."""
+    (or all references). ``thresholds`` applies to ``recall-over-queries`` only.
+
+    ``acceptance_scores`` (Q,) and ``accepted_matches`` (Q,) reference indices, named
+    ``acceptance``: the PR curve thresholds these scores, and a query is correct when its accepted
+    match is (None: the best-match similarity and the best match, rule ``raw``)."""
     if protocol not in PROTOCOLS:
         raise DataError(f"unknown protocol {protocol!r}; choose one of {', '.join(PROTOCOLS)}")
     retrieved = np.asarray(retrieved)
@@ -252,20 +282,27 @@ def evaluate_retrieval(retrieved: np.ndarray, scores: np.ndarray, ground_truth: 
                         f"nothing to evaluate")
     correct = ground_truth.correct_mask(retrieved)
     top1_scores, top1_correct = scores[:, 0], correct[:, 0]
+    pr_scores, pr_correct = _acceptance(top1_scores, top1_correct, ground_truth, acceptance_scores,
+                                        accepted_matches)
     notes = []
     n_without = int((~has_match).sum())
     if protocol == VPRBENCH:
         if thresholds is not None:
             raise DataError("--thresholds applies to the recall-over-queries protocol only; "
                             "vprbench uses every top-1 score, as VPR-Bench does")
-        curve, auc_pr = pr_curve_vprbench(top1_scores, top1_correct)
+        rejected = ~np.isfinite(pr_scores)
+        if rejected.any():
+            # every query is on VPR-Bench's curve: a rejected one sorts below all others
+            low = pr_scores[~rejected].min() - 1.0 if (~rejected).any() else 0.0
+            pr_scores = np.where(rejected, low, pr_scores)
+        curve, auc_pr = pr_curve_vprbench(pr_scores, pr_correct)
         recalls = recall_at_n(correct, ns, over=None)
         if n_without:
             notes.append(f"{n_without} queries have no true match; they count as misses in Recall@N")
         if not top1_correct.any():
             notes.append("no top-1 match is correct: VPR-Bench's recall is undefined; reported AUC 0")
     else:
-        curve, auc_pr = pr_curve_over_queries(top1_scores, top1_correct, has_match, thresholds)
+        curve, auc_pr = pr_curve_over_queries(pr_scores, pr_correct, has_match, thresholds)
         recalls = recall_at_n(correct, ns, over=has_match)
         if n_without:
             notes.append(f"{n_without} queries have no true match; excluded from recall's denominator, "
@@ -275,6 +312,8 @@ def evaluate_retrieval(retrieved: np.ndarray, scores: np.ndarray, ground_truth: 
         num_queries=int(ground_truth.num_queries),
         num_queries_with_match=int(has_match.sum()),
         recall_at_100_precision=recall_at_100_precision(curve),
+        recall_at_99_precision=recall_at_precision(curve, 0.99),
+        recall_at_95_precision=recall_at_precision(curve, 0.95),
         precision_at_max_recall=precision_at_max_recall(curve),
         auc_pr=auc_pr,
         recall_at_n=recalls,
@@ -282,7 +321,25 @@ def evaluate_retrieval(retrieved: np.ndarray, scores: np.ndarray, ground_truth: 
         curve=curve,
         thresholds="exact" if thresholds is None or protocol == VPRBENCH else f"{int(thresholds)} uniform",
         notes=notes,
+        acceptance=acceptance,
     )
+
+
+def _acceptance(top1_scores, top1_correct, ground_truth, acceptance_scores, accepted_matches):
+    """The (scores, correct) pairs the PR curve thresholds: the best match's, or an acceptance
+    rule's scores with the correctness of the matches it accepted."""
+    if acceptance_scores is None and accepted_matches is None:
+        return top1_scores, top1_correct
+    if acceptance_scores is None or accepted_matches is None:
+        raise DataError("acceptance scores and accepted matches go together; got only one of them")
+    pr_scores = np.asarray(acceptance_scores, dtype=np.float64)
+    matches = np.asarray(accepted_matches)
+    if pr_scores.shape != top1_scores.shape or matches.shape != top1_scores.shape:
+        raise DataError(f"acceptance scores {pr_scores.shape} and matches {matches.shape} must hold one value per "
+                        f"query ({top1_scores.shape[0]})")
+    if np.isnan(pr_scores).any() or np.isposinf(pr_scores).any():
+        raise DataError("acceptance scores contain NaN or +inf (only -inf, a rejection, is allowed)")
+    return pr_scores, ground_truth.correct_mask(matches[:, None])[:, 0]
 
 
 def evaluate_similarity(similarity: np.ndarray, ground_truth: GroundTruth,

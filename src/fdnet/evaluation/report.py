@@ -17,7 +17,7 @@ from fdnet.evaluation.experiment import MethodResult
 from fdnet.evaluation.metrics import PROTOCOLS
 from fdnet.io import atomic_write_text
 
-_COLUMNS = ("R@1", "R@5", "R@10", "R@20", "R@100P", "P@maxR", "AUC-PR", "ms/image", "ms/query")
+_COLUMNS = ("R@1", "R@5", "R@10", "R@20", "R@100P", "R@99P", "R@95P", "P@maxR", "AUC-PR", "ms/image", "ms/query")
 
 
 def _number(value, digits: int = 3) -> str:
@@ -27,7 +27,8 @@ def _number(value, digits: int = 3) -> str:
 
 
 def format_table(results: Sequence[MethodResult], protocol: str | None = None) -> str:
-    """One row per method; the protocol (and its definition), data and ground truth in the header."""
+    """One row per method and acceptance rule (the rule whose scores the PR numbers threshold);
+    the protocol (and its definition), data and ground truth in the header."""
     if not results:
         return "(no results)"
     protocol = protocol or results[0].protocols[0]
@@ -41,15 +42,24 @@ def format_table(results: Sequence[MethodResult], protocol: str | None = None) -
                  f"({first.num_queries_with_match} with a true match) x {results[0].ground_truth.num_references} "
                  f"references")
     width = max(8, *(len(r.method) for r in results))
-    header = f"{'method':<{width}}  " + "  ".join(f"{c:>8}" for c in _COLUMNS)
+    rule_width = max(6, *(len(rule) for r in results for rule in r.acceptance_rules))
+    header = f"{'method':<{width}}  {'accept':<{rule_width}}  " + "  ".join(f"{c:>8}" for c in _COLUMNS)
     lines += [header, "-" * len(header)]
     for r in results:
-        m = r.metrics[protocol]
-        cells = [_number(m.recall_at_n.get(n)) for n in (1, 5, 10, 20)]
-        cells += [_number(m.recall_at_100_precision), _number(m.precision_at_max_recall), _number(m.auc_pr)]
-        cells += [_number(r.timing.get("ms_per_image"), 2), _number(r.timing.get("ms_per_query"), 3)]
-        lines.append(f"{r.method:<{width}}  " + "  ".join(f"{c:>8}" for c in cells))
+        per_rule = {rule: per[protocol] for rule, per in r.by_acceptance.items()} or \
+            {r.metrics[protocol].acceptance: r.metrics[protocol]}
+        for rule, m in per_rule.items():
+            cells = [_number(m.recall_at_n.get(n)) for n in (1, 5, 10, 20)]
+            cells += [_number(m.recall_at_100_precision), _number(m.recall_at_99_precision),
+                      _number(m.recall_at_95_precision), _number(m.precision_at_max_recall), _number(m.auc_pr)]
+            cells += [_number(r.timing.get("ms_per_image"), 2), _number(r.timing.get("ms_per_query"), 3)]
+            lines.append(f"{r.method:<{width}}  {rule:<{rule_width}}  " + "  ".join(f"{c:>8}" for c in cells))
     notes = [f"{r.method}: {n}" for r in results for n in r.notes + r.metrics[protocol].notes]
+    settings = sorted({f"{name}: {', '.join(f'{k}={v}' for k, v in values.items() if v is not None)}"
+                       for r in results for d in r.decisions.values() for name, values in d.settings.items()
+                       if any(v is not None for v in values.values())})
+    if settings:
+        lines.append("acceptance settings: " + "; ".join(settings))
     lines += [f"note: {n}" for n in notes]
     return "\n".join(lines)
 
