@@ -31,3 +31,27 @@ def test_contrast_enhancement_normalises_rows(rng):
     s = rng.normal(size=(3, 200)).astype(np.float32) * 5 + 100
     e = enhance_contrast(s, window=21)
     assert abs(float(e[:, 20:-20].mean())) < 0.2
+
+
+def test_online_sequence_scores_equal_the_last_row_of_the_matrix_version(rng):
+    from fdnet.matching.sequence import online_sequence_scores
+
+    s = rng.normal(size=(12, 30)).astype(np.float32)
+    offline = sequence_similarity(s, length=5)
+    for q in range(12):
+        rows = [s[i] for i in range(max(0, q - 4), q + 1)]
+        np.testing.assert_allclose(online_sequence_scores(rows), offline[q], rtol=1e-6)
+
+
+def test_online_sequence_scores_ignore_places_a_shorter_earlier_row_lacks():
+    from fdnet.matching.sequence import online_sequence_scores
+
+    # the earlier frame saw 2 places, the newest sees 4; velocity 1 only
+    earlier = np.array([1.0, 3.0], dtype=np.float32)
+    newest = np.array([0.0, 10.0, 20.0, 30.0], dtype=np.float32)
+    out = online_sequence_scores([earlier, newest], velocities=(1.0,))
+    # r=0: only the newest (earlier would be index -1); r=1: (10 + 1) / 2; r=2: (20 + 3) / 2;
+    # r=3: earlier index 2 is past its 2 places, so the newest alone
+    np.testing.assert_allclose(out, [0.0, 5.5, 11.5, 30.0])
+    np.testing.assert_allclose(online_sequence_scores([earlier, newest], searchable=2, velocities=(1.0,)),
+                               [0.0, 5.5])

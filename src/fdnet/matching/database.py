@@ -764,6 +764,12 @@ class PlaceDatabase:
         return list(self._positions)
 
     @property
+    def metadata(self) -> list[dict | None]:
+        """Every place's metadata (e.g. a loop-closure frame's timestamp), in insertion order."""
+        self._refresh()
+        return [None if text is None else json.loads(text) for text in self._metadata]
+
+    @property
     def vectors(self) -> np.ndarray:
         """Every stored vector, in insertion order (read from the file for dot-product databases,
         whose vectors otherwise live only in the index)."""

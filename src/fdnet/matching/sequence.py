@@ -13,7 +13,12 @@ vectorised over references and velocities (one gather per sequence step).
 
 from __future__ import annotations
 
+from typing import Sequence
+
 import numpy as np
+
+#: slopes (reference frames per query frame) SeqSLAM tries by default
+DEFAULT_VELOCITIES = (0.8, 0.9, 1.0, 1.1, 1.25)
 
 
 def enhance_contrast(similarity: np.ndarray, window: int = 10) -> np.ndarray:
@@ -36,7 +41,7 @@ def enhance_contrast(similarity: np.ndarray, window: int = 10) -> np.ndarray:
 
 
 def sequence_similarity(similarity: np.ndarray, length: int = 10,
-                        velocities: tuple[float, ...] | np.ndarray = (0.8, 0.9, 1.0, 1.1, 1.25),
+                        velocities: tuple[float, ...] | np.ndarray = DEFAULT_VELOCITIES,
                         contrast_window: int = 0) -> np.ndarray:
     """(Q, R) single-image similarity -> (Q, R) sequence similarity (higher = better).
 
@@ -70,7 +75,7 @@ def sequence_similarity(similarity: np.ndarray, length: int = 10,
 
 
 def sequence_top_k(queries: np.ndarray, references: np.ndarray, k: int, length: int = 10,
-                   similarity=None, velocities: tuple[float, ...] | np.ndarray = (0.8, 0.9, 1.0, 1.1, 1.25),
+                   similarity=None, velocities: tuple[float, ...] | np.ndarray = DEFAULT_VELOCITIES,
                    contrast_window: int = 0, max_entries: int = 16_000_000) -> tuple[np.ndarray, np.ndarray]:
     """Best ``k`` references per query by sequence similarity, without the (Q, R) matrix.
 
@@ -98,3 +103,39 @@ def sequence_top_k(queries: np.ndarray, references: np.ndarray, k: int, length: 
         best_idx[start:start + len(seq)] = idx
         best_score[start:start + len(seq)] = scores
     return best_idx, best_score
+
+
+def online_sequence_scores(rows: Sequence[np.ndarray], searchable: int | None = None,
+                           velocities: tuple[float, ...] | np.ndarray = DEFAULT_VELOCITIES) -> np.ndarray:
+    """Sequence similarity of the newest frame of a robot's traverse, from the frames seen so far.
+
+    ``rows[-1]`` is the newest frame's single-image similarity to the map's places, ``rows[-1 - k]``
+    that of the frame ``k`` steps earlier (oldest first; the sequence length is ``len(rows)``).
+    A row may be shorter than the newest one: the map grew since that frame was seen, and the
+    places added later are simply not in it. Entry ``r`` (for the first ``searchable`` places,
+    default all of the newest row) is the best, over velocities ``v``, of the mean of
+    ``rows[-1 - k][round(r - k * v)]`` over the ``k`` whose index falls inside that row. With
+    rows of one length this is the last row of :func:`sequence_similarity` over the same
+    frames, computed without the others (one gather per frame and velocity): causal, since it
+    reads only similarities of frames already seen.
+    """
+    if not len(rows):
+        raise ValueError("online_sequence_scores needs at least the newest frame's row")
+    newest = np.asarray(rows[-1], dtype=np.float32)
+    count = len(newest) if searchable is None else int(searchable)
+    if count > len(newest) or count < 0:
+        raise ValueError(f"searchable={count} is outside the newest row of {len(newest)} places")
+    v = np.asarray(velocities, dtype=np.float64)
+    refs = np.arange(count)
+    total = np.zeros((len(v), count), dtype=np.float64)
+    valid_count = np.zeros((len(v), count), dtype=np.float64)
+    for k in range(len(rows)):
+        row = np.asarray(rows[-1 - k], dtype=np.float32)
+        if not len(row):
+            continue
+        cols = np.rint(refs[None, :] - k * v[:, None]).astype(np.int64)
+        valid = (cols >= 0) & (cols < len(row))
+        total += np.where(valid, row[np.clip(cols, 0, len(row) - 1)], 0.0)
+        valid_count += valid
+    mean = np.where(valid_count > 0, total / np.maximum(valid_count, 1), -np.inf)
+    return mean.max(axis=0).astype(np.float32) if count else np.zeros(0, dtype=np.float32)

@@ -1,0 +1,129 @@
+"""`fdnet loop-closure`: online loop closure over one traverse, frame by frame, against a place
+database (:mod:`fdnet.decisions.loop_closure`; docs/loop-closure.md)."""
+
+from __future__ import annotations
+
+import argparse
+
+from fdnet.cli.common import add_device_argument, add_method_arguments, add_pipeline_arguments
+
+
+def _whole_number(minimum: int):
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be a whole number, got {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be at least {minimum}, got {value}")
+        return value
+
+    return parse
+
+
+def _finite(text: str) -> float:
+    import math
+
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
+    return value
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "loop-closure",
+        help="online loop closure: read one traverse in order, accept revisits of places already seen",
+        description="Read the images of one traverse in fdnet's image order (natural order of file names) as a "
+                    "robot sees them: describe each frame, score it against the place database except this "
+                    "traverse's last N frames (single images, or sequences of the last frames), accept its best "
+                    "place when the acceptance rule's score reaches the threshold, add the frame to the database, "
+                    "and write one event per accepted closure. A frame's decision uses only frames before it. "
+                    "See docs/loop-closure.md.")
+    p.add_argument("--images", required=True, help="folder of the traverse's images (natural file-name order)")
+    add_method_arguments(p)
+    p.add_argument("--db", help="place database file: one from earlier sessions (`fdnet database build`, or an "
+                                "earlier loop-closure run), which must hold this method's vectors, or a new file to "
+                                "create; the traverse's frames are added to it. Default: an in-memory database")
+    p.add_argument("--exclude-last", type=_whole_number(0), required=True, metavar="N",
+                   help="never match this traverse's last N frames (they always look like the current one)")
+    p.add_argument("--accept", metavar="RULE",
+                   help="acceptance rule: raw, margin, ratio, verified, or a score with gates (margin+verified, "
+                        "margin+floor); needed with --threshold, taken from the file with --calibration")
+    p.add_argument("--accept-set", action="append", default=[], metavar="[RULE:]KEY=VALUE",
+                   help="a setting of the rule, e.g. margin:radius=5 (repeatable)")
+    threshold = p.add_mutually_exclusive_group(required=True)
+    threshold.add_argument("--calibration", metavar="FILE",
+                           help="calibration file from `fdnet calibrate` for this model: gives rule, settings and "
+                                "threshold")
+    threshold.add_argument("--threshold", type=_finite, metavar="T",
+                           help="accept a closure when the rule's score is at least T")
+    p.add_argument("--sequence-length", type=_whole_number(1), default=1, metavar="N",
+                   help="score sequences of the robot's last N frames (SeqSLAM, causal; default 1 = single images)")
+    p.add_argument("--out", required=True, metavar="EVENTS_CSV",
+                   help="CSV of accepted closures, one line each, written as they are accepted")
+    p.add_argument("--jsonl", metavar="EVENTS_JSONL", help="the same events as JSON lines")
+    p.add_argument("--ground-truth", metavar="CSV",
+                   help="evaluate the run: a ground-truth CSV whose queries are the traverse's frames and whose "
+                        "references are the database's places (for a new database, the same frames), e.g. "
+                        "`fdnet groundtruth --positions route.csv route.csv` or a frame list "
+                        "query_index,reference_indices")
+    p.add_argument("--report", metavar="JSON", help="write the run's summary (and evaluation) as JSON")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_pipeline_arguments(p, batch_size=16)
+    add_device_argument(p)
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    import json
+    import sys
+    from pathlib import Path
+
+    from fdnet.cli.common import check_pipeline_arguments, create_descriptor
+    from fdnet.cli.database import _file_options
+    from fdnet.decisions.loop_closure import run_traverse
+    from fdnet.errors import ConfigError
+    from fdnet.io import atomic_write_text, ensure_writable
+    from fdnet.matching.database import check_can_create
+
+    check_pipeline_arguments(args)
+    if args.threshold is not None and not args.accept:
+        raise ConfigError("--threshold needs --accept RULE (the rule whose score it thresholds)")
+    if args.accept_set and not (args.accept or args.calibration):
+        raise ConfigError("--accept-set needs --accept RULE")
+    # every output path is refused before the first image is described
+    for path, what in ((args.out, "events CSV"), (args.jsonl, "events JSON lines"), (args.report, "report JSON")):
+        if path:
+            ensure_writable(path, what=what)
+    if args.db and not (Path(args.db).is_file() and Path(args.db).stat().st_size > 0):
+        check_can_create(args.db)
+        ensure_writable(args.db, what="place database")
+    descriptor = create_descriptor(args.method, args)
+    report = run_traverse(
+        args.images, descriptor, args.db, exclude_last=args.exclude_last, events_csv=args.out,
+        events_jsonl=args.jsonl, rule=args.accept, rule_settings=args.accept_set or None, threshold=args.threshold,
+        calibration=args.calibration, sequence_length=args.sequence_length, ground_truth=args.ground_truth,
+        method_options=_file_options(args, args.method), batch_size=args.batch_size, workers=args.workers,
+        progress=not args.no_progress and sys.stderr.isatty(), log=None)
+    print(f"wrote {args.out}" + (f" and {args.jsonl}" if args.jsonl else "")
+          + f": {report.closures} loop closures in {report.frames} frames ({report.rule} >= {report.threshold:g}), "
+          f"{report.frames_per_second:.1f} frames/s ({report.seconds:.1f} s)")
+    if args.db:
+        print(f"{args.db}: {report.places_before} places before, {report.places_after} after")
+    if report.evaluation is not None:
+        ev = report.evaluation
+        m, at = ev["metrics"], ev["at_threshold"]
+        print(f"evaluated {ev['frames_evaluated']} frames, {ev['frames_with_revisit']} revisiting a searchable place: "
+              f"R@100P {m['recall_at_100_precision']:.3f}, R@99P {m['recall_at_99_precision']:.3f}, "
+              f"R@95P {m['recall_at_95_precision']:.3f}, P@maxR {m['precision_at_max_recall']:.3f}, "
+              f"AUC-PR {m['auc_pr']:.3f}, R@1 {m['recall_at_n']['1']:.3f}")
+        print(f"at threshold {at['threshold']:g}: {at['accepted']} accepted, {at['true']} true, {at['false']} false "
+              f"(precision {at['precision']:.3f}, recall {at['recall']:.3f})")
+    if args.report:
+        atomic_write_text(args.report, json.dumps(report.to_dict(), indent=2, sort_keys=True, default=str) + "\n")
+        print(f"wrote {args.report}")
+    return 0
