@@ -38,18 +38,30 @@ DEFAULT_WHITENED_DIM = 512
 
 class TrunkDescriptor(Conv3Descriptor):
     """Settings: ``backbone`` (efficientnet-lite0/1/2), ``block``, ``input_size``, ``checkpoint``
-    (an FDNet run: its backbone, block and input size are the defaults), ``bf16``, ``threads``,
-    ``device``."""
+    (an FDNet run: its backbone, block and input size are the defaults), ``choice`` (a file from
+    ``fdnet choose-trunk``: the backbone, block and input size chosen on a validation pair are
+    the defaults), ``bf16``, ``threads``, ``device``."""
 
     name = "trunk"
 
     @invalid_settings_are_config_errors
     def __init__(self, checkpoint: str | Path | None = None, block: int | None = None,
                  input_size: tuple[int, int] | None = None, bf16: bool | None = None,
-                 threads: int | None = None, device: str | None = None, backbone: str | None = None):
+                 threads: int | None = None, device: str | None = None, backbone: str | None = None,
+                 choice: str | Path | None = None):
         from fdnet.backbones import check_backbone
 
         self.checkpoint = str(checkpoint) if checkpoint else None
+        self.choice = str(Path(choice).resolve()) if choice else None
+        if checkpoint is not None and choice:
+            raise ConfigError(f"{self.name}: give an FDNet run (checkpoint) or a trunk choice file (choice), not both")
+        if choice:
+            from fdnet.methods.fdnet.trunk_choice import read_choice
+
+            chosen = read_choice(choice)
+            backbone = chosen["backbone"] if backbone is None else backbone
+            block = chosen["block"] if block is None else block
+            input_size = chosen["input_size"] if input_size is None else input_size
         if checkpoint is not None:
             from fdnet import runs
             from fdnet.methods.fdnet.config import TrainConfig
@@ -70,6 +82,8 @@ class TrunkDescriptor(Conv3Descriptor):
         out = super().settings()
         if self.checkpoint:
             out["checkpoint"] = self.checkpoint
+        if self.choice:
+            out["choice"] = self.choice
         return out
 
 
@@ -90,12 +104,13 @@ class TrunkWhitenedDescriptor(TrunkDescriptor):
     def __init__(self, dim: int = DEFAULT_WHITENED_DIM, power: float = 1.0, fit: str | Path | None = None,
                  fit_frames: str | None = None, checkpoint: str | Path | None = None, block: int | None = None,
                  input_size: tuple[int, int] | None = None, bf16: bool | None = None,
-                 threads: int | None = None, device: str | None = None, backbone: str | None = None):
+                 threads: int | None = None, device: str | None = None, backbone: str | None = None,
+                 choice: str | Path | None = None):
         from fdnet.descriptors.fitting import check_fit_frames, fit_image_paths
         from fdnet.descriptors.whitening import max_whitening_dim
 
         super().__init__(checkpoint=checkpoint, block=block, input_size=input_size, bf16=bf16, threads=threads,
-                         device=device, backbone=backbone)
+                         device=device, backbone=backbone, choice=choice)
         if isinstance(dim, bool) or int(dim) != dim or int(dim) < 1:
             raise ConfigError(f"{self.name}: dim (L) must be a whole number >= 1, got {dim!r}")
         self.whitened_dim = int(dim)
