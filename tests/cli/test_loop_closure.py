@@ -1,0 +1,127 @@
+"""`fdnet loop-closure` on a made-up route that revisits its places."""
+
+import csv
+import json
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from fdnet.cli import main
+from fdnet.data.groundtruth import GroundTruth
+from fdnet.descriptors.classic import RawThumbnail
+
+PLACES = 10
+
+
+def write_route(folder, seed=0):
+    """PLACES random-texture places, then each again (noisier, darker) in the same order:
+    frame PLACES + i revisits frame i."""
+    folder.mkdir(parents=True)
+    rng = np.random.default_rng(seed)
+    first = [rng.integers(0, 256, size=(32, 64, 3)) for _ in range(PLACES)]
+    again = [np.clip(im * 0.9 + 10 + rng.normal(0, 12, size=im.shape), 0, 255) for im in first]
+    for i, image in enumerate(first + again):
+        Image.fromarray(image.astype(np.uint8)).save(folder / f"frame_{i:03d}.png")
+    return folder
+
+
+def read_rows(path):
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+@pytest.fixture
+def route(tmp_path):
+    return write_route(tmp_path / "route")
+
+
+def args(route, tmp_path, *extra):
+    return ["loop-closure", "--images", str(route), "--method", "raw", "--exclude-last", "3", "--accept", "margin",
+            "--threshold", "0.2", "--out", str(tmp_path / "events.csv"), *extra]
+
+
+def test_events_at_the_revisits_and_an_evaluation(route, tmp_path, capsys):
+    truth = GroundTruth([[] for _ in range(PLACES)] + [[i] for i in range(PLACES)], 2 * PLACES)
+    truth.to_csv(tmp_path / "gt.csv", [f"frame_{i:03d}.png" for i in range(2 * PLACES)],
+                 [f"frame_{i:03d}.png" for i in range(2 * PLACES)])
+    assert main(args(route, tmp_path, "--jsonl", str(tmp_path / "events.jsonl"), "--ground-truth",
+                     str(tmp_path / "gt.csv"), "--report", str(tmp_path / "report.json"), "--db",
+                     str(tmp_path / "map.db"))) == 0
+    out = capsys.readouterr().out
+    rows = read_rows(tmp_path / "events.csv")
+    assert [int(r["query_index"]) for r in rows] == list(range(PLACES, 2 * PLACES))
+    assert [int(r["match_index"]) for r in rows] == list(range(PLACES))
+    assert [r["match"].rsplit("/", 1)[1] for r in rows] == [f"frame_{i:03d}.png" for i in range(PLACES)]
+    assert {r["rule"] for r in rows} == {"margin"}
+    events = [json.loads(line) for line in (tmp_path / "events.jsonl").read_text().splitlines()]
+    assert [e["match_index"] for e in events] == list(range(PLACES))
+    assert "10 loop closures in 20 frames" in out and "frames/s" in out
+    assert "R@100P 1.000" in out and "10 accepted, 10 true, 0 false" in out
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["evaluation"]["metrics"]["recall_at_100_precision"] == 1.0
+    assert report["places_after"] == 2 * PLACES
+
+
+def test_a_second_session_closes_loops_against_the_first_sessions_database(tmp_path, capsys):
+    route = write_route(tmp_path / "all")
+    day1, day2 = tmp_path / "day1", tmp_path / "day2"
+    day1.mkdir()
+    day2.mkdir()
+    for i in range(2 * PLACES):
+        (route / f"frame_{i:03d}.png").rename((day1 if i < PLACES else day2) / f"frame_{i:03d}.png")
+    db = tmp_path / "map.db"
+    assert main(["database", "build", "--images", str(day1), "--method", "raw", "--out", str(db)]) == 0
+    assert main(args(day2, tmp_path, "--db", str(db))) == 0
+    rows = read_rows(tmp_path / "events.csv")
+    # the first frame of day 2 already closes a loop: day 1's places are not this traverse's last frames
+    assert [int(r["query_index"]) for r in rows] == list(range(PLACES))
+    assert [int(r["match_index"]) for r in rows] == list(range(PLACES))
+    # running day 2 again into the same database is refused, not added twice
+    capsys.readouterr()
+    assert main(args(day2, tmp_path, "--db", str(db))) == 2
+    assert "already holds 10 of these 10 frames" in capsys.readouterr().err
+
+
+@pytest.fixture
+def no_describing(monkeypatch):
+    def describe(self, images):
+        raise AssertionError("images were described before the refusal")
+
+    monkeypatch.setattr(RawThumbnail, "describe", describe)
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--accept", "best"], "unknown acceptance rule 'best'"),
+    (["--accept-set", "margin:radius=-1"], "radius=-1"),
+    (["--accept-set", "margin:nonsense=1"], "no setting 'nonsense'"),
+    (["--images", "/no/such/folder"], "/no/such/folder: not a folder of images"),
+    (["--sequence-length", "1", "--method", "nosuch"], "unknown method 'nosuch'"),
+])
+def test_bad_input_is_one_line_before_any_frame_is_described(route, tmp_path, capsys, no_describing, extra, message):
+    assert main(args(route, tmp_path, *extra)) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("fdnet loop-closure: error: ") and message in err
+    assert "Traceback" not in err
+
+
+def test_threshold_needs_a_rule_and_outputs_must_be_writable(route, tmp_path, capsys, no_describing):
+    base = ["loop-closure", "--images", str(route), "--method", "raw", "--exclude-last", "3"]
+    assert main(base + ["--threshold", "0.2", "--out", str(tmp_path / "e.csv")]) == 2
+    assert "--threshold needs --accept RULE" in capsys.readouterr().err
+    (tmp_path / "folder").mkdir()
+    assert main(base + ["--accept", "margin", "--threshold", "0.2", "--out", str(tmp_path / "folder")]) == 2
+    assert "events CSV path is a directory" in capsys.readouterr().err
+    (tmp_path / "other.db").write_text("not a database")
+    assert main(base + ["--accept", "margin", "--threshold", "0.2", "--out", str(tmp_path / "e.csv"),
+                        "--db", str(tmp_path / "other.db")]) == 2
+    assert "not an fdnet place database" in capsys.readouterr().err
+
+
+def test_a_database_of_another_model_is_refused(route, tmp_path, capsys):
+    db = tmp_path / "hog.db"
+    assert main(["database", "build", "--images", str(route), "--method", "hog", "--out", str(db)]) == 0
+    capsys.readouterr()
+    assert main(args(route, tmp_path, "--db", str(db))) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("fdnet loop-closure: error: ") and "fingerprint mismatch" in err

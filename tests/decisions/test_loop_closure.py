@@ -1,0 +1,172 @@
+"""The online loop-closure detector on made-up routes where the revisits are known."""
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from fdnet.data.groundtruth import GroundTruth
+from fdnet.decisions.loop_closure import (EVENT_COLUMNS, Closure, EventLog, FrameDecision, LoopClosureDetector,
+                                          evaluate_decisions)
+from fdnet.descriptors.classic import HOGDescriptor, RawThumbnail
+from fdnet.errors import ConfigError, DataError
+from fdnet.matching.database import PlaceDatabase
+
+PLACES = 12
+
+
+def places(seed=0, n=PLACES):
+    rng = np.random.default_rng(seed)
+    return [rng.integers(0, 256, size=(32, 64, 3)).astype(np.uint8) for _ in range(n)]
+
+
+def seen_again(image, seed):
+    """The same place on another day: a little noise and a brightness change."""
+    noise = np.random.default_rng(seed).normal(0, 12, size=image.shape)
+    return np.clip(image * 0.9 + 10 + noise, 0, 255).astype(np.uint8)
+
+
+def revisit_route(seed=0):
+    """PLACES new places, then every one of them again in the same order."""
+    first = places(seed)
+    return first + [seen_again(im, 100 + i) for i, im in enumerate(first)]
+
+
+def run(frames, **settings):
+    settings = {"exclude_last": 3, "rule": "margin", "threshold": 0.2, **settings}
+    detector = LoopClosureDetector(RawThumbnail(), **settings)
+    events = [detector.process(image, name=f"frame_{i}") for i, image in enumerate(frames)]
+    return detector, events
+
+
+def test_a_route_that_revisits_its_places_closes_a_loop_at_every_revisit_and_nowhere_else():
+    detector, events = run(revisit_route())
+    assert all(e is None for e in events[:PLACES])
+    closures = events[PLACES:]
+    assert all(c is not None for c in closures)
+    assert [c.match_index for c in closures] == list(range(PLACES))
+    assert [c.query_index for c in closures] == list(range(PLACES, 2 * PLACES))
+    assert all(c.score >= 0.2 and c.rule == "margin" and c.threshold == 0.2 for c in closures)
+    assert detector.closures == closures and detector.places == 2 * PLACES
+
+
+def test_sequence_scores_close_the_same_loops():
+    detector, events = run(revisit_route(), sequence_length=4)
+    assert all(e is None for e in events[:PLACES])
+    assert [e.match_index for e in events[PLACES:]] == list(range(PLACES))
+
+
+def test_the_detector_never_looks_at_a_future_frame():
+    route = revisit_route()
+    for rule, length in (("margin", 1), ("raw", 1), ("margin", 4)):
+        kw = {"rule": rule, "sequence_length": length, "threshold": 0.2 if rule == "margin" else 0.6}
+        reference, ref_events = run(route, **kw)
+        for cut in (PLACES + 2, PLACES + 7):
+            # the same frames up to `cut`, then an entirely different future
+            changed = route[:cut + 1] + places(seed=99, n=len(route) - cut - 1)
+            other, other_events = run(changed, **kw)
+            assert other_events[:cut + 1] == ref_events[:cut + 1]
+            # repr: exact for floats, and NaN (no candidate yet) equals NaN
+            assert list(map(repr, other.decisions[:cut + 1])) == list(map(repr, reference.decisions[:cut + 1]))
+            assert other.decisions[cut + 1:] != reference.decisions[cut + 1:]
+        assert any(e is not None for e in ref_events)
+
+
+def test_the_last_frames_are_never_candidates():
+    detector, _ = run(revisit_route(), exclude_last=5)
+    searchable = [d.searchable for d in detector.decisions]
+    assert searchable == [0] * 6 + list(range(1, 2 * PLACES - 5))
+    assert all(d.match < d.searchable for d in detector.decisions if d.match >= 0)
+    # a frame with nothing to search decides nothing
+    assert detector.decisions[0] == FrameDecision(0, -1, detector.decisions[0].score, False, 0)
+    assert np.isnan(detector.decisions[0].score)
+
+
+def test_a_database_from_an_earlier_session_is_searched_from_the_first_frame(tmp_path):
+    route = revisit_route()
+    path = tmp_path / "map.db"
+    with LoopClosureDetector(RawThumbnail(), path, exclude_last=3, rule="margin", threshold=0.2) as first:
+        assert [first.process(im, name=f"day1/{i}") for i, im in enumerate(route[:PLACES])] == [None] * PLACES
+    with LoopClosureDetector(RawThumbnail(), path, exclude_last=3, rule="margin", threshold=0.2) as second:
+        events = [second.process(im, name=f"day2/{i}", timestamp=float(i)) for i, im in enumerate(route[PLACES:])]
+    assert [e.match for e in events] == [f"day1/{i}" for i in range(PLACES)]
+    assert events[0].query_index == 0 and events[0].timestamp == 0.0
+    with PlaceDatabase.open(path) as db:
+        assert len(db) == 2 * PLACES
+        assert db.metadata[PLACES + 1]["timestamp"] == 1.0
+
+
+def test_time_neighbourhoods_use_the_frames_timestamps():
+    route = revisit_route()
+    detector = LoopClosureDetector(RawThumbnail(), exclude_last=3, rule="margin", rule_settings={"radius_s": 0.5},
+                                   threshold=0.2)
+    events = [detector.process(im, timestamp=0.25 * i) for i, im in enumerate(route)]
+    assert [e.match_index for e in events[PLACES:]] == list(range(PLACES))
+    assert events[-1].match_timestamp == 0.25 * (PLACES - 1)
+
+
+def test_bad_input_is_refused_with_a_message():
+    with pytest.raises(ConfigError, match="unknown acceptance rule 'best'"):
+        LoopClosureDetector(RawThumbnail(), exclude_last=3, rule="best", threshold=0.1)
+    with pytest.raises(ConfigError, match="threshold"):
+        LoopClosureDetector(RawThumbnail(), exclude_last=3, rule="margin")
+    with pytest.raises(ConfigError, match="exclude-last"):
+        LoopClosureDetector(RawThumbnail(), exclude_last=-1, rule="margin", threshold=0.1)
+    with pytest.raises(ConfigError, match="sequence length"):
+        LoopClosureDetector(RawThumbnail(), exclude_last=1, rule="margin", threshold=0.1, sequence_length=0)
+    db = PlaceDatabase.for_descriptor(RawThumbnail())
+    with pytest.raises(ConfigError, match="fingerprint mismatch"):
+        LoopClosureDetector(HOGDescriptor(), db, exclude_last=1, rule="margin", threshold=0.1)
+    detector = LoopClosureDetector(RawThumbnail(), exclude_last=0, rule="margin", threshold=0.1)
+    detector.process(places()[0], name="a")
+    with pytest.raises(DataError, match="already holds a place named 'a'"):
+        detector.process(places()[1], name="a")
+    with pytest.raises(DataError, match=r"\(H, W, 3\)"):
+        detector.process(np.zeros((5, 5)))
+
+
+def test_a_rule_that_verifies_images_needs_frames_given_as_files():
+    detector = LoopClosureDetector(RawThumbnail(), exclude_last=0, rule="margin+verified", threshold=0.1)
+    detector.process(places()[0])
+    with pytest.raises(ConfigError, match="no image file"):
+        detector.process(places()[1])
+
+
+def test_events_are_on_disk_when_written(tmp_path):
+    event = Closure(5, "b.png", 1, "a.png", 0.25, 0.9, "margin", 0.2, 2.5, None)
+    with EventLog(tmp_path / "e.csv", tmp_path / "e.jsonl") as log:
+        log.write(event)
+        # read through another handle while the log is still open: nothing waits in a buffer
+        rows = list(csv.DictReader(open(tmp_path / "e.csv", newline="")))
+        lines = (tmp_path / "e.jsonl").read_text().splitlines()
+    assert tuple(rows[0]) == EVENT_COLUMNS
+    assert rows == [{"query_index": "5", "query": "b.png", "match_index": "1", "match": "a.png",
+                     "score": "0.250000", "similarity": "0.900000", "rule": "margin", "threshold": "0.200000",
+                     "timestamp": "2.500000", "match_timestamp": ""}]
+    assert [json.loads(line) for line in lines] == [event.to_dict()]
+    with pytest.raises(ConfigError, match="two different files"):
+        EventLog(tmp_path / "x.csv", tmp_path / "x.csv")
+
+
+def test_evaluation_by_hand():
+    # frames 0..4; frame 3 revisits place 0, frame 4 revisits place 1; exclude-last cut applies
+    decisions = [
+        FrameDecision(0, -1, float("nan"), False, 0),
+        FrameDecision(1, 0, 0.05, False, 1, 0, 0.5),   # no revisit: a false positive if accepted
+        FrameDecision(2, 0, 0.30, True, 1, 0, 0.6),    # no revisit (its true match 1 is not searchable)
+        FrameDecision(3, 0, 0.40, True, 2, 0, 0.9),    # correct
+        FrameDecision(4, 2, 0.10, False, 3, 1, 0.8),   # rule vouches for 2, the truth is 1
+    ]
+    truth = GroundTruth([[], [], [1], [0], [1]], 5)
+    out = evaluate_decisions(decisions, truth, threshold=0.2, rule="margin")
+    assert out["frames_evaluated"] == 4 and out["frames_with_revisit"] == 2
+    # sorted by score: 0.40 correct, 0.30 wrong -> R@100P = 1/2
+    assert out["metrics"]["recall_at_100_precision"] == 0.5
+    assert out["metrics"]["recall_at_n"]["1"] == 1.0  # best by similarity is right for frames 3 and 4
+    assert out["at_threshold"] == {"threshold": 0.2, "accepted": 2, "true": 1, "false": 1, "precision": 0.5,
+                                   "recall": 0.5}
+    with pytest.raises(DataError, match="3 queries but the traverse has 5"):
+        evaluate_decisions(decisions, GroundTruth([[], [], []], 5), 0.2, "margin")
+    with pytest.raises(DataError, match="no frame revisits"):
+        evaluate_decisions(decisions, GroundTruth([[], [], [], [], []], 5), 0.2, "margin")
