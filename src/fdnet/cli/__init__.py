@@ -23,6 +23,7 @@ COMMAND_MODULES = [
     "extract",
     "export",
     "evaluate",
+    "calibrate",
     "match",
     "database",
     "loop_closure",

@@ -72,7 +72,11 @@ def register(sub) -> None:
     query.add_argument("--exclude-last", type=_non_negative_int, default=0,
                        help="ignore the most recently added N places (a robot's own recent frames)")
     query.add_argument("--min-score", type=float, default=None, help="only report candidates scoring at least this")
-    query.add_argument("--out", help="CSV to write (query,rank,place,place_index,score); default: print")
+    query.add_argument("--calibration", metavar="FILE|RUN_DIR",
+                       help="a calibration from `fdnet calibrate` (default: the one stored in the database by "
+                            "`fdnet calibrate --db`, if any): adds acceptance_score and accepted columns")
+    query.add_argument("--out", help="CSV to write (query,rank,place,place_index,score[,acceptance_score,accepted]); "
+                                     "default: print")
     add_pipeline_arguments(query)
     add_device_argument(query)
     query.set_defaults(func=run_query)
@@ -264,27 +268,85 @@ def run_query(args) -> int:
         ensure_writable(args.out, what="query CSV")
     db, descriptor = _open_with_descriptor(args.db, device_args=args)
     with db:
+        calibration = _query_calibration(db, descriptor, args)
+        depth = args.top_k if calibration is None else max(args.top_k, calibration.spec.depth)
         paths = list_images(args.images)
         vectors = _describe(descriptor, paths, args)
         bad = np.flatnonzero(~np.isfinite(vectors).all(axis=1))
         if len(bad):
             raise DataError(f"{paths[bad[0]]}: its {descriptor.name} vector is not finite (NaN or inf); "
                             f"{len(bad)} query image(s) affected")
-        results = db.query(vectors, k=args.top_k, exclude_last=args.exclude_last)
+        results = db.query(vectors, k=depth, exclude_last=args.exclude_last)
         places = len(db)
+        decision = accepted = None
+        if calibration is not None:
+            decision, accepted = calibration.decide(_candidates(db, descriptor, paths, results))
     buffer = io.StringIO()
     writer = csv.writer(buffer)
-    writer.writerow(["query", "rank", "place", "place_index", "score"])
-    for path, matches in zip(paths, results):
+    writer.writerow(["query", "rank", "place", "place_index", "score"]
+                    + ([] if decision is None else ["acceptance_score", "accepted"]))
+    for q, (path, matches) in enumerate(zip(paths, results)):
         for rank, m in enumerate(matches, start=1):
-            if args.min_score is None or m.score >= args.min_score:
-                writer.writerow([path.name, rank, m.name, m.index, f"{m.score:.6f}"])
+            chosen = decision is not None and m.index == decision.match[q] and accepted[q]
+            if (args.min_score is None or m.score >= args.min_score) and (rank <= args.top_k or chosen):
+                row = [path.name, rank, m.name, m.index, f"{m.score:.6f}"]
+                if decision is not None:
+                    row += [f"{decision.score[q]:.6f}", int(bool(chosen))]
+                writer.writerow(row)
     if args.out:
         atomic_write_text(args.out, buffer.getvalue())
         print(f"wrote {args.out}: {len(paths)} queries against {places} places")
     else:
         sys.stdout.write(buffer.getvalue())
     return 0
+
+
+def _query_calibration(db, descriptor, args):
+    """``--calibration``, else the database's stored calibration, else None; checked against the
+    descriptor (another model's calibration is an error)."""
+    import sys
+
+    from fdnet.decisions.calibration import DATABASE_KEY, Calibration, load_calibration
+
+    if args.calibration:
+        calibration, source = load_calibration(args.calibration), args.calibration
+    else:
+        stored = db.get_metadata(DATABASE_KEY)
+        if stored is None:
+            return None
+        source = f"{args.db} (stored calibration)"
+        calibration = Calibration.from_dict(stored, source=source)
+        print(f"using the calibration stored in {args.db}: rule {calibration.rule}, threshold "
+              f"{calibration.threshold:.6g} (precision {calibration.target_precision:g})", file=sys.stderr)
+    calibration.check(descriptor, sequence_length=0, source=source)
+    return calibration
+
+
+def _candidates(db, descriptor, paths, results):
+    """The database's answers as ranked candidates for the acceptance rules: place indices
+    (insertion order) padded with -1, the places' positions when every place has one, and their
+    times when every place's metadata has a numeric ``timestamp``."""
+    import numpy as np
+
+    from fdnet.decisions.acceptance import Candidates
+
+    k = max((len(m) for m in results), default=0) or 1
+    idx = np.full((len(results), k), -1, dtype=np.int64)
+    scores = np.zeros((len(results), k))
+    for q, matches in enumerate(results):
+        for j, m in enumerate(matches):
+            idx[q, j], scores[q, j] = m.index, m.score
+    positions = db.positions()
+    metadata = db.metadata()
+    times = [None if not isinstance(m, dict) else m.get("timestamp") for m in metadata]
+    return Candidates(
+        idx, scores, similarity_ceiling=float(descriptor.similarity_ceiling),
+        reference_positions=np.asarray(positions, dtype=float) if positions and all(p is not None for p in positions)
+        else None,
+        reference_times=np.asarray(times, dtype=float) if times and all(isinstance(t, (int, float)) and
+                                                                        not isinstance(t, bool) for t in times)
+        else None,
+        query_paths=list(paths), reference_paths=None)
 
 
 def run_info(args) -> int:

@@ -8,6 +8,12 @@ dot-product methods (``flat`` exact, ``ivf``, ``ivfpq``, ``hnsw`` approximate, f
 10^5-10^6 places; :mod:`fdnet.matching.index`). ``--index-file FILE`` keeps the built index: a
 later run with the same method (fingerprint), reference images and build settings loads it
 instead of describing the map again.
+
+``--calibration FILE|RUN_DIR`` (from ``fdnet calibrate``) adds a decision per query: the
+calibrated acceptance rule's score (``acceptance_score``, on every row of the query) and
+``accepted`` (1 on the row of the match the rule accepts when its score reaches the calibrated
+threshold, else 0; a query without an accepted row is a new place). A calibration made for
+another model (descriptor fingerprint) or another ``--sequence-length`` is refused.
 """
 
 from __future__ import annotations
@@ -41,6 +47,10 @@ def register(sub) -> None:
                         "not described again")
     p.add_argument("--sequence-length", type=int, default=0,
                    help="SeqSLAM sequence matching over this many consecutive queries (0 = single image)")
+    p.add_argument("--calibration", metavar="FILE|RUN_DIR",
+                   help="a calibration from `fdnet calibrate` (YAML, or a run directory holding calibration.yaml): "
+                        "adds acceptance_score and accepted columns (accepted 1 = the revisit the calibrated rule "
+                        "accepts; none in a query = a new place)")
     p.add_argument("--out", required=True,
                    help="CSV to write: query_index,query,rank,reference_index,reference,score (indices are "
                         "positions in natural file-name order, names the image file names)")
@@ -111,6 +121,15 @@ def run(args) -> int:
         ensure_writable(args.index_file, what="index file")
     ref_paths, query_paths = list_images(args.reference), list_images(args.query)
     descriptor = create_descriptor(args.method, args)
+    calibration = None
+    depth = args.top_k
+    if args.calibration:
+        from fdnet.decisions.calibration import load_calibration
+
+        calibration = load_calibration(args.calibration)
+        calibration.check(descriptor, sequence_length=args.sequence_length if args.sequence_length > 1 else 0,
+                          source=args.calibration)
+        depth = max(args.top_k, calibration.spec.depth)  # the rule may need more candidates than are written
     if settings is not None and not descriptor.dot_product_similarity:
         raise ConfigError(f"method {descriptor.name!r} does not compare vectors by dot product, so a "
                           "faiss index would rank by the wrong measure; use --index exact")
@@ -129,9 +148,9 @@ def run(args) -> int:
         queries = describe(query_paths)
         if args.sequence_length > 1:
             sim = sequence_similarity(similarity_matrix(queries, refs, descriptor.similarity), args.sequence_length)
-            indices, scores = top_k_of_matrix(sim, args.top_k)
+            indices, scores = top_k_of_matrix(sim, depth)
         else:
-            indices, scores = top_k(queries, refs, args.top_k, similarity=descriptor.similarity)
+            indices, scores = top_k(queries, refs, depth, similarity=descriptor.similarity)
     else:
         index = _cached_index(args.index_file, descriptor, ref_paths, settings) if args.index_file else None
         if index is None:
@@ -151,16 +170,34 @@ def run(args) -> int:
         else:
             print(f"loaded the {settings.kind} index of {len(ref_paths)} references from {args.index_file}")
         queries = describe(query_paths)
-        indices, scores = index.search(queries, args.top_k)
+        indices, scores = index.search(queries, depth)
 
     buffer = io.StringIO()
     writer = csv.writer(buffer)
-    writer.writerow(["query_index", "query", "rank", "reference_index", "reference", "score"])
+    header = ["query_index", "query", "rank", "reference_index", "reference", "score"]
+    decision = accepted = None
+    if calibration is not None:
+        from fdnet.decisions.acceptance import Candidates
+
+        decision, accepted = calibration.decide(Candidates(
+            indices, scores, similarity_ceiling=float(descriptor.similarity_ceiling), query_paths=query_paths,
+            reference_paths=ref_paths))
+        header += ["acceptance_score", "accepted"]
+    writer.writerow(header)
     for q, (row_i, row_s) in enumerate(zip(indices, scores)):
         for rank, (i, s) in enumerate(zip(row_i, row_s), start=1):
-            if i >= 0:
-                writer.writerow([q, query_paths[q].name, rank, int(i), ref_paths[i].name, f"{float(s):.6f}"])
+            chosen = decision is not None and i == decision.match[q]
+            # rows beyond --top-k only for the match the rule accepted (a re-ranking rule may pick it)
+            if i >= 0 and (rank <= args.top_k or (chosen and accepted[q])):
+                row = [q, query_paths[q].name, rank, int(i), ref_paths[i].name, f"{float(s):.6f}"]
+                if decision is not None:
+                    row += [f"{decision.score[q]:.6f}", int(bool(chosen and accepted[q]))]
+                writer.writerow(row)
     atomic_write_text(args.out, buffer.getvalue())
     print(f"wrote {args.out}: top-{args.top_k} of {len(ref_paths)} references for {len(query_paths)} queries "
           f"({descriptor.name})")
+    if calibration is not None:
+        print(f"{int(accepted.sum())} of {len(query_paths)} queries accepted by {calibration.rule} at threshold "
+              f"{calibration.threshold:.6g} (calibrated for precision {calibration.target_precision:g}); the "
+              f"others are new places")
     return 0

@@ -383,6 +383,7 @@ def decide(spec: AcceptanceSpec | str, candidates: Candidates) -> Decision:
                         f"{candidates.num_queries} queries")
     if np.isnan(score).any():
         raise DataError(f"acceptance rule {first!r} gave NaN scores")
+    score[candidates.retrieved[:, 0] < 0] = -np.inf  # a query with no candidate at all accepts nothing
     for name, values in gates:
         passed = np.asarray(get_rule(name).gate(candidates, match, **values), dtype=bool)
         if passed.shape != (candidates.num_queries,):

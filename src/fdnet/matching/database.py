@@ -829,6 +829,32 @@ class PlaceDatabase:
                         for i, s in keep])
         return out
 
+    # ------------------------------------------------------------------ database metadata
+    def set_metadata(self, key: str, value: dict) -> None:
+        """Store ``value`` (a JSON object, e.g. a calibration) under ``key`` in the database's own
+        metadata, in one transaction (readers see the old or the new value). The table is created
+        on first use, so files written before it existed stay readable by every version."""
+        text = _canonical_json(value, f"{self.path}: metadata {key!r}")
+        with _sqlite_errors(self.path, f"storing metadata {key!r}"):
+            with _transaction(self._conn, "IMMEDIATE") as conn:
+                self._check_same_database(conn)
+                conn.execute("CREATE TABLE IF NOT EXISTS fdnet_metadata (key TEXT PRIMARY KEY, value TEXT NOT NULL)")
+                conn.execute("INSERT OR REPLACE INTO fdnet_metadata (key, value) VALUES (?, ?)", (key, text))
+
+    def get_metadata(self, key: str) -> dict | None:
+        """The value stored under ``key`` by :meth:`set_metadata`, or None."""
+        with _sqlite_errors(self.path, f"reading metadata {key!r}"):
+            exists = self._conn.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'fdnet_metadata'"
+                                        ).fetchone()
+            row = self._conn.execute("SELECT value FROM fdnet_metadata WHERE key = ?", (key,)).fetchone() \
+                if exists else None
+        if row is None:
+            return None
+        try:
+            return json.loads(row[0])
+        except json.JSONDecodeError as exc:
+            raise DataError(f"{self.path}: metadata {key!r} is not valid JSON ({exc})") from None
+
     def info(self) -> dict:
         """What ``fdnet database info`` prints: identity, size and versions, without loading vectors."""
         with _sqlite_errors(self.path, "reading the database summary"):

@@ -1,0 +1,137 @@
+"""`fdnet calibrate`: choose an acceptance threshold that reaches a target precision on a
+validation pair, and store it for `fdnet match` and `fdnet database query`.
+
+Runs the method on the pair (the same split options as `fdnet evaluate`), scores every query with
+the acceptance rule (``--accept``, ``--accept-set``; on sequence scores with
+``--sequence-length``), and keeps the threshold with the largest recall whose precision reaches
+``--target-precision`` (:func:`fdnet.decisions.calibration.calibrate`). The result (rule,
+settings, threshold, target, precision and recall reached, what it was measured on, method and
+descriptor fingerprint) goes to ``--out FILE.yaml``, to ``calibration.yaml`` in the run directory
+of ``--checkpoint`` (``--store-in-run``) and/or into a place database (``--db``); at least one.
+"""
+
+from __future__ import annotations
+
+from fdnet.cli.common import add_device_argument, add_method_arguments, add_pipeline_arguments
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "calibrate",
+        help="choose the acceptance threshold that reaches a target precision on a validation pair",
+        description="Score a validation pair with an acceptance rule and store the threshold that reaches "
+                    "--target-precision (with the model's fingerprint), for `fdnet match --calibration` and "
+                    "`fdnet database query`.",
+    )
+    data = p.add_argument_group("validation pair (as for fdnet evaluate)")
+    data.add_argument("--data", required=True, help="dataset folder with one sub-folder per condition")
+    data.add_argument("--reference", help="condition used as the map")
+    data.add_argument("--query", help="condition used as queries")
+    data.add_argument("--tolerance", type=int, default=None,
+                      help="frame-aligned ground truth: query frame i matches reference frames i +- N (default 0)")
+    data.add_argument("--frames", metavar="START:END", help="calibrate on these frames only (END exclusive)")
+    data.add_argument("--filter-frames", action="store_true", help="drop dark and near-duplicate frames first")
+    data.add_argument("--dataset-format", metavar="NAME", help="read --data in a published layout (see evaluate)")
+    data.add_argument("--split", help="with --dataset-format: a named split or START:END")
+    data.add_argument("--format-set", action="append", default=[], metavar="KEY=VALUE",
+                      help="with --dataset-format: a protocol setting of the format")
+    data.add_argument("--ground-truth", metavar="CSV", help="explicit ground truth instead of frame alignment")
+    methods = p.add_argument_group("method")
+    add_method_arguments(methods)
+    add_pipeline_arguments(methods)
+    add_device_argument(methods)
+    methods.add_argument("--sequence-length", type=int, default=0,
+                         help="calibrate SeqSLAM sequence scores over this many consecutive queries (0 = single "
+                              "image); the calibration is then only valid with the same --sequence-length")
+    decision = p.add_argument_group("decision")
+    decision.add_argument("--accept", default=None, metavar="RULE",
+                          help="the acceptance rule (one expression, e.g. margin, ratio, margin+floor; default "
+                               "margin)")
+    decision.add_argument("--accept-set", action="append", default=[], metavar="[RULE:]KEY=VALUE",
+                          help="a setting of the rule (repeatable), e.g. radius=3")
+    decision.add_argument("--target-precision", type=float, default=1.0,
+                          help="precision the threshold must reach on the pair, in (0, 1] (default 1.0)")
+    out = p.add_argument_group("where to store it (at least one)")
+    out.add_argument("--out", metavar="FILE.yaml", help="write the calibration as YAML")
+    out.add_argument("--store-in-run", action="store_true",
+                     help=f"write calibration.yaml into the --checkpoint run directory")
+    out.add_argument("--db", metavar="MAP.db",
+                     help="store it in this place database (built with the same model); `fdnet database query` "
+                          "then uses it")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    import sys
+    from pathlib import Path
+
+    from fdnet.cli.common import check_pipeline_arguments, create_descriptor, method_options
+    from fdnet.cli.evaluate import build_split
+    from fdnet.decisions.acceptance import DEFAULT_ACCEPTANCE, parse_acceptance
+    from fdnet.decisions.calibration import (
+        CALIBRATION_FILE,
+        DATABASE_KEY,
+        calibrate,
+        check_target,
+        save_calibration,
+    )
+    from fdnet.errors import ConfigError
+    from fdnet.io import ensure_writable
+
+    check_target(args.target_precision)
+    spec = parse_acceptance(args.accept or DEFAULT_ACCEPTANCE, args.accept_set)
+    if args.sequence_length < 0:
+        raise ConfigError(f"--sequence-length must be >= 0, got {args.sequence_length}")
+    if args.tolerance is not None and args.tolerance < 0:
+        raise ConfigError(f"--tolerance must be >= 0, got {args.tolerance}")
+    if not (args.out or args.store_in_run or args.db):
+        raise ConfigError("nothing to store the calibration in: give --out FILE.yaml, --store-in-run and/or --db MAP.db")
+    check_pipeline_arguments(args)
+    run_dir = None
+    if args.store_in_run:
+        checkpoint = method_options(args, args.method).get("checkpoint")
+        if not checkpoint:
+            raise ConfigError(f"--store-in-run needs the run directory: --checkpoint RUN_DIR (method {args.method!r} "
+                              f"was given none)")
+        run_dir = Path(checkpoint)
+        if not run_dir.is_dir():
+            raise ConfigError(f"--store-in-run: {run_dir} is not a run directory")
+        ensure_writable(run_dir / CALIBRATION_FILE, what="calibration in the run directory")
+    if args.out:
+        ensure_writable(args.out, what="calibration YAML")
+    db = None
+    descriptor = create_descriptor(args.method, args)
+    if args.db:
+        from fdnet.matching.database import PlaceDatabase
+
+        db = PlaceDatabase.open(args.db, descriptor=descriptor)  # another model's database: refused now
+    try:
+        split = build_split(args)
+        measured_on = {"data_root": str(args.data), "reference": args.reference, "query": args.query,
+                       "frames": args.frames, "split": args.split, "dataset_format": args.dataset_format,
+                       "tolerance": args.tolerance, "ground_truth_file": args.ground_truth}
+        measured_on = {k: v for k, v in measured_on.items() if v is not None}
+        print(f"calibrating {descriptor.name} with rule {spec.name} for precision {args.target_precision:g} on "
+              f"{split.description}: {len(split.query)} queries x {len(split.reference)} references", file=sys.stderr)
+        calibration = calibrate(descriptor, split, spec, args.target_precision, args.sequence_length,
+                                measured_on=measured_on, batch_size=args.batch_size, workers=args.workers,
+                                progress=sys.stderr.isatty(), log=lambda m: print(m, file=sys.stderr))
+        written = []
+        if args.out:
+            written.append(str(save_calibration(calibration, args.out)))
+        if run_dir is not None:
+            written.append(str(save_calibration(calibration, run_dir / CALIBRATION_FILE)))
+        if db is not None:
+            db.set_metadata(DATABASE_KEY, calibration.to_dict(json_safe=True))
+            written.append(f"{args.db} (database metadata)")
+    finally:
+        if db is not None:
+            db.close()
+    print(f"{descriptor.name}, rule {calibration.rule}: threshold {calibration.threshold:.6g} reaches precision "
+          f"{calibration.precision:.3f} at recall {calibration.recall:.3f} ({calibration.accepted} of "
+          f"{calibration.num_queries} queries accepted; target {calibration.target_precision:g})")
+    for note in calibration.notes:
+        print(f"note: {note}")
+    for where in written:
+        print(f"wrote {where}")
+    return 0

@@ -1,0 +1,260 @@
+"""Calibrated acceptance: the threshold on an acceptance score that reaches a target precision.
+
+:func:`choose_threshold` is the pure part: given each query's acceptance score, whether the match
+it vouches for is right, and which queries have a true match, it takes the threshold of the exact
+recall-over-queries PR curve (:func:`fdnet.evaluation.metrics.pr_curve_over_queries`) with the
+largest recall among the points whose precision reaches the target; among thresholds with that
+recall, the highest (the fewest accepted queries). Accepting ``score >= threshold`` on the same
+data gives exactly the precision and recall stored with it. When even the most confident query
+is wrong at the target (e.g. precision 1.0 and a wrong best), the threshold is +inf: nothing is
+accepted (recall 0), and the calibration says so.
+
+:func:`calibrate` runs a method on a validation split (:func:`fdnet.evaluation.experiment.
+evaluate_method`, with sequence matching when asked), applies the rule and chooses the threshold;
+the :class:`Calibration` records the rule and its settings, the threshold, the target, the
+precision and recall reached, what it was measured on (data, split, tolerance, sequence length),
+the method's name and its descriptor's fingerprint (``Descriptor.fingerprint()``). It is written as
+YAML (:func:`save_calibration`; ``calibration.yaml`` in a run directory) or into a place
+database's metadata (``PlaceDatabase.set_metadata("calibration", ...)``). Applying it to another
+model (another fingerprint), or with another sequence length, is an error, not a silent misuse
+(:meth:`Calibration.check`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from fdnet.decisions.acceptance import AcceptanceSpec, Candidates, Decision, decide, parse_acceptance
+from fdnet.errors import ConfigError, DataError
+
+#: file name of a calibration inside a run directory
+CALIBRATION_FILE = "calibration.yaml"
+#: key of the calibration in a place database's metadata
+DATABASE_KEY = "calibration"
+FORMAT = "fdnet-calibration"
+FORMAT_VERSION = 1
+
+
+def check_target(target: float, what: str = "--target-precision") -> float:
+    """A target precision in (0, 1], else ConfigError."""
+    if isinstance(target, bool) or not isinstance(target, (int, float)) or not math.isfinite(target) \
+            or not 0.0 < float(target) <= 1.0:
+        raise ConfigError(f"{what} {target!r}: a precision must be in (0, 1] (e.g. 1.0, 0.99, 0.95)")
+    return float(target)
+
+
+@dataclass(frozen=True)
+class Threshold:
+    threshold: float
+    precision: float
+    recall: float
+    accepted: int
+
+
+def choose_threshold(scores: np.ndarray, correct: np.ndarray, has_match: np.ndarray, target: float) -> Threshold:
+    """The threshold reaching ``target`` precision with the largest recall (see the module
+    docstring). ``scores`` (Q,) acceptance scores (-inf = rejected), ``correct`` (Q,) whether the
+    match each score vouches for is right, ``has_match`` (Q,) queries with a true match."""
+    from fdnet.evaluation.metrics import pr_curve_over_queries
+
+    target = check_target(target)
+    scores = np.asarray(scores, dtype=np.float64)
+    curve, _ = pr_curve_over_queries(scores, correct, has_match)
+    real = np.isfinite(curve.thresholds)
+    # a hair of slack so that 99 right of 100 counts as 0.99 despite float division
+    ok = real & (curve.precision >= target - 1e-12)
+    if not ok.any():
+        return Threshold(math.inf, 1.0, 0.0, 0)
+    best_recall = curve.recall[ok].max()
+    candidates = np.flatnonzero(ok & (curve.recall == best_recall))
+    i = candidates[np.argmax(curve.thresholds[candidates])]
+    threshold = float(curve.thresholds[i])
+    return Threshold(threshold, float(curve.precision[i]), float(curve.recall[i]), int((scores >= threshold).sum()))
+
+
+@dataclass
+class Calibration:
+    """A threshold on one acceptance rule for one model (see the module docstring)."""
+
+    rule: str
+    settings: dict
+    threshold: float
+    target_precision: float
+    precision: float
+    recall: float
+    accepted: int
+    num_queries: int
+    method: str
+    fingerprint: str
+    sequence_length: int = 0
+    measured_on: dict = field(default_factory=dict)
+    created: str = ""
+    fdnet_version: str = ""
+    notes: list = field(default_factory=list)
+
+    # ------------------------------------------------------------------ use
+    @property
+    def spec(self) -> AcceptanceSpec:
+        """The rule expression with its stored settings."""
+        items = [f"{name}:{key}={_yaml_text(value)}" for name, values in self.settings.items()
+                 for key, value in values.items()]
+        return parse_acceptance(self.rule, items)
+
+    def check(self, descriptor=None, method: str | None = None, fingerprint: str | None = None,
+              sequence_length: int | None = None, source: str = "calibration") -> None:
+        """Refuse to apply this calibration to another model or another sequence length."""
+        if descriptor is not None:
+            method, fingerprint = descriptor.name, descriptor.fingerprint()
+        if fingerprint is not None and fingerprint != self.fingerprint:
+            raise ConfigError(f"{source}: calibrated for method {self.method!r} with descriptor fingerprint "
+                              f"{self.fingerprint[:12]}, but this is {method or 'a model'!s} with fingerprint "
+                              f"{fingerprint[:12]}: another model (or other weights or settings); calibrate this "
+                              f"one with `fdnet calibrate`")
+        if sequence_length is not None and int(sequence_length) != int(self.sequence_length):
+            raise ConfigError(f"{source}: calibrated with --sequence-length {self.sequence_length}, used with "
+                              f"{sequence_length}: sequence scores and single-image scores need their own thresholds")
+
+    def decide(self, candidates: Candidates) -> tuple[Decision, np.ndarray]:
+        """(the rule's decision, (Q,) accepted) for ranked candidates of this model."""
+        decision = decide(self.spec, candidates)
+        return decision, decision.accepted(self.threshold)
+
+    # ------------------------------------------------------------------ storage
+    def to_dict(self, json_safe: bool = False) -> dict:
+        """The stored form (YAML keeps +inf as .inf); ``json_safe`` writes non-finite numbers as
+        the strings "inf"/"nan", which :meth:`from_dict` reads back (JSON has no infinity)."""
+        out = {"format": FORMAT, "version": FORMAT_VERSION, **asdict(self)}
+        if json_safe:
+            for key in ("threshold", "precision", "recall"):
+                if not math.isfinite(out[key]):
+                    out[key] = str(out[key])
+        return out
+
+    @classmethod
+    def from_dict(cls, data, source: str = "calibration") -> "Calibration":
+        if not isinstance(data, dict) or data.get("format") != FORMAT:
+            raise DataError(f"{source}: not an fdnet calibration (no 'format: {FORMAT}')")
+        if data.get("version") != FORMAT_VERSION:
+            raise DataError(f"{source}: calibration format version {data.get('version')!r}; this fdnet reads "
+                            f"version {FORMAT_VERSION}")
+        names = [f for f in cls.__dataclass_fields__]
+        required = ["rule", "settings", "threshold", "target_precision", "method", "fingerprint"]
+        missing = [k for k in required if k not in data]
+        if missing:
+            raise DataError(f"{source}: calibration lacks {', '.join(missing)}")
+        values = {k: data[k] for k in names if k in data}
+        try:
+            for key in ("threshold", "target_precision", "precision", "recall"):
+                if key in values:
+                    if isinstance(values[key], bool):
+                        raise TypeError(key)
+                    values[key] = float(values[key])
+        except (TypeError, ValueError):
+            raise DataError(f"{source}: threshold, target_precision, precision and recall must be numbers") from None
+        check_target(values["target_precision"], f"{source}: target_precision")
+        if math.isnan(values["threshold"]):
+            raise DataError(f"{source}: threshold is NaN")
+        if not isinstance(values["settings"], dict) or not all(isinstance(v, dict) for v in values["settings"].values()):
+            raise DataError(f"{source}: settings must map each rule to its settings")
+        values.setdefault("precision", math.nan)
+        values.setdefault("recall", math.nan)
+        values.setdefault("accepted", 0)
+        values.setdefault("num_queries", 0)
+        calibration = cls(**values)
+        try:
+            calibration.spec  # the rule exists and its settings are valid here
+        except ConfigError as exc:
+            raise DataError(f"{source}: {exc}") from None
+        return calibration
+
+
+def _yaml_text(value) -> str:
+    import yaml
+
+    return yaml.safe_dump(value, default_flow_style=True).strip().removesuffix("...").strip()
+
+
+def save_calibration(calibration: Calibration, path: str | Path) -> Path:
+    """Write ``calibration`` as YAML, atomically. A directory means ``DIR/calibration.yaml``."""
+    import yaml
+
+    from fdnet.io import atomic_write_text
+
+    path = Path(path)
+    if path.is_dir():
+        path = path / CALIBRATION_FILE
+    atomic_write_text(path, yaml.safe_dump(calibration.to_dict(), sort_keys=False))
+    return path
+
+
+def load_calibration(path: str | Path) -> Calibration:
+    """A calibration YAML file, or ``DIR/calibration.yaml`` for a run directory."""
+    import yaml
+
+    path = Path(path)
+    if path.is_dir():
+        path = path / CALIBRATION_FILE
+        if not path.is_file():
+            raise DataError(f"{path.parent}: no {CALIBRATION_FILE} in this folder (run `fdnet calibrate ... "
+                            f"--store-in-run` or give the calibration file)")
+    if not path.is_file():
+        raise DataError(f"{path}: calibration file not found")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
+        raise DataError(f"{path}: not valid YAML ({exc})") from None
+    return Calibration.from_dict(data, source=str(path))
+
+
+def calibrate(descriptor, split, spec: AcceptanceSpec | str, target_precision: float, sequence_length: int = 0,
+              measured_on: dict | None = None, batch_size: int = 64, workers: int | None = None,
+              progress: bool = False, log: Callable[[str], None] | None = None) -> Calibration:
+    """Run ``descriptor`` on ``split`` (an :class:`~fdnet.data.split.EvaluationSplit`), score every
+    query with ``spec`` and choose the threshold reaching ``target_precision``."""
+    from fdnet import __version__
+    from fdnet.evaluation.experiment import evaluate_method
+
+    target = check_target(target_precision)
+    sequence_length = int(sequence_length) if sequence_length > 1 else 0  # 0 and 1 both mean single images
+    if isinstance(spec, str):
+        spec = parse_acceptance(spec)
+    say = log or (lambda message: None)
+    result = evaluate_method(descriptor, split, sequence_length=sequence_length, acceptance=[spec],
+                             batch_size=batch_size, workers=workers, progress=progress, log=log)
+    decision = result.decisions[spec.name]
+    gt = split.ground_truth
+    correct = gt.correct_mask(decision.match[:, None])[:, 0]
+    chosen = choose_threshold(decision.score, correct, gt.has_match, target)
+    notes = []
+    if not math.isfinite(chosen.threshold):
+        notes.append(f"no threshold reaches precision {target:g} on this split (the most confident query is "
+                     f"already wrong): nothing will be accepted")
+        say(notes[-1])
+    where = {"data": split.description, "ground_truth": gt.description, "num_references": int(gt.num_references),
+             "sequence_length": int(sequence_length)}
+    where.update(measured_on or {})
+    return Calibration(
+        rule=spec.name, settings=spec.settings, threshold=chosen.threshold, target_precision=target,
+        precision=chosen.precision, recall=chosen.recall, accepted=chosen.accepted,
+        num_queries=int(gt.num_queries), method=descriptor.name, fingerprint=descriptor.fingerprint(),
+        sequence_length=int(sequence_length), measured_on=where,
+        created=datetime.now(timezone.utc).isoformat(timespec="seconds"), fdnet_version=__version__, notes=notes)
+
+
+def apply_threshold(calibration: Calibration, scores: np.ndarray, correct: np.ndarray,
+                    has_match: np.ndarray) -> dict:
+    """Precision and recall a calibration's threshold reaches on another split's acceptance scores
+    (``correct``: whether each accepted match is right): how well it transfers."""
+    scores = np.asarray(scores, dtype=np.float64)
+    accepted = scores >= calibration.threshold
+    tp = int((accepted & np.asarray(correct, bool)).sum())
+    n = int(accepted.sum())
+    positives = int(np.count_nonzero(has_match))
+    return {"accepted": n, "true_positives": tp, "precision": tp / n if n else 1.0,
+            "recall": tp / positives if positives else math.nan}
