@@ -125,3 +125,25 @@ def test_a_database_of_another_model_is_refused(route, tmp_path, capsys):
     assert main(args(route, tmp_path, "--db", str(db))) == 2
     err = capsys.readouterr().err
     assert err.startswith("fdnet loop-closure: error: ") and "fingerprint mismatch" in err
+
+
+def test_a_calibration_from_another_model_is_refused_before_any_frame_is_described(route, tmp_path, capsys,
+                                                                                   no_describing):
+    from fdnet.decisions.acceptance import parse_acceptance
+    from fdnet.decisions.calibration import Calibration, save_calibration
+    from fdnet.descriptors.classic import HOGDescriptor
+
+    hog = HOGDescriptor()
+    save_calibration(Calibration(rule="margin", settings=parse_acceptance("margin").settings, threshold=0.2,
+                                 target_precision=1.0, precision=1.0, recall=0.5, accepted=1, num_queries=4,
+                                 method="hog", fingerprint=hog.fingerprint()), tmp_path / "hog.yaml")
+    assert main(["loop-closure", "--images", str(route), "--method", "raw", "--exclude-last", "3", "--calibration",
+                 str(tmp_path / "hog.yaml"), "--out", str(tmp_path / "e.csv")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("fdnet loop-closure: error: ") and "calibrated for method 'hog'" in err
+    assert main(["loop-closure", "--images", str(route), "--method", "raw", "--exclude-last", "3", "--calibration",
+                 str(tmp_path / "missing.yaml"), "--out", str(tmp_path / "e.csv")]) == 2
+    assert "calibration file not found" in capsys.readouterr().err
+    assert main(["loop-closure", "--images", str(route), "--method", "raw", "--exclude-last", "3", "--out",
+                 str(tmp_path / "e.csv")]) == 2
+    assert "needs an acceptance threshold" in capsys.readouterr().err

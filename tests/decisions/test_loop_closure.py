@@ -170,3 +170,42 @@ def test_evaluation_by_hand():
         evaluate_decisions(decisions, GroundTruth([[], [], []], 5), 0.2, "margin")
     with pytest.raises(DataError, match="no frame revisits"):
         evaluate_decisions(decisions, GroundTruth([[], [], [], [], []], 5), 0.2, "margin")
+
+
+def calibration_for(descriptor, threshold=0.2, rule="margin", sequence_length=0):
+    from fdnet.decisions.acceptance import parse_acceptance
+    from fdnet.decisions.calibration import Calibration
+
+    return Calibration(rule=rule, settings=parse_acceptance(rule).settings, threshold=threshold,
+                       target_precision=1.0, precision=1.0, recall=0.5, accepted=3, num_queries=10,
+                       method=descriptor.name, fingerprint=descriptor.fingerprint(),
+                       sequence_length=sequence_length)
+
+
+def test_a_calibration_gives_rule_and_threshold(tmp_path):
+    from fdnet.decisions.calibration import save_calibration
+
+    path = save_calibration(calibration_for(RawThumbnail()), tmp_path / "calibration.yaml")
+    by_hand, expected = run(revisit_route())
+    detector = LoopClosureDetector(RawThumbnail(), exclude_last=3, calibration=path)
+    assert (detector.spec.name, detector.threshold) == ("margin", 0.2)
+    assert [detector.process(im, name=f"frame_{i}") for i, im in enumerate(revisit_route())] == expected
+    # the database's stored calibration is used when neither threshold nor calibration is given
+    db = PlaceDatabase.for_descriptor(RawThumbnail())
+    db.set_metadata("calibration", calibration_for(RawThumbnail(), threshold=0.35).to_dict())
+    assert LoopClosureDetector(RawThumbnail(), db, exclude_last=3).threshold == 0.35
+
+
+def test_a_calibration_of_another_model_sequence_length_or_rule_is_refused(tmp_path):
+    from fdnet.decisions.calibration import save_calibration
+
+    other = save_calibration(calibration_for(HOGDescriptor()), tmp_path / "hog.yaml")
+    with pytest.raises(ConfigError, match="calibrated for method 'hog'"):
+        LoopClosureDetector(RawThumbnail(), exclude_last=3, calibration=other)
+    single = save_calibration(calibration_for(RawThumbnail()), tmp_path / "raw.yaml")
+    with pytest.raises(ConfigError, match="sequence-length"):
+        LoopClosureDetector(RawThumbnail(), exclude_last=3, calibration=single, sequence_length=5)
+    with pytest.raises(ConfigError, match="calibrates rule 'margin'"):
+        LoopClosureDetector(RawThumbnail(), exclude_last=3, calibration=single, rule="ratio")
+    with pytest.raises(ConfigError, match="not both"):
+        LoopClosureDetector(RawThumbnail(), exclude_last=3, calibration=single, threshold=0.1)

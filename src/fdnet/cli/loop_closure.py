@@ -55,10 +55,11 @@ def register(sub) -> None:
                         "margin+floor); needed with --threshold, taken from the file with --calibration")
     p.add_argument("--accept-set", action="append", default=[], metavar="[RULE:]KEY=VALUE",
                    help="a setting of the rule, e.g. margin:radius=5 (repeatable)")
-    threshold = p.add_mutually_exclusive_group(required=True)
-    threshold.add_argument("--calibration", metavar="FILE",
-                           help="calibration file from `fdnet calibrate` for this model: gives rule, settings and "
-                                "threshold")
+    threshold = p.add_mutually_exclusive_group()
+    threshold.add_argument("--calibration", metavar="FILE|RUN_DIR",
+                           help="calibration from `fdnet calibrate` for this model: gives rule, settings and "
+                                "threshold (default without --threshold: the calibration stored in --db by "
+                                "`fdnet calibrate --db`)")
     threshold.add_argument("--threshold", type=_finite, metavar="T",
                            help="accept a closure when the rule's score is at least T")
     p.add_argument("--sequence-length", type=_whole_number(1), default=1, metavar="N",

@@ -122,13 +122,38 @@ class _Vectors:
         return self._data[:self._count if count is None else count]
 
 
-def _load_calibration(path, descriptor):
-    """(rule expression, its settings, threshold) from a calibration file of
-    :mod:`fdnet.decisions.calibration`, refused when it was made for another model."""
-    from fdnet.decisions.calibration import load_calibration
+def _stored_calibration(database):
+    """(the calibration ``fdnet calibrate --db`` stored in the database, where it came from), or
+    (None, None) when the database (a PlaceDatabase or an existing file) holds none."""
+    from fdnet.decisions.calibration import DATABASE_KEY, Calibration
+    from fdnet.matching.database import MEMORY, PlaceDatabase
 
-    calibration = load_calibration(path, descriptor=descriptor)
-    return calibration
+    if isinstance(database, PlaceDatabase):
+        stored, path = database.get_metadata(DATABASE_KEY), database.path
+    elif database is not None and str(database) != MEMORY and Path(database).is_file():
+        with PlaceDatabase.open(database) as db:
+            stored, path = db.get_metadata(DATABASE_KEY), db.path
+    else:
+        return None, None
+    if stored is None:
+        return None, None
+    source = f"{path} (its stored calibration)"
+    return Calibration.from_dict(stored, source=source), source
+
+
+def _load_calibration(calibration, descriptor, sequence_length: int, source: str | None = None):
+    """A :class:`~fdnet.decisions.calibration.Calibration` (or the path of its file, or a run
+    directory holding one), refused when it was made for another model or sequence length."""
+    from fdnet.decisions.calibration import Calibration, load_calibration
+
+    source = source or "calibration"
+    if not isinstance(calibration, Calibration):
+        source = str(calibration)
+        calibration = load_calibration(calibration)
+    # the calibration counts single images as sequence length 0
+    calibration.check(descriptor=descriptor, sequence_length=sequence_length if sequence_length > 1 else 0,
+                      source=source)
+    return calibration, source
 
 
 class LoopClosureDetector:
@@ -143,9 +168,11 @@ class LoopClosureDetector:
     ``rule_settings`` (``{"radius": 5}`` or ``["margin:radius=5"]``); ``threshold``: the score
     at which a candidate is accepted; or ``calibration``: a calibration file giving rule,
     settings and threshold for this model. ``sequence_length``: score by sequences of the
-    robot's last N frames (1 = single images). ``method_options``: what rebuilds the descriptor,
-    recorded in a database created here. ``allow_duplicates``: add a frame whose name the
-    database already holds (default: refuse it, it was added in an earlier run).
+    robot's last N frames (1 = single images). Without threshold and calibration, the
+    calibration stored in the database (``fdnet calibrate --db``) is used. ``method_options``:
+    what rebuilds the descriptor, recorded in a database created here. ``allow_duplicates``: add
+    a frame whose name the database already holds (default: refuse it, it was added in an
+    earlier run).
     """
 
     def __init__(self, descriptor, database=None, *, exclude_last: int, rule: str | AcceptanceSpec | None = None,
@@ -165,7 +192,11 @@ class LoopClosureDetector:
         self.exclude_last = int(exclude_last)
         self.sequence_length = int(sequence_length)
         self.allow_duplicates = bool(allow_duplicates)
-        self.spec, self.threshold, self.calibration = self._decision_rule(rule, rule_settings, threshold, calibration)
+        source = None
+        if threshold is None and calibration is None:
+            calibration, source = _stored_calibration(database)
+        self.spec, self.threshold, self.calibration = self._decision_rule(rule, rule_settings, threshold, calibration,
+                                                                          source)
         self._owns_database = not isinstance(database, PlaceDatabase)
         self.database = self._database(database, method_options)
         try:
@@ -182,23 +213,25 @@ class LoopClosureDetector:
         self.closures: list[Closure] = []
 
     # ------------------------------------------------------------------ setting up
-    def _decision_rule(self, rule, rule_settings, threshold, calibration):
+    def _decision_rule(self, rule, rule_settings, threshold, calibration, source=None):
         if calibration is not None:
             if threshold is not None:
                 raise ConfigError("give a threshold or a calibration file, not both (the calibration sets the "
                                   "threshold)")
-            calibrated = _load_calibration(calibration, self.descriptor)
+            calibrated, source = _load_calibration(calibration, self.descriptor, self.sequence_length, source)
             spec = calibrated.spec
-            if rule is not None:
-                wanted = rule if isinstance(rule, AcceptanceSpec) else parse_acceptance(str(rule), rule_settings)
+            if rule is not None or rule_settings:
+                wanted = rule if isinstance(rule, AcceptanceSpec) else parse_acceptance(str(rule or spec.name),
+                                                                                       rule_settings)
                 if wanted.to_dict() != spec.to_dict():
-                    raise ConfigError(f"{calibration}: calibrates rule {spec.name!r} with settings {spec.settings}, "
+                    raise ConfigError(f"{source}: calibrates rule {spec.name!r} with settings {spec.settings}, "
                                       f"but rule {wanted.name!r} with settings {wanted.settings} was asked for; "
                                       "its threshold means nothing for another rule")
             return spec, float(calibrated.threshold), calibrated
         if threshold is None:
-            raise ConfigError("a loop closure needs an acceptance threshold: give one (--threshold T) or a "
-                              "calibration file (--calibration FILE, from `fdnet calibrate`)")
+            raise ConfigError("a loop closure needs an acceptance threshold: give one (--threshold T), a "
+                              "calibration file (--calibration FILE, from `fdnet calibrate`), or a database "
+                              "holding a calibration (`fdnet calibrate --db`)")
         if isinstance(threshold, bool) or not isinstance(threshold, (int, float, np.floating, np.integer)) \
                 or not math.isfinite(float(threshold)):
             raise ConfigError(f"threshold must be a finite number, got {threshold!r}")
