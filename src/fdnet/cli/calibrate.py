@@ -109,7 +109,9 @@ def run(args) -> int:
         split = build_split(args)
         measured_on = {"data_root": str(args.data), "reference": args.reference, "query": args.query,
                        "frames": args.frames, "split": args.split, "dataset_format": args.dataset_format,
-                       "tolerance": args.tolerance, "ground_truth_file": args.ground_truth}
+                       "tolerance": args.tolerance if args.tolerance is not None or args.dataset_format
+                       or args.ground_truth else 0,  # frame-aligned folders default to 0
+                       "ground_truth_file": args.ground_truth}
         measured_on = {k: v for k, v in measured_on.items() if v is not None}
         print(f"calibrating {descriptor.name} with rule {spec.name} for precision {args.target_precision:g} on "
               f"{split.description}: {len(split.query)} queries x {len(split.reference)} references", file=sys.stderr)

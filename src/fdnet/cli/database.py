@@ -336,8 +336,8 @@ def _candidates(db, descriptor, paths, results):
     for q, matches in enumerate(results):
         for j, m in enumerate(matches):
             idx[q, j], scores[q, j] = m.index, m.score
-    positions = db.positions()
-    metadata = db.metadata()
+    positions = db.positions
+    metadata = db.metadata
     times = [None if not isinstance(m, dict) else m.get("timestamp") for m in metadata]
     return Candidates(
         idx, scores, similarity_ceiling=float(descriptor.similarity_ceiling),

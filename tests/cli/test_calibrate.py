@@ -1,0 +1,122 @@
+"""`fdnet calibrate`, then `fdnet match --calibration` and `fdnet database query` with it."""
+
+import csv
+
+import numpy as np
+import pytest
+import yaml
+from PIL import Image
+
+from fdnet.cli import main
+
+UNRELATED = (3, 8, 15, 20)
+
+
+@pytest.fixture
+def route(tmp_path):
+    """24 places seen twice (map, now); 'now' frames in UNRELATED show other textures (wrong
+    best matches), the rest are noisy copies."""
+    rng = np.random.default_rng(1)
+    root = tmp_path / "route"
+    for condition in ("map", "now"):
+        (root / condition).mkdir(parents=True)
+    for i in range(24):
+        place = rng.integers(0, 256, size=(24, 32, 3))
+        query = rng.integers(0, 256, size=(24, 32, 3)) if i in UNRELATED else \
+            np.clip(place * 0.25 + rng.normal(0, 90, place.shape), 0, 255)
+        Image.fromarray(place.astype(np.uint8)).save(root / "map" / f"{i:03d}.png")
+        Image.fromarray(query.astype(np.uint8)).save(root / "now" / f"{i:03d}.png")
+    return root
+
+
+def calibrate_args(route, *extra):
+    return ["calibrate", "--data", str(route), "--reference", "map", "--query", "now", "--method", "raw",
+            "--workers", "0", *extra]
+
+
+def rows(path):
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def test_calibrate_then_match_writes_decisions(route, tmp_path, capsys):
+    cal = tmp_path / "cal.yaml"
+    assert main(calibrate_args(route, "--accept", "margin", "--accept-set", "radius=1", "--target-precision", "1",
+                               "--out", str(cal))) == 0
+    printed = capsys.readouterr().out
+    assert "reaches precision 1.000" in printed and f"wrote {cal}" in printed
+    stored = yaml.safe_load(cal.read_text())
+    assert stored["rule"] == "margin" and stored["settings"]["margin"]["radius"] == 1
+    assert stored["target_precision"] == 1.0 and stored["precision"] == 1.0 and 0 < stored["recall"] < 1
+    assert stored["method"] == "raw" and len(stored["fingerprint"]) == 64
+    assert stored["measured_on"]["reference"] == "map" and stored["measured_on"]["tolerance"] == 0
+    assert stored["sequence_length"] == 0
+
+    out = tmp_path / "matches.csv"
+    assert main(["match", "--reference", str(route / "map"), "--query", str(route / "now"), "--method", "raw",
+                 "--top-k", "2", "--calibration", str(cal), "--workers", "0", "--out", str(out)]) == 0
+    written = rows(out)
+    assert {"acceptance_score", "accepted"} <= set(written[0])
+    accepted = [r for r in written if r["accepted"] == "1"]
+    # on the calibration pair itself: exactly the accepted count stored, and all of them right
+    assert len(accepted) == stored["accepted"] and all(r["query"] == r["reference"] for r in accepted)
+    assert not any(r["query"] == f"{i:03d}.png" for r in accepted for i in UNRELATED)  # new places
+    assert len({r["query"] for r in accepted}) == len(accepted)  # at most one per query
+
+
+def test_calibration_in_run_directory_and_database(route, tmp_path, capsys):
+    db = tmp_path / "map.db"
+    assert main(["database", "build", "--images", str(route / "map"), "--method", "raw", "--out", str(db),
+                 "--workers", "0"]) == 0
+    assert main(calibrate_args(route, "--accept", "ratio", "--accept-set", "radius=1", "--target-precision", "0.9",
+                               "--db", str(db))) == 0
+    capsys.readouterr()
+    out = tmp_path / "q.csv"
+    assert main(["database", "query", "--db", str(db), "--images", str(route / "now"), "--top-k", "1",
+                 "--out", str(out), "--workers", "0"]) == 0
+    assert "using the calibration stored in" in capsys.readouterr().err
+    written = rows(out)
+    accepted = [r for r in written if r["accepted"] == "1"]
+    right = sum(r["query"] == r["place"].rsplit("/", 1)[-1] for r in accepted)
+    assert accepted and right / len(accepted) >= 0.9
+
+    # --store-in-run needs a run directory given as --checkpoint
+    assert main(calibrate_args(route, "--store-in-run")) == 2
+    assert "--store-in-run needs the run directory" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--target-precision", "1.5", "--out", "x.yaml"], "--target-precision 1.5: a precision must be in (0, 1]"),
+    (["--target-precision", "0", "--out", "x.yaml"], "must be in (0, 1]"),
+    (["--accept", "nonsense", "--out", "x.yaml"], "unknown acceptance rule 'nonsense'"),
+    (["--accept", "raw,margin", "--out", "x.yaml"], "one rule expression expected"),
+    ([], "nothing to store the calibration in"),
+])
+def test_calibrate_bad_input(route, capsys, extra, message):
+    assert main(calibrate_args(route, *extra)) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("fdnet calibrate: error: ") and message in err and "Traceback" not in err
+
+
+def test_a_calibration_from_another_model_is_refused(route, tmp_path, capsys):
+    cal = tmp_path / "cal.yaml"
+    assert main(calibrate_args(route, "--out", str(cal))) == 0
+    capsys.readouterr()
+    out = tmp_path / "m.csv"
+    assert main(["match", "--reference", str(route / "map"), "--query", str(route / "now"), "--method", "hog",
+                 "--calibration", str(cal), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("fdnet match: error: ") and "calibrated for method 'raw'" in err and "another model" in err
+    assert main(["match", "--reference", str(route / "map"), "--query", str(route / "now"), "--method", "raw",
+                 "--sequence-length", "3", "--calibration", str(cal), "--out", str(out)]) == 2
+    assert "--sequence-length 0, used with 3" in capsys.readouterr().err
+    db = tmp_path / "hog.db"
+    assert main(["database", "build", "--images", str(route / "map"), "--method", "hog", "--out", str(db),
+                 "--workers", "0"]) == 0
+    capsys.readouterr()
+    assert main(["database", "query", "--db", str(db), "--images", str(route / "now"), "--calibration", str(cal),
+                 "--workers", "0"]) == 2
+    assert capsys.readouterr().err.startswith("fdnet database: error: ")
+    # and calibrating raw into a hog database is refused before any work
+    assert main(calibrate_args(route, "--db", str(db))) == 2
+    assert "fingerprint mismatch" in capsys.readouterr().err
