@@ -131,3 +131,20 @@ def test_an_output_path_that_is_a_file_is_refused_before_any_work(route, tmp_pat
     with pytest.raises(ConfigError, match="exists and is not a folder"):
         reproduce(settings(route, out), factory, quiet)
     assert CALLS["pixels.describe"] == 0
+
+
+def test_comparison_shows_r100p_under_the_default_acceptance_rule_beside_raw(route, tmp_path):
+    from fdnet.decisions.acceptance import DEFAULT_ACCEPTANCE
+
+    out = tmp_path / "out"
+    reproduce(settings(route, out, conditions=["day", "night"]), factory, quiet)
+    document = json.loads((out / "comparison.json").read_text())
+    assert document["acceptance"] == DEFAULT_ACCEPTANCE
+    result = document["pairs"][0]["results"][0]
+    assert result["acceptance"] == "raw"  # the paper's columns stay the best-match similarity's
+    per = result["per_acceptance"]
+    assert per["raw"]["recall_at_100_precision"] == result["recall_at_100_precision"]
+    html = (out / "report.html").read_text()
+    section = html[html.index('<section id="comparison">'):html.index("</table>", html.index('<section id="comparison">'))]
+    assert f"<th>R@100P</th><th>R@100P {DEFAULT_ACCEPTANCE}</th>" in section
+    assert f"{per[DEFAULT_ACCEPTANCE]['recall_at_100_precision']:.3f}" in section

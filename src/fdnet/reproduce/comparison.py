@@ -3,7 +3,9 @@ ordered pair of conditions under the paper's protocol (500 uniform thresholds, r
 
 Per pair: R@100P and P@maxR (the paper's two columns), R@1/5/10 and AUC-PR for FDNet, the trunk
 alone and every baseline, the best of each column marked, and the paper's own numbers beside ours
-when the paper reports the same dataset pair; one figure of all methods' PR curves.
+when the paper reports the same dataset pair; one figure of all methods' PR curves. The paper's
+columns threshold the best-match similarity (acceptance rule ``raw``); beside its R@100P stands
+R@100P under fdnet's default acceptance rule (``margin``, :mod:`fdnet.decisions.acceptance`).
 """
 
 from __future__ import annotations
@@ -19,11 +21,19 @@ COLUMNS = (("R@100P", "recall_at_100_precision"), ("P@maxR", "precision_at_max_r
            ("R@5", "5"), ("R@10", "10"), ("AUC-PR", "auc_pr"))
 
 
+def _columns(rule: str | None) -> tuple:
+    """COLUMNS with R@100P under ``rule`` right after the paper's (raw) R@100P."""
+    if not rule or rule == "raw":
+        return COLUMNS
+    return COLUMNS[:1] + ((f"R@100P {rule}", f"accept:{rule}"),) + COLUMNS[1:]
+
+
 def unavailable(ctx) -> str | None:
     return None
 
 
 def run(ctx) -> dict:
+    from fdnet.decisions.acceptance import DEFAULT_ACCEPTANCE
     from fdnet.evaluation import plots
     from fdnet.evaluation.report import format_table
     from fdnet.reproduce.paper import paper_pair
@@ -52,10 +62,13 @@ def run(ctx) -> dict:
             "paper": paper[1] if paper else None,
             "figure": ctx.relative(figure),
         })
-    return {"pairs": pairs, "skipped": ctx.skipped(), "paper_dataset": ctx.dataset}
+    return {"pairs": pairs, "skipped": ctx.skipped(), "paper_dataset": ctx.dataset, "acceptance": DEFAULT_ACCEPTANCE}
 
 
 def _value(result: dict, key: str):
+    if key.startswith("accept:"):
+        per = result.get("per_acceptance", {}).get(key.partition(":")[2])
+        return None if per is None else per.get("recall_at_100_precision")
     return result["recall_at_n"].get(key) if key.isdigit() else result.get(key)
 
 
@@ -73,7 +86,12 @@ def render(document: dict) -> list:
         "uniform over the min-max-normalised best-match scores give the PR curve (paper 5.1.2). "
         "R@100P = largest recall at precision 1; P@maxR = precision at the largest recall; "
         "R@N = queries with a true match among their N best; AUC-PR = area under the PR curve. "
-        "Bold with a star: the best of our methods in that column.")]
+        "Bold with a star: the best of our methods in that column."
+        + (f" R@100P {document['acceptance']}: the same, accepting each query by fdnet's "
+           f"{document['acceptance']} acceptance score instead of its best-match similarity (docs/decisions.md)."
+           if document.get("acceptance") not in (None, "raw") else ""))]
+    columns = _columns(document.get("acceptance"))
+    titles = [title for title, _ in columns]
     if not document.get("paper_dataset"):
         blocks.append(Paragraph("The paper reports no results on this dataset, so no paper numbers are shown "
                                 "(it has Nordland in Table 3; Alderley, Oxford RobotCar, St Lucia and FAS in Table 4).",
@@ -85,9 +103,9 @@ def render(document: dict) -> list:
                               f"{pair['num_queries']} queries ({pair['num_queries_with_match']} with a true match) "
                               f"x {pair['num_references']} references; {pair['ground_truth']}"))
         paper = pair.get("paper") or {}
-        rows = [[r["method"]] + [_value(r, key) for _, key in COLUMNS] for r in pair["results"]]
-        marked = best_cells(rows, list(range(1, len(COLUMNS) + 1)))
-        header = ["method"] + [title for title, _ in COLUMNS]
+        rows = [[r["method"]] + [_value(r, key) for _, key in columns] for r in pair["results"]]
+        marked = best_cells(rows, list(range(1, len(columns) + 1)))
+        header = ["method"] + titles
         if paper:
             header += ["paper R@100P", "paper P@maxR"]
         cells = []
@@ -101,7 +119,7 @@ def render(document: dict) -> list:
         ours = {row[0] for row in rows}
         for method, theirs in paper.items():
             if method not in ours:
-                cells.append([f"{method} ({theirs['paper_name']}, paper only)"] + ["-"] * len(COLUMNS)
+                cells.append([f"{method} ({theirs['paper_name']}, paper only)"] + ["-"] * len(columns)
                              + [number(theirs["recall_at_100_precision"]), number(theirs["precision_at_max_recall"])])
         caption = f"{pair_name(pair['query'], pair['reference'])}"
         if paper:
@@ -109,7 +127,8 @@ def render(document: dict) -> list:
                         f"direction is not stated, so they stand beside both directions)")
         blocks.append(Table(header, cells, caption, marked))
         if "fdnet" in ours:
-            blocks.append(Paragraph(f"FDNet ranks {_rank(rows, 3, 'fdnet')} by R@1 and {_rank(rows, 1, 'fdnet')} "
+            r1, r100p = titles.index("R@1") + 1, titles.index("R@100P") + 1
+            blocks.append(Paragraph(f"FDNet ranks {_rank(rows, r1, 'fdnet')} by R@1 and {_rank(rows, r100p, 'fdnet')} "
                                     f"by R@100P on this pair."))
         blocks.append(Figure(pair["figure"], f"PR curves, {pair_name(pair['query'], pair['reference'])} "
                                              f"(legend: AUC-PR)"))

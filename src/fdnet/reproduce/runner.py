@@ -273,14 +273,19 @@ class Context:
 
     def result(self, handle: MethodHandle, split: EvaluationSplit, key: str):
         """The :class:`~fdnet.evaluation.experiment.MethodResult` of one split under the paper's
-        protocol (500 thresholds), with the descriptor's settings."""
+        protocol (500 thresholds), with the descriptor's settings. Its PR numbers are the paper's
+        (``raw``: the best-match similarity); ``per_acceptance`` adds fdnet's default acceptance
+        rule (:data:`fdnet.decisions.acceptance.DEFAULT_ACCEPTANCE`) beside it."""
+        from fdnet.decisions.acceptance import DEFAULT_ACCEPTANCE
         from fdnet.evaluation.experiment import evaluate_matrix
 
         memo = (handle.label, key)
         if memo not in self._results:
             result = evaluate_matrix(self.similarity(handle, split, key), split.ground_truth, handle.label,
                                      (PROTOCOL,), THRESHOLDS, dataset=split.description,
-                                     query_paths=split.query.paths, reference_paths=split.reference.paths)
+                                     query_paths=split.query.paths, reference_paths=split.reference.paths,
+                                     acceptance=list(dict.fromkeys(["raw", DEFAULT_ACCEPTANCE])),
+                                     similarity_ceiling=float(getattr(handle.descriptor, "similarity_ceiling", 1.0)))
             result.settings = dict(handle.descriptor.settings())
             self._results[memo] = result
         return self._results[memo]
