@@ -355,3 +355,16 @@ def test_a_writer_killed_at_any_moment_leaves_whole_batches(tmp_path):
         assert len(names) % size == 0 and set(batches_of(names).values()) == {size}
         assert len(names) > previous  # the first add was acknowledged, so it must have survived
         previous = len(names)
+
+
+def test_database_metadata_is_stored_in_one_transaction_and_survives_reopening(tmp_path, rng):
+    path = tmp_path / "map.db"
+    with PlaceDatabase.create(path, Projection(), vectors=unit(rng, 3, 8), names=["a", "b", "c"]) as db:
+        assert db.get_metadata("calibration") is None  # no metadata table yet: nothing stored
+        db.set_metadata("calibration", {"rule": "margin", "threshold": 0.25})
+        db.set_metadata("calibration", {"rule": "margin", "threshold": 0.5})  # replaced, not duplicated
+    with PlaceDatabase.open(path) as db:
+        assert db.get_metadata("calibration") == {"rule": "margin", "threshold": 0.5}
+        assert len(db) == 3 and db.info()["places"] == 3
+        with pytest.raises(ConfigError, match="cannot be stored as JSON"):
+            db.set_metadata("bad", {"threshold": float("inf")})
