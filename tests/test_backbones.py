@@ -85,3 +85,45 @@ def test_threads_are_restored():
     with backbone.torch_threads(1):
         assert torch.get_num_threads() == 1
     assert torch.get_num_threads() == before
+
+
+# ------------------------------------------------------------------ every shipped EfficientNet-Lite
+@pytest.mark.parametrize("name", backbone.BACKBONES)
+def test_per_backbone_tables_match_the_built_models(name):
+    """block_channels / block_stride (written out, so no model is loaded to know them) agree with
+    each pretrained model run on a 64x96 input, block by block."""
+    import torch
+
+    model = backbone.pretrained_model(None, name)
+    assert len(model._blocks) == backbone.num_blocks(name)
+    with torch.inference_mode():
+        x = model._swish(model._bn0(model._conv_stem(torch.zeros(1, 3, 64, 96))))
+        for block, module in enumerate(model._blocks):
+            x = module(x)
+            assert x.shape[1] == backbone.block_channels(name, block), (name, block)
+            assert (x.shape[2], x.shape[3]) == backbone.map_size((64, 96), block, name), (name, block)
+            assert 64 // x.shape[2] == backbone.block_stride(name, block), (name, block)
+
+
+def test_lite0_names_keep_working():
+    for block in range(backbone.NUM_BLOCKS):
+        assert backbone.block_channels(None, block) == backbone.BLOCK_CHANNELS[block]
+        assert backbone.block_stride("efficientnet-lite0", block) == backbone.BLOCK_STRIDE[block]
+    assert backbone.num_blocks() == backbone.NUM_BLOCKS == 16
+    assert backbone.num_blocks("efficientnet-lite1") == backbone.num_blocks("efficientnet-lite2") == 21
+
+
+def test_each_backbone_has_its_own_weights(rng):
+    images = rng.random((1, 64, 64, 3), dtype=np.float32)
+    lite1 = backbone.FeatureExtractor(block=10, backbone="efficientnet-lite1", bf16=False)
+    lite2 = backbone.FeatureExtractor(block=10, backbone="efficientnet-lite2", bf16=False)
+    assert lite1.features(images).shape == (1, 80, 4, 4) and lite2.features(images).shape == (1, 88, 4, 4)
+    assert lite1.settings()["backbone"] == "efficientnet-lite1 (ImageNet)"
+    assert backbone.pretrained_model(None, "efficientnet-lite1") is not backbone.pretrained_model()
+
+
+def test_bad_backbone_or_block_names_the_choices():
+    with pytest.raises(ConfigError, match="choose one of efficientnet-lite0, efficientnet-lite1, efficientnet-lite2"):
+        backbone.check_backbone("efficientnet-lite4")
+    with pytest.raises(ConfigError, match="efficientnet-lite1 has blocks 0..20"):
+        backbone.block_channels("efficientnet-lite1", 21)

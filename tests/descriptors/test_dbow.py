@@ -107,3 +107,26 @@ def test_recognises_gardens_point_across_viewpoint():
     idx, _ = top_k(q, r, 1, similarity=d.similarity)
     recall = GroundTruth.aligned(40, 40, 2).correct_mask(idx)[:, 0].mean()
     assert recall > 3 * 5 / 40  # chance <= 5/40; measured 0.62 (depth 3), 0.70 (depth 4)
+
+
+def test_fit_folder_learns_the_vocabulary_and_says_so(tmp_path, rng):
+    from PIL import Image
+
+    for condition in ("day", "night"):
+        (tmp_path / "data" / condition).mkdir(parents=True)
+        for i in range(4):
+            Image.fromarray((rng.random((96, 128, 3)) * 255).astype(np.uint8)).save(
+                tmp_path / "data" / condition / f"{i}.png")
+    d = DBoWDescriptor(input_size=(96, 128), depth=2, fit=str(tmp_path / "data"), fit_frames="0:3")
+    assert not d.needs_fit and d.vocabulary.info["training_images"] == 6
+    settings = d.settings()
+    assert "frames 0:3: 6 images of day (3), night (3)" in settings["fitted_on"]
+    assert settings["vocabulary"].startswith("learned from ") and settings["fit_frames"] == "0:3"
+    reference_fitted = DBoWDescriptor(input_size=(96, 128), depth=2)
+    assert reference_fitted.settings()["fitted_on"] is None
+    reference_fitted.fit(rng.random((3, 96, 128, 3), dtype=np.float32))
+    assert reference_fitted.settings()["fitted_on"] == "reference images (3)"
+    with pytest.raises(ConfigError, match="not both"):
+        DBoWDescriptor(vocabulary=tmp_path / "v.safetensors", fit=str(tmp_path / "data"))
+    with pytest.raises(ConfigError, match="needs fit=DIR"):
+        DBoWDescriptor(fit_frames="0:3")

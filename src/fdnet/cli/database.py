@@ -202,7 +202,7 @@ def run_build(args) -> int:
     ensure_writable(args.out, what="place database")
     descriptor = _create_descriptor(args.method, args)
     if descriptor.needs_fit:
-        raise ConfigError(f"method {descriptor.name!r} must be given what it learns from (e.g. --vocabulary) "
+        raise ConfigError(f"method {descriptor.name!r} must be given what it learns from (--fit DIR, or dbow's --vocabulary) "
                           "to build a database that later queries can reuse")
     if index.kind != "flat" and not descriptor.dot_product_similarity:
         raise ConfigError(f"--index {index.kind}: method {descriptor.name!r} does not compare vectors by dot "

@@ -306,14 +306,14 @@ class DBoWDescriptor(Descriptor):
         self.branching = int(branching)
         self.depth = int(depth)
         self.seed = int(seed)
+        self.fit_folder = str(fit) if fit else None
+        self.fit_frames = check_fit_frames(fit_frames, "dbow")
+        if (self.fit_folder or self.fit_frames) and vocabulary:
+            raise ConfigError("dbow: give either a vocabulary file or a folder to learn one from (--fit), not both")
         self.vocabulary_path = str(vocabulary) if vocabulary else None
         self.vocabulary: Vocabulary | None = Vocabulary.load(vocabulary) if vocabulary else None
         if self.vocabulary is not None:
             self.branching, self.depth = self.vocabulary.branching, self.vocabulary.depth
-        self.fit_folder = str(fit) if fit else None
-        self.fit_frames = check_fit_frames(fit_frames, "dbow")
-        if (self.fit_folder or self.fit_frames) and self.vocabulary is not None:
-            raise ConfigError("dbow: give either a vocabulary file or a folder to learn one from (--fit), not both")
         if self.fit_frames and not self.fit_folder:
             raise ConfigError(f"dbow: fit_frames ({self.fit_frames}) needs fit=DIR (--fit DIR) to take the frames of")
         self.fitted_on = ("vocabulary file" if self.vocabulary is not None else None)

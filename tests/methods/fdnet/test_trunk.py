@@ -133,3 +133,14 @@ def test_condition_means_init_removes_the_direction_between_the_conditions():
     torch.testing.assert_close(content[0].mean(0), content[1].mean(0), atol=1e-4, rtol=0)
     with pytest.raises(ConfigError, match="residual_init"):
         FDNet(FDNetConfig(**{**RESIDUAL, "residual_init": "pca"}))
+
+
+def test_a_lite2_trunk_matches_its_feature_extractor():
+    from fdnet.backbones import FeatureExtractor
+
+    images = np.random.default_rng(0).random((2, 32, 64, 3), dtype=np.float32)
+    trunk = FrozenTrunk(12, backbone="efficientnet-lite2")
+    assert trunk.channels == 120 and trunk_map_size((32, 64), 12, "efficientnet-lite2") == (2, 4)
+    ours = trunk(torch.from_numpy(images).permute(0, 3, 1, 2))
+    reference = FeatureExtractor(block=12, backbone="efficientnet-lite2", bf16=False).features(images)
+    np.testing.assert_allclose(ours.numpy(), reference, rtol=1e-4, atol=1e-4)
