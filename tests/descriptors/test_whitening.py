@@ -77,3 +77,12 @@ def test_limits_and_bad_input(rng):
         PCAWhitening.fit(np.full((5, 4), np.nan), 2)
     with pytest.raises(DataError, match="vectors of length 30"):
         PCAWhitening.fit(train, 4).transform(np.ones((2, 31)))
+
+
+def test_a_shorter_whitening_is_the_leading_part_of_a_longer_one(rng):
+    # what lets one decomposition serve every L (docs/trunk.md's measurements rely on it)
+    train = _correlated(rng, 40, 60)
+    x = _correlated(rng, 6, 60)
+    long, short = PCAWhitening.fit(train, 20), PCAWhitening.fit(train, 7)
+    cut = PCAWhitening(long.mean, long.components[:7], long.eigenvalues[:7])
+    np.testing.assert_allclose(cut.transform(x), short.transform(x), atol=1e-4)

@@ -11,6 +11,8 @@ def register(sub) -> None:
 def run(args) -> int:
     from fdnet.descriptors.registry import available_methods
 
-    for name, summary in available_methods().items():
-        print(f"{name:10s} {summary}")
+    methods = available_methods()
+    width = max(map(len, methods))
+    for name, summary in methods.items():
+        print(f"{name:{width}s} {summary}")
     return 0
