@@ -71,7 +71,9 @@ def test_whitening_learnt_from_made_images_equals_an_independent_pca():
     train, test = _made_images(16), _made_images(5, seed=1)
     whitened = create("trunk-whitened", dim=6, **SMALL)
     assert whitened.needs_fit and whitened.dim == 6
+    unfitted = whitened.fingerprint()  # reproduce keys its caches on the unfitted copy
     whitened.fit(train)
+    assert whitened.fingerprint() != unfitted
     assert not whitened.needs_fit and whitened.settings()["fitted_on"] == "reference images (16)"
     got = whitened.describe(test)
     # independently: the trunk's own vectors, scikit-learn's whitening PCA, L2

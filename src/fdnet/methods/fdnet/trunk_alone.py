@@ -204,6 +204,9 @@ class TrunkWhitenedDescriptor(TrunkDescriptor):
         return self._whitening.transform(self._raw(images))
 
     def fingerprint(self) -> str:
-        # the whitening is part of what the vectors are: learn it before hashing
-        self._ensure_fitted()
+        # The whitening is part of what the vectors are: with a fit folder, learn it before hashing.
+        # Without one, an unfitted copy hashes as it is (reproduce keys its caches on that plus the
+        # reference images it is then fitted on), a fitted one with its whitening.
+        if self.fit_folder:
+            self._ensure_fitted()
         return super().fingerprint()
