@@ -209,3 +209,17 @@ def test_a_calibration_of_another_model_sequence_length_or_rule_is_refused(tmp_p
         LoopClosureDetector(RawThumbnail(), exclude_last=3, calibration=single, rule="ratio")
     with pytest.raises(ConfigError, match="not both"):
         LoopClosureDetector(RawThumbnail(), exclude_last=3, calibration=single, threshold=0.1)
+
+
+def test_storing_frames_in_batches_changes_no_decision(tmp_path):
+    route = revisit_route()
+    _, expected = run(route)
+    detector = LoopClosureDetector(RawThumbnail(), tmp_path / "map.db", exclude_last=3, rule="margin",
+                                   threshold=0.2, commit_every=5)
+    events = [detector.process(im, name=f"frame_{i}") for i, im in enumerate(route[:7])]
+    assert len(detector.database) == 5 and detector.places == 7  # two frames wait for the next batch
+    events += [detector.process(im, name=f"frame_{i}") for i, im in enumerate(route[7:], start=7)]
+    detector.close()
+    assert events == expected
+    with PlaceDatabase.open(tmp_path / "map.db") as db:
+        assert db.names == [f"frame_{i}" for i in range(len(route))]

@@ -72,6 +72,10 @@ def register(sub) -> None:
                         "references are the database's places (for a new database, the same frames), e.g. "
                         "`fdnet groundtruth --positions route.csv route.csv` or a frame list "
                         "query_index,reference_indices")
+    p.add_argument("--commit-every", type=_whole_number(1), default=1, metavar="N",
+                   help="frames stored in --db per transaction (default 1: every frame is on disk before the next "
+                        "is read, one fsync each; N > 1 is faster and changes no decision, but a crash loses up to "
+                        "N - 1 frames of the database)")
     p.add_argument("--report", metavar="JSON", help="write the run's summary (and evaluation) as JSON")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_pipeline_arguments(p, batch_size=16)
@@ -108,7 +112,8 @@ def run(args) -> int:
         args.images, descriptor, args.db, exclude_last=args.exclude_last, events_csv=args.out,
         events_jsonl=args.jsonl, rule=args.accept, rule_settings=args.accept_set or None, threshold=args.threshold,
         calibration=args.calibration, sequence_length=args.sequence_length, ground_truth=args.ground_truth,
-        method_options=_file_options(args, args.method), batch_size=args.batch_size, workers=args.workers,
+        method_options=_file_options(args, args.method), commit_every=args.commit_every,
+        batch_size=args.batch_size, workers=args.workers,
         progress=not args.no_progress and sys.stderr.isatty(), log=None)
     print(f"wrote {args.out}" + (f" and {args.jsonl}" if args.jsonl else "")
           + f": {report.closures} loop closures in {report.frames} frames ({report.rule} >= {report.threshold:g}), "

@@ -156,6 +156,20 @@ def _load_calibration(calibration, descriptor, sequence_length: int, source: str
     return calibration, source
 
 
+_BLAS = None
+
+
+def _single_blas_thread():
+    """A context in which numpy's BLAS runs one thread (threadpoolctl, the controller made once:
+    making it per frame would cost more than the product)."""
+    global _BLAS
+    if _BLAS is None:
+        from threadpoolctl import ThreadpoolController
+
+        _BLAS = ThreadpoolController()
+    return _BLAS.limit(limits=1, user_api="blas")
+
+
 class LoopClosureDetector:
     """Online loop-closure detection over a place database (see the module docstring).
 
@@ -172,12 +186,15 @@ class LoopClosureDetector:
     calibration stored in the database (``fdnet calibrate --db``) is used. ``method_options``:
     what rebuilds the descriptor, recorded in a database created here. ``allow_duplicates``: add
     a frame whose name the database already holds (default: refuse it, it was added in an
-    earlier run).
+    earlier run). ``commit_every``: frames stored per database transaction; 1 (default) makes
+    every frame durable before :meth:`process` returns (one fsync per frame); N > 1 stores them
+    N at a time (the rest at :meth:`flush`/:meth:`close`), which changes no decision (the
+    detector searches its own copy of the vectors) but a crash loses up to N - 1 frames.
     """
 
     def __init__(self, descriptor, database=None, *, exclude_last: int, rule: str | AcceptanceSpec | None = None,
                  rule_settings=None, threshold: float | None = None, calibration=None, sequence_length: int = 1,
-                 method_options: dict | None = None, allow_duplicates: bool = False):
+                 method_options: dict | None = None, allow_duplicates: bool = False, commit_every: int = 1):
         from fdnet.matching.database import PlaceDatabase
 
         if isinstance(exclude_last, bool) or not isinstance(exclude_last, (int, np.integer)) or exclude_last < 0:
@@ -185,6 +202,8 @@ class LoopClosureDetector:
         if isinstance(sequence_length, bool) or not isinstance(sequence_length, (int, np.integer)) \
                 or sequence_length < 1:
             raise ConfigError(f"sequence length must be a whole number of at least 1, got {sequence_length!r}")
+        if isinstance(commit_every, bool) or not isinstance(commit_every, (int, np.integer)) or commit_every < 1:
+            raise ConfigError(f"commit-every must be a whole number of at least 1, got {commit_every!r}")
         if getattr(descriptor, "needs_fit", False):
             raise ConfigError(f"method {descriptor.name!r} must be given what it learns from (e.g. a vocabulary) "
                               "before it can describe frames online")
@@ -192,6 +211,9 @@ class LoopClosureDetector:
         self.exclude_last = int(exclude_last)
         self.sequence_length = int(sequence_length)
         self.allow_duplicates = bool(allow_duplicates)
+        self.commit_every = int(commit_every)
+        # frames decided but not yet stored (commit_every > 1): vectors, names, positions, metadata
+        self._pending: list[tuple] = []
         source = None
         if threshold is None and calibration is None:
             calibration, source = _stored_calibration(database)
@@ -261,6 +283,7 @@ class LoopClosureDetector:
     def _load_places(self) -> None:
         db = self.database
         self._names: list[str] = db.names
+        self._known = set(self._names)
         self._vectors = _Vectors(db.dim, db.vectors)
         positions = db.positions
         self._positions: list | None = positions if all(p is not None for p in positions) else None
@@ -317,6 +340,9 @@ class LoopClosureDetector:
         name = f"loop-closure-{self._session}/frame_{t:06d}" if name is None else str(name)
         if not np.isfinite(v).all():
             raise DataError(f"{name}: its {self.descriptor.name} vector is not finite (NaN or inf)")
+        if name in self._known and not self.allow_duplicates:
+            raise DataError(f"{self.database.path}: already holds a place named {name!r} (added in an earlier run?); "
+                            "give each frame a new name, or allow duplicates")
         if timestamp is not None and (isinstance(timestamp, bool) or not isinstance(timestamp, (int, float))
                                       or not math.isfinite(timestamp)):
             raise DataError(f"{name}: timestamp must be a finite number of seconds, got {timestamp!r}")
@@ -327,8 +353,14 @@ class LoopClosureDetector:
             searchable = count
         else:  # frames t-N..t-1 excluded: the places there were before frame t-N was added
             searchable = self._before[max(t - self.exclude_last, 0)]
-        row = (np.asarray(self.descriptor.similarity(v[None], self._vectors.view()), dtype=np.float32)[0]
-               if count else np.zeros(0, np.float32))
+        if count:
+            # One row against the map is a memory-bound matrix-vector product: BLAS threads only
+            # add synchronisation, and on shared cores they made it ~5x slower (17 ms vs 3.7 ms
+            # for 3000 x 2048 on the 2-core machine of docs/loop-closure.md).
+            with _single_blas_thread():
+                row = np.asarray(self.descriptor.similarity(v[None], self._vectors.view()), dtype=np.float32)[0]
+        else:
+            row = np.zeros(0, np.float32)
         if self.sequence_length > 1:
             from fdnet.matching.sequence import online_sequence_scores
 
@@ -380,18 +412,10 @@ class LoopClosureDetector:
         metadata = {"loop_closure_frame": self.frames, "session": self._session}
         if timestamp is not None:
             metadata["timestamp"] = float(timestamp)
-        result = self.database.add(v[None], [name], None if position is None else [position],
-                                   metadata=[metadata], allow_duplicates=self.allow_duplicates)
-        if result.added != 1:
-            raise DataError(f"{self.database.path}: already holds a place named {name!r} (added in an earlier run?); "
-                            "give each frame a new name, or allow duplicates")
-        if result.places != self.places + 1:
-            # Another process added places since we last looked: reload, so place indices stay
-            # the database's (rare; the whole map is read again).
-            self._load_places()
-            return
+        self._pending.append((v, name, position, metadata))
         self._vectors.append(v)
         self._names.append(name)
+        self._known.add(name)
         if self._positions is not None:
             if position is None:
                 self._positions = None
@@ -402,11 +426,35 @@ class LoopClosureDetector:
                 self._times = None
             else:
                 self._times.append(float(timestamp))
+        if len(self._pending) >= self.commit_every:
+            self.flush()
+
+    def flush(self) -> None:
+        """Store the frames not stored yet, in one transaction."""
+        if not self._pending:
+            return
+        vectors, names, positions, metadata = zip(*self._pending)
+        result = self.database.add(np.stack(vectors), list(names),
+                                   None if all(p is None for p in positions) else list(positions),
+                                   metadata=list(metadata), allow_duplicates=self.allow_duplicates)
+        self._pending = []
+        if result.added != len(names):
+            raise DataError(f"{self.database.path}: already holds place(s) named {', '.join(result.skipped[:3])} "
+                            "(added by another process?); they were not added again")
+        if result.places != self.places:
+            # Another process added places since we last looked: reload, so place indices stay
+            # the database's (rare; the whole map is read again).
+            self._load_places()
 
     def close(self) -> None:
-        """Close the database if the detector opened it."""
-        if self._owns_database and getattr(self, "database", None) is not None:
-            self.database.close()
+        """Store the frames not stored yet; close the database if the detector opened it."""
+        try:
+            if getattr(self, "_pending", None) and getattr(self, "database", None) is not None:
+                self.flush()
+        finally:
+            if self._owns_database and getattr(self, "database", None) is not None:
+                self.database.close()
+                self.database = None
 
     def __enter__(self) -> "LoopClosureDetector":
         return self
@@ -571,8 +619,9 @@ def run_traverse(images: str | os.PathLike, descriptor, database=None, *, exclud
                  events_csv: str | os.PathLike, events_jsonl: str | os.PathLike | None = None,
                  rule: str | None = None, rule_settings=None, threshold: float | None = None, calibration=None,
                  sequence_length: int = 1, ground_truth: str | os.PathLike | None = None,
-                 method_options: dict | None = None, batch_size: int = 16, workers: int | None = None,
-                 progress: bool = False, log: Callable[[str], None] | None = None) -> TraverseReport:
+                 method_options: dict | None = None, commit_every: int = 1, batch_size: int = 16,
+                 workers: int | None = None, progress: bool = False,
+                 log: Callable[[str], None] | None = None) -> TraverseReport:
     """Run a :class:`LoopClosureDetector` over the images of one folder (one traverse, in
     fdnet's one image order), writing each accepted closure to ``events_csv`` (and
     ``events_jsonl``) as it is accepted (:class:`EventLog`). ``database``: a place-database file
@@ -580,7 +629,8 @@ def run_traverse(images: str | os.PathLike, descriptor, database=None, *, exclud
     CSV of :class:`~fdnet.data.groundtruth.GroundTruth` (``fdnet groundtruth`` from positions,
     or a frame list ``query_index,reference_indices``) whose queries are the frames and whose
     references are the database's places (for a new database: the same frames); the run is
-    then evaluated (:func:`evaluate_decisions`). Frames are described ``batch_size`` at a time
+    then evaluated (:func:`evaluate_decisions`). ``commit_every``: frames per database
+    transaction (see :class:`LoopClosureDetector`). Frames are described ``batch_size`` at a time
     (each vector depends only on its own image, so this changes no decision) with a progress bar
     in frames/s when ``progress``. Every refusal (paths, rule, calibration, ground truth,
     database) comes before the first frame is described.
@@ -600,7 +650,8 @@ def run_traverse(images: str | os.PathLike, descriptor, database=None, *, exclud
     names = [str(p.resolve()) for p in paths]
     with LoopClosureDetector(descriptor, database, exclude_last=exclude_last, rule=rule,
                              rule_settings=rule_settings, threshold=threshold, calibration=calibration,
-                             sequence_length=sequence_length, method_options=method_options) as detector:
+                             sequence_length=sequence_length, method_options=method_options,
+                             commit_every=commit_every) as detector:
         db = detector.database
         already = db.existing_names(names)
         if already:
@@ -642,6 +693,7 @@ def run_traverse(images: str | os.PathLike, descriptor, database=None, *, exclud
         finally:
             if bar is not None:
                 bar.close()
+        detector.flush()
         seconds = time.perf_counter() - t0
         report = TraverseReport(
             frames=detector.frames, closures=len(detector.closures), seconds=seconds, places_before=places_before,
