@@ -200,3 +200,99 @@ def test_verified_rule_scores_by_inliers_and_gates_after_plus(scene):
 def test_verified_rule_needs_images():
     with pytest.raises(ConfigError, match="looks at the images"):
         decide(parse_acceptance("verified"), Candidates(retrieved=np.array([[0]]), scores=np.array([[1.0]])))
+
+
+# ---------------------------------------------------------------------------- the CLI path
+@pytest.fixture
+def textured_route(tmp_path):
+    """references: six textured 160x120 scenes; queries: warped copies of the first five, and an
+    unrelated scene in place of the sixth (its frame-aligned reference shows something else)."""
+    root = tmp_path / "route"
+    (root / "map").mkdir(parents=True)
+    (root / "moved").mkdir()
+    for i in range(6):
+        scene = textured(100 + i, 120, 160)
+        save(root / "map" / f"{i:03d}.png", scene)
+        save(root / "moved" / f"{i:03d}.png", warped(scene) if i < 5 else textured(200, 120, 160))
+    return root
+
+
+def _evaluate(root, *extra):
+    return ["evaluate", "--data", str(root), "--reference", "map", "--query", "moved", "--method", "hog",
+            "--workers", "0", *extra]
+
+
+def test_cli_evaluate_with_verified_rules(textured_route, tmp_path, capsys):
+    import json
+
+    from fdnet.cli import main
+
+    out = tmp_path / "results.json"
+    assert main(_evaluate(textured_route, "--accept", "verified,margin+verified", "--accept-set", "margin:radius=0",
+                          "--json", str(out))) == 0
+    printed = capsys.readouterr().out
+    assert "verified" in printed and "margin+verified" in printed
+    result = json.loads(out.read_text())
+    assert result["acceptance"] == "verified"
+    verified = result["per_acceptance"]["verified"]
+    # thresholds of the verified rule are inlier counts: the warped copies have many, and rank first
+    assert max(t for t in verified["pr_curve"]["thresholds"] if t is not None) >= 40
+    assert verified["recall_at_100_precision"] >= 5 / 6 - 1e-6
+    gated = result["per_acceptance"]["margin+verified"]
+    # the unrelated sixth query is rejected by the gate whatever its margin: every accepted match is right
+    assert gated["precision_at_max_recall"] == 1.0
+    assert gated["recall_at_100_precision"] == pytest.approx(5 / 6)
+    assert set(result["timing"]["acceptance_ms_per_query"]) == {"verified", "margin+verified"}
+    assert result["timing"]["acceptance_ms_per_query"]["verified"] > 0
+
+
+def test_cli_reranking_by_inliers(textured_route, tmp_path, capsys):
+    import json
+
+    from fdnet.cli import main
+
+    out = tmp_path / "results.json"
+    assert main(_evaluate(textured_route, "--accept", "verified", "--accept-set", "verified:rerank=true",
+                          "--accept-set", "verified:features=orb", "--json", str(out))) == 0
+    result = json.loads(out.read_text())
+    assert result["acceptance_settings"]["verified"]["rerank"] is True
+    assert result["acceptance_settings"]["verified"]["features"] == "orb"
+    # re-ranked among the top 5 (all six references here): each warped copy finds its original
+    assert max(result["pr_curve"]["recall"]) >= 5 / 6 - 1e-6
+
+
+@pytest.mark.parametrize("setting, message", [
+    ("verified:features=surf", "verification setting features='surf': unknown local features"),
+    ("verified:ratio=2", r"verification setting ratio=2: must be in (0, 1]"),
+    ("verified:min_inliers=-3", "verification setting min_inliers=-3: must be a whole number >= 0"),
+    ("verified:colour=red", "no setting 'colour' in rule verified"),
+])
+def test_cli_bad_verification_settings(textured_route, capsys, setting, message):
+    from fdnet.cli import main
+
+    assert main(_evaluate(textured_route, "--accept", "margin+verified", "--accept-set", setting)) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("fdnet evaluate: error: ") and message in err and "Traceback" not in err
+
+
+def test_cli_thumbnails_are_refused_before_describing(tmp_path, capsys, monkeypatch):
+    from fdnet.cli import main
+    from fdnet.evaluation import experiment
+
+    def never(*args, **kwargs):
+        raise AssertionError("images were described before the size check")
+
+    monkeypatch.setattr(experiment, "describe_paths", never)
+
+    root = tmp_path / "thumbs"
+    for condition in ("summer", "winter"):
+        (root / condition).mkdir(parents=True)
+        for i in range(3):
+            save(root / condition / f"images-{i:05d}.png", textured(i, 32, 64))
+    argv = ["evaluate", "--data", str(root), "--reference", "summer", "--query", "winter", "--method", "hog",
+            "--accept", "verified", "--workers", "0"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "\nfdnet evaluate: error: " in err and "Traceback" not in err
+    assert "winter/images-00000.png: 64x32 pixels is too small for geometric verification" in err
+    assert "at least 80 pixels" in err

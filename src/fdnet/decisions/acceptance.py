@@ -183,7 +183,10 @@ class Rule:
     """A named acceptance rule: a ``score`` function, a ``gate`` function, or both (see the module
     docstring for their signatures). ``defaults`` lists every setting (None = must be set when it
     is used, or optional as the rule documents). ``depth(settings)`` says how many candidates per
-    query the rule needs (None = one). ``validate(settings)`` raises ConfigError on a bad value."""
+    query the rule needs (None = one). ``validate(settings)`` raises ConfigError on a bad value.
+    ``check_images(settings, query_paths, reference_paths)``, for rules that look at the images,
+    raises DataError when they cannot be used (e.g. too small for local features), so evaluation
+    stops before describing anything."""
 
     name: str
     description: str
@@ -193,6 +196,7 @@ class Rule:
     depth: Callable[[Mapping[str, object]], int] | None = None
     validate: Callable[[Mapping[str, object]], None] | None = None
     needs: frozenset = frozenset()
+    check_images: Callable[[Mapping[str, object], Sequence[Path], Sequence[Path]], None] | None = None
 
 
 _RULES: dict[str, Rule] = {}
@@ -266,6 +270,13 @@ class AcceptanceSpec:
         for name, _ in self.parts:
             out |= set(get_rule(name).needs)
         return frozenset(out)
+
+    def check_images(self, query_paths: Sequence[Path], reference_paths: Sequence[Path]) -> None:
+        """Each part's ``Rule.check_images`` (DataError when the images cannot be used)."""
+        for name, values in self.parts:
+            rule = get_rule(name)
+            if rule.check_images is not None:
+                rule.check_images(values, query_paths, reference_paths)
 
     def to_dict(self) -> dict:
         return {"rule": self.name, "settings": self.settings}

@@ -493,6 +493,13 @@ def _verified_gate(candidates, match, **values):
     return passed
 
 
+def _check_images(values, query_paths, reference_paths) -> None:
+    """Before any work: the first query and the first reference are large enough (file headers
+    only); every image is checked again when it is described."""
+    settings, _ = _rule_settings(values)
+    shared_verifier(settings).check_paths(list(query_paths[:1]) + list(reference_paths[:1]))
+
+
 def _validate_rule(values) -> None:
     _rule_settings(values)
 
@@ -507,7 +514,7 @@ def _register() -> None:
         description="geometric verification: inlier count of the best candidate (local features, ratio test, "
                     "fundamental matrix or homography by MAGSAC); as a gate after '+': at least min_inliers",
         defaults=dict(RULE_DEFAULTS), score=_verified_score, gate=_verified_gate, depth=_depth,
-        validate=_validate_rule, needs=frozenset({"images"})))
+        validate=_validate_rule, needs=frozenset({"images"}), check_images=_check_images))
 
 
 _register()

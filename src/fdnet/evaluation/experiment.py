@@ -135,13 +135,20 @@ def _acceptance_specs(acceptance) -> list[AcceptanceSpec]:
     return [parse_acceptance(a) if isinstance(a, str) else a for a in acceptance]
 
 
-def _decide_and_score(retrieved, scores, gt, protocols, thresholds, ns, specs, candidates_context):
-    """(metrics of the first rule, by_acceptance, decisions) for ranked candidates."""
+def _decide_and_score(retrieved, scores, gt, protocols, thresholds, ns, specs, candidates_context, timing=None):
+    """(metrics of the first rule, by_acceptance, decisions) for ranked candidates. ``timing``, when
+    given, gets ``acceptance_ms_per_query``: each rule's wall time over the queries (what a rule
+    that looks at images, e.g. geometric verification, costs; a later rule reusing an earlier
+    one's verified pairs costs less)."""
     candidates = Candidates(retrieved, scores, **candidates_context)
     by_acceptance: dict[str, dict[str, Metrics]] = {}
     decisions: dict[str, Decision] = {}
     for spec in specs:
+        t0 = time.perf_counter()
         decision = decide(spec, candidates)
+        if timing is not None:
+            timing.setdefault("acceptance_ms_per_query", {})[spec.name] = \
+                1000.0 * (time.perf_counter() - t0) / max(candidates.num_queries, 1)
         decisions[spec.name] = decision
         by_acceptance[spec.name] = _metrics(retrieved, scores, gt, protocols, thresholds, ns, decision)
     return by_acceptance[specs[0].name], by_acceptance, decisions
@@ -183,6 +190,8 @@ def evaluate_method(
     specs = _acceptance_specs(acceptance)
     say = log or (lambda message: None)
     ref_paths, query_paths = list(split.reference.paths), list(split.query.paths)
+    for spec in specs:  # e.g. images too small for geometric verification: say so before describing
+        spec.check_images(query_paths, ref_paths)
     notes: list[str] = []
     timing: dict = {}
 
@@ -237,7 +246,7 @@ def evaluate_method(
     context = {"similarity_ceiling": float(descriptor.similarity_ceiling), "query_paths": query_paths,
                "reference_paths": ref_paths}
     metrics, by_acceptance, decisions = _decide_and_score(retrieved, scores, split.ground_truth, protocols,
-                                                          thresholds, ns, specs, context)
+                                                          thresholds, ns, specs, context, timing)
     return MethodResult(
         method=descriptor.name,
         metrics=metrics,
