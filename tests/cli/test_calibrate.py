@@ -120,3 +120,20 @@ def test_a_calibration_from_another_model_is_refused(route, tmp_path, capsys):
     # and calibrating raw into a hog database is refused before any work
     assert main(calibrate_args(route, "--db", str(db))) == 2
     assert "fingerprint mismatch" in capsys.readouterr().err
+
+
+def test_match_with_an_uncalibrated_rule_writes_its_scores_only(route, tmp_path, capsys):
+    out = tmp_path / "m.csv"
+    assert main(["match", "--reference", str(route / "map"), "--query", str(route / "now"), "--method", "raw",
+                 "--top-k", "1", "--accept", "margin", "--accept-set", "radius=1", "--workers", "0",
+                 "--out", str(out)]) == 0
+    written = rows(out)
+    assert "acceptance_score" in written[0] and "accepted" not in written[0]
+    # an unrelated query (wrong best) has a smaller margin than most right ones
+    score = {r["query"]: float(r["acceptance_score"]) for r in written}
+    unrelated = [score[f"{i:03d}.png"] for i in UNRELATED]
+    right = [v for k, v in score.items() if int(k[:3]) not in UNRELATED]
+    assert np.median(unrelated) < np.median(right)
+    assert main(["match", "--reference", str(route / "map"), "--query", str(route / "now"), "--method", "raw",
+                 "--accept-set", "radius=1", "--out", str(out)]) == 2
+    assert "--accept-set needs --accept" in capsys.readouterr().err

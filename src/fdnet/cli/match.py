@@ -13,7 +13,9 @@ instead of describing the map again.
 calibrated acceptance rule's score (``acceptance_score``, on every row of the query) and
 ``accepted`` (1 on the row of the match the rule accepts when its score reaches the calibrated
 threshold, else 0; a query without an accepted row is a new place). A calibration made for
-another model (descriptor fingerprint) or another ``--sequence-length`` is refused.
+another model (descriptor fingerprint) or another ``--sequence-length`` is refused. Without a
+calibration, ``--accept RULE`` adds the rule's ``acceptance_score`` alone (no threshold, so no
+``accepted``).
 """
 
 from __future__ import annotations
@@ -51,6 +53,11 @@ def register(sub) -> None:
                    help="a calibration from `fdnet calibrate` (YAML, or a run directory holding calibration.yaml): "
                         "adds acceptance_score and accepted columns (accepted 1 = the revisit the calibrated rule "
                         "accepts; none in a query = a new place)")
+    p.add_argument("--accept", metavar="RULE",
+                   help="without --calibration: add the acceptance_score column of this rule (margin, ratio, raw, "
+                        "...; docs/decisions.md), with no threshold")
+    p.add_argument("--accept-set", action="append", default=[], metavar="[RULE:]KEY=VALUE",
+                   help="a setting of the --accept rule (repeatable), e.g. radius=3")
     p.add_argument("--out", required=True,
                    help="CSV to write: query_index,query,rank,reference_index,reference,score (indices are "
                         "positions in natural file-name order, names the image file names)")
@@ -121,8 +128,18 @@ def run(args) -> int:
         ensure_writable(args.index_file, what="index file")
     ref_paths, query_paths = list_images(args.reference), list_images(args.query)
     descriptor = create_descriptor(args.method, args)
-    calibration = None
+    calibration = spec = None
     depth = args.top_k
+    if args.calibration and (args.accept or args.accept_set):
+        raise ConfigError("--accept/--accept-set and --calibration: the calibration holds its rule and settings; "
+                          "give one or the other")
+    if args.accept_set and not args.accept:
+        raise ConfigError("--accept-set needs --accept RULE")
+    if args.accept:
+        from fdnet.decisions.acceptance import parse_acceptance
+
+        spec = parse_acceptance(args.accept, args.accept_set)
+        depth = max(args.top_k, spec.depth)
     if args.calibration:
         from fdnet.decisions.calibration import load_calibration
 
@@ -176,22 +193,28 @@ def run(args) -> int:
     writer = csv.writer(buffer)
     header = ["query_index", "query", "rank", "reference_index", "reference", "score"]
     decision = accepted = None
-    if calibration is not None:
-        from fdnet.decisions.acceptance import Candidates
+    if calibration is not None or spec is not None:
+        from fdnet.decisions.acceptance import Candidates, decide
 
-        decision, accepted = calibration.decide(Candidates(
-            indices, scores, similarity_ceiling=float(descriptor.similarity_ceiling), query_paths=query_paths,
-            reference_paths=ref_paths))
-        header += ["acceptance_score", "accepted"]
+        candidates = Candidates(indices, scores, similarity_ceiling=float(descriptor.similarity_ceiling),
+                                query_paths=query_paths, reference_paths=ref_paths)
+        if calibration is not None:
+            decision, accepted = calibration.decide(candidates)
+            header += ["acceptance_score", "accepted"]
+        else:
+            decision = decide(spec, candidates)
+            header += ["acceptance_score"]
     writer.writerow(header)
     for q, (row_i, row_s) in enumerate(zip(indices, scores)):
         for rank, (i, s) in enumerate(zip(row_i, row_s), start=1):
-            chosen = decision is not None and i == decision.match[q]
+            chosen = accepted is not None and i == decision.match[q] and bool(accepted[q])
             # rows beyond --top-k only for the match the rule accepted (a re-ranking rule may pick it)
-            if i >= 0 and (rank <= args.top_k or (chosen and accepted[q])):
+            if i >= 0 and (rank <= args.top_k or chosen):
                 row = [q, query_paths[q].name, rank, int(i), ref_paths[i].name, f"{float(s):.6f}"]
                 if decision is not None:
-                    row += [f"{decision.score[q]:.6f}", int(bool(chosen and accepted[q]))]
+                    row.append(f"{decision.score[q]:.6f}")
+                if accepted is not None:
+                    row.append(int(chosen))
                 writer.writerow(row)
     atomic_write_text(args.out, buffer.getvalue())
     print(f"wrote {args.out}: top-{args.top_k} of {len(ref_paths)} references for {len(query_paths)} queries "
