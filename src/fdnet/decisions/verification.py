@@ -58,9 +58,11 @@ ImageSource = Union[str, os.PathLike, np.ndarray]
 class VerificationSettings:
     """How candidates are verified. Every field is a ``--verify-set KEY=VALUE`` of the CLI."""
 
-    #: local features: sift (float descriptors, L2), orb or akaze (binary, Hamming)
-    features: str = "sift"
-    #: keypoints kept per image (SIFT and ORB: the strongest; AKAZE: its detector threshold decides)
+    #: local features: akaze or orb (binary descriptors, Hamming) or sift (float, L2). AKAZE by
+    #: measurement (docs/decisions.md, "Geometric verification"): on Gardens Point it re-ranked best
+    #: and cost least of the three
+    features: str = "akaze"
+    #: keypoints kept per image (the strongest responses)
     max_features: int = 2000
     #: images are shrunk so their longer side is at most this many pixels (never enlarged)
     max_side: int = 640
@@ -275,6 +277,10 @@ class Verifier:
             found = ImageFeatures(np.zeros((0, 2), np.float32), np.zeros((0, dim), dtype), grey.shape[::-1])
         else:
             points = np.array([kp.pt for kp in keypoints], dtype=np.float32)
+            if len(keypoints) > self.settings.max_features:
+                # AKAZE has no feature budget of its own: keep the strongest responses, as SIFT/ORB do
+                strongest = np.argsort([-kp.response for kp in keypoints], kind="stable")[:self.settings.max_features]
+                points, descriptors = points[strongest], descriptors[strongest]
             found = ImageFeatures(points, np.ascontiguousarray(descriptors), grey.shape[::-1])
         self.stats["seconds_describe"] += time.perf_counter() - t0
         self.stats["images_described"] += 1
@@ -428,7 +434,9 @@ def verify_candidates(
 
 # ---------------------------------------------------------------------------- acceptance rule
 #: the rule's settings: every verification setting, and the gate's minimum inlier count
-RULE_DEFAULTS = {**VerificationSettings().to_dict(), "min_inliers": 15}
+#: min_inliers 20: above every inlier count measured for wrong matches of unrelated places on
+#: Gardens Point (at most 15 with AKAZE and a fundamental matrix; docs/decisions.md)
+RULE_DEFAULTS = {**VerificationSettings().to_dict(), "min_inliers": 20}
 #: settings that do not change an image's features or a pair's inlier count
 _PER_CALL = ("top_k", "rerank", "cache_size")
 _SHARED: OrderedDict[tuple, Verifier] = OrderedDict()
