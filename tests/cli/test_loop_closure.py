@@ -147,3 +147,30 @@ def test_a_calibration_from_another_model_is_refused_before_any_frame_is_describ
     assert main(["loop-closure", "--images", str(route), "--method", "raw", "--exclude-last", "3", "--out",
                  str(tmp_path / "e.csv")]) == 2
     assert "needs an acceptance threshold" in capsys.readouterr().err
+
+
+def test_calibrate_on_one_traverse_and_use_it_on_another(tmp_path, capsys):
+    truth = GroundTruth([[] for _ in range(PLACES)] + [[i] for i in range(PLACES)], 2 * PLACES)
+    truth.to_csv(tmp_path / "gt.csv")
+    first, second = write_route(tmp_path / "a", seed=1), write_route(tmp_path / "b", seed=2)
+    base = ["loop-closure", "--method", "raw", "--exclude-last", "3", "--ground-truth", str(tmp_path / "gt.csv")]
+    assert main(base + ["--images", str(first), "--accept", "margin", "--out", str(tmp_path / "a.csv"),
+                        "--calibrate-out", str(tmp_path / "cal.yaml")]) == 0
+    out = capsys.readouterr().out
+    assert "0 loop closures in 20 frames" in out  # a calibration run accepts nothing
+    assert "reaches precision 1.000 at recall 1.000 on this traverse" in out
+    assert read_rows(tmp_path / "a.csv") == []
+    assert main(base + ["--images", str(second), "--calibration", str(tmp_path / "cal.yaml"),
+                        "--out", str(tmp_path / "b.csv")]) == 0
+    rows = read_rows(tmp_path / "b.csv")
+    # the threshold is the first route's lowest true score: on this route it keeps every closure
+    # right and most of them
+    assert len(rows) >= PLACES // 2
+    assert all(int(r["match_index"]) == int(r["query_index"]) - PLACES for r in rows)
+    capsys.readouterr()
+    assert main(base[:-2] + ["--images", str(first), "--accept", "margin", "--out", str(tmp_path / "c.csv"),
+                             "--calibrate-out", str(tmp_path / "c.yaml")]) == 2
+    assert "needs its ground truth" in capsys.readouterr().err
+    assert main(base + ["--images", str(first), "--accept", "margin", "--out", str(tmp_path / "c.csv"),
+                        "--calibrate-out", str(tmp_path / "c.yaml"), "--target-precision", "1.5"]) == 2
+    assert "must be in (0, 1]" in capsys.readouterr().err

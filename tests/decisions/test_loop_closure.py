@@ -223,3 +223,25 @@ def test_storing_frames_in_batches_changes_no_decision(tmp_path):
     assert events == expected
     with PlaceDatabase.open(tmp_path / "map.db") as db:
         assert db.names == [f"frame_{i}" for i in range(len(route))]
+
+
+def test_calibrating_on_a_traverse_picks_the_threshold_of_the_target_precision():
+    from fdnet.decisions.loop_closure import calibrate_decisions
+
+    decisions = [
+        FrameDecision(0, -1, float("nan"), False, 0),
+        FrameDecision(1, 0, 0.05, False, 1, 0, 0.5),
+        FrameDecision(2, 0, 0.30, False, 1, 0, 0.6),   # wrong: frame 2 revisits nothing it could search
+        FrameDecision(3, 0, 0.40, False, 2, 0, 0.9),   # right
+        FrameDecision(4, 1, 0.10, False, 3, 1, 0.8),   # right
+    ]
+    truth = GroundTruth([[], [], [1], [0], [1]], 5)
+    detector = LoopClosureDetector(RawThumbnail(), exclude_last=1, rule="margin", threshold=float("inf"))
+    exact = calibrate_decisions(decisions, truth, detector, 1.0)
+    assert (exact.threshold, exact.precision, exact.recall) == (0.40, 1.0, 0.5)
+    assert (exact.rule, exact.method, exact.sequence_length) == ("margin", "raw", 0)
+    assert exact.fingerprint == RawThumbnail().fingerprint()
+    loose = calibrate_decisions(decisions, truth, detector, 0.6)
+    assert (loose.threshold, loose.recall) == (0.10, 1.0) and loose.precision == pytest.approx(2 / 3)
+    # what it calibrates is what a detector then uses
+    assert LoopClosureDetector(RawThumbnail(), exclude_last=1, calibration=exact).threshold == 0.40

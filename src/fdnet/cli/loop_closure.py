@@ -72,6 +72,12 @@ def register(sub) -> None:
                         "references are the database's places (for a new database, the same frames), e.g. "
                         "`fdnet groundtruth --positions route.csv route.csv` or a frame list "
                         "query_index,reference_indices")
+    p.add_argument("--calibrate-out", metavar="FILE.yaml",
+                   help="with --ground-truth: choose the threshold of --accept that reaches --target-precision on "
+                        "this traverse and write it as a calibration for later runs (--calibration FILE); without "
+                        "--threshold this run accepts nothing")
+    p.add_argument("--target-precision", type=float, default=1.0,
+                   help="with --calibrate-out: the precision to reach, in (0, 1] (default 1.0)")
     p.add_argument("--commit-every", type=_whole_number(1), default=1, metavar="N",
                    help="frames stored in --db per transaction (default 1: every frame is on disk before the next "
                         "is read, one fsync each; N > 1 is faster and changes no decision, but a crash loses up to "
@@ -98,6 +104,8 @@ def run(args) -> int:
     check_pipeline_arguments(args)
     if args.threshold is not None and not args.accept:
         raise ConfigError("--threshold needs --accept RULE (the rule whose score it thresholds)")
+    if args.calibrate_out and not args.accept and not args.calibration:
+        raise ConfigError("--calibrate-out needs --accept RULE (the rule to calibrate)")
     if args.accept_set and not (args.accept or args.calibration):
         raise ConfigError("--accept-set needs --accept RULE")
     # every output path is refused before the first image is described
@@ -112,6 +120,7 @@ def run(args) -> int:
         args.images, descriptor, args.db, exclude_last=args.exclude_last, events_csv=args.out,
         events_jsonl=args.jsonl, rule=args.accept, rule_settings=args.accept_set or None, threshold=args.threshold,
         calibration=args.calibration, sequence_length=args.sequence_length, ground_truth=args.ground_truth,
+        calibrate_to=args.calibrate_out, target_precision=args.target_precision,
         method_options=_file_options(args, args.method), commit_every=args.commit_every,
         batch_size=args.batch_size, workers=args.workers,
         progress=not args.no_progress and sys.stderr.isatty(), log=None)
@@ -129,6 +138,11 @@ def run(args) -> int:
               f"AUC-PR {m['auc_pr']:.3f}, R@1 {m['recall_at_n']['1']:.3f}")
         print(f"at threshold {at['threshold']:g}: {at['accepted']} accepted, {at['true']} true, {at['false']} false "
               f"(precision {at['precision']:.3f}, recall {at['recall']:.3f})")
+    if report.calibrated is not None:
+        c = report.calibrated
+        print(f"wrote {c['path']}: threshold {c['threshold']:.6g} reaches precision {c['precision']:.3f} at recall "
+              f"{c['recall']:.3f} on this traverse (target {c['target_precision']:g})"
+              + "".join(f"; {note}" for note in c["notes"]))
     if args.report:
         atomic_write_text(args.report, json.dumps(report.to_dict(), indent=2, sort_keys=True, default=str) + "\n")
         print(f"wrote {args.report}")

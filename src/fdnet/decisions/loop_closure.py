@@ -254,9 +254,10 @@ class LoopClosureDetector:
             raise ConfigError("a loop closure needs an acceptance threshold: give one (--threshold T), a "
                               "calibration file (--calibration FILE, from `fdnet calibrate`), or a database "
                               "holding a calibration (`fdnet calibrate --db`)")
+        # +inf accepts nothing: a run that only measures (e.g. to calibrate: calibrate_decisions)
         if isinstance(threshold, bool) or not isinstance(threshold, (int, float, np.floating, np.integer)) \
-                or not math.isfinite(float(threshold)):
-            raise ConfigError(f"threshold must be a finite number, got {threshold!r}")
+                or math.isnan(float(threshold)) or float(threshold) == -math.inf:
+            raise ConfigError(f"threshold must be a number (+inf accepts nothing), got {threshold!r}")
         if rule is None:
             raise ConfigError("name the acceptance rule (e.g. rule='margin'); `fdnet loop-closure --accept RULE`")
         spec = rule if isinstance(rule, AcceptanceSpec) else parse_acceptance(str(rule), rule_settings)
@@ -531,19 +532,9 @@ class EventLog:
 
 
 # ---------------------------------------------------------------------- evaluation
-def evaluate_decisions(decisions: Sequence[FrameDecision], ground_truth, threshold: float, rule: str) -> dict:
-    """Every frame's decision against ``ground_truth`` (queries = this traverse's frames in
-    order, references = the database's places by index), with the metrics of
-    :func:`fdnet.evaluation.metrics.evaluate_retrieval` over each frame's acceptance score and
-    the place it vouches for (recall over queries: R@100P, R@99P, R@95P, P@maxR, AUC-PR,
-    Recall@1), and the operating point at ``threshold`` (what the run accepted).
-
-    A frame can only close a loop with a place it was allowed to search, so each frame's true
-    matches are cut to the places searchable for it (its own last frames are no revisit); frames
-    with nothing to search are left out (they can neither find nor miss anything).
-    """
+def _evaluable(decisions: Sequence[FrameDecision], ground_truth):
+    """(the frames that had a place to search, their ground truth cut to those places)."""
     from fdnet.data.groundtruth import GroundTruth
-    from fdnet.evaluation.metrics import RECALL_OVER_QUERIES, evaluate_retrieval
 
     if ground_truth.num_queries != len(decisions):
         raise DataError(f"the ground truth has {ground_truth.num_queries} queries but the traverse has "
@@ -558,6 +549,23 @@ def evaluate_decisions(decisions: Sequence[FrameDecision], ground_truth, thresho
     if not truth.has_match.any():
         raise DataError(f"no frame revisits a place it could search ({ground_truth.description}; frames after "
                         "exclude-last): nothing to evaluate. Does the traverse return to a place it saw before?")
+    return evaluated, truth
+
+
+def evaluate_decisions(decisions: Sequence[FrameDecision], ground_truth, threshold: float, rule: str) -> dict:
+    """Every frame's decision against ``ground_truth`` (queries = this traverse's frames in
+    order, references = the database's places by index), with the metrics of
+    :func:`fdnet.evaluation.metrics.evaluate_retrieval` over each frame's acceptance score and
+    the place it vouches for (recall over queries: R@100P, R@99P, R@95P, P@maxR, AUC-PR,
+    Recall@1), and the operating point at ``threshold`` (what the run accepted).
+
+    A frame can only close a loop with a place it was allowed to search, so each frame's true
+    matches are cut to the places searchable for it (its own last frames are no revisit); frames
+    with nothing to search are left out (they can neither find nor miss anything).
+    """
+    from fdnet.evaluation.metrics import RECALL_OVER_QUERIES, evaluate_retrieval
+
+    evaluated, truth = _evaluable(decisions, ground_truth)
     score = np.array([d.score for d in evaluated], dtype=np.float64)
     match = np.array([d.match for d in evaluated], dtype=np.int64)
     metrics = evaluate_retrieval(np.array([[d.best] for d in evaluated]),
@@ -585,6 +593,42 @@ def evaluate_decisions(decisions: Sequence[FrameDecision], ground_truth, thresho
     }
 
 
+def calibrate_decisions(decisions: Sequence[FrameDecision], ground_truth, detector: "LoopClosureDetector",
+                        target_precision: float, measured_on: dict | None = None):
+    """A :class:`~fdnet.decisions.calibration.Calibration` of ``detector``'s rule from one
+    traverse with ground truth: the threshold on its frames' acceptance scores that reaches
+    ``target_precision`` with the largest recall
+    (:func:`fdnet.decisions.calibration.choose_threshold`), over the same frames and true
+    matches as :func:`evaluate_decisions`. Calibrating on the robot's own kind of traverse
+    matters: a cross-condition pair has none of the look-alike places a traverse meets in its
+    own recent past (docs/loop-closure.md)."""
+    from datetime import datetime, timezone
+
+    from fdnet import __version__
+    from fdnet.decisions.calibration import Calibration, check_target, choose_threshold
+
+    target = check_target(target_precision)
+    evaluated, truth = _evaluable(decisions, ground_truth)
+    score = np.array([d.score for d in evaluated], dtype=np.float64)
+    match = np.array([d.match for d in evaluated], dtype=np.int64)
+    correct = truth.correct_mask(match[:, None])[:, 0]
+    chosen = choose_threshold(score, correct, truth.has_match, target)
+    notes = []
+    if not math.isfinite(chosen.threshold):
+        notes.append(f"no threshold reaches precision {target:g} on this traverse (its most confident frame is "
+                     "already wrong): nothing will be accepted")
+    length = detector.sequence_length if detector.sequence_length > 1 else 0
+    where = {"loop_closure": True, "ground_truth": truth.description, "exclude_last": detector.exclude_last,
+             "frames": len(decisions), "frames_evaluated": len(evaluated), "sequence_length": length,
+             **(measured_on or {})}
+    return Calibration(
+        rule=detector.spec.name, settings=detector.spec.settings, threshold=chosen.threshold,
+        target_precision=target, precision=chosen.precision, recall=chosen.recall, accepted=chosen.accepted,
+        num_queries=len(evaluated), method=detector.descriptor.name, fingerprint=detector.descriptor.fingerprint(),
+        sequence_length=length, measured_on=where,
+        created=datetime.now(timezone.utc).isoformat(timespec="seconds"), fdnet_version=__version__, notes=notes)
+
+
 # ---------------------------------------------------------------------- a traverse from a folder
 @dataclass
 class TraverseReport:
@@ -603,6 +647,8 @@ class TraverseReport:
     events: list[str]
     evaluation: dict | None = None
     calibration: str | None = None
+    #: the calibration this run wrote (``calibrate_to``): path, threshold, precision, recall
+    calibrated: dict | None = None
     notes: list[str] = field(default_factory=list)
 
     @property
@@ -619,6 +665,7 @@ def run_traverse(images: str | os.PathLike, descriptor, database=None, *, exclud
                  events_csv: str | os.PathLike, events_jsonl: str | os.PathLike | None = None,
                  rule: str | None = None, rule_settings=None, threshold: float | None = None, calibration=None,
                  sequence_length: int = 1, ground_truth: str | os.PathLike | None = None,
+                 calibrate_to: str | os.PathLike | None = None, target_precision: float = 1.0,
                  method_options: dict | None = None, commit_every: int = 1, batch_size: int = 16,
                  workers: int | None = None, progress: bool = False,
                  log: Callable[[str], None] | None = None) -> TraverseReport:
@@ -630,7 +677,10 @@ def run_traverse(images: str | os.PathLike, descriptor, database=None, *, exclud
     or a frame list ``query_index,reference_indices``) whose queries are the frames and whose
     references are the database's places (for a new database: the same frames); the run is
     then evaluated (:func:`evaluate_decisions`). ``commit_every``: frames per database
-    transaction (see :class:`LoopClosureDetector`). Frames are described ``batch_size`` at a time
+    transaction (see :class:`LoopClosureDetector`). ``calibrate_to``: also choose the threshold
+    that reaches ``target_precision`` on this traverse (:func:`calibrate_decisions`, needs
+    ``ground_truth``) and write that calibration there (YAML); without a threshold or
+    calibration such a run accepts nothing (threshold +inf). Frames are described ``batch_size`` at a time
     (each vector depends only on its own image, so this changes no decision) with a progress bar
     in frames/s when ``progress``. Every refusal (paths, rule, calibration, ground truth,
     database) comes before the first frame is described.
@@ -641,6 +691,15 @@ def run_traverse(images: str | os.PathLike, descriptor, database=None, *, exclud
     from fdnet.io import ensure_writable
 
     say = log or (lambda message: None)
+    if calibrate_to is not None:
+        from fdnet.decisions.calibration import check_target
+
+        if ground_truth is None:
+            raise ConfigError("calibrating on a traverse needs its ground truth (--ground-truth CSV)")
+        check_target(target_precision)
+        ensure_writable(calibrate_to, what="calibration file")
+        if threshold is None and calibration is None:
+            threshold = math.inf
     ensure_writable(events_csv, what="events CSV")
     if events_jsonl is not None:
         ensure_writable(events_jsonl, what="events JSON lines")
@@ -703,4 +762,15 @@ def run_traverse(images: str | os.PathLike, descriptor, database=None, *, exclud
             calibration=None if calibration is None else str(calibration))
         if truth is not None:
             report.evaluation = evaluate_decisions(detector.decisions, truth, detector.threshold, detector.spec.name)
+        if calibrate_to is not None:
+            from fdnet.decisions.calibration import save_calibration
+
+            calibrated = calibrate_decisions(detector.decisions, truth, detector, target_precision,
+                                             {"images": str(Path(images).resolve()),
+                                              "ground_truth_file": str(Path(ground_truth).resolve())})
+            written = save_calibration(calibrated, calibrate_to)
+            report.calibrated = {"path": str(written), "threshold": calibrated.threshold,
+                                 "target_precision": calibrated.target_precision,
+                                 "precision": calibrated.precision, "recall": calibrated.recall,
+                                 "notes": list(calibrated.notes)}
     return report
