@@ -137,3 +137,17 @@ def test_match_with_an_uncalibrated_rule_writes_its_scores_only(route, tmp_path,
     assert main(["match", "--reference", str(route / "map"), "--query", str(route / "now"), "--method", "raw",
                  "--accept-set", "radius=1", "--out", str(out)]) == 2
     assert "--accept-set needs --accept" in capsys.readouterr().err
+
+
+def test_database_query_with_an_uncalibrated_rule(route, tmp_path, capsys):
+    db = tmp_path / "map.db"
+    assert main(["database", "build", "--images", str(route / "map"), "--method", "raw", "--out", str(db),
+                 "--workers", "0"]) == 0
+    out = tmp_path / "q.csv"
+    assert main(["database", "query", "--db", str(db), "--images", str(route / "now"), "--top-k", "1",
+                 "--accept", "margin", "--accept-set", "radius=1", "--out", str(out), "--workers", "0"]) == 0
+    written = rows(out)
+    assert "acceptance_score" in written[0] and "accepted" not in written[0] and len(written) == 24
+    capsys.readouterr()
+    assert main(["database", "query", "--db", str(db), "--images", str(route / "now"), "--accept", "nope"]) == 2
+    assert "unknown acceptance rule 'nope'" in capsys.readouterr().err

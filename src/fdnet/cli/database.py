@@ -75,6 +75,11 @@ def register(sub) -> None:
     query.add_argument("--calibration", metavar="FILE|RUN_DIR",
                        help="a calibration from `fdnet calibrate` (default: the one stored in the database by "
                             "`fdnet calibrate --db`, if any): adds acceptance_score and accepted columns")
+    query.add_argument("--accept", metavar="RULE",
+                       help="instead of a calibration: add this acceptance rule's acceptance_score column (margin, "
+                            "ratio, raw, ...), with no threshold (docs/decisions.md)")
+    query.add_argument("--accept-set", action="append", default=[], metavar="[RULE:]KEY=VALUE",
+                       help="a setting of the --accept rule (repeatable), e.g. radius=3")
     query.add_argument("--out", help="CSV to write (query,rank,place,place_index,score[,acceptance_score,accepted]); "
                                      "default: print")
     add_pipeline_arguments(query)
@@ -266,10 +271,22 @@ def run_query(args) -> int:
     check_pipeline_arguments(args)
     if args.out:
         ensure_writable(args.out, what="query CSV")
+    from fdnet.errors import ConfigError
+
+    if args.accept_set and not args.accept:
+        raise ConfigError("--accept-set needs --accept RULE")
+    if args.accept and args.calibration:
+        raise ConfigError("--accept and --calibration: the calibration holds its rule and settings; give one")
+    spec = None
+    if args.accept:
+        from fdnet.decisions.acceptance import parse_acceptance
+
+        spec = parse_acceptance(args.accept, args.accept_set)
     db, descriptor = _open_with_descriptor(args.db, device_args=args)
     with db:
-        calibration = _query_calibration(db, descriptor, args)
-        depth = args.top_k if calibration is None else max(args.top_k, calibration.spec.depth)
+        calibration = None if spec is not None else _query_calibration(db, descriptor, args)
+        rule = spec if spec is not None else (calibration.spec if calibration is not None else None)
+        depth = args.top_k if rule is None else max(args.top_k, rule.depth)
         paths = list_images(args.images)
         vectors = _describe(descriptor, paths, args)
         bad = np.flatnonzero(~np.isfinite(vectors).all(axis=1))
@@ -281,17 +298,23 @@ def run_query(args) -> int:
         decision = accepted = None
         if calibration is not None:
             decision, accepted = calibration.decide(_candidates(db, descriptor, paths, results))
+        elif spec is not None:
+            from fdnet.decisions.acceptance import decide
+
+            decision = decide(spec, _candidates(db, descriptor, paths, results))
     buffer = io.StringIO()
     writer = csv.writer(buffer)
     writer.writerow(["query", "rank", "place", "place_index", "score"]
-                    + ([] if decision is None else ["acceptance_score", "accepted"]))
+                    + ([] if decision is None else ["acceptance_score"]) + ([] if accepted is None else ["accepted"]))
     for q, (path, matches) in enumerate(zip(paths, results)):
         for rank, m in enumerate(matches, start=1):
-            chosen = decision is not None and m.index == decision.match[q] and accepted[q]
+            chosen = accepted is not None and m.index == decision.match[q] and bool(accepted[q])
             if (args.min_score is None or m.score >= args.min_score) and (rank <= args.top_k or chosen):
                 row = [path.name, rank, m.name, m.index, f"{m.score:.6f}"]
                 if decision is not None:
-                    row += [f"{decision.score[q]:.6f}", int(bool(chosen))]
+                    row.append(f"{decision.score[q]:.6f}")
+                if accepted is not None:
+                    row.append(int(chosen))
                 writer.writerow(row)
     if args.out:
         atomic_write_text(args.out, buffer.getvalue())
