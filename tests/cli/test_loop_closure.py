@@ -174,3 +174,9 @@ def test_calibrate_on_one_traverse_and_use_it_on_another(tmp_path, capsys):
     assert main(base + ["--images", str(first), "--accept", "margin", "--out", str(tmp_path / "c.csv"),
                         "--calibrate-out", str(tmp_path / "c.yaml"), "--target-precision", "1.5"]) == 2
     assert "must be in (0, 1]" in capsys.readouterr().err
+
+
+def test_verification_refuses_thumbnails_before_any_frame_is_described(route, tmp_path, capsys, no_describing):
+    assert main(args(route, tmp_path, "--accept", "margin+verified")) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("fdnet loop-closure: error: ") and "too small for geometric verification" in err

@@ -205,8 +205,8 @@ class LoopClosureDetector:
         if isinstance(commit_every, bool) or not isinstance(commit_every, (int, np.integer)) or commit_every < 1:
             raise ConfigError(f"commit-every must be a whole number of at least 1, got {commit_every!r}")
         if getattr(descriptor, "needs_fit", False):
-            raise ConfigError(f"method {descriptor.name!r} must be given what it learns from (e.g. a vocabulary) "
-                              "before it can describe frames online")
+            raise ConfigError(f"method {descriptor.name!r} must be given what it learns from (--fit DIR, or dbow's "
+                              "--vocabulary) before it can describe frames online")
         self.descriptor = descriptor
         self.exclude_last = int(exclude_last)
         self.sequence_length = int(sequence_length)
@@ -640,6 +640,7 @@ class TraverseReport:
     places_before: int
     places_after: int
     rule: str
+    rule_settings: dict
     threshold: float
     sequence_length: int
     exclude_last: int
@@ -724,12 +725,9 @@ def run_traverse(images: str | os.PathLike, descriptor, database=None, *, exclud
             truth = GroundTruth.from_csv(ground_truth, num_references=places_before + len(paths),
                                          num_queries=len(paths))
             truth.check_names(paths, [*detector._names, *paths])
-        if "images" in detector.spec.needs:
-            from fdnet.data.images import image_size
-            from fdnet.decisions.verification import VerificationSettings, Verifier
-
-            settings = {k: v for k, v in detector.spec.settings.get("verified", {}).items() if k != "min_inliers"}
-            Verifier(VerificationSettings(**settings)).check_size(*image_size(paths[0]), str(paths[0]))
+        # a rule that looks at the images (verification) refuses unusable ones (too small for
+        # local features) before the first frame is described
+        detector.spec.check_images(paths, [*detector._names, *names])
         say(f"loop closure over {len(paths)} frames of {images} with {descriptor.name}, rule {detector.spec.name} "
             f"(threshold {detector.threshold:g}), {places_before} places in {db.path} before the run")
         bar = None
@@ -756,7 +754,8 @@ def run_traverse(images: str | os.PathLike, descriptor, database=None, *, exclud
         seconds = time.perf_counter() - t0
         report = TraverseReport(
             frames=detector.frames, closures=len(detector.closures), seconds=seconds, places_before=places_before,
-            places_after=detector.places, rule=detector.spec.name, threshold=detector.threshold,
+            places_after=detector.places, rule=detector.spec.name, rule_settings=detector.spec.settings,
+            threshold=detector.threshold,
             sequence_length=detector.sequence_length, exclude_last=detector.exclude_last, database=str(db.path),
             events=[str(p) for p in events.paths],
             calibration=None if calibration is None else str(calibration))
