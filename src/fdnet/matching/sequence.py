@@ -133,9 +133,21 @@ def online_sequence_scores(rows: Sequence[np.ndarray], searchable: int | None = 
         row = np.asarray(rows[-1 - k], dtype=np.float32)
         if not len(row):
             continue
-        cols = np.rint(refs[None, :] - k * v[:, None]).astype(np.int64)
-        valid = (cols >= 0) & (cols < len(row))
-        total += np.where(valid, row[np.clip(cols, 0, len(row) - 1)], 0.0)
-        valid_count += valid
+        for i, velocity in enumerate(v):
+            step = k * velocity
+            if abs(step - np.floor(step) - 0.5) > 1e-9:
+                # round(r - step) = r - round(step) for whole r when step is no half-way case: one
+                # shifted slice (a copy) instead of a gather, as sequence_similarity's indices
+                shift = int(np.rint(step))
+                lo, hi = max(shift, 0), min(count, len(row) + shift)
+                if lo < hi:
+                    total[i, lo:hi] += row[lo - shift:hi - shift]
+                    valid_count[i, lo:hi] += 1
+                continue
+            # half-way: np.rint rounds r - step to even, which depends on r, so gather
+            cols = np.rint(refs - step).astype(np.int64)
+            valid = (cols >= 0) & (cols < len(row))
+            total[i] += np.where(valid, row[np.clip(cols, 0, len(row) - 1)], 0.0)
+            valid_count[i] += valid
     mean = np.where(valid_count > 0, total / np.maximum(valid_count, 1), -np.inf)
     return mean.max(axis=0).astype(np.float32) if count else np.zeros(0, dtype=np.float32)
