@@ -56,7 +56,8 @@ ImageSource = Union[str, os.PathLike, np.ndarray]
 
 @dataclass
 class VerificationSettings:
-    """How candidates are verified. Every field is a ``--verify-set KEY=VALUE`` of the CLI."""
+    """How candidates are verified. Every field is a setting of the ``verified`` acceptance rule
+    (``--accept-set verified:KEY=VALUE`` on the command line)."""
 
     #: local features: akaze or orb (binary descriptors, Hamming) or sift (float, L2). AKAZE by
     #: measurement (docs/decisions.md, "Geometric verification"): on Gardens Point it re-ranked best
@@ -226,7 +227,7 @@ class Verifier:
                 f"{self.settings.min_side} pixels (verification setting min_side). Verify larger images, "
                 f"or use an acceptance rule without 'verified'")
 
-    def check_paths(self, paths: Sequence[str | os.PathLike], what: str = "image") -> None:
+    def check_paths(self, paths: Sequence[str | os.PathLike]) -> None:
         """Check image sizes from the files' headers (no decoding) before any work; DataError at the
         first image too small (or unreadable)."""
         from fdnet.data.images import image_size
@@ -492,8 +493,7 @@ def _verified_gate(candidates, match, **values):
     settings, min_inliers = _rule_settings(values)
     verifier = shared_verifier(settings)
     match = np.asarray(match)
-    if candidates.num_queries:
-        verifier.check_paths([candidates.query_paths[0], candidates.reference_paths[0]])
+    verifier.check_paths(list(candidates.query_paths[:1]) + list(candidates.reference_paths[:1]))
     passed = np.zeros(len(match), dtype=bool)
     for i, j in enumerate(match):
         if j >= 0:
