@@ -180,3 +180,20 @@ def test_verification_refuses_thumbnails_before_any_frame_is_described(route, tm
     assert main(args(route, tmp_path, "--accept", "margin+verified")) == 2
     err = capsys.readouterr().err
     assert err.startswith("fdnet loop-closure: error: ") and "too small for geometric verification" in err
+
+
+def test_ground_truth_from_positions_with_fdnet_groundtruth(route, tmp_path, capsys):
+    # the robot drives PLACES places 20 m apart, then the same places again
+    with open(tmp_path / "route.csv", "w") as fh:
+        fh.write("image,easting,northing\n")
+        for i in range(2 * PLACES):
+            fh.write(f"frame_{i:03d}.png,{20.0 * (i % PLACES)},0\n")
+    assert main(["groundtruth", "--positions", str(tmp_path / "route.csv"), str(tmp_path / "route.csv"),
+                 "--reference", str(route), "--query", str(route), "--tolerance-m", "5",
+                 "--out", str(tmp_path / "gt.csv")]) == 0
+    capsys.readouterr()
+    assert main(args(route, tmp_path, "--ground-truth", str(tmp_path / "gt.csv"))) == 0
+    out = capsys.readouterr().out
+    # each frame's own position is cut (never searchable): only the second pass revisits
+    assert "10 revisiting a searchable place: R@100P 1.000" in out
+    assert "10 accepted, 10 true, 0 false (precision 1.000, recall 1.000)" in out
