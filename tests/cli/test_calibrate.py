@@ -91,6 +91,8 @@ def test_calibration_in_run_directory_and_database(route, tmp_path, capsys):
     (["--accept", "nonsense", "--out", "x.yaml"], "unknown acceptance rule 'nonsense'"),
     (["--accept", "raw,margin", "--out", "x.yaml"], "one rule expression expected"),
     ([], "nothing to store the calibration in"),
+    (["--choose", "radius", "--out", "x.yaml"], "expected KEY=V1,V2"),
+    (["--accept", "raw", "--choose", "radius=1,2", "--out", "x.yaml"], "rule raw has no setting 'radius'"),
 ])
 def test_calibrate_bad_input(route, capsys, extra, message):
     assert main(calibrate_args(route, *extra)) == 2
@@ -151,3 +153,12 @@ def test_database_query_with_an_uncalibrated_rule(route, tmp_path, capsys):
     capsys.readouterr()
     assert main(["database", "query", "--db", str(db), "--images", str(route / "now"), "--accept", "nope"]) == 2
     assert "unknown acceptance rule 'nope'" in capsys.readouterr().err
+
+
+def test_calibrate_chooses_the_radius(route, tmp_path, capsys):
+    cal = tmp_path / "cal.yaml"
+    assert main(calibrate_args(route, "--choose", "radius=0,2", "--out", str(cal))) == 0
+    stored = yaml.safe_load(cal.read_text())
+    assert [t["radius"] for t in stored["measured_on"]["chosen_from"]] == [0, 2]
+    assert stored["settings"]["margin"]["radius"] in (0, 2)
+    assert "-> chosen {'radius':" in capsys.readouterr().err

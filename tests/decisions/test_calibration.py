@@ -136,3 +136,19 @@ def test_bad_calibration_files_name_the_file(tmp_path, text, message):
     assert str(path) in str(info.value)
     with pytest.raises(DataError, match="not found"):
         load_calibration(tmp_path / "missing.yaml")
+
+
+def test_calibration_can_choose_the_radius_on_its_split(tmp_path):
+    split = make_split(tmp_path)
+    descriptor = create("raw")
+    chosen = calibrate(descriptor, split, parse_acceptance("margin"), 1.0, workers=0, choose={"radius": [0, 1, 4]})
+    tried = chosen.measured_on["chosen_from"]
+    assert [t["radius"] for t in tried] == [0, 1, 4]
+    best = max(tried, key=lambda t: t["recall"])
+    assert chosen.recall == best["recall"] and chosen.settings["margin"]["radius"] == best["radius"]
+    # each value tried is what calibrating with that radius alone gives
+    for t in tried:
+        alone = calibrate(descriptor, split, parse_acceptance("margin", [f"radius={t['radius']}"]), 1.0, workers=0)
+        assert alone.recall == t["recall"]
+    with pytest.raises(ConfigError, match="has no setting 'radius'"):
+        calibrate(descriptor, split, parse_acceptance("raw"), 1.0, workers=0, choose={"radius": [1]})

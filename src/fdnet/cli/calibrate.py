@@ -49,6 +49,9 @@ def register(sub) -> None:
                                "margin)")
     decision.add_argument("--accept-set", action="append", default=[], metavar="[RULE:]KEY=VALUE",
                           help="a setting of the rule (repeatable), e.g. radius=3")
+    decision.add_argument("--choose", action="append", default=[], metavar="KEY=V1,V2,...",
+                          help="also choose a rule setting on this pair (repeatable), e.g. radius=0,1,2,3,5: every "
+                               "value is tried and the one reaching the target with the largest recall is stored")
     decision.add_argument("--target-precision", type=float, default=1.0,
                           help="precision the threshold must reach on the pair, in (0, 1] (default 1.0)")
     out = p.add_argument_group("where to store it (at least one)")
@@ -59,6 +62,21 @@ def register(sub) -> None:
                      help="store it in this place database (built with the same model); `fdnet database query` "
                           "then uses it")
     p.set_defaults(func=run)
+
+
+def _choices(items) -> dict:
+    """``["radius=0,1,3"]`` -> ``{"radius": [0, 1, 3]}`` (values read as YAML)."""
+    import yaml
+
+    from fdnet.errors import ConfigError
+
+    out = {}
+    for item in items:
+        key, sep, values = item.partition("=")
+        if not sep or not key.strip() or not values.strip():
+            raise ConfigError(f"--choose {item!r}: expected KEY=V1,V2,... (e.g. radius=0,1,2,3,5)")
+        out[key.strip()] = [yaml.safe_load(v) for v in values.split(",") if v.strip()]
+    return out
 
 
 def run(args) -> int:
@@ -72,6 +90,7 @@ def run(args) -> int:
         CALIBRATION_FILE,
         DATABASE_KEY,
         calibrate,
+        candidate_specs,
         check_target,
         save_calibration,
     )
@@ -80,6 +99,8 @@ def run(args) -> int:
 
     check_target(args.target_precision)
     spec = parse_acceptance(args.accept or DEFAULT_ACCEPTANCE, args.accept_set)
+    choose = _choices(args.choose)
+    candidate_specs(spec, choose)  # a setting the rule lacks, or a bad value, fails before any work
     if args.sequence_length < 0:
         raise ConfigError(f"--sequence-length must be >= 0, got {args.sequence_length}")
     if args.tolerance is not None and args.tolerance < 0:
@@ -117,7 +138,8 @@ def run(args) -> int:
               f"{split.description}: {len(split.query)} queries x {len(split.reference)} references", file=sys.stderr)
         calibration = calibrate(descriptor, split, spec, args.target_precision, args.sequence_length,
                                 measured_on=measured_on, batch_size=args.batch_size, workers=args.workers,
-                                progress=sys.stderr.isatty(), log=lambda m: print(m, file=sys.stderr))
+                                progress=sys.stderr.isatty(), log=lambda m: print(m, file=sys.stderr),
+                                choose=choose)
         written = []
         if args.out:
             written.append(str(save_calibration(calibration, args.out)))
