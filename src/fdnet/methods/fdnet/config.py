@@ -198,10 +198,10 @@ def _cpu() -> TrainConfig:
     # L_e^adv moves the head, so its weight only scales the head's step (Adam): 1, as in eq. 10.
     return _two_cores(
         "cpu",
-        FDNetConfig(input_size=(128, 256), widths=(128, 256), vector_length=2048, critic_hidden=512,
+        FDNetConfig(input_size=(128, 256), widths=(128, 256), vector_length=512, critic_hidden=512,
                     input_norm="per_image", critic_input="l2", backbone="efficientnet-lite0", backbone_block=7,
                     backbone_block_candidates=(7, 14),
-                    content_head="trunk_residual", residual_rank=32, residual_init="condition_means"),
+                    content_head="trunk_projection", projection_init="mined_pairs"),
         # 500 auto-encoder steps shape E_a and the decoder, 200 critic steps, then 300 joint steps:
         # in runs nres/gres (docs/results.md, session 4) the joint stage did not raise validation
         # R@1 beyond its start (Nordland 0.91 -> 0.83 by step 1000), and step 1000 is what fits in

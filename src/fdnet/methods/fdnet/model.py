@@ -22,7 +22,9 @@ from fdnet.methods.fdnet.trunk import BACKBONES, FrozenTrunk, trunk_map_size, tr
 
 INPUT_NORMS = ("none", "per_image", "per_patch")
 CRITIC_INPUTS = ("l2", "raw")
-CONTENT_HEADS = ("encoder", "trunk_residual")
+CONTENT_HEADS = ("encoder", "trunk_residual", "trunk_projection")
+PROJECTION_INITS = ("pca", "mined_pairs")
+TRUNK_HEADS = ("trunk_residual", "trunk_projection")
 
 
 @dataclass
@@ -85,6 +87,23 @@ class FDNetConfig:
     #: removed; a closed form of what the critic looks for, computed from the same condition
     #: labels FDNet trains with, no place labels); the adversarial stage refines either
     residual_init: str = "zero"
+    #: "trunk_projection" (needs a backbone): v_c = (x - mean) P, x the trunk's flattened map and P
+    #: a (map length x L) projection, so v_c has the paper's length L (``vector_length``). P starts
+    #: in closed form (:mod:`fdnet.methods.fdnet.content_fit`): "pca" = the condition-mean
+    #: directions removed, then PCA scaled by eigenvalue ** -projection_pca_power; "mined_pairs" =
+    #: that start, then the learnt whitening of the pairs of frames it matches mutually across
+    #: conditions (sequence-consistent over ``pair_sequence_length`` frames of each traverse; no
+    #: cross-condition labels). The adversarial stage then refines P like the residual head's U
+    projection_init: str = "mined_pairs"
+    #: principal directions kept before the mined-pair whitening (at most one fewer than the images)
+    projection_pca_dims: int = 1024
+    #: the start's coordinate k is divided by eigenvalue_k ** projection_pca_power (0 = PCA, 0.5 =
+    #: full whitening; 0.25 validated best, docs/results.md session 7)
+    projection_pca_power: float = 0.25
+    #: frames of each traverse a mined pair's sequence similarity runs over
+    pair_sequence_length: int = 5
+    #: shrinkage of the pairs' difference covariance towards its mean eigenvalue (x its trace / dims)
+    pair_shrinkage: float = 1.0
 
     def encoder_input_size(self) -> tuple[int, int]:
         """(H, W) of what the encoders read: the image, or the trunk's map of it."""
@@ -111,7 +130,8 @@ def largest_layer_weights(config: FDNetConfig) -> int:
     decoder_out = (int(config.widths[-1]) * (height // scale) * (width // scale)) if config.widths else map_values
     decoder = (content + int(config.vector_length)) * decoder_out
     critic = 2 * content * int(config.critic_hidden)
-    return max(decoder, critic)
+    projection = map_values * int(config.vector_length) if config.content_head == "trunk_projection" else 0
+    return max(decoder, critic, projection)
 
 
 def validate_architecture(config: FDNetConfig) -> None:
@@ -159,9 +179,10 @@ def validate_architecture(config: FDNetConfig) -> None:
         raise ConfigError(f"model.patch_size: {config.patch_size} must divide the input size {height}x{width}")
     if config.backbone_block_candidates:
         candidates = [int(b) for b in config.backbone_block_candidates]
-        if config.backbone == "none" or config.content_head != "trunk_residual":
+        if config.backbone == "none" or config.content_head not in TRUNK_HEADS:
             raise ConfigError("model.backbone_block_candidates: choosing a trunk block needs model.backbone and "
-                              "model.content_head=trunk_residual (it scores the residual head's closed-form start); "
+                              "model.content_head=trunk_residual or trunk_projection (it scores the head's "
+                              "closed-form start); "
                               "set model.backbone_block_candidates=[] to use model.backbone_block alone")
         if config.backbone_block not in candidates:
             raise ConfigError(f"model.backbone_block={config.backbone_block} is not among "
@@ -184,6 +205,23 @@ def validate_architecture(config: FDNetConfig) -> None:
             raise ConfigError(f"model.residual_rank: must be >= 1, got {config.residual_rank}")
         if config.residual_init not in ("zero", "condition_means"):
             raise ConfigError(f"model.residual_init: {config.residual_init!r}; choose zero or condition_means")
+    if config.content_head == "trunk_projection":
+        if config.backbone == "none":
+            raise ConfigError("model.content_head=trunk_projection needs a model.backbone (it projects the trunk's map)")
+        if config.projection_init not in PROJECTION_INITS:
+            raise ConfigError(f"model.projection_init: {config.projection_init!r}; choose one of "
+                              f"{', '.join(PROJECTION_INITS)}")
+        channels = BLOCK_CHANNELS[int(config.backbone_block)]
+        map_length = channels * height * width // trunk_stride(config.backbone_block) ** 2
+        if config.vector_length > map_length:
+            raise ConfigError(f"model.vector_length: L = {config.vector_length} is longer than the trunk map it "
+                              f"projects ({map_length} values at block {config.backbone_block}, {height}x{width}); "
+                              "lower L or use a larger model.input_size")
+        if config.projection_pca_dims < 1 or config.pair_sequence_length < 1:
+            raise ConfigError("model.projection_pca_dims and model.pair_sequence_length must be >= 1")
+        if not (0 <= config.projection_pca_power <= 1) or not (config.pair_shrinkage >= 0):
+            raise ConfigError(f"model.projection_pca_power must lie in [0, 1] and model.pair_shrinkage be >= 0, "
+                              f"got {config.projection_pca_power}, {config.pair_shrinkage}")
     if config.critic_input not in CRITIC_INPUTS:
         raise ConfigError(f"model.critic_input: {config.critic_input!r}; choose one of {', '.join(CRITIC_INPUTS)}")
     for name in ("encoder_dropout", "critic_dropout"):
@@ -249,6 +287,31 @@ class TrunkResidualContent(nn.Module):
         return x - (x @ self.v) @ self.u.T
 
 
+class TrunkProjectionContent(nn.Module):
+    """E_c as a linear projection of the trunk's flattened map to L: v_c = (x - mean) P. ``mean``
+    (a buffer) and P's start come from the training maps in closed form (:meth:`set_start`,
+    :mod:`fdnet.methods.fdnet.content_fit`); before that P is a random orthogonal projection."""
+
+    def __init__(self, feature_shape: tuple[int, int, int], length: int) -> None:
+        super().__init__()
+        size = int(feature_shape[0] * feature_shape[1] * feature_shape[2])
+        self.vector_length = int(length)
+        self.register_buffer("mean", torch.zeros(size))
+        self.projection = nn.Parameter(torch.empty(size, int(length)))
+        nn.init.orthogonal_(self.projection)
+
+    @torch.no_grad()
+    def set_start(self, mean, projection) -> None:
+        self.mean.copy_(torch.as_tensor(mean, dtype=torch.float32))
+        self.projection.copy_(torch.as_tensor(projection, dtype=torch.float32))
+
+    def centred(self, maps: torch.Tensor) -> torch.Tensor:
+        return maps.flatten(1).float() - self.mean
+
+    def forward(self, maps: torch.Tensor) -> torch.Tensor:
+        return self.centred(maps) @ self.projection
+
+
 class FDNet(nn.Module):
     """The four networks of FDNet, with the preprocessing they share.
 
@@ -267,6 +330,9 @@ class FDNet(nn.Module):
         if config.content_head == "trunk_residual":
             self.content_encoder = TrunkResidualContent((channels, *size), config.residual_rank)
             content_length = self.content_encoder.vector_length
+        elif config.content_head == "trunk_projection":
+            self.content_encoder = TrunkProjectionContent((channels, *size), length)
+            content_length = length
         else:
             self.content_encoder = Encoder(size, widths, length, config.encoder_dropout, in_channels=channels)
             content_length = length

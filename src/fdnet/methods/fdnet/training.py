@@ -110,6 +110,8 @@ class FDNetTraining(TrainingMethod):
         self.cached_inputs = None if self.model.trunk is None else [self._preprocess(x) for x in self.images]
         #: validation scores of each candidate trunk block's start, by block (choose_backbone_block)
         self.block_selection: dict[str, dict[str, float]] = {}
+        #: what the projection head's closed-form start found (content_fit.ProjectionFit.report)
+        self.projection_fit: dict = {}
 
     # ------------------------------------------------------------------ loop interface
     def modules(self) -> dict[str, torch.nn.Module]:
@@ -127,10 +129,22 @@ class FDNetTraining(TrainingMethod):
         return self.config.stage_at(step)
 
     def start(self) -> None:
-        from fdnet.methods.fdnet.model import TrunkResidualContent
+        from fdnet.methods.fdnet.model import TrunkProjectionContent, TrunkResidualContent
 
         head = self.model.content_encoder
-        if isinstance(head, TrunkResidualContent):
+        if isinstance(head, TrunkProjectionContent):
+            from fdnet.methods.fdnet.content_fit import fit_projection
+
+            m = self.config.model
+            inputs = self.cached_inputs or [self._preprocess(x) for x in self.images]
+            fit = fit_projection([x.flatten(1).cpu().numpy() for x in inputs], m.vector_length,
+                                 init=m.projection_init, pca_dims=m.projection_pca_dims, pca_power=m.projection_pca_power,
+                                 pair_sequence_length=m.pair_sequence_length, pair_shrinkage=m.pair_shrinkage)
+            head.set_start(fit.mean, fit.projection)
+            self.projection_fit = fit.report
+            self.log(f"fdnet: content head starts in closed form ({m.projection_init}): "
+                     + ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in fit.report.items()))
+        elif isinstance(head, TrunkResidualContent):
             # Centre on the mean map of every training image, all conditions pooled: the centred
             # trunk descriptor is where the residual head starts.
             inputs = self.cached_inputs or [self._preprocess(x) for x in self.images]
@@ -142,13 +156,14 @@ class FDNetTraining(TrainingMethod):
 
     def state(self) -> dict:
         return {"sampler_generator": self.generator.get_state(), "conditions": list(self.data.names),
-                "block_selection": self.block_selection}
+                "block_selection": self.block_selection, "projection_fit": self.projection_fit}
 
     def load_state(self, state: dict) -> None:
         if list(state.get("conditions", self.data.names)) != list(self.data.names):
             raise ConfigError(f"the run was trained on conditions {state['conditions']}, now given {self.data.names}")
         self.generator.set_state(state["sampler_generator"])
         self.block_selection = dict(state.get("block_selection", {}))
+        self.projection_fit = dict(state.get("projection_fit", {}))
 
     def validation_vectors(self, images: torch.Tensor) -> np.ndarray:
         rt = self.config.runtime
@@ -210,12 +225,12 @@ class FDNetTraining(TrainingMethod):
                             target: torch.Tensor | None = None) -> dict[str, float]:
         model, cfg = self.model, self.config
         target = self._batch() if target is None else target
-        residual_head = cfg.model.content_head == "trunk_residual"
+        # the trunk heads keep the trunk's information by construction; only L_e^adv moves them
+        trunk_head = cfg.model.content_head in ("trunk_residual", "trunk_projection")
         with _autocast(cfg, self.device):
             content = model.content_encoder(target)
             appearance_vec = model.appearance_encoder(target)
-            # The residual head keeps the trunk's information by construction; only L_e^adv moves it.
-            reconstruction = model.decoder(content.detach() if residual_head else content, appearance_vec)
+            reconstruction = model.decoder(content.detach() if trunk_head else content, appearance_vec)
         rec = losses.reconstruction_loss(target, reconstruction, cfg.loss.reconstruction_reduction)
         total = cfg.loss.reconstruction_weight * rec
         out = {"reconstruction": float(rec.detach())}
@@ -239,7 +254,7 @@ class FDNetTraining(TrainingMethod):
             if cfg.loss.structure_weight > 0:
                 # the reference is what the head reads: the residual head's own centring, or for a
                 # learnt encoder its flattened input centred on the batch
-                if residual_head:
+                if trunk_head:
                     reference = model.content_encoder.centred(target)
                 else:
                     reference = target.flatten(1).float()
