@@ -92,7 +92,9 @@ def register(sub) -> None:
     out.add_argument("--accept", metavar="RULE[,RULE...]",
                      help="acceptance rules whose scores the PR curve thresholds (R@100P, R@99P, R@95P, P@maxR, "
                           "AUC-PR per rule): raw (best-match similarity), margin (best minus the best outside a "
-                          "neighbourhood of the best), ratio (Lowe's ratio), or SCORE+GATE (e.g. margin+floor); "
+                          "neighbourhood of the best), ratio (Lowe's ratio), verified (inlier count of local "
+                          "features matched to the top-K candidates; images of at least 80 px), or SCORE+GATE "
+                          "(e.g. margin+floor, margin+verified); "
                           "default margin, raw under --protocol vprbench. Recall@N does not depend on it")
     out.add_argument("--accept-set", action="append", default=[], metavar="[RULE:]KEY=VALUE",
                      help="an acceptance rule setting (repeatable), e.g. radius=3 (neighbourhood in frames), "
