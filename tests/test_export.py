@@ -65,3 +65,38 @@ def test_export_includes_the_backbone_trunk(tiny_run, tmp_path):
     session = onnxruntime.InferenceSession(str(out), providers=["CPUExecutionProvider"])
     onnx_vectors = session.run(["content"], {"images": images.transpose(0, 3, 1, 2).copy()})[0]
     np.testing.assert_allclose(onnx_vectors, fdnet.load(run).describe(images), atol=1e-4)
+
+
+def test_projection_head_gives_its_length_to_extract_export_and_the_database(tiny_run, tmp_path, capsys):
+    """model.content_head=trunk_projection: v_c is model.vector_length long (the cpu preset's 512,
+    here 24) in fdnet extract, the ONNX graph and a place database, not the trunk map's length."""
+    import json
+
+    import fdnet
+
+    route = tiny_run.parent / "route"
+    run = tmp_path / "run"
+    assert main(["train", "--data", str(route), "--preset", "tiny", "--out", str(run), "--no-progress",
+                 "--set", "model.backbone=efficientnet-lite0", "--set", "model.backbone_block=4",
+                 "--set", "model.input_size=[32,64]", "--set", "model.widths=[16]",
+                 "--set", "model.content_head=trunk_projection", "--set", "model.vector_length=24",
+                 "--set", "model.projection_init=pca"]) == 0
+    capsys.readouterr()
+    images = route / "summer"
+    vectors = tmp_path / "v.npz"
+    assert main(["extract", "--checkpoint", str(run), "--images", str(images), "--out", str(vectors)]) == 0
+    with np.load(vectors) as data:
+        assert data["content"].shape == (12, 24)
+    onnx_file = tmp_path / "p.onnx"
+    assert main(["export", "--checkpoint", str(run), "--out", str(onnx_file)]) == 0
+    sample = np.random.default_rng(3).random((2, 32, 64, 3), dtype=np.float32)
+    session = onnxruntime.InferenceSession(str(onnx_file), providers=["CPUExecutionProvider"])
+    onnx_vectors = session.run(["content"], {"images": sample.transpose(0, 3, 1, 2).copy()})[0]
+    assert onnx_vectors.shape == (2, 24)
+    np.testing.assert_allclose(onnx_vectors, fdnet.load(run).describe(sample), atol=1e-4)
+    db = tmp_path / "map.db"
+    assert main(["database", "build", "--images", str(images), "--method", "fdnet", "--checkpoint", str(run),
+                 "--out", str(db)]) == 0
+    capsys.readouterr()
+    assert main(["database", "info", "--db", str(db)]) == 0
+    assert json.loads(capsys.readouterr().out)["dim"] == 24

@@ -288,28 +288,36 @@ class TrunkResidualContent(nn.Module):
 
 
 class TrunkProjectionContent(nn.Module):
-    """E_c as a linear projection of the trunk's flattened map to L: v_c = (x - mean) P. ``mean``
-    (a buffer) and P's start come from the training maps in closed form (:meth:`set_start`,
-    :mod:`fdnet.methods.fdnet.content_fit`); before that P is a random orthogonal projection."""
+    """E_c as a linear projection of the trunk's flattened map to L: v_c = ((x - mean) P0)(I + R).
+    ``mean`` and the start P0 (buffers, saved with the weights) come from the training maps in
+    closed form (:meth:`set_start`, :mod:`fdnet.methods.fdnet.content_fit`); training moves only
+    R (L x L, zero at the start), a refinement within the start's own coordinates. Adam's steps
+    are about the learning rate per weight whatever a weight's scale: on P0's entries (~1e-3 for a
+    10^4-long map) they wiped the start out within a few hundred steps (Gardens Point validation
+    R@1 0.88 -> 0.60), on R's (coordinates of unit scale) they are a small change."""
 
     def __init__(self, feature_shape: tuple[int, int, int], length: int) -> None:
         super().__init__()
         size = int(feature_shape[0] * feature_shape[1] * feature_shape[2])
         self.vector_length = int(length)
         self.register_buffer("mean", torch.zeros(size))
-        self.projection = nn.Parameter(torch.empty(size, int(length)))
-        nn.init.orthogonal_(self.projection)
+        start = torch.empty(size, int(length))
+        nn.init.orthogonal_(start)
+        self.register_buffer("start", start)
+        self.refine = nn.Parameter(torch.zeros(int(length), int(length)))
 
     @torch.no_grad()
     def set_start(self, mean, projection) -> None:
         self.mean.copy_(torch.as_tensor(mean, dtype=torch.float32))
-        self.projection.copy_(torch.as_tensor(projection, dtype=torch.float32))
+        self.start.copy_(torch.as_tensor(projection, dtype=torch.float32))
+        self.refine.zero_()
 
     def centred(self, maps: torch.Tensor) -> torch.Tensor:
         return maps.flatten(1).float() - self.mean
 
     def forward(self, maps: torch.Tensor) -> torch.Tensor:
-        return self.centred(maps) @ self.projection
+        projected = self.centred(maps) @ self.start
+        return projected + projected @ self.refine
 
 
 class FDNet(nn.Module):
