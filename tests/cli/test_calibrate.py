@@ -162,3 +162,36 @@ def test_calibrate_chooses_the_radius(route, tmp_path, capsys):
     assert [t["radius"] for t in stored["measured_on"]["chosen_from"]] == [0, 2]
     assert stored["settings"]["margin"]["radius"] in (0, 2)
     assert "-> chosen {'radius':" in capsys.readouterr().err
+
+
+def _tiny_fdnet_run(path, seed):
+    import torch
+
+    from fdnet.methods.fdnet.config import preset
+    from fdnet.methods.fdnet.model import FDNet
+    from fdnet.runs import save_run
+
+    config = preset("tiny")
+    torch.manual_seed(seed)
+    save_run(path, FDNet(config.model).named_parts(), config, state={"step": 1})
+    return path
+
+
+def test_calibration_stored_in_an_fdnet_run_directory(route, tmp_path, capsys):
+    run = _tiny_fdnet_run(tmp_path / "run", seed=0)
+    assert main(["calibrate", "--data", str(route), "--reference", "map", "--query", "now", "--method", "fdnet",
+                 "--checkpoint", str(run), "--device", "cpu", "--workers", "0", "--target-precision", "0.9",
+                 "--store-in-run"]) == 0
+    stored = yaml.safe_load((run / "calibration.yaml").read_text())
+    assert stored["method"] == "fdnet" and stored["target_precision"] == 0.9
+    out = tmp_path / "m.csv"
+    match = ["match", "--reference", str(route / "map"), "--query", str(route / "now"), "--method", "fdnet",
+             "--device", "cpu", "--workers", "0", "--out", str(out)]
+    assert main(match + ["--checkpoint", str(run), "--calibration", str(run)]) == 0
+    assert "accepted" in rows(out)[0]
+    # other weights (another run): the calibration is refused
+    other = _tiny_fdnet_run(tmp_path / "other", seed=1)
+    capsys.readouterr()
+    assert main(match + ["--checkpoint", str(other), "--calibration", str(run)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("fdnet match: error: ") and "another model" in err
