@@ -95,6 +95,20 @@ def mine_pairs(vectors: list[np.ndarray], sequence_length: int) -> list[tuple[in
     return pairs
 
 
+def learnt_whitening(projected: list[np.ndarray], pairs: list[tuple[int, int, int, int]],
+                     shrinkage: float) -> np.ndarray:
+    """(k, k) transform: whiten the pairs' difference covariance (shrunk), then rotate to the
+    principal directions of the whitened training vectors, by decreasing variance."""
+    diff = np.stack([projected[a][i] - projected[b][j] for a, i, b, j in pairs])
+    pair_cov = diff.T @ diff / len(diff)
+    k = pair_cov.shape[0]
+    pair_cov += shrinkage * np.trace(pair_cov) / k * np.eye(k)
+    values, vecs = np.linalg.eigh(pair_cov)
+    whiten = (vecs / np.sqrt(values)) @ vecs.T                  # pair_cov ** -1/2
+    rot_values, rot = np.linalg.eigh(np.cov((np.concatenate(projected) @ whiten).T))
+    return whiten @ rot[:, np.argsort(rot_values)[::-1]]
+
+
 def fit_projection(maps: list[np.ndarray], length: int, init: str = "mined_pairs", pca_dims: int = 1024,
                    pca_power: float = 0.25, pair_sequence_length: int = 5,
                    pair_shrinkage: float = 1.0) -> ProjectionFit:
@@ -126,16 +140,7 @@ def fit_projection(maps: list[np.ndarray], length: int, init: str = "mined_pairs
             raise DataError(f"fdnet: only {len(pairs)} mutual matches were found between the training conditions; "
                             "the mined-pair start needs conditions that are traverses of the same route "
                             "(use model.projection_init=pca otherwise)")
-        diff = np.stack([projected[a][i] - projected[b][j] for a, i, b, j in pairs])
-        pair_cov = diff.T @ diff / len(diff)
-        k = pair_cov.shape[0]
-        pair_cov += pair_shrinkage * np.trace(pair_cov) / k * np.eye(k)
-        values, vecs = np.linalg.eigh(pair_cov)
-        whiten = (vecs / np.sqrt(values)) @ vecs.T                  # pair_cov ** -1/2
-        whitened = np.concatenate(projected) @ whiten
-        rot_values, rot = np.linalg.eigh(np.cov(whitened.T))
-        rotation = rot[:, np.argsort(rot_values)[::-1]]
-        head = start @ whiten @ rotation
+        head = start @ learnt_whitening(projected, pairs, pair_shrinkage)
     elif init == "pca":
         head = start
     else:
