@@ -25,6 +25,11 @@ def l2_normalize(x: np.ndarray, eps: float = 1e-12) -> np.ndarray:
     return x / np.maximum(norm, eps)
 
 
+#: settings that say where a descriptor's weights were read from, not what they are: left out of
+#: :meth:`Descriptor.fingerprint` (the weights' bytes are in it)
+LOCATION_SETTINGS = frozenset({"checkpoint", "weights", "vocabulary", "fitted_on"})
+
+
 class Descriptor(ABC):
     #: name used by ``--method`` and in reports
     name: ClassVar[str] = "descriptor"
@@ -79,7 +84,10 @@ class Descriptor(ABC):
 
         digest = hashlib.sha256()
         digest.update(f"method={self.name}\n".encode())
-        digest.update(json.dumps(self.settings(), sort_keys=True, default=str).encode())
+        # Where the weights were read from is no part of them: the same run directory named as
+        # "run", "./run" or an absolute path (a database records absolute paths) must match.
+        settings = {k: v for k, v in self.settings().items() if k not in LOCATION_SETTINGS}
+        digest.update(json.dumps(settings, sort_keys=True, default=str).encode())
         for label, data in _weight_bytes(self, "self", depth=1, seen=set()):
             digest.update(f"\n{label}\n".encode())
             digest.update(data)

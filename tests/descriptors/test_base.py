@@ -1,0 +1,39 @@
+"""Descriptor.fingerprint: what makes the vectors, not where the weights were read from."""
+
+import numpy as np
+
+from fdnet.descriptors.base import Descriptor
+
+
+class _Stored(Descriptor):
+    name = "stored"
+
+    def __init__(self, checkpoint: str, weights: np.ndarray, size: int = 8):
+        self.checkpoint = checkpoint
+        self.matrix = weights
+        self.size = size
+
+    @property
+    def dim(self) -> int:
+        return int(self.matrix.shape[1])
+
+    def describe(self, images):  # pragma: no cover - not called
+        raise NotImplementedError
+
+    def settings(self) -> dict:
+        return {"checkpoint": self.checkpoint, "size": self.size}
+
+
+def test_fingerprint_ignores_how_the_run_directory_is_spelled(tmp_path):
+    weights = np.arange(6, dtype=np.float32).reshape(2, 3)
+    relative = _Stored("run1", weights)
+    absolute = _Stored(str(tmp_path / "run1"), weights.copy())
+    moved = _Stored(str(tmp_path / "elsewhere" / "run1"), weights.copy())
+    assert relative.fingerprint() == absolute.fingerprint() == moved.fingerprint()
+
+
+def test_fingerprint_still_tells_weights_and_settings_apart():
+    weights = np.arange(6, dtype=np.float32).reshape(2, 3)
+    base = _Stored("run1", weights).fingerprint()
+    assert _Stored("run1", weights + 1).fingerprint() != base
+    assert _Stored("run1", weights, size=16).fingerprint() != base
