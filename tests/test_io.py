@@ -48,3 +48,46 @@ def test_ensure_writable_refuses_paths_that_cannot_be_written(tmp_path, make_pat
     (tmp_path / "file.txt").write_text("x")
     with pytest.raises(ConfigError, match="out|directory|cannot"):
         ensure_writable(make_path(tmp_path))
+
+
+def test_a_full_disk_mid_write_is_one_clear_error_and_keeps_the_old_file(tmp_path, monkeypatch):
+    import errno
+    from pathlib import Path
+
+    from fdnet.errors import ConfigError
+
+    target = tmp_path / "out.yaml"
+    target.write_text("old")
+
+    def full(self, *args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(Path, "write_text", full)
+    with pytest.raises(ConfigError, match="out.yaml: cannot write it \\(no space left") as caught:
+        atomic_write_text(target, "new")
+    assert isinstance(caught.value, OSError)  # code that tolerates a failed cache write still does
+    monkeypatch.undo()
+    assert target.read_text() == "old"
+    assert [p.name for p in tmp_path.iterdir()] == ["out.yaml"]
+
+
+def test_an_input_error_inside_the_block_is_not_called_an_output_error(tmp_path):
+    from fdnet.errors import OutputError
+
+    with pytest.raises(FileNotFoundError) as caught:
+        with atomic_path(tmp_path / "out.txt"):
+            open(tmp_path / "missing-input.txt").read()
+    assert not isinstance(caught.value, OutputError)
+
+
+def test_a_device_or_pipe_is_refused_as_an_output_file(tmp_path):
+    from fdnet.errors import ConfigError
+    from fdnet.io import ensure_writable
+
+    pipe = tmp_path / "pipe"
+    os.mkfifo(pipe)
+    with pytest.raises(ConfigError, match="device, pipe or socket"):
+        ensure_writable(pipe)
+    with pytest.raises(ConfigError, match="device, pipe or socket"):
+        atomic_write_text(pipe, "x")
+    assert stat.S_ISFIFO(pipe.stat().st_mode)  # not replaced by a regular file

@@ -20,6 +20,11 @@ class ConfigError(FdnetError):
     """A setting, preset, checkpoint or command-line combination that cannot work."""
 
 
+class OutputError(ConfigError, OSError):
+    """An output that cannot be written (a full disk, a read-only folder). Also an OSError, so
+    code that tolerates a failed write (a cache) still does."""
+
+
 class NotAvailableError(FdnetError):
     """A method that cannot run here without something the user must supply (e.g. weights)."""
 

@@ -15,7 +15,7 @@ import tempfile
 from pathlib import Path
 from typing import Iterator
 
-from fdnet.errors import ConfigError
+from fdnet.errors import ConfigError, OutputError
 
 
 def fsync_directory(folder: str | os.PathLike) -> None:
@@ -50,22 +50,50 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     file is removed and ``path`` is untouched.
     """
     target = Path(path)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    _refuse_special_file(target, "output")
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    except OSError as exc:
+        raise _output_error(target, exc) from exc
     os.close(fd)
     tmp_path = Path(tmp)
     try:
-        yield tmp_path
-        # mkstemp creates 0600; give the result the permissions a plain open() would (umask).
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp_path, 0o666 & ~umask)
-        fsync_file(tmp_path)
-        os.replace(tmp_path, target)
+        try:
+            yield tmp_path
+            # mkstemp creates 0600; give the result the permissions a plain open() would (umask).
+            umask = os.umask(0)
+            os.umask(umask)
+            os.chmod(tmp_path, 0o666 & ~umask)
+            fsync_file(tmp_path)
+            os.replace(tmp_path, target)
+        except OutputError:
+            raise
+        except OSError as exc:  # a full disk mid-write: one clear line, the old file kept
+            if exc.errno in _WRITE_ERRNOS or exc.filename in (None, str(tmp_path), str(target)):
+                raise _output_error(target, exc) from exc
+            raise  # e.g. an input the caller reads inside the block: not this output's fault
         fsync_directory(target.parent)
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
+
+
+#: errors that are always about the file being written
+_WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EFBIG})
+
+
+def _output_error(target: Path, exc: OSError) -> OutputError:
+    reason = "no space left on the device" if exc.errno == errno.ENOSPC else (exc.strerror or str(exc))
+    error = OutputError(f"{target}: cannot write it ({reason}); nothing was written there")
+    error.errno = exc.errno
+    return error
+
+
+def _refuse_special_file(target: Path, what: str) -> None:
+    """An existing device, pipe or socket is no output file: the atomic rename would replace it."""
+    if target.exists() and not target.is_file() and not target.is_dir():
+        raise ConfigError(f"{target}: {what} path is a device, pipe or socket, not a file; give a file name")
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:
@@ -92,6 +120,8 @@ def ensure_writable(path: str | os.PathLike, what: str = "output", directory: bo
         raise ConfigError(f"{target}: {what} path is a directory, expected a file name")
     if directory and target.exists() and not target.is_dir():
         raise ConfigError(f"{target}: {what} folder exists and is not a folder")
+    if not directory:
+        _refuse_special_file(target, what)
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -99,8 +129,11 @@ def ensure_writable(path: str | os.PathLike, what: str = "output", directory: bo
         raise ConfigError(f"{target}: cannot create the {what} folder{where}: {exc.strerror or exc}") from None
     try:
         fd, probe = tempfile.mkstemp(prefix=".fdnet-write-test.", dir=folder)
-        os.close(fd)
-        os.unlink(probe)
+        try:
+            os.write(fd, b"x")  # an empty file needs no space: a full disk only shows on a write
+        finally:
+            os.close(fd)
+            os.unlink(probe)
     except OSError as exc:
         reason = "no space left" if exc.errno == errno.ENOSPC else (exc.strerror or str(exc))
         raise ConfigError(f"{target}: cannot write the {what} here ({reason})") from None
