@@ -138,6 +138,32 @@ def test_bad_calibration_files_name_the_file(tmp_path, text, message):
         load_calibration(tmp_path / "missing.yaml")
 
 
+GOOD = ("format: fdnet-calibration\nversion: 1\nrule: margin\nsettings: {margin: {radius: 3}}\nthreshold: 0.2\n"
+        "target_precision: 1.0\nmethod: raw\nfingerprint: abc\n")
+
+
+@pytest.mark.parametrize("edit, message", [
+    ("sequence_length: ten", "sequence_length must be a whole number"),
+    ("sequence_length: -4", "sequence_length must be a whole number"),
+    ("accepted: many", "accepted must be a whole number"),
+    ("fingerprint: 123", "fingerprint must be text"),
+    ("rule: [margin]", "rule must be text"),
+    ("threshold: -.inf", "threshold is -inf"),
+    ("notes: [[a, b]]", "notes must be a list of text lines"),
+    ("measured_on: somewhere", "measured_on must map"),
+])
+def test_hand_edited_calibration_values_are_refused_on_loading(tmp_path, edit, message):
+    key = edit.split(":")[0]
+    lines = [line for line in GOOD.splitlines() if not line.startswith(key + ":")]
+    path = tmp_path / "edited.yaml"
+    path.write_text("\n".join(lines + [edit]) + "\n")
+    with pytest.raises(DataError, match=message) as info:
+        load_calibration(path)
+    assert str(path) in str(info.value)
+    path.write_text(GOOD)
+    assert load_calibration(path).threshold == 0.2
+
+
 def test_calibration_can_choose_the_radius_on_its_split(tmp_path):
     split = make_split(tmp_path)
     descriptor = create("raw")

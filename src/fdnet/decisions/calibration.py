@@ -158,8 +158,24 @@ class Calibration:
         except (TypeError, ValueError):
             raise DataError(f"{source}: threshold, target_precision, precision and recall must be numbers") from None
         check_target(values["target_precision"], f"{source}: target_precision")
-        if math.isnan(values["threshold"]):
-            raise DataError(f"{source}: threshold is NaN")
+        if math.isnan(values["threshold"]) or values["threshold"] == -math.inf:
+            # -inf would accept the queries a gate rejected (their score is -inf): never stored
+            raise DataError(f"{source}: threshold is {values['threshold']}; a threshold is a number or +inf "
+                            f"(accept nothing)")
+        for key in ("rule", "method", "fingerprint"):
+            if not isinstance(values[key], str) or not values[key]:
+                raise DataError(f"{source}: {key} must be text, got {values[key]!r}")
+        for key in ("sequence_length", "accepted", "num_queries"):
+            if key in values and (isinstance(values[key], bool) or not isinstance(values[key], int)
+                                  or values[key] < 0):
+                raise DataError(f"{source}: {key} must be a whole number >= 0, got {values[key]!r}")
+        if not isinstance(values.get("measured_on", {}), dict):
+            raise DataError(f"{source}: measured_on must map names to values")
+        if not isinstance(values.get("notes", []), list) or not all(isinstance(n, str) for n in values.get("notes", [])):
+            raise DataError(f"{source}: notes must be a list of text lines")
+        for key in ("created", "fdnet_version"):
+            if key in values and not isinstance(values[key], str):
+                values[key] = str(values[key])  # YAML reads an unquoted date or version as a date/number
         if not isinstance(values["settings"], dict) or not all(isinstance(v, dict) for v in values["settings"].values()):
             raise DataError(f"{source}: settings must map each rule to its settings")
         values.setdefault("precision", math.nan)
