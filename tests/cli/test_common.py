@@ -100,3 +100,17 @@ def test_match_takes_fit(route, tmp_path, capsys):
                  "--out", str(out)]) == 0
     assert "learning from" not in capsys.readouterr().out  # the folder, not the references
     assert len(out.read_text().splitlines()) > 8
+
+
+def test_fit_options_go_to_the_methods_that_take_them():
+    """As `fdnet reproduce` passes them: a bare --fit to every method that learns from images,
+    METHOD=DIR to that one only; --fit-frames likewise; methods without fit get neither."""
+    import argparse
+
+    from fdnet.cli.common import method_options
+
+    args = argparse.Namespace(method="trunk,trunk-whitened,dbow", weights=[], vocabulary=[], checkpoint=[],
+                              fit=["/data/a", "dbow=/data/b"], fit_frames=["0:100"], method_set=[])
+    assert method_options(args, "trunk") == {}
+    assert method_options(args, "trunk-whitened") == {"fit": "/data/a", "fit_frames": "0:100"}
+    assert method_options(args, "dbow") == {"fit": "/data/b", "fit_frames": "0:100"}
