@@ -93,6 +93,11 @@ def test_calibration_in_run_directory_and_database(route, tmp_path, capsys):
     ([], "nothing to store the calibration in"),
     (["--choose", "radius", "--out", "x.yaml"], "expected KEY=V1,V2"),
     (["--accept", "raw", "--choose", "radius=1,2", "--out", "x.yaml"], "rule raw has no setting 'radius'"),
+    (["--choose", "radius=[1,2]", "--out", "x.yaml"], "--choose radius=[1: must be an integer >= 0"),
+    (["--choose", "radius=1,a", "--out", "x.yaml"], "--choose radius=a: must be an integer >= 0"),
+    (["--choose", "radius=1", "--choose", "radius=2", "--out", "x.yaml"], "--choose radius given twice"),
+    (["--choose", "radius=1,2", "--accept-set", "margin:radius=3", "--out", "x.yaml"],
+     "either fixed or chosen"),
 ])
 def test_calibrate_bad_input(route, capsys, extra, message):
     assert main(calibrate_args(route, *extra)) == 2
@@ -195,3 +200,23 @@ def test_calibration_stored_in_an_fdnet_run_directory(route, tmp_path, capsys):
     assert main(match + ["--checkpoint", str(other), "--calibration", str(run)]) == 2
     err = capsys.readouterr().err
     assert err.startswith("fdnet match: error: ") and "another model" in err
+
+
+def test_a_write_failing_after_the_work_keeps_the_calibration(route, tmp_path, capsys, monkeypatch):
+    """A full disk at the end: the error names the file, and the calibration is not lost (it goes
+    to stdout when no place kept it)."""
+    import fdnet.decisions.calibration as calibration_module
+    from fdnet.errors import OutputError
+
+    def full_disk(calibration, path):
+        raise OutputError(f"{path}: cannot write it (no space left on the device); nothing was written there")
+
+    monkeypatch.setattr(calibration_module, "save_calibration", full_disk)
+    out = tmp_path / "cal.yaml"
+    assert main(calibrate_args(route, "--out", str(out))) == 2
+    captured = capsys.readouterr()
+    assert f"fdnet calibrate: error: {out}: cannot write it (no space left" in captured.err
+    assert "Traceback" not in captured.err
+    kept = yaml.safe_load(captured.out.split("save it as a .yaml file):\n", 1)[1])
+    assert kept["format"] == "fdnet-calibration" and kept["method"] == "raw"
+    assert not out.exists()

@@ -64,19 +64,38 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _choices(items) -> dict:
-    """``["radius=0,1,3"]`` -> ``{"radius": [0, 1, 3]}`` (values read as YAML)."""
-    import yaml
-
+def _choices(items, accept_set=()) -> dict:
+    """``["radius=0,1,3"]`` -> ``{"radius": [0, 1, 3]}`` (values read as YAML, as --accept-set's)."""
+    from fdnet.decisions.acceptance import _typed
     from fdnet.errors import ConfigError
 
+    fixed = {item.partition("=")[0].strip().rpartition(":")[2] for item in accept_set}
     out = {}
     for item in items:
         key, sep, values = item.partition("=")
-        if not sep or not key.strip() or not values.strip():
+        key = key.strip()
+        if not sep or not key or not values.strip():
             raise ConfigError(f"--choose {item!r}: expected KEY=V1,V2,... (e.g. radius=0,1,2,3,5)")
-        out[key.strip()] = [yaml.safe_load(v) for v in values.split(",") if v.strip()]
+        if key in out:
+            raise ConfigError(f"--choose {key} given twice: list every value once, e.g. {key}=0,1,2")
+        if key in fixed:
+            raise ConfigError(f"--choose {key} and --accept-set {key}: a setting is either fixed or chosen; give one")
+        out[key] = [_typed(v.strip()) for v in values.split(",") if v.strip()]
     return out
+
+
+def _check_choices(spec, choose) -> None:
+    """Every value of every --choose setting is valid for the rule, named as the user gave it."""
+    from fdnet.decisions.calibration import candidate_specs
+    from fdnet.errors import ConfigError
+
+    for key, values in choose.items():
+        for value in values:
+            try:
+                candidate_specs(spec, {key: [value]})
+            except ConfigError as exc:
+                raise ConfigError(f"--choose {key}={value}: {str(exc).split(': ', 1)[-1]}") from None
+    candidate_specs(spec, choose)  # no values at all
 
 
 def run(args) -> int:
@@ -90,17 +109,16 @@ def run(args) -> int:
         CALIBRATION_FILE,
         DATABASE_KEY,
         calibrate,
-        candidate_specs,
         check_target,
         save_calibration,
     )
-    from fdnet.errors import ConfigError
+    from fdnet.errors import ConfigError, FdnetError
     from fdnet.io import ensure_writable
 
     check_target(args.target_precision)
     spec = parse_acceptance(args.accept or DEFAULT_ACCEPTANCE, args.accept_set)
-    choose = _choices(args.choose)
-    candidate_specs(spec, choose)  # a setting the rule lacks, or a bad value, fails before any work
+    choose = _choices(args.choose, args.accept_set)
+    _check_choices(spec, choose)  # a setting the rule lacks, or a bad value, fails before any work
     if args.sequence_length < 0:
         raise ConfigError(f"--sequence-length must be >= 0, got {args.sequence_length}")
     if args.tolerance is not None and args.tolerance < 0:
@@ -140,22 +158,37 @@ def run(args) -> int:
                                 measured_on=measured_on, batch_size=args.batch_size, workers=args.workers,
                                 progress=sys.stderr.isatty(), log=lambda m: print(m, file=sys.stderr),
                                 choose=choose)
-        written = []
+        print(f"{descriptor.name}, rule {calibration.rule}: threshold {calibration.threshold:.6g} reaches precision "
+              f"{calibration.precision:.3f} at recall {calibration.recall:.3f} ({calibration.accepted} of "
+              f"{calibration.num_queries} queries accepted; target {calibration.target_precision:g})")
+        for note in calibration.notes:
+            print(f"note: {note}")
+        # Each place is written even when another fails (a full disk, a read-only database): the
+        # work is done, so what can be kept is kept, and the rest is reported.
+        writes = []
         if args.out:
-            written.append(str(save_calibration(calibration, args.out)))
+            writes.append((str(args.out), lambda: save_calibration(calibration, args.out)))
         if run_dir is not None:
-            written.append(str(save_calibration(calibration, run_dir / CALIBRATION_FILE)))
+            writes.append((str(run_dir / CALIBRATION_FILE),
+                           lambda: save_calibration(calibration, run_dir / CALIBRATION_FILE)))
         if db is not None:
-            db.set_metadata(DATABASE_KEY, calibration.to_dict(json_safe=True))
-            written.append(f"{args.db} (database metadata)")
+            writes.append((f"{args.db} (database metadata)",
+                           lambda: db.set_metadata(DATABASE_KEY, calibration.to_dict(json_safe=True))))
+        failed = []
+        for where, write in writes:
+            try:
+                write()
+                print(f"wrote {where}")
+            except FdnetError as exc:
+                failed.append(str(exc))
     finally:
         if db is not None:
             db.close()
-    print(f"{descriptor.name}, rule {calibration.rule}: threshold {calibration.threshold:.6g} reaches precision "
-          f"{calibration.precision:.3f} at recall {calibration.recall:.3f} ({calibration.accepted} of "
-          f"{calibration.num_queries} queries accepted; target {calibration.target_precision:g})")
-    for note in calibration.notes:
-        print(f"note: {note}")
-    for where in written:
-        print(f"wrote {where}")
+    if failed:
+        if len(failed) == len(writes):  # nothing kept it: the calibration goes to stdout instead
+            import yaml
+
+            print("# the calibration, written nowhere (save it as a .yaml file):")
+            print(yaml.safe_dump(calibration.to_dict(), sort_keys=False), end="")
+        raise ConfigError("; ".join(failed))
     return 0
