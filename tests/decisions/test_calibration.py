@@ -178,3 +178,14 @@ def test_calibration_can_choose_the_radius_on_its_split(tmp_path):
         assert alone.recall == t["recall"]
     with pytest.raises(ConfigError, match="has no setting 'radius'"):
         calibrate(descriptor, split, parse_acceptance("raw"), 1.0, workers=0, choose={"radius": [1]})
+
+
+def test_a_neighbourhood_in_metres_is_refused_before_describing(tmp_path):
+    split = make_split(tmp_path)
+
+    class Untouchable(type(create("raw"))):
+        def describe(self, images):
+            raise AssertionError("described before the rule was checked")
+
+    with pytest.raises(ConfigError, match="radius_m: calibration on image folders has no positions"):
+        calibrate(Untouchable(), split, parse_acceptance("margin"), 1.0, workers=0, choose={"radius_m": [1.0, 2.0]})

@@ -138,3 +138,25 @@ def test_large_splits_are_ranked_without_the_full_matrix(split):
     assert blocked.similarity is None and any("too large" in n for n in blocked.notes)
     plain = evaluate_method(TinyPixels(), split, workers=0)
     assert plain.similarity is None   # never made unless asked for
+
+
+@pytest.mark.parametrize("setting, message", [("radius_m=5", "radius_m: evaluation on image folders has no positions"),
+                                              ("radius_s=2", "radius_s: evaluation on image folders has no timestamps")])
+def test_a_neighbourhood_the_split_cannot_give_is_refused_before_describing(split, setting, message):
+    from fdnet.decisions.acceptance import parse_acceptance
+    from fdnet.errors import ConfigError
+
+    class Untouchable(TinyPixels):
+        def describe(self, images):
+            raise AssertionError("described before the rule was checked")
+
+    with pytest.raises(ConfigError, match=message):
+        evaluate_method(Untouchable(), split, acceptance=[parse_acceptance("margin", [setting])], workers=0)
+
+
+def test_a_rule_that_looks_at_images_is_refused_on_a_bare_matrix(rng):
+    from fdnet.data.groundtruth import GroundTruth
+    from fdnet.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="looks at the images, but a similarity matrix has no image paths"):
+        evaluate_matrix(rng.random((4, 4)), GroundTruth.aligned(4, 4, 0), "m", acceptance=["verified"])

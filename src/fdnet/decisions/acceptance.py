@@ -271,6 +271,21 @@ class AcceptanceSpec:
             out |= set(get_rule(name).needs)
         return frozenset(out)
 
+    def check_available(self, available, where: str) -> None:
+        """ConfigError, before any work, when a part needs what ``where``'s candidates will not
+        carry (``available``: a subset of "images", "reference_times", "reference_positions"):
+        a rule's ``needs``, or the references' positions for ``radius_m`` / times for ``radius_s``."""
+        for name, values in self.parts:
+            if values.get("radius_m") is not None and "reference_positions" not in available:
+                raise ConfigError(f"--accept-set {name}:radius_m: {where} has no positions of the references (metres); "
+                                  f"use radius (frames) here")
+            if values.get("radius_m") is None and values.get("radius_s") is not None \
+                    and "reference_times" not in available:
+                raise ConfigError(f"--accept-set {name}:radius_s: {where} has no timestamps of the references "
+                                  f"(seconds); use radius (frames) here")
+            if "images" in get_rule(name).needs and "images" not in available:
+                raise ConfigError(f"acceptance rule {name!r} looks at the images, but {where} has no image paths")
+
     def check_images(self, query_paths: Sequence[Path], reference_paths: Sequence[Path]) -> None:
         """Each part's ``Rule.check_images`` (DataError when the images cannot be used)."""
         for name, values in self.parts:

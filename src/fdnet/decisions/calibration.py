@@ -269,6 +269,8 @@ def calibrate(descriptor, split, spec: AcceptanceSpec | str, target_precision: f
     if isinstance(spec, str):
         spec = parse_acceptance(spec)
     specs = candidate_specs(spec, choose)
+    for candidate in specs:  # e.g. radius_m on image folders: refused before anything is described
+        candidate.check_available({"images"}, "calibration on image folders")
     say = log or (lambda message: None)
     deepest = max(specs, key=lambda s: s.depth)
     result = evaluate_method(descriptor, split, sequence_length=sequence_length, acceptance=[deepest],

@@ -191,6 +191,7 @@ def evaluate_method(
     say = log or (lambda message: None)
     ref_paths, query_paths = list(split.reference.paths), list(split.query.paths)
     for spec in specs:  # e.g. images too small for geometric verification: say so before describing
+        spec.check_available({"images"}, "evaluation on image folders")
         spec.check_images(query_paths, ref_paths)
     notes: list[str] = []
     timing: dict = {}
@@ -286,6 +287,9 @@ def evaluate_matrix(
         raise DataError(f"similarity matrix is {s.shape[0]} x {s.shape[1]} but the ground truth is for "
                         f"{ground_truth.num_queries} queries x {ground_truth.num_references} references")
     specs = _acceptance_specs(acceptance)
+    for spec in specs:
+        spec.check_available({"images"} if query_paths is not None and reference_paths is not None else set(),
+                             "a similarity matrix")
     retrieved, scores = top_k_of_matrix(s, max(max(ns), *(spec.depth for spec in specs)))
     context = {"similarity_ceiling": float(similarity_ceiling),
                "query_paths": None if query_paths is None else [Path(p) for p in query_paths],
