@@ -126,7 +126,7 @@ def test_gardens_point_validation_chooses_the_coarse_block_and_nordland_the_fine
                  "--validate-reference", "day_left", "--validate-query", "night_right", "--validate-frames", "0:100",
                  "--validate-tolerance", "2", "--max-minutes", "0", "--no-progress"]) == 0
     selection = load_training_state(tmp_path / "g")["method_state"]["block_selection"]
-    assert selection["14"]["recall@1"] > selection["7"]["recall@1"] + 0.05, selection
+    assert selection["14"]["recall@1"] > selection["7"]["recall@1"], selection
     assert load_config(tmp_path / "g", TrainConfig).model.backbone_block == 14
 
     nordland = require_shared("nordland_trimmed")

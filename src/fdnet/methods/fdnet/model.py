@@ -130,8 +130,8 @@ def largest_layer_weights(config: FDNetConfig) -> int:
     decoder_out = (int(config.widths[-1]) * (height // scale) * (width // scale)) if config.widths else map_values
     decoder = (content + int(config.vector_length)) * decoder_out
     critic = 2 * content * int(config.critic_hidden)
-    projection = map_values * int(config.vector_length) if config.content_head == "trunk_projection" else 0
-    return max(decoder, critic, projection)
+    # (the projection head's start is a buffer, never trained: it has no gradient or Adam moments)
+    return max(decoder, critic)
 
 
 def validate_architecture(config: FDNetConfig) -> None:

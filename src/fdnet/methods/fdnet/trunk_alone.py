@@ -91,7 +91,9 @@ class TrunkWhitenedDescriptor(TrunkDescriptor):
     """``trunk``'s map PCA-whitened to ``dim`` (L) dimensions (see the module docstring).
 
     Settings: ``dim`` (L, default 512; at most the map's length and one fewer than the fitting
-    images), ``power`` (1 = full whitening, 0 = PCA only; :mod:`fdnet.descriptors.whitening`),
+    images), ``power`` (1 = full whitening, 0 = PCA only; :mod:`fdnet.descriptors.whitening`; default
+    0.5, the best or within 0.01 of the best on the Nordland validation pair for every block, so the
+    row FDNet is measured against is the strongest one, docs/trunk.md),
     ``fit`` (dataset folder to learn from), ``fit_frames`` (START:END of each of its conditions),
     and every ``trunk`` setting. Without ``fit`` it learns from the reference images (``fit()``,
     which evaluation and matching call because ``needs_fit`` is then true). With ``fit`` the
@@ -101,7 +103,7 @@ class TrunkWhitenedDescriptor(TrunkDescriptor):
     name = "trunk-whitened"
 
     @invalid_settings_are_config_errors
-    def __init__(self, dim: int = DEFAULT_WHITENED_DIM, power: float = 1.0, fit: str | Path | None = None,
+    def __init__(self, dim: int = DEFAULT_WHITENED_DIM, power: float = 0.5, fit: str | Path | None = None,
                  fit_frames: str | None = None, checkpoint: str | Path | None = None, block: int | None = None,
                  input_size: tuple[int, int] | None = None, bf16: bool | None = None,
                  threads: int | None = None, device: str | None = None, backbone: str | None = None,
