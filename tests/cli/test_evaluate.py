@@ -173,6 +173,12 @@ def test_bad_combinations(matrix_files, route, capsys):
     err = _error(capsys, ["evaluate", "--data", str(route), "--reference", "day", "--query", "night",
                           "--method", "raw"])
     assert "night" in err and "condition folder not found" in err
+    # a sequence length was silently ignored with a precomputed matrix
+    assert "--sequence-length applies to --method" in _error(
+        capsys, ["evaluate", "--similarity", str(npy), "--ground-truth", str(csv), "--sequence-length", "3"])
+    assert "--sequence-length must be >= 0" in _error(
+        capsys, ["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk", "--method", "raw",
+                 "--sequence-length=-3"])
 
 
 def test_method_mode_several_methods_json_and_plots(tiny_method, route, tmp_path, capsys):

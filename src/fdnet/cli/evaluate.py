@@ -256,6 +256,12 @@ def run(args) -> int:
         raise ConfigError(f"--thresholds must be at least 2, got {args.thresholds}")
     if args.tolerance is not None and args.tolerance < 0:
         raise ConfigError(f"--tolerance must be >= 0, got {args.tolerance}")
+    if args.sequence_length < 0:
+        raise ConfigError(f"--sequence-length must be >= 0 (0 = single image), got {args.sequence_length}")
+    if args.similarity and args.sequence_length > 1:
+        # it was silently ignored: single-image numbers reported as if sequence-matched
+        raise ConfigError("--sequence-length applies to --method; a --similarity matrix is evaluated as given "
+                          "(apply fdnet.matching.sequence.sequence_similarity to it first)")
     # Outputs are checked before minutes of describing images, not after.
     if args.json:
         ensure_writable(args.json, what="JSON results")
