@@ -91,3 +91,10 @@ def test_a_device_or_pipe_is_refused_as_an_output_file(tmp_path):
     with pytest.raises(ConfigError, match="device, pipe or socket"):
         atomic_write_text(pipe, "x")
     assert stat.S_ISFIFO(pipe.stat().st_mode)  # not replaced by a regular file
+
+
+def test_text_naming_a_non_utf8_file_is_written_with_the_files_own_bytes(tmp_path):
+    name = os.fsdecode(b"caf\xe9 =odd.png")  # Latin-1 bytes, as a file system may hold them
+    target = tmp_path / "matches.csv"
+    atomic_write_text(target, f"query\n{name}\n")
+    assert target.read_bytes() == b"query\ncaf\xe9 =odd.png\n"

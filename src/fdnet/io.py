@@ -97,8 +97,10 @@ def _refuse_special_file(target: Path, what: str) -> None:
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:
+    """UTF-8; a file name that is not UTF-8 (decoded by Python with surrogate escapes) is written
+    back as its own bytes, so a CSV names the very file instead of failing after the work."""
     with atomic_path(path) as tmp:
-        tmp.write_text(text)
+        tmp.write_text(text, encoding="utf-8", errors="surrogateescape")
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:

@@ -226,3 +226,15 @@ def test_a_non_dot_product_method_is_refused_an_approximate_index(tmp_path, caps
     assert main(["database", "build", "--images", str(route), "--method", "sad", "--out", str(tmp_path / "m.db"),
                  "--index", "ivf"]) == 2
     assert "use --index flat" in capsys.readouterr().err
+
+
+def test_a_file_name_that_is_not_utf8_is_refused_before_any_work(tmp_path, capsys, no_describing):
+    import os
+
+    images = make_route(tmp_path / "odd", n=3)
+    os.rename(images / "frame_001.png", os.path.join(os.fsencode(images), b"caf\xe9.png"))
+    db = tmp_path / "map.db"
+    assert main(["database", "build", "--images", str(images), "--method", "raw", "--out", str(db)]) == 2
+    err = capsys.readouterr().err
+    assert "caf\\xe9.png': the file name is not valid UTF-8" in err and "Traceback" not in err
+    assert not db.exists()  # no half-made database left behind

@@ -137,7 +137,18 @@ def _spooled_batches(spool, names):
 
 def _place_names(paths) -> list[str]:
     # Absolute: the same image added from another working directory is still the same place.
-    return [str(p.resolve()) for p in paths]
+    import os
+
+    from fdnet.errors import DataError
+
+    names = [str(p.resolve()) for p in paths]
+    for name in names:  # SQLite text is UTF-8: refuse before anything is described or created
+        try:
+            name.encode("utf-8")
+        except UnicodeEncodeError:
+            raise DataError(f"{os.fsencode(name)!r}: the file name is not valid UTF-8, which a place database "
+                            f"cannot store as a place name; rename the file") from None
+    return names
 
 
 def _file_options(args, method: str) -> dict:
