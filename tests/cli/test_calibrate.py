@@ -220,3 +220,15 @@ def test_a_write_failing_after_the_work_keeps_the_calibration(route, tmp_path, c
     kept = yaml.safe_load(captured.out.split("save it as a .yaml file):\n", 1)[1])
     assert kept["format"] == "fdnet-calibration" and kept["method"] == "raw"
     assert not out.exists()
+
+
+def test_a_required_setting_can_be_the_one_chosen(route, tmp_path, capsys):
+    """floor needs min; --choose min=... gives it (it failed as 'floor needs its threshold')."""
+    cal = tmp_path / "cal.yaml"
+    assert main(calibrate_args(route, "--accept", "margin+floor", "--choose", "min=0.0,0.5",
+                               "--target-precision", "0.8", "--out", str(cal))) == 0
+    stored = yaml.safe_load(cal.read_text())
+    assert stored["rule"] == "margin+floor" and stored["settings"]["floor"]["min"] in (0.0, 0.5)
+    assert [c["min"] for c in stored["measured_on"]["chosen_from"]] == [0.0, 0.5]
+    assert main(calibrate_args(route, "--accept", "margin+floor", "--choose", "min=x", "--out", str(cal))) == 2
+    assert "--choose min=x: must be a number" in capsys.readouterr().err

@@ -116,8 +116,22 @@ def run(args) -> int:
     from fdnet.io import ensure_writable
 
     check_target(args.target_precision)
-    spec = parse_acceptance(args.accept or DEFAULT_ACCEPTANCE, args.accept_set)
     choose = _choices(args.choose, args.accept_set)
+    try:
+        spec = parse_acceptance(args.accept or DEFAULT_ACCEPTANCE, args.accept_set)
+    except ConfigError as missing:
+        # a setting the rule requires (floor's min) may be the one chosen: parse with its first value
+        from fdnet.decisions.calibration import _yaml_text
+
+        first = [f"{key}={_yaml_text(values[0])}" for key, values in choose.items() if values]
+        if not first:
+            raise
+        try:
+            spec = parse_acceptance(args.accept or DEFAULT_ACCEPTANCE, [*args.accept_set, *first])
+        except ConfigError as exc:
+            if str(exc) == str(missing):  # the choice was not the missing setting
+                raise missing from None
+            raise ConfigError(f"--choose {', '.join(first)}: {str(exc).split(': ', 1)[-1]}") from None
     _check_choices(spec, choose)  # a setting the rule lacks, or a bad value, fails before any work
     if args.sequence_length < 0:
         raise ConfigError(f"--sequence-length must be >= 0, got {args.sequence_length}")
