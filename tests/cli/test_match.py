@@ -159,3 +159,19 @@ def test_match_keeps_and_reuses_a_saved_index(tmp_path, capsys):
     assert main(["match", "--reference", str(ref), "--query", str(qry), "--method", "raw",
                  "--index-file", str(saved), "--out", str(tmp_path / "x.csv")]) == 2
     assert "--index-file apply to the faiss indexes" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("setting, missing", [("radius_m=5", "positions"), ("radius_s=2", "timestamps")])
+def test_a_neighbourhood_image_folders_cannot_give_is_refused_before_describing(tmp_path, capsys, monkeypatch,
+                                                                               setting, missing):
+    from fdnet.descriptors.classic import RawThumbnail
+
+    def describe(self, images):
+        raise AssertionError("images were described before the rule was checked")
+
+    monkeypatch.setattr(RawThumbnail, "describe", describe)
+    ref = make_route(tmp_path / "ref", n=3)
+    assert main(["match", "--reference", str(ref), "--query", str(ref), "--method", "raw", "--accept", "margin",
+                 "--accept-set", setting, "--out", str(tmp_path / "m.csv")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("fdnet match: error: ") and f"has no {missing} of the references" in err

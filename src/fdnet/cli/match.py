@@ -147,6 +147,9 @@ def run(args) -> int:
         calibration.check(descriptor, sequence_length=args.sequence_length if args.sequence_length > 1 else 0,
                           source=args.calibration)
         depth = max(args.top_k, calibration.spec.depth)  # the rule may need more candidates than are written
+    rule = spec if spec is not None else (calibration.spec if calibration is not None else None)
+    if rule is not None:  # e.g. radius_m: image folders have no positions; refused before describing
+        rule.check_available({"images"}, "fdnet match (image folders)")
     if settings is not None and not descriptor.dot_product_similarity:
         raise ConfigError(f"method {descriptor.name!r} does not compare vectors by dot product, so a "
                           "faiss index would rank by the wrong measure; use --index exact")
