@@ -93,7 +93,8 @@ class FDNetConfig:
     #: directions removed, then PCA scaled by eigenvalue ** -projection_pca_power; "mined_pairs" =
     #: that start, then the learnt whitening of the pairs of frames it matches mutually across
     #: conditions (sequence-consistent over ``pair_sequence_length`` frames of each traverse; no
-    #: cross-condition labels). The adversarial stage then refines P like the residual head's U
+    #: cross-condition labels). The adversarial stage then trains an L x L refinement R of the start
+    #: (:class:`TrunkProjectionContent`), as it moves the residual head's U
     projection_init: str = "mined_pairs"
     #: principal directions kept before the mined-pair whitening (at most one fewer than the images)
     projection_pca_dims: int = 1024

@@ -37,7 +37,7 @@ import torch
 from fdnet.config import replace_dotted
 from fdnet.errors import ConfigError
 from fdnet.methods.fdnet.config import TrainConfig, validate
-from fdnet.methods.fdnet.model import FDNet
+from fdnet.methods.fdnet.model import TRUNK_HEADS, FDNet
 from fdnet.training import losses
 from fdnet.training.distributed import loss_text
 from fdnet.data.appearance import with_synthetic_conditions
@@ -132,11 +132,13 @@ class FDNetTraining(TrainingMethod):
         from fdnet.methods.fdnet.model import TrunkProjectionContent, TrunkResidualContent
 
         head = self.model.content_encoder
+        if not isinstance(head, (TrunkProjectionContent, TrunkResidualContent)):
+            return
+        inputs = self.cached_inputs or [self._preprocess(x) for x in self.images]
         if isinstance(head, TrunkProjectionContent):
             from fdnet.methods.fdnet.content_fit import fit_projection
 
             m = self.config.model
-            inputs = self.cached_inputs or [self._preprocess(x) for x in self.images]
             fit = fit_projection([x.flatten(1).cpu().numpy() for x in inputs], m.vector_length,
                                  init=m.projection_init, pca_dims=m.projection_pca_dims, pca_power=m.projection_pca_power,
                                  pair_sequence_length=m.pair_sequence_length, pair_shrinkage=m.pair_shrinkage)
@@ -144,10 +146,9 @@ class FDNetTraining(TrainingMethod):
             self.projection_fit = fit.report
             self.log(f"fdnet: content head starts in closed form ({m.projection_init}): "
                      + ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in fit.report.items()))
-        elif isinstance(head, TrunkResidualContent):
+        else:
             # Centre on the mean map of every training image, all conditions pooled: the centred
             # trunk descriptor is where the residual head starts.
-            inputs = self.cached_inputs or [self._preprocess(x) for x in self.images]
             head.set_mean(torch.cat(inputs))
             if self.config.model.residual_init == "condition_means":
                 removed = head.remove_condition_means(inputs)
@@ -226,7 +227,7 @@ class FDNetTraining(TrainingMethod):
         model, cfg = self.model, self.config
         target = self._batch() if target is None else target
         # the trunk heads keep the trunk's information by construction; only L_e^adv moves them
-        trunk_head = cfg.model.content_head in ("trunk_residual", "trunk_projection")
+        trunk_head = cfg.model.content_head in TRUNK_HEADS
         with _autocast(cfg, self.device):
             content = model.content_encoder(target)
             appearance_vec = model.appearance_encoder(target)
