@@ -37,3 +37,20 @@ def test_fingerprint_still_tells_weights_and_settings_apart():
     base = _Stored("run1", weights).fingerprint()
     assert _Stored("run1", weights + 1).fingerprint() != base
     assert _Stored("run1", weights, size=16).fingerprint() != base
+
+
+def test_a_vocabulary_fitted_from_the_same_folder_spelled_two_ways_has_one_fingerprint(tmp_path, monkeypatch):
+    from PIL import Image
+
+    from fdnet.descriptors import create
+
+    rng = np.random.default_rng(0)
+    folder = tmp_path / "route" / "day"
+    folder.mkdir(parents=True)
+    for i in range(4):
+        Image.fromarray(rng.integers(0, 256, size=(96, 128, 3)).astype(np.uint8)).save(folder / f"{i}.png")
+    monkeypatch.chdir(tmp_path)
+    relative = create("dbow", fit="route/day", depth=2, branching=4)
+    absolute = create("dbow", fit=str(folder), depth=2, branching=4)
+    assert relative.fingerprint() == absolute.fingerprint()
+

@@ -27,7 +27,7 @@ def l2_normalize(x: np.ndarray, eps: float = 1e-12) -> np.ndarray:
 
 #: settings that say where a descriptor's weights were read from, not what they are: left out of
 #: :meth:`Descriptor.fingerprint` (the weights' bytes are in it)
-LOCATION_SETTINGS = frozenset({"checkpoint", "weights", "vocabulary", "fitted_on"})
+LOCATION_SETTINGS = frozenset({"checkpoint", "weights", "vocabulary", "fit", "fitted_on"})
 
 
 class Descriptor(ABC):
