@@ -69,7 +69,7 @@ def test_whitening_learnt_from_made_images_equals_an_independent_pca():
     from sklearn.decomposition import PCA
 
     train, test = _made_images(16), _made_images(5, seed=1)
-    whitened = create("trunk-whitened", dim=6, **SMALL)
+    whitened = create("trunk-whitened", dim=6, power=1.0, **SMALL)  # full whitening, as sklearn's
     assert whitened.needs_fit and whitened.dim == 6
     unfitted = whitened.fingerprint()  # reproduce keys its caches on the unfitted copy
     whitened.fit(train)
