@@ -368,3 +368,44 @@ def test_database_metadata_is_stored_in_one_transaction_and_survives_reopening(t
         assert len(db) == 3 and db.info()["places"] == 3
         with pytest.raises(ConfigError, match="cannot be stored as JSON"):
             db.set_metadata("bad", {"threshold": float("inf")})
+
+
+def test_a_database_holding_the_fingerprint_written_before_locations_were_left_out_still_opens(tmp_path):
+    """Databases built before the fingerprint left out where the weights were read from hold the
+    older fingerprint (with the locations); the same model still opens and adds to them."""
+    import sqlite3
+
+    from fdnet.descriptors.base import Descriptor
+    from fdnet.errors import ConfigError
+    from fdnet.matching.database import PlaceDatabase
+
+    class Located(Descriptor):
+        name = "located"
+        input_size = (8, 8)
+
+        def __init__(self, where):
+            self.where = where
+
+        @property
+        def dim(self):
+            return 4
+
+        def describe(self, images):
+            return np.ones((len(images), 4), np.float32) / 2
+
+        def settings(self):
+            return {"checkpoint": self.where}
+
+    model = Located("/old/run")
+    db_path = tmp_path / "old.db"
+    PlaceDatabase.create(db_path, model).close()
+    legacy = model.fingerprint(with_locations=True)
+    assert legacy != model.fingerprint()
+    with sqlite3.connect(db_path) as conn:
+        conn.execute("UPDATE fdnet_database SET fingerprint = ?", (legacy,))
+    moved = Located("/new/place/of/run")           # same weights, read from elsewhere
+    with pytest.raises(ConfigError, match="fingerprint mismatch"):
+        PlaceDatabase.open(db_path, descriptor=moved).close()   # the old fingerprint had the path
+    with PlaceDatabase.open(db_path, descriptor=model) as db:
+        db.add(np.ones((1, 4), np.float32) / 2, ["a.png"], fingerprint=model.fingerprints())
+        assert len(db) == 1

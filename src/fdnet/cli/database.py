@@ -259,7 +259,7 @@ def run_add(args) -> int:
         # described into a spool first (bounded memory), then stored in ONE transaction
         with _spool(descriptor, [paths[i] for i in todo], args, Path(args.db).resolve().parent) as spool:
             result = db.add_batches(_spooled_batches(spool, [names[i] for i in todo]),
-                                    fingerprint=descriptor.fingerprint(), allow_duplicates=args.allow_duplicates)
+                                    fingerprint=descriptor.fingerprints(), allow_duplicates=args.allow_duplicates)
     skipped = len(known) + len(result.skipped)
     note = f" (skipped {skipped} already in the database; --allow-duplicates adds them)" if skipped else ""
     print(f"{args.db}: added {result.added} places{note}, {result.places} in all, data version {result.data_version}")

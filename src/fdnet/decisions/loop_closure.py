@@ -270,7 +270,7 @@ class LoopClosureDetector:
         if database is None:
             return PlaceDatabase.for_descriptor(self.descriptor, method_options=method_options)
         if isinstance(database, PlaceDatabase):
-            if database.fingerprint != fingerprint:
+            if database.fingerprint not in self.descriptor.fingerprints():
                 raise ConfigError(
                     f"{database.path}: descriptor fingerprint mismatch: the database holds {database.method!r} "
                     f"vectors with fingerprint {short_fingerprint(database.fingerprint)}, the {self.descriptor.name!r} "

@@ -473,7 +473,7 @@ class PlaceDatabase:
                 identity = _read_identity(target, conn)
             similarity = None
             if descriptor is not None:
-                _check_fingerprint(target, identity, descriptor.fingerprint(), descriptor.name)
+                _check_fingerprint(target, identity, descriptor.fingerprints(), descriptor.name)
                 similarity = None if identity.dot_product else descriptor.similarity
         except BaseException:
             conn.close()
@@ -502,7 +502,7 @@ class PlaceDatabase:
 
     def add(self, vectors: np.ndarray, names: Sequence[str],
             positions: Sequence[tuple[float, float] | None] | np.ndarray | None = None, *,
-            metadata: Sequence[dict | None] | None = None, fingerprint: str | None = None,
+            metadata: Sequence[dict | None] | None = None, fingerprint: str | Sequence[str] | None = None,
             allow_duplicates: bool = False) -> AddResult:
         """Store a batch of places in one transaction: all of it is added or none.
 
@@ -521,7 +521,7 @@ class PlaceDatabase:
                 self._check_same_database(conn)
                 return self._insert(conn, batch, allow_duplicates)
 
-    def add_batches(self, batches: Iterable, *, fingerprint: str | None = None,
+    def add_batches(self, batches: Iterable, *, fingerprint: str | Sequence[str] | None = None,
                     allow_duplicates: bool = False) -> AddResult:
         """Store many chunks of places in ONE transaction: all of them are added or none (an
         ``add`` of a million images, a chunk in memory at a time). Each chunk is
@@ -883,8 +883,13 @@ def _names_present(conn: sqlite3.Connection, names: Sequence[str]) -> set[str]:
     return found
 
 
-def _check_fingerprint(path, identity: _Identity, fingerprint: str, method: str | None) -> None:
-    if fingerprint != identity.fingerprint:
+def _check_fingerprint(path, identity: _Identity, fingerprint: str | Sequence[str], method: str | None) -> None:
+    """Refuse vectors of another model. ``fingerprint`` may list several spellings of the same
+    model's fingerprint (``Descriptor.fingerprints()``: databases built before the weights'
+    locations were left out of it hold the older one)."""
+    accepted = (fingerprint,) if isinstance(fingerprint, str) else tuple(fingerprint)
+    fingerprint = accepted[0]
+    if identity.fingerprint not in accepted:
         made_by = f"the {method!r} descriptor given has" if method else "these vectors come from"
         raise ConfigError(
             f"{path}: descriptor fingerprint mismatch: the database holds {identity.method!r} vectors with "
