@@ -56,6 +56,15 @@ def test_mined_pairs_are_the_route_correspondences_and_improve_matching():
     assert learnt >= start + 0.2, (start, learnt)
 
 
+def test_traverses_of_different_places_are_refused():
+    a, _ = made_route(seed=0)
+    _, b = made_route(seed=5)         # another route: its places are not a's
+    with pytest.raises(DataError, match="do not look like traverses of one route"):
+        fit_projection([a, b], 32, init="mined_pairs", pca_dims=80)
+    same = fit_projection(list(made_route(seed=0)), 32, init="mined_pairs", pca_dims=80)
+    assert same.report["route_consistency"] > 0.5
+
+
 def test_fewer_images_than_the_length_keeps_the_length():
     a, b = made_route(frames=20)
     fit = fit_projection([a, b], 64, init="pca")

@@ -95,6 +95,26 @@ def mine_pairs(vectors: list[np.ndarray], sequence_length: int) -> list[tuple[in
     return pairs
 
 
+#: mined pairs whose next frame is mined too, at most 2 frames from the next place, per frame of the
+#: shorter traverse: 0.63-0.79 between Nordland's seasons, 0.22-0.66 between Gardens Point's
+#: conditions, 0.05-0.11 for traverses of different places (docs/results.md, session 7)
+MIN_ROUTE_CONSISTENCY = 0.15
+
+
+def route_consistency(pairs: list[tuple[int, int, int, int]], lengths: list[int], slack: int = 2) -> dict:
+    """For every two conditions a, b: the fraction of frames of the shorter traverse whose mined
+    pair (i, j) is followed by a mined pair (i + 1, j') with |j' - (j + 1)| <= ``slack``. Two
+    traverses of one route advance together; mutual matches between unrelated places do not."""
+    mined = {(a, i, b): j for a, i, b, j in pairs}
+    counts: dict[tuple[int, int], int] = {}
+    for (a, i, b), j in mined.items():
+        follower = mined.get((a, i + 1, b))
+        if follower is not None and abs(follower - (j + 1)) <= slack:
+            counts[(a, b)] = counts.get((a, b), 0) + 1
+    return {(a, b): counts.get((a, b), 0) / max(min(lengths[a], lengths[b]), 1)
+            for a in range(len(lengths)) for b in range(a + 1, len(lengths))}
+
+
 def learnt_whitening(projected: list[np.ndarray], pairs: list[tuple[int, int, int, int]],
                      shrinkage: float) -> np.ndarray:
     """(k, k) transform: whiten the pairs' difference covariance (shrunk), then rotate to the
@@ -140,6 +160,18 @@ def fit_projection(maps: list[np.ndarray], length: int, init: str = "mined_pairs
             raise DataError(f"fdnet: only {len(pairs)} mutual matches were found between the training conditions; "
                             "the mined-pair start needs conditions that are traverses of the same route "
                             "(use model.projection_init=pca otherwise)")
+        consistency = route_consistency(pairs, [len(m) for m in maps])
+        report["route_consistency"] = round(float(np.mean(list(consistency.values()))), 3)
+        if report["route_consistency"] < MIN_ROUTE_CONSISTENCY:
+            raise DataError(f"fdnet: the training conditions do not look like traverses of one route: only "
+                            f"{report['route_consistency']:.0%} of the frames' mutual matches advance together with "
+                            f"the next frame's (traverses of one route: 22-79 %, of different places: 5-11 %); the "
+                            "mined-pair start needs conditions that revisit the same places in the same order "
+                            "(use model.projection_init=pca otherwise)")
+        for (a, b), value in consistency.items():
+            if value < MIN_ROUTE_CONSISTENCY:
+                log.warning("fdnet: conditions %d and %d share few route-consistent matches (%.0f%%): are they "
+                            "traverses of the same route?", a, b, 100 * value)
         head = start @ learnt_whitening(projected, pairs, pair_shrinkage)
     elif init == "pca":
         head = start
