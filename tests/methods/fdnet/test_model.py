@@ -107,3 +107,24 @@ def test_the_largest_layer_estimate_is_the_built_models(name):
     built = max(m.weight.numel() for m in model.modules() if isinstance(m, torch.nn.Linear))
     assert largest_layer_weights(config) == built
     assert built < MAX_LAYER_WEIGHTS / 4  # the presets fit with room to spare
+
+
+@pytest.mark.parametrize("change, message", [
+    (dict(vector_length=10241), r"L = 10241 is longer than the trunk map it projects \(10240 values at block 7"),
+    (dict(projection_init="whiten"), "model.projection_init: 'whiten'"),
+    (dict(projection_pca_power=2.0), "projection_pca_power must lie in"),
+    (dict(pair_sequence_length=0), "pair_sequence_length must be >= 1"),
+    (dict(backbone="none", backbone_block_candidates=()), "trunk_projection needs a model.backbone"),
+])
+def test_projection_head_settings_it_cannot_take_are_refused(change, message):
+    config = FDNetConfig(**{**TRUNK_HEAD, "content_head": "trunk_projection", **change})
+    with pytest.raises(ConfigError, match=message):
+        validate_architecture(config)
+
+
+def test_projection_head_vector_has_the_paper_length():
+    model = FDNet(FDNetConfig(**{**TRUNK_HEAD, "content_head": "trunk_projection", "vector_length": 512})).eval()
+    assert model.content_length == 512
+    assert sum(p.numel() for p in model.content_encoder.parameters()) == 512 * 512  # only R trains
+    with torch.no_grad():
+        assert model.content(torch.rand(2, 3, 128, 256)).shape == (2, 512)
