@@ -105,6 +105,34 @@ def create_descriptor(name: str, args: argparse.Namespace):
     return create(name, **options)
 
 
+def add_decision_arguments(parser, calibration_help: str) -> None:
+    """--calibration, --accept and --accept-set of the commands that write ranked candidates
+    (match, database query): a calibrated decision, or a rule's score without a threshold."""
+    parser.add_argument("--calibration", metavar="FILE|RUN_DIR", help=calibration_help)
+    parser.add_argument("--accept", metavar="RULE",
+                        help="instead of a calibration: add this acceptance rule's acceptance_score column (margin, "
+                             "ratio, raw, ...; docs/decisions.md), with no threshold")
+    parser.add_argument("--accept-set", action="append", default=[], metavar="[RULE:]KEY=VALUE",
+                        help="a setting of the --accept rule (repeatable), e.g. radius=3")
+
+
+def acceptance_from_arguments(args: argparse.Namespace):
+    """The ``--accept`` rule (an AcceptanceSpec) or None; refuses --accept-set without --accept
+    and --accept with --calibration (the calibration holds its rule and settings)."""
+    from fdnet.errors import ConfigError
+
+    if args.calibration and (args.accept or args.accept_set):
+        raise ConfigError("--accept/--accept-set and --calibration: the calibration holds its rule and settings; "
+                          "give one or the other")
+    if args.accept_set and not args.accept:
+        raise ConfigError("--accept-set needs --accept RULE")
+    if not args.accept:
+        return None
+    from fdnet.decisions.acceptance import parse_acceptance
+
+    return parse_acceptance(args.accept, args.accept_set)
+
+
 def add_device_argument(parser: argparse.ArgumentParser) -> None:
     """``--device`` for commands that run a model for inference."""
     from fdnet.runtime import DEVICE_HELP

@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import argparse
 
-from fdnet.cli.common import add_device_argument, add_method_arguments, add_pipeline_arguments
+from fdnet.cli.common import (
+    acceptance_from_arguments, add_decision_arguments, add_device_argument, add_method_arguments, add_pipeline_arguments,
+)
 
 
 def _positive_int(text: str) -> int:
@@ -72,14 +74,8 @@ def register(sub) -> None:
     query.add_argument("--exclude-last", type=_non_negative_int, default=0,
                        help="ignore the most recently added N places (a robot's own recent frames)")
     query.add_argument("--min-score", type=float, default=None, help="only report candidates scoring at least this")
-    query.add_argument("--calibration", metavar="FILE|RUN_DIR",
-                       help="a calibration from `fdnet calibrate` (default: the one stored in the database by "
-                            "`fdnet calibrate --db`, if any): adds acceptance_score and accepted columns")
-    query.add_argument("--accept", metavar="RULE",
-                       help="instead of a calibration: add this acceptance rule's acceptance_score column (margin, "
-                            "ratio, raw, ...), with no threshold (docs/decisions.md)")
-    query.add_argument("--accept-set", action="append", default=[], metavar="[RULE:]KEY=VALUE",
-                       help="a setting of the --accept rule (repeatable), e.g. radius=3")
+    add_decision_arguments(query, "a calibration from `fdnet calibrate` (default: the one stored in the database by "
+                                  "`fdnet calibrate --db`, if any): adds acceptance_score and accepted columns")
     query.add_argument("--out", help="CSV to write (query,rank,place,place_index,score[,acceptance_score,accepted]); "
                                      "default: print")
     add_pipeline_arguments(query)
@@ -282,17 +278,7 @@ def run_query(args) -> int:
     check_pipeline_arguments(args)
     if args.out:
         ensure_writable(args.out, what="query CSV")
-    from fdnet.errors import ConfigError
-
-    if args.accept_set and not args.accept:
-        raise ConfigError("--accept-set needs --accept RULE")
-    if args.accept and args.calibration:
-        raise ConfigError("--accept and --calibration: the calibration holds its rule and settings; give one")
-    spec = None
-    if args.accept:
-        from fdnet.decisions.acceptance import parse_acceptance
-
-        spec = parse_acceptance(args.accept, args.accept_set)
+    spec = acceptance_from_arguments(args)
     db, descriptor = _open_with_descriptor(args.db, device_args=args)
     with db:
         calibration = None if spec is not None else _query_calibration(db, descriptor, args)

@@ -20,7 +20,9 @@ calibration, ``--accept RULE`` adds the rule's ``acceptance_score`` alone (no th
 
 from __future__ import annotations
 
-from fdnet.cli.common import add_device_argument, add_method_arguments, add_pipeline_arguments
+from fdnet.cli.common import (
+    acceptance_from_arguments, add_decision_arguments, add_device_argument, add_method_arguments, add_pipeline_arguments,
+)
 
 INDEX_CHOICES = ["exact", "flat", "hnsw", "ivf", "ivfpq"]
 
@@ -49,15 +51,9 @@ def register(sub) -> None:
                         "not described again")
     p.add_argument("--sequence-length", type=int, default=0,
                    help="SeqSLAM sequence matching over this many consecutive queries (0 = single image)")
-    p.add_argument("--calibration", metavar="FILE|RUN_DIR",
-                   help="a calibration from `fdnet calibrate` (YAML, or a run directory holding calibration.yaml): "
-                        "adds acceptance_score and accepted columns (accepted 1 = the revisit the calibrated rule "
-                        "accepts; none in a query = a new place)")
-    p.add_argument("--accept", metavar="RULE",
-                   help="without --calibration: add the acceptance_score column of this rule (margin, ratio, raw, "
-                        "...; docs/decisions.md), with no threshold")
-    p.add_argument("--accept-set", action="append", default=[], metavar="[RULE:]KEY=VALUE",
-                   help="a setting of the --accept rule (repeatable), e.g. radius=3")
+    add_decision_arguments(p, "a calibration from `fdnet calibrate` (YAML, or a run directory holding calibration.yaml): "
+                              "adds acceptance_score and accepted columns (accepted 1 = the revisit the calibrated "
+                              "rule accepts; none in a query = a new place)")
     p.add_argument("--out", required=True,
                    help="CSV to write: query_index,query,rank,reference_index,reference,score (indices are "
                         "positions in natural file-name order, names the image file names)")
@@ -128,17 +124,10 @@ def run(args) -> int:
         ensure_writable(args.index_file, what="index file")
     ref_paths, query_paths = list_images(args.reference), list_images(args.query)
     descriptor = create_descriptor(args.method, args)
-    calibration = spec = None
+    calibration = None
     depth = args.top_k
-    if args.calibration and (args.accept or args.accept_set):
-        raise ConfigError("--accept/--accept-set and --calibration: the calibration holds its rule and settings; "
-                          "give one or the other")
-    if args.accept_set and not args.accept:
-        raise ConfigError("--accept-set needs --accept RULE")
-    if args.accept:
-        from fdnet.decisions.acceptance import parse_acceptance
-
-        spec = parse_acceptance(args.accept, args.accept_set)
+    spec = acceptance_from_arguments(args)
+    if spec is not None:
         depth = max(args.top_k, spec.depth)
     if args.calibration:
         from fdnet.decisions.calibration import load_calibration
