@@ -37,6 +37,28 @@ def max_whitening_dim(num_vectors: int, dim: int) -> int:
     return max(0, min(int(num_vectors) - 1, int(dim)))
 
 
+def principal_directions(x: np.ndarray, dim: int) -> tuple[np.ndarray, np.ndarray]:
+    """Centred (N, D) vectors -> (components (dim, D), orthonormal rows by decreasing variance; the
+    variances along them (dim,)). Also the start of FDNet's projection head
+    (:mod:`fdnet.methods.fdnet.content_fit`).
+
+    The eigen-decomposition of the smaller of the Gram (N x N) and covariance (D x D) matrices.
+    Written here rather than sklearn's PCA because with N << D (a few thousand images,
+    10^4-dimensional maps) its exact solver runs a full SVD, several times slower than one matrix
+    product and an N x N eigh; its randomized one is approximate."""
+    n, d = x.shape
+    if n <= d:
+        values, vectors_n = np.linalg.eigh(x @ x.T)
+        order = np.argsort(values)[::-1][:dim]
+        singular = np.sqrt(np.maximum(values[order], 0.0))
+        components = ((x.T @ vectors_n[:, order]) / np.maximum(singular, 1e-300)).T
+    else:
+        values, vectors_d = np.linalg.eigh(x.T @ x)
+        order = np.argsort(values)[::-1][:dim]
+        components = vectors_d[:, order].T
+    return components, values[order] / max(n - 1, 1)
+
+
 class PCAWhitening:
     """A fitted whitening: ``transform`` maps (N, D) vectors to (N, L) unit vectors.
 
@@ -88,23 +110,7 @@ class PCAWhitening:
         x = _l2(x)
         mean = x.mean(axis=0)
         x -= mean
-        # The eigen-decomposition of the smaller of the Gram (N x N) and covariance (D x D)
-        # matrices. Written here rather than sklearn's PCA because with N << D (a few thousand
-        # images, 10^4-dimensional maps) its exact solver runs a full SVD, several times
-        # slower than one matrix product and an N x N eigh; its randomized one is approximate.
-        if n <= d:
-            values, vectors_n = np.linalg.eigh(x @ x.T)
-            order = np.argsort(values)[::-1][:dim]
-            singular = np.sqrt(np.maximum(values[order], 0.0))
-            components = (x.T @ vectors_n[:, order]) / np.maximum(singular, 1e-300)
-            components = components.T
-            values = values[order]
-        else:
-            values, vectors_d = np.linalg.eigh(x.T @ x)
-            order = np.argsort(values)[::-1][:dim]
-            components = vectors_d[:, order].T
-            values = values[order]
-        eigenvalues = values / max(n - 1, 1)
+        components, eigenvalues = principal_directions(x, dim)
         top = float(eigenvalues[0]) if len(eigenvalues) else 0.0
         spanned = int(np.sum(eigenvalues > RELATIVE_EIGENVALUE_FLOOR * max(top, 1e-300))) if top > 0 else 0
         if spanned < dim:

@@ -22,9 +22,10 @@ traverse's frame order. Two steps, both without cross-condition place labels:
    amplify noise), then rotate to the principal directions of the whitened training maps and
    keep the first ``vector_length``.
 
-Hand-written in numpy rather than with scikit-learn: the decompositions run on the Gram matrix
-(N x N, N a few thousand images) of 10^4-dimensional maps and on the small (pca_dims x pca_dims)
-covariances, one matrix product and one ``eigh`` each.
+Hand-written in numpy rather than with scikit-learn: the PCA is the whitening's
+(:func:`fdnet.descriptors.whitening.principal_directions`, on the Gram matrix of a few thousand
+10^4-dimensional maps), and the learnt whitening one ``eigh`` of a small (pca_dims x pca_dims)
+covariance.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from fdnet.descriptors.whitening import principal_directions
 from fdnet.errors import DataError
 
 log = logging.getLogger(__name__)
@@ -51,21 +53,10 @@ class ProjectionFit:
 def _principal(x: np.ndarray, dims: int) -> tuple[np.ndarray, np.ndarray]:
     """Centred (N, D) -> (components (D, k), eigenvalues (k,)), k <= dims, by decreasing
     eigenvalue, directions with (numerically) zero variance dropped."""
-    n, d = x.shape
-    if n <= d:
-        values, vecs = np.linalg.eigh(x @ x.T)
-        order = np.argsort(values)[::-1]
-        values = np.maximum(values[order], 0.0)
-        keep = values > values[0] * 1e-9 if values[0] > 0 else np.zeros_like(values, bool)
-        values, vecs = values[keep][:dims], vecs[:, order][:, keep][:, :dims]
-        components = (x.T @ vecs) / np.sqrt(values)
-    else:
-        values, vecs = np.linalg.eigh(x.T @ x)
-        order = np.argsort(values)[::-1]
-        values = np.maximum(values[order], 0.0)
-        keep = values > values[0] * 1e-9 if values[0] > 0 else np.zeros_like(values, bool)
-        values, components = values[keep][:dims], vecs[:, order][:, keep][:, :dims]
-    return components, values / max(n - 1, 1)
+    components, values = principal_directions(x, min(int(dims), *x.shape))
+    values = np.maximum(values, 0.0)
+    keep = values > values[0] * 1e-9 if len(values) and values[0] > 0 else np.zeros(len(values), bool)
+    return components[keep].T, values[keep]
 
 
 def condition_mean_basis(maps: list[np.ndarray], mean: np.ndarray) -> np.ndarray:
