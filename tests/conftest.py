@@ -47,3 +47,18 @@ def _few_threads():
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(0)
+
+
+def write_day_night_route(root: Path, places: int) -> Path:
+    """``root/route/{day,night}/NNN.png``: ``places`` random 32x64 images, the night copy of each
+    darker (x0.6) with a little noise; frame i is the same place in both conditions."""
+    from PIL import Image
+
+    rng = np.random.default_rng(0)
+    images = rng.random((places, 32, 64, 3))
+    for k, condition in enumerate(("day", "night")):
+        (root / "route" / condition).mkdir(parents=True)
+        for i, place in enumerate(images):
+            image = np.clip(place * (1.0 - 0.4 * k) + 0.05 * rng.random(place.shape), 0, 1)
+            Image.fromarray((image * 255).astype(np.uint8)).save(root / "route" / condition / f"{i:03d}.png")
+    return root / "route"

@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import json
 
-import numpy as np
 import pytest
-from PIL import Image
+
+from conftest import write_day_night_route
 
 from fdnet.cli import main
 
@@ -18,14 +18,7 @@ SMALL = ["--method-set", "trunk-whitened:block=4", "--method-set", "trunk-whiten
 
 @pytest.fixture
 def route(tmp_path):
-    rng = np.random.default_rng(0)
-    places = rng.random((8, 32, 64, 3))
-    for k, condition in enumerate(("day", "night")):
-        (tmp_path / "route" / condition).mkdir(parents=True)
-        for i, place in enumerate(places):
-            image = np.clip(place * (1.0 - 0.4 * k) + 0.05 * rng.random(place.shape), 0, 1)
-            Image.fromarray((image * 255).astype(np.uint8)).save(tmp_path / "route" / condition / f"{i:03d}.png")
-    return tmp_path / "route"
+    return write_day_night_route(tmp_path, 8)
 
 
 def _evaluate(route, tmp_path, *extra):

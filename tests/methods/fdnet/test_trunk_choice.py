@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 import yaml
+
+from conftest import write_day_night_route
 
 from fdnet.data.dataset import RouteDataset
 from fdnet.data.split import aligned_split
@@ -35,16 +36,7 @@ def test_candidates_parse_and_are_checked():
 
 @pytest.fixture
 def route(tmp_path):
-    from PIL import Image
-
-    rng = np.random.default_rng(0)
-    places = rng.random((6, 32, 64, 3))
-    for k, condition in enumerate(("day", "night")):
-        (tmp_path / "route" / condition).mkdir(parents=True)
-        for i, place in enumerate(places):
-            image = np.clip(place * (1.0 - 0.4 * k) + 0.05 * rng.random(place.shape), 0, 1)
-            Image.fromarray((image * 255).astype(np.uint8)).save(tmp_path / "route" / condition / f"{i:03d}.png")
-    return tmp_path / "route"
+    return write_day_night_route(tmp_path, 6)
 
 
 def test_choice_is_the_best_candidate_and_trunk_methods_read_it(route, tmp_path):
