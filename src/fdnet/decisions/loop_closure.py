@@ -264,17 +264,12 @@ class LoopClosureDetector:
         return spec, float(threshold), None
 
     def _database(self, database, method_options):
-        from fdnet.matching.database import MEMORY, PlaceDatabase, short_fingerprint
+        from fdnet.matching.database import MEMORY, PlaceDatabase
 
-        fingerprint = self.descriptor.fingerprint()
         if database is None:
             return PlaceDatabase.for_descriptor(self.descriptor, method_options=method_options)
         if isinstance(database, PlaceDatabase):
-            if database.fingerprint not in self.descriptor.fingerprints():
-                raise ConfigError(
-                    f"{database.path}: descriptor fingerprint mismatch: the database holds {database.method!r} "
-                    f"vectors with fingerprint {short_fingerprint(database.fingerprint)}, the {self.descriptor.name!r} "
-                    f"descriptor given has {short_fingerprint(fingerprint)}")
+            database.check_descriptor(self.descriptor)
             return database
         path = Path(database)
         if str(database) != MEMORY and path.is_file() and path.stat().st_size > 0:

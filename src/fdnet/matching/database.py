@@ -473,12 +473,16 @@ class PlaceDatabase:
                 identity = _read_identity(target, conn)
             similarity = None
             if descriptor is not None:
-                _check_fingerprint(target, identity, descriptor.fingerprints(), descriptor.name)
+                _check_descriptor(target, identity, descriptor)
                 similarity = None if identity.dot_product else descriptor.similarity
         except BaseException:
             conn.close()
             raise
         return cls(target, conn, identity, similarity)
+
+    def check_descriptor(self, descriptor) -> None:
+        """Refuse ``descriptor`` unless it is the model whose vectors the database holds."""
+        _check_descriptor(self.path, self._identity, descriptor)
 
     def close(self) -> None:
         self._conn.close()
@@ -881,6 +885,10 @@ def _names_present(conn: sqlite3.Connection, names: Sequence[str]) -> set[str]:
         marks = ", ".join("?" * len(chunk))
         found.update(r[0] for r in conn.execute(f"SELECT DISTINCT name FROM places WHERE name IN ({marks})", chunk))
     return found
+
+
+def _check_descriptor(path, identity: _Identity, descriptor) -> None:
+    _check_fingerprint(path, identity, descriptor.fingerprints(), descriptor.name)
 
 
 def _check_fingerprint(path, identity: _Identity, fingerprint: str | Sequence[str], method: str | None) -> None:
