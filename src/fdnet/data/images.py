@@ -58,14 +58,21 @@ def list_images(folder: str | os.PathLike, recursive: bool = False) -> list[Path
     differ only in leading zeros) broken by the plain name. So ``frame_1.png, frame_2.png, ...,
     frame_10.png`` come in that order, and zero-padded names come in plain text order.
     ``recursive=True`` lists the whole tree, ordered by the path below ``folder``
-    (``a/2.png`` before ``a/10.png`` before ``b/1.png``).
+    (``a/2.png`` before ``a/10.png`` before ``b/1.png``). A video file or ROS bag (``BAG:TOPIC``)
+    in place of the folder gives its frames as frame paths, sampled by the default
+    :class:`fdnet.data.sources.SourceOptions` (:func:`fdnet.data.sources.list_frames`).
 
     Index ``i`` of this list is image ``i`` everywhere in fdnet: in ground-truth CSVs, similarity
     matrices, ``fdnet match`` output and ``fdnet extract`` arrays.
     """
+    from fdnet.data import sources
+
+    if sources.is_source(folder):  # a video or ROS bag: its frames, as frame paths (fdnet.data.sources)
+        return sources.list_frames(folder)
     folder = Path(folder)
     if not folder.is_dir():
-        reason = "it is a file" if folder.exists() else "folder not found"
+        reason = ("it is a file, and not a video or ROS bag by its extension" if folder.exists()
+                  else "folder not found")
         raise DataError(f"{folder}: not a folder of images ({reason})")
     candidates = folder.rglob("*") if recursive else folder.iterdir()
     paths = [p for p in candidates
@@ -105,6 +112,12 @@ def _open(path: Path) -> Image.Image:
     """
     try:
         img = Image.open(path)
+    except (FileNotFoundError, NotADirectoryError):
+        from fdnet.data.sources import open_frame
+
+        img = open_frame(path)  # a frame of a video or bag (fdnet.data.sources), or None
+        if img is None:
+            raise
     except (Image.DecompressionBombError, Image.DecompressionBombWarning) as exc:
         # The warning arrives as an exception when warnings are errors (python -W error).
         found = _BOMB_PIXELS.search(str(exc))
