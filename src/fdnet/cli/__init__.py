@@ -49,7 +49,21 @@ def build_parser() -> argparse.ArgumentParser:
         if importlib.util.find_spec(module_name) is None:
             continue
         importlib.import_module(module_name).register(sub)
+    _add_source_arguments(sub)
     return parser
+
+
+def _add_source_arguments(subparsers) -> None:
+    """The video/bag sampling flags on every (sub-)command that takes images
+    (:func:`fdnet.cli.common.add_source_arguments`)."""
+    from fdnet.cli.common import add_source_arguments
+
+    for parser in set(subparsers.choices.values()):
+        nested = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+        for action in nested:
+            _add_source_arguments(action)
+        if not nested:
+            add_source_arguments(parser)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -59,7 +73,14 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     try:
-        result = args.func(args)
+        if hasattr(args, "fps"):  # a command that takes images: its video/bag sampling flags
+            from fdnet.cli.common import source_options
+            from fdnet.data.sources import using_options
+
+            with using_options(source_options(args)):
+                result = args.func(args)
+        else:
+            result = args.func(args)
     except FdnetError as exc:
         print(f"fdnet {args.command}: error: {exc}", file=sys.stderr)
         return 2

@@ -142,6 +142,42 @@ def add_device_argument(parser: argparse.ArgumentParser) -> None:
                              "there, images travel to it as uint8; the numpy/OpenCV methods run on the CPU")
 
 
+#: options whose value may be a folder of images, so also a video or ROS bag (fdnet.data.sources)
+IMAGE_OPTIONS = ("--images", "--reference", "--query", "--data", "--dataset", "--positions", "--fit")
+
+
+def add_source_arguments(parser: argparse.ArgumentParser) -> None:
+    """How frames are taken from videos and ROS bags given where a folder of images is accepted
+    (every command whose parser has one of :data:`IMAGE_OPTIONS`; ``fdnet.cli.build_parser`` adds
+    them, so no command declares them itself). Folders of images ignore them."""
+    if not any(option in parser._option_string_actions for option in IMAGE_OPTIONS):
+        return
+    group = parser.add_argument_group(
+        "videos and ROS bags", "a video file (.mp4, .avi, .mkv, ...) or a ROS bag (.bag, .db3, .mcap, a ROS 2 bag "
+        "folder, or BAG:TOPIC) is accepted wherever a folder of images is; docs/sources.md")
+    group.add_argument("--fps", type=float, metavar="N",
+                       help="take at most N frames per second (the first frame of each 1/N-second slot; default: "
+                            "every frame)")
+    group.add_argument("--every", type=int, metavar="K", help="take every K-th frame")
+    group.add_argument("--window", metavar="START:END",
+                       help="only frames from START to END seconds after a source's first frame (either may be empty)")
+    group.add_argument("--topic", help="a bag's image topic (sensor_msgs/Image or CompressedImage); needed when the "
+                                       "bag has several")
+    group.add_argument("--position-topic", metavar="TOPIC",
+                       help="a bag's sensor_msgs/NavSatFix or nav_msgs/Odometry topic whose positions are "
+                            "interpolated to the image times (default: the bag's only NavSatFix topic, else its "
+                            "only Odometry topic)")
+
+
+def source_options(args: argparse.Namespace):
+    """The :class:`fdnet.data.sources.SourceOptions` the flags of :func:`add_source_arguments` give."""
+    from fdnet.data.sources import SourceOptions, parse_window
+
+    return SourceOptions(fps=getattr(args, "fps", None), every=getattr(args, "every", None),
+                         window=parse_window(getattr(args, "window", None)), topic=getattr(args, "topic", None),
+                         position_topic=getattr(args, "position_topic", None)).check()
+
+
 def add_pipeline_arguments(parser: argparse.ArgumentParser, batch_size: int = 64) -> None:
     """``--batch-size`` and ``--workers`` of the streaming image pipeline."""
     parser.add_argument("--batch-size", type=int, default=batch_size,

@@ -61,8 +61,17 @@ class Traverse:
 
     @classmethod
     def from_folder(cls, folder: str | os.PathLike, name: str | None = None) -> "Traverse":
+        """A folder of images, or a video or ROS bag (:mod:`fdnet.data.sources`, whose frames
+        bring their timestamps and, from a bag's position topic, positions)."""
+        from fdnet.data import sources
+
+        paths = list_images(folder)
         folder = Path(folder)
-        return cls(name=name or folder.name, paths=list_images(folder))
+        if not sources.is_source(folder):
+            return cls(name=name or folder.name, paths=paths)
+        records = sources.frame_records(paths)
+        return cls(name=name or folder.name, paths=paths,
+                   timestamps=np.array([r.timestamp for r in records], dtype=np.float64))
 
 
 @dataclass
@@ -86,24 +95,29 @@ class RouteDataset:
 
     @classmethod
     def from_folder(cls, root: str | os.PathLike, conditions: Sequence[str] | None = None) -> "RouteDataset":
-        """Read ``root/<condition>/*.png|jpg...``; ``conditions`` picks and orders sub-folders."""
+        """Read ``root/<condition>/*.png|jpg...`` (or ``root/<condition>.mp4``, a bag: a condition may be a
+        video or ROS bag, named with or without its extension); ``conditions`` picks and orders them."""
         root = Path(root)
         if not root.is_dir():
             raise DataError(f"{root}: dataset folder not found")
+        from fdnet.data.sources import condition_path, is_source
+
         if conditions is None:
             conditions = sorted(
                 p.name
                 for p in root.iterdir()
-                if not p.name.startswith(".") and has_images(p)
+                if not p.name.startswith(".") and (is_source(p) or has_images(p))
             )
             if not conditions:
-                raise DataError(f"{root}: no condition sub-folders with images (expected root/<condition>/*.png)")
+                raise DataError(f"{root}: no condition sub-folders with images, videos or bags (expected "
+                                f"root/<condition>/*.png or root/<condition>.mp4)")
         traverses = {}
         for name in conditions:
-            folder = root / name
-            if not folder.is_dir():
-                available = sorted(p.name for p in root.iterdir() if p.is_dir())
-                raise DataError(f"{folder}: condition folder not found; available: {', '.join(available) or 'none'}")
+            folder = condition_path(root, name)
+            if folder is None:
+                available = sorted(p.name for p in root.iterdir() if p.is_dir() or is_source(p))
+                raise DataError(f"{root / name}: condition folder, video or bag not found; available: "
+                                f"{', '.join(available) or 'none'}")
             traverses[name] = Traverse.from_folder(folder, name)
         return cls(root=root, traverses=traverses)
 

@@ -165,6 +165,24 @@ def is_source(path: str | os.PathLike) -> bool:
     return kind_of(bag) is not None
 
 
+def condition_path(root: str | os.PathLike, name: str) -> Path | None:
+    """The condition ``name`` of a dataset folder: the sub-folder ``root/name``, the video or bag
+    ``root/name`` (``summer.mp4``, ``run.bag:/camera``), or the one video or bag whose name
+    without its extension is ``name`` (``summer`` for ``summer.mp4``); None when there is none.
+    Two sources of that stem are refused (which one was meant?)."""
+    root = Path(root)
+    path = root / name
+    if path.is_dir() or is_source(path):
+        return path
+    if not root.is_dir() or os.sep in name or "/" in name:
+        return None
+    found = sorted(p for p in root.iterdir() if p.stem == name and kind_of(p) is not None)
+    if len(found) > 1:
+        raise DataError(f"{root}: condition {name!r} could be {' or '.join(p.name for p in found)}; name it with "
+                        f"its extension")
+    return found[0] if found else None
+
+
 # ----------------------------------------------------------------------------- listing
 
 @dataclass

@@ -38,13 +38,19 @@ class FoldersOptions:
 def condition_folders(root: Path) -> list[str]:
     if not root.is_dir():
         raise DataError(f"{root}: dataset folder not found")
+    from fdnet.data.sources import is_source
+
     return sorted(p.name for p in root.iterdir()
-                  if p.is_dir() and not p.name.startswith(".") and has_images(p))
+                  if not p.name.startswith(".") and (is_source(p) or (p.is_dir() and has_images(p))))
 
 
 def read_traverse(folder: Path, name: str | None = None) -> Traverse:
-    """A condition folder in the one image order; frame ids are positions (position = place)."""
-    return Traverse(name=name or folder.name, paths=list_images(folder))
+    """A condition folder (or video or ROS bag, :mod:`fdnet.data.sources`; ``summer`` finds
+    ``summer.mp4``) in the one image order; frame ids are positions (position = place)."""
+    from fdnet.data.sources import condition_path
+
+    found = condition_path(folder.parent, folder.name)
+    return Traverse(name=name or folder.name, paths=list_images(found if found is not None else folder))
 
 
 def is_gardens_point(conditions: Sequence[str]) -> bool:
