@@ -126,9 +126,29 @@ def _spool(descriptor, paths, args, folder):
     return spool
 
 
-def _spooled_batches(spool, names):
+def _spooled_batches(spool, names, paths=None):
+    """``(vectors, names)`` chunks; with ``paths`` that include frames of a video or bag,
+    ``(vectors, names, positions, metadata)``: each frame's source and timestamp as metadata (the
+    ``timestamp`` loop closure's ``radius_s`` reads) and a bag's interpolated position in metres."""
+    positions = metadata = None
+    if paths is not None:
+        from pathlib import Path
+
+        from fdnet.data.sources import frame_records, positions_in_metres
+
+        records = frame_records(paths)
+        if any(r.timestamp is not None for r in records):
+            positions = positions_in_metres(records)
+            metadata = [None if r.timestamp is None else
+                        {"source": str(Path(r.source).resolve()), "timestamp": r.timestamp,
+                         **({"topic": r.topic} if r.topic else {})}
+                        for r in records]
     for start, vectors in spool.chunks():
-        yield vectors, names[start:start + len(vectors)]
+        end = start + len(vectors)
+        if metadata is None:
+            yield vectors, names[start:end]
+        else:
+            yield vectors, names[start:end], positions[start:end], metadata[start:end]
 
 
 def _place_names(paths) -> list[str]:
@@ -224,7 +244,7 @@ def run_build(args) -> int:
     with _spool(descriptor, paths, args, Path(args.out).resolve().parent) as spool:
         db = PlaceDatabase.create(args.out, descriptor, index=index,
                                   method_options=_file_options(args, args.method), overwrite=args.overwrite,
-                                  batches=_spooled_batches(spool, names))
+                                  batches=_spooled_batches(spool, names, paths))
     with db:
         places = len(db)
         note = ""
@@ -254,7 +274,7 @@ def run_add(args) -> int:
         todo = [i for i, name in enumerate(names) if name not in known]
         # described into a spool first (bounded memory), then stored in ONE transaction
         with _spool(descriptor, [paths[i] for i in todo], args, Path(args.db).resolve().parent) as spool:
-            result = db.add_batches(_spooled_batches(spool, [names[i] for i in todo]),
+            result = db.add_batches(_spooled_batches(spool, [names[i] for i in todo], [paths[i] for i in todo]),
                                     fingerprint=descriptor.fingerprints(), allow_duplicates=args.allow_duplicates)
     skipped = len(known) + len(result.skipped)
     note = f" (skipped {skipped} already in the database; --allow-duplicates adds them)" if skipped else ""

@@ -19,13 +19,14 @@ def register(sub) -> None:
     p = sub.add_parser("extract", help="write FDNet content/appearance vectors of a folder of images to .npz",
                        description="Writes FILE.npz with arrays: content (N, L) L2-normalised content vectors "
                        "(the place descriptor), appearance (N, L) raw appearance vectors, names (N,) image file "
-                       "names; row i is image i in natural file-name order (frame_2 before frame_10), the "
+                       "names, sources (N,) the folder, video or bag of each image, timestamps (N,) seconds of "
+                       "video and bag frames (NaN for image files); row i is image i in natural file-name order (frame_2 before frame_10), the "
                        "order every fdnet command uses. Images stream through the model in batches (decoded "
                        "in worker processes) and the vectors are written in chunks: memory stays a few "
                        "batches whatever the folder's size. The .npz is uncompressed and replaces --out "
                        "atomically at the end.")
     p.add_argument("--checkpoint", required=True, help="run directory of `fdnet train` (or its best/ sub-folder)")
-    p.add_argument("--images", required=True, help="folder of images")
+    p.add_argument("--images", required=True, help="folder of images, video file or ROS bag")
     p.add_argument("--out", required=True, help="output .npz file (written atomically)")
     add_pipeline_arguments(p, batch_size=256)
     add_device_argument(p)
@@ -44,6 +45,19 @@ def register(sub) -> None:
     p.add_argument("--threads", type=int, help="torch CPU threads (default: all cores)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
+
+
+def _frame_arrays(paths) -> dict:
+    """``sources`` (N,): the video, bag or folder each image came from; ``timestamps`` (N,) seconds
+    (a video's from its first frame, a bag's recording time since the epoch; NaN for image files)."""
+    import numpy as np
+
+    from fdnet.data.sources import frame_records
+
+    records = frame_records(paths)
+    return {"sources": np.array([r.source for r in records]),
+            "timestamps": np.array([np.nan if r.timestamp is None else r.timestamp for r in records],
+                                   dtype=np.float64)}
 
 
 def run(args) -> int:
@@ -73,7 +87,7 @@ def run(args) -> int:
                 progress=not args.no_progress and sys.stderr.isatty(), what="extract [fdnet]"):
             writer.write("content", content)
             writer.write("appearance", appearance)
-        writer.close({"names": np.array([p.name for p in paths])})
+        writer.close({"names": np.array([p.name for p in paths]), **_frame_arrays(paths)})
     rate = len(paths) / max(timing.get("seconds_wall", 0.0), 1e-9)
     print(f"fdnet extract: {len(paths)} images -> {out} (content and appearance, length {model.dim}; "
           f"{model.device}, {'bf16' if model.bf16 else 'fp32'}{', compiled' if model.compiled else ''}, "

@@ -35,7 +35,8 @@ def register(sub) -> None:
     )
     source = p.add_mutually_exclusive_group(required=True)
     source.add_argument("--positions", nargs=2, metavar=("REFERENCE_CSV", "QUERY_CSV"),
-                        help="position files of the reference and the query traverse")
+                        help="position files of the reference and the query traverse, or ROS bags (their image "
+                             "frames, positions interpolated from a NavSatFix/Odometry topic; docs/sources.md)")
     source.add_argument("--aligned", action="store_true",
                         help="frame-aligned traverses: query frame i is reference frame i")
     source.add_argument("--dataset", metavar="ROOT", help="a dataset folder read by a dataset adapter")
@@ -104,10 +105,19 @@ def _from_positions(args):
     if bool(args.reference) != bool(args.query):
         raise ConfigError("--positions with image folders needs both --reference DIR and --query DIR")
     ref_csv, query_csv = args.positions
-    reference, ref_names = _positions_in_image_order(read_positions(ref_csv, image_column=args.image_column),
-                                                     args.reference)
-    query, query_names = _positions_in_image_order(read_positions(query_csv, image_column=args.image_column),
-                                                   args.query)
+
+    def read(path):
+        from fdnet.data import sources
+
+        if sources.is_source(path):  # a bag: its frames with positions interpolated from its GPS/odometry
+            if args.reference or args.query:
+                raise ConfigError(f"--positions {path}: a bag's positions are its own frames'; "
+                                  "--reference/--query folders are for position CSVs")
+            return sources.position_table(path)
+        return read_positions(path, image_column=args.image_column)
+
+    reference, ref_names = _positions_in_image_order(read(ref_csv), args.reference)
+    query, query_names = _positions_in_image_order(read(query_csv), args.query)
     if (ref_names is None) != (query_names is None):
         without = ref_csv if ref_names is None else query_csv
         raise ConfigError(f"{without}: has no image column but the other position file has one; give both "

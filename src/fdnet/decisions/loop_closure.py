@@ -665,8 +665,9 @@ def run_traverse(images: str | os.PathLike, descriptor, database=None, *, exclud
                  method_options: dict | None = None, commit_every: int = 1, batch_size: int = 16,
                  workers: int | None = None, progress: bool = False,
                  log: Callable[[str], None] | None = None) -> TraverseReport:
-    """Run a :class:`LoopClosureDetector` over the images of one folder (one traverse, in
-    fdnet's one image order), writing each accepted closure to ``events_csv`` (and
+    """Run a :class:`LoopClosureDetector` over the images of one folder (or video or ROS bag: its
+    frames bring their timestamps, and a bag's its positions, for ``radius_s`` / ``radius_m``; one
+    traverse, in fdnet's one image order), writing each accepted closure to ``events_csv`` (and
     ``events_jsonl``) as it is accepted (:class:`EventLog`). ``database``: a place-database file
     from earlier sessions (or a new file to create; None = in memory only). ``ground_truth``: a
     CSV of :class:`~fdnet.data.groundtruth.GroundTruth` (``fdnet groundtruth`` from positions,
@@ -683,6 +684,7 @@ def run_traverse(images: str | os.PathLike, descriptor, database=None, *, exclud
     """
     from fdnet.data.groundtruth import GroundTruth
     from fdnet.data.images import list_images
+    from fdnet.data.sources import frame_records, positions_in_metres
     from fdnet.descriptors.pipeline import describe_stream
     from fdnet.io import ensure_writable
 
@@ -703,6 +705,10 @@ def run_traverse(images: str | os.PathLike, descriptor, database=None, *, exclud
         raise ConfigError(f"batch size must be a whole number of at least 1, got {batch_size!r}")
     paths = list_images(images)
     names = [str(p.resolve()) for p in paths]
+    # frames of a video or bag carry their time, and a bag's its position: radius_s / radius_m use them
+    records = frame_records(paths)
+    times = [r.timestamp for r in records]
+    positions = positions_in_metres(records)
     with LoopClosureDetector(descriptor, database, exclude_last=exclude_last, rule=rule,
                              rule_settings=rule_settings, threshold=threshold, calibration=calibration,
                              sequence_length=sequence_length, method_options=method_options,
@@ -736,7 +742,9 @@ def run_traverse(images: str | os.PathLike, descriptor, database=None, *, exclud
             with EventLog(events_csv, events_jsonl) as events:
                 for start, vectors in describe_stream(descriptor, paths, batch_size, workers=workers):
                     for offset, vector in enumerate(np.asarray(vectors, dtype=np.float32)):
-                        closure = detector.process_vector(vector, name=names[start + offset])
+                        k = start + offset
+                        closure = detector.process_vector(vector, name=names[k], timestamp=times[k],
+                                                          position=positions[k])
                         if closure is not None:
                             events.write(closure)
                     if bar is not None:
