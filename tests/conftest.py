@@ -62,3 +62,99 @@ def write_day_night_route(root: Path, places: int) -> Path:
             image = np.clip(place * (1.0 - 0.4 * k) + 0.05 * rng.random(place.shape), 0, 1)
             Image.fromarray((image * 255).astype(np.uint8)).save(root / "route" / condition / f"{i:03d}.png")
     return root / "route"
+
+
+# ------------------------------------------------------------------ full disks and read-only media
+# Real file systems where the test can mount one (root, or a container allowing mount), skipped
+# with the reason otherwise; file_size_limit makes the kernel refuse writes on any machine.
+
+def _mount(*arguments: str) -> None:
+    import subprocess
+
+    try:
+        done = subprocess.run(["mount", *arguments], capture_output=True, text=True, timeout=30)
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        pytest.skip(f"cannot mount a test file system here ({exc})")
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a test file system here (mount {' '.join(arguments)}: "
+                    f"{done.stderr.strip() or done.returncode})")
+
+
+def _unmount(folder: Path) -> None:
+    import subprocess
+
+    subprocess.run(["umount", "-l", str(folder)], capture_output=True, timeout=30)
+
+
+class SmallDisk:
+    """A real 1 MiB tmpfs mounted at ``path``; :meth:`fill` leaves only ``free`` bytes of it."""
+
+    def __init__(self, path: Path):
+        self.path = path
+
+    def fill(self, free: int = 4096) -> Path:
+        """Fill the disk but for ``free`` bytes (default one 4 KiB page: a command's check that it
+        can write passes, an output of more than a page does not fit: ENOSPC mid-write)."""
+        stats = os.statvfs(self.path)
+        available = stats.f_bavail * stats.f_frsize
+        with open(self.path / ".filler", "ab") as handle:
+            handle.write(b"\0" * max(0, available - free))
+        return self.path
+
+    def files(self) -> list[str]:
+        """Everything on the disk but the filler, as paths relative to it."""
+        return sorted(str(p.relative_to(self.path)) for p in self.path.rglob("*") if p.name != ".filler")
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A :class:`SmallDisk` at ``tmp_path/disk``; skipped when this machine does not let the test
+    mount a file system (needs root or a container that allows mount)."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    _mount("-t", "tmpfs", "-o", "size=1m", "tmpfs", str(disk))
+    try:
+        yield SmallDisk(disk)
+    finally:
+        _unmount(disk)
+
+
+@pytest.fixture
+def make_read_only():
+    """``make_read_only(folder)``: bind-mount ``folder`` over itself read-only (EROFS for every
+    write, root included). Skipped when this machine does not let the test mount."""
+    mounted = []
+
+    def make(folder: Path) -> Path:
+        _mount("--bind", str(folder), str(folder))
+        mounted.append(folder)
+        _mount("-o", "remount,bind,ro", str(folder))
+        return folder
+
+    yield make
+    for folder in reversed(mounted):
+        _unmount(folder)
+
+
+@pytest.fixture
+def file_size_limit():
+    """``with file_size_limit(n):`` the kernel refuses (EFBIG) any write that would make a file
+    longer than ``n`` bytes, on any POSIX machine and without privileges (RLIMIT_FSIZE, with
+    SIGXFSZ ignored so the write fails instead of the process being killed)."""
+    import contextlib
+    import signal
+
+    resource = pytest.importorskip("resource", reason="RLIMIT_FSIZE needs a POSIX system")
+
+    @contextlib.contextmanager
+    def limit(size: int):
+        soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+        handler = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (size, hard))
+        try:
+            yield
+        finally:
+            resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+            signal.signal(signal.SIGXFSZ, handler)
+
+    return limit

@@ -658,8 +658,12 @@ class RunLock:
                               "its filesystem may not support file locks") from None
         info = yaml.safe_dump({"pid": os.getpid(), "host": socket.gethostname(),
                                "command": self.command, "started": _now()}, sort_keys=False)
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, info.encode("utf-8"), 0)
+        try:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, info.encode("utf-8"), 0)
+        except OSError as exc:  # a full disk: name the file (the error from pwrite names none)
+            os.close(fd)
+            raise OSError(exc.errno, exc.strerror, str(self.path)) from exc
         self._fd = fd
         return self
 

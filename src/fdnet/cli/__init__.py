@@ -84,10 +84,32 @@ def main(argv: list[str] | None = None) -> int:
     except FdnetError as exc:
         print(f"fdnet {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except Exception as exc:  # noqa: BLE001 (re-raised below unless it is the environment's)
+        # The one place where a full disk, a read-only folder, a permission or a file name that
+        # is not UTF-8 becomes one line (whatever command and library call met it); anything
+        # else is a bug and keeps its traceback.
+        message = _environment_message(exc, args)
+        if message is None:
+            raise
+        print(f"fdnet {args.command}: error: {message}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print(f"fdnet {args.command}: interrupted", file=sys.stderr)
         return 130
     return int(result or 0)
+
+
+#: arguments naming what a command writes, named in an error that carries no path of its own
+OUTPUT_ARGUMENTS = ("out", "json", "plots", "db")
+
+
+def _environment_message(exc: BaseException, args: argparse.Namespace) -> str | None:
+    from fdnet.errors import os_error_message
+
+    if isinstance(exc, MemoryError):
+        return f"out of memory ({exc or 'an allocation failed'}); use smaller inputs or settings"
+    outputs = tuple(getattr(args, name) for name in OUTPUT_ARGUMENTS if isinstance(getattr(args, name, None), str))
+    return os_error_message(exc, outputs)
 
 
 def run(argv: list[str] | None = None) -> None:

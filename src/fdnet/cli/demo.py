@@ -41,6 +41,9 @@ def run(args) -> int:
     if args.frames < 40:
         raise ConfigError(f"--frames must be at least 40 for a train/validation/test split, got {args.frames}")
     out = Path(args.out)
+    from fdnet.io import ensure_writable
+
+    ensure_writable(out, what="demo output", directory=True)  # a file or read-only path: refused first
     route, run_dir = out / "route", out / "fdnet-run"
     train_end = int(args.frames * 0.625)        # 0:250 of 400 trains
     val_end = int(args.frames * 0.75)           # 250:300 validates (checkpoint selection)

@@ -31,7 +31,9 @@ def run(args) -> int:
     from fdnet.data.images import list_images
     from fdnet.descriptors.dbow import ORBSettings, learn_vocabulary
     from fdnet.errors import ConfigError
+    from fdnet.io import ensure_writable
 
+    ensure_writable(args.out, what="vocabulary file")  # before the minutes of ORB work
     if args.max_images is not None and args.max_images < 1:
         raise ConfigError(f"--max-images must be >= 1, got {args.max_images}")
     if args.features < 1:

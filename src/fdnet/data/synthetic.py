@@ -425,7 +425,7 @@ def _over(base: np.ndarray, layer_rgba: np.ndarray) -> np.ndarray:
     return base * (1 - a) + layer_rgba[..., :3] * a
 
 
-def _check(frames: int, conditions: Sequence[str], size) -> tuple[list[str], tuple[int, int]]:
+def _check(frames: int, conditions: Sequence[str], size, step: float = 0.5) -> tuple[list[str], tuple[int, int]]:
     if int(frames) < 1:
         raise ConfigError(f"synthetic route: frames must be >= 1, got {frames}")
     conditions = list(conditions)
@@ -438,7 +438,21 @@ def _check(frames: int, conditions: Sequence[str], size) -> tuple[list[str], tup
     h, w = (int(v) for v in size)
     if h < 16 or w < 16:
         raise ConfigError(f"synthetic route: size {h}x{w} too small (at least 16x16)")
+    if h > MAX_SIDE or w > MAX_SIDE:
+        raise ConfigError(f"synthetic route: size {h}x{w} too large (at most {MAX_SIDE} pixels a side)")
+    # Refused before allocating: a condition's frames and its street (a few float32 layers as
+    # long as the route) are held in memory at once.
+    need = 4 * (int(frames) * h * w * 3 + 10 * h * int(h * (int(frames) * step + w / h + 1)))
+    if need > MAX_RENDER_BYTES:
+        raise ConfigError(f"synthetic route: {frames} frames of {h}x{w} need about {need / 2**30:.0f} GiB of memory "
+                          f"to render a condition (at most {MAX_RENDER_BYTES // 2**30} GiB); use fewer frames or a "
+                          "smaller size")
     return conditions, (h, w)
+
+
+#: the largest frame side and render memory :func:`render_route` accepts
+MAX_SIDE = 4096
+MAX_RENDER_BYTES = 8 * 2**30
 
 
 def render_route(frames: int = 300, conditions: Sequence[str] = CONDITIONS, seed: int = 0,
@@ -452,7 +466,7 @@ def render_route(frames: int = 300, conditions: Sequence[str] = CONDITIONS, seed
     route starts with the same places). The nuisances (clouds, noise, jitter) also depend on
     ``frames``.
     """
-    conditions, (h, w) = _check(frames, conditions, size)
+    conditions, (h, w) = _check(frames, conditions, size, step)
     px = h                                   # pixels per unit: the frame height is one unit
     view = w / px
     margin = 0.3                             # room for lateral offsets and jitter
@@ -530,7 +544,11 @@ def generate_route(out_dir: str | os.PathLike, frames: int = 300, conditions: Se
     from fdnet.data.dataset import RouteDataset
     from fdnet.io import atomic_path, atomic_write_text
 
-    conditions, size = _check(frames, conditions, size)
+    import shutil
+
+    from fdnet.io import ensure_writable
+
+    conditions, size = _check(frames, conditions, size, step)
     out = Path(out_dir)
     if out.exists():
         if not out.is_dir():
@@ -545,13 +563,25 @@ def generate_route(out_dir: str | os.PathLike, frames: int = 300, conditions: Se
                 if cond_dir.is_dir():
                     for old in cond_dir.glob("frame_*.png"):
                         old.unlink()
-    images = render_route(frames, conditions, seed, size, step)
-    for name, stack in images.items():
-        folder = out / name
-        folder.mkdir(parents=True, exist_ok=True)
-        as_bytes = np.rint(stack * 255.0).astype(np.uint8)
-        for i, im in enumerate(as_bytes):
-            with atomic_path(folder / f"frame_{i:05d}.png") as tmp:
-                Image.fromarray(im).save(tmp, format="PNG")
-    atomic_write_text(out / README_NAME, _readme(frames, conditions, seed, size, step))
+    # What this call creates is removed again if it fails (a full disk): no half route left.
+    created = [p for p in (out, *(out / name for name in conditions)) if not p.exists()]
+    written: list[Path] = []
+    try:
+        ensure_writable(out, what="synthetic route", directory=True)  # before rendering
+        images = render_route(frames, conditions, seed, size, step)
+        for name, stack in images.items():
+            folder = out / name
+            folder.mkdir(parents=True, exist_ok=True)
+            as_bytes = np.rint(stack * 255.0).astype(np.uint8)
+            for i, im in enumerate(as_bytes):
+                written.append(folder / f"frame_{i:05d}.png")
+                with atomic_path(written[-1]) as tmp:
+                    Image.fromarray(im).save(tmp, format="PNG")
+        atomic_write_text(out / README_NAME, _readme(frames, conditions, seed, size, step))
+    except BaseException:
+        for path in written:
+            path.unlink(missing_ok=True)
+        for folder in reversed(created):
+            shutil.rmtree(folder, ignore_errors=True)
+        raise
     return RouteDataset.from_folder(out, conditions)

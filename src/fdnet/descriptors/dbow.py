@@ -33,6 +33,8 @@ Differences from DBoW2/ORB-SLAM:
 from __future__ import annotations
 
 import logging
+import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
@@ -236,7 +238,15 @@ class Vocabulary:
         tensors = {"centres": np.ascontiguousarray(self.centres), "children": self.children,
                    "word": self.word, "idf": self.idf}
         with atomic_path(path) as tmp:
-            save_file(tensors, str(tmp), metadata={"config": yaml.safe_dump(meta, sort_keys=False)})
+            try:
+                save_file(tensors, str(tmp), metadata={"config": yaml.safe_dump(meta, sort_keys=False)})
+            except Exception as exc:
+                # safetensors reports a failed write (a full disk) as its own error type, with the
+                # OS error number only in the text: an OSError here is one clear line from atomic_path
+                found = re.search(r"os error (\d+)", str(exc))
+                if found is None:
+                    raise
+                raise OSError(int(found.group(1)), os.strerror(int(found.group(1))), str(tmp)) from exc
 
     @classmethod
     def load(cls, path: str | Path) -> "Vocabulary":

@@ -268,7 +268,10 @@ class VectorSpool:
         rows = np.ascontiguousarray(rows, dtype="<f4")
         if rows.ndim != 2 or rows.shape[1] != self.dim:
             raise ValueError(f"spool holds {self.dim}-d vectors, got {rows.shape}")
-        self._handle.write(rows.tobytes())
+        try:
+            self._handle.write(rows.tobytes())
+        except OSError as exc:  # a full disk: say which file (a write() error names none)
+            raise OSError(exc.errno, exc.strerror, str(self.path)) from exc
         self.rows += len(rows)
 
     def chunks(self, rows_per_chunk: int = 65536) -> Iterator[tuple[int, np.ndarray]]:

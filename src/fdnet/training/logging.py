@@ -44,11 +44,17 @@ class TrainingLog:
 
     def write(self, row: dict) -> None:
         new = not self.path.exists()
-        with self.path.open("a", newline="") as handle:
-            writer = csv.DictWriter(handle, fieldnames=self.columns)
-            if new:
-                writer.writeheader()
-            writer.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items() if k in self.columns})
+        try:
+            with self.path.open("a", newline="") as handle:
+                writer = csv.DictWriter(handle, fieldnames=self.columns)
+                if new:
+                    writer.writeheader()
+                writer.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()
+                                 if k in self.columns})
+        except OSError as exc:  # a full disk: a write() error names no file, so name it here
+            if exc.filename is not None:
+                raise
+            raise OSError(exc.errno, exc.strerror, str(self.path)) from exc
         if self.writer is not None:
             for key, value in row.items():
                 if isinstance(value, float):

@@ -1,0 +1,137 @@
+"""`fdnet` (cli/__init__.main): the one place where an operating-system error (a full disk, a
+read-only folder, a permission, a file name that is not UTF-8) met by any command becomes
+`fdnet COMMAND: error: ...` naming the path, exit code 2, with nothing half-written left behind.
+
+Each command is run against a real full file system where the test may mount one (SmallDisk,
+skipped otherwise) and, on any POSIX machine, under a file-size limit the kernel enforces
+(file_size_limit: EFBIG instead of ENOSPC, the same path through the code)."""
+
+from __future__ import annotations
+
+import errno
+
+import pytest
+
+from fdnet.cli import main
+
+
+@pytest.fixture(scope="module")
+def route(tmp_path_factory):
+    from fdnet.data.synthetic import generate_route
+
+    root = tmp_path_factory.mktemp("route") / "route"
+    generate_route(root, frames=30, conditions=["summer", "winter"], size=(32, 64))
+    return root
+
+
+@pytest.fixture(scope="module")
+def vocabulary_images(tmp_path_factory):
+    from fdnet.data.synthetic import generate_route
+
+    root = tmp_path_factory.mktemp("orb") / "route"
+    generate_route(root, frames=8, conditions=["summer"], size=(128, 256))
+    return root / "summer"
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    from tests.cli.test_extract import _tiny_run
+
+    return _tiny_run(tmp_path_factory.mktemp("run") / "run")
+
+
+def _commands(route, vocabulary_images, tiny_run, out):
+    """command name -> argv writing into folder ``out``: each output is larger than 4 KiB."""
+    summer, winter = str(route / "summer"), str(route / "winter")
+    return {
+        "database build": ["database", "build", "--images", summer, "--method", "sad", "--out", f"{out}/map.db",
+                           "--workers", "0"],
+        "match": ["match", "--reference", summer, "--query", winter, "--method", "sad", "--out", f"{out}/m.csv",
+                  "--workers", "0"],
+        "evaluate": ["evaluate", "--data", str(route), "--reference", "summer", "--query", "winter",
+                     "--method", "sad,hog", "--json", f"{out}/results.json", "--workers", "0"],
+        "groundtruth": ["groundtruth", "--aligned", "--num-queries", "500", "--num-references", "500",
+                        "--tolerance-frames", "2", "--out", f"{out}/gt.csv"],
+        "vocabulary": ["vocabulary", "build", "--images", str(vocabulary_images), "--out", f"{out}/v.safetensors",
+                       "--size", "128", "256", "--branching", "8", "--depth", "3"],
+        "synth": ["synth", "--out", f"{out}/synthetic", "--frames", "10", "--size", "32x64"],
+        "extract": ["extract", "--checkpoint", str(tiny_run), "--images", summer, "--out", f"{out}/v.npz",
+                    "--device", "cpu", "--workers", "0", "--fp32"],
+        "train": ["train", "--data", str(route), "--preset", "tiny", "--out", f"{out}/run", "--no-progress"],
+    }
+
+
+#: what a training that failed at its start keeps: its lock files (never deleted, see runs.RunLock)
+#: and an empty log; no checkpoint, no configuration
+RUN_LOCKS = {"run", "run/.lock", "run/log.csv", "run/checkpoints", "run/checkpoints/.save.lock"}
+COMMANDS = ["database build", "match", "evaluate", "groundtruth", "vocabulary", "synth", "extract", "train"]
+
+
+def _check_one_line(err: str, command: str, where: str, reasons: tuple[str, ...]) -> None:
+    assert "Traceback" not in err, err
+    lines = [line for line in err.splitlines() if line.startswith(f"fdnet {command.split()[0]}: error: ")]
+    assert len(lines) == 1, err
+    assert where in lines[0] and any(reason in lines[0] for reason in reasons), lines[0]
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_a_full_disk_is_one_line_naming_the_file_and_leaves_nothing(command, small_disk, route, vocabulary_images,
+                                                                     tiny_run, capsys):
+    argv = _commands(route, vocabulary_images, tiny_run, small_disk.path)[command]
+    small_disk.fill(4096)
+    assert main(argv) == 2
+    _check_one_line(capsys.readouterr().err, command, str(small_disk.path), ("no space left",))
+    left = small_disk.files()
+    if command == "train":
+        assert set(left) <= RUN_LOCKS and (small_disk.path / "run/log.csv").stat().st_size == 0
+    else:
+        assert left == [], left
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_a_write_the_kernel_refuses_is_one_line_on_any_machine(command, tmp_path, route, vocabulary_images, tiny_run,
+                                                               file_size_limit, capsys):
+    argv = _commands(route, vocabulary_images, tiny_run, tmp_path / "out")[command]
+    with file_size_limit(2048):
+        code = main(argv)
+    assert code == 2
+    _check_one_line(capsys.readouterr().err, command, str(tmp_path / "out"), ("too large", "File too large"))
+    left = sorted(str(p.relative_to(tmp_path / "out")) for p in (tmp_path / "out").rglob("*"))
+    if command == "train":
+        assert set(left) <= RUN_LOCKS
+    else:
+        assert left == [], left
+
+
+@pytest.mark.parametrize("error, expected", [
+    (OSError(errno.ENOSPC, "No space left on device"), "writing OUT: no space left on the device"),
+    (OSError(errno.ENOSPC, "No space left on device", "OUT/.part"), "OUT/.part: no space left on the device"),
+    (PermissionError(errno.EACCES, "Permission denied", "/some/input.png"), "/some/input.png: permission denied"),
+    (OSError(errno.EROFS, "Read-only file system", "/media/x"), "/media/x (writing OUT): read-only file system"),
+    (UnicodeEncodeError("utf-8", "/maps/caf\udce9.png", 9, 10, "surrogates not allowed"),
+     "a file name that is not valid UTF-8 ('/maps/caf\\udce9.png') cannot be written here; rename the file"),
+    (MemoryError("Unable to allocate 291. GiB"),
+     "out of memory (Unable to allocate 291. GiB); use smaller inputs or settings"),
+])
+def test_every_command_reports_an_os_error_as_one_line(error, expected, monkeypatch, capsys):
+    import fdnet.cli.synth
+
+    def fail(args):
+        raise error
+
+    monkeypatch.setattr(fdnet.cli.synth, "run", fail)
+    assert main(["synth", "--out", "OUT"]) == 2
+    assert capsys.readouterr().err == f"fdnet synth: error: {expected}\n"
+
+
+@pytest.mark.parametrize("error", [ValueError("a bug"), OSError(errno.EINVAL, "Invalid argument"),
+                                   FileNotFoundError(errno.ENOENT, "No such file or directory")])
+def test_a_bug_keeps_its_traceback(error, monkeypatch):
+    import fdnet.cli.synth
+
+    def fail(args):
+        raise error
+
+    monkeypatch.setattr(fdnet.cli.synth, "run", fail)
+    with pytest.raises(type(error)):
+        main(["synth", "--out", "OUT"])
