@@ -54,3 +54,60 @@ def test_bad_settings_are_named():
 def test_nested_values_where_numbers_or_text_belong_are_named_errors(setting, value, match):
     with pytest.raises(ConfigError, match=match):
         replace_dotted(Outer(), {setting: value})
+
+
+def _alias_bomb(levels: int = 6) -> str:
+    """``data: {conditions: ...}`` of nested aliases: ~350 bytes that expand to 10^(levels+1)
+    items (a message echoing them: ~50 MB; two levels more exhaust the memory)."""
+    value = "&a0 [x, x, x, x, x, x, x, x, x, x]"
+    for level in range(1, levels + 1):
+        value = f"&a{level} [{value}" + f", *a{level - 1}" * 9 + "]"
+    return f"data:\n  conditions: {value}\n"
+
+
+def test_a_yaml_alias_bomb_in_a_config_is_refused_in_one_short_line(tmp_path, capsys):
+    from fdnet.cli import main
+
+    bomb = tmp_path / "bomb.yaml"
+    bomb.write_text(_alias_bomb())
+    assert len(bomb.read_bytes()) < 400
+    assert main(["train", "--data", str(tmp_path), "--preset", "tiny", "--out", str(tmp_path / "run"),
+                 "--config", str(bomb)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"fdnet train: error: {bomb}: not valid YAML (line 2, column ")
+    assert "aliases are not allowed" in err and len(err) < 400 and err.count("\n") == 1
+
+
+def test_a_yaml_alias_bomb_in_a_runs_config_is_refused(tmp_path, capsys):
+    from PIL import Image
+
+    from fdnet import runs
+    from fdnet.cli import main
+    from tests.cli.test_extract import _tiny_run
+
+    run = _tiny_run(tmp_path / "run")
+    config = runs.latest_checkpoint(run) / runs.CONFIG_FILE
+    stamp = config.read_text().splitlines()[0]  # the save it belongs to, so the checkpoint stays complete
+    config.write_text(stamp + "\n" + _alias_bomb())
+    images = tmp_path / "images"
+    images.mkdir()
+    Image.new("RGB", (64, 32)).save(images / "0.png")
+    assert main(["extract", "--checkpoint", str(run), "--images", str(images), "--out", str(tmp_path / "v.npz")]) == 2
+    err = capsys.readouterr().err
+    assert "aliases are not allowed" in err and len(err) < 600 and err.count("\n") == 1
+
+
+def test_a_wrong_value_is_shown_shortened():
+    huge = [["x"] * 1000] * 1000  # what an alias bomb expands to, without the bomb
+    with pytest.raises(ConfigError) as caught:
+        replace_dotted(Outer(), {"name": huge})
+    assert len(str(caught.value)) < 400 and "..." in str(caught.value)
+
+
+def test_a_settings_file_over_a_mebibyte_is_refused_before_parsing(tmp_path):
+    from fdnet.config import MAX_YAML_BYTES
+
+    big = tmp_path / "big.yaml"
+    big.write_text("name: x\n" + "# padding\n" * (MAX_YAML_BYTES // 10 + 1))
+    with pytest.raises(ConfigError, match=r"big.yaml: \d+ bytes, too large for a config file \(at most 1024 KiB\)"):
+        load_yaml(Outer, big)

@@ -7,6 +7,7 @@ directory is self-describing (as OpenVPRLab does).
 from __future__ import annotations
 
 import dataclasses
+import reprlib
 import types
 import typing
 from pathlib import Path
@@ -36,6 +37,20 @@ def to_dict(config: Any) -> dict:
     return plain(config)
 
 
+#: what an error message shows of a wrong value at most: a value built from YAML aliases can be
+#: gigabytes long once expanded, and the message must stay one line
+SHOWN_CHARACTERS = 200
+
+
+def _shown(value: Any) -> str:
+    shortened = reprlib.Repr()  # its keyword arguments need Python 3.12
+    shortened.maxstring = shortened.maxother = SHOWN_CHARACTERS
+    shortened.maxlist = shortened.maxtuple = shortened.maxdict = 10
+    shortened.maxlevel = 3
+    text = shortened.repr(value)
+    return text if len(text) <= SHOWN_CHARACTERS else text[:SHOWN_CHARACTERS] + "..."
+
+
 def _coerce(tp: Any, value: Any, where: str) -> Any:
     """Convert a YAML/CLI value to the field's declared type, with a clear error."""
     origin = typing.get_origin(tp)
@@ -53,19 +68,19 @@ def _coerce(tp: Any, value: Any, where: str) -> Any:
                 return _coerce(arg, value, where)
             except ConfigError as exc:
                 errors.append(str(exc))
-        raise ConfigError(errors[0] if errors else f"{where}: cannot use {value!r}")
+        raise ConfigError(errors[0] if errors else f"{where}: cannot use {_shown(value)}")
     if dataclasses.is_dataclass(tp):
         if not isinstance(value, dict):
-            raise ConfigError(f"{where}: expected a mapping, got {value!r}")
+            raise ConfigError(f"{where}: expected a mapping, got {_shown(value)}")
         return from_dict(tp, value, where=where)
     if origin in (tuple, list):
         if isinstance(value, str):
             value = [v for v in value.replace(",", " ").split() if v]
         if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{where}: expected a list, got {value!r}")
+            raise ConfigError(f"{where}: expected a list, got {_shown(value)}")
         if origin is tuple and args and args[-1] is not Ellipsis:
             if len(args) != len(value):
-                raise ConfigError(f"{where}: expected {len(args)} values, got {list(value)!r}")
+                raise ConfigError(f"{where}: expected {len(args)} values, got {_shown(list(value))}")
             return tuple(_coerce(a, v, where) for a, v in zip(args, value))
         inner = args[0] if args else Any
         items = [_coerce(inner, v, where) for v in value]
@@ -77,22 +92,22 @@ def _coerce(tp: Any, value: Any, where: str) -> Any:
             return True
         if isinstance(value, str) and value.lower() in ("false", "no", "0", "off"):
             return False
-        raise ConfigError(f"{where}: expected true/false, got {value!r}")
+        raise ConfigError(f"{where}: expected true/false, got {_shown(value)}")
     if tp in (int, float):
         if isinstance(value, bool) or not isinstance(value, (int, float, str)):
-            raise ConfigError(f"{where}: expected a number, got {value!r}")
+            raise ConfigError(f"{where}: expected a number, got {_shown(value)}")
         try:
             number = float(value) if tp is float else int(str(value), 0) if isinstance(value, str) else value
         except (TypeError, ValueError):
-            raise ConfigError(f"{where}: expected {tp.__name__}, got {value!r}") from None
+            raise ConfigError(f"{where}: expected {tp.__name__}, got {_shown(value)}") from None
         if tp is int and isinstance(number, float):
             if not number.is_integer():
-                raise ConfigError(f"{where}: expected an integer, got {value!r}")
+                raise ConfigError(f"{where}: expected an integer, got {_shown(value)}")
             number = int(number)
         return tp(number)
     if tp is str:
         if isinstance(value, (list, tuple, dict)):
-            raise ConfigError(f"{where}: expected text, got {value!r}")
+            raise ConfigError(f"{where}: expected text, got {_shown(value)}")
         return str(value)
     return value
 
@@ -143,15 +158,54 @@ def save_yaml(config: Any, path: str | Path) -> None:
     atomic_write_text(path, yaml.safe_dump(to_dict(config), sort_keys=False))
 
 
+#: the largest settings file read (a run's config.yaml is a few KiB): a larger one is refused
+#: before it is parsed
+MAX_YAML_BYTES = 1 << 20
+
+
+class _NoAliasLoader(yaml.SafeLoader):
+    """Safe YAML without aliases (``*name``): settings never need them, and a few hundred bytes
+    of nested aliases expand into gigabytes of values (a "billion laughs")."""
+
+    def compose_node(self, parent, index):
+        if self.check_event(yaml.AliasEvent):
+            event = self.peek_event()
+            raise yaml.composer.ComposerError(None, None, f"found an alias (*{event.anchor}); aliases are not "
+                                              "allowed in fdnet settings files: write the value out", event.start_mark)
+        return super().compose_node(parent, index)
+
+
+def read_yaml_file(path: str | Path, what: str = "config file", error: type = ConfigError) -> Any:
+    """The value of a YAML settings or run file: no aliases, at most :data:`MAX_YAML_BYTES`,
+    errors (``error``) naming the file. FileNotFoundError is left to the caller."""
+    path = Path(path)
+    size = path.stat().st_size
+    if size > MAX_YAML_BYTES:
+        raise error(f"{path}: {size} bytes, too large for a {what} (at most {MAX_YAML_BYTES // 1024} KiB)")
+    try:
+        return yaml.load(path.read_text(encoding="utf-8"), Loader=_NoAliasLoader)  # noqa: S506 (safe, no aliases)
+    except UnicodeDecodeError as exc:
+        raise error(f"{path}: not a text {what} ({exc.reason} at byte {exc.start})") from None
+    except yaml.YAMLError as exc:
+        raise error(f"{path}: not valid YAML ({_yaml_problem(exc)})") from None
+
+
+def _yaml_problem(exc: yaml.YAMLError) -> str:
+    """One line: where and what (PyYAML's own text spans several lines with a snippet)."""
+    mark = getattr(exc, "problem_mark", None)
+    problem = " ".join(str(part) for part in (getattr(exc, "context", None), getattr(exc, "problem", None)) if part)
+    text = f"line {mark.line + 1}, column {mark.column + 1}: {problem}" if mark is not None and problem else \
+        " ".join(str(exc).split())
+    return text if len(text) <= 2 * SHOWN_CHARACTERS else text[:2 * SHOWN_CHARACTERS] + "..."
+
+
 def read_yaml_mapping(path: str | Path) -> dict:
     """The top-level mapping of a YAML settings file, with errors naming the file."""
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text()) or {}
+        data = read_yaml_file(path) or {}
     except FileNotFoundError:
         raise ConfigError(f"{path}: config file not found") from None
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: not valid YAML ({exc})") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping of settings at the top level")
     return data

@@ -51,7 +51,7 @@ from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file
 from safetensors.torch import save as safetensors_bytes
 
-from fdnet.config import flatten_dotted, load_yaml, to_dict
+from fdnet.config import flatten_dotted, load_yaml, read_yaml_file, to_dict
 from fdnet.errors import ConfigError
 from fdnet.io import atomic_write_text, fsync_directory
 
@@ -158,8 +158,10 @@ def _incomplete_reason(folder: Path) -> str | None:
     if stamp is None or stamp[0] != save_id:
         return f"{CONFIG_FILE} belongs to another save than {WEIGHTS_FILE}"
     try:
-        yaml.safe_load((folder / CONFIG_FILE).read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        read_yaml_file(folder / CONFIG_FILE)
+    except ConfigError as exc:  # says what is wrong (not YAML, an alias, too large)
+        return f"{CONFIG_FILE} unreadable: {str(exc).removeprefix(str(folder / CONFIG_FILE) + ': ')}"
+    except OSError as exc:
         return f"{CONFIG_FILE} unreadable ({exc.__class__.__name__})"
     if metadata.get("kind") == KIND_WEIGHTS:
         return None
@@ -694,10 +696,10 @@ def read_changes(run_dir: str | Path) -> list[dict]:
     first; [] when the run was never resumed with other settings."""
     path = Path(run_dir) / CHANGES_FILE
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        data = read_yaml_file(path, "record of changed settings")
     except FileNotFoundError:
         return []
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+    except OSError as exc:
         raise ConfigError(f"{path}: cannot read the record of changed settings ({exc})") from None
     if data is None:
         return []

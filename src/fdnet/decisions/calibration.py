@@ -211,7 +211,7 @@ def save_calibration(calibration: Calibration, path: str | Path) -> Path:
 
 def load_calibration(path: str | Path) -> Calibration:
     """A calibration YAML file, or ``DIR/calibration.yaml`` for a run directory."""
-    import yaml
+    from fdnet.config import read_yaml_file
 
     path = Path(path)
     if path.is_dir():
@@ -222,9 +222,9 @@ def load_calibration(path: str | Path) -> Calibration:
     if not path.is_file():
         raise DataError(f"{path}: calibration file not found")
     try:
-        data = yaml.safe_load(path.read_text())
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        raise DataError(f"{path}: not valid YAML ({exc})") from None
+        data = read_yaml_file(path, "calibration file", DataError)
+    except OSError as exc:
+        raise DataError(f"{path}: cannot read the calibration file ({exc.strerror or exc})") from None
     return Calibration.from_dict(data, source=str(path))
 
 

@@ -27,16 +27,15 @@ def method_module(method: str, part: str):
 def load_method_config(run_dir, cls, method: str):
     """Read a baseline run's config into ``cls``, first checking that the run directory holds a run
     of ``method`` (a CALC run given to NetVLAD is an error that says so)."""
-    import yaml
-
     from fdnet import runs
+    from fdnet.config import read_yaml_file
 
     run_dir = Path(run_dir)
     if runs.is_run(run_dir):
         path = runs.latest_checkpoint(run_dir) / runs.CONFIG_FILE
         try:
-            saved_method = (yaml.safe_load(path.read_text()) or {}).get("method")
-        except (yaml.YAMLError, AttributeError, OSError):
+            saved_method = (read_yaml_file(path) or {}).get("method")
+        except (ConfigError, AttributeError, OSError):
             saved_method = None
         if saved_method != method:
             what = f"a {saved_method!r} run" if saved_method else "not a baseline run (no 'method' setting)"

@@ -140,14 +140,14 @@ def write_choice(path, choice: TrunkChoice) -> None:
 
 def read_choice(path) -> dict:
     """``backbone``, ``block`` and ``input_size`` from a file :func:`write_choice` wrote."""
-    import yaml
+    from fdnet.config import read_yaml_file
 
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text())
+        data = read_yaml_file(path, "trunk choice file")
     except FileNotFoundError:
         raise ConfigError(f"{path}: trunk choice file not found (write one with `fdnet choose-trunk`)") from None
-    except (OSError, yaml.YAMLError) as exc:
+    except OSError as exc:
         raise ConfigError(f"{path}: not a readable trunk choice file ({exc})") from None
     if not isinstance(data, dict) or data.get("format") != CHOICE_FORMAT:
         raise ConfigError(f"{path}: not a trunk choice file from `fdnet choose-trunk` (format {CHOICE_FORMAT} "
