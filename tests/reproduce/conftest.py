@@ -46,6 +46,8 @@ class FittedPixels(Pixels):
     """Pixels minus the mean reference image: a method that learns from the map (like DBoW)."""
 
     name = "fitted"
+    #: what ``min_fit_images`` says (a test raises it above the route's frame count)
+    fewest: int = 1
 
     def __init__(self, size: int = 8):
         super().__init__(size)
@@ -54,6 +56,10 @@ class FittedPixels(Pixels):
     @property
     def needs_fit(self) -> bool:
         return self.mean is None
+
+    @property
+    def min_fit_images(self) -> int:
+        return self.fewest
 
     def fit(self, paths):
         from fdnet.data.images import load_images

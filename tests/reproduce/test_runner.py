@@ -11,7 +11,7 @@ from fdnet.errors import ConfigError, NotAvailableError
 from fdnet.reproduce import runner
 from fdnet.reproduce.runner import build_pairs, reproduce
 
-from .conftest import CALLS, Pixels, factory, settings
+from .conftest import CALLS, FittedPixels, Pixels, factory, settings
 
 
 def quiet(message: str) -> None:
@@ -80,6 +80,20 @@ def test_default_methods_that_cannot_run_are_reported_with_the_reason(route, tmp
     assert "hybridnet: not available in this test" in (out / "report.html").read_text()
     with pytest.raises(NotAvailableError):  # named explicitly: an error, not a footnote
         reproduce(settings(route, out, methods=["pixels", "hybridnet"]), factory, quiet)
+
+
+def test_a_method_needing_more_reference_images_than_the_pairs_have_is_skipped_or_refused(
+        route, tmp_path, monkeypatch):
+    # trunk-whitened learns an L-dimensional whitening from each comparison's references: L + 1 images
+    monkeypatch.setattr(runner, "DEFAULT_METHODS", ("pixels", "fitted"))
+    monkeypatch.setattr(FittedPixels, "fewest", 10_000)
+    out = tmp_path / "out"
+    reproduce(settings(route, out, methods=None, conditions=["day", "night"]), factory, quiet)
+    (skipped,) = json.loads((out / "comparison.json").read_text())["skipped"]
+    assert skipped["method"] == "fitted" and "needs at least 10000" in skipped["reason"]
+    assert CALLS["fitted.fit"] == 0
+    with pytest.raises(ConfigError, match="fitted: learns from each comparison's reference images"):
+        reproduce(settings(route, out, methods=["pixels", "fitted"]), factory, quiet)
 
 
 def test_rerunning_one_experiment_keeps_the_other_sections(route, tmp_path):

@@ -68,6 +68,12 @@ class Descriptor(ABC):
         """True when ``describe`` cannot run before ``fit``."""
         return False
 
+    @property
+    def min_fit_images(self) -> int:
+        """The fewest images ``fit`` can learn from (e.g. L + 1 for an L-dimensional whitening);
+        callers that fit on reference images they did not choose check it first."""
+        return 1
+
     def similarity(self, queries: np.ndarray, references: np.ndarray) -> np.ndarray:
         """(Q, D), (R, D) -> (Q, R) float32, higher = more similar."""
         return np.asarray(queries, dtype=np.float32) @ np.asarray(references, dtype=np.float32).T

@@ -36,7 +36,7 @@ from fdnet.reproduce.sections import EXPERIMENTS, MANIFEST
 
 #: FDNet, the trunk alone and every baseline; those that cannot run here (no trained model, no
 #: weights) are listed in the report with the reason, unless named explicitly with --methods
-DEFAULT_METHODS = ("fdnet", "trunk", "sad", "hog", "gist", "dbow", "conv3", "landmarks", "netvlad", "calc",
+DEFAULT_METHODS = ("fdnet", "trunk", "trunk-whitened", "sad", "hog", "gist", "dbow", "conv3", "landmarks", "netvlad", "calc",
                    "hybridnet")
 
 #: the paper's protocol (section 5.1.2): 500 uniform thresholds, recall over queries
@@ -175,6 +175,25 @@ class MethodHandle:
             fresh.fit(list(fit_paths))
             self._fitted[key] = fresh
         return self._fitted[key]
+
+
+def _check_fit_size(handle: MethodHandle, pairs: list[Pair], required: bool, data, log) -> None:
+    """A method that learns from each comparison's reference images (no ``--fit`` folder) needs
+    enough of them (``min_fit_images``); a default method without enough is listed as not run,
+    one named in ``--methods`` stops the command before anything is described."""
+    d = handle.descriptor
+    if d is None or not d.needs_fit or not pairs:
+        return
+    fewest = min(len(p.split.reference.paths) for p in pairs)
+    if fewest >= d.min_fit_images:
+        return
+    reason = (f"learns from each comparison's reference images, which needs at least {d.min_fit_images} and "
+              f"{data} gives {fewest}; give it a folder to learn from (--fit {handle.name}=DIR) or fewer "
+              "dimensions (--method-set)")
+    if required:
+        raise ConfigError(f"{handle.label}: {reason}")
+    handle.descriptor, handle.reason = None, reason
+    log(f"{handle.label}: not run ({reason})")
 
 
 class _AppearanceView:
@@ -398,11 +417,12 @@ def reproduce(settings: ReproduceSettings, factory: Callable | None = None,
     methods = settings.methods or list(DEFAULT_METHODS)
     for name in methods:
         options = dict(settings.method_options.get(name, {}))
-        if name in ("fdnet", "trunk") and settings.checkpoint is not None:
+        if name in ("fdnet", "trunk", "trunk-whitened") and settings.checkpoint is not None:
             options.setdefault("checkpoint", str(settings.checkpoint))
         # named explicitly, or the FDNet run the command was given: a failure to load is an error
         required = settings.methods is not None or (name == "fdnet" and settings.checkpoint is not None)
-        ctx.add_method(name, name, options, required=required)
+        handle = ctx.add_method(name, name, options, required=required)
+        _check_fit_size(handle, pairs, required, settings.data, log)
     if not ctx.available():
         raise ConfigError("none of the methods can run here: " + "; ".join(
             f"{s['method']}: {s['reason']}" for s in ctx.skipped()))

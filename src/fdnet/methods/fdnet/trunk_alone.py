@@ -140,6 +140,11 @@ class TrunkWhitenedDescriptor(TrunkDescriptor):
                                   f"fitting images allow (at most {limit}: {self._fit_description}); lower dim "
                                   "or fit on more images")
 
+    @property
+    def min_fit_images(self) -> int:
+        # centred vectors span one direction fewer than there are of them
+        return self.whitened_dim + 1
+
     def feature_map_text(self) -> str:
         return " x ".join(str(s) for s in self._map_shape)
 
