@@ -98,3 +98,15 @@ def test_text_naming_a_non_utf8_file_is_written_with_the_files_own_bytes(tmp_pat
     target = tmp_path / "matches.csv"
     atomic_write_text(target, f"query\n{name}\n")
     assert target.read_bytes() == b"query\ncaf\xe9 =odd.png\n"
+
+
+@pytest.mark.parametrize("name, cell", [
+    ("=1+2.png", "'=1+2.png"), ("+a.png", "'+a.png"), ("-a.png", "'-a.png"), ("@a.png", "'@a.png"),
+    ("\ta.png", "'\ta.png"), ("\ra.png", "'\ra.png"), ("'a.png", "''a.png"),
+    ("a=b.png", "a=b.png"), ("frame_0001.png", "frame_0001.png"), ("", ""),
+])
+def test_spreadsheet_text_quotes_formula_starts_and_reads_back(name, cell):
+    from fdnet.io import from_spreadsheet_text, spreadsheet_text
+
+    assert spreadsheet_text(name) == cell
+    assert from_spreadsheet_text(cell) == name

@@ -140,3 +140,22 @@ def ensure_writable(path: str | os.PathLike, what: str = "output", directory: bo
         reason = "no space left" if exc.errno == errno.ENOSPC else (exc.strerror or str(exc))
         raise ConfigError(f"{target}: cannot write the {what} here ({reason})") from None
     return target
+
+
+#: first characters that make a spreadsheet read a CSV cell as a formula (OWASP, "CSV injection"),
+#: plus the quote itself, so that the escape can be undone exactly
+_SPREADSHEET_TRIGGERS = ("=", "+", "-", "@", "\t", "\r", "'")
+
+
+def spreadsheet_text(name: str) -> str:
+    """A text cell (an image name) for a CSV that no spreadsheet evaluates: a name starting with
+    ``= + - @``, a tab or a carriage return gets a leading single quote (the OWASP advice), and so
+    does one starting with a quote, so :func:`from_spreadsheet_text` gives back the very name.
+    Numbers are written as they are."""
+    name = str(name)
+    return "'" + name if name.startswith(_SPREADSHEET_TRIGGERS) else name
+
+
+def from_spreadsheet_text(cell: str) -> str:
+    """The name :func:`spreadsheet_text` wrote as ``cell``."""
+    return cell[1:] if cell.startswith("'") and cell[1:].startswith(_SPREADSHEET_TRIGGERS) else cell

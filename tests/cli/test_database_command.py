@@ -238,3 +238,17 @@ def test_a_file_name_that_is_not_utf8_is_refused_before_any_work(tmp_path, capsy
     err = capsys.readouterr().err
     assert "caf\\xe9.png': the file name is not valid UTF-8" in err and "Traceback" not in err
     assert not db.exists()  # no half-made database left behind
+
+
+def test_query_quotes_names_a_spreadsheet_would_run_as_formulas(tmp_path, capsys):
+    images = make_route(tmp_path / "odd", n=3)
+    (images / "frame_000.png").rename(images / "=cmd.png")
+    (images / "frame_001.png").rename(images / "@x.png")
+    db = tmp_path / "map.db"
+    assert main(["database", "build", "--images", str(images), "--method", "raw", "--out", str(db)]) == 0
+    out = tmp_path / "q.csv"
+    assert main(["database", "query", "--db", str(db), "--images", str(images), "--top-k", "3", "--out", str(out)]) == 0
+    rows = read_rows(out)
+    assert {r["query"] for r in rows} == {"'=cmd.png", "'@x.png", "frame_002.png"}
+    # the place column holds the stored absolute path, which starts with / (nothing to quote)
+    assert all(not r["place"].startswith(("=", "@", "'")) for r in rows)

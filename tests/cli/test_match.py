@@ -175,3 +175,31 @@ def test_a_neighbourhood_image_folders_cannot_give_is_refused_before_describing(
                  "--accept-set", setting, "--out", str(tmp_path / "m.csv")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("fdnet match: error: ") and f"has no {missing} of the references" in err
+
+
+def test_names_a_spreadsheet_would_run_as_formulas_are_quoted(tmp_path):
+    """OWASP CSV injection: a cell starting with = + - @ gets a leading single quote."""
+    ref = make_route(tmp_path / "ref", n=4)
+    qry = make_route(tmp_path / "qry", n=4)
+    for folder in (ref, qry):
+        for old, new in (("frame_000.png", "=HYPERLINK(1).png"), ("frame_001.png", "+1.png"),
+                         ("frame_002.png", "-2.png"), ("frame_003.png", "@SUM(A1).png")):
+            (folder / old).rename(folder / new)
+    out = tmp_path / "matches.csv"
+    assert main(["match", "--reference", str(ref), "--query", str(qry), "--method", "raw", "--top-k", "4",
+                 "--out", str(out)]) == 0
+    rows = read_rows(out)
+    names = {r["query"] for r in rows} | {r["reference"] for r in rows}
+    assert names == {"'=HYPERLINK(1).png", "'+1.png", "'-2.png", "'@SUM(A1).png"}
+    assert not any(r["score"].startswith("'") for r in rows)  # numbers stay numbers, negative ones too
+
+
+def test_a_name_that_is_not_utf8_is_written_as_its_own_bytes(tmp_path):
+    import os
+
+    ref = make_route(tmp_path / "ref", n=3)
+    qry = make_route(tmp_path / "qry", n=3)
+    os.rename(qry / "frame_001.png", os.path.join(os.fsencode(qry), b"caf\xe9.png"))
+    out = tmp_path / "matches.csv"
+    assert main(["match", "--reference", str(ref), "--query", str(qry), "--method", "raw", "--out", str(out)]) == 0
+    assert b"\ncaf\xe9.png," not in out.read_bytes() and b",caf\xe9.png," in out.read_bytes()

@@ -179,3 +179,13 @@ def test_real_corridor_ground_truth():
     assert _lists(gt)[:2] == [[0, 1, 2], [0, 1, 2, 3]]
     # Every query's own index is among its correct references (the traverses are aligned).
     assert all(q in p for q, p in enumerate(_lists(gt)))
+
+
+def test_names_a_spreadsheet_would_run_are_quoted_and_read_back_as_they_are(tmp_path):
+    gt = GroundTruth([np.array([0, 1]), np.array([2])], num_references=3)
+    path = tmp_path / "gt.csv"
+    queries, references = ["=q.png", "'quoted.png"], ["-r0.png", "@r1.png", "r2.png"]
+    gt.to_csv(path, query_names=queries, reference_names=references)
+    assert path.read_text().splitlines()[1:] == ["0,0 1,'=q.png,'-r0.png/@r1.png", "1,2,''quoted.png,r2.png"]
+    back = GroundTruth.from_csv(path, num_references=3, num_queries=2)
+    back.check_names([f"/q/{n}" for n in queries], [f"/r/{n}" for n in references])

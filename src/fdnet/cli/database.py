@@ -291,7 +291,7 @@ def run_query(args) -> int:
 
     from fdnet.data.images import list_images
     from fdnet.errors import DataError
-    from fdnet.io import atomic_write_text, ensure_writable
+    from fdnet.io import atomic_write_text, ensure_writable, spreadsheet_text
 
     from fdnet.cli.common import check_pipeline_arguments
 
@@ -327,7 +327,7 @@ def run_query(args) -> int:
         for rank, m in enumerate(matches, start=1):
             chosen = accepted is not None and m.index == decision.match[q] and bool(accepted[q])
             if (args.min_score is None or m.score >= args.min_score) and (rank <= args.top_k or chosen):
-                row = [path.name, rank, m.name, m.index, f"{m.score:.6f}"]
+                row = [spreadsheet_text(path.name), rank, spreadsheet_text(m.name), m.index, f"{m.score:.6f}"]
                 if decision is not None:
                     row.append(f"{decision.score[q]:.6f}")
                 if accepted is not None:

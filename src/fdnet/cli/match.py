@@ -108,7 +108,7 @@ def run(args) -> int:
     from fdnet.descriptors.base import describe_paths
     from fdnet.descriptors.pipeline import describe_stream
     from fdnet.errors import ConfigError
-    from fdnet.io import atomic_write_text, ensure_writable
+    from fdnet.io import atomic_write_text, ensure_writable, spreadsheet_text
     from fdnet.matching.index import VectorIndex, parse_index_settings
     from fdnet.matching.sequence import sequence_similarity
     from fdnet.matching.similarity import similarity_matrix, top_k, top_k_of_matrix
@@ -202,7 +202,8 @@ def run(args) -> int:
             chosen = accepted is not None and i == decision.match[q] and bool(accepted[q])
             # rows beyond --top-k only for the match the rule accepted (a re-ranking rule may pick it)
             if i >= 0 and (rank <= args.top_k or chosen):
-                row = [q, query_paths[q].name, rank, int(i), ref_paths[i].name, f"{float(s):.6f}"]
+                row = [q, spreadsheet_text(query_paths[q].name), rank, int(i), spreadsheet_text(ref_paths[i].name),
+                       f"{float(s):.6f}"]
                 if decision is not None:
                     row.append(f"{decision.score[q]:.6f}")
                 if accepted is not None:

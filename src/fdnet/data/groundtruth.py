@@ -28,7 +28,7 @@ from typing import Sequence
 import numpy as np
 
 from fdnet.errors import DataError
-from fdnet.io import atomic_write_text
+from fdnet.io import atomic_write_text, from_spreadsheet_text, spreadsheet_text
 
 
 # Separates the names in the reference_names column. A file name can contain spaces and commas
@@ -213,11 +213,12 @@ class GroundTruth:
                 raise DataError(f"{path}, line {line_no}: query {q} listed twice")
             entries[q] = np.asarray(refs, dtype=np.int64)
             if named:
-                ref_names = row[3].split(NAME_SEPARATOR) if row[3] else []
+                # names as written by to_csv, quoted against spreadsheet formulas
+                ref_names = from_spreadsheet_text(row[3]).split(NAME_SEPARATOR) if row[3] else []
                 if len(ref_names) != len(refs):
                     raise DataError(f"{path}, line {line_no}: {len(refs)} reference indices but "
                                     f"{len(ref_names)} reference names; the two lists go together")
-                named_rows.append(NamedRow(line_no, q, row[2], refs, ref_names))
+                named_rows.append(NamedRow(line_no, q, from_spreadsheet_text(row[2]), refs, ref_names))
         if not entries:
             raise DataError(f"{path}: no ground-truth rows")
         n_q = num_queries if num_queries is not None else max(entries) + 1
@@ -283,8 +284,8 @@ class GroundTruth:
                                 f"file names, without their folder")
             writer.writerow(NAMED_HEADER)
             for q, p in enumerate(self.positives):
-                writer.writerow([q, " ".join(str(int(r)) for r in p), query_names[q],
-                                 NAME_SEPARATOR.join(reference_names[int(r)] for r in p)])
+                writer.writerow([q, " ".join(str(int(r)) for r in p), spreadsheet_text(query_names[q]),
+                                 spreadsheet_text(NAME_SEPARATOR.join(reference_names[int(r)] for r in p))])
         atomic_write_text(path, buffer.getvalue())
 
     def summary(self) -> dict:

@@ -51,6 +51,7 @@ import numpy as np
 
 from fdnet.decisions.acceptance import AcceptanceSpec, Candidates, decide, parse_acceptance
 from fdnet.errors import ConfigError, DataError
+from fdnet.io import spreadsheet_text
 
 logger = logging.getLogger(__name__)
 
@@ -498,7 +499,8 @@ class EventLog:
 
     def write(self, closure: Closure) -> None:
         event = closure.to_dict()
-        cells = ["" if event[c] is None else (f"{event[c]:.6f}" if isinstance(event[c], float) else event[c])
+        cells = ["" if event[c] is None else (f"{event[c]:.6f}" if isinstance(event[c], float) else
+                                              spreadsheet_text(event[c]) if c in ("query", "match") else event[c])
                  for c in EVENT_COLUMNS]
         lines = [self._csv_line(cells)]
         if len(self._fds) > 1:
