@@ -252,3 +252,84 @@ def test_query_quotes_names_a_spreadsheet_would_run_as_formulas(tmp_path, capsys
     assert {r["query"] for r in rows} == {"'=cmd.png", "'@x.png", "frame_002.png"}
     # the place column holds the stored absolute path, which starts with / (nothing to quote)
     assert all(not r["place"].startswith(("=", "@", "'")) for r in rows)
+
+
+def test_add_removes_the_spools_that_killed_writers_left_beside_the_database(tmp_path, built, capsys):
+    import sys
+
+    from tests.descriptors.test_pipeline import _spool_writer
+
+    if sys.platform == "win32":
+        pytest.skip("spools are swept with flock, which Windows lacks")
+    writers = [_spool_writer(built.parent) for _ in range(3)]  # three `database add`s describing at once ...
+    for writer, _ in writers:  # ... killed with -9
+        writer.kill()
+        writer.wait()
+    stale = [spool for _, spool in writers]
+    assert all(p.exists() for p in stale)
+    assert main(["database", "add", "--db", str(built), "--images", str(make_route(tmp_path / "more", n=2, seed=5)),
+                 "--workers", "0"]) == 0
+    assert not any(p.exists() for p in stale)
+    assert not list(built.parent.glob(".fdnet-spool.*"))
+
+
+def test_a_database_on_read_only_storage_is_queried_read_only(tmp_path, capsys, make_read_only):
+    import os
+
+    images = make_route(tmp_path / "first", seed=1)
+    built = tmp_path / "maps" / "map.db"
+    assert main(["database", "build", "--images", str(images), "--method", "raw", "--out", str(built)]) == 0
+    make_read_only(built.parent)
+    assert not os.access(built.parent, os.W_OK)
+    assert info(built, capsys)["places"] == 6
+    out_csv = tmp_path / "q.csv"  # the query's CSV goes to a writable folder
+    capsys.readouterr()
+    assert main(["database", "query", "--db", str(built), "--images", str(images), "--top-k", "1",
+                 "--workers", "0", "--out", str(out_csv)]) == 0
+    assert "opened read-only" in capsys.readouterr().err
+    assert [r["place_index"] for r in read_rows(out_csv)] == [str(i) for i in range(6)]
+    assert main(["database", "add", "--db", str(built), "--images", str(tmp_path / "first"), "--allow-duplicates",
+                 "--workers", "0"]) == 2
+    err = capsys.readouterr().err
+    assert "cannot be written (read-only media or mount), so nothing can be added" in err and "Traceback" not in err
+
+
+def test_a_read_only_database_with_a_log_left_behind_is_read_through_it_or_refused_clearly(tmp_path, make_read_only):
+    import shutil
+
+    from fdnet.errors import DataError
+    from fdnet.matching.database import PlaceDatabase
+
+    live = tmp_path / "live"
+    live.mkdir()
+    db = PlaceDatabase.create(live / "map.db", RawThumbnail())
+    db._conn.execute("PRAGMA wal_autocheckpoint = 0")  # the adds stay in the log, as when a writer is killed
+    db.add(np.ones((2, RawThumbnail().dim), np.float32), ["a", "b"])
+    shutil.copytree(live, tmp_path / "with-log")  # the file, its -wal and -shm: what a killed writer leaves
+    shutil.copytree(live, tmp_path / "log-without-shm")
+    (tmp_path / "log-without-shm" / "map.db-shm").unlink()
+    db.close()  # the last connection copies the log into the file
+    assert not (live / "map.db-wal").exists() and (tmp_path / "with-log" / "map.db-wal").stat().st_size > 0
+    make_read_only(tmp_path)
+    for folder in ("live", "with-log"):  # immutable; read through the log and its -shm
+        with PlaceDatabase.open(tmp_path / folder / "map.db") as opened:
+            assert opened.read_only and len(opened) == 2 and opened.names == ["a", "b"]
+    with pytest.raises(DataError, match=r"its write-ahead log .*map.db-wal holds adds not yet copied into the file"):
+        PlaceDatabase.open(tmp_path / "log-without-shm" / "map.db")
+
+
+def test_a_database_whose_folder_is_not_writable_opens_immutable_on_any_machine(tmp_path, built, capsys,
+                                                                                monkeypatch):
+    """The same path as read-only media, where the test cannot mount: the folder reported
+    unwritable (what os.access says there) opens the file immutable, with the note."""
+    import fdnet.matching.database as database
+
+    monkeypatch.setattr(database.os, "access", lambda path, mode: False)
+    capsys.readouterr()
+    assert main(["database", "info", "--db", str(built)]) == 0
+    printed = capsys.readouterr()
+    assert "opened read-only" in printed.err and json.loads(printed.out)["places"] == 6
+    with database.PlaceDatabase.open(built) as db:
+        assert db.read_only and len(db) == 6
+        with pytest.raises(database.DataError, match="readonly"):
+            db.add(np.zeros((1, db.dim), np.float32), ["new"])

@@ -135,3 +135,29 @@ def test_a_bug_keeps_its_traceback(error, monkeypatch):
     monkeypatch.setattr(fdnet.cli.synth, "run", fail)
     with pytest.raises(type(error)):
         main(["synth", "--out", "OUT"])
+
+
+def test_database_add_on_a_full_disk_is_one_line_and_keeps_the_database(small_disk, route, capsys):
+    db = small_disk.path / "map.db"
+    assert main(["database", "build", "--images", str(route / "summer"), "--method", "sad", "--out", str(db),
+                 "--workers", "0"]) == 0
+    before = sorted(small_disk.files())
+    small_disk.fill(4096)
+    assert main(["database", "add", "--db", str(db), "--images", str(route / "winter"), "--workers", "0"]) == 2
+    _check_one_line(capsys.readouterr().err, "database", str(small_disk.path), ("no space left",))
+    # no spool left; SQLite's own -wal/-shm may stay (the next open uses or removes them)
+    assert [f for f in small_disk.files() if not f.endswith(("-wal", "-shm"))] == before
+    (small_disk.path / ".filler").unlink()
+    assert main(["database", "info", "--db", str(db)]) == 0
+    assert '"places": 30' in capsys.readouterr().out
+
+
+def test_database_add_under_a_file_size_limit_is_one_line(tmp_path, route, file_size_limit, capsys):
+    db = tmp_path / "out" / "map.db"
+    assert main(["database", "build", "--images", str(route / "summer"), "--method", "sad", "--out", str(db),
+                 "--workers", "0"]) == 0
+    before = sorted(p.name for p in db.parent.iterdir())
+    with file_size_limit(2048):
+        assert main(["database", "add", "--db", str(db), "--images", str(route / "winter"), "--workers", "0"]) == 2
+    _check_one_line(capsys.readouterr().err, "database", str(db.parent), ("too large", "(ulimit -f)"))
+    assert [p.name for p in sorted(db.parent.iterdir()) if not p.name.endswith(("-wal", "-shm"))] == before

@@ -160,3 +160,40 @@ def test_a_folder_streams_in_memory_far_below_its_decoded_size(tmp_path, workers
     assert m["peak"] - m["base"] < cap, m
     if workers:
         assert m["children"] < m["base"] + cap, m
+
+
+_SPOOL_WRITER = textwrap.dedent("""
+    import sys, time
+    import numpy as np
+    from fdnet.descriptors.pipeline import VectorSpool
+    spool = VectorSpool(sys.argv[1], 4)
+    spool.write(np.ones((3, 4), np.float32))
+    print(spool.path, flush=True)
+    time.sleep(60)
+""")
+
+
+def _spool_writer(folder):
+    """A process holding a spool in ``folder`` (as `database add` does while describing)."""
+    writer = subprocess.Popen([sys.executable, "-c", _SPOOL_WRITER, str(folder)], stdout=subprocess.PIPE, text=True)
+    return writer, Path(writer.stdout.readline().strip())
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="spools are swept with flock, which Windows lacks")
+def test_spools_of_killed_writers_are_removed_by_the_next_and_live_ones_kept(tmp_path):
+    from fdnet.descriptors.pipeline import VectorSpool
+
+    killed, stale = _spool_writer(tmp_path)
+    alive, live = _spool_writer(tmp_path)
+    try:
+        killed.kill()  # SIGKILL: no cleanup runs, the spool stays behind
+        killed.wait()
+        assert stale.exists() and live.exists()
+        with VectorSpool(tmp_path, 4) as spool:
+            assert not stale.exists()  # no process held it: removed
+            assert live.exists()       # its writer is still describing: kept
+            assert spool.path.exists()
+        assert sorted(p.name for p in tmp_path.iterdir()) == [live.name]
+    finally:
+        alive.kill()
+        alive.wait()

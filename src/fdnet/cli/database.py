@@ -268,6 +268,11 @@ def run_add(args) -> int:
     check_pipeline_arguments(args)
     db, descriptor = _open_with_descriptor(args.db, args)
     with db:
+        if db.read_only:
+            from fdnet.errors import DataError
+
+            raise DataError(f"{args.db}: its folder cannot be written (read-only media or mount), so nothing can be "
+                            "added; copy it to a writable folder")
         paths = list_images(args.images)
         names = _place_names(paths)
         known = set() if args.allow_duplicates else db.existing_names(names)
@@ -300,6 +305,7 @@ def run_query(args) -> int:
         ensure_writable(args.out, what="query CSV")
     spec = acceptance_from_arguments(args)
     db, descriptor = _open_with_descriptor(args.db, device_args=args)
+    _note_read_only(db)
     with db:
         calibration = None if spec is not None else _query_calibration(db, descriptor, args)
         rule = spec if spec is not None else (calibration.spec if calibration is not None else None)
@@ -339,6 +345,14 @@ def run_query(args) -> int:
     else:
         sys.stdout.write(buffer.getvalue())
     return 0
+
+
+def _note_read_only(db) -> None:
+    import sys
+
+    if db.read_only:
+        print(f"note: {db.path} is in a folder that cannot be written (read-only media or mount): opened "
+              "read-only; query and info work, add does not", file=sys.stderr)
 
 
 def _query_calibration(db, descriptor, args):
@@ -396,6 +410,7 @@ def run_info(args) -> int:
 
     with PlaceDatabase.open(args.db) as db:
         info = db.info()
+        _note_read_only(db)
     print(json.dumps(info, indent=2, sort_keys=True))
     return 0
 

@@ -20,6 +20,7 @@ naming it, raised in the main process (not a worker's traceback).
 
 from __future__ import annotations
 
+import logging
 import os
 import time
 from pathlib import Path
@@ -28,6 +29,13 @@ from typing import Callable, Iterator, Sequence
 import numpy as np
 
 from fdnet.errors import DataError
+
+try:
+    import fcntl
+except ImportError:  # Windows: stale spools are not swept (see remove_stale_spools)
+    fcntl = None
+
+log = logging.getLogger(__name__)
 
 #: batches each worker prepares ahead of the model (DataLoader's prefetch_factor)
 PREFETCH = 2
@@ -247,18 +255,31 @@ class NpzChunkWriter:
             self.discard()
 
 
+SPOOL_PREFIX, SPOOL_SUFFIX = ".fdnet-spool.", ".f32"
+
+
 class VectorSpool:
     """Vectors written to a temporary file as they are made, read back in chunks: a place
     database stores a folder of any size in one transaction without holding its vectors, and
     without holding its write lock while images are described. The file lives in ``folder``
-    (hidden, removed by :meth:`close` or when the ``with`` block ends)."""
+    (hidden, removed by :meth:`close` or when the ``with`` block ends).
+
+    A process killed with -9 cannot remove its spool: each spool is locked (``flock``) by the
+    process writing it, which the kernel releases when that process ends, and every new spool
+    first removes the spools in its folder that no live process holds
+    (:func:`remove_stale_spools`), so they never pile up beside a database."""
 
     def __init__(self, folder, dim: int):
         import tempfile
 
         folder = Path(folder)
         folder.mkdir(parents=True, exist_ok=True)
-        fd, name = tempfile.mkstemp(prefix=".fdnet-spool.", suffix=".f32", dir=folder)
+        remove_stale_spools(folder)
+        fd, name = tempfile.mkstemp(prefix=SPOOL_PREFIX, suffix=SPOOL_SUFFIX, dir=folder)
+        if fcntl is not None:
+            # A sweeping writer may hold it for a moment (and even unlink it: this process then
+            # writes to its open file all the same and finds nothing to unlink at close).
+            fcntl.flock(fd, fcntl.LOCK_EX)
         self.path = Path(name)
         self._handle = os.fdopen(fd, "w+b")
         self.dim = int(dim)
@@ -287,15 +308,47 @@ class VectorSpool:
             yield start, np.frombuffer(data, dtype="<f4").reshape(n, self.dim).astype(np.float32)
 
     def close(self) -> None:
-        if not self._handle.closed:
-            self._handle.close()
         try:
-            self.path.unlink()
+            self.path.unlink()  # while still locked: no other process takes it for stale
         except FileNotFoundError:
             pass
+        if not self._handle.closed:
+            self._handle.close()
 
     def __enter__(self) -> "VectorSpool":
         return self
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def remove_stale_spools(folder) -> list[Path]:
+    """Remove the spool files in ``folder`` whose writer has died (kill -9, a power cut): the
+    ones no process holds a lock on. Returns what was removed. Without ``fcntl`` (Windows)
+    nothing is removed, since a live writer could not be told from a dead one."""
+    removed = []
+    if fcntl is None:
+        return removed
+    for path in Path(folder).glob(f"{SPOOL_PREFIX}*{SPOOL_SUFFIX}"):
+        try:
+            fd = os.open(path, os.O_RDONLY | getattr(os, "O_CLOEXEC", 0))
+        except OSError:  # gone already (its writer finished), or not ours to open
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:  # held: a writer is still describing into it
+            os.close(fd)
+            continue
+        try:
+            # Locked by us now, so no writer holds it; it may have been unlinked (and a new file
+            # made under the same name is impossible: mkstemp names are unique) since the glob.
+            if os.path.exists(path) and os.stat(path).st_ino == os.fstat(fd).st_ino:
+                os.unlink(path)
+                removed.append(path)
+        except OSError:
+            pass
+        finally:
+            os.close(fd)
+    if removed:
+        log.info("removed %d stale spool file(s) in %s left by killed writers", len(removed), folder)
+    return removed

@@ -157,11 +157,51 @@ def _describe_foreign(conn: sqlite3.Connection) -> str:
     return f"it has tables: {', '.join(tables)}" if tables else "it has no tables"
 
 
-def _sqlite_message(exc: sqlite3.Error) -> str:
+def _sqlite_message(exc: sqlite3.Error, path=None) -> str:
     text = str(exc)
     if "locked" in text or "busy" in text:
         return f"another process held the database's write lock for more than {BUSY_TIMEOUT_S:.0f} s ({text})"
+    if path is not None and path != MEMORY and any(
+            words in text for words in ("unable to open", "disk I/O error", "readonly", "disk is full")):
+        why = _storage_problem(path)
+        if why:
+            return f"{text}: {why}"
     return text
+
+
+def _storage_problem(path) -> str:
+    """Why SQLite cannot open or write ``path``, from what the operating system says about its
+    folder (SQLite itself only says "unable to open database file" or "disk I/O error"); "" when
+    nothing is found. SQLite's write-ahead log needs to create ``-wal`` and ``-shm`` files beside
+    the database, even to read it."""
+    folder = Path(path).resolve().parent
+    problems = []
+    try:
+        stats = os.statvfs(folder)
+        free = stats.f_bavail * stats.f_frsize
+        if stats.f_flag & getattr(os, "ST_RDONLY", 1):
+            problems.append(f"its folder {folder} is on a read-only file system")
+        elif free < (1 << 20):
+            problems.append(f"no space left on the device ({free // 1024} KiB free in {folder})")
+    except (OSError, AttributeError):  # no statvfs (Windows)
+        pass
+    if not problems and not os.access(folder, os.W_OK):
+        problems.append(f"this user cannot write in its folder {folder}")
+    try:
+        import resource
+
+        limit = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+        if limit != resource.RLIM_INFINITY and limit < (1 << 30):
+            problems.append(f"this process may only write files up to {limit} bytes (ulimit -f)")
+    except (ImportError, OSError, ValueError):
+        pass
+    return "; ".join(problems)
+
+
+def _read_only_storage(path: Path) -> bool:
+    """True when the database's folder cannot be written (read-only media, a read-only mount or
+    share): SQLite's write-ahead log then cannot create its ``-shm`` file to open it as usual."""
+    return not os.access(path.resolve().parent, os.W_OK)
 
 
 @contextlib.contextmanager
@@ -170,7 +210,7 @@ def _sqlite_errors(path, doing: str) -> Iterator[None]:
     try:
         yield
     except sqlite3.Error as exc:
-        raise DataError(f"{path}: {doing}: {_sqlite_message(exc)}") from None
+        raise DataError(f"{path}: {doing}: {_sqlite_message(exc, path)}") from None
 
 
 @contextlib.contextmanager
@@ -196,6 +236,26 @@ def _connect(target: str, uri: bool = False) -> sqlite3.Connection:
     # database promises that an add it has acknowledged is on disk.
     conn.execute("PRAGMA synchronous = FULL")
     return conn
+
+
+def _connect_read_only(path: Path) -> sqlite3.Connection:
+    """A database on storage this process cannot write. Without a write-ahead log left beside it
+    the file holds every committed add and is opened ``immutable`` (no -shm needed, no locks: on
+    read-only storage nobody can change it). A log left there (a writer killed, the medium then
+    made read-only) holds commits not yet in the file: they are read through its ``-shm`` file
+    (``mode=ro``), and refused with a clear message when that is missing too."""
+    uri = path.resolve().as_uri()
+    wal = Path(f"{path}-wal")
+    if not (wal.exists() and wal.stat().st_size > 0):
+        return _connect(uri + "?immutable=1", uri=True)
+    try:
+        conn = _connect(uri + "?mode=ro", uri=True)
+        conn.execute("SELECT count(*) FROM sqlite_master").fetchone()
+        return conn
+    except sqlite3.Error:
+        raise DataError(f"{path}: its folder cannot be written and its write-ahead log {wal} holds adds not yet "
+                        f"copied into the file, which SQLite can only read with {path}-shm beside it; copy the "
+                        "database and its -wal file to a writable folder and open it there") from None
 
 
 def _is_fdnet_database(conn: sqlite3.Connection) -> bool:
@@ -310,6 +370,9 @@ class PlaceDatabase:
         self._conn = conn
         self._identity = identity
         self.similarity = similarity
+        #: opened read-only because its folder cannot be written (see :meth:`open`): queries and
+        #: info work, adds are refused
+        self.read_only = False
         # What this process has loaded so far; `_refresh` brings it up to the file's state.
         self._loaded_version = -1
         self._last_id = 0
@@ -454,9 +517,10 @@ class PlaceDatabase:
         refuse_old_format(path)
         _check_header(path)
         target = str(path)
+        read_only = _read_only_storage(path)
         with _sqlite_errors(target, "opening the place database"):
             # mode=rw: a path that vanished since the check must not become a new empty file.
-            conn = _connect(path.resolve().as_uri() + "?mode=rw", uri=True)
+            conn = _connect_read_only(path) if read_only else _connect(path.resolve().as_uri() + "?mode=rw", uri=True)
         try:
             with _sqlite_errors(target, "reading the place database"):
                 if not _is_fdnet_database(conn):
@@ -468,8 +532,9 @@ class PlaceDatabase:
                                     f"reads up to {SCHEMA_VERSION}); upgrade fdnet")
                 if schema < 1:
                     raise DataError(f"{target}: has no fdnet schema version; the file is damaged")
-                # Persistent once set; this only matters for a file copied from a non-WAL tool.
-                conn.execute("PRAGMA journal_mode = WAL")
+                if not read_only:
+                    # Persistent once set; this only matters for a file copied from a non-WAL tool.
+                    conn.execute("PRAGMA journal_mode = WAL")
                 identity = _read_identity(target, conn)
             similarity = None
             if descriptor is not None:
@@ -478,7 +543,9 @@ class PlaceDatabase:
         except BaseException:
             conn.close()
             raise
-        return cls(target, conn, identity, similarity)
+        db = cls(target, conn, identity, similarity)
+        db.read_only = read_only
+        return db
 
     def check_descriptor(self, descriptor) -> None:
         """Refuse ``descriptor`` unless it is the model whose vectors the database holds."""
