@@ -333,3 +333,11 @@ def test_a_database_whose_folder_is_not_writable_opens_immutable_on_any_machine(
         assert db.read_only and len(db) == 6
         with pytest.raises(database.DataError, match="readonly"):
             db.add(np.zeros((1, db.dim), np.float32), ["new"])
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-inf"])
+def test_query_refuses_a_min_score_that_is_not_finite(tmp_path, built, capsys, value):
+    with pytest.raises(SystemExit) as stopped:
+        main(["database", "query", "--db", str(built), "--images", str(tmp_path / "first"), f"--min-score={value}"])
+    assert stopped.value.code == 2
+    assert f"argument --min-score: must be a finite number, got '{value}'" in capsys.readouterr().err

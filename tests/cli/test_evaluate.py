@@ -468,3 +468,17 @@ def test_bad_acceptance_rules_are_errors(matrix_files, capsys, extra, message):
     npy, csv = matrix_files
     err = _error(capsys, ["evaluate", "--similarity", str(npy), "--ground-truth", str(csv), *extra])
     assert err.startswith("fdnet evaluate: error: ") and message in err
+
+
+@pytest.mark.parametrize("frames", ["5:50", "10:", "12:20"])
+def test_a_frame_range_past_the_folders_end_is_refused(route, tiny_method, capsys, frames):
+    err = _error(capsys, ["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk",
+                          "--method", tiny_method, "--frames", frames])
+    assert f"--frames {frames}: past the end of the folders (day 10, dusk 10 images)" in err
+
+
+def test_a_frame_range_inside_the_folders_is_evaluated(route, tiny_method, tmp_path):
+    out = tmp_path / "r.json"
+    assert main(["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk", "--method", tiny_method,
+                 "--frames", "5:10", "--json", str(out)]) == 0
+    assert json.loads(out.read_text())["num_queries"] == 5

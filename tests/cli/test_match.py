@@ -203,3 +203,11 @@ def test_a_name_that_is_not_utf8_is_written_as_its_own_bytes(tmp_path):
     out = tmp_path / "matches.csv"
     assert main(["match", "--reference", str(ref), "--query", str(qry), "--method", "raw", "--out", str(out)]) == 0
     assert b"\ncaf\xe9.png," not in out.read_bytes() and b",caf\xe9.png," in out.read_bytes()
+
+
+def test_a_negative_sequence_length_is_refused(tmp_path, capsys):
+    ref = make_route(tmp_path / "ref", n=3)
+    assert main(["match", "--reference", str(ref), "--query", str(ref), "--method", "raw",
+                 "--out", str(tmp_path / "m.csv"), "--sequence-length", "-2"]) == 2
+    assert "fdnet match: error: --sequence-length must be >= 0" in capsys.readouterr().err
+    assert not (tmp_path / "m.csv").exists()

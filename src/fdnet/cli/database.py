@@ -24,6 +24,16 @@ def _non_negative_int(text: str) -> int:
     return value
 
 
+def _finite_number(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
+    if value != value or value in (float("inf"), float("-inf")):  # nan would keep no row, inf all or none
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
+    return value
+
+
 def _whole_number(text: str) -> int:
     try:
         return int(text)
@@ -73,7 +83,7 @@ def register(sub) -> None:
     query.add_argument("--top-k", type=_positive_int, default=5, help="candidates per query (at least 1)")
     query.add_argument("--exclude-last", type=_non_negative_int, default=0,
                        help="ignore the most recently added N places (a robot's own recent frames)")
-    query.add_argument("--min-score", type=float, default=None, help="only report candidates scoring at least this")
+    query.add_argument("--min-score", type=_finite_number, default=None, help="only report candidates scoring at least this")
     add_decision_arguments(query, "a calibration from `fdnet calibrate` (default: the one stored in the database by "
                                   "`fdnet calibrate --db`, if any): adds acceptance_score and accepted columns")
     query.add_argument("--out", help="CSV to write (query,rank,place,place_index,score[,acceptance_score,accepted]); "

@@ -172,6 +172,7 @@ def build_split(args):
     start, end = parse_frame_range(args.frames)
     dataset = RouteDataset.from_folder(args.data, [args.reference, args.query]
                                        if args.reference != args.query else [args.reference])
+    _check_frames_inside(args.frames, start, end, dataset)
     if ground_truth is not None:
         if args.filter_frames:
             raise ConfigError("--filter-frames applies to frame-aligned folders; with --ground-truth CSV, filter "
@@ -184,6 +185,19 @@ def build_split(args):
         print(f"frame filter: {summary}", file=sys.stderr)
         start = end = None
     return aligned_split(dataset, args.reference, args.query, args.tolerance or 0, start, end)
+
+
+def _check_frames_inside(text, start, end, dataset) -> None:
+    """A --frames range reaching past the folders' end would silently evaluate fewer frames than
+    asked (50:500 of 60 images gave 10)."""
+    from fdnet.errors import ConfigError
+
+    counts = {name: len(traverse) for name, traverse in dataset.traverses.items()}
+    frames = min(counts.values())
+    listed = ", ".join(f"{name} {count}" for name, count in counts.items())
+    if (end is not None and end > frames) or (start is not None and start >= frames):
+        raise ConfigError(f"--frames {text}: past the end of the folders ({listed} images); give a range within "
+                          f"0:{frames}, or leave END out ({start or 0}:) for the rest")
 
 
 def load_similarity(path: str, distance: bool = False):

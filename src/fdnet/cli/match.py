@@ -115,6 +115,8 @@ def run(args) -> int:
 
     if args.top_k < 1:
         raise ConfigError("--top-k must be at least 1")
+    if args.sequence_length < 0:
+        raise ConfigError(f"--sequence-length must be >= 0 (0 = single image), got {args.sequence_length}")
     check_pipeline_arguments(args)
     if args.index == "exact" and (args.index_set or args.index_file):
         raise ConfigError("--index-set and --index-file apply to the faiss indexes (--index flat|ivf|ivfpq|hnsw)")
