@@ -120,3 +120,18 @@ def test_unwritable_out_fails_before_any_work(tmp_path, capsys):
     assert main(["groundtruth", "--positions", ref, str(tmp_path / "absent.csv"), "--out", str(out)]) == 2
     err = capsys.readouterr().err
     assert str(out) in err and "cannot create the ground-truth CSV" in err and "Traceback" not in err
+
+
+def test_position_files_saved_by_a_spreadsheet_with_a_byte_order_mark(tmp_path):
+    import csv
+
+    from fdnet.cli import main
+
+    for name in ("ref.csv", "qry.csv"):
+        (tmp_path / name).write_bytes("\ufeffimage,lat,lon\na.png,-27.5,153.0\nb.png,-27.6,153.0\n".encode())
+    out = tmp_path / "gt.csv"
+    assert main(["groundtruth", "--positions", str(tmp_path / "ref.csv"), str(tmp_path / "qry.csv"),
+                 "--out", str(out)]) == 0
+    with open(out, newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    assert [(r["query_name"], r["reference_names"]) for r in rows] == [("a.png", "a.png"), ("b.png", "b.png")]

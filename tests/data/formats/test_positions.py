@@ -49,3 +49,11 @@ def test_mixed_units_are_refused(tmp_path):
     qry = read_positions(write(tmp_path, "q.csv", "image,easting,northing\na,1,2\n"))
     with pytest.raises(DataError, match="same units"):
         positions_ground_truth(ref, qry, 25)
+
+
+def test_a_file_saved_with_a_byte_order_mark_is_read(tmp_path):
+    """Excel's "CSV UTF-8" starts the file with U+FEFF, which must not become part of "image"."""
+    path = tmp_path / "excel.csv"
+    path.write_bytes("\ufeffimage,lat,lon\na.png,-27.5,153.0\n".encode("utf-8"))
+    table = read_positions(path)
+    assert table.images == ["a.png"] and table.values.tolist() == [[-27.5, 153.0]]

@@ -154,7 +154,9 @@ def read_text_lines(path: Path, what: str, not_text: str,
     """(line number, line) of the non-blank, non-comment lines of a text file; a missing or
     binary file is a DataError naming it (``what`` / ``not_text`` say what was expected)."""
     try:
-        text = path.read_text()
+        # utf-8-sig: spreadsheet programs (Excel's "CSV UTF-8") start the file with a byte-order
+        # mark, which would otherwise be read as part of the first column's name
+        text = path.read_text(encoding="utf-8-sig")
     except FileNotFoundError:
         raise DataError(f"{path}: {what} not found") from None
     except UnicodeDecodeError:
