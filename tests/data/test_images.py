@@ -186,3 +186,19 @@ def test_real_images_of_each_shared_dataset():
     nordland = require_shared("nordland_trimmed")
     im = load_image(nordland / "summer" / "images-00500.png")
     assert im.shape == (32, 64, 3) and np.array_equal(im[..., 0], im[..., 1])   # grey stored as RGB
+
+
+def test_a_symbolic_link_to_nothing_among_the_images_is_refused(tmp_path, rgb8):
+    from fdnet.data.images import list_images
+    from fdnet.errors import DataError
+
+    for i in range(3):
+        Image.fromarray(rgb8).save(tmp_path / f"{i}.png")
+    (tmp_path / "1.png").unlink()
+    (tmp_path / "1.png").symlink_to(tmp_path / "moved-away.png")
+    (tmp_path / ".hidden.png").symlink_to(tmp_path / "gone.png")  # hidden files are not images: ignored
+    with pytest.raises(DataError, match=r"1.png: a symbolic link to .*moved-away.png, which does not exist"):
+        list_images(tmp_path)
+    (tmp_path / "1.png").unlink()
+    (tmp_path / "1.png").symlink_to(tmp_path / "0.png")  # a link to an image is an image
+    assert [p.name for p in list_images(tmp_path)] == ["0.png", "1.png", "2.png"]

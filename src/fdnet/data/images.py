@@ -76,10 +76,20 @@ def list_images(folder: str | os.PathLike, recursive: bool = False) -> list[Path
         raise DataError(f"{folder}: not a folder of images ({reason})")
     candidates = folder.rglob("*") if recursive else folder.iterdir()
     paths = [p for p in candidates
-             if p.suffix.lower() in IMAGE_EXTENSIONS and not _is_hidden(p.relative_to(folder)) and p.is_file()]
+             if p.suffix.lower() in IMAGE_EXTENSIONS and not _is_hidden(p.relative_to(folder))
+             and (p.is_file() or _dangling_link(p))]
     if not paths:
         raise DataError(f"{folder}: contains no images (looked for {', '.join(IMAGE_EXTENSIONS)})")
     return sorted(paths, key=lambda p: natural_key(p.relative_to(folder).as_posix()))
+
+
+def _dangling_link(path: Path) -> bool:
+    """Refuse an image name that is a symbolic link to nothing: skipping it would shift every
+    later image's index, and a corrupt image stops the command too."""
+    if path.is_symlink() and not path.exists():
+        raise DataError(f"{path}: a symbolic link to {os.readlink(path)}, which does not exist; fix or remove the "
+                        "link")
+    return False
 
 
 def has_images(folder: str | os.PathLike) -> bool:
