@@ -110,8 +110,49 @@ def test_without_a_validation_pair_the_set_block_is_trained_and_that_is_said(tmp
                                   "validation.reference": "", "validation.query": ""})
     train(config, tmp_path / "run", progress=False)
     assert load_config(tmp_path / "run", TrainConfig).model.backbone_block == 4
-    assert "no validation pair to choose a trunk block from 2, 4; training on model.backbone_block = 4" in capsys.readouterr().out
+    assert ("no validation pair to choose a start from (2, 4); training on model.backbone_block = 4, "
+            "data.synthetic_conditions = none") in capsys.readouterr().out
     assert load_training_state(tmp_path / "run")["method_state"]["block_selection"] == {}
+
+
+def test_synthetic_conditions_are_chosen_with_the_block_and_kept_on_resume(tmp_path, capsys):
+    config = _config(tmp_path, **{"model.backbone_block_candidates": [2, 4],
+                                  "data.synthetic_conditions_candidates": ["none", "night+contrast"]})
+    run = tmp_path / "run"
+    assert train(config, run, max_minutes=0.0, progress=False)["status"] == "time limit"
+    selection = load_training_state(run)["method_state"]["block_selection"]
+    order = ["2, synthetic none", "4, synthetic none", "2, synthetic night+contrast", "4, synthetic night+contrast"]
+    assert list(selection) == order
+    best = max(order, key=lambda k: (selection[k]["recall@1"], selection[k]["auc"], -order.index(k)))
+    saved = load_config(run, TrainConfig)
+    block, option = best.split(", synthetic ")
+    assert saved.model.backbone_block == int(block)
+    assert list(saved.data.synthetic_conditions) == ([] if option == "none" else option.split("+"))
+    out = capsys.readouterr().out
+    assert f"training on trunk block {best} (of {', '.join(order)})" in out
+    # the run goes on with what it chose, without scoring again, and equals a run of it alone
+    assert train(config, run, resume=True, progress=False)["status"] == "finished"
+    assert "at the start" not in capsys.readouterr().out
+    alone = tmp_path / "alone"
+    train(_config(tmp_path, **{"model.backbone_block": saved.model.backbone_block,
+                               "data.synthetic_conditions": list(saved.data.synthetic_conditions)}), alone, progress=False)
+    for (name, x), y in zip(_weights(run).items(), _weights(alone).values()):
+        assert torch.equal(x, y), name
+
+
+@pytest.mark.parametrize("overrides, message", [
+    ({"data.synthetic_conditions_candidates": ["none", "fog"]}, "candidates: fog: data.synthetic_conditions: unknown"),
+    ({"data.synthetic_conditions_candidates": ["night", "night"]}, "names a setting twice"),
+    ({"data.synthetic_conditions_candidates": ["night"]}, r"synthetic_conditions=\[\] is not among"),
+    ({"data.synthetic_conditions_candidates": ["none", "night"], "model.content_head": "encoder",
+      "model.backbone": "none"}, "choosing needs model.content_head"),
+])
+def test_bad_synthetic_candidates_are_refused_before_any_image_is_read(tmp_path, overrides, message):
+    from fdnet.errors import ConfigError
+
+    config = replace_dotted(preset("tiny"), {**RESIDUAL_HEAD, "data.root": str(tmp_path / "missing"), **overrides})
+    with pytest.raises(ConfigError, match=message):
+        train(config, tmp_path / "run", progress=False)
 
 
 @pytest.mark.shared_data

@@ -42,6 +42,22 @@ class FDNetDataConfig(DataConfig):
     #: condition C and each change K named here, a condition ``C~K`` of C's images with K applied
     #: (night, snow, cast, contrast; see fdnet.data.appearance). Empty: the real conditions only
     synthetic_conditions: tuple[str, ...] = ()
+    #: with a validation pair, the ``synthetic_conditions`` settings the run chooses from, each
+    #: written as changes joined by "+" ("night", "night+snow") or "none": every one is tried with
+    #: every candidate trunk block (``model.backbone_block_candidates``) and the closed-form start
+    #: that validates best is trained, as the block is chosen. ``synthetic_conditions`` must be
+    #: among them: it is what a run without a validation pair uses. Empty: no choice
+    synthetic_conditions_candidates: tuple[str, ...] = ()
+
+
+def synthetic_option(text: str) -> tuple[str, ...]:
+    """One ``data.synthetic_conditions_candidates`` entry -> its changes ("none" -> ())."""
+    text = str(text).strip()
+    return () if text in ("", "none") else tuple(part.strip() for part in text.split("+"))
+
+
+def synthetic_option_text(changes) -> str:
+    return "+".join(changes) or "none"
 
 
 @dataclass
@@ -260,6 +276,25 @@ def validate(config: TrainConfig) -> None:
     from fdnet.data.appearance import check_changes
 
     check_changes(list(config.data.synthetic_conditions))
+    options = [synthetic_option(text) for text in config.data.synthetic_conditions_candidates]
+    for option in options:
+        try:
+            check_changes(list(option))
+        except ConfigError as exc:
+            raise ConfigError(f"data.synthetic_conditions_candidates: {synthetic_option_text(option)}: {exc}") from None
+    if options:
+        if len(set(options)) != len(options):
+            raise ConfigError(f"data.synthetic_conditions_candidates: {list(config.data.synthetic_conditions_candidates)} "
+                              "names a setting twice")
+        if tuple(config.data.synthetic_conditions) not in options:
+            raise ConfigError(
+                f"data.synthetic_conditions={list(config.data.synthetic_conditions)} is not among "
+                f"data.synthetic_conditions_candidates={list(config.data.synthetic_conditions_candidates)} (it is what a "
+                "run without a validation pair uses); add it, or set data.synthetic_conditions_candidates=[]")
+        if config.model.content_head not in ("trunk_residual", "trunk_projection"):
+            raise ConfigError("data.synthetic_conditions_candidates: choosing needs model.content_head=trunk_residual "
+                              "or trunk_projection (it scores the head's closed-form start); set "
+                              "data.synthetic_conditions_candidates=[] to use data.synthetic_conditions alone")
     if config.data.batch_per_domain < 2:
         raise ConfigError(f"data.batch_per_domain must be >= 2, got {config.data.batch_per_domain}")
     if config.runtime.critic_encoder_mode not in ("train", "eval"):

@@ -36,11 +36,11 @@ import torch
 
 from fdnet.config import replace_dotted
 from fdnet.errors import ConfigError
-from fdnet.methods.fdnet.config import TrainConfig, validate
+from fdnet.methods.fdnet.config import TrainConfig, synthetic_option, synthetic_option_text, validate
 from fdnet.methods.fdnet.model import TRUNK_HEADS, FDNet
 from fdnet.training import losses
 from fdnet.training.distributed import loss_text
-from fdnet.data.appearance import with_synthetic_conditions
+from fdnet.data.appearance import SEPARATOR, with_synthetic_conditions
 from fdnet.training.data import TrainingImages, route_images, training_route
 from fdnet.training.loop import LoopSettings, TrainingMethod
 from fdnet.training.sampler import DomainBalancedSampler
@@ -78,7 +78,8 @@ class FDNetTraining(TrainingMethod):
     log_columns = ("reconstruction", "appearance", "encoder_adversarial", "structure", "critic", "wasserstein")
     rank_state_keys = ("sampler_generator",)  # each rank's own stream; the conditions are shared
 
-    def __init__(self, config: TrainConfig, data: TrainingImages) -> None:
+    def __init__(self, config: TrainConfig, data: TrainingImages,
+                 trunk_maps: dict[tuple[int, str], torch.Tensor] | None = None) -> None:
         validate(config)
         self.config = config
         self.data = data
@@ -107,8 +108,11 @@ class FDNetTraining(TrainingMethod):
         self.images = [x.to(self.device) for x in data.images]
         # With a frozen trunk, what the encoders read never changes (no augmentation), so it is
         # computed once: the trunk costs ~10 ms/image on a CPU core, more than the FDNet step.
-        self.cached_inputs = None if self.model.trunk is None else [self._preprocess(x) for x in self.images]
-        #: validation scores of each candidate trunk block's start, by block (choose_backbone_block)
+        self.cached_inputs = None if self.model.trunk is None else [
+            self._trunk_map(x, name, trunk_maps) for x, name in zip(self.images, data.names)]
+        #: (block, condition) -> its maps, shared by the candidates a run chooses from (choose_start)
+        self.trunk_maps = trunk_maps
+        #: validation scores of each candidate start, by block (and synthetic setting; choose_start)
         self.block_selection: dict[str, dict[str, float]] = {}
         #: what the projection head's closed-form start found (content_fit.ProjectionFit.report)
         self.projection_fit: dict = {}
@@ -172,6 +176,20 @@ class FDNetTraining(TrainingMethod):
         return torch.nn.functional.normalize(vectors, dim=1).numpy()
 
     # ------------------------------------------------------------------ one step
+    def _trunk_map(self, images: torch.Tensor, condition: str, shared: dict | None) -> torch.Tensor:
+        """The encoders' input for one condition's images, from ``shared`` when another candidate
+        of the same block computed it. A real condition's images are the same in every candidate;
+        a synthetic one's depend on the whole synthetic setting (one generator draws them all), so
+        its key carries that setting."""
+        if shared is None:
+            return self._preprocess(images)
+        key = (int(self.config.model.backbone_block), condition)
+        if SEPARATOR in condition:
+            key += (tuple(self.config.data.synthetic_conditions),)
+        if key not in shared:
+            shared[key] = self._preprocess(images)
+        return shared[key]
+
     def _preprocess(self, images: torch.Tensor, chunk: int = 64) -> torch.Tensor:
         """uint8 (N, 3, H, W) -> what the encoders read (``FDNet.preprocess``), in chunks."""
         out = []
@@ -318,26 +336,47 @@ def content_vectors(model: FDNet, images: torch.Tensor, device: torch.device, bf
     return torch.cat(out) if out else torch.zeros((0, model.content_length))
 
 
-def choose_backbone_block(config: TrainConfig, data: TrainingImages, validation,
-                          log=print) -> FDNetTraining:
-    """The FDNet training of the candidate trunk block (``model.backbone_block_candidates``) whose
-    closed-form content start scores best on ``validation``: R@1, ties to the higher AUC, then to
-    the earlier candidate, as ``best/`` is chosen. Each candidate is built as a run of its own and
-    started (:meth:`FDNetTraining.start`: the head's mean and condition-mean directions, no
-    gradient step); its scores are kept in ``block_selection``. The chosen one comes back in the
-    state a run of that block alone would have (torch's RNG as after building it), so choosing
-    does not change what training then does."""
+def start_candidates(config: TrainConfig) -> list[tuple[tuple[str, ...], int]]:
+    """The (synthetic conditions, trunk block) starts a run with a validation pair chooses from,
+    synthetic settings outer: ``data.synthetic_conditions_candidates`` (or the one
+    ``data.synthetic_conditions``) x ``model.backbone_block_candidates`` (or the one block)."""
+    options = [synthetic_option(t) for t in config.data.synthetic_conditions_candidates] or \
+        [tuple(config.data.synthetic_conditions)]
+    blocks = [int(b) for b in config.model.backbone_block_candidates] or [int(config.model.backbone_block)]
+    return [(option, block) for option in options for block in blocks]
+
+
+def _start_label(config: TrainConfig, option: tuple[str, ...], block: int) -> str:
+    """``block_selection``'s key: the block, plus the synthetic setting when that is chosen too."""
+    if not config.data.synthetic_conditions_candidates:
+        return str(block)
+    return f"{block}, synthetic {synthetic_option_text(option)}"
+
+
+def choose_start(config: TrainConfig, real: TrainingImages, validation, log=print) -> FDNetTraining:
+    """The FDNet training whose closed-form content start scores best on ``validation`` among
+    :func:`start_candidates`: R@1, ties to the higher AUC, then to the earlier candidate, as
+    ``best/`` is chosen. ``real`` are the training images without synthetic conditions. Each
+    candidate is built as a run of its own and started (:meth:`FDNetTraining.start`: no gradient
+    step); the trunk maps of a condition are computed once per block and shared between the
+    candidates. The scores are kept in ``block_selection``. The chosen one comes back in the state
+    a run of those settings alone would have (torch's RNG as after building it), so choosing does
+    not change what training then does."""
     from fdnet.training.loop import validation_metrics
 
-    best, scores = None, {}
-    for block in config.model.backbone_block_candidates:
-        method = FDNetTraining(replace_dotted(config, {"model.backbone_block": int(block)}), data)
+    best, scores, maps = None, {}, {}
+    candidates = start_candidates(config)
+    for option, block in candidates:
+        settings = {"model.backbone_block": int(block), "data.synthetic_conditions": list(option)}
+        data = with_synthetic_conditions(real, option, config.runtime.seed)
+        method = FDNetTraining(replace_dotted(config, settings), data, trunk_maps=maps)
         rng = torch.get_rng_state()
         method.log = lambda message: None  # start() says what it removed; once, when training starts
         method.start()
         metrics = validation_metrics(method, validation)
-        scores[str(block)] = {k: float(v) for k, v in metrics.items()}
-        log(f"fdnet train: trunk block {block}: validation R@1 {metrics['recall@1']:.3f}, "
+        label = _start_label(config, option, block)
+        scores[label] = {k: float(v) for k, v in metrics.items()}
+        log(f"fdnet train: trunk block {label}: validation R@1 {metrics['recall@1']:.3f}, "
             f"AUC {metrics['auc']:.3f} at the start")
         key = (metrics["recall@1"], metrics["auc"])
         if best is None or key > best[0]:
@@ -345,14 +384,32 @@ def choose_backbone_block(config: TrainConfig, data: TrainingImages, validation,
     _, method, rng = best
     torch.set_rng_state(rng)
     method.block_selection = scores
+    method.trunk_maps = None
     del method.log  # back to the class's
-    chosen = method.config.model.backbone_block
-    note = "" if chosen == config.model.backbone_block else (
+    chosen_block = method.config.model.backbone_block
+    chosen = _start_label(config, tuple(method.config.data.synthetic_conditions), chosen_block)
+    note = "" if chosen_block == config.model.backbone_block else (
         f"; model.backbone_block = {config.model.backbone_block} is the block for runs without a validation pair, "
         "set model.backbone_block_candidates=[] to train it regardless")
     log(f"fdnet train: training on trunk block {chosen} "
-        f"(of {', '.join(str(b) for b in config.model.backbone_block_candidates)}){note}")
+        f"(of {', '.join(_start_label(config, o, b) for o, b in candidates)}){note}")
     return method
+
+
+def _chosen_when_started(config: TrainConfig, run_dir) -> TrainConfig:
+    """``config`` with the trunk block and synthetic conditions the run chose when it started
+    (a resumed run does not choose again: its weights are for that choice)."""
+    from fdnet import runs
+
+    saved = runs.load_config(run_dir, TrainConfig)
+    block, option = saved.model.backbone_block, tuple(saved.data.synthetic_conditions)
+    if (option, block) not in start_candidates(config):
+        return config
+    if block != config.model.backbone_block or option != tuple(config.data.synthetic_conditions):
+        print(f"fdnet train: continuing on trunk block {_start_label(config, option, block)}, chosen when the run "
+              f"started (its weights are for that choice; model.backbone_block = {config.model.backbone_block} "
+              "applies to new runs)", flush=True)
+    return replace_dotted(config, {"model.backbone_block": block, "data.synthetic_conditions": list(option)})
 
 
 def train(config: TrainConfig, run_dir, resume: bool = False, override: bool = False,
@@ -366,30 +423,21 @@ def train(config: TrainConfig, run_dir, resume: bool = False, override: bool = F
     def build():
         if config.runtime.threads > 0:
             torch.set_num_threads(config.runtime.threads)
-        candidates = config.model.backbone_block_candidates
-        run_config = config
-        if resume and candidates:
-            # the block chosen when the run started (the choice is not made again)
-            from fdnet import runs
-
-            chosen = runs.load_config(run_dir, TrainConfig).model.backbone_block
-            if chosen in candidates:
-                if chosen != config.model.backbone_block:
-                    print(f"fdnet train: continuing on trunk block {chosen}, chosen when the run started (its "
-                          f"weights are for that block; model.backbone_block = {config.model.backbone_block} "
-                          "applies to new runs)", flush=True)
-                run_config = replace_dotted(config, {"model.backbone_block": chosen})
-        data = load_training_images(config)
+        candidates = start_candidates(config)
+        run_config = _chosen_when_started(config, run_dir) if resume and len(candidates) > 1 else config
+        real = load_training_images(replace_dotted(config, {"data.synthetic_conditions": []}))
         validation = load_validation_images(config.data.root, config.validation, config.model.input_size)
-        print(f"fdnet train: preset {config.preset}, conditions {', '.join(data.names)} "
-              f"({', '.join(str(len(x)) for x in data.images)} images), input {tuple(config.model.input_size)}, "
+        print(f"fdnet train: preset {config.preset}, conditions {', '.join(real.names)} "
+              f"({', '.join(str(len(x)) for x in real.images)} images), input {tuple(config.model.input_size)}, "
               f"{config.total_steps} steps -> {run_dir}", flush=True)
         if len(candidates) > 1 and not resume:
             if validation is not None:
-                return choose_backbone_block(config, data, validation), validation
-            print(f"fdnet train: no validation pair to choose a trunk block from "
-                  f"{', '.join(str(b) for b in candidates)}; training on model.backbone_block = "
-                  f"{config.model.backbone_block}", flush=True)
+                return choose_start(config, real, validation), validation
+            print(f"fdnet train: no validation pair to choose a start from "
+                  f"({', '.join(_start_label(config, o, b) for o, b in candidates)}); training on "
+                  f"model.backbone_block = {config.model.backbone_block}, data.synthetic_conditions = "
+                  f"{synthetic_option_text(config.data.synthetic_conditions)}", flush=True)
+        data = with_synthetic_conditions(real, run_config.data.synthetic_conditions, run_config.runtime.seed)
         return FDNetTraining(run_config, data), validation
 
     return run_training(build, run_dir, resume=resume, override=override, max_minutes=max_minutes,
