@@ -31,12 +31,17 @@ def test_train_resume_extract(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "fdnet train: error:" in err and "schedule.joint_steps: saved 1, requested 2" in err and "--override" in err
     # ... and applied with --override, recorded with the step it took effect
-    assert main(["train", "--data", str(data), "--out", str(out), "--resume", "--override", "--no-progress",
-                 "--set", "schedule.joint_steps=2"]) == 0
+    resumed = ["train", "--data", str(data), "--out", str(out), "--resume", "--override", "--no-progress",
+               "--set", "schedule.joint_steps=2"]
+    assert main(resumed) == 0
     assert "finished at step 7/7" in capsys.readouterr().out
+    import shlex
+
     from fdnet import runs
 
+    # the record names the command line that made the change (as docs/runs.md shows), not just "fdnet train"
     assert runs.read_changes(out)[0]["step"] == 6
+    assert runs.read_changes(out)[0]["command"] == shlex.join(["fdnet", *resumed])
     assert main(["extract", "--checkpoint", str(out), "--images", str(data / "night"),
                  "--out", str(tmp_path / "v.npz"), "--threads", "1"]) == 0
     z = np.load(tmp_path / "v.npz")

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import importlib.util
+import shlex
 import sys
 
 from fdnet import __version__
@@ -69,6 +70,8 @@ def _add_source_arguments(subparsers) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    # what was typed, for records that name the command (a run's changes.yaml and lock file)
+    args.command_line = shlex.join(["fdnet", *(sys.argv[1:] if argv is None else argv)])
     if not getattr(args, "func", None):
         parser.print_help()
         return 2

@@ -51,7 +51,8 @@ def _train(args, config) -> int:
 
     try:
         summary = train(config, args.out, resume=args.resume, override=args.override,
-                        max_minutes=args.max_minutes, progress=not args.no_progress)
+                        max_minutes=args.max_minutes, progress=not args.no_progress,
+                        command=getattr(args, "command_line", "fdnet train"))
     except KeyboardInterrupt:
         from fdnet import runs
 

@@ -81,7 +81,8 @@ def _train(args, config) -> int:
 
     summary = method_module(args.method, "training").train(
         config, args.out, resume=args.resume, override=args.override, max_minutes=args.max_minutes,
-        progress=not args.no_progress, command=f"fdnet train-baseline {args.method}")
+        progress=not args.no_progress,
+        command=getattr(args, "command_line", f"fdnet train-baseline {args.method}"))
     if summary["changes"]:
         print(f"{args.method}: resumed with changed settings (recorded in {args.out}/changes.yaml): "
               + "; ".join(summary["changes"]))
