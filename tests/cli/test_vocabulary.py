@@ -25,3 +25,18 @@ def test_missing_folder_is_a_clear_error(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "nope" in err and "Traceback" not in err
     assert not (tmp_path / "v").exists()
+
+
+def test_an_out_that_is_a_folder_is_refused_before_the_orb_work(tmp_path, capsys, monkeypatch):
+    import fdnet.descriptors.dbow as dbow
+    from fdnet.data.synthetic import generate_route
+
+    def learn(*args, **kwargs):
+        raise AssertionError("the ORB work started before --out was checked")
+
+    monkeypatch.setattr(dbow, "learn_vocabulary", learn)
+    images = generate_route(tmp_path / "route", frames=2, conditions=["summer"], size=(32, 64)).root / "summer"
+    (tmp_path / "folder").mkdir()
+    assert main(["vocabulary", "build", "--images", str(images), "--out", str(tmp_path / "folder")]) == 2
+    err = capsys.readouterr().err
+    assert f"fdnet vocabulary: error: {tmp_path / 'folder'}: vocabulary file path is a directory" in err
