@@ -341,3 +341,17 @@ def test_query_refuses_a_min_score_that_is_not_finite(tmp_path, built, capsys, v
         main(["database", "query", "--db", str(built), "--images", str(tmp_path / "first"), f"--min-score={value}"])
     assert stopped.value.code == 2
     assert f"argument --min-score: must be a finite number, got '{value}'" in capsys.readouterr().err
+
+
+def test_the_empty_file_an_unfinished_build_leaves_says_so_and_is_reused(tmp_path, capsys):
+    import contextlib
+
+    db = tmp_path / "map.db"
+    with contextlib.closing(sqlite3.connect(db)) as conn:
+        conn.execute("CREATE TABLE t (x)")
+        conn.execute("DROP TABLE t")  # a real SQLite header, no tables: what a killed first commit leaves
+    assert main(["database", "info", "--db", str(db)]) == 2
+    assert "not yet an fdnet place database (a `database build` that did not finish" in capsys.readouterr().err
+    assert main(["database", "build", "--images", str(make_route(tmp_path / "images", n=2)), "--method", "raw",
+                 "--out", str(db)]) == 0
+    assert info(db, capsys)["places"] == 2

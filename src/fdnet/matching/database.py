@@ -524,8 +524,12 @@ class PlaceDatabase:
         try:
             with _sqlite_errors(target, "reading the place database"):
                 if not _is_fdnet_database(conn):
-                    raise DataError(f"{target}: a SQLite database but not an fdnet place database "
-                                    f"({_describe_foreign(conn)})")
+                    foreign = _describe_foreign(conn)
+                    if foreign == "it has no tables":  # what a create stopped before its first commit leaves
+                        raise DataError(f"{target}: an empty SQLite file, not yet an fdnet place database (a "
+                                        "`database build` that did not finish, e.g. on a full disk or killed, "
+                                        "leaves this); build it again with --out there (the file is reused)")
+                    raise DataError(f"{target}: a SQLite database but not an fdnet place database ({foreign})")
                 schema = conn.execute("PRAGMA user_version").fetchone()[0]
                 if schema > SCHEMA_VERSION:
                     raise DataError(f"{target}: written by a newer fdnet (schema version {schema}; this one "
