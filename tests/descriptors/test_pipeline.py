@@ -197,3 +197,37 @@ def test_spools_of_killed_writers_are_removed_by_the_next_and_live_ones_kept(tmp
     finally:
         alive.kill()
         alive.wait()
+
+
+_NPZ_WRITER = textwrap.dedent("""
+    import sys, time
+    import numpy as np
+    from fdnet.descriptors.pipeline import NpzChunkWriter
+    writer = NpzChunkWriter(sys.argv[1], {"v": ((4, 2), np.float32)})
+    writer.write("v", np.ones((2, 2), np.float32))
+    print(writer._folder, flush=True)
+    time.sleep(60)
+""")
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="parts folders are swept with flock, which Windows lacks")
+def test_parts_of_a_killed_npz_writer_are_removed_by_the_next_writer_of_that_file(tmp_path):
+    from fdnet.descriptors.pipeline import NpzChunkWriter
+
+    target = tmp_path / "vectors.npz"
+    started = [subprocess.Popen([sys.executable, "-c", _NPZ_WRITER, str(target)], stdout=subprocess.PIPE, text=True)
+               for _ in range(2)]
+    killed, alive = started
+    parts = [Path(p.stdout.readline().strip()) for p in started]
+    try:
+        killed.kill()  # kill -9 of `fdnet extract`: its parts folder stays
+        killed.wait()
+        assert all(p.is_dir() for p in parts)
+        with NpzChunkWriter(target, {"v": ((1, 2), np.float32)}) as writer:
+            writer.write("v", np.zeros((1, 2), np.float32))
+            writer.close()
+        assert not parts[0].exists() and parts[1].is_dir()  # the live writer's folder is kept
+        assert np.load(target)["v"].tolist() == [[0.0, 0.0]]
+    finally:
+        alive.kill()
+        alive.wait()

@@ -174,9 +174,10 @@ class NpzChunkWriter:
     the target. :meth:`close` checks every array is complete, packs the ``.npy`` files
     (uncompressed, ZIP64, so any size) plus small extra arrays into a temporary ``.npz`` beside
     the target, syncs it and renames it over the target (:func:`fdnet.io.atomic_path`). A crash
-    or an error leaves the target as it was (and no temporary folder, except after kill -9:
-    a hidden ``.NAME.parts.*`` folder beside it). The result is an ordinary ``.npz``:
-    ``np.load(path)`` reads it without pickle.
+    or an error leaves the target as it was and no temporary folder; after kill -9 a hidden
+    ``.NAME.parts.*`` folder stays beside it until the next writer of the same target removes it
+    (its writer holds a lock on it while alive, as :class:`VectorSpool` does). The result is an
+    ordinary ``.npz``: ``np.load(path)`` reads it without pickle.
     """
 
     def __init__(self, path, arrays: dict[str, tuple[tuple[int, ...], object]]):
@@ -187,11 +188,14 @@ class NpzChunkWriter:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._folder = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.parts.", dir=self.path.parent))
+        self._lock = None
         self._files: dict = {}
         self._rows: dict[str, int] = {}
         self._shapes: dict[str, tuple[int, ...]] = {}
         self._dtypes: dict = {}
         try:
+            self._lock = _lock_folder(self._folder)
+            _remove_stale_parts(self.path)
             for name, (shape, dtype) in arrays.items():
                 dtype = np.dtype(dtype)
                 shape = tuple(int(v) for v in shape)
@@ -246,6 +250,9 @@ class NpzChunkWriter:
             if not handle.closed:
                 handle.close()
         shutil.rmtree(self._folder, ignore_errors=True)
+        if self._lock is not None:
+            os.close(self._lock)
+            self._lock = None
 
     def __enter__(self) -> "NpzChunkWriter":
         return self
@@ -320,6 +327,47 @@ class VectorSpool:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+_PARTS_LOCK = ".lock"
+
+
+def _lock_folder(folder: Path) -> int | None:
+    """Hold a lock on ``folder`` for as long as this process lives (or until the returned
+    descriptor is closed): ``folder/.lock``, created under another name and renamed once locked,
+    so a sweeping writer never finds it unlocked while its owner is alive."""
+    if fcntl is None:
+        return None
+    staging = folder / f"{_PARTS_LOCK}.new"
+    fd = os.open(staging, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o600)
+    fcntl.flock(fd, fcntl.LOCK_EX)
+    os.replace(staging, folder / _PARTS_LOCK)
+    return fd
+
+
+def _remove_stale_parts(target: Path) -> None:
+    """Remove the ``.NAME.parts.*`` folders beside ``target`` whose writer has died (kill -9):
+    those whose lock no live process holds. A folder without its lock file is left alone (being
+    set up right now, or written by an older fdnet)."""
+    import shutil
+
+    if fcntl is None:
+        return
+    for folder in target.parent.glob(f".{target.name}.parts.*"):
+        try:
+            fd = os.open(folder / _PARTS_LOCK, os.O_RDONLY | getattr(os, "O_CLOEXEC", 0))
+        except OSError:
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:  # its writer is alive
+            os.close(fd)
+            continue
+        try:
+            shutil.rmtree(folder, ignore_errors=True)
+            log.info("removed %s, left by a killed writer of %s", folder, target)
+        finally:
+            os.close(fd)
 
 
 def remove_stale_spools(folder) -> list[Path]:
