@@ -1,6 +1,7 @@
-"""FDNet's training entry point: choosing the trunk block on the validation pair
-(``model.backbone_block_candidates``) before training, resuming on the chosen block, and the
-same choice on real Gardens Point frames. (The training step and the loop: tests/training.)"""
+"""FDNet's training entry point: choosing the start on the validation pair (the trunk block,
+``model.backbone_block_candidates``, and the synthetic setting,
+``data.synthetic_conditions_candidates``) before training, resuming on the choice, and the same
+choice on real Gardens Point and Nordland frames. (The training step and the loop: tests/training.)"""
 
 from __future__ import annotations
 
@@ -155,10 +156,20 @@ def test_bad_synthetic_candidates_are_refused_before_any_image_is_read(tmp_path,
         train(config, tmp_path / "run", progress=False)
 
 
+def _best_by_block(selection: dict) -> dict[int, float]:
+    """The best validation R@1 of each candidate block over the synthetic settings."""
+    best: dict[int, float] = {}
+    for label, scores in selection.items():
+        block = int(label.split(",")[0])
+        best[block] = max(best.get(block, 0.0), scores["recall@1"])
+    return best
+
+
 @pytest.mark.shared_data
-def test_gardens_point_validation_chooses_the_coarse_block_and_nordland_the_fine_one(tmp_path, capsys):
-    """On the training range only: day_left -> night_right 0:100 (tolerance 2) prefers block 14,
-    Nordland summer/winter 1376:1576 (tolerance 0) block 7 (docs/results.md, session 6)."""
+def test_gardens_point_validation_chooses_the_deeper_block_and_nordland_the_shallower_one(tmp_path):
+    """On the training range only: day_left -> night_right 0:100 (tolerance 2) prefers block 11,
+    Nordland summer/winter 200:300 (tolerance 0, training 0:300) block 7 (docs/results.md,
+    sessions 6 and 8); each with and without the synthetic night copy."""
     from fdnet.cli import main
 
     gardens = require_shared("gardens_point")
@@ -167,8 +178,10 @@ def test_gardens_point_validation_chooses_the_coarse_block_and_nordland_the_fine
                  "--validate-reference", "day_left", "--validate-query", "night_right", "--validate-frames", "0:100",
                  "--validate-tolerance", "2", "--max-minutes", "0", "--no-progress"]) == 0
     selection = load_training_state(tmp_path / "g")["method_state"]["block_selection"]
-    assert selection["14"]["recall@1"] > selection["7"]["recall@1"], selection
-    assert load_config(tmp_path / "g", TrainConfig).model.backbone_block == 14
+    assert sorted(selection) == ["11, synthetic night", "11, synthetic none", "7, synthetic night", "7, synthetic none"]
+    best = _best_by_block(selection)
+    assert best[11] > best[7], selection
+    assert load_config(tmp_path / "g", TrainConfig).model.backbone_block == 11
 
     nordland = require_shared("nordland_trimmed")
     assert main(["train", "--data", str(nordland), "--preset", "cpu", "--out", str(tmp_path / "n"),
@@ -176,5 +189,6 @@ def test_gardens_point_validation_chooses_the_coarse_block_and_nordland_the_fine
                  "--validate-reference", "summer", "--validate-query", "winter", "--validate-frames", "200:300",
                  "--max-minutes", "0", "--no-progress"]) == 0
     selection = load_training_state(tmp_path / "n")["method_state"]["block_selection"]
-    assert selection["7"]["recall@1"] > selection["14"]["recall@1"], selection
+    best = _best_by_block(selection)
+    assert best[7] > best[11], selection
     assert load_config(tmp_path / "n", TrainConfig).model.backbone_block == 7
