@@ -97,6 +97,24 @@ def _cached_index(path, descriptor, ref_paths, settings):
     return VectorIndex.load(path, search={k: getattr(settings, k) for k in SEARCH_SETTINGS})
 
 
+def _reference_times_and_positions(paths) -> dict:
+    """``reference_times`` (seconds) when every reference is a frame of a video or bag, and
+    ``reference_positions`` (metres) when every one has a position (a bag's GPS/odometry): what
+    the acceptance settings radius_s / radius_m need. Image files have neither."""
+    import numpy as np
+
+    from fdnet.data.sources import frame_records, positions_in_metres
+
+    records = frame_records(paths)
+    out = {}
+    if records and all(r.timestamp is not None for r in records):
+        out["reference_times"] = np.array([r.timestamp for r in records], dtype=np.float64)
+    positions = positions_in_metres(records)
+    if records and all(p is not None for p in positions):
+        out["reference_positions"] = np.array(positions, dtype=np.float64)
+    return out
+
+
 def run(args) -> int:
     import csv
     import io
@@ -139,8 +157,10 @@ def run(args) -> int:
                           source=args.calibration)
         depth = max(args.top_k, calibration.spec.depth)  # the rule may need more candidates than are written
     rule = spec if spec is not None else (calibration.spec if calibration is not None else None)
+    neighbourhood = _reference_times_and_positions(ref_paths)
     if rule is not None:  # e.g. radius_m: image folders have no positions; refused before describing
-        rule.check_available({"images"}, "fdnet match (image folders)")
+        rule.check_available({"images", *neighbourhood}, "fdnet match (references without "
+                             + ("positions)" if "reference_times" in neighbourhood else "timestamps or positions)"))
     if settings is not None and not descriptor.dot_product_similarity:
         raise ConfigError(f"method {descriptor.name!r} does not compare vectors by dot product, so a "
                           "faiss index would rank by the wrong measure; use --index exact")
@@ -191,7 +211,7 @@ def run(args) -> int:
         from fdnet.decisions.acceptance import Candidates, decide
 
         candidates = Candidates(indices, scores, similarity_ceiling=float(descriptor.similarity_ceiling),
-                                query_paths=query_paths, reference_paths=ref_paths)
+                                query_paths=query_paths, reference_paths=ref_paths, **neighbourhood)
         if calibration is not None:
             decision, accepted = calibration.decide(candidates)
             header += ["acceptance_score", "accepted"]

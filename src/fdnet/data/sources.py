@@ -687,8 +687,9 @@ def decode_image_message(message, msgtype: str, where: str):
     return Image.fromarray(np.ascontiguousarray(pixels))
 
 
-# open readers of this process (a decoding worker keeps its own), by source and topic
-_READERS: dict[tuple[str, str | None], object] = {}
+# open readers of this process (a decoding worker keeps its own), by source and topic, and under
+# "pid" the process that opened them
+_READERS: dict = {}
 _MAX_READERS = 8
 
 
@@ -700,11 +701,16 @@ def open_frame(path: str | os.PathLike):
     if found is None:
         return None
     source, topic, name = found
+    if _READERS.get("pid") != os.getpid():
+        # a forked decoding worker inherits its parent's readers, whose file offsets (and sqlite
+        # connections) it must not share: it opens its own
+        _READERS.clear()
+        _READERS["pid"] = os.getpid()
     key = (str(source), topic)
     reader = _READERS.get(key)
     if reader is None:
-        if len(_READERS) >= _MAX_READERS:
-            _READERS.pop(next(iter(_READERS))).close()
+        if len(_READERS) > _MAX_READERS:
+            _READERS.pop(next(k for k in _READERS if k != "pid")).close()
         reader = _VideoReader(source) if topic is None else _BagReader(source, topic)
         _READERS[key] = reader
     if topic is None:
@@ -716,5 +722,15 @@ def open_frame(path: str | os.PathLike):
 
 def close_readers() -> None:
     """Close every video and bag this process holds open."""
+    owner = _READERS.pop("pid", None)
     while _READERS:
-        _READERS.popitem()[1].close()
+        reader = _READERS.popitem()[1]
+        if owner == os.getpid():
+            reader.close()
+
+
+# A process that forks (DataLoader's decoding workers) first closes its readers: a child forked
+# while OpenCV's FFmpeg decoder threads run hangs in its own first VideoCapture (measured: a worker
+# never returned), and a child must not share a parent's file offsets or sqlite connections.
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(before=close_readers)
