@@ -77,6 +77,14 @@ def test_video_frames_stream_through_worker_processes(video):
     assert np.array_equal(np.concatenate([b for _, b in batches]), frames)
 
 
+def test_video_frames_read_by_threads(video):
+    from fdnet.data.images import load_images
+
+    path, frames = video
+    images = load_images(list_images(path), (32, 48), workers=4)  # threads share one open video
+    assert np.array_equal(np.rint(images * 255).astype(np.uint8), frames)
+
+
 def test_a_condition_of_a_dataset_may_be_a_video(tmp_path):
     route = tmp_path / "route"
     route.mkdir()

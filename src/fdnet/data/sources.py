@@ -35,6 +35,7 @@ import io
 import math
 import os
 import re
+import threading
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Iterator, Sequence
@@ -690,17 +691,22 @@ def decode_image_message(message, msgtype: str, where: str):
 # open readers of this process (a decoding worker keeps its own), by source and topic, and under
 # "pid" the process that opened them
 _READERS: dict = {}
+_READERS_LOCK = threading.Lock()
 _MAX_READERS = 8
 
 
 def open_frame(path: str | os.PathLike):
     """The frame a frame path names, as a PIL image; None when ``path`` is no frame of a source."""
-    from PIL import Image
-
     found = locate(path)
     if found is None:
         return None
-    source, topic, name = found
+    with _READERS_LOCK:  # one reader per source, read by one thread at a time (load_images uses threads)
+        return _read_frame(*found)
+
+
+def _read_frame(source: Path, topic: str | None, name: str):
+    from PIL import Image
+
     if _READERS.get("pid") != os.getpid():
         # a forked decoding worker inherits its parent's readers, whose file offsets (and sqlite
         # connections) it must not share: it opens its own
@@ -722,11 +728,12 @@ def open_frame(path: str | os.PathLike):
 
 def close_readers() -> None:
     """Close every video and bag this process holds open."""
-    owner = _READERS.pop("pid", None)
-    while _READERS:
-        reader = _READERS.popitem()[1]
-        if owner == os.getpid():
-            reader.close()
+    with _READERS_LOCK:
+        owner = _READERS.pop("pid", None)
+        while _READERS:
+            reader = _READERS.popitem()[1]
+            if owner == os.getpid():
+                reader.close()
 
 
 # A process that forks (DataLoader's decoding workers) first closes its readers: a child forked
