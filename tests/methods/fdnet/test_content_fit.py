@@ -78,3 +78,11 @@ def test_conditions_without_common_places_are_refused():
     # two frames each: a mutual pair needs a sequence, and unrelated noise rarely gives two
     with pytest.raises(DataError, match="mutual matches"):
         fit_projection([rng.normal(size=(1, 50)), rng.normal(size=(2, 50))], 4, init="mined_pairs")
+
+
+def test_a_condition_pair_of_another_route_is_named_in_the_warning(caplog):
+    a, b = made_route(seed=0)
+    _, other = made_route(seed=5)      # a third condition of other places: its two pairs are low
+    fit_projection([a, b, other], 32, init="mined_pairs", pca_dims=80, names=["summer", "winter", "elsewhere"])
+    warned = [r.getMessage() for r in caplog.records if "few route-consistent" in r.getMessage()]
+    assert len(warned) == 2 and all("elsewhere" in m for m in warned), warned

@@ -122,9 +122,9 @@ def learnt_whitening(projected: list[np.ndarray], pairs: list[tuple[int, int, in
 
 def fit_projection(maps: list[np.ndarray], length: int, init: str = "mined_pairs", pca_dims: int = 1024,
                    pca_power: float = 0.25, pair_sequence_length: int = 5,
-                   pair_shrinkage: float = 1.0) -> ProjectionFit:
+                   pair_shrinkage: float = 1.0, names: list[str] | None = None) -> ProjectionFit:
     """The head's start from the training maps (one (N_c, D) float array per condition, frame
-    order). ``init``: ``pca`` (step 1 of the module docstring) or ``mined_pairs`` (steps 1 and 2).
+    order; ``names`` the conditions', for messages). ``init``: ``pca`` (step 1 of the module docstring) or ``mined_pairs`` (steps 1 and 2).
     With fewer training images than ``length`` the vector keeps its length and the last
     columns are zero (the maps span at most one fewer directions than there are images)."""
     maps = [np.asarray(m, dtype=np.float64).reshape(len(m), -1) for m in maps]
@@ -159,10 +159,11 @@ def fit_projection(maps: list[np.ndarray], length: int, init: str = "mined_pairs
                             f"the next frame's (traverses of one route: 22-79 %, of different places: 5-11 %); the "
                             "mined-pair start needs conditions that revisit the same places in the same order "
                             "(use model.projection_init=pca otherwise)")
+        names = list(names) if names is not None and len(names) == len(maps) else [str(i) for i in range(len(maps))]
         for (a, b), value in consistency.items():
             if value < MIN_ROUTE_CONSISTENCY:
-                log.warning("fdnet: conditions %d and %d share few route-consistent matches (%.0f%%): are they "
-                            "traverses of the same route?", a, b, 100 * value)
+                log.warning("fdnet: conditions %s and %s share few route-consistent matches (%.0f%%): are they "
+                            "traverses of the same route?", names[a], names[b], 100 * value)
         head = start @ learnt_whitening(projected, pairs, pair_shrinkage)
     elif init == "pca":
         head = start

@@ -145,7 +145,8 @@ class FDNetTraining(TrainingMethod):
             m = self.config.model
             fit = fit_projection([x.flatten(1).cpu().numpy() for x in inputs], m.vector_length,
                                  init=m.projection_init, pca_dims=m.projection_pca_dims, pca_power=m.projection_pca_power,
-                                 pair_sequence_length=m.pair_sequence_length, pair_shrinkage=m.pair_shrinkage)
+                                 pair_sequence_length=m.pair_sequence_length, pair_shrinkage=m.pair_shrinkage,
+                                 names=list(self.data.names))
             head.set_start(fit.mean, fit.projection)
             self.projection_fit = fit.report
             self.log(f"fdnet: content head starts in closed form ({m.projection_init}): "
