@@ -74,8 +74,8 @@ def os_error_message(exc: BaseException, outputs: tuple = ()) -> str | None:
             inside = any(where == o or where.startswith(o.rstrip("/") + "/") for o in named)
             if name in _WRITE_ERRNO_NAMES and named and not inside:
                 where += f" (writing {', '.join(named)})"  # e.g. a spool or log file inside the output
-        elif name == "ENOENT":
-            return None  # no path to name: more likely a bug than the user's file
+        elif name not in _WRITE_ERRNO_NAMES | {"EIO"}:
+            return None  # no path to name and not a write's failure: more likely a bug than the user's file
         else:
             where = f"writing {', '.join(named)}" if named else "writing the output"
         return f"{where}: {reason}"

@@ -161,3 +161,15 @@ def test_database_add_under_a_file_size_limit_is_one_line(tmp_path, route, file_
         assert main(["database", "add", "--db", str(db), "--images", str(route / "winter"), "--workers", "0"]) == 2
     _check_one_line(capsys.readouterr().err, "database", str(db.parent), ("too large", "(ulimit -f)"))
     assert [p.name for p in sorted(db.parent.iterdir()) if not p.name.endswith(("-wal", "-shm"))] == before
+
+
+def test_a_permission_error_without_a_path_keeps_its_traceback(monkeypatch):
+    """Only a write's failure (a full disk) is told without a path; a pathless EPERM is no file's."""
+    import fdnet.cli.synth
+
+    def fail(args):
+        raise PermissionError(errno.EPERM, "Operation not permitted")
+
+    monkeypatch.setattr(fdnet.cli.synth, "run", fail)
+    with pytest.raises(PermissionError):
+        main(["synth", "--out", "OUT"])
