@@ -15,6 +15,7 @@ from PIL import Image
 from fdnet.cli import main
 from fdnet.data import sources
 from fdnet.data.dataset import RouteDataset
+from fdnet.data.formats.positions import source_positions
 from fdnet.data.images import list_images, load_image, load_image_uint8
 from fdnet.errors import ConfigError, DataError
 
@@ -94,7 +95,7 @@ def test_a_condition_of_a_dataset_may_be_a_video(tmp_path):
     assert [len(t) for t in dataset.traverses.values()] == [6, 6]
     assert dataset["summer"].timestamps == pytest.approx(np.arange(6) / 10)
     assert sorted(RouteDataset.from_folder(route).conditions) == ["summer.avi", "winter.mkv"]
-    with pytest.raises(DataError, match="condition folder, video or bag not found"):
+    with pytest.raises(DataError, match="autumn: condition folder not found; available: summer.avi, winter.mkv"):
         RouteDataset.from_folder(route, ["autumn"])
 
 
@@ -216,7 +217,7 @@ def test_positions_from_odometry_interpolated_and_none_outside(tmp_path):
     assert [r.position for r in records] == [None, (10.0, 1.0), (20.0, 1.0), (30.0, 1.0), None]
     assert records[1].position_kind == "metres"
     with pytest.raises(DataError, match="2 of 5 frames .*outside the time span of the positions on /odom"):
-        sources.position_table(path)
+        source_positions(path)
 
 
 def test_groundtruth_from_two_bags_and_database_stores_times_and_positions(tmp_path):
@@ -335,3 +336,26 @@ def test_match_takes_radius_s_from_video_times_and_radius_m_from_bag_positions(t
                      "margin", "--accept-set", setting, "--out", str(out), "--workers", "0"]) == 0
         rows = list(csv.DictReader(out.open()))
         assert rows and all(r["acceptance_score"] not in ("", None) for r in rows)
+
+
+def test_extract_stores_each_frames_source_and_timestamp(tmp_path, video):
+    from fdnet.descriptors import create
+    from tests.cli.test_extract import _tiny_run
+
+    path, frames = video
+    run = _tiny_run(tmp_path / "run")
+    out = tmp_path / "v.npz"
+    assert main(["extract", "--checkpoint", str(run), "--images", str(path), "--every", "4", "--out", str(out),
+                 "--fp32", "--batch-size", "4", "--workers", "1", "--device", "cpu", "--no-progress"]) == 0
+    kept = list(range(0, 50, 4))
+    folder = tmp_path / "frames"
+    save_folder(folder, frames[kept])
+    d = create("fdnet", checkpoint=run, device="cpu")
+    from fdnet.data.images import load_images
+
+    expected = d.describe(load_images(list_images(folder), d.input_size))
+    with np.load(out, allow_pickle=False) as z:
+        assert list(z["names"]) == [f"frame_{i:06d}_{i * 40}ms" for i in kept]
+        assert list(z["sources"]) == [str(path)] * len(kept)
+        assert z["timestamps"] == pytest.approx([i / 25 for i in kept])
+        np.testing.assert_allclose(z["content"], expected, rtol=1e-5, atol=1e-6)

@@ -99,7 +99,7 @@ def _positions_in_image_order(table, folder):
 
 
 def _from_positions(args):
-    from fdnet.data.formats.positions import positions_ground_truth, read_positions
+    from fdnet.data.formats.positions import positions_ground_truth, read_positions, source_positions
     from fdnet.errors import ConfigError
 
     if bool(args.reference) != bool(args.query):
@@ -113,7 +113,7 @@ def _from_positions(args):
             if args.reference or args.query:
                 raise ConfigError(f"--positions {path}: a bag's positions are its own frames'; "
                                   "--reference/--query folders are for position CSVs")
-            return sources.position_table(path)
+            return source_positions(path)
         return read_positions(path, image_column=args.image_column)
 
     reference, ref_names = _positions_in_image_order(read(ref_csv), args.reference)

@@ -116,8 +116,8 @@ class RouteDataset:
             folder = condition_path(root, name)
             if folder is None:
                 available = sorted(p.name for p in root.iterdir() if p.is_dir() or is_source(p))
-                raise DataError(f"{root / name}: condition folder, video or bag not found; available: "
-                                f"{', '.join(available) or 'none'}")
+                raise DataError(f"{root / name}: condition folder not found; available: "
+                                f"{', '.join(available) or 'none'} (a condition may be a folder, video or ROS bag)")
             traverses[name] = Traverse.from_folder(folder, name)
         return cls(root=root, traverses=traverses)
 

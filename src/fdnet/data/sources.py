@@ -558,28 +558,6 @@ def positions_in_metres(records: Sequence[FrameRecord]) -> list[tuple[float, flo
     return out
 
 
-def position_table(path: str | os.PathLike, options: SourceOptions | None = None):
-    """A bag's frames with their interpolated positions as a
-    :class:`~fdnet.data.formats.positions.PositionTable` (what ``fdnet groundtruth --positions``
-    reads from a CSV): one row per frame, named by the frame. Every frame needs a position."""
-    from fdnet.data.formats.positions import PositionTable
-
-    listing = open_source(path, options)
-    where = f"{listing.source}" + (f", topic {listing.topic}" if listing.topic else "")
-    if listing.positions is None:
-        raise DataError(f"{where}: no positions for its frames: "
-                        + ("a video has none" if listing.kind == "video" else
-                           "the bag has no single NavSatFix or Odometry topic; name one with --position-topic"))
-    missing = np.flatnonzero(~np.isfinite(listing.positions).all(axis=1))
-    if len(missing):
-        first = listing.paths[missing[0]].name
-        raise DataError(f"{where}: {len(missing)} of {len(listing.paths)} frames (e.g. {first}) lie outside the "
-                        f"time span of the positions on {listing.position_topic}; narrow the frames with --window")
-    return PositionTable(Path(os.fspath(path)), listing.position_kind, listing.positions.copy(),
-                         images=[p.name for p in listing.paths], timestamps=listing.times.copy(),
-                         lines=[i + 1 for i in range(len(listing.paths))])
-
-
 # ----------------------------------------------------------------------------- decoding frames
 
 class _VideoReader:

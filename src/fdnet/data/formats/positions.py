@@ -197,3 +197,25 @@ def align_to_images(table: PositionTable, image_paths: Sequence[Path], where: Pa
             raise DataError(f"{table.path}: no position row for image {p.name} of {where}")
         rows.append(k)
     return np.asarray(rows, dtype=np.int64)
+
+
+def source_positions(path: str | os.PathLike, options=None) -> PositionTable:
+    """A ROS bag's frames with their positions interpolated from its NavSatFix or Odometry topic
+    (:func:`fdnet.data.sources.open_source`) as a :class:`PositionTable`, what a position CSV gives:
+    one row per frame, named by the frame. Every frame needs a position."""
+    from fdnet.data.sources import open_source
+
+    listing = open_source(path, options)
+    where = f"{listing.source}" + (f", topic {listing.topic}" if listing.topic else "")
+    if listing.positions is None:
+        raise DataError(f"{where}: no positions for its frames: "
+                        + ("a video has none" if listing.kind == "video" else
+                           "the bag has no single NavSatFix or Odometry topic; name one with --position-topic"))
+    missing = np.flatnonzero(~np.isfinite(listing.positions).all(axis=1))
+    if len(missing):
+        first = listing.paths[missing[0]].name
+        raise DataError(f"{where}: {len(missing)} of {len(listing.paths)} frames (e.g. {first}) lie outside the "
+                        f"time span of the positions on {listing.position_topic}; narrow the frames with --window")
+    return PositionTable(Path(os.fspath(path)), listing.position_kind, listing.positions.copy(),
+                         images=[p.name for p in listing.paths], timestamps=listing.times.copy(),
+                         lines=[i + 1 for i in range(len(listing.paths))])
