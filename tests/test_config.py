@@ -111,3 +111,10 @@ def test_a_settings_file_over_a_mebibyte_is_refused_before_parsing(tmp_path):
     big.write_text("name: x\n" + "# padding\n" * (MAX_YAML_BYTES // 10 + 1))
     with pytest.raises(ConfigError, match=r"big.yaml: \d+ bytes, too large for a config file \(at most 1024 KiB\)"):
         load_yaml(Outer, big)
+
+
+@pytest.mark.parametrize("value, message", [("[1,", "override steps: '\\[1,' is not a valid YAML value"),
+                                            ("&a [*a]", "found an alias \\(\\*a\\)")])
+def test_an_override_that_is_not_yaml_or_holds_an_alias_is_a_config_error(value, message):
+    with pytest.raises(ConfigError, match=message):
+        replace_dotted(Outer(), {"steps": value})

@@ -138,7 +138,11 @@ def replace_dotted(config: T, overrides: dict[str, Any]) -> T:
         current = node[parts[-1]]
         # Text settings keep the text as given: YAML would read "0:37" as the base-60 number 2265.
         if isinstance(value, str) and not isinstance(current, str):
-            value = yaml.safe_load(value)
+            try:
+                value = yaml.load(value, Loader=_NoAliasLoader)  # noqa: S506 (safe, no aliases)
+            except yaml.YAMLError as exc:
+                raise ConfigError(f"override {key}: {_shown(value)} is not a valid YAML value "
+                                  f"({_yaml_problem(exc)})") from None
         node[parts[-1]] = value
     return from_dict(type(config), data)
 
