@@ -138,13 +138,18 @@ def replace_dotted(config: T, overrides: dict[str, Any]) -> T:
         current = node[parts[-1]]
         # Text settings keep the text as given: YAML would read "0:37" as the base-60 number 2265.
         if isinstance(value, str) and not isinstance(current, str):
-            try:
-                value = yaml.load(value, Loader=_NoAliasLoader)  # noqa: S506 (safe, no aliases)
-            except yaml.YAMLError as exc:
-                raise ConfigError(f"override {key}: {_shown(value)} is not a valid YAML value "
-                                  f"({_yaml_problem(exc)})") from None
+            value = parse_value(value, f"override {key}")
         node[parts[-1]] = value
     return from_dict(type(config), data)
+
+
+def parse_value(text: str, where: str) -> Any:
+    """A setting's value given as text (``--set``, ``--method-set``), read as YAML without
+    aliases; a ConfigError naming ``where`` when it is not YAML."""
+    try:
+        return yaml.load(text, Loader=_NoAliasLoader)  # noqa: S506 (safe, no aliases)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{where}: {_shown(text)} is not a valid YAML value ({_yaml_problem(exc)})") from None
 
 
 def parse_overrides(items: list[str] | None) -> dict[str, str]:

@@ -107,3 +107,13 @@ def test_fit_options_go_to_the_methods_that_take_them():
     assert method_options(args, "trunk") == {}
     assert method_options(args, "trunk-whitened") == {"fit": "/data/a", "fit_frames": "0:100"}
     assert method_options(args, "dbow") == {"fit": "/data/b", "fit_frames": "0:100"}
+
+
+def test_a_method_setting_that_is_not_yaml_is_one_line(tmp_path, capsys):
+    from fdnet.data.synthetic import generate_route
+
+    route = generate_route(tmp_path / "route", frames=2, conditions=["summer"], size=(32, 64)).root / "summer"
+    assert main(["match", "--reference", str(route), "--query", str(route), "--method", "sad",
+                 "--out", str(tmp_path / "m.csv"), "--method-set", "size=[1,"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("fdnet match: error: --method-set size: '[1,' is not a valid YAML value (line 1")

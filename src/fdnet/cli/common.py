@@ -58,9 +58,7 @@ def method_options(args: argparse.Namespace, method: str | None = None) -> dict:
     """
     import inspect
 
-    import yaml
-
-    from fdnet.config import parse_overrides
+    from fdnet.config import parse_overrides, parse_value
     from fdnet.descriptors.registry import available_methods, descriptor_class
 
     from fdnet.errors import ConfigError
@@ -88,9 +86,9 @@ def method_options(args: argparse.Namespace, method: str | None = None) -> dict:
         target, sep, setting = key.partition(":")
         if sep:
             if target == method:
-                options[setting] = yaml.safe_load(value)
+                options[setting] = parse_value(value, f"--method-set {key}")
         else:
-            options[key] = yaml.safe_load(value)
+            options[key] = parse_value(value, f"--method-set {key}")
     return options
 
 
