@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 import sqlite3
 
 import numpy as np
@@ -272,6 +273,17 @@ def test_a_file_that_is_not_a_video(tmp_path, capsys):
                          "--out", str(tmp_path / "gt.csv")], capsys)
     assert code == 2
     assert err.startswith("fdnet groundtruth: error: ") and f"{fake}: cannot be opened as a video" in err
+    assert err.count("\n") == 1  # FFmpeg's own complaints are kept quiet
+
+
+def test_a_video_cut_short_stops_at_the_missing_frame(tmp_path, video, capsys):
+    path, _ = video
+    cut = tmp_path / "cut.avi"
+    cut.write_bytes(path.read_bytes()[: path.stat().st_size // 2])  # the header still announces 50 frames
+    code, err = run_cli(["match", "--reference", str(cut), "--query", str(cut), "--method", "sad", "--workers", "0",
+                         "--out", str(tmp_path / "m.csv")], capsys)
+    assert code == 2
+    assert re.match(rf"fdnet match: error: {re.escape(str(cut))}: frame [0-9]+ cannot be decoded", err), err
 
 
 def test_bag_errors_name_the_file_and_topic(tmp_path, capsys):

@@ -266,6 +266,9 @@ def _no_frames(source: Path, options: SourceOptions, total: int, what: str = "fr
 
 
 def _open_capture(source: Path):
+    # FFmpeg's own messages ("EBML header parsing failed") would precede fdnet's one-line error;
+    # read when OpenCV first opens a video, so set before (a user's own setting wins)
+    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
     import cv2
 
     capture = cv2.VideoCapture(str(source))
