@@ -371,3 +371,12 @@ def test_extract_stores_each_frames_source_and_timestamp(tmp_path, video):
         assert list(z["sources"]) == [str(path)] * len(kept)
         assert z["timestamps"] == pytest.approx([i / 25 for i in kept])
         np.testing.assert_allclose(z["content"], expected, rtol=1e-5, atol=1e-6)
+
+
+def test_a_method_learns_from_a_video_given_to_fit(video):
+    from fdnet.descriptors.fitting import fit_image_paths
+
+    path, _ = video
+    paths, described = fit_image_paths(path, "10:20")
+    assert [frame_index(p) for p in paths] == list(range(10, 20))
+    assert "10 images" in described

@@ -39,12 +39,13 @@ def fit_image_paths(folder, fit_frames: str | None = None, where: str = "fit") -
     """
     from fdnet.data.dataset import RouteDataset, Traverse, parse_frame_range
     from fdnet.data.images import has_images
+    from fdnet.data.sources import is_source
 
     root = Path(folder)
-    if not root.is_dir():
+    if not (root.is_dir() or is_source(root)):
         raise DataError(f"{where} {folder}: folder not found")
     start, end = parse_frame_range(check_fit_frames(fit_frames, where))
-    if has_images(root):
+    if has_images(root) or is_source(root):  # a video or ROS bag is one condition's images
         traverses = [Traverse.from_folder(root)]
     else:
         try:
