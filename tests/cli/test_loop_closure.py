@@ -197,3 +197,17 @@ def test_ground_truth_from_positions_with_fdnet_groundtruth(route, tmp_path, cap
     # each frame's own position is cut (never searchable): only the second pass revisits
     assert "10 revisiting a searchable place: R@100P 1.000" in out
     assert "10 accepted, 10 true, 0 false (precision 1.000, recall 1.000)" in out
+
+
+def test_a_name_that_is_not_utf8_is_refused_before_any_frame_is_described(route, tmp_path, capsys, monkeypatch):
+    import os
+
+    os.rename(route / "frame_015.png", os.path.join(os.fsencode(route), b"frame_015\xe9.png"))
+
+    def describe(self, images):
+        raise AssertionError("frames were described before the refusal")
+
+    monkeypatch.setattr(RawThumbnail, "describe", describe)
+    assert main(args(route, tmp_path)) == 2
+    err = capsys.readouterr().err
+    assert "frame_015\\xe9.png': the file name is not valid UTF-8, which a place database cannot store" in err

@@ -211,3 +211,14 @@ def test_a_negative_sequence_length_is_refused(tmp_path, capsys):
                  "--out", str(tmp_path / "m.csv"), "--sequence-length", "-2"]) == 2
     assert "fdnet match: error: --sequence-length must be >= 0" in capsys.readouterr().err
     assert not (tmp_path / "m.csv").exists()
+
+
+def test_a_name_that_is_not_utf8_with_a_saved_index(tmp_path):
+    import os
+
+    ref = make_route(tmp_path / "ref", n=3)
+    os.rename(ref / "frame_001.png", os.path.join(os.fsencode(ref), b"caf\xe9.png"))
+    argv = ["match", "--reference", str(ref), "--query", str(ref), "--method", "raw", "--index", "flat",
+            "--index-file", str(tmp_path / "index.faiss"), "--out", str(tmp_path / "m.csv")]
+    assert main(argv) == 0 and main(argv) == 0  # built and saved, then loaded for the same names
+    assert b"caf\xe9.png" in (tmp_path / "m.csv").read_bytes()

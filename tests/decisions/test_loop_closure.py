@@ -245,3 +245,11 @@ def test_calibrating_on_a_traverse_picks_the_threshold_of_the_target_precision()
     assert (loose.threshold, loose.recall) == (0.10, 1.0) and loose.precision == pytest.approx(2 / 3)
     # what it calibrates is what a detector then uses
     assert LoopClosureDetector(RawThumbnail(), exclude_last=1, calibration=exact).threshold == 0.40
+
+
+def test_event_names_a_spreadsheet_would_run_are_quoted(tmp_path):
+    event = Closure(5, "=b.png", 1, "@a.png", 0.25, 0.9, "margin", 0.2, None, None)
+    with EventLog(tmp_path / "e.csv") as log:
+        log.write(event)
+    rows = list(csv.DictReader(open(tmp_path / "e.csv", newline="")))
+    assert (rows[0]["query"], rows[0]["match"], rows[0]["score"]) == ("'=b.png", "'@a.png", "0.250000")

@@ -64,10 +64,11 @@ def register(sub) -> None:
 
 def _names_digest(paths) -> str:
     import hashlib
+    import os
 
     digest = hashlib.sha256()
     for path in paths:
-        digest.update(str(path.name).encode() + b"\0")
+        digest.update(os.fsencode(path.name) + b"\0")  # the name's own bytes, UTF-8 or not
     return digest.hexdigest()
 
 

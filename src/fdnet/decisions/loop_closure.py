@@ -506,7 +506,7 @@ class EventLog:
         if len(self._fds) > 1:
             lines.append(json.dumps({c: event[c] for c in EVENT_COLUMNS}, allow_nan=False) + "\n")
         for fd, line, path in zip(self._fds, lines, self.paths):
-            data = line.encode()
+            data = line.encode("utf-8", "surrogateescape")  # a name that is not UTF-8: its own bytes
             try:
                 written = os.write(fd, data)
                 if written != len(data):  # only a full disk stops a regular file's write short
@@ -689,6 +689,7 @@ def run_traverse(images: str | os.PathLike, descriptor, database=None, *, exclud
     from fdnet.data.sources import frame_records, positions_in_metres
     from fdnet.descriptors.pipeline import describe_stream
     from fdnet.io import ensure_writable
+    from fdnet.matching.database import check_place_names
 
     say = log or (lambda message: None)
     if calibrate_to is not None:
@@ -707,6 +708,7 @@ def run_traverse(images: str | os.PathLike, descriptor, database=None, *, exclud
         raise ConfigError(f"batch size must be a whole number of at least 1, got {batch_size!r}")
     paths = list_images(images)
     names = [str(p.resolve()) for p in paths]
+    check_place_names(names)  # before any frame is described: the database could not store them
     # frames of a video or bag carry their time, and a bag's its position: radius_s / radius_m use them
     records = frame_records(paths)
     times = [r.timestamp for r in records]

@@ -258,6 +258,17 @@ def _connect_read_only(path: Path) -> sqlite3.Connection:
                         "database and its -wal file to a writable folder and open it there") from None
 
 
+def check_place_names(names: Sequence[str]) -> None:
+    """Refuse a place name that is not valid UTF-8 (a file name Python keeps as surrogates):
+    SQLite text is UTF-8, so it could not be stored. Callers check before describing images."""
+    for name in names:
+        try:
+            str(name).encode("utf-8")
+        except UnicodeEncodeError:
+            raise DataError(f"{os.fsencode(str(name))!r}: the file name is not valid UTF-8, which a place database "
+                            "cannot store as a place name; rename the file") from None
+
+
 def _is_fdnet_database(conn: sqlite3.Connection) -> bool:
     return conn.execute("PRAGMA application_id").fetchone()[0] == APPLICATION_ID
 
@@ -645,6 +656,7 @@ class PlaceDatabase:
         if names is None or len(names) != len(v):
             raise ConfigError(f"{self.path}: {len(v)} vectors but {0 if names is None else len(names)} names")
         names = [str(n) for n in names]
+        check_place_names(names)
         bad = np.flatnonzero(~np.isfinite(v).all(axis=1))
         if len(bad):
             listed = ", ".join(names[i] for i in bad[:5]) + (f" and {len(bad) - 5} more" if len(bad) > 5 else "")
