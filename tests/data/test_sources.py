@@ -192,7 +192,7 @@ def test_bag_sampling_by_window_and_rate(bag):
     assert [frame_index(p) for p in paths] == [3, 5, 7, 9]
 
 
-def test_positions_from_odometry_interpolated_and_none_outside(tmp_path):
+def test_positions_from_odometry_interpolated_and_none_outside(tmp_path, caplog):
     store = _store(False)
     Odometry = store.types["nav_msgs/msg/Odometry"]
     msgs = store.types
@@ -213,7 +213,9 @@ def test_positions_from_odometry_interpolated_and_none_outside(tmp_path):
                                                     pose=pose(5.0 * k, 1.0), twist=twist)) for k in range(1, 8)]
     path = write_bag(tmp_path / "odo", {"/cam": ("sensor_msgs/msg/Image", images),
                                         "/odom": ("nav_msgs/msg/Odometry", odometry)})
-    paths = list_images(path)
+    with caplog.at_level("WARNING", logger="fdnet.data.sources"):
+        paths = list_images(path)
+    assert "2 of 5 frames lie outside the time span of /odom's positions" in caplog.text
     records = sources.frame_records(paths)
     assert [r.position for r in records] == [None, (10.0, 1.0), (20.0, 1.0), (30.0, 1.0), None]
     assert records[1].position_kind == "metres"

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import logging
 import math
 import os
 import re
@@ -43,6 +44,8 @@ from typing import Iterator, Sequence
 import numpy as np
 
 from fdnet.errors import ConfigError, DataError
+
+log = logging.getLogger(__name__)
 
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm", ".mpg", ".mpeg", ".wmv", ".flv", ".ts",
                     ".mts", ".m2ts", ".ogv", ".3gp", ".y4m")
@@ -221,7 +224,7 @@ def open_source(path: str | os.PathLike, options: SourceOptions | None = None) -
         raise DataError(f"{source}: not a video ({', '.join(VIDEO_EXTENSIONS[:4])}, ...) or a ROS bag "
                         f"({', '.join(BAG_EXTENSIONS)}, or a ROS 2 bag folder with metadata.yaml)")
     if topic is not None:
-        if options.topic is not None and options.topic.rstrip("/") != topic.rstrip("/"):
+        if options.topic is not None and options.topic.strip("/") != topic.strip("/"):
             raise ConfigError(f"{path}: names topic {topic} but --topic is {options.topic}; give one")
         options = replace(options, topic=topic)
     key = (str(source.resolve()), kind, options)
@@ -379,6 +382,8 @@ def _position_topic(source: Path, topics: dict, wanted: str | None) -> str | Non
         if len(found) == 1:
             return found[0]
         if len(found) > 1:
+            log.warning("%s: has %d %s topics (%s); its frames get no positions unless --position-topic "
+                        "names one", source, len(found), kind, ", ".join(found))
             return None
     return None
 
@@ -467,8 +472,10 @@ def _add_positions(reader, listing: SourceListing, topic: str) -> None:
             listing.notes.append(f"{outside} of {len(inside)} frames lie outside the time span of {topic}'s "
                                  f"positions and have none")
     else:
-        listing.notes.append(f"{topic} holds no usable positions")
+        listing.notes.append(f"{topic} holds no usable positions (no message with a fix)")
     listing.positions = positions
+    for note in listing.notes:
+        log.warning("%s, topic %s: %s", listing.source, listing.topic, note)
 
 
 # ----------------------------------------------------------------------------- frame records
