@@ -15,6 +15,7 @@ import sys
 
 from fdnet import __version__
 from fdnet.errors import FdnetError
+from fdnet.logs import command_logging, level_for
 
 # Order = order in `fdnet --help`.
 COMMAND_MODULES = [
@@ -51,7 +52,21 @@ def build_parser() -> argparse.ArgumentParser:
             continue
         importlib.import_module(module_name).register(sub)
     _add_source_arguments(sub)
+    _add_logging_arguments(sub)
     return parser
+
+
+def _add_logging_arguments(subparsers) -> None:
+    """--quiet and --verbose on every (sub-)command (:mod:`fdnet.logs`)."""
+    for parser in set(subparsers.choices.values()):
+        nested = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+        for action in nested:
+            _add_logging_arguments(action)
+        if not nested:
+            group = parser.add_mutually_exclusive_group()
+            group.add_argument("--quiet", action="store_true",
+                               help="only warnings and errors on standard error (no progress bars)")
+            group.add_argument("--verbose", action="store_true", help="debug messages too")
 
 
 def _add_source_arguments(subparsers) -> None:
@@ -76,14 +91,16 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     try:
-        if hasattr(args, "fps"):  # a command that takes images: its video/bag sampling flags
-            from fdnet.cli.common import source_options
-            from fdnet.data.sources import using_options
+        # the library's messages: standard error, "fdnet COMMAND: ..." (fdnet.logs)
+        with command_logging(args.command, level_for(getattr(args, "quiet", False), getattr(args, "verbose", False))):
+            if hasattr(args, "fps"):  # a command that takes images: its video/bag sampling flags
+                from fdnet.cli.common import source_options
+                from fdnet.data.sources import using_options
 
-            with using_options(source_options(args)):
+                with using_options(source_options(args)):
+                    result = args.func(args)
+            else:
                 result = args.func(args)
-        else:
-            result = args.func(args)
     except FdnetError as exc:
         print(f"fdnet {args.command}: error: {exc}", file=sys.stderr)
         return 2
