@@ -104,6 +104,40 @@ def test_cycle_finder_finds_a_planted_cycle():
     assert find_cycle({"a": {"b"}, "b": set()}) is None
 
 
+#: the modules that may write to the console: the command line, and the logging handler it installs
+CONSOLE_WRITERS = ("fdnet.cli", "fdnet.logs")
+
+
+def console_writes(source: str) -> list[int]:
+    """Lines of ``source`` that call ``print(...)`` or ``sys.stdout/sys.stderr.write(...)``."""
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        if not isinstance(node, ast.Call):
+            continue
+        func = node.func
+        if isinstance(func, ast.Name) and func.id == "print":
+            found.append(node.lineno)
+        elif (isinstance(func, ast.Attribute) and func.attr == "write" and isinstance(func.value, ast.Attribute)
+              and func.value.attr in ("stdout", "stderr") and isinstance(func.value.value, ast.Name)
+              and func.value.value.id == "sys"):
+            found.append(node.lineno)
+    return found
+
+
+def test_library_code_logs_and_never_prints():
+    """Library modules log through ``logging`` (the CLI shows it, see fdnet.logs) or take a
+    ``log`` callable; only the command line writes to the console itself."""
+    offenders = [f"{name}:{line}" for name, path in sorted(all_modules().items())
+                 if not any(name == w or name.startswith(w + ".") for w in CONSOLE_WRITERS)
+                 for line in console_writes(path.read_text())]
+    assert not offenders, f"print() or sys.stdout/stderr.write() in library code: {offenders}"
+
+
+def test_console_write_finder_finds_planted_ones():
+    source = "import sys\nprint('x')\nsys.stderr.write('y')\nlog.info('z')\nfile.write('w')\n"
+    assert console_writes(source) == [2, 3]
+
+
 INFERENCE_ENTRY_POINTS = [
     "fdnet",  # fdnet.load
     "fdnet.export",

@@ -93,7 +93,7 @@ def test_train_with_dataset_format_and_named_split(tmp_path, capsys):
     out = tmp_path / "run"
     assert main(["train", "--data", str(root), "--dataset-format", "folders", "--split", "0:6",
                  "--preset", "tiny", "--out", str(out), "--no-progress"]) == 0
-    assert "(6, 6 images)" in capsys.readouterr().out
+    assert "fdnet train: preset tiny, conditions day, night (6, 6 images)" in capsys.readouterr().err
     config = load_config(out, TrainConfig)
     assert (config.data.dataset_format, config.data.split) == ("folders", "0:6")
     # --resume reads the same split from the run's own config

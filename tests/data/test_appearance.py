@@ -79,7 +79,7 @@ def test_fdnet_trains_on_the_added_conditions_and_resumes(tmp_path, capsys):
     common = ["train", "--data", str(data), "--preset", "tiny", "--no-progress", "--out", str(out),
               "--set", "data.synthetic_conditions=night"]
     assert main([*common, "--max-minutes", "0"]) == 0  # stops after its first step
-    assert "summer~night, winter~night" in capsys.readouterr().out
+    assert "summer~night, winter~night" in capsys.readouterr().err
     assert main(["train", "--data", str(data), "--out", str(out), "--resume", "--no-progress"]) == 0
     assert "finished at step 8/8" in capsys.readouterr().out
 

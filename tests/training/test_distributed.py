@@ -108,6 +108,7 @@ def test_two_processes_train_identical_weights_record_world_size_and_resume_exac
     assert whole.returncode == 0, whole.stderr
     assert "finished at step 8/8" in whole.stdout and "on 2 processes" in whole.stdout
     assert whole.stdout.count("finished at step") == 1, "only rank 0 reports"
+    assert whole.stderr.count("fdnet train: preset tiny, conditions") == 1, "only rank 0 logs"
     rank0, rank1 = _dumped(tmp_path / "whole-ranks")
     _assert_same(rank0, rank1, "rank 0 and rank 1 after training")
     _assert_same(_saved_fdnet_weights(tmp_path / "whole"), rank0, "saved checkpoint and rank 0")

@@ -170,7 +170,7 @@ def run(args) -> int:
               f"{split.description}: {len(split.query)} queries x {len(split.reference)} references", file=sys.stderr)
         calibration = calibrate(descriptor, split, spec, args.target_precision, args.sequence_length,
                                 measured_on=measured_on, batch_size=args.batch_size, workers=args.workers,
-                                progress=sys.stderr.isatty(), log=lambda m: print(m, file=sys.stderr),
+                                progress=True, log=lambda m: print(m, file=sys.stderr),
                                 choose=choose)
         print(f"{descriptor.name}, rule {calibration.rule}: threshold {calibration.threshold:.6g} reaches precision "
               f"{calibration.precision:.3f} at recall {calibration.recall:.3f} ({calibration.accepted} of "

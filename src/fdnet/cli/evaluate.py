@@ -337,7 +337,7 @@ def run(args) -> int:
         for descriptor in descriptors:
             results.append(evaluate_method(descriptor, split, protocols, args.thresholds,
                                            batch_size=args.batch_size, sequence_length=args.sequence_length,
-                                           keep_similarity=keep_matrix, progress=sys.stderr.isatty(), log=log,
+                                           keep_similarity=keep_matrix, progress=True, log=log,
                                            workers=args.workers, acceptance=acceptance))
 
     from fdnet.evaluation.report import format_table, write_json

@@ -61,8 +61,6 @@ def _frame_arrays(paths) -> dict:
 
 
 def run(args) -> int:
-    import sys
-
     import numpy as np
 
     from fdnet.cli.common import check_pipeline_arguments, set_threads
@@ -84,7 +82,7 @@ def run(args) -> int:
     with NpzChunkWriter(out, {"content": (shape, np.float32), "appearance": (shape, np.float32)}) as writer:
         for _, (content, appearance) in describe_stream(
                 model, paths, args.batch_size, workers=args.workers, timing=timing, describe=model.describe_both,
-                progress=not args.no_progress and sys.stderr.isatty(), what="extract [fdnet]"):
+                progress=not args.no_progress, what="extract [fdnet]"):
             writer.write("content", content)
             writer.write("appearance", appearance)
         writer.close({"names": np.array([p.name for p in paths]), **_frame_arrays(paths)})

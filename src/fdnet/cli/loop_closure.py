@@ -91,7 +91,6 @@ def register(sub) -> None:
 
 def run(args) -> int:
     import json
-    import sys
     from pathlib import Path
 
     from fdnet.cli.common import check_pipeline_arguments, create_descriptor
@@ -123,7 +122,7 @@ def run(args) -> int:
         calibrate_to=args.calibrate_out, target_precision=args.target_precision,
         method_options=_file_options(args, args.method), commit_every=args.commit_every,
         batch_size=args.batch_size, workers=args.workers,
-        progress=not args.no_progress and sys.stderr.isatty(), log=None)
+        progress=not args.no_progress, log=None)
     print(f"wrote {args.out}" + (f" and {args.jsonl}" if args.jsonl else "")
           + f": {report.closures} loop closures in {report.frames} frames ({report.rule} >= {report.threshold:g}), "
           f"{report.frames_per_second:.1f} frames/s ({report.seconds:.1f} s)")

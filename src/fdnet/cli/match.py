@@ -119,7 +119,6 @@ def _reference_times_and_positions(paths) -> dict:
 def run(args) -> int:
     import csv
     import io
-    import sys
     import time
 
     from fdnet.cli.common import check_pipeline_arguments, create_descriptor
@@ -172,7 +171,7 @@ def run(args) -> int:
         descriptor.fit(ref_paths)
 
     def describe(paths):
-        return describe_paths(descriptor, paths, args.batch_size, progress=sys.stderr.isatty(),
+        return describe_paths(descriptor, paths, args.batch_size, progress=True,
                               workers=args.workers)
 
     if settings is None:
@@ -188,7 +187,7 @@ def run(args) -> int:
         if index is None:
             index = VectorIndex(descriptor.dim, settings)
             for _, vectors in describe_stream(descriptor, ref_paths, args.batch_size, workers=args.workers,
-                                              progress=sys.stderr.isatty()):
+                                              progress=True):
                 index.add(vectors)  # the map goes into the index chunk by chunk
             t0 = time.perf_counter()
             index.build()

@@ -149,7 +149,6 @@ def _overlaps(text: str) -> tuple[float, ...]:
 
 def run(args) -> int:
     import argparse
-    import sys
     from pathlib import Path
 
     from fdnet.cli.common import method_options, set_threads
@@ -186,7 +185,7 @@ def run(args) -> int:
         length_train_frames=args.length_train_frames, length_overrides=parse_overrides(args.length_set),
         viewpoint_pair=tuple(viewpoint) if viewpoint else None, overlaps=_overlaps(args.overlaps),
         examples=args.examples, runtime_images=args.runtime_images, embedding_points=args.embedding_points,
-        batch_size=args.batch_size, threads=args.threads, progress=not args.no_progress and sys.stderr.isatty(),
+        batch_size=args.batch_size, threads=args.threads, progress=not args.no_progress,
         command=command_line(args))
     set_threads(args.threads)
     report = reproduce(settings)

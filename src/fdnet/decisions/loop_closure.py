@@ -737,10 +737,10 @@ def run_traverse(images: str | os.PathLike, descriptor, database=None, *, exclud
             f"(threshold {detector.threshold:g}), {places_before} places in {db.path} before the run")
         bar = None
         if progress:
-            from tqdm import tqdm
+            from fdnet.progress import progress_bar
 
-            bar = tqdm(total=len(paths), desc=f"loop closure [{descriptor.name}]", unit="frame", dynamic_ncols=True,
-                       smoothing=0.1)
+            bar = progress_bar(total=len(paths), desc=f"loop closure [{descriptor.name}]", unit="frame",
+                               smoothing=0.1)
         t0 = time.perf_counter()
         try:
             with EventLog(events_csv, events_jsonl) as events:

@@ -278,9 +278,9 @@ def learn_vocabulary(paths: Sequence[str | Path], input_size=(288, 512), orb: OR
     features: list[np.ndarray] = []
     chunks = range(0, len(paths), batch)
     if progress:
-        from tqdm import tqdm
+        from fdnet.progress import progress_bar
 
-        chunks = tqdm(chunks, desc="ORB features", unit="batch", leave=False)
+        chunks = progress_bar(chunks, desc="ORB features", unit="batch", leave=False)
     for start in chunks:
         features.extend(orb_features(load_images(paths[start:start + batch], input_size), orb))
     info = {"input_size": [int(s) for s in input_size],

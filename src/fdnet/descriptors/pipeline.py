@@ -131,7 +131,7 @@ def describe_stream(descriptor, paths: Sequence[str | os.PathLike], batch_size: 
     """Yield ``(start, vectors)`` per batch of ``paths``: ``descriptor.describe`` of the images
     (or ``describe(images)``, e.g. content and appearance vectors at once), in order.
 
-    ``progress`` shows a tqdm bar counting images with images/s. ``timing`` (a dict) receives
+    ``progress`` shows a progress bar counting images with images/s (:mod:`fdnet.progress`). ``timing`` (a dict) receives
     ``seconds_describe`` (model time only: decoding overlaps with it in the workers and is
     excluded), ``seconds_wall`` and ``num_images``.
     """
@@ -142,10 +142,10 @@ def describe_stream(descriptor, paths: Sequence[str | os.PathLike], batch_size: 
     uint8 = bool(getattr(descriptor, "accepts_uint8", False))
     bar = None
     if progress:
-        from tqdm import tqdm
+        from fdnet.progress import progress_bar
 
-        bar = tqdm(total=len(paths), desc=what or f"describe [{descriptor.name}]", unit="img", leave=False,
-                   dynamic_ncols=True, smoothing=0.1)
+        bar = progress_bar(total=len(paths), desc=what or f"describe [{descriptor.name}]", unit="img", leave=False,
+                           smoothing=0.1)
     spent = 0.0
     t_start = time.perf_counter()
     try:

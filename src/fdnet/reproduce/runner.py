@@ -16,8 +16,8 @@ import datetime
 import importlib
 import itertools
 import json
+import logging
 import re
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -396,19 +396,16 @@ def _default_factory(name: str, **options):
     return create(name, **options)
 
 
-def _stderr(message: str) -> None:
-    print(f"fdnet reproduce: {message}", file=sys.stderr, flush=True)
-
-
 def reproduce(settings: ReproduceSettings, factory: Callable | None = None,
               log: Callable[[str], None] | None = None) -> Path:
     """Run the chosen experiments (default all) and write ``OUT/report.html``; returns its path.
 
-    ``factory(name, **options)`` builds a descriptor (default :func:`fdnet.descriptors.create`).
+    ``factory(name, **options)`` builds a descriptor (default :func:`fdnet.descriptors.create`);
+    ``log`` receives the progress messages (default: this module's logger, at INFO).
     """
     from fdnet.reproduce.report import write_report
 
-    log = log or _stderr
+    log = log or logging.getLogger(__name__).info
     chosen = _check(settings)
     ensure_writable(settings.out, what="reproduce output", directory=True)
     pairs = build_pairs(settings)

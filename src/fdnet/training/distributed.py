@@ -311,13 +311,22 @@ class DistributedContext:
     # ------------------------------------------------------------------ output
     @contextlib.contextmanager
     def quiet_unless_main(self) -> Iterator[None]:
-        """Standard output of the ranks other than 0 goes nowhere (their errors still reach
-        standard error): one process reports, not N copies of it."""
+        """Standard output and the messages below WARNING (:mod:`fdnet.logs`) of the ranks other
+        than 0 go nowhere (their warnings and errors still reach standard error): one process
+        reports, not N copies of it."""
         if self.is_main:
             yield
             return
-        with open(os.devnull, "w") as sink, contextlib.redirect_stdout(sink):
-            yield
+        import logging
+
+        logger = logging.getLogger("fdnet")
+        level = logger.level
+        logger.setLevel(max(level, logging.WARNING))
+        try:
+            with open(os.devnull, "w") as sink, contextlib.redirect_stdout(sink):
+                yield
+        finally:
+            logger.setLevel(level)
 
 
 _SINGLE = DistributedContext()

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import signal
 import time
 from abc import ABC, abstractmethod
@@ -70,8 +71,12 @@ class TrainingMethod(ABC):
     log_columns: ClassVar[tuple[str, ...]] = ()
     config: Any
     input_size: tuple[int, int]
-    #: where the method's messages go (the loop points it at the progress bar's writer)
-    log: Callable[[str], None] = print
+
+    def log(self, message: str) -> None:
+        """A message of the method's (logged at INFO under its module's logger; the command
+        line shows it on standard error, above a running progress bar)."""
+        logging.getLogger(type(self).__module__).info(message)
+
     #: keys of :meth:`state` that differ between the ranks of a distributed run (their random
     #: streams); each rank's are saved, the rest is rank 0's. None: the whole state is per rank.
     rank_state_keys: ClassVar[tuple[str, ...] | None] = None
@@ -381,10 +386,9 @@ class Trainer:
         validate_every = settings.validate_every if self.validation is not None else 0
         bar = None
         if progress and dist.is_main:
-            from tqdm import tqdm
+            from fdnet.progress import progress_bar
 
-            bar = tqdm(total=total, initial=self.step, unit="step", dynamic_ncols=True)
-            method.log = tqdm.write
+            bar = progress_bar(total=total, initial=self.step, unit="step")
         status = "finished"
         started = time.monotonic()
         base_elapsed = self.elapsed
@@ -408,13 +412,13 @@ class Trainer:
                                     **numbers, **(row or {})})
                 if self.step % settings.checkpoint_every == 0:
                     self.save()
-                if bar is not None:
-                    bar.update(1)
+                if bar is not None:  # this step's numbers first, so the update shows them
                     shown = {k[:5]: f"{v:.3g}" for k, v in numbers.items()}
                     if self.last_validation:
                         shown["valR@1"] = f"{self.last_validation['recall@1']:.3f}"
-                    bar.set_description(stage)
+                    bar.set_description(stage, refresh=False)
                     bar.set_postfix(shown, refresh=False)
+                    bar.update(1)
                 out_of_time = max_minutes is not None and time.monotonic() - started >= max_minutes * 60.0
                 stop_now, out_of_time = dist.agree(stop.requested, out_of_time)
                 if stop_now:
@@ -425,7 +429,6 @@ class Trainer:
                     break
         if bar is not None:
             bar.close()
-            method.log = print
         if self._saved_step != self.step:
             self.save()
         self.log.close()

@@ -5,6 +5,8 @@ choice on real Gardens Point and Nordland frames. (The training step and the loo
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pytest
 import torch
@@ -48,6 +50,13 @@ def _config(tmp_path, **overrides) -> TrainConfig:
     return replace_dotted(preset("tiny"), {"data.root": str(data), **RESIDUAL_HEAD, **VALIDATION, **overrides})
 
 
+def _said(caplog) -> str:
+    """What the library logged since the last call (the messages ``fdnet train`` shows)."""
+    text = "\n".join(r.getMessage() for r in caplog.records)
+    caplog.clear()
+    return text
+
+
 def _weights(run_dir) -> dict[str, torch.Tensor]:
     model = FDNet(load_config(run_dir, TrainConfig).model)
     load_weights(run_dir, model.named_parts())
@@ -59,7 +68,8 @@ def _rule(selection: dict, order: list[int]) -> int:
     return max(order, key=lambda b: (selection[str(b)]["recall@1"], selection[str(b)]["auc"], -order.index(b)))
 
 
-def test_the_block_that_validates_best_is_trained_as_if_it_had_been_set(tmp_path, capsys):
+def test_the_block_that_validates_best_is_trained_as_if_it_had_been_set(tmp_path, caplog):
+    caplog.set_level(logging.INFO, logger="fdnet")
     picks = {}
     for order in ([2, 4], [4, 2]):
         run = tmp_path / f"run-{order[0]}"
@@ -76,7 +86,7 @@ def test_the_block_that_validates_best_is_trained_as_if_it_had_been_set(tmp_path
         assert sel_a[block]["recall@1"] == pytest.approx(sel_b[block]["recall@1"])
     if (sel_a["2"]["recall@1"], sel_a["2"]["auc"]) != (sel_a["4"]["recall@1"], sel_a["4"]["auc"]):
         assert a == b
-    out = capsys.readouterr().out
+    out = _said(caplog)
     assert "trunk block 2: validation R@1" in out and f"training on trunk block {a} (of 2, 4)" in out
 
     # choosing changed nothing else: the run equals one of the chosen block alone, weight for weight
@@ -87,7 +97,8 @@ def test_the_block_that_validates_best_is_trained_as_if_it_had_been_set(tmp_path
         assert torch.equal(x, y), name
 
 
-def test_resume_keeps_the_chosen_block_without_choosing_again(tmp_path, capsys):
+def test_resume_keeps_the_chosen_block_without_choosing_again(tmp_path, caplog):
+    caplog.set_level(logging.INFO, logger="fdnet")
     config = _config(tmp_path, **{"model.backbone_block_candidates": [2, 4]})
     run = tmp_path / "run"
     summary = train(config, run, max_minutes=0.0, progress=False)
@@ -95,28 +106,30 @@ def test_resume_keeps_the_chosen_block_without_choosing_again(tmp_path, capsys):
     chosen = load_config(run, TrainConfig).model.backbone_block
     assert chosen == 4  # these images: block 2's start matches no winter image, block 4's all
     assert ("training on trunk block 4 (of 2, 4); model.backbone_block = 2 is the block for runs without a "
-            "validation pair") in capsys.readouterr().out
+            "validation pair") in _said(caplog)
     selection = load_training_state(run)["method_state"]["block_selection"]
     summary = train(config, run, resume=True, progress=False)  # block 2 requested, as at the start: no refusal
     assert summary["status"] == "finished"
-    out = capsys.readouterr().out
+    out = _said(caplog)
     assert "at the start" not in out  # no candidate was scored again
     assert "continuing on trunk block 4, chosen when the run started" in out
     assert load_config(run, TrainConfig).model.backbone_block == chosen
     assert load_training_state(run)["method_state"]["block_selection"] == selection
 
 
-def test_without_a_validation_pair_the_set_block_is_trained_and_that_is_said(tmp_path, capsys):
+def test_without_a_validation_pair_the_set_block_is_trained_and_that_is_said(tmp_path, caplog):
+    caplog.set_level(logging.INFO, logger="fdnet")
     config = _config(tmp_path, **{"model.backbone_block": 4, "model.backbone_block_candidates": [2, 4],
                                   "validation.reference": "", "validation.query": ""})
     train(config, tmp_path / "run", progress=False)
     assert load_config(tmp_path / "run", TrainConfig).model.backbone_block == 4
     assert ("no validation pair to choose a start from (2, 4); training on model.backbone_block = 4, "
-            "data.synthetic_conditions = none") in capsys.readouterr().out
+            "data.synthetic_conditions = none") in _said(caplog)
     assert load_training_state(tmp_path / "run")["method_state"]["block_selection"] == {}
 
 
-def test_synthetic_conditions_are_chosen_with_the_block_and_kept_on_resume(tmp_path, capsys):
+def test_synthetic_conditions_are_chosen_with_the_block_and_kept_on_resume(tmp_path, caplog):
+    caplog.set_level(logging.INFO, logger="fdnet")
     config = _config(tmp_path, **{"model.backbone_block_candidates": [2, 4],
                                   "data.synthetic_conditions_candidates": ["none", "night+contrast"]})
     run = tmp_path / "run"
@@ -129,11 +142,11 @@ def test_synthetic_conditions_are_chosen_with_the_block_and_kept_on_resume(tmp_p
     block, option = best.split(", synthetic ")
     assert saved.model.backbone_block == int(block)
     assert list(saved.data.synthetic_conditions) == ([] if option == "none" else option.split("+"))
-    out = capsys.readouterr().out
+    out = _said(caplog)
     assert f"training on trunk block {best} (of {', '.join(order)})" in out
     # the run goes on with what it chose, without scoring again, and equals a run of it alone
     assert train(config, run, resume=True, progress=False)["status"] == "finished"
-    assert "at the start" not in capsys.readouterr().out
+    assert "at the start" not in _said(caplog)
     alone = tmp_path / "alone"
     train(_config(tmp_path, **{"model.backbone_block": saved.model.backbone_block,
                                "data.synthetic_conditions": list(saved.data.synthetic_conditions)}), alone, progress=False)

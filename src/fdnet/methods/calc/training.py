@@ -146,9 +146,9 @@ def train(config: CALCRunConfig, run_dir, resume: bool = False, override: bool =
         data = route_images(training_route(config.data), config.model.input_size, why="CALC")
         validation = load_validation_images(config.data.root, config.validation, config.model.input_size)
         method = CALCTraining(config, data)
-        print(f"CALC: {sum(len(x) for x in data.images)} training images from {', '.join(data.names)} at "
-              f"{config.model.input_size[0]}x{config.model.input_size[1]}, HOG targets "
-              f"{method.targets.shape[1]}-d, descriptor {method.network.descriptor_dim}-d -> {run_dir}", flush=True)
+        method.log(f"CALC: {sum(len(x) for x in data.images)} training images from {', '.join(data.names)} at "
+                   f"{config.model.input_size[0]}x{config.model.input_size[1]}, HOG targets "
+                   f"{method.targets.shape[1]}-d, descriptor {method.network.descriptor_dim}-d -> {run_dir}")
         return method, validation
 
     return run_training(build, run_dir, resume=resume, override=override, max_minutes=max_minutes,

@@ -162,7 +162,7 @@ def fit_projection(maps: list[np.ndarray], length: int, init: str = "mined_pairs
         names = list(names) if names is not None and len(names) == len(maps) else [str(i) for i in range(len(maps))]
         for (a, b), value in consistency.items():
             if value < MIN_ROUTE_CONSISTENCY:
-                log.warning("fdnet: conditions %s and %s share few route-consistent matches (%.0f%%): are they "
+                log.warning("conditions %s and %s share few route-consistent matches (%.0f%%): are they "
                             "traverses of the same route?", names[a], names[b], 100 * value)
         head = start @ learnt_whitening(projected, pairs, pair_shrinkage)
     elif init == "pca":
@@ -175,5 +175,5 @@ def fit_projection(maps: list[np.ndarray], length: int, init: str = "mined_pairs
     # The removal of the condition directions is linear, so it folds into the projection.
     projection = head - basis @ (basis.T @ head)
     report["rank"] = int(min(length, start.shape[1]))
-    log.info("fdnet: projection head start: %s", report)
+    log.debug("projection head start: %s", report)  # FDNetTraining.start logs it at INFO
     return ProjectionFit(mean.astype(np.float32), projection.astype(np.float32), report)

@@ -30,6 +30,7 @@ made by one named change each (:mod:`fdnet.data.appearance`), labelled as condit
 from __future__ import annotations
 
 import contextlib
+import logging
 
 import numpy as np
 import torch
@@ -44,6 +45,8 @@ from fdnet.data.appearance import SEPARATOR, with_synthetic_conditions
 from fdnet.training.data import TrainingImages, route_images, training_route
 from fdnet.training.loop import LoopSettings, TrainingMethod
 from fdnet.training.sampler import DomainBalancedSampler
+
+log = logging.getLogger(__name__)
 
 
 def _autocast(config: TrainConfig, device: torch.device):
@@ -149,7 +152,7 @@ class FDNetTraining(TrainingMethod):
                                  names=list(self.data.names))
             head.set_start(fit.mean, fit.projection)
             self.projection_fit = fit.report
-            self.log(f"fdnet: content head starts in closed form ({m.projection_init}): "
+            self.log(f"content head starts in closed form ({m.projection_init}): "
                      + ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in fit.report.items()))
         else:
             # Centre on the mean map of every training image, all conditions pooled: the centred
@@ -157,7 +160,7 @@ class FDNetTraining(TrainingMethod):
             head.set_mean(torch.cat(inputs))
             if self.config.model.residual_init == "condition_means":
                 removed = head.remove_condition_means(inputs)
-                self.log(f"fdnet: content head starts with {removed} direction(s) between the conditions' "
+                self.log(f"content head starts with {removed} direction(s) between the conditions' "
                          "mean maps removed")
 
     def state(self) -> dict:
@@ -354,7 +357,7 @@ def _start_label(config: TrainConfig, option: tuple[str, ...], block: int) -> st
     return f"{block}, synthetic {synthetic_option_text(option)}"
 
 
-def choose_start(config: TrainConfig, real: TrainingImages, validation, log=print) -> FDNetTraining:
+def choose_start(config: TrainConfig, real: TrainingImages, validation) -> FDNetTraining:
     """The FDNet training whose closed-form content start scores best on ``validation`` among
     :func:`start_candidates`: R@1, ties to the higher AUC, then to the earlier candidate, as
     ``best/`` is chosen. ``real`` are the training images without synthetic conditions. Each
@@ -377,8 +380,8 @@ def choose_start(config: TrainConfig, real: TrainingImages, validation, log=prin
         metrics = validation_metrics(method, validation)
         label = _start_label(config, option, block)
         scores[label] = {k: float(v) for k, v in metrics.items()}
-        log(f"fdnet train: trunk block {label}: validation R@1 {metrics['recall@1']:.3f}, "
-            f"AUC {metrics['auc']:.3f} at the start")
+        log.info(f"trunk block {label}: validation R@1 {metrics['recall@1']:.3f}, "
+                 f"AUC {metrics['auc']:.3f} at the start")
         key = (metrics["recall@1"], metrics["auc"])
         if best is None or key > best[0]:
             best = (key, method, rng)
@@ -392,8 +395,8 @@ def choose_start(config: TrainConfig, real: TrainingImages, validation, log=prin
     note = "" if chosen_block == config.model.backbone_block else (
         f"; model.backbone_block = {config.model.backbone_block} is the block for runs without a validation pair, "
         "set model.backbone_block_candidates=[] to train it regardless")
-    log(f"fdnet train: training on trunk block {chosen} "
-        f"(of {', '.join(_start_label(config, o, b) for o, b in candidates)}){note}")
+    log.info(f"training on trunk block {chosen} "
+             f"(of {', '.join(_start_label(config, o, b) for o, b in candidates)}){note}")
     return method
 
 
@@ -407,9 +410,9 @@ def _chosen_when_started(config: TrainConfig, run_dir) -> TrainConfig:
     if (option, block) not in start_candidates(config):
         return config
     if block != config.model.backbone_block or option != tuple(config.data.synthetic_conditions):
-        print(f"fdnet train: continuing on trunk block {_start_label(config, option, block)}, chosen when the run "
-              f"started (its weights are for that choice; model.backbone_block = {config.model.backbone_block} "
-              "applies to new runs)", flush=True)
+        log.info(f"continuing on trunk block {_start_label(config, option, block)}, chosen when the run "
+                 f"started (its weights are for that choice; model.backbone_block = {config.model.backbone_block} "
+                 "applies to new runs)")
     return replace_dotted(config, {"model.backbone_block": block, "data.synthetic_conditions": list(option)})
 
 
@@ -428,16 +431,16 @@ def train(config: TrainConfig, run_dir, resume: bool = False, override: bool = F
         run_config = _chosen_when_started(config, run_dir) if resume and len(candidates) > 1 else config
         real = load_training_images(replace_dotted(config, {"data.synthetic_conditions": []}))
         validation = load_validation_images(config.data.root, config.validation, config.model.input_size)
-        print(f"fdnet train: preset {config.preset}, conditions {', '.join(real.names)} "
-              f"({', '.join(str(len(x)) for x in real.images)} images), input {tuple(config.model.input_size)}, "
-              f"{config.total_steps} steps -> {run_dir}", flush=True)
+        log.info(f"preset {config.preset}, conditions {', '.join(real.names)} "
+                 f"({', '.join(str(len(x)) for x in real.images)} images), input {tuple(config.model.input_size)}, "
+                 f"{config.total_steps} steps -> {run_dir}")
         if len(candidates) > 1 and not resume:
             if validation is not None:
                 return choose_start(config, real, validation), validation
-            print(f"fdnet train: no validation pair to choose a start from "
-                  f"({', '.join(_start_label(config, o, b) for o, b in candidates)}); training on "
-                  f"model.backbone_block = {config.model.backbone_block}, data.synthetic_conditions = "
-                  f"{synthetic_option_text(config.data.synthetic_conditions)}", flush=True)
+            log.info(f"no validation pair to choose a start from "
+                     f"({', '.join(_start_label(config, o, b) for o, b in candidates)}); training on "
+                     f"model.backbone_block = {config.model.backbone_block}, data.synthetic_conditions = "
+                     f"{synthetic_option_text(config.data.synthetic_conditions)}")
         data = with_synthetic_conditions(real, run_config.data.synthetic_conditions, run_config.runtime.seed)
         return FDNetTraining(run_config, data), validation
 
