@@ -99,7 +99,7 @@ def _check_choices(spec, choose) -> None:
 
 
 def run(args) -> int:
-    import sys
+    import logging
     from pathlib import Path
 
     from fdnet.cli.common import check_pipeline_arguments, create_descriptor, method_options
@@ -166,11 +166,12 @@ def run(args) -> int:
                        or args.ground_truth else 0,  # frame-aligned folders default to 0
                        "ground_truth_file": args.ground_truth}
         measured_on = {k: v for k, v in measured_on.items() if v is not None}
-        print(f"calibrating {descriptor.name} with rule {spec.name} for precision {args.target_precision:g} on "
-              f"{split.description}: {len(split.query)} queries x {len(split.reference)} references", file=sys.stderr)
+        log = logging.getLogger(__name__).info  # standard error, as the library's messages (fdnet.logs)
+        log(f"calibrating {descriptor.name} with rule {spec.name} for precision {args.target_precision:g} on "
+            f"{split.description}: {len(split.query)} queries x {len(split.reference)} references")
         calibration = calibrate(descriptor, split, spec, args.target_precision, args.sequence_length,
                                 measured_on=measured_on, batch_size=args.batch_size, workers=args.workers,
-                                progress=True, log=lambda m: print(m, file=sys.stderr),
+                                progress=True, log=log,
                                 choose=choose)
         print(f"{descriptor.name}, rule {calibration.rule}: threshold {calibration.threshold:.6g} reaches precision "
               f"{calibration.precision:.3f} at recall {calibration.recall:.3f} ({calibration.accepted} of "

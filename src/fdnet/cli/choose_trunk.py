@@ -40,7 +40,7 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    import sys
+    import logging
 
     from fdnet.cli.common import check_pipeline_arguments, set_threads
     from fdnet.data.dataset import RouteDataset, parse_frame_range
@@ -67,10 +67,11 @@ def run(args) -> int:
     options = {"device": args.device}
     if args.whitened:
         options.update({"dim": args.dim, "power": args.power, "fit": args.fit, "fit_frames": args.fit_frames})
-    print(f"choose-trunk: {len(candidates)} candidates on {split.description}", file=sys.stderr)
+    log = logging.getLogger(__name__).info  # standard error, as the library's messages (fdnet.logs)
+    log(f"{len(candidates)} candidates on {split.description}")
     choice = choose_trunk(split, candidates, tuple(args.input_size), whitened=args.whitened, options=options,
                           batch_size=args.batch_size, workers=args.workers,
-                          log=lambda message: print(message, file=sys.stderr, flush=True))
+                          log=log)
     if args.frames:
         choice.validation = f"{choice.validation}, frames {args.frames}"
     print(f"{'candidate':<22} {'dim':>6} {'R@1':>6} {'R@5':>6} {'R@100P':>7} {'AUC-PR':>7}")

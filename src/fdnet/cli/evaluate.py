@@ -156,7 +156,7 @@ def build_split(args):
     the frame filter with ``--filter-frames``) or with ``--ground-truth`` over all images of the
     two folders (:func:`fdnet.data.split.listed_split`), sliced by ``--frames``. With it: the
     dataset adapter's split, its ground truth replaced by ``--ground-truth`` when given."""
-    import sys
+    import logging
 
     from fdnet.data.dataset import RouteDataset, parse_frame_range
     from fdnet.data.split import aligned_split, listed_split
@@ -182,7 +182,7 @@ def build_split(args):
         from fdnet.data.filters import filter_frames
 
         dataset, summary = filter_frames(dataset.frames(start, end))
-        print(f"frame filter: {summary}", file=sys.stderr)
+        logging.getLogger(__name__).info(f"frame filter: {summary}")
         start = end = None
     return aligned_split(dataset, args.reference, args.query, args.tolerance or 0, start, end)
 
@@ -253,7 +253,7 @@ def _write_plots(results, protocol: str, folder: str, examples: int) -> list:
 
 
 def run(args) -> int:
-    import sys
+    import logging
     from pathlib import Path
 
     from fdnet.errors import ConfigError, DataError
@@ -289,8 +289,7 @@ def run(args) -> int:
     protocols = (args.protocol,)
     keep_matrix = bool(args.plots)
 
-    def log(message: str) -> None:
-        print(message, file=sys.stderr)
+    log = logging.getLogger(__name__).info  # standard error, as the library's messages (fdnet.logs)
 
     results = []
     if args.similarity:
