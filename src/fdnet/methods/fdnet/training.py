@@ -442,6 +442,8 @@ def train(config: TrainConfig, run_dir, resume: bool = False, override: bool = F
                      f"model.backbone_block = {config.model.backbone_block}, data.synthetic_conditions = "
                      f"{synthetic_option_text(config.data.synthetic_conditions)}")
         data = with_synthetic_conditions(real, run_config.data.synthetic_conditions, run_config.runtime.seed)
+        if len(data.names) > len(real.names):
+            log.info(f"training also on the synthetic conditions {', '.join(data.names[len(real.names):])}")
         return FDNetTraining(run_config, data), validation
 
     return run_training(build, run_dir, resume=resume, override=override, max_minutes=max_minutes,
