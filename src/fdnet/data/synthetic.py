@@ -289,7 +289,15 @@ def _draw_street(scene: Scene, look: _Look, height: int, width: int, px: int, rn
         r0, r1 = int(_GROUND_Y * px), int(_ROAD_TOP * px)
         spots = rng.random((r1 - r0, width)) < 0.08
         cv.rgb[r0:r1][spots] = _AUTUMN_LEAVES[rng.integers(len(_AUTUMN_LEAVES), size=int(spots.sum()))]
+    _draw_buildings(cv, scene, look, width, height, px)
+    _draw_trees(cv, scene, look)
+    _draw_lamps(cv, scene, look)
+    return cv
 
+
+def _draw_buildings(cv: _Canvas, scene: Scene, look: _Look, width: int, height: int, px: int) -> None:
+    """Facades, window grids (lit at night), roofs and snow on them."""
+    sat = look.saturation
     for b in scene.buildings:
         top = _GROUND_Y - b.height
         facade = _desaturate(b.facade * look.facade_gain, sat)
@@ -337,6 +345,10 @@ def _draw_street(scene: Scene, look: _Look, height: int, width: int, px: int, rn
             if look.snow:
                 cv.rect(b.x0 - 0.01, b.x0 + b.width + 0.01, top - 0.045, top - 0.025, snow)
 
+
+def _draw_trees(cv: _Canvas, scene: Scene, look: _Look) -> None:
+    """Trunks and crowns (evergreen cones, bare branches or leaves of the season)."""
+    sat = look.saturation
     trunk = _desaturate((0.30, 0.22, 0.15), sat) * (look.facade_gain if look.night else 1.0)
     for t in scene.trees:
         crown_bottom = _GROUND_Y - t.trunk_height
@@ -365,6 +377,10 @@ def _draw_street(scene: Scene, look: _Look, height: int, width: int, px: int, rn
             colour = _desaturate(base, sat) * (look.facade_gain if look.night else 1.0)
             cv.mask(x0, x1, y0, crown_bottom, lambda u, v: (u - 0.5) ** 2 + (v - 0.5) ** 2 <= 0.25, colour)
 
+
+def _draw_lamps(cv: _Canvas, scene: Scene, look: _Look) -> None:
+    """Lamp posts, and at night their light and the light spilling from lit windows."""
+    sat = look.saturation
     pole = _desaturate((0.30, 0.30, 0.32), sat) * (look.facade_gain if look.night else 1.0)
     for lamp in scene.lamps:
         top = _GROUND_Y - lamp.height
@@ -381,7 +397,6 @@ def _draw_street(scene: Scene, look: _Look, height: int, width: int, px: int, rn
             if b.lit.any():
                 cv.glow(b.x0 + b.width / 2, _GROUND_Y - b.height / 2, max(b.width, b.height) / 2.5,
                         _LIT_WINDOW, 0.08 * float(b.lit.mean()))
-    return cv
 
 
 def _sky_and_hills(scene: Scene, look: _Look, height: int, hill_width: int, px: int,

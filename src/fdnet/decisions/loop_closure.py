@@ -687,7 +687,6 @@ def run_traverse(images: str | os.PathLike, descriptor, database=None, *, exclud
     from fdnet.data.groundtruth import GroundTruth
     from fdnet.data.images import list_images
     from fdnet.data.sources import frame_records, positions_in_metres
-    from fdnet.descriptors.pipeline import describe_stream
     from fdnet.io import ensure_writable
     from fdnet.matching.database import check_place_names
 
@@ -735,28 +734,9 @@ def run_traverse(images: str | os.PathLike, descriptor, database=None, *, exclud
         detector.spec.check_images(paths, [*detector._names, *names])
         say(f"loop closure over {len(paths)} frames of {images} with {descriptor.name}, rule {detector.spec.name} "
             f"(threshold {detector.threshold:g}), {places_before} places in {db.path} before the run")
-        bar = None
-        if progress:
-            from fdnet.progress import progress_bar
-
-            bar = progress_bar(total=len(paths), desc=f"loop closure [{descriptor.name}]", unit="frame",
-                               smoothing=0.1)
         t0 = time.perf_counter()
-        try:
-            with EventLog(events_csv, events_jsonl) as events:
-                for start, vectors in describe_stream(descriptor, paths, batch_size, workers=workers):
-                    for offset, vector in enumerate(np.asarray(vectors, dtype=np.float32)):
-                        k = start + offset
-                        closure = detector.process_vector(vector, name=names[k], timestamp=times[k],
-                                                          position=positions[k])
-                        if closure is not None:
-                            events.write(closure)
-                    if bar is not None:
-                        bar.update(len(vectors))
-                        bar.set_postfix(closures=events.count, refresh=False)
-        finally:
-            if bar is not None:
-                bar.close()
+        events = _detect_over(detector, descriptor, paths, names, times, positions, events_csv, events_jsonl,
+                              batch_size, workers, progress)
         detector.flush()
         seconds = time.perf_counter() - t0
         report = TraverseReport(
@@ -769,14 +749,52 @@ def run_traverse(images: str | os.PathLike, descriptor, database=None, *, exclud
         if truth is not None:
             report.evaluation = evaluate_decisions(detector.decisions, truth, detector.threshold, detector.spec.name)
         if calibrate_to is not None:
-            from fdnet.decisions.calibration import save_calibration
-
-            calibrated = calibrate_decisions(detector.decisions, truth, detector, target_precision,
-                                             {"images": str(Path(images).resolve()),
-                                              "ground_truth_file": str(Path(ground_truth).resolve())})
-            written = save_calibration(calibrated, calibrate_to)
-            report.calibrated = {"path": str(written), "threshold": calibrated.threshold,
-                                 "target_precision": calibrated.target_precision,
-                                 "precision": calibrated.precision, "recall": calibrated.recall,
-                                 "notes": list(calibrated.notes)}
+            report.calibrated = _calibrate_on_traverse(detector, truth, target_precision, images, ground_truth,
+                                                       calibrate_to)
     return report
+
+
+def _detect_over(detector: LoopClosureDetector, descriptor, paths, names, times, positions, events_csv,
+                 events_jsonl, batch_size: int, workers: int | None, progress: bool) -> EventLog:
+    """Describe ``paths`` ``batch_size`` at a time and feed each vector to ``detector``, writing
+    each accepted closure to the event log as it is accepted; returns the (closed) log."""
+    from fdnet.descriptors.pipeline import describe_stream
+
+    bar = None
+    if progress:
+        from fdnet.progress import progress_bar
+
+        bar = progress_bar(total=len(paths), desc=f"loop closure [{descriptor.name}]", unit="frame",
+                           smoothing=0.1)
+    try:
+        with EventLog(events_csv, events_jsonl) as events:
+            for start, vectors in describe_stream(descriptor, paths, batch_size, workers=workers):
+                for offset, vector in enumerate(np.asarray(vectors, dtype=np.float32)):
+                    k = start + offset
+                    closure = detector.process_vector(vector, name=names[k], timestamp=times[k],
+                                                      position=positions[k])
+                    if closure is not None:
+                        events.write(closure)
+                if bar is not None:
+                    bar.update(len(vectors))
+                    bar.set_postfix(closures=events.count, refresh=False)
+    finally:
+        if bar is not None:
+            bar.close()
+    return events
+
+
+def _calibrate_on_traverse(detector: LoopClosureDetector, truth, target_precision: float, images,
+                           ground_truth, calibrate_to) -> dict:
+    """Choose the threshold reaching ``target_precision`` on this traverse's decisions, write it
+    to ``calibrate_to`` and return what :attr:`TraverseReport.calibrated` records."""
+    from fdnet.decisions.calibration import save_calibration
+
+    calibrated = calibrate_decisions(detector.decisions, truth, detector, target_precision,
+                                     {"images": str(Path(images).resolve()),
+                                      "ground_truth_file": str(Path(ground_truth).resolve())})
+    written = save_calibration(calibrated, calibrate_to)
+    return {"path": str(written), "threshold": calibrated.threshold,
+            "target_precision": calibrated.target_precision,
+            "precision": calibrated.precision, "recall": calibrated.recall,
+            "notes": list(calibrated.notes)}

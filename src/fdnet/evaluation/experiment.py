@@ -162,6 +162,39 @@ def _metrics(retrieved, scores, gt, protocols, thresholds, ns, decision: Decisio
                                   else None, ns=ns, **accept) for p in protocols}
 
 
+def _rank(descriptor: Descriptor, queries, refs, k: int, sequence_length: int, keep_similarity: bool,
+          max_matrix_entries: int, timing: dict, notes: list[str]):
+    """The top ``k`` references of each query (by sequence similarity when ``sequence_length`` > 1)
+    and, when it fits in ``max_matrix_entries`` and is wanted, the (Q, R) similarity matrix;
+    records the matching time in ``timing`` and what it did in ``notes``."""
+    small = len(queries) * len(refs) <= max_matrix_entries
+    similarity = None
+    t0 = time.perf_counter()
+    if sequence_length > 1 and small:
+        from fdnet.matching.sequence import sequence_similarity
+
+        similarity = sequence_similarity(similarity_matrix(queries, refs, descriptor.similarity), sequence_length)
+        retrieved, scores = top_k_of_matrix(similarity, k)
+    elif sequence_length > 1:
+        from fdnet.matching.sequence import sequence_top_k
+
+        retrieved, scores = sequence_top_k(queries, refs, k, sequence_length, similarity=descriptor.similarity)
+    else:
+        retrieved, scores = top_k(queries, refs, k, similarity=descriptor.similarity)
+    timing["ms_per_query"] = 1000.0 * (time.perf_counter() - t0) / max(len(queries), 1)
+    timing["num_references"] = len(refs)
+    timing["num_queries"] = len(queries)
+    if sequence_length > 1:
+        notes.append(f"ranked by SeqSLAM sequence similarity over {sequence_length} consecutive queries")
+
+    if keep_similarity and similarity is None:
+        if small:
+            similarity = similarity_matrix(queries, refs, descriptor.similarity)
+        else:
+            notes.append(f"similarity matrix not kept for plots ({len(queries)} x {len(refs)} is too large)")
+    return retrieved, scores, similarity
+
+
 def evaluate_method(
     descriptor: Descriptor,
     split: EvaluationSplit,
@@ -213,32 +246,8 @@ def evaluate_method(
     timing["ms_per_image"] = 1000.0 * seconds_describe / max(num_images, 1)
 
     k = max(max(ns), *(spec.depth for spec in specs))
-    matrix_entries = len(queries) * len(refs)
-    small = matrix_entries <= max_matrix_entries
-    similarity = None
-    t0 = time.perf_counter()
-    if sequence_length > 1 and small:
-        from fdnet.matching.sequence import sequence_similarity
-
-        similarity = sequence_similarity(similarity_matrix(queries, refs, descriptor.similarity), sequence_length)
-        retrieved, scores = top_k_of_matrix(similarity, k)
-    elif sequence_length > 1:
-        from fdnet.matching.sequence import sequence_top_k
-
-        retrieved, scores = sequence_top_k(queries, refs, k, sequence_length, similarity=descriptor.similarity)
-    else:
-        retrieved, scores = top_k(queries, refs, k, similarity=descriptor.similarity)
-    timing["ms_per_query"] = 1000.0 * (time.perf_counter() - t0) / max(len(queries), 1)
-    timing["num_references"] = len(refs)
-    timing["num_queries"] = len(queries)
-    if sequence_length > 1:
-        notes.append(f"ranked by SeqSLAM sequence similarity over {sequence_length} consecutive queries")
-
-    if keep_similarity and similarity is None:
-        if small:
-            similarity = similarity_matrix(queries, refs, descriptor.similarity)
-        else:
-            notes.append(f"similarity matrix not kept for plots ({len(queries)} x {len(refs)} is too large)")
+    retrieved, scores, similarity = _rank(descriptor, queries, refs, k, sequence_length, keep_similarity,
+                                          max_matrix_entries, timing, notes)
 
     settings = dict(descriptor.settings())
     settings.setdefault("dim", int(descriptor.dim))
