@@ -9,18 +9,20 @@ import os
 def add_method_arguments(parser: argparse.ArgumentParser, multiple: bool = False, required: bool = True) -> None:
     """--method plus the options any method may take (passed to ``fdnet.descriptors.create``).
     ``required=False`` for commands where --method is one of several input modes."""
+    from fdnet.descriptors.registry import fitting_methods, trained_methods
+
     parser.add_argument("--method", required=required,
                         help="descriptor method" + (" (comma-separated for several)" if multiple else "")
                         + "; `fdnet methods` lists them")
     per_method = " (with several methods: METHOD=PATH, repeatable; a bare PATH goes to every method that takes one)"
     parser.add_argument("--checkpoint", action="append", default=[],
-                        help="run directory of a trained method (fdnet, netvlad, calc)" + per_method)
+                        help=f"run directory of a trained method ({', '.join(trained_methods())})" + per_method)
     parser.add_argument("--weights", action="append", default=[],
                         help="weights file a method accepts (conv3 AlexNet, hybridnet)" + per_method)
     parser.add_argument("--vocabulary", action="append", default=[],
                         help="DBoW vocabulary file (from `fdnet vocabulary build`)" + per_method)
     parser.add_argument("--fit", action="append", default=[], metavar="[METHOD=]DIR",
-                        help="dataset folder a method that learns from images (dbow, trunk-whitened) learns from: "
+                        help=f"dataset folder a method that learns from images ({', '.join(fitting_methods())}) learns from: "
                              "every condition sub-folder, no labels (default: the reference images; the output's "
                              "settings say which as fitted_on)" + per_method)
     parser.add_argument("--fit-frames", action="append", default=[], metavar="[METHOD=]START:END",
@@ -133,11 +135,12 @@ def acceptance_from_arguments(args: argparse.Namespace):
 
 def add_device_argument(parser: argparse.ArgumentParser) -> None:
     """``--device`` for commands that run a model for inference."""
+    from fdnet.descriptors.registry import torch_methods
     from fdnet.runtime import DEVICE_HELP
 
     parser.add_argument("--device", default="auto", metavar="auto|cpu|cuda|cuda:N",
-                        help=DEVICE_HELP + ". Torch methods (fdnet, conv3, trunk, netvlad, calc, hybridnet) run "
-                             "there, images travel to it as uint8; the numpy/OpenCV methods run on the CPU")
+                        help=DEVICE_HELP + f". Torch methods ({', '.join(torch_methods())}) run there, images "
+                             "travel to it as uint8; the numpy/OpenCV methods run on the CPU")
 
 
 #: options whose value may be a folder of images, so also a video or ROS bag (fdnet.data.sources)

@@ -1,47 +1,191 @@
-"""Method name -> descriptor class, imported lazily so light methods never import torch."""
+"""Every place-recognition method, declared once: one :class:`MethodSpec` line per method.
+
+The line names the method's descriptor (what ``--method NAME`` builds), what it supports (a torch
+device, learning from ``--fit`` images, ONNX export, ``fdnet reproduce``'s default list) and, for
+a trained method, its run config class, its presets and its trainer. Everything that lists
+methods is generated from :data:`_METHODS`: ``--method``'s help and ``fdnet methods``,
+``fdnet train``'s method and preset choices, ``fdnet reproduce``'s method list
+(:func:`reproduce_methods`), the torch methods named by ``--device``'s help, and the table in
+docs/methods.md (:func:`methods_markdown`, checked by a test).
+
+Modules and classes are named as text and imported on use, so listing methods (``fdnet --help``)
+never imports torch. Adding a method is its own package plus one line here (docs/methods.md,
+"Adding a method").
+"""
 
 from __future__ import annotations
 
 import importlib
 import inspect
+from dataclasses import dataclass
 
 from fdnet.errors import ConfigError
 
-# name: (module, class, one-line summary)
-_METHODS: dict[str, tuple[str, str, str]] = {
-    "raw": ("fdnet.descriptors.classic", "RawThumbnail", "downsampled grey thumbnail, cosine"),
-    "sad": ("fdnet.descriptors.classic", "SeqSLAMFrontEnd", "SeqSLAM front end: patch-normalised thumbnail, sum of absolute differences"),
-    "hog": ("fdnet.descriptors.classic", "HOGDescriptor", "histogram of oriented gradients (OpenCV, VPR-Bench settings), cosine"),
-    "fdnet": ("fdnet.methods.fdnet.descriptor", "FDNetDescriptor", "FDNet content vector (needs --checkpoint RUN_DIR)"),
-    "gist": ("fdnet.descriptors.gist", "GistDescriptor", "Gist: Gabor energies on a 4x4 grid (512-d)"),
-    "dbow": ("fdnet.descriptors.dbow", "DBoWDescriptor", "ORB bag of words, vocabulary tree, TF-IDF, L1 score"),
-    "trunk": ("fdnet.methods.fdnet.trunk_alone", "TrunkDescriptor", "the frozen trunk FDNet reads, alone (the number to beat; --checkpoint takes an FDNet run's block and size)"),
-    "trunk-whitened": ("fdnet.methods.fdnet.trunk_alone", "TrunkWhitenedDescriptor", "the trunk's map PCA-whitened to dim=L (default 512), learnt from --fit DIR or the reference images"),
-    "conv3": ("fdnet.descriptors.conv3", "Conv3Descriptor", "pretrained CNN mid-level map + Gaussian random projection"),
-    "netvlad": ("fdnet.methods.netvlad.descriptor", "NetVLADDescriptor", "NetVLAD on the pretrained backbone (needs --checkpoint)"),
-    "calc": ("fdnet.methods.calc.descriptor", "CALCDescriptor", "CALC: auto-encoder reconstructing HOG (needs --checkpoint)"),
-    "landmarks": ("fdnet.descriptors.landmarks", "LandmarksDescriptor", "region proposals + CNN features, mutual NN matching"),
-    "hybridnet": ("fdnet.descriptors.hybridnet", "HybridNetDescriptor", "HybridNet conv4 (needs converted --weights)"),
-}
+
+@dataclass(frozen=True)
+class MethodSpec:
+    """One method. ``descriptor``, ``config`` and ``trainer`` are ``"module:attribute"`` text."""
+
+    name: str
+    #: one line for ``fdnet methods`` and the docs' table
+    summary: str
+    #: the :class:`fdnet.descriptors.base.Descriptor` class ``--method NAME`` builds
+    descriptor: str
+    #: runs on a torch device (takes ``--device``); the others run on the CPU whatever it says
+    torch: bool = False
+    #: learns from images before describing (``--fit DIR``, default the reference images)
+    fit: bool = False
+    #: ``fdnet export`` writes it as ONNX
+    export: bool = False
+    #: in ``fdnet reproduce``'s default method list
+    reproduce: bool = True
+    #: trained methods: the run config dataclass (its module holds ``PRESETS``: name -> factory)
+    config: str | None = None
+    #: trained methods: ``train(config, run_dir, resume, override, max_minutes, progress, command)``
+    trainer: str | None = None
+    #: trained methods: preset names (the keys of the config module's ``PRESETS``), and the default
+    presets: tuple[str, ...] = ()
+    default_preset: str = ""
+
+    @property
+    def trained(self) -> bool:
+        return self.trainer is not None
+
+    @property
+    def package(self) -> str | None:
+        """A trained method's package (``fdnet.methods.NAME``), from its config module."""
+        return self.config.split(":")[0].rsplit(".", 1)[0] if self.config else None
+
+    @property
+    def devices(self) -> str:
+        return "cpu, cuda" if self.torch else "cpu"
+
+    def descriptor_class(self):
+        return _load(self.descriptor)
+
+    def config_class(self):
+        self._need_training("a run config")
+        return _load(self.config)
+
+    def config_module(self):
+        self._need_training("presets")
+        return importlib.import_module(self.config.split(":")[0])
+
+    def preset(self, name: str | None = None):
+        """A fresh run config of preset ``name`` (default :attr:`default_preset`)."""
+        name = name or self.default_preset
+        if name not in self.presets:
+            raise ConfigError(f"unknown preset {name!r} for {self.name}; available: {', '.join(self.presets)}")
+        return self.config_module().PRESETS[name]()
+
+    def train_function(self):
+        self._need_training("training")
+        return _load(self.trainer)
+
+    def _need_training(self, what: str) -> None:
+        if not self.trained:
+            raise ConfigError(f"{self.name} is not a trained method, so it has no {what}; trained methods: "
+                              f"{', '.join(trained_methods())}")
+
+
+def _load(target: str):
+    module_name, _, attribute = target.partition(":")
+    return getattr(importlib.import_module(module_name), attribute)
+
+
+_M = MethodSpec
+# Order = order in `fdnet methods`, the docs' table and `fdnet reproduce` (FDNet, the trunk alone, then
+# the baselines).
+_METHODS: dict[str, MethodSpec] = {spec.name: spec for spec in (
+    _M("fdnet", "FDNet content vector (needs --checkpoint RUN_DIR)", "fdnet.methods.fdnet.descriptor:FDNetDescriptor",
+       torch=True, export=True, config="fdnet.methods.fdnet.config:TrainConfig",
+       trainer="fdnet.methods.fdnet.training:train", presets=("paper", "cpu", "cpu-scratch", "tiny"),
+       default_preset="cpu"),
+    _M("trunk", "the frozen trunk FDNet reads, alone (the number to beat; --checkpoint takes an FDNet run's block "
+       "and size)", "fdnet.methods.fdnet.trunk_alone:TrunkDescriptor", torch=True),
+    _M("trunk-whitened", "the trunk's map PCA-whitened to dim=L (default 512), learnt from --fit DIR or the "
+       "reference images", "fdnet.methods.fdnet.trunk_alone:TrunkWhitenedDescriptor", torch=True, fit=True),
+    _M("raw", "downsampled grey thumbnail, cosine", "fdnet.descriptors.classic:RawThumbnail", reproduce=False),
+    _M("sad", "SeqSLAM front end: patch-normalised thumbnail, sum of absolute differences",
+       "fdnet.descriptors.classic:SeqSLAMFrontEnd"),
+    _M("hog", "histogram of oriented gradients (OpenCV, VPR-Bench settings), cosine",
+       "fdnet.descriptors.classic:HOGDescriptor"),
+    _M("gist", "Gist: Gabor energies on a 4x4 grid (512-d)", "fdnet.descriptors.gist:GistDescriptor"),
+    _M("dbow", "ORB bag of words, vocabulary tree, TF-IDF, L1 score", "fdnet.descriptors.dbow:DBoWDescriptor",
+       fit=True),
+    _M("conv3", "pretrained CNN mid-level map + Gaussian random projection", "fdnet.descriptors.conv3:Conv3Descriptor",
+       torch=True),
+    _M("landmarks", "region proposals + CNN features, mutual NN matching",
+       "fdnet.descriptors.landmarks:LandmarksDescriptor"),
+    _M("netvlad", "NetVLAD on the pretrained backbone (needs --checkpoint)",
+       "fdnet.methods.netvlad.descriptor:NetVLADDescriptor", torch=True,
+       config="fdnet.methods.netvlad.config:NetVLADRunConfig", trainer="fdnet.methods.netvlad.training:train",
+       presets=("default", "tiny"), default_preset="default"),
+    _M("calc", "CALC: auto-encoder reconstructing HOG (needs --checkpoint)", "fdnet.methods.calc.descriptor:CALCDescriptor",
+       torch=True, config="fdnet.methods.calc.config:CALCRunConfig", trainer="fdnet.methods.calc.training:train",
+       presets=("default", "small", "tiny"), default_preset="default"),
+    _M("hybridnet", "HybridNet conv4 (needs converted --weights)", "fdnet.descriptors.hybridnet:HybridNetDescriptor",
+       torch=True),
+)}
+
+
+def spec(name: str) -> MethodSpec:
+    try:
+        return _METHODS[name]
+    except KeyError:
+        raise ConfigError(f"unknown method {name!r}; available: {', '.join(_METHODS)}") from None
+
+
+def all_specs() -> list[MethodSpec]:
+    return list(_METHODS.values())
 
 
 def available_methods() -> dict[str, str]:
     """Method name -> one-line summary."""
-    return {name: summary for name, (_, _, summary) in _METHODS.items()}
+    return {name: s.summary for name, s in _METHODS.items()}
+
+
+def trained_methods() -> list[str]:
+    """The methods ``fdnet train METHOD`` trains (FDNet first)."""
+    return [name for name, s in _METHODS.items() if s.trained]
+
+
+def torch_methods() -> list[str]:
+    """The methods that run on a torch device (``--device`` applies to them)."""
+    return [name for name, s in _METHODS.items() if s.torch]
+
+
+def fitting_methods() -> list[str]:
+    """The methods that learn from images before describing (``--fit``)."""
+    return [name for name, s in _METHODS.items() if s.fit]
+
+
+def reproduce_methods() -> tuple[str, ...]:
+    """``fdnet reproduce``'s default methods: FDNet, the trunk alone and every baseline."""
+    return tuple(name for name, s in _METHODS.items() if s.reproduce)
 
 
 def descriptor_class(name: str):
-    try:
-        module_name, class_name, _ = _METHODS[name]
-    except KeyError:
-        raise ConfigError(f"unknown method {name!r}; available: {', '.join(_METHODS)}") from None
-    module = importlib.import_module(module_name)
-    return getattr(module, class_name)
+    return spec(name).descriptor_class()
 
 
 def takes_device(name: str) -> bool:
-    """Whether method ``name`` runs on a torch device (has a ``device`` setting)."""
+    """Whether method ``name``'s descriptor has a ``device`` setting (what ``torch=`` declares;
+    a test holds the two together)."""
     return "device" in inspect.signature(descriptor_class(name).__init__).parameters
+
+
+def methods_markdown() -> str:
+    """The method table of docs/methods.md (a test checks that the file holds this text)."""
+    rows = ["| method | what it is | trained (`fdnet train METHOD`; presets, default first) | devices | learns from "
+            "`--fit` | ONNX export | in `fdnet reproduce` |",
+            "|---|---|---|---|---|---|---|"]
+    for s in _METHODS.values():
+        presets = ", ".join([s.default_preset, *(p for p in s.presets if p != s.default_preset)])
+        rows.append(f"| `{s.name}` | {s.summary.replace('|', '/')} | {f'yes ({presets})' if s.trained else 'no'} "
+                    f"| {s.devices} | {'yes' if s.fit else 'no'} | {'yes' if s.export else 'no'} "
+                    f"| {'yes' if s.reproduce else 'no'} |")
+    return "\n".join(rows) + "\n"
 
 
 def create(name: str, **options):
@@ -50,9 +194,9 @@ def create(name: str, **options):
     are dropped so command-line defaults do not override a method's own.
 
     ``device`` (``auto``, ``cpu``, ``cuda``, ``cuda:N``) goes to the methods that run on torch
-    (fdnet, conv3, trunk, netvlad, calc, hybridnet); the others (numpy/OpenCV: raw, sad, hog,
-    gist, dbow, landmarks) run on the CPU whatever it says, so ``--method fdnet,sad --device
-    cuda`` works. It is checked for every method, so a malformed one is always an error."""
+    (:func:`torch_methods`); the others (numpy/OpenCV) run on the CPU whatever it says, so
+    ``--method fdnet,sad --device cuda`` works. It is checked for every method, so a malformed
+    one is always an error."""
     cls = descriptor_class(name)
     options = {k: v for k, v in options.items() if v is not None}
     params = inspect.signature(cls.__init__).parameters

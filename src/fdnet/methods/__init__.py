@@ -1,9 +1,10 @@
 """Trained methods, one package each: ``fdnet`` (the paper's method), ``calc`` and ``netvlad``.
 
-Every package holds its ``config`` (dataclasses written to ``RUN_DIR/config.yaml``), ``model``
-(the networks), ``descriptor`` (inference: a run directory -> vectors) and ``training`` (its
-step on the shared loop in :mod:`fdnet.training.loop`). Inference modules never import
-``training``; this module only names the packages, so importing it is cheap.
+Every package holds its ``config`` (dataclasses written to ``RUN_DIR/config.yaml``, and
+``PRESETS``), ``model`` (the networks), ``descriptor`` (inference: a run directory -> vectors) and
+``training`` (its step on the shared loop in :mod:`fdnet.training.loop`, and ``train``). Which
+packages there are is the method registry's (:mod:`fdnet.descriptors.registry`, the entries with
+a trainer); inference modules never import ``training``, and importing this module is cheap.
 """
 
 from __future__ import annotations
@@ -13,15 +14,20 @@ from pathlib import Path
 
 from fdnet.errors import ConfigError
 
-#: method name -> package
-TRAINED_METHODS = {"fdnet": "fdnet.methods.fdnet", "calc": "fdnet.methods.calc", "netvlad": "fdnet.methods.netvlad"}
+
+def trained_packages() -> dict[str, str]:
+    """Trained method name -> its package (from the registry)."""
+    from fdnet.descriptors.registry import all_specs
+
+    return {s.name: s.package for s in all_specs() if s.trained}
 
 
 def method_module(method: str, part: str):
     """``fdnet.methods.<method>.<part>`` (part: config, model, descriptor, training)."""
-    if method not in TRAINED_METHODS:
-        raise ConfigError(f"unknown trained method {method!r}; available: {', '.join(TRAINED_METHODS)}")
-    return importlib.import_module(f"{TRAINED_METHODS[method]}.{part}")
+    packages = trained_packages()
+    if method not in packages:
+        raise ConfigError(f"unknown trained method {method!r}; available: {', '.join(packages)}")
+    return importlib.import_module(f"{packages[method]}.{part}")
 
 
 def load_method_config(run_dir, cls, method: str):
@@ -40,5 +46,5 @@ def load_method_config(run_dir, cls, method: str):
         if saved_method != method:
             what = f"a {saved_method!r} run" if saved_method else "not a baseline run (no 'method' setting)"
             raise ConfigError(f"{path}: is {what}, not a {method} run; give --checkpoint the --out folder "
-                              f"of `fdnet train-baseline {method}`")
+                              f"of `fdnet train {method}`")
     return runs.load_config(run_dir, cls)

@@ -27,6 +27,7 @@ import numpy as np
 
 from fdnet import __version__
 from fdnet.data.split import EvaluationSplit
+from fdnet.descriptors.registry import reproduce_methods
 from fdnet.errors import ConfigError, FdnetError
 from fdnet.evaluation.metrics import PROTOCOLS, RECALL_OVER_QUERIES
 from fdnet.io import atomic_write_text, ensure_writable
@@ -36,8 +37,7 @@ from fdnet.reproduce.sections import EXPERIMENTS, MANIFEST
 
 #: FDNet, the trunk alone and every baseline; those that cannot run here (no trained model, no
 #: weights) are listed in the report with the reason, unless named explicitly with --methods
-DEFAULT_METHODS = ("fdnet", "trunk", "trunk-whitened", "sad", "hog", "gist", "dbow", "conv3", "landmarks", "netvlad", "calc",
-                   "hybridnet")
+DEFAULT_METHODS = reproduce_methods()  # from the method registry (its ``reproduce`` column)
 
 #: the paper's protocol (section 5.1.2): 500 uniform thresholds, recall over queries
 PROTOCOL = RECALL_OVER_QUERIES
