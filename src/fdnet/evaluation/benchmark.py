@@ -1,0 +1,422 @@
+"""The figures of ``fdnet benchmark``: extraction ms/image and matching ms/query on this machine,
+each stated against references measured in the same run (fp32 and bf16 GEMM rates, FDNet's fp32
+eager path) and against the paper's Table 2/5 (TITAN X); GPU figures when a GPU is present; and
+indexed search on maps of 10^3-10^6 places. Nothing here is asserted by tests: machines are
+shared and noisy, so the report holds ratios measured side by side.
+
+:func:`plan_benchmark` checks the settings (every refusal before the first measurement);
+:func:`run_benchmark` measures and writes the tables through an ``out`` callable (the command
+passes ``print``: the tables are its output) and returns every figure as a dict.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import platform
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+from fdnet.errors import ConfigError, DataError
+
+DEFAULT_METHODS = "raw,sad,hog,gist,dbow,conv3,landmarks"
+PARTS = ("fdnet", "api", "gpu", "matching", "methods", "scale")
+DEFAULT_INDEXES = "flat,ivf,ivfpq,hnsw"
+
+
+@dataclass
+class BenchmarkPlan:
+    """Checked benchmark settings (see :func:`plan_benchmark`)."""
+
+    parts: list[str]
+    methods: list[str]
+    checkpoints: dict[str, str]
+    map_sizes: list[int]
+    kinds: list[str]
+    overrides: dict = field(default_factory=dict)
+    sweep: dict = field(default_factory=dict)
+    images: str | None = None
+    num_images: int = 32
+    queries: int = 1000
+    noise: float = 0.5
+    scale_dim: int | None = None
+    map_vectors: str | None = None
+    query_vectors: str | None = None
+    lengths: list[int] = field(default_factory=lambda: [256, 512, 1024, 2048])
+    compile: bool = False
+    quick: bool = False
+    threads: int = 2
+    device: str = "auto"
+    command: str | None = None
+
+    @property
+    def repeats(self) -> int:
+        return 2 if self.quick else 5
+
+
+def _comma_list(text: str) -> list[str]:
+    return [v.strip() for v in str(text).split(",") if v.strip()]
+
+
+def plan_benchmark(*, parts: str = ",".join(PARTS), methods: str = DEFAULT_METHODS, checkpoints=(),
+                   map_size: str = "1000", indexes: str = DEFAULT_INDEXES, index_set=(), sweep=(),
+                   images: str | None = None, num_images: int = 32, queries: int = 1000, noise: float = 0.5,
+                   scale_dim: int | None = None, map_vectors: str | None = None, query_vectors: str | None = None,
+                   lengths: str = "256,512,1024,2048", compile: bool = False, quick: bool = False,
+                   threads: int = 2, device: str = "auto", command: str | None = None) -> BenchmarkPlan:
+    """Check the command's settings as given (comma lists, ``METHOD=RUN_DIR``,
+    ``KIND:KEY=VALUE``, ``KEY=V1,V2``) and return them parsed; raises ConfigError/DataError naming
+    the flag."""
+    from fdnet.matching.index import INDEX_KINDS
+
+    chosen = _comma_list(parts)
+    unknown = sorted(set(chosen) - set(PARTS))
+    if unknown:
+        raise ConfigError(f"--parts: unknown {', '.join(unknown)}; choose from {','.join(PARTS)}")
+    try:
+        map_sizes = [int(v) for v in _comma_list(map_size)]
+    except ValueError:
+        raise ConfigError(f"--map-size {map_size!r}: expected whole numbers, e.g. 1000,100000") from None
+    if not map_sizes or min(map_sizes) < 2:
+        raise ConfigError(f"--map-size {map_size!r}: every map needs at least 2 places")
+    kinds = _comma_list(indexes)
+    for kind in kinds:
+        if kind not in INDEX_KINDS:
+            raise ConfigError(f"--indexes: unknown index {kind!r}; choose from {', '.join(INDEX_KINDS)}")
+    if queries < 1 or num_images < 1 or threads < 1:
+        raise ConfigError("--queries, --num-images and --threads must be at least 1")
+    if noise < 0:
+        raise ConfigError(f"--noise must be >= 0, got {noise}")
+    for flag, path in (("--map-vectors", map_vectors), ("--query-vectors", query_vectors)):
+        if path is not None and not Path(path).is_file():
+            raise DataError(f"{path}: {flag} file not found")
+    if query_vectors and not map_vectors:
+        raise ConfigError("--query-vectors needs --map-vectors")
+    parsed_checkpoints = {}
+    for item in checkpoints:
+        if "=" not in item:
+            raise ConfigError(f"--checkpoint {item!r}: expected METHOD=RUN_DIR")
+        method, path = item.split("=", 1)
+        parsed_checkpoints[method.strip()] = path
+    try:
+        length_list = [int(v) for v in _comma_list(lengths)]
+    except ValueError:
+        raise ConfigError(f"--lengths {lengths!r}: expected whole numbers, e.g. 256,512") from None
+    from fdnet.runtime import check_device_spec
+
+    return BenchmarkPlan(parts=chosen, methods=_comma_list(methods), checkpoints=parsed_checkpoints,
+                         map_sizes=map_sizes, kinds=kinds, overrides=index_overrides(index_set),
+                         sweep=sweeps(sweep), images=images, num_images=num_images, queries=queries, noise=noise,
+                         scale_dim=scale_dim, map_vectors=map_vectors, query_vectors=query_vectors,
+                         lengths=length_list, compile=compile, quick=quick, threads=threads,
+                         device=check_device_spec(device), command=command)
+
+
+def index_overrides(items) -> dict:
+    """``KIND:KEY=VALUE`` items -> {kind: {key: value}} (checked by the index's settings)."""
+    from fdnet.matching.index import INDEX_KINDS, parse_index_settings
+
+    out: dict = {}
+    for item in items:
+        kind, sep, pair = item.partition(":")
+        if not sep or kind not in INDEX_KINDS:
+            raise ConfigError(f"--index-set {item!r}: expected KIND:KEY=VALUE with KIND one of {', '.join(INDEX_KINDS)}")
+        settings = parse_index_settings(kind, [pair], where="--index-set")
+        key = pair.split("=", 1)[0].strip()
+        out.setdefault(kind, {})[key] = getattr(settings, key)
+    return out
+
+
+def sweeps(items) -> dict:
+    """``KEY=V1,V2,...`` items -> {key: [values]} for the search-time settings that can be swept."""
+    from fdnet.runtime import SWEEPABLE
+
+    out = {}
+    for item in items:
+        key, sep, values = item.partition("=")
+        key = key.strip()
+        try:
+            numbers = [int(v) for v in values.split(",") if v.strip()]
+        except ValueError:
+            numbers = []
+        if not sep or key not in SWEEPABLE or not numbers or min(numbers) < 1:
+            raise ConfigError(f"--sweep {item!r}: expected KEY=V1,V2,... with KEY one of {', '.join(SWEEPABLE)} "
+                              "and whole numbers >= 1")
+        out[key] = numbers
+    return out
+
+
+def _images(plan: BenchmarkPlan, size, uint8: bool = False):
+    import numpy as np
+
+    from fdnet.data.images import list_images, load_image_uint8, load_images
+
+    if plan.images:
+        paths = list_images(plan.images)[: plan.num_images]
+        if uint8:
+            return np.stack([load_image_uint8(p, size) for p in paths])
+        return load_images(paths, size)
+    from fdnet.data.synthetic import render_route
+
+    frames = render_route(frames=plan.num_images, conditions=("summer",), seed=0, size=tuple(size))
+    images = np.asarray(frames["summer"], dtype=np.float32)
+    if uint8:
+        return np.clip(np.rint(images * 255.0), 0, 255).astype(np.uint8)
+    return images
+
+
+def _read_vectors(path: str, what: str):
+    from pathlib import Path
+
+    import numpy as np
+
+    from fdnet.errors import DataError
+
+    p = Path(path)
+    if not p.is_file():
+        raise DataError(f"{p}: {what} file not found")
+    try:
+        if p.suffix == ".npz":
+            with np.load(p, allow_pickle=False) as z:
+                key = "content" if "content" in z.files else (z.files[0] if len(z.files) == 1 else None)
+                if key is None:
+                    raise DataError(f"{p}: an .npz without a 'content' array (has {', '.join(z.files)})")
+                v = z[key]
+        else:
+            from fdnet.data.arrays import load_npy
+
+            v = load_npy(p, ndim=2, what=what)
+    except (ValueError, OSError) as exc:
+        raise DataError(f"{p}: cannot read {what} ({exc})") from None
+    v = np.asarray(v, dtype=np.float32)
+    if v.ndim != 2 or len(v) == 0 or not np.isfinite(v).all():
+        raise DataError(f"{p}: {what} must be a finite (N, D) array with N > 0, got shape {v.shape}")
+    return np.ascontiguousarray(v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12))
+
+
+
+
+def run_benchmark(plan: BenchmarkPlan, out: Callable[[str], None], json_path: str | None = None) -> dict:
+    """Measure the parts of ``plan``, writing each table's lines to ``out``; returns every figure
+    (and writes them to ``json_path`` as JSON, atomically, when given: checked writable first)."""
+    import torch
+
+    from fdnet import __version__, runtime
+    from fdnet.io import ensure_writable
+
+    if json_path:
+        ensure_writable(json_path, what="benchmark JSON")
+    device = runtime.resolve_device(plan.device)
+    torch.set_num_threads(plan.threads)
+    try:
+        import faiss
+
+        faiss.omp_set_num_threads(plan.threads)
+    except ImportError:  # pragma: no cover - faiss is a dependency
+        pass
+    cpu = runtime.cpu_model()
+    report: dict = {"threads": plan.threads, "machine": platform.processor() or platform.machine(), "cpu": cpu,
+                    "torch": torch.__version__, "fdnet": __version__, "device": str(device), "command": plan.command}
+    out(f"fdnet benchmark: {plan.threads} threads, {cpu} ({platform.machine()}), torch {torch.__version__}, "
+        f"device {device}")
+    _gemm_references(plan, report, out)
+    lengths = [512] if plan.quick else plan.lengths
+    if "fdnet" in plan.parts:
+        _fdnet_extraction(plan, lengths, report, out)
+    with tempfile.TemporaryDirectory(prefix="fdnet-benchmark-") as workdir:
+        if "api" in plan.parts:
+            _public_api(plan, workdir, report, out)
+        if "gpu" in plan.parts:
+            _gpu(plan, device, workdir, report, out)
+        if "matching" in plan.parts:
+            _matching(plan, lengths, report, out)
+        if "methods" in plan.parts:
+            _methods(plan, report, out)
+        if "scale" in plan.parts:
+            _scale(plan, report, out)
+    if json_path:
+        import json
+
+        from fdnet.io import atomic_write_text
+
+        atomic_write_text(json_path, json.dumps(report, indent=2, default=float))
+        out(f"\nwrote {json_path}")
+    return report
+
+
+def _gemm_references(plan: BenchmarkPlan, report: dict, out) -> None:
+    from fdnet import runtime
+
+    size = 1024 if plan.quick else 2048
+    gflops = runtime.gemm_gflops(size=size, repeats=plan.repeats)
+    bf16_gflops = runtime.gemm_gflops(size=size, repeats=plan.repeats, dtype="bf16")
+    native = runtime.bf16_native("cpu")
+    report.update(gemm_gflops_fp32=gflops, gemm_gflops_bf16=bf16_gflops, gemm_size=size, bf16_native_cpu=native)
+    out(f"\nmachine references, measured now: fp32 GEMM {size}^3 = {gflops:.1f} GFLOP/s, bf16 GEMM = "
+        f"{bf16_gflops:.1f} GFLOP/s ({'native' if native else 'no native'} bf16 on this CPU)")
+
+
+def _fdnet_extraction(plan: BenchmarkPlan, lengths, report: dict, out) -> None:
+    from fdnet import runtime
+    from fdnet.methods.fdnet.config import preset
+
+    gflops, bf16_gflops = report["gemm_gflops_fp32"], report["gemm_gflops_bf16"]
+    paper_model = preset("paper").model
+    out("\nFDNet extraction, `paper` preset architecture (224x224, 5 blocks 64..512), ms/image; "
+        "%GEMM = achieved GFLOP/s over the GEMM rate of the same precision")
+    out(f"{'L':>5} {'GFLOP':>6} {'fp32 b32':>9} {'bf16 b32':>9} {'bf16/fp32':>9} {'fp32 b1':>8} {'bf16 b1':>8} "
+        f"{'%fp32GEMM':>9} {'%bf16GEMM':>9} {'paper GPU':>9} {'paper/ours':>10}")
+    report["fdnet_extraction_ms"] = {}
+    for length in lengths:
+        t = runtime.fdnet_extraction(vector_length=length, repeats=plan.repeats)
+        flops = runtime.content_flops(dataclasses.replace(paper_model, vector_length=length))
+        paper = runtime.PAPER_TABLE2.get(length, (float("nan"), float("nan")))[0]
+        best = min(t["bf16_batch32"], t["fp32_batch32"])
+        share_fp32 = flops / (t["fp32_batch32"] * 1e-3) / 1e9 / gflops
+        share_bf16 = flops / (t["bf16_batch32"] * 1e-3) / 1e9 / bf16_gflops
+        report["fdnet_extraction_ms"][length] = dict(t, paper_gpu=paper, gflop_per_image=flops / 1e9,
+                                                     fraction_of_fp32_gemm=share_fp32,
+                                                     fraction_of_bf16_gemm=share_bf16)
+        out(f"{length:>5} {flops / 1e9:>6.2f} {t['fp32_batch32']:>9.2f} {t['bf16_batch32']:>9.2f} "
+            f"{t['fp32_batch32'] / t['bf16_batch32']:>8.2f}x {t['fp32_batch1']:>8.2f} {t['bf16_batch1']:>8.2f} "
+            f"{100 * share_fp32:>8.0f}% {100 * share_bf16:>8.0f}% {paper:>9.1f} {paper / best:>9.2f}x")
+
+
+def _public_api(plan: BenchmarkPlan, workdir: str, report: dict, out) -> None:
+    from fdnet import runtime
+
+    run_dir, config = runtime.temporary_fdnet_run(workdir, "cpu")
+    flops = runtime.content_flops(config.model)
+    images = _images(plan, tuple(config.model.input_size), uint8=True)
+    t = runtime.descriptor_paths(run_dir, images, repeats=max(1, plan.repeats - 2), device="cpu",
+                                 compiled=plan.compile)
+    speedup = t["fp32_eager"] / t["extract"]
+    rate = flops / (t["extract"] * 1e-3) / 1e9
+    reference = report["gemm_gflops_bf16"] if t["extract_bf16"] else report["gemm_gflops_fp32"]
+    report["cpu_preset_descriptor_ms"] = dict(t, gflop_per_image=flops / 1e9, speedup=speedup,
+                                              fraction_of_gemm=rate / reference,
+                                              input_size=list(config.model.input_size),
+                                              vector_length=config.model.vector_length,
+                                              images=len(images))
+    out(f"\nFDNet `cpu` preset descriptor through the public API (trunk + encoders, "
+        f"{config.model.input_size[0]}x{config.model.input_size[1]}, L = {config.model.vector_length}, "
+        f"{flops / 1e9:.2f} GFLOP/image), {len(images)} images, CPU, ms/image:")
+    out(f"  fp32 eager (float32 images, no autocast)   {t['fp32_eager']:8.2f}")
+    out(f"  fdnet extract's path (uint8, {'bf16' if t['extract_bf16'] else 'fp32'})        "
+        f"{t['extract']:8.2f}   {speedup:.2f}x the fp32 eager path, {rate:.1f} GFLOP/s = "
+        f"{100 * rate / reference:.0f}% of the {'bf16' if t['extract_bf16'] else 'fp32'} GEMM rate; "
+        f"paper FDNet_512 on a TITAN X 21.2 ms: {21.2 / t['extract']:.1f}x")
+    if "extract_compiled" in t:
+        report["cpu_preset_descriptor_ms"]["speedup_compiled"] = t["fp32_eager"] / t["extract_compiled"]
+        out(f"  fdnet extract --compile                     {t['extract_compiled']:8.2f}   "
+            f"{t['fp32_eager'] / t['extract_compiled']:.2f}x the fp32 eager path (compiling took "
+            f"{t['compile_seconds']:.0f} s)")
+
+
+def _gpu(plan: BenchmarkPlan, device, workdir: str, report: dict, out) -> None:
+    from fdnet import runtime
+
+    if device.type != "cuda":
+        report["gpu"] = None
+        out(f"\nGPU: none here (device {device}); GPU figures unmeasured")
+        return
+    run_dir, _ = runtime.temporary_fdnet_run(workdir, "paper", vector_length=512)
+    g = runtime.gpu_figures(device, run_dir, seconds=1.0 if plan.quick else 3.0)
+    g["gemm_gflops_fp32"] = runtime.gemm_gflops(size=8192, repeats=plan.repeats, device=device)
+    g["gemm_gflops_bf16"] = runtime.gemm_gflops(size=8192, repeats=plan.repeats, dtype="bf16", device=device)
+    report["gpu"] = g
+    out(f"\nGPU {g['name']} ({device}): GEMM 8192^3 fp32 {g['gemm_gflops_fp32'] / 1e3:.1f} TFLOP/s, "
+        f"bf16 {g['gemm_gflops_bf16'] / 1e3:.1f} TFLOP/s; FDNet_512 at 224x224, images/s "
+        "(paper: 1000 / 21.2 ms = 47 images/s on a TITAN X):")
+    for key, value in g.items():
+        if key.endswith("_images_per_s"):
+            out(f"  {key[:-len('_images_per_s')]:24s} {value:10.0f}   {value / (1000 / 21.2):8.0f}x the paper")
+
+
+def _matching(plan: BenchmarkPlan, lengths, report: dict, out) -> None:
+    from fdnet import runtime
+
+    map_size = plan.map_sizes[0]
+    out(f"\nMatching: best of {map_size} references per query, ms/query")
+    out(f"{'L':>5} {'numpy 1q':>9} {'numpy batch':>11} {'faiss flat':>10} {'faiss hnsw':>10} {'paper':>9} "
+        f"{'paper/ours':>10}")
+    report["matching_ms"] = {}
+    for length in lengths:
+        m = runtime.matching_per_query(map_size, length)
+        paper = runtime.PAPER_TABLE2.get(length, (float("nan"), float("nan")))[1]
+        report["matching_ms"][length] = dict(m, paper_gpu=paper, map_size=map_size)
+        out(f"{length:>5} {m['numpy_single']:>9.4f} {m['numpy_batched']:>11.4f} {m['faiss_flat']:>10.4f} "
+            f"{m['faiss_hnsw']:>10.4f} {paper:>9.2f} {paper / m['numpy_single']:>9.1f}x")
+
+
+def _methods(plan: BenchmarkPlan, report: dict, out) -> None:
+    from fdnet import runtime
+    from fdnet.descriptors import create
+    from fdnet.errors import FdnetError
+
+    methods = list(plan.methods) + [m for m in plan.checkpoints if m not in plan.methods]
+    out(f"\nExtraction through the descriptor interface, {plan.num_images} images, ms/image "
+        f"(decoding excluded); vs SAD = SAD's time / method's; vs paper = the paper's Table 5 time / ours")
+    timings = report["method_extraction_ms"] = {}
+    cache = {}
+    for method in methods:
+        try:
+            descriptor = create(method, checkpoint=plan.checkpoints.get(method), device="cpu")
+            size = tuple(descriptor.input_size)
+            if size not in cache:
+                cache[size] = _images(plan, size)
+            images = cache[size]
+            if descriptor.needs_fit:
+                descriptor.fit(images)
+            ms = runtime.descriptor_extraction(descriptor, images, repeats=max(1, plan.repeats - 2))
+        except FdnetError as exc:
+            out(f"  {method:10s} skipped: {exc}")
+            timings[method] = None
+            continue
+        timings[method] = ms
+        paper = runtime.PAPER_TABLE5.get(method, (None, None))[0]
+        vs_paper = f"  paper {paper:g} ms: {paper / ms:.1f}x" if paper else ""
+        out(f"  {method:10s} {ms:9.3f} ms/image  ({descriptor.dim}-d, input {size[0]}x{size[1]}){vs_paper}")
+    sad = timings.get("sad")
+    for method, ms in timings.items():
+        if ms:
+            if sad:
+                report.setdefault("ratio_vs_sad", {})[method] = sad / ms
+            if method in runtime.PAPER_TABLE5:
+                report.setdefault("ratio_vs_paper_table5", {})[method] = runtime.PAPER_TABLE5[method][0] / ms
+    report["paper_table5"] = {k: {"extraction_ms": v[0], "matching_ms": v[1]}
+                              for k, v in runtime.PAPER_TABLE5.items()}
+
+
+def _scale(plan: BenchmarkPlan, report: dict, out) -> None:
+    from fdnet import runtime
+
+    dim = plan.scale_dim
+    if dim is None:
+        dim = 512
+        if "fdnet" in plan.checkpoints:
+            from fdnet.methods.fdnet.config import TrainConfig
+            from fdnet.runs import load_config
+
+            dim = int(load_config(plan.checkpoints["fdnet"], TrainConfig).model.vector_length)
+    report["scale"] = []
+    for n in plan.map_sizes:
+        out(f"\nScale: a map of {n:,} random unit {dim}-d vectors, {min(plan.queries, n)} queries = map "
+            f"vectors + noise {plan.noise}; recall@1 against exact search")
+        vectors = runtime.random_map(n, dim)
+        queries = runtime.revisit_queries(vectors, plan.queries, plan.noise)
+        report["scale"] += runtime.scale_rows(vectors, queries, plan.kinds, plan.overrides, source="random", log=out,
+                                              sweep=plan.sweep)
+        del vectors
+    if plan.map_vectors:
+        vectors = _read_vectors(plan.map_vectors, "map vectors")
+        queries = (_read_vectors(plan.query_vectors, "query vectors") if plan.query_vectors
+                   else runtime.revisit_queries(vectors, plan.queries, plan.noise))
+        if queries.shape[1] != vectors.shape[1]:
+            raise ConfigError(f"--query-vectors are {queries.shape[1]}-d but --map-vectors "
+                              f"{vectors.shape[1]}-d")
+        out(f"\nScale: {plan.map_vectors}, {len(vectors):,} real {vectors.shape[1]}-d vectors, "
+            f"{len(queries)} queries")
+        report["scale"] += runtime.scale_rows(vectors, queries, plan.kinds, plan.overrides,
+                                              source=str(plan.map_vectors), log=out, sweep=plan.sweep)
