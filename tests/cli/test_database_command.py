@@ -323,15 +323,16 @@ def test_a_database_whose_folder_is_not_writable_opens_immutable_on_any_machine(
     """The same path as read-only media, where the test cannot mount: the folder reported
     unwritable (what os.access says there) opens the file immutable, with the note."""
     import fdnet.matching.database as database
+    import fdnet.matching.database.storage as storage
 
-    monkeypatch.setattr(database.os, "access", lambda path, mode: False)
+    monkeypatch.setattr(storage.os, "access", lambda path, mode: False)
     capsys.readouterr()
     assert main(["database", "info", "--db", str(built)]) == 0
     printed = capsys.readouterr()
     assert "opened read-only" in printed.err and json.loads(printed.out)["places"] == 6
     with database.PlaceDatabase.open(built) as db:
         assert db.read_only and len(db) == 6
-        with pytest.raises(database.DataError, match="readonly"):
+        with pytest.raises(storage.DataError, match="readonly"):
             db.add(np.zeros((1, db.dim), np.float32), ["new"])
 
 

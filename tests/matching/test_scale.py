@@ -136,7 +136,7 @@ def test_database_index_cache_is_derived_current_and_reused(tmp_path, rng):
     # a new process (here: a new handle) loads the cache; its answers are the same
     with PlaceDatabase.open(path) as again:
         assert [[m.index for m in row] for row in again.query(queries, k=3)] == [[m.index for m in row] for row in first]
-        assert again._cached_places == 12000
+        assert again._index_cache.places == 12000
         # places added later are added to the loaded index, never missing from answers
         more = unit(rng, 5, 16)
         again.add(more, [f"new{i}" for i in range(5)])
@@ -146,7 +146,7 @@ def test_database_index_cache_is_derived_current_and_reused(tmp_path, rng):
     other = PlaceDatabase.create(tmp_path / "other.db", d, method_options={}, index=IndexSettings(kind="ivf"),
                                  vectors=v[:100], names=names[:100])
     cache.replace(other.index_cache_path)
-    assert other.query(v[:3], k=1)[0][0].index == 0 and other._cached_places == 0
+    assert other.query(v[:3], k=1)[0][0].index == 0 and other._index_cache.places == 0
     other.close()
     # flat databases have no cache: rebuilding is a copy
     with PlaceDatabase.create(tmp_path / "flat.db", d, method_options={}, vectors=v[:10], names=names[:10]) as flat:

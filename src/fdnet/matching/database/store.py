@@ -1,29 +1,13 @@
-"""A persistent place database for loop closure and relocalisation, in one SQLite file.
-
-Holds one vector per place with its name (image file), optional position and metadata, and
-answers "which stored places look like this?" with ranked candidates and scores. The file also
-records which descriptor made its vectors (method, settings, the options that rebuild it, and a
-fingerprint of its weights), so vectors from another model are refused instead of mixed in.
-
-Why SQLite: every ``add`` is one transaction (``BEGIN IMMEDIATE``), so concurrent writers queue
-behind each other instead of overwriting each other's batch, readers see the database before or
-after an add but never half of one, and a process killed at any instant leaves the old or the
-new state. The write-ahead log (WAL) lets queries read while a writer writes.
-
-The faiss index is derived data: it is rebuilt from the stored vectors when a database is first
-queried and extended when other processes add places, so it can never disagree with the file.
-See ``docs/database.md`` for the file format and the guarantees.
-"""
+"""The place database itself: :class:`PlaceDatabase` makes, opens, adds to and queries one file
+(or an in-memory database), and :class:`Match`/:class:`AddResult` are what it answers."""
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
-import shlex
 import sqlite3
 import uuid
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Callable, Iterable, Iterator, Sequence
@@ -31,53 +15,19 @@ from typing import Callable, Iterable, Iterator, Sequence
 import numpy as np
 
 from fdnet.errors import ConfigError, DataError
-from fdnet.matching.index import INDEX_KINDS, IndexSettings, VectorIndex, check_settings
+from fdnet.matching.database.identity import _check_descriptor, _check_fingerprint, _Identity, _index_settings, _read_identity
+from fdnet.matching.database.index_cache import IndexCache
+from fdnet.matching.database.storage import (
+    _TABLES, _SCHEMA, APPLICATION_ID, MEMORY, SCHEMA_VERSION, _canonical_json, _check_header, _connect,
+    _connect_read_only, _describe_foreign, _is_fdnet_database, _read_only_storage, _sqlite_errors, _transaction,
+    check_can_create, check_place_names, refuse_old_format)
+from fdnet.matching.index import IndexSettings, VectorIndex
 from fdnet.matching.similarity import top_k
 
-#: ``PRAGMA user_version`` of the files this code writes; a newer file is refused, not guessed at.
-SCHEMA_VERSION = 1
-#: ``PRAGMA application_id``: tells an fdnet place database from any other SQLite file.
-APPLICATION_ID = int.from_bytes(b"fdPD", "big")
-#: How long a writer waits for another writer's transaction before giving up. Adds are short
-#: (describing images happens before the transaction), so a minute means something is stuck.
-BUSY_TIMEOUT_S = 60.0
-MEMORY = ":memory:"
-SQLITE_MAGIC = b"SQLite format 3\x00"
-OLD_FORMAT_FILES = ("database.json", "vectors.npy")
 #: Stay well under SQLite's limit on bound parameters per statement.
 _NAMES_PER_QUERY = 500
 #: Rows read from the file per fetch while loading places (bounded memory besides the index).
 _ROWS_PER_FETCH = 65536
-#: Suffix of the derived index cache beside a database file (approximate kinds only).
-INDEX_CACHE_SUFFIX = ".fdnet-index"
-
-_SCHEMA = """
-CREATE TABLE fdnet_database (
-    singleton INTEGER PRIMARY KEY CHECK (singleton = 1),
-    database_id TEXT NOT NULL,
-    method TEXT NOT NULL,
-    settings TEXT NOT NULL,
-    method_options TEXT NOT NULL,
-    dim INTEGER NOT NULL CHECK (dim > 0),
-    dot_product INTEGER NOT NULL CHECK (dot_product IN (0, 1)),
-    index_settings TEXT NOT NULL,
-    fingerprint TEXT NOT NULL,
-    data_version INTEGER NOT NULL,
-    created TEXT NOT NULL,
-    fdnet_version TEXT NOT NULL
-);
-CREATE TABLE places (
-    id INTEGER PRIMARY KEY,
-    name TEXT NOT NULL,
-    x REAL,
-    y REAL,
-    metadata TEXT,
-    vector BLOB NOT NULL,
-    CHECK ((x IS NULL) = (y IS NULL))
-);
-CREATE INDEX places_by_name ON places (name);
-"""
-_TABLES = ("fdnet_database", "places")
 
 
 @dataclass
@@ -98,276 +48,6 @@ class AddResult:
     #: places in the database after this add
     places: int
     data_version: int
-
-
-def short_fingerprint(fingerprint: str) -> str:
-    return fingerprint[:12]
-
-
-def migrate_command(folder: str | os.PathLike) -> str:
-    folder = Path(folder)
-    return f"fdnet database migrate --from {shlex.quote(str(folder))} --out {shlex.quote(str(folder) + '.db')}"
-
-
-def refuse_old_format(path: str | os.PathLike) -> None:
-    """A folder holding the old ``database.json`` + ``vectors.npy`` is named with the exact
-    command that converts it, instead of a puzzling 'not a database'."""
-    path = Path(path)
-    if path.is_dir() and any((path / name).exists() for name in OLD_FORMAT_FILES):
-        raise ConfigError(f"{path}: a place database in the old folder format (database.json + vectors.npy); "
-                          f"convert it once with: {migrate_command(path)}")
-
-
-def _canonical_json(value, where: str) -> str:
-    try:
-        return json.dumps(value, sort_keys=True, allow_nan=False, default=_json_default)
-    except (TypeError, ValueError) as exc:
-        raise ConfigError(f"{where}: cannot be stored as JSON ({exc})") from None
-
-
-def _json_default(value):
-    if isinstance(value, (Path, os.PathLike)):
-        return str(value)
-    if isinstance(value, (np.integer, np.floating, np.bool_)):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    raise TypeError(f"{type(value).__name__} is not JSON")
-
-
-def _check_header(path: Path) -> None:
-    if path.is_dir():
-        refuse_old_format(path)
-        raise DataError(f"{path}: is a folder, not a place database file (e.g. {path / 'map.db'})")
-    try:
-        with open(path, "rb") as fh:
-            head = fh.read(len(SQLITE_MAGIC))
-    except FileNotFoundError:
-        raise DataError(f"{path}: no such place database (make one with `fdnet database build`)") from None
-    except OSError as exc:
-        raise DataError(f"{path}: cannot read the place database ({exc.strerror or exc})") from None
-    if not head:
-        raise DataError(f"{path}: an empty file, not an fdnet place database")
-    if head != SQLITE_MAGIC:
-        raise DataError(f"{path}: not an fdnet place database (not a SQLite file)")
-
-
-def _describe_foreign(conn: sqlite3.Connection) -> str:
-    tables = [r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table' ORDER BY name")]
-    return f"it has tables: {', '.join(tables)}" if tables else "it has no tables"
-
-
-def _sqlite_message(exc: sqlite3.Error, path=None) -> str:
-    text = str(exc)
-    if "locked" in text or "busy" in text:
-        return f"another process held the database's write lock for more than {BUSY_TIMEOUT_S:.0f} s ({text})"
-    if path is not None and path != MEMORY and any(
-            words in text for words in ("unable to open", "disk I/O error", "readonly", "disk is full")):
-        why = _storage_problem(path)
-        if why:
-            return f"{text}: {why}"
-    return text
-
-
-def _storage_problem(path) -> str:
-    """Why SQLite cannot open or write ``path``, from what the operating system says about its
-    folder (SQLite itself only says "unable to open database file" or "disk I/O error"); "" when
-    nothing is found. SQLite's write-ahead log needs to create ``-wal`` and ``-shm`` files beside
-    the database, even to read it."""
-    folder = Path(path).resolve().parent
-    problems = []
-    try:
-        stats = os.statvfs(folder)
-        free = stats.f_bavail * stats.f_frsize
-        if stats.f_flag & getattr(os, "ST_RDONLY", 1):
-            problems.append(f"its folder {folder} is on a read-only file system")
-        elif free < (1 << 20):
-            problems.append(f"no space left on the device ({free // 1024} KiB free in {folder})")
-    except (OSError, AttributeError):  # no statvfs (Windows)
-        pass
-    if not problems and not os.access(folder, os.W_OK):
-        problems.append(f"this user cannot write in its folder {folder}")
-    try:
-        import resource
-
-        limit = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
-        if limit != resource.RLIM_INFINITY and limit < (1 << 30):
-            problems.append(f"this process may only write files up to {limit} bytes (ulimit -f)")
-    except (ImportError, OSError, ValueError):
-        pass
-    return "; ".join(problems)
-
-
-def _read_only_storage(path: Path) -> bool:
-    """True when the database's folder cannot be written (read-only media, a read-only mount or
-    share): SQLite's write-ahead log then cannot create its ``-shm`` file to open it as usual."""
-    return not os.access(path.resolve().parent, os.W_OK)
-
-
-@contextlib.contextmanager
-def _sqlite_errors(path, doing: str) -> Iterator[None]:
-    """SQLite's exceptions as the project's errors, naming the file and what was being done."""
-    try:
-        yield
-    except sqlite3.Error as exc:
-        raise DataError(f"{path}: {doing}: {_sqlite_message(exc, path)}") from None
-
-
-@contextlib.contextmanager
-def _transaction(conn: sqlite3.Connection, mode: str) -> Iterator[sqlite3.Connection]:
-    """``BEGIN IMMEDIATE`` takes the write lock up front, so two writers queue (busy timeout)
-    instead of both reading, then one failing to upgrade its lock; ``BEGIN DEFERRED`` gives a
-    reader one consistent snapshot across several SELECTs."""
-    conn.execute(f"BEGIN {mode}")
-    try:
-        yield conn
-    except BaseException:
-        if conn.in_transaction:
-            conn.execute("ROLLBACK")
-        raise
-    conn.execute("COMMIT")
-
-
-def _connect(target: str, uri: bool = False) -> sqlite3.Connection:
-    # isolation_level=None: the module must not open transactions behind our back; each add is
-    # exactly the BEGIN IMMEDIATE ... COMMIT written below.
-    conn = sqlite3.connect(target, timeout=BUSY_TIMEOUT_S, isolation_level=None, uri=uri)
-    # FULL, not NORMAL: with WAL, NORMAL may lose the last commits on power loss, and the
-    # database promises that an add it has acknowledged is on disk.
-    conn.execute("PRAGMA synchronous = FULL")
-    return conn
-
-
-def _connect_read_only(path: Path) -> sqlite3.Connection:
-    """A database on storage this process cannot write. Without a write-ahead log left beside it
-    the file holds every committed add and is opened ``immutable`` (no -shm needed, no locks: on
-    read-only storage nobody can change it). A log left there (a writer killed, the medium then
-    made read-only) holds commits not yet in the file: they are read through its ``-shm`` file
-    (``mode=ro``), and refused with a clear message when that is missing too."""
-    uri = path.resolve().as_uri()
-    wal = Path(f"{path}-wal")
-    if not (wal.exists() and wal.stat().st_size > 0):
-        return _connect(uri + "?immutable=1", uri=True)
-    try:
-        conn = _connect(uri + "?mode=ro", uri=True)
-        conn.execute("SELECT count(*) FROM sqlite_master").fetchone()
-        return conn
-    except sqlite3.Error:
-        raise DataError(f"{path}: its folder cannot be written and its write-ahead log {wal} holds adds not yet "
-                        f"copied into the file, which SQLite can only read with {path}-shm beside it; copy the "
-                        "database and its -wal file to a writable folder and open it there") from None
-
-
-def check_place_names(names: Sequence[str]) -> None:
-    """Refuse a place name that is not valid UTF-8 (a file name Python keeps as surrogates):
-    SQLite text is UTF-8, so it could not be stored. Callers check before describing images."""
-    for name in names:
-        try:
-            str(name).encode("utf-8")
-        except UnicodeEncodeError:
-            raise DataError(f"{os.fsencode(str(name))!r}: the file name is not valid UTF-8, which a place database "
-                            "cannot store as a place name; rename the file") from None
-
-
-def _is_fdnet_database(conn: sqlite3.Connection) -> bool:
-    return conn.execute("PRAGMA application_id").fetchone()[0] == APPLICATION_ID
-
-
-def check_can_create(path: str | os.PathLike, overwrite: bool = False) -> None:
-    """Refuse, before any image is described, a database path that ``create`` would refuse.
-
-    A file with content is only replaced with ``overwrite``, and only if it is an fdnet place
-    database; an empty file, or a SQLite file without tables (what a create killed before its
-    first commit leaves), holds nothing to lose and is simply reused.
-    """
-    path = Path(path)
-    if str(path) == MEMORY:
-        return
-    refuse_old_format(path)
-    if path.is_dir():
-        raise ConfigError(f"{path}: is a folder; name the database file to write (e.g. {path / 'map.db'})")
-    if path.exists():
-        if path.stat().st_size == 0:
-            return
-        with open(path, "rb") as fh:
-            if fh.read(len(SQLITE_MAGIC)) != SQLITE_MAGIC:
-                raise DataError(f"{path}: exists and is not an fdnet place database (not a SQLite file); "
-                                "refusing to overwrite it")
-        conn = _connect(path.resolve().as_uri() + "?mode=rw", uri=True)
-        try:
-            with _sqlite_errors(path, "checking the existing file"):
-                tables = conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'").fetchall()
-                if tables and not _is_fdnet_database(conn):
-                    raise DataError(f"{path}: is a SQLite database but not an fdnet place database "
-                                    f"({_describe_foreign(conn)}); refusing to overwrite it")
-        finally:
-            conn.close()
-        if tables and not overwrite:
-            raise ConfigError(f"{path}: already exists; pass --overwrite (overwrite=True) to replace it")
-    elif Path(f"{path}-wal").exists():
-        # SQLite would replay a stray log into the new file: a corrupt database from the start.
-        raise DataError(f"{path}-wal: a write-ahead log left without its database; remove it "
-                        f"(and {path}-shm) before creating {path}")
-
-
-@dataclass(frozen=True)
-class _Identity:
-    database_id: str
-    method: str
-    settings: dict
-    method_options: dict
-    dim: int
-    dot_product: bool
-    index_settings: IndexSettings
-    fingerprint: str
-    created: str
-    fdnet_version: str
-
-
-def _index_settings(value, where: str, error: type = DataError) -> IndexSettings:
-    if not isinstance(value, dict):
-        raise error(f"{where}: must be an object of index settings, got {type(value).__name__}")
-    known = {f.name: f.type for f in fields(IndexSettings)}
-    unknown = sorted(set(value) - set(known))
-    if unknown:
-        raise error(f"{where}: unknown index setting(s) {', '.join(unknown)}; known: {', '.join(known)}")
-    settings = IndexSettings(**value)
-    if not isinstance(settings.kind, str) or settings.kind not in INDEX_KINDS:
-        raise error(f"{where}: index kind {settings.kind!r} is not one of {', '.join(INDEX_KINDS)}")
-    return check_settings(settings, where, error)
-
-
-def _read_identity(path, conn: sqlite3.Connection) -> _Identity:
-    columns = ("database_id", "method", "settings", "method_options", "dim", "dot_product", "index_settings",
-               "fingerprint", "created", "fdnet_version")
-    row = conn.execute(f"SELECT {', '.join(columns)} FROM fdnet_database").fetchone()
-    if row is None:
-        raise DataError(f"{path}: the fdnet_database table is empty; the file is damaged")
-    values = dict(zip(columns, row))
-
-    def column(name: str, kind: type):
-        value = values[name]
-        if not isinstance(value, kind) or isinstance(value, bool):
-            raise DataError(f"{path}: column {name} of fdnet_database must be {kind.__name__}, got {value!r}")
-        return value
-
-    def json_column(name: str):
-        text = column(name, str)
-        try:
-            value = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise DataError(f"{path}: column {name} of fdnet_database is not valid JSON ({exc})") from None
-        if not isinstance(value, dict):
-            raise DataError(f"{path}: column {name} of fdnet_database must be a JSON object")
-        return value
-
-    return _Identity(
-        database_id=column("database_id", str), method=column("method", str),
-        settings=json_column("settings"), method_options=json_column("method_options"),
-        dim=column("dim", int), dot_product=bool(column("dot_product", int)),
-        index_settings=_index_settings(json_column("index_settings"), f"{path}: column index_settings"),
-        fingerprint=column("fingerprint", str), created=column("created", str),
-        fdnet_version=column("fdnet_version", str))
 
 
 class PlaceDatabase:
@@ -395,8 +75,8 @@ class PlaceDatabase:
         self._vector_chunks: list[np.ndarray] = []
         # Made on the first read, so a process that only adds never imports faiss.
         self._index: VectorIndex | None = None
-        # Places the derived index cache file held when it was loaded or written (see _refresh).
-        self._cached_places = 0
+        # The derived index's cache file beside the database (see _refresh).
+        self._index_cache = IndexCache(path, identity)
 
     # ------------------------------------------------------------------ identity
     @property
@@ -729,53 +409,10 @@ class PlaceDatabase:
         """Where the derived index of an approximate kind (hnsw, ivf, ivfpq) is cached: beside
         the database file, ``map.db.fdnet-index``. None for ``flat`` (rebuilding it is a copy)
         and in-memory databases."""
-        if self.path == MEMORY or not self.dot_product or self.index_settings.kind == "flat":
-            return None
-        return Path(f"{self.path}{INDEX_CACHE_SUFFIX}")
-
-    def _load_cached_index(self, conn: sqlite3.Connection) -> tuple[VectorIndex | None, int]:
-        """The cached index and the last place id it holds, when the cache belongs to this
-        database (same database_id, build settings and fingerprint) and holds exactly the places
-        with id <= that id; otherwise (None, 0) and the index is rebuilt from the file."""
-        cache = self.index_cache_path
-        if cache is None or not cache.is_file():
-            return None, 0
-        try:
-            header = VectorIndex.read_header(cache)
-            meta = header.get("metadata", {})
-            build = {k: v for k, v in vars(self.index_settings).items() if k not in ("ivf_probe", "hnsw_ef_search",
-                                                                                     "refine")}
-            cached = {k: v for k, v in header["settings"].items() if k in build}
-            last_id, count = int(meta.get("last_id", -1)), int(header["count"])
-            if (meta.get("database_id") != self._identity.database_id or cached != build
-                    or meta.get("fingerprint") != self.fingerprint or header["dim"] != self.dim):
-                return None, 0
-            if conn.execute("SELECT count(*) FROM places WHERE id <= ?", (last_id,)).fetchone()[0] != count:
-                return None, 0
-            search = {k: getattr(self.index_settings, k) for k in ("ivf_probe", "hnsw_ef_search", "refine")}
-            index = VectorIndex.load(cache, search=search)
-        except (DataError, ConfigError, ValueError, TypeError, KeyError):
-            return None, 0  # a damaged or foreign cache is only a cache: rebuild
-        self._cached_places = count
-        return index, last_id
+        return self._index_cache.path
 
     def _save_index_cache(self, force: bool = False) -> bool:
-        """Write the index to its cache file when it was built here or grew by 5 % (at least
-        1000 places) since the cache was read; a cache that cannot be written is skipped."""
-        cache = self.index_cache_path
-        if cache is None or self._index is None or len(self._index) == 0:
-            return False
-        grown = len(self._index) - self._cached_places
-        if not force and self._cached_places and grown < max(1000, 0.05 * self._cached_places):
-            return False
-        try:
-            self._index.save(cache, metadata={"database_id": self._identity.database_id,
-                                              "data_version": self._loaded_version, "last_id": self._last_id,
-                                              "fingerprint": self.fingerprint, "database": Path(self.path).name})
-        except OSError:
-            return False
-        self._cached_places = len(self._index)
-        return True
+        return self._index_cache.save(self._index, self._loaded_version, self._last_id, force)
 
     def build_index(self) -> VectorIndex | None:
         """Load every place and build (train) the search index now rather than at the first query,
@@ -801,7 +438,7 @@ class PlaceDatabase:
                     return
                 vectors_after = self._last_id
                 if self.dot_product and self._index is None:
-                    self._index, cached_last = self._load_cached_index(conn)
+                    self._index, cached_last = self._index_cache.load(conn)
                     vectors_after = max(vectors_after, cached_last)
                     if self._index is None:
                         self._index = VectorIndex(self.dim, self.index_settings)
@@ -969,171 +606,3 @@ def _names_present(conn: sqlite3.Connection, names: Sequence[str]) -> set[str]:
         found.update(r[0] for r in conn.execute(f"SELECT DISTINCT name FROM places WHERE name IN ({marks})", chunk))
     return found
 
-
-def _check_descriptor(path, identity: _Identity, descriptor) -> None:
-    _check_fingerprint(path, identity, descriptor.fingerprints(), descriptor.name)
-
-
-def _check_fingerprint(path, identity: _Identity, fingerprint: str | Sequence[str], method: str | None) -> None:
-    """Refuse vectors of another model. ``fingerprint`` may list several spellings of the same
-    model's fingerprint (``Descriptor.fingerprints()``: databases built before the weights'
-    locations were left out of it hold the older one)."""
-    accepted = (fingerprint,) if isinstance(fingerprint, str) else tuple(fingerprint)
-    fingerprint = accepted[0]
-    if identity.fingerprint not in accepted:
-        made_by = f"the {method!r} descriptor given has" if method else "these vectors come from"
-        raise ConfigError(
-            f"{path}: descriptor fingerprint mismatch: the database holds {identity.method!r} vectors with "
-            f"fingerprint {short_fingerprint(identity.fingerprint)}, {made_by} {short_fingerprint(fingerprint)}; "
-            "a different model (weights or settings changed since the database was built). Describe with "
-            "the database's model, or build a new database (--overwrite)")
-
-
-# ---------------------------------------------------------------------- the old folder format
-@dataclass
-class MigrationReport:
-    places: int
-    #: names whose vectors were NaN/inf in the old database (it stored them; they could never match)
-    dropped_non_finite: list[str] = field(default_factory=list)
-    #: names that occur more than once (kept: the old database held them)
-    duplicate_names: int = 0
-
-
-def _old_field(meta: dict, key: str, kinds, json_path: Path, what: str, required: bool = True, default=None):
-    if key not in meta:
-        if required:
-            raise DataError(f"{json_path}: field {key!r} is missing (expected {what})")
-        return default
-    value = meta[key]
-    if isinstance(value, bool) and bool not in (kinds if isinstance(kinds, tuple) else (kinds,)):
-        raise DataError(f"{json_path}: field {key!r} must be {what}, got {value!r}")
-    if not isinstance(value, kinds):
-        raise DataError(f"{json_path}: field {key!r} must be {what}, got {type(value).__name__} {value!r:.60}")
-    return value
-
-
-def read_old_format(folder: str | os.PathLike) -> tuple[dict, np.ndarray]:
-    """Validate and read an old ``database.json`` + ``vectors.npy`` folder.
-
-    Every field is checked (the old loader accepted exactly these, with the same defaults), and
-    the ``.npy`` header is checked against the JSON before any data is read, so a header claiming
-    a huge shape is refused instead of allocated.
-    """
-    folder = Path(folder)
-    json_path, npy_path = folder / "database.json", folder / "vectors.npy"
-    if not folder.is_dir():
-        raise DataError(f"{folder}: not a folder (the old format is a folder with database.json and vectors.npy)")
-    try:
-        meta = json.loads(json_path.read_text())
-    except FileNotFoundError:
-        raise DataError(f"{json_path}: not found; is {folder} an old-format place database?") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise DataError(f"{json_path}: not valid JSON ({exc})") from None
-    if not isinstance(meta, dict):
-        raise DataError(f"{json_path}: must hold a JSON object, got {type(meta).__name__}")
-    version = _old_field(meta, "format_version", int, json_path, "the integer 1", required=False, default=1)
-    if version != 1:
-        raise DataError(f"{json_path}: field 'format_version' is {version}; only version 1 can be migrated")
-    dim = _old_field(meta, "dim", int, json_path, "a positive integer")
-    if dim < 1:
-        raise DataError(f"{json_path}: field 'dim' must be a positive integer, got {dim}")
-    method = _old_field(meta, "method", str, json_path, "a method name")
-    settings = _old_field(meta, "method_settings", dict, json_path, "an object", required=False, default={})
-    options = _old_field(meta, "method_options", dict, json_path, "an object", required=False, default={})
-    dot_product = _old_field(meta, "dot_product", bool, json_path, "true or false")
-    index = _index_settings(_old_field(meta, "index", dict, json_path, "an object", required=False, default={}),
-                            f"{json_path}: field 'index'")
-    names = _old_field(meta, "names", list, json_path, "a list of image names")
-    for i, name in enumerate(names):
-        if not isinstance(name, str):
-            raise DataError(f"{json_path}: field 'names' entry {i} must be a string, got {name!r:.60}")
-    positions = _old_field(meta, "positions", list, json_path, "a list of [x, y] or null", required=False,
-                           default=[])
-    if positions and len(positions) != len(names):
-        raise DataError(f"{json_path}: field 'positions' has {len(positions)} entries but 'names' has {len(names)}")
-    for i, p in enumerate(positions):
-        ok = p is None or (isinstance(p, list) and len(p) == 2
-                           and all(isinstance(c, (int, float)) and not isinstance(c, bool) for c in p))
-        if not ok:
-            raise DataError(f"{json_path}: field 'positions' entry {i} must be [x, y] or null, got {p!r:.60}")
-    vectors = _read_checked_npy(npy_path, (len(names), dim))
-    return ({"dim": dim, "method": method, "method_settings": settings, "method_options": options,
-             "dot_product": dot_product, "index": index, "names": names,
-             "positions": [None if p is None else (float(p[0]), float(p[1])) for p in positions] or None},
-            vectors)
-
-
-def _read_checked_npy(npy_path: Path, shape: tuple[int, int]) -> np.ndarray:
-    from numpy.lib import format as npy_format
-
-    try:
-        with open(npy_path, "rb") as fh:
-            try:
-                major, minor = npy_format.read_magic(fh)
-                if (major, minor) == (1, 0):
-                    header_shape, fortran, dtype = npy_format.read_array_header_1_0(fh)
-                elif (major, minor) == (2, 0):
-                    header_shape, fortran, dtype = npy_format.read_array_header_2_0(fh)
-                else:
-                    raise DataError(f"{npy_path}: .npy format version {major}.{minor} is not supported (1.0 or 2.0)")
-            except ValueError as exc:
-                raise DataError(f"{npy_path}: not a valid .npy file ({exc})") from None
-            if tuple(header_shape) != shape:
-                raise DataError(f"{npy_path}: holds an array of shape {tuple(header_shape)} but database.json "
-                                f"describes {shape[0]} places of dimension {shape[1]}")
-            if dtype.kind != "f" or dtype.itemsize not in (4, 8):
-                raise DataError(f"{npy_path}: holds {dtype} values, expected float32 vectors")
-            expected = int(np.prod(shape)) * dtype.itemsize
-            available = os.fstat(fh.fileno()).st_size - fh.tell()
-            if available != expected:
-                raise DataError(f"{npy_path}: has {available} bytes of data, its header promises {expected}; "
-                                "the file is truncated or damaged")
-            data = np.fromfile(fh, dtype=dtype, count=int(np.prod(shape)))
-    except FileNotFoundError:
-        raise DataError(f"{npy_path}: not found; an old-format database needs vectors.npy") from None
-    except OSError as exc:
-        raise DataError(f"{npy_path}: cannot read ({exc.strerror or exc})") from None
-    return data.reshape(shape, order="F" if fortran else "C").astype(np.float32)
-
-
-def migrate_old_format(folder: str | os.PathLike, out: str | os.PathLike, overwrite: bool = False,
-                       create_descriptor: Callable | None = None) -> MigrationReport:
-    """Convert an old-format folder into a database file ``out``.
-
-    The descriptor is rebuilt from the folder's ``method_options`` to compute the fingerprint; it
-    must have the recorded dimension, similarity and settings, otherwise the vectors were made
-    by a different model than the one the options now build, and the migration is refused.
-    """
-    folder = Path(folder)
-    json_path = folder / "database.json"
-    check_can_create(out, overwrite)
-    meta, vectors = read_old_format(folder)
-    if create_descriptor is None:
-        from fdnet.descriptors import create as create_descriptor
-    from fdnet.errors import FdnetError
-
-    try:
-        descriptor = create_descriptor(meta["method"], **meta["method_options"])
-    except FdnetError as exc:
-        raise ConfigError(f"{json_path}: cannot rebuild the {meta['method']!r} descriptor from its method_options "
-                          f"to fingerprint it ({exc}); fix method_options in database.json") from None
-    if int(descriptor.dim) != meta["dim"] or bool(descriptor.dot_product_similarity) != meta["dot_product"]:
-        raise DataError(f"{json_path}: records {meta['dim']}-d vectors (dot_product={meta['dot_product']}) but the "
-                        f"descriptor rebuilt from method_options makes {descriptor.dim}-d vectors "
-                        f"(dot_product={descriptor.dot_product_similarity})")
-    rebuilt = json.loads(_canonical_json(descriptor.settings(), "settings"))
-    recorded = json.loads(_canonical_json(meta["method_settings"], "method_settings"))
-    if recorded and recorded != rebuilt:
-        raise DataError(f"{json_path}: method_settings {recorded} differ from the settings of the descriptor rebuilt "
-                        f"from method_options {rebuilt}; the vectors were made by another model")
-    names = meta["names"]
-    finite = np.isfinite(vectors).all(axis=1)
-    keep = np.flatnonzero(finite)
-    positions = meta["positions"]
-    PlaceDatabase.create(
-        out, descriptor, index=meta["index"], method_options=meta["method_options"], overwrite=overwrite,
-        vectors=vectors[keep], names=[names[i] for i in keep],
-        positions=None if positions is None else [positions[i] for i in keep],
-        allow_duplicates=True).close()
-    return MigrationReport(places=len(keep), dropped_non_finite=[names[i] for i in np.flatnonzero(~finite)],
-                           duplicate_names=len(names) - len(set(names)))

@@ -1,0 +1,98 @@
+"""Which model made a place database's vectors: the identity row stored in the file (method,
+settings, the options that rebuild the descriptor, dimension, similarity, index settings and the
+descriptor's fingerprint), read back with every column checked, and the refusal of vectors from
+another model."""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+from dataclasses import dataclass, fields
+from typing import Sequence
+
+from fdnet.errors import ConfigError, DataError
+from fdnet.matching.index import INDEX_KINDS, IndexSettings, check_settings
+
+
+def short_fingerprint(fingerprint: str) -> str:
+    return fingerprint[:12]
+
+
+@dataclass(frozen=True)
+class _Identity:
+    database_id: str
+    method: str
+    settings: dict
+    method_options: dict
+    dim: int
+    dot_product: bool
+    index_settings: IndexSettings
+    fingerprint: str
+    created: str
+    fdnet_version: str
+
+
+def _index_settings(value, where: str, error: type = DataError) -> IndexSettings:
+    if not isinstance(value, dict):
+        raise error(f"{where}: must be an object of index settings, got {type(value).__name__}")
+    known = {f.name: f.type for f in fields(IndexSettings)}
+    unknown = sorted(set(value) - set(known))
+    if unknown:
+        raise error(f"{where}: unknown index setting(s) {', '.join(unknown)}; known: {', '.join(known)}")
+    settings = IndexSettings(**value)
+    if not isinstance(settings.kind, str) or settings.kind not in INDEX_KINDS:
+        raise error(f"{where}: index kind {settings.kind!r} is not one of {', '.join(INDEX_KINDS)}")
+    return check_settings(settings, where, error)
+
+
+def _read_identity(path, conn: sqlite3.Connection) -> _Identity:
+    columns = ("database_id", "method", "settings", "method_options", "dim", "dot_product", "index_settings",
+               "fingerprint", "created", "fdnet_version")
+    row = conn.execute(f"SELECT {', '.join(columns)} FROM fdnet_database").fetchone()
+    if row is None:
+        raise DataError(f"{path}: the fdnet_database table is empty; the file is damaged")
+    values = dict(zip(columns, row))
+
+    def column(name: str, kind: type):
+        value = values[name]
+        if not isinstance(value, kind) or isinstance(value, bool):
+            raise DataError(f"{path}: column {name} of fdnet_database must be {kind.__name__}, got {value!r}")
+        return value
+
+    def json_column(name: str):
+        text = column(name, str)
+        try:
+            value = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise DataError(f"{path}: column {name} of fdnet_database is not valid JSON ({exc})") from None
+        if not isinstance(value, dict):
+            raise DataError(f"{path}: column {name} of fdnet_database must be a JSON object")
+        return value
+
+    return _Identity(
+        database_id=column("database_id", str), method=column("method", str),
+        settings=json_column("settings"), method_options=json_column("method_options"),
+        dim=column("dim", int), dot_product=bool(column("dot_product", int)),
+        index_settings=_index_settings(json_column("index_settings"), f"{path}: column index_settings"),
+        fingerprint=column("fingerprint", str), created=column("created", str),
+        fdnet_version=column("fdnet_version", str))
+
+
+def _check_descriptor(path, identity: _Identity, descriptor) -> None:
+    _check_fingerprint(path, identity, descriptor.fingerprints(), descriptor.name)
+
+
+def _check_fingerprint(path, identity: _Identity, fingerprint: str | Sequence[str], method: str | None) -> None:
+    """Refuse vectors of another model. ``fingerprint`` may list several spellings of the same
+    model's fingerprint (``Descriptor.fingerprints()``: databases built before the weights'
+    locations were left out of it hold the older one)."""
+    accepted = (fingerprint,) if isinstance(fingerprint, str) else tuple(fingerprint)
+    fingerprint = accepted[0]
+    if identity.fingerprint not in accepted:
+        made_by = f"the {method!r} descriptor given has" if method else "these vectors come from"
+        raise ConfigError(
+            f"{path}: descriptor fingerprint mismatch: the database holds {identity.method!r} vectors with "
+            f"fingerprint {short_fingerprint(identity.fingerprint)}, {made_by} {short_fingerprint(fingerprint)}; "
+            "a different model (weights or settings changed since the database was built). Describe with "
+            "the database's model, or build a new database (--overwrite)")
+

@@ -1,0 +1,269 @@
+"""The SQLite file under a place database: its schema and format constants, connections and
+transactions, SQLite's errors as the project's, and the checks made before a file is created or
+opened (including the old folder format, named with the command that converts it).
+
+Why SQLite: every ``add`` is one transaction (``BEGIN IMMEDIATE``), so concurrent writers queue
+behind each other instead of overwriting each other's batch, readers see the database before or
+after an add but never half of one, and a process killed at any instant leaves the old or the
+new state. The write-ahead log (WAL) lets queries read while a writer writes.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shlex
+import sqlite3
+from pathlib import Path
+from typing import Iterator, Sequence
+
+import numpy as np
+
+from fdnet.errors import ConfigError, DataError
+
+#: ``PRAGMA user_version`` of the files this code writes; a newer file is refused, not guessed at.
+SCHEMA_VERSION = 1
+#: ``PRAGMA application_id``: tells an fdnet place database from any other SQLite file.
+APPLICATION_ID = int.from_bytes(b"fdPD", "big")
+#: How long a writer waits for another writer's transaction before giving up. Adds are short
+#: (describing images happens before the transaction), so a minute means something is stuck.
+BUSY_TIMEOUT_S = 60.0
+MEMORY = ":memory:"
+SQLITE_MAGIC = b"SQLite format 3\x00"
+OLD_FORMAT_FILES = ("database.json", "vectors.npy")
+
+_SCHEMA = """
+CREATE TABLE fdnet_database (
+    singleton INTEGER PRIMARY KEY CHECK (singleton = 1),
+    database_id TEXT NOT NULL,
+    method TEXT NOT NULL,
+    settings TEXT NOT NULL,
+    method_options TEXT NOT NULL,
+    dim INTEGER NOT NULL CHECK (dim > 0),
+    dot_product INTEGER NOT NULL CHECK (dot_product IN (0, 1)),
+    index_settings TEXT NOT NULL,
+    fingerprint TEXT NOT NULL,
+    data_version INTEGER NOT NULL,
+    created TEXT NOT NULL,
+    fdnet_version TEXT NOT NULL
+);
+CREATE TABLE places (
+    id INTEGER PRIMARY KEY,
+    name TEXT NOT NULL,
+    x REAL,
+    y REAL,
+    metadata TEXT,
+    vector BLOB NOT NULL,
+    CHECK ((x IS NULL) = (y IS NULL))
+);
+CREATE INDEX places_by_name ON places (name);
+"""
+_TABLES = ("fdnet_database", "places")
+
+
+def migrate_command(folder: str | os.PathLike) -> str:
+    folder = Path(folder)
+    return f"fdnet database migrate --from {shlex.quote(str(folder))} --out {shlex.quote(str(folder) + '.db')}"
+
+
+def refuse_old_format(path: str | os.PathLike) -> None:
+    """A folder holding the old ``database.json`` + ``vectors.npy`` is named with the exact
+    command that converts it, instead of a puzzling 'not a database'."""
+    path = Path(path)
+    if path.is_dir() and any((path / name).exists() for name in OLD_FORMAT_FILES):
+        raise ConfigError(f"{path}: a place database in the old folder format (database.json + vectors.npy); "
+                          f"convert it once with: {migrate_command(path)}")
+
+
+def _canonical_json(value, where: str) -> str:
+    try:
+        return json.dumps(value, sort_keys=True, allow_nan=False, default=_json_default)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{where}: cannot be stored as JSON ({exc})") from None
+
+
+def _json_default(value):
+    if isinstance(value, (Path, os.PathLike)):
+        return str(value)
+    if isinstance(value, (np.integer, np.floating, np.bool_)):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    raise TypeError(f"{type(value).__name__} is not JSON")
+
+
+def _check_header(path: Path) -> None:
+    if path.is_dir():
+        refuse_old_format(path)
+        raise DataError(f"{path}: is a folder, not a place database file (e.g. {path / 'map.db'})")
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(len(SQLITE_MAGIC))
+    except FileNotFoundError:
+        raise DataError(f"{path}: no such place database (make one with `fdnet database build`)") from None
+    except OSError as exc:
+        raise DataError(f"{path}: cannot read the place database ({exc.strerror or exc})") from None
+    if not head:
+        raise DataError(f"{path}: an empty file, not an fdnet place database")
+    if head != SQLITE_MAGIC:
+        raise DataError(f"{path}: not an fdnet place database (not a SQLite file)")
+
+
+def _describe_foreign(conn: sqlite3.Connection) -> str:
+    tables = [r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table' ORDER BY name")]
+    return f"it has tables: {', '.join(tables)}" if tables else "it has no tables"
+
+
+def _sqlite_message(exc: sqlite3.Error, path=None) -> str:
+    text = str(exc)
+    if "locked" in text or "busy" in text:
+        return f"another process held the database's write lock for more than {BUSY_TIMEOUT_S:.0f} s ({text})"
+    if path is not None and path != MEMORY and any(
+            words in text for words in ("unable to open", "disk I/O error", "readonly", "disk is full")):
+        why = _storage_problem(path)
+        if why:
+            return f"{text}: {why}"
+    return text
+
+
+def _storage_problem(path) -> str:
+    """Why SQLite cannot open or write ``path``, from what the operating system says about its
+    folder (SQLite itself only says "unable to open database file" or "disk I/O error"); "" when
+    nothing is found. SQLite's write-ahead log needs to create ``-wal`` and ``-shm`` files beside
+    the database, even to read it."""
+    folder = Path(path).resolve().parent
+    problems = []
+    try:
+        stats = os.statvfs(folder)
+        free = stats.f_bavail * stats.f_frsize
+        if stats.f_flag & getattr(os, "ST_RDONLY", 1):
+            problems.append(f"its folder {folder} is on a read-only file system")
+        elif free < (1 << 20):
+            problems.append(f"no space left on the device ({free // 1024} KiB free in {folder})")
+    except (OSError, AttributeError):  # no statvfs (Windows)
+        pass
+    if not problems and not os.access(folder, os.W_OK):
+        problems.append(f"this user cannot write in its folder {folder}")
+    try:
+        import resource
+
+        limit = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+        if limit != resource.RLIM_INFINITY and limit < (1 << 30):
+            problems.append(f"this process may only write files up to {limit} bytes (ulimit -f)")
+    except (ImportError, OSError, ValueError):
+        pass
+    return "; ".join(problems)
+
+
+def _read_only_storage(path: Path) -> bool:
+    """True when the database's folder cannot be written (read-only media, a read-only mount or
+    share): SQLite's write-ahead log then cannot create its ``-shm`` file to open it as usual."""
+    return not os.access(path.resolve().parent, os.W_OK)
+
+
+@contextlib.contextmanager
+def _sqlite_errors(path, doing: str) -> Iterator[None]:
+    """SQLite's exceptions as the project's errors, naming the file and what was being done."""
+    try:
+        yield
+    except sqlite3.Error as exc:
+        raise DataError(f"{path}: {doing}: {_sqlite_message(exc, path)}") from None
+
+
+@contextlib.contextmanager
+def _transaction(conn: sqlite3.Connection, mode: str) -> Iterator[sqlite3.Connection]:
+    """``BEGIN IMMEDIATE`` takes the write lock up front, so two writers queue (busy timeout)
+    instead of both reading, then one failing to upgrade its lock; ``BEGIN DEFERRED`` gives a
+    reader one consistent snapshot across several SELECTs."""
+    conn.execute(f"BEGIN {mode}")
+    try:
+        yield conn
+    except BaseException:
+        if conn.in_transaction:
+            conn.execute("ROLLBACK")
+        raise
+    conn.execute("COMMIT")
+
+
+def _connect(target: str, uri: bool = False) -> sqlite3.Connection:
+    # isolation_level=None: the module must not open transactions behind our back; each add is
+    # exactly the BEGIN IMMEDIATE ... COMMIT written below.
+    conn = sqlite3.connect(target, timeout=BUSY_TIMEOUT_S, isolation_level=None, uri=uri)
+    # FULL, not NORMAL: with WAL, NORMAL may lose the last commits on power loss, and the
+    # database promises that an add it has acknowledged is on disk.
+    conn.execute("PRAGMA synchronous = FULL")
+    return conn
+
+
+def _connect_read_only(path: Path) -> sqlite3.Connection:
+    """A database on storage this process cannot write. Without a write-ahead log left beside it
+    the file holds every committed add and is opened ``immutable`` (no -shm needed, no locks: on
+    read-only storage nobody can change it). A log left there (a writer killed, the medium then
+    made read-only) holds commits not yet in the file: they are read through its ``-shm`` file
+    (``mode=ro``), and refused with a clear message when that is missing too."""
+    uri = path.resolve().as_uri()
+    wal = Path(f"{path}-wal")
+    if not (wal.exists() and wal.stat().st_size > 0):
+        return _connect(uri + "?immutable=1", uri=True)
+    try:
+        conn = _connect(uri + "?mode=ro", uri=True)
+        conn.execute("SELECT count(*) FROM sqlite_master").fetchone()
+        return conn
+    except sqlite3.Error:
+        raise DataError(f"{path}: its folder cannot be written and its write-ahead log {wal} holds adds not yet "
+                        f"copied into the file, which SQLite can only read with {path}-shm beside it; copy the "
+                        "database and its -wal file to a writable folder and open it there") from None
+
+
+def check_place_names(names: Sequence[str]) -> None:
+    """Refuse a place name that is not valid UTF-8 (a file name Python keeps as surrogates):
+    SQLite text is UTF-8, so it could not be stored. Callers check before describing images."""
+    for name in names:
+        try:
+            str(name).encode("utf-8")
+        except UnicodeEncodeError:
+            raise DataError(f"{os.fsencode(str(name))!r}: the file name is not valid UTF-8, which a place database "
+                            "cannot store as a place name; rename the file") from None
+
+
+def _is_fdnet_database(conn: sqlite3.Connection) -> bool:
+    return conn.execute("PRAGMA application_id").fetchone()[0] == APPLICATION_ID
+
+
+def check_can_create(path: str | os.PathLike, overwrite: bool = False) -> None:
+    """Refuse, before any image is described, a database path that ``create`` would refuse.
+
+    A file with content is only replaced with ``overwrite``, and only if it is an fdnet place
+    database; an empty file, or a SQLite file without tables (what a create killed before its
+    first commit leaves), holds nothing to lose and is simply reused.
+    """
+    path = Path(path)
+    if str(path) == MEMORY:
+        return
+    refuse_old_format(path)
+    if path.is_dir():
+        raise ConfigError(f"{path}: is a folder; name the database file to write (e.g. {path / 'map.db'})")
+    if path.exists():
+        if path.stat().st_size == 0:
+            return
+        with open(path, "rb") as fh:
+            if fh.read(len(SQLITE_MAGIC)) != SQLITE_MAGIC:
+                raise DataError(f"{path}: exists and is not an fdnet place database (not a SQLite file); "
+                                "refusing to overwrite it")
+        conn = _connect(path.resolve().as_uri() + "?mode=rw", uri=True)
+        try:
+            with _sqlite_errors(path, "checking the existing file"):
+                tables = conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'").fetchall()
+                if tables and not _is_fdnet_database(conn):
+                    raise DataError(f"{path}: is a SQLite database but not an fdnet place database "
+                                    f"({_describe_foreign(conn)}); refusing to overwrite it")
+        finally:
+            conn.close()
+        if tables and not overwrite:
+            raise ConfigError(f"{path}: already exists; pass --overwrite (overwrite=True) to replace it")
+    elif Path(f"{path}-wal").exists():
+        # SQLite would replay a stray log into the new file: a corrupt database from the start.
+        raise DataError(f"{path}-wal: a write-ahead log left without its database; remove it "
+                        f"(and {path}-shm) before creating {path}")
+
