@@ -7,9 +7,11 @@
   steps with 2 discriminator updates per encoder/decoder update. Meant for a GPU
   (``runtime.device=cuda``).
 * ``cpu`` - sized for at most ~20 minutes on 2 CPU cores: FDNet on the map of a frozen ImageNet
-  trunk (EfficientNet-Lite0 block 7, ``model.backbone``) at 128x256, with the residual content
-  head (``model.content_head=trunk_residual``) that starts at the trunk's descriptor;
-  docs/results.md has its numbers against the trunk alone and every baseline.
+  trunk (EfficientNet-Lite0, ``model.backbone``) at 128x256 with the projection content head
+  (``model.content_head=trunk_projection``, L = 512) that starts in closed form from pairs mined
+  across the training conditions; with a validation pair the trunk block (7 or 11) and a
+  synthetic night copy (or none) are chosen on it. docs/results.md has its numbers against the
+  trunk alone, the whitened trunk and every baseline.
 * ``cpu-scratch`` - the paper's pixel encoders learnt from scratch at 32x64, for 2 CPU cores
   (Nordland R@1 0.31 in 3 minutes; below SAD on Gardens Point).
   docs/results.md logs every run behind these numbers. Under heavy load from other processes
@@ -32,6 +34,7 @@ from fdnet.config import apply_yaml, from_dict, to_dict
 from fdnet.errors import ConfigError
 from fdnet.methods.fdnet.model import FDNetConfig, validate_architecture
 from fdnet.methods.settings import DataConfig, ValidationConfig, check_finite, check_validation_pair
+from fdnet.methods.settings import RuntimeConfig as SharedRuntimeConfig
 
 
 @dataclass
@@ -120,19 +123,14 @@ class OptimConfig:
 
 
 @dataclass
-class RuntimeConfig:
-    seed: int = 0
-    #: "auto" (CUDA when a GPU is present, else the CPU), "cpu", "cuda" or "cuda:N"
-    device: str = "auto"
-    #: torch threads (0 = leave torch's default)
-    threads: int = 0
-    #: bfloat16 autocast for the encoders/decoder (CPU AMX or GPU); losses stay float32
-    bf16: bool = False
-    channels_last: bool = False
-    #: write a resumable checkpoint every N steps (and always at the end / on Ctrl-C)
+class RuntimeConfig(SharedRuntimeConfig):
+    """The ``runtime`` section every trained method has (seed, device, threads, bf16: autocast for
+    the encoders/decoder, checkpoint_every, log_every; :class:`fdnet.methods.settings.RuntimeConfig`)
+    with FDNet's defaults, plus FDNet's own settings."""
+
     checkpoint_every: int = 1000
-    #: append losses to log.csv every N steps
     log_every: int = 10
+    channels_last: bool = False
     #: BatchNorm/dropout mode of the content encoder when it computes vectors for a
     #: discriminator update: "train" (batch statistics, dropout on, as in the encoder's own
     #: update) or "eval" (running statistics, no dropout, as at test time)
@@ -154,6 +152,18 @@ class TrainConfig:
     def total_steps(self) -> int:
         s = self.schedule
         return s.pretrain_autoencoder_steps + s.pretrain_critic_steps + s.joint_steps
+
+    def with_total_steps(self, steps: int) -> "TrainConfig":
+        """``steps`` in all (``fdnet train --steps``): the joint stage takes what the pretraining
+        stages leave."""
+        s = self.schedule
+        pretraining = s.pretrain_autoencoder_steps + s.pretrain_critic_steps
+        if steps < pretraining:
+            raise ConfigError(f"--steps {steps}: FDNet's pretraining stages alone take {pretraining} steps "
+                              f"(schedule.pretrain_autoencoder_steps {s.pretrain_autoencoder_steps} + "
+                              f"schedule.pretrain_critic_steps {s.pretrain_critic_steps}); give more, or lower them "
+                              "with --set")
+        return dataclasses.replace(self, schedule=dataclasses.replace(s, joint_steps=int(steps) - pretraining))
 
     def stage_at(self, step: int) -> str:
         """Stage of (0-based) ``step``: "autoencoder", "critic" or "joint"."""
@@ -305,8 +315,9 @@ def validate(config: TrainConfig) -> None:
         raise ConfigError(f"data.batch_per_domain must be >= 2, got {config.data.batch_per_domain}")
     if config.runtime.critic_encoder_mode not in ("train", "eval"):
         raise ConfigError(f"runtime.critic_encoder_mode: {config.runtime.critic_encoder_mode!r}; choose train or eval")
-    if config.runtime.device not in ("auto", "cpu", "cuda") and not config.runtime.device.startswith("cuda:"):
-        raise ConfigError(f"runtime.device: {config.runtime.device!r}; choose auto, cpu, cuda or cuda:N")
+    from fdnet.backbones import check_device_spec
+
+    check_device_spec(config.runtime.device, where="runtime.device")
     for name in ("checkpoint_every", "log_every"):
         if getattr(config.runtime, name) <= 0:
             raise ConfigError(f"runtime.{name} must be >= 1")
