@@ -174,3 +174,29 @@ def test_every_trained_method_is_one_package_with_the_same_parts():
         folder = PACKAGE_ROOT / "methods" / method
         for part in ("config", "model", "descriptor", "training"):
             assert (folder / f"{part}.py").is_file(), f"fdnet.methods.{method} has no {part} module"
+
+
+#: the longest a function in src/fdnet may be, in lines from ``def`` to its last line
+MAX_FUNCTION_LINES = 100
+
+
+def long_functions(source: str, limit: int = MAX_FUNCTION_LINES) -> list[tuple[str, int, int]]:
+    """(name, first line, length) of each function or method in ``source`` longer than ``limit``."""
+    return [(node.name, node.lineno, node.end_lineno - node.lineno + 1)
+            for node in ast.walk(ast.parse(source))
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))
+            and node.end_lineno - node.lineno + 1 > limit]
+
+
+def test_no_function_is_longer_than_100_lines():
+    offenders = [f"{name}:{fn} (line {line}, {length} lines)"
+                 for name, path in sorted(all_modules().items())
+                 for fn, line, length in long_functions(path.read_text())]
+    assert not offenders, f"functions longer than {MAX_FUNCTION_LINES} lines: {offenders}"
+
+
+def test_long_function_finder_finds_a_planted_one():
+    body = "".join(f"        x{i} = {i}\n" for i in range(3))
+    source = f"def short():\n    pass\n\nclass A:\n    def long(self):\n{body}"
+    assert long_functions(source, limit=3) == [("long", 5, 4)]
+    assert long_functions(source, limit=4) == []

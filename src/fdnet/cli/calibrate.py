@@ -98,40 +98,67 @@ def _check_choices(spec, choose) -> None:
     candidate_specs(spec, choose)  # no values at all
 
 
-def run(args) -> int:
-    import logging
-    from pathlib import Path
-
-    from fdnet.cli.common import check_pipeline_arguments, create_descriptor, method_options
-    from fdnet.cli.evaluate import build_split
+def _rule(args, choose: dict):
+    """The acceptance rule of --accept/--accept-set; a setting the rule requires (floor's min) may
+    be one that --choose chooses: then it is parsed with the first chosen value."""
     from fdnet.decisions.acceptance import DEFAULT_ACCEPTANCE, parse_acceptance
-    from fdnet.decisions.calibration import (
-        CALIBRATION_FILE,
-        DATABASE_KEY,
-        calibrate,
-        check_target,
-        save_calibration,
-    )
-    from fdnet.errors import ConfigError, FdnetError
-    from fdnet.io import ensure_writable
+    from fdnet.errors import ConfigError
 
-    check_target(args.target_precision)
-    choose = _choices(args.choose, args.accept_set)
     try:
-        spec = parse_acceptance(args.accept or DEFAULT_ACCEPTANCE, args.accept_set)
+        return parse_acceptance(args.accept or DEFAULT_ACCEPTANCE, args.accept_set)
     except ConfigError as missing:
-        # a setting the rule requires (floor's min) may be the one chosen: parse with its first value
         from fdnet.decisions.calibration import _yaml_text
 
         first = [f"{key}={_yaml_text(values[0])}" for key, values in choose.items() if values]
         if not first:
             raise
         try:
-            spec = parse_acceptance(args.accept or DEFAULT_ACCEPTANCE, [*args.accept_set, *first])
+            return parse_acceptance(args.accept or DEFAULT_ACCEPTANCE, [*args.accept_set, *first])
         except ConfigError as exc:
             if str(exc) == str(missing):  # the choice was not the missing setting
                 raise missing from None
             raise ConfigError(f"--choose {', '.join(first)}: {str(exc).split(': ', 1)[-1]}") from None
+
+
+def _store(calibration, out, run_dir, db, db_path) -> tuple[list, list[str]]:
+    """Write the calibration to each place asked for, each even when another fails (a full disk,
+    a read-only database): the work is done, so what can be kept is kept, and the rest is
+    reported. Returns (the places tried, the failures' messages)."""
+    from fdnet.decisions.calibration import CALIBRATION_FILE, DATABASE_KEY, save_calibration
+    from fdnet.errors import FdnetError
+
+    writes = []
+    if out:
+        writes.append((str(out), lambda: save_calibration(calibration, out)))
+    if run_dir is not None:
+        writes.append((str(run_dir / CALIBRATION_FILE),
+                       lambda: save_calibration(calibration, run_dir / CALIBRATION_FILE)))
+    if db is not None:
+        writes.append((f"{db_path} (database metadata)",
+                       lambda: db.set_metadata(DATABASE_KEY, calibration.to_dict(json_safe=True))))
+    failed = []
+    for where, write in writes:
+        try:
+            write()
+            print(f"wrote {where}")
+        except FdnetError as exc:
+            failed.append(str(exc))
+    return writes, failed
+
+
+def run(args) -> int:
+    import logging
+    from pathlib import Path
+
+    from fdnet.cli.common import check_pipeline_arguments, create_descriptor, method_options
+    from fdnet.cli.evaluate import split_from_arguments
+    from fdnet.decisions.calibration import CALIBRATION_FILE, calibrate, check_target
+    from fdnet.errors import ConfigError
+    from fdnet.io import ensure_writable
+
+    check_target(args.target_precision)
+    choose = _choices(args.choose, args.accept_set)
+    spec = _rule(args, choose)
     _check_choices(spec, choose)  # a setting the rule lacks, or a bad value, fails before any work
     if args.sequence_length < 0:
         raise ConfigError(f"--sequence-length must be >= 0, got {args.sequence_length}")
@@ -159,7 +186,7 @@ def run(args) -> int:
 
         db = PlaceDatabase.open(args.db, descriptor=descriptor)  # another model's database: refused now
     try:
-        split = build_split(args)
+        split = split_from_arguments(args)
         measured_on = {"data_root": str(args.data), "reference": args.reference, "query": args.query,
                        "frames": args.frames, "split": args.split, "dataset_format": args.dataset_format,
                        "tolerance": args.tolerance if args.tolerance is not None or args.dataset_format
@@ -178,24 +205,7 @@ def run(args) -> int:
               f"{calibration.num_queries} queries accepted; target {calibration.target_precision:g})")
         for note in calibration.notes:
             print(f"note: {note}")
-        # Each place is written even when another fails (a full disk, a read-only database): the
-        # work is done, so what can be kept is kept, and the rest is reported.
-        writes = []
-        if args.out:
-            writes.append((str(args.out), lambda: save_calibration(calibration, args.out)))
-        if run_dir is not None:
-            writes.append((str(run_dir / CALIBRATION_FILE),
-                           lambda: save_calibration(calibration, run_dir / CALIBRATION_FILE)))
-        if db is not None:
-            writes.append((f"{args.db} (database metadata)",
-                           lambda: db.set_metadata(DATABASE_KEY, calibration.to_dict(json_safe=True))))
-        failed = []
-        for where, write in writes:
-            try:
-                write()
-                print(f"wrote {where}")
-            except FdnetError as exc:
-                failed.append(str(exc))
+        writes, failed = _store(calibration, args.out, run_dir, db, args.db)
     finally:
         if db is not None:
             db.close()

@@ -106,125 +106,14 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _ground_truth_path(args):
-    """``--ground-truth`` as a path (relative to where the command runs), or None. A file that is
-    not there is an error naming it, whatever else was given."""
-    from pathlib import Path
+def split_from_arguments(args):
+    """The :class:`~fdnet.data.split.EvaluationSplit` of the data flags
+    (:func:`fdnet.evaluation.splits.build_split`; shared with ``fdnet calibrate``)."""
+    from fdnet.evaluation.splits import build_split
 
-    from fdnet.errors import DataError
-
-    if args.ground_truth is None:
-        return None
-    path = Path(args.ground_truth)
-    if not path.is_file():
-        raise DataError(f"{path}: ground-truth file not found" if not path.exists()
-                        else f"{path}: is not a file; expected a ground-truth CSV")
-    return path  # as typed, so errors name the file the way the user wrote it
-
-
-def _format_split(args, ground_truth):
-    """``--dataset-format``: the adapter's split; ``--ground-truth`` replaces its ground truth for
-    the chosen split (indices over the split's images, as ``fdnet groundtruth --dataset`` writes)."""
-    import dataclasses
-
-    from fdnet.config import parse_overrides
-    from fdnet.data.formats import detect_format, get_format, open_split
-    from fdnet.errors import ConfigError
-
-    if args.frames and args.split:
-        raise ConfigError("give --split or --frames, not both")
-    name = detect_format(args.data) if args.dataset_format == "auto" else args.dataset_format
-    fields = {f.name for f in dataclasses.fields(get_format(name).Options)}
-    options = parse_overrides(args.format_set)
-    if args.tolerance is not None:
-        options["tolerance"] = args.tolerance
-    if args.filter_frames:
-        if "filter_frames" not in fields:
-            raise ConfigError(f"--filter-frames: the {name} format has no frame filter (formats with one: "
-                              f"nordland); without --dataset-format it applies to plain condition folders")
-        options["filter_frames"] = "true"
-    if ground_truth is not None and options.get("ground_truth"):
-        raise ConfigError(f"two explicit ground truths: --ground-truth {args.ground_truth} and "
-                          f"--format-set ground_truth={options['ground_truth']}; give one")
-    return open_split(args.data, args.reference, args.query, dataset_format=name,
-                      split=args.split or args.frames, listed_ground_truth=ground_truth, **options)
-
-
-def build_split(args):
-    """The :class:`EvaluationSplit` the arguments describe. Without ``--dataset-format``:
-    ``--data/--reference/--query`` frame-aligned (:func:`fdnet.data.split.aligned_split`, after
-    the frame filter with ``--filter-frames``) or with ``--ground-truth`` over all images of the
-    two folders (:func:`fdnet.data.split.listed_split`), sliced by ``--frames``. With it: the
-    dataset adapter's split, its ground truth replaced by ``--ground-truth`` when given."""
-    import logging
-
-    from fdnet.data.dataset import RouteDataset, parse_frame_range
-    from fdnet.data.split import aligned_split, listed_split
-    from fdnet.errors import ConfigError
-
-    ground_truth = _ground_truth_path(args)
-    if args.dataset_format:
-        return _format_split(args, ground_truth)
-    if args.split or args.format_set:
-        raise ConfigError("--split and --format-set need --dataset-format")
-    if not (args.reference and args.query):
-        raise ConfigError("--data needs --reference COND and --query COND (sub-folders of --data)")
-    start, end = parse_frame_range(args.frames)
-    dataset = RouteDataset.from_folder(args.data, [args.reference, args.query]
-                                       if args.reference != args.query else [args.reference])
-    _check_frames_inside(args.frames, start, end, dataset)
-    if ground_truth is not None:
-        if args.filter_frames:
-            raise ConfigError("--filter-frames applies to frame-aligned folders; with --ground-truth CSV, filter "
-                              "the images before writing the ground truth")
-        return listed_split(dataset, args.reference, args.query, ground_truth, start, end)
-    if args.filter_frames:
-        from fdnet.data.filters import filter_frames
-
-        dataset, summary = filter_frames(dataset.frames(start, end))
-        logging.getLogger(__name__).info(f"frame filter: {summary}")
-        start = end = None
-    return aligned_split(dataset, args.reference, args.query, args.tolerance or 0, start, end)
-
-
-def _check_frames_inside(text, start, end, dataset) -> None:
-    """A --frames range reaching past the folders' end would silently evaluate fewer frames than
-    asked (50:500 of 60 images gave 10)."""
-    from fdnet.errors import ConfigError
-
-    counts = {name: len(traverse) for name, traverse in dataset.traverses.items()}
-    frames = min(counts.values())
-    listed = ", ".join(f"{name} {count}" for name, count in counts.items())
-    if (end is not None and end > frames) or (start is not None and start >= frames):
-        raise ConfigError(f"--frames {text}: past the end of the folders ({listed} images); give a range within "
-                          f"0:{frames}, or leave END out ({start or 0}:) for the rest")
-
-
-def load_similarity(path: str, distance: bool = False):
-    """A plain numeric 2-D .npy matrix, finite everywhere; never unpickles, and refuses a header
-    claiming more data than the file holds before allocating anything. Distances are negated."""
-    from pathlib import Path
-
-    import numpy as np
-
-    from fdnet.data.arrays import load_npy
-    from fdnet.errors import DataError
-
-    path = Path(path)
-    if not path.is_file():
-        raise DataError(f"{path}: similarity file not found")
-    matrix = load_npy(path, ndim=2, what="similarity matrix (queries x references)")
-    if not (np.issubdtype(matrix.dtype, np.floating) or np.issubdtype(matrix.dtype, np.integer)):
-        raise DataError(f"{path}: expected a numeric (float or integer) matrix, got dtype {matrix.dtype}")
-    if matrix.size == 0:
-        raise DataError(f"{path}: the matrix is empty (shape {matrix.shape})")
-    bad = ~np.isfinite(matrix) if np.issubdtype(matrix.dtype, np.floating) else None
-    if bad is not None and bad.any():
-        q, r = np.argwhere(bad)[0]
-        raise DataError(f"{path}: {int(bad.sum())} NaN or infinite entries (first at query {q}, "
-                        f"reference {r}); every query-reference pair needs a score")
-    matrix = matrix.astype(np.float64)
-    return -matrix if distance else matrix
+    return build_split(args.data, args.reference, args.query, dataset_format=args.dataset_format, split=args.split,
+                       format_set=args.format_set, frames=args.frames, tolerance=args.tolerance,
+                       filter_frames=args.filter_frames, ground_truth=args.ground_truth)
 
 
 def _safe(name: str) -> str:
@@ -281,7 +170,9 @@ def run(args) -> int:
         ensure_writable(args.json, what="JSON results")
     if args.plots:
         ensure_writable(args.plots, what="plots", directory=True)
-    _ground_truth_path(args)
+    from fdnet.evaluation.splits import ground_truth_path, load_similarity
+
+    ground_truth_path(args.ground_truth)
     from fdnet.decisions.acceptance import DEFAULT_ACCEPTANCE, parse_acceptance_list
 
     default_rule = "raw" if args.protocol == "vprbench" else DEFAULT_ACCEPTANCE
@@ -297,7 +188,7 @@ def run(args) -> int:
         from fdnet.evaluation.experiment import evaluate_matrix
 
         matrix = load_similarity(args.similarity, args.distance)
-        split = build_split(args) if args.data else None
+        split = split_from_arguments(args) if args.data else None
         if split is not None:
             gt = split.ground_truth
         elif args.ground_truth:
@@ -328,7 +219,7 @@ def run(args) -> int:
 
         check_pipeline_arguments(args)
         names = [n.strip() for n in args.method.split(",") if n.strip()]
-        split = build_split(args)
+        split = split_from_arguments(args)
         set_threads(args.threads)
         descriptors = [create_descriptor(name, args) for name in names]  # fail fast on a bad name
         log(f"evaluating {', '.join(names)} on {split.description}: {len(split.query)} queries x "

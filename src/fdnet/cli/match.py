@@ -1,4 +1,4 @@
-"""`fdnet match`: rank reference images (the map) for each query image.
+"""`fdnet match`: rank reference images (the map) for each query image (:func:`fdnet.matching.search.match_images`).
 
 Images are listed in fdnet's one order (:func:`fdnet.data.images.list_images`: natural order of
 file names), and every output row carries both the indices and the file names.
@@ -24,7 +24,7 @@ from fdnet.cli.common import (
     acceptance_from_arguments, add_decision_arguments, add_device_argument, add_method_arguments, add_pipeline_arguments,
 )
 
-INDEX_CHOICES = ["exact", "flat", "hnsw", "ivf", "ivfpq"]
+from fdnet.matching.search import INDEX_CHOICES
 
 
 def register(sub) -> None:
@@ -62,180 +62,21 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _names_digest(paths) -> str:
-    import hashlib
-    import os
-
-    digest = hashlib.sha256()
-    for path in paths:
-        digest.update(os.fsencode(path.name) + b"\0")  # the name's own bytes, UTF-8 or not
-    return digest.hexdigest()
-
-
-def _cached_index(path, descriptor, ref_paths, settings):
-    """The index in ``path`` when it was built for this descriptor, these reference names and
-    these build settings; else None (with the reason printed)."""
-    from pathlib import Path
-
-    from fdnet.matching.index import SEARCH_SETTINGS, VectorIndex
-
-    if not Path(path).is_file():
-        return None
-    header = VectorIndex.read_header(path)
-    meta = header.get("metadata", {})
-    build = {k: v for k, v in vars(settings).items() if k not in SEARCH_SETTINGS}
-    saved = {k: v for k, v in header["settings"].items() if k not in SEARCH_SETTINGS}
-    reasons = []
-    if meta.get("fingerprint") != descriptor.fingerprint():
-        reasons.append("another method or model")
-    if meta.get("references") != _names_digest(ref_paths) or header["count"] != len(ref_paths):
-        reasons.append("other reference images")
-    if saved != build:
-        reasons.append(f"other build settings ({saved})")
-    if reasons:
-        print(f"{path}: holds an index of {', '.join(reasons)}; building a new one")
-        return None
-    return VectorIndex.load(path, search={k: getattr(settings, k) for k in SEARCH_SETTINGS})
-
-
-def _reference_times_and_positions(paths) -> dict:
-    """``reference_times`` (seconds) when every reference is a frame of a video or bag, and
-    ``reference_positions`` (metres) when every one has a position (a bag's GPS/odometry): what
-    the acceptance settings radius_s / radius_m need. Image files have neither."""
-    import numpy as np
-
-    from fdnet.data.sources import frame_records, positions_in_metres
-
-    records = frame_records(paths)
-    out = {}
-    if records and all(r.timestamp is not None for r in records):
-        out["reference_times"] = np.array([r.timestamp for r in records], dtype=np.float64)
-    positions = positions_in_metres(records)
-    if records and all(p is not None for p in positions):
-        out["reference_positions"] = np.array(positions, dtype=np.float64)
-    return out
-
-
 def run(args) -> int:
-    import csv
-    import io
-    import time
-
     from fdnet.cli.common import check_pipeline_arguments, create_descriptor
-    from fdnet.data.images import list_images
-    from fdnet.descriptors.base import describe_paths
-    from fdnet.descriptors.pipeline import describe_stream
-    from fdnet.errors import ConfigError
-    from fdnet.io import atomic_write_text, ensure_writable, spreadsheet_text
-    from fdnet.matching.index import VectorIndex, parse_index_settings
-    from fdnet.matching.sequence import sequence_similarity
-    from fdnet.matching.similarity import similarity_matrix, top_k, top_k_of_matrix
+    from fdnet.matching.search import match_images
 
-    if args.top_k < 1:
-        raise ConfigError("--top-k must be at least 1")
-    if args.sequence_length < 0:
-        raise ConfigError(f"--sequence-length must be >= 0 (0 = single image), got {args.sequence_length}")
     check_pipeline_arguments(args)
-    if args.index == "exact" and (args.index_set or args.index_file):
-        raise ConfigError("--index-set and --index-file apply to the faiss indexes (--index flat|ivf|ivfpq|hnsw)")
-    settings = parse_index_settings(args.index, args.index_set) if args.index != "exact" else None
-    ensure_writable(args.out, what="matches CSV")  # before describing every image, not after
-    if args.index_file:
-        ensure_writable(args.index_file, what="index file")
-    ref_paths, query_paths = list_images(args.reference), list_images(args.query)
-    descriptor = create_descriptor(args.method, args)
-    calibration = None
-    depth = args.top_k
     spec = acceptance_from_arguments(args)
-    if spec is not None:
-        depth = max(args.top_k, spec.depth)
-    if args.calibration:
-        from fdnet.decisions.calibration import load_calibration
-
-        calibration = load_calibration(args.calibration)
-        calibration.check(descriptor, sequence_length=args.sequence_length if args.sequence_length > 1 else 0,
-                          source=args.calibration)
-        depth = max(args.top_k, calibration.spec.depth)  # the rule may need more candidates than are written
-    rule = spec if spec is not None else (calibration.spec if calibration is not None else None)
-    neighbourhood = _reference_times_and_positions(ref_paths)
-    if rule is not None:  # e.g. radius_m: image folders have no positions; refused before describing
-        rule.check_available({"images", *neighbourhood}, "fdnet match (references without "
-                             + ("positions)" if "reference_times" in neighbourhood else "timestamps or positions)"))
-    if settings is not None and not descriptor.dot_product_similarity:
-        raise ConfigError(f"method {descriptor.name!r} does not compare vectors by dot product, so a "
-                          "faiss index would rank by the wrong measure; use --index exact")
-    if args.sequence_length > 1 and args.index != "exact":
-        raise ConfigError("--sequence-length needs the full similarity matrix; use --index exact")
-    if descriptor.needs_fit:
-        print(f"{descriptor.name}: learning from the {len(ref_paths)} reference images (none supplied)")
-        descriptor.fit(ref_paths)
-
-    def describe(paths):
-        return describe_paths(descriptor, paths, args.batch_size, progress=True,
-                              workers=args.workers)
-
-    if settings is None:
-        refs = describe(ref_paths)
-        queries = describe(query_paths)
-        if args.sequence_length > 1:
-            sim = sequence_similarity(similarity_matrix(queries, refs, descriptor.similarity), args.sequence_length)
-            indices, scores = top_k_of_matrix(sim, depth)
-        else:
-            indices, scores = top_k(queries, refs, depth, similarity=descriptor.similarity)
-    else:
-        index = _cached_index(args.index_file, descriptor, ref_paths, settings) if args.index_file else None
-        if index is None:
-            index = VectorIndex(descriptor.dim, settings)
-            for _, vectors in describe_stream(descriptor, ref_paths, args.batch_size, workers=args.workers,
-                                              progress=True):
-                index.add(vectors)  # the map goes into the index chunk by chunk
-            t0 = time.perf_counter()
-            index.build()
-            built = time.perf_counter() - t0
-            if args.index_file:
-                index.save(args.index_file, metadata={"fingerprint": descriptor.fingerprint(),
-                                                      "references": _names_digest(ref_paths),
-                                                      "method": descriptor.name})
-                print(f"built the {settings.kind} index of {len(ref_paths)} references ({built:.1f} s), "
-                      f"saved to {args.index_file}")
-        else:
-            print(f"loaded the {settings.kind} index of {len(ref_paths)} references from {args.index_file}")
-        queries = describe(query_paths)
-        indices, scores = index.search(queries, depth)
-
-    buffer = io.StringIO()
-    writer = csv.writer(buffer)
-    header = ["query_index", "query", "rank", "reference_index", "reference", "score"]
-    decision = accepted = None
-    if calibration is not None or spec is not None:
-        from fdnet.decisions.acceptance import Candidates, decide
-
-        candidates = Candidates(indices, scores, similarity_ceiling=float(descriptor.similarity_ceiling),
-                                query_paths=query_paths, reference_paths=ref_paths, **neighbourhood)
-        if calibration is not None:
-            decision, accepted = calibration.decide(candidates)
-            header += ["acceptance_score", "accepted"]
-        else:
-            decision = decide(spec, candidates)
-            header += ["acceptance_score"]
-    writer.writerow(header)
-    for q, (row_i, row_s) in enumerate(zip(indices, scores)):
-        for rank, (i, s) in enumerate(zip(row_i, row_s), start=1):
-            chosen = accepted is not None and i == decision.match[q] and bool(accepted[q])
-            # rows beyond --top-k only for the match the rule accepted (a re-ranking rule may pick it)
-            if i >= 0 and (rank <= args.top_k or chosen):
-                row = [q, spreadsheet_text(query_paths[q].name), rank, int(i), spreadsheet_text(ref_paths[i].name),
-                       f"{float(s):.6f}"]
-                if decision is not None:
-                    row.append(f"{decision.score[q]:.6f}")
-                if accepted is not None:
-                    row.append(int(chosen))
-                writer.writerow(row)
-    atomic_write_text(args.out, buffer.getvalue())
-    print(f"wrote {args.out}: top-{args.top_k} of {len(ref_paths)} references for {len(query_paths)} queries "
-          f"({descriptor.name})")
-    if calibration is not None:
-        print(f"{int(accepted.sum())} of {len(query_paths)} queries accepted by {calibration.rule} at threshold "
+    summary = match_images(args.reference, args.query, args.out, lambda: create_descriptor(args.method, args),
+                           top_k=args.top_k, index=args.index, index_set=args.index_set, index_file=args.index_file,
+                           sequence_length=args.sequence_length, calibration=args.calibration, accept=spec,
+                           batch_size=args.batch_size, workers=args.workers, log=print)
+    print(f"wrote {summary.out}: top-{summary.top_k} of {summary.num_references} references for "
+          f"{summary.num_queries} queries ({summary.method})")
+    if summary.calibration is not None:
+        calibration = summary.calibration
+        print(f"{summary.accepted} of {summary.num_queries} queries accepted by {calibration.rule} at threshold "
               f"{calibration.threshold:.6g} (calibrated for precision {calibration.target_precision:g}); the "
               f"others are new places")
     return 0

@@ -1,0 +1,126 @@
+"""The reference/query split and the precomputed similarity matrix that ``fdnet evaluate`` and
+``fdnet calibrate`` score: condition folders aligned frame by frame (or with an explicit
+ground-truth CSV), or a published dataset layout through its adapter.
+
+The keyword names are the commands' flags (``--data``, ``--reference``, ``--query``,
+``--dataset-format``, ``--split``, ``--format-set``, ``--frames``, ``--tolerance``,
+``--filter-frames``, ``--ground-truth``), and error messages name those flags.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from pathlib import Path
+
+from fdnet.errors import ConfigError, DataError
+
+logger = logging.getLogger(__name__)
+
+
+def ground_truth_path(ground_truth) -> Path | None:
+    """``--ground-truth`` as a path (relative to where the command runs), or None. A file that is
+    not there is an error naming it, whatever else was given."""
+    if ground_truth is None:
+        return None
+    path = Path(ground_truth)
+    if not path.is_file():
+        raise DataError(f"{path}: ground-truth file not found" if not path.exists()
+                        else f"{path}: is not a file; expected a ground-truth CSV")
+    return path  # as typed, so errors name the file the way the user wrote it
+
+
+def _format_split(data, reference, query, dataset_format, split, format_set, frames, tolerance, filter_frames,
+                  ground_truth):
+    """``--dataset-format``: the adapter's split; ``--ground-truth`` replaces its ground truth for
+    the chosen split (indices over the split's images, as ``fdnet groundtruth --data`` writes)."""
+    from fdnet.config import parse_overrides
+    from fdnet.data.formats import detect_format, get_format, open_split
+
+    if frames and split:
+        raise ConfigError("give --split or --frames, not both")
+    name = detect_format(data) if dataset_format == "auto" else dataset_format
+    fields = {f.name for f in dataclasses.fields(get_format(name).Options)}
+    options = parse_overrides(list(format_set))
+    if tolerance is not None:
+        options["tolerance"] = tolerance
+    if filter_frames:
+        if "filter_frames" not in fields:
+            raise ConfigError(f"--filter-frames: the {name} format has no frame filter (formats with one: "
+                              f"nordland); without --dataset-format it applies to plain condition folders")
+        options["filter_frames"] = "true"
+    if ground_truth is not None and options.get("ground_truth"):
+        raise ConfigError(f"two explicit ground truths: --ground-truth {ground_truth} and "
+                          f"--format-set ground_truth={options['ground_truth']}; give one")
+    return open_split(data, reference, query, dataset_format=name, split=split or frames,
+                      listed_ground_truth=ground_truth, **options)
+
+
+def build_split(data, reference=None, query=None, *, dataset_format=None, split=None, format_set=(), frames=None,
+                tolerance=None, filter_frames: bool = False, ground_truth=None):
+    """The :class:`~fdnet.data.split.EvaluationSplit` these settings describe. Without
+    ``dataset_format``: ``data/reference/query`` frame-aligned (:func:`fdnet.data.split.aligned_split`,
+    after the frame filter with ``filter_frames``) or with ``ground_truth`` over all images of the
+    two folders (:func:`fdnet.data.split.listed_split`), sliced by ``frames``. With it: the
+    dataset adapter's split, its ground truth replaced by ``ground_truth`` when given."""
+    from fdnet.data.dataset import RouteDataset, parse_frame_range
+    from fdnet.data.split import aligned_split, listed_split
+
+    ground_truth = ground_truth_path(ground_truth)
+    if dataset_format:
+        return _format_split(data, reference, query, dataset_format, split, format_set, frames, tolerance,
+                             filter_frames, ground_truth)
+    if split or format_set:
+        raise ConfigError("--split and --format-set need --dataset-format")
+    if not (reference and query):
+        raise ConfigError("--data needs --reference COND and --query COND (sub-folders of --data)")
+    start, end = parse_frame_range(frames)
+    dataset = RouteDataset.from_folder(data, [reference, query] if reference != query else [reference])
+    _check_frames_inside(frames, start, end, dataset)
+    if ground_truth is not None:
+        if filter_frames:
+            raise ConfigError("--filter-frames applies to frame-aligned folders; with --ground-truth CSV, filter "
+                              "the images before writing the ground truth")
+        return listed_split(dataset, reference, query, ground_truth, start, end)
+    if filter_frames:
+        from fdnet.data.filters import filter_frames as drop_frames
+
+        dataset, summary = drop_frames(dataset.frames(start, end))
+        logger.info(f"frame filter: {summary}")
+        start = end = None
+    return aligned_split(dataset, reference, query, tolerance or 0, start, end)
+
+
+def _check_frames_inside(text, start, end, dataset) -> None:
+    """A --frames range reaching past the folders' end would silently evaluate fewer frames than
+    asked (50:500 of 60 images gave 10)."""
+    counts = {name: len(traverse) for name, traverse in dataset.traverses.items()}
+    frames = min(counts.values())
+    listed = ", ".join(f"{name} {count}" for name, count in counts.items())
+    if (end is not None and end > frames) or (start is not None and start >= frames):
+        raise ConfigError(f"--frames {text}: past the end of the folders ({listed} images); give a range within "
+                          f"0:{frames}, or leave END out ({start or 0}:) for the rest")
+
+
+def load_similarity(path, distance: bool = False):
+    """A plain numeric 2-D .npy matrix, finite everywhere; never unpickles, and refuses a header
+    claiming more data than the file holds before allocating anything. Distances are negated."""
+    import numpy as np
+
+    from fdnet.data.arrays import load_npy
+
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: similarity file not found")
+    matrix = load_npy(path, ndim=2, what="similarity matrix (queries x references)")
+    if not (np.issubdtype(matrix.dtype, np.floating) or np.issubdtype(matrix.dtype, np.integer)):
+        raise DataError(f"{path}: expected a numeric (float or integer) matrix, got dtype {matrix.dtype}")
+    if matrix.size == 0:
+        raise DataError(f"{path}: the matrix is empty (shape {matrix.shape})")
+    bad = ~np.isfinite(matrix) if np.issubdtype(matrix.dtype, np.floating) else None
+    if bad is not None and bad.any():
+        q, r = np.argwhere(bad)[0]
+        raise DataError(f"{path}: {int(bad.sum())} NaN or infinite entries (first at query {q}, "
+                        f"reference {r}); every query-reference pair needs a score")
+    matrix = matrix.astype(np.float64)
+    return -matrix if distance else matrix

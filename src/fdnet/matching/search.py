@@ -1,0 +1,252 @@
+"""Match query images against a reference map: the search (``exact`` blocked top-k for any
+method, SeqSLAM sequences, or a faiss index for dot-product methods), the saved-index cache
+(an index file is reused when it was built for the same method, reference names and build
+settings) and the ranked-candidates CSV of ``fdnet match`` with its optional decisions.
+
+Images are listed in fdnet's one order (:func:`fdnet.data.images.list_images`), and every row
+carries both the indices and the file names.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from fdnet.errors import ConfigError
+
+logger = logging.getLogger(__name__)
+
+#: ``exact`` (blocked numpy top-k, any method) or one of the faiss index kinds
+INDEX_CHOICES = ["exact", "flat", "hnsw", "ivf", "ivfpq"]
+
+MATCH_COLUMNS = ["query_index", "query", "rank", "reference_index", "reference", "score"]
+
+
+def names_digest(paths) -> str:
+    """SHA-256 of the file names in order (their own bytes, UTF-8 or not): which map an index holds."""
+    import hashlib
+
+    digest = hashlib.sha256()
+    for path in paths:
+        digest.update(os.fsencode(path.name) + b"\0")
+    return digest.hexdigest()
+
+
+def cached_index(path, descriptor, ref_paths, settings, log: Callable[[str], None] | None = None):
+    """The index in ``path`` when it was built for this descriptor, these reference names and
+    these build settings; else None (with the reason given to ``log``)."""
+    from fdnet.matching.index import SEARCH_SETTINGS, VectorIndex
+
+    if not Path(path).is_file():
+        return None
+    header = VectorIndex.read_header(path)
+    meta = header.get("metadata", {})
+    build = {k: v for k, v in vars(settings).items() if k not in SEARCH_SETTINGS}
+    saved = {k: v for k, v in header["settings"].items() if k not in SEARCH_SETTINGS}
+    reasons = []
+    if meta.get("fingerprint") != descriptor.fingerprint():
+        reasons.append("another method or model")
+    if meta.get("references") != names_digest(ref_paths) or header["count"] != len(ref_paths):
+        reasons.append("other reference images")
+    if saved != build:
+        reasons.append(f"other build settings ({saved})")
+    if reasons:
+        (log or logger.info)(f"{path}: holds an index of {', '.join(reasons)}; building a new one")
+        return None
+    return VectorIndex.load(path, search={k: getattr(settings, k) for k in SEARCH_SETTINGS})
+
+
+def reference_times_and_positions(paths) -> dict:
+    """``reference_times`` (seconds) when every reference is a frame of a video or bag, and
+    ``reference_positions`` (metres) when every one has a position (a bag's GPS/odometry): what
+    the acceptance settings radius_s / radius_m need. Image files have neither."""
+    from fdnet.data.sources import frame_records, positions_in_metres
+
+    records = frame_records(paths)
+    out = {}
+    if records and all(r.timestamp is not None for r in records):
+        out["reference_times"] = np.array([r.timestamp for r in records], dtype=np.float64)
+    positions = positions_in_metres(records)
+    if records and all(p is not None for p in positions):
+        out["reference_positions"] = np.array(positions, dtype=np.float64)
+    return out
+
+
+def index_settings(index: str, index_set=(), index_file=None, sequence_length: int = 0):
+    """The faiss :class:`~fdnet.matching.index.IndexSettings` of ``index`` with ``index_set``
+    (``KEY=VALUE``) applied, or None for ``exact``; refuses combinations that cannot work."""
+    from fdnet.matching.index import parse_index_settings
+
+    if index not in INDEX_CHOICES:
+        raise ConfigError(f"--index {index!r}: choose from {', '.join(INDEX_CHOICES)}")
+    if index == "exact" and (index_set or index_file):
+        raise ConfigError("--index-set and --index-file apply to the faiss indexes (--index flat|ivf|ivfpq|hnsw)")
+    if sequence_length > 1 and index != "exact":
+        raise ConfigError("--sequence-length needs the full similarity matrix; use --index exact")
+    return parse_index_settings(index, list(index_set)) if index != "exact" else None
+
+
+def rank_references(descriptor, ref_paths, query_paths, depth: int, *, settings=None, sequence_length: int = 0,
+                    index_file=None, batch_size: int = 64, workers: int | None = None, progress: bool = True,
+                    log: Callable[[str], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The ``depth`` best references of each query (indices, scores; (Q, depth) each): exact
+    search (by SeqSLAM sequence similarity when ``sequence_length`` > 1) when ``settings`` is
+    None, else through a faiss index built chunk by chunk from the map (or loaded from
+    ``index_file`` when it holds this map's index; saved there when built)."""
+    from fdnet.descriptors.base import describe_paths
+
+    def describe(paths):
+        return describe_paths(descriptor, paths, batch_size, progress=progress, workers=workers)
+
+    if settings is None:
+        from fdnet.matching.similarity import similarity_matrix, top_k, top_k_of_matrix
+
+        refs, queries = describe(ref_paths), describe(query_paths)
+        if sequence_length > 1:
+            from fdnet.matching.sequence import sequence_similarity
+
+            sim = sequence_similarity(similarity_matrix(queries, refs, descriptor.similarity), sequence_length)
+            return top_k_of_matrix(sim, depth)
+        return top_k(queries, refs, depth, similarity=descriptor.similarity)
+    if not descriptor.dot_product_similarity:
+        raise ConfigError(f"method {descriptor.name!r} does not compare vectors by dot product, so a "
+                          "faiss index would rank by the wrong measure; use --index exact")
+    index = _build_or_load(descriptor, ref_paths, settings, index_file, batch_size, workers, progress,
+                           log or logger.info)
+    return index.search(describe(query_paths), depth)
+
+
+def _build_or_load(descriptor, ref_paths, settings, index_file, batch_size, workers, progress, say):
+    import time
+
+    from fdnet.descriptors.pipeline import describe_stream
+    from fdnet.matching.index import VectorIndex
+
+    index = cached_index(index_file, descriptor, ref_paths, settings, say) if index_file else None
+    if index is not None:
+        say(f"loaded the {settings.kind} index of {len(ref_paths)} references from {index_file}")
+        return index
+    index = VectorIndex(descriptor.dim, settings)
+    for _, vectors in describe_stream(descriptor, ref_paths, batch_size, workers=workers, progress=progress):
+        index.add(vectors)  # the map goes into the index chunk by chunk
+    t0 = time.perf_counter()
+    index.build()
+    built = time.perf_counter() - t0
+    if index_file:
+        index.save(index_file, metadata={"fingerprint": descriptor.fingerprint(),
+                                         "references": names_digest(ref_paths), "method": descriptor.name})
+        say(f"built the {settings.kind} index of {len(ref_paths)} references ({built:.1f} s), saved to {index_file}")
+    return index
+
+
+@dataclass
+class MatchSummary:
+    """What :func:`match_images` wrote."""
+
+    out: str
+    method: str
+    num_references: int
+    num_queries: int
+    top_k: int
+    #: with a calibration: the calibration and how many queries it accepted
+    calibration: object = None
+    accepted: int | None = None
+
+
+def match_images(reference, query, out, make_descriptor: Callable[[], object], *, top_k: int = 5,
+                 index: str = "exact", index_set=(), index_file=None, sequence_length: int = 0,
+                 calibration=None, accept=None, batch_size: int = 64, workers: int | None = None,
+                 progress: bool = True, log: Callable[[str], None] | None = None) -> MatchSummary:
+    """Describe the ``reference`` folder (the map) and the ``query`` folder with the method
+    ``make_descriptor()`` returns (called after the settings and output paths are checked, so a
+    refusal comes before any model is loaded), rank the references of every query
+    (:func:`rank_references`) and write the top ``top_k`` to the CSV ``out`` (atomically).
+
+    ``calibration`` (a file or run directory from ``fdnet calibrate``) adds ``acceptance_score``
+    and ``accepted`` columns; ``accept`` (an AcceptanceSpec, instead of a calibration) adds the
+    rule's ``acceptance_score`` alone. ``log`` gets the index cache's messages (default: this
+    module's logger)."""
+    from fdnet.data.images import list_images
+    from fdnet.io import ensure_writable
+
+    if top_k < 1:
+        raise ConfigError("--top-k must be at least 1")
+    if sequence_length < 0:
+        raise ConfigError(f"--sequence-length must be >= 0 (0 = single image), got {sequence_length}")
+    settings = index_settings(index, index_set, index_file, sequence_length)
+    ensure_writable(out, what="matches CSV")  # before describing every image, not after
+    if index_file:
+        ensure_writable(index_file, what="index file")
+    ref_paths, query_paths = list_images(reference), list_images(query)
+    descriptor = make_descriptor()
+    depth = top_k if accept is None else max(top_k, accept.depth)
+    if calibration is not None:
+        from fdnet.decisions.calibration import load_calibration
+
+        source, calibration = calibration, load_calibration(calibration)
+        calibration.check(descriptor, sequence_length=sequence_length if sequence_length > 1 else 0, source=source)
+        depth = max(top_k, calibration.spec.depth)  # the rule may need more candidates than are written
+    rule = accept if accept is not None else (calibration.spec if calibration is not None else None)
+    neighbourhood = reference_times_and_positions(ref_paths)
+    if rule is not None:  # e.g. radius_m: image folders have no positions; refused before describing
+        rule.check_available({"images", *neighbourhood}, "fdnet match (references without "
+                             + ("positions)" if "reference_times" in neighbourhood else "timestamps or positions)"))
+    if settings is not None and not descriptor.dot_product_similarity:
+        raise ConfigError(f"method {descriptor.name!r} does not compare vectors by dot product, so a "
+                          "faiss index would rank by the wrong measure; use --index exact")
+    if descriptor.needs_fit:
+        logger.info(f"{descriptor.name}: learning from the {len(ref_paths)} reference images (none supplied)")
+        descriptor.fit(ref_paths)
+    indices, scores = rank_references(descriptor, ref_paths, query_paths, depth, settings=settings,
+                                      sequence_length=sequence_length, index_file=index_file,
+                                      batch_size=batch_size, workers=workers, progress=progress, log=log)
+    decision = accepted = None
+    if rule is not None:
+        from fdnet.decisions.acceptance import Candidates, decide
+
+        candidates = Candidates(indices, scores, similarity_ceiling=float(descriptor.similarity_ceiling),
+                                query_paths=query_paths, reference_paths=ref_paths, **neighbourhood)
+        if calibration is not None:
+            decision, accepted = calibration.decide(candidates)
+        else:
+            decision = decide(accept, candidates)
+    write_matches(out, indices, scores, query_paths, ref_paths, top_k, decision, accepted)
+    return MatchSummary(out=str(out), method=descriptor.name, num_references=len(ref_paths),
+                        num_queries=len(query_paths), top_k=top_k, calibration=calibration,
+                        accepted=None if accepted is None else int(accepted.sum()))
+
+
+def write_matches(out, indices, scores, query_paths, ref_paths, top_k: int, decision=None, accepted=None) -> None:
+    """The ranked-candidates CSV: :data:`MATCH_COLUMNS`, plus ``acceptance_score`` with a
+    ``decision`` and ``accepted`` with a calibrated one. Rows beyond ``top_k`` appear only for
+    the match a rule accepted (a re-ranking rule may pick it)."""
+    import csv
+    import io
+
+    from fdnet.io import atomic_write_text, spreadsheet_text
+
+    buffer = io.StringIO()
+    writer = csv.writer(buffer)
+    header = list(MATCH_COLUMNS)
+    if decision is not None:
+        header.append("acceptance_score")
+    if accepted is not None:
+        header.append("accepted")
+    writer.writerow(header)
+    for q, (row_i, row_s) in enumerate(zip(indices, scores)):
+        for rank, (i, s) in enumerate(zip(row_i, row_s), start=1):
+            chosen = accepted is not None and i == decision.match[q] and bool(accepted[q])
+            if i >= 0 and (rank <= top_k or chosen):
+                row = [q, spreadsheet_text(query_paths[q].name), rank, int(i), spreadsheet_text(ref_paths[i].name),
+                       f"{float(s):.6f}"]
+                if decision is not None:
+                    row.append(f"{decision.score[q]:.6f}")
+                if accepted is not None:
+                    row.append(int(chosen))
+                writer.writerow(row)
+    atomic_write_text(out, buffer.getvalue())

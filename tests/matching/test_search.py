@@ -1,0 +1,62 @@
+"""fdnet.matching.search: exact and indexed ranking, the saved-index cache, the matches CSV."""
+
+import csv
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from fdnet.descriptors import create
+from fdnet.errors import ConfigError
+from fdnet.matching.search import index_settings, match_images, names_digest
+
+
+def make_route(folder, n=12, seed=0, brightness=1.0):
+    folder.mkdir(parents=True)
+    rng = np.random.default_rng(seed)
+    for i in range(n):
+        img = rng.integers(0, 256, size=(24, 32, 3)).astype(np.float32) * brightness
+        Image.fromarray(np.clip(img, 0, 255).astype(np.uint8)).save(folder / f"frame_{i:03d}.png")
+    return folder
+
+
+def read_rows(path):
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def test_exact_and_indexed_search_find_the_same_places_and_the_index_is_reused(tmp_path):
+    ref = make_route(tmp_path / "ref", n=30)
+    qry = make_route(tmp_path / "qry", n=30, brightness=0.7)
+    messages = []
+    for index, out in (("exact", "e.csv"), ("ivf", "i1.csv"), ("ivf", "i2.csv")):
+        summary = match_images(ref, qry, tmp_path / out, lambda: create("raw"), top_k=2, index=index,
+                               index_file=None if index == "exact" else tmp_path / "map.index", workers=0,
+                               progress=False, log=messages.append)
+        assert (summary.num_references, summary.num_queries, summary.method) == (30, 30, "raw")
+    exact, first, second = (read_rows(tmp_path / n) for n in ("e.csv", "i1.csv", "i2.csv"))
+    assert all(r["query"] == r["reference"] for r in exact if r["rank"] == "1")
+    assert first == second and len(first) == 60
+    assert [m.split(" index")[0] for m in messages] == ["built the ivf", "loaded the ivf"]
+
+
+def test_settings_are_refused_before_the_method_is_made(tmp_path):
+    def never():
+        raise AssertionError("the descriptor was made before the settings were checked")
+
+    ref = make_route(tmp_path / "ref", n=3)
+    for kwargs, message in (({"top_k": 0}, "--top-k"), ({"sequence_length": -1}, "--sequence-length"),
+                            ({"index_set": ["ivf_lists=2"]}, "apply to the faiss indexes"),
+                            ({"index": "hnsw", "sequence_length": 3}, "use --index exact")):
+        with pytest.raises(ConfigError, match=message):
+            match_images(ref, ref, tmp_path / "m.csv", never, **kwargs)
+
+
+def test_index_settings_and_names_digest():
+    assert index_settings("exact") is None
+    assert index_settings("ivf", ["ivf_lists=4"]).ivf_lists == 4
+    with pytest.raises(ConfigError, match="--index"):
+        index_settings("lsh")
+    from pathlib import Path
+
+    assert names_digest([Path("a/x.png")]) == names_digest([Path("b/x.png")]) != names_digest([Path("y.png")])
