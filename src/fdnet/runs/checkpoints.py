@@ -1,29 +1,6 @@
-"""Crash-safe run directories: checkpoint generations, a run lock and a record of resumed changes.
-
-A run directory is self-describing (a model loads from nothing but its path) and survives kill -9,
-Ctrl-C, power loss and a full disk during a save::
-
-    RUN_DIR/
-      .lock                       held (flock) while a training writes here; pid, host, command
-      changes.yaml                settings changed on ``--resume --override``, with the step
-      checkpoints/
-        step-000001000/           one generation = one unit, written together, published together
-          model.safetensors       weights of every named module ("<module>.<param>" keys)
-          training_state.pt       optimiser states + resume state (absent in weights-only ones)
-          config.yaml             the dataclass config that built the model
-        step-000002000/           the newest complete generation is the current one
-        .tmp-2100-<id>/           a save in progress (or a crashed one, removed at the next save)
-
-A generation is written completely into a ``.tmp-*`` folder beside the others, every file and the
-folder fsynced and read back, then published by one ``rename`` (atomic on POSIX) and the parent
-folder fsynced. Until that rename the previous generation is untouched and current; older ones
-beyond ``keep`` are removed only after the new one is published. Every file of a generation
-carries the same ``save_id`` (weights metadata, training state, a comment line in config.yaml),
-so a reader can prove the three belong together. Readers take the newest generation that is
-complete (:func:`latest_checkpoint`); folders starting with "." are never read.
-
-Older runs (``model.safetensors`` etc. directly in ``RUN_DIR``) are read as before. Every load
-function accepts a run directory, a generation folder or a legacy run directory.
+"""Checkpoint generations of a run directory: how one is written (into a ``.tmp-*`` folder,
+every file fsynced and read back, published by one rename), found (the newest complete one) and
+read back (weights, training state, config). See :mod:`fdnet.runs` for the layout on disk.
 
 This module must not import :mod:`fdnet.training`: inference code loads trained models with it.
 """
@@ -32,15 +9,12 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import datetime
 import errno
 import io
 import operator
 import os
 import re
 import shutil
-import socket
-import time
 import uuid
 from pathlib import Path
 from typing import Any, Iterator, Mapping, TypeVar
@@ -53,11 +27,11 @@ from safetensors.torch import save as safetensors_bytes
 
 from fdnet.config import flatten_dotted, load_yaml, read_yaml_file, to_dict
 from fdnet.errors import ConfigError
-from fdnet.io import atomic_write_text, fsync_directory
+from fdnet.io import fsync_directory
 
 try:
     import fcntl
-except ImportError:  # Windows: loading runs works; RunLock says it cannot lock (see there)
+except ImportError:  # Windows: loading runs works; saves are not serialised (see _save_lock)
     fcntl = None
 
 T = TypeVar("T")
@@ -66,8 +40,6 @@ WEIGHTS_FILE = "model.safetensors"
 CONFIG_FILE = "config.yaml"
 STATE_FILE = "training_state.pt"
 CHECKPOINTS_DIR = "checkpoints"
-LOCK_FILE = ".lock"
-CHANGES_FILE = "changes.yaml"
 FORMAT_VERSION = "2"
 
 # Generation kinds, stored in the weights' metadata: a "weights" generation has no training state
@@ -592,128 +564,3 @@ def load_training_state(run_dir: str | Path,
     training state belongs to a different save than its weights."""
     return _with_latest(run_dir, lambda folder: _load_training_state_from(folder, optimizers))
 
-
-# ---------------------------------------------------------------------------- run lock
-
-def _now() -> str:
-    return datetime.datetime.now().astimezone().isoformat(timespec="seconds")
-
-
-class RunLock:
-    """Exclusive lock on a run directory while a training writes to it.
-
-    ``fcntl.flock(LOCK_EX | LOCK_NB)`` on ``run_dir/.lock``, which then holds the holder's pid,
-    host and command. A second holder (another process, or a second RunLock in this one) gets a
-    ConfigError naming the holder. The kernel drops the lock when its process ends, kill -9
-    included, so a stale ``.lock`` file never blocks a resume. The file is never deleted: deleting
-    a lock file lets two processes lock two different files of the same name. Processes forked
-    while the lock is held (DataLoader workers) share it until they exit too.
-    """
-
-    def __init__(self, run_dir: str | Path, command: str = "fdnet train"):
-        self.run_dir = Path(run_dir)
-        self.path = self.run_dir / LOCK_FILE
-        self.command = command
-        self._fd: int | None = None
-
-    def _holder(self) -> dict:
-        # The holder writes its details right after locking; give it a moment if we came between.
-        for _ in range(10):
-            try:
-                data = yaml.safe_load(self.path.read_text(encoding="utf-8"))
-            except (OSError, UnicodeDecodeError, yaml.YAMLError):
-                data = None
-            if isinstance(data, dict) and "pid" in data:
-                return data
-            time.sleep(0.02)
-        return {}
-
-    def acquire(self) -> "RunLock":
-        if self._fd is not None:
-            raise RuntimeError(f"{self.path}: this RunLock is already held")
-        if fcntl is None:
-            raise ConfigError(f"{self.run_dir}: cannot lock the run directory on this platform "
-                              "(needs fcntl: Linux, macOS)")
-        try:
-            self.run_dir.mkdir(parents=True, exist_ok=True)
-            fd = os.open(str(self.path), os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
-        except OSError as exc:
-            raise ConfigError(f"{self.path}: cannot create the run directory's lock file "
-                              f"({exc.strerror or exc})") from None
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            os.close(fd)
-            holder = self._holder()
-            if not holder:
-                raise ConfigError(f"{self.run_dir} is in use by another process (see {self.path}); "
-                                  "wait for it to finish or stop it") from None
-            where = "" if holder.get("host") in (None, socket.gethostname()) else f" on {holder['host']}"
-            raise ConfigError(
-                f"{self.run_dir} is in use by process {holder.get('pid')}{where} "
-                f"({holder.get('command', '?')}, started {holder.get('started', '?')}); "
-                "wait for it to finish or stop it"
-            ) from None
-        except OSError as exc:
-            os.close(fd)
-            raise ConfigError(f"{self.path}: cannot lock the run directory ({exc.strerror or exc}); "
-                              "its filesystem may not support file locks") from None
-        info = yaml.safe_dump({"pid": os.getpid(), "host": socket.gethostname(),
-                               "command": self.command, "started": _now()}, sort_keys=False)
-        try:
-            os.ftruncate(fd, 0)
-            os.pwrite(fd, info.encode("utf-8"), 0)
-        except OSError as exc:  # a full disk: name the file (the error from pwrite names none)
-            os.close(fd)
-            raise OSError(exc.errno, exc.strerror, str(self.path)) from exc
-        self._fd = fd
-        return self
-
-    def release(self) -> None:
-        if self._fd is None:
-            return
-        fd, self._fd = self._fd, None
-        try:
-            os.ftruncate(fd, 0)  # no stale holder details once the run is free
-        finally:
-            os.close(fd)  # releases the flock
-
-    @property
-    def held(self) -> bool:
-        return self._fd is not None
-
-    def __enter__(self) -> "RunLock":
-        return self.acquire()
-
-    def __exit__(self, *exc_info) -> None:
-        self.release()
-
-
-# ---------------------------------------------------------------------------- changes on resume
-
-def read_changes(run_dir: str | Path) -> list[dict]:
-    """Entries of ``run_dir/changes.yaml`` (``step``, ``time``, ``command``, ``changes``), oldest
-    first; [] when the run was never resumed with other settings."""
-    path = Path(run_dir) / CHANGES_FILE
-    try:
-        data = read_yaml_file(path, "record of changed settings")
-    except FileNotFoundError:
-        return []
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read the record of changed settings ({exc})") from None
-    if data is None:
-        return []
-    if not isinstance(data, list) or not all(isinstance(e, dict) for e in data):
-        raise ConfigError(f"{path}: expected a list of entries (step, time, command, changes)")
-    return data
-
-
-def record_changes(run_dir: str | Path, step: int, differences: list[str], command: str = "") -> None:
-    """Append to ``run_dir/changes.yaml`` (rewritten atomically) that the settings in
-    ``differences`` (as from :func:`config_differences`) changed at ``step``, when a run is
-    resumed with ``--override``; the run's history stays true. Nothing is written for no change."""
-    if not differences:
-        return
-    entries = read_changes(run_dir)
-    entries.append({"step": int(step), "time": _now(), "command": command, "changes": list(differences)})
-    atomic_write_text(Path(run_dir) / CHANGES_FILE, yaml.safe_dump(entries, sort_keys=False))
