@@ -11,7 +11,7 @@ onnxruntime = pytest.importorskip("onnxruntime", reason="optional extra fdnet[on
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory):
     root = tmp_path_factory.mktemp("export")
-    assert main(["synth", "--out", str(root / "route"), "--frames", "12", "--conditions", "summer,night"]) == 0
+    assert main(["synth", "--out", str(root / "route"), "--num-frames", "12", "--conditions", "summer,night"]) == 0
     assert main(["train", "--data", str(root / "route"), "--preset", "tiny", "--out", str(root / "run"),
                  "--no-progress"]) == 0
     return root / "run"
@@ -96,7 +96,7 @@ def test_projection_head_gives_its_length_to_extract_export_and_the_database(tin
     np.testing.assert_allclose(onnx_vectors, fdnet.load(run).describe(sample), atol=1e-4)
     db = tmp_path / "map.db"
     assert main(["database", "build", "--images", str(images), "--method", "fdnet", "--checkpoint", str(run),
-                 "--out", str(db)]) == 0
+                 "--db", str(db)]) == 0
     capsys.readouterr()
     assert main(["database", "info", "--db", str(db)]) == 0
     assert json.loads(capsys.readouterr().out)["dim"] == 24

@@ -55,7 +55,7 @@ def test_a_bad_progress_interval_stops_the_command_before_any_work(monkeypatch, 
     with pytest.raises(ConfigError, match="FDNET_PROGRESS_INTERVAL='-3'"):
         with command_logging("train"):
             pass
-    assert main(["synth", "--out", str(tmp_path / "route"), "--frames", "4"]) == 2
+    assert main(["synth", "--out", str(tmp_path / "route"), "--num-frames", "4"]) == 2
     assert "fdnet synth: error: FDNET_PROGRESS_INTERVAL='-3'" in capsys.readouterr().err
     assert not (tmp_path / "route").exists()
 

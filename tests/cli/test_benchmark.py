@@ -10,7 +10,7 @@ from fdnet.cli import main
 
 def test_quick_benchmark_reports_figures_and_ratios(tmp_path, capsys):
     out = tmp_path / "bench.json"
-    assert main(["benchmark", "--quick", "--threads", "1", "--methods", "raw,sad", "--num-images", "4",
+    assert main(["benchmark", "--quick", "--threads", "1", "--method", "raw,sad", "--num-images", "4",
                  "--map-size", "200", "--indexes", "flat,ivf", "--queries", "50", "--json", str(out)]) == 0
     report = json.loads(out.read_text())
     assert report["gemm_gflops_fp32"] > 0 and report["gemm_gflops_bf16"] > 0 and report["cpu"]
@@ -78,6 +78,6 @@ def test_bad_benchmark_settings_are_errors(tmp_path, capsys, argv, message):
 
 
 def test_benchmark_reports_a_method_it_cannot_run(tmp_path, capsys):
-    assert main(["benchmark", "--quick", "--parts", "methods", "--threads", "1", "--methods", "hybridnet",
+    assert main(["benchmark", "--quick", "--parts", "methods", "--threads", "1", "--method", "hybridnet",
                  "--num-images", "2"]) == 0
     assert "hybridnet  skipped" in capsys.readouterr().out

@@ -66,7 +66,7 @@ def test_calibrate_then_match_writes_decisions(route, tmp_path, capsys):
 
 def test_calibration_in_run_directory_and_database(route, tmp_path, capsys):
     db = tmp_path / "map.db"
-    assert main(["database", "build", "--images", str(route / "map"), "--method", "raw", "--out", str(db),
+    assert main(["database", "build", "--images", str(route / "map"), "--method", "raw", "--db", str(db),
                  "--workers", "0"]) == 0
     assert main(calibrate_args(route, "--accept", "ratio", "--accept-set", "radius=1", "--target-precision", "0.9",
                                "--db", str(db))) == 0
@@ -118,7 +118,7 @@ def test_a_calibration_from_another_model_is_refused(route, tmp_path, capsys):
                  "--sequence-length", "3", "--calibration", str(cal), "--out", str(out)]) == 2
     assert "--sequence-length 0, used with 3" in capsys.readouterr().err
     db = tmp_path / "hog.db"
-    assert main(["database", "build", "--images", str(route / "map"), "--method", "hog", "--out", str(db),
+    assert main(["database", "build", "--images", str(route / "map"), "--method", "hog", "--db", str(db),
                  "--workers", "0"]) == 0
     capsys.readouterr()
     assert main(["database", "query", "--db", str(db), "--images", str(route / "now"), "--calibration", str(cal),
@@ -148,7 +148,7 @@ def test_match_with_an_uncalibrated_rule_writes_its_scores_only(route, tmp_path,
 
 def test_database_query_with_an_uncalibrated_rule(route, tmp_path, capsys):
     db = tmp_path / "map.db"
-    assert main(["database", "build", "--images", str(route / "map"), "--method", "raw", "--out", str(db),
+    assert main(["database", "build", "--images", str(route / "map"), "--method", "raw", "--db", str(db),
                  "--workers", "0"]) == 0
     out = tmp_path / "q.csv"
     assert main(["database", "query", "--db", str(db), "--images", str(route / "now"), "--top-k", "1",

@@ -71,9 +71,9 @@ def test_bad_fit_input_is_a_command_error(route, tmp_path, capsys):
 def test_a_database_rebuilds_the_whitening_from_its_fit_folder(route, tmp_path, capsys):
     db = tmp_path / "places.fdb"
     common = ["--method", "trunk-whitened", *SMALL[:-2], "--method-set", "trunk-whitened:dim=4"]
-    err = _error(capsys, ["database", "build", "--images", str(route / "day"), "--out", str(db), *common])
+    err = _error(capsys, ["database", "build", "--images", str(route / "day"), "--db", str(db), *common])
     assert "--fit DIR" in err  # nothing to learn from: refused, since queries could not rebuild it
-    assert main(["database", "build", "--images", str(route / "day"), "--out", str(db), *common,
+    assert main(["database", "build", "--images", str(route / "day"), "--db", str(db), *common,
                  "--fit", str(route), "--fit-frames", "0:4"]) == 0
     capsys.readouterr()
     from fdnet.matching.database import PlaceDatabase

@@ -46,7 +46,7 @@ def no_describing(monkeypatch):
 def built(tmp_path):
     db = tmp_path / "map.db"
     assert main(["database", "build", "--images", str(make_route(tmp_path / "first", seed=1)),
-                 "--method", "raw", "--out", str(db)]) == 0
+                 "--method", "raw", "--db", str(db)]) == 0
     return db
 
 
@@ -110,10 +110,10 @@ def test_build_over_an_existing_database_needs_overwrite(tmp_path, built, capsys
     with monkeypatch.context() as patch:
         patch.setattr(RawThumbnail, "describe", lambda self, images: pytest.fail("described before refusing"))
         assert main(["database", "build", "--images", str(tmp_path / "first"), "--method", "raw",
-                     "--out", str(built)]) == 2
+                     "--db", str(built)]) == 2
     assert f"fdnet database: error: {built}: already exists; pass --overwrite" in capsys.readouterr().err
     other = make_route(tmp_path / "other", n=3, seed=7)
-    assert main(["database", "build", "--images", str(other), "--method", "raw", "--out", str(built),
+    assert main(["database", "build", "--images", str(other), "--method", "raw", "--db", str(built),
                  "--overwrite"]) == 0
     assert info(built, capsys)["places"] == 3
 
@@ -161,9 +161,9 @@ def test_migrate_an_old_folder_then_query_it(tmp_path, capsys):
     paths = sorted(images.iterdir())
     old = write_old_folder(tmp_path / "old", describe_paths(create("raw"), paths), [str(p) for p in paths])
     assert main(["database", "query", "--db", str(old), "--images", str(images)]) == 2
-    assert f"convert it once with: fdnet database migrate --from {old} --out {old}.db" in capsys.readouterr().err
+    assert f"convert it once with: fdnet database migrate --from {old} --db {old}.db" in capsys.readouterr().err
     new = tmp_path / "new.db"
-    assert main(["database", "migrate", "--from", str(old), "--out", str(new)]) == 0
+    assert main(["database", "migrate", "--from", str(old), "--db", str(new)]) == 0
     summary = info(new, capsys)
     assert (summary["places"], summary["fingerprint"]) == (4, create("raw").fingerprint())
     assert main(["database", "query", "--db", str(new), "--images", str(images), "--top-k", "1"]) == 0
@@ -181,7 +181,7 @@ def test_migrate_an_old_folder_then_query_it(tmp_path, capsys):
 ])
 def test_migrate_refuses_a_broken_old_folder(tmp_path, capsys, change, message):
     old = write_old_folder(tmp_path / "old", np.zeros((2, 2048)), ["a.png", "b.png"], **change)
-    assert main(["database", "migrate", "--from", str(old), "--out", str(tmp_path / "new.db")]) == 2
+    assert main(["database", "migrate", "--from", str(old), "--db", str(tmp_path / "new.db")]) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"fdnet database: error: {old / 'database.json'}: ") and message in err
     assert not (tmp_path / "new.db").exists()
@@ -191,7 +191,7 @@ def test_unwritable_outputs_fail_before_describing(tmp_path, built, capsys, no_d
     blocker = tmp_path / "a-file"
     blocker.write_text("not a folder")
     assert main(["database", "build", "--images", str(tmp_path / "first"), "--method", "raw",
-                 "--out", str(blocker / "map.db")]) == 2
+                 "--db", str(blocker / "map.db")]) == 2
     assert "cannot create the place database folder" in capsys.readouterr().err
     assert main(["database", "query", "--db", str(built), "--images", str(tmp_path / "first"),
                  "--out", str(blocker / "q.csv")]) == 2
@@ -202,7 +202,7 @@ def test_build_with_an_approximate_index_caches_it_and_adds_in_one_transaction(t
     route = make_route(tmp_path / "route", n=60)
     more = make_route(tmp_path / "more", n=8, seed=5)
     db = tmp_path / "map.db"
-    assert main(["database", "build", "--images", str(route), "--method", "raw", "--out", str(db),
+    assert main(["database", "build", "--images", str(route), "--method", "raw", "--db", str(db),
                  "--index", "ivfpq", "--index-set", "pq_bytes=16", "--index-set", "refine=8", "--batch-size", "7",
                  "--workers", "1",
                  "--device", "cpu"]) == 0
@@ -223,7 +223,7 @@ def test_build_with_an_approximate_index_caches_it_and_adds_in_one_transaction(t
 
 def test_a_non_dot_product_method_is_refused_an_approximate_index(tmp_path, capsys, no_describing):
     route = make_route(tmp_path / "route")
-    assert main(["database", "build", "--images", str(route), "--method", "sad", "--out", str(tmp_path / "m.db"),
+    assert main(["database", "build", "--images", str(route), "--method", "sad", "--db", str(tmp_path / "m.db"),
                  "--index", "ivf"]) == 2
     assert "use --index flat" in capsys.readouterr().err
 
@@ -234,7 +234,7 @@ def test_a_file_name_that_is_not_utf8_is_refused_before_any_work(tmp_path, capsy
     images = make_route(tmp_path / "odd", n=3)
     os.rename(images / "frame_001.png", os.path.join(os.fsencode(images), b"caf\xe9.png"))
     db = tmp_path / "map.db"
-    assert main(["database", "build", "--images", str(images), "--method", "raw", "--out", str(db)]) == 2
+    assert main(["database", "build", "--images", str(images), "--method", "raw", "--db", str(db)]) == 2
     err = capsys.readouterr().err
     assert "caf\\xe9.png': the file name is not valid UTF-8" in err and "Traceback" not in err
     assert not db.exists()  # no half-made database left behind
@@ -245,7 +245,7 @@ def test_query_quotes_names_a_spreadsheet_would_run_as_formulas(tmp_path, capsys
     (images / "frame_000.png").rename(images / "=cmd.png")
     (images / "frame_001.png").rename(images / "@x.png")
     db = tmp_path / "map.db"
-    assert main(["database", "build", "--images", str(images), "--method", "raw", "--out", str(db)]) == 0
+    assert main(["database", "build", "--images", str(images), "--method", "raw", "--db", str(db)]) == 0
     out = tmp_path / "q.csv"
     assert main(["database", "query", "--db", str(db), "--images", str(images), "--top-k", "3", "--out", str(out)]) == 0
     rows = read_rows(out)
@@ -278,7 +278,7 @@ def test_a_database_on_read_only_storage_is_queried_read_only(tmp_path, capsys, 
 
     images = make_route(tmp_path / "first", seed=1)
     built = tmp_path / "maps" / "map.db"
-    assert main(["database", "build", "--images", str(images), "--method", "raw", "--out", str(built)]) == 0
+    assert main(["database", "build", "--images", str(images), "--method", "raw", "--db", str(built)]) == 0
     make_read_only(built.parent)
     assert not os.access(built.parent, os.W_OK)
     assert info(built, capsys)["places"] == 6
@@ -354,5 +354,5 @@ def test_the_empty_file_an_unfinished_build_leaves_says_so_and_is_reused(tmp_pat
     assert main(["database", "info", "--db", str(db)]) == 2
     assert "not yet an fdnet place database (a `database build` that did not finish" in capsys.readouterr().err
     assert main(["database", "build", "--images", str(make_route(tmp_path / "images", n=2)), "--method", "raw",
-                 "--out", str(db)]) == 0
+                 "--db", str(db)]) == 0
     assert info(db, capsys)["places"] == 2

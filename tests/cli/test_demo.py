@@ -7,7 +7,7 @@ from fdnet.cli import main
 
 def test_demo_runs_end_to_end_with_tiny_preset(tmp_path, capsys):
     out = tmp_path / "demo"
-    assert main(["demo", "--out", str(out), "--preset", "tiny", "--frames", "40", "--methods", "fdnet,sad"]) == 0
+    assert main(["demo", "--out", str(out), "--preset", "tiny", "--num-frames", "40", "--method", "fdnet,sad"]) == 0
     for pair in ("night-summer", "winter-summer"):
         results = json.loads((out / f"results-{pair}.json").read_text())["results"]
         assert [r["method"] for r in results] == ["fdnet", "sad"]
@@ -22,5 +22,5 @@ def test_demo_runs_end_to_end_with_tiny_preset(tmp_path, capsys):
 
 
 def test_demo_rejects_too_short_route(tmp_path, capsys):
-    assert main(["demo", "--out", str(tmp_path / "d"), "--frames", "10"]) == 2
+    assert main(["demo", "--out", str(tmp_path / "d"), "--num-frames", "10"]) == 2
     assert "at least 40" in capsys.readouterr().err

@@ -38,7 +38,7 @@ def test_positions_in_metres_no_warning(tmp_path, capsys):
 def test_aligned_counts_and_folders(tmp_path):
     out = tmp_path / "gt.csv"
     assert main(["groundtruth", "--aligned", "--num-queries", "4", "--num-references", "4",
-                 "--tolerance-frames", "1", "--out", str(out)]) == 0
+                 "--tolerance", "1", "--out", str(out)]) == 0
     assert out.read_text().splitlines()[1:] == ["0,0 1", "1,0 1 2", "2,1 2 3", "3,2 3"]
     for name in ("day", "night"):
         (tmp_path / name).mkdir()
@@ -55,7 +55,7 @@ def test_dataset_folder_with_setting(tmp_path, capsys):
         for i in range(5):
             Image.fromarray(np.zeros((4, 4, 3), np.uint8)).save(tmp_path / "route" / name / f"{i}.png")
     out = tmp_path / "gt.csv"
-    assert main(["groundtruth", "--dataset", str(tmp_path / "route"), "--set", "tolerance=2",
+    assert main(["groundtruth", "--data", str(tmp_path / "route"), "--format-set", "tolerance=2",
                  "--split", "1:4", "--out", str(out)]) == 0
     assert out.read_text().splitlines()[1:] == ["0,0 1 2,1.png,1.png/2.png/3.png", "1,0 1 2,2.png,1.png/2.png/3.png",
                                                 "2,0 1 2,3.png,1.png/2.png/3.png"]

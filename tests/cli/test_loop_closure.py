@@ -71,7 +71,7 @@ def test_a_second_session_closes_loops_against_the_first_sessions_database(tmp_p
     for i in range(2 * PLACES):
         (route / f"frame_{i:03d}.png").rename((day1 if i < PLACES else day2) / f"frame_{i:03d}.png")
     db = tmp_path / "map.db"
-    assert main(["database", "build", "--images", str(day1), "--method", "raw", "--out", str(db)]) == 0
+    assert main(["database", "build", "--images", str(day1), "--method", "raw", "--db", str(db)]) == 0
     assert main(args(day2, tmp_path, "--db", str(db))) == 0
     rows = read_rows(tmp_path / "events.csv")
     # the first frame of day 2 already closes a loop: day 1's places are not this traverse's last frames
@@ -120,7 +120,7 @@ def test_threshold_needs_a_rule_and_outputs_must_be_writable(route, tmp_path, ca
 
 def test_a_database_of_another_model_is_refused(route, tmp_path, capsys):
     db = tmp_path / "hog.db"
-    assert main(["database", "build", "--images", str(route), "--method", "hog", "--out", str(db)]) == 0
+    assert main(["database", "build", "--images", str(route), "--method", "hog", "--db", str(db)]) == 0
     capsys.readouterr()
     assert main(args(route, tmp_path, "--db", str(db))) == 2
     err = capsys.readouterr().err

@@ -44,17 +44,17 @@ def _commands(route, vocabulary_images, tiny_run, out):
     """command name -> argv writing into folder ``out``: each output is larger than 4 KiB."""
     summer, winter = str(route / "summer"), str(route / "winter")
     return {
-        "database build": ["database", "build", "--images", summer, "--method", "sad", "--out", f"{out}/map.db",
+        "database build": ["database", "build", "--images", summer, "--method", "sad", "--db", f"{out}/map.db",
                            "--workers", "0"],
         "match": ["match", "--reference", summer, "--query", winter, "--method", "sad", "--out", f"{out}/m.csv",
                   "--workers", "0"],
         "evaluate": ["evaluate", "--data", str(route), "--reference", "summer", "--query", "winter",
                      "--method", "sad,hog", "--json", f"{out}/results.json", "--workers", "0"],
         "groundtruth": ["groundtruth", "--aligned", "--num-queries", "500", "--num-references", "500",
-                        "--tolerance-frames", "2", "--out", f"{out}/gt.csv"],
+                        "--tolerance", "2", "--out", f"{out}/gt.csv"],
         "vocabulary": ["vocabulary", "build", "--images", str(vocabulary_images), "--out", f"{out}/v.safetensors",
                        "--size", "128", "256", "--branching", "8", "--depth", "3"],
-        "synth": ["synth", "--out", f"{out}/synthetic", "--frames", "10", "--size", "32x64"],
+        "synth": ["synth", "--out", f"{out}/synthetic", "--num-frames", "10", "--size", "32x64"],
         "extract": ["extract", "--checkpoint", str(tiny_run), "--images", summer, "--out", f"{out}/v.npz",
                     "--device", "cpu", "--workers", "0", "--fp32"],
         "train": ["train", "--data", str(route), "--preset", "tiny", "--out", f"{out}/run", "--no-progress"],
@@ -139,7 +139,7 @@ def test_a_bug_keeps_its_traceback(error, monkeypatch):
 
 def test_database_add_on_a_full_disk_is_one_line_and_keeps_the_database(small_disk, route, capsys):
     db = small_disk.path / "map.db"
-    assert main(["database", "build", "--images", str(route / "summer"), "--method", "sad", "--out", str(db),
+    assert main(["database", "build", "--images", str(route / "summer"), "--method", "sad", "--db", str(db),
                  "--workers", "0"]) == 0
     before = sorted(small_disk.files())
     small_disk.fill(4096)
@@ -154,7 +154,7 @@ def test_database_add_on_a_full_disk_is_one_line_and_keeps_the_database(small_di
 
 def test_database_add_under_a_file_size_limit_is_one_line(tmp_path, route, file_size_limit, capsys):
     db = tmp_path / "out" / "map.db"
-    assert main(["database", "build", "--images", str(route / "summer"), "--method", "sad", "--out", str(db),
+    assert main(["database", "build", "--images", str(route / "summer"), "--method", "sad", "--db", str(db),
                  "--workers", "0"]) == 0
     before = sorted(p.name for p in db.parent.iterdir())
     with file_size_limit(2048):

@@ -70,7 +70,7 @@ def test_database_build_add_query(tmp_path):
     first = make_route(tmp_path / "first", n=8, seed=1)
     second = make_route(tmp_path / "second", n=5, seed=2)
     db = tmp_path / "db"
-    assert main(["database", "build", "--images", str(first), "--method", "raw", "--out", str(db)]) == 0
+    assert main(["database", "build", "--images", str(first), "--method", "raw", "--db", str(db)]) == 0
     assert main(["database", "add", "--db", str(db), "--images", str(second)]) == 0
     out = tmp_path / "q.csv"
     assert main(["database", "query", "--db", str(db), "--images", str(second), "--top-k", "2",

@@ -25,11 +25,11 @@ def made(tmp_path_factory):
     (the length study trains its four runs on frames 0:12)."""
     root = tmp_path_factory.mktemp("reproduce")
     route, run, out = root / "route", root / "run", root / "out"
-    assert main(["synth", "--out", str(route), "--frames", "24", "--conditions", "summer,night"]) == 0
+    assert main(["synth", "--out", str(route), "--num-frames", "24", "--conditions", "summer,night"]) == 0
     assert main(["train", "--data", str(route), "--preset", "tiny", "--out", str(run), "--frames", "0:12",
                  "--no-progress", *TRUNK_RUN]) == 0
     # hog: OpenCV loads a BLAS of its own on first use, which --threads must still cover
-    args = ["reproduce", "--data", str(route), "--checkpoint", str(run), "--methods", "fdnet,trunk,sad,hog",
+    args = ["reproduce", "--data", str(route), "--checkpoint", str(run), "--method", "fdnet,trunk,sad,hog",
             "--frames", "12:24", "--length-preset", "tiny", "--length-train-frames", "0:12",
             "--examples", "3", "--runtime-images", "4", "--threads", "1", "--no-progress", "--out", str(out)]
     assert main(args) == 0
@@ -150,7 +150,7 @@ def test_rerunning_one_experiment_describes_nothing_again(made, capsys):
     (["--device", "tpu"], "tpu"),
 ])
 def test_bad_input_is_one_error_line_and_exit_2(made, tmp_path, capsys, extra, message):
-    args = ["reproduce", "--data", str(made["route"]), "--checkpoint", str(made["run"]), "--methods", "sad",
+    args = ["reproduce", "--data", str(made["route"]), "--checkpoint", str(made["run"]), "--method", "sad",
             "--out", str(tmp_path / "out"), *extra]
     assert main(args) == 2
     err = capsys.readouterr().err

@@ -20,7 +20,7 @@ def test_a_size_it_cannot_render_is_refused_before_allocating(tmp_path, capsys, 
 
 def test_synth_into_a_read_only_folder(tmp_path, capsys, make_read_only):
     make_read_only(tmp_path)
-    assert main(["synth", "--out", str(tmp_path / "route"), "--frames", "2"]) == 2
+    assert main(["synth", "--out", str(tmp_path / "route"), "--num-frames", "2"]) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"fdnet synth: error: {tmp_path / 'route'}: cannot create the synthetic route folder: ")
     assert "Read-only file system" in err and "Traceback" not in err
@@ -32,7 +32,7 @@ def test_an_out_that_cannot_be_a_folder_is_one_line_on_any_machine(tmp_path, cap
     (tmp_path / "a-file").write_text("")
     for out, reason in ((tmp_path / "a-file", "exists and is not a folder"),
                         ("/proc/fdnet-test/out", "cannot create the")):
-        assert main([command, "--out", str(out), "--frames", "40"]) == 2
+        assert main([command, "--out", str(out), "--num-frames", "40"]) == 2
         err = capsys.readouterr().err
         assert err.startswith(f"fdnet {command}: error: {out}") and reason in err and "Traceback" not in err
     assert (tmp_path / "a-file").read_text() == ""

@@ -236,7 +236,7 @@ def test_groundtruth_from_two_bags_and_database_stores_times_and_positions(tmp_p
     assert rows[0]["query_name"] == f"frame_000000_{T0_NS}ns"
     db = tmp_path / "map.db"
     assert main(["database", "build", "--images", f"{first}:/camera/image_raw", "--method", "sad", "--every", "3",
-                 "--out", str(db), "--workers", "0"]) == 0
+                 "--db", str(db), "--workers", "0"]) == 0
     with sqlite3.connect(db) as conn:
         rows = conn.execute("SELECT name, x, y, metadata FROM places ORDER BY id").fetchall()
     assert [r[0].rsplit("/", 1)[1] for r in rows] == [f"frame_{i:06d}_{T0_NS + i * 100_000_000}ns"

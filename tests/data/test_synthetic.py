@@ -95,7 +95,7 @@ def test_bad_settings_are_config_errors(kwargs):
 
 def test_cli_synth(tmp_path, capsys):
     out = tmp_path / "s"
-    assert main(["synth", "--out", str(out), "--frames", "4", "--conditions", "winter,night",
+    assert main(["synth", "--out", str(out), "--num-frames", "4", "--conditions", "winter,night",
                  "--size", "32x64", "--seed", "2"]) == 0
     assert "SYNTHETIC" in capsys.readouterr().out
     assert len(list((out / "winter").glob("frame_*.png"))) == 4

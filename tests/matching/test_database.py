@@ -256,7 +256,7 @@ def test_migrate_keeps_places_and_fingerprints_the_rebuilt_descriptor(tmp_path, 
     v = unit(rng, 4, 2048)
     v[2] = np.nan  # the old format stored NaN vectors that could never match
     old = write_old_folder(tmp_path / "old", v, ["p0.png", "p1.png", "p2.png", "p3.png"])
-    with pytest.raises(ConfigError, match="fdnet database migrate --from .*old --out .*old.db"):
+    with pytest.raises(ConfigError, match="fdnet database migrate --from .*old --db .*old.db"):
         PlaceDatabase.open(old)
     report = migrate_old_format(old, tmp_path / "new.db")
     assert report.places == 3 and report.dropped_non_finite == ["p2.png"]

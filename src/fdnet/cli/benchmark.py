@@ -23,11 +23,13 @@ def register(sub) -> None:
                     "method's extraction time against SAD and the paper's Table 5; and, per --map-size, build "
                     "time, memory, ms/query and recall@1 against exact search of each faiss index.",
     )
-    p.add_argument("--threads", type=int, default=2, help="torch and faiss threads (default 2, CI's core count)")
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch and faiss threads (default: all cores; the report records the count, so give the "
+                        "same one to compare machines)")
     p.add_argument("--parts", default=",".join(PARTS),
                    help=f"what to measure, comma-separated from {','.join(PARTS)} (default all; the GEMM "
                         "references are always measured)")
-    p.add_argument("--methods", default=DEFAULT_METHODS,
+    p.add_argument("--method", default=DEFAULT_METHODS,
                    help=f"comma-separated methods to time through the descriptor interface (default {DEFAULT_METHODS}); "
                         "add e.g. fdnet with --checkpoint fdnet=RUN_DIR")
     p.add_argument("--checkpoint", action="append", default=[], metavar="METHOD=RUN_DIR",
@@ -56,25 +58,34 @@ def register(sub) -> None:
     p.add_argument("--query-vectors", metavar="FILE",
                    help="queries for --map-vectors (.npy/.npz); default: its vectors plus --noise")
     p.add_argument("--lengths", default="256,512,1024,2048", help="FDNet vector lengths to time")
-    p.add_argument("--compile", action="store_true",
-                   help="also time `fdnet extract --compile` (torch.compile; compiling takes about a minute)")
+    p.add_argument("--compile", nargs="?", const="on", choices=("auto", "on", "off"), default="auto",
+                   help="also time `fdnet extract --compile` (torch.compile; compiling takes about a minute): on, "
+                        "off, or auto (default: as `fdnet extract` decides, on from its folder size, so here on "
+                        "only when --num-images reaches it); a bare --compile means on")
     p.add_argument("--quick", action="store_true", help="fewer repeats and only L=512 (for smoke tests)")
     p.add_argument("--json", help="write all figures as JSON")
     add_device_argument(p)
+    from fdnet.cli.flags import add_old_spelling
+
+    add_old_spelling(p, "--methods", "--method")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
+    import os
     import sys
+
+    from fdnet.cli.extract import COMPILE_FROM
 
     from fdnet.evaluation.benchmark import plan_benchmark, run_benchmark
 
     command = "fdnet " + " ".join(sys.argv[1:]) if sys.argv and "benchmark" in sys.argv else None
     plan = plan_benchmark(
-        parts=args.parts, methods=args.methods, checkpoints=args.checkpoint, map_size=args.map_size,
+        parts=args.parts, methods=args.method, checkpoints=args.checkpoint, map_size=args.map_size,
         indexes=args.indexes, index_set=args.index_set, sweep=args.sweep, images=args.images,
         num_images=args.num_images, queries=args.queries, noise=args.noise, scale_dim=args.scale_dim,
         map_vectors=args.map_vectors, query_vectors=args.query_vectors, lengths=args.lengths,
-        compile=args.compile, quick=args.quick, threads=args.threads, device=args.device, command=command)
+        compile=args.compile == "on" or (args.compile == "auto" and args.num_images >= COMPILE_FROM),
+        quick=args.quick, threads=args.threads or os.cpu_count() or 1, device=args.device, command=command)
     run_benchmark(plan, out=lambda line: print(line, flush=True), json_path=args.json)
     return 0

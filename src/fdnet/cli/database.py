@@ -42,14 +42,16 @@ def _whole_number(text: str) -> int:
 
 
 def register(sub) -> None:
+    from fdnet.cli.flags import add_old_spelling
+
     p = sub.add_parser("database", help="build, extend, query, inspect and migrate a persistent place database")
     actions = p.add_subparsers(dest="action", metavar="ACTION", required=True)
 
     build = actions.add_parser("build", help="describe a folder of images and write them as a new database file")
     build.add_argument("--images", required=True, help="folder of map images (traversal order)")
-    build.add_argument("--out", required=True, help="database file to write, e.g. map.db")
+    build.add_argument("--db", required=True, help="database file to write, e.g. map.db")
     build.add_argument("--overwrite", action="store_true",
-                       help="replace an existing place database at --out (in one transaction)")
+                       help="replace an existing place database at --db (in one transaction)")
     add_method_arguments(build)
     build.add_argument("--index", choices=["flat", "hnsw", "ivf", "ivfpq"], default="flat",
                        help="faiss index for dot-product methods: flat = exact (default); ivf (IVF-Flat), "
@@ -61,6 +63,7 @@ def register(sub) -> None:
                             "hnsw_neighbors, hnsw_ef_construction, hnsw_ef_search (see docs/performance.md)")
     add_pipeline_arguments(build)
     add_device_argument(build)
+    add_old_spelling(build, "--out", "--db")
     build.set_defaults(func=run_build)
 
     add = actions.add_parser(
@@ -99,8 +102,9 @@ def register(sub) -> None:
     migrate = actions.add_parser("migrate", help="convert an old-format folder (database.json + vectors.npy) "
                                                  "into a database file")
     migrate.add_argument("--from", dest="source", required=True, help="old-format database folder")
-    migrate.add_argument("--out", required=True, help="database file to write, e.g. map.db")
-    migrate.add_argument("--overwrite", action="store_true", help="replace an existing place database at --out")
+    migrate.add_argument("--db", required=True, help="database file to write, e.g. map.db")
+    migrate.add_argument("--overwrite", action="store_true", help="replace an existing place database at --db")
+    add_old_spelling(migrate, "--out", "--db")
     migrate.set_defaults(func=run_migrate)
 
 
@@ -240,8 +244,8 @@ def run_build(args) -> int:
     # Every refusal the output path can cause comes before minutes of describing images.
     check_pipeline_arguments(args)
     index = parse_index_settings(args.index, args.index_set)
-    check_can_create(args.out, args.overwrite)
-    ensure_writable(args.out, what="place database")
+    check_can_create(args.db, args.overwrite)
+    ensure_writable(args.db, what="place database")
     descriptor = _create_descriptor(args.method, args)
     if descriptor.needs_fit:
         raise ConfigError(f"method {descriptor.name!r} must be given what it learns from (--fit DIR, or dbow's --vocabulary) "
@@ -251,8 +255,8 @@ def run_build(args) -> int:
                           "product, so it is searched exhaustively with its own similarity; use --index flat")
     paths = list_images(args.images)
     names = _place_names(paths)
-    with _spool(descriptor, paths, args, Path(args.out).resolve().parent) as spool:
-        db = PlaceDatabase.create(args.out, descriptor, index=index,
+    with _spool(descriptor, paths, args, Path(args.db).resolve().parent) as spool:
+        db = PlaceDatabase.create(args.db, descriptor, index=index,
                                   method_options=_file_options(args, args.method), overwrite=args.overwrite,
                                   batches=_spooled_batches(spool, names, paths))
     with db:
@@ -264,7 +268,7 @@ def run_build(args) -> int:
             note = (f"; {index.kind} index built in {time.perf_counter() - t0:.1f} s"
                     + (f", cached in {db.index_cache_path}" if db.index_cache_path.exists() else "")
                     if built is not None else "")
-    print(f"wrote {args.out}: {places} places, {descriptor.name} ({descriptor.dim}-d), "
+    print(f"wrote {args.db}: {places} places, {descriptor.name} ({descriptor.dim}-d), "
           f"fingerprint {short_fingerprint(db.fingerprint)}{note}")
     return 0
 
@@ -429,10 +433,10 @@ def run_migrate(args) -> int:
     from fdnet.io import ensure_writable
     from fdnet.matching.database import check_can_create, migrate_old_format
 
-    check_can_create(args.out, args.overwrite)
-    ensure_writable(args.out, what="place database")
-    report = migrate_old_format(args.source, args.out, overwrite=args.overwrite)
-    print(f"wrote {args.out}: {report.places} places from {args.source}")
+    check_can_create(args.db, args.overwrite)
+    ensure_writable(args.db, what="place database")
+    report = migrate_old_format(args.source, args.db, overwrite=args.overwrite)
+    print(f"wrote {args.db}: {report.places} places from {args.source}")
     if report.dropped_non_finite:
         listed = ", ".join(report.dropped_non_finite[:5])
         more = f" and {len(report.dropped_non_finite) - 5} more" if len(report.dropped_non_finite) > 5 else ""

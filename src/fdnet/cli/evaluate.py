@@ -116,31 +116,6 @@ def split_from_arguments(args):
                        filter_frames=args.filter_frames, ground_truth=args.ground_truth)
 
 
-def _safe(name: str) -> str:
-    return re.sub(r"[^A-Za-z0-9_.-]+", "_", name) or "method"
-
-
-def _write_plots(results, protocol: str, folder: str, examples: int) -> list:
-    from pathlib import Path
-
-    from fdnet.evaluation import plots
-
-    folder = Path(folder)
-    written = [plots.plot_pr_curves({r.method: (r.metrics[protocol].curve, r.metrics[protocol].auc_pr)
-                                     for r in results}, folder / "pr_curves.png",
-                                    title=f"{results[0].dataset or 'PR curves'} [{protocol}]")]
-    for r in results:
-        if r.similarity is not None:
-            written.append(plots.plot_similarity_matrix(r.similarity, folder / f"similarity_{_safe(r.method)}.png",
-                                                        r.ground_truth, best=r.retrieved[:, 0], title=r.method))
-        if r.query_paths is not None and r.reference_paths is not None:
-            correct = r.ground_truth.correct_mask(r.retrieved[:, :1])[:, 0]
-            written.append(plots.plot_example_matches(r.query_paths, r.reference_paths, r.retrieved[:, 0], correct,
-                                                      folder / f"matches_{_safe(r.method)}.png", count=examples,
-                                                      title=f"{r.method}: query (top) and best match"))
-    return written
-
-
 def run(args) -> int:
     import logging
     from pathlib import Path
@@ -237,6 +212,8 @@ def run(args) -> int:
         write_json(args.json, results, args.protocol, include_curve=not args.no_curve)
         log(f"wrote {args.json}")
     if args.plots:
-        for path in _write_plots(results, args.protocol, args.plots, args.examples):
+        from fdnet.evaluation.plots import write_result_plots
+
+        for path in write_result_plots(results, args.protocol, args.plots, args.examples):
             log(f"wrote {path}")
     return 0

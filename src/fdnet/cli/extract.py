@@ -37,11 +37,11 @@ def register(sub) -> None:
                                 "points of fp32 for a trained cpu-preset run, docs/performance.md)")
     precision.add_argument("--fp32", action="store_true",
                            help="float32 throughout (what `fdnet evaluate --method fdnet` computes by default)")
-    p.add_argument("--compile", choices=("auto", "on", "off"), default="auto",
+    p.add_argument("--compile", nargs="?", const="on", choices=("auto", "on", "off"), default="auto",
                    help="torch.compile FDNet's content encoder first: compiling takes up to a minute on 2 CPU "
                         "cores, then the cpu preset ran 1.7x faster than bf16 eager (docs/performance.md). "
                         f"auto (default): on for folders of at least {COMPILE_FROM:,} images; falls back to eager "
-                        "if compiling fails")
+                        "if compiling fails; a bare --compile means on")
     p.add_argument("--threads", type=int, help="torch CPU threads (default: all cores)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)

@@ -11,9 +11,9 @@ Three sources:
   --query DIR`` rows are matched to the folders' images (by the image column, or one row per
   image in order); without folders, rows with an image column are put in natural order of the
   image names, and rows without one are taken to be the images in that order;
-* ``--aligned --tolerance-frames N`` with ``--num-queries/--num-references`` or two image folders
+* ``--aligned --tolerance N`` with ``--num-queries/--num-references`` or two image folders
   ``--reference DIR --query DIR``: frame i of the query is frame i of the reference;
-* ``--dataset ROOT [--dataset-format NAME] [--split test]``: a dataset adapter's ground truth,
+* ``--data ROOT [--dataset-format NAME] [--split test] [--format-set KEY=VALUE]``: a dataset adapter's ground truth,
   indices over the split's images.
 
 Prints a summary (queries with at least one true match, mean matches per query) and warns when
@@ -39,27 +39,32 @@ def register(sub) -> None:
                              "frames, positions interpolated from a NavSatFix/Odometry topic; docs/sources.md)")
     source.add_argument("--aligned", action="store_true",
                         help="frame-aligned traverses: query frame i is reference frame i")
-    source.add_argument("--dataset", metavar="ROOT", help="a dataset folder read by a dataset adapter")
+    source.add_argument("--data", metavar="ROOT", help="a dataset folder read by a dataset adapter")
     p.add_argument("--tolerance-m", type=float, default=None,
                    help="--positions: references within this many metres count as correct (default 25)")
     p.add_argument("--image-column", default=None, help="--positions: name of the image column")
-    p.add_argument("--tolerance-frames", type=int, default=None,
+    p.add_argument("--tolerance", type=int, default=None,
                    help="--aligned: references within this many frames count as correct (default 0)")
     p.add_argument("--num-queries", type=int, default=None, help="--aligned: number of query images")
     p.add_argument("--num-references", type=int, default=None, help="--aligned: number of reference images")
     p.add_argument("--reference", default=None,
-                   help="--aligned, --positions: reference image folder; --dataset: reference condition")
+                   help="--aligned, --positions: reference image folder; --data: reference condition")
     p.add_argument("--query", default=None,
-                   help="--aligned, --positions: query image folder; --dataset: query condition")
+                   help="--aligned, --positions: query image folder; --data: query condition")
     p.add_argument("--dataset-format", default=None,
-                   help="--dataset: layout name (default: detected): nordland, alderley, oxford_robotcar, "
+                   help="--data: layout name (default: detected): nordland, alderley, oxford_robotcar, "
                         "st_lucia, fas, vprbench, vpr_tutorial, vg_benchmark, folders")
-    p.add_argument("--split", default=None, help="--dataset: named split (train/test/all) or START:END")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="--dataset: a protocol setting of the format, e.g. tolerance=3 (repeatable)")
+    p.add_argument("--split", default=None, help="--data: named split (train/test/all) or START:END")
+    p.add_argument("--format-set", action="append", default=[], metavar="KEY=VALUE",
+                   help="--data: a protocol setting of the format, e.g. tolerance=3 (repeatable)")
     p.add_argument("--out", required=True, help="ground-truth CSV to write")
     p.add_argument("--warn-unmatched", type=float, default=0.2, metavar="FRACTION",
                    help="warn when more than this fraction of queries has no true match (default 0.2)")
+    from fdnet.cli.flags import add_old_spelling
+
+    add_old_spelling(source, "--dataset", "--data")  # in the group: still one source of three
+    add_old_spelling(p, "--tolerance-frames", "--tolerance")
+    add_old_spelling(p, "--set", "--format-set")
     p.set_defaults(func=run)
 
 
@@ -131,7 +136,7 @@ def _from_alignment(args):
     from fdnet.data.images import list_images
     from fdnet.errors import ConfigError
 
-    tolerance = 0 if args.tolerance_frames is None else args.tolerance_frames
+    tolerance = 0 if args.tolerance is None else args.tolerance
     query_names = reference_names = None
     if args.reference or args.query:
         if not (args.reference and args.query):
@@ -154,9 +159,9 @@ def _from_dataset(args):
     from fdnet.config import parse_overrides
     from fdnet.data.formats import open_split
 
-    split = open_split(args.dataset, reference=args.reference, query=args.query,
+    split = open_split(args.data, reference=args.reference, query=args.query,
                        dataset_format=args.dataset_format, split=args.split, check_sizes=False,
-                       **parse_overrides(args.set))
+                       **parse_overrides(args.format_set))
     print(f"{split.description}: {len(split.query)} queries ({split.query.name}), "
           f"{len(split.reference)} references ({split.reference.name})")
     return (split.ground_truth, [p.name for p in split.query.paths],
@@ -169,12 +174,12 @@ def run(args) -> int:
 
     ensure_writable(args.out, what="ground-truth CSV")
     if args.positions:
-        if args.tolerance_frames is not None:
-            raise ConfigError("--tolerance-frames is for --aligned; with --positions use --tolerance-m")
+        if args.tolerance is not None:
+            raise ConfigError("--tolerance is for --aligned; with --positions use --tolerance-m")
         gt, query_names, reference_names = _from_positions(args)
     elif args.aligned:
         if args.tolerance_m is not None:
-            raise ConfigError("--tolerance-m is for --positions; with --aligned use --tolerance-frames")
+            raise ConfigError("--tolerance-m is for --positions; with --aligned use --tolerance")
         gt, query_names, reference_names = _from_alignment(args)
     else:
         gt, query_names, reference_names = _from_dataset(args)

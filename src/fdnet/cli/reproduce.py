@@ -34,7 +34,7 @@ ARGUMENTS = (
                                      help="the FDNet run (from `fdnet train`), also read by the trunk baseline; "
                                           "other trained methods as METHOD=RUN_DIR (netvlad=..., calc=...), "
                                           "repeatable")),
-    ("methods", "--methods", dict(metavar="LIST",
+    ("methods", "--method", dict(metavar="LIST",
                                   help="comma-separated methods (default: fdnet, trunk and every baseline; those "
                                        "that cannot run here are listed in the report with the reason)")),
     ("methods", "--weights", dict(action="append", default=[], metavar="[METHOD=]PATH",
@@ -96,6 +96,9 @@ def register(sub) -> None:
     groups = {name: p.add_argument_group(name) for name in ("data", "methods", "experiments", "output")}
     for group, flag, keywords in ARGUMENTS:
         groups[group].add_argument(flag, **keywords)
+    from fdnet.cli.flags import add_old_spelling
+
+    add_old_spelling(groups["methods"], "--methods", "--method")
     p.set_defaults(func=run)
 
 
@@ -167,7 +170,7 @@ def run(args) -> int:
     if len(fdnet_runs) != 1:
         raise ConfigError("--checkpoint: give the FDNet run directory exactly once (RUN_DIR or fdnet=RUN_DIR); "
                           "other trained methods as METHOD=RUN_DIR")
-    methods = _names(args.methods)
+    methods = _names(args.method)
     considered = methods or list(DEFAULT_METHODS)
     others = argparse.Namespace(method=",".join(considered), weights=args.weights, vocabulary=args.vocabulary,
                                 fit=args.fit, fit_frames=args.fit_frames, method_set=args.method_set,

@@ -541,7 +541,7 @@ def _readme(frames: int, conditions: list[str], seed: int, size: tuple[int, int]
         "Ground truth: frame-aligned. frame_NNNNN.png is the same place in every condition;\n"
         "use a tolerance of 1 frame (neighbouring frames overlap).\n"
         "Regenerate: fdnet synth --out DIR "
-        f"--frames {frames} --conditions {','.join(conditions)} --seed {seed} --size {size[0]}x{size[1]}"
+        f"--num-frames {frames} --conditions {','.join(conditions)} --seed {seed} --size {size[0]}x{size[1]}"
         f" --step {step:g}\n"
     )
 

@@ -173,3 +173,27 @@ def plot_example_matches(query_paths: Sequence[str | os.PathLike], reference_pat
     """A grid of ``count`` queries (evenly spaced over the traverse): query on top, its best match
     below, framed green if the match is correct and red if not."""
     return plot_match_grid(query_paths, reference_paths, {"": (best, correct)}, path, count, title, image_size)
+
+
+def _file_safe(name: str) -> str:
+    import re
+
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", name) or "method"
+
+
+def write_result_plots(results, protocol: str, folder: str | os.PathLike, examples: int = 6) -> list[Path]:
+    """The figures of ``fdnet evaluate --plots``: every result's PR curve in one plot, and per
+    result its similarity matrix (when kept) and example matches (when its images are known)."""
+    folder = Path(folder)
+    written = [plot_pr_curves({r.method: (r.metrics[protocol].curve, r.metrics[protocol].auc_pr) for r in results},
+                              folder / "pr_curves.png", title=f"{results[0].dataset or 'PR curves'} [{protocol}]")]
+    for r in results:
+        if r.similarity is not None:
+            written.append(plot_similarity_matrix(r.similarity, folder / f"similarity_{_file_safe(r.method)}.png",
+                                                  r.ground_truth, best=r.retrieved[:, 0], title=r.method))
+        if r.query_paths is not None and r.reference_paths is not None:
+            correct = r.ground_truth.correct_mask(r.retrieved[:, :1])[:, 0]
+            written.append(plot_example_matches(r.query_paths, r.reference_paths, r.retrieved[:, 0], correct,
+                                                folder / f"matches_{_file_safe(r.method)}.png", count=examples,
+                                                title=f"{r.method}: query (top) and best match"))
+    return written

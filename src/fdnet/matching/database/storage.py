@@ -64,7 +64,7 @@ _TABLES = ("fdnet_database", "places")
 
 def migrate_command(folder: str | os.PathLike) -> str:
     folder = Path(folder)
-    return f"fdnet database migrate --from {shlex.quote(str(folder))} --out {shlex.quote(str(folder) + '.db')}"
+    return f"fdnet database migrate --from {shlex.quote(str(folder))} --db {shlex.quote(str(folder) + '.db')}"
 
 
 def refuse_old_format(path: str | os.PathLike) -> None:

@@ -219,7 +219,7 @@ class PlaceDatabase:
                     if foreign == "it has no tables":  # what a create stopped before its first commit leaves
                         raise DataError(f"{target}: an empty SQLite file, not yet an fdnet place database (a "
                                         "`database build` that did not finish, e.g. on a full disk or killed, "
-                                        "leaves this); build it again with --out there (the file is reused)")
+                                        "leaves this); build it again with --db there (the file is reused)")
                     raise DataError(f"{target}: a SQLite database but not an fdnet place database ({foreign})")
                 schema = conn.execute("PRAGMA user_version").fetchone()[0]
                 if schema > SCHEMA_VERSION:
