@@ -18,7 +18,7 @@ from fdnet.cli import main
 from fdnet.data.images import list_images, load_image, load_image_uint8, load_images
 from fdnet.descriptors import create
 from fdnet.errors import ConfigError
-from fdnet.runtime import autocast, bf16_native, check_device_spec, images_to_device, resolve_device
+from fdnet.backbones import autocast, bf16_native, check_device_spec, images_to_device, resolve_device
 
 
 def test_device_specs_are_checked_and_normalised():

@@ -35,6 +35,14 @@ checkpoints, which were trained on ``(pixel - 127) / 128``; timm's conversion of
 checkpoints (``tf_efficientnet_lite0.in1k``) accordingly uses mean = std = 0.5. We do the same,
 not the torchvision ImageNet mean/std (on real photos both give similar, slightly less confident
 predictions with the torchvision constants).
+
+Devices (every command that runs a model, ``--device auto|cpu|cuda|cuda:N``; they live in this
+leaf module so that both the inference and the training routes can use them):
+:func:`resolve_device` turns the setting into a ``torch.device`` (``auto`` takes the first GPU
+when there is one), :func:`images_to_device` sends a batch of images to it as uint8 (a quarter
+of float32's bytes) and converts and normalises them there, :func:`autocast` is bfloat16
+autocast on that device, and :func:`bf16_native` says whether the device runs bfloat16 natively.
+Nothing here names "cuda" as a default: every path takes a ``torch.device``.
 """
 
 from __future__ import annotations
@@ -201,6 +209,11 @@ def pretrained_model(device=None, backbone: str = DEFAULT_BACKBONE):
 
 
 # ---------------------------------------------------------------------------------- devices
+#: what --device accepts, for every command's help (:func:`resolve_device` reads it)
+DEVICE_HELP = ("where models run: auto (a GPU when there is one, else the CPU; default), cpu, cuda or "
+               "cuda:N")
+
+
 def check_device_spec(spec: str | None, where: str = "--device") -> str:
     """The device setting as text, checked for form only (no torch import): ``auto``, ``cpu``,
     ``cuda`` or ``cuda:N``. ``None`` means ``auto``."""
@@ -377,7 +390,7 @@ def trunk_forward(model, x, block: int):
 
 def bf16_supported(device=None) -> bool:
     """True when ``device`` (default: this CPU) runs bfloat16 matmuls/convolutions natively
-    (CPU: AVX-512 BF16 / AMX; GPU: Ampere or newer). See :func:`fdnet.runtime.bf16_native`."""
+    (CPU: AVX-512 BF16 / AMX; GPU: Ampere or newer). See :func:`bf16_native`."""
     return bf16_native("cpu" if device is None else device)
 
 
@@ -402,7 +415,7 @@ def torch_threads(threads: int | None) -> Iterator[None]:
 def to_input_tensor(images: np.ndarray, channels_last: bool = False, device=None):
     """(N, H, W, 3) RGB, float32 in [0, 1] or uint8 -> normalised (N, 3, H, W) torch tensor on
     ``device`` (default the CPU); uint8 images are converted on the device
-    (:func:`fdnet.runtime.images_to_device`)."""
+    (:func:`images_to_device`)."""
     return images_to_device(images, "cpu" if device is None else device, channels_last=channels_last,
                             mean=INPUT_MEAN, std=INPUT_STD)
 

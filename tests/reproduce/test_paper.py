@@ -20,7 +20,7 @@ def rows_of(text: str, name: str) -> list[list[float]]:
 
 
 def test_tables_3_4_and_5_match_the_paper_text():
-    # Table 5 is fdnet.runtime's (fdnet benchmark quotes it too); checked here through paper_runtime
+    # Table 5 (PAPER_TABLE5; fdnet benchmark quotes it too) is checked here through paper_runtime
     if not PAPER_TEXT.is_file():
         pytest.skip(f"the paper's text is not here: {PAPER_TEXT} is absent")
     text = PAPER_TEXT.read_text()

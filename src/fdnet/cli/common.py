@@ -136,7 +136,7 @@ def acceptance_from_arguments(args: argparse.Namespace):
 def add_device_argument(parser: argparse.ArgumentParser) -> None:
     """``--device`` for commands that run a model for inference."""
     from fdnet.descriptors.registry import torch_methods
-    from fdnet.runtime import DEVICE_HELP
+    from fdnet.backbones import DEVICE_HELP
 
     parser.add_argument("--device", default="auto", metavar="auto|cpu|cuda|cuda:N",
                         help=DEVICE_HELP + f". Torch methods ({', '.join(torch_methods())}) run there, images "
@@ -190,7 +190,7 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser, batch_size: int = 64
 
 def check_pipeline_arguments(args: argparse.Namespace) -> None:
     from fdnet.errors import ConfigError
-    from fdnet.runtime import check_device_spec
+    from fdnet.backbones import check_device_spec
 
     if getattr(args, "batch_size", 1) is not None and getattr(args, "batch_size", 1) < 1:
         raise ConfigError(f"--batch-size must be >= 1, got {args.batch_size}")
@@ -274,7 +274,7 @@ def apply_training_arguments(config, args: argparse.Namespace):
     device = getattr(args, "device", None)
     if device is not None:
         from fdnet.errors import ConfigError
-        from fdnet.runtime import check_device_spec
+        from fdnet.backbones import check_device_spec
 
         device = check_device_spec(device)
         runtime = getattr(config, "runtime", None)

@@ -11,7 +11,7 @@ callers that need all vectors at once (matching, evaluation).
 
 Descriptors that declare ``accepts_uint8`` (the torch ones) get uint8 images: a quarter of the
 bytes of float32 in the queues and on the way to the device, converted and normalised there
-(:func:`fdnet.runtime.images_to_device`). Others get float32 in [0, 1], as always. For a CUDA
+(:func:`fdnet.backbones.images_to_device`). Others get float32 in [0, 1], as always. For a CUDA
 device the batches are put in pinned memory so the copy overlaps.
 
 Errors: an image that cannot be read stops the stream with the :class:`~fdnet.errors.DataError`

@@ -103,7 +103,7 @@ def plan_benchmark(*, parts: str = ",".join(PARTS), methods: str = DEFAULT_METHO
         length_list = [int(v) for v in _comma_list(lengths)]
     except ValueError:
         raise ConfigError(f"--lengths {lengths!r}: expected whole numbers, e.g. 256,512") from None
-    from fdnet.runtime import check_device_spec
+    from fdnet.backbones import check_device_spec
 
     return BenchmarkPlan(parts=chosen, methods=_comma_list(methods), checkpoints=parsed_checkpoints,
                          map_sizes=map_sizes, kinds=kinds, overrides=index_overrides(index_set),
@@ -130,7 +130,7 @@ def index_overrides(items) -> dict:
 
 def sweeps(items) -> dict:
     """``KEY=V1,V2,...`` items -> {key: [values]} for the search-time settings that can be swept."""
-    from fdnet.runtime import SWEEPABLE
+    from fdnet.evaluation.timing import SWEEPABLE
 
     out = {}
     for item in items:
@@ -202,12 +202,14 @@ def run_benchmark(plan: BenchmarkPlan, out: Callable[[str], None], json_path: st
     (and writes them to ``json_path`` as JSON, atomically, when given: checked writable first)."""
     import torch
 
-    from fdnet import __version__, runtime
+    from fdnet import __version__
+    from fdnet.backbones import resolve_device
+    from fdnet.evaluation import timing
     from fdnet.io import ensure_writable
 
     if json_path:
         ensure_writable(json_path, what="benchmark JSON")
-    device = runtime.resolve_device(plan.device)
+    device = resolve_device(plan.device)
     torch.set_num_threads(plan.threads)
     try:
         import faiss
@@ -215,7 +217,7 @@ def run_benchmark(plan: BenchmarkPlan, out: Callable[[str], None], json_path: st
         faiss.omp_set_num_threads(plan.threads)
     except ImportError:  # pragma: no cover - faiss is a dependency
         pass
-    cpu = runtime.cpu_model()
+    cpu = timing.cpu_model()
     report: dict = {"threads": plan.threads, "machine": platform.processor() or platform.machine(), "cpu": cpu,
                     "torch": torch.__version__, "fdnet": __version__, "device": str(device), "command": plan.command}
     out(f"fdnet benchmark: {plan.threads} threads, {cpu} ({platform.machine()}), torch {torch.__version__}, "
@@ -246,19 +248,21 @@ def run_benchmark(plan: BenchmarkPlan, out: Callable[[str], None], json_path: st
 
 
 def _gemm_references(plan: BenchmarkPlan, report: dict, out) -> None:
-    from fdnet import runtime
+    from fdnet.backbones import bf16_native
+    from fdnet.evaluation import timing
 
     size = 1024 if plan.quick else 2048
-    gflops = runtime.gemm_gflops(size=size, repeats=plan.repeats)
-    bf16_gflops = runtime.gemm_gflops(size=size, repeats=plan.repeats, dtype="bf16")
-    native = runtime.bf16_native("cpu")
+    gflops = timing.gemm_gflops(size=size, repeats=plan.repeats)
+    bf16_gflops = timing.gemm_gflops(size=size, repeats=plan.repeats, dtype="bf16")
+    native = bf16_native("cpu")
     report.update(gemm_gflops_fp32=gflops, gemm_gflops_bf16=bf16_gflops, gemm_size=size, bf16_native_cpu=native)
     out(f"\nmachine references, measured now: fp32 GEMM {size}^3 = {gflops:.1f} GFLOP/s, bf16 GEMM = "
         f"{bf16_gflops:.1f} GFLOP/s ({'native' if native else 'no native'} bf16 on this CPU)")
 
 
 def _fdnet_extraction(plan: BenchmarkPlan, lengths, report: dict, out) -> None:
-    from fdnet import runtime
+    from fdnet.evaluation import timing
+    from fdnet.reproduce.paper import PAPER_TABLE2
     from fdnet.methods.fdnet.config import preset
 
     gflops, bf16_gflops = report["gemm_gflops_fp32"], report["gemm_gflops_bf16"]
@@ -269,9 +273,9 @@ def _fdnet_extraction(plan: BenchmarkPlan, lengths, report: dict, out) -> None:
         f"{'%fp32GEMM':>9} {'%bf16GEMM':>9} {'paper GPU':>9} {'paper/ours':>10}")
     report["fdnet_extraction_ms"] = {}
     for length in lengths:
-        t = runtime.fdnet_extraction(vector_length=length, repeats=plan.repeats)
-        flops = runtime.content_flops(dataclasses.replace(paper_model, vector_length=length))
-        paper = runtime.PAPER_TABLE2.get(length, (float("nan"), float("nan")))[0]
+        t = timing.fdnet_extraction(vector_length=length, repeats=plan.repeats)
+        flops = timing.content_flops(dataclasses.replace(paper_model, vector_length=length))
+        paper = PAPER_TABLE2.get(length, (float("nan"), float("nan")))[0]
         best = min(t["bf16_batch32"], t["fp32_batch32"])
         share_fp32 = flops / (t["fp32_batch32"] * 1e-3) / 1e9 / gflops
         share_bf16 = flops / (t["bf16_batch32"] * 1e-3) / 1e9 / bf16_gflops
@@ -284,12 +288,12 @@ def _fdnet_extraction(plan: BenchmarkPlan, lengths, report: dict, out) -> None:
 
 
 def _public_api(plan: BenchmarkPlan, workdir: str, report: dict, out) -> None:
-    from fdnet import runtime
+    from fdnet.evaluation import timing
 
-    run_dir, config = runtime.temporary_fdnet_run(workdir, "cpu")
-    flops = runtime.content_flops(config.model)
+    run_dir, config = timing.temporary_fdnet_run(workdir, "cpu")
+    flops = timing.content_flops(config.model)
     images = _images(plan, tuple(config.model.input_size), uint8=True)
-    t = runtime.descriptor_paths(run_dir, images, repeats=max(1, plan.repeats - 2), device="cpu",
+    t = timing.descriptor_paths(run_dir, images, repeats=max(1, plan.repeats - 2), device="cpu",
                                  compiled=plan.compile)
     speedup = t["fp32_eager"] / t["extract"]
     rate = flops / (t["extract"] * 1e-3) / 1e9
@@ -315,16 +319,16 @@ def _public_api(plan: BenchmarkPlan, workdir: str, report: dict, out) -> None:
 
 
 def _gpu(plan: BenchmarkPlan, device, workdir: str, report: dict, out) -> None:
-    from fdnet import runtime
+    from fdnet.evaluation import timing
 
     if device.type != "cuda":
         report["gpu"] = None
         out(f"\nGPU: none here (device {device}); GPU figures unmeasured")
         return
-    run_dir, _ = runtime.temporary_fdnet_run(workdir, "paper", vector_length=512)
-    g = runtime.gpu_figures(device, run_dir, seconds=1.0 if plan.quick else 3.0)
-    g["gemm_gflops_fp32"] = runtime.gemm_gflops(size=8192, repeats=plan.repeats, device=device)
-    g["gemm_gflops_bf16"] = runtime.gemm_gflops(size=8192, repeats=plan.repeats, dtype="bf16", device=device)
+    run_dir, _ = timing.temporary_fdnet_run(workdir, "paper", vector_length=512)
+    g = timing.gpu_figures(device, run_dir, seconds=1.0 if plan.quick else 3.0)
+    g["gemm_gflops_fp32"] = timing.gemm_gflops(size=8192, repeats=plan.repeats, device=device)
+    g["gemm_gflops_bf16"] = timing.gemm_gflops(size=8192, repeats=plan.repeats, dtype="bf16", device=device)
     report["gpu"] = g
     out(f"\nGPU {g['name']} ({device}): GEMM 8192^3 fp32 {g['gemm_gflops_fp32'] / 1e3:.1f} TFLOP/s, "
         f"bf16 {g['gemm_gflops_bf16'] / 1e3:.1f} TFLOP/s; FDNet_512 at 224x224, images/s "
@@ -335,7 +339,8 @@ def _gpu(plan: BenchmarkPlan, device, workdir: str, report: dict, out) -> None:
 
 
 def _matching(plan: BenchmarkPlan, lengths, report: dict, out) -> None:
-    from fdnet import runtime
+    from fdnet.evaluation import timing
+    from fdnet.reproduce.paper import PAPER_TABLE2
 
     map_size = plan.map_sizes[0]
     out(f"\nMatching: best of {map_size} references per query, ms/query")
@@ -343,15 +348,16 @@ def _matching(plan: BenchmarkPlan, lengths, report: dict, out) -> None:
         f"{'paper/ours':>10}")
     report["matching_ms"] = {}
     for length in lengths:
-        m = runtime.matching_per_query(map_size, length)
-        paper = runtime.PAPER_TABLE2.get(length, (float("nan"), float("nan")))[1]
+        m = timing.matching_per_query(map_size, length)
+        paper = PAPER_TABLE2.get(length, (float("nan"), float("nan")))[1]
         report["matching_ms"][length] = dict(m, paper_gpu=paper, map_size=map_size)
         out(f"{length:>5} {m['numpy_single']:>9.4f} {m['numpy_batched']:>11.4f} {m['faiss_flat']:>10.4f} "
             f"{m['faiss_hnsw']:>10.4f} {paper:>9.2f} {paper / m['numpy_single']:>9.1f}x")
 
 
 def _methods(plan: BenchmarkPlan, report: dict, out) -> None:
-    from fdnet import runtime
+    from fdnet.evaluation import timing
+    from fdnet.reproduce.paper import PAPER_TABLE5
     from fdnet.descriptors import create
     from fdnet.errors import FdnetError
 
@@ -369,13 +375,13 @@ def _methods(plan: BenchmarkPlan, report: dict, out) -> None:
             images = cache[size]
             if descriptor.needs_fit:
                 descriptor.fit(images)
-            ms = runtime.descriptor_extraction(descriptor, images, repeats=max(1, plan.repeats - 2))
+            ms = timing.descriptor_extraction(descriptor, images, repeats=max(1, plan.repeats - 2))
         except FdnetError as exc:
             out(f"  {method:10s} skipped: {exc}")
             timings[method] = None
             continue
         timings[method] = ms
-        paper = runtime.PAPER_TABLE5.get(method, (None, None))[0]
+        paper = PAPER_TABLE5.get(method, (None, None))[0]
         vs_paper = f"  paper {paper:g} ms: {paper / ms:.1f}x" if paper else ""
         out(f"  {method:10s} {ms:9.3f} ms/image  ({descriptor.dim}-d, input {size[0]}x{size[1]}){vs_paper}")
     sad = timings.get("sad")
@@ -383,14 +389,14 @@ def _methods(plan: BenchmarkPlan, report: dict, out) -> None:
         if ms:
             if sad:
                 report.setdefault("ratio_vs_sad", {})[method] = sad / ms
-            if method in runtime.PAPER_TABLE5:
-                report.setdefault("ratio_vs_paper_table5", {})[method] = runtime.PAPER_TABLE5[method][0] / ms
+            if method in PAPER_TABLE5:
+                report.setdefault("ratio_vs_paper_table5", {})[method] = PAPER_TABLE5[method][0] / ms
     report["paper_table5"] = {k: {"extraction_ms": v[0], "matching_ms": v[1]}
-                              for k, v in runtime.PAPER_TABLE5.items()}
+                              for k, v in PAPER_TABLE5.items()}
 
 
 def _scale(plan: BenchmarkPlan, report: dict, out) -> None:
-    from fdnet import runtime
+    from fdnet.evaluation import timing
 
     dim = plan.scale_dim
     if dim is None:
@@ -404,19 +410,19 @@ def _scale(plan: BenchmarkPlan, report: dict, out) -> None:
     for n in plan.map_sizes:
         out(f"\nScale: a map of {n:,} random unit {dim}-d vectors, {min(plan.queries, n)} queries = map "
             f"vectors + noise {plan.noise}; recall@1 against exact search")
-        vectors = runtime.random_map(n, dim)
-        queries = runtime.revisit_queries(vectors, plan.queries, plan.noise)
-        report["scale"] += runtime.scale_rows(vectors, queries, plan.kinds, plan.overrides, source="random", log=out,
+        vectors = timing.random_map(n, dim)
+        queries = timing.revisit_queries(vectors, plan.queries, plan.noise)
+        report["scale"] += timing.scale_rows(vectors, queries, plan.kinds, plan.overrides, source="random", log=out,
                                               sweep=plan.sweep)
         del vectors
     if plan.map_vectors:
         vectors = _read_vectors(plan.map_vectors, "map vectors")
         queries = (_read_vectors(plan.query_vectors, "query vectors") if plan.query_vectors
-                   else runtime.revisit_queries(vectors, plan.queries, plan.noise))
+                   else timing.revisit_queries(vectors, plan.queries, plan.noise))
         if queries.shape[1] != vectors.shape[1]:
             raise ConfigError(f"--query-vectors are {queries.shape[1]}-d but --map-vectors "
                               f"{vectors.shape[1]}-d")
         out(f"\nScale: {plan.map_vectors}, {len(vectors):,} real {vectors.shape[1]}-d vectors, "
             f"{len(queries)} queries")
-        report["scale"] += runtime.scale_rows(vectors, queries, plan.kinds, plan.overrides,
+        report["scale"] += timing.scale_rows(vectors, queries, plan.kinds, plan.overrides,
                                               source=str(plan.map_vectors), log=out, sweep=plan.sweep)

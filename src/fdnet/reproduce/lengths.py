@@ -108,9 +108,10 @@ def length_runs(ctx) -> dict[int, Path]:
 
 
 def run(ctx) -> dict:
-    from fdnet import runtime
     from fdnet.data.images import load_images
     from fdnet.evaluation import plots
+    from fdnet.evaluation.timing import descriptor_extraction
+    from fdnet.reproduce.paper import PAPER_TABLE2
     from fdnet.reproduce.runner import PROTOCOL
     from fdnet.reproduce.runtime import ranking_ms_per_query
 
@@ -153,10 +154,10 @@ def run(ctx) -> dict:
         images = load_images(paths, descriptor.input_size)
         queries, references = ctx.pair_vectors(handle, first)
         ctx.limit_threads()
-        paper = runtime.PAPER_TABLE2.get(length, (None, None))
+        paper = PAPER_TABLE2.get(length, (None, None))
         timing.append({"length": length, "run": str(handle.options["checkpoint"]), "step": descriptor.step,
                        "preset": descriptor.config.preset,
-                       "ms_per_image": runtime.descriptor_extraction(descriptor, images, repeats=3),
+                       "ms_per_image": descriptor_extraction(descriptor, images, repeats=3),
                        "ms_per_query": ranking_ms_per_query(descriptor, queries, references),
                        "paper_ms_per_image": paper[0], "paper_ms_per_query": paper[1]})
     return {"lengths": list(handles), "accuracy": accuracy, "timing": timing, "figure": ctx.relative(figure),

@@ -4,8 +4,8 @@ Tables 3 and 4 give, per dataset pair, recall at 100 % precision and precision a
 (as fractions here; the paper prints percentages). The paper names a pair ("summer-winter") but
 not which condition is the query, so its numbers are shown for both directions of the pair.
 Tables 2 (FDNet per vector length) and 5 (every method: extraction ms/image on an NVIDIA TITAN X,
-matching ms/query on an Intel Xeon at 2.10 GHz) are :data:`fdnet.runtime.PAPER_TABLE2` and
-:data:`fdnet.runtime.PAPER_TABLE5`.
+matching ms/query on an Intel Xeon at 2.10 GHz) are :data:`PAPER_TABLE2` and :data:`PAPER_TABLE5`
+(``fdnet benchmark`` quotes them too).
 """
 
 from __future__ import annotations
@@ -22,6 +22,22 @@ PAPER_METHODS = {
     "Conv4_fine-tuned": "hybridnet",
     "NetVLAD": "netvlad",
     "CALC": "calc",
+}
+
+#: Qin et al., Table 2 (TITAN X): FDNet_L extraction ms/image and matching ms/query on Nordland.
+PAPER_TABLE2 = {256: (20.9, 0.32), 512: (21.2, 0.35), 1024: (22.6, 0.36), 2048: (28.7, 0.40)}
+#: Qin et al., Table 5 (Nordland, 2000 images; extraction on a TITAN X, matching on a Xeon at
+#: 2.1 GHz): method -> (extraction ms/image, matching ms/query). Keys are fdnet's method names
+#: where fdnet has the method (Conv4 fine-tuned is HybridNet's conv4, DBoW3 is dbow).
+PAPER_TABLE5 = {
+    "conv3": (136.0, 0.34),
+    "gist": (223.0, 0.38),
+    "dbow": (2.3, 0.013),
+    "landmarks": (737.0, 19.0),
+    "hybridnet": (158.0, 0.36),
+    "netvlad": (980.0, 0.038),
+    "calc": (39.0, 0.31),
+    "fdnet": (21.2, 0.35),
 }
 
 _TABLE3_PAIRS = ("spring-summer", "spring-fall", "spring-winter", "summer-fall", "summer-winter", "fall-winter")
@@ -95,9 +111,7 @@ def _numbers(table: dict, column: int) -> dict[str, dict[str, float]]:
 
 
 def paper_runtime(method: str) -> dict | None:
-    """The paper's Table 5 row (:data:`fdnet.runtime.PAPER_TABLE5`) for our method name, or None."""
-    from fdnet.runtime import PAPER_TABLE5
-
+    """The paper's Table 5 row (:data:`PAPER_TABLE5`) for our method name, or None."""
     if method not in PAPER_TABLE5:
         return None
     extraction, matching = PAPER_TABLE5[method]

@@ -2,7 +2,7 @@
 method on this machine, the hardware named, the paper's TITAN X figures beside them as ratios.
 
 Extraction is ``describe`` on images already decoded at the method's input size (median of
-repeats after a warm-up, :func:`fdnet.runtime.descriptor_extraction`); matching is finding one
+repeats after a warm-up, :func:`fdnet.evaluation.timing.descriptor_extraction`); matching is finding one
 query's best reference by the method's own comparison over the first pair's vectors, queries one
 at a time (:func:`ranking_ms_per_query`). Nothing here is asserted anywhere: it is measured and
 reported, on whatever else the machine is doing.
@@ -27,7 +27,7 @@ def ranking_ms_per_query(descriptor, queries, references, repeats: int = 3, max_
     "matching between reference and a single query image" (a batch of queries would share one
     matrix product and hide the per-query cost)."""
     from fdnet.matching.similarity import top_k
-    from fdnet.runtime import median_seconds
+    from fdnet.evaluation.timing import median_seconds
 
     chosen = queries[:max_queries]
 
@@ -46,7 +46,7 @@ def machine_description() -> dict:
     import torch
     from threadpoolctl import threadpool_info
 
-    from fdnet.runtime import cpu_model
+    from fdnet.evaluation.timing import cpu_model
 
     gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
     blas = [pool["num_threads"] for pool in threadpool_info() if pool.get("user_api") == "blas"]
@@ -59,8 +59,8 @@ def _ratio(paper: float | None, ours: float | None) -> float | None:
 
 
 def run(ctx) -> dict:
-    from fdnet import runtime
     from fdnet.data.images import load_images
+    from fdnet.evaluation import timing
     from fdnet.reproduce.paper import PAPER_HARDWARE, paper_runtime
 
     pair = ctx.pairs[0]
@@ -76,7 +76,7 @@ def run(ctx) -> dict:
             images_by_size[size] = load_images(paths, size)
         descriptor.describe(images_by_size[size][:1])  # loads what the method loads on first use
         ctx.limit_threads()
-        ms_image = runtime.descriptor_extraction(descriptor, images_by_size[size], repeats=3)
+        ms_image = timing.descriptor_extraction(descriptor, images_by_size[size], repeats=3)
         queries, references = ctx.pair_vectors(handle, split)
         ms_query = ranking_ms_per_query(descriptor, queries, references)
         paper = paper_runtime(handle.name) or {}
@@ -89,7 +89,7 @@ def run(ctx) -> dict:
             "matching_ratio_paper_over_ours": _ratio(paper.get("ms_per_query"), ms_query),
         })
     figure = _bars(ctx, methods)
-    return {"machine": machine_description(), "gemm_gflops_fp32": runtime.gemm_gflops(repeats=3),
+    return {"machine": machine_description(), "gemm_gflops_fp32": timing.gemm_gflops(repeats=3),
             "reference": pair.reference, "query": pair.query, "num_images_timed": len(paths),
             "num_queries": len(split.query), "map_size": len(split.reference), "methods": methods,
             "paper_hardware": PAPER_HARDWARE, "figure": ctx.relative(figure), "skipped": ctx.skipped()}

@@ -1,15 +1,8 @@
-"""Where models run, and how fast: devices, images on the device, and the runtime benchmark.
+"""How fast: the timing kernels of ``fdnet benchmark`` and of reproduce's runtime experiment.
 
-Devices (every command that runs a model, ``--device auto|cpu|cuda|cuda:N``):
-:func:`resolve_device` turns the setting into a ``torch.device`` (``auto`` takes the first GPU
-when there is one), :func:`images_to_device` sends a batch of images to it as uint8 (a quarter
-of float32's bytes) and converts and normalises them there, :func:`autocast` is bfloat16
-autocast on that device, and :func:`bf16_native` says whether the device runs bfloat16 natively.
-Nothing here names "cuda" as a default: every path takes a ``torch.device``.
-
-Benchmark: extraction ms/image and matching ms/query, with references measured in the same run
-(the paper's Table 2/5 GPU figures are quoted, this machine's own fp32 and bf16 GEMM speeds and
-fp32-eager FDNet are measured) so every figure comes with a ratio. Used by ``fdnet benchmark``.
+Extraction ms/image and matching ms/query, with references measured in the same run (the
+paper's Table 2/5 GPU figures, :mod:`fdnet.reproduce.paper`, are quoted; this machine's own fp32
+and bf16 GEMM speeds and fp32-eager FDNet are measured) so every figure comes with a ratio.
 Timings are medians over repeats after a warm-up; nothing here is asserted in tests (machines
 are shared and noisy), the command prints what it measured.
 """
@@ -23,36 +16,8 @@ from typing import Callable
 
 import numpy as np
 
-# The device primitives live in the leaf module fdnet.backbones (it may import nothing of fdnet
-# but fdnet.errors); they are re-exported here, where the rest of the runtime is.
-from fdnet.backbones import (  # noqa: F401
-    DeviceCopies,
-    autocast,
-    bf16_native,
-    check_device_spec,
-    images_to_device,
-    resolve_device,
-    synchronize,
-)
+from fdnet.backbones import autocast, resolve_device, synchronize
 
-#: Qin et al., Table 2 (TITAN X): FDNet_L extraction ms/image and matching ms/query on Nordland.
-PAPER_TABLE2 = {256: (20.9, 0.32), 512: (21.2, 0.35), 1024: (22.6, 0.36), 2048: (28.7, 0.40)}
-#: Qin et al., Table 5 (Nordland, 2000 images; extraction on a TITAN X, matching on a Xeon at
-#: 2.1 GHz): method -> (extraction ms/image, matching ms/query). Keys are fdnet's method names
-#: where fdnet has the method (Conv4 fine-tuned is HybridNet's conv4, DBoW3 is dbow).
-PAPER_TABLE5 = {
-    "conv3": (136.0, 0.34),
-    "gist": (223.0, 0.38),
-    "dbow": (2.3, 0.013),
-    "landmarks": (737.0, 19.0),
-    "hybridnet": (158.0, 0.36),
-    "netvlad": (980.0, 0.038),
-    "calc": (39.0, 0.31),
-    "fdnet": (21.2, 0.35),
-}
-
-DEVICE_HELP = ("where models run: auto (a GPU when there is one, else the CPU; default), cpu, cuda or "
-               "cuda:N")
 
 def cpu_model() -> str:
     """The CPU's model name from /proc/cpuinfo (or what platform says where there is none)."""
