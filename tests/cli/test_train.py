@@ -87,14 +87,14 @@ def test_a_run_directory_in_use_is_refused_with_the_holders_pid(tmp_path, capsys
 
 def test_train_with_dataset_format_and_named_split(tmp_path, capsys):
     from fdnet.runs import load_config
-    from fdnet.methods.fdnet.config import TrainConfig
+    from fdnet.methods.fdnet.config import FDNetRunConfig
 
     root = _dataset(tmp_path / "data", n=10)
     out = tmp_path / "run"
     assert main(["train", "--data", str(root), "--dataset-format", "folders", "--split", "0:6",
                  "--preset", "tiny", "--out", str(out), "--no-progress"]) == 0
     assert "fdnet train: preset tiny, conditions day, night (6, 6 images)" in capsys.readouterr().err
-    config = load_config(out, TrainConfig)
+    config = load_config(out, FDNetRunConfig)
     assert (config.data.dataset_format, config.data.split) == ("folders", "0:6")
     # --resume reads the same split from the run's own config
     assert main(["train", "--data", str(root), "--out", str(out), "--resume", "--no-progress"]) == 0

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from fdnet import runs
-from fdnet.methods.fdnet.config import TrainConfig
+from fdnet.methods.fdnet.config import FDNetRunConfig
 from fdnet.methods.fdnet.model import FDNet
 
 from tests.training.test_loop import make_dataset
@@ -29,7 +29,7 @@ def _train(data, out, *extra):
 
 
 def _weights(run_dir):
-    config = runs.load_config(run_dir, TrainConfig)
+    config = runs.load_config(run_dir, FDNetRunConfig)
     model = FDNet(config.model)
     runs.load_weights(run_dir, model.named_parts())
     return model.state_dict()

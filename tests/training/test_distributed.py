@@ -17,7 +17,7 @@ import torch
 
 from fdnet import runs
 from fdnet.cli import main
-from fdnet.methods.fdnet.config import TrainConfig
+from fdnet.methods.fdnet.config import FDNetRunConfig
 from fdnet.methods.fdnet.model import FDNet
 
 from tests.training.test_loop import make_dataset
@@ -68,7 +68,7 @@ def _dumped(folder):
 
 
 def _saved_fdnet_weights(run_dir):
-    model = FDNet(runs.load_config(run_dir, TrainConfig).model)
+    model = FDNet(runs.load_config(run_dir, FDNetRunConfig).model)
     runs.load_weights(run_dir, model.named_parts())
     return {f"{name}.{key}": value for name, module in model.named_parts().items()
             for key, value in module.state_dict().items()}

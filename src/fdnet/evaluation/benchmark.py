@@ -402,10 +402,10 @@ def _scale(plan: BenchmarkPlan, report: dict, out) -> None:
     if dim is None:
         dim = 512
         if "fdnet" in plan.checkpoints:
-            from fdnet.methods.fdnet.config import TrainConfig
+            from fdnet.methods.fdnet.config import FDNetRunConfig
             from fdnet.runs import load_config
 
-            dim = int(load_config(plan.checkpoints["fdnet"], TrainConfig).model.vector_length)
+            dim = int(load_config(plan.checkpoints["fdnet"], FDNetRunConfig).model.vector_length)
     report["scale"] = []
     for n in plan.map_sizes:
         out(f"\nScale: a map of {n:,} random unit {dim}-d vectors, {min(plan.queries, n)} queries = map "

@@ -13,7 +13,7 @@ import torch
 from PIL import Image
 
 from fdnet.config import replace_dotted
-from fdnet.methods.fdnet.config import TrainConfig, preset
+from fdnet.methods.fdnet.config import FDNetRunConfig, preset
 from fdnet.methods.fdnet.model import FDNet
 from fdnet.methods.fdnet.training import train
 from fdnet.runs import load_config, load_training_state, load_weights
@@ -43,7 +43,7 @@ def make_shifted_dataset(root, n=16, size=(32, 64)):
     return root
 
 
-def _config(tmp_path, **overrides) -> TrainConfig:
+def _config(tmp_path, **overrides) -> FDNetRunConfig:
     data = tmp_path / "data"
     if not data.exists():
         make_shifted_dataset(data)
@@ -58,7 +58,7 @@ def _said(caplog) -> str:
 
 
 def _weights(run_dir) -> dict[str, torch.Tensor]:
-    model = FDNet(load_config(run_dir, TrainConfig).model)
+    model = FDNet(load_config(run_dir, FDNetRunConfig).model)
     load_weights(run_dir, model.named_parts())
     return {k: v.clone() for k, v in model.state_dict().items()}
 
@@ -77,7 +77,7 @@ def test_the_block_that_validates_best_is_trained_as_if_it_had_been_set(tmp_path
         train(config, run, progress=False)
         selection = load_training_state(run)["method_state"]["block_selection"]
         assert sorted(selection) == ["2", "4"]
-        chosen = load_config(run, TrainConfig).model.backbone_block
+        chosen = load_config(run, FDNetRunConfig).model.backbone_block
         assert chosen == _rule(selection, order)
         picks[tuple(order)] = (chosen, selection)
     # the same scores whatever the order, so the same block unless they tie
@@ -103,7 +103,7 @@ def test_resume_keeps_the_chosen_block_without_choosing_again(tmp_path, caplog):
     run = tmp_path / "run"
     summary = train(config, run, max_minutes=0.0, progress=False)
     assert summary["status"] == "time limit"
-    chosen = load_config(run, TrainConfig).model.backbone_block
+    chosen = load_config(run, FDNetRunConfig).model.backbone_block
     assert chosen == 4  # these images: block 2's start matches no winter image, block 4's all
     assert ("training on trunk block 4 (of 2, 4); model.backbone_block = 2 is the block for runs without a "
             "validation pair") in _said(caplog)
@@ -113,7 +113,7 @@ def test_resume_keeps_the_chosen_block_without_choosing_again(tmp_path, caplog):
     out = _said(caplog)
     assert "at the start" not in out  # no candidate was scored again
     assert "continuing on trunk block 4, chosen when the run started" in out
-    assert load_config(run, TrainConfig).model.backbone_block == chosen
+    assert load_config(run, FDNetRunConfig).model.backbone_block == chosen
     assert load_training_state(run)["method_state"]["block_selection"] == selection
 
 
@@ -122,7 +122,7 @@ def test_without_a_validation_pair_the_set_block_is_trained_and_that_is_said(tmp
     config = _config(tmp_path, **{"model.backbone_block": 4, "model.backbone_block_candidates": [2, 4],
                                   "validation.reference": "", "validation.query": ""})
     train(config, tmp_path / "run", progress=False)
-    assert load_config(tmp_path / "run", TrainConfig).model.backbone_block == 4
+    assert load_config(tmp_path / "run", FDNetRunConfig).model.backbone_block == 4
     assert ("no validation pair to choose a start from (2, 4); training on model.backbone_block = 4, "
             "data.synthetic_conditions = none") in _said(caplog)
     assert load_training_state(tmp_path / "run")["method_state"]["block_selection"] == {}
@@ -138,7 +138,7 @@ def test_synthetic_conditions_are_chosen_with_the_block_and_kept_on_resume(tmp_p
     order = ["2, synthetic none", "4, synthetic none", "2, synthetic night+contrast", "4, synthetic night+contrast"]
     assert list(selection) == order
     best = max(order, key=lambda k: (selection[k]["recall@1"], selection[k]["auc"], -order.index(k)))
-    saved = load_config(run, TrainConfig)
+    saved = load_config(run, FDNetRunConfig)
     block, option = best.split(", synthetic ")
     assert saved.model.backbone_block == int(block)
     assert list(saved.data.synthetic_conditions) == ([] if option == "none" else option.split("+"))
@@ -194,7 +194,7 @@ def test_gardens_point_validation_chooses_the_deeper_block_and_nordland_the_shal
     assert sorted(selection) == ["11, synthetic night", "11, synthetic none", "7, synthetic night", "7, synthetic none"]
     best = _best_by_block(selection)
     assert best[11] > best[7], selection
-    assert load_config(tmp_path / "g", TrainConfig).model.backbone_block == 11
+    assert load_config(tmp_path / "g", FDNetRunConfig).model.backbone_block == 11
 
     nordland = require_shared("nordland_trimmed")
     assert main(["train", "--data", str(nordland), "--preset", "cpu", "--out", str(tmp_path / "n"),
@@ -204,4 +204,4 @@ def test_gardens_point_validation_chooses_the_deeper_block_and_nordland_the_shal
     selection = load_training_state(tmp_path / "n")["method_state"]["block_selection"]
     best = _best_by_block(selection)
     assert best[7] > best[11], selection
-    assert load_config(tmp_path / "n", TrainConfig).model.backbone_block == 7
+    assert load_config(tmp_path / "n", FDNetRunConfig).model.backbone_block == 7

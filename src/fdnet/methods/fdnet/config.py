@@ -1,6 +1,6 @@
 """Training configuration: one dataclass tree, four presets, YAML/CLI overrides.
 
-``TrainConfig`` is written to ``RUN_DIR/config.yaml`` so every run says how it was made. Presets:
+``FDNetRunConfig`` is written to ``RUN_DIR/config.yaml`` so every run says how it was made. Presets:
 
 * ``paper`` - the paper's settings (section 4.1): 224x224 input, batch 4 per domain, Adam
   lr 1e-4 beta1 0.5, 5000 auto-encoder + 8000 discriminator pretraining steps, then 60000 joint
@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 
-from fdnet.config import apply_yaml, from_dict, to_dict
+from fdnet.config import apply_yaml, to_dict
 from fdnet.errors import ConfigError
 from fdnet.methods.fdnet.model import FDNetConfig, validate_architecture
 from fdnet.methods.settings import DataConfig, ValidationConfig, check_finite, check_validation_pair
@@ -138,7 +138,7 @@ class RuntimeConfig(SharedRuntimeConfig):
 
 
 @dataclass
-class TrainConfig:
+class FDNetRunConfig:
     preset: str = "paper"
     model: FDNetConfig = field(default_factory=FDNetConfig)
     data: FDNetDataConfig = field(default_factory=FDNetDataConfig)
@@ -153,7 +153,7 @@ class TrainConfig:
         s = self.schedule
         return s.pretrain_autoencoder_steps + s.pretrain_critic_steps + s.joint_steps
 
-    def with_total_steps(self, steps: int) -> "TrainConfig":
+    def with_total_steps(self, steps: int) -> "FDNetRunConfig":
         """``steps`` in all (``fdnet train --steps``): the joint stage takes what the pretraining
         stages leave."""
         s = self.schedule
@@ -175,10 +175,10 @@ class TrainConfig:
         return "joint"
 
 
-def _paper() -> TrainConfig:
+def _paper() -> FDNetRunConfig:
     """The paper, setting by setting (section 4.1, eq. 3, eq. 10, Algorithm 1). Where the paper is
     silent the choice is marked: the number of encoding blocks and the decoder's first layer."""
-    return TrainConfig(
+    return FDNetRunConfig(
         preset="paper",
         # 224 / 2^5 = 7: five blocks leave a 7x7 map, as DCGAN-style encoders at 224 do (the
         # block count is not legible in the paper's Fig. 3). The critic reads v_c as the encoder
@@ -195,18 +195,18 @@ def _paper() -> TrainConfig:
     )
 
 
-def _two_cores(name: str, model: FDNetConfig, schedule: ScheduleConfig, adversarial_weight: float = 0.1) -> TrainConfig:
+def _two_cores(name: str, model: FDNetConfig, schedule: ScheduleConfig, adversarial_weight: float = 0.1) -> FDNetRunConfig:
     """What the CPU presets share: B = 8 per condition, a critic fed L2-normalised content vectors
     (docs/results.md, learnt 1), one torch thread (OpenMP spin-waiting against other processes on
     2 shared cores made steps ~6x slower), bf16 autocast and channels_last."""
-    return TrainConfig(
+    return FDNetRunConfig(
         preset=name, model=model, data=FDNetDataConfig(batch_per_domain=8), schedule=schedule,
         loss=LossConfig(adversarial_weight=adversarial_weight),
         runtime=RuntimeConfig(threads=1, bf16=True, channels_last=True, checkpoint_every=250, log_every=10),
     )
 
 
-def _cpu() -> TrainConfig:
+def _cpu() -> FDNetRunConfig:
     # FDNet on a frozen ImageNet trunk (model.backbone; an extension, see fdnet.methods.fdnet.trunk):
     # from scratch, the paper's pixel encoders did not beat SAD on Gardens Point's 100 training
     # images per condition (cpu-scratch below; docs/results.md, gp2-gp7). 128x256 keeps
@@ -244,7 +244,7 @@ def _cpu() -> TrainConfig:
     return config
 
 
-def _cpu_scratch() -> TrainConfig:
+def _cpu_scratch() -> FDNetRunConfig:
     # The paper's architecture (pixel encoders learnt from scratch), sized for 2 CPU cores:
     # quarter-width blocks (16..128) are several times cheaper than 64..512, and 64x32 is
     # Nordland's native size. Per-image standardisation: nord5 in docs/results.md (R@1 0.306 vs
@@ -258,8 +258,8 @@ def _cpu_scratch() -> TrainConfig:
     )
 
 
-def _tiny() -> TrainConfig:
-    return TrainConfig(
+def _tiny() -> FDNetRunConfig:
+    return FDNetRunConfig(
         preset="tiny",
         model=FDNetConfig(input_size=(16, 32), widths=(8, 16), vector_length=16, critic_hidden=16),
         data=FDNetDataConfig(batch_per_domain=2),
@@ -273,14 +273,14 @@ def _tiny() -> TrainConfig:
 PRESETS = {"paper": _paper, "cpu": _cpu, "cpu-scratch": _cpu_scratch, "tiny": _tiny}
 
 
-def preset(name: str) -> TrainConfig:
+def preset(name: str) -> FDNetRunConfig:
     try:
         return PRESETS[name]()
     except KeyError:
         raise ConfigError(f"unknown preset {name!r}; available: {', '.join(PRESETS)}") from None
 
 
-def validate(config: TrainConfig) -> None:
+def validate(config: FDNetRunConfig) -> None:
     """Every check that does not need the data: raise ConfigError before anything is built."""
     validate_architecture(config.model)
     s = config.schedule
@@ -340,14 +340,5 @@ def validate(config: TrainConfig) -> None:
         raise ConfigError(f"optim.beta1/beta2 must lie in [0, 1), got {config.optim.beta1}, {config.optim.beta2}")
 
 
-def model_keys() -> list[str]:
-    """Dotted names of the settings that define the architecture (must match to load weights)."""
-    return [f"model.{f.name}" for f in dataclasses.fields(FDNetConfig)]
-
-
-def config_from_dict(data: dict) -> TrainConfig:
-    return from_dict(TrainConfig, data)
-
-
-__all__ = ["TrainConfig", "FDNetDataConfig", "DataConfig", "ScheduleConfig", "LossConfig", "OptimConfig", "RuntimeConfig",
-           "ValidationConfig", "PRESETS", "preset", "apply_yaml", "validate", "model_keys", "to_dict"]
+__all__ = ["FDNetRunConfig", "FDNetDataConfig", "DataConfig", "ScheduleConfig", "LossConfig", "OptimConfig", "RuntimeConfig",
+           "ValidationConfig", "PRESETS", "preset", "apply_yaml", "validate", "to_dict"]

@@ -35,12 +35,12 @@ class FDNetDescriptor(Descriptor):
 
         from fdnet.methods.fdnet.model import FDNet
         from fdnet.runs import load_config, load_weights
-        from fdnet.methods.fdnet.config import TrainConfig
+        from fdnet.methods.fdnet.config import FDNetRunConfig
 
         from fdnet.backbones import bf16_native, resolve_device
 
         self.run_dir = Path(checkpoint)
-        self.config = load_config(self.run_dir, TrainConfig)
+        self.config = load_config(self.run_dir, FDNetRunConfig)
         self.device = resolve_device("auto" if device is None else device, where="fdnet: device")
         self.bf16 = bf16_native(self.device) if bf16 is None else bool(bf16)
         self.batch_size = int(batch_size)

@@ -37,7 +37,7 @@ import torch
 
 from fdnet.config import replace_dotted
 from fdnet.errors import ConfigError
-from fdnet.methods.fdnet.config import TrainConfig, synthetic_option, synthetic_option_text, validate
+from fdnet.methods.fdnet.config import FDNetRunConfig, synthetic_option, synthetic_option_text, validate
 from fdnet.methods.fdnet.model import TRUNK_HEADS, FDNet
 from fdnet.training import losses
 from fdnet.training.distributed import loss_text
@@ -49,7 +49,7 @@ from fdnet.training.sampler import DomainBalancedSampler
 log = logging.getLogger(__name__)
 
 
-def _autocast(config: TrainConfig, device: torch.device):
+def _autocast(config: FDNetRunConfig, device: torch.device):
     if not config.runtime.bf16:
         return contextlib.nullcontext()
     return torch.autocast(device.type, dtype=torch.bfloat16)
@@ -65,7 +65,7 @@ def resolve_device(name: str) -> torch.device:
     return device
 
 
-def load_training_images(config: TrainConfig) -> TrainingImages:
+def load_training_images(config: FDNetRunConfig) -> TrainingImages:
     """The run's training images (``config.data``) at the model's input size, with the synthetic
     appearance conditions ``config.data.synthetic_conditions`` added."""
     data = route_images(training_route(config.data), config.model.input_size,
@@ -81,7 +81,7 @@ class FDNetTraining(TrainingMethod):
     log_columns = ("reconstruction", "appearance", "encoder_adversarial", "structure", "critic", "wasserstein")
     rank_state_keys = ("sampler_generator",)  # each rank's own stream; the conditions are shared
 
-    def __init__(self, config: TrainConfig, data: TrainingImages,
+    def __init__(self, config: FDNetRunConfig, data: TrainingImages,
                  trunk_maps: dict[tuple[int, str], torch.Tensor] | None = None) -> None:
         validate(config)
         self.config = config
@@ -340,7 +340,7 @@ def content_vectors(model: FDNet, images: torch.Tensor, device: torch.device, bf
     return torch.cat(out) if out else torch.zeros((0, model.content_length))
 
 
-def start_candidates(config: TrainConfig) -> list[tuple[tuple[str, ...], int]]:
+def start_candidates(config: FDNetRunConfig) -> list[tuple[tuple[str, ...], int]]:
     """The (synthetic conditions, trunk block) starts a run with a validation pair chooses from,
     synthetic settings outer: ``data.synthetic_conditions_candidates`` (or the one
     ``data.synthetic_conditions``) x ``model.backbone_block_candidates`` (or the one block)."""
@@ -350,14 +350,14 @@ def start_candidates(config: TrainConfig) -> list[tuple[tuple[str, ...], int]]:
     return [(option, block) for option in options for block in blocks]
 
 
-def _start_label(config: TrainConfig, option: tuple[str, ...], block: int) -> str:
+def _start_label(config: FDNetRunConfig, option: tuple[str, ...], block: int) -> str:
     """``block_selection``'s key: the block, plus the synthetic setting when that is chosen too."""
     if not config.data.synthetic_conditions_candidates:
         return str(block)
     return f"{block}, synthetic {synthetic_option_text(option)}"
 
 
-def choose_start(config: TrainConfig, real: TrainingImages, validation) -> FDNetTraining:
+def choose_start(config: FDNetRunConfig, real: TrainingImages, validation) -> FDNetTraining:
     """The FDNet training whose closed-form content start scores best on ``validation`` among
     :func:`start_candidates`: R@1, ties to the higher AUC, then to the earlier candidate, as
     ``best/`` is chosen. ``real`` are the training images without synthetic conditions. Each
@@ -400,12 +400,12 @@ def choose_start(config: TrainConfig, real: TrainingImages, validation) -> FDNet
     return method
 
 
-def _chosen_when_started(config: TrainConfig, run_dir) -> TrainConfig:
+def _chosen_when_started(config: FDNetRunConfig, run_dir) -> FDNetRunConfig:
     """``config`` with the trunk block and synthetic conditions the run chose when it started
     (a resumed run does not choose again: its weights are for that choice)."""
     from fdnet import runs
 
-    saved = runs.load_config(run_dir, TrainConfig)
+    saved = runs.load_config(run_dir, FDNetRunConfig)
     block, option = saved.model.backbone_block, tuple(saved.data.synthetic_conditions)
     if (option, block) not in start_candidates(config):
         return config
@@ -416,7 +416,7 @@ def _chosen_when_started(config: TrainConfig, run_dir) -> TrainConfig:
     return replace_dotted(config, {"model.backbone_block": block, "data.synthetic_conditions": list(option)})
 
 
-def train(config: TrainConfig, run_dir, resume: bool = False, override: bool = False,
+def train(config: FDNetRunConfig, run_dir, resume: bool = False, override: bool = False,
           max_minutes: float | None = None, progress: bool = True, command: str = "fdnet train") -> dict:
     """Train FDNet as ``config`` says into ``run_dir`` (what ``fdnet train`` calls)."""
     from fdnet.training.data import load_validation_images

@@ -64,9 +64,9 @@ class TrunkDescriptor(Conv3Descriptor):
             input_size = chosen["input_size"] if input_size is None else input_size
         if checkpoint is not None:
             from fdnet import runs
-            from fdnet.methods.fdnet.config import TrainConfig
+            from fdnet.methods.fdnet.config import FDNetRunConfig
 
-            model = runs.load_config(checkpoint, TrainConfig).model
+            model = runs.load_config(checkpoint, FDNetRunConfig).model
             if model.backbone == "none":
                 raise ConfigError(f"{checkpoint}: this FDNet run learnt its encoders from pixels (no "
                                   "model.backbone); there is no trunk to compare with")
