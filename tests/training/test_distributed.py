@@ -214,7 +214,7 @@ def test_a_non_finite_loss_stops_before_the_optimiser_step(tmp_path, data, monke
     from fdnet.config import replace_dotted
     from fdnet.methods.fdnet.config import preset
     from fdnet.methods.fdnet.training import FDNetTraining, load_training_images
-    from fdnet.training import losses
+    from fdnet.methods.fdnet import losses
 
     config = replace_dotted(preset("tiny"), {"data.root": str(data)})
     method = FDNetTraining(config, load_training_images(config))

@@ -208,7 +208,8 @@ def set_threads(threads: int | None) -> None:
 
 
 def add_training_arguments(parser: argparse.ArgumentParser, data_required: bool = True) -> None:
-    """The flags every trained method's command shares (``fdnet train``, ``fdnet train-baseline``)."""
+    """The flags of ``fdnet train [METHOD]`` (and its alias ``fdnet train-baseline``), the same for
+    every trained method; each sets a setting of the run config (docs/runs.md)."""
     parser.add_argument("--data", required=data_required,
                         help="dataset folder with one sub-folder per condition (or a published layout, "
                              "with --dataset-format)" + ("" if data_required else "; optional with --resume"))
@@ -239,13 +240,18 @@ def add_training_arguments(parser: argparse.ArgumentParser, data_required: bool 
     parser.add_argument("--validate-every", type=int, help="validate every N steps")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--device", default=None, metavar="auto|cpu|cuda|cuda:N",
-                        help="where training runs: FDNet's runtime.device (same as --set runtime.device=...; "
-                             "its default is auto, a GPU when there is one). CALC and NetVLAD train on the "
-                             "CPU only: for them --device accepts auto or cpu and is otherwise refused")
+                        help="where training runs (runtime.device, for every method; default auto: a GPU when "
+                             "there is one)")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="torch CPU threads (runtime.threads; default: the preset's, 0 = torch's own choice)")
+    parser.add_argument("--steps", type=int, default=None,
+                        help="training steps in all (default: the preset's; FDNet: the joint stage takes what "
+                             "the pretraining stages leave)")
 
 
 def apply_training_arguments(config, args: argparse.Namespace):
-    """Run config <- --config YAML <- data/validation flags <- --set overrides.
+    """Run config <- --config YAML <- data/validation/runtime flags (--device, --threads, --steps,
+    --tolerance) <- --set overrides.
 
     Data flags are set on the dataclasses directly: through ``replace_dotted`` a frame range such
     as "10:20" given to a non-text field would be read by YAML as a base-60 integer.
@@ -271,18 +277,28 @@ def apply_training_arguments(config, args: argparse.Namespace):
         if getattr(args, flag, None) is not None:
             validation = dataclasses.replace(validation, **{field_name: getattr(args, flag)})
     config = dataclasses.replace(config, data=data, validation=validation)
-    device = getattr(args, "device", None)
-    if device is not None:
-        from fdnet.errors import ConfigError
+    # the runtime section every trained method has (fdnet.methods.settings.RuntimeConfig)
+    runtime = config.runtime
+    if getattr(args, "device", None) is not None:
         from fdnet.backbones import check_device_spec
 
-        device = check_device_spec(device)
-        runtime = getattr(config, "runtime", None)
-        if runtime is not None and hasattr(runtime, "device"):
-            config = dataclasses.replace(config, runtime=dataclasses.replace(runtime, device=device))
-        elif device not in ("auto", "cpu"):
-            raise ConfigError(f"--device {device}: this method's training has no device setting and runs on the "
-                              "CPU (use --device cpu, or evaluate its run with --device there)")
+        runtime = dataclasses.replace(runtime, device=check_device_spec(args.device))
+    if getattr(args, "threads", None) is not None:
+        from fdnet.errors import ConfigError
+
+        if args.threads < 1:
+            raise ConfigError(f"--threads must be >= 1, got {args.threads}")
+        runtime = dataclasses.replace(runtime, threads=int(args.threads))
+    config = dataclasses.replace(config, runtime=runtime)
+    if getattr(args, "tolerance", None) is not None:
+        from fdnet.errors import ConfigError
+
+        if not hasattr(config.data, "tolerance"):
+            raise ConfigError(f"--tolerance: {config.method if hasattr(config, 'method') else 'this method'} learns "
+                              "without place labels and takes no tolerance")
+        config = dataclasses.replace(config, data=dataclasses.replace(config.data, tolerance=int(args.tolerance)))
+    if getattr(args, "steps", None) is not None:
+        config = config.with_total_steps(int(args.steps))
     return replace_dotted(config, parse_overrides(args.set))
 
 

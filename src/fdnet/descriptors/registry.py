@@ -73,6 +73,7 @@ class MethodSpec:
 
     def preset(self, name: str | None = None):
         """A fresh run config of preset ``name`` (default :attr:`default_preset`)."""
+        self._need_training("presets")
         name = name or self.default_preset
         if name not in self.presets:
             raise ConfigError(f"unknown preset {name!r} for {self.name}; available: {', '.join(self.presets)}")

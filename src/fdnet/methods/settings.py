@@ -1,7 +1,8 @@
-"""Settings every trained method shares: which images it trains on and how it validates.
+"""Settings every trained method shares: which images it trains on, how it validates, where it
+runs (``runtime``) and, for the methods that choose an optimiser by name, ``optim``.
 
-Each method's run config (``FDNetRunConfig``... see ``fdnet.methods.<name>.config``) holds these
-beside its own model and training settings, and is written to ``RUN_DIR/config.yaml``. This
+Each method's run config (see ``fdnet.methods.<name>.config``) holds these beside its own model
+and training settings, and is written to ``RUN_DIR/config.yaml``. This
 module is plain dataclasses (no torch, no training code), so inference can read a run's config.
 """
 
@@ -25,6 +26,55 @@ class DataConfig:
     #: with ``dataset_format``: a named split ("train", "test", "all") or "START:END" ("" = the
     #: format's training default)
     split: str = ""
+
+
+@dataclass
+class RuntimeConfig:
+    """Where and how a run computes, and how often it writes: the same ``runtime.*`` settings for
+    every trained method (the training loop applies them, :func:`fdnet.training.loop.training_device`)."""
+
+    seed: int = 0
+    #: "auto" (a GPU when there is one, else the CPU), "cpu", "cuda" or "cuda:N"
+    device: str = "auto"
+    #: torch CPU threads (0 = leave torch's default)
+    threads: int = 0
+    #: bfloat16 autocast for the forward passes (losses stay float32)
+    bf16: bool = False
+    #: write a resumable checkpoint every N steps (and always at the end / on Ctrl-C)
+    checkpoint_every: int = 250
+    #: append losses to log.csv every N steps
+    log_every: int = 50
+
+
+@dataclass
+class OptimizerConfig:
+    """The optimiser of the methods that choose one by name (``optim.*``)."""
+
+    #: "adam" or "sgd" (momentum and weight_decay apply to sgd)
+    optimizer: str = "adam"
+    lr: float = 1e-3
+    momentum: float = 0.9
+    weight_decay: float = 0.0
+
+
+#: settings that moved from a method's ``train`` section to the shared sections: run configs
+#: written before read through :func:`moved_to_shared_sections`
+MOVED_SETTINGS = {"optimizer": "optim", "lr": "optim", "momentum": "optim", "weight_decay": "optim",
+                  "seed": "runtime", "bf16": "runtime", "checkpoint_every": "runtime", "log_every": "runtime"}
+
+
+def moved_to_shared_sections(data: dict) -> dict:
+    """A run config written with ``train.lr``, ``train.seed`` ... (before the shared ``optim`` and
+    ``runtime`` sections) -> the current layout; a current one is returned unchanged."""
+    train = data.get("train")
+    if not isinstance(train, dict) or not set(train) & set(MOVED_SETTINGS):
+        return data
+    data, train = dict(data), dict(train)
+    for key in [k for k in train if k in MOVED_SETTINGS]:
+        section = MOVED_SETTINGS[key]
+        data[section] = {**(data.get(section) or {}), key: train.pop(key)}
+    data["train"] = train
+    return data
 
 
 @dataclass

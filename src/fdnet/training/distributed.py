@@ -9,7 +9,7 @@ and keep identical weights (the effective batch is ``world_size`` x the per-proc
 
 **Why not DistributedDataParallel.** FDNet's critic is trained with the WGAN-GP gradient penalty, a
 double backward (``torch.autograd.grad(..., create_graph=True)``, see
-:func:`fdnet.training.losses.critic_loss`). DDP does not support double backward: its reducer
+:func:`fdnet.methods.fdnet.losses.critic_loss`). DDP does not support double backward: its reducer
 synchronises the gradients of the first backward only, and gradients of gradients are not
 averaged (pytorch/pytorch#63929, #47562). So no module is wrapped in DDP; after ``backward()``
 each method calls :meth:`DistributedContext.average_gradients` on the optimiser it is about to

@@ -14,6 +14,10 @@ for every method:
 * exact resume: the method's own state plus torch's global RNG (dropout) are in the checkpoint;
 * periodic validation (R@1 of cosine matching, ties to the higher AUC) with ``best/``;
 * ``log.csv`` (rows after the resumed checkpoint are dropped) and a progress bar;
+* device, precision and threads: every method's ``runtime`` section (``runtime.device``,
+  ``runtime.bf16``, ``runtime.threads``) goes through :func:`training_device`,
+  :func:`training_precision` and :func:`autocast`, and :func:`run_training` checks the device
+  before any image is read;
 * data-parallel training when started by ``torchrun`` (:mod:`fdnet.training.distributed`): rank 0
   holds the lock, reads and writes the run directory, validates and logs; every rank's random
   state is saved; the world size is recorded and a resume with another one refused unless
@@ -124,6 +128,34 @@ class TrainingMethod(ABC):
     def validation_vectors(self, images: torch.Tensor) -> np.ndarray:
         """uint8 (N, 3, H, W) -> (N, D) L2-normalised descriptors, for validation."""
         raise ConfigError(f"{self.name}: this method cannot validate during training")
+
+
+def training_device(runtime) -> torch.device:
+    """Apply a run's ``runtime`` section (every trained method has one, with the same names):
+    ``runtime.threads`` torch CPU threads (0 = torch's default) and ``runtime.device`` resolved
+    to a ``torch.device`` (``auto``: a GPU when there is one; a GPU that is not there is a
+    ConfigError naming ``runtime.device``). The one place training picks its device and threads."""
+    from fdnet.backbones import resolve_device
+
+    if int(runtime.threads) > 0:
+        torch.set_num_threads(int(runtime.threads))
+    return resolve_device(runtime.device, where="runtime.device")
+
+
+def training_precision(runtime, device: torch.device, native_only: bool = False) -> bool:
+    """Whether the run computes its forward passes under bfloat16 autocast on ``device``:
+    ``runtime.bf16``, and with ``native_only`` only where the device runs bf16 natively (a CPU
+    without AVX-512 BF16/AMX emulates it slowly)."""
+    from fdnet.backbones import bf16_native
+
+    return bool(runtime.bf16) and (not native_only or bf16_native(device))
+
+
+def autocast(device: torch.device, enabled: bool):
+    """bfloat16 autocast on ``device``'s type (a no-op context when not ``enabled``)."""
+    from fdnet.backbones import autocast as device_autocast
+
+    return device_autocast(device, enabled)
 
 
 def validation_metrics(method: TrainingMethod, data: ValidationImages) -> dict[str, float]:
@@ -453,8 +485,11 @@ def _to_cpu(value):
 
 def run_training(build: Callable[[], tuple[TrainingMethod, ValidationImages | None]], run_dir: str | Path,
                  resume: bool = False, override: bool = False, max_minutes: float | None = None,
-                 progress: bool = True, command: str = "fdnet train") -> dict:
+                 progress: bool = True, command: str = "fdnet train", runtime=None) -> dict:
     """Train the method ``build()`` returns (with its validation images, or None) into ``run_dir``.
+
+    ``runtime``: the run config's ``runtime`` section; its threads are set and its device checked
+    here, before the lock is taken (the method resolves the same device with :func:`training_device`).
 
     The run directory's lock is taken, and a fresh run's or a resume's precondition checked,
     before ``build`` reads any image, so a second training on the same folder fails at once.
@@ -466,6 +501,8 @@ def run_training(build: Callable[[], tuple[TrainingMethod, ValidationImages | No
     building, stops every rank with its message.
     """
     run_dir = Path(run_dir)
+    if runtime is not None:  # settings errors (a GPU that is not there) before the lock and any image
+        training_device(runtime)
     with dist_module.launch() as dist, contextlib.ExitStack() as held:
         def take_lock() -> None:
             ensure_writable(run_dir, what="run directory", directory=True)

@@ -9,6 +9,7 @@ import pytest
 import torch
 from PIL import Image
 
+from fdnet.methods.settings import MOVED_SETTINGS
 from fdnet.config import replace_dotted
 from fdnet import runs
 from fdnet.descriptors.base import describe_paths
@@ -42,7 +43,7 @@ def make_route(root, frames=12, size=(48, 64), seed=0):
 def tiny(root, steps=4, **train):
     config = calc_config.tiny_config()
     config.data.root = str(root)
-    overrides = {"train.steps": steps, **{f"train.{k}": v for k, v in train.items()}}
+    overrides = {"train.steps": steps, **{f"{MOVED_SETTINGS.get(k, 'train')}.{k}": v for k, v in train.items()}}
     return replace_dotted(config, overrides)
 
 
@@ -94,7 +95,7 @@ def test_training_moves_the_encoder(tmp_path):
     dozens of full-size steps, too slow to reproduce in a unit test.)"""
     route = make_route(tmp_path / "route")
     config = tiny(route, steps=8)
-    torch.manual_seed(config.train.seed)
+    torch.manual_seed(config.runtime.seed)
     initial = calc.build_network(config.model).state_dict()
     train_calc(config, tmp_path / "run")
     trained = CALCDescriptor(checkpoint=tmp_path / "run", bf16=False).network.state_dict()
@@ -114,7 +115,7 @@ def test_training_errors(tmp_path):
     changed = replace_dotted(tiny(route, steps=2, batch_size=2), {"model.channels": [8, 8, 4]})
     with pytest.raises(ConfigError, match="model.channels"):
         train_calc(changed, tmp_path / "run", resume=True)
-    with pytest.raises(ConfigError, match="train.lr"):
+    with pytest.raises(ConfigError, match="optim.lr"):
         train_calc(tiny(route, lr=float("nan")), tmp_path / "nan")
     with pytest.raises(ConfigError, match="no training data"):
         train_calc(calc_config.tiny_config(), tmp_path / "other")

@@ -10,6 +10,7 @@ import pytest
 import torch
 from PIL import Image
 
+from fdnet.methods.settings import MOVED_SETTINGS
 from fdnet.config import replace_dotted
 from fdnet import runs
 from fdnet.descriptors.base import describe_paths
@@ -43,7 +44,7 @@ def tiny(root, steps=4, tolerance=0, **train):
     config = netvlad_config.tiny_config()
     config.data.root = str(root)
     config.data.tolerance = tolerance
-    return replace_dotted(config, {"train.steps": steps, **{f"train.{k}": v for k, v in train.items()}})
+    return replace_dotted(config, {"train.steps": steps, **{f"{MOVED_SETTINGS.get(k, 'train')}.{k}": v for k, v in train.items()}})
 
 
 

@@ -8,7 +8,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from fdnet.errors import ConfigError
-from fdnet.methods.settings import DataConfig, ValidationConfig
+from fdnet.methods.settings import (DataConfig, OptimizerConfig, RuntimeConfig, ValidationConfig,
+                                    moved_to_shared_sections)
 
 METHOD = "calc"
 
@@ -48,39 +49,60 @@ class CALCTrainConfig:
     #: the original used 256 on GPUs; 32 keeps CPU steps short (the step time scales with it)
     batch_size: int = 32
     steps: int = 600
-    #: "adam" (default, fast in short runs) or "sgd" (the original's: lr 9e-4, momentum 0.9)
-    optimizer: str = "adam"
-    lr: float = 1e-3
-    momentum: float = 0.9
-    weight_decay: float = 5e-4
     #: start the decoder's output bias at the training set's mean HOG (not in the original)
     init_output_bias: bool = True
     #: probability that the original (not the warp) is the input and the warp's HOG the target
     swap_probability: float = 0.5
-    #: bfloat16 autocast for the training forward pass (when the CPU supports it natively); off by
-    #: default: on this network it made training steps slower, not faster (measured on 2 cores)
-    bf16: bool = False
-    seed: int = 0
-    checkpoint_every: int = 250
-    log_every: int = 50
+
+
+def _optim() -> OptimizerConfig:
+    #: "adam" (default, fast in short runs) or "sgd" (the original's: lr 9e-4, momentum 0.9)
+    return OptimizerConfig(optimizer="adam", lr=1e-3, momentum=0.9, weight_decay=5e-4)
+
+
+def _runtime() -> RuntimeConfig:
+    # bf16 off by default: on this network it made CPU training steps slower, not faster (measured
+    # on 2 cores); it applies where the device runs bf16 natively
+    return RuntimeConfig(bf16=False, checkpoint_every=250, log_every=50)
 
 
 @dataclass
 class CALCRunConfig:
     method: str = METHOD
+    #: the preset the run started from ("" in runs written before runs recorded it)
+    preset: str = ""
     model: CALCModelConfig = field(default_factory=CALCModelConfig)
     train: CALCTrainConfig = field(default_factory=CALCTrainConfig)
+    optim: OptimizerConfig = field(default_factory=_optim)
+    runtime: RuntimeConfig = field(default_factory=_runtime)
     data: DataConfig = field(default_factory=DataConfig)
     validation: ValidationConfig = field(default_factory=ValidationConfig)
+
+    @staticmethod
+    def from_legacy(data: dict) -> dict:
+        """Runs written with ``train.lr``, ``train.seed`` ... read in the current layout."""
+        return moved_to_shared_sections(data)
+
+    @property
+    def total_steps(self) -> int:
+        return self.train.steps
+
+    def with_total_steps(self, steps: int) -> "CALCRunConfig":
+        return dataclasses.replace(self, train=dataclasses.replace(self.train, steps=int(steps)))
+
+
+def default_config() -> CALCRunConfig:
+    """The original's network (120x160 grey input, 64/128/4 channels)."""
+    return CALCRunConfig(preset="default")
 
 
 def tiny_config() -> CALCRunConfig:
     """A few-second setting for tests: 60x80 input, narrow layers, small decoder."""
-    config = CALCRunConfig()
+    config = CALCRunConfig(preset="tiny")
     config.model = dataclasses.replace(config.model, input_size=(60, 80), channels=(8, 16, 4),
                                        decoder_hidden=[128])
-    config.train = dataclasses.replace(config.train, batch_size=8, steps=20, checkpoint_every=10,
-                                       log_every=5)
+    config.train = dataclasses.replace(config.train, batch_size=8, steps=20)
+    config.runtime = dataclasses.replace(config.runtime, checkpoint_every=10, log_every=5)
     return config
 
 
@@ -88,12 +110,12 @@ def small_config() -> CALCRunConfig:
     """Not the original's network: half-resolution input (60x80) and half-width convolutions
     (32, 64, 4 channels -> a 216-d descriptor, HOG target 576-d), about 14x cheaper per image, so
     a CPU run of minutes sees many more warped pairs."""
-    config = CALCRunConfig()
+    config = CALCRunConfig(preset="small")
     config.model = dataclasses.replace(config.model, input_size=(60, 80), channels=(32, 64, 4))
     return config
 
 
-PRESETS = {"default": CALCRunConfig, "small": small_config, "tiny": tiny_config}
+PRESETS = {"default": default_config, "small": small_config, "tiny": tiny_config}
 
 
 def load_run_config(run_dir: str | Path) -> CALCRunConfig:

@@ -29,7 +29,6 @@ made by one named change each (:mod:`fdnet.data.appearance`), labelled as condit
 
 from __future__ import annotations
 
-import contextlib
 import logging
 
 import numpy as np
@@ -39,30 +38,19 @@ from fdnet.config import replace_dotted
 from fdnet.errors import ConfigError
 from fdnet.methods.fdnet.config import FDNetRunConfig, synthetic_option, synthetic_option_text, validate
 from fdnet.methods.fdnet.model import TRUNK_HEADS, FDNet
-from fdnet.training import losses
+from fdnet.methods.fdnet import losses
 from fdnet.training.distributed import loss_text
 from fdnet.data.appearance import SEPARATOR, with_synthetic_conditions
 from fdnet.training.data import TrainingImages, route_images, training_route
-from fdnet.training.loop import LoopSettings, TrainingMethod
-from fdnet.training.sampler import DomainBalancedSampler
+from fdnet.training.loop import LoopSettings, TrainingMethod, autocast, training_device, training_precision
+from fdnet.methods.fdnet.sampler import DomainBalancedSampler
 
 log = logging.getLogger(__name__)
 
 
 def _autocast(config: FDNetRunConfig, device: torch.device):
-    if not config.runtime.bf16:
-        return contextlib.nullcontext()
-    return torch.autocast(device.type, dtype=torch.bfloat16)
-
-
-def resolve_device(name: str) -> torch.device:
-    """``auto`` takes CUDA when there is a GPU; ``cuda`` without one is a ConfigError."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    device = torch.device(name)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise ConfigError(f"runtime.device={name} but no CUDA device is available here")
-    return device
+    """The encoders'/decoder's precision: bf16 autocast with ``runtime.bf16`` (losses stay float32)."""
+    return autocast(device, training_precision(config.runtime, device))
 
 
 def load_training_images(config: FDNetRunConfig) -> TrainingImages:
@@ -88,9 +76,7 @@ class FDNetTraining(TrainingMethod):
         self.data = data
         self.input_size = tuple(int(v) for v in config.model.input_size)
         rt = config.runtime
-        if rt.threads > 0:
-            torch.set_num_threads(rt.threads)
-        self.device = resolve_device(rt.device)
+        self.device = training_device(rt)  # and runtime.threads
         torch.manual_seed(rt.seed)
         self.model = FDNet(config.model).to(self.device)
         if rt.channels_last:
@@ -333,7 +319,7 @@ def content_vectors(model: FDNet, images: torch.Tensor, device: torch.device, bf
             x = images[start:start + batch].to(device).float().div_(255.0)
             if channels_last:
                 x = x.contiguous(memory_format=torch.channels_last)
-            with torch.autocast(device.type, dtype=torch.bfloat16) if bf16 else contextlib.nullcontext():
+            with autocast(device, bf16):
                 v = model.appearance(x) if appearance else model.content(x)
             out.append(v.float().cpu())
     model.train(was_training)
@@ -425,8 +411,6 @@ def train(config: FDNetRunConfig, run_dir, resume: bool = False, override: bool 
     validate(config)  # settings errors before any image is read
 
     def build():
-        if config.runtime.threads > 0:
-            torch.set_num_threads(config.runtime.threads)
         candidates = start_candidates(config)
         run_config = _chosen_when_started(config, run_dir) if resume and len(candidates) > 1 else config
         real = load_training_images(replace_dotted(config, {"data.synthetic_conditions": []}))
@@ -447,4 +431,4 @@ def train(config: FDNetRunConfig, run_dir, resume: bool = False, override: bool 
         return FDNetTraining(run_config, data), validation
 
     return run_training(build, run_dir, resume=resume, override=override, max_minutes=max_minutes,
-                        progress=progress, command=command)
+                        progress=progress, command=command, runtime=config.runtime)

@@ -8,7 +8,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from fdnet.errors import ConfigError
-from fdnet.methods.settings import DataConfig, ValidationConfig
+from fdnet.methods.settings import (DataConfig, OptimizerConfig, RuntimeConfig, ValidationConfig,
+                                    moved_to_shared_sections)
 
 METHOD = "netvlad"
 
@@ -39,11 +40,6 @@ class NetVLADTrainConfig:
     #: queries (triplets) per step
     batch_size: int = 8
     steps: int = 600
-    #: "adam" or "sgd" (momentum, weight_decay apply to sgd)
-    optimizer: str = "adam"
-    lr: float = 1e-4
-    momentum: float = 0.9
-    weight_decay: float = 1e-3
     #: triplet margin on squared L2 distances between unit vectors (the original's m = 0.1)
     margin: float = 0.1
     #: references more than this many frames from the query are negatives (positives: within
@@ -57,34 +53,59 @@ class NetVLADTrainConfig:
     cache_refresh: int = 100
     #: local features sampled for the k-means initialisation of the clusters
     kmeans_samples: int = 50000
-    #: bfloat16 autocast for the frozen trunk and the mining cache (no gradients there)
-    bf16: bool = True
-    seed: int = 0
-    checkpoint_every: int = 200
-    log_every: int = 20
+
+
+def _optim() -> OptimizerConfig:
+    return OptimizerConfig(optimizer="adam", lr=1e-4, momentum=0.9, weight_decay=1e-3)
+
+
+def _runtime() -> RuntimeConfig:
+    # bf16: autocast for the frozen trunk and the mining cache (no gradients there), where the
+    # device runs bf16 natively
+    return RuntimeConfig(bf16=True, checkpoint_every=200, log_every=20)
 
 
 @dataclass
 class NetVLADRunConfig:
     method: str = METHOD
+    #: the preset the run started from ("" in runs written before runs recorded it)
+    preset: str = ""
     model: NetVLADModelConfig = field(default_factory=NetVLADModelConfig)
     train: NetVLADTrainConfig = field(default_factory=NetVLADTrainConfig)
+    optim: OptimizerConfig = field(default_factory=_optim)
+    runtime: RuntimeConfig = field(default_factory=_runtime)
     data: NetVLADDataConfig = field(default_factory=NetVLADDataConfig)
     validation: ValidationConfig = field(default_factory=ValidationConfig)
+
+    @staticmethod
+    def from_legacy(data: dict) -> dict:
+        """Runs written with ``train.lr``, ``train.seed`` ... read in the current layout."""
+        return moved_to_shared_sections(data)
+
+    @property
+    def total_steps(self) -> int:
+        return self.train.steps
+
+    def with_total_steps(self, steps: int) -> "NetVLADRunConfig":
+        return dataclasses.replace(self, train=dataclasses.replace(self.train, steps=int(steps)))
+
+
+def default_config() -> NetVLADRunConfig:
+    return NetVLADRunConfig(preset="default")
 
 
 def tiny_config() -> NetVLADRunConfig:
     """A few-second setting for tests: small input, 8 clusters, one fine-tuned block."""
-    config = NetVLADRunConfig()
+    config = NetVLADRunConfig(preset="tiny")
     config.model = dataclasses.replace(config.model, input_size=(64, 112), frozen_block=7, last_block=8,
                                        clusters=8)
     config.train = dataclasses.replace(config.train, batch_size=4, steps=6, negatives_sampled=50,
-                                       cache_refresh=3, kmeans_samples=2000, checkpoint_every=3,
-                                       log_every=2, negative_distance=4)
+                                       cache_refresh=3, kmeans_samples=2000, negative_distance=4)
+    config.runtime = dataclasses.replace(config.runtime, checkpoint_every=3, log_every=2)
     return config
 
 
-PRESETS = {"default": NetVLADRunConfig, "tiny": tiny_config}
+PRESETS = {"default": default_config, "tiny": tiny_config}
 
 
 def load_run_config(run_dir: str | Path) -> NetVLADRunConfig:

@@ -6,7 +6,7 @@ NetVLAD is supervised: positives are the frames within ``data.tolerance`` of the
 another condition. The frozen trunk's maps are computed once per run. What a resume needs beyond
 weights and the optimiser: the numpy generator and the mining cache as it was (so the resumed
 run mines exactly what the uninterrupted one would have). In a distributed run (torchrun) rank r's
-generator is seeded with ``train.seed + r`` (other triplets on every rank; the cache, computed
+generator is seeded with ``runtime.seed + r`` (other triplets on every rank; the cache, computed
 from the shared weights, is the same on all) and the gradients are averaged before each step.
 """
 
@@ -18,14 +18,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from fdnet.backbones import FeatureExtractor, bf16_supported
+from fdnet.backbones import FeatureExtractor
 from fdnet.errors import ConfigError, DataError
 from fdnet.methods.netvlad import model as netvlad
 from fdnet.methods.netvlad.config import NetVLADRunConfig
 from fdnet.methods.settings import check_finite, check_validation_pair
 from fdnet.training.data import TrainingImages, route_images, training_route
 from fdnet.training.distributed import loss_text
-from fdnet.training.loop import LoopSettings, TrainingMethod, numpy_rng_state, set_numpy_rng_state
+from fdnet.training.loop import (LoopSettings, TrainingMethod, autocast, numpy_rng_state, set_numpy_rng_state,
+                                 training_device, training_precision)
 from fdnet.training.optimizers import make_optimizer
 
 
@@ -61,7 +62,10 @@ def validate(config: NetVLADRunConfig) -> None:
                           f"({train.negative_distance}) must be >= the tolerance ({data.tolerance}) >= 0")
     if train.cache_refresh < 1:
         raise ConfigError("NetVLAD train.cache_refresh must be >= 1")
-    check_finite("train.lr", train.lr, positive=True)
+    check_finite("optim.lr", config.optim.lr, positive=True)
+    for name in ("checkpoint_every", "log_every"):
+        if getattr(config.runtime, name) < 1:
+            raise ConfigError(f"runtime.{name} must be >= 1")
     check_finite("train.margin", train.margin)
     v = config.validation
     check_validation_pair(v)
@@ -75,7 +79,7 @@ class NetVLADTraining(TrainingMethod):
     def __init__(self, config: NetVLADRunConfig, data: TrainingImages) -> None:
         validate(config)
         self.config = config
-        model_cfg, train = config.model, config.train
+        model_cfg, train, rt = config.model, config.train, config.runtime
         self.input_size = tuple(int(v) for v in model_cfg.input_size)
         self.frame_ids = aligned_frame_ids(data, config.data.root)
         self.positives, self.negatives = triplet_candidates(self.frame_ids, config.data.tolerance,
@@ -91,35 +95,37 @@ class NetVLADTraining(TrainingMethod):
         if model_cfg.pca_dim and len(self.frame_ids) * len(data.names) <= model_cfg.pca_dim:
             raise ConfigError(f"NetVLAD model.pca_dim {model_cfg.pca_dim} needs more training images than that "
                               f"(have {len(self.frame_ids) * len(data.names)}); lower it or set 0")
-        self.use_bf16 = bool(train.bf16) and bf16_supported()
-        self.rng = np.random.default_rng(self.distributed.rank_seed(train.seed))  # per rank: other triplets
-        torch.manual_seed(train.seed)
-        self.network = netvlad.build_network(model_cfg, pretrained=True)
+        self.device = training_device(rt)
+        self.use_bf16 = training_precision(rt, self.device, native_only=True)
+        self.rng = np.random.default_rng(self.distributed.rank_seed(rt.seed))  # per rank: other triplets
+        torch.manual_seed(rt.seed)
+        self.network = netvlad.build_network(model_cfg, pretrained=True).to(self.device)
         t_prep = time.perf_counter()
-        self.extractor = FeatureExtractor(block=model_cfg.frozen_block, bf16=self.use_bf16)
+        self.extractor = FeatureExtractor(block=model_cfg.frozen_block, bf16=self.use_bf16, device=self.device)
         self.conditions = list(data.names)
         self.maps = {c: self._trunk_maps(images) for c, images in zip(data.names, data.images)}
         self.all_maps = torch.cat([self.maps[c] for c in self.conditions])
         self.log(f"NetVLAD: {len(self.frame_ids)} frames x {len(self.conditions)} conditions "
-                 f"({', '.join(self.conditions)}), trunk maps {tuple(self.all_maps.shape[1:])} cached in "
+                 f"({', '.join(self.conditions)}) on {self.device}, trunk maps {tuple(self.all_maps.shape[1:])} cached in "
                  f"{time.perf_counter() - t_prep:.0f} s")
         parameters = [p for p in self.network.parameters() if p.requires_grad]
-        self.optimizer = make_optimizer(parameters, train)
+        self.optimizer = make_optimizer(parameters, config.optim)
         self.cache: dict[str, np.ndarray] = {}
         self.cache_step = -1
 
     def _trunk_maps(self, images: torch.Tensor, chunk: int = 64) -> torch.Tensor:
-        parts = [self.extractor.features_tensor(images[i:i + chunk].permute(0, 2, 3, 1).numpy().astype(np.float32) / 255.0)
+        # uint8 images travel to the device as they are and are scaled there (images_to_device)
+        parts = [self.extractor.features_tensor(images[i:i + chunk].permute(0, 2, 3, 1).numpy())
                  for i in range(0, len(images), chunk)]
         return torch.cat(parts, dim=0)
 
     def _describe_maps(self, maps: torch.Tensor, chunk: int = 128) -> np.ndarray:
         """No-gradient descriptors of cached maps (for mining, k-means and PCA)."""
         out = []
-        with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.use_bf16):
+        with torch.no_grad(), autocast(self.device, self.use_bf16):
             for i in range(0, len(maps), chunk):
                 out.append(self.network.vlad_vectors(maps[i:i + chunk]).float())
-        return torch.cat(out).numpy()
+        return torch.cat(out).cpu().numpy()
 
     # ------------------------------------------------------------------ loop interface
     def modules(self):
@@ -129,8 +135,8 @@ class NetVLADTraining(TrainingMethod):
         return {"netvlad": self.optimizer}
 
     def loop_settings(self) -> LoopSettings:
-        t = self.config.train
-        return LoopSettings(t.steps, t.checkpoint_every, t.log_every, self.config.validation.every)
+        rt = self.config.runtime
+        return LoopSettings(self.config.train.steps, rt.checkpoint_every, rt.log_every, self.config.validation.every)
 
     def start(self) -> None:
         """Cluster centres by k-means on L2-normalised local features of the last fine-tuned block."""
@@ -143,13 +149,13 @@ class NetVLADTraining(TrainingMethod):
         with torch.no_grad():
             local = torch.cat([self.network.local_features(self.all_maps[order[i:i + 64]])
                                for i in range(0, len(order), 64)])
-        local = local.permute(0, 2, 3, 1).reshape(-1, local.shape[1]).numpy().astype(np.float32)
+        local = local.permute(0, 2, 3, 1).reshape(-1, local.shape[1]).cpu().numpy().astype(np.float32)
         local /= np.maximum(np.linalg.norm(local, axis=1, keepdims=True), 1e-12)
         if len(local) < clusters:
             raise DataError(f"only {len(local)} local features for {clusters} NetVLAD clusters; "
                             "use more images, a larger input_size or fewer model.clusters")
         local = local[self.rng.permutation(len(local))[: train.kmeans_samples]]
-        kmeans = faiss.Kmeans(local.shape[1], clusters, niter=25, seed=int(train.seed), verbose=False)
+        kmeans = faiss.Kmeans(local.shape[1], clusters, niter=25, seed=int(self.config.runtime.seed), verbose=False)
         kmeans.train(local)
         alpha = self.network.vlad.initialise(kmeans.centroids.astype(np.float32), local)
         self.log(f"NetVLAD: {clusters} clusters from k-means on {len(local)} local features, alpha {alpha:.1f}")
@@ -178,7 +184,7 @@ class NetVLADTraining(TrainingMethod):
         with torch.inference_mode():
             out = self.network(maps).float()
         self.network.train(was_training)
-        return torch.nn.functional.normalize(out, dim=1).numpy()
+        return torch.nn.functional.normalize(out, dim=1).cpu().numpy()
 
     def train_step(self, step: int) -> dict[str, float]:
         train = self.config.train
@@ -220,15 +226,15 @@ class NetVLADTraining(TrainingMethod):
         loss.backward()
         # False when the loss is not finite here or on another rank: every rank stops at this step
         if not self.distributed.average_gradients(self.optimizer, loss):
-            raise FloatingPointError(f"NetVLAD loss became {loss_text(loss)} at step {step}; lower train.lr")
+            raise FloatingPointError(f"NetVLAD loss became {loss_text(loss)} at step {step}; lower optim.lr")
         self.optimizer.step()
         return {"loss": float(loss.item()), "active_triplets": float((hinge > 0).float().mean().item())}
 
 
 def train(config: NetVLADRunConfig, run_dir, resume: bool = False, override: bool = False,
           max_minutes: float | None = None, progress: bool = True,
-          command: str = "fdnet train-baseline netvlad") -> dict:
-    """Train NetVLAD as ``config`` says into ``run_dir`` (what ``fdnet train-baseline netvlad`` calls)."""
+          command: str = "fdnet train netvlad") -> dict:
+    """Train NetVLAD as ``config`` says into ``run_dir`` (what ``fdnet train netvlad`` calls)."""
     from fdnet.training.data import load_validation_images
     from fdnet.training.loop import run_training
 
@@ -240,4 +246,4 @@ def train(config: NetVLADRunConfig, run_dir, resume: bool = False, override: boo
         return NetVLADTraining(config, data), validation
 
     return run_training(build, run_dir, resume=resume, override=override, max_minutes=max_minutes,
-                        progress=progress, command=command)
+                        progress=progress, command=command, runtime=config.runtime)

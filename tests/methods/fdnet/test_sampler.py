@@ -2,7 +2,7 @@ import pytest
 import torch
 
 from fdnet.errors import ConfigError
-from fdnet.training.sampler import DomainBalancedSampler
+from fdnet.methods.fdnet.sampler import DomainBalancedSampler
 
 
 def test_batches_are_balanced_and_distinct_per_domain():

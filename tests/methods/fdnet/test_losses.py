@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from fdnet.training import losses
+from fdnet.methods.fdnet import losses
 
 
 def test_reconstruction_is_mse():
@@ -87,7 +87,7 @@ def test_gradient_penalty_uses_interpolates_between_labels():
 def test_reconstruction_sum_is_eq3_per_image_and_mean_is_per_value():
     import torch
 
-    from fdnet.training.losses import reconstruction_loss
+    from fdnet.methods.fdnet.losses import reconstruction_loss
 
     target = torch.zeros(2, 3, 4, 5)
     recon = torch.ones(2, 3, 4, 5)
