@@ -50,7 +50,7 @@ def test_every_experiment_writes_its_numbers(made):
         assert pair["paper"] is None  # the paper has no synthetic route
     # the command as parsed, flags in the parser's order
     assert comparison["command"] == (
-        f"fdnet reproduce --data {made['route']} --frames 12:24 --checkpoint {made['run']} --methods fdnet,trunk,sad,hog "
+        f"fdnet reproduce --data {made['route']} --frames 12:24 --checkpoint {made['run']} --method fdnet,trunk,sad,hog "
         f"--length-preset tiny --length-train-frames 0:12 --examples 3 --runtime-images 4 --out {out} --threads 1 "
         f"--no-progress")
     lengths = document(out, "lengths")
