@@ -79,3 +79,48 @@ def test_extract_stops_at_an_unreadable_image_and_leaves_nothing(tmp_path, capsy
     err = capsys.readouterr().err
     assert err.startswith("fdnet extract: error: ") and "frame_13.png" in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["images", "run"]
+
+
+def test_extract_works_for_every_kind_of_method(tmp_path, capsys):
+    """A numpy method, a method that learns from images (here from the images it describes) and
+    a trained baseline: each writes ``descriptors`` equal to its own ``describe``."""
+    import json
+
+    import numpy as np
+    import torch
+
+    from fdnet.data.images import list_images, load_images
+    from fdnet.descriptors import create
+    from fdnet.methods.calc import model as calc
+    from fdnet.methods.calc.config import tiny_config
+    from fdnet.runs import save_run
+
+    images = _images(tmp_path / "images", 12)
+    calc_run = tmp_path / "calc-run"
+    torch.manual_seed(0)
+    save_run(calc_run, {"calc": calc.build_network(tiny_config().model)}, tiny_config(), state={"step": 1})
+    paths = list_images(images)
+    for method, extra, fitted in (("sad", [], False), ("trunk-whitened", ["--method-set", "dim=4"], True),
+                                  ("calc", ["--checkpoint", str(calc_run)], False)):
+        out = tmp_path / f"{method}.npz"
+        assert main(["extract", "--method", method, *extra, "--images", str(images), "--out", str(out),
+                     "--fp32", "--workers", "0", "--device", "cpu", "--no-progress"]) == 0
+        printed = capsys.readouterr().out
+        assert f"12 images -> {out} ({method}: descriptors" in printed
+        assert ("learnt from the 12 extracted images" in printed) == fitted
+        options = {"checkpoint": str(calc_run), "bf16": False} if method == "calc" else \
+            {"dim": 4, "bf16": False} if fitted else {}
+        d = create(method, device="cpu", **options)
+        if fitted:
+            d.fit(paths)
+        with np.load(out, allow_pickle=False) as z:
+            assert set(z.files) == {"descriptors", "names", "sources", "timestamps", "method", "settings"}
+            assert str(z["method"]) == method and isinstance(json.loads(str(z["settings"])), dict)
+            np.testing.assert_allclose(z["descriptors"], d.describe(load_images(paths, d.input_size)),
+                                       rtol=1e-4, atol=1e-5)
+
+
+def test_extract_names_one_method(tmp_path, capsys):
+    assert main(["extract", "--method", "sad,hog", "--images", str(_images(tmp_path / "i", 2)),
+                 "--out", str(tmp_path / "v.npz")]) == 2
+    assert "name one" in capsys.readouterr().err

@@ -1,0 +1,74 @@
+"""Every method's vectors for a list of images, streamed into one ``.npz`` (``fdnet extract``).
+
+Images are decoded in worker processes while the descriptor runs
+(:func:`fdnet.descriptors.pipeline.describe_stream`), and the vectors are written batch by batch
+to temporary ``.npy`` parts, packed into the ``.npz`` at the end and renamed over the output
+(:class:`fdnet.descriptors.pipeline.NpzChunkWriter`): a folder of any size needs only a few
+batches of memory, and a crash never leaves half a file.
+
+Arrays: ``descriptors`` (N, D), what the method compares (``--method``'s vectors); a descriptor
+that also describes appearance (``describe_both``: FDNet) writes ``content`` (its place
+descriptor) and ``appearance`` instead. Always: ``names``, ``sources``, ``timestamps`` (see
+:func:`frame_arrays`), ``method`` and ``settings`` (JSON of the descriptor's settings).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+
+import numpy as np
+
+logger = logging.getLogger(__name__)
+
+
+def frame_arrays(paths) -> dict:
+    """``sources`` (N,): the video, bag or folder each image came from; ``timestamps`` (N,) seconds
+    (a video's from its first frame, a bag's recording time since the epoch; NaN for image files)."""
+    from fdnet.data.sources import frame_records
+
+    records = frame_records(paths)
+    return {"sources": np.array([r.source for r in records]),
+            "timestamps": np.array([np.nan if r.timestamp is None else r.timestamp for r in records],
+                                   dtype=np.float64)}
+
+
+def described_arrays(descriptor):
+    """The array names a descriptor's extraction writes, and the function giving them per batch."""
+    both = getattr(descriptor, "describe_both", None)
+    if both is not None:
+        return ("content", "appearance"), both
+    return ("descriptors",), lambda images: (descriptor.describe(images),)
+
+
+def extract(descriptor, paths, out, batch_size: int = 64, workers: int | None = None,
+            progress: bool = True) -> dict:
+    """Describe ``paths`` with ``descriptor`` into the ``.npz`` file ``out`` (written atomically).
+
+    A descriptor that learns from images and was given none (``needs_fit``: dbow without a
+    vocabulary, trunk-whitened without ``fit``) learns from ``paths`` first, and its settings say
+    so. Returns a summary: images, arrays, dim, seconds, images_per_second, fitted_on."""
+    from fdnet.descriptors.pipeline import NpzChunkWriter, describe_stream
+
+    paths = list(paths)
+    fitted = None
+    if descriptor.needs_fit:
+        logger.info(f"{descriptor.name}: learning from the {len(paths)} images being described (none supplied)")
+        descriptor.fit(paths)
+        fitted = f"the {len(paths)} extracted images"
+    names, describe = described_arrays(descriptor)
+    shape = (len(paths), descriptor.dim)
+    timing: dict = {}
+    started = time.perf_counter()
+    with NpzChunkWriter(out, {name: (shape, np.float32) for name in names}) as writer:
+        for _, vectors in describe_stream(descriptor, paths, batch_size, workers=workers, timing=timing,
+                                          describe=describe, progress=progress, what=f"extract [{descriptor.name}]"):
+            for name, array in zip(names, vectors):
+                writer.write(name, np.asarray(array, dtype=np.float32))
+        writer.close({"names": np.array([p.name for p in paths]), **frame_arrays(paths),
+                      "method": np.array(descriptor.name),
+                      "settings": np.array(json.dumps(descriptor.settings(), default=str, sort_keys=True))})
+    seconds = timing.get("seconds_wall", time.perf_counter() - started)
+    return {"images": len(paths), "arrays": names, "dim": descriptor.dim, "seconds": seconds,
+            "images_per_second": len(paths) / max(seconds, 1e-9), "fitted_on": fitted}
