@@ -162,3 +162,12 @@ def test_comparison_shows_r100p_under_the_default_acceptance_rule_beside_raw(rou
     section = html[html.index('<section id="comparison">'):html.index("</table>", html.index('<section id="comparison">'))]
     assert f"<th>R@100P</th><th>R@100P {DEFAULT_ACCEPTANCE}</th>" in section
     assert f"{per[DEFAULT_ACCEPTANCE]['recall_at_100_precision']:.3f}" in section
+
+
+def test_every_experiment_loads_its_own_module():
+    """The runner finds each experiment's module by its name (the runtime experiment's module is
+    table5_runtime); each module says it is that experiment."""
+    from fdnet.reproduce.sections import EXPERIMENTS
+
+    assert {name: runner.experiment_module(name).NAME for name in EXPERIMENTS} == {name: name for name in EXPERIMENTS}
+    assert runner.experiment_module("runtime").__name__ == "fdnet.reproduce.table5_runtime"

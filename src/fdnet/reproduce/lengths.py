@@ -113,7 +113,7 @@ def run(ctx) -> dict:
     from fdnet.evaluation.timing import descriptor_extraction
     from fdnet.reproduce.paper import PAPER_TABLE2
     from fdnet.reproduce.runner import PROTOCOL
-    from fdnet.reproduce.runtime import ranking_ms_per_query
+    from fdnet.reproduce.table5_runtime import ranking_ms_per_query
 
     options = {k: v for k, v in ctx.settings.method_options.get("fdnet", {}).items() if k != "checkpoint"}
     handles = {}

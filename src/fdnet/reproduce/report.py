@@ -13,14 +13,14 @@ from __future__ import annotations
 
 import base64
 import html
-import importlib
 import json
 import os
 from pathlib import Path
 
 from fdnet.errors import DataError
 from fdnet.io import atomic_write_text
-from fdnet.reproduce.sections import EXPERIMENTS, Figure, Heading, MANIFEST, Paragraph, REPORT, Table
+from fdnet.reproduce.sections import (EXPERIMENTS, MANIFEST, REPORT, Figure, Heading, Paragraph, Table,
+                                     experiment_module)
 
 #: the figure formats the report embeds, by their first bytes
 IMAGE_TYPES = {b"\x89PNG\r\n\x1a\n": "image/png", b"\xff\xd8\xff": "image/jpeg"}
@@ -131,7 +131,7 @@ def _header(manifest: dict | None) -> str:
 
 
 def _section(name: str, number: int, document: dict | None, manifest: dict | None, out: Path) -> str:
-    module = importlib.import_module(f"fdnet.reproduce.{name}")
+    module = experiment_module(name)
     parts = [f'<section id="{name}"><h2>{number}. {_escape(module.TITLE)}</h2>',
              f'<p class="paper">Paper: {_escape(module.PAPER)}</p>']
     if document is None:

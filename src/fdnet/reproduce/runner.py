@@ -2,10 +2,11 @@
 experiments share (cached vectors, similarity matrices and metrics computed once per run).
 
 Every experiment module (``comparison``, ``lengths``, ``similarity``, ``disentanglement``,
-``viewpoint``, ``runtime``, ``examples``) has ``NAME``, ``TITLE``, ``PAPER`` (the figures/tables it
-reproduces), ``unavailable(ctx)`` (why it cannot run, or None), ``run(ctx) -> dict`` (the numbers,
-written to ``OUT/<NAME>.json``; figures under ``OUT/figures/<NAME>/``) and ``render(document)``
-(the report section's blocks, from that JSON alone, so a section survives reruns of the others).
+``viewpoint``, ``runtime`` (module ``table5_runtime``), ``examples``) has ``NAME``, ``TITLE``,
+``PAPER`` (the figures/tables it reproduces), ``unavailable(ctx)`` (why it cannot run, or None),
+``run(ctx) -> dict`` (the numbers, written to ``OUT/<NAME>.json``; figures under
+``OUT/figures/<NAME>/``) and ``render(document)`` (the report section's blocks, from that JSON
+alone, so a section survives reruns of the others).
 After each experiment the report is rendered again, so an interrupted run still leaves a report of
 what finished, and a rerun resumes from the descriptor cache (``OUT/cache/``).
 """
@@ -13,7 +14,6 @@ what finished, and a rerun resumes from the descriptor cache (``OUT/cache/``).
 from __future__ import annotations
 
 import datetime
-import importlib
 import itertools
 import json
 import logging
@@ -33,7 +33,7 @@ from fdnet.evaluation.metrics import PROTOCOLS, RECALL_OVER_QUERIES
 from fdnet.io import atomic_write_text, ensure_writable
 from fdnet.evaluation.report import _plain
 from fdnet.reproduce.cache import DescriptorCache, image_list_key
-from fdnet.reproduce.sections import EXPERIMENTS, MANIFEST
+from fdnet.reproduce.sections import EXPERIMENTS, MANIFEST, experiment_module
 
 #: FDNet, the trunk alone and every baseline; those that cannot run here (no trained model, no
 #: weights) are listed in the report with the reason, unless named explicitly with --methods
@@ -354,10 +354,6 @@ def matched_reference(split: EvaluationSplit, query: int) -> int | None:
         return None
     same_frame = positives[split.reference.frame_ids[positives] == split.query.frame_ids[query]]
     return int(same_frame[0]) if len(same_frame) else int(positives[len(positives) // 2])
-
-
-def experiment_module(name: str):
-    return importlib.import_module(f"fdnet.reproduce.{name}")
 
 
 def _check(settings: ReproduceSettings) -> list[str]:

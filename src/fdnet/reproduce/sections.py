@@ -10,11 +10,23 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-#: experiments in report order; each name is its module, its JSON file and its HTML section id
+#: experiments in report order; each name is its JSON file, its HTML section id and (but for those
+#: in EXPERIMENT_MODULES) its module under fdnet.reproduce
 EXPERIMENTS = ("comparison", "lengths", "similarity", "disentanglement", "viewpoint", "runtime", "examples")
+#: experiment -> its module where the two names differ: the runtime experiment's module is named
+#: for the paper's table it reproduces (the timing kernels it uses are fdnet.evaluation.timing)
+EXPERIMENT_MODULES = {"runtime": "table5_runtime"}
 
 MANIFEST = "reproduce.json"
 REPORT = "report.html"
+
+
+def experiment_module(name: str):
+    """The module of experiment ``name``, imported when asked for (experiments import torch and
+    matplotlib, which the report's readers need not)."""
+    import importlib
+
+    return importlib.import_module(f"fdnet.reproduce.{EXPERIMENT_MODULES.get(name, name)}")
 
 
 @dataclass
