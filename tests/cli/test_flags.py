@@ -55,3 +55,59 @@ def test_a_command_with_an_old_spelling_runs_and_says_so(tmp_path, capsys):
     assert captured.err.startswith("fdnet synth: warning: --frames is the old spelling of --num-frames")
     assert main(["synth", "--out", str(tmp_path / "route"), "--num-frames", "2", "--conditions", "summer"]) == 0
     assert "old spelling" not in capsys.readouterr().err
+
+
+def _leaf_parsers():
+    """{"database build": parser, "synth": parser, ...} for every (sub-)command."""
+    found = {}
+
+    def walk(parser, name):
+        nested = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+        for action in nested:
+            for sub_name, sub in action.choices.items():
+                walk(sub, f"{name} {sub_name}".strip())
+        if not nested:
+            found[name] = parser
+
+    walk(build_parser(), "")
+    return found
+
+
+def _table_rows():
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[2] / "docs" / "flags.md").read_text()
+    rows = [line.split(" | ") for line in text.splitlines() if line.startswith("| `--")]
+    assert len(rows) >= 20
+    return rows
+
+
+def test_the_flag_table_matches_the_parsers():
+    import re
+
+    parsers = _leaf_parsers()
+    checked_old = 0
+    for flag_cell, _, commands, old in _table_rows():
+        flags = re.findall(r"`(--[a-z0-9-]+)", flag_cell)
+        if "every command" in commands:
+            continue
+        for command in re.split(r",\s*", commands.split(" (")[0]):
+            if "/" in command:  # "database add/build/query"
+                first, rest = command.split(" ", 1)
+                names = [f"{first} {n}" for n in rest.split("/")]
+            else:
+                names = [command]
+            for name in names:
+                assert name in parsers, f"docs/flags.md names a command {name!r} that does not exist"
+                missing = [f for f in flags if f not in parsers[name]._option_string_actions]
+                assert not missing, f"docs/flags.md: {name} has no {missing}"
+        for spelling, where in re.findall(r"`(--[a-z-]+)[^`]*` \(([^)]*)\)", old):
+            targets = [c.strip() for c in where.split(",")]
+            if targets == ["every command with `--method`"]:
+                targets = [n for n, p in parsers.items() if "--method" in p._option_string_actions]
+            for name in targets:
+                actions = parsers[name]._option_string_actions
+                assert spelling in actions, f"{name}: old spelling {spelling} is not accepted"
+                assert actions[spelling].dest == actions[flags[0]].dest, f"{name}: {spelling} is not {flags[0]}"
+                checked_old += 1
+    assert checked_old >= 15, checked_old  # the table's old spellings were read
