@@ -143,3 +143,152 @@ def test_ctrl_c_during_training_points_to_the_checkpoint_that_resume_continues(t
     monkeypatch.undo()
     assert main(_tiny_train(data, out, "--resume")) == 0
     assert "finished at step 8/8" in capsys.readouterr().out
+
+
+# ---------------------------------------------------------------- every trained method through one command
+import dataclasses  # noqa: E402
+from dataclasses import dataclass, field  # noqa: E402
+
+import pytest  # noqa: E402
+
+from fdnet.methods.settings import DataConfig, RuntimeConfig, ValidationConfig  # noqa: E402
+
+
+@dataclass
+class DummyTrain:
+    steps: int = 100
+
+
+@dataclass
+class DummyRunConfig:
+    """A trained method as small as one can be: one weight learnt towards the images' mean."""
+
+    method: str = "dummy"
+    preset: str = ""
+    train: DummyTrain = field(default_factory=DummyTrain)
+    runtime: RuntimeConfig = field(default_factory=lambda: RuntimeConfig(checkpoint_every=2, log_every=1))
+    data: DataConfig = field(default_factory=DataConfig)
+    validation: ValidationConfig = field(default_factory=ValidationConfig)
+
+    @property
+    def total_steps(self) -> int:
+        return self.train.steps
+
+    def with_total_steps(self, steps: int) -> "DummyRunConfig":
+        return dataclasses.replace(self, train=DummyTrain(steps=steps))
+
+
+PRESETS = {"tiny": lambda: DummyRunConfig(preset="tiny", train=DummyTrain(steps=3))}
+
+
+def train_dummy(config, run_dir, resume=False, override=False, max_minutes=None, progress=True,
+                command="fdnet train dummy"):
+    import torch
+
+    from fdnet.training.data import route_images, training_route
+    from fdnet.training.loop import LoopSettings, TrainingMethod, run_training, training_device
+
+    class DummyTraining(TrainingMethod):
+        name = "dummy"
+        log_columns = ("loss",)
+
+        def __init__(self):
+            self.config, self.input_size = config, (8, 8)
+            self.device = training_device(config.runtime)
+            data = route_images(training_route(config.data), self.input_size, why="dummy")
+            self.mean = torch.cat(data.images).float().mean().to(self.device) / 255
+            self.weight = torch.nn.Linear(1, 1, bias=False).to(self.device)
+            self.optimizer = torch.optim.SGD(self.weight.parameters(), lr=0.5)
+
+        def modules(self):
+            return {"dummy": self.weight}
+
+        def optimizers(self):
+            return {"dummy": self.optimizer}
+
+        def loop_settings(self):
+            rt = config.runtime
+            return LoopSettings(config.train.steps, rt.checkpoint_every, rt.log_every)
+
+        def train_step(self, step):
+            loss = (self.weight.weight.sum() - self.mean) ** 2
+            self.optimizer.zero_grad()
+            loss.backward()
+            self.optimizer.step()
+            return {"loss": float(loss.detach())}
+
+    return run_training(lambda: (DummyTraining(), None), run_dir, resume=resume, override=override,
+                        max_minutes=max_minutes, progress=progress, command=command, runtime=config.runtime)
+
+
+@pytest.fixture
+def dummy_method(monkeypatch):
+    """Adding a trained method: its own package (here this module) and one registry line."""
+    from fdnet.descriptors import registry
+
+    monkeypatch.setitem(registry._METHODS, "dummy", registry.MethodSpec(
+        "dummy", "test stand-in", "fdnet.descriptors.classic:RawThumbnail", config=f"{__name__}:DummyRunConfig",
+        trainer=f"{__name__}:train_dummy", presets=("tiny",), default_preset="tiny"))
+    return "dummy"
+
+
+def test_a_trained_method_added_by_one_registry_line_trains_with_every_shared_flag(tmp_path, capsys, dummy_method):
+    from fdnet import runs
+
+    data, out = _dataset(tmp_path / "data"), tmp_path / "run"
+    assert main(["train", "dummy", "--data", str(data), "--preset", "tiny", "--out", str(out), "--no-progress",
+                 "--threads", "1", "--device", "cpu", "--steps", "4", "--set", "runtime.log_every=2"]) == 0
+    printed = capsys.readouterr().out
+    assert "dummy finished at step 4/4" in printed and f"--method dummy --checkpoint {out}" in printed
+    config = runs.load_config(out, DummyRunConfig)
+    assert (config.preset, config.runtime.threads, config.runtime.device, config.runtime.log_every) == \
+        ("tiny", 1, "cpu", 2)
+    assert main(["train", "dummy", "--out", str(out), "--resume", "--steps", "5", "--no-progress"]) == 2
+    assert "train.steps: saved 4, requested 5" in capsys.readouterr().err
+    assert main(["train", "dummy", "--out", str(out), "--resume", "--override", "--steps", "5", "--no-progress"]) == 0
+    assert runs.load_training_state(out)["step"] == 5
+    assert main(["train", "dummy", "--data", str(data), "--preset", "cpu", "--out", str(tmp_path / "r2")]) == 2
+    assert "unknown preset 'cpu' for dummy; available: tiny" in capsys.readouterr().err
+
+
+def test_train_baseline_is_an_alias_that_says_so(tmp_path, capsys):
+    data = _dataset(tmp_path / "data")
+    assert main(["train-baseline", "calc", "--data", str(data), "--preset", "tiny", "--out", str(tmp_path / "a"),
+                 "--steps", "1", "--set", "train.batch_size=2", "--no-progress"]) == 0
+    captured = capsys.readouterr()
+    assert "an alias of `fdnet train calc`" in captured.err and "calc finished at step 1/1" in captured.out
+    assert main(["train", "calc", "--data", str(data), "--preset", "tiny", "--out", str(tmp_path / "b"),
+                 "--steps", "1", "--set", "train.batch_size=2", "--set", "optim.lr=5e-4", "--no-progress"]) == 0
+    assert "alias" not in capsys.readouterr().err
+
+
+def test_fdnet_steps_leave_the_joint_stage_the_rest(tmp_path, capsys):
+    data = _dataset(tmp_path / "data")
+    assert main(_tiny_train(data, tmp_path / "a", "--steps", "7")) == 0  # tiny: 3 + 2 pretraining steps
+    assert "fdnet finished at step 7/7" in capsys.readouterr().out
+    assert main(_tiny_train(data, tmp_path / "b", "--steps", "4")) == 2
+    assert "pretraining stages alone take 5 steps" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(__import__("torch").cuda.is_available(), reason="checks the message on a machine without a GPU")
+@pytest.mark.parametrize("method", ["fdnet", "calc", "netvlad"])
+def test_a_gpu_that_is_not_there_is_one_line_naming_runtime_device(tmp_path, capsys, method):
+    data = _dataset(tmp_path / "data")
+    assert main(["train", method, "--data", str(data), "--preset", "tiny", "--out", str(tmp_path / "r"),
+                 "--device", "cuda"]) == 2
+    assert "runtime.device cuda: no CUDA GPU is available here" in capsys.readouterr().err
+    from fdnet import runs
+
+    assert not runs.is_run(tmp_path / "r")
+
+
+@pytest.mark.skipif(not __import__("torch").cuda.is_available(), reason="needs a CUDA GPU")
+@pytest.mark.parametrize("method", ["calc", "netvlad"])
+def test_baselines_train_on_a_gpu(tmp_path, capsys, method):
+    from fdnet import runs
+
+    data = _dataset(tmp_path / "data")
+    assert main(["train", method, "--data", str(data), "--preset", "tiny", "--out", str(tmp_path / "r"),
+                 "--device", "cuda", "--steps", "2", "--set", "train.batch_size=2", "--no-progress"]) == 0
+    assert "on cuda" in capsys.readouterr().err
+    assert runs.load_training_state(tmp_path / "r")["step"] == 2
