@@ -63,6 +63,10 @@ MOVED_SETTINGS = {"optimizer": "optim", "lr": "optim", "momentum": "optim", "wei
                   "seed": "runtime", "bf16": "runtime", "checkpoint_every": "runtime", "log_every": "runtime"}
 
 
+#: ``--set`` paths of those settings as they were -> where they are now (still accepted, with a warning)
+RENAMED_SETTINGS = {f"train.{key}": f"{section}.{key}" for key, section in MOVED_SETTINGS.items()}
+
+
 def moved_to_shared_sections(data: dict) -> dict:
     """A run config written with ``train.lr``, ``train.seed`` ... (before the shared ``optim`` and
     ``runtime`` sections) -> the current layout; a current one is returned unchanged."""

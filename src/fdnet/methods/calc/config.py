@@ -6,10 +6,11 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 from fdnet.errors import ConfigError
 from fdnet.methods.settings import (DataConfig, OptimizerConfig, RuntimeConfig, ValidationConfig,
-                                    moved_to_shared_sections)
+                                    RENAMED_SETTINGS, moved_to_shared_sections)
 
 METHOD = "calc"
 
@@ -77,6 +78,9 @@ class CALCRunConfig:
     runtime: RuntimeConfig = field(default_factory=_runtime)
     data: DataConfig = field(default_factory=DataConfig)
     validation: ValidationConfig = field(default_factory=ValidationConfig)
+
+    #: old ``--set`` paths still accepted (``train.lr`` -> ``optim.lr`` ...)
+    renamed_settings: ClassVar[dict[str, str]] = RENAMED_SETTINGS
 
     @staticmethod
     def from_legacy(data: dict) -> dict:
