@@ -15,7 +15,7 @@ from fdnet.methods.calc.model import build_network, to_grey_u8
 class CALCDescriptor(Descriptor):
     """CALC bottleneck (conv3 output, flattened), L2-normalised, compared by cosine.
 
-    ``checkpoint``: a run directory written by ``fdnet train-baseline calc``. ``bf16``: autocast
+    ``checkpoint``: a run directory written by ``fdnet train calc``. ``bf16``: autocast
     (default: on where the device has native bf16). ``threads``: torch threads while describing.
     ``device``: ``auto`` (a GPU when there is one), ``cpu``, ``cuda`` or ``cuda:N``; the grey
     uint8 images go there and are converted there.
@@ -34,7 +34,7 @@ class CALCDescriptor(Descriptor):
 
         if checkpoint is None:
             raise ConfigError("method 'calc' needs a trained model: --checkpoint RUN_DIR "
-                              "(train one with `fdnet train-baseline calc --data DIR --out RUN_DIR`)")
+                              "(train one with `fdnet train calc --data DIR --out RUN_DIR`)")
         self.checkpoint = Path(checkpoint)
         self.config = load_run_config(self.checkpoint)
         self.input_size = tuple(int(v) for v in self.config.model.input_size)

@@ -15,7 +15,7 @@ from fdnet.methods.netvlad.model import build_network
 class NetVLADDescriptor(Descriptor):
     """NetVLAD vector (optionally PCA-whitened), L2-normalised, compared by cosine.
 
-    ``checkpoint``: a run directory written by ``fdnet train-baseline netvlad``. The frozen trunk
+    ``checkpoint``: a run directory written by ``fdnet train netvlad``. The frozen trunk
     comes from the installed EfficientNet-Lite0 ImageNet weights, the fine-tuned blocks and the
     VLAD layer from the run. ``bf16``: autocast (default: on where the device has native bf16).
     ``threads``: torch threads while describing. ``device``: ``auto`` (a GPU when there is one),
@@ -33,7 +33,7 @@ class NetVLADDescriptor(Descriptor):
 
         if checkpoint is None:
             raise ConfigError("method 'netvlad' needs a trained model: --checkpoint RUN_DIR "
-                              "(train one with `fdnet train-baseline netvlad --data DIR --out RUN_DIR`)")
+                              "(train one with `fdnet train netvlad --data DIR --out RUN_DIR`)")
         self.checkpoint = Path(checkpoint)
         self.config = load_run_config(self.checkpoint)
         model = self.config.model
