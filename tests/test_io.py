@@ -71,6 +71,21 @@ def test_a_full_disk_mid_write_is_one_clear_error_and_keeps_the_old_file(tmp_pat
     assert [p.name for p in tmp_path.iterdir()] == ["out.yaml"]
 
 
+def test_a_full_disk_found_before_the_work_is_an_output_error(tmp_path, monkeypatch):
+    import errno
+
+    from fdnet import io
+    from fdnet.errors import OutputError
+
+    def full(fd, data):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(io.os, "write", full)
+    with pytest.raises(OutputError, match="out.json: cannot write the output here \\(no space left\\)") as caught:
+        io.ensure_writable(tmp_path / "out.json")
+    assert caught.value.errno == errno.ENOSPC and isinstance(caught.value, OSError)
+
+
 def test_an_input_error_inside_the_block_is_not_called_an_output_error(tmp_path):
     from fdnet.errors import OutputError
 

@@ -24,7 +24,7 @@ from safetensors.torch import save_file
 
 from fdnet import runs
 from fdnet.config import save_yaml
-from fdnet.errors import ConfigError
+from fdnet.errors import ConfigError, OutputError
 
 SRC = Path(__file__).resolve().parents[1] / "src"
 
@@ -474,6 +474,8 @@ def test_full_disk_part_way_keeps_the_previous_checkpoint(tmp_path, monkeypatch,
         with pytest.raises(ConfigError, match="no space left") as failure:
             _save(tmp_path, 2)
     assert "step-000000001 is still the current checkpoint" in str(failure.value)
+    # an operating-system error, not a setting: the CLI names it as such, callers can read errno
+    assert isinstance(failure.value, OutputError) and failure.value.errno == errno.ENOSPC
     _assert_current_step(tmp_path, 1)
     assert _leftovers(tmp_path) == []
 

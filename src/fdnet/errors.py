@@ -25,6 +25,14 @@ class OutputError(ConfigError, OSError):
     code that tolerates a failed write (a cache) still does."""
 
 
+def output_error(message: str, cause: OSError) -> OutputError:
+    """``message`` as an :class:`OutputError` with the errno of the operating system's ``cause``
+    (ENOSPC for a full disk), so callers can still tell why the write failed."""
+    error = OutputError(message)
+    error.errno = cause.errno
+    return error
+
+
 #: operating-system errors that are about the user's disk, folders or names, not a bug: the CLI
 #: prints them as one line naming the path (see :func:`os_error_message`)
 _ENVIRONMENT_ERRNOS = {

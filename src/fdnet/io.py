@@ -15,7 +15,7 @@ import tempfile
 from pathlib import Path
 from typing import Iterator
 
-from fdnet.errors import ConfigError, OutputError
+from fdnet.errors import ConfigError, OutputError, output_error
 
 
 def fsync_directory(folder: str | os.PathLike) -> None:
@@ -85,9 +85,7 @@ _WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EFBIG}
 
 def _output_error(target: Path, exc: OSError) -> OutputError:
     reason = "no space left on the device" if exc.errno == errno.ENOSPC else (exc.strerror or str(exc))
-    error = OutputError(f"{target}: cannot write it ({reason}); nothing was written there")
-    error.errno = exc.errno
-    return error
+    return output_error(f"{target}: cannot write it ({reason}); nothing was written there", exc)
 
 
 def _refuse_special_file(target: Path, what: str) -> None:
@@ -109,7 +107,8 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
 
 
 def ensure_writable(path: str | os.PathLike, what: str = "output", directory: bool = False) -> Path:
-    """Check, before any work starts, that ``path`` can be written; raise ConfigError if not.
+    """Check, before any work starts, that ``path`` can be written; raise ConfigError if not
+    (:class:`~fdnet.errors.OutputError`, also an OSError, when the operating system refuses).
 
     For a file: its folder (created if missing) must accept a new file, and an existing ``path``
     must not be a directory. ``directory=True``: ``path`` is a folder the command writes into.
@@ -128,7 +127,7 @@ def ensure_writable(path: str | os.PathLike, what: str = "output", directory: bo
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         where = "" if directory else f" (its folder {folder})"
-        raise ConfigError(f"{target}: cannot create the {what} folder{where}: {exc.strerror or exc}") from None
+        raise output_error(f"{target}: cannot create the {what} folder{where}: {exc.strerror or exc}", exc) from None
     try:
         fd, probe = tempfile.mkstemp(prefix=".fdnet-write-test.", dir=folder)
         try:
@@ -138,7 +137,7 @@ def ensure_writable(path: str | os.PathLike, what: str = "output", directory: bo
             os.unlink(probe)
     except OSError as exc:
         reason = "no space left" if exc.errno == errno.ENOSPC else (exc.strerror or str(exc))
-        raise ConfigError(f"{target}: cannot write the {what} here ({reason})") from None
+        raise output_error(f"{target}: cannot write the {what} here ({reason})", exc) from None
     return target
 
 

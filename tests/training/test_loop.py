@@ -161,8 +161,9 @@ def test_a_checkpoint_write_that_fails_keeps_the_previous_one_and_the_run_resume
         return real(run_dir, modules, config, optimizers=optimizers, state=state, **kwargs)
 
     monkeypatch.setattr(runs_module, "save_checkpoint", disk_full_at_step_6)
-    with pytest.raises(ConfigError, match="step 6.*No space left.*--resume"):
+    with pytest.raises(ConfigError, match="step 6.*No space left.*--resume") as failure:
         trainer.fit(progress=False)
+    assert isinstance(failure.value, OSError) and failure.value.errno == errno.ENOSPC  # an OutputError
     monkeypatch.setattr(runs_module, "save_checkpoint", real)  # space returns
     assert load_training_state(tmp_path / "run")["step"] == 4
     resumed = _trainer(tmp_path, resume=True, **{"runtime.checkpoint_every": 2})

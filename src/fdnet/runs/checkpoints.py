@@ -26,7 +26,7 @@ from safetensors.torch import load_file
 from safetensors.torch import save as safetensors_bytes
 
 from fdnet.config import flatten_dotted, load_yaml, read_yaml_file, to_dict
-from fdnet.errors import ConfigError
+from fdnet.errors import ConfigError, output_error
 from fdnet.io import fsync_directory
 
 try:
@@ -343,7 +343,8 @@ def _publish(run_dir: str | Path, modules: Mapping[str, torch.nn.Module], config
             checkpoints_dir.mkdir()
             fsync_directory(run_dir)
     except OSError as exc:
-        raise ConfigError(f"{checkpoints_dir}: cannot create the checkpoint folder ({exc.strerror or exc})") from None
+        raise output_error(f"{checkpoints_dir}: cannot create the checkpoint folder ({exc.strerror or exc})",
+                           exc) from None
 
     with _save_lock(checkpoints_dir):
         _remove_leftovers(checkpoints_dir)
@@ -378,8 +379,8 @@ def _publish(run_dir: str | Path, modules: Mapping[str, torch.nn.Module], config
                             if _incomplete_reason(g.path) is None), None)
             reason = "no space left on the device" if exc.errno == errno.ENOSPC else (exc.strerror or str(exc))
             still = f"{current} is still the current checkpoint" if current else "no earlier checkpoint exists"
-            raise ConfigError(
-                f"{checkpoints_dir}: cannot save the checkpoint for step {step} ({reason}); {still}"
+            raise output_error(
+                f"{checkpoints_dir}: cannot save the checkpoint for step {step} ({reason}); {still}", exc
             ) from exc
         except BaseException:  # incl. Ctrl-C: never leave our partial folder behind
             shutil.rmtree(tmp, ignore_errors=True)
@@ -414,8 +415,9 @@ def save_checkpoint(run_dir: str | Path, modules: Mapping[str, torch.nn.Module],
     generations of later steps than this one (an abandoned history) are removed.
     ``config`` is a dataclass or a plain dict. Returns the published folder.
 
-    A write error (e.g. a full disk) raises ConfigError naming the folder, with the previous
-    checkpoint left current and no partial folder that a reader would take.
+    A write error (e.g. a full disk) raises OutputError (a ConfigError and an OSError with the
+    errno) naming the folder, with the previous checkpoint left current and no partial folder
+    that a reader would take.
     """
     step = _as_step((state or {}).get("step", 0))
     return _publish(run_dir, modules, config, optimizers, state, step, KIND_TRAINING, keep)

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import yaml
 
-from fdnet.errors import ConfigError
+from fdnet.errors import ConfigError, output_error
 
 try:
     import fcntl
@@ -63,8 +63,8 @@ class RunLock:
             self.run_dir.mkdir(parents=True, exist_ok=True)
             fd = os.open(str(self.path), os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
         except OSError as exc:
-            raise ConfigError(f"{self.path}: cannot create the run directory's lock file "
-                              f"({exc.strerror or exc})") from None
+            raise output_error(f"{self.path}: cannot create the run directory's lock file "
+                               f"({exc.strerror or exc})", exc) from None
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:

@@ -42,7 +42,7 @@ import numpy as np
 import torch
 
 from fdnet import runs
-from fdnet.errors import ConfigError
+from fdnet.errors import ConfigError, output_error
 from fdnet.io import atomic_write_text, ensure_writable
 from fdnet.training import distributed as dist_module
 from fdnet.training.data import ValidationImages
@@ -323,9 +323,11 @@ class Trainer:
                 previous = f"step {runs.load_training_state(self.run_dir)['step']}"
             except ConfigError:
                 previous = "none yet"
-            raise ConfigError(f"{self.run_dir}: could not write the checkpoint of step {self.step} ({reason}); "
-                              f"the previous complete checkpoint ({previous}) is intact: fix the cause "
-                              "(e.g. free disk space) and continue with --resume") from None
+            message = (f"{self.run_dir}: could not write the checkpoint of step {self.step} ({reason}); "
+                       f"the previous complete checkpoint ({previous}) is intact: fix the cause "
+                       "(e.g. free disk space) and continue with --resume")
+            # a full disk or a lost mount stays an operating-system error (OutputError is both)
+            raise (output_error(message, exc) if isinstance(exc, OSError) else ConfigError(message)) from None
 
     def _read_run(self, override: bool, command: str) -> dict:
         """Rank 0: check the resume and load weights and optimiser states from the run directory.
