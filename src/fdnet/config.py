@@ -16,7 +16,6 @@ from typing import Any, TypeVar
 import yaml
 
 from fdnet.errors import ConfigError
-from fdnet.io import atomic_write_text
 
 T = TypeVar("T")
 
@@ -164,10 +163,6 @@ def parse_overrides(items: list[str] | None) -> dict[str, str]:
         key, value = item.split("=", 1)
         out[key.strip()] = value.strip()
     return out
-
-
-def save_yaml(config: Any, path: str | Path) -> None:
-    atomic_write_text(path, yaml.safe_dump(to_dict(config), sort_keys=False))
 
 
 #: the largest settings file read (a run's config.yaml is a few KiB): a larger one is refused

@@ -39,12 +39,10 @@ from fdnet.runs.checkpoints import (
     KIND_WEIGHTS,
     STATE_FILE,
     WEIGHTS_FILE,
-    check_config,
     check_run_state,
     config_differences,
     is_run,
     latest_checkpoint,
-    list_checkpoints,
     load_config,
     load_training_state,
     load_weights,
@@ -56,7 +54,7 @@ from fdnet.runs.lock import LOCK_FILE, RunLock
 
 __all__ = [
     "CHANGES_FILE", "CHECKPOINTS_DIR", "CONFIG_FILE", "FORMAT_VERSION", "KIND_TRAINING", "KIND_WEIGHTS", "LOCK_FILE",
-    "STATE_FILE", "WEIGHTS_FILE", "RunLock", "check_config", "check_run_state", "config_differences", "is_run",
-    "latest_checkpoint", "list_checkpoints", "load_config", "load_training_state", "load_weights", "read_changes",
+    "STATE_FILE", "WEIGHTS_FILE", "RunLock", "check_run_state", "config_differences", "is_run",
+    "latest_checkpoint", "load_config", "load_training_state", "load_weights", "read_changes",
     "record_changes", "save_checkpoint", "save_run", "save_weights",
 ]

@@ -82,12 +82,6 @@ def _generations(checkpoints_dir: Path) -> list[_Generation]:
     return sorted(found, key=lambda g: g.order, reverse=True)
 
 
-def list_checkpoints(run_dir: str | Path) -> list[Path]:
-    """Published generation folders of ``run_dir``, newest first (complete or not; see
-    :func:`latest_checkpoint` for the one a reader should take)."""
-    return [g.path for g in _generations(Path(run_dir) / CHECKPOINTS_DIR)]
-
-
 def _weights_metadata(path: Path) -> dict[str, str]:
     # safe_open reads only the header, and refuses a file shorter than the header says (a torn
     # write), so this is a cheap completeness test as well as the metadata reader.
@@ -457,20 +451,6 @@ def config_differences(saved: Any, requested: Any, keys: list[str] | None = None
     a, b = flat(saved), flat(requested)
     names = keys if keys is not None else sorted(set(a) | set(b))
     return [f"{k}: saved {a.get(k)!r}, requested {b.get(k)!r}" for k in names if a.get(k) != b.get(k)]
-
-
-def check_config(run_dir: str | Path, saved: Any, requested: Any, keys: list[str] | None = None) -> None:
-    """Raise ConfigError listing the settings where ``requested`` differs from ``saved``."""
-    diffs = config_differences(saved, requested, keys)
-    if diffs:
-        try:
-            where = latest_checkpoint(run_dir) / CONFIG_FILE
-        except ConfigError:
-            where = Path(run_dir) / CONFIG_FILE
-        raise ConfigError(
-            f"{where}: the checkpoint was trained with other settings than requested ("
-            + "; ".join(diffs) + ")"
-        )
 
 
 def _load_weights_from(folder: Path, modules: Mapping[str, torch.nn.Module],
