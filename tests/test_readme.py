@@ -57,6 +57,7 @@ def test_the_readme_has_quick_examples():
     assert any(c.startswith("fdnet synth ") for block in blocks for c in block)
 
 
+@pytest.mark.slow  # about 77 s for the README's synth + train tiny + reproduce block on 2 cores
 @pytest.mark.parametrize("block", quick_examples(), ids=lambda block: block[0][:40])
 def test_quick_example_runs_as_printed(block, tmp_path, monkeypatch):
     from fdnet.cli import main

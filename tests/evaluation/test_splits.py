@@ -42,3 +42,17 @@ def test_similarity_files(tmp_path):
     with pytest.raises(DataError, match="ground-truth file not found"):
         ground_truth_path(tmp_path / "missing.csv")
     assert ground_truth_path(None) is None
+
+
+def test_a_similarity_file_is_scored_against_a_ground_truth_csv(tmp_path):
+    from fdnet.evaluation.splits import evaluate_similarity_file
+
+    np.save(tmp_path / "run_similarity.npy", np.eye(3) + 0.1)
+    (tmp_path / "gt.csv").write_text("query_index,reference_indices\n0,0\n1,1\n2,2\n")
+    result = evaluate_similarity_file(tmp_path / "run_similarity.npy", ground_truth=tmp_path / "gt.csv")
+    assert result.method == "run" and result.metrics["recall-over-queries"].recall_at_n[1] == 1.0
+    (tmp_path / "gt4.csv").write_text("query_index,reference_indices\n0,0\n1,1\n2,2\n3,3\n")
+    with pytest.raises(DataError, match="out of range"):
+        evaluate_similarity_file(tmp_path / "run_similarity.npy", ground_truth=tmp_path / "gt4.csv")
+    with pytest.raises(ConfigError, match="needs ground truth"):
+        evaluate_similarity_file(tmp_path / "run_similarity.npy")

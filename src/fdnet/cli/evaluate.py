@@ -28,8 +28,6 @@ under ``--protocol vprbench`` ``raw``, VPR-Bench's own definition.
 
 from __future__ import annotations
 
-import re
-
 from fdnet.cli.common import add_device_argument, add_method_arguments
 
 
@@ -118,9 +116,8 @@ def split_from_arguments(args):
 
 def run(args) -> int:
     import logging
-    from pathlib import Path
 
-    from fdnet.errors import ConfigError, DataError
+    from fdnet.errors import ConfigError
     from fdnet.io import ensure_writable
 
     if args.similarity and args.method:
@@ -145,7 +142,7 @@ def run(args) -> int:
         ensure_writable(args.json, what="JSON results")
     if args.plots:
         ensure_writable(args.plots, what="plots", directory=True)
-    from fdnet.evaluation.splits import ground_truth_path, load_similarity
+    from fdnet.evaluation.splits import ground_truth_path
 
     ground_truth_path(args.ground_truth)
     from fdnet.decisions.acceptance import DEFAULT_ACCEPTANCE, parse_acceptance_list
@@ -159,31 +156,12 @@ def run(args) -> int:
 
     results = []
     if args.similarity:
-        from fdnet.data.groundtruth import GroundTruth
-        from fdnet.evaluation.experiment import evaluate_matrix
+        from fdnet.evaluation.splits import evaluate_similarity_file
 
-        matrix = load_similarity(args.similarity, args.distance)
         split = split_from_arguments(args) if args.data else None
-        if split is not None:
-            gt = split.ground_truth
-        elif args.ground_truth:
-            # no images here, so a CSV's names (if any) cannot be checked; its indices are the matrix's
-            gt = GroundTruth.from_csv(args.ground_truth, num_references=matrix.shape[1],
-                                      num_queries=matrix.shape[0])
-        else:
-            raise ConfigError("--similarity needs ground truth: --ground-truth CSV, or --data with "
-                              "--reference/--query (frame-aligned, --tolerance)")
-        if matrix.shape != (gt.num_queries, gt.num_references):
-            raise DataError(f"{args.similarity}: matrix is {matrix.shape[0]} x {matrix.shape[1]} but the ground "
-                              f"truth is for {gt.num_queries} queries x {gt.num_references} references")
-        name = args.name or re.sub(r"_similarity$", "", Path(args.similarity).stem)
-        results.append(evaluate_matrix(
-            matrix, gt, name, protocols, args.thresholds,
-            dataset=split.description if split else f"{Path(args.similarity).name} vs {gt.description}",
-            query_paths=split.query.paths if split else None,
-            reference_paths=split.reference.paths if split else None,
-            # a distance matrix was negated: its largest possible similarity is 0
-            acceptance=acceptance, similarity_ceiling=0.0 if args.distance else 1.0))
+        results.append(evaluate_similarity_file(args.similarity, split=split, ground_truth=args.ground_truth,
+                                                distance=args.distance, name=args.name, protocols=protocols,
+                                                thresholds=args.thresholds, acceptance=acceptance))
     else:
         from fdnet.cli.common import create_descriptor, set_threads
         from fdnet.evaluation.experiment import evaluate_method

@@ -124,3 +124,35 @@ def load_similarity(path, distance: bool = False):
                         f"reference {r}); every query-reference pair needs a score")
     matrix = matrix.astype(np.float64)
     return -matrix if distance else matrix
+
+
+def evaluate_similarity_file(path, *, split=None, ground_truth=None, distance: bool = False, name: str | None = None,
+                             protocols=("recall-over-queries",), thresholds: int | None = None, acceptance=None):
+    """A precomputed (queries x references) matrix in the .npy file ``path`` scored against the
+    ground truth of ``split`` (which also gives the images, for plots) or of the CSV
+    ``ground_truth`` (whose indices are the matrix's: no images to check its names against).
+    ``distance``: the file holds distances (negated here). ``name`` defaults to the file's name
+    without ``_similarity``."""
+    import re
+
+    from fdnet.data.groundtruth import GroundTruth
+    from fdnet.evaluation.experiment import evaluate_matrix
+
+    matrix = load_similarity(path, distance)
+    if split is not None:
+        gt = split.ground_truth
+    elif ground_truth:
+        gt = GroundTruth.from_csv(ground_truth, num_references=matrix.shape[1], num_queries=matrix.shape[0])
+    else:
+        raise ConfigError("--similarity needs ground truth: --ground-truth CSV, or --data with "
+                          "--reference/--query (frame-aligned, --tolerance)")
+    if matrix.shape != (gt.num_queries, gt.num_references):
+        raise DataError(f"{path}: matrix is {matrix.shape[0]} x {matrix.shape[1]} but the ground "
+                        f"truth is for {gt.num_queries} queries x {gt.num_references} references")
+    return evaluate_matrix(
+        matrix, gt, name or re.sub(r"_similarity$", "", Path(path).stem), protocols, thresholds,
+        dataset=split.description if split else f"{Path(path).name} vs {gt.description}",
+        query_paths=split.query.paths if split else None,
+        reference_paths=split.reference.paths if split else None,
+        # a distance matrix was negated: its largest possible similarity is 0
+        acceptance=acceptance, similarity_ceiling=0.0 if distance else 1.0)
