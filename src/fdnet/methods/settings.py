@@ -1,9 +1,10 @@
 """Settings every trained method shares: which images it trains on, how it validates, where it
 runs (``runtime``) and, for the methods that choose an optimiser by name, ``optim``.
 
-Each method's run config (see ``fdnet.methods.<name>.config``) holds these beside its own model
-and training settings, and is written to ``RUN_DIR/config.yaml``. This
-module is plain dataclasses (no torch, no training code), so inference can read a run's config.
+Each method's run config (``FDNetRunConfig``, ``CALCRunConfig``, ``NetVLADRunConfig``, in
+``fdnet.methods.<name>.config``) holds these beside its own model and training settings, and is
+written to ``RUN_DIR/config.yaml``. This module is plain dataclasses (no torch, no training code),
+so inference can read a run's config.
 """
 
 from __future__ import annotations
