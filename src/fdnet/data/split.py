@@ -83,7 +83,7 @@ def listed_split(dataset: RouteDataset, reference: str, query: str, ground_truth
 
 def with_listed_ground_truth(split: EvaluationSplit, ground_truth: str | os.PathLike) -> EvaluationSplit:
     """``split`` with its ground truth replaced by an explicit CSV whose indices are positions in
-    the split's own query and reference images (what ``fdnet groundtruth --dataset ROOT --split S``
+    the split's own query and reference images (what ``fdnet groundtruth --data ROOT --split S``
     writes); its size (and names, when it has them) are checked against the split."""
     gt = read_listed_ground_truth(ground_truth, split.reference, split.query)
     return EvaluationSplit(split.reference, split.query, gt,

@@ -33,7 +33,7 @@ PLACES_SHOWN = 3
 def unavailable(ctx) -> str | None:
     handle = ctx.handles.get("fdnet")
     if handle is None:
-        return "needs FDNet (add fdnet to --methods, with --checkpoint RUN_DIR)"
+        return "needs FDNet (add fdnet to --method, with --checkpoint RUN_DIR)"
     if not handle.available:
         return f"FDNet cannot run here: {handle.reason}"
     if not hasattr(handle.descriptor, "describe_appearance"):

@@ -36,7 +36,7 @@ from fdnet.reproduce.cache import DescriptorCache, image_list_key
 from fdnet.reproduce.sections import EXPERIMENTS, MANIFEST, experiment_module
 
 #: FDNet, the trunk alone and every baseline; those that cannot run here (no trained model, no
-#: weights) are listed in the report with the reason, unless named explicitly with --methods
+#: weights) are listed in the report with the reason, unless named explicitly with --method
 DEFAULT_METHODS = reproduce_methods()  # from the method registry (its ``reproduce`` column)
 
 #: the paper's protocol (section 5.1.2): 500 uniform thresholds, recall over queries
@@ -180,7 +180,7 @@ class MethodHandle:
 def _check_fit_size(handle: MethodHandle, pairs: list[Pair], required: bool, data, log) -> None:
     """A method that learns from each comparison's reference images (no ``--fit`` folder) needs
     enough of them (``min_fit_images``); a default method without enough is listed as not run,
-    one named in ``--methods`` stops the command before anything is described."""
+    one named in ``--method`` stops the command before anything is described."""
     d = handle.descriptor
     if d is None or not d.needs_fit or not pairs:
         return
@@ -369,7 +369,7 @@ def _check(settings: ReproduceSettings) -> list[str]:
     if bad:
         raise ConfigError(f"unknown method(s) {', '.join(bad)}; available: {', '.join(known)}")
     if settings.methods is not None and not settings.methods:
-        raise ConfigError("--methods is empty")
+        raise ConfigError("--method is empty")
     for overlap in settings.overlaps:
         if not 0.0 < overlap <= 1.0:
             raise ConfigError(f"overlap {overlap}: must be in (0, 1] (e.g. 1,0.9,0.75,0.65)")

@@ -101,7 +101,7 @@ def open_split(root: str | os.PathLike, reference: str | None = None, query: str
     ``check_sizes``: fail early when a condition mixes image sizes (reads only file headers).
     ``listed_ground_truth``: an explicit ground-truth CSV that replaces the format's ground truth
     for the chosen split: its indices are positions in the split's query and reference images
-    (what ``fdnet groundtruth --dataset ROOT --split S`` writes); size and names are checked.
+    (what ``fdnet groundtruth --data ROOT --split S`` writes); size and names are checked.
     (Not to be confused with the ``ground_truth`` setting of some formats, which names the
     dataset's own ground-truth file.)
     """
