@@ -96,6 +96,22 @@ def test_add_query_reopen_round_trip(tmp_path, rng):
         assert loaded.info()["data_version"] == 2
 
 
+def test_a_full_disk_is_an_output_error_and_adds_nothing(tmp_path, rng):
+    """SQLite's SQLITE_FULL (here: the file may not grow past its current pages, which is what a
+    full disk looks like to SQLite) is an OutputError with ENOSPC, and the add is all-or-nothing."""
+    import errno
+
+    from fdnet.errors import OutputError
+
+    with PlaceDatabase.create(tmp_path / "map.db", Projection()) as db:
+        db.add(unit(rng, 5, 8), [f"a{i}" for i in range(5)])
+        pages = db._conn.execute("PRAGMA page_count").fetchone()[0]
+        db._conn.execute(f"PRAGMA max_page_count = {pages}")
+        with pytest.raises(OutputError, match="map.db: adding places: database or disk is full") as full:
+            db.add(unit(rng, 2000, 8), [f"b{i}" for i in range(2000)])
+        assert full.value.errno == errno.ENOSPC and len(db) == 5
+
+
 def test_an_open_database_sees_places_another_connection_adds(tmp_path, rng):
     v = unit(rng, 6, 8)
     path = tmp_path / "map.db"

@@ -11,6 +11,7 @@ new state. The write-ahead log (WAL) lets queries read while a writer writes.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import shlex
@@ -20,7 +21,7 @@ from typing import Iterator, Sequence
 
 import numpy as np
 
-from fdnet.errors import ConfigError, DataError
+from fdnet.errors import ConfigError, DataError, output_error
 
 #: ``PRAGMA user_version`` of the files this code writes; a newer file is refused, not guessed at.
 SCHEMA_VERSION = 1
@@ -164,11 +165,16 @@ def _read_only_storage(path: Path) -> bool:
 
 @contextlib.contextmanager
 def _sqlite_errors(path, doing: str) -> Iterator[None]:
-    """SQLite's exceptions as the project's errors, naming the file and what was being done."""
+    """SQLite's exceptions as the project's errors, naming the file and what was being done: a
+    full disk (SQLITE_FULL) is an :class:`~fdnet.errors.OutputError` with ENOSPC, anything else
+    a DataError."""
     try:
         yield
     except sqlite3.Error as exc:
-        raise DataError(f"{path}: {doing}: {_sqlite_message(exc, path)}") from None
+        message = f"{path}: {doing}: {_sqlite_message(exc, path)}"
+        if getattr(exc, "sqlite_errorcode", None) == sqlite3.SQLITE_FULL:
+            raise output_error(message, OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))) from None
+        raise DataError(message) from None
 
 
 @contextlib.contextmanager
