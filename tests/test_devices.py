@@ -151,7 +151,7 @@ def test_commands_refuse_a_missing_gpu_before_any_work(tmp_path, capsys):
     assert "--device 'gpu': choose auto, cpu, cuda or cuda:N" in capsys.readouterr().err
 
 
-def test_training_flag_sets_fdnet_runtime_device_and_refuses_cuda_for_cpu_only_trainers():
+def test_training_flag_sets_runtime_device_of_every_trained_method():
     import argparse
 
     from fdnet.cli.common import add_training_arguments, apply_training_arguments
@@ -165,9 +165,12 @@ def test_training_flag_sets_fdnet_runtime_device_and_refuses_cuda_for_cpu_only_t
     unset = parser.parse_args(["--data", "d", "--out", "o"])
     assert apply_training_arguments(preset("tiny"), unset).runtime.device == "auto"
     cpu = parser.parse_args(["--data", "d", "--out", "o", "--device", "cpu"])
-    apply_training_arguments(CALC["tiny"](), cpu)          # accepted: it trains on the CPU
-    with pytest.raises(ConfigError, match="runs on the CPU"):
-        apply_training_arguments(CALC["tiny"](), args)
+    assert apply_training_arguments(CALC["tiny"](), cpu).runtime.device == "cpu"
+    # CALC (and NetVLAD) train where FDNet does: the same runtime.device
+    assert apply_training_arguments(CALC["tiny"](), args).runtime.device == "cuda:1"
+    bad = parser.parse_args(["--data", "d", "--out", "o", "--device", "gpu"])
+    with pytest.raises(ConfigError, match="choose auto, cpu, cuda or cuda:N"):
+        apply_training_arguments(CALC["tiny"](), bad)
 
 
 def test_bf16_is_as_accurate_as_fp32_for_retrieval():
