@@ -239,7 +239,7 @@ def test_a_trained_method_added_by_one_registry_line_trains_with_every_shared_fl
     assert main(["train", "dummy", "--data", str(data), "--preset", "tiny", "--out", str(out), "--no-progress",
                  "--threads", "1", "--device", "cpu", "--steps", "4", "--set", "runtime.log_every=2"]) == 0
     printed = capsys.readouterr().out
-    assert "dummy finished at step 4/4" in printed and f"--method dummy --checkpoint {out}" in printed
+    assert "finished at step 4/4" in printed and f"use it with --method dummy --checkpoint {out}" in printed
     config = runs.load_config(out, DummyRunConfig)
     assert (config.preset, config.runtime.threads, config.runtime.device, config.runtime.log_every) == \
         ("tiny", 1, "cpu", 2)
@@ -256,7 +256,7 @@ def test_train_baseline_is_an_alias_that_says_so(tmp_path, capsys):
     assert main(["train-baseline", "calc", "--data", str(data), "--preset", "tiny", "--out", str(tmp_path / "a"),
                  "--steps", "1", "--set", "train.batch_size=2", "--no-progress"]) == 0
     captured = capsys.readouterr()
-    assert "an alias of `fdnet train calc`" in captured.err and "calc finished at step 1/1" in captured.out
+    assert "an alias of `fdnet train calc`" in captured.err and "finished at step 1/1" in captured.out
     assert main(["train", "calc", "--data", str(data), "--preset", "tiny", "--out", str(tmp_path / "b"),
                  "--steps", "1", "--set", "train.batch_size=2", "--set", "optim.lr=5e-4", "--no-progress"]) == 0
     assert "alias" not in capsys.readouterr().err
@@ -265,7 +265,7 @@ def test_train_baseline_is_an_alias_that_says_so(tmp_path, capsys):
 def test_fdnet_steps_leave_the_joint_stage_the_rest(tmp_path, capsys):
     data = _dataset(tmp_path / "data")
     assert main(_tiny_train(data, tmp_path / "a", "--steps", "7")) == 0  # tiny: 3 + 2 pretraining steps
-    assert "fdnet finished at step 7/7" in capsys.readouterr().out
+    assert "finished at step 7/7" in capsys.readouterr().out
     assert main(_tiny_train(data, tmp_path / "b", "--steps", "4")) == 2
     assert "pretraining stages alone take 5 steps" in capsys.readouterr().err
 

@@ -119,14 +119,13 @@ def _train(args, config) -> int:
     if summary["changes"]:
         print(f"fdnet train: resumed with changed settings (recorded in {args.out}/changes.yaml): "
               + "; ".join(summary["changes"]))
-    line = (f"fdnet train: {args.method} {summary['status']} at step {summary['step']}/{summary['total_steps']} "
+    line = (f"fdnet train: {summary['status']} at step {summary['step']}/{summary['total_steps']} "
             f"after {summary['elapsed_seconds'] / 60:.1f} min"
             + (f" on {summary['world_size']} processes" if summary["world_size"] > 1 else "")
             + f"; run in {summary['run_dir']}")
     if summary["best_step"] >= 0:
         line += f"; best validation R@1 {summary['best_recall@1']:.3f} at step {summary['best_step']} (in best/)"
-    print(line)
-    print(f"fdnet train: use it with --method {args.method} --checkpoint {args.out}")
+    print(line + f"; use it with --method {args.method} --checkpoint {args.out}")
     if summary["status"] == "time limit":
         print("fdnet train: continue with --resume to finish the schedule")
     return 0
