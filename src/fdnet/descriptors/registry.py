@@ -201,7 +201,7 @@ def create(name: str, **options):
     cls = descriptor_class(name)
     options = {k: v for k, v in options.items() if v is not None}
     params = inspect.signature(cls.__init__).parameters
-    if "device" in options and "device" not in params:
+    if "device" in options and not takes_device(name):
         from fdnet.backbones import check_device_spec
 
         check_device_spec(options.pop("device"), where=f"{name}: device")
