@@ -260,6 +260,11 @@ def test_train_baseline_is_an_alias_that_says_so(tmp_path, capsys):
     assert main(["train", "calc", "--data", str(data), "--preset", "tiny", "--out", str(tmp_path / "b"),
                  "--steps", "1", "--set", "train.batch_size=2", "--set", "optim.lr=5e-4", "--no-progress"]) == 0
     assert "alias" not in capsys.readouterr().err
+    # a run resumed with the wrong method says which it is
+    assert main(["train", "--out", str(tmp_path / "b"), "--resume"]) == 2
+    assert "is a calc run, not a fdnet run; resume it with `fdnet train calc" in capsys.readouterr().err
+    assert main(["train", "netvlad", "--out", str(tmp_path / "b"), "--resume"]) == 2
+    assert "not a netvlad run" in capsys.readouterr().err
 
 
 def test_fdnet_steps_leave_the_joint_stage_the_rest(tmp_path, capsys):

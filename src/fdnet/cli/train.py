@@ -89,6 +89,14 @@ def load_run_config(method, run_dir):
     cls = method.config_class()
     if "method" in getattr(cls, "__dataclass_fields__", {}):
         return load_method_config(run_dir, cls, method.name)
+    from fdnet.config import read_yaml_file
+    from fdnet.errors import ConfigError
+
+    path = runs.latest_checkpoint(run_dir) / runs.CONFIG_FILE
+    saved = (read_yaml_file(path) or {}).get("method") if path.is_file() else None
+    if saved:  # a baseline's run: its config names its method
+        raise ConfigError(f"{path}: is a {saved} run, not a {method.name} run; resume it with `fdnet train {saved} "
+                          f"--out {run_dir} --resume`")
     return runs.load_config(run_dir, cls)
 
 
