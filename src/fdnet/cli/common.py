@@ -5,6 +5,14 @@ from __future__ import annotations
 import argparse
 import os
 
+from fdnet.data.formats import format_names
+
+
+def dataset_format_list(auto: bool = True) -> str:
+    """The published layouts ``--dataset-format`` reads, for help texts (from the one list in
+    :mod:`fdnet.data.formats`)."""
+    return ", ".join(format_names()) + (", or auto to detect" if auto else "")
+
 
 def add_method_arguments(parser: argparse.ArgumentParser, multiple: bool = False, required: bool = True) -> None:
     """--method plus the options any method may take (passed to ``fdnet.descriptors.create``).
@@ -217,8 +225,7 @@ def add_training_arguments(parser: argparse.ArgumentParser, data_required: bool 
     parser.add_argument("--conditions", help="comma-separated conditions to train on (default: all sub-folders)")
     parser.add_argument("--frames", help="START:END slice of every condition to train on (END exclusive); "
                                          "keep the test frames out")
-    parser.add_argument("--dataset-format", help="read --data in a published layout (nordland, alderley, "
-                        "oxford_robotcar, st_lucia, fas, vprbench, vpr_tutorial, vg_benchmark, folders, or auto); "
+    parser.add_argument("--dataset-format", help=f"read --data in a published layout ({dataset_format_list()}); "
                         "see docs/datasets.md")
     parser.add_argument("--split", help="with --dataset-format: a named split (default: the format's train split) "
                                         "or START:END")

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 
+from fdnet.matching.index import INDEX_KINDS
 from fdnet.cli.common import (
     acceptance_from_arguments, add_decision_arguments, add_device_argument, add_method_arguments, add_pipeline_arguments,
 )
@@ -53,7 +54,7 @@ def register(sub) -> None:
     build.add_argument("--overwrite", action="store_true",
                        help="replace an existing place database at --db (in one transaction)")
     add_method_arguments(build)
-    build.add_argument("--index", choices=["flat", "hnsw", "ivf", "ivfpq"], default="flat",
+    build.add_argument("--index", choices=list(INDEX_KINDS), default="flat",
                        help="faiss index for dot-product methods: flat = exact (default); ivf (IVF-Flat), "
                             "ivfpq (IVF-PQ, compressed) and hnsw are approximate, for maps of 10^5-10^6 places. "
                             "Approximate indexes are built at the end of build and cached beside the file "

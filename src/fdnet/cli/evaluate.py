@@ -28,7 +28,7 @@ under ``--protocol vprbench`` ``raw``, VPR-Bench's own definition.
 
 from __future__ import annotations
 
-from fdnet.cli.common import add_device_argument, add_method_arguments
+from fdnet.cli.common import add_device_argument, add_method_arguments, dataset_format_list
 
 
 def register(sub) -> None:
@@ -51,8 +51,7 @@ def register(sub) -> None:
                            "kept frames cached under $FDNET_CACHE/filters); with --dataset-format nordland: "
                            "its filter_frames setting")
     data.add_argument("--dataset-format", metavar="NAME",
-                      help="read --data in a published layout (nordland, alderley, oxford_robotcar, st_lucia, "
-                           "fas, vprbench, vpr_tutorial, vg_benchmark, folders, or auto to detect) with the "
+                      help=f"read --data in a published layout ({dataset_format_list()}) with the "
                            "paper's protocol; see docs/datasets.md")
     data.add_argument("--split", help="with --dataset-format: a named split (train/test/all) or START:END")
     data.add_argument("--format-set", action="append", default=[], metavar="KEY=VALUE",

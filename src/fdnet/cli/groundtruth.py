@@ -25,6 +25,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from fdnet.cli.common import dataset_format_list
+
 
 def register(sub) -> None:
     p = sub.add_parser(
@@ -52,8 +54,7 @@ def register(sub) -> None:
     p.add_argument("--query", default=None,
                    help="--aligned, --positions: query image folder; --data: query condition")
     p.add_argument("--dataset-format", default=None,
-                   help="--data: layout name (default: detected): nordland, alderley, oxford_robotcar, "
-                        "st_lucia, fas, vprbench, vpr_tutorial, vg_benchmark, folders")
+                   help=f"--data: layout name (default: detected): {dataset_format_list(auto=False)}")
     p.add_argument("--split", default=None, help="--data: named split (train/test/all) or START:END")
     p.add_argument("--format-set", action="append", default=[], metavar="KEY=VALUE",
                    help="--data: a protocol setting of the format, e.g. tolerance=3 (repeatable)")

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import shlex
 
+from fdnet.cli.common import dataset_format_list
+
 EXPERIMENT_NAMES = "comparison, lengths, similarity, disentanglement, viewpoint, runtime, examples"
 
 # (group, flag, add_argument keywords). One table serves the parser and the command line the
@@ -17,8 +19,7 @@ ARGUMENTS = (
                             help="dataset folder: one sub-folder per condition, or a published layout with "
                                  "--dataset-format")),
     ("data", "--dataset-format", dict(metavar="NAME",
-                                      help="read --data in a published layout (nordland, alderley, oxford_robotcar, "
-                                           "st_lucia, fas, vprbench, vpr_tutorial, vg_benchmark, folders, auto) "
+                                      help=f"read --data in a published layout ({dataset_format_list()}) "
                                            "with the paper's protocol; see docs/datasets.md")),
     ("data", "--conditions", dict(metavar="A,B,...",
                                   help="conditions to compare, every ordered pair (default: all sub-folders; with "

@@ -18,11 +18,12 @@ from typing import Callable
 import numpy as np
 
 from fdnet.errors import ConfigError
+from fdnet.matching.index import INDEX_KINDS
 
 logger = logging.getLogger(__name__)
 
 #: ``exact`` (blocked numpy top-k, any method) or one of the faiss index kinds
-INDEX_CHOICES = ["exact", "flat", "hnsw", "ivf", "ivfpq"]
+INDEX_CHOICES = ["exact", *INDEX_KINDS]
 
 MATCH_COLUMNS = ["query_index", "query", "rank", "reference_index", "reference", "score"]
 
