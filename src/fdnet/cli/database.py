@@ -109,79 +109,6 @@ def register(sub) -> None:
     migrate.set_defaults(func=run_migrate)
 
 
-def _describe(descriptor, paths, args):
-    from fdnet.descriptors.base import describe_paths
-
-    return describe_paths(descriptor, paths, args.batch_size, progress=True, workers=args.workers)
-
-
-def _spool(descriptor, paths, args, folder):
-    """Describe ``paths`` through the streaming pipeline into a spool file in ``folder`` (a few
-    batches in memory whatever the folder's size). Non-finite vectors stop it here, naming the
-    images, before the database is touched."""
-    from fdnet.descriptors.pipeline import VectorSpool, describe_stream
-    from fdnet.errors import DataError
-
-    import numpy as np
-
-    spool = VectorSpool(folder, descriptor.dim)
-    try:
-        for start, vectors in describe_stream(descriptor, paths, args.batch_size, workers=args.workers,
-                                              progress=True):
-            vectors = np.asarray(vectors, dtype=np.float32)
-            bad = np.flatnonzero(~np.isfinite(vectors).all(axis=1))
-            if len(bad):
-                listed = ", ".join(str(paths[start + i]) for i in bad[:5])
-                raise DataError(f"refusing {len(bad)} non-finite vector(s) (NaN or inf) for {listed}; "
-                                "nothing was added (a NaN place can never be matched)")
-            spool.write(vectors)
-    except BaseException:
-        spool.close()
-        raise
-    return spool
-
-
-def _spooled_batches(spool, names, paths=None):
-    """``(vectors, names)`` chunks; with ``paths`` that include frames of a video or bag,
-    ``(vectors, names, positions, metadata)``: each frame's source and timestamp as metadata (the
-    ``timestamp`` loop closure's ``radius_s`` reads) and a bag's interpolated position in metres."""
-    positions = metadata = None
-    if paths is not None:
-        from pathlib import Path
-
-        from fdnet.data.sources import frame_records, positions_in_metres
-
-        records = frame_records(paths)
-        if any(r.timestamp is not None for r in records):
-            positions = positions_in_metres(records)
-            metadata = [None if r.timestamp is None else
-                        {"source": str(Path(r.source).resolve()), "timestamp": r.timestamp,
-                         **({"topic": r.topic} if r.topic else {})}
-                        for r in records]
-    for start, vectors in spool.chunks():
-        end = start + len(vectors)
-        if metadata is None:
-            yield vectors, names[start:end]
-        else:
-            yield vectors, names[start:end], positions[start:end], metadata[start:end]
-
-
-def _place_names(paths) -> list[str]:
-    # Absolute: the same image added from another working directory is still the same place.
-    import os
-
-    from fdnet.errors import DataError
-
-    names = [str(p.resolve()) for p in paths]
-    for name in names:  # SQLite text is UTF-8: refuse before anything is described or created
-        try:
-            name.encode("utf-8")
-        except UnicodeEncodeError:
-            raise DataError(f"{os.fsencode(name)!r}: the file name is not valid UTF-8, which a place database "
-                            f"cannot store as a place name; rename the file") from None
-    return names
-
-
 def _file_options(args, method: str) -> dict:
     from pathlib import Path
 
@@ -195,254 +122,74 @@ def _file_options(args, method: str) -> dict:
     return options
 
 
-def _recorded_descriptor(db, args=None):
-    """The descriptor the database's method_options rebuild; its fingerprint must still be the
-    database's (weights retrained in place, or a vocabulary replaced, would change it)."""
-    from fdnet.descriptors import create
-    from fdnet.errors import ConfigError, FdnetError
-
-    try:
-        return create(db.method, **db.method_options, **(_device(args) if args is not None else {}))
-    except FdnetError as exc:
-        raise ConfigError(f"{db.path}: cannot rebuild its {db.method!r} descriptor from the recorded options "
-                          f"{db.method_options} ({exc})") from None
-
-
-def _open_with_descriptor(path, args=None, device_args=None):
+def _options_given(args) -> bool:
+    """Whether ``add`` was given method options (else it describes with the database's own)."""
     from fdnet.cli.common import FILE_OPTIONS
-    from fdnet.matching.database import PlaceDatabase
 
-    with PlaceDatabase.open(path) as recorded:
-        given = args is not None and (args.method or args.method_set
-                                      or any(getattr(args, k) for k in FILE_OPTIONS))
-        descriptor = (_create_descriptor(args.method or recorded.method, args) if given
-                      else _recorded_descriptor(recorded, device_args or args))
-    return PlaceDatabase.open(path, descriptor=descriptor), descriptor
+    return bool(args.method or args.method_set or any(getattr(args, k) for k in FILE_OPTIONS))
 
 
-def _create_descriptor(method: str, args):
-    from fdnet.descriptors import create
+def _print_to_stderr(message: str) -> None:
+    import sys
 
-    return create(method, **_file_options(args, method), **_device(args))
-
-
-def _device(args) -> dict:
-    # where it runs is not what it is: never stored in the database's method_options
-    return {"device": args.device} if getattr(args, "device", None) else {}
+    print(message, file=sys.stderr)
 
 
 def run_build(args) -> int:
-    import time
-    from pathlib import Path
-
     from fdnet.cli.common import check_pipeline_arguments
-    from fdnet.data.images import list_images
-    from fdnet.errors import ConfigError
-    from fdnet.io import ensure_writable
-    from fdnet.matching.database import PlaceDatabase, check_can_create, short_fingerprint
-    from fdnet.matching.index import parse_index_settings
+    from fdnet.matching.database.commands import build_database
 
-    # Every refusal the output path can cause comes before minutes of describing images.
     check_pipeline_arguments(args)
-    index = parse_index_settings(args.index, args.index_set)
-    check_can_create(args.db, args.overwrite)
-    ensure_writable(args.db, what="place database")
-    descriptor = _create_descriptor(args.method, args)
-    if descriptor.needs_fit:
-        raise ConfigError(f"method {descriptor.name!r} must be given what it learns from (--fit DIR, or dbow's --vocabulary) "
-                          "to build a database that later queries can reuse")
-    if index.kind != "flat" and not descriptor.dot_product_similarity:
-        raise ConfigError(f"--index {index.kind}: method {descriptor.name!r} does not compare vectors by dot "
-                          "product, so it is searched exhaustively with its own similarity; use --index flat")
-    paths = list_images(args.images)
-    names = _place_names(paths)
-    with _spool(descriptor, paths, args, Path(args.db).resolve().parent) as spool:
-        db = PlaceDatabase.create(args.db, descriptor, index=index,
-                                  method_options=_file_options(args, args.method), overwrite=args.overwrite,
-                                  batches=_spooled_batches(spool, names, paths))
-    with db:
-        places = len(db)
-        note = ""
-        if db.index_cache_path is not None and places:
-            t0 = time.perf_counter()
-            built = db.build_index()
-            note = (f"; {index.kind} index built in {time.perf_counter() - t0:.1f} s"
-                    + (f", cached in {db.index_cache_path}" if db.index_cache_path.exists() else "")
-                    if built is not None else "")
-    print(f"wrote {args.db}: {places} places, {descriptor.name} ({descriptor.dim}-d), "
-          f"fingerprint {short_fingerprint(db.fingerprint)}{note}")
+    summary = build_database(args.images, args.db, args.method, method_options=lambda m: _file_options(args, m),
+                             device=args.device, overwrite=args.overwrite, index=args.index, index_set=args.index_set,
+                             batch_size=args.batch_size, workers=args.workers)
+    print("\n".join(summary.lines()))
     return 0
 
 
 def run_add(args) -> int:
-    from pathlib import Path
-
     from fdnet.cli.common import check_pipeline_arguments
-    from fdnet.data.images import list_images
+    from fdnet.matching.database.commands import add_to_database
 
     check_pipeline_arguments(args)
-    db, descriptor = _open_with_descriptor(args.db, args)
-    with db:
-        if db.read_only:
-            from fdnet.errors import DataError
-
-            raise DataError(f"{args.db}: its folder cannot be written (read-only media or mount), so nothing can be "
-                            "added; copy it to a writable folder")
-        paths = list_images(args.images)
-        names = _place_names(paths)
-        known = set() if args.allow_duplicates else db.existing_names(names)
-        todo = [i for i, name in enumerate(names) if name not in known]
-        # described into a spool first (bounded memory), then stored in ONE transaction
-        with _spool(descriptor, [paths[i] for i in todo], args, Path(args.db).resolve().parent) as spool:
-            result = db.add_batches(_spooled_batches(spool, [names[i] for i in todo], [paths[i] for i in todo]),
-                                    fingerprint=descriptor.fingerprints(), allow_duplicates=args.allow_duplicates)
-    skipped = len(known) + len(result.skipped)
-    note = f" (skipped {skipped} already in the database; --allow-duplicates adds them)" if skipped else ""
-    print(f"{args.db}: added {result.added} places{note}, {result.places} in all, data version {result.data_version}")
+    given = _options_given(args)
+    summary = add_to_database(args.db, args.images, method=args.method,
+                              method_options=(lambda m: _file_options(args, m)) if given else None,
+                              device=args.device, allow_duplicates=args.allow_duplicates,
+                              batch_size=args.batch_size, workers=args.workers)
+    print("\n".join(summary.lines()))
     return 0
 
 
 def run_query(args) -> int:
-    import csv
-    import io
     import sys
-
-    import numpy as np
-
-    from fdnet.data.images import list_images
-    from fdnet.errors import DataError
-    from fdnet.io import atomic_write_text, ensure_writable, spreadsheet_text
 
     from fdnet.cli.common import check_pipeline_arguments
+    from fdnet.matching.database.commands import query_database
 
     check_pipeline_arguments(args)
+    result = query_database(args.db, args.images, top_k=args.top_k, exclude_last=args.exclude_last,
+                            min_score=args.min_score, accept=acceptance_from_arguments(args),
+                            calibration=args.calibration, out=args.out, device=args.device,
+                            batch_size=args.batch_size, workers=args.workers, log=_print_to_stderr)
     if args.out:
-        ensure_writable(args.out, what="query CSV")
-    spec = acceptance_from_arguments(args)
-    db, descriptor = _open_with_descriptor(args.db, device_args=args)
-    _note_read_only(db)
-    with db:
-        calibration = None if spec is not None else _query_calibration(db, descriptor, args)
-        rule = spec if spec is not None else (calibration.spec if calibration is not None else None)
-        depth = args.top_k if rule is None else max(args.top_k, rule.depth)
-        paths = list_images(args.images)
-        vectors = _describe(descriptor, paths, args)
-        bad = np.flatnonzero(~np.isfinite(vectors).all(axis=1))
-        if len(bad):
-            raise DataError(f"{paths[bad[0]]}: its {descriptor.name} vector is not finite (NaN or inf); "
-                            f"{len(bad)} query image(s) affected")
-        results = db.query(vectors, k=depth, exclude_last=args.exclude_last)
-        places = len(db)
-        decision = accepted = None
-        if calibration is not None:
-            decision, accepted = calibration.decide(_candidates(db, descriptor, paths, results))
-        elif spec is not None:
-            from fdnet.decisions.acceptance import decide
-
-            decision = decide(spec, _candidates(db, descriptor, paths, results))
-    buffer = io.StringIO()
-    writer = csv.writer(buffer)
-    writer.writerow(["query", "rank", "place", "place_index", "score"]
-                    + ([] if decision is None else ["acceptance_score"]) + ([] if accepted is None else ["accepted"]))
-    for q, (path, matches) in enumerate(zip(paths, results)):
-        for rank, m in enumerate(matches, start=1):
-            chosen = accepted is not None and m.index == decision.match[q] and bool(accepted[q])
-            if (args.min_score is None or m.score >= args.min_score) and (rank <= args.top_k or chosen):
-                row = [spreadsheet_text(path.name), rank, spreadsheet_text(m.name), m.index, f"{m.score:.6f}"]
-                if decision is not None:
-                    row.append(f"{decision.score[q]:.6f}")
-                if accepted is not None:
-                    row.append(int(chosen))
-                writer.writerow(row)
-    if args.out:
-        atomic_write_text(args.out, buffer.getvalue())
-        print(f"wrote {args.out}: {len(paths)} queries against {places} places")
+        print("\n".join(result.lines()))
     else:
-        sys.stdout.write(buffer.getvalue())
+        sys.stdout.write(result.csv_text)
     return 0
-
-
-def _note_read_only(db) -> None:
-    import sys
-
-    if db.read_only:
-        print(f"note: {db.path} is in a folder that cannot be written (read-only media or mount): opened "
-              "read-only; query and info work, add does not", file=sys.stderr)
-
-
-def _query_calibration(db, descriptor, args):
-    """``--calibration``, else the database's stored calibration, else None; checked against the
-    descriptor (another model's calibration is an error)."""
-    import sys
-
-    from fdnet.decisions.calibration import DATABASE_KEY, Calibration, load_calibration
-
-    if args.calibration:
-        calibration, source = load_calibration(args.calibration), args.calibration
-    else:
-        stored = db.get_metadata(DATABASE_KEY)
-        if stored is None:
-            return None
-        source = f"{args.db} (stored calibration)"
-        calibration = Calibration.from_dict(stored, source=source)
-        print(f"using the calibration stored in {args.db}: rule {calibration.rule}, threshold "
-              f"{calibration.threshold:.6g} (precision {calibration.target_precision:g})", file=sys.stderr)
-    calibration.check(descriptor, sequence_length=0, source=source)
-    return calibration
-
-
-def _candidates(db, descriptor, paths, results):
-    """The database's answers as ranked candidates for the acceptance rules: place indices
-    (insertion order) padded with -1, the places' positions when every place has one, and their
-    times when every place's metadata has a numeric ``timestamp``."""
-    import numpy as np
-
-    from fdnet.decisions.acceptance import Candidates
-
-    k = max((len(m) for m in results), default=0) or 1
-    idx = np.full((len(results), k), -1, dtype=np.int64)
-    scores = np.zeros((len(results), k))
-    for q, matches in enumerate(results):
-        for j, m in enumerate(matches):
-            idx[q, j], scores[q, j] = m.index, m.score
-    positions = db.positions
-    metadata = db.metadata
-    times = [None if not isinstance(m, dict) else m.get("timestamp") for m in metadata]
-    return Candidates(
-        idx, scores, similarity_ceiling=float(descriptor.similarity_ceiling),
-        reference_positions=np.asarray(positions, dtype=float) if positions and all(p is not None for p in positions)
-        else None,
-        reference_times=np.asarray(times, dtype=float) if times and all(isinstance(t, (int, float)) and
-                                                                        not isinstance(t, bool) for t in times)
-        else None,
-        query_paths=list(paths), reference_paths=None)
 
 
 def run_info(args) -> int:
     import json
 
-    from fdnet.matching.database import PlaceDatabase
+    from fdnet.matching.database.commands import database_info
 
-    with PlaceDatabase.open(args.db) as db:
-        info = db.info()
-        _note_read_only(db)
-    print(json.dumps(info, indent=2, sort_keys=True))
+    print(json.dumps(database_info(args.db, log=_print_to_stderr), indent=2, sort_keys=True))
     return 0
 
 
 def run_migrate(args) -> int:
-    from fdnet.io import ensure_writable
-    from fdnet.matching.database import check_can_create, migrate_old_format
+    from fdnet.matching.database.commands import migrate_database
 
-    check_can_create(args.db, args.overwrite)
-    ensure_writable(args.db, what="place database")
-    report = migrate_old_format(args.source, args.db, overwrite=args.overwrite)
-    print(f"wrote {args.db}: {report.places} places from {args.source}")
-    if report.dropped_non_finite:
-        listed = ", ".join(report.dropped_non_finite[:5])
-        more = f" and {len(report.dropped_non_finite) - 5} more" if len(report.dropped_non_finite) > 5 else ""
-        print(f"dropped {len(report.dropped_non_finite)} place(s) whose stored vector was NaN/inf "
-              f"(they could never be matched): {listed}{more}")
-    if report.duplicate_names:
-        print(f"kept {report.duplicate_names} repeated place name(s), as the old database held them")
+    print("\n".join(migrate_database(args.source, args.db, overwrite=args.overwrite).lines()))
     return 0

@@ -1,0 +1,431 @@
+"""The work of ``fdnet database build|add|query|info|migrate`` as library functions: describe a
+folder of images into a new database or onto an existing one, rank a database's places for query
+images (with a calibrated or rule-scored decision), report a database's identity, convert the old
+folder format. Each returns what the command reports; messages go to ``log`` (default: this
+module's logger). Not re-exported by :mod:`fdnet.matching.database`, so importing the database
+does not import the image, pipeline and decision code these functions use.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Mapping, Sequence, Union
+
+logger = logging.getLogger(__name__)
+
+#: a method's options: a mapping, or a function of the method's name giving them (for ``add``,
+#: where the method may be the database's own, known only once it is open)
+MethodOptions = Union[Mapping, Callable[[str], Mapping], None]
+Log = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class BuildSummary:
+    """What :func:`build_database` wrote."""
+
+    path: str
+    places: int
+    method: str
+    dim: int
+    fingerprint: str
+    index_kind: str
+    index_seconds: float | None = None  # None: no approximate index was built
+    index_cache: str | None = None  # where it was cached, when it was
+
+    def lines(self) -> list[str]:
+        from fdnet.matching.database.identity import short_fingerprint
+
+        note = ""
+        if self.index_seconds is not None:
+            note = (f"; {self.index_kind} index built in {self.index_seconds:.1f} s"
+                    + (f", cached in {self.index_cache}" if self.index_cache is not None else ""))
+        return [f"wrote {self.path}: {self.places} places, {self.method} ({self.dim}-d), "
+                f"fingerprint {short_fingerprint(self.fingerprint)}{note}"]
+
+
+@dataclass(frozen=True)
+class AddSummary:
+    """What :func:`add_to_database` appended."""
+
+    path: str
+    added: int
+    skipped: int  # already in the database (by name), not added
+    places: int
+    data_version: int
+
+    def lines(self) -> list[str]:
+        note = (f" (skipped {self.skipped} already in the database; --allow-duplicates adds them)"
+                if self.skipped else "")
+        return [f"{self.path}: added {self.added} places{note}, {self.places} in all, data version {self.data_version}"]
+
+
+@dataclass(frozen=True)
+class QueryResult:
+    """:func:`query_database`'s ranked candidates as CSV text (also written to ``out`` when given)."""
+
+    csv_text: str
+    queries: int
+    places: int
+    out: str | None = None
+
+    def lines(self) -> list[str]:
+        return [f"wrote {self.out}: {self.queries} queries against {self.places} places"] if self.out else []
+
+
+@dataclass(frozen=True)
+class MigrateSummary:
+    """What :func:`migrate_database` converted."""
+
+    source: str
+    path: str
+    places: int
+    dropped_non_finite: Sequence[str]
+    duplicate_names: int
+
+    def lines(self) -> list[str]:
+        lines = [f"wrote {self.path}: {self.places} places from {self.source}"]
+        dropped = self.dropped_non_finite
+        if dropped:
+            more = f" and {len(dropped) - 5} more" if len(dropped) > 5 else ""
+            lines.append(f"dropped {len(dropped)} place(s) whose stored vector was NaN/inf "
+                         f"(they could never be matched): {', '.join(dropped[:5])}{more}")
+        if self.duplicate_names:
+            lines.append(f"kept {self.duplicate_names} repeated place name(s), as the old database held them")
+        return lines
+
+
+def build_database(images, db, method: str, *, method_options: MethodOptions = None, device: str | None = None,
+                   overwrite: bool = False, index: str = "flat", index_set: Sequence[str] = (), batch_size: int = 64,
+                   workers: int | None = None, progress: bool = True) -> BuildSummary:
+    """Describe the images of ``images`` (traversal order) with ``method`` and write them as a new
+    database file ``db``; ``method_options`` (file paths absolute) are recorded so later ``add``
+    and ``query`` calls rebuild the descriptor; ``device`` is where it runs, never recorded.
+    Approximate indexes (``index`` hnsw, ivf, ivfpq) are built at the end and cached beside the file."""
+    import time
+
+    from fdnet.data.images import list_images
+    from fdnet.errors import ConfigError
+    from fdnet.io import ensure_writable
+    from fdnet.matching.database.storage import check_can_create
+    from fdnet.matching.database.store import PlaceDatabase
+    from fdnet.matching.index import parse_index_settings
+
+    # Every refusal the output path can cause comes before minutes of describing images.
+    settings = parse_index_settings(index, list(index_set))
+    check_can_create(db, overwrite)
+    ensure_writable(db, what="place database")
+    descriptor = _create_descriptor(method, method_options, device)
+    if descriptor.needs_fit:
+        raise ConfigError(f"method {descriptor.name!r} must be given what it learns from (--fit DIR, or dbow's --vocabulary) "
+                          "to build a database that later queries can reuse")
+    if settings.kind != "flat" and not descriptor.dot_product_similarity:
+        raise ConfigError(f"--index {settings.kind}: method {descriptor.name!r} does not compare vectors by dot "
+                          "product, so it is searched exhaustively with its own similarity; use --index flat")
+    paths = list_images(images)
+    names = _place_names(paths)
+    with _spool(descriptor, paths, batch_size, workers, progress, Path(db).resolve().parent) as spool:
+        database = PlaceDatabase.create(db, descriptor, index=settings,
+                                        method_options=_options_for(method_options, method), overwrite=overwrite,
+                                        batches=_spooled_batches(spool, names, paths))
+    seconds = cache = None
+    with database:
+        places = len(database)
+        if database.index_cache_path is not None and places:
+            t0 = time.perf_counter()
+            built = database.build_index()
+            if built is not None:
+                seconds = time.perf_counter() - t0
+                cache = str(database.index_cache_path) if database.index_cache_path.exists() else None
+    return BuildSummary(str(db), places, descriptor.name, descriptor.dim, database.fingerprint, settings.kind,
+                        seconds, cache)
+
+
+def add_to_database(db, images, *, method: str | None = None, method_options: MethodOptions = None,
+                    device: str | None = None, allow_duplicates: bool = False, batch_size: int = 64,
+                    workers: int | None = None, progress: bool = True) -> AddSummary:
+    """Describe the images of ``images`` and append them to ``db`` in one transaction, skipping
+    names already there unless ``allow_duplicates``. With neither ``method`` nor
+    ``method_options`` the descriptor is the one the database records; with them, that copy of
+    the model (its fingerprint must match the database's)."""
+    from fdnet.data.images import list_images
+    from fdnet.errors import DataError
+
+    database, descriptor = open_with_descriptor(db, method=method, method_options=method_options, device=device,
+                                                given=method is not None or method_options is not None)
+    with database:
+        if database.read_only:
+            raise DataError(f"{db}: its folder cannot be written (read-only media or mount), so nothing can be "
+                            "added; copy it to a writable folder")
+        paths = list_images(images)
+        names = _place_names(paths)
+        known = set() if allow_duplicates else database.existing_names(names)
+        todo = [i for i, name in enumerate(names) if name not in known]
+        # described into a spool first (bounded memory), then stored in ONE transaction
+        with _spool(descriptor, [paths[i] for i in todo], batch_size, workers, progress,
+                    Path(db).resolve().parent) as spool:
+            result = database.add_batches(
+                _spooled_batches(spool, [names[i] for i in todo], [paths[i] for i in todo]),
+                fingerprint=descriptor.fingerprints(), allow_duplicates=allow_duplicates)
+    return AddSummary(str(db), result.added, len(known) + len(result.skipped), result.places, result.data_version)
+
+
+def query_database(db, images, *, top_k: int = 5, exclude_last: int = 0, min_score: float | None = None,
+                   accept=None, calibration=None, out=None, device: str | None = None, batch_size: int = 64,
+                   workers: int | None = None, progress: bool = True, log: Log | None = None) -> QueryResult:
+    """Rank ``db``'s places for each image of ``images``: ``top_k`` candidates per query
+    (``exclude_last`` most recent places ignored, those under ``min_score`` left out) as CSV rows
+    ``query,rank,place,place_index,score``. ``accept`` (an AcceptanceSpec) adds its
+    ``acceptance_score`` column; else ``calibration`` (a file or run folder; default: the one
+    stored in the database, if any) adds ``acceptance_score`` and ``accepted`` (the accepted
+    match is listed even below ``top_k``). Written atomically to ``out`` when given."""
+    import numpy as np
+
+    from fdnet.data.images import list_images
+    from fdnet.errors import DataError
+    from fdnet.io import atomic_write_text, ensure_writable
+
+    log = log or logger.info
+    if out:
+        ensure_writable(out, what="query CSV")
+    database, descriptor = open_with_descriptor(db, device=device)
+    _note_read_only(database, log)
+    with database:
+        calibrated = None if accept is not None else _query_calibration(database, descriptor, calibration, db, log)
+        rule = accept if accept is not None else (calibrated.spec if calibrated is not None else None)
+        depth = top_k if rule is None else max(top_k, rule.depth)
+        paths = list_images(images)
+        vectors = _describe(descriptor, paths, batch_size, workers, progress)
+        bad = np.flatnonzero(~np.isfinite(vectors).all(axis=1))
+        if len(bad):
+            raise DataError(f"{paths[bad[0]]}: its {descriptor.name} vector is not finite (NaN or inf); "
+                            f"{len(bad)} query image(s) affected")
+        results = database.query(vectors, k=depth, exclude_last=exclude_last)
+        places = len(database)
+        decision = accepted = None
+        if calibrated is not None:
+            decision, accepted = calibrated.decide(_candidates(database, descriptor, paths, results))
+        elif accept is not None:
+            from fdnet.decisions.acceptance import decide
+
+            decision = decide(accept, _candidates(database, descriptor, paths, results))
+    text = _query_csv(paths, results, top_k, min_score, decision, accepted)
+    if out:
+        atomic_write_text(out, text)
+    return QueryResult(text, len(paths), places, str(out) if out else None)
+
+
+def database_info(db, log: Log | None = None) -> dict:
+    """The database's identity and size (:meth:`PlaceDatabase.info`)."""
+    from fdnet.matching.database.store import PlaceDatabase
+
+    with PlaceDatabase.open(db) as database:
+        info = database.info()
+        _note_read_only(database, log or logger.info)
+    return info
+
+
+def migrate_database(source, db, *, overwrite: bool = False) -> MigrateSummary:
+    """Convert the old-format folder ``source`` (database.json + vectors.npy) into the database
+    file ``db`` (:func:`~fdnet.matching.database.migration.migrate_old_format`)."""
+    from fdnet.io import ensure_writable
+    from fdnet.matching.database.migration import migrate_old_format
+    from fdnet.matching.database.storage import check_can_create
+
+    check_can_create(db, overwrite)
+    ensure_writable(db, what="place database")
+    report = migrate_old_format(source, db, overwrite=overwrite)
+    return MigrateSummary(str(source), str(db), report.places, list(report.dropped_non_finite),
+                          report.duplicate_names)
+
+
+def open_with_descriptor(db, *, method: str | None = None, method_options: MethodOptions = None,
+                         device: str | None = None, given: bool = False):
+    """``(database, descriptor)``: ``db`` opened with the descriptor it records (rebuilt from its
+    method_options), or with ``given``, ``method`` (default: the recorded one) made with
+    ``method_options``; either way checked against the database's fingerprint on opening."""
+    from fdnet.matching.database.store import PlaceDatabase
+
+    with PlaceDatabase.open(db) as recorded:
+        if given:
+            descriptor = _create_descriptor(method or recorded.method, method_options, device)
+        else:
+            descriptor = recorded_descriptor(recorded, device)
+    return PlaceDatabase.open(db, descriptor=descriptor), descriptor
+
+
+def recorded_descriptor(database, device: str | None = None):
+    """The descriptor the database's method_options rebuild; its fingerprint must still be the
+    database's (weights retrained in place, or a vocabulary replaced, would change it)."""
+    from fdnet.descriptors import create
+    from fdnet.errors import ConfigError, FdnetError
+
+    try:
+        return create(database.method, **database.method_options, **_device(device))
+    except FdnetError as exc:
+        raise ConfigError(f"{database.path}: cannot rebuild its {database.method!r} descriptor from the recorded "
+                          f"options {database.method_options} ({exc})") from None
+
+
+def _options_for(method_options: MethodOptions, method: str) -> dict:
+    if method_options is None:
+        return {}
+    return dict(method_options(method) if callable(method_options) else method_options)
+
+
+def _create_descriptor(method: str, method_options: MethodOptions, device: str | None):
+    from fdnet.descriptors import create
+
+    return create(method, **_options_for(method_options, method), **_device(device))
+
+
+def _device(device: str | None) -> dict:
+    # where it runs is not what it is: never stored in the database's method_options
+    return {"device": device} if device else {}
+
+
+def _note_read_only(database, log: Log) -> None:
+    if database.read_only:
+        log(f"note: {database.path} is in a folder that cannot be written (read-only media or mount): opened "
+            "read-only; query and info work, add does not")
+
+
+def _describe(descriptor, paths, batch_size, workers, progress):
+    from fdnet.descriptors.base import describe_paths
+
+    return describe_paths(descriptor, paths, batch_size, progress=progress, workers=workers)
+
+
+def _spool(descriptor, paths, batch_size, workers, progress, folder):
+    """Describe ``paths`` through the streaming pipeline into a spool file in ``folder`` (a few
+    batches in memory whatever the folder's size). Non-finite vectors stop it here, naming the
+    images, before the database is touched."""
+    import numpy as np
+
+    from fdnet.descriptors.pipeline import VectorSpool, describe_stream
+    from fdnet.errors import DataError
+
+    spool = VectorSpool(folder, descriptor.dim)
+    try:
+        for start, vectors in describe_stream(descriptor, paths, batch_size, workers=workers, progress=progress):
+            vectors = np.asarray(vectors, dtype=np.float32)
+            bad = np.flatnonzero(~np.isfinite(vectors).all(axis=1))
+            if len(bad):
+                listed = ", ".join(str(paths[start + i]) for i in bad[:5])
+                raise DataError(f"refusing {len(bad)} non-finite vector(s) (NaN or inf) for {listed}; "
+                                "nothing was added (a NaN place can never be matched)")
+            spool.write(vectors)
+    except BaseException:
+        spool.close()
+        raise
+    return spool
+
+
+def _spooled_batches(spool, names, paths=None):
+    """``(vectors, names)`` chunks; with ``paths`` that include frames of a video or bag,
+    ``(vectors, names, positions, metadata)``: each frame's source and timestamp as metadata (the
+    ``timestamp`` loop closure's ``radius_s`` reads) and a bag's interpolated position in metres."""
+    positions = metadata = None
+    if paths is not None:
+        from fdnet.data.sources import frame_records, positions_in_metres
+
+        records = frame_records(paths)
+        if any(r.timestamp is not None for r in records):
+            positions = positions_in_metres(records)
+            metadata = [None if r.timestamp is None else
+                        {"source": str(Path(r.source).resolve()), "timestamp": r.timestamp,
+                         **({"topic": r.topic} if r.topic else {})}
+                        for r in records]
+    for start, vectors in spool.chunks():
+        end = start + len(vectors)
+        if metadata is None:
+            yield vectors, names[start:end]
+        else:
+            yield vectors, names[start:end], positions[start:end], metadata[start:end]
+
+
+def _place_names(paths) -> list[str]:
+    # Absolute: the same image added from another working directory is still the same place.
+    from fdnet.errors import DataError
+
+    names = [str(p.resolve()) for p in paths]
+    for name in names:  # SQLite text is UTF-8: refuse before anything is described or created
+        try:
+            name.encode("utf-8")
+        except UnicodeEncodeError:
+            raise DataError(f"{os.fsencode(name)!r}: the file name is not valid UTF-8, which a place database "
+                            f"cannot store as a place name; rename the file") from None
+    return names
+
+
+def _query_calibration(database, descriptor, calibration, db, log: Log):
+    """``calibration`` (a file or run folder), else the database's stored calibration, else
+    None; checked against the descriptor (another model's calibration is an error)."""
+    from fdnet.decisions.calibration import DATABASE_KEY, Calibration, load_calibration
+
+    if calibration:
+        calibrated, source = load_calibration(calibration), calibration
+    else:
+        stored = database.get_metadata(DATABASE_KEY)
+        if stored is None:
+            return None
+        source = f"{db} (stored calibration)"
+        calibrated = Calibration.from_dict(stored, source=source)
+        log(f"using the calibration stored in {db}: rule {calibrated.rule}, threshold "
+            f"{calibrated.threshold:.6g} (precision {calibrated.target_precision:g})")
+    calibrated.check(descriptor, sequence_length=0, source=source)
+    return calibrated
+
+
+def _candidates(database, descriptor, paths, results):
+    """The database's answers as ranked candidates for the acceptance rules: place indices
+    (insertion order) padded with -1, the places' positions when every place has one, and their
+    times when every place's metadata has a numeric ``timestamp``."""
+    import numpy as np
+
+    from fdnet.decisions.acceptance import Candidates
+
+    k = max((len(m) for m in results), default=0) or 1
+    idx = np.full((len(results), k), -1, dtype=np.int64)
+    scores = np.zeros((len(results), k))
+    for q, matches in enumerate(results):
+        for j, m in enumerate(matches):
+            idx[q, j], scores[q, j] = m.index, m.score
+    positions = database.positions
+    metadata = database.metadata
+    times = [None if not isinstance(m, dict) else m.get("timestamp") for m in metadata]
+    return Candidates(
+        idx, scores, similarity_ceiling=float(descriptor.similarity_ceiling),
+        reference_positions=np.asarray(positions, dtype=float) if positions and all(p is not None for p in positions)
+        else None,
+        reference_times=np.asarray(times, dtype=float) if times and all(isinstance(t, (int, float)) and
+                                                                        not isinstance(t, bool) for t in times)
+        else None,
+        query_paths=list(paths), reference_paths=None)
+
+
+def _query_csv(paths, results, top_k, min_score, decision, accepted) -> str:
+    """The query CSV: ``top_k`` rows per query scoring at least ``min_score``, plus the accepted
+    match when a calibrated decision took one below ``top_k``."""
+    import csv
+    import io
+
+    from fdnet.io import spreadsheet_text
+
+    buffer = io.StringIO()
+    writer = csv.writer(buffer)
+    writer.writerow(["query", "rank", "place", "place_index", "score"]
+                    + ([] if decision is None else ["acceptance_score"]) + ([] if accepted is None else ["accepted"]))
+    for q, (path, matches) in enumerate(zip(paths, results)):
+        for rank, m in enumerate(matches, start=1):
+            chosen = accepted is not None and m.index == decision.match[q] and bool(accepted[q])
+            if (min_score is None or m.score >= min_score) and (rank <= top_k or chosen):
+                row = [spreadsheet_text(path.name), rank, spreadsheet_text(m.name), m.index, f"{m.score:.6f}"]
+                if decision is not None:
+                    row.append(f"{decision.score[q]:.6f}")
+                if accepted is not None:
+                    row.append(int(chosen))
+                writer.writerow(row)
+    return buffer.getvalue()

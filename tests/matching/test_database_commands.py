@@ -1,0 +1,117 @@
+"""fdnet.matching.database.commands: build, add, query, info and migrate as library calls (no CLI)."""
+
+import csv
+import io
+import logging
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from fdnet.errors import ConfigError
+from fdnet.matching.database import PlaceDatabase
+from fdnet.matching.database.commands import (
+    add_to_database, build_database, database_info, migrate_database, query_database,
+)
+
+
+def make_route(folder, n=5, seed=0):
+    """n distinct random-texture places; the same seed gives the same places."""
+    folder.mkdir(parents=True)
+    rng = np.random.default_rng(seed)
+    for i in range(n):
+        Image.fromarray(rng.integers(0, 256, size=(24, 32, 3)).astype(np.uint8)).save(folder / f"frame_{i:03d}.png")
+    return folder
+
+
+def rows(text):
+    return list(csv.DictReader(io.StringIO(text)))
+
+
+def test_build_add_query_and_info_through_the_library(tmp_path):
+    first, second = make_route(tmp_path / "first", seed=1), make_route(tmp_path / "second", n=3, seed=2)
+    db = tmp_path / "map.db"
+    built = build_database(first, db, "raw", method_options={"size": [16, 32]}, progress=False)
+    assert (built.places, built.method, built.dim, built.index_seconds) == (5, "raw", 16 * 32 * 1, None)
+    assert built.lines()[0].startswith(f"wrote {db}: 5 places, raw (512-d), fingerprint ")
+    with PlaceDatabase.open(db) as opened:
+        assert opened.method_options == {"size": [16, 32]}  # recorded, so add/query rebuild it
+
+    added = add_to_database(db, second, progress=False)
+    assert (added.added, added.skipped, added.places) == (3, 0, 8)
+    again = add_to_database(db, first, progress=False)
+    assert (again.added, again.skipped, again.places) == (0, 5, 8)
+    assert "skipped 5 already in the database" in again.lines()[0]
+
+    out = tmp_path / "q.csv"
+    result = query_database(db, second, top_k=2, out=out, progress=False)
+    assert out.read_bytes() == result.csv_text.encode() and (result.queries, result.places) == (3, 8)
+    assert result.lines() == [f"wrote {out}: 3 queries against 8 places"]
+    table = rows(result.csv_text)
+    assert list(table[0]) == ["query", "rank", "place", "place_index", "score"] and len(table) == 6
+    best = [r for r in table if r["rank"] == "1"]
+    assert [r["place"] for r in best] == [str((second / r["query"]).resolve()) for r in best]
+    assert [r["place_index"] for r in best] == ["5", "6", "7"]
+
+    # the last 3 places (the second route) excluded: the best answers come from the first route
+    result = query_database(db, second, top_k=1, exclude_last=3, progress=False)
+    assert all(int(r["place_index"]) < 5 for r in rows(result.csv_text)) and result.lines() == []
+
+    info = database_info(db)
+    assert (info["places"], info["method"], info["dim"]) == (8, "raw", 512)
+
+
+def test_an_approximate_index_for_a_method_without_dot_product_is_refused_before_any_file(tmp_path):
+    db = tmp_path / "map.db"
+    with pytest.raises(ConfigError, match="use --index flat"):
+        build_database(make_route(tmp_path / "route"), db, "sad", index="hnsw", progress=False)
+    assert not db.exists()
+
+
+def test_an_acceptance_rule_adds_its_score_column(tmp_path):
+    from fdnet.decisions.acceptance import parse_acceptance
+
+    route = make_route(tmp_path / "route", seed=3)
+    db = tmp_path / "map.db"
+    build_database(route, db, "raw", progress=False)
+    messages = []
+    scored = query_database(db, route, top_k=1, accept=parse_acceptance("raw", []), log=messages.append,
+                            progress=False)
+    table = rows(scored.csv_text)
+    assert list(table[0]) == ["query", "rank", "place", "place_index", "score", "acceptance_score"]
+    # raw: the acceptance score is the best match's similarity
+    assert [float(r["acceptance_score"]) for r in table] == pytest.approx([float(r["score"]) for r in table])
+    assert messages == []  # no stored calibration to announce, none used
+
+
+def test_migrate_converts_the_old_folder_format(tmp_path):
+    import json
+
+    from fdnet.descriptors import create
+
+    old = tmp_path / "old"
+    old.mkdir()
+    vectors = np.ones((3, 2048), dtype=np.float32)
+    vectors[2, 0] = np.nan
+    np.save(old / "vectors.npy", vectors)
+    (old / "database.json").write_text(json.dumps({
+        "format_version": 1, "dim": 2048, "method": "raw", "method_settings": create("raw").settings(),
+        "method_options": {}, "dot_product": True, "index": {"kind": "flat"}, "names": ["a.png", "b.png", "c.png"],
+        "positions": [None] * 3}))
+    new = tmp_path / "map.db"
+    summary = migrate_database(old, new)
+    assert (summary.places, list(summary.dropped_non_finite)) == (2, ["c.png"])
+    assert summary.lines()[0] == f"wrote {new}: 2 places from {old}"
+    assert summary.lines()[1].startswith("dropped 1 place(s) whose stored vector was NaN/inf")
+    assert database_info(new)["places"] == 2
+
+
+def test_messages_go_to_the_module_logger_by_default(tmp_path, caplog, monkeypatch):
+    from fdnet.matching.database import store
+
+    db = tmp_path / "map.db"
+    build_database(make_route(tmp_path / "route"), db, "raw", progress=False)
+    monkeypatch.setattr(store, "_read_only_storage", lambda path: True)
+    with caplog.at_level(logging.INFO, logger="fdnet"):
+        database_info(db)
+    assert any("is in a folder that cannot be written" in r.getMessage() for r in caplog.records)
