@@ -231,3 +231,15 @@ def test_parts_of_a_killed_npz_writer_are_removed_by_the_next_writer_of_that_fil
     finally:
         alive.kill()
         alive.wait()
+
+
+@pytest.mark.parametrize("batch_size, workers, message", [
+    (0, None, "--batch-size must be >= 1, got 0"), (64, -1, "--workers must be >= 0, got -1")])
+def test_pipeline_settings_out_of_range_are_refused(batch_size, workers, message):
+    from fdnet.descriptors.pipeline import check_pipeline_settings
+    from fdnet.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=message):
+        check_pipeline_settings(batch_size, workers)
+    check_pipeline_settings(1, 0)  # the smallest allowed
+    check_pipeline_settings(None, None)  # defaults

@@ -197,13 +197,10 @@ def add_pipeline_arguments(parser: argparse.ArgumentParser, batch_size: int = 64
 
 
 def check_pipeline_arguments(args: argparse.Namespace) -> None:
-    from fdnet.errors import ConfigError
     from fdnet.backbones import check_device_spec
+    from fdnet.descriptors.pipeline import check_pipeline_settings
 
-    if getattr(args, "batch_size", 1) is not None and getattr(args, "batch_size", 1) < 1:
-        raise ConfigError(f"--batch-size must be >= 1, got {args.batch_size}")
-    if getattr(args, "workers", None) is not None and args.workers < 0:
-        raise ConfigError(f"--workers must be >= 0, got {args.workers}")
+    check_pipeline_settings(getattr(args, "batch_size", 1), getattr(args, "workers", None))
     if hasattr(args, "device"):
         args.device = check_device_spec(args.device)
 

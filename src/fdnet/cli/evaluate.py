@@ -114,83 +114,17 @@ def split_from_arguments(args):
 
 
 def run(args) -> int:
-    import logging
+    from fdnet.cli.common import method_options
+    from fdnet.evaluation.command import EvaluateSettings, evaluate_command
 
-    from fdnet.errors import ConfigError
-    from fdnet.io import ensure_writable
-
-    if args.similarity and args.method:
-        raise ConfigError("give either --similarity FILE.npy or --method NAME, not both")
-    if not args.similarity and not args.method:
-        raise ConfigError("nothing to evaluate: give --method NAME with --data, or --similarity FILE.npy")
-    if args.thresholds is not None and args.protocol != "recall-over-queries":
-        raise ConfigError("--thresholds applies to --protocol recall-over-queries only (vprbench uses "
-                          "every top-1 score, as VPR-Bench does)")
-    if args.thresholds is not None and args.thresholds < 2:
-        raise ConfigError(f"--thresholds must be at least 2, got {args.thresholds}")
-    if args.tolerance is not None and args.tolerance < 0:
-        raise ConfigError(f"--tolerance must be >= 0, got {args.tolerance}")
-    if args.sequence_length < 0:
-        raise ConfigError(f"--sequence-length must be >= 0 (0 = single image), got {args.sequence_length}")
-    if args.similarity and args.sequence_length > 1:
-        # it was silently ignored: single-image numbers reported as if sequence-matched
-        raise ConfigError("--sequence-length applies to --method; a --similarity matrix is evaluated as given "
-                          "(apply fdnet.matching.sequence.sequence_similarity to it first)")
-    # Outputs are checked before minutes of describing images, not after.
-    if args.json:
-        ensure_writable(args.json, what="JSON results")
-    if args.plots:
-        ensure_writable(args.plots, what="plots", directory=True)
-    from fdnet.evaluation.splits import ground_truth_path
-
-    ground_truth_path(args.ground_truth)
-    from fdnet.decisions.acceptance import DEFAULT_ACCEPTANCE, parse_acceptance_list
-
-    default_rule = "raw" if args.protocol == "vprbench" else DEFAULT_ACCEPTANCE
-    acceptance = parse_acceptance_list(args.accept or default_rule, args.accept_set)  # fails before any work
-    protocols = (args.protocol,)
-    keep_matrix = bool(args.plots)
-
-    log = logging.getLogger(__name__).info  # standard error, as the library's messages (fdnet.logs)
-
-    results = []
-    if args.similarity:
-        from fdnet.evaluation.splits import evaluate_similarity_file
-
-        split = split_from_arguments(args) if args.data else None
-        results.append(evaluate_similarity_file(args.similarity, split=split, ground_truth=args.ground_truth,
-                                                distance=args.distance, name=args.name, protocols=protocols,
-                                                thresholds=args.thresholds, acceptance=acceptance))
-    else:
-        from fdnet.cli.common import create_descriptor, set_threads
-        from fdnet.evaluation.experiment import evaluate_method
-
-        if not args.data:
-            raise ConfigError("--method needs --data DIR (one sub-folder per condition)")
-        from fdnet.cli.common import check_pipeline_arguments
-
-        check_pipeline_arguments(args)
-        names = [n.strip() for n in args.method.split(",") if n.strip()]
-        split = split_from_arguments(args)
-        set_threads(args.threads)
-        descriptors = [create_descriptor(name, args) for name in names]  # fail fast on a bad name
-        log(f"evaluating {', '.join(names)} on {split.description}: {len(split.query)} queries x "
-            f"{len(split.reference)} references")
-        for descriptor in descriptors:
-            results.append(evaluate_method(descriptor, split, protocols, args.thresholds,
-                                           batch_size=args.batch_size, sequence_length=args.sequence_length,
-                                           keep_similarity=keep_matrix, progress=True, log=log,
-                                           workers=args.workers, acceptance=acceptance))
-
-    from fdnet.evaluation.report import format_table, write_json
-
-    print(format_table(results, args.protocol))
-    if args.json:
-        write_json(args.json, results, args.protocol, include_curve=not args.no_curve)
-        log(f"wrote {args.json}")
-    if args.plots:
-        from fdnet.evaluation.plots import write_result_plots
-
-        for path in write_result_plots(results, args.protocol, args.plots, args.examples):
-            log(f"wrote {path}")
+    settings = EvaluateSettings(
+        method=args.method, method_options=lambda name: method_options(args, name), similarity=args.similarity,
+        distance=args.distance, name=args.name, data=args.data, reference=args.reference, query=args.query,
+        tolerance=args.tolerance, filter_frames=args.filter_frames, dataset_format=args.dataset_format,
+        split=args.split, format_set=args.format_set, frames=args.frames, ground_truth=args.ground_truth,
+        batch_size=args.batch_size, workers=args.workers, device=args.device, sequence_length=args.sequence_length,
+        threads=args.threads, protocol=args.protocol, thresholds=args.thresholds, accept=args.accept,
+        accept_set=args.accept_set, json=args.json, include_curve=not args.no_curve, plots=args.plots,
+        examples=args.examples)
+    print(evaluate_command(settings).table)
     return 0

@@ -47,6 +47,17 @@ def default_workers() -> int:
     return max(1, min(8, (os.cpu_count() or 2) - 1))
 
 
+def check_pipeline_settings(batch_size: int | None = 64, workers: int | None = None) -> None:
+    """Refuse a batch size under 1 and a negative worker count (None: the default), naming the
+    command-line flags that set them."""
+    from fdnet.errors import ConfigError
+
+    if batch_size is not None and batch_size < 1:
+        raise ConfigError(f"--batch-size must be >= 1, got {batch_size}")
+    if workers is not None and workers < 0:
+        raise ConfigError(f"--workers must be >= 0, got {workers}")
+
+
 class _Images:
     """Dataset of image paths -> (index, image or None, error message or None). Errors travel as
     values so the main process raises the DataError itself, with its one-line message."""

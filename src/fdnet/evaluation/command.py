@@ -1,0 +1,170 @@
+"""The work of ``fdnet evaluate`` as one library call: check the settings (output paths before any
+image is described), score methods on a reference/query split or a precomputed similarity
+matrix, write the JSON and plots asked for, and return the results with their table.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+from typing import Callable, Mapping, Sequence, Union
+
+logger = logging.getLogger(__name__)
+
+#: a method's options: a mapping (the same for every method), or a function of the method's name
+MethodOptions = Union[Mapping, Callable[[str], Mapping], None]
+
+
+@dataclasses.dataclass
+class EvaluateSettings:
+    """What to evaluate, on which data, and where the results go (the flags of ``fdnet evaluate``).
+    Give ``method`` (names, comma-separated) with ``data``, or ``similarity`` (a .npy matrix)."""
+
+    # methods on images, or a precomputed matrix
+    method: str | None = None
+    method_options: MethodOptions = None  # device excluded: ``device`` says where torch methods run
+    similarity: str | None = None
+    distance: bool = False  # the similarity file holds distances
+    name: str | None = None  # method name reported for ``similarity``
+    # data (:func:`fdnet.evaluation.splits.build_split`)
+    data: str | None = None
+    reference: str | None = None
+    query: str | None = None
+    tolerance: int | None = None
+    filter_frames: bool = False
+    dataset_format: str | None = None
+    split: str | None = None
+    format_set: Sequence[str] = ()
+    frames: str | None = None
+    ground_truth: str | None = None
+    # describing and ranking
+    batch_size: int = 64
+    workers: int | None = None
+    device: str | None = None
+    sequence_length: int = 0
+    threads: int | None = None  # torch CPU threads while describing; None: every core
+    # metrics and output
+    protocol: str = "recall-over-queries"
+    thresholds: int | None = None
+    accept: str | None = None  # acceptance rules; None: margin (raw under vprbench)
+    accept_set: Sequence[str] = ()
+    json: str | None = None
+    include_curve: bool = True
+    plots: str | None = None
+    examples: int = 6
+
+
+@dataclasses.dataclass(frozen=True)
+class EvaluationOutcome:
+    """:func:`evaluate_command`'s results (one per method) and their table."""
+
+    results: list
+    table: str
+
+
+def evaluate_command(settings: EvaluateSettings, log: Callable[[str], None] | None = None) -> EvaluationOutcome:
+    """Evaluate as ``settings`` say; progress and the files written go to ``log`` (default: this
+    module's logger). Every setting and output path is checked before any image is described."""
+    from fdnet.decisions.acceptance import DEFAULT_ACCEPTANCE, parse_acceptance_list
+    from fdnet.evaluation.report import format_table, write_json
+    from fdnet.evaluation.splits import ground_truth_path
+
+    log = log or logger.info
+    _check_settings(settings)
+    ground_truth_path(settings.ground_truth)
+    default_rule = "raw" if settings.protocol == "vprbench" else DEFAULT_ACCEPTANCE
+    acceptance = parse_acceptance_list(settings.accept or default_rule, list(settings.accept_set))  # before any work
+    if settings.similarity:
+        results = [_evaluate_matrix(settings, acceptance)]
+    else:
+        results = _evaluate_methods(settings, acceptance, log)
+    if settings.json:
+        write_json(settings.json, results, settings.protocol, include_curve=settings.include_curve)
+        log(f"wrote {settings.json}")
+    if settings.plots:
+        from fdnet.evaluation.plots import write_result_plots
+
+        for path in write_result_plots(results, settings.protocol, settings.plots, settings.examples):
+            log(f"wrote {path}")
+    return EvaluationOutcome(results, format_table(results, settings.protocol))
+
+
+def _check_settings(settings: EvaluateSettings) -> None:
+    from fdnet.errors import ConfigError
+    from fdnet.io import ensure_writable
+
+    if settings.similarity and settings.method:
+        raise ConfigError("give either --similarity FILE.npy or --method NAME, not both")
+    if not settings.similarity and not settings.method:
+        raise ConfigError("nothing to evaluate: give --method NAME with --data, or --similarity FILE.npy")
+    if settings.thresholds is not None and settings.protocol != "recall-over-queries":
+        raise ConfigError("--thresholds applies to --protocol recall-over-queries only (vprbench uses "
+                          "every top-1 score, as VPR-Bench does)")
+    if settings.thresholds is not None and settings.thresholds < 2:
+        raise ConfigError(f"--thresholds must be at least 2, got {settings.thresholds}")
+    if settings.tolerance is not None and settings.tolerance < 0:
+        raise ConfigError(f"--tolerance must be >= 0, got {settings.tolerance}")
+    if settings.sequence_length < 0:
+        raise ConfigError(f"--sequence-length must be >= 0 (0 = single image), got {settings.sequence_length}")
+    if settings.similarity and settings.sequence_length > 1:
+        # it was silently ignored: single-image numbers reported as if sequence-matched
+        raise ConfigError("--sequence-length applies to --method; a --similarity matrix is evaluated as given "
+                          "(apply fdnet.matching.sequence.sequence_similarity to it first)")
+    # Outputs are checked before minutes of describing images, not after.
+    if settings.json:
+        ensure_writable(settings.json, what="JSON results")
+    if settings.plots:
+        ensure_writable(settings.plots, what="plots", directory=True)
+
+
+def _split(settings: EvaluateSettings):
+    from fdnet.evaluation.splits import build_split
+
+    return build_split(settings.data, settings.reference, settings.query, dataset_format=settings.dataset_format,
+                       split=settings.split, format_set=list(settings.format_set), frames=settings.frames,
+                       tolerance=settings.tolerance, filter_frames=settings.filter_frames,
+                       ground_truth=settings.ground_truth)
+
+
+def _evaluate_matrix(settings: EvaluateSettings, acceptance):
+    from fdnet.evaluation.splits import evaluate_similarity_file
+
+    split = _split(settings) if settings.data else None
+    return evaluate_similarity_file(settings.similarity, split=split, ground_truth=settings.ground_truth,
+                                    distance=settings.distance, name=settings.name, protocols=(settings.protocol,),
+                                    thresholds=settings.thresholds, acceptance=acceptance)
+
+
+def _evaluate_methods(settings: EvaluateSettings, acceptance, log) -> list:
+    from fdnet.backbones import check_device_spec, torch_threads
+    from fdnet.descriptors.pipeline import check_pipeline_settings
+    from fdnet.errors import ConfigError
+    from fdnet.evaluation.experiment import evaluate_method
+
+    if not settings.data:
+        raise ConfigError("--method needs --data DIR (one sub-folder per condition)")
+    check_pipeline_settings(settings.batch_size, settings.workers)
+    device = check_device_spec(settings.device) if settings.device is not None else None
+    names = [n.strip() for n in settings.method.split(",") if n.strip()]
+    split = _split(settings)
+    results = []
+    with torch_threads(settings.threads or os.cpu_count() or 1):
+        descriptors = [_create_descriptor(name, settings.method_options, device) for name in names]  # fail fast
+        log(f"evaluating {', '.join(names)} on {split.description}: {len(split.query)} queries x "
+            f"{len(split.reference)} references")
+        for descriptor in descriptors:
+            results.append(evaluate_method(descriptor, split, (settings.protocol,), settings.thresholds,
+                                           batch_size=settings.batch_size, sequence_length=settings.sequence_length,
+                                           keep_similarity=bool(settings.plots), progress=True, log=log,
+                                           workers=settings.workers, acceptance=acceptance))
+    return results
+
+
+def _create_descriptor(name: str, method_options: MethodOptions, device: str | None):
+    from fdnet.descriptors import create
+
+    options = dict((method_options(name) if callable(method_options) else method_options) or {})
+    if device is not None:
+        options.setdefault("device", device)  # a --method-set device=... wins, as in every command
+    return create(name, **options)
