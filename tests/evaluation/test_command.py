@@ -30,7 +30,8 @@ def test_methods_on_images_give_results_table_and_json(route, tmp_path):
     out = tmp_path / "results.json"
     messages = []
     outcome = evaluate_command(EvaluateSettings(method="raw,sad", data=str(route), reference="day", query="dusk",
-                                                workers=0, json=str(out), threads=1), log=messages.append)
+                                                workers=0, json=str(out), threads=1), log=messages.append,
+                               show=lambda table: messages.append(("table", table)))
     assert [r.method for r in outcome.results] == ["raw", "sad"]
     raw = outcome.results[0].metrics["recall-over-queries"]
     assert raw.num_queries == 10 and raw.recall_at_n[1] == 1.0  # same textures, darker: every place found
@@ -39,7 +40,7 @@ def test_methods_on_images_give_results_table_and_json(route, tmp_path):
     assert [r["method"] for r in written["results"]] == ["raw", "sad"]
     assert messages[0] == ("evaluating raw, sad on route: dusk -> day, frame-aligned, tolerance 0 frames: "
                            "10 queries x 10 references")
-    assert messages[-1] == f"wrote {out}"
+    assert messages[-2:] == [("table", outcome.table), f"wrote {out}"]  # shown before the files are written
 
 
 def test_a_similarity_matrix_against_frame_aligned_ground_truth(route, tmp_path):

@@ -126,5 +126,5 @@ def run(args) -> int:
         threads=args.threads, protocol=args.protocol, thresholds=args.thresholds, accept=args.accept,
         accept_set=args.accept_set, json=args.json, include_curve=not args.no_curve, plots=args.plots,
         examples=args.examples)
-    print(evaluate_command(settings).table)
+    evaluate_command(settings, show=print)
     return 0

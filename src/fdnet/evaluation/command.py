@@ -63,9 +63,12 @@ class EvaluationOutcome:
     table: str
 
 
-def evaluate_command(settings: EvaluateSettings, log: Callable[[str], None] | None = None) -> EvaluationOutcome:
+def evaluate_command(settings: EvaluateSettings, log: Callable[[str], None] | None = None,
+                     show: Callable[[str], None] | None = None) -> EvaluationOutcome:
     """Evaluate as ``settings`` say; progress and the files written go to ``log`` (default: this
-    module's logger). Every setting and output path is checked before any image is described."""
+    module's logger). ``show`` gets the results table as soon as it is made, before the JSON and
+    plots are written (the command prints it there). Every setting and output path is checked
+    before any image is described."""
     from fdnet.decisions.acceptance import DEFAULT_ACCEPTANCE, parse_acceptance_list
     from fdnet.evaluation.report import format_table, write_json
     from fdnet.evaluation.splits import ground_truth_path
@@ -79,6 +82,9 @@ def evaluate_command(settings: EvaluateSettings, log: Callable[[str], None] | No
         results = [_evaluate_matrix(settings, acceptance)]
     else:
         results = _evaluate_methods(settings, acceptance, log)
+    table = format_table(results, settings.protocol)
+    if show is not None:
+        show(table)
     if settings.json:
         write_json(settings.json, results, settings.protocol, include_curve=settings.include_curve)
         log(f"wrote {settings.json}")
@@ -87,7 +93,7 @@ def evaluate_command(settings: EvaluateSettings, log: Callable[[str], None] | No
 
         for path in write_result_plots(results, settings.protocol, settings.plots, settings.examples):
             log(f"wrote {path}")
-    return EvaluationOutcome(results, format_table(results, settings.protocol))
+    return EvaluationOutcome(results, table)
 
 
 def _check_settings(settings: EvaluateSettings) -> None:
