@@ -76,8 +76,16 @@ def _leaf_parsers():
 def _table_rows():
     from pathlib import Path
 
-    text = (Path(__file__).resolve().parents[2] / "docs" / "flags.md").read_text()
-    rows = [line.split(" | ") for line in text.splitlines() if line.startswith("| `--")]
+    def flag_table(text: str) -> list[str]:
+        lines = text.splitlines()
+        start = lines.index("| flag | meaning | commands | old spellings |")
+        end = next((i for i in range(start, len(lines)) if not lines[i].startswith("|")), len(lines))
+        return [line for line in lines[start:end] if line.startswith("| `--")]
+
+    root = Path(__file__).resolve().parents[2]
+    tables = [flag_table((root / name).read_text()) for name in ("docs/flags.md", "README.md")]
+    assert tables[0] == tables[1], "README.md's flag table differs from docs/flags.md's"
+    rows = [line.split(" | ") for line in tables[0]]
     assert len(rows) >= 20
     return rows
 
