@@ -9,7 +9,9 @@ so inference can read a run's config.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
+from typing import ClassVar
 
 
 @dataclass
@@ -80,6 +82,26 @@ def moved_to_shared_sections(data: dict) -> dict:
         data[section] = {**(data.get(section) or {}), key: train.pop(key)}
     data["train"] = train
     return data
+
+
+class StepsInTrainSection:
+    """What the run configs of the methods that count their steps in ``train.steps`` (CALC,
+    NetVLAD) share: the old ``--set`` paths, reading runs in the old layout, ``--steps``."""
+
+    #: old ``--set`` paths still accepted (``train.lr`` -> ``optim.lr`` ...)
+    renamed_settings: ClassVar[dict[str, str]] = RENAMED_SETTINGS
+
+    @staticmethod
+    def from_legacy(data: dict) -> dict:
+        """Runs written with ``train.lr``, ``train.seed`` ... read in the current layout."""
+        return moved_to_shared_sections(data)
+
+    @property
+    def total_steps(self) -> int:
+        return self.train.steps
+
+    def with_total_steps(self, steps: int):
+        return dataclasses.replace(self, train=dataclasses.replace(self.train, steps=int(steps)))
 
 
 @dataclass

@@ -6,11 +6,10 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import ClassVar
 
 from fdnet.errors import ConfigError
-from fdnet.methods.settings import (DataConfig, OptimizerConfig, RuntimeConfig, ValidationConfig,
-                                    RENAMED_SETTINGS, moved_to_shared_sections)
+from fdnet.methods.settings import (DataConfig, OptimizerConfig, RuntimeConfig, StepsInTrainSection,
+                                    ValidationConfig)
 
 METHOD = "netvlad"
 
@@ -67,7 +66,7 @@ def _runtime() -> RuntimeConfig:
 
 
 @dataclass
-class NetVLADRunConfig:
+class NetVLADRunConfig(StepsInTrainSection):
     method: str = METHOD
     #: the preset the run started from ("" in runs written before runs recorded it)
     preset: str = ""
@@ -77,21 +76,6 @@ class NetVLADRunConfig:
     runtime: RuntimeConfig = field(default_factory=_runtime)
     data: NetVLADDataConfig = field(default_factory=NetVLADDataConfig)
     validation: ValidationConfig = field(default_factory=ValidationConfig)
-
-    #: old ``--set`` paths still accepted (``train.lr`` -> ``optim.lr`` ...)
-    renamed_settings: ClassVar[dict[str, str]] = RENAMED_SETTINGS
-
-    @staticmethod
-    def from_legacy(data: dict) -> dict:
-        """Runs written with ``train.lr``, ``train.seed`` ... read in the current layout."""
-        return moved_to_shared_sections(data)
-
-    @property
-    def total_steps(self) -> int:
-        return self.train.steps
-
-    def with_total_steps(self, steps: int) -> "NetVLADRunConfig":
-        return dataclasses.replace(self, train=dataclasses.replace(self.train, steps=int(steps)))
 
 
 def default_config() -> NetVLADRunConfig:
