@@ -64,6 +64,53 @@ def write_day_night_route(root: Path, places: int) -> Path:
     return root / "route"
 
 
+def write_random_places(folder: Path, n: int, seed: int = 0, brightness: float = 1.0) -> Path:
+    """``folder/frame_NNN.png``: n distinct random-texture 24x32 places (the same seed gives the
+    same places), scaled by ``brightness``."""
+    from PIL import Image
+
+    folder.mkdir(parents=True)
+    rng = np.random.default_rng(seed)
+    for i in range(n):
+        img = rng.integers(0, 256, size=(24, 32, 3)).astype(np.float32) * brightness
+        Image.fromarray(np.clip(img, 0, 255).astype(np.uint8)).save(folder / f"frame_{i:03d}.png")
+    return folder
+
+
+def read_csv_rows(path) -> list[dict]:
+    import csv
+
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def write_day_dusk_route(root: Path, rng: np.random.Generator, places: int = 10) -> Path:
+    """``root/{day,dusk}/NNN.png``: random-texture 16x16 places, the dusk copy darker and noisier."""
+    from PIL import Image
+
+    for cond in ("day", "dusk"):
+        (root / cond).mkdir(parents=True)
+    for i in range(places):
+        pattern = rng.random((16, 16))
+        dusk = np.clip(0.5 * pattern + 0.03 * rng.standard_normal(pattern.shape), 0, 1)
+        Image.fromarray((pattern * 255).astype(np.uint8)).save(root / "day" / f"{i:03d}.png")
+        Image.fromarray((dusk * 255).astype(np.uint8)).save(root / "dusk" / f"{i:03d}.png")
+    return root
+
+
+def write_day_night_set(root: Path, n: int = 8, prefix: str = "") -> Path:
+    """``root/{day,night}/PREFIXNNN.png``: n random 20x40 grey images per condition, night darker."""
+    from PIL import Image
+
+    rng = np.random.default_rng(1)
+    for k, name in enumerate(("day", "night")):
+        (root / name).mkdir(parents=True)
+        for i in range(n):
+            Image.fromarray((rng.random((20, 40)) * (255 - 120 * k)).astype(np.uint8)).save(
+                root / name / f"{prefix}{i:03d}.png")
+    return root
+
+
 # ------------------------------------------------------------------ full disks and read-only media
 # Real file systems where the test can mount one (root, or a container allowing mount), skipped
 # with the reason otherwise; file_size_limit makes the kernel refuse writes on any machine.

@@ -9,13 +9,13 @@ import logging
 import re
 import time
 
-import numpy as np
 import pytest
-from PIL import Image
 
 from fdnet.cli import main
 from fdnet.errors import ConfigError
 from fdnet.logs import StderrHandler, command_logging, level_for
+
+from conftest import write_day_night_set
 
 PROGRESS_LINE = re.compile(r"^fdnet train: (autoencoder|critic|joint): \d+/\d+ step \(\d+ %\) \[")
 
@@ -61,12 +61,7 @@ def test_a_bad_progress_interval_stops_the_command_before_any_work(monkeypatch, 
 
 
 def _dataset(root, n=8):
-    rng = np.random.default_rng(1)
-    for k, name in enumerate(("day", "night")):
-        (root / name).mkdir(parents=True)
-        for i in range(n):
-            Image.fromarray((rng.random((20, 40)) * (255 - 120 * k)).astype(np.uint8)).save(root / name / f"{i:03d}.png")
-    return root
+    return write_day_night_set(root, n)
 
 
 def _train_into_a_file(tmp_path, name: str, *flags: str) -> tuple[str, float]:

@@ -6,25 +6,17 @@ import sqlite3
 
 import numpy as np
 import pytest
-from PIL import Image
 
 from fdnet.cli import main
 from fdnet.descriptors import create
 from fdnet.descriptors.classic import RawThumbnail
 
+from conftest import read_csv_rows, write_random_places
+
 
 def make_route(folder, n=6, seed=0):
     """n distinct random-texture places; the same seed gives the same places."""
-    folder.mkdir(parents=True)
-    rng = np.random.default_rng(seed)
-    for i in range(n):
-        Image.fromarray(rng.integers(0, 256, size=(24, 32, 3)).astype(np.uint8)).save(folder / f"frame_{i:03d}.png")
-    return folder
-
-
-def read_rows(path):
-    with open(path, newline="") as fh:
-        return list(csv.DictReader(fh))
+    return write_random_places(folder, n, seed)
 
 
 def info(db, capsys):
@@ -56,7 +48,7 @@ def test_build_add_query_info(tmp_path, built, capsys):
     out = tmp_path / "q.csv"
     assert main(["database", "query", "--db", str(built), "--images", str(second), "--top-k", "2",
                  "--out", str(out)]) == 0
-    rows = read_rows(out)
+    rows = read_csv_rows(out)
     assert list(rows[0]) == ["query", "rank", "place", "place_index", "score"]
     best = [r for r in rows if r["rank"] == "1"]
     assert [r["place"] == str(second.resolve() / r["query"]) for r in best] == [True] * 4
@@ -216,7 +208,7 @@ def test_build_with_an_approximate_index_caches_it_and_adds_in_one_transaction(t
     assert info(db, capsys)["data_version"] == 2          # one version step for the whole add
     out = tmp_path / "q.csv"
     assert main(["database", "query", "--db", str(db), "--images", str(more), "--top-k", "1", "--out", str(out)]) == 0
-    assert [r["place"].rsplit("/", 1)[-1] for r in read_rows(out)] == [f"frame_{i:03d}.png" for i in range(8)]
+    assert [r["place"].rsplit("/", 1)[-1] for r in read_csv_rows(out)] == [f"frame_{i:03d}.png" for i in range(8)]
     # no spool files are left beside the database
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []
 
@@ -248,7 +240,7 @@ def test_query_quotes_names_a_spreadsheet_would_run_as_formulas(tmp_path, capsys
     assert main(["database", "build", "--images", str(images), "--method", "raw", "--db", str(db)]) == 0
     out = tmp_path / "q.csv"
     assert main(["database", "query", "--db", str(db), "--images", str(images), "--top-k", "3", "--out", str(out)]) == 0
-    rows = read_rows(out)
+    rows = read_csv_rows(out)
     assert {r["query"] for r in rows} == {"'=cmd.png", "'@x.png", "frame_002.png"}
     # the place column holds the stored absolute path, which starts with / (nothing to quote)
     assert all(not r["place"].startswith(("=", "@", "'")) for r in rows)
@@ -287,7 +279,7 @@ def test_a_database_on_read_only_storage_is_queried_read_only(tmp_path, capsys, 
     assert main(["database", "query", "--db", str(built), "--images", str(images), "--top-k", "1",
                  "--workers", "0", "--out", str(out_csv)]) == 0
     assert "opened read-only" in capsys.readouterr().err
-    assert [r["place_index"] for r in read_rows(out_csv)] == [str(i) for i in range(6)]
+    assert [r["place_index"] for r in read_csv_rows(out_csv)] == [str(i) for i in range(6)]
     assert main(["database", "add", "--db", str(built), "--images", str(tmp_path / "first"), "--allow-duplicates",
                  "--workers", "0"]) == 2
     err = capsys.readouterr().err

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from conftest import require_shared
+from conftest import require_shared, write_day_dusk_route
 from fdnet.cli import main
 from fdnet.descriptors import registry
 from fdnet.descriptors.base import Descriptor, l2_normalize
@@ -47,15 +47,7 @@ def tiny_method(monkeypatch):
 
 @pytest.fixture
 def route(tmp_path, rng):
-    root = tmp_path / "route"
-    for cond in ("day", "dusk"):
-        (root / cond).mkdir(parents=True)
-    for i in range(10):
-        pattern = rng.random((16, 16))
-        dusk = np.clip(0.5 * pattern + 0.03 * rng.standard_normal(pattern.shape), 0, 1)
-        Image.fromarray((pattern * 255).astype(np.uint8)).save(root / "day" / f"{i:03d}.png")
-        Image.fromarray((dusk * 255).astype(np.uint8)).save(root / "dusk" / f"{i:03d}.png")
-    return root
+    return write_day_dusk_route(tmp_path / "route", rng)
 
 
 @pytest.fixture

@@ -1,6 +1,5 @@
 """`fdnet loop-closure` on a made-up route that revisits its places."""
 
-import csv
 import json
 
 import numpy as np
@@ -10,6 +9,8 @@ from PIL import Image
 from fdnet.cli import main
 from fdnet.data.groundtruth import GroundTruth
 from fdnet.descriptors.classic import RawThumbnail
+
+from conftest import read_csv_rows
 
 PLACES = 10
 
@@ -24,11 +25,6 @@ def write_route(folder, seed=0):
     for i, image in enumerate(first + again):
         Image.fromarray(image.astype(np.uint8)).save(folder / f"frame_{i:03d}.png")
     return folder
-
-
-def read_rows(path):
-    with open(path, newline="") as fh:
-        return list(csv.DictReader(fh))
 
 
 @pytest.fixture
@@ -49,7 +45,7 @@ def test_events_at_the_revisits_and_an_evaluation(route, tmp_path, capsys):
                      str(tmp_path / "gt.csv"), "--report", str(tmp_path / "report.json"), "--db",
                      str(tmp_path / "map.db"))) == 0
     out = capsys.readouterr().out
-    rows = read_rows(tmp_path / "events.csv")
+    rows = read_csv_rows(tmp_path / "events.csv")
     assert [int(r["query_index"]) for r in rows] == list(range(PLACES, 2 * PLACES))
     assert [int(r["match_index"]) for r in rows] == list(range(PLACES))
     assert [r["match"].rsplit("/", 1)[1] for r in rows] == [f"frame_{i:03d}.png" for i in range(PLACES)]
@@ -73,7 +69,7 @@ def test_a_second_session_closes_loops_against_the_first_sessions_database(tmp_p
     db = tmp_path / "map.db"
     assert main(["database", "build", "--images", str(day1), "--method", "raw", "--db", str(db)]) == 0
     assert main(args(day2, tmp_path, "--db", str(db))) == 0
-    rows = read_rows(tmp_path / "events.csv")
+    rows = read_csv_rows(tmp_path / "events.csv")
     # the first frame of day 2 already closes a loop: day 1's places are not this traverse's last frames
     assert [int(r["query_index"]) for r in rows] == list(range(PLACES))
     assert [int(r["match_index"]) for r in rows] == list(range(PLACES))
@@ -159,10 +155,10 @@ def test_calibrate_on_one_traverse_and_use_it_on_another(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "0 loop closures in 20 frames" in out  # a calibration run accepts nothing
     assert "reaches precision 1.000 at recall 1.000 on this traverse" in out
-    assert read_rows(tmp_path / "a.csv") == []
+    assert read_csv_rows(tmp_path / "a.csv") == []
     assert main(base + ["--images", str(second), "--calibration", str(tmp_path / "cal.yaml"),
                         "--out", str(tmp_path / "b.csv")]) == 0
-    rows = read_rows(tmp_path / "b.csv")
+    rows = read_csv_rows(tmp_path / "b.csv")
     # the threshold is the first route's lowest true score: on this route it keeps every closure
     # right and most of them
     assert len(rows) >= PLACES // 2

@@ -1,27 +1,17 @@
 """`fdnet match` and `fdnet database` on images the test makes."""
 
-import csv
-
 import numpy as np
 import pytest
 from PIL import Image
 
 from fdnet.cli import main
 
+from conftest import read_csv_rows, write_random_places
+
 
 def make_route(folder, n=12, seed=0, brightness=1.0):
     """n distinct random-texture places; the same seed gives the same places."""
-    folder.mkdir(parents=True)
-    rng = np.random.default_rng(seed)
-    for i in range(n):
-        img = rng.integers(0, 256, size=(24, 32, 3)).astype(np.float32) * brightness
-        Image.fromarray(np.clip(img, 0, 255).astype(np.uint8)).save(folder / f"frame_{i:03d}.png")
-    return folder
-
-
-def read_rows(path):
-    with open(path, newline="") as fh:
-        return list(csv.DictReader(fh))
+    return write_random_places(folder, n, seed, brightness)
 
 
 @pytest.mark.parametrize("index", ["exact", "flat", "hnsw"])
@@ -31,7 +21,7 @@ def test_match_writes_ranked_candidates(tmp_path, index):
     out = tmp_path / "matches.csv"
     assert main(["match", "--reference", str(ref), "--query", str(qry), "--method", "raw",
                  "--top-k", "3", "--index", index, "--out", str(out)]) == 0
-    rows = read_rows(out)
+    rows = read_csv_rows(out)
     assert len(rows) == 12 * 3
     best = [r for r in rows if r["rank"] == "1"]
     assert all(r["query"] == r["reference"] for r in best)
@@ -45,7 +35,7 @@ def test_match_with_sequences_and_non_dot_product_method(tmp_path, capsys):
     out = tmp_path / "seq.csv"
     assert main(["match", "--reference", str(ref), "--query", str(qry), "--method", "sad",
                  "--sequence-length", "3", "--out", str(out)]) == 0
-    best = [r for r in read_rows(out) if r["rank"] == "1"]
+    best = [r for r in read_csv_rows(out) if r["rank"] == "1"]
     assert all(r["query"] == r["reference"] for r in best)
     # SAD is not a dot product: a faiss index would rank by the wrong measure.
     assert main(["match", "--reference", str(ref), "--query", str(qry), "--method", "sad",
@@ -75,12 +65,12 @@ def test_database_build_add_query(tmp_path):
     out = tmp_path / "q.csv"
     assert main(["database", "query", "--db", str(db), "--images", str(second), "--top-k", "2",
                  "--out", str(out)]) == 0
-    best = [r for r in read_rows(out) if r["rank"] == "1"]
+    best = [r for r in read_csv_rows(out) if r["rank"] == "1"]
     assert [r["place"].endswith(r["query"]) and "second" in r["place"] for r in best] == [True] * 5
     # Excluding the 5 most recent places forces matches into the first batch.
     assert main(["database", "query", "--db", str(db), "--images", str(second), "--exclude-last", "5",
                  "--out", str(out)]) == 0
-    assert all("first" in r["place"] for r in read_rows(out))
+    assert all("first" in r["place"] for r in read_csv_rows(out))
 
 
 def test_file_options_go_to_the_methods_that_take_them(tmp_path, capsys):
@@ -113,7 +103,7 @@ def test_match_lists_unpadded_names_in_natural_order_with_indices_and_names(tmp_
     out = tmp_path / "matches.csv"
     assert main(["match", "--reference", str(tmp_path / "ref"), "--query", str(tmp_path / "qry"),
                  "--method", "raw", "--top-k", "2", "--out", str(out)]) == 0
-    rows = read_rows(out)
+    rows = read_csv_rows(out)
     assert list(rows[0]) == ["query_index", "query", "rank", "reference_index", "reference", "score"]
     best = [r for r in rows if r["rank"] == "1"]
     assert [(r["query_index"], r["query"]) for r in best] == [(str(i), n) for i, n in enumerate(names)]
@@ -145,7 +135,7 @@ def test_match_keeps_and_reuses_a_saved_index(tmp_path, capsys):
         out = tmp_path / f"m{run}.csv"
         assert main(["match", "--reference", str(ref), "--query", str(qry), "--method", "raw", "--index", "ivf",
                      "--index-file", str(saved), "--top-k", "2", "--workers", "0", "--out", str(out), *extra]) == 0
-        outs.append(read_rows(out))
+        outs.append(read_csv_rows(out))
         printed = capsys.readouterr().out
         assert ("built the ivf index" in printed) == (run != 1)
         assert ("loaded the ivf index" in printed) == (run == 1)
@@ -188,7 +178,7 @@ def test_names_a_spreadsheet_would_run_as_formulas_are_quoted(tmp_path):
     out = tmp_path / "matches.csv"
     assert main(["match", "--reference", str(ref), "--query", str(qry), "--method", "raw", "--top-k", "4",
                  "--out", str(out)]) == 0
-    rows = read_rows(out)
+    rows = read_csv_rows(out)
     names = {r["query"] for r in rows} | {r["reference"] for r in rows}
     assert names == {"'=HYPERLINK(1).png", "'+1.png", "'-2.png", "'@SUM(A1).png"}
     assert not any(r["score"].startswith("'") for r in rows)  # numbers stay numbers, negative ones too

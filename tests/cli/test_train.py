@@ -4,18 +4,12 @@ import os
 import signal
 
 import numpy as np
-from PIL import Image
 
 from fdnet.cli import main
 
 
 def _dataset(root, n=8):
-    rng = np.random.default_rng(1)
-    for k, name in enumerate(("day", "night")):
-        (root / name).mkdir(parents=True)
-        for i in range(n):
-            Image.fromarray((rng.random((20, 40)) * (255 - 120 * k)).astype(np.uint8)).save(root / name / f"im{i:03d}.png")
-    return root
+    return write_day_night_set(root, n, prefix="im")
 
 
 def test_train_resume_extract(tmp_path, capsys):
@@ -152,6 +146,8 @@ from dataclasses import dataclass, field  # noqa: E402
 import pytest  # noqa: E402
 
 from fdnet.methods.settings import DataConfig, RuntimeConfig, ValidationConfig  # noqa: E402
+
+from conftest import write_day_night_set
 
 
 @dataclass

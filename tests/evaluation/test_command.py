@@ -6,24 +6,17 @@ import json
 
 import numpy as np
 import pytest
-from PIL import Image
 
 from fdnet.errors import ConfigError, FdnetError
 from fdnet.evaluation.command import EvaluateSettings, evaluate_command
+
+from conftest import write_day_dusk_route
 
 
 @pytest.fixture
 def route(tmp_path, rng):
     """10 random-texture places seen by day and, darker and noisier, at dusk."""
-    root = tmp_path / "route"
-    for cond in ("day", "dusk"):
-        (root / cond).mkdir(parents=True)
-    for i in range(10):
-        pattern = rng.random((16, 16))
-        dusk = np.clip(0.5 * pattern + 0.03 * rng.standard_normal(pattern.shape), 0, 1)
-        Image.fromarray((pattern * 255).astype(np.uint8)).save(root / "day" / f"{i:03d}.png")
-        Image.fromarray((dusk * 255).astype(np.uint8)).save(root / "dusk" / f"{i:03d}.png")
-    return root
+    return write_day_dusk_route(tmp_path / "route", rng)
 
 
 def test_methods_on_images_give_results_table_and_json(route, tmp_path):

@@ -6,7 +6,6 @@ import logging
 
 import numpy as np
 import pytest
-from PIL import Image
 
 from fdnet.errors import ConfigError
 from fdnet.matching.database import PlaceDatabase
@@ -14,14 +13,12 @@ from fdnet.matching.database.commands import (
     add_to_database, build_database, database_info, migrate_database, query_database,
 )
 
+from conftest import write_random_places
+
 
 def make_route(folder, n=5, seed=0):
     """n distinct random-texture places; the same seed gives the same places."""
-    folder.mkdir(parents=True)
-    rng = np.random.default_rng(seed)
-    for i in range(n):
-        Image.fromarray(rng.integers(0, 256, size=(24, 32, 3)).astype(np.uint8)).save(folder / f"frame_{i:03d}.png")
-    return folder
+    return write_random_places(folder, n, seed)
 
 
 def rows(text):

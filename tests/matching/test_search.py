@@ -1,28 +1,16 @@
 """fdnet.matching.search: exact and indexed ranking, the saved-index cache, the matches CSV."""
 
-import csv
-
-import numpy as np
 import pytest
-from PIL import Image
 
 from fdnet.descriptors import create
 from fdnet.errors import ConfigError
 from fdnet.matching.search import index_settings, match_images, names_digest
 
+from conftest import read_csv_rows, write_random_places
+
 
 def make_route(folder, n=12, seed=0, brightness=1.0):
-    folder.mkdir(parents=True)
-    rng = np.random.default_rng(seed)
-    for i in range(n):
-        img = rng.integers(0, 256, size=(24, 32, 3)).astype(np.float32) * brightness
-        Image.fromarray(np.clip(img, 0, 255).astype(np.uint8)).save(folder / f"frame_{i:03d}.png")
-    return folder
-
-
-def read_rows(path):
-    with open(path, newline="") as fh:
-        return list(csv.DictReader(fh))
+    return write_random_places(folder, n, seed, brightness)
 
 
 def test_exact_and_indexed_search_find_the_same_places_and_the_index_is_reused(tmp_path):
@@ -34,7 +22,7 @@ def test_exact_and_indexed_search_find_the_same_places_and_the_index_is_reused(t
                                index_file=None if index == "exact" else tmp_path / "map.index", workers=0,
                                progress=False, log=messages.append)
         assert (summary.num_references, summary.num_queries, summary.method) == (30, 30, "raw")
-    exact, first, second = (read_rows(tmp_path / n) for n in ("e.csv", "i1.csv", "i2.csv"))
+    exact, first, second = (read_csv_rows(tmp_path / n) for n in ("e.csv", "i1.csv", "i2.csv"))
     assert all(r["query"] == r["reference"] for r in exact if r["rank"] == "1")
     assert first == second and len(first) == 60
     assert [m.split(" index")[0] for m in messages] == ["built the ivf", "loaded the ivf"]
