@@ -89,7 +89,7 @@ def write_day_dusk_route(root: Path, rng: np.random.Generator, places: int = 10)
     from PIL import Image
 
     for cond in ("day", "dusk"):
-        (root / cond).mkdir(parents=True)
+        (root / cond).mkdir(parents=True, exist_ok=True)
     for i in range(places):
         pattern = rng.random((16, 16))
         dusk = np.clip(0.5 * pattern + 0.03 * rng.standard_normal(pattern.shape), 0, 1)

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from PIL import Image
 
 from fdnet.data.dataset import RouteDataset
 from fdnet.data.split import aligned_split
@@ -12,6 +11,8 @@ from fdnet.descriptors.base import Descriptor, l2_normalize
 from fdnet.evaluation.experiment import evaluate_matrix, evaluate_method
 from fdnet.evaluation.metrics import RECALL_OVER_QUERIES, VPRBENCH, evaluate_similarity, top_k_of_matrix
 from fdnet.matching.similarity import similarity_matrix
+
+from conftest import write_day_dusk_route
 
 
 class TinyPixels(Descriptor):
@@ -54,15 +55,7 @@ class FittedL1(TinyPixels):
 
 def make_route(root, frames: int = 12, seed: int = 0):
     """Two conditions of one route: 'day' random patterns; 'dusk' = darker, noisy copies."""
-    rng = np.random.default_rng(seed)
-    for cond in ("day", "dusk"):
-        (root / cond).mkdir(parents=True, exist_ok=True)
-    for i in range(frames):
-        pattern = rng.random((16, 16))
-        dusk = np.clip(0.5 * pattern + 0.03 * rng.standard_normal(pattern.shape), 0, 1)
-        Image.fromarray((pattern * 255).astype(np.uint8)).save(root / "day" / f"{i:03d}.png")
-        Image.fromarray((dusk * 255).astype(np.uint8)).save(root / "dusk" / f"{i:03d}.png")
-    return root
+    return write_day_dusk_route(root, np.random.default_rng(seed), frames)
 
 
 @pytest.fixture
