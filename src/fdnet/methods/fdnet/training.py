@@ -70,7 +70,9 @@ class FDNetTraining(TrainingMethod):
     rank_state_keys = ("sampler_generator",)  # each rank's own stream; the conditions are shared
 
     def __init__(self, config: FDNetRunConfig, data: TrainingImages,
-                 trunk_maps: dict[tuple[int, str], torch.Tensor] | None = None) -> None:
+                 trunk_maps: dict[tuple, torch.Tensor] | None = None) -> None:
+        """``trunk_maps``: the encoders' inputs by (block, condition[, synthetic setting]), shared by
+        the candidates a run chooses from (:func:`choose_start`), filled as they are computed."""
         validate(config)
         self.config = config
         self.data = data
@@ -99,8 +101,6 @@ class FDNetTraining(TrainingMethod):
         # computed once: the trunk costs ~10 ms/image on a CPU core, more than the FDNet step.
         self.cached_inputs = None if self.model.trunk is None else [
             self._trunk_map(x, name, trunk_maps) for x, name in zip(self.images, data.names)]
-        #: (block, condition) -> its maps, shared by the candidates a run chooses from (choose_start)
-        self.trunk_maps = trunk_maps
         #: validation scores of each candidate start, by block (and synthetic setting; choose_start)
         self.block_selection: dict[str, dict[str, float]] = {}
         #: what the projection head's closed-form start found (content_fit.ProjectionFit.report)
@@ -374,7 +374,6 @@ def choose_start(config: FDNetRunConfig, real: TrainingImages, validation) -> FD
     _, method, rng = best
     torch.set_rng_state(rng)
     method.block_selection = scores
-    method.trunk_maps = None
     del method.log  # back to the class's
     chosen_block = method.config.model.backbone_block
     chosen = _start_label(config, tuple(method.config.data.synthetic_conditions), chosen_block)
