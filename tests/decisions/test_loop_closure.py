@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 from fdnet.data.groundtruth import GroundTruth
-from fdnet.decisions.loop_closure import (EVENT_COLUMNS, Closure, EventLog, FrameDecision, LoopClosureDetector,
-                                          evaluate_decisions)
+from fdnet.decisions.loop_closure import EVENT_COLUMNS, Closure, FrameDecision, LoopClosureDetector
+from fdnet.decisions.loop_evaluation import evaluate_decisions
+from fdnet.decisions.loop_events import EventLog
 from fdnet.descriptors.classic import HOGDescriptor, RawThumbnail
 from fdnet.errors import ConfigError, DataError
 from fdnet.matching.database import PlaceDatabase
@@ -165,7 +166,10 @@ def test_evaluation_by_hand():
     assert out["metrics"]["recall_at_100_precision"] == 0.5
     assert out["metrics"]["recall_at_n"]["1"] == 1.0  # best by similarity is right for frames 3 and 4
     assert out["at_threshold"] == {"threshold": 0.2, "accepted": 2, "true": 1, "false": 1, "precision": 0.5,
-                                   "recall": 0.5}
+                                   "recall": 0.5,
+                                   # frames 1 and 2 revisit nothing searchable: frame 2's closure is false
+                                   "first_pass": {"frames": 2, "accepted": 1},
+                                   "revisits": {"frames": 2, "true": 1, "wrong_place": 0, "missed": 1}}
     with pytest.raises(DataError, match="3 queries but the traverse has 5"):
         evaluate_decisions(decisions, GroundTruth([[], [], []], 5), 0.2, "margin")
     with pytest.raises(DataError, match="no frame revisits"):
@@ -226,7 +230,7 @@ def test_storing_frames_in_batches_changes_no_decision(tmp_path):
 
 
 def test_calibrating_on_a_traverse_picks_the_threshold_of_the_target_precision():
-    from fdnet.decisions.loop_closure import calibrate_decisions
+    from fdnet.decisions.loop_evaluation import calibrate_decisions
 
     decisions = [
         FrameDecision(0, -1, float("nan"), False, 0),

@@ -43,7 +43,17 @@ def register(sub) -> None:
                     "place when the acceptance rule's score reaches the threshold, add the frame to the database, "
                     "and write one event per accepted closure. A frame's decision uses only frames before it. "
                     "See docs/loop-closure.md.")
-    p.add_argument("--images", required=True, help="folder of the traverse's images (natural file-name order)")
+    source = p.add_mutually_exclusive_group(required=True)
+    source.add_argument("--images", help="the traverse: a folder of images (natural file-name order), a video or "
+                                         "a ROS bag")
+    source.add_argument("--data", metavar="DIR",
+                        help="a route's folder with one sub-folder per condition: drive --conditions one after "
+                             "another as one traverse, with frame-aligned ground truth (a frame of a later condition "
+                             "revisits the same frame of every earlier one, within --tolerance)")
+    p.add_argument("--conditions", metavar="A,B[,C...]", help="with --data: the conditions, in driving order")
+    p.add_argument("--frames", metavar="START:END", help="with --data: the frames of each condition (END exclusive)")
+    p.add_argument("--tolerance", type=_whole_number(0), default=None, metavar="N",
+                   help="with --data: frames within N of the same frame count as a revisit (default 0)")
     add_method_arguments(p)
     p.add_argument("--db", help="place database file: one from earlier sessions (`fdnet database build`, or an "
                                 "earlier loop-closure run), which must hold this method's vectors, or a new file to "
@@ -82,6 +92,14 @@ def register(sub) -> None:
                    help="frames stored in --db per transaction (default 1: every frame is on disk before the next "
                         "is read, one fsync each; N > 1 is faster and changes no decision, but a crash loses up to "
                         "N - 1 frames of the database)")
+    p.add_argument("--gate", action="append", default=[], metavar="KEY=VALUE",
+                   help="a loop gate setting (repeatable; none/off switches one off): min_brightness, "
+                        "min_contrast (uninformative frames), still_difference, segment_similarity, "
+                        "exclude_seconds, exclude_metres (the robot's recent past), consistency, "
+                        "consistency_window (k consecutive agreeing frames); see docs/loop-closure.md")
+    p.add_argument("--resume", action="store_true",
+                   help="continue a run that was interrupted: --db holds its first frames; their decisions are "
+                        "replayed from the database, the events files rewritten with them, and the rest processed")
     p.add_argument("--report", metavar="JSON", help="write the run's summary (and evaluation) as JSON")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_pipeline_arguments(p, batch_size=16)
@@ -95,12 +113,24 @@ def run(args) -> int:
 
     from fdnet.cli.common import check_pipeline_arguments, create_descriptor
     from fdnet.cli.database import _file_options
-    from fdnet.decisions.loop_closure import run_traverse
+    import logging
+
+    from fdnet.decisions.loop_gates import LoopGates
+    from fdnet.decisions.loop_traverse import route_traverse, run_traverse
     from fdnet.errors import ConfigError
     from fdnet.io import atomic_write_text, ensure_writable
     from fdnet.matching.database import check_can_create
 
     check_pipeline_arguments(args)
+    route_flags = [f"--{name}" for name in ("conditions", "frames", "tolerance")
+                   if getattr(args, name) is not None]
+    if args.images and route_flags:
+        raise ConfigError(f"{', '.join(route_flags)} go with --data DIR (a route's conditions), not --images")
+    if args.data and not args.conditions:
+        raise ConfigError("--data needs --conditions A,B[,...]: the conditions to drive one after another")
+    if args.data and args.ground_truth and args.tolerance is not None:
+        raise ConfigError("give --tolerance (frame-aligned ground truth) or --ground-truth CSV, not both")
+    gates = LoopGates().with_settings(args.gate) if args.gate else None
     if args.threshold is not None and not args.accept:
         raise ConfigError("--threshold needs --accept RULE (the rule whose score it thresholds)")
     if args.calibrate_out and not args.accept and not args.calibration:
@@ -114,15 +144,19 @@ def run(args) -> int:
     if args.db and not (Path(args.db).is_file() and Path(args.db).stat().st_size > 0):
         check_can_create(args.db)
         ensure_writable(args.db, what="place database")
+    images = args.images
+    if args.data:
+        images = route_traverse(args.data, args.conditions.split(","), args.frames,
+                                0 if args.tolerance is None else args.tolerance)
     descriptor = create_descriptor(args.method, args)
     report = run_traverse(
-        args.images, descriptor, args.db, exclude_last=args.exclude_last, events_csv=args.out,
+        images, descriptor, args.db, exclude_last=args.exclude_last, events_csv=args.out,
         events_jsonl=args.jsonl, rule=args.accept, rule_settings=args.accept_set or None, threshold=args.threshold,
         calibration=args.calibration, sequence_length=args.sequence_length, ground_truth=args.ground_truth,
         calibrate_to=args.calibrate_out, target_precision=args.target_precision,
         method_options=_file_options(args, args.method), commit_every=args.commit_every,
-        batch_size=args.batch_size, workers=args.workers,
-        progress=not args.no_progress, log=None)
+        batch_size=args.batch_size, workers=args.workers, gates=gates, resume=args.resume,
+        progress=not args.no_progress, log=logging.getLogger("fdnet.loop_closure").info)
     print(f"wrote {args.out}" + (f" and {args.jsonl}" if args.jsonl else "")
           + f": {report.closures} loop closures in {report.frames} frames ({report.rule} >= {report.threshold:g}), "
           f"{report.frames_per_second:.1f} frames/s ({report.seconds:.1f} s)")
@@ -137,6 +171,14 @@ def run(args) -> int:
               f"AUC-PR {m['auc_pr']:.3f}, R@1 {m['recall_at_n']['1']:.3f}")
         print(f"at threshold {at['threshold']:g}: {at['accepted']} accepted, {at['true']} true, {at['false']} false "
               f"(precision {at['precision']:.3f}, recall {at['recall']:.3f})")
+        first, back = at["first_pass"], at["revisits"]
+        print(f"first pass (no place seen before): {first['frames']} frames, {first['accepted']} closures accepted "
+              f"(all false); revisits: {back['frames']} frames, {back['true']} closed right, {back['wrong_place']} "
+              f"closed to a wrong place, {back['missed']} missed")
+    counts = report.gate_counts
+    print(f"gates: {counts['uninformative']} uninformative frames skipped, {counts['still_frames']} still frames "
+          f"made no decision, {counts['still_exclusion']} frames with the robot's still segment excluded, {counts['held_by_consistency']} candidates held back by the "
+          f"consistency gate (k={report.gates['consistency']})")
     if report.calibrated is not None:
         c = report.calibrated
         print(f"wrote {c['path']}: threshold {c['threshold']:.6g} reaches precision {c['precision']:.3f} at recall "

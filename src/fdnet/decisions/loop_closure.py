@@ -34,24 +34,20 @@ against ground truth with the metrics of :mod:`fdnet.evaluation.metrics`.
 
 from __future__ import annotations
 
-import csv
-import io
-import json
 import logging
 import math
 import os
-import time
 import uuid
 from collections import deque
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Callable, Sequence
 
 import numpy as np
 
 from fdnet.decisions.acceptance import AcceptanceSpec, Candidates, decide, parse_acceptance
+from fdnet.decisions.loop_gates import (ConsistencyGate, FrameSignals, LoopGates, RecentPast, frame_signals,
+                                        informative_frames, is_still)
 from fdnet.errors import ConfigError, DataError
-from fdnet.io import spreadsheet_text
 
 logger = logging.getLogger(__name__)
 
@@ -84,9 +80,10 @@ class Closure:
 @dataclass(frozen=True)
 class FrameDecision:
     """What the detector decided for one frame, accepted or not (for evaluation): the candidate
-    its rule vouches for (``match`` -1 when nothing was searchable yet), the acceptance ``score``
-    (NaN without a candidate; -inf when a gate rejected it) and how many places were searchable
-    (the places the frame could have matched: indices 0..searchable-1)."""
+    its rule vouches for (``match`` -1 when there was none: nothing searchable yet, or the frame
+    was gated), the acceptance ``score`` (NaN when nothing was searchable; -inf when a gate
+    rejected it) and how many places were searchable (the places the frame could have matched:
+    indices 0..searchable-1)."""
 
     query_index: int
     match: int
@@ -96,6 +93,18 @@ class FrameDecision:
     #: the best place by (sequence) similarity and that similarity (the ranking, for Recall@1)
     best: int = -1
     best_similarity: float = float("nan")
+    #: why the frame could not close a loop whatever its score: "uninformative" (dark, blank),
+    #: "still" (the robot has not moved since its previous frame), "no informative place" (no
+    #: searchable place can be a candidate), "" otherwise
+    gated: str = ""
+    #: the rule's score before the consistency gate (equal to ``score`` without the gate)
+    rule_score: float = float("nan")
+
+
+def place_name(path: str | os.PathLike) -> str:
+    """A frame's place name: its absolute path as listed (a symbolic link keeps its own name, so
+    two links to one file are two places, each under the name it was given)."""
+    return os.path.abspath(os.fspath(path))
 
 
 class _Vectors:
@@ -195,7 +204,8 @@ class LoopClosureDetector:
 
     def __init__(self, descriptor, database=None, *, exclude_last: int, rule: str | AcceptanceSpec | None = None,
                  rule_settings=None, threshold: float | None = None, calibration=None, sequence_length: int = 1,
-                 method_options: dict | None = None, allow_duplicates: bool = False, commit_every: int = 1):
+                 method_options: dict | None = None, allow_duplicates: bool = False, commit_every: int = 1,
+                 gates: LoopGates | None = None):
         from fdnet.matching.database import PlaceDatabase
 
         if isinstance(exclude_last, bool) or not isinstance(exclude_last, (int, np.integer)) or exclude_last < 0:
@@ -213,6 +223,8 @@ class LoopClosureDetector:
         self.sequence_length = int(sequence_length)
         self.allow_duplicates = bool(allow_duplicates)
         self.commit_every = int(commit_every)
+        if gates is not None and not isinstance(gates, LoopGates):
+            raise ConfigError(f"gates must be a LoopGates, got {type(gates).__name__}")
         # frames decided but not yet stored (commit_every > 1): vectors, names, positions, metadata
         self._pending: list[tuple] = []
         source = None
@@ -220,6 +232,7 @@ class LoopClosureDetector:
             calibration, source = _stored_calibration(database)
         self.spec, self.threshold, self.calibration = self._decision_rule(rule, rule_settings, threshold, calibration,
                                                                           source)
+        self.gates = self._gates(gates, source)
         self._owns_database = not isinstance(database, PlaceDatabase)
         self.database = self._database(database, method_options)
         try:
@@ -228,12 +241,22 @@ class LoopClosureDetector:
             self.close()
             raise
         self._session = uuid.uuid4().hex[:8]
+        self._start_traverse()
+
+    def _start_traverse(self) -> None:
         # per frame of this traverse: the places in the database before it was added (so frame
-        # t searches places[:before[t - exclude_last]]), and its similarity row for sequences
+        # t searches the places before its first excluded frame), and its similarity row for sequences
         self._before: list[int] = []
         self._rows: deque[np.ndarray] = deque(maxlen=max(self.sequence_length - 1, 0) or None)
+        self._recent = RecentPast(self.exclude_last, self.gates)
+        self._consistency = ConsistencyGate(self.gates.consistency, self.gates.consistency_window)
+        self._last_thumbnail: np.ndarray | None = None
         self.decisions: list[FrameDecision] = []
         self.closures: list[Closure] = []
+        #: what the gates did so far: frames that were uninformative, frames whose exclusion
+        #: reached further back than exclude_last (a still robot), candidates the consistency
+        #: gate held back (score at the threshold, matches not yet consistent)
+        self.gate_counts = {"uninformative": 0, "still_frames": 0, "still_exclusion": 0, "held_by_consistency": 0}
 
     # ------------------------------------------------------------------ setting up
     def _decision_rule(self, rule, rule_settings, threshold, calibration, source=None):
@@ -264,6 +287,25 @@ class LoopClosureDetector:
         spec = rule if isinstance(rule, AcceptanceSpec) else parse_acceptance(str(rule), rule_settings)
         return spec, float(threshold), None
 
+    def _gates(self, gates: LoopGates | None, source: str | None) -> LoopGates:
+        """The gates: given, else those a loop calibration was measured with (its threshold holds
+        for them: the consistency gate changes what a score means), else the defaults. Gates
+        that differ from a loop calibration's are refused."""
+        calibrated = None
+        if self.calibration is not None:
+            stored = (self.calibration.measured_on or {}).get("gates")
+            calibrated = LoopGates.from_dict(stored) if stored else None
+        if gates is None:
+            return calibrated or LoopGates()
+        if calibrated is not None and calibrated != gates:
+            changed = {k: (v, gates.to_dict()[k]) for k, v in calibrated.to_dict().items() if gates.to_dict()[k] != v}
+            raise ConfigError(f"{source or 'the calibration'}: was measured with loop gates "
+                              + ", ".join(f"{k}={a}" for k, (a, _) in changed.items()) + ", but "
+                              + ", ".join(f"{k}={b}" for k, (_, b) in changed.items())
+                              + " were asked for; its threshold holds for its own gates (leave the gates out to "
+                              "use them)")
+        return gates
+
     def _database(self, database, method_options):
         from fdnet.matching.database import MEMORY, PlaceDatabase
 
@@ -284,8 +326,12 @@ class LoopClosureDetector:
         self._vectors = _Vectors(db.dim, db.vectors)
         positions = db.positions
         self._positions: list | None = positions if all(p is not None for p in positions) else None
-        times = [(m or {}).get("timestamp") for m in db.metadata]
+        metadata = db.metadata
+        times = [(m or {}).get("timestamp") for m in metadata]
         self._times: list | None = times if all(isinstance(t, (int, float)) for t in times) else None
+        # places an earlier run found uninformative (dark, blank) are never candidates
+        self._informative = [not (m or {}).get("uninformative", False) for m in metadata]
+        self._still = [bool((m or {}).get("still", False)) for m in metadata]
 
     @property
     def places(self) -> int:
@@ -298,37 +344,55 @@ class LoopClosureDetector:
         return len(self._before)
 
     # ------------------------------------------------------------------ one frame
-    def describe(self, image) -> np.ndarray:
-        """One frame's vector: ``image`` is a path or an (H, W, 3) array (uint8, or float in
-        [0, 1]), brought to the descriptor's input size as ``fdnet`` loads every image."""
+    def load(self, image) -> np.ndarray:
+        """One frame as the descriptor gets it: ``image`` is a path or an (H, W, 3) RGB array
+        (uint8 0..255, or float in [0, 1]; a float array above 1 is refused, since its scale
+        is unknown), brought to the descriptor's input size (area interpolation) as ``fdnet``
+        loads every image; (H, W, 3) float32 in [0, 1]."""
         from fdnet.data.images import load_image
 
         size = tuple(self.descriptor.input_size)
         if isinstance(image, (str, os.PathLike)):
-            array = load_image(image, size)
+            return load_image(image, size)
+        array = np.asarray(image)
+        if array.ndim != 3 or array.shape[2] != 3:
+            raise DataError(f"a frame must be an (H, W, 3) RGB image, got an array of shape {array.shape}")
+        if array.dtype == np.uint8:
+            array = array.astype(np.float32) / 255.0
         else:
-            array = np.asarray(image)
-            if array.ndim != 3 or array.shape[2] != 3:
-                raise DataError(f"a frame must be an (H, W, 3) RGB image, got an array of shape {array.shape}")
-            array = array.astype(np.float32) / 255.0 if array.dtype == np.uint8 else array.astype(np.float32)
-            if array.shape[:2] != size:
-                import cv2
+            array = array.astype(np.float32)
+            if array.size and (float(array.max()) > 1.0 or float(array.min()) < 0.0):
+                raise DataError("a float frame must hold values in [0, 1] (give uint8 for 0..255)")
+        if array.shape[:2] != size:
+            import cv2
 
-                array = cv2.resize(array, (size[1], size[0]), interpolation=cv2.INTER_AREA)
-        return np.asarray(self.descriptor.describe(array[None]), dtype=np.float32)[0]
+            array = cv2.resize(array, (size[1], size[0]), interpolation=cv2.INTER_AREA)
+        return array
+
+    def describe(self, image) -> np.ndarray:
+        """One frame's vector (``image`` as for :meth:`load`)."""
+        return np.asarray(self.descriptor.describe(self.load(image)[None]), dtype=np.float32)[0]
 
     def process(self, image, timestamp: float | None = None, name: str | None = None,
                 position: tuple[float, float] | None = None) -> Closure | None:
         """Describe the next frame, decide, add it to the database; the accepted closure or None.
-        ``name`` (default: the path of ``image``, else a name unique to this run) is the place's
-        name in the database; a rule that verifies geometry reads images by these names."""
+        ``image``: a path or an (H, W, 3) RGB array (see :meth:`load`). ``name`` (default: the
+        path of ``image``, else a name unique to this run) is the place's name in the database;
+        a rule that verifies geometry reads images by these names."""
         if name is None and isinstance(image, (str, os.PathLike)):
-            name = str(Path(image).resolve())
-        return self.process_vector(self.describe(image), timestamp=timestamp, name=name, position=position)
+            name = place_name(image)
+        array = self.load(image)
+        vector = np.asarray(self.descriptor.describe(array[None]), dtype=np.float32)[0]
+        return self.process_vector(vector, timestamp=timestamp, name=name, position=position,
+                                   signals=frame_signals(array[None]))
 
     def process_vector(self, vector: np.ndarray, timestamp: float | None = None, name: str | None = None,
-                       position: tuple[float, float] | None = None) -> Closure | None:
-        """:meth:`process` for a frame already described by the detector's descriptor."""
+                       position: tuple[float, float] | None = None, signals: FrameSignals | None = None,
+                       _replay: dict | None = None) -> Closure | None:
+        """:meth:`process` for a frame already described by the detector's descriptor.
+        ``signals``: the frame's :class:`~fdnet.decisions.loop_gates.FrameSignals` (from its
+        pixels) for the uninformative-frame and still-robot gates; without them those gates
+        cannot see the frame and let it through."""
         v = np.asarray(vector, dtype=np.float32).reshape(-1)
         if v.shape[0] != self.database.dim:
             raise DataError(f"frame vector has {v.shape[0]} values, the {self.descriptor.name} places have "
@@ -344,12 +408,6 @@ class LoopClosureDetector:
                                       or not math.isfinite(timestamp)):
             raise DataError(f"{name}: timestamp must be a finite number of seconds, got {timestamp!r}")
         count = self.places
-        # this traverse's last `exclude_last` frames are never candidates; places from earlier
-        # sessions (and this traverse's older frames) are
-        if self.exclude_last == 0 or t == 0:
-            searchable = count
-        else:  # frames t-N..t-1 excluded: the places there were before frame t-N was added
-            searchable = self._before[max(t - self.exclude_last, 0)]
         if count:
             # One row against the map is a memory-bound matrix-vector product: BLAS threads only
             # add synchronisation, and on shared cores they made it ~5x slower (17 ms vs 3.7 ms
@@ -358,24 +416,54 @@ class LoopClosureDetector:
                 row = np.asarray(self.descriptor.similarity(v[None], self._vectors.view()), dtype=np.float32)[0]
         else:
             row = np.zeros(0, np.float32)
+        if _replay is not None:  # resume(): what the interrupted run stored for this frame
+            informative, still = _replay["informative"], _replay["still"]
+        else:
+            informative, still = True, False
+            if signals is not None:
+                informative = bool(informative_frames(signals.statistics[:1], self.gates)[0])
+                still = t > 0 and is_still(signals.thumbnails[0], self._last_thumbnail, self.gates)
+                self._last_thumbnail = signals.thumbnails[0]
+        searchable = self._searchable(t, count, row, still, timestamp, position)
+        row = self._mask_uninformative(row, informative)
         if self.sequence_length > 1:
             from fdnet.matching.sequence import online_sequence_scores
 
             scores = online_sequence_scores([*self._rows, row], searchable)
         else:
             scores = row[:searchable]
+        scores = self._never_best(scores)
         closure = None
         decision = FrameDecision(t, -1, float("nan"), False, int(searchable))
         if searchable > 0:
-            match, score, similarity = self._decide(scores, name, timestamp, position)
-            accepted = bool(score >= self.threshold)
-            best = int(np.argmax(scores))
-            decision = FrameDecision(t, match, score, accepted, int(searchable), best, float(scores[best]))
-            if accepted:
-                closure = Closure(t, name, match, self._names[match], score, similarity, self.spec.name,
-                                  self.threshold, timestamp,
-                                  None if self._times is None else float(self._times[match]))
-        self._add(v, name, timestamp, position)
+            gated = "" if informative else "uninformative"
+            if not gated and still and not self.gates.decide_when_still:
+                gated = "still"
+            if not gated and not any(self._informative[self._first_full:searchable]):
+                gated = "no informative place"
+            if gated:
+                self.gate_counts["uninformative"] += not informative
+                self.gate_counts["still_frames"] += gated == "still"
+                self._consistency.update(-1, -math.inf)
+                best = int(np.argmax(scores))
+                decision = FrameDecision(t, -1, -math.inf, False, int(searchable), best, float(scores[best]),
+                                         gated=gated)
+            else:
+                match, rule_score, similarity = self._decide(scores, name, timestamp, position)
+                score = self._consistency.update(match, rule_score)
+                accepted = bool(score >= self.threshold)
+                if rule_score >= self.threshold and not accepted:
+                    self.gate_counts["held_by_consistency"] += 1
+                best = int(np.argmax(scores))
+                decision = FrameDecision(t, match, score, accepted, int(searchable), best, float(scores[best]),
+                                         rule_score=rule_score)
+                if accepted:
+                    closure = Closure(t, name, match, self._names[match], score, similarity, self.spec.name,
+                                      self.threshold, timestamp,
+                                      None if self._times is None else float(self._times[match]))
+        elif not informative:
+            self.gate_counts["uninformative"] += 1
+        self._add(v, name, timestamp, position, informative, still, store=_replay is None)
         self._before.append(count)
         if self.sequence_length > 1:
             self._rows.append(row)
@@ -383,6 +471,56 @@ class LoopClosureDetector:
         if closure is not None:
             self.closures.append(closure)
         return closure
+
+    def _searchable(self, t: int, count: int, row: np.ndarray, still: bool, timestamp, position) -> int:
+        """How many places frame ``t`` may match (a prefix of the map): places from earlier
+        sessions and this traverse's frames before its recent past (:class:`RecentPast`:
+        exclude_last, the current still segment, the last seconds or metres), moved back by
+        sequence_length - 1 frames more with sequences, so that no candidate's sequence shares a
+        frame with the query's own."""
+        previous = float(row[count - 1]) if t > 0 and count > 0 else None
+        first = self._recent.first_excluded(t, previous, still, timestamp, position)
+        if first < max(t - self.exclude_last, 0) if self.exclude_last else first < t:
+            self.gate_counts["still_exclusion"] += 1
+        first = max(first - (self.sequence_length - 1), 0)
+        return count if first >= t else self._before[first]
+
+    def _mask_uninformative(self, row: np.ndarray, informative: bool) -> np.ndarray:
+        """The frame's similarity row with uninformative places (and, for an uninformative frame,
+        every place) set to the median of its informative values: neutral in a sequence (a
+        sequence through a tunnel is scored by its other frames), and below the best candidate.
+        :meth:`_never_best` then keeps uninformative places from being matched at all."""
+        if not len(row):
+            return row
+        mask = np.fromiter(self._informative, dtype=bool, count=len(row))
+        neutral = float(np.median(row[mask])) if mask.any() else 0.0
+        if not informative:
+            return np.full_like(row, neutral)
+        if mask.all():
+            return row
+        row = row.copy()
+        row[~mask] = neutral
+        return row
+
+    @property
+    def _first_full(self) -> int:
+        """The first place that can end a full-length sequence at every velocity (0 for single images)."""
+        from fdnet.matching.sequence import DEFAULT_VELOCITIES
+
+        if self.sequence_length <= 1:
+            return 0
+        return int(math.ceil(max(DEFAULT_VELOCITIES) * (self.sequence_length - 1)))
+
+    def _never_best(self, scores: np.ndarray) -> np.ndarray:
+        """``scores`` with uninformative places, and places that cannot end a full-length
+        sequence, at the lowest remaining score."""
+        mask = np.fromiter(self._informative, dtype=bool, count=len(scores))
+        mask[:self._first_full] = False
+        if mask.all() or not mask.any():
+            return scores
+        scores = np.array(scores, dtype=np.float32)
+        scores[~mask] = scores[mask].min()
+        return scores
 
     def _decide(self, scores: np.ndarray, name: str, timestamp, position) -> tuple[int, float, float]:
         from fdnet.matching.similarity import top_k_of_matrix
@@ -405,14 +543,22 @@ class LoopClosureDetector:
         similarity = float(scores[match])
         return match, float(decision.score[0]), similarity
 
-    def _add(self, v: np.ndarray, name: str, timestamp, position) -> None:
+    def _add(self, v: np.ndarray, name: str, timestamp, position, informative: bool = True, still: bool = False,
+             store: bool = True) -> None:
         metadata = {"loop_closure_frame": self.frames, "session": self._session}
         if timestamp is not None:
             metadata["timestamp"] = float(timestamp)
-        self._pending.append((v, name, position, metadata))
+        if not informative:
+            metadata["uninformative"] = True
+        if still:
+            metadata["still"] = True
+        if store:
+            self._pending.append((v, name, position, metadata))
         self._vectors.append(v)
         self._names.append(name)
         self._known.add(name)
+        self._informative.append(bool(informative))
+        self._still.append(bool(still))
         if self._positions is not None:
             if position is None:
                 self._positions = None
@@ -425,6 +571,42 @@ class LoopClosureDetector:
                 self._times.append(float(timestamp))
         if len(self._pending) >= self.commit_every:
             self.flush()
+
+    # ------------------------------------------------------------------ resuming a traverse
+    def resume(self, frames: int, last_thumbnail: np.ndarray | None = None) -> list[Closure]:
+        """Take the database's last ``frames`` places as this traverse's first frames (a run that
+        was interrupted after storing them) and replay their decisions from the stored vectors,
+        times, positions and gate flags, without storing anything: every state a decision reads
+        (rows for sequences, the recent past, the consistency gate, which places are
+        uninformative) is rebuilt as the interrupted run had it. Returns the closures those
+        frames accepted (the events the interrupted run wrote, or was about to write).
+        ``last_thumbnail``: the last stored frame's grey thumbnail (its
+        :class:`~fdnet.decisions.loop_gates.FrameSignals`), so the still-robot gate compares the
+        next frame with it."""
+        if self.frames:
+            raise ConfigError("resume() must come before the first frame is processed")
+        if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or not 0 <= frames <= self.places:
+            raise ConfigError(f"cannot resume {frames!r} frames of a database of {self.places} places")
+        frames = int(frames)
+        start = self.places - frames
+        vectors = self._vectors.view()[start:].copy()
+        names, informative, still = self._names[start:], self._informative[start:], self._still[start:]
+        times = None if self._times is None else self._times[start:]
+        positions = None if self._positions is None else self._positions[start:]
+        self._vectors = _Vectors(self.database.dim, self._vectors.view(start))
+        del self._names[start:], self._informative[start:], self._still[start:]
+        self._known = set(self._names)
+        if self._times is not None:
+            del self._times[start:]
+        if self._positions is not None:
+            del self._positions[start:]
+        self._start_traverse()
+        for k in range(frames):
+            self.process_vector(vectors[k], timestamp=None if times is None else times[k], name=names[k],
+                                position=None if positions is None else positions[k],
+                                _replay={"informative": informative[k], "still": still[k]})
+        self._last_thumbnail = None if last_thumbnail is None else np.asarray(last_thumbnail, np.float32)
+        return list(self.closures)
 
     def flush(self) -> None:
         """Store the frames not stored yet, in one transaction."""
@@ -458,343 +640,3 @@ class LoopClosureDetector:
 
     def __exit__(self, *exc) -> None:
         self.close()
-
-
-# ---------------------------------------------------------------------- events on disk
-class EventLog:
-    """Accepted closures written as they happen: a CSV (header :data:`EVENT_COLUMNS`) and,
-    optionally, JSON lines with the same keys.
-
-    Guarantee: both files are created fresh when the log opens (the header written atomically,
-    :func:`fdnet.io.atomic_write_text`); when :meth:`write` returns, the event's line is on disk
-    in each file (the whole line in one ``os.write`` on an ``O_APPEND`` descriptor, then
-    ``fsync``). A crash or ``kill -9`` therefore leaves every event reported before it, each line
-    complete; only a power cut in the middle of a write can leave one incomplete last line (no
-    final newline), which readers drop. One fsync per accepted closure, not per frame.
-    """
-
-    def __init__(self, csv_path: str | os.PathLike, jsonl_path: str | os.PathLike | None = None):
-        from fdnet.io import atomic_write_text
-
-        self.paths = [Path(csv_path)] + ([Path(jsonl_path)] if jsonl_path is not None else [])
-        if len({p.resolve() for p in self.paths}) != len(self.paths):
-            raise ConfigError(f"{csv_path}: the CSV and the JSON-lines events must be two different files")
-        self._fds: list[int] = []
-        atomic_write_text(self.paths[0], self._csv_line(EVENT_COLUMNS))
-        if jsonl_path is not None:
-            atomic_write_text(self.paths[1], "")
-        try:
-            for path in self.paths:
-                self._fds.append(os.open(path, os.O_WRONLY | os.O_APPEND))
-        except OSError as exc:
-            self.close()
-            raise DataError(f"cannot open the events file for appending ({exc.strerror or exc})") from None
-        self.count = 0
-
-    @staticmethod
-    def _csv_line(values) -> str:
-        buffer = io.StringIO()
-        csv.writer(buffer, lineterminator="\n").writerow(values)
-        return buffer.getvalue()
-
-    def write(self, closure: Closure) -> None:
-        event = closure.to_dict()
-        cells = ["" if event[c] is None else (f"{event[c]:.6f}" if isinstance(event[c], float) else
-                                              spreadsheet_text(event[c]) if c in ("query", "match") else event[c])
-                 for c in EVENT_COLUMNS]
-        lines = [self._csv_line(cells)]
-        if len(self._fds) > 1:
-            lines.append(json.dumps({c: event[c] for c in EVENT_COLUMNS}, allow_nan=False) + "\n")
-        for fd, line, path in zip(self._fds, lines, self.paths):
-            data = line.encode("utf-8", "surrogateescape")  # a name that is not UTF-8: its own bytes
-            try:
-                written = os.write(fd, data)
-                if written != len(data):  # only a full disk stops a regular file's write short
-                    raise OSError(f"wrote {written} of {len(data)} bytes")
-                os.fsync(fd)
-            except OSError as exc:
-                raise DataError(f"{path}: cannot write the loop-closure event ({getattr(exc, 'strerror', None) or exc})"
-                                ) from None
-        self.count += 1
-
-    def close(self) -> None:
-        while self._fds:
-            os.close(self._fds.pop())
-
-    def __enter__(self) -> "EventLog":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-
-# ---------------------------------------------------------------------- evaluation
-def _evaluable(decisions: Sequence[FrameDecision], ground_truth):
-    """(the frames that had a place to search, their ground truth cut to those places)."""
-    from fdnet.data.groundtruth import GroundTruth
-
-    if ground_truth.num_queries != len(decisions):
-        raise DataError(f"the ground truth has {ground_truth.num_queries} queries but the traverse has "
-                        f"{len(decisions)} frames")
-    evaluated = [d for d in decisions if d.match >= 0]
-    if not evaluated:
-        raise DataError("no frame had a place to search (exclude-last covers the whole traverse): nothing to evaluate")
-    positives = [ground_truth.positives[d.query_index] for d in evaluated]
-    positives = [p[p < d.searchable] for p, d in zip(positives, evaluated)]
-    truth = GroundTruth(positives, ground_truth.num_references,
-                        f"{ground_truth.description}; true matches cut to each frame's searchable places")
-    if not truth.has_match.any():
-        raise DataError(f"no frame revisits a place it could search ({ground_truth.description}; frames after "
-                        "exclude-last): nothing to evaluate. Does the traverse return to a place it saw before?")
-    return evaluated, truth
-
-
-def evaluate_decisions(decisions: Sequence[FrameDecision], ground_truth, threshold: float, rule: str) -> dict:
-    """Every frame's decision against ``ground_truth`` (queries = this traverse's frames in
-    order, references = the database's places by index), with the metrics of
-    :func:`fdnet.evaluation.metrics.evaluate_retrieval` over each frame's acceptance score and
-    the place it vouches for (recall over queries: R@100P, R@99P, R@95P, P@maxR, AUC-PR,
-    Recall@1), and the operating point at ``threshold`` (what the run accepted).
-
-    A frame can only close a loop with a place it was allowed to search, so each frame's true
-    matches are cut to the places searchable for it (its own last frames are no revisit); frames
-    with nothing to search are left out (they can neither find nor miss anything).
-    """
-    from fdnet.evaluation.metrics import RECALL_OVER_QUERIES, evaluate_retrieval
-
-    evaluated, truth = _evaluable(decisions, ground_truth)
-    score = np.array([d.score for d in evaluated], dtype=np.float64)
-    match = np.array([d.match for d in evaluated], dtype=np.int64)
-    metrics = evaluate_retrieval(np.array([[d.best] for d in evaluated]),
-                                 np.array([[d.best_similarity] for d in evaluated]), truth,
-                                 protocol=RECALL_OVER_QUERIES, ns=(1,), acceptance_scores=score,
-                                 accepted_matches=match, acceptance=rule)
-    accepted = score >= float(threshold)
-    correct = truth.correct_mask(match[:, None])[:, 0]
-    true_closures = int((accepted & correct).sum())
-    revisits = int(truth.has_match.sum())
-    return {
-        "frames": len(decisions),
-        "frames_evaluated": len(evaluated),
-        "frames_with_revisit": revisits,
-        "ground_truth": truth.description,
-        "metrics": metrics.to_dict(include_curve=False),
-        "at_threshold": {
-            "threshold": float(threshold),
-            "accepted": int(accepted.sum()),
-            "true": true_closures,
-            "false": int(accepted.sum()) - true_closures,
-            "precision": true_closures / int(accepted.sum()) if accepted.any() else 1.0,
-            "recall": true_closures / revisits,
-        },
-    }
-
-
-def calibrate_decisions(decisions: Sequence[FrameDecision], ground_truth, detector: "LoopClosureDetector",
-                        target_precision: float, measured_on: dict | None = None):
-    """A :class:`~fdnet.decisions.calibration.Calibration` of ``detector``'s rule from one
-    traverse with ground truth: the threshold on its frames' acceptance scores that reaches
-    ``target_precision`` with the largest recall
-    (:func:`fdnet.decisions.calibration.choose_threshold`), over the same frames and true
-    matches as :func:`evaluate_decisions`. Calibrating on the robot's own kind of traverse
-    matters: a cross-condition pair has none of the look-alike places a traverse meets in its
-    own recent past (docs/loop-closure.md)."""
-    from datetime import datetime, timezone
-
-    from fdnet import __version__
-    from fdnet.decisions.calibration import Calibration, check_target, choose_threshold
-
-    target = check_target(target_precision)
-    evaluated, truth = _evaluable(decisions, ground_truth)
-    score = np.array([d.score for d in evaluated], dtype=np.float64)
-    match = np.array([d.match for d in evaluated], dtype=np.int64)
-    correct = truth.correct_mask(match[:, None])[:, 0]
-    chosen = choose_threshold(score, correct, truth.has_match, target)
-    notes = []
-    if not math.isfinite(chosen.threshold):
-        notes.append(f"no threshold reaches precision {target:g} on this traverse (its most confident frame is "
-                     "already wrong): nothing will be accepted")
-    length = detector.sequence_length if detector.sequence_length > 1 else 0
-    where = {"loop_closure": True, "ground_truth": truth.description, "exclude_last": detector.exclude_last,
-             "frames": len(decisions), "frames_evaluated": len(evaluated), "sequence_length": length,
-             **(measured_on or {})}
-    return Calibration(
-        rule=detector.spec.name, settings=detector.spec.settings, threshold=chosen.threshold,
-        target_precision=target, precision=chosen.precision, recall=chosen.recall, accepted=chosen.accepted,
-        num_queries=len(evaluated), method=detector.descriptor.name, fingerprint=detector.descriptor.fingerprint(),
-        sequence_length=length, measured_on=where,
-        created=datetime.now(timezone.utc).isoformat(timespec="seconds"), fdnet_version=__version__, notes=notes)
-
-
-# ---------------------------------------------------------------------- a traverse from a folder
-@dataclass
-class TraverseReport:
-    """What :func:`run_traverse` did: frames, closures, time, the database and the evaluation."""
-
-    frames: int
-    closures: int
-    seconds: float
-    places_before: int
-    places_after: int
-    rule: str
-    rule_settings: dict
-    threshold: float
-    sequence_length: int
-    exclude_last: int
-    database: str
-    events: list[str]
-    evaluation: dict | None = None
-    calibration: str | None = None
-    #: the calibration this run wrote (``calibrate_to``): path, threshold, precision, recall
-    calibrated: dict | None = None
-    notes: list[str] = field(default_factory=list)
-
-    @property
-    def frames_per_second(self) -> float:
-        return self.frames / self.seconds if self.seconds > 0 else float("nan")
-
-    def to_dict(self) -> dict:
-        out = asdict(self)
-        out["frames_per_second"] = self.frames_per_second
-        return out
-
-
-def run_traverse(images: str | os.PathLike, descriptor, database=None, *, exclude_last: int,
-                 events_csv: str | os.PathLike, events_jsonl: str | os.PathLike | None = None,
-                 rule: str | None = None, rule_settings=None, threshold: float | None = None, calibration=None,
-                 sequence_length: int = 1, ground_truth: str | os.PathLike | None = None,
-                 calibrate_to: str | os.PathLike | None = None, target_precision: float = 1.0,
-                 method_options: dict | None = None, commit_every: int = 1, batch_size: int = 16,
-                 workers: int | None = None, progress: bool = False,
-                 log: Callable[[str], None] | None = None) -> TraverseReport:
-    """Run a :class:`LoopClosureDetector` over the images of one folder (or video or ROS bag: its
-    frames bring their timestamps, and a bag's its positions, for ``radius_s`` / ``radius_m``; one
-    traverse, in fdnet's one image order), writing each accepted closure to ``events_csv`` (and
-    ``events_jsonl``) as it is accepted (:class:`EventLog`). ``database``: a place-database file
-    from earlier sessions (or a new file to create; None = in memory only). ``ground_truth``: a
-    CSV of :class:`~fdnet.data.groundtruth.GroundTruth` (``fdnet groundtruth`` from positions,
-    or a frame list ``query_index,reference_indices``) whose queries are the frames and whose
-    references are the database's places (for a new database: the same frames); the run is
-    then evaluated (:func:`evaluate_decisions`). ``commit_every``: frames per database
-    transaction (see :class:`LoopClosureDetector`). ``calibrate_to``: also choose the threshold
-    that reaches ``target_precision`` on this traverse (:func:`calibrate_decisions`, needs
-    ``ground_truth``) and write that calibration there (YAML); without a threshold or
-    calibration such a run accepts nothing (threshold +inf). Frames are described ``batch_size`` at a time
-    (each vector depends only on its own image, so this changes no decision) with a progress bar
-    in frames/s when ``progress``. Every refusal (paths, rule, calibration, ground truth,
-    database) comes before the first frame is described.
-    """
-    from fdnet.data.groundtruth import GroundTruth
-    from fdnet.data.images import list_images
-    from fdnet.data.sources import frame_records, positions_in_metres
-    from fdnet.io import ensure_writable
-    from fdnet.matching.database import check_place_names
-
-    say = log or (lambda message: None)
-    if calibrate_to is not None:
-        from fdnet.decisions.calibration import check_target
-
-        if ground_truth is None:
-            raise ConfigError("calibrating on a traverse needs its ground truth (--ground-truth CSV)")
-        check_target(target_precision)
-        ensure_writable(calibrate_to, what="calibration file")
-        if threshold is None and calibration is None:
-            threshold = math.inf
-    ensure_writable(events_csv, what="events CSV")
-    if events_jsonl is not None:
-        ensure_writable(events_jsonl, what="events JSON lines")
-    if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
-        raise ConfigError(f"batch size must be a whole number of at least 1, got {batch_size!r}")
-    paths = list_images(images)
-    names = [str(p.resolve()) for p in paths]
-    check_place_names(names)  # before any frame is described: the database could not store them
-    # frames of a video or bag carry their time, and a bag's its position: radius_s / radius_m use them
-    records = frame_records(paths)
-    times = [r.timestamp for r in records]
-    positions = positions_in_metres(records)
-    with LoopClosureDetector(descriptor, database, exclude_last=exclude_last, rule=rule,
-                             rule_settings=rule_settings, threshold=threshold, calibration=calibration,
-                             sequence_length=sequence_length, method_options=method_options,
-                             commit_every=commit_every) as detector:
-        db = detector.database
-        already = db.existing_names(names)
-        if already:
-            first = next(n for n in names if n in already)
-            raise DataError(f"{db.path}: already holds {len(already)} of these {len(names)} frames (e.g. {first}); "
-                            "a traverse is added once: use a copy of the database from before that run, or "
-                            "another database")
-        places_before = detector.places
-        truth = None
-        if ground_truth is not None:
-            truth = GroundTruth.from_csv(ground_truth, num_references=places_before + len(paths),
-                                         num_queries=len(paths))
-            truth.check_names(paths, [*detector._names, *paths])
-        # a rule that looks at the images (verification) refuses unusable ones (too small for
-        # local features) before the first frame is described
-        detector.spec.check_images(paths, [*detector._names, *names])
-        say(f"loop closure over {len(paths)} frames of {images} with {descriptor.name}, rule {detector.spec.name} "
-            f"(threshold {detector.threshold:g}), {places_before} places in {db.path} before the run")
-        t0 = time.perf_counter()
-        events = _detect_over(detector, descriptor, paths, names, times, positions, events_csv, events_jsonl,
-                              batch_size, workers, progress)
-        detector.flush()
-        seconds = time.perf_counter() - t0
-        report = TraverseReport(
-            frames=detector.frames, closures=len(detector.closures), seconds=seconds, places_before=places_before,
-            places_after=detector.places, rule=detector.spec.name, rule_settings=detector.spec.settings,
-            threshold=detector.threshold,
-            sequence_length=detector.sequence_length, exclude_last=detector.exclude_last, database=str(db.path),
-            events=[str(p) for p in events.paths],
-            calibration=None if calibration is None else str(calibration))
-        if truth is not None:
-            report.evaluation = evaluate_decisions(detector.decisions, truth, detector.threshold, detector.spec.name)
-        if calibrate_to is not None:
-            report.calibrated = _calibrate_on_traverse(detector, truth, target_precision, images, ground_truth,
-                                                       calibrate_to)
-    return report
-
-
-def _detect_over(detector: LoopClosureDetector, descriptor, paths, names, times, positions, events_csv,
-                 events_jsonl, batch_size: int, workers: int | None, progress: bool) -> EventLog:
-    """Describe ``paths`` ``batch_size`` at a time and feed each vector to ``detector``, writing
-    each accepted closure to the event log as it is accepted; returns the (closed) log."""
-    from fdnet.descriptors.pipeline import describe_stream
-
-    bar = None
-    if progress:
-        from fdnet.progress import progress_bar
-
-        bar = progress_bar(total=len(paths), desc=f"loop closure [{descriptor.name}]", unit="frame",
-                           smoothing=0.1)
-    try:
-        with EventLog(events_csv, events_jsonl) as events:
-            for start, vectors in describe_stream(descriptor, paths, batch_size, workers=workers):
-                for offset, vector in enumerate(np.asarray(vectors, dtype=np.float32)):
-                    k = start + offset
-                    closure = detector.process_vector(vector, name=names[k], timestamp=times[k],
-                                                      position=positions[k])
-                    if closure is not None:
-                        events.write(closure)
-                if bar is not None:
-                    bar.update(len(vectors))
-                    bar.set_postfix(closures=events.count, refresh=False)
-    finally:
-        if bar is not None:
-            bar.close()
-    return events
-
-
-def _calibrate_on_traverse(detector: LoopClosureDetector, truth, target_precision: float, images,
-                           ground_truth, calibrate_to) -> dict:
-    """Choose the threshold reaching ``target_precision`` on this traverse's decisions, write it
-    to ``calibrate_to`` and return what :attr:`TraverseReport.calibrated` records."""
-    from fdnet.decisions.calibration import save_calibration
-
-    calibrated = calibrate_decisions(detector.decisions, truth, detector, target_precision,
-                                     {"images": str(Path(images).resolve()),
-                                      "ground_truth_file": str(Path(ground_truth).resolve())})
-    written = save_calibration(calibrated, calibrate_to)
-    return {"path": str(written), "threshold": calibrated.threshold,
-            "target_precision": calibrated.target_precision,
-            "precision": calibrated.precision, "recall": calibrated.recall,
-            "notes": list(calibrated.notes)}

@@ -1,0 +1,319 @@
+"""A whole traverse through the loop-closure detector: what ``fdnet loop-closure`` runs.
+
+:func:`run_traverse` reads one traverse (a folder, video or ROS bag, or a route's conditions
+driven one after another: :func:`route_traverse`), describes its frames in batches (their pixel
+signals for the gates come from the same decoded images), feeds them to a
+:class:`~fdnet.decisions.loop_closure.LoopClosureDetector`, writes each accepted closure as it is
+accepted (:class:`~fdnet.decisions.loop_events.EventLog`), resumes an interrupted run, and
+evaluates and calibrates on ground truth (:mod:`fdnet.decisions.loop_evaluation`).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from fdnet.decisions.loop_closure import LoopClosureDetector, place_name
+from fdnet.decisions.loop_evaluation import calibrate_decisions, evaluate_decisions
+from fdnet.decisions.loop_events import EventLog
+from fdnet.decisions.loop_gates import LoopGates, frame_signals
+from fdnet.errors import ConfigError, DataError
+
+
+@dataclass
+class RouteTraverse:
+    """A route's conditions driven one after another as one traverse: the frames in order, the
+    condition and frame id of each, and its ground truth (a frame of a later condition revisits
+    the frames of every earlier condition whose frame id is within ``tolerance``)."""
+
+    paths: list[Path]
+    conditions: list[str]
+    condition_of: np.ndarray
+    frame_ids: np.ndarray
+    tolerance: int
+    description: str
+
+    def ground_truth(self, places_before: int = 0):
+        """Ground truth whose queries are the traverse's frames and whose references are the
+        database's places (``places_before`` places from earlier sessions first)."""
+        from fdnet.data.groundtruth import GroundTruth
+
+        positives = []
+        for q in range(len(self.paths)):
+            earlier = np.flatnonzero((self.condition_of < self.condition_of[q])
+                                     & (np.abs(self.frame_ids - self.frame_ids[q]) <= self.tolerance))
+            positives.append(earlier + places_before)
+        return GroundTruth(positives, places_before + len(self.paths),
+                           f"{self.description}: a frame revisits the frames of earlier conditions within "
+                           f"{self.tolerance} frames")
+
+
+def route_traverse(data: str | os.PathLike, conditions: Sequence[str], frames: str | None = None,
+                   tolerance: int = 0) -> RouteTraverse:
+    """The conditions of the route in ``data`` (``DATA/<condition>/`` folders, videos or bags,
+    frame-aligned) driven one after another, each cut to ``frames`` (``START:END``), as one
+    traverse with frame-aligned ground truth (:class:`RouteTraverse`)."""
+    from fdnet.data.dataset import RouteDataset, parse_frame_range
+
+    conditions = [c.strip() for c in conditions if c.strip()]
+    if len(conditions) < 2:
+        raise ConfigError(f"--conditions needs at least two conditions to drive one after another (the first "
+                          f"pass and a revisit), got {','.join(conditions) or 'none'}")
+    if len(set(conditions)) != len(conditions):
+        raise ConfigError(f"--conditions names a condition twice: {','.join(conditions)}")
+    if isinstance(tolerance, bool) or not isinstance(tolerance, int) or tolerance < 0:
+        raise ConfigError(f"--tolerance must be a whole number of frames of at least 0, got {tolerance!r}")
+    dataset = RouteDataset.from_folder(data, conditions).frames(*parse_frame_range(frames))
+    sizes = {c: len(dataset[c]) for c in conditions}
+    if min(sizes.values()) == 0:
+        empty = next(c for c, n in sizes.items() if n == 0)
+        raise DataError(f"{Path(data) / empty}: no frames" + (f" in the range {frames}" if frames else ""))
+    paths, which, ids = [], [], []
+    for i, condition in enumerate(conditions):
+        traverse = dataset[condition]
+        paths += traverse.paths
+        which += [i] * len(traverse)
+        ids += list(traverse.frame_ids)
+    where = f"{Path(data).name} {' -> '.join(conditions)}" + (f", frames {frames}" if frames else "")
+    return RouteTraverse(paths, conditions, np.array(which), np.array(ids, dtype=np.int64), tolerance, where)
+
+
+@dataclass
+class TraverseReport:
+    """What :func:`run_traverse` did: frames, closures, time, the database and the evaluation."""
+
+    frames: int
+    closures: int
+    seconds: float
+    places_before: int
+    places_after: int
+    rule: str
+    rule_settings: dict
+    threshold: float
+    sequence_length: int
+    exclude_last: int
+    database: str
+    events: list[str]
+    gates: dict = field(default_factory=dict)
+    #: what the gates did: uninformative frames, frames with a still-robot exclusion, candidates
+    #: held back by the consistency gate
+    gate_counts: dict = field(default_factory=dict)
+    #: frames of an interrupted run taken over from the database (replayed, not described again)
+    resumed_frames: int = 0
+    evaluation: dict | None = None
+    calibration: str | None = None
+    #: the calibration this run wrote (``calibrate_to``): path, threshold, precision, recall
+    calibrated: dict | None = None
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def frames_per_second(self) -> float:
+        described = self.frames - self.resumed_frames
+        return described / self.seconds if self.seconds > 0 else float("nan")
+
+    def to_dict(self) -> dict:
+        out = asdict(self)
+        out["frames_per_second"] = self.frames_per_second
+        return out
+
+
+def run_traverse(images, descriptor, database=None, *, exclude_last: int,
+                 events_csv: str | os.PathLike, events_jsonl: str | os.PathLike | None = None,
+                 rule: str | None = None, rule_settings=None, threshold: float | None = None, calibration=None,
+                 sequence_length: int = 1, ground_truth=None,
+                 calibrate_to: str | os.PathLike | None = None, target_precision: float = 1.0,
+                 method_options: dict | None = None, commit_every: int = 1, batch_size: int = 16,
+                 workers: int | None = None, progress: bool = False, gates: LoopGates | None = None,
+                 resume: bool = False, log: Callable[[str], None] | None = None) -> TraverseReport:
+    """Run a :class:`LoopClosureDetector` over one traverse, writing each accepted closure to
+    ``events_csv`` (and ``events_jsonl``) as it is accepted.
+
+    ``images``: a folder (or video or ROS bag: its frames bring their timestamps, and a bag's its
+    positions, for ``radius_s`` / ``radius_m`` and the gates' seconds / metres), in fdnet's one
+    image order, or a :class:`RouteTraverse` (a route's conditions one after another, which
+    brings its own ground truth). ``database``: a place-database file from earlier sessions (or a
+    new file to create; None = in memory only). ``ground_truth``: a CSV of
+    :class:`~fdnet.data.groundtruth.GroundTruth` whose queries are the frames and whose
+    references are the database's places (for a new database: the same frames); the run is then
+    evaluated (:func:`~fdnet.decisions.loop_evaluation.evaluate_decisions`). ``gates``: the
+    :class:`~fdnet.decisions.loop_gates.LoopGates` (default settings when None).
+    ``commit_every``: frames per database transaction. ``calibrate_to``: also choose the
+    threshold that reaches ``target_precision`` on this traverse (needs ground truth) and write
+    that calibration there (YAML); without a threshold or calibration such a run accepts nothing
+    (threshold +inf). ``resume``: the database holds the first frames of this traverse from an
+    interrupted run: replay their decisions from the stored vectors (nothing is described or
+    stored twice), rewrite the events they accepted, and go on with the rest. Every refusal
+    (paths, rule, calibration, ground truth, database) comes before the first frame is described.
+    """
+    from fdnet.data.groundtruth import GroundTruth
+    from fdnet.data.images import list_images
+    from fdnet.data.sources import frame_records, positions_in_metres
+    from fdnet.io import ensure_writable
+    from fdnet.matching.database import check_place_names
+
+    say = log or (lambda message: None)
+    route = images if isinstance(images, RouteTraverse) else None
+    if calibrate_to is not None:
+        from fdnet.decisions.calibration import check_target
+
+        if ground_truth is None and route is None:
+            raise ConfigError("calibrating on a traverse needs its ground truth (--ground-truth CSV, or a route "
+                              "given as --data DIR --conditions A,B)")
+        check_target(target_precision)
+        ensure_writable(calibrate_to, what="calibration file")
+        if threshold is None and calibration is None:
+            threshold = math.inf
+    ensure_writable(events_csv, what="events CSV")
+    if events_jsonl is not None:
+        ensure_writable(events_jsonl, what="events JSON lines")
+    if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
+        raise ConfigError(f"batch size must be a whole number of at least 1, got {batch_size!r}")
+    if resume and database is None:
+        raise ConfigError("resuming needs the place database the interrupted run wrote (--db FILE): an in-memory "
+                          "run keeps nothing to resume from")
+    paths = list(route.paths) if route is not None else list_images(images)
+    where = route.description if route is not None else str(images)
+    names = [place_name(p) for p in paths]
+    if len(set(names)) != len(names):
+        twice = next(n for i, n in enumerate(names) if n in names[:i])
+        raise DataError(f"{twice}: listed twice in this traverse; every frame is a place under its own name")
+    check_place_names(names)  # before any frame is described: the database could not store them
+    # frames of a video or bag carry their time, and a bag's its position: radius_s / radius_m use them
+    records = frame_records(paths)
+    times = [r.timestamp for r in records]
+    positions = positions_in_metres(records)
+    with LoopClosureDetector(descriptor, database, exclude_last=exclude_last, rule=rule,
+                             rule_settings=rule_settings, threshold=threshold, calibration=calibration,
+                             sequence_length=sequence_length, method_options=method_options,
+                             commit_every=commit_every, gates=gates) as detector:
+        db = detector.database
+        done = _frames_done(db, names, resume)
+        places_before = detector.places - done
+        truth = None
+        if ground_truth is not None:
+            truth = GroundTruth.from_csv(ground_truth, num_references=places_before + len(paths),
+                                         num_queries=len(paths))
+            truth.check_names(paths, [*detector._names[:places_before], *paths])
+        elif route is not None:
+            truth = route.ground_truth(places_before)
+        # a rule that looks at the images (verification) refuses unusable ones (too small for
+        # local features) before the first frame is described
+        detector.spec.check_images(paths, [*detector._names[:places_before], *names])
+        initial = []
+        if done:
+            last = _signals_of(paths[done - 1:done], descriptor)
+            initial = detector.resume(done, last_thumbnail=last.thumbnails[0])
+            say(f"resuming {where}: {done} of {len(paths)} frames were stored by the interrupted run "
+                f"({len(initial)} closures among them); continuing with frame {done}")
+        say(f"loop closure over {len(paths)} frames of {where} with {descriptor.name}, rule {detector.spec.name} "
+            f"(threshold {detector.threshold:g}), {places_before} places in {db.path} before the run")
+        t0 = time.perf_counter()
+        events = _detect_over(detector, descriptor, paths, names, times, positions, events_csv, events_jsonl,
+                              batch_size, workers, progress, start=done, initial=initial)
+        detector.flush()
+        seconds = time.perf_counter() - t0
+        report = TraverseReport(
+            frames=detector.frames, closures=len(detector.closures), seconds=seconds, places_before=places_before,
+            places_after=detector.places, rule=detector.spec.name, rule_settings=detector.spec.settings,
+            threshold=detector.threshold,
+            sequence_length=detector.sequence_length, exclude_last=detector.exclude_last, database=str(db.path),
+            events=[str(p) for p in events.paths], gates=detector.gates.to_dict(),
+            gate_counts=dict(detector.gate_counts), resumed_frames=done,
+            calibration=None if calibration is None else str(calibration))
+        if truth is not None:
+            report.evaluation = evaluate_decisions(detector.decisions, truth, detector.threshold, detector.spec.name)
+        if calibrate_to is not None:
+            source = {"images": where if route is not None else str(Path(images).resolve())}
+            if ground_truth is not None:
+                source["ground_truth_file"] = str(Path(ground_truth).resolve())
+            else:
+                source["ground_truth"] = truth.description
+            report.calibrated = _calibrate_on_traverse(detector, truth, target_precision, source, calibrate_to)
+    return report
+
+
+def _frames_done(db, names: list[str], resume: bool) -> int:
+    """How many of the traverse's frames an interrupted run stored (with ``resume``), checking
+    that they are its first frames and the database's last places; a traverse already in the
+    database without ``resume`` is refused."""
+    already = db.existing_names(names)
+    if not already:
+        return 0
+    first = next(n for n in names if n in already)
+    if not resume:
+        raise DataError(f"{db.path}: already holds {len(already)} of these {len(names)} frames (e.g. {first}); "
+                        "a traverse is added once: to continue an interrupted run give --resume, otherwise use a "
+                        "copy of the database from before that run, or another database")
+    done = len(already)
+    stored = db.names[len(db.names) - done:]
+    if stored != names[:done]:
+        raise DataError(f"{db.path}: holds {done} of these frames, but not as the first {done} frames of this "
+                        "traverse stored last (another traverse was added after them, or the frames changed "
+                        "order): it cannot be resumed; use a copy of the database from before the run")
+    return done
+
+
+def _signals_of(paths, descriptor):
+    """The pixel signals of a few frames, decoded as the descriptor gets them."""
+    from fdnet.descriptors.pipeline import iter_image_batches
+
+    uint8 = bool(getattr(descriptor, "accepts_uint8", False))
+    for _, images in iter_image_batches(paths, descriptor.input_size, len(paths), uint8=uint8, workers=0):
+        return frame_signals(images)
+    raise DataError("no frame to read")
+
+
+def _detect_over(detector: LoopClosureDetector, descriptor, paths, names, times, positions, events_csv,
+                 events_jsonl, batch_size: int, workers: int | None, progress: bool, start: int = 0,
+                 initial=()) -> EventLog:
+    """Describe ``paths[start:]`` ``batch_size`` at a time (with each frame's pixel signals) and
+    feed each to ``detector``, writing each accepted closure to the event log as it is accepted
+    (the log starts from the ``initial`` events of a resumed run); returns the (closed) log."""
+    from fdnet.descriptors.pipeline import describe_stream
+
+    def describe(images):
+        return descriptor.describe(images), frame_signals(images)
+
+    bar = None
+    if progress:
+        from fdnet.progress import progress_bar
+
+        bar = progress_bar(total=len(paths), initial=start, desc=f"loop closure [{descriptor.name}]",
+                           unit="frame", smoothing=0.1)
+    try:
+        with EventLog(events_csv, events_jsonl, initial=initial) as events:
+            for offset, (vectors, signals) in describe_stream(descriptor, paths[start:], batch_size,
+                                                              workers=workers, describe=describe):
+                for i, vector in enumerate(np.asarray(vectors, dtype=np.float32)):
+                    k = start + offset + i
+                    closure = detector.process_vector(vector, name=names[k], timestamp=times[k],
+                                                      position=positions[k], signals=signals[i])
+                    if closure is not None:
+                        events.write(closure)
+                if bar is not None:
+                    bar.update(len(vectors))
+                    bar.set_postfix(closures=events.count, refresh=False)
+    finally:
+        if bar is not None:
+            bar.close()
+    return events
+
+
+def _calibrate_on_traverse(detector: LoopClosureDetector, truth, target_precision: float, source: dict,
+                           calibrate_to) -> dict:
+    """Choose the threshold reaching ``target_precision`` on this traverse's decisions, write it
+    to ``calibrate_to`` and return what :attr:`TraverseReport.calibrated` records."""
+    from fdnet.decisions.calibration import save_calibration
+
+    calibrated = calibrate_decisions(detector.decisions, truth, detector, target_precision, source)
+    written = save_calibration(calibrated, calibrate_to)
+    return {"path": str(written), "threshold": calibrated.threshold,
+            "target_precision": calibrated.target_precision,
+            "precision": calibrated.precision, "recall": calibrated.recall,
+            "accepted": calibrated.accepted, "notes": list(calibrated.notes)}
