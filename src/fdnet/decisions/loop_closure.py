@@ -429,7 +429,13 @@ class LoopClosureDetector:
         if self.sequence_length > 1:
             from fdnet.matching.sequence import online_sequence_scores
 
-            scores = online_sequence_scores([*self._rows, row], searchable)
+            # Each row starts with _first_full neutral values (its median): a sequence that would
+            # run off the start of the map is scored over all L frames, the missing ones neutral,
+            # instead of over the few it has (a mean of one or two similarities is noisy and
+            # would win by chance).
+            row = np.concatenate([np.full(self._first_full, np.median(row) if len(row) else 0.0, np.float32), row])
+            pad = self._first_full
+            scores = online_sequence_scores([*self._rows, row], searchable + pad)[pad:]
         else:
             scores = row[:searchable]
         scores = self._never_best(scores)
@@ -439,7 +445,7 @@ class LoopClosureDetector:
             gated = "" if informative else "uninformative"
             if not gated and still and not self.gates.decide_when_still:
                 gated = "still"
-            if not gated and not any(self._informative[self._first_full:searchable]):
+            if not gated and not any(self._informative[:searchable]):
                 gated = "no informative place"
             if gated:
                 self.gate_counts["uninformative"] += not informative
@@ -504,7 +510,8 @@ class LoopClosureDetector:
 
     @property
     def _first_full(self) -> int:
-        """The first place that can end a full-length sequence at every velocity (0 for single images)."""
+        """The first place that can end a full-length sequence at every velocity (0 for single
+        images): how many neutral values pad the start of each row."""
         from fdnet.matching.sequence import DEFAULT_VELOCITIES
 
         if self.sequence_length <= 1:
@@ -512,10 +519,8 @@ class LoopClosureDetector:
         return int(math.ceil(max(DEFAULT_VELOCITIES) * (self.sequence_length - 1)))
 
     def _never_best(self, scores: np.ndarray) -> np.ndarray:
-        """``scores`` with uninformative places, and places that cannot end a full-length
-        sequence, at the lowest remaining score."""
+        """``scores`` with uninformative places at the lowest informative score."""
         mask = np.fromiter(self._informative, dtype=bool, count=len(scores))
-        mask[:self._first_full] = False
         if mask.all() or not mask.any():
             return scores
         scores = np.array(scores, dtype=np.float32)

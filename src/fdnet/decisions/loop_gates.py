@@ -18,9 +18,9 @@ come from the traverse itself, not from look-alike places elsewhere:
   the exclusion grows by L - 1 (the detector applies it);
 * **a still robot's frames** make no decision (``decide_when_still``): they show nothing new, and
   the places of a stop all look alike;
-* **incomplete sequences**: with sequences of L frames, the map's first places cannot end a
-  full-length sequence (a mean over fewer frames is noisier and wins by chance); they are no
-  candidates (the detector applies it);
+* **incomplete sequences**: with sequences of L frames, a sequence that would run off the start
+  of the map is scored over all L frames with the missing ones neutral (a mean over fewer frames
+  is noisier and wins by chance; the detector applies it);
 * **temporal consistency** (:class:`ConsistencyGate`): like ORB-SLAM3's and Kimera's three
   consecutive detections, a closure is accepted only when the last ``consistency`` frames each
   found a candidate, and consecutive candidates lie within ``consistency_window`` places of
