@@ -33,8 +33,11 @@ def route(tmp_path):
 
 
 def args(route, tmp_path, *extra):
+    """Single images unless ``extra`` sets a sequence length (the command's default, 10, needs
+    longer routes than these 2 x 10 frames)."""
+    single = () if "--sequence-length" in extra else ("--sequence-length", "1")
     return ["loop-closure", "--images", str(route), "--method", "raw", "--exclude-last", "3", "--accept", "margin",
-            "--threshold", "0.2", "--out", str(tmp_path / "events.csv"), *extra]
+            "--threshold", "0.2", "--out", str(tmp_path / "events.csv"), *single, *extra]
 
 
 def test_events_at_the_revisits_and_an_evaluation(route, tmp_path, capsys):
@@ -101,10 +104,8 @@ def test_bad_input_is_one_line_before_any_frame_is_described(route, tmp_path, ca
     assert "Traceback" not in err
 
 
-def test_threshold_needs_a_rule_and_outputs_must_be_writable(route, tmp_path, capsys, no_describing):
+def test_outputs_must_be_writable(route, tmp_path, capsys, no_describing):
     base = ["loop-closure", "--images", str(route), "--method", "raw", "--exclude-last", "3"]
-    assert main(base + ["--threshold", "0.2", "--out", str(tmp_path / "e.csv")]) == 2
-    assert "--threshold needs --accept RULE" in capsys.readouterr().err
     (tmp_path / "folder").mkdir()
     assert main(base + ["--accept", "margin", "--threshold", "0.2", "--out", str(tmp_path / "folder")]) == 2
     assert "events CSV path is a directory" in capsys.readouterr().err
@@ -149,7 +150,8 @@ def test_calibrate_on_one_traverse_and_use_it_on_another(tmp_path, capsys):
     truth = GroundTruth([[] for _ in range(PLACES)] + [[i] for i in range(PLACES)], 2 * PLACES)
     truth.to_csv(tmp_path / "gt.csv")
     first, second = write_route(tmp_path / "a", seed=1), write_route(tmp_path / "b", seed=2)
-    base = ["loop-closure", "--method", "raw", "--exclude-last", "3", "--ground-truth", str(tmp_path / "gt.csv")]
+    base = ["loop-closure", "--method", "raw", "--exclude-last", "3", "--sequence-length", "1", "--ground-truth",
+            str(tmp_path / "gt.csv")]
     assert main(base + ["--images", str(first), "--accept", "margin", "--out", str(tmp_path / "a.csv"),
                         "--calibrate-out", str(tmp_path / "cal.yaml")]) == 0
     out = capsys.readouterr().out
@@ -207,3 +209,120 @@ def test_a_name_that_is_not_utf8_is_refused_before_any_frame_is_described(route,
     assert main(args(route, tmp_path)) == 2
     err = capsys.readouterr().err
     assert "frame_015\\xe9.png': the file name is not valid UTF-8, which a place database cannot store" in err
+
+
+def write_two_condition_route(root, n=12):
+    """root/day and root/dusk: n random-texture places, the same places at dusk (darker, noisier)."""
+    rng = np.random.default_rng(4)
+    day = [rng.integers(0, 256, size=(32, 64, 3)) for _ in range(n)]
+    for condition, images in (("day", day), ("dusk", [np.clip(im * 0.8 + rng.normal(0, 10, size=im.shape), 0, 255)
+                                                    for im in day])):
+        (root / condition).mkdir(parents=True)
+        for i, image in enumerate(images):
+            Image.fromarray(image.astype(np.uint8)).save(root / condition / f"img_{i:03d}.png")
+    return root
+
+
+def test_data_conditions_builds_the_traverse_and_ground_truth_of_a_link_folder(tmp_path, capsys):
+    root = write_two_condition_route(tmp_path / "route")
+    # the same traverse by hand: a folder of links, day frames 2..9 then dusk frames 2..9
+    links = tmp_path / "links"
+    links.mkdir()
+    for k, (condition, i) in enumerate([("day", i) for i in range(2, 10)] + [("dusk", i) for i in range(2, 10)]):
+        (links / f"frame_{k:03d}.png").symlink_to(root / condition / f"img_{i:03d}.png")
+    truth = GroundTruth([[] for _ in range(8)] + [[q - 9, q - 8, q - 7] for q in range(8, 16)], 16)
+    truth = GroundTruth([[r for r in p if 0 <= r < 8] for p in truth.positives], 16)
+    truth.to_csv(tmp_path / "gt.csv")
+    common = ["--method", "raw", "--exclude-last", "2", "--sequence-length", "1", "--accept", "margin",
+              "--threshold", "0.1"]
+    assert main(["loop-closure", "--images", str(links), *common, "--ground-truth", str(tmp_path / "gt.csv"),
+                 "--out", str(tmp_path / "links.csv"), "--report", str(tmp_path / "links.json")]) == 0
+    assert main(["loop-closure", "--data", str(root), "--conditions", "day,dusk", "--frames", "2:10",
+                 "--tolerance", "1", *common, "--out", str(tmp_path / "route.csv"),
+                 "--report", str(tmp_path / "route.json")]) == 0
+    out = capsys.readouterr().out
+    # the first pass's frames with something to search (3..7) and the 8 revisits, in both runs
+    assert out.count("first pass (no place seen before): 5 frames, 1 closures accepted (all false); revisits: 8 "
+                     "frames, 8 closed right") == 2
+    by_links, by_route = read_csv_rows(tmp_path / "links.csv"), read_csv_rows(tmp_path / "route.csv")
+    assert len(by_route) >= 6
+    key = ("query_index", "match_index", "score", "similarity")
+    assert [tuple(r[k] for k in key) for r in by_links] == [tuple(r[k] for k in key) for r in by_route]
+    # the places are named by the files listed: the links' own names, the route's files
+    assert all("/links/frame_" in r["query"] for r in by_links)
+    assert all("/route/dusk/img_" in r["query"] and "/route/day/img_" in r["match"] for r in by_route
+               if int(r["query_index"]) >= 8)
+    links_eval = json.loads((tmp_path / "links.json").read_text())["evaluation"]
+    route_eval = json.loads((tmp_path / "route.json").read_text())["evaluation"]
+    assert links_eval["metrics"] == route_eval["metrics"] and links_eval["at_threshold"] == route_eval["at_threshold"]
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--conditions", "day"], "--conditions needs at least two conditions"),
+    (["--conditions", "day,day"], "names a condition twice"),
+    (["--conditions", "day,night"], "condition folder not found"),
+    (["--conditions", "day,dusk", "--gate", "min_brightness=3"], "min_brightness must be in [0, 1]"),
+    (["--conditions", "day,dusk", "--gate", "consistency=0"], "consistency must be a whole number of at least 1"),
+    (["--conditions", "day,dusk", "--gate", "colour=1"], "unknown loop gate setting 'colour'"),
+    (["--conditions", "day,dusk", "--frames", "50:60"], "no frames in the range 50:60"),
+    ([], "--data needs --conditions"),
+])
+def test_bad_route_and_gate_settings_are_one_line(tmp_path, capsys, no_describing, extra, message):
+    root = write_two_condition_route(tmp_path / "route")
+    assert main(["loop-closure", "--data", str(root), "--method", "raw", "--exclude-last", "2", "--accept", "margin",
+                 "--threshold", "0.1", "--out", str(tmp_path / "e.csv"), *extra]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("fdnet loop-closure: error: ") and message in err and "Traceback" not in err
+    assert len(err.strip().splitlines()) == 1
+
+
+def test_images_with_route_flags_is_refused(route, tmp_path, capsys, no_describing):
+    assert main(args(route, tmp_path, "--conditions", "a,b")) == 2
+    assert "--conditions go with --data DIR" in capsys.readouterr().err
+
+
+def test_defaults_use_the_loop_calibration_stored_in_the_run_directory(tmp_path, capsys):
+    """--calibrate-out RUN_DIR writes RUN_DIR/loop-calibration.yaml; a later run with only
+    --images, --method, --checkpoint and --exclude-last uses its rule, sequence length and threshold."""
+    from fdnet.decisions import loop_closure
+
+    root = write_two_condition_route(tmp_path / "route", n=30)
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    calibrated = run_dir / loop_closure.LOOP_CALIBRATION_FILE
+    # raw takes no checkpoint: stand in for a trained method's run directory by pointing the
+    # lookup at it, as --checkpoint RUN_DIR does
+    assert main(["loop-closure", "--data", str(root), "--conditions", "day,dusk", "--tolerance", "1", "--method",
+                 "raw", "--exclude-last", "2", "--sequence-length", "3", "--calibrate-out", str(run_dir),
+                 "--out", str(tmp_path / "cal.csv")]) == 0
+    out = capsys.readouterr().out
+    assert f"wrote {calibrated}" in out
+    from fdnet.decisions.calibration import load_calibration
+
+    stored = load_calibration(calibrated)
+    assert stored.rule == "margin" and stored.sequence_length == 3 and stored.measured_on["loop_closure"]
+    assert stored.measured_on["gates"]["still_difference"] == 0.04
+    assert main(["loop-closure", "--images", str(root / "dusk"), "--method", "raw", "--exclude-last", "2",
+                 "--calibration", str(calibrated), "--out", str(tmp_path / "e.csv")]) == 0
+    assert "sequences of 3, threshold from" in capsys.readouterr().out
+    # gates other than those it was measured with are refused
+    assert main(["loop-closure", "--images", str(root / "dusk"), "--method", "raw", "--exclude-last", "2",
+                 "--calibration", str(calibrated), "--gate", "consistency=3", "--out", str(tmp_path / "e.csv")]) == 2
+    assert "was measured with loop gates consistency=1" in capsys.readouterr().err
+
+
+def test_a_pair_calibration_used_in_loop_closure_is_warned_about(route, tmp_path, capsys, caplog):
+    from fdnet.decisions.acceptance import parse_acceptance
+    from fdnet.decisions.calibration import Calibration, save_calibration
+
+    raw = RawThumbnail()
+    save_calibration(Calibration(rule="margin", settings=parse_acceptance("margin").settings, threshold=0.2,
+                                 target_precision=1.0, precision=1.0, recall=0.5, accepted=7, num_queries=40,
+                                 method="raw", fingerprint=raw.fingerprint(), measured_on={"reference": "day"}),
+                     tmp_path / "pair.yaml")
+    with caplog.at_level("INFO"):
+        assert main(["loop-closure", "--images", str(route), "--method", "raw", "--exclude-last", "3",
+                     "--calibration", str(tmp_path / "pair.yaml"), "--out", str(tmp_path / "e.csv")]) == 0
+    text = caplog.text
+    assert "measured on a pair of traverses, not on a loop" in text
+    assert "on 7 accepted of 40 frames" in text

@@ -261,3 +261,129 @@ def test_event_names_a_spreadsheet_would_run_are_quoted(tmp_path):
         log.write(event)
     rows = list(csv.DictReader(open(tmp_path / "e.csv", newline="")))
     assert (rows[0]["query"], rows[0]["match"], rows[0]["score"]) == ("'=b.png", "'@a.png", "0.250000")
+
+
+# ---------------------------------------------------------------------- the gates in the detector
+def tunnel(n, seed):
+    """n frames inside a tunnel: nearly black (mean about 8 of 255), the same faint lights each time."""
+    lights = np.random.default_rng(1234).integers(0, 16, size=(32, 64, 3))
+    noise = np.random.default_rng(seed).integers(0, 2, size=(n, 32, 64, 3))
+    return [(lights + noise[i]).astype(np.uint8) for i in range(n)]
+
+
+def stop(image, n, seed):
+    """n frames of a robot standing still: the same view, a little sensor noise."""
+    rng = np.random.default_rng(seed)
+    return [np.clip(image.astype(int) + rng.integers(-2, 3, size=image.shape), 0, 255).astype(np.uint8)
+            for _ in range(n)]
+
+
+def route_with_a_tunnel_a_stop_and_a_revisit():
+    """places 0-11, a tunnel (12-16), new places (17-22), a stop (23-32), another tunnel (33-37),
+    then places 0-11 again (38-49). Only 38-49 are revisits."""
+    first = places(seed=0)
+    more = places(seed=5, n=6)
+    frames = first + tunnel(5, 1) + more + stop(places(seed=9, n=1)[0], 10, 2) + tunnel(5, 3)
+    return frames + [seen_again(im, 200 + i) for i, im in enumerate(first)], len(frames)
+
+
+@pytest.mark.parametrize("length", [1, 3])
+def test_no_closure_from_a_tunnel_or_a_stop_and_the_revisit_closed(length):
+    from fdnet.decisions.loop_gates import LoopGates
+
+    frames, revisit = route_with_a_tunnel_a_stop_and_a_revisit()
+    settings = {"exclude_last": 2, "rule": "raw", "threshold": 0.8, "sequence_length": length}
+    gated, events = run(frames, **settings)
+    closures = [e for e in events if e is not None]
+    assert {c.query_index for c in closures} <= set(range(revisit, len(frames)))
+    assert all(c.match_index == c.query_index - revisit for c in closures)
+    assert len(closures) >= len(frames) - revisit - length   # every revisit once its sequence is in it
+    assert gated.gate_counts["uninformative"] == 10 and gated.gate_counts["still_frames"] == 9
+    # the same run with every gate off closes the second tunnel with the first and the stop with itself
+    off = LoopGates(min_brightness=None, min_contrast=None, still_difference=None)
+    ungated, events = run(frames, gates=off, **settings)
+    wrong = [e for e in events if e is not None and e.query_index < revisit]
+    assert {e.query_index for e in wrong} & set(range(33, 38)) and {e.query_index for e in wrong} & set(range(23, 33))
+
+
+def test_sequence_candidates_never_share_a_frame_with_the_query_sequence():
+    frames = places(seed=3, n=40)
+    for length, exclude in ((1, 0), (1, 4), (5, 0), (5, 3), (10, 2)):
+        detector, _ = run(frames, exclude_last=exclude, sequence_length=length, rule="raw", threshold=2.0)
+        for d in detector.decisions:
+            # the query's sequence is frames t-L+1..t; a candidate ending at place r reads places
+            # r-(L-1)*1.25..r; r < t-L+1-exclude keeps both apart by the exclusion window
+            newest_searchable = d.searchable - 1
+            assert newest_searchable < max(d.query_index - length + 1 - exclude, 0) or d.searchable == 0
+            assert d.match < max(d.query_index - length + 1 - exclude, 0)
+
+
+def test_uninformative_places_from_an_earlier_run_stay_out_of_the_map(tmp_path):
+    frames, revisit = route_with_a_tunnel_a_stop_and_a_revisit()
+    db = tmp_path / "map.db"
+    with LoopClosureDetector(RawThumbnail(), db, exclude_last=2, rule="raw", threshold=0.8) as first:
+        for i, image in enumerate(frames[:revisit]):
+            first.process(image, name=f"day1_{i}")
+    # a second session drives through the tunnel again: its frames neither match day 1's tunnel
+    # (marked uninformative in the database) nor close anything themselves
+    with LoopClosureDetector(RawThumbnail(), db, exclude_last=2, rule="raw", threshold=0.8) as second:
+        events = [second.process(image, name=f"day2_{i}") for i, image in enumerate(tunnel(5, 7) + places(seed=0))]
+    assert all(e is None for e in events[:5])
+    assert [e.match_index for e in events[5:] if e is not None] == list(range(PLACES))
+
+
+def test_resume_replays_to_the_events_of_an_uninterrupted_run(tmp_path):
+    from fdnet.decisions.loop_traverse import run_traverse
+    from PIL import Image
+
+    frames, revisit = route_with_a_tunnel_a_stop_and_a_revisit()
+    folder = tmp_path / "route"
+    folder.mkdir()
+    for i, image in enumerate(frames):
+        Image.fromarray(image).save(folder / f"frame_{i:03d}.png")
+    settings = {"exclude_last": 2, "rule": "raw", "threshold": 0.8, "sequence_length": 3, "batch_size": 4,
+                "workers": 0}
+    whole = run_traverse(folder, RawThumbnail(), tmp_path / "whole.db", events_csv=tmp_path / "whole.csv",
+                         events_jsonl=tmp_path / "whole.jsonl", **settings)
+    assert whole.closures >= 9 and revisit < 40
+
+    class Killed(Exception):
+        pass
+
+    class DiesAfter(RawThumbnail):
+        """Dies while describing the batch after ``frames`` frames, like a process killed there."""
+
+        def __init__(self, frames):
+            super().__init__()
+            self.left = frames
+
+        def describe(self, images):
+            self.left -= len(images)
+            if self.left < 0:
+                raise Killed()
+            return super().describe(images)
+
+    for cut in (20, 40):  # batches of 4: in the first pass, and among the revisits
+        db, csv_path, jsonl = tmp_path / f"cut{cut}.db", tmp_path / f"cut{cut}.csv", tmp_path / f"cut{cut}.jsonl"
+        with pytest.raises(Killed):
+            run_traverse(folder, DiesAfter(cut), db, events_csv=csv_path, events_jsonl=jsonl, **settings)
+        with PlaceDatabase.open(db) as stored:
+            assert len(stored) == cut
+        # a kill between storing a frame and writing its event: the last event line is lost, and
+        # a half line stands in for it
+        lines = csv_path.read_text().splitlines(keepends=True)
+        if len(lines) > 1:
+            csv_path.write_text("".join(lines[:-1]) + lines[-1][:7])
+        # without --resume the traverse is refused; with it, the events are those of one whole run
+        with pytest.raises(DataError, match="give --resume"):
+            run_traverse(folder, RawThumbnail(), db, events_csv=csv_path, **settings)
+        report = run_traverse(folder, RawThumbnail(), db, events_csv=csv_path, events_jsonl=jsonl, resume=True,
+                              **settings)
+        assert report.resumed_frames == cut and report.frames == len(frames)
+        assert csv_path.read_text() == (tmp_path / "whole.csv").read_text()
+        assert jsonl.read_text() == (tmp_path / "whole.jsonl").read_text()
+        with PlaceDatabase.open(db) as stored, PlaceDatabase.open(tmp_path / "whole.db") as reference:
+            assert stored.names == reference.names
+            np.testing.assert_array_equal(stored.vectors, reference.vectors)
+    with pytest.raises(ConfigError, match="needs the place database"):
+        run_traverse(folder, RawThumbnail(), None, events_csv=tmp_path / "x.csv", resume=True, **settings)

@@ -33,6 +33,33 @@ def _finite(text: str) -> float:
     return value
 
 
+def _default_calibration(args):
+    """(the calibration to use, the loaded Calibration or None): ``--calibration``; else, without
+    ``--threshold``, the one stored in ``--db``, else ``RUN_DIR/loop-calibration.yaml`` of
+    ``--checkpoint RUN_DIR``; else (None, None). Loaded here so that its rule and sequence length
+    become the defaults."""
+    from pathlib import Path
+
+    from fdnet.cli.common import method_options
+    from fdnet.decisions.calibration import load_calibration
+    from fdnet.decisions.loop_closure import LOOP_CALIBRATION_FILE, stored_calibration
+
+    if args.calibration:
+        return args.calibration, load_calibration(args.calibration)
+    if args.threshold is not None or args.calibrate_out:
+        return None, None
+    if args.db and Path(args.db).is_file() and Path(args.db).stat().st_size > 0:
+        calibrated, _ = stored_calibration(args.db)
+        if calibrated is not None:
+            return None, calibrated  # the detector reads it from the database
+    checkpoint = method_options(args, args.method).get("checkpoint") if args.method else None
+    if checkpoint:
+        candidate = Path(checkpoint) / LOOP_CALIBRATION_FILE
+        if candidate.is_file():
+            return str(candidate), load_calibration(candidate)
+    return None, None
+
+
 def register(sub) -> None:
     p = sub.add_parser(
         "loop-closure",
@@ -62,18 +89,20 @@ def register(sub) -> None:
                    help="never match this traverse's last N frames (they always look like the current one)")
     p.add_argument("--accept", metavar="RULE",
                    help="acceptance rule: raw, margin, ratio, verified, or a score with gates (margin+verified, "
-                        "margin+floor); needed with --threshold, taken from the file with --calibration")
+                        "margin+floor); default: the calibration's, else margin (docs/loop-closure.md says why)")
     p.add_argument("--accept-set", action="append", default=[], metavar="[RULE:]KEY=VALUE",
                    help="a setting of the rule, e.g. margin:radius=5 (repeatable)")
     threshold = p.add_mutually_exclusive_group()
     threshold.add_argument("--calibration", metavar="FILE|RUN_DIR",
-                           help="calibration from `fdnet calibrate` for this model: gives rule, settings and "
-                                "threshold (default without --threshold: the calibration stored in --db by "
-                                "`fdnet calibrate --db`)")
+                           help="calibration for this model: gives rule, settings, sequence length, gates and "
+                                "threshold. Default without --threshold: the one stored in --db (`fdnet calibrate "
+                                "--db`), else RUN_DIR/loop-calibration.yaml of --checkpoint RUN_DIR (written by "
+                                "`fdnet loop-closure ... --calibrate-out RUN_DIR`)")
     threshold.add_argument("--threshold", type=_finite, metavar="T",
                            help="accept a closure when the rule's score is at least T")
-    p.add_argument("--sequence-length", type=_whole_number(1), default=1, metavar="N",
-                   help="score sequences of the robot's last N frames (SeqSLAM, causal; default 1 = single images)")
+    p.add_argument("--sequence-length", type=_whole_number(1), default=None, metavar="N",
+                   help="score sequences of the robot's last N frames (SeqSLAM, causal; 1 = single images); "
+                        "default: the calibration's, else 10")
     p.add_argument("--out", required=True, metavar="EVENTS_CSV",
                    help="CSV of accepted closures, one line each, written as they are accepted")
     p.add_argument("--jsonl", metavar="EVENTS_JSONL", help="the same events as JSON lines")
@@ -82,10 +111,11 @@ def register(sub) -> None:
                         "references are the database's places (for a new database, the same frames), e.g. "
                         "`fdnet groundtruth --positions route.csv route.csv` or a frame list "
                         "query_index,reference_indices")
-    p.add_argument("--calibrate-out", metavar="FILE.yaml",
-                   help="with --ground-truth: choose the threshold of --accept that reaches --target-precision on "
-                        "this traverse and write it as a calibration for later runs (--calibration FILE); without "
-                        "--threshold this run accepts nothing")
+    p.add_argument("--calibrate-out", metavar="FILE.yaml|RUN_DIR",
+                   help="with ground truth (--ground-truth, or --data): choose the threshold of the rule that reaches "
+                        "--target-precision on this traverse and write it as a calibration for later runs "
+                        "(--calibration FILE; a run directory gets RUN_DIR/loop-calibration.yaml, which runs with "
+                        "--checkpoint RUN_DIR then use by default); without --threshold this run accepts nothing")
     p.add_argument("--target-precision", type=float, default=1.0,
                    help="with --calibrate-out: the precision to reach, in (0, 1] (default 1.0)")
     p.add_argument("--commit-every", type=_whole_number(1), default=1, metavar="N",
@@ -115,8 +145,9 @@ def run(args) -> int:
     from fdnet.cli.database import _file_options
     import logging
 
+    from fdnet.decisions.loop_closure import LOOP_CALIBRATION_FILE
     from fdnet.decisions.loop_gates import LoopGates
-    from fdnet.decisions.loop_traverse import route_traverse, run_traverse
+    from fdnet.decisions.loop_traverse import DEFAULT_RULE, DEFAULT_SEQUENCE_LENGTH, route_traverse, run_traverse
     from fdnet.errors import ConfigError
     from fdnet.io import atomic_write_text, ensure_writable
     from fdnet.matching.database import check_can_create
@@ -131,12 +162,11 @@ def run(args) -> int:
     if args.data and args.ground_truth and args.tolerance is not None:
         raise ConfigError("give --tolerance (frame-aligned ground truth) or --ground-truth CSV, not both")
     gates = LoopGates().with_settings(args.gate) if args.gate else None
-    if args.threshold is not None and not args.accept:
-        raise ConfigError("--threshold needs --accept RULE (the rule whose score it thresholds)")
-    if args.calibrate_out and not args.accept and not args.calibration:
-        raise ConfigError("--calibrate-out needs --accept RULE (the rule to calibrate)")
-    if args.accept_set and not (args.accept or args.calibration):
-        raise ConfigError("--accept-set needs --accept RULE")
+    calibration, calibrated = _default_calibration(args)
+    rule = args.accept or (None if calibrated is not None else DEFAULT_RULE)
+    sequence_length = args.sequence_length
+    if sequence_length is None:
+        sequence_length = max(calibrated.sequence_length, 1) if calibrated is not None else DEFAULT_SEQUENCE_LENGTH
     # every output path is refused before the first image is described
     for path, what in ((args.out, "events CSV"), (args.jsonl, "events JSON lines"), (args.report, "report JSON")):
         if path:
@@ -144,6 +174,9 @@ def run(args) -> int:
     if args.db and not (Path(args.db).is_file() and Path(args.db).stat().st_size > 0):
         check_can_create(args.db)
         ensure_writable(args.db, what="place database")
+    calibrate_out = args.calibrate_out
+    if calibrate_out and Path(calibrate_out).is_dir():
+        calibrate_out = str(Path(calibrate_out) / LOOP_CALIBRATION_FILE)
     images = args.images
     if args.data:
         images = route_traverse(args.data, args.conditions.split(","), args.frames,
@@ -151,14 +184,16 @@ def run(args) -> int:
     descriptor = create_descriptor(args.method, args)
     report = run_traverse(
         images, descriptor, args.db, exclude_last=args.exclude_last, events_csv=args.out,
-        events_jsonl=args.jsonl, rule=args.accept, rule_settings=args.accept_set or None, threshold=args.threshold,
-        calibration=args.calibration, sequence_length=args.sequence_length, ground_truth=args.ground_truth,
-        calibrate_to=args.calibrate_out, target_precision=args.target_precision,
+        events_jsonl=args.jsonl, rule=rule, rule_settings=args.accept_set or None, threshold=args.threshold,
+        calibration=calibration, sequence_length=sequence_length, ground_truth=args.ground_truth,
+        calibrate_to=calibrate_out, target_precision=args.target_precision,
         method_options=_file_options(args, args.method), commit_every=args.commit_every,
         batch_size=args.batch_size, workers=args.workers, gates=gates, resume=args.resume,
         progress=not args.no_progress, log=logging.getLogger("fdnet.loop_closure").info)
     print(f"wrote {args.out}" + (f" and {args.jsonl}" if args.jsonl else "")
-          + f": {report.closures} loop closures in {report.frames} frames ({report.rule} >= {report.threshold:g}), "
+          + f": {report.closures} loop closures in {report.frames} frames ({report.rule} >= {report.threshold:g}, "
+          f"sequences of {report.sequence_length}" + (f", threshold from {report.calibration}" if report.calibration
+                                                       else "") + "), "
           f"{report.frames_per_second:.1f} frames/s ({report.seconds:.1f} s)")
     if args.db:
         print(f"{args.db}: {report.places_before} places before, {report.places_after} after")

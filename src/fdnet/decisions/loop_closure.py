@@ -51,6 +51,10 @@ from fdnet.errors import ConfigError, DataError
 
 logger = logging.getLogger(__name__)
 
+#: file name of a loop calibration in a run directory (``fdnet loop-closure --calibrate-out RUN_DIR``),
+#: which loop closure with ``--checkpoint RUN_DIR`` uses when given no threshold
+LOOP_CALIBRATION_FILE = "loop-calibration.yaml"
+
 #: columns of the events CSV, in order (the JSON lines carry the same keys)
 EVENT_COLUMNS = ("query_index", "query", "match_index", "match", "score", "similarity", "rule", "threshold",
                  "timestamp", "match_timestamp")
@@ -132,7 +136,7 @@ class _Vectors:
         return self._data[:self._count if count is None else count]
 
 
-def _stored_calibration(database):
+def stored_calibration(database):
     """(the calibration ``fdnet calibrate --db`` stored in the database, where it came from), or
     (None, None) when the database (a PlaceDatabase or an existing file) holds none."""
     from fdnet.decisions.calibration import DATABASE_KEY, Calibration
@@ -229,7 +233,7 @@ class LoopClosureDetector:
         self._pending: list[tuple] = []
         source = None
         if threshold is None and calibration is None:
-            calibration, source = _stored_calibration(database)
+            calibration, source = stored_calibration(database)
         self.spec, self.threshold, self.calibration = self._decision_rule(rule, rule_settings, threshold, calibration,
                                                                           source)
         self.gates = self._gates(gates, source)
@@ -266,6 +270,15 @@ class LoopClosureDetector:
                                   "threshold)")
             calibrated, source = _load_calibration(calibration, self.descriptor, self.sequence_length, source)
             spec = calibrated.spec
+            where = calibrated.measured_on or {}
+            if not where.get("loop_closure"):
+                logger.warning(f"{source}: this calibration was measured on a pair of traverses, not on a loop: in loop "
+                               "closure the robot's own recent frames are look-alikes a pair never shows, and its "
+                               "precision is not reached there (docs/loop-closure.md). Calibrate on a loop: "
+                               "fdnet loop-closure ... --ground-truth CSV --calibrate-out FILE")
+            logger.info(f"{source}: threshold {calibrated.threshold:.6g} of rule {spec.name} reached precision "
+                        f"{calibrated.precision:.3f} at recall {calibrated.recall:.3f} on {calibrated.accepted} "
+                        f"accepted of {calibrated.num_queries} frames where it was measured")
             if rule is not None or rule_settings:
                 wanted = rule if isinstance(rule, AcceptanceSpec) else parse_acceptance(str(rule or spec.name),
                                                                                        rule_settings)
@@ -276,8 +289,10 @@ class LoopClosureDetector:
             return spec, float(calibrated.threshold), calibrated
         if threshold is None:
             raise ConfigError("a loop closure needs an acceptance threshold: give one (--threshold T), a "
-                              "calibration file (--calibration FILE, from `fdnet calibrate`), or a database "
-                              "holding a calibration (`fdnet calibrate --db`)")
+                              "calibration file (--calibration FILE), or a database holding a calibration "
+                              "(`fdnet calibrate --db`); or calibrate on a loop with ground truth first, e.g. "
+                              "`fdnet loop-closure --data ROUTE --conditions A,B --calibrate-out RUN_DIR ...`, which "
+                              f"writes RUN_DIR/{LOOP_CALIBRATION_FILE} that runs with --checkpoint RUN_DIR use")
         # +inf accepts nothing: a run that only measures (e.g. to calibrate: calibrate_decisions)
         if isinstance(threshold, bool) or not isinstance(threshold, (int, float, np.floating, np.integer)) \
                 or math.isnan(float(threshold)) or float(threshold) == -math.inf:
