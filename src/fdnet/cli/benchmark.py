@@ -39,6 +39,9 @@ def register(sub) -> None:
     p.add_argument("--map-size", default="1000",
                    help="map sizes, comma-separated (e.g. 1000,100000,1000000): the first is the matching table's "
                         "map; each is a random map of the scale benchmark (default 1000)")
+    p.add_argument("--loop-map-size", default="10000,100000,1000000",
+                   help="map sizes of the loop part: the loop-closure detector's ms/frame with exhaustive search "
+                        "and with the index (default 10000,100000,1000000; --quick: the smallest)")
     p.add_argument("--indexes", default=DEFAULT_INDEXES,
                    help=f"faiss indexes of the scale benchmark (default {DEFAULT_INDEXES})")
     p.add_argument("--index-set", action="append", default=[], metavar="KIND:KEY=VALUE",
@@ -86,6 +89,7 @@ def run(args) -> int:
         num_images=args.num_images, queries=args.queries, noise=args.noise, scale_dim=args.scale_dim,
         map_vectors=args.map_vectors, query_vectors=args.query_vectors, lengths=args.lengths,
         compile=args.compile == "on" or (args.compile == "auto" and args.num_images >= COMPILE_FROM),
-        quick=args.quick, threads=args.threads or os.cpu_count() or 1, device=args.device, command=command)
+        quick=args.quick, threads=args.threads or os.cpu_count() or 1, device=args.device, command=command,
+        loop_map_size=args.loop_map_size)
     run_benchmark(plan, out=lambda line: print(line, flush=True), json_path=args.json)
     return 0

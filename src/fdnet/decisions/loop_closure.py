@@ -55,6 +55,10 @@ logger = logging.getLogger(__name__)
 #: which loop closure with ``--checkpoint RUN_DIR`` uses when given no threshold
 LOOP_CALIBRATION_FILE = "loop-calibration.yaml"
 
+#: how the detector finds a frame's candidates: every place, an index, or the index once the map
+#: has ``index_from`` places (:mod:`fdnet.decisions.loop_search`)
+SEARCH_KINDS = ("auto", "exact", "index")
+
 #: columns of the events CSV, in order (the JSON lines carry the same keys)
 EVENT_COLUMNS = ("query_index", "query", "match_index", "match", "score", "similarity", "rule", "threshold",
                  "timestamp", "match_timestamp")
@@ -113,11 +117,14 @@ def place_name(path: str | os.PathLike) -> str:
 
 class _Vectors:
     """The database's vectors in memory, appended a row at a time (capacity doubles, so adding
-    N rows copies O(N) rows in all, where np.vstack per frame would copy O(N^2))."""
+    N rows copies O(N) rows in all, where np.vstack per frame would copy O(N^2)). With ``dim``
+    None it holds one flag per place (bool)."""
 
-    def __init__(self, dim: int, initial: np.ndarray | None = None):
-        rows = np.zeros((0, dim), np.float32) if initial is None else np.asarray(initial, np.float32)
-        self._data = np.empty((max(1024, 2 * len(rows)), dim), dtype=np.float32)
+    def __init__(self, dim: int | None, initial: np.ndarray | None = None):
+        dtype = bool if dim is None else np.float32
+        shape = () if dim is None else (dim,)
+        rows = np.zeros((0, *shape), dtype) if initial is None else np.asarray(initial, dtype)
+        self._data = np.empty((max(1024, 2 * len(rows)), *shape), dtype=dtype)
         self._data[:len(rows)] = rows
         self._count = len(rows)
 
@@ -126,7 +133,7 @@ class _Vectors:
 
     def append(self, row: np.ndarray) -> None:
         if self._count == len(self._data):
-            grown = np.empty((2 * len(self._data), self._data.shape[1]), dtype=np.float32)
+            grown = np.empty((2 * len(self._data), *self._data.shape[1:]), dtype=self._data.dtype)
             grown[:self._count] = self._data[:self._count]
             self._data = grown
         self._data[self._count] = row
@@ -209,7 +216,7 @@ class LoopClosureDetector:
     def __init__(self, descriptor, database=None, *, exclude_last: int, rule: str | AcceptanceSpec | None = None,
                  rule_settings=None, threshold: float | None = None, calibration=None, sequence_length: int = 1,
                  method_options: dict | None = None, allow_duplicates: bool = False, commit_every: int = 1,
-                 gates: LoopGates | None = None):
+                 gates: LoopGates | None = None, search: str = "auto", index_from: int | None = None):
         from fdnet.matching.database import PlaceDatabase
 
         if isinstance(exclude_last, bool) or not isinstance(exclude_last, (int, np.integer)) or exclude_last < 0:
@@ -227,6 +234,12 @@ class LoopClosureDetector:
         self.sequence_length = int(sequence_length)
         self.allow_duplicates = bool(allow_duplicates)
         self.commit_every = int(commit_every)
+        from fdnet.decisions.loop_search import INDEX_FROM
+
+        if search not in SEARCH_KINDS:
+            raise ConfigError(f"search must be one of {', '.join(SEARCH_KINDS)}, got {search!r}")
+        self.search = search
+        self.index_from = INDEX_FROM if index_from is None else int(index_from)
         if gates is not None and not isinstance(gates, LoopGates):
             raise ConfigError(f"gates must be a LoopGates, got {type(gates).__name__}")
         # frames decided but not yet stored (commit_every > 1): vectors, names, positions, metadata
@@ -253,6 +266,7 @@ class LoopClosureDetector:
         self._before: list[int] = []
         self._rows: deque[np.ndarray] = deque(maxlen=max(self.sequence_length - 1, 0) or None)
         self._recent = RecentPast(self.exclude_last, self.gates)
+        self._indexed = None
         self._consistency = ConsistencyGate(self.gates.consistency, self.gates.consistency_window)
         self._last_thumbnail: np.ndarray | None = None
         self.decisions: list[FrameDecision] = []
@@ -345,8 +359,8 @@ class LoopClosureDetector:
         times = [(m or {}).get("timestamp") for m in metadata]
         self._times: list | None = times if all(isinstance(t, (int, float)) for t in times) else None
         # places an earlier run found uninformative (dark, blank) are never candidates
-        self._informative = [not (m or {}).get("uninformative", False) for m in metadata]
-        self._still = [bool((m or {}).get("still", False)) for m in metadata]
+        self._informative = _Vectors(None, [not (m or {}).get("uninformative", False) for m in metadata])
+        self._still = _Vectors(None, [bool((m or {}).get("still", False)) for m in metadata])
 
     @property
     def places(self) -> int:
@@ -423,14 +437,6 @@ class LoopClosureDetector:
                                       or not math.isfinite(timestamp)):
             raise DataError(f"{name}: timestamp must be a finite number of seconds, got {timestamp!r}")
         count = self.places
-        if count:
-            # One row against the map is a memory-bound matrix-vector product: BLAS threads only
-            # add synchronisation, and on shared cores they made it ~5x slower (17 ms vs 3.7 ms
-            # for 3000 x 2048 on the 2-core machine of docs/loop-closure.md).
-            with _single_blas_thread():
-                row = np.asarray(self.descriptor.similarity(v[None], self._vectors.view()), dtype=np.float32)[0]
-        else:
-            row = np.zeros(0, np.float32)
         if _replay is not None:  # resume(): what the interrupted run stored for this frame
             informative, still = _replay["informative"], _replay["still"]
         else:
@@ -439,7 +445,66 @@ class LoopClosureDetector:
                 informative = bool(informative_frames(signals.statistics[:1], self.gates)[0])
                 still = t > 0 and is_still(signals.thumbnails[0], self._last_thumbnail, self.gates)
                 self._last_thumbnail = signals.thumbnails[0]
-        searchable = self._searchable(t, count, row, still, timestamp, position)
+        if self._indexed is None and self.search != "exact" and (self.search == "index" or count >= self.index_from):
+            from fdnet.decisions.loop_search import IndexedCandidates
+
+            self._indexed = IndexedCandidates(self.database.dim, self.sequence_length)
+        if self._indexed is not None:
+            ids, scores, searchable = self._indexed_candidates(v, t, count, informative, still, timestamp, position)
+        else:
+            ids, scores, searchable = self._exhaustive_candidates(v, t, count, informative, still, timestamp,
+                                                                  position)
+        closure = None
+        decision = FrameDecision(t, -1, float("nan"), False, int(searchable))
+        if searchable > 0:
+            gated = "" if informative else "uninformative"
+            if not gated and still and not self.gates.decide_when_still:
+                gated = "still"
+            if not gated and (not len(ids) or not self._informative.view(searchable).any()):
+                gated = "no informative place"
+            best = int(ids[0]) if len(ids) else -1
+            best_similarity = float(scores[0]) if len(ids) else self._floor
+            if gated:
+                self.gate_counts["uninformative"] += not informative
+                self.gate_counts["still_frames"] += gated == "still"
+                self._consistency.update(-1, -math.inf)
+                decision = FrameDecision(t, -1, -math.inf, False, int(searchable), best, best_similarity, gated=gated)
+            else:
+                match, rule_score, similarity = self._decide(ids, scores, name, searchable)
+                score = self._consistency.update(match, rule_score)
+                accepted = bool(score >= self.threshold)
+                if rule_score >= self.threshold and not accepted:
+                    self.gate_counts["held_by_consistency"] += 1
+                decision = FrameDecision(t, match, score, accepted, int(searchable), best, best_similarity,
+                                         rule_score=rule_score)
+                if accepted:
+                    closure = Closure(t, name, match, self._names[match], score, similarity, self.spec.name,
+                                      self.threshold, timestamp,
+                                      None if self._times is None else float(self._times[match]))
+        elif not informative:
+            self.gate_counts["uninformative"] += 1
+        self._add(v, name, timestamp, position, informative, still, store=_replay is None)
+        self._before.append(count)
+        self.decisions.append(decision)
+        if closure is not None:
+            self.closures.append(closure)
+        return closure
+
+    #: best-match similarity recorded for a frame whose search found no candidate
+    _floor = -1.0
+
+    def _exhaustive_candidates(self, v, t, count, informative, still, timestamp, position):
+        """(candidate places best first, their scores, searchable) by scoring every place."""
+        if count:
+            # One row against the map is a memory-bound matrix-vector product: BLAS threads only
+            # add synchronisation, and on shared cores they made it ~5x slower (17 ms vs 3.7 ms
+            # for 3000 x 2048 on the 2-core machine of docs/loop-closure.md).
+            with _single_blas_thread():
+                row = np.asarray(self.descriptor.similarity(v[None], self._vectors.view()), dtype=np.float32)[0]
+        else:
+            row = np.zeros(0, np.float32)
+        previous = float(row[count - 1]) if t > 0 and count > 0 else None
+        searchable = self._searchable(t, count, previous, still, timestamp, position)
         row = self._mask_uninformative(row, informative)
         if self.sequence_length > 1:
             from fdnet.matching.sequence import online_sequence_scores
@@ -451,55 +516,35 @@ class LoopClosureDetector:
             row = np.concatenate([np.full(self._first_full, np.median(row) if len(row) else 0.0, np.float32), row])
             pad = self._first_full
             scores = online_sequence_scores([*self._rows, row], searchable + pad)[pad:]
+            self._rows.append(row)
         else:
             scores = row[:searchable]
-        scores = self._never_best(scores)
-        closure = None
-        decision = FrameDecision(t, -1, float("nan"), False, int(searchable))
-        if searchable > 0:
-            gated = "" if informative else "uninformative"
-            if not gated and still and not self.gates.decide_when_still:
-                gated = "still"
-            if not gated and not any(self._informative[:searchable]):
-                gated = "no informative place"
-            if gated:
-                self.gate_counts["uninformative"] += not informative
-                self.gate_counts["still_frames"] += gated == "still"
-                self._consistency.update(-1, -math.inf)
-                best = int(np.argmax(scores))
-                decision = FrameDecision(t, -1, -math.inf, False, int(searchable), best, float(scores[best]),
-                                         gated=gated)
-            else:
-                match, rule_score, similarity = self._decide(scores, name, timestamp, position)
-                score = self._consistency.update(match, rule_score)
-                accepted = bool(score >= self.threshold)
-                if rule_score >= self.threshold and not accepted:
-                    self.gate_counts["held_by_consistency"] += 1
-                best = int(np.argmax(scores))
-                decision = FrameDecision(t, match, score, accepted, int(searchable), best, float(scores[best]),
-                                         rule_score=rule_score)
-                if accepted:
-                    closure = Closure(t, name, match, self._names[match], score, similarity, self.spec.name,
-                                      self.threshold, timestamp,
-                                      None if self._times is None else float(self._times[match]))
-        elif not informative:
-            self.gate_counts["uninformative"] += 1
-        self._add(v, name, timestamp, position, informative, still, store=_replay is None)
-        self._before.append(count)
-        if self.sequence_length > 1:
-            self._rows.append(row)
-        self.decisions.append(decision)
-        if closure is not None:
-            self.closures.append(closure)
-        return closure
+        if not searchable:
+            return np.zeros(0, np.int64), np.zeros(0, np.float32), 0
+        from fdnet.matching.similarity import top_k_of_matrix
 
-    def _searchable(self, t: int, count: int, row: np.ndarray, still: bool, timestamp, position) -> int:
+        scores = self._never_best(scores)
+        idx, top = top_k_of_matrix(scores[None], min(self.spec.depth, len(scores)))
+        return idx[0], top[0], searchable
+
+    def _indexed_candidates(self, v, t, count, informative, still, timestamp, position):
+        """(candidate places best first, their scores, searchable) from the index (large maps,
+        :mod:`fdnet.decisions.loop_search`)."""
+        vectors = self._vectors.view()
+        previous = float(self.descriptor.similarity(v[None], vectors[count - 1:count])[0, 0]) \
+            if t > 0 and count > 0 else None
+        searchable = self._searchable(t, count, previous, still, timestamp, position)
+        mask = self._informative.view(count)
+        neutral = self._indexed.neutral(v, vectors, mask)
+        ids, scores = self._indexed.search(v, vectors, searchable, mask, neutral, informative)
+        return ids[:max(self.spec.depth, 1)], scores[:max(self.spec.depth, 1)], searchable
+
+    def _searchable(self, t: int, count: int, previous: float | None, still: bool, timestamp, position) -> int:
         """How many places frame ``t`` may match (a prefix of the map): places from earlier
         sessions and this traverse's frames before its recent past (:class:`RecentPast`:
         exclude_last, the current still segment, the last seconds or metres), moved back by
         sequence_length - 1 frames more with sequences, so that no candidate's sequence shares a
         frame with the query's own."""
-        previous = float(row[count - 1]) if t > 0 and count > 0 else None
         first = self._recent.first_excluded(t, previous, still, timestamp, position)
         if first < max(t - self.exclude_last, 0) if self.exclude_last else first < t:
             self.gate_counts["still_exclusion"] += 1
@@ -513,7 +558,7 @@ class LoopClosureDetector:
         :meth:`_never_best` then keeps uninformative places from being matched at all."""
         if not len(row):
             return row
-        mask = np.fromiter(self._informative, dtype=bool, count=len(row))
+        mask = self._informative.view(len(row))
         neutral = float(np.median(row[mask])) if mask.any() else 0.0
         if not informative:
             return np.full_like(row, neutral)
@@ -535,32 +580,31 @@ class LoopClosureDetector:
 
     def _never_best(self, scores: np.ndarray) -> np.ndarray:
         """``scores`` with uninformative places at the lowest informative score."""
-        mask = np.fromiter(self._informative, dtype=bool, count=len(scores))
+        mask = self._informative.view(len(scores))
         if mask.all() or not mask.any():
             return scores
         scores = np.array(scores, dtype=np.float32)
         scores[~mask] = scores[mask].min()
         return scores
 
-    def _decide(self, scores: np.ndarray, name: str, timestamp, position) -> tuple[int, float, float]:
-        from fdnet.matching.similarity import top_k_of_matrix
-
-        depth = min(self.spec.depth, len(scores))
-        idx, top = top_k_of_matrix(scores[None], depth)
+    def _decide(self, ids: np.ndarray, scores: np.ndarray, name: str, searchable: int) -> tuple[int, float, float]:
+        """The rule over the frame's candidates (place ids best first, their scores): (the place
+        it vouches for, its acceptance score, that place's similarity)."""
         needs_images = "images" in self.spec.needs
         if needs_images and not Path(name).is_file():
             raise ConfigError(f"rule {self.spec.name!r} verifies geometry on the images, but frame {name!r} is no "
                               "image file; process frames by path (or give name=PATH)")
         candidates = Candidates(
-            retrieved=idx, scores=top, similarity_ceiling=float(getattr(self.descriptor, "similarity_ceiling", 1.0)),
-            reference_times=None if self._times is None else np.asarray(self._times[:len(scores)], np.float64),
-            reference_positions=None if self._positions is None else np.asarray(self._positions[:len(scores)]),
+            retrieved=np.asarray(ids, np.int64)[None], scores=np.asarray(scores, np.float64)[None],
+            similarity_ceiling=float(getattr(self.descriptor, "similarity_ceiling", 1.0)),
+            reference_times=None if self._times is None else np.asarray(self._times[:searchable], np.float64),
+            reference_positions=None if self._positions is None else np.asarray(self._positions[:searchable]),
             query_paths=[Path(name)] if needs_images else None,
             reference_paths=self._names if needs_images else None,
             query_indices=np.array([self.frames]))
         decision = decide(self.spec, candidates)
         match = int(decision.match[0])
-        similarity = float(scores[match])
+        similarity = float(np.asarray(scores)[np.flatnonzero(np.asarray(ids) == match)[0]])
         return match, float(decision.score[0]), similarity
 
     def _add(self, v: np.ndarray, name: str, timestamp, position, informative: bool = True, still: bool = False,
@@ -610,11 +654,14 @@ class LoopClosureDetector:
         frames = int(frames)
         start = self.places - frames
         vectors = self._vectors.view()[start:].copy()
-        names, informative, still = self._names[start:], self._informative[start:], self._still[start:]
+        names = self._names[start:]
+        informative, still = self._informative.view()[start:].copy(), self._still.view()[start:].copy()
         times = None if self._times is None else self._times[start:]
         positions = None if self._positions is None else self._positions[start:]
         self._vectors = _Vectors(self.database.dim, self._vectors.view(start))
-        del self._names[start:], self._informative[start:], self._still[start:]
+        del self._names[start:]
+        self._informative = _Vectors(None, self._informative.view(start))
+        self._still = _Vectors(None, self._still.view(start))
         self._known = set(self._names)
         if self._times is not None:
             del self._times[start:]
@@ -624,7 +671,7 @@ class LoopClosureDetector:
         for k in range(frames):
             self.process_vector(vectors[k], timestamp=None if times is None else times[k], name=names[k],
                                 position=None if positions is None else positions[k],
-                                _replay={"informative": informative[k], "still": still[k]})
+                                _replay={"informative": bool(informative[k]), "still": bool(still[k])})
         self._last_thumbnail = None if last_thumbnail is None else np.asarray(last_thumbnail, np.float32)
         return list(self.closures)
 

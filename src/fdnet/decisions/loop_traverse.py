@@ -162,10 +162,7 @@ def run_traverse(images, descriptor, database=None, *, exclude_last: int,
     (paths, rule, calibration, ground truth, database) comes before the first frame is described.
     """
     from fdnet.data.groundtruth import GroundTruth
-    from fdnet.data.images import list_images
-    from fdnet.data.sources import frame_records, positions_in_metres
     from fdnet.io import ensure_writable
-    from fdnet.matching.database import check_place_names
 
     say = log or (lambda message: None)
     route = images if isinstance(images, RouteTraverse) else None
@@ -187,17 +184,7 @@ def run_traverse(images, descriptor, database=None, *, exclude_last: int,
     if resume and database is None:
         raise ConfigError("resuming needs the place database the interrupted run wrote (--db FILE): an in-memory "
                           "run keeps nothing to resume from")
-    paths = list(route.paths) if route is not None else list_images(images)
-    where = route.description if route is not None else str(images)
-    names = [place_name(p) for p in paths]
-    if len(set(names)) != len(names):
-        twice = next(n for i, n in enumerate(names) if n in names[:i])
-        raise DataError(f"{twice}: listed twice in this traverse; every frame is a place under its own name")
-    check_place_names(names)  # before any frame is described: the database could not store them
-    # frames of a video or bag carry their time, and a bag's its position: radius_s / radius_m use them
-    records = frame_records(paths)
-    times = [r.timestamp for r in records]
-    positions = positions_in_metres(records)
+    paths, where, names, times, positions = _traverse_frames(images, route)
     with LoopClosureDetector(descriptor, database, exclude_last=exclude_last, rule=rule,
                              rule_settings=rule_settings, threshold=threshold, calibration=calibration,
                              sequence_length=sequence_length, method_options=method_options,
@@ -246,6 +233,26 @@ def run_traverse(images, descriptor, database=None, *, exclude_last: int,
                 source["ground_truth"] = truth.description
             report.calibrated = _calibrate_on_traverse(detector, truth, target_precision, source, calibrate_to)
     return report
+
+
+def _traverse_frames(images, route: RouteTraverse | None):
+    """(paths, description, place names, timestamps, positions) of the traverse's frames, the
+    names checked before any frame is described."""
+    from fdnet.data.images import list_images
+    from fdnet.data.sources import frame_records, positions_in_metres
+    from fdnet.matching.database import check_place_names
+
+    paths = list(route.paths) if route is not None else list_images(images)
+    where = route.description if route is not None else str(images)
+    names = [place_name(p) for p in paths]
+    if len(set(names)) != len(names):
+        seen = set()
+        twice = next(n for n in names if n in seen or seen.add(n))
+        raise DataError(f"{twice}: listed twice in this traverse; every frame is a place under its own name")
+    check_place_names(names)  # the database could not store them
+    # frames of a video or bag carry their time, and a bag's its position: radius_s / radius_m use them
+    records = frame_records(paths)
+    return paths, where, names, [r.timestamp for r in records], positions_in_metres(records)
 
 
 def _frames_done(db, names: list[str], resume: bool) -> int:

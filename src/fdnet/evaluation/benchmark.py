@@ -21,7 +21,7 @@ from typing import Callable
 from fdnet.errors import ConfigError, DataError
 
 DEFAULT_METHODS = "raw,sad,hog,gist,dbow,conv3,landmarks"
-PARTS = ("fdnet", "api", "gpu", "matching", "methods", "scale")
+PARTS = ("fdnet", "api", "gpu", "matching", "methods", "scale", "loop")
 DEFAULT_INDEXES = "flat,ivf,ivfpq,hnsw"
 
 
@@ -34,6 +34,8 @@ class BenchmarkPlan:
     checkpoints: dict[str, str]
     map_sizes: list[int]
     kinds: list[str]
+    #: map sizes of the loop-closure part (exhaustive search against the index)
+    loop_map_sizes: list[int] = field(default_factory=lambda: [10_000, 100_000, 1_000_000])
     overrides: dict = field(default_factory=dict)
     sweep: dict = field(default_factory=dict)
     images: str | None = None
@@ -64,7 +66,8 @@ def plan_benchmark(*, parts: str = ",".join(PARTS), methods: str = DEFAULT_METHO
                    images: str | None = None, num_images: int = 32, queries: int = 1000, noise: float = 0.5,
                    scale_dim: int | None = None, map_vectors: str | None = None, query_vectors: str | None = None,
                    lengths: str = "256,512,1024,2048", compile: bool = False, quick: bool = False,
-                   threads: int = 2, device: str = "auto", command: str | None = None) -> BenchmarkPlan:
+                   threads: int = 2, device: str = "auto", command: str | None = None,
+                   loop_map_size: str = "10000,100000,1000000") -> BenchmarkPlan:
     """Check the command's settings as given (comma lists, ``METHOD=RUN_DIR``,
     ``KIND:KEY=VALUE``, ``KEY=V1,V2``) and return them parsed; raises ConfigError/DataError naming
     the flag."""
@@ -80,6 +83,14 @@ def plan_benchmark(*, parts: str = ",".join(PARTS), methods: str = DEFAULT_METHO
         raise ConfigError(f"--map-size {map_size!r}: expected whole numbers, e.g. 1000,100000") from None
     if not map_sizes or min(map_sizes) < 2:
         raise ConfigError(f"--map-size {map_size!r}: every map needs at least 2 places")
+    try:
+        loop_map_sizes = [int(v) for v in _comma_list(loop_map_size)]
+    except ValueError:
+        raise ConfigError(f"--loop-map-size {loop_map_size!r}: expected whole numbers, e.g. 10000,100000") from None
+    if not loop_map_sizes or min(loop_map_sizes) < 1:
+        raise ConfigError(f"--loop-map-size {loop_map_size!r}: every map needs at least 1 place")
+    if quick:
+        loop_map_sizes = [min(loop_map_sizes)]
     kinds = _comma_list(indexes)
     for kind in kinds:
         if kind not in INDEX_KINDS:
@@ -106,7 +117,7 @@ def plan_benchmark(*, parts: str = ",".join(PARTS), methods: str = DEFAULT_METHO
     from fdnet.backbones import check_device_spec
 
     return BenchmarkPlan(parts=chosen, methods=_comma_list(methods), checkpoints=parsed_checkpoints,
-                         map_sizes=map_sizes, kinds=kinds, overrides=index_overrides(index_set),
+                         map_sizes=map_sizes, loop_map_sizes=loop_map_sizes, kinds=kinds, overrides=index_overrides(index_set),
                          sweep=sweeps(sweep), images=images, num_images=num_images, queries=queries, noise=noise,
                          scale_dim=scale_dim, map_vectors=map_vectors, query_vectors=query_vectors,
                          lengths=length_list, compile=compile, quick=quick, threads=threads,
@@ -237,6 +248,8 @@ def run_benchmark(plan: BenchmarkPlan, out: Callable[[str], None], json_path: st
             _methods(plan, report, out)
         if "scale" in plan.parts:
             _scale(plan, report, out)
+        if "loop" in plan.parts:
+            _loop(plan, report, out)
     if json_path:
         import json
 
@@ -426,3 +439,17 @@ def _scale(plan: BenchmarkPlan, report: dict, out) -> None:
             f"{len(queries)} queries")
         report["scale"] += timing.scale_rows(vectors, queries, plan.kinds, plan.overrides,
                                               source=str(plan.map_vectors), log=out, sweep=plan.sweep)
+
+
+def _loop(plan: BenchmarkPlan, report: dict, out) -> None:
+    from fdnet.evaluation.loop_benchmark import loop_rows
+
+    describe = (report.get("cpu_preset_descriptor_ms") or {}).get("extract")
+    route = 100 if plan.quick else 300
+    out(f"\nLoop closure: a route of {route} places driven twice after an earlier session's map of random unit "
+        f"512-d vectors; margin, sequences of 10, the default gates; ms per frame of the decision (median over the "
+        f"revisits), exhaustive search against the index (fdnet.decisions.loop_search)"
+        + ("" if describe is None else f"; frames/s with the FDNet descriptor measured above ({describe:.1f} ms)"))
+    report["loop"] = loop_rows(plan.loop_map_sizes, dim=512, route=route, noise=plan.noise, describe_ms=describe,
+                               log=out)
+

@@ -1,0 +1,150 @@
+"""Candidate search for loop closure on large maps: an inverted-file index instead of every place.
+
+Exhaustive search scores a frame against every place: one (places x dim) product and, with
+sequences, L shifted sums over the whole row per velocity. That is milliseconds at 10^4 places
+and tens of milliseconds at 10^5. Above a size (:data:`INDEX_FROM` places by default) the
+detector switches to :class:`IndexedCandidates`:
+
+1. each frame's nearest places come from a faiss IVF-Flat index
+   (:class:`fdnet.matching.index.VectorIndex`, ``ivf``) that grows with the map: frames are added
+   as they are seen, and the cells are trained again when the map has grown fourfold since they
+   were trained (k-means is seeded, so the same map gives the same cells: a resumed run replays
+   the same decisions);
+2. without sequences the candidates are those places; with sequences of L frames, a candidate
+   sequence end is any place a recent frame's neighbour points to (place p of the frame k steps
+   back, moved on by k x v places for each velocity v), and each such end is scored exactly as
+   :func:`fdnet.matching.sequence.online_sequence_scores` scores it (the same mean over the same
+   (frame, place) pairs, read from the stored vectors), so the sequence score of every place
+   the search proposes is exact; places it does not propose are not scored;
+3. the missing terms of a sequence that runs off the start of the map, and the places a gate
+   marked uninformative, take the frame's neutral value (its median similarity, estimated on an
+   evenly spaced sample of the map), as in the exhaustive path.
+
+An approximate search can miss a place the exhaustive one would rank first: the figures of
+``fdnet benchmark --parts loop`` give the agreement with exhaustive decisions next to the speed.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+
+import numpy as np
+
+from fdnet.matching.sequence import DEFAULT_VELOCITIES
+
+#: maps of at least this many places are searched through the index (``search="auto"``)
+INDEX_FROM = 20_000
+#: below this many places the "index" is exact (faiss flat): k-means needs points to train on
+IVF_FROM = 4096
+#: neighbours fetched per frame from the index
+NEIGHBOURS = 32
+#: places sampled to estimate a frame's median similarity (its neutral value)
+MEDIAN_SAMPLE = 2048
+
+
+class IndexedCandidates:
+    """The index over a detector's places and the recent frames' neighbours (see the module
+    docstring). ``vectors``: a callable giving the detector's (places, dim) vectors so far."""
+
+    def __init__(self, dim: int, sequence_length: int, neighbours: int = NEIGHBOURS, probe: int = 32):
+        from fdnet.matching.index import IndexSettings, VectorIndex
+
+        self.dim = int(dim)
+        self.sequence_length = int(sequence_length)
+        self.neighbours = int(neighbours)
+        self._make = lambda kind: VectorIndex(self.dim, IndexSettings(kind=kind, ivf_probe=int(probe)))
+        self._index = None
+        self._trained_on = 0
+        # per recent frame: (its vector, its neighbours' place ids, its neutral value, places then)
+        self._recent: deque = deque(maxlen=max(self.sequence_length, 1))
+
+    def __len__(self) -> int:
+        return 0 if self._index is None else len(self._index)
+
+    def sync(self, vectors: np.ndarray) -> None:
+        """Index every place of ``vectors`` not indexed yet; train the cells again (and re-add
+        everything) when the map has grown fourfold since they were trained."""
+        count = len(vectors)
+        if count == 0:
+            return
+        if self._index is None or count >= 4 * max(self._trained_on, 1):
+            # below IVF_FROM places exact search is as fast and k-means would have too few points
+            self._index = self._make("flat" if count < IVF_FROM else "ivf")
+            self._index.add(vectors)
+            self._index.build()
+            self._trained_on = count
+        elif count > len(self._index):
+            self._index.add(vectors[len(self._index):count])
+
+    def neutral(self, v: np.ndarray, vectors: np.ndarray, informative: np.ndarray) -> float:
+        """The frame's median similarity over an evenly spaced sample of the informative places."""
+        usable = np.flatnonzero(informative)
+        if not len(usable):
+            return 0.0
+        sample = usable[np.linspace(0, len(usable) - 1, min(MEDIAN_SAMPLE, len(usable))).astype(np.int64)]
+        return float(np.median(vectors[sample] @ v))
+
+    def search(self, v: np.ndarray, vectors: np.ndarray, searchable: int, informative: np.ndarray,
+               neutral: float, frame_informative: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """Record the new frame and return its candidates: (place ids, scores) best first, all
+        below ``searchable`` and informative; scores are single-image similarities, or with
+        sequences the sequence scores of the proposed ends."""
+        count = len(vectors)
+        self.sync(vectors)
+        ids = np.zeros(0, np.int64)
+        if count:
+            ids, _ = self._index.search(v[None], min(self.neighbours, count))
+            ids = ids[0][ids[0] >= 0]
+        self._recent.append((v, ids, neutral, count, frame_informative))
+        if searchable <= 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.float32)
+        if self.sequence_length <= 1:
+            ends = ids
+        else:
+            ends = self._sequence_ends(searchable)
+        ends = np.unique(ends[(ends >= 0) & (ends < searchable)])
+        ends = ends[informative[ends]]
+        if not len(ends):
+            return ends, np.zeros(0, np.float32)
+        if self.sequence_length <= 1:
+            scores = vectors[ends] @ v
+        else:
+            scores = self._sequence_scores(ends, vectors, informative)
+        order = np.lexsort((ends, -scores))  # best first, ties to the lower place
+        return ends[order], scores[order].astype(np.float32)
+
+    def _sequence_ends(self, searchable: int) -> np.ndarray:
+        """Proposed sequence ends: each recent frame's neighbours moved on by the frames since
+        (a robot revisiting a route moves about one place per frame), widened by the slowest and
+        fastest velocity's drift."""
+        ends = []
+        velocities = np.asarray(DEFAULT_VELOCITIES)
+        for k, (_, ids, _, _, _) in enumerate(reversed(self._recent)):
+            low, high = int(np.floor(k * velocities.min())), int(np.ceil(k * velocities.max()))
+            ends.append((ids[:, None] + np.arange(low, high + 1)[None, :]).ravel())
+        return np.concatenate(ends) if ends else np.zeros(0, np.int64)
+
+    def _sequence_scores(self, ends: np.ndarray, vectors: np.ndarray, informative: np.ndarray) -> np.ndarray:
+        """Sequence scores of ``ends`` over the recent frames, each (frame, place) pair read from
+        the vectors as online_sequence_scores reads it from the rows (the frame's row held the
+        places that existed then: later places count as missing)."""
+        velocities = np.asarray(DEFAULT_VELOCITIES, dtype=np.float64)
+        pad = int(math.ceil(velocities.max() * (self.sequence_length - 1)))
+        total = np.zeros((len(velocities), len(ends)))
+        count = np.zeros((len(velocities), len(ends)))
+        for k, (frame, _, neutral, places_then, frame_informative) in enumerate(reversed(self._recent)):
+            # the places this frame pairs with, for every end and velocity: one product for all
+            places = np.rint(ends[None, :] - k * velocities[:, None]).astype(np.int64)
+            inside = (places >= 0) & (places < places_then)
+            padded = (places < 0) & (places >= -pad)
+            values = np.full(places.shape, neutral)
+            if inside.any() and frame_informative:  # an uninformative frame's pairs stay neutral
+                needed, where = np.unique(places[inside], return_inverse=True)
+                sims = vectors[needed] @ frame
+                values[inside] = np.where(informative[needed], sims, neutral)[where]
+            use = inside | padded
+            total += np.where(use, values, 0.0)
+            count += use
+        best = np.where(count > 0, total / np.maximum(count, 1), -np.inf).max(axis=0)
+        return best

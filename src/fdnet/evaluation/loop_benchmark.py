@@ -1,0 +1,124 @@
+"""``fdnet benchmark --parts loop``: the loop-closure detector's cost per frame on maps of 10^4 to
+10^6 places, exhaustive search against the index (:mod:`fdnet.decisions.loop_search`).
+
+The map is an earlier session's places (random unit vectors, as the scale benchmark's); the
+traverse is a route of ``route`` new places driven twice (the second pass is the first plus
+noise), decided frame by frame with the command's defaults (margin, sequences of 10, the gates)
+after the map's places. Each map size reports milliseconds per frame of the decision alone (no
+describing; the database commits 100 frames at a time so SQLite's fsync is not what is timed),
+the reference of one (places x dim) matrix-vector product measured in the same run, how often
+the index's decision equals the exhaustive one, and Recall@1 of each on the revisits. With an
+FDNet checkpoint (the ``fdnet`` part measured its ``cpu``-preset descriptor through the public
+API in the same run) it also gives frames/s of the whole loop: 1000 / (describe ms + decide ms).
+Nothing is asserted by tests: the report holds figures measured side by side.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Callable
+
+import numpy as np
+
+from fdnet.descriptors.base import Descriptor
+
+DEFAULT_SIZES = (10_000, 100_000, 1_000_000)
+
+
+class StoredVectors(Descriptor):
+    """Vectors computed elsewhere (here: made up), compared by dot product: what the detector
+    needs of a descriptor when it is fed vectors, never images."""
+
+    name = "stored-vectors"
+
+    def __init__(self, dim: int):
+        self._dim = int(dim)
+        self.input_size = (1, 1)
+
+    @property
+    def dim(self) -> int:
+        return self._dim
+
+    def describe(self, images: np.ndarray) -> np.ndarray:
+        raise NotImplementedError("stored vectors describe no images")
+
+    def settings(self) -> dict:
+        return {"dim": self._dim}
+
+
+def loop_rows(sizes, dim: int = 512, route: int = 300, noise: float = 0.5, describe_ms: float | None = None,
+              log: Callable[[str], None] = lambda line: None) -> list[dict]:
+    """Measure the detector on each map size (see the module docstring); one row per size."""
+    from fdnet.decisions.loop_closure import LoopClosureDetector
+    from fdnet.evaluation.timing import random_map, revisit_queries
+    from fdnet.matching.database import PlaceDatabase
+
+    places = random_map(route, dim, seed=7)
+    first = revisit_queries(places, route, noise, seed=8)
+    second = revisit_queries(places, route, noise, seed=9)
+    # revisit_queries picks places in a random order: put both passes back in route order
+    order = np.argsort(np.random.default_rng(8).choice(route, size=route, replace=False))
+    first = first[order]
+    order = np.argsort(np.random.default_rng(9).choice(route, size=route, replace=False))
+    second = second[order]
+    frames = np.concatenate([first, second])
+    descriptor = StoredVectors(dim)
+    rows = []
+    for size in sizes:
+        earlier = random_map(int(size), dim, seed=11)
+        log(f"  {size:>9,} places: building the map ...")
+        decided = {}
+        for search in ("exact", "index"):
+            db = PlaceDatabase.for_descriptor(descriptor)
+            for start in range(0, len(earlier), 100_000):
+                chunk = earlier[start:start + 100_000]
+                db.add(chunk, [f"earlier/{start + i}" for i in range(len(chunk))])
+            detector = LoopClosureDetector(descriptor, db, exclude_last=5, rule="margin", threshold=0.0,
+                                           sequence_length=10, commit_every=100, search=search)
+            times = []
+            with detector:
+                for i, vector in enumerate(frames):
+                    t0 = time.perf_counter()
+                    detector.process_vector(vector, name=f"traverse/{i}")
+                    times.append(time.perf_counter() - t0)
+                decided[search] = [d.match for d in detector.decisions]
+            db.close()
+            revisits = np.arange(route, 2 * route)
+            truth = size + revisits - route
+            matches = np.array(decided[search])[revisits]
+            decided[search + "_ms"] = 1e3 * float(np.median(times[route:]))
+            decided[search + "_recall"] = float(np.mean(np.abs(matches - truth) <= 1))
+        gemv = _gemv_ms(earlier)
+        agree = float(np.mean(np.array(decided["exact"]) == np.array(decided["index"])))
+        row = {"map_size": int(size), "dim": dim, "frames": len(frames), "exact_ms": decided["exact_ms"],
+               "index_ms": decided["index_ms"], "gemv_ms": gemv, "agreement": agree,
+               "exact_recall_at_1": decided["exact_recall"], "index_recall_at_1": decided["index_recall"]}
+        if describe_ms is not None:
+            row["describe_ms"] = describe_ms
+            row["fdnet_frames_per_s_exact"] = 1e3 / (describe_ms + row["exact_ms"])
+            row["fdnet_frames_per_s_index"] = 1e3 / (describe_ms + row["index_ms"])
+        rows.append(row)
+        with_fdnet = "" if describe_ms is None else (
+            f" | with FDNet ({describe_ms:.1f} ms/frame): {row['fdnet_frames_per_s_exact']:.1f} -> "
+            f"{row['fdnet_frames_per_s_index']:.1f} frames/s")
+        log(f"  {size:>9,} places: exact {row['exact_ms']:7.2f} ms/frame ({row['exact_ms'] / gemv:5.1f} x one "
+            f"{gemv:.2f} ms GEMV), index {row['index_ms']:6.2f} ms/frame, same decision {agree:.3f}, "
+            f"R@1 (+-1 place) exact {row['exact_recall_at_1']:.3f} index {row['index_recall_at_1']:.3f}{with_fdnet}")
+        del earlier
+    return rows
+
+
+def _gemv_ms(vectors: np.ndarray, repeats: int = 5) -> float:
+    """Median ms of one (places x dim) @ (dim,) product on one thread: the reference for the
+    exhaustive search, which reads every vector once per frame."""
+    from threadpoolctl import threadpool_limits
+
+    v = vectors[0].copy()
+    times = []
+    with threadpool_limits(1, user_api="blas"):
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            vectors @ v
+            times.append(time.perf_counter() - t0)
+    return 1e3 * float(np.median(times)) if times else math.nan
