@@ -54,9 +54,12 @@ def _default_calibration(args):
             return None, calibrated  # the detector reads it from the database
     checkpoint = method_options(args, args.method).get("checkpoint") if args.method else None
     if checkpoint:
-        candidate = Path(checkpoint) / LOOP_CALIBRATION_FILE
-        if candidate.is_file():
-            return str(candidate), load_calibration(candidate)
+        from fdnet.runs import weights_folder
+
+        for folder in dict.fromkeys((Path(checkpoint), weights_folder(checkpoint))):
+            candidate = folder / LOOP_CALIBRATION_FILE
+            if candidate.is_file():
+                return str(candidate), load_calibration(candidate)
     return None, None
 
 

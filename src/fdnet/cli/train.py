@@ -133,7 +133,11 @@ def _train(args, config) -> int:
             + f"; run in {summary['run_dir']}")
     if summary["best_step"] >= 0:
         line += f"; best validation R@1 {summary['best_recall@1']:.3f} at step {summary['best_step']} (in best/)"
-    print(line + f"; use it with --method {args.method} --checkpoint {args.out}")
+    if summary["best_step"] >= 0:
+        line += f"; use it with --method {args.method} --checkpoint {args.out} (which means best/)"
+    else:
+        line += f"; use it with --method {args.method} --checkpoint {args.out}"
+    print(line)
     if summary["status"] == "time limit":
         print("fdnet train: continue with --resume to finish the schedule")
     return 0

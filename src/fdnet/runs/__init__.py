@@ -32,6 +32,7 @@ Its modules must not import :mod:`fdnet.training`: inference code loads trained 
 
 from fdnet.runs.changes import CHANGES_FILE, read_changes, record_changes
 from fdnet.runs.checkpoints import (
+    BEST_DIR,
     CHECKPOINTS_DIR,
     CONFIG_FILE,
     FORMAT_VERSION,
@@ -49,11 +50,13 @@ from fdnet.runs.checkpoints import (
     save_checkpoint,
     save_run,
     save_weights,
+    weights_folder,
+    weights_note,
 )
 from fdnet.runs.lock import LOCK_FILE, RunLock
 
 __all__ = [
-    "CHANGES_FILE", "CHECKPOINTS_DIR", "CONFIG_FILE", "FORMAT_VERSION", "KIND_TRAINING", "KIND_WEIGHTS", "LOCK_FILE",
+    "BEST_DIR", "weights_folder", "weights_note", "CHANGES_FILE", "CHECKPOINTS_DIR", "CONFIG_FILE", "FORMAT_VERSION", "KIND_TRAINING", "KIND_WEIGHTS", "LOCK_FILE",
     "STATE_FILE", "WEIGHTS_FILE", "RunLock", "check_run_state", "config_differences", "is_run",
     "latest_checkpoint", "load_config", "load_training_state", "load_weights", "read_changes",
     "record_changes", "save_checkpoint", "save_run", "save_weights",

@@ -181,6 +181,30 @@ def is_run(run_dir: str | Path) -> bool:
     return True
 
 
+#: the folder in a run directory holding the best-validating weights (training with a validation pair)
+BEST_DIR = "best"
+
+
+def weights_folder(run_dir: str | Path) -> Path:
+    """The folder whose weights a run directory means for inference: ``RUN/best`` when the run
+    kept its best-validating weights there, else ``RUN`` itself (its newest checkpoint). A
+    ``best/`` folder, or a generation folder (``RUN/checkpoints/step-...``), means itself."""
+    run_dir = Path(run_dir)
+    best = run_dir / BEST_DIR
+    if (run_dir / CHECKPOINTS_DIR).is_dir() and best.is_dir() and is_run(best):
+        return best
+    return run_dir
+
+
+def weights_note(given: str | Path, folder: Path, step) -> str | None:
+    """What to tell the user when ``given`` (a run directory) was read from ``folder``
+    (:func:`weights_folder`), else None."""
+    if Path(folder) == Path(given):
+        return None
+    return (f"{given}: using its best-validating weights, {BEST_DIR}/ (step {step}); give "
+            f"{Path(given) / CHECKPOINTS_DIR}/step-... for another checkpoint")
+
+
 def check_run_state(run_dir: str | Path, resume: bool) -> None:
     """What a training may do with ``run_dir``: ``--resume`` needs a complete checkpoint there,
     a fresh run needs a folder without one (never overwrite a run)."""

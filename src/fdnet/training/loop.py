@@ -49,7 +49,7 @@ from fdnet.training.data import ValidationImages
 from fdnet.training.distributed import DistributedContext
 from fdnet.training.logging import TrainingLog
 
-BEST_DIR = "best"
+BEST_DIR = runs.BEST_DIR
 
 
 @dataclass

@@ -43,3 +43,22 @@ def test_errors(run_dir, rng):
         create("fdnet")
     with pytest.raises(DataError, match="16x32"):
         create("fdnet", checkpoint=run_dir).describe(rng.random((1, 32, 32, 3)).astype(np.float32))
+
+
+def test_a_run_directory_means_its_best_weights_and_says_so(run_dir, rng, caplog):
+    """A run that validated keeps its best weights in best/: --checkpoint RUN uses them (and
+    says which step), not the last step; best/ or a step folder given directly means itself."""
+    from fdnet.runs import save_weights
+
+    config = preset("tiny")
+    torch.manual_seed(1)
+    best_model = FDNet(config.model)
+    save_weights(run_dir / "best", best_model.named_parts(), config, step=2)
+    images = rng.random((2, 16, 32, 3)).astype(np.float32)
+    with caplog.at_level("INFO"):
+        d = create("fdnet", checkpoint=str(run_dir))
+    assert d.step == 2 and "using its best-validating weights, best/ (step 2)" in caplog.text
+    np.testing.assert_allclose(d.describe(images), create("fdnet", checkpoint=run_dir / "best").describe(images))
+    last = next((run_dir / "checkpoints").iterdir())
+    assert create("fdnet", checkpoint=last).step == 3
+    assert not np.allclose(create("fdnet", checkpoint=last).describe(images), d.describe(images))

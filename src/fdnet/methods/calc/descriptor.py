@@ -35,12 +35,20 @@ class CALCDescriptor(Descriptor):
         if checkpoint is None:
             raise ConfigError("method 'calc' needs a trained model: --checkpoint RUN_DIR "
                               "(train one with `fdnet train calc --data DIR --out RUN_DIR`)")
-        self.checkpoint = Path(checkpoint)
+        from fdnet.runs import weights_folder, weights_note
+
+        # a run directory means its best-validating weights when it kept them (best/)
+        self.checkpoint = weights_folder(checkpoint)
         self.config = load_run_config(self.checkpoint)
         self.input_size = tuple(int(v) for v in self.config.model.input_size)
         self.device = resolve_device("auto" if device is None else device, where="calc: device")
         self.network = build_network(self.config.model).eval()
         metadata = load_weights(self.checkpoint, {"calc": self.network})
+        note = weights_note(checkpoint, self.checkpoint, metadata.get("step"))
+        if note:
+            import logging
+
+            logging.getLogger(__name__).info(note)
         self.network.to(self.device)
         self.step = int(metadata.get("step", 0))
         self.bf16 = bf16_supported(self.device) if bf16 is None else bool(bf16)

@@ -13,6 +13,8 @@ runs bf16 natively, what ``fdnet extract`` uses).
 
 from __future__ import annotations
 
+import logging
+
 from pathlib import Path
 from typing import ClassVar
 
@@ -20,6 +22,14 @@ import numpy as np
 
 from fdnet.descriptors.base import Descriptor
 from fdnet.errors import DataError, NotAvailableError
+
+
+def _say_weights(given, folder, step) -> None:
+    from fdnet.runs import weights_note
+
+    note = weights_note(given, folder, step)
+    if note:
+        logging.getLogger(__name__).info(note)
 
 
 class FDNetDescriptor(Descriptor):
@@ -34,12 +44,13 @@ class FDNetDescriptor(Descriptor):
         import torch
 
         from fdnet.methods.fdnet.model import FDNet
-        from fdnet.runs import load_config, load_weights
+        from fdnet.runs import load_config, load_weights, weights_folder
         from fdnet.methods.fdnet.config import FDNetRunConfig
 
         from fdnet.backbones import bf16_native, resolve_device
 
-        self.run_dir = Path(checkpoint)
+        # a run directory means its best-validating weights when it kept them (best/)
+        self.run_dir = weights_folder(checkpoint)
         self.config = load_config(self.run_dir, FDNetRunConfig)
         self.device = resolve_device("auto" if device is None else device, where="fdnet: device")
         self.bf16 = bf16_native(self.device) if bf16 is None else bool(bf16)
@@ -52,6 +63,7 @@ class FDNetDescriptor(Descriptor):
             # weights keep their values (and the fingerprint its bytes)
             self.model = self.model.to(memory_format=torch.channels_last)
         self.step = int(metadata["step"]) if metadata.get("step", "").isdigit() else None
+        _say_weights(checkpoint, self.run_dir, self.step)
         self.input_size = tuple(int(v) for v in self.config.model.input_size)
         # torch.compile of FDNet.content (what it computes is unchanged: guards and graph breaks
         # keep its semantics); one graph for batches of exactly batch_size, so a shorter batch

@@ -34,7 +34,10 @@ class NetVLADDescriptor(Descriptor):
         if checkpoint is None:
             raise ConfigError("method 'netvlad' needs a trained model: --checkpoint RUN_DIR "
                               "(train one with `fdnet train netvlad --data DIR --out RUN_DIR`)")
-        self.checkpoint = Path(checkpoint)
+        from fdnet.runs import weights_folder, weights_note
+
+        # a run directory means its best-validating weights when it kept them (best/)
+        self.checkpoint = weights_folder(checkpoint)
         self.config = load_run_config(self.checkpoint)
         model = self.config.model
         self.input_size = tuple(int(v) for v in model.input_size)
@@ -42,6 +45,11 @@ class NetVLADDescriptor(Descriptor):
         self.device = resolve_device("auto" if device is None else device, where="netvlad: device")
         self.network = build_network(model, pretrained=False).eval()
         metadata = load_weights(self.checkpoint, {"netvlad": self.network})
+        note = weights_note(checkpoint, self.checkpoint, metadata.get("step"))
+        if note:
+            import logging
+
+            logging.getLogger(__name__).info(note)
         self.network.to(self.device)
         self.step = int(metadata.get("step", 0))
         self.extractor = FeatureExtractor(block=model.frozen_block, bf16=bf16, threads=threads, device=self.device)
