@@ -56,3 +56,35 @@ def test_a_similarity_file_is_scored_against_a_ground_truth_csv(tmp_path):
         evaluate_similarity_file(tmp_path / "run_similarity.npy", ground_truth=tmp_path / "gt4.csv")
     with pytest.raises(ConfigError, match="needs ground truth"):
         evaluate_similarity_file(tmp_path / "run_similarity.npy")
+
+
+def test_a_published_layout_is_not_read_as_plain_folders_without_a_word(tmp_path, caplog):
+    """A VPR-Bench folder (query/, ref/, ground_truth.csv) read as plain folders would match
+    query i only to reference i and ignore its ground truth: refused, naming the format."""
+    root = tmp_path / "corridor"
+    for condition in ("query", "ref"):
+        (root / condition).mkdir(parents=True)
+        for i in range(4):
+            Image.fromarray(np.full((8, 8, 3), 40 * i, np.uint8)).save(root / condition / f"{i:03d}.png")
+    (root / "ground_truth.csv").write_text("query_index,reference_indices\n0,1\n1,2\n2,3\n3,0\n")
+    with pytest.raises(ConfigError, match="'vprbench' dataset format, which carries its own ground truth"):
+        build_split(root, "ref", "query")
+    # said on purpose: frame alignment; or the format's own ground truth
+    assert build_split(root, "ref", "query", tolerance=0).ground_truth.positives[3].tolist() == [3]
+    assert build_split(root, dataset_format="auto").ground_truth.positives[3].tolist() == [0]
+
+
+def test_the_tolerance_in_use_is_said_and_gardens_point_gets_its_protocol(tmp_path, caplog):
+    root = tmp_path / "gardens_point"
+    for condition in ("day_right", "night_right"):
+        (root / condition).mkdir(parents=True)
+        for i in range(8):
+            Image.fromarray(np.full((8, 8, 3), 20 * i, np.uint8)).save(root / condition / f"Image{i:03d}.jpg")
+    with caplog.at_level("INFO"):
+        split = build_split(root, "day_right", "night_right")
+    assert split.ground_truth.positives[4].tolist() == [2, 3, 4, 5, 6]
+    assert "ground truth: gardens_point: night_right -> day_right, frame-aligned, tolerance 2 frames" in caplog.text
+    assert build_split(root, "day_right", "night_right", tolerance=0).ground_truth.positives[4].tolist() == [4]
+    with caplog.at_level("INFO"):
+        build_split(make_folders(tmp_path / "own"), "day", "night")
+    assert "frame-aligned, tolerance 0 frames" in caplog.text

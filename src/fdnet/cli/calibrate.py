@@ -61,6 +61,9 @@ def register(sub) -> None:
     out.add_argument("--db", metavar="MAP.db",
                      help="store it in this place database (built with the same model); `fdnet database query` "
                           "then uses it")
+    p.add_argument("--allow-training-frames", action="store_true",
+                   help="calibrate a trained method on frames it was trained on (refused by default: its scores "
+                        "there are not those of new places)")
     p.set_defaults(func=run)
 
 
@@ -181,16 +184,19 @@ def run(args) -> int:
         ensure_writable(args.out, what="calibration YAML")
     db = None
     descriptor = create_descriptor(args.method, args)
+    from fdnet.evaluation.splits import check_descriptors_held_out
+
     if args.db:
         from fdnet.matching.database import PlaceDatabase
 
         db = PlaceDatabase.open(args.db, descriptor=descriptor)  # another model's database: refused now
     try:
         split = split_from_arguments(args)
+        check_descriptors_held_out([descriptor], args.data, [split.reference.name, split.query.name], args.frames,
+                                   args.dataset_format, args.split, args.allow_training_frames)
         measured_on = {"data_root": str(args.data), "reference": args.reference, "query": args.query,
                        "frames": args.frames, "split": args.split, "dataset_format": args.dataset_format,
-                       "tolerance": args.tolerance if args.tolerance is not None or args.dataset_format
-                       or args.ground_truth else 0,  # frame-aligned folders default to 0
+                       "tolerance": args.tolerance, "ground_truth": split.description,
                        "ground_truth_file": args.ground_truth}
         measured_on = {k: v for k, v in measured_on.items() if v is not None}
         log = logging.getLogger(__name__).info  # standard error, as the library's messages (fdnet.logs)

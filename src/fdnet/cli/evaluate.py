@@ -100,6 +100,9 @@ def register(sub) -> None:
     out.add_argument("--no-curve", action="store_true", help="leave the PR curve points out of the JSON")
     out.add_argument("--plots", metavar="DIR", help="write PR curves, similarity matrices and example matches")
     out.add_argument("--examples", type=int, default=6, help="queries shown in the example-matches figure (default 6)")
+    p.add_argument("--allow-training-frames", action="store_true",
+                   help="evaluate a trained method on frames it was trained on (refused by default: the numbers "
+                        "would measure memory, not recognition)")
     p.set_defaults(func=run)
 
 
@@ -125,6 +128,6 @@ def run(args) -> int:
         batch_size=args.batch_size, workers=args.workers, device=args.device, sequence_length=args.sequence_length,
         threads=args.threads, protocol=args.protocol, thresholds=args.thresholds, accept=args.accept,
         accept_set=args.accept_set, json=args.json, include_curve=not args.no_curve, plots=args.plots,
-        examples=args.examples)
+        examples=args.examples, allow_training_frames=args.allow_training_frames)
     evaluate_command(settings, show=print)
     return 0

@@ -133,6 +133,8 @@ def register(sub) -> None:
     p.add_argument("--resume", action="store_true",
                    help="continue a run that was interrupted: --db holds its first frames; their decisions are "
                         "replayed from the database, the events files rewritten with them, and the rest processed")
+    p.add_argument("--allow-training-frames", action="store_true",
+                   help="with --data: run a trained method on frames it was trained on (refused by default)")
     p.add_argument("--report", metavar="JSON", help="write the run's summary (and evaluation) as JSON")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_pipeline_arguments(p, batch_size=16)
@@ -185,6 +187,11 @@ def run(args) -> int:
         images = route_traverse(args.data, args.conditions.split(","), args.frames,
                                 0 if args.tolerance is None else args.tolerance)
     descriptor = create_descriptor(args.method, args)
+    if args.data:
+        from fdnet.evaluation.splits import check_descriptors_held_out
+
+        check_descriptors_held_out([descriptor], args.data, images.conditions, args.frames,
+                                   allow=args.allow_training_frames)
     report = run_traverse(
         images, descriptor, args.db, exclude_last=args.exclude_last, events_csv=args.out,
         events_jsonl=args.jsonl, rule=rule, rule_settings=args.accept_set or None, threshold=args.threshold,

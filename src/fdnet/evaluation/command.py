@@ -38,6 +38,8 @@ class EvaluateSettings:
     format_set: Sequence[str] = ()
     frames: str | None = None
     ground_truth: str | None = None
+    #: evaluate a trained method on frames it was trained on (refused by default)
+    allow_training_frames: bool = False
     # describing and ranking
     batch_size: int = 64
     workers: int | None = None
@@ -147,6 +149,7 @@ def _evaluate_methods(settings: EvaluateSettings, acceptance, log) -> list:
     from fdnet.descriptors.pipeline import check_pipeline_settings
     from fdnet.errors import ConfigError
     from fdnet.evaluation.experiment import evaluate_method
+    from fdnet.evaluation.splits import check_descriptors_held_out
 
     if not settings.data:
         raise ConfigError("--method needs --data DIR (one sub-folder per condition)")
@@ -157,6 +160,9 @@ def _evaluate_methods(settings: EvaluateSettings, acceptance, log) -> list:
     results = []
     with torch_threads(settings.threads or os.cpu_count() or 1):
         descriptors = [_create_descriptor(name, settings.method_options, device) for name in names]  # fail fast
+        check_descriptors_held_out(descriptors, settings.data, [split.reference.name, split.query.name],
+                                   settings.frames, settings.dataset_format, settings.split,
+                                   settings.allow_training_frames)
         log(f"evaluating {', '.join(names)} on {split.description}: {len(split.query)} queries x "
             f"{len(split.reference)} references")
         for descriptor in descriptors:

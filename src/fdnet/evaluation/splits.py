@@ -58,6 +58,16 @@ def _format_split(data, reference, query, dataset_format, split, format_set, fra
 
 def build_split(data, reference=None, query=None, *, dataset_format=None, split=None, format_set=(), frames=None,
                 tolerance=None, filter_frames: bool = False, ground_truth=None):
+    """:func:`_build_split`, and one line saying which ground truth (and tolerance) is in use:
+    every command that evaluates or calibrates on a split says it the same way."""
+    built = _build_split(data, reference, query, dataset_format=dataset_format, split=split, format_set=format_set,
+                         frames=frames, tolerance=tolerance, filter_frames=filter_frames, ground_truth=ground_truth)
+    logger.info(f"ground truth: {built.description}")
+    return built
+
+
+def _build_split(data, reference=None, query=None, *, dataset_format=None, split=None, format_set=(), frames=None,
+                 tolerance=None, filter_frames: bool = False, ground_truth=None):
     """The :class:`~fdnet.data.split.EvaluationSplit` these settings describe. Without
     ``dataset_format``: ``data/reference/query`` frame-aligned (:func:`fdnet.data.split.aligned_split`,
     after the frame filter with ``filter_frames``) or with ``ground_truth`` over all images of the
@@ -82,13 +92,43 @@ def build_split(data, reference=None, query=None, *, dataset_format=None, split=
             raise ConfigError("--filter-frames applies to frame-aligned folders; with --ground-truth CSV, filter "
                               "the images before writing the ground truth")
         return listed_split(dataset, reference, query, ground_truth, start, end)
+    if tolerance is None:
+        tolerance = default_folder_tolerance(data, dataset.conditions)
     if filter_frames:
         from fdnet.data.filters import filter_frames as drop_frames
 
         dataset, summary = drop_frames(dataset.frames(start, end))
         logger.info(f"frame filter: {summary}")
         start = end = None
-    return aligned_split(dataset, reference, query, tolerance or 0, start, end)
+    return aligned_split(dataset, reference, query, tolerance, start, end)
+
+
+#: layouts that are frame-aligned condition folders, whose ground truth is the frame order itself
+_FRAME_ALIGNED_FORMATS = ("folders", "nordland")
+
+
+def default_folder_tolerance(data, conditions) -> int:
+    """The frame tolerance of plain folders when none is given: 2 for Gardens Point (its
+    protocol, as VPR-Bench uses), else 0. A folder laid out as a published dataset that carries
+    its own ground truth (VPR-Bench's ground_truth.csv, GPS, a correspondence file) is refused:
+    read as plain folders, query i would silently match only reference i."""
+    from fdnet.data.formats import detect_format
+    from fdnet.data.formats.folders import is_gardens_point
+
+    try:
+        layout = detect_format(data)
+    except DataError:
+        layout = None
+    if layout is not None and layout not in _FRAME_ALIGNED_FORMATS:
+        raise ConfigError(f"{data}: is laid out as the {layout!r} dataset format, which carries its own ground truth; "
+                          "read as plain folders, query i would match only reference i. Give --dataset-format "
+                          f"{layout} (or auto) to use its ground truth, --ground-truth FILE, or --tolerance N to align "
+                          "the folders frame by frame on purpose")
+    if is_gardens_point(list(conditions)):
+        logger.info("Gardens Point as folders: tolerance 2 frames, its protocol (as VPR-Bench); give --tolerance "
+                    "to change it")
+        return 2
+    return 0
 
 
 def _check_frames_inside(text, start, end, dataset) -> None:
@@ -156,3 +196,18 @@ def evaluate_similarity_file(path, *, split=None, ground_truth=None, distance: b
         reference_paths=split.reference.paths if split else None,
         # a distance matrix was negated: its largest possible similarity is 0
         acceptance=acceptance, similarity_ceiling=0.0 if distance else 1.0)
+
+
+def check_descriptors_held_out(descriptors, data, conditions, frames=None, dataset_format=None, split=None,
+                               allow: bool = False) -> None:
+    """:func:`fdnet.runs.held_out.check_held_out` for every trained method among ``descriptors``
+    (those that carry their run directory): one check for evaluate, calibrate and loop-closure."""
+    from fdnet.descriptors.registry import trained_methods
+    from fdnet.runs.held_out import check_held_out
+
+    trained = set(trained_methods())
+    for descriptor in descriptors:
+        run_dir = getattr(descriptor, "run_dir", None) or getattr(descriptor, "checkpoint", None)
+        if descriptor.name in trained and run_dir is not None:
+            check_held_out(descriptor.name, run_dir, data, conditions, frames, dataset_format, split, allow)
+
