@@ -387,3 +387,50 @@ def test_resume_replays_to_the_events_of_an_uninterrupted_run(tmp_path):
             np.testing.assert_array_equal(stored.vectors, reference.vectors)
     with pytest.raises(ConfigError, match="needs the place database"):
         run_traverse(folder, RawThumbnail(), None, events_csv=tmp_path / "x.csv", resume=True, **settings)
+
+
+@pytest.mark.parametrize("length", [1, 3])
+def test_the_index_closes_the_same_loops_as_every_place(length):
+    """search="index" (faiss IVF proposals, exact sequence scores of what it proposes) against
+    search="exact" on a route with a tunnel, a stop and a revisit: the same closures."""
+    frames, revisit = route_with_a_tunnel_a_stop_and_a_revisit()
+    settings = {"exclude_last": 2, "rule": "raw", "threshold": 0.8, "sequence_length": length}
+    exact, exact_events = run(frames, search="exact", **settings)
+    indexed, indexed_events = run(frames, search="index", **settings)
+    assert exact_events == indexed_events and any(e is not None for e in exact_events)
+    assert indexed._indexed is not None and exact._indexed is None
+    assert [d.match for d in indexed.decisions[revisit:]] == [d.match for d in exact.decisions[revisit:]]
+    with pytest.raises(ConfigError, match="search must be one of"):
+        run(frames[:2], search="faiss", **settings)
+
+
+def test_auto_search_switches_to_the_index_at_its_size():
+    frames = places(seed=4, n=30)
+    detector, _ = run(frames, search="auto", index_from=20, rule="raw", threshold=2.0)
+    assert detector._indexed is not None and len(detector._indexed) == 29   # every place but the newest
+    small, _ = run(frames, search="auto", rule="raw", threshold=2.0)
+    assert small._indexed is None
+
+
+def test_resume_with_the_index_replays_the_same_events(tmp_path):
+    from fdnet.decisions.loop_traverse import run_traverse
+    from PIL import Image
+
+    frames, revisit = route_with_a_tunnel_a_stop_and_a_revisit()
+    folder = tmp_path / "route"
+    folder.mkdir()
+    for i, image in enumerate(frames):
+        Image.fromarray(image).save(folder / f"frame_{i:03d}.png")
+    settings = {"exclude_last": 2, "rule": "raw", "threshold": 0.8, "sequence_length": 3, "batch_size": 4,
+                "workers": 0, "search": "index"}
+    whole = run_traverse(folder, RawThumbnail(), tmp_path / "whole.db", events_csv=tmp_path / "whole.csv",
+                         **settings)
+    assert whole.closures >= 9
+    # a run interrupted after 40 frames (among the revisits): the database holds those frames only
+    with PlaceDatabase.open(tmp_path / "whole.db") as stored:
+        vectors, names, metadata = stored.vectors, stored.names, stored.metadata
+    with PlaceDatabase.create(tmp_path / "cut.db", RawThumbnail()) as cut:
+        cut.add(vectors[:40], names[:40], metadata=metadata[:40])
+    (tmp_path / "cut.csv").write_text("")
+    run_traverse(folder, RawThumbnail(), tmp_path / "cut.db", events_csv=tmp_path / "cut.csv", resume=True, **settings)
+    assert (tmp_path / "cut.csv").read_text() == (tmp_path / "whole.csv").read_text()

@@ -130,6 +130,9 @@ def register(sub) -> None:
                         "min_contrast (uninformative frames), still_difference, segment_similarity, "
                         "exclude_seconds, exclude_metres (the robot's recent past), consistency, "
                         "consistency_window (k consecutive agreeing frames); see docs/loop-closure.md")
+    p.add_argument("--search", choices=("auto", "exact", "index"), default="auto",
+                   help="how candidates are found: every place (exact), a faiss IVF index that proposes them "
+                        "(index), or every place up to 20,000 and the index beyond (auto, the default)")
     p.add_argument("--resume", action="store_true",
                    help="continue a run that was interrupted: --db holds its first frames; their decisions are "
                         "replayed from the database, the events files rewritten with them, and the rest processed")
@@ -198,7 +201,7 @@ def run(args) -> int:
         calibration=calibration, sequence_length=sequence_length, ground_truth=args.ground_truth,
         calibrate_to=calibrate_out, target_precision=args.target_precision,
         method_options=_file_options(args, args.method), commit_every=args.commit_every,
-        batch_size=args.batch_size, workers=args.workers, gates=gates, resume=args.resume,
+        batch_size=args.batch_size, workers=args.workers, gates=gates, resume=args.resume, search=args.search,
         progress=not args.no_progress, log=logging.getLogger("fdnet.loop_closure").info)
     print(f"wrote {args.out}" + (f" and {args.jsonl}" if args.jsonl else "")
           + f": {report.closures} loop closures in {report.frames} frames ({report.rule} >= {report.threshold:g}, "

@@ -39,8 +39,10 @@ INDEX_FROM = 20_000
 IVF_FROM = 4096
 #: neighbours fetched per frame from the index
 NEIGHBOURS = 32
+#: sequence ends scored exactly per frame (the best of a first ranking from the index's own similarities)
+RESCORED = 64
 #: places sampled to estimate a frame's median similarity (its neutral value)
-MEDIAN_SAMPLE = 2048
+MEDIAN_SAMPLE = 512
 
 
 class IndexedCandidates:
@@ -75,7 +77,8 @@ class IndexedCandidates:
             self._index.build()
             self._trained_on = count
         elif count > len(self._index):
-            self._index.add(vectors[len(self._index):count])
+            with _one_faiss_thread():  # a frame or a few: training and bulk adds keep every thread
+                self._index.add(vectors[len(self._index):count])
 
     def neutral(self, v: np.ndarray, vectors: np.ndarray, informative: np.ndarray) -> float:
         """The frame's median similarity over an evenly spaced sample of the informative places."""
@@ -92,11 +95,14 @@ class IndexedCandidates:
         sequences the sequence scores of the proposed ends."""
         count = len(vectors)
         self.sync(vectors)
-        ids = np.zeros(0, np.int64)
+        ids, sims = np.zeros(0, np.int64), np.zeros(0, np.float32)
         if count:
-            ids, _ = self._index.search(v[None], min(self.neighbours, count))
-            ids = ids[0][ids[0] >= 0]
-        self._recent.append((v, ids, neutral, count, frame_informative))
+            with _one_faiss_thread():
+                found, scores = self._index.search(v[None], min(self.neighbours, count))
+            keep = found[0] >= 0
+            order = np.argsort(found[0][keep])
+            ids, sims = found[0][keep][order], scores[0][keep][order]  # sorted by place, for look-ups
+        self._recent.append((v, ids, neutral, count, frame_informative, sims))
         if searchable <= 0:
             return np.zeros(0, np.int64), np.zeros(0, np.float32)
         if self.sequence_length <= 1:
@@ -110,6 +116,11 @@ class IndexedCandidates:
         if self.sequence_length <= 1:
             scores = vectors[ends] @ v
         else:
+            if len(ends) > RESCORED:
+                # a first ranking from the similarities the index already returned (a pair it did
+                # not return counts as neutral), then the best RESCORED ends exactly
+                rough = self._sequence_scores(ends, vectors, informative, exact=False)
+                ends = np.sort(ends[np.argsort(-rough, kind="stable")[:RESCORED]])
             scores = self._sequence_scores(ends, vectors, informative)
         order = np.lexsort((ends, -scores))  # best first, ties to the lower place
         return ends[order], scores[order].astype(np.float32)
@@ -120,31 +131,54 @@ class IndexedCandidates:
         fastest velocity's drift."""
         ends = []
         velocities = np.asarray(DEFAULT_VELOCITIES)
-        for k, (_, ids, _, _, _) in enumerate(reversed(self._recent)):
+        for k, (_, ids, *_) in enumerate(reversed(self._recent)):
             low, high = int(np.floor(k * velocities.min())), int(np.ceil(k * velocities.max()))
             ends.append((ids[:, None] + np.arange(low, high + 1)[None, :]).ravel())
         return np.concatenate(ends) if ends else np.zeros(0, np.int64)
 
-    def _sequence_scores(self, ends: np.ndarray, vectors: np.ndarray, informative: np.ndarray) -> np.ndarray:
+    def _sequence_scores(self, ends: np.ndarray, vectors: np.ndarray, informative: np.ndarray,
+                         exact: bool = True) -> np.ndarray:
         """Sequence scores of ``ends`` over the recent frames, each (frame, place) pair read from
         the vectors as online_sequence_scores reads it from the rows (the frame's row held the
-        places that existed then: later places count as missing)."""
+        places that existed then: later places count as missing). ``exact=False``: a pair's
+        similarity only when the index returned that place for that frame, else neutral."""
         velocities = np.asarray(DEFAULT_VELOCITIES, dtype=np.float64)
         pad = int(math.ceil(velocities.max() * (self.sequence_length - 1)))
         total = np.zeros((len(velocities), len(ends)))
         count = np.zeros((len(velocities), len(ends)))
-        for k, (frame, _, neutral, places_then, frame_informative) in enumerate(reversed(self._recent)):
+        for k, (frame, ids, neutral, places_then, frame_informative, sims) in enumerate(reversed(self._recent)):
             # the places this frame pairs with, for every end and velocity: one product for all
             places = np.rint(ends[None, :] - k * velocities[:, None]).astype(np.int64)
             inside = (places >= 0) & (places < places_then)
             padded = (places < 0) & (places >= -pad)
             values = np.full(places.shape, neutral)
-            if inside.any() and frame_informative:  # an uninformative frame's pairs stay neutral
+            if inside.any() and frame_informative and exact:  # an uninformative frame's pairs stay neutral
                 needed, where = np.unique(places[inside], return_inverse=True)
-                sims = vectors[needed] @ frame
-                values[inside] = np.where(informative[needed], sims, neutral)[where]
+                found = vectors[needed] @ frame
+                values[inside] = np.where(informative[needed], found, neutral)[where]
+            elif inside.any() and frame_informative and len(ids):
+                wanted = places[inside]
+                at = np.minimum(np.searchsorted(ids, wanted), len(ids) - 1)
+                hit = (ids[at] == wanted) & informative[wanted]
+                values[inside] = np.where(hit, sims[at], neutral)
             use = inside | padded
             total += np.where(use, values, 0.0)
             count += use
         best = np.where(count > 0, total / np.maximum(count, 1), -np.inf).max(axis=0)
         return best
+
+
+class _one_faiss_thread:
+    """faiss on one thread for one frame's add and search: OpenMP's start and barrier cost more
+    than a single vector's work (7 ms against well under 1 ms on 2 shared cores)."""
+
+    def __enter__(self):
+        import faiss
+
+        self._faiss = faiss
+        self._threads = faiss.omp_get_max_threads()
+        faiss.omp_set_num_threads(1)
+
+    def __exit__(self, *exc):
+        self._faiss.omp_set_num_threads(self._threads)
+

@@ -140,7 +140,8 @@ def run_traverse(images, descriptor, database=None, *, exclude_last: int,
                  calibrate_to: str | os.PathLike | None = None, target_precision: float = 1.0,
                  method_options: dict | None = None, commit_every: int = 1, batch_size: int = 16,
                  workers: int | None = None, progress: bool = False, gates: LoopGates | None = None,
-                 resume: bool = False, log: Callable[[str], None] | None = None) -> TraverseReport:
+                 resume: bool = False, search: str = "auto",
+                 log: Callable[[str], None] | None = None) -> TraverseReport:
     """Run a :class:`LoopClosureDetector` over one traverse, writing each accepted closure to
     ``events_csv`` (and ``events_jsonl``) as it is accepted.
 
@@ -158,7 +159,9 @@ def run_traverse(images, descriptor, database=None, *, exclude_last: int,
     that calibration there (YAML); without a threshold or calibration such a run accepts nothing
     (threshold +inf). ``resume``: the database holds the first frames of this traverse from an
     interrupted run: replay their decisions from the stored vectors (nothing is described or
-    stored twice), rewrite the events they accepted, and go on with the rest. Every refusal
+    stored twice), rewrite the events they accepted, and go on with the rest. ``search``: how
+    candidates are found (``auto``: every place up to 20,000, then the index;
+    :mod:`fdnet.decisions.loop_search`). Every refusal
     (paths, rule, calibration, ground truth, database) comes before the first frame is described.
     """
     from fdnet.data.groundtruth import GroundTruth
@@ -188,7 +191,7 @@ def run_traverse(images, descriptor, database=None, *, exclude_last: int,
     with LoopClosureDetector(descriptor, database, exclude_last=exclude_last, rule=rule,
                              rule_settings=rule_settings, threshold=threshold, calibration=calibration,
                              sequence_length=sequence_length, method_options=method_options,
-                             commit_every=commit_every, gates=gates) as detector:
+                             commit_every=commit_every, gates=gates, search=search) as detector:
         db = detector.database
         done = _frames_done(db, names, resume)
         places_before = detector.places - done

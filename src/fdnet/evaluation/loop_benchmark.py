@@ -7,7 +7,8 @@ noise), decided frame by frame with the command's defaults (margin, sequences of
 after the map's places. Each map size reports milliseconds per frame of the decision alone (no
 describing; the database commits 100 frames at a time so SQLite's fsync is not what is timed),
 the reference of one (places x dim) matrix-vector product measured in the same run, how often
-the index's decision equals the exhaustive one, and Recall@1 of each on the revisits. With an
+the index's decision names the same place as the exhaustive one on the revisits, and Recall@1
+of each there. With an
 FDNet checkpoint (the ``fdnet`` part measured its ``cpu``-preset descriptor through the public
 API in the same run) it also gives frames/s of the whole loop: 1000 / (describe ms + decide ms).
 Nothing is asserted by tests: the report holds figures measured side by side.
@@ -90,7 +91,8 @@ def loop_rows(sizes, dim: int = 512, route: int = 300, noise: float = 0.5, descr
             decided[search + "_ms"] = 1e3 * float(np.median(times[route:]))
             decided[search + "_recall"] = float(np.mean(np.abs(matches - truth) <= 1))
         gemv = _gemv_ms(earlier)
-        agree = float(np.mean(np.array(decided["exact"]) == np.array(decided["index"])))
+        # on the revisits, where a decision can be right (the first pass's best places are noise)
+        agree = float(np.mean(np.array(decided["exact"])[route:] == np.array(decided["index"])[route:]))
         row = {"map_size": int(size), "dim": dim, "frames": len(frames), "exact_ms": decided["exact_ms"],
                "index_ms": decided["index_ms"], "gemv_ms": gemv, "agreement": agree,
                "exact_recall_at_1": decided["exact_recall"], "index_recall_at_1": decided["index_recall"]}
@@ -103,7 +105,7 @@ def loop_rows(sizes, dim: int = 512, route: int = 300, noise: float = 0.5, descr
             f" | with FDNet ({describe_ms:.1f} ms/frame): {row['fdnet_frames_per_s_exact']:.1f} -> "
             f"{row['fdnet_frames_per_s_index']:.1f} frames/s")
         log(f"  {size:>9,} places: exact {row['exact_ms']:7.2f} ms/frame ({row['exact_ms'] / gemv:5.1f} x one "
-            f"{gemv:.2f} ms GEMV), index {row['index_ms']:6.2f} ms/frame, same decision {agree:.3f}, "
+            f"{gemv:.2f} ms GEMV), index {row['index_ms']:6.2f} ms/frame, same place on the revisits {agree:.3f}, "
             f"R@1 (+-1 place) exact {row['exact_recall_at_1']:.3f} index {row['index_recall_at_1']:.3f}{with_fdnet}")
         del earlier
     return rows
