@@ -255,7 +255,8 @@ def test_loop_closure_over_a_bag_uses_its_times(tmp_path):
     path = write_bag(tmp_path / "loop.bag", {"/cam": ("sensor_msgs/msg/Image", images)})
     events = tmp_path / "events.csv"
     assert main(["loop-closure", "--images", str(path), "--method", "sad", "--exclude-last", "4", "--accept", "raw",
-                 "--threshold", "-0.000001", "--out", str(events), "--workers", "0", "--no-progress"]) == 0
+                 "--sequence-length", "1", "--threshold", "-0.000001", "--out", str(events), "--workers", "0",
+                 "--no-progress"]) == 0
     rows = list(csv.DictReader(events.open()))
     assert len(rows) == 8  # sad of identical frames is 0, the highest: each second pass closes the loop
     assert [float(r["timestamp"]) - float(r["match_timestamp"]) for r in rows] == pytest.approx([8.0] * 8)

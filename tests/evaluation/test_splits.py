@@ -80,11 +80,11 @@ def test_the_tolerance_in_use_is_said_and_gardens_point_gets_its_protocol(tmp_pa
         (root / condition).mkdir(parents=True)
         for i in range(8):
             Image.fromarray(np.full((8, 8, 3), 20 * i, np.uint8)).save(root / condition / f"Image{i:03d}.jpg")
-    with caplog.at_level("INFO"):
-        split = build_split(root, "day_right", "night_right")
+    split = build_split(root, "day_right", "night_right")
     assert split.ground_truth.positives[4].tolist() == [2, 3, 4, 5, 6]
-    assert "ground truth: gardens_point: night_right -> day_right, frame-aligned, tolerance 2 frames" in caplog.text
-    assert build_split(root, "day_right", "night_right", tolerance=0).ground_truth.positives[4].tolist() == [4]
-    with caplog.at_level("INFO"):
-        build_split(make_folders(tmp_path / "own"), "day", "night")
-    assert "frame-aligned, tolerance 0 frames" in caplog.text
+    # the description every command prints names the tolerance and where it came from
+    assert split.description == ("gardens_point: night_right -> day_right, frame-aligned, tolerance 2 frames "
+                                 "(Gardens Point's protocol, as VPR-Bench; --tolerance changes it)")
+    exact = build_split(root, "day_right", "night_right", tolerance=0)
+    assert exact.ground_truth.positives[4].tolist() == [4] and "protocol" not in exact.description
+    assert "frame-aligned, tolerance 0 frames" in build_split(make_folders(tmp_path / "own"), "day", "night").description

@@ -184,7 +184,7 @@ def run(args) -> int:
         ensure_writable(args.out, what="calibration YAML")
     db = None
     descriptor = create_descriptor(args.method, args)
-    from fdnet.evaluation.splits import check_descriptors_held_out
+    from fdnet.evaluation.splits import check_descriptors_held_out, default_folder_tolerance
 
     if args.db:
         from fdnet.matching.database import PlaceDatabase
@@ -196,7 +196,9 @@ def run(args) -> int:
                                    args.dataset_format, args.split, args.allow_training_frames)
         measured_on = {"data_root": str(args.data), "reference": args.reference, "query": args.query,
                        "frames": args.frames, "split": args.split, "dataset_format": args.dataset_format,
-                       "tolerance": args.tolerance, "ground_truth": split.description,
+                       "tolerance": args.tolerance if args.tolerance is not None or args.dataset_format
+                       or args.ground_truth else default_folder_tolerance(args.data, [args.reference, args.query]),
+                       "ground_truth": split.description,
                        "ground_truth_file": args.ground_truth}
         measured_on = {k: v for k, v in measured_on.items() if v is not None}
         log = logging.getLogger(__name__).info  # standard error, as the library's messages (fdnet.logs)

@@ -179,9 +179,9 @@ def run_traverse(images, descriptor, database=None, *, exclude_last: int,
         ensure_writable(calibrate_to, what="calibration file")
         if threshold is None and calibration is None:
             threshold = math.inf
-    ensure_writable(events_csv, what="events CSV")
-    if events_jsonl is not None:
-        ensure_writable(events_jsonl, what="events JSON lines")
+    for path, what in ((events_csv, "events CSV"), (events_jsonl, "events JSON lines")):
+        if path is not None:
+            ensure_writable(path, what=what)
     if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
         raise ConfigError(f"batch size must be a whole number of at least 1, got {batch_size!r}")
     if resume and database is None:
@@ -218,24 +218,26 @@ def run_traverse(images, descriptor, database=None, *, exclude_last: int,
                               batch_size, workers, progress, start=done, initial=initial)
         detector.flush()
         seconds = time.perf_counter() - t0
-        report = TraverseReport(
-            frames=detector.frames, closures=len(detector.closures), seconds=seconds, places_before=places_before,
-            places_after=detector.places, rule=detector.spec.name, rule_settings=detector.spec.settings,
-            threshold=detector.threshold,
-            sequence_length=detector.sequence_length, exclude_last=detector.exclude_last, database=str(db.path),
-            events=[str(p) for p in events.paths], gates=detector.gates.to_dict(),
-            gate_counts=dict(detector.gate_counts), resumed_frames=done,
-            calibration=None if calibration is None else str(calibration))
+        report = _report(detector, seconds, places_before, events, done, calibration)
         if truth is not None:
             report.evaluation = evaluate_decisions(detector.decisions, truth, detector.threshold, detector.spec.name)
         if calibrate_to is not None:
-            source = {"images": where if route is not None else str(Path(images).resolve())}
-            if ground_truth is not None:
-                source["ground_truth_file"] = str(Path(ground_truth).resolve())
-            else:
-                source["ground_truth"] = truth.description
+            source = {"images": where if route is not None else str(Path(images).resolve()),
+                      **({"ground_truth_file": str(Path(ground_truth).resolve())} if ground_truth is not None
+                         else {"ground_truth": truth.description})}
             report.calibrated = _calibrate_on_traverse(detector, truth, target_precision, source, calibrate_to)
     return report
+
+
+def _report(detector: LoopClosureDetector, seconds: float, places_before: int, events: EventLog, resumed: int,
+            calibration) -> TraverseReport:
+    return TraverseReport(
+        frames=detector.frames, closures=len(detector.closures), seconds=seconds, places_before=places_before,
+        places_after=detector.places, rule=detector.spec.name, rule_settings=detector.spec.settings,
+        threshold=detector.threshold, sequence_length=detector.sequence_length, exclude_last=detector.exclude_last,
+        database=str(detector.database.path), events=[str(p) for p in events.paths], gates=detector.gates.to_dict(),
+        gate_counts=dict(detector.gate_counts), resumed_frames=resumed,
+        calibration=None if calibration is None else str(calibration))
 
 
 def _traverse_frames(images, route: RouteTraverse | None):

@@ -58,12 +58,11 @@ def _format_split(data, reference, query, dataset_format, split, format_set, fra
 
 def build_split(data, reference=None, query=None, *, dataset_format=None, split=None, format_set=(), frames=None,
                 tolerance=None, filter_frames: bool = False, ground_truth=None):
-    """:func:`_build_split`, and one line saying which ground truth (and tolerance) is in use:
-    every command that evaluates or calibrates on a split says it the same way."""
-    built = _build_split(data, reference, query, dataset_format=dataset_format, split=split, format_set=format_set,
-                         frames=frames, tolerance=tolerance, filter_frames=filter_frames, ground_truth=ground_truth)
-    logger.info(f"ground truth: {built.description}")
-    return built
+    """:func:`_build_split`. Its ``description`` names the ground truth and the tolerance in use
+    (Gardens Point's protocol tolerance is said there too), and every command that evaluates or
+    calibrates on a split prints it."""
+    return _build_split(data, reference, query, dataset_format=dataset_format, split=split, format_set=format_set,
+                        frames=frames, tolerance=tolerance, filter_frames=filter_frames, ground_truth=ground_truth)
 
 
 def _build_split(data, reference=None, query=None, *, dataset_format=None, split=None, format_set=(), frames=None,
@@ -92,6 +91,7 @@ def _build_split(data, reference=None, query=None, *, dataset_format=None, split
             raise ConfigError("--filter-frames applies to frame-aligned folders; with --ground-truth CSV, filter "
                               "the images before writing the ground truth")
         return listed_split(dataset, reference, query, ground_truth, start, end)
+    protocol_tolerance = tolerance is None and default_folder_tolerance(data, dataset.conditions) > 0
     if tolerance is None:
         tolerance = default_folder_tolerance(data, dataset.conditions)
     if filter_frames:
@@ -100,7 +100,11 @@ def _build_split(data, reference=None, query=None, *, dataset_format=None, split
         dataset, summary = drop_frames(dataset.frames(start, end))
         logger.info(f"frame filter: {summary}")
         start = end = None
-    return aligned_split(dataset, reference, query, tolerance, start, end)
+    split = aligned_split(dataset, reference, query, tolerance, start, end)
+    if protocol_tolerance:  # say where the tolerance came from
+        split = dataclasses.replace(split, description=f"{split.description} (Gardens Point's protocol, as VPR-Bench; "
+                                                       "--tolerance changes it)")
+    return split
 
 
 #: layouts that are frame-aligned condition folders, whose ground truth is the frame order itself
@@ -124,11 +128,7 @@ def default_folder_tolerance(data, conditions) -> int:
                           "read as plain folders, query i would match only reference i. Give --dataset-format "
                           f"{layout} (or auto) to use its ground truth, --ground-truth FILE, or --tolerance N to align "
                           "the folders frame by frame on purpose")
-    if is_gardens_point(list(conditions)):
-        logger.info("Gardens Point as folders: tolerance 2 frames, its protocol (as VPR-Bench); give --tolerance "
-                    "to change it")
-        return 2
-    return 0
+    return 2 if is_gardens_point(list(conditions)) else 0
 
 
 def _check_frames_inside(text, start, end, dataset) -> None:
