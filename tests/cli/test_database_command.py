@@ -348,3 +348,19 @@ def test_the_empty_file_an_unfinished_build_leaves_says_so_and_is_reused(tmp_pat
     assert main(["database", "build", "--images", str(make_route(tmp_path / "images", n=2)), "--method", "raw",
                  "--db", str(db)]) == 0
     assert info(db, capsys)["places"] == 2
+
+
+def test_every_listed_image_is_a_place_under_its_own_name_links_too(tmp_path, capsys):
+    """a.png, b.png -> a.png, c.png: three places in the folder's order, each under the name it
+    was listed by (a link is not replaced by its target, and not merged with it)."""
+    folder = write_random_places(tmp_path / "f", 2)
+    first, second = sorted(folder.iterdir())
+    (folder / "b_link.png").symlink_to(first.name)
+    names = sorted(p.name for p in folder.iterdir())
+    db = tmp_path / "links.db"
+    assert main(["database", "build", "--images", str(folder), "--method", "raw", "--db", str(db)]) == 0
+    assert "3 places" in capsys.readouterr().out
+    with sqlite3.connect(db) as conn:
+        stored = [row[0] for row in conn.execute("SELECT name FROM places ORDER BY id")]
+    assert [s.rsplit("/", 1)[1] for s in stored] == names
+    assert str(folder / "b_link.png") in stored

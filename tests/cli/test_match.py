@@ -212,3 +212,22 @@ def test_a_name_that_is_not_utf8_with_a_saved_index(tmp_path):
             "--index-file", str(tmp_path / "index.faiss"), "--out", str(tmp_path / "m.csv")]
     assert main(argv) == 0 and main(argv) == 0  # built and saved, then loaded for the same names
     assert b"caf\xe9.png" in (tmp_path / "m.csv").read_bytes()
+
+
+def test_an_index_file_is_not_reused_for_another_folder_with_the_same_names(tmp_path, capsys):
+    """Conditions of one route share file names (summer/images-00010.png, winter/images-00010.png):
+    an index built for summer must not answer for winter."""
+    from conftest import write_random_places
+
+    summer = write_random_places(tmp_path / "route" / "summer", 6, seed=1)
+    winter = write_random_places(tmp_path / "route" / "winter", 6, seed=2)
+    saved = tmp_path / "map.idx"
+    common = ["match", "--method", "raw", "--index", "flat", "--index-file", str(saved), "--top-k", "1",
+              "--workers", "0", "--query", str(summer)]
+    assert main([*common, "--reference", str(summer), "--out", str(tmp_path / "a.csv")]) == 0
+    capsys.readouterr()
+    assert main([*common, "--reference", str(winter), "--out", str(tmp_path / "b.csv")]) == 0
+    printed = capsys.readouterr()
+    assert "other reference images" in printed.out + printed.err and "loaded the flat index" not in printed.out
+    assert main([*common, "--reference", str(winter), "--out", str(tmp_path / "c.csv")]) == 0
+    assert "loaded the flat index" in capsys.readouterr().out

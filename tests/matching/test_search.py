@@ -4,7 +4,7 @@ import pytest
 
 from fdnet.descriptors import create
 from fdnet.errors import ConfigError
-from fdnet.matching.search import index_settings, match_images, names_digest
+from fdnet.matching.search import index_settings, map_digest, match_images
 
 from conftest import read_csv_rows, write_random_places
 
@@ -40,11 +40,24 @@ def test_settings_are_refused_before_the_method_is_made(tmp_path):
             match_images(ref, ref, tmp_path / "m.csv", never, **kwargs)
 
 
-def test_index_settings_and_names_digest():
+def test_index_settings_and_the_identity_of_a_map(tmp_path):
     assert index_settings("exact") is None
     assert index_settings("ivf", ["ivf_lists=4"]).ivf_lists == 4
     with pytest.raises(ConfigError, match="--index"):
         index_settings("lsh")
-    from pathlib import Path
+    import os
 
-    assert names_digest([Path("a/x.png")]) == names_digest([Path("b/x.png")]) != names_digest([Path("y.png")])
+    # two conditions of one route share file names: they are two maps; so is a rewritten image
+    for folder in ("summer", "winter"):
+        (tmp_path / folder).mkdir()
+        (tmp_path / folder / "images-00010.png").write_bytes(b"x" * 10)
+    summer, winter = tmp_path / "summer" / "images-00010.png", tmp_path / "winter" / "images-00010.png"
+    assert map_digest([summer]) != map_digest([winter])
+    before = map_digest([summer])
+    assert map_digest([summer]) == before
+    summer.write_bytes(b"y" * 11)
+    rewritten = map_digest([summer])
+    assert rewritten != before
+    stat = summer.stat()  # the same size, written again later
+    os.utime(summer, ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))
+    assert map_digest([summer]) != rewritten

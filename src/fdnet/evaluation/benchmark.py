@@ -444,12 +444,14 @@ def _scale(plan: BenchmarkPlan, report: dict, out) -> None:
 def _loop(plan: BenchmarkPlan, report: dict, out) -> None:
     from fdnet.evaluation.loop_benchmark import loop_rows
 
-    describe = (report.get("cpu_preset_descriptor_ms") or {}).get("extract")
+    # loop-closure describes frame batches in fp32 (the descriptor's default), not extract's bf16 path
+    describe = (report.get("cpu_preset_descriptor_ms") or {}).get("fp32_eager")
     route = 100 if plan.quick else 300
     out(f"\nLoop closure: a route of {route} places driven twice after an earlier session's map of random unit "
         f"512-d vectors; margin, sequences of 10, the default gates; ms per frame of the decision (median over the "
         f"revisits), exhaustive search against the index (fdnet.decisions.loop_search)"
-        + ("" if describe is None else f"; frames/s with the FDNet descriptor measured above ({describe:.1f} ms)"))
+        + ("" if describe is None else f"; frames/s with the FDNet descriptor measured above, fp32 as loop-closure "
+                                    f"runs it ({describe:.1f} ms)"))
     report["loop"] = loop_rows(plan.loop_map_sizes, dim=512, route=route, noise=plan.noise, describe_ms=describe,
                                log=out)
 

@@ -28,19 +28,33 @@ INDEX_CHOICES = ["exact", *INDEX_KINDS]
 MATCH_COLUMNS = ["query_index", "query", "rank", "reference_index", "reference", "score"]
 
 
-def names_digest(paths) -> str:
-    """SHA-256 of the file names in order (their own bytes, UTF-8 or not): which map an index holds."""
+def map_digest(paths) -> str:
+    """SHA-256 of what a map's vectors were computed from, in order: each image's absolute path as
+    listed and the size and modification time of the file behind it (for a frame of a video or
+    bag, that file's), so an index built for one folder is not reused for another whose images
+    share file names (two conditions of one route), nor for rewritten images."""
     import hashlib
+
+    from fdnet.data.sources import locate
 
     digest = hashlib.sha256()
     for path in paths:
-        digest.update(os.fsencode(path.name) + b"\0")
+        path = Path(path)
+        found = None if path.is_file() else locate(path)
+        backing = found[0] if found is not None else path
+        try:
+            stat = backing.stat()
+            facts = f"{stat.st_size}\0{stat.st_mtime_ns}"
+        except OSError:
+            facts = "unreadable"
+        digest.update(os.fsencode(os.path.abspath(path)) + b"\0" + facts.encode() + b"\n")
     return digest.hexdigest()
 
 
 def cached_index(path, descriptor, ref_paths, settings, log: Callable[[str], None] | None = None):
-    """The index in ``path`` when it was built for this descriptor, these reference names and
-    these build settings; else None (with the reason given to ``log``)."""
+    """The index in ``path`` when it was built for this descriptor, these reference images
+    (:func:`map_digest`: paths, sizes, modification times) and these build settings; else None
+    (with the reason given to ``log``)."""
     from fdnet.matching.index import SEARCH_SETTINGS, VectorIndex
 
     if not Path(path).is_file():
@@ -52,7 +66,7 @@ def cached_index(path, descriptor, ref_paths, settings, log: Callable[[str], Non
     reasons = []
     if meta.get("fingerprint") != descriptor.fingerprint():
         reasons.append("another method or model")
-    if meta.get("references") != names_digest(ref_paths) or header["count"] != len(ref_paths):
+    if meta.get("references") != map_digest(ref_paths) or header["count"] != len(ref_paths):
         reasons.append("other reference images")
     if saved != build:
         reasons.append(f"other build settings ({saved})")
@@ -140,7 +154,7 @@ def _build_or_load(descriptor, ref_paths, settings, index_file, batch_size, work
     built = time.perf_counter() - t0
     if index_file:
         index.save(index_file, metadata={"fingerprint": descriptor.fingerprint(),
-                                         "references": names_digest(ref_paths), "method": descriptor.name})
+                                         "references": map_digest(ref_paths), "method": descriptor.name})
         say(f"built the {settings.kind} index of {len(ref_paths)} references ({built:.1f} s), saved to {index_file}")
     return index
 

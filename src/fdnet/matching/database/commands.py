@@ -348,9 +348,11 @@ def _spooled_batches(spool, names, paths=None):
 
 def _place_names(paths) -> list[str]:
     # Absolute: the same image added from another working directory is still the same place.
+    # Not resolved: a symbolic link is listed under its own name, so every listed image is a
+    # place under that name (two links to one file are two places, in the folder's order).
     from fdnet.errors import DataError
 
-    names = [str(p.resolve()) for p in paths]
+    names = [os.path.abspath(os.fspath(p)) for p in paths]
     for name in names:  # SQLite text is UTF-8: refuse before anything is described or created
         try:
             name.encode("utf-8")
