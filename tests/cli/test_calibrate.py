@@ -232,3 +232,43 @@ def test_a_required_setting_can_be_the_one_chosen(route, tmp_path, capsys):
     assert [c["min"] for c in stored["measured_on"]["chosen_from"]] == [0.0, 0.5]
     assert main(calibrate_args(route, "--accept", "margin+floor", "--choose", "min=x", "--out", str(cal))) == 2
     assert "--choose min=x: must be a number" in capsys.readouterr().err
+
+
+def test_one_rule_for_a_calibration_stored_in_the_run(tmp_path, capsys, caplog):
+    """`calibrate --store-in-run` is what match, database query and loop-closure use when given
+    no threshold or calibration (and the database stores none)."""
+    import torch
+
+    from conftest import write_random_places
+    from fdnet.methods.fdnet.config import preset
+    from fdnet.methods.fdnet.model import FDNet
+    from fdnet.runs import save_run
+
+    torch.manual_seed(0)
+    config = preset("tiny")
+    run = tmp_path / "run"
+    save_run(run, FDNet(config.model).named_parts(), config, state={"step": 1})
+    root = tmp_path / "route"
+    write_random_places(root / "day", 12, seed=3)
+    write_random_places(root / "dusk", 12, seed=3, brightness=0.8)
+    assert main(["calibrate", "--data", str(root), "--reference", "day", "--query", "dusk", "--tolerance", "0",
+                 "--method", "fdnet", "--checkpoint", str(run), "--accept", "margin", "--target-precision", "0.5",
+                 "--store-in-run"]) == 0
+    assert (run / "calibration.yaml").is_file()
+    capsys.readouterr()
+    out = tmp_path / "m.csv"
+    assert main(["match", "--reference", str(root / "day"), "--query", str(root / "dusk"), "--method", "fdnet",
+                 "--checkpoint", str(run), "--workers", "0", "--out", str(out)]) == 0
+    printed = capsys.readouterr()
+    assert f"using the calibration stored in the run, {run / 'calibration.yaml'}" in printed.err
+    assert "accepted" in out.read_text().splitlines()[0] and "queries accepted by margin" in printed.out
+    db = tmp_path / "map.db"
+    assert main(["database", "build", "--images", str(root / "day"), "--method", "fdnet", "--checkpoint", str(run),
+                 "--db", str(db), "--workers", "0"]) == 0
+    assert main(["database", "query", "--db", str(db), "--images", str(root / "dusk"), "--workers", "0"]) == 0
+    assert "using the calibration stored in the run" in capsys.readouterr().err
+    with caplog.at_level("INFO"):
+        assert main(["loop-closure", "--images", str(root / "dusk"), "--method", "fdnet", "--checkpoint", str(run),
+                     "--exclude-last", "2", "--workers", "0", "--out", str(tmp_path / "e.csv")]) == 0
+    assert "measured on a pair of traverses, not on a loop" in caplog.text
+    assert "threshold from" in capsys.readouterr().out

@@ -35,13 +35,14 @@ def _finite(text: str) -> float:
 
 def _default_calibration(args):
     """(the calibration to use, the loaded Calibration or None): ``--calibration``; else, without
-    ``--threshold``, the one stored in ``--db``, else ``RUN_DIR/loop-calibration.yaml`` of
-    ``--checkpoint RUN_DIR``; else (None, None). Loaded here so that its rule and sequence length
+    ``--threshold``, the one stored in ``--db``, else the one stored in ``--checkpoint RUN_DIR``
+    (``loop-calibration.yaml``, else a pair's ``calibration.yaml``:
+    :func:`fdnet.decisions.calibration.stored_in_run`); else (None, None). Loaded here so that its rule and sequence length
     become the defaults."""
     from pathlib import Path
 
     from fdnet.cli.common import method_options
-    from fdnet.decisions.calibration import load_calibration
+    from fdnet.decisions.calibration import CALIBRATION_FILE, load_calibration, stored_in_run
     from fdnet.decisions.loop_closure import LOOP_CALIBRATION_FILE, stored_calibration
 
     if args.calibration:
@@ -53,13 +54,10 @@ def _default_calibration(args):
         if calibrated is not None:
             return None, calibrated  # the detector reads it from the database
     checkpoint = method_options(args, args.method).get("checkpoint") if args.method else None
-    if checkpoint:
-        from fdnet.runs import weights_folder
-
-        for folder in dict.fromkeys((Path(checkpoint), weights_folder(checkpoint))):
-            candidate = folder / LOOP_CALIBRATION_FILE
-            if candidate.is_file():
-                return str(candidate), load_calibration(candidate)
+    # the run's loop calibration, else its pair calibration (`calibrate --store-in-run`: used with a warning)
+    candidate = stored_in_run(checkpoint, (LOOP_CALIBRATION_FILE, CALIBRATION_FILE)) if checkpoint else None
+    if candidate is not None:
+        return str(candidate), load_calibration(candidate)
     return None, None
 
 

@@ -63,14 +63,26 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
+    import sys
+
     from fdnet.cli.common import check_pipeline_arguments, create_descriptor
     from fdnet.matching.search import match_images
 
     check_pipeline_arguments(args)
     spec = acceptance_from_arguments(args)
+    calibration = args.calibration
+    if calibration is None and spec is None:
+        # the one rule for stored calibrations: the run's (`fdnet calibrate --store-in-run`)
+        from fdnet.cli.common import method_options
+        from fdnet.decisions.calibration import stored_in_run
+
+        stored = stored_in_run(method_options(args, args.method).get("checkpoint"))
+        if stored is not None:
+            calibration = str(stored)
+            print(f"fdnet match: using the calibration stored in the run, {stored}", file=sys.stderr)
     summary = match_images(args.reference, args.query, args.out, lambda: create_descriptor(args.method, args),
                            top_k=args.top_k, index=args.index, index_set=args.index_set, index_file=args.index_file,
-                           sequence_length=args.sequence_length, calibration=args.calibration, accept=spec,
+                           sequence_length=args.sequence_length, calibration=calibration, accept=spec,
                            batch_size=args.batch_size, workers=args.workers, log=print)
     print(f"wrote {summary.out}: top-{summary.top_k} of {summary.num_references} references for "
           f"{summary.num_queries} queries ({summary.method})")

@@ -228,6 +228,23 @@ def load_calibration(path: str | Path) -> Calibration:
     return Calibration.from_dict(data, source=str(path))
 
 
+def stored_in_run(run_dir, names=(CALIBRATION_FILE,)) -> Path | None:
+    """The calibration a run directory stores, by the one rule every deciding command follows
+    (``match``, ``database query``, ``loop-closure``, when given no threshold or calibration and,
+    for the database commands, none is stored in the database): the first of ``names`` found in
+    ``RUN``, then ``RUN/best`` (a run directory means its best weights), or, given ``RUN/best``,
+    in ``RUN``. None when there is none."""
+    if run_dir is None:
+        return None
+    run_dir = Path(run_dir)
+    folders = [run_dir, run_dir / "best"] + ([run_dir.parent] if run_dir.name == "best" else [])
+    for name in names:
+        for folder in folders:
+            if (folder / name).is_file():
+                return folder / name
+    return None
+
+
 def candidate_specs(spec: AcceptanceSpec, choose: dict[str, Sequence] | None) -> list[AcceptanceSpec]:
     """``spec`` with every combination of the values in ``choose`` (setting -> values, applied to
     each part of the expression that has the setting); ``[spec]`` when there is nothing to choose."""

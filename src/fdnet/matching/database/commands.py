@@ -363,14 +363,20 @@ def _place_names(paths) -> list[str]:
 
 
 def _query_calibration(database, descriptor, calibration, db, log: Log):
-    """``calibration`` (a file or run folder), else the database's stored calibration, else
-    None; checked against the descriptor (another model's calibration is an error)."""
-    from fdnet.decisions.calibration import DATABASE_KEY, Calibration, load_calibration
+    """``calibration`` (a file or run folder), else the database's stored calibration, else the
+    one stored in the model's run directory (:func:`fdnet.decisions.calibration.stored_in_run`),
+    else None; checked against the descriptor (another model's calibration is an error)."""
+    from fdnet.decisions.calibration import DATABASE_KEY, Calibration, load_calibration, stored_in_run
 
+    run_file = stored_in_run(getattr(descriptor, "run_dir", None) or getattr(descriptor, "checkpoint", None))
+    stored = None if calibration else database.get_metadata(DATABASE_KEY)
     if calibration:
         calibrated, source = load_calibration(calibration), calibration
+    elif stored is None and run_file is not None:  # the one rule: the database's, else the run's
+        calibrated, source = load_calibration(run_file), str(run_file)
+        log(f"using the calibration stored in the run, {run_file}: rule {calibrated.rule}, threshold "
+            f"{calibrated.threshold:.6g} (precision {calibrated.target_precision:g})")
     else:
-        stored = database.get_metadata(DATABASE_KEY)
         if stored is None:
             return None
         source = f"{db} (stored calibration)"
