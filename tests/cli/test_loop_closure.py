@@ -326,3 +326,46 @@ def test_a_pair_calibration_used_in_loop_closure_is_warned_about(route, tmp_path
     text = caplog.text
     assert "measured on a pair of traverses, not on a loop" in text
     assert "on 7 accepted of 40 frames" in text
+
+
+def test_ground_truth_without_a_searchable_revisit_is_refused_before_any_frame(route, tmp_path, capsys,
+                                                                                no_describing):
+    # every frame's true place is its previous frame: always inside --exclude-last 3
+    truth = GroundTruth([[]] + [[q - 1] for q in range(1, 2 * PLACES)], 2 * PLACES)
+    truth.to_csv(tmp_path / "gt.csv")
+    db = tmp_path / "map.db"
+    assert main(args(route, tmp_path, "--ground-truth", str(tmp_path / "gt.csv"), "--db", str(db))) == 2
+    err = capsys.readouterr().err
+    assert "no frame of the traverse revisits a place it could search" in err
+    # nothing was stored: the same database takes the run with the right ground truth
+    if db.exists():
+        from fdnet.matching.database import PlaceDatabase
+
+        with PlaceDatabase.open(db) as stored:
+            assert len(stored) == 0
+
+
+def test_an_event_the_disk_cannot_hold_leaves_no_half_line(tmp_path, monkeypatch):
+    import errno
+    import os
+
+    from fdnet.decisions.loop_closure import Closure
+    from fdnet.decisions.loop_events import EventLog
+    from fdnet.errors import OutputError
+
+    closure = Closure(3, "q.png", 0, "p.png", 0.5, 0.9, "margin", 0.1)
+    with EventLog(tmp_path / "e.csv") as log:
+        log.write(closure)
+        whole = (tmp_path / "e.csv").read_bytes()
+        real_write = os.write
+
+        def full_disk(fd, data):
+            if len(data) > 10:
+                return real_write(fd, data[:10])   # the disk takes 10 bytes ...
+            raise OSError(errno.ENOSPC, "No space left on device")  # ... then is full
+
+        monkeypatch.setattr(os, "write", full_disk)
+        with pytest.raises(OutputError, match="No space left on device.*ends at the last whole event") as caught:
+            log.write(closure)
+        assert caught.value.errno == errno.ENOSPC
+    assert (tmp_path / "e.csv").read_bytes() == whole

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Sequence
 
 from fdnet.decisions.loop_closure import EVENT_COLUMNS, Closure
-from fdnet.errors import ConfigError, DataError
+from fdnet.errors import ConfigError, DataError, output_error
 from fdnet.io import spreadsheet_text
 
 
@@ -68,14 +68,21 @@ class EventLog:
         lines = self._lines(closure)
         for fd, line, path in zip(self._fds, lines, self.paths):
             data = line.encode("utf-8", "surrogateescape")  # a name that is not UTF-8: its own bytes
+            before = os.fstat(fd).st_size
             try:
-                written = os.write(fd, data)
-                if written != len(data):  # only a full disk stops a regular file's write short
-                    raise OSError(f"wrote {written} of {len(data)} bytes")
+                # a full disk stops a write short; writing the rest then says why (ENOSPC)
+                done = 0
+                while done < len(data):
+                    done += os.write(fd, data[done:])
                 os.fsync(fd)
             except OSError as exc:
-                raise DataError(f"{path}: cannot write the loop-closure event ({getattr(exc, 'strerror', None) or exc})"
-                                ) from None
+                # no half line left behind: the file ends at its last whole event, as before the write
+                try:
+                    os.ftruncate(fd, before)
+                except OSError:
+                    pass
+                raise output_error(f"{path}: cannot write the loop-closure event ({exc.strerror or exc}); the file "
+                                   "ends at the last whole event", exc) from None
         self.count += 1
 
     def close(self) -> None:

@@ -202,6 +202,8 @@ def run_traverse(images, descriptor, database=None, *, exclude_last: int,
             truth.check_names(paths, [*detector._names[:places_before], *paths])
         elif route is not None:
             truth = route.ground_truth(places_before)
+        if truth is not None:
+            _check_searchable_revisit(truth, places_before, exclude_last, detector.sequence_length)
         # a rule that looks at the images (verification) refuses unusable ones (too small for
         # local features) before the first frame is described
         detector.spec.check_images(paths, [*detector._names[:places_before], *names])
@@ -238,6 +240,19 @@ def _report(detector: LoopClosureDetector, seconds: float, places_before: int, e
         database=str(detector.database.path), events=[str(p) for p in events.paths], gates=detector.gates.to_dict(),
         gate_counts=dict(detector.gate_counts), resumed_frames=resumed,
         calibration=None if calibration is None else str(calibration))
+
+
+def _check_searchable_revisit(truth, places_before: int, exclude_last: int, length: int) -> None:
+    """Refuse, before the first frame is described, ground truth in which no frame revisits a
+    place it could ever search (its true places all within its own recent past): nothing could be
+    evaluated, and a run would store every frame before saying so."""
+    if truth.num_queries != 0 and any(
+            len(p) and int(p.min()) < places_before + max(q - exclude_last - (length - 1), 0)
+            for q, p in enumerate(truth.positives)):
+        return
+    raise DataError(f"no frame of the traverse revisits a place it could search ({truth.description}; frames "
+                    f"after exclude-last {exclude_last} and the sequence's {length - 1} more): nothing to evaluate. "
+                    "Does the traverse return to a place it saw before?")
 
 
 def _traverse_frames(images, route: RouteTraverse | None):
