@@ -28,10 +28,9 @@ from fdnet.errors import ConfigError, DataError
 
 #: What ``fdnet loop-closure`` does when given no rule and no sequence length, chosen on the
 #: development loops (Nordland summer then winter, Gardens Point day -> night -> day;
-#: docs/loop-closure.md has the table): single images reach no usable precision on a real route
-#: driven twice (R@100P 0.00-0.02 for FDNet, trunk and the baselines) while 10-frame sequences
-#: under the margin rule do; the raw similarity never separates a stop or a look-alike stretch
-#: from a revisit.
+#: docs/loop-closure.md has the table): on Nordland single images reach R@100P 0.004 at best for
+#: every descriptor and 5-frame sequences 0.004, where 10-frame sequences under the margin rule
+#: reach 0.724 with FDNet; on Gardens Point single images 0.145 against 0.220.
 DEFAULT_RULE = "margin"
 DEFAULT_SEQUENCE_LENGTH = 10
 
