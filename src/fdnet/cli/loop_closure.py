@@ -37,13 +37,14 @@ def _default_calibration(args):
     """(the calibration to use, the loaded Calibration or None): ``--calibration``; else, without
     ``--threshold``, the one stored in ``--db``, else the one stored in ``--checkpoint RUN_DIR``
     (``loop-calibration.yaml``, else a pair's ``calibration.yaml``:
-    :func:`fdnet.decisions.calibration.stored_in_run`); else (None, None). Loaded here so that its rule and sequence length
-    become the defaults."""
+    :func:`fdnet.decisions.calibration.stored_in_run`); else (None, None). Loaded here so that its
+    rule and sequence length become the defaults."""
     from pathlib import Path
 
     from fdnet.cli.common import method_options
     from fdnet.decisions.calibration import CALIBRATION_FILE, load_calibration, stored_in_run
-    from fdnet.decisions.loop_closure import LOOP_CALIBRATION_FILE, stored_calibration
+    from fdnet.decisions.calibration import stored_calibration
+    from fdnet.decisions.loop_closure import LOOP_CALIBRATION_FILE
 
     if args.calibration:
         return args.calibration, load_calibration(args.calibration)
@@ -223,8 +224,9 @@ def run(args) -> int:
               f"closed to a wrong place, {back['missed']} missed")
     counts = report.gate_counts
     print(f"gates: {counts['uninformative']} uninformative frames skipped, {counts['still_frames']} still frames "
-          f"made no decision, {counts['still_exclusion']} frames with the robot's still segment excluded, {counts['held_by_consistency']} candidates held back by the "
-          f"consistency gate (k={report.gates['consistency']})")
+          f"made no decision, {counts['still_exclusion']} frames with the robot's still segment excluded, "
+          f"{counts['held_by_consistency']} candidates held back by the consistency gate "
+          f"(k={report.gates['consistency']})")
     if report.calibrated is not None:
         c = report.calibrated
         print(f"wrote {c['path']}: threshold {c['threshold']:.6g} reaches precision {c['precision']:.3f} at recall "

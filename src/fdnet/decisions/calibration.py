@@ -338,3 +338,34 @@ def apply_threshold(calibration: Calibration, scores: np.ndarray, correct: np.nd
     positives = int(np.count_nonzero(has_match))
     return {"accepted": n, "true_positives": tp, "precision": tp / n if n else 1.0,
             "recall": tp / positives if positives else math.nan}
+
+
+def stored_calibration(database):
+    """(the calibration ``fdnet calibrate --db`` stored in the database, where it came from), or
+    (None, None) when the database (a PlaceDatabase or an existing file) holds none."""
+    from fdnet.matching.database import MEMORY, PlaceDatabase
+
+    if isinstance(database, PlaceDatabase):
+        stored, path = database.get_metadata(DATABASE_KEY), database.path
+    elif database is not None and str(database) != MEMORY and Path(database).is_file():
+        with PlaceDatabase.open(database) as db:
+            stored, path = db.get_metadata(DATABASE_KEY), db.path
+    else:
+        return None, None
+    if stored is None:
+        return None, None
+    source = f"{path} (its stored calibration)"
+    return Calibration.from_dict(stored, source=source), source
+
+
+def checked_calibration(calibration, descriptor, sequence_length: int, source: str | None = None):
+    """A :class:`~fdnet.decisions.calibration.Calibration` (or the path of its file, or a run
+    directory holding one), refused when it was made for another model or sequence length."""
+    source = source or "calibration"
+    if not isinstance(calibration, Calibration):
+        source = str(calibration)
+        calibration = load_calibration(calibration)
+    # the calibration counts single images as sequence length 0
+    calibration.check(descriptor=descriptor, sequence_length=sequence_length if sequence_length > 1 else 0,
+                      source=source)
+    return calibration, source

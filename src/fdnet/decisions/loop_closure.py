@@ -39,12 +39,14 @@ import math
 import os
 import uuid
 from collections import deque
-from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
 from fdnet.decisions.acceptance import AcceptanceSpec, Candidates, decide, parse_acceptance
+from fdnet.decisions.calibration import checked_calibration, stored_calibration
+# the records the detector produces live in loop_records; importable from here as before
+from fdnet.decisions.loop_records import EVENT_COLUMNS, Closure, FrameDecision, GrowingArray, place_name  # noqa: F401
 from fdnet.decisions.loop_gates import (ConsistencyGate, FrameSignals, LoopGates, RecentPast, frame_signals,
                                         informative_frames, is_still)
 from fdnet.errors import ConfigError, DataError
@@ -58,124 +60,6 @@ LOOP_CALIBRATION_FILE = "loop-calibration.yaml"
 #: how the detector finds a frame's candidates: every place, an index, or the index once the map
 #: has ``index_from`` places (:mod:`fdnet.decisions.loop_search`)
 SEARCH_KINDS = ("auto", "exact", "index")
-
-#: columns of the events CSV, in order (the JSON lines carry the same keys)
-EVENT_COLUMNS = ("query_index", "query", "match_index", "match", "score", "similarity", "rule", "threshold",
-                 "timestamp", "match_timestamp")
-
-
-@dataclass(frozen=True)
-class Closure:
-    """One accepted loop closure: frame ``query_index`` of this traverse (named ``query``) is
-    place ``match_index`` of the database (named ``match``), with acceptance ``score`` under
-    ``rule`` (>= ``threshold``) and the raw (or sequence) ``similarity`` of the pair."""
-
-    query_index: int
-    query: str
-    match_index: int
-    match: str
-    score: float
-    similarity: float
-    rule: str
-    threshold: float
-    timestamp: float | None = None
-    match_timestamp: float | None = None
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-
-@dataclass(frozen=True)
-class FrameDecision:
-    """What the detector decided for one frame, accepted or not (for evaluation): the candidate
-    its rule vouches for (``match`` -1 when there was none: nothing searchable yet, or the frame
-    was gated), the acceptance ``score`` (NaN when nothing was searchable; -inf when a gate
-    rejected it) and how many places were searchable (the places the frame could have matched:
-    indices 0..searchable-1)."""
-
-    query_index: int
-    match: int
-    score: float
-    accepted: bool
-    searchable: int
-    #: the best place by (sequence) similarity and that similarity (the ranking, for Recall@1)
-    best: int = -1
-    best_similarity: float = float("nan")
-    #: why the frame could not close a loop whatever its score: "uninformative" (dark, blank),
-    #: "still" (the robot has not moved since its previous frame), "no informative place" (no
-    #: searchable place can be a candidate), "" otherwise
-    gated: str = ""
-    #: the rule's score before the consistency gate (equal to ``score`` without the gate)
-    rule_score: float = float("nan")
-
-
-def place_name(path: str | os.PathLike) -> str:
-    """A frame's place name: its absolute path as listed (a symbolic link keeps its own name, so
-    two links to one file are two places, each under the name it was given)."""
-    return os.path.abspath(os.fspath(path))
-
-
-class _Vectors:
-    """The database's vectors in memory, appended a row at a time (capacity doubles, so adding
-    N rows copies O(N) rows in all, where np.vstack per frame would copy O(N^2)). With ``dim``
-    None it holds one flag per place (bool)."""
-
-    def __init__(self, dim: int | None, initial: np.ndarray | None = None):
-        dtype = bool if dim is None else np.float32
-        shape = () if dim is None else (dim,)
-        rows = np.zeros((0, *shape), dtype) if initial is None else np.asarray(initial, dtype)
-        self._data = np.empty((max(1024, 2 * len(rows)), *shape), dtype=dtype)
-        self._data[:len(rows)] = rows
-        self._count = len(rows)
-
-    def __len__(self) -> int:
-        return self._count
-
-    def append(self, row: np.ndarray) -> None:
-        if self._count == len(self._data):
-            grown = np.empty((2 * len(self._data), *self._data.shape[1:]), dtype=self._data.dtype)
-            grown[:self._count] = self._data[:self._count]
-            self._data = grown
-        self._data[self._count] = row
-        self._count += 1
-
-    def view(self, count: int | None = None) -> np.ndarray:
-        return self._data[:self._count if count is None else count]
-
-
-def stored_calibration(database):
-    """(the calibration ``fdnet calibrate --db`` stored in the database, where it came from), or
-    (None, None) when the database (a PlaceDatabase or an existing file) holds none."""
-    from fdnet.decisions.calibration import DATABASE_KEY, Calibration
-    from fdnet.matching.database import MEMORY, PlaceDatabase
-
-    if isinstance(database, PlaceDatabase):
-        stored, path = database.get_metadata(DATABASE_KEY), database.path
-    elif database is not None and str(database) != MEMORY and Path(database).is_file():
-        with PlaceDatabase.open(database) as db:
-            stored, path = db.get_metadata(DATABASE_KEY), db.path
-    else:
-        return None, None
-    if stored is None:
-        return None, None
-    source = f"{path} (its stored calibration)"
-    return Calibration.from_dict(stored, source=source), source
-
-
-def _load_calibration(calibration, descriptor, sequence_length: int, source: str | None = None):
-    """A :class:`~fdnet.decisions.calibration.Calibration` (or the path of its file, or a run
-    directory holding one), refused when it was made for another model or sequence length."""
-    from fdnet.decisions.calibration import Calibration, load_calibration
-
-    source = source or "calibration"
-    if not isinstance(calibration, Calibration):
-        source = str(calibration)
-        calibration = load_calibration(calibration)
-    # the calibration counts single images as sequence length 0
-    calibration.check(descriptor=descriptor, sequence_length=sequence_length if sequence_length > 1 else 0,
-                      source=source)
-    return calibration, source
-
 
 _BLAS = None
 
@@ -282,13 +166,13 @@ class LoopClosureDetector:
             if threshold is not None:
                 raise ConfigError("give a threshold or a calibration file, not both (the calibration sets the "
                                   "threshold)")
-            calibrated, source = _load_calibration(calibration, self.descriptor, self.sequence_length, source)
+            calibrated, source = checked_calibration(calibration, self.descriptor, self.sequence_length, source)
             spec = calibrated.spec
             where = calibrated.measured_on or {}
             if not where.get("loop_closure"):
-                logger.warning(f"{source}: this calibration was measured on a pair of traverses, not on a loop: in loop "
-                               "closure the robot's own recent frames are look-alikes a pair never shows, and its "
-                               "precision is not reached there (docs/loop-closure.md). Calibrate on a loop: "
+                logger.warning(f"{source}: this calibration was measured on a pair of traverses, not on a loop: "
+                               "in loop closure the robot's own recent frames are look-alikes a pair never shows, "
+                               "and its precision is not reached there (docs/loop-closure.md). Calibrate on a loop: "
                                "fdnet loop-closure ... --ground-truth CSV --calibrate-out FILE")
             logger.info(f"{source}: threshold {calibrated.threshold:.6g} of rule {spec.name} reached precision "
                         f"{calibrated.precision:.3f} at recall {calibrated.recall:.3f} on {calibrated.accepted} "
@@ -352,15 +236,15 @@ class LoopClosureDetector:
         db = self.database
         self._names: list[str] = db.names
         self._known = set(self._names)
-        self._vectors = _Vectors(db.dim, db.vectors)
+        self._vectors = GrowingArray(db.dim, db.vectors)
         positions = db.positions
         self._positions: list | None = positions if all(p is not None for p in positions) else None
         metadata = db.metadata
         times = [(m or {}).get("timestamp") for m in metadata]
         self._times: list | None = times if all(isinstance(t, (int, float)) for t in times) else None
         # places an earlier run found uninformative (dark, blank) are never candidates
-        self._informative = _Vectors(None, [not (m or {}).get("uninformative", False) for m in metadata])
-        self._still = _Vectors(None, [bool((m or {}).get("still", False)) for m in metadata])
+        self._informative = GrowingArray(None, [not (m or {}).get("uninformative", False) for m in metadata])
+        self._still = GrowingArray(None, [bool((m or {}).get("still", False)) for m in metadata])
 
     @property
     def places(self) -> int:
@@ -658,10 +542,10 @@ class LoopClosureDetector:
         informative, still = self._informative.view()[start:].copy(), self._still.view()[start:].copy()
         times = None if self._times is None else self._times[start:]
         positions = None if self._positions is None else self._positions[start:]
-        self._vectors = _Vectors(self.database.dim, self._vectors.view(start))
+        self._vectors = GrowingArray(self.database.dim, self._vectors.view(start))
         del self._names[start:]
-        self._informative = _Vectors(None, self._informative.view(start))
-        self._still = _Vectors(None, self._still.view(start))
+        self._informative = GrowingArray(None, self._informative.view(start))
+        self._still = GrowingArray(None, self._still.view(start))
         self._known = set(self._names)
         if self._times is not None:
             del self._times[start:]

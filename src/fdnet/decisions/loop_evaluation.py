@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
-from fdnet.decisions.loop_closure import FrameDecision
+from fdnet.decisions.loop_records import FrameDecision
 from fdnet.errors import DataError
 
 if TYPE_CHECKING:

@@ -10,7 +10,7 @@ import os
 from pathlib import Path
 from typing import Sequence
 
-from fdnet.decisions.loop_closure import EVENT_COLUMNS, Closure
+from fdnet.decisions.loop_records import EVENT_COLUMNS, Closure
 from fdnet.errors import ConfigError, DataError, output_error
 from fdnet.io import spreadsheet_text
 

@@ -19,7 +19,8 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from fdnet.decisions.loop_closure import LoopClosureDetector, place_name
+from fdnet.decisions.loop_closure import LoopClosureDetector
+from fdnet.decisions.loop_records import place_name
 from fdnet.decisions.loop_evaluation import calibrate_decisions, evaluate_decisions
 from fdnet.decisions.loop_events import EventLog
 from fdnet.decisions.loop_gates import LoopGates, frame_signals
