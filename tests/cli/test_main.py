@@ -173,3 +173,13 @@ def test_a_permission_error_without_a_path_keeps_its_traceback(monkeypatch):
     monkeypatch.setattr(fdnet.cli.synth, "run", fail)
     with pytest.raises(PermissionError):
         main(["synth", "--out", "OUT"])
+
+
+def test_short_quiet_and_an_unknown_flag_name_the_command(capsys):
+    with pytest.raises(SystemExit) as stopped:
+        main(["evaluate", "-q", "--nosuch", "1"])
+    assert stopped.value.code == 2
+    assert "fdnet evaluate: error: unrecognized arguments: --nosuch 1" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["database", "build", "--images", "x", "--db", "y.db", "--method", "raw", "--allow-duplicates"])
+    assert "fdnet database build: error: unrecognized arguments: --allow-duplicates" in capsys.readouterr().err

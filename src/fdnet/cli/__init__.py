@@ -67,9 +67,12 @@ def _add_logging_arguments(subparsers) -> None:
             _add_logging_arguments(action)
         if not nested:
             group = parser.add_mutually_exclusive_group()
-            group.add_argument("--quiet", action="store_true",
+            group.add_argument("-q", "--quiet", action="store_true",
                                help="only warnings and errors on standard error (no progress bars)")
-            group.add_argument("--verbose", action="store_true", help="debug messages too")
+            group.add_argument("-v", "--verbose", action="store_true", help="debug messages too")
+            # so that an argument no command takes is refused by the command's parser, whose
+            # message names it ("fdnet database build: error: unrecognized arguments: ...")
+            parser.set_defaults(command_parser=parser)
 
 
 def _add_source_arguments(subparsers) -> None:
@@ -87,7 +90,9 @@ def _add_source_arguments(subparsers) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:
+        (getattr(args, "command_parser", None) or parser).error(f"unrecognized arguments: {' '.join(unknown)}")
     # what was typed, for records that name the command (a run's changes.yaml and lock file)
     args.command_line = shlex.join(["fdnet", *(sys.argv[1:] if argv is None else argv)])
     if not getattr(args, "func", None):
