@@ -89,6 +89,7 @@ def run(args) -> int:
     if summary.calibration is not None:
         calibration = summary.calibration
         print(f"{summary.accepted} of {summary.num_queries} queries accepted by {calibration.rule} at threshold "
-              f"{calibration.threshold:.6g} (calibrated for precision {calibration.target_precision:g}); the "
+              f"{calibration.threshold:.6g} (it reached precision {calibration.precision:.3f} on {calibration.accepted} "
+              f"accepted queries where it was measured; target {calibration.target_precision:g}); the "
               f"others are new places")
     return 0

@@ -375,14 +375,18 @@ def _query_calibration(database, descriptor, calibration, db, log: Log):
     elif stored is None and run_file is not None:  # the one rule: the database's, else the run's
         calibrated, source = load_calibration(run_file), str(run_file)
         log(f"using the calibration stored in the run, {run_file}: rule {calibrated.rule}, threshold "
-            f"{calibrated.threshold:.6g} (precision {calibrated.target_precision:g})")
+            f"{calibrated.threshold:.6g} (it reached precision {calibrated.precision:.3f} on {calibrated.accepted} "
+            f"accepted of {calibrated.num_queries} queries where it was measured; target "
+            f"{calibrated.target_precision:g})")
     else:
         if stored is None:
             return None
         source = f"{db} (stored calibration)"
         calibrated = Calibration.from_dict(stored, source=source)
         log(f"using the calibration stored in {db}: rule {calibrated.rule}, threshold "
-            f"{calibrated.threshold:.6g} (precision {calibrated.target_precision:g})")
+            f"{calibrated.threshold:.6g} (it reached precision {calibrated.precision:.3f} on {calibrated.accepted} "
+            f"accepted of {calibrated.num_queries} queries where it was measured; target "
+            f"{calibrated.target_precision:g})")
     calibrated.check(descriptor, sequence_length=0, source=source)
     return calibrated
 
