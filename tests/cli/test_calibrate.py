@@ -266,7 +266,10 @@ def test_one_rule_for_a_calibration_stored_in_the_run(tmp_path, capsys, caplog):
     assert main(["database", "build", "--images", str(root / "day"), "--method", "fdnet", "--checkpoint", str(run),
                  "--db", str(db), "--workers", "0"]) == 0
     assert main(["database", "query", "--db", str(db), "--images", str(root / "dusk"), "--workers", "0"]) == 0
-    assert "using the calibration stored in the run" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    # the precision it reached where it was measured and on how many queries, beside its target
+    assert "using the calibration stored in the run" in err and "it reached precision" in err
+    assert "accepted of 12 queries where it was measured; target 0.5" in err
     with caplog.at_level("INFO"):
         assert main(["loop-closure", "--images", str(root / "dusk"), "--method", "fdnet", "--checkpoint", str(run),
                      "--exclude-last", "2", "--workers", "0", "--out", str(tmp_path / "e.csv")]) == 0
