@@ -119,3 +119,18 @@ def test_a_settings_file_over_a_mebibyte_is_refused_before_parsing(tmp_path):
 def test_an_override_that_is_not_yaml_or_holds_an_alias_is_a_config_error(value, message):
     with pytest.raises(ConfigError, match=message):
         replace_dotted(Outer(), {"steps": value})
+
+
+def test_a_file_nested_thousands_deep_is_refused_not_a_recursion_error(tmp_path):
+    from fdnet.config import MAX_NESTING, check_nesting, load_json_text, read_yaml_file
+
+    deep = tmp_path / "deep.yaml"
+    deep.write_text("a: " + "[" * 2000 + "]" * 2000 + "\n")
+    with pytest.raises(ConfigError, match="nested deeper than"):
+        read_yaml_file(deep, "calibration file")
+    shallow = tmp_path / "ok.yaml"
+    shallow.write_text("a: " + "[" * (MAX_NESTING - 2) + "]" * (MAX_NESTING - 2) + "\n")
+    assert read_yaml_file(shallow) is not None
+    with pytest.raises(ConfigError, match="x.json: nested deeper than"):
+        load_json_text("[" * 3000 + "]" * 3000, "x.json")
+    check_nesting({"a": [{"b": 1}]}, "fine")

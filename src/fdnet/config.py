@@ -190,11 +190,46 @@ def read_yaml_file(path: str | Path, what: str = "config file", error: type = Co
     if size > MAX_YAML_BYTES:
         raise error(f"{path}: {size} bytes, too large for a {what} (at most {MAX_YAML_BYTES // 1024} KiB)")
     try:
-        return yaml.load(path.read_text(encoding="utf-8"), Loader=_NoAliasLoader)  # noqa: S506 (safe, no aliases)
+        value = yaml.load(path.read_text(encoding="utf-8"), Loader=_NoAliasLoader)  # noqa: S506 (safe, no aliases)
     except UnicodeDecodeError as exc:
         raise error(f"{path}: not a text {what} ({exc.reason} at byte {exc.start})") from None
     except yaml.YAMLError as exc:
         raise error(f"{path}: not valid YAML ({_yaml_problem(exc)})") from None
+    except RecursionError:
+        raise error(f"{path}: nested deeper than any {what} is (at most {MAX_NESTING} levels)") from None
+    check_nesting(value, f"{path}: a {what}", error)
+    return value
+
+
+#: how deep settings files and stored JSON may nest: every fdnet file is a few levels deep; a file
+#: nested thousands deep is hostile and would exhaust Python's recursion while being read
+MAX_NESTING = 64
+
+
+def check_nesting(value: Any, where: str, error: type = ConfigError) -> None:
+    """Refuse (``error``) a value of mappings and lists nested deeper than :data:`MAX_NESTING`
+    (walked without recursion, so the check itself cannot overflow)."""
+    stack = [(value, 1)]
+    while stack:
+        item, depth = stack.pop()
+        if depth > MAX_NESTING:
+            raise error(f"{where} nested deeper than {MAX_NESTING} levels")
+        if isinstance(item, dict):
+            stack.extend((child, depth + 1) for child in item.values())
+        elif isinstance(item, (list, tuple)):
+            stack.extend((child, depth + 1) for child in item)
+
+
+def load_json_text(text: str, where: str, error: type = ConfigError) -> Any:
+    """JSON text as a value, with a too-deep nesting refused like a settings file's."""
+    import json
+
+    try:
+        value = json.loads(text)
+    except RecursionError:
+        raise error(f"{where}: nested deeper than {MAX_NESTING} levels") from None
+    check_nesting(value, where, error)
+    return value
 
 
 def _yaml_problem(exc: yaml.YAMLError) -> str:

@@ -18,14 +18,12 @@ from fdnet.errors import ConfigError
 
 def training_data(run_dir: str | Path) -> dict | None:
     """The ``data`` section of the run's newest config (None when it records none)."""
-    import yaml
-
+    from fdnet.config import read_yaml_file
     from fdnet.runs.checkpoints import CONFIG_FILE, latest_checkpoint
 
     try:
-        text = (latest_checkpoint(run_dir) / CONFIG_FILE).read_text()
-        config = yaml.safe_load(text)
-    except (OSError, ConfigError, yaml.YAMLError):
+        config = read_yaml_file(latest_checkpoint(run_dir) / CONFIG_FILE, "run config")
+    except (OSError, ConfigError):
         return None
     data = config.get("data") if isinstance(config, dict) else None
     return data if isinstance(data, dict) and data.get("root") else None

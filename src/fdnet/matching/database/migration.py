@@ -11,6 +11,7 @@ from typing import Callable
 
 import numpy as np
 
+from fdnet.config import load_json_text
 from fdnet.errors import ConfigError, DataError
 from fdnet.matching.database.identity import _index_settings
 from fdnet.matching.database.storage import _canonical_json, check_can_create
@@ -51,7 +52,7 @@ def read_old_format(folder: str | os.PathLike) -> tuple[dict, np.ndarray]:
     if not folder.is_dir():
         raise DataError(f"{folder}: not a folder (the old format is a folder with database.json and vectors.npy)")
     try:
-        meta = json.loads(json_path.read_text())
+        meta = load_json_text(json_path.read_text(), str(json_path), DataError)
     except FileNotFoundError:
         raise DataError(f"{json_path}: not found; is {folder} an old-format place database?") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
