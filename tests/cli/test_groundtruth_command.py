@@ -135,3 +135,22 @@ def test_position_files_saved_by_a_spreadsheet_with_a_byte_order_mark(tmp_path):
     with open(out, newline="") as handle:
         rows = list(csv.DictReader(handle))
     assert [(r["query_name"], r["reference_names"]) for r in rows] == [("a.png", "a.png"), ("b.png", "b.png")]
+
+
+def test_tolerances_are_used_or_refused_never_dropped(tmp_path, capsys):
+    for name in ("day", "night"):
+        (tmp_path / "route" / name).mkdir(parents=True)
+        for i in range(5):
+            Image.fromarray(np.zeros((4, 4, 3), np.uint8)).save(tmp_path / "route" / name / f"{i}.png")
+    out = tmp_path / "gt.csv"
+    # --tolerance with --data is the format's tolerance (it was silently 0)
+    assert main(["groundtruth", "--data", str(tmp_path / "route"), "--dataset-format", "folders",
+                 "--tolerance", "2", "--out", str(out)]) == 0
+    assert out.read_text().splitlines()[1].startswith("0,0 1 2,")
+    assert main(["groundtruth", "--data", str(tmp_path / "route"), "--tolerance", "2", "--format-set",
+                 "tolerance=1", "--out", str(out)]) == 2
+    assert "disagree" in capsys.readouterr().err
+    ref = write(tmp_path / "ref.csv", "name,easting,northing\na,500000,6000000\n")
+    for bad in ("nan", "inf", "-1"):
+        assert main(["groundtruth", "--positions", ref, ref, "--tolerance-m", bad, "--out", str(out)]) == 2
+        assert "a position tolerance must be a finite number of metres >= 0" in capsys.readouterr().err

@@ -159,10 +159,19 @@ def _from_alignment(args):
 def _from_dataset(args):
     from fdnet.config import parse_overrides
     from fdnet.data.formats import open_split
+    from fdnet.errors import ConfigError
 
+    overrides = parse_overrides(args.format_set)
+    # --tolerance / --tolerance-m are the format's protocol settings here: given, they are used (not
+    # silently dropped); --format-set tolerance=... says the same
+    for flag, key, value in (("--tolerance", "tolerance", args.tolerance),
+                             ("--tolerance-m", "tolerance_m", args.tolerance_m)):
+        if value is not None:
+            if key in overrides and overrides[key] != value:
+                raise ConfigError(f"{flag} {value} and --format-set {key}={overrides[key]} disagree; give one")
+            overrides[key] = value
     split = open_split(args.data, reference=args.reference, query=args.query,
-                       dataset_format=args.dataset_format, split=args.split, check_sizes=False,
-                       **parse_overrides(args.format_set))
+                       dataset_format=args.dataset_format, split=args.split, check_sizes=False, **overrides)
     print(f"{split.description}: {len(split.query)} queries ({split.query.name}), "
           f"{len(split.reference)} references ({split.reference.name})")
     return (split.ground_truth, [p.name for p in split.query.paths],

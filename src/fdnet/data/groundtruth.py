@@ -149,6 +149,10 @@ class GroundTruth:
         """References within ``tolerance_m`` metres (Euclidean, planar metres) of each query."""
         from scipy.spatial import cKDTree
 
+        if isinstance(tolerance_m, bool) or not isinstance(tolerance_m, (int, float, np.integer, np.floating)) \
+                or not np.isfinite(tolerance_m) or tolerance_m < 0:
+            # one place for every caller (fdnet groundtruth, the formats with GPS): NaN would match nothing
+            raise DataError(f"a position tolerance must be a finite number of metres >= 0, got {tolerance_m!r}")
         q = np.asarray(query_xy, dtype=np.float64)
         r = np.asarray(reference_xy, dtype=np.float64)
         if q.ndim != 2 or r.ndim != 2 or q.shape[1] != r.shape[1]:

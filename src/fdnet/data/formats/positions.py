@@ -169,8 +169,6 @@ def to_metres(reference: PositionTable, *others: PositionTable) -> list[np.ndarr
 
 def positions_ground_truth(reference: PositionTable, query: PositionTable, tolerance_m: float) -> GroundTruth:
     """References within ``tolerance_m`` metres of each query (rows = the query file's images)."""
-    if tolerance_m < 0:
-        raise DataError(f"tolerance must be >= 0 metres, got {tolerance_m}")
     ref_xy, qry_xy = to_metres(reference, query)
     gt = GroundTruth.from_positions(qry_xy, ref_xy, tolerance_m)
     gt.description = f"positions ({reference.path.name}, {query.path.name}), tolerance {tolerance_m:g} m"
