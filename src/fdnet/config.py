@@ -148,10 +148,16 @@ def replace_dotted(config: T, overrides: dict[str, Any]) -> T:
 def parse_value(text: str, where: str) -> Any:
     """A setting's value given as text (``--set``, ``--method-set``), read as YAML without
     aliases; a ConfigError naming ``where`` when it is not YAML."""
+    import re
+
+    if re.fullmatch(r"\s*\d+\s*[xX]\s*\d+\s*", str(text)):
+        return str(text).strip()  # a size such as 0x0 or 32x64, not YAML's hexadecimal integer 0x0
     try:
         return yaml.load(text, Loader=_NoAliasLoader)  # noqa: S506 (safe, no aliases)
     except yaml.YAMLError as exc:
         raise ConfigError(f"{where}: {_shown(text)} is not a valid YAML value ({_yaml_problem(exc)})") from None
+    except RecursionError:
+        raise ConfigError(f"{where}: {_shown(text)} is nested deeper than {MAX_NESTING} levels") from None
 
 
 def parse_overrides(items: list[str] | None) -> dict[str, str]:

@@ -9,7 +9,7 @@ from fdnet.cli import main
 
 
 @pytest.mark.parametrize("size, message", [
-    ("100000x100000", "size 100000x100000 too large (at most 4096 pixels a side)"),
+    ("100000x100000", "size 100000x100000 is larger than any model here uses (at most 4096 pixels a side)"),
     ("4096x4096", "300 frames of 4096x4096 need about 151 GiB of memory to render a condition (at most 8 GiB)"),
 ])
 def test_a_size_it_cannot_render_is_refused_before_allocating(tmp_path, capsys, size, message):

@@ -10,6 +10,8 @@ from fdnet.evaluation.benchmark import DEFAULT_INDEXES, DEFAULT_METHODS, PARTS
 
 
 def register(sub) -> None:
+    from fdnet.cli.common import thread_count
+
     from fdnet.cli.common import add_device_argument
 
     p = sub.add_parser(
@@ -23,7 +25,7 @@ def register(sub) -> None:
                     "method's extraction time against SAD and the paper's Table 5; and, per --map-size, build "
                     "time, memory, ms/query and recall@1 against exact search of each faiss index.",
     )
-    p.add_argument("--threads", type=int, default=None,
+    p.add_argument("--threads", type=thread_count(), default=None,
                    help="torch and faiss threads (default: all cores; the report records the count, so give the "
                         "same one to compare machines)")
     p.add_argument("--parts", default=",".join(PARTS),

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 
 def register(sub) -> None:
+    from fdnet.cli.common import thread_count
+
     from fdnet.methods.fdnet.trunk_choice import RULE
 
     p = sub.add_parser(
@@ -35,7 +37,7 @@ def register(sub) -> None:
 
     add_device_argument(p)
     add_pipeline_arguments(p)
-    p.add_argument("--threads", type=int, help="CPU threads for torch (default: all cores)")
+    p.add_argument("--threads", type=thread_count(), help="CPU threads for torch (default: all cores)")
     p.set_defaults(func=run)
 
 
@@ -54,8 +56,9 @@ def run(args) -> int:
         raise ConfigError("--dim, --power, --fit and --fit-frames apply to --whitened")
     if args.tolerance < 0:
         raise ConfigError(f"--tolerance must be >= 0, got {args.tolerance}")
-    if min(args.input_size) < 1:
-        raise ConfigError(f"--input-size must be positive, got {args.input_size}")
+    from fdnet.data.images import check_image_size
+
+    check_image_size(args.input_size, "--input-size")
     candidates = parse_candidates(args.candidates or DEFAULT_CANDIDATES)
     if args.out:
         ensure_writable(args.out, what="trunk choice file")

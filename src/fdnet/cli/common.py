@@ -246,7 +246,7 @@ def add_training_arguments(parser: argparse.ArgumentParser, data_required: bool 
     parser.add_argument("--device", default=None, metavar="auto|cpu|cuda|cuda:N",
                         help="where training runs (runtime.device, for every method; default auto: a GPU when "
                              "there is one)")
-    parser.add_argument("--threads", type=int, default=None,
+    parser.add_argument("--threads", type=thread_count(0), default=None,
                         help="torch CPU threads (runtime.threads; default: the preset's, 0 = torch's own choice)")
     parser.add_argument("--steps", type=int, default=None,
                         help="training steps in all (default: the preset's; FDNet: the joint stage takes what "
@@ -322,3 +322,24 @@ def check_resume_target(args: argparse.Namespace) -> None:
         raise ConfigError("--override only applies with --resume")
     if args.resume:
         runs.check_run_state(args.out, resume=True)
+
+
+#: the most CPU threads a command takes (no machine fdnet runs on has more cores)
+MAX_THREADS = 1024
+
+
+def thread_count(minimum: int = 1):
+    """The argparse type of every ``--threads``: a whole number in [minimum, MAX_THREADS]; other
+    values are the command's one-line error, before any work (one check for every command)."""
+    def parse(text: str) -> int:
+        import argparse
+
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be a whole number of threads, got {text!r}") from None
+        if not minimum <= value <= MAX_THREADS:
+            raise argparse.ArgumentTypeError(f"must be between {minimum} and {MAX_THREADS}, got {text}")
+        return value
+
+    return parse

@@ -32,6 +32,8 @@ from fdnet.cli.common import add_device_argument, add_method_arguments, dataset_
 
 
 def register(sub) -> None:
+    from fdnet.cli.common import thread_count
+
     p = sub.add_parser(
         "evaluate",
         help="evaluate methods or a similarity matrix: R@N, R@100P, P@maxR, AUC-PR, timings",
@@ -72,7 +74,7 @@ def register(sub) -> None:
     methods.add_argument("--sequence-length", type=int, default=0,
                          help="rank by SeqSLAM sequence similarity over this many consecutive queries "
                               "(0 = single image)")
-    methods.add_argument("--threads", type=int, help="torch CPU threads (default: all cores)")
+    methods.add_argument("--threads", type=thread_count(), help="torch CPU threads (default: all cores)")
     matrix = p.add_argument_group("precomputed similarity")
     matrix.add_argument("--similarity", metavar="FILE.npy",
                         help="a (queries x references) score matrix, higher = more similar")

@@ -16,6 +16,8 @@ COMPILE_FROM = 50_000
 
 
 def register(sub) -> None:
+    from fdnet.cli.common import thread_count
+
     p = sub.add_parser("extract", help="write a method's vectors of a folder of images to .npz (default: FDNet's "
                                        "content and appearance vectors)",
                        description="Writes FILE.npz with arrays: descriptors (N, D) the method's vectors (what it "
@@ -45,7 +47,7 @@ def register(sub) -> None:
                         "cores, then the cpu preset ran 1.7x faster than bf16 eager (docs/performance.md). "
                         f"auto (default): on for folders of at least {COMPILE_FROM:,} images; falls back to eager "
                         "if compiling fails")
-    p.add_argument("--threads", type=int, help="torch CPU threads (default: all cores)")
+    p.add_argument("--threads", type=thread_count(), help="torch CPU threads (default: all cores)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import shlex
 
-from fdnet.cli.common import dataset_format_list
+from fdnet.cli.common import dataset_format_list, thread_count
 
 EXPERIMENT_NAMES = "comparison, lengths, similarity, disentanglement, viewpoint, runtime, examples"
 
@@ -76,8 +76,9 @@ ARGUMENTS = (
     ("output", "--out", dict(required=True, metavar="OUT_DIR",
                              help="folder for report.html, one JSON per experiment, figures/ and cache/")),
     ("output", "--batch-size", dict(type=int, default=32, help="images described per batch (default 32)")),
-    ("output", "--threads", dict(type=int, help="CPU threads for torch, BLAS and scikit-learn (default: all "
-                                               "cores; on a shared machine 1 keeps timings meaningful)")),
+    ("output", "--threads", dict(type=thread_count(), help="CPU threads for torch, BLAS and scikit-learn "
+                                                         "(default: all cores; on a shared machine 1 keeps "
+                                                         "timings meaningful)")),
     ("output", "--device", dict(default="auto", metavar="auto|cpu|cuda|cuda:N",
                                 help="where the torch methods (fdnet, trunk, conv3, netvlad, calc, hybridnet) run "
                                      "(default auto: a GPU when there is one); the others run on the CPU")),

@@ -195,6 +195,38 @@ def load_image_uint8(path: str | os.PathLike, size: tuple[int, int] | None = Non
     return load_image(path, size, _convert=_to_uint8_rgb)
 
 
+#: the largest image side fdnet reads or renders: every model here works at a few hundred pixels,
+#: and one 100000x100000 RGB frame would need 120 GB before anything could say no
+MAX_IMAGE_SIDE = 4096
+
+
+def check_image_size(size, what: str) -> tuple[int, int]:
+    """(height, width) as whole numbers in 1..MAX_IMAGE_SIDE, else a ConfigError naming ``what``:
+    the one check for every size an image is brought to (descriptors' input sizes, trunk choices,
+    synthetic frames), made before anything is allocated."""
+    from fdnet.errors import ConfigError
+
+    def whole(value) -> int:
+        if isinstance(value, bool):
+            raise ValueError
+        if isinstance(value, (float, np.floating)):
+            if not float(value).is_integer():
+                raise ValueError
+        return int(value)
+
+    try:
+        h, w = size
+        h, w = whole(h), whole(w)
+    except (TypeError, ValueError, OverflowError):
+        raise ConfigError(f"{what}: size {size!r} must be two whole numbers (height, width)") from None
+    if h < 1 or w < 1:
+        raise ConfigError(f"{what}: size {h}x{w} must be positive")
+    if h > MAX_IMAGE_SIDE or w > MAX_IMAGE_SIDE:
+        raise ConfigError(f"{what}: size {h}x{w} is larger than any model here uses (at most {MAX_IMAGE_SIDE} "
+                          "pixels a side)")
+    return h, w
+
+
 def load_image(path: str | os.PathLike, size: tuple[int, int] | None = None, *, _convert=None) -> np.ndarray:
     """Read one image as float32 RGB in [0, 1], shape (H, W, 3).
 
@@ -231,6 +263,7 @@ def load_images(
 ) -> np.ndarray:
     """Read many images at one size into (N, H, W, 3) float32. Decoding runs in threads
     (Pillow releases the GIL while decoding)."""
+    size = check_image_size(size, "images")
     out = np.empty((len(paths), int(size[0]), int(size[1]), 3), dtype=np.float32)
 
     def read(i: int) -> None:

@@ -453,8 +453,9 @@ def _check(frames: int, conditions: Sequence[str], size, step: float = 0.5) -> t
     h, w = (int(v) for v in size)
     if h < 16 or w < 16:
         raise ConfigError(f"synthetic route: size {h}x{w} too small (at least 16x16)")
-    if h > MAX_SIDE or w > MAX_SIDE:
-        raise ConfigError(f"synthetic route: size {h}x{w} too large (at most {MAX_SIDE} pixels a side)")
+    from fdnet.data.images import check_image_size
+
+    check_image_size((h, w), "synthetic route")
     # Refused before allocating: a condition's frames and its street (a few float32 layers as
     # long as the route) are held in memory at once.
     need = 4 * (int(frames) * h * w * 3 + 10 * h * int(h * (int(frames) * step + w / h + 1)))
@@ -465,8 +466,7 @@ def _check(frames: int, conditions: Sequence[str], size, step: float = 0.5) -> t
     return conditions, (h, w)
 
 
-#: the largest frame side and render memory :func:`render_route` accepts
-MAX_SIDE = 4096
+#: the largest render memory :func:`render_route` accepts (frame sides: fdnet.data.images.MAX_IMAGE_SIDE)
 MAX_RENDER_BYTES = 8 * 2**30
 
 

@@ -37,9 +37,9 @@ def _size_pair(size, what: str) -> tuple[int, int]:
         h, w = (int(v) for v in size)
     except (TypeError, ValueError):
         raise ConfigError(f"{what}: size {size!r} must be (height, width)") from None
-    if h <= 0 or w <= 0:
-        raise ConfigError(f"{what}: size {size!r} must be positive")
-    return h, w
+    from fdnet.data.images import check_image_size
+
+    return check_image_size((h, w), what)
 
 
 def _at_size(images: np.ndarray, size: tuple[int, int], what: str) -> np.ndarray:

@@ -96,7 +96,10 @@ def iter_image_batches(paths: Sequence[str | os.PathLike], size: tuple[int, int]
     at ``size`` (height, width), uint8 or float32 in [0, 1]. ``workers``: decoding processes
     (None = :func:`default_workers`; 0 = decode in this process, no overlap). At most
     ``workers * PREFETCH`` decoded batches exist besides the one yielded."""
+    from fdnet.data.images import check_image_size
+
     paths = [Path(p) for p in paths]
+    size = check_image_size(size, "images")
     if batch_size < 1:
         raise DataError(f"batch size must be at least 1, got {batch_size}")
     if not paths:

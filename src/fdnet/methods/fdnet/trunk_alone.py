@@ -74,8 +74,11 @@ class TrunkDescriptor(Conv3Descriptor):
             block = model.backbone_block if block is None else block
             input_size = tuple(model.input_size) if input_size is None else input_size
         backbone = check_backbone(DEFAULT_BACKBONE if backbone is None else backbone, where=f"{self.name}: backbone")
+        from fdnet.data.images import check_image_size
+
+        input_size = check_image_size(input_size or DEFAULT_INPUT_SIZE, f"{self.name}: input_size")
         super().__init__(dim=0, block=DEFAULT_BLOCK if block is None else int(block),
-                         input_size=tuple(input_size or DEFAULT_INPUT_SIZE), bf16=bf16, threads=threads,
+                         input_size=input_size, bf16=bf16, threads=threads,
                          device=device, backbone=backbone)
 
     def settings(self) -> dict:

@@ -154,7 +154,11 @@ def read_choice(path) -> dict:
                           "missing)")
     try:
         size = data["input_size"]
-        return {"backbone": str(data["backbone"]), "block": int(data["block"]),
-                "input_size": (int(size[0]), int(size[1]))}
-    except (KeyError, TypeError, ValueError, IndexError) as exc:
+        chosen = {"backbone": str(data["backbone"]), "block": int(data["block"]),
+                  "input_size": (int(size[0]), int(size[1]))}
+    except (KeyError, TypeError, ValueError, IndexError, OverflowError) as exc:
         raise ConfigError(f"{path}: trunk choice file lacks a valid backbone, block or input_size ({exc})") from None
+    from fdnet.data.images import check_image_size
+
+    check_image_size(chosen["input_size"], f"{path}: input_size")
+    return chosen
