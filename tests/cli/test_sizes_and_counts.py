@@ -52,3 +52,38 @@ def test_thread_counts_out_of_range_are_the_commands_error(argv, capsys):
     assert stopped.value.code == 2
     err = capsys.readouterr().err
     assert f"fdnet {argv[0]}: error: argument --threads: must be" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("setting, message", [
+    ("orientations=0", "HOG bins 0 must be a whole number from 1 to 360"),
+    ("orientations=-1", "HOG bins -1 must be a whole number from 1 to 360"),
+    ("block_size=0", "HOG block size 0x0 must be between 1 and 4096"),
+    ("cell_size=0", "HOG cell size 0x0 must be between 1 and 4096"),
+    ("cell_size=5", "must be a multiple of the cell 5x5"),
+])
+def test_hog_settings_that_crash_opencv_are_refused(tmp_path, capsys, setting, message):
+    """Each of these crashed the interpreter inside cv2.HOGDescriptor (SIGSEGV, SIGFPE, a
+    ZeroDivisionError or an exabyte allocation); one check refuses them for every HOG built."""
+    from conftest import write_random_places
+
+    write_random_places(tmp_path / "d", 2)
+    assert main(["extract", "--method", "hog", "--method-set", setting, "--images", str(tmp_path / "d"),
+                 "--out", str(tmp_path / "x.npz")]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.startswith("fdnet extract: error: hog: ")
+
+
+@pytest.mark.parametrize("setting, message", [
+    ("model.hog.nbins=0", "calc: model.hog: HOG bins 0"),
+    ("model.hog.nbins=-1", "calc: model.hog: HOG bins -1"),
+    ("model.hog.cell_size=[0,0]", "calc: model.hog: HOG cell size 0x0"),
+    ("model.input_size=[1,1]", "does not fit the 1x1 input"),
+])
+def test_calc_settings_that_crash_are_refused(tmp_path, capsys, setting, message):
+    from conftest import write_day_night_set
+
+    data = write_day_night_set(tmp_path / "data")
+    assert main(["train", "calc", "--data", str(data), "--preset", "tiny", "--set", setting,
+                 "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err

@@ -174,6 +174,35 @@ class SeqSLAMFrontEnd(Descriptor):
                 "similarity": "negative mean absolute difference"}
 
 
+def check_opencv_hog(window_wh, block_wh, stride_wh, cell_wh, bins, where: str) -> None:
+    """Refuse (ConfigError naming ``where``) OpenCV HOG settings that crash the interpreter inside
+    ``cv2.HOGDescriptor`` (a zero size or bin count: SIGSEGV / SIGFPE; a negative bin count: an
+    exabyte allocation) or that OpenCV rejects later: every size is (width, height) in whole
+    pixels >= 1, the cell divides the block, the block fits the window and steps along it by the
+    stride, 1 <= bins <= 360. The one check for every OpenCV HOG fdnet builds (the ``hog``
+    baseline, CALC's reconstruction target)."""
+    named = {"window": window_wh, "block": block_wh, "block stride": stride_wh, "cell": cell_wh}
+    sizes = {}
+    for name, value in named.items():
+        try:
+            w, h = (int(v) for v in value)
+            if any(isinstance(v, bool) or float(v) != int(v) for v in value):
+                raise ValueError
+        except (TypeError, ValueError, OverflowError):
+            raise ConfigError(f"{where}: HOG {name} size {value!r} must be two whole numbers (width, height)") from None
+        if w < 1 or h < 1 or w > 4096 or h > 4096:
+            raise ConfigError(f"{where}: HOG {name} size {w}x{h} must be between 1 and 4096 pixels a side")
+        sizes[name] = (w, h)
+    if isinstance(bins, bool) or not isinstance(bins, (int, np.integer)) or not 1 <= int(bins) <= 360:
+        raise ConfigError(f"{where}: HOG bins {bins!r} must be a whole number from 1 to 360")
+    (ww, wh), (bw, bh), (sw, sh), (cw, ch) = (sizes[n] for n in named)
+    if bw % cw or bh % ch:
+        raise ConfigError(f"{where}: HOG block {bw}x{bh} must be a multiple of the cell {cw}x{ch}")
+    if bw > ww or bh > wh or (ww - bw) % sw or (wh - bh) % sh:
+        raise ConfigError(f"{where}: HOG block {bw}x{bh} must fit the window {ww}x{wh} and step along it by the "
+                          f"stride {sw}x{sh} (window - block a multiple of the stride)")
+
+
 class HOGDescriptor(Descriptor):
     """Histogram of oriented gradients over the whole image, compared by cosine similarity.
 
@@ -196,17 +225,14 @@ class HOGDescriptor(Descriptor):
     def __init__(self, size=(512, 512), cell_size: int = 16, block_size: int = 16,
                  block_stride: int = 8, orientations: int = 9, grey: bool = False):
         self.input_size = _size_pair(size, "hog")
+        h, w = self.input_size
+        check_opencv_hog((w, h), (block_size, block_size), (block_stride, block_stride), (cell_size, cell_size),
+                         orientations, "hog")
         self.cell_size = int(cell_size)
         self.block_size = int(block_size)
         self.block_stride = int(block_stride)
         self.orientations = int(orientations)
         self.grey = bool(grey)
-        h, w = self.input_size
-        if (self.block_size % self.cell_size or self.block_size > min(h, w)
-                or (h - self.block_size) % self.block_stride or (w - self.block_size) % self.block_stride):
-            raise ConfigError(
-                f"hog: block_size {self.block_size} must be a multiple of cell_size {self.cell_size}, fit in "
-                f"size {h}x{w}, and (size - block_size) must be a multiple of block_stride {self.block_stride}")
         self._hog = None
 
     def _cv_hog(self):

@@ -59,12 +59,18 @@ from fdnet.methods.calc.config import CALCModelConfig, HOGTargetConfig
 def hog_descriptor(config: HOGTargetConfig):
     import cv2
 
+    from fdnet.descriptors.classic import check_opencv_hog
+
+    check_opencv_hog(config.win_size, config.block_size, config.block_stride, config.cell_size, config.nbins,
+                     "calc: model.hog")
     return cv2.HOGDescriptor(tuple(config.win_size), tuple(config.block_size), tuple(config.block_stride),
                              tuple(config.cell_size), int(config.nbins))
 
 
 def hog_length(model: CALCModelConfig) -> int:
-    height, width = model.input_size
+    from fdnet.data.images import check_image_size
+
+    height, width = check_image_size(model.input_size, "calc: model.input_size")
     return int(compute_hog(np.zeros((1, height, width), np.uint8), model.hog).shape[1])
 
 
@@ -120,13 +126,17 @@ def build_network(config: CALCModelConfig):
                 nn.MaxPool2d(3, stride=2, ceil_mode=True), nn.LocalResponseNorm(5, alpha=1e-4, beta=0.75),
                 nn.Conv2d(c2, c3, 3), nn.ReLU(inplace=True),
             )
+            hog_size = hog_length(model)  # checks the input size and the HOG settings first
             height, width = model.input_size
-            with torch.no_grad():
-                self.descriptor_dim = int(self.encoder(torch.zeros(1, 1, height, width)).numel())
+            try:
+                with torch.no_grad():
+                    self.descriptor_dim = int(self.encoder(torch.zeros(1, 1, height, width)).numel())
+            except RuntimeError:  # torch's words for a map that shrank to nothing
+                self.descriptor_dim = 0
             if self.descriptor_dim <= 0:
                 raise ConfigError(f"CALC input size {height}x{width} is too small for its encoder")
             hidden = list(model.decoder_hidden) or [self.descriptor_dim, 2048]
-            sizes = [self.descriptor_dim] + [int(h) for h in hidden] + [hog_length(model)]
+            sizes = [self.descriptor_dim] + [int(h) for h in hidden] + [hog_size]
             layers: list[nn.Module] = []
             for a, b in zip(sizes[:-1], sizes[1:]):
                 layers += [nn.Linear(a, b), nn.Sigmoid()]
