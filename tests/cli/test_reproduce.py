@@ -148,6 +148,8 @@ def test_rerunning_one_experiment_describes_nothing_again(made, capsys):
     (["--overlaps", "100,x"], "'x' is not a number"),
     (["--viewpoint-pair", "summer"], "expected REFERENCE,QUERY"),
     (["--device", "tpu"], "tpu"),
+    (["--experiments", ""], "--experiments '': names no experiment"),
+    (["--experiments", ","], "--experiments ',': names no experiment"),
 ])
 def test_bad_input_is_one_error_line_and_exit_2(made, tmp_path, capsys, extra, message):
     args = ["reproduce", "--data", str(made["route"]), "--checkpoint", str(made["run"]), "--method", "sad",
@@ -167,3 +169,11 @@ def test_missing_data_and_unwritable_output_name_the_path(made, tmp_path, capsys
     assert main(["reproduce", "--data", str(made["route"]), "--checkpoint", str(made["run"]), "--out",
                  str(blocked)]) == 2
     assert f"{blocked}: reproduce output folder exists and is not a folder" in capsys.readouterr().err
+
+
+def test_a_checkpoint_that_is_no_run_is_refused_not_reported(made, tmp_path, capsys):
+    assert main(["reproduce", "--data", str(made["route"]), "--checkpoint", str(tmp_path / "nope"), "--method",
+                 "sad", "--out", str(tmp_path / "out")]) == 2
+    assert f"--checkpoint {tmp_path / 'nope'}: not a run directory" in capsys.readouterr().err
+    assert not (tmp_path / "out" / "report.html").exists()
+

@@ -172,6 +172,15 @@ def run(args) -> int:
     if len(fdnet_runs) != 1:
         raise ConfigError("--checkpoint: give the FDNet run directory exactly once (RUN_DIR or fdnet=RUN_DIR); "
                           "other trained methods as METHOD=RUN_DIR")
+    from fdnet.runs import is_run
+
+    if not is_run(fdnet_runs[0]):  # refused before any work, not written into the report
+        raise ConfigError(f"--checkpoint {fdnet_runs[0]}: not a run directory with a complete checkpoint "
+                          "(make one with `fdnet train`)")
+    for flag, text in (("--experiments", args.experiments), ("--method", args.method)):
+        if text is not None and not _names(text):
+            raise ConfigError(f"{flag} {text!r}: names no {flag.lstrip('-').rstrip('s')}; leave the flag out for "
+                              "the default")
     methods = _names(args.method)
     considered = methods or list(DEFAULT_METHODS)
     others = argparse.Namespace(method=",".join(considered), weights=args.weights, vocabulary=args.vocabulary,
