@@ -592,3 +592,14 @@ def test_config_differences():
         "lr: saved 0.001, requested 0.1", "net.width: saved 4, requested 8"]
     assert runs.config_differences(saved, requested, keys=["net.width"]) == ["net.width: saved 4, requested 8"]
     assert runs.config_differences(saved, {"net": {"width": 4}, "lr": 0.001, "step": 0}) == []
+
+
+def test_a_damaged_newest_checkpoint_is_skipped_with_a_warning_naming_it(tmp_path, caplog):
+    _save(tmp_path, 1)
+    _save(tmp_path, 2)
+    newest = runs.latest_checkpoint(tmp_path)
+    (newest / runs.WEIGHTS_FILE).write_bytes(b"damaged")
+    with caplog.at_level("WARNING"):
+        used = runs.latest_checkpoint(tmp_path)
+    assert used != newest and used.name.startswith("step-000000001")
+    assert f"skipped the newest checkpoint(s), damaged ({newest.name}" in caplog.text and used.name in caplog.text

@@ -7,6 +7,8 @@ This module must not import :mod:`fdnet.training`: inference code loads trained 
 
 from __future__ import annotations
 
+import logging
+
 import contextlib
 import dataclasses
 import errno
@@ -159,6 +161,10 @@ def latest_checkpoint(run_dir: str | Path) -> Path:
     for generation in _generations(checkpoints_dir):
         reason = _incomplete_reason(generation.path)
         if reason is None:
+            if rejected:  # an older checkpoint stands in for a damaged newer one: say so
+                logging.getLogger(__name__).warning(
+                    f"{run_dir}: skipped the newest checkpoint(s), damaged ({'; '.join(rejected[:3])}); using "
+                    f"{generation.path.name}")
             return generation.path
         rejected.append(f"{generation.path.name}: {reason}")
     if (run_dir / WEIGHTS_FILE).is_file():
