@@ -183,3 +183,18 @@ def test_short_quiet_and_an_unknown_flag_name_the_command(capsys):
     with pytest.raises(SystemExit):
         main(["database", "build", "--images", "x", "--db", "y.db", "--method", "raw", "--allow-duplicates"])
     assert "fdnet database build: error: unrecognized arguments: --allow-duplicates" in capsys.readouterr().err
+
+
+def test_an_error_that_spans_lines_is_printed_as_one(capsys, monkeypatch):
+    """A library's message can span lines (PyYAML's caret under a ROS 2 bag's metadata.yaml):
+    the command's error is one line whatever its cause."""
+    from fdnet.cli import evaluate
+    from fdnet.errors import DataError
+
+    def broken(args):
+        raise DataError("bag/metadata.yaml: not valid YAML (while parsing\n  in 'x', line 1\n    ^\nexpected)")
+
+    monkeypatch.setattr(evaluate, "run", broken)
+    assert main(["evaluate", "--similarity", "x.npy", "--ground-truth", "g.csv"]) == 2
+    err = capsys.readouterr().err
+    assert err == "fdnet evaluate: error: bag/metadata.yaml: not valid YAML (while parsing in 'x', line 1 ^ expected)\n"

@@ -88,6 +88,13 @@ def _add_source_arguments(subparsers) -> None:
             add_source_arguments(parser)
 
 
+def _one_line(message) -> str:
+    """An error as one line: a library's own text may span several (PyYAML's caret under the
+    offending column, a traceback-like detail); a command's error never does."""
+    text = str(message)
+    return " ".join(text.split()) if "\n" in text or "\r" in text else text
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args, unknown = parser.parse_known_args(argv)
@@ -113,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
             else:
                 result = args.func(args)
     except FdnetError as exc:
-        print(f"fdnet {args.command}: error: {exc}", file=sys.stderr)
+        print(f"fdnet {args.command}: error: {_one_line(exc)}", file=sys.stderr)
         return 2
     except Exception as exc:  # noqa: BLE001 (re-raised below unless it is the environment's)
         # The one place where a full disk, a read-only folder, a permission or a file name that
@@ -122,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
         message = _environment_message(exc, args)
         if message is None:
             raise
-        print(f"fdnet {args.command}: error: {message}", file=sys.stderr)
+        print(f"fdnet {args.command}: error: {_one_line(message)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"fdnet {args.command}: interrupted", file=sys.stderr)
