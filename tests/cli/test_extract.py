@@ -124,3 +124,20 @@ def test_extract_names_one_method(tmp_path, capsys):
     assert main(["extract", "--method", "sad,hog", "--images", str(_images(tmp_path / "i", 2)),
                  "--out", str(tmp_path / "v.npz")]) == 2
     assert "name one" in capsys.readouterr().err
+
+
+def test_a_runs_recorded_method_is_used_or_named(tmp_path, capsys):
+    """`extract --checkpoint CALC_RUN` describes with CALC (the run records its method); naming
+    another trained method for it is refused with the method to give."""
+    from conftest import write_day_night_set
+
+    data = write_day_night_set(tmp_path / "data")
+    run = tmp_path / "calc"
+    assert main(["train", "calc", "--data", str(data), "--preset", "tiny", "--steps", "2", "--out", str(run)]) == 0
+    capsys.readouterr()
+    assert main(["extract", "--checkpoint", str(run), "--images", str(data / "day"), "--out",
+                 str(tmp_path / "v.npz")]) == 0
+    assert "(calc: descriptors" in capsys.readouterr().out
+    assert main(["evaluate", "--data", str(data), "--reference", "day", "--query", "night", "--method", "fdnet",
+                 "--checkpoint", str(run)]) == 2
+    assert f"{run}: a run of `fdnet train calc`, not of fdnet: give --method calc" in capsys.readouterr().err

@@ -82,6 +82,10 @@ def run(args) -> int:
     from fdnet.io import ensure_writable
 
     check_pipeline_arguments(args)
+    if not args.method and len(args.checkpoint) == 1 and "=" not in args.checkpoint[0]:
+        from fdnet.runs import recorded_method
+
+        args.method = recorded_method(args.checkpoint[0])  # the run says which method trained it
     args.method = args.method or DEFAULT_METHOD
     if "," in args.method:
         raise ConfigError(f"--method {args.method}: extract writes one method's vectors; name one")

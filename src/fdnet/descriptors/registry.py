@@ -189,6 +189,19 @@ def methods_markdown() -> str:
     return "\n".join(rows) + "\n"
 
 
+def _check_run_method(name: str, checkpoint) -> None:
+    """A trained method given another method's run (``--method fdnet --checkpoint CALC_RUN``) is
+    refused naming the method the run records, instead of failing on its config's keys: the one
+    place every command's descriptor goes through."""
+    if not checkpoint or name not in trained_methods():
+        return
+    from fdnet.runs import recorded_method
+
+    recorded = recorded_method(checkpoint)
+    if recorded and recorded != name:
+        raise ConfigError(f"{checkpoint}: a run of `fdnet train {recorded}`, not of {name}: give --method {recorded}")
+
+
 def create(name: str, **options):
     """Build descriptor ``name``; ``options`` are its constructor's keyword settings
     (e.g. ``checkpoint=``, ``weights=``, ``vocabulary=``, ``dim=``, ``device=``). ``None`` values
@@ -200,6 +213,7 @@ def create(name: str, **options):
     one is always an error."""
     cls = descriptor_class(name)
     options = {k: v for k, v in options.items() if v is not None}
+    _check_run_method(name, options.get("checkpoint"))
     params = inspect.signature(cls.__init__).parameters
     if "device" in options and not takes_device(name):
         from fdnet.backbones import check_device_spec

@@ -187,6 +187,22 @@ def is_run(run_dir: str | Path) -> bool:
     return True
 
 
+def recorded_method(run_dir: str | Path) -> str | None:
+    """The trained method a run directory records (``method:`` in its config.yaml, written by
+    ``fdnet train METHOD`` for every method but FDNet, whose runs predate the key), "fdnet" for a
+    run without the key, None when ``run_dir`` holds no readable run."""
+    from fdnet.config import read_yaml_file
+
+    try:
+        data = read_yaml_file(latest_checkpoint(run_dir) / CONFIG_FILE, "run config")
+    except (OSError, ConfigError):
+        return None
+    if not isinstance(data, dict):
+        return None
+    method = data.get("method")
+    return str(method) if method else "fdnet"
+
+
 #: the folder in a run directory holding the best-validating weights (training with a validation pair)
 BEST_DIR = "best"
 
