@@ -236,3 +236,19 @@ def test_algorithm1_batch_use_samples_one_batch_per_joint_step(tmp_path):
         if method.stage(step) == "joint":
             assert len(drawn) - before == 1, "Algorithm 1: one mini-batch X_b per joint step"
             assert {"critic", "encoder_adversarial", "reconstruction", "appearance"} <= set(numbers)
+
+
+def test_a_full_disk_before_the_first_checkpoint_says_to_run_again_not_to_resume(tmp_path, monkeypatch):
+    import errno
+
+    import fdnet.runs as runs_module
+
+    trainer = _trainer(tmp_path, **{"runtime.checkpoint_every": 2})
+
+    def disk_full(run_dir, modules, config, optimizers=None, state=None, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(runs_module, "save_checkpoint", disk_full)
+    with pytest.raises(ConfigError, match="no checkpoint was written before it.*run the same command again") as failure:
+        trainer.fit(progress=False)
+    assert "--resume" not in str(failure.value) and failure.value.errno == errno.ENOSPC

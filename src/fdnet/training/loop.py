@@ -320,12 +320,17 @@ class Trainer:
         except (OSError, ConfigError) as exc:
             reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
             try:
-                previous = f"step {runs.load_training_state(self.run_dir)['step']}"
+                previous = runs.load_training_state(self.run_dir)["step"]
             except ConfigError:
-                previous = "none yet"
-            message = (f"{self.run_dir}: could not write the checkpoint of step {self.step} ({reason}); "
-                       f"the previous complete checkpoint ({previous}) is intact: fix the cause "
-                       "(e.g. free disk space) and continue with --resume")
+                previous = None
+            if previous is None:  # nothing to resume from: --resume would only say so
+                message = (f"{self.run_dir}: could not write the checkpoint of step {self.step} ({reason}); no "
+                           "checkpoint was written before it, so there is nothing to resume: fix the cause "
+                           "(e.g. free disk space) and run the same command again")
+            else:
+                message = (f"{self.run_dir}: could not write the checkpoint of step {self.step} ({reason}); "
+                           f"the previous complete checkpoint (step {previous}) is intact: fix the cause "
+                           "(e.g. free disk space) and continue with --resume")
             # a full disk or a lost mount stays an operating-system error (OutputError is both)
             raise (output_error(message, exc) if isinstance(exc, OSError) else ConfigError(message)) from None
 
