@@ -48,3 +48,15 @@ def test_an_unreadable_entry_is_described_again(tmp_path):
     out = cache.vectors(parts, lambda: np.zeros((1, 2)))
     np.testing.assert_array_equal(out, np.zeros((1, 2)))
     np.testing.assert_array_equal(np.load(cache.path(parts)), np.zeros((1, 2)))
+
+
+def test_an_entry_holding_nan_is_named_and_described_again(tmp_path, caplog):
+    cache = DescriptorCache(tmp_path)
+    parts = {"method": "raw", "images": "k"}
+    cache.vectors(parts, lambda: np.ones((2, 3)), "raw")
+    np.save(cache.path(parts), np.array([[1.0, np.nan, 0.0], [0.0, 1.0, 0.0]], np.float32))
+    with caplog.at_level("WARNING"):
+        again = cache.vectors(parts, lambda: np.full((2, 3), 2.0), "raw")
+    assert np.all(again == 2.0) and cache.computed == ["raw", "raw"]
+    assert f"{cache.path(parts)}: cached vectors hold NaN or infinite values" in caplog.text
+    assert np.all(np.load(cache.path(parts)) == 2.0)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 from pathlib import Path
 from typing import Callable, Sequence
@@ -61,9 +62,16 @@ class DescriptorCache:
         if not path.is_file():
             return None
         try:
-            return np.load(path, allow_pickle=False)
+            cached = np.load(path, allow_pickle=False)
         except (OSError, ValueError):
             return None  # unreadable (e.g. a disk error): described again and rewritten
+        if not np.issubdtype(cached.dtype, np.number) or not np.isfinite(cached).all():
+            # a damaged or hand-edited cache file would surface later as "scores contain NaN" with no
+            # file named: say which one, and describe again
+            logging.getLogger(__name__).warning(f"{path}: cached vectors hold NaN or infinite values; describing "
+                                                "the images again")
+            return None
+        return cached
 
     def vectors(self, parts: dict, compute: Callable[[], np.ndarray], label: str = "") -> np.ndarray:
         cached = self.load(parts)
