@@ -369,3 +369,34 @@ def test_an_event_the_disk_cannot_hold_leaves_no_half_line(tmp_path, monkeypatch
             log.write(closure)
         assert caught.value.errno == errno.ENOSPC
     assert (tmp_path / "e.csv").read_bytes() == whole
+
+
+def test_a_read_only_database_is_refused_before_any_frame(route, tmp_path, capsys, make_read_only, monkeypatch):
+    folder = tmp_path / "maps"
+    folder.mkdir()
+    db = folder / "map.db"
+    assert main(["database", "build", "--images", str(route), "--method", "raw", "--db", str(db)]) == 0
+    make_read_only(folder)
+    capsys.readouterr()
+
+    def describe(self, images):
+        raise AssertionError("images were described before the refusal")
+
+    monkeypatch.setattr(RawThumbnail, "describe", describe)
+    assert main(args(route, tmp_path, "--db", str(db))) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("fdnet loop-closure: error: ") and str(db) in err and "read-only" in err.lower()
+
+
+def test_what_a_failed_create_left_is_reused(route, tmp_path, capsys):
+    import sqlite3
+
+    db = tmp_path / "map.db"
+    with sqlite3.connect(db) as conn:  # a SQLite file without tables, as a killed create leaves it
+        conn.execute("CREATE TABLE scratch (x)")
+        conn.execute("DROP TABLE scratch")
+    assert db.stat().st_size > 0
+    (tmp_path / "empty.db").write_bytes(b"")
+    for path in (db, tmp_path / "empty.db"):
+        assert main(args(route, tmp_path, "--db", str(path))) == 0
+        assert "10 loop closures in 20 frames" in capsys.readouterr().out

@@ -157,7 +157,9 @@ def run(args) -> int:
     from fdnet.decisions.loop_traverse import DEFAULT_RULE, DEFAULT_SEQUENCE_LENGTH, route_traverse, run_traverse
     from fdnet.errors import ConfigError
     from fdnet.io import atomic_write_text, ensure_writable
-    from fdnet.matching.database import check_can_create
+    import os
+
+    from fdnet.matching.database import check_can_create, holds_a_database
 
     check_pipeline_arguments(args)
     route_flags = [f"--{name}" for name in ("conditions", "frames", "tolerance")
@@ -178,9 +180,16 @@ def run(args) -> int:
     for path, what in ((args.out, "events CSV"), (args.jsonl, "events JSON lines"), (args.report, "report JSON")):
         if path:
             ensure_writable(path, what=what)
-    if args.db and not (Path(args.db).is_file() and Path(args.db).stat().st_size > 0):
-        check_can_create(args.db)
+    if args.db:
+        # before any frame: the database's folder takes new files (SQLite writes a journal beside
+        # it), an existing database file is writable, a new one could be created there
         ensure_writable(args.db, what="place database")
+        if holds_a_database(args.db):
+            if not os.access(args.db, os.W_OK):
+                raise ConfigError(f"{args.db}: the place database is read-only; loop closure adds every frame to "
+                                  "it (copy it somewhere writable, or leave --db out for an in-memory map)")
+        else:
+            check_can_create(args.db)
     calibrate_out = args.calibrate_out
     if calibrate_out and Path(calibrate_out).is_dir():
         calibrate_out = str(Path(calibrate_out) / LOOP_CALIBRATION_FILE)

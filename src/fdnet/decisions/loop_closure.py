@@ -220,7 +220,7 @@ class LoopClosureDetector:
         return gates
 
     def _database(self, database, method_options):
-        from fdnet.matching.database import MEMORY, PlaceDatabase
+        from fdnet.matching.database import PlaceDatabase, holds_a_database
 
         if database is None:
             return PlaceDatabase.for_descriptor(self.descriptor, method_options=method_options)
@@ -228,8 +228,9 @@ class LoopClosureDetector:
             database.check_descriptor(self.descriptor)
             return database
         path = Path(database)
-        if str(database) != MEMORY and path.is_file() and path.stat().st_size > 0:
+        if holds_a_database(path):
             return PlaceDatabase.open(path, descriptor=self.descriptor)
+        # a new file, or what a failed create left (empty, or SQLite without tables): created there
         return PlaceDatabase.create(path, self.descriptor, method_options=method_options)
 
     def _load_places(self) -> None:

@@ -237,6 +237,23 @@ def _is_fdnet_database(conn: sqlite3.Connection) -> bool:
     return conn.execute("PRAGMA application_id").fetchone()[0] == APPLICATION_ID
 
 
+def holds_a_database(path: str | os.PathLike) -> bool:
+    """Whether ``path`` holds a database to open, rather than what a create killed before its
+    first commit leaves (an empty file, or a SQLite file without tables), which is reused."""
+    path = Path(path)
+    if str(path) == MEMORY or not path.is_file() or path.stat().st_size == 0:
+        return False
+    with open(path, "rb") as fh:
+        if fh.read(len(SQLITE_MAGIC)) != SQLITE_MAGIC:
+            return True  # not SQLite: opening it says what it is
+    conn = _connect(path.resolve().as_uri() + "?mode=ro", uri=True)
+    try:
+        with _sqlite_errors(path, "checking the existing file"):
+            return bool(conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'").fetchall())
+    finally:
+        conn.close()
+
+
 def check_can_create(path: str | os.PathLike, overwrite: bool = False) -> None:
     """Refuse, before any image is described, a database path that ``create`` would refuse.
 
