@@ -243,3 +243,29 @@ def test_pipeline_settings_out_of_range_are_refused(batch_size, workers, message
         check_pipeline_settings(batch_size, workers)
     check_pipeline_settings(1, 0)  # the smallest allowed
     check_pipeline_settings(None, None)  # defaults
+
+
+def test_a_worker_that_cannot_hand_its_batch_over_is_one_line_not_a_hang(tmp_path):
+    """Under a file size limit (and with a small /dev/shm), a decoding worker could not put its
+    batch in shared memory: two tracebacks and the main process waited forever. Batches now come
+    back as arrays through the pipe; the command ends with one line on what it could not write."""
+    import subprocess
+    import sys
+
+    resource = pytest.importorskip("resource", reason="RLIMIT_FSIZE needs a POSIX system")
+    from conftest import write_random_places
+
+    images = write_random_places(tmp_path / "images", 40)
+
+    def limit():
+        import signal
+
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (60_000, resource.RLIM_INFINITY))
+
+    done = subprocess.run([sys.executable, "-m", "fdnet", "extract", "--method", "raw", "--images", str(images),
+                           "--out", str(tmp_path / "v.npz"), "--workers", "1", "--batch-size", "8"],
+                          capture_output=True, text=True, timeout=300, preexec_fn=limit)
+    assert done.returncode == 2, done.stderr
+    assert "Traceback" not in done.stderr
+    assert done.stderr.strip().splitlines()[-1].startswith("fdnet extract: error: ")

@@ -80,13 +80,23 @@ class _Images:
         return i, image, None
 
 
-def _collate(items):
-    import torch
-
+def _collate(items, as_tensor: bool = True):
     for _, image, error in items:
         if error is not None:
             return items[0][0], None, error
-    return items[0][0], torch.from_numpy(np.stack([image for _, image, _ in items])), None
+    batch = np.stack([image for _, image, _ in items])
+    if not as_tensor:
+        return items[0][0], batch, None
+    import torch
+
+    return items[0][0], torch.from_numpy(batch), None
+
+
+def _collate_arrays(items):
+    """A worker's batch as a numpy array: it reaches the main process pickled through the pipe,
+    not as a torch tensor in shared memory (/dev/shm), whose failure (a small /dev/shm, a file
+    size limit) left the worker's error unseen and the main process waiting forever."""
+    return _collate(items, as_tensor=False)
 
 
 def iter_image_batches(paths: Sequence[str | os.PathLike], size: tuple[int, int], batch_size: int = 64,
@@ -114,23 +124,34 @@ def iter_image_batches(paths: Sequence[str | os.PathLike], size: tuple[int, int]
     if workers == 0:
         dataset = _Images(paths, size, uint8)
         for start in range(0, len(paths), batch_size):
-            _, batch, error = _collate([dataset[i] for i in range(start, min(start + batch_size, len(paths)))])
+            _, batch, error = _collate([dataset[i] for i in range(start, min(start + batch_size, len(paths)))],
+                                       as_tensor=False)
             if error is not None:
                 raise DataError(error)
-            yield start, batch.numpy()
+            yield start, batch
         return
     from torch.utils.data import DataLoader
 
+    # pinned memory (a GPU) needs tensors; otherwise batches travel as arrays (see _collate_arrays)
     loader = DataLoader(_Images(paths, size, uint8), batch_size=batch_size, shuffle=False,
-                        num_workers=workers, collate_fn=_collate, prefetch_factor=PREFETCH,
-                        pin_memory=pin_memory, persistent_workers=False)
+                        num_workers=workers, collate_fn=_collate if pin_memory else _collate_arrays,
+                        prefetch_factor=PREFETCH, pin_memory=pin_memory, persistent_workers=False)
     iterator = iter(loader)
     try:
-        for start, batch, error in iterator:
+        while True:
+            try:
+                start, batch, error = next(iterator)
+            except StopIteration:
+                break
+            except RuntimeError as exc:  # a worker killed (out of memory, a signal): one line, not a hang
+                if "DataLoader worker" not in str(exc):
+                    raise
+                raise DataError(f"an image-decoding worker process failed ({' '.join(str(exc).split())}); "
+                                "with little memory, give --workers 0 to decode in this process") from None
             if error is not None:
                 raise DataError(error)
             # .numpy() shares the (possibly pinned) memory: no copy
-            yield int(start), batch.numpy()
+            yield int(start), batch.numpy() if hasattr(batch, "numpy") else batch
     finally:
         # Stop the worker processes now (an error, or a consumer that stops early), not at exit.
         shutdown = getattr(iterator, "_shutdown_workers", None)
