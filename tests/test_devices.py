@@ -1,4 +1,4 @@
-"""Devices (issue 13 part 1): ``--device`` parsing and resolution, images sent to the device as
+"""Devices: ``--device`` parsing and resolution, images sent to the device as
 uint8 and converted there, and the torch descriptors' device/uint8 paths.
 
 No GPU exists where these tests were written: CUDA paths are checked for their refusals (a

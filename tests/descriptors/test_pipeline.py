@@ -1,4 +1,4 @@
-"""The streaming pipeline (issue 13 part 2): batches in order from DataLoader workers, errors
+"""The streaming pipeline: batches in order from DataLoader workers, errors
 named in the main process, vectors written in chunks, and memory bounded far below a folder's
 decoded size."""
 

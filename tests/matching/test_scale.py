@@ -1,4 +1,4 @@
-"""Indexed search at scale (issue 13 part 3): every index kind against exact search, saved and
+"""Indexed search at scale: every index kind against exact search, saved and
 reloaded without pickle, and the place database's derived index cache and chunked adds."""
 
 from __future__ import annotations

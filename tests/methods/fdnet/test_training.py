@@ -181,8 +181,8 @@ def _best_by_block(selection: dict) -> dict[int, float]:
 @pytest.mark.shared_data
 def test_gardens_point_validation_chooses_the_deeper_block_and_nordland_the_shallower_one(tmp_path):
     """On the training range only: day_left -> night_right 0:100 (tolerance 2) prefers block 11,
-    Nordland summer/winter 200:300 (tolerance 0, training 0:300) block 7 (docs/results.md,
-    sessions 6 and 8); on Gardens Point each with and without the synthetic night copy."""
+    Nordland summer/winter 200:300 (tolerance 0, training 0:300) block 7 (docs/results.md); on
+    Gardens Point each with and without the synthetic night copy."""
     from fdnet.cli import main
 
     gardens = require_shared("gardens_point")

@@ -214,7 +214,7 @@ def _cpu() -> FDNetRunConfig:
     # 11 the deeper one. With a validation pair a run starts on whichever validates better
     # (backbone_block_candidates): no one depth suits every route (with the mined-pair start,
     # Nordland held-out validation 0.92 for block 7 against 0.87 for 11; Gardens Point 0.90 for
-    # block 11 against 0.84 for 7 and 0.88 for 14; docs/results.md, sessions 6 and 8). Without
+    # block 11 against 0.84 for 7 and 0.88 for 14; docs/results.md). Without
     # one, block 7. The trunk's maps are computed once per run and candidate block.
     #
     # E_c is the projection head (content_head=trunk_projection): the trunk's map projected to
@@ -228,7 +228,7 @@ def _cpu() -> FDNetRunConfig:
                     backbone_block_candidates=(7, 11),
                     content_head="trunk_projection", projection_init="mined_pairs"),
         # 500 auto-encoder steps shape E_a and the decoder, 200 critic steps, then 300 joint steps:
-        # in runs nres/gres (docs/results.md, session 4) the joint stage did not raise validation
+        # in the measured runs (docs/results.md) the joint stage did not raise validation
         # R@1 beyond its start (Nordland 0.91 -> 0.83 by step 1000), and step 1000 is what fits in
         # about 20 minutes on 2 cores; best/ keeps the best-validating checkpoint.
         ScheduleConfig(pretrain_autoencoder_steps=500, pretrain_critic_steps=200, joint_steps=300,
@@ -239,7 +239,7 @@ def _cpu() -> FDNetRunConfig:
     # condition: the mined pairs then include exact (image, its night copy) pairs that teach the
     # whitening what a night change does. It validates better on Gardens Point (night) and on
     # Nordland with held-out validation frames, and is the same or worse on validation frames
-    # inside the mined range (docs/results.md, session 8).
+    # inside the mined range (docs/results.md).
     config.data.synthetic_conditions_candidates = ("none", "night")
     return config
 

@@ -8,7 +8,7 @@ traverse's frame order. Two steps, both without cross-condition place labels:
    the residual head's ``condition_means`` start), then project on the first ``pca_dims``
    principal directions, coordinate k scaled by ``eigenvalue_k ** -pca_power``. ``pca_power``
    0.25 (half of full whitening) validated better than 0 (plain PCA) and 0.5 (full whitening) on
-   Nordland and Gardens Point (docs/results.md, session 7).
+   Nordland and Gardens Point (docs/results.md).
 2. **Mined pairs** (``projection_init=mined_pairs``, the ``cpu`` preset): FDNet's own start
    finds pairs of frames of two conditions that show the same place, then learns from them which
    directions change between conditions. A pair is kept when the frames are *mutual* best matches
@@ -88,7 +88,7 @@ def mine_pairs(vectors: list[np.ndarray], sequence_length: int) -> list[tuple[in
 
 #: mined pairs whose next frame is mined too, at most 2 frames from the next place, per frame of the
 #: shorter traverse: 0.63-0.79 between Nordland's seasons, 0.22-0.66 between Gardens Point's
-#: conditions, 0.05-0.11 for traverses of different places (docs/results.md, session 7)
+#: conditions, 0.05-0.11 for traverses of different places (docs/results.md)
 MIN_ROUTE_CONSISTENCY = 0.15
 
 

@@ -71,7 +71,7 @@ class FDNetConfig:
     #: the validation pair as checkpoints are for ``best/`` (R@1, ties to AUC), and the best one
     #: is trained; the scores are kept in the checkpoints' state. Which depth keeps the place
     #: depends on the data: a fine stride-16 map for Nordland's 64x32 frames seen 10 s apart, a
-    #: coarse stride-32 map for Gardens Point's hand-held walk (docs/results.md, session 6). ()
+    #: coarse stride-32 map for Gardens Point's hand-held walk (docs/results.md). ()
     #: or no validation pair: ``backbone_block`` alone, which must be one of the candidates
     backbone_block_candidates: tuple[int, ...] = ()
     #: E_c: "encoder" = the paper's (encoding blocks + a fully connected layer to L);
@@ -99,7 +99,7 @@ class FDNetConfig:
     #: principal directions kept before the mined-pair whitening (at most one fewer than the images)
     projection_pca_dims: int = 1024
     #: the start's coordinate k is divided by eigenvalue_k ** projection_pca_power (0 = PCA, 0.5 =
-    #: full whitening; 0.25 validated best, docs/results.md session 7)
+    #: full whitening; 0.25 validated best, docs/results.md)
     projection_pca_power: float = 0.25
     #: frames of each traverse a mined pair's sequence similarity runs over
     pair_sequence_length: int = 5
