@@ -211,6 +211,15 @@ def run(args) -> int:
         method_options=_file_options(args, args.method), commit_every=args.commit_every,
         batch_size=args.batch_size, workers=args.workers, gates=gates, resume=args.resume, search=args.search,
         progress=not args.no_progress, log=logging.getLogger("fdnet.loop_closure").info)
+    _print_report(args, report)
+    if args.report:
+        atomic_write_text(args.report, json.dumps(report.to_dict(), indent=2, sort_keys=True, default=str) + "\n")
+        print(f"wrote {args.report}")
+    return 0
+
+
+def _print_report(args, report) -> None:
+    """What the run did: closures, the database, the evaluation, the calibration, the gates."""
     print(f"wrote {args.out}" + (f" and {args.jsonl}" if args.jsonl else "")
           + f": {report.closures} loop closures in {report.frames} frames ({report.rule} >= {report.threshold:g}, "
           f"sequences of {report.sequence_length}" + (f", threshold from {report.calibration}" if report.calibration
@@ -241,7 +250,3 @@ def run(args) -> int:
         print(f"wrote {c['path']}: threshold {c['threshold']:.6g} reaches precision {c['precision']:.3f} at recall "
               f"{c['recall']:.3f} on this traverse (target {c['target_precision']:g})"
               + "".join(f"; {note}" for note in c["notes"]))
-    if args.report:
-        atomic_write_text(args.report, json.dumps(report.to_dict(), indent=2, sort_keys=True, default=str) + "\n")
-        print(f"wrote {args.report}")
-    return 0
