@@ -31,6 +31,9 @@ def test_per_season_frames_align_by_number(tmp_path):
     assert split.ground_truth.summary()["mean_matches_per_query"] == 1.0
     wide = open_split(root, split="all", filter_frames=False, tolerance=10)
     assert wide.ground_truth.positives[3].tolist() == [2, 3, 4]
+    # and the description says so, instead of a bare "tolerance 5 frames"
+    assert "tolerance 5 frames of the 1 fps sequence = 0 of these files (10 frames apart)" in split.description
+    assert "= 1 of these files" in wide.description
 
 
 def test_named_splits(tmp_path, monkeypatch):

@@ -189,6 +189,10 @@ class NordlandFormat(DatasetFormat):
         if len(ref) == 0 or len(qry) == 0:
             raise DataError(f"{root}: split {split!r} leaves no frames of {reference} or {query}")
         gt = GroundTruth.from_frames(qry.frame_ids, ref.frame_ids, options.tolerance)
+        step = int(np.median(np.diff(np.sort(ref.frame_ids)))) if len(ref) > 1 else 1
+        if step > 1:  # a trimmed copy (every 10th frame): say what the 1 fps tolerance means here
+            gt.description = (f"frame-aligned, tolerance {options.tolerance} frames of the 1 fps sequence = "
+                              f"{options.tolerance // step} of these files ({step} frames apart)")
         extra = f"split {split or 'all'}" + (f", frame filter: {note}" if note else "")
         return EvaluationSplit(ref, qry, gt, describe(root, qry, ref, gt, extra))
 
