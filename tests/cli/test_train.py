@@ -236,6 +236,7 @@ def test_a_trained_method_added_by_one_registry_line_trains_with_every_shared_fl
                  "--threads", "1", "--device", "cpu", "--steps", "4", "--set", "runtime.log_every=2"]) == 0
     printed = capsys.readouterr().out
     assert "finished at step 4/4" in printed and f"use it with --method dummy --checkpoint {out}" in printed
+    assert "min of training (" in printed and "min in all)" in printed
     config = runs.load_config(out, DummyRunConfig)
     assert (config.preset, config.runtime.threads, config.runtime.device, config.runtime.log_every) == \
         ("tiny", 1, "cpu", 2)

@@ -107,8 +107,11 @@ def run(args) -> int:
 
 
 def _train(args, config) -> int:
+    import time
+
     from fdnet.descriptors.registry import spec
 
+    started = time.monotonic()
     train = spec(args.method).train_function()
     try:
         summary = train(config, args.out, resume=args.resume, override=args.override,
@@ -128,7 +131,9 @@ def _train(args, config) -> int:
         print(f"fdnet train: resumed with changed settings (recorded in {args.out}/changes.yaml): "
               + "; ".join(summary["changes"]))
     line = (f"fdnet train: {summary['status']} at step {summary['step']}/{summary['total_steps']} "
-            f"after {summary['elapsed_seconds'] / 60:.1f} min"
+            # the loop's minutes, and the command's (reading images and choosing a start included)
+            f"after {summary['elapsed_seconds'] / 60:.1f} min of training "
+            f"({(time.monotonic() - started) / 60:.1f} min in all)"
             + (f" on {summary['world_size']} processes" if summary["world_size"] > 1 else "")
             + f"; run in {summary['run_dir']}")
     if summary["best_step"] >= 0:
