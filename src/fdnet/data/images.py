@@ -258,6 +258,32 @@ def load_image(path: str | os.PathLike, size: tuple[int, int] | None = None, *, 
         raise DataError(f"{path}: cannot read image ({exc.__class__.__name__}: {exc})") from None
 
 
+def resize_array(array: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """An (H, W, 3) RGB array (uint8 0..255, or float in [0, 1]) brought to ``size`` exactly as
+    :func:`load_image` brings an image file there (Pillow's BOX filter shrinking, bilinear
+    enlarging): a frame given as an array and the same frame given as a PNG file are the same
+    input. Float32 RGB in [0, 1]."""
+    from fdnet.errors import DataError
+
+    array = np.asarray(array)
+    if array.ndim != 3 or array.shape[2] != 3:
+        raise DataError(f"an image must be an (H, W, 3) RGB array, got an array of shape {array.shape}")
+    height, width = check_image_size(size, "image size")
+    shrinking = array.shape[1] >= width and array.shape[0] >= height
+    resample = Image.Resampling.BOX if shrinking else Image.Resampling.BILINEAR
+    if array.dtype == np.uint8:
+        if array.shape[:2] != (height, width):
+            array = np.asarray(Image.fromarray(array, "RGB").resize((width, height), resample))
+        return array.astype(np.float32) / 255.0
+    array = array.astype(np.float32)
+    if array.size and (float(np.nanmax(array)) > 1.0 or float(np.nanmin(array)) < 0.0 or not np.isfinite(array).all()):
+        raise DataError("a float image must hold values in [0, 1] (give uint8 for 0..255)")
+    if array.shape[:2] == (height, width):
+        return array
+    channels = [np.asarray(Image.fromarray(array[..., c], "F").resize((width, height), resample)) for c in range(3)]
+    return np.clip(np.stack(channels, axis=-1), 0.0, 1.0).astype(np.float32)
+
+
 def load_images(
     paths: Sequence[str | os.PathLike], size: tuple[int, int], workers: int = 2
 ) -> np.ndarray:

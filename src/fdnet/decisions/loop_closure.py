@@ -260,28 +260,15 @@ class LoopClosureDetector:
     # ------------------------------------------------------------------ one frame
     def load(self, image) -> np.ndarray:
         """One frame as the descriptor gets it: ``image`` is a path or an (H, W, 3) RGB array
-        (uint8 0..255, or float in [0, 1]; a float array above 1 is refused, since its scale
-        is unknown), brought to the descriptor's input size (area interpolation) as ``fdnet``
-        loads every image; (H, W, 3) float32 in [0, 1]."""
-        from fdnet.data.images import load_image
+        (uint8 0..255, or float in [0, 1]; a float array outside [0, 1] is refused, its scale
+        being unknown), brought to the descriptor's input size exactly as a file of the same
+        pixels would be (:func:`fdnet.data.images.resize_array`); (H, W, 3) float32 in [0, 1]."""
+        from fdnet.data.images import load_image, resize_array
 
         size = tuple(self.descriptor.input_size)
         if isinstance(image, (str, os.PathLike)):
             return load_image(image, size)
-        array = np.asarray(image)
-        if array.ndim != 3 or array.shape[2] != 3:
-            raise DataError(f"a frame must be an (H, W, 3) RGB image, got an array of shape {array.shape}")
-        if array.dtype == np.uint8:
-            array = array.astype(np.float32) / 255.0
-        else:
-            array = array.astype(np.float32)
-            if array.size and (float(array.max()) > 1.0 or float(array.min()) < 0.0):
-                raise DataError("a float frame must hold values in [0, 1] (give uint8 for 0..255)")
-        if array.shape[:2] != size:
-            import cv2
-
-            array = cv2.resize(array, (size[1], size[0]), interpolation=cv2.INTER_AREA)
-        return array
+        return resize_array(image, size)
 
     def describe(self, image) -> np.ndarray:
         """One frame's vector (``image`` as for :meth:`load`)."""
