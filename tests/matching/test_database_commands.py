@@ -49,6 +49,11 @@ def test_build_add_query_and_info_through_the_library(tmp_path):
     best = [r for r in table if r["rank"] == "1"]
     assert [r["place"] for r in best] == [str((second / r["query"]).resolve()) for r in best]
     assert [r["place_index"] for r in best] == ["5", "6", "7"]
+    # the same answers as arrays, for a program (no CSV to parse)
+    assert result.indices.shape == (3, 2) and result.indices[:, 0].tolist() == [5, 6, 7]
+    assert result.scores.dtype == np.float32 and (result.scores[:, 0] >= result.scores[:, 1]).all()
+    assert [result.place_names[i] for i in result.indices[:, 0]] == [r["place"] for r in best]
+    assert result.query_names == [r["query"] for r in best] and result.acceptance_scores is None
 
     # the last 3 places (the second route) excluded: the best answers come from the first route
     result = query_database(db, second, top_k=1, exclude_last=3, progress=False)
@@ -78,6 +83,7 @@ def test_an_acceptance_rule_adds_its_score_column(tmp_path):
     assert list(table[0]) == ["query", "rank", "place", "place_index", "score", "acceptance_score"]
     # raw: the acceptance score is the best match's similarity
     assert [float(r["acceptance_score"]) for r in table] == pytest.approx([float(r["score"]) for r in table])
+    assert scored.acceptance_scores == pytest.approx(scored.scores[:, 0]) and scored.accepted is None
     assert messages == []  # no stored calibration to announce, none used
 
 

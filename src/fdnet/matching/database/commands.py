@@ -14,6 +14,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Mapping, Sequence, Union
 
+import numpy as np
+
 logger = logging.getLogger(__name__)
 
 #: a method's options: a mapping, or a function of the method's name giving them (for ``add``,
@@ -64,12 +66,24 @@ class AddSummary:
 
 @dataclass(frozen=True)
 class QueryResult:
-    """:func:`query_database`'s ranked candidates as CSV text (also written to ``out`` when given)."""
+    """:func:`query_database`'s ranked candidates, as arrays for a program and as the CSV text the
+    command prints (also written to ``out`` when given). ``indices`` (Q, top_k) place indices
+    best first (-1 where fewer places), ``scores`` (Q, top_k) their similarities, ``place_names``
+    the database's place names (index them with ``indices``), ``query_names`` the images asked
+    about; with a rule or calibration ``acceptance_scores`` (Q,) and ``matches`` (Q,) the place
+    its rule vouches for, and with a calibration ``accepted`` (Q,) bool."""
 
     csv_text: str
     queries: int
     places: int
     out: str | None = None
+    indices: np.ndarray | None = None
+    scores: np.ndarray | None = None
+    query_names: list | None = None
+    place_names: list | None = None
+    acceptance_scores: np.ndarray | None = None
+    matches: np.ndarray | None = None
+    accepted: np.ndarray | None = None
 
     def lines(self) -> list[str]:
         return [f"wrote {self.out}: {self.queries} queries against {self.places} places"] if self.out else []
@@ -211,10 +225,20 @@ def query_database(db, images, *, top_k: int = 5, exclude_last: int = 0, min_sco
             from fdnet.decisions.acceptance import decide
 
             decision = decide(accept, _candidates(database, descriptor, paths, results))
+        place_names = list(database.names)
     text = _query_csv(paths, results, top_k, min_score, decision, accepted)
     if out:
         atomic_write_text(out, text)
-    return QueryResult(text, len(paths), places, str(out) if out else None)
+    indices = np.full((len(paths), top_k), -1, dtype=np.int64)
+    scores = np.full((len(paths), top_k), np.nan, dtype=np.float32)
+    for q, matches in enumerate(results):
+        for rank, m in enumerate(matches[:top_k]):
+            indices[q, rank], scores[q, rank] = m.index, m.score
+    return QueryResult(text, len(paths), places, str(out) if out else None, indices=indices, scores=scores,
+                       query_names=[p.name for p in paths], place_names=place_names,
+                       acceptance_scores=None if decision is None else np.asarray(decision.score, np.float64),
+                       matches=None if decision is None else np.asarray(decision.match, np.int64),
+                       accepted=None if accepted is None else np.asarray(accepted, bool))
 
 
 def database_info(db, log: Log | None = None) -> dict:
