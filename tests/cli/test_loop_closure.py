@@ -59,6 +59,9 @@ def test_events_at_the_revisits_and_an_evaluation(route, tmp_path, capsys):
     assert "R@100P 1.000" in out and "10 accepted, 10 true, 0 false" in out
     report = json.loads((tmp_path / "report.json").read_text())
     assert report["evaluation"]["metrics"]["recall_at_100_precision"] == 1.0
+    # R@1 beside top1_accuracy: the report says why they differ
+    assert "top1_accuracy counts every evaluated frame, the first pass included" in report["evaluation"]["note"]
+    assert "(of the revisiting frames)" in out
     assert report["places_after"] == 2 * PLACES
 
 

@@ -233,7 +233,7 @@ def _print_report(args, report) -> None:
         print(f"evaluated {ev['frames_evaluated']} frames, {ev['frames_with_revisit']} revisiting a searchable place: "
               f"R@100P {m['recall_at_100_precision']:.3f}, R@99P {m['recall_at_99_precision']:.3f}, "
               f"R@95P {m['recall_at_95_precision']:.3f}, P@maxR {m['precision_at_max_recall']:.3f}, "
-              f"AUC-PR {m['auc_pr']:.3f}, R@1 {m['recall_at_n']['1']:.3f}")
+              f"AUC-PR {m['auc_pr']:.3f}, R@1 {m['recall_at_n']['1']:.3f} (of the revisiting frames)")
         print(f"at threshold {at['threshold']:g}: {at['accepted']} accepted, {at['true']} true, {at['false']} false "
               f"(precision {at['precision']:.3f}, recall {at['recall']:.3f})")
         first, back = at["first_pass"], at["revisits"]

@@ -89,6 +89,9 @@ def evaluate_decisions(decisions: Sequence[FrameDecision], ground_truth, thresho
                          "missed": int((~accepted & ~first_pass).sum())},
         },
         "gated_frames": int(gated.sum()),
+        "note": ("recall_at_n and R@xP count the frames that revisit a place they could search; "
+                 "metrics.top1_accuracy counts every evaluated frame, the first pass included, where no "
+                 "answer can be right, so it is lower"),
     }
 
 
