@@ -413,15 +413,24 @@ def test_filter_frames_with_a_format_that_has_no_filter_is_an_error(route, capsy
 def test_accept_rules_json_and_table(matrix_files, tmp_path, capsys):
     npy, csv = matrix_files
     out = tmp_path / "one.json"
-    # margin (default rule): best minus the best outside radius 1 -> q0 .8 (right), q1 .3 (wrong: 4 vs
-    # its true 1 at .5), q2 .6, q3 .5 -> the wrong one is the least confident: R@100P 3/4 (raw: 1/4)
+    # by default the field's protocol (raw: the best-match score) is the headline, fdnet's margin rule beside
+    # it. margin: best minus the best outside radius 1 -> q0 .8 (right), q1 .3 (wrong: 4 vs its true 1 at
+    # .5), q2 .6, q3 .5 -> the wrong one is the least confident: R@100P 3/4 (raw: 1/4)
     assert main(["evaluate", "--similarity", str(npy), "--ground-truth", str(csv), "--accept-set", "radius=1",
                  "--json", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "raw is the field's protocol" in printed and "margin is an fdnet acceptance rule" in printed
     one = json.loads(out.read_text())
-    assert one["acceptance"] == "margin" and one["acceptance_settings"]["margin"]["radius"] == 1
-    assert one["recall_at_100_precision"] == pytest.approx(0.75)
-    assert one["recall_at_99_precision"] == pytest.approx(0.75) and one["recall_at_95_precision"] == pytest.approx(0.75)
-    assert "per_acceptance" not in one
+    assert one["acceptance"] == "raw" and one["recall_at_100_precision"] == pytest.approx(0.25)
+    margin = one["per_acceptance"]["margin"]
+    assert margin["settings"]["margin"]["radius"] == 1
+    assert margin["recall_at_100_precision"] == pytest.approx(0.75)
+    assert margin["recall_at_99_precision"] == pytest.approx(0.75)
+    assert main(["evaluate", "--similarity", str(npy), "--ground-truth", str(csv), "--accept", "margin",
+                 "--accept-set", "radius=1", "--json", str(out)]) == 0
+    alone = json.loads(out.read_text())
+    assert alone["acceptance"] == "margin" and alone["recall_at_100_precision"] == pytest.approx(0.75)
+    assert "per_acceptance" not in alone
     capsys.readouterr()
     several = tmp_path / "several.json"
     assert main(["evaluate", "--similarity", str(npy), "--ground-truth", str(csv), "--accept", "raw,margin,ratio",

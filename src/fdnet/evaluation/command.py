@@ -78,7 +78,9 @@ def evaluate_command(settings: EvaluateSettings, log: Callable[[str], None] | No
     log = log or logger.info
     _check_settings(settings)
     ground_truth_path(settings.ground_truth)
-    default_rule = "raw" if settings.protocol == "vprbench" else DEFAULT_ACCEPTANCE
+    # the field's protocol first (the raw best-match score, as papers and VPR-Bench report), fdnet's
+    # default acceptance rule beside it
+    default_rule = "raw" if settings.protocol == "vprbench" else f"raw,{DEFAULT_ACCEPTANCE}"
     acceptance = parse_acceptance_list(settings.accept or default_rule, list(settings.accept_set))  # before any work
     if settings.similarity:
         results = [_evaluate_matrix(settings, acceptance)]

@@ -58,6 +58,15 @@ def format_table(results: Sequence[MethodResult], protocol: str | None = None) -
     settings = sorted({f"{name}: {', '.join(f'{k}={v}' for k, v in values.items() if v is not None)}"
                        for r in results for d in r.decisions.values() for name, values in d.settings.items()
                        if any(v is not None for v in values.values())})
+    rules = list(dict.fromkeys(rule for r in results for rule in (r.acceptance_rules or [first.acceptance])))
+    if rules != ["raw"]:
+        said = ["raw is the field's protocol (the best match's similarity, as papers and VPR-Bench report)"] \
+            if "raw" in rules else []
+        others = [rule for rule in rules if rule != "raw"]
+        if others:
+            verb = "is an fdnet acceptance rule" if len(others) == 1 else "are fdnet acceptance rules"
+            said.append(f"{', '.join(others)} {verb} (docs/decisions.md)")
+        lines.append("accept: " + "; ".join(said))
     if settings:
         lines.append("acceptance settings: " + "; ".join(settings))
     lines += [f"note: {n}" for n in notes]
