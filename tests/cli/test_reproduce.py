@@ -177,3 +177,18 @@ def test_a_checkpoint_that_is_no_run_is_refused_not_reported(made, tmp_path, cap
     assert f"--checkpoint {tmp_path / 'nope'}: not a run directory" in capsys.readouterr().err
     assert not (tmp_path / "out" / "report.html").exists()
 
+
+
+def test_the_protocol_is_a_setting(made, tmp_path, capsys):
+    """--protocol vprbench: the comparison under VPR-Bench's protocol (every top-1 score), said in
+    its numbers; the paper's protocol stays the default."""
+    import shutil
+
+    out = tmp_path / "out"
+    shutil.copytree(made["out"], out)  # its cached vectors: nothing is described again
+    args = [a if a != str(made["out"]) else str(out) for a in made["args"]]
+    assert main([*args, "--experiments", "comparison", "--protocol", "vprbench"]) == 0
+    comparison = document(out, "comparison")
+    assert comparison["protocol"] == "vprbench"
+    assert all(r["protocol"] == "vprbench" for pair in comparison["pairs"] for r in pair["results"])
+    assert document(made["out"], "comparison")["protocol"] == "recall-over-queries"

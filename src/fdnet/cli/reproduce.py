@@ -76,6 +76,9 @@ ARGUMENTS = (
     ("output", "--out", dict(required=True, metavar="OUT_DIR",
                              help="folder for report.html, one JSON per experiment, figures/ and cache/")),
     ("output", "--batch-size", dict(type=int, default=32, help="images described per batch (default 32)")),
+    ("output", "--protocol", dict(default="recall-over-queries", choices=("recall-over-queries", "vprbench"),
+                                  help="how PR numbers are computed: the paper's (recall over queries, 500 "
+                                       "thresholds; default) or VPR-Bench's (every top-1 score)")),
     ("output", "--threads", dict(type=thread_count(), help="CPU threads for torch, BLAS and scikit-learn "
                                                          "(default: all cores; on a shared machine 1 keeps "
                                                          "timings meaningful)")),
@@ -199,7 +202,7 @@ def run(args) -> int:
         length_train_frames=args.length_train_frames, length_overrides=parse_overrides(args.length_set),
         viewpoint_pair=tuple(viewpoint) if viewpoint else None, overlaps=_overlaps(args.overlaps),
         examples=args.examples, runtime_images=args.runtime_images, embedding_points=args.embedding_points,
-        batch_size=args.batch_size, threads=args.threads, progress=not args.no_progress,
+        batch_size=args.batch_size, threads=args.threads, progress=not args.no_progress, protocol=args.protocol,
         command=command_line(args))
     set_threads(args.threads)
     report = reproduce(settings)

@@ -37,19 +37,17 @@ def run(ctx) -> dict:
     from fdnet.evaluation import plots
     from fdnet.evaluation.report import format_table
     from fdnet.reproduce.paper import paper_pair
-    from fdnet.reproduce.runner import PROTOCOL, THRESHOLDS
-
     pairs = []
     for pair in ctx.pairs:
         results = [ctx.result(handle, pair.split, pair.slug) for handle in ctx.available()]
-        ctx.log(f"[{NAME}] {pair.label}\n" + format_table(results, PROTOCOL))
+        ctx.log(f"[{NAME}] {pair.label}\n" + format_table(results, ctx.protocol))
         plt = plots.pyplot()
         fig, ax = plt.subplots(figsize=(7.5, 4.5))
-        plots.draw_pr_curves(ax, {r.method: (r.metrics[PROTOCOL].curve, r.metrics[PROTOCOL].auc_pr)
+        plots.draw_pr_curves(ax, {r.method: (r.metrics[ctx.protocol].curve, r.metrics[ctx.protocol].auc_pr)
                                   for r in results})
         # beside the axes: with a dozen methods a legend inside covers the low-precision curves
         ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize="small")
-        ax.set_title(f"{pair.label} ({PROTOCOL}, {THRESHOLDS} thresholds)", fontsize="medium")
+        ax.set_title(f"{pair.label} ({ctx.protocol_label})", fontsize="medium")
         figure = plots.save_figure(fig, ctx.figure_path(f"pr_{pair.slug}.png"))
         paper = paper_pair(ctx.dataset, pair.reference, pair.query)
         gt = pair.split.ground_truth
@@ -57,7 +55,7 @@ def run(ctx) -> dict:
             "reference": pair.reference, "query": pair.query, "description": pair.split.description,
             "ground_truth": gt.description, "num_queries": gt.num_queries,
             "num_queries_with_match": int(gt.has_match.sum()), "num_references": gt.num_references,
-            "results": [r.to_dict(PROTOCOL) for r in results],
+            "results": [r.to_dict(ctx.protocol) for r in results],
             "paper_source": paper[0] if paper else None,
             "paper": paper[1] if paper else None,
             "figure": ctx.relative(figure),

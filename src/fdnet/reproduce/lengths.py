@@ -112,7 +112,6 @@ def run(ctx) -> dict:
     from fdnet.evaluation import plots
     from fdnet.evaluation.timing import descriptor_extraction
     from fdnet.reproduce.paper import PAPER_TABLE2
-    from fdnet.reproduce.runner import PROTOCOL
     from fdnet.reproduce.table5_runtime import ranking_ms_per_query
 
     options = {k: v for k, v in ctx.settings.method_options.get("fdnet", {}).items() if k != "checkpoint"}
@@ -133,7 +132,7 @@ def run(ctx) -> dict:
     for ax, pair in zip(axes.flat, ctx.pairs):
         curves = {}
         for length, handle in handles.items():
-            metrics = ctx.result(handle, pair.split, pair.slug).metrics[PROTOCOL]
+            metrics = ctx.result(handle, pair.split, pair.slug).metrics[ctx.protocol]
             curves[f"L = {length}"] = (metrics.curve, metrics.auc_pr)
             accuracy.append({"length": length, "reference": pair.reference, "query": pair.query,
                              "recall_at_100_precision": metrics.recall_at_100_precision,

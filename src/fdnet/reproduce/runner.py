@@ -51,6 +51,8 @@ class ReproduceSettings:
     data: Path
     out: Path
     checkpoint: Path | None = None
+    #: recall-over-queries (the paper's, 500 thresholds) or vprbench (VPR-Bench's, every top-1 score)
+    protocol: str = RECALL_OVER_QUERIES
     dataset_format: str | None = None
     conditions: list[str] | None = None
     frames: str | None = None
@@ -216,6 +218,11 @@ class Context:
                  log: Callable[[str], None]) -> None:
         self.settings = settings
         self.pairs = pairs
+        #: the protocol every experiment measures with (``--protocol``); the paper's by default
+        self.protocol = settings.protocol
+        self.thresholds = THRESHOLDS if self.protocol == RECALL_OVER_QUERIES else None
+        self.protocol_label = (f"{self.protocol}, {THRESHOLDS} thresholds" if self.thresholds
+                               else f"{self.protocol}, every top-1 score")
         self.factory = factory
         self.log = log
         self.out = Path(settings.out)
@@ -301,7 +308,7 @@ class Context:
         memo = (handle.label, key)
         if memo not in self._results:
             result = evaluate_matrix(self.similarity(handle, split, key), split.ground_truth, handle.label,
-                                     (PROTOCOL,), THRESHOLDS, dataset=split.description,
+                                     (self.protocol,), self.thresholds, dataset=split.description,
                                      query_paths=split.query.paths, reference_paths=split.reference.paths,
                                      acceptance=list(dict.fromkeys(["raw", DEFAULT_ACCEPTANCE])),
                                      similarity_ceiling=float(getattr(handle.descriptor, "similarity_ceiling", 1.0)))
@@ -360,6 +367,8 @@ def _check(settings: ReproduceSettings) -> list[str]:
     """Settings errors before any work; returns the experiments to run."""
     from fdnet.descriptors.registry import available_methods
 
+    if settings.protocol not in PROTOCOLS:
+        raise ConfigError(f"--protocol {settings.protocol!r}: choose one of {', '.join(PROTOCOLS)}")
     chosen = list(settings.experiments or EXPERIMENTS)
     unknown = [e for e in chosen if e not in EXPERIMENTS]
     if unknown:
@@ -457,9 +466,10 @@ def _run_experiments(ctx: Context, chosen: list[str], reasons: dict, write_repor
         "pairs": [{"reference": p.reference, "query": p.query, "description": p.split.description,
                    "num_queries": len(p.split.query), "num_references": len(p.split.reference)}
                   for p in ctx.pairs],
-        "protocol": PROTOCOL,
-        "protocol_definition": PROTOCOLS[PROTOCOL],
-        "thresholds": f"{THRESHOLDS} uniform over min-max-normalised best-match scores (paper 5.1.2)",
+        "protocol": ctx.protocol,
+        "protocol_definition": PROTOCOLS[ctx.protocol],
+        "thresholds": (f"{THRESHOLDS} uniform over min-max-normalised best-match scores (paper 5.1.2)"
+                       if ctx.thresholds else "every top-1 score (VPR-Bench)"),
         "checkpoint": str(settings.checkpoint) if settings.checkpoint else None,
         "experiments_run": chosen,
     }
@@ -474,7 +484,7 @@ def _run_experiments(ctx: Context, chosen: list[str], reasons: dict, write_repor
         document = {"experiment": name, "title": module.TITLE, "paper": module.PAPER,
                     "fdnet_version": __version__, "command": settings.command, "created": _now(),
                     "dataset": str(settings.data), "checkpoint": manifest["checkpoint"],
-                    "protocol": PROTOCOL, **document}
+                    "protocol": ctx.protocol, **document}
         atomic_write_text(out / f"{name}.json", json.dumps(document, indent=1, allow_nan=False,
                                                             default=_plain) + "\n")
         ctx.remove_stale_figures()

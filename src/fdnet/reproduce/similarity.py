@@ -34,8 +34,6 @@ def _contrast(similarity: np.ndarray, truth: np.ndarray) -> dict:
 
 def run(ctx) -> dict:
     from fdnet.evaluation import plots
-    from fdnet.reproduce.runner import PROTOCOL
-
     plt = plots.pyplot()
     pairs = []
     for pair in ctx.pairs:
@@ -51,7 +49,7 @@ def run(ctx) -> dict:
             plots.draw_similarity_matrix(ax, similarity, pair.split.ground_truth, best=result.retrieved[:, 0])
             ax.set_title(handle.label, fontsize="medium")
             methods.append({"method": handle.label, **_contrast(similarity, truth),
-                            "recall_at_1": result.metrics[PROTOCOL].recall_at_n[1]})
+                            "recall_at_1": result.metrics[ctx.protocol].recall_at_n[1]})
         for ax in list(axes.flat)[len(handles):]:
             ax.axis("off")
         fig.suptitle(f"{pair.label}: rows = queries, columns = references; white band = ground truth",

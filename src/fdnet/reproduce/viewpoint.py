@@ -94,7 +94,7 @@ def run(ctx) -> dict:
     from fdnet.data.images import load_image
     from fdnet.data.split import EvaluationSplit
     from fdnet.evaluation import plots
-    from fdnet.reproduce.runner import PROTOCOL, matched_reference
+    from fdnet.reproduce.runner import matched_reference
 
     pair = _pair(ctx)
     reference, query = pair.split.reference, pair.split.query
@@ -118,7 +118,7 @@ def run(ctx) -> dict:
         row = {"method": handle.label, "overlaps": []}
         for o in overlaps:
             result = ctx.result(handle, splits[o], f"viewpoint_{round(o * 100)}_{pair.slug}")
-            metrics = result.metrics[PROTOCOL]
+            metrics = result.metrics[ctx.protocol]
             curves[o][handle.label] = (metrics.curve, metrics.auc_pr)
             row["overlaps"].append({"overlap": o, "recall_at_1": metrics.recall_at_n[1],
                                     "recall_at_100_precision": metrics.recall_at_100_precision,
@@ -134,7 +134,7 @@ def run(ctx) -> dict:
     # one legend of method names for every panel, beside them (each panel's own would cover curves)
     handles, _ = axes[0, 0].get_legend_handles_labels()
     fig.legend(handles, list(curves[overlaps[0]]), loc="center left", bbox_to_anchor=(1.0, 0.5), fontsize="small")
-    fig.suptitle(f"{pair.label}, half-width crops ({PROTOCOL}, 500 thresholds)", fontsize="medium")
+    fig.suptitle(f"{pair.label}, half-width crops ({ctx.protocol_label})", fontsize="medium")
     fig.tight_layout()
     pr_figure = plots.save_figure(fig, ctx.figure_path(f"pr_{pair.slug}.png"))
 
