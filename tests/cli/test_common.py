@@ -25,7 +25,7 @@ def _evaluate(route, tmp_path, *extra):
     out = tmp_path / "result.json"
     assert main(["evaluate", "--data", str(route), "--reference", "day", "--query", "night", "--frames", "4:8",
                  "--method", "trunk-whitened", *SMALL, "--json", str(out), *extra]) == 0
-    return json.loads(out.read_text())["settings"]  # one method: the result's own object
+    return json.loads(out.read_text())["results"][0]["settings"]  # one method: the result's own object
 
 
 def test_fit_folder_and_frames_are_recorded_in_the_output(route, tmp_path):

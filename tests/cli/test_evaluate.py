@@ -69,7 +69,7 @@ def test_similarity_mode_json(matrix_files, tmp_path, capsys):
                  "--json", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "protocol: vprbench" in printed and "toy" in printed
-    result = json.loads(out.read_text())
+    result = json.loads(out.read_text())["results"][0]
     assert REQUIRED <= set(result)
     assert result["method"] == "toy" and result["protocol"] == "vprbench" and result["num_queries"] == 4
     assert set(result["recall_at_n"]) == {"1", "5", "10", "20"}
@@ -84,7 +84,7 @@ def test_similarity_mode_thresholds_and_distance(matrix_files, tmp_path):
     out = tmp_path / "r.json"
     assert main(["evaluate", "--similarity", str(npy), "--ground-truth", str(csv), "--thresholds", "2",
                  "--accept", "raw", "--json", str(out)]) == 0
-    result = json.loads(out.read_text())
+    result = json.loads(out.read_text())["results"][0]
     assert result["protocol"] == "recall-over-queries" and result["thresholds"] == "2 uniform"
     assert result["auc_pr"] == pytest.approx(0.25 + 0.5 * (1 + 0.75) / 2)
     dist = tmp_path / "dist.npy"
@@ -92,7 +92,7 @@ def test_similarity_mode_thresholds_and_distance(matrix_files, tmp_path):
     out2 = tmp_path / "d.json"
     assert main(["evaluate", "--similarity", str(dist), "--distance", "--ground-truth", str(csv),
                  "--thresholds", "2", "--accept", "raw", "--json", str(out2)]) == 0
-    assert json.loads(out2.read_text())["auc_pr"] == result["auc_pr"]
+    assert json.loads(out2.read_text())["results"][0]["auc_pr"] == result["auc_pr"]
 
 
 def _error(capsys, argv) -> str:
@@ -197,7 +197,7 @@ def test_method_mode_frames_and_explicit_ground_truth(tiny_method, route, tmp_pa
     out = tmp_path / "r.json"
     assert main(["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk", "--method",
                  tiny_method, "--ground-truth", str(csv), "--frames", "2:8", "--json", str(out)]) == 0
-    result = json.loads(out.read_text())
+    result = json.loads(out.read_text())["results"][0]
     assert result["num_queries"] == 6 and result["num_references"] == 6
     assert result["recall_at_n"]["1"] == 1.0 and result["recall_at_100_precision"] == 1.0
 
@@ -209,7 +209,7 @@ def test_corridor_vprbench_hog_through_the_cli(tmp_path):
     assert main(["evaluate", "--similarity", str(corridor / "vprbench_precomputed" / "HOG_similarity.npy"),
                  "--ground-truth", str(corridor / "ground_truth.csv"), "--protocol", "vprbench",
                  "--json", str(out)]) == 0
-    result = json.loads(out.read_text())
+    result = json.loads(out.read_text())["results"][0]
     assert round(result["auc_pr"], 3) == 0.697 and round(result["top1_accuracy"], 3) == 0.477
 
 
@@ -220,7 +220,7 @@ def test_gardens_point_slice(tiny_method, tmp_path):
     assert main(["evaluate", "--data", str(gardens), "--reference", "day_right", "--query", "night_right",
                  "--method", tiny_method, "--method-set", "size=16", "--frames", "100:140",
                  "--tolerance", "2", "--threads", "1", "--accept", "raw", "--json", str(out)]) == 0
-    result = json.loads(out.read_text())
+    result = json.loads(out.read_text())["results"][0]
     assert result["num_queries"] == 40 and result["num_references"] == 40
     assert "tolerance 2" in result["ground_truth"]
 
@@ -245,7 +245,7 @@ def test_evaluate_with_dataset_format_vprbench_corridor(tmp_path):
     out = tmp_path / "r.json"
     assert main(["evaluate", "--data", str(corridor), "--dataset-format", "vprbench", "--method", "raw",
                  "--protocol", "vprbench", "--json", str(out)]) == 0
-    result = json.loads(out.read_text())
+    result = json.loads(out.read_text())["results"][0]
     assert result["num_queries"] == 111 and result["protocol"] == "vprbench"
 
 
@@ -267,7 +267,7 @@ def test_filter_frames_drops_dark_frames_from_both_conditions(tmp_path, capsys, 
     out = tmp_path / "r.json"
     assert main(["evaluate", "--data", str(tmp_path), "--reference", "a", "--query", "b", "--method", "raw",
                  "--filter-frames", "--json", str(out)]) == 0
-    assert json.loads(out.read_text())["num_queries"] == 10
+    assert json.loads(out.read_text())["results"][0]["num_queries"] == 10
     assert "dropped 2 dark" in capsys.readouterr().err
     assert len(list((tmp_path / "cache" / "filters").iterdir())) == 1
 
@@ -318,7 +318,7 @@ def test_unpadded_names_ground_truth_from_positions_end_to_end(tmp_path, referen
                  "--ground-truth", str(gt), "--json", str(out)]) == 0
     expected = np.mean([shown_place[k] == true_place[k] for k in range(1, n + 1)])
     assert expected == 0.75
-    assert json.loads(out.read_text())["recall_at_n"]["1"] == pytest.approx(expected)
+    assert json.loads(out.read_text())["results"][0]["recall_at_n"]["1"] == pytest.approx(expected)
 
 
 def test_dataset_format_with_missing_ground_truth_file_is_an_error(route, capsys):
@@ -333,7 +333,7 @@ def test_dataset_format_uses_the_given_ground_truth(tiny_method, route, tmp_path
         out = tmp_path / "r.json"
         assert main(["evaluate", "--data", str(route), "--dataset-format", "folders", "--reference", "day",
                      "--query", "dusk", "--method", tiny_method, "--json", str(out), *extra]) == 0
-        return json.loads(out.read_text())
+        return json.loads(out.read_text())["results"][0]
 
     assert r_at_1()["recall_at_n"]["1"] == 1.0                   # frame-aligned: every top-1 is right
     shifted = tmp_path / "shifted.csv"                            # query i is place i+1: none is
@@ -420,7 +420,7 @@ def test_accept_rules_json_and_table(matrix_files, tmp_path, capsys):
                  "--json", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "raw is the field's protocol" in printed and "margin is an fdnet acceptance rule" in printed
-    one = json.loads(out.read_text())
+    one = json.loads(out.read_text())["results"][0]
     assert one["acceptance"] == "raw" and one["recall_at_100_precision"] == pytest.approx(0.25)
     margin = one["per_acceptance"]["margin"]
     assert margin["settings"]["margin"]["radius"] == 1
@@ -428,7 +428,7 @@ def test_accept_rules_json_and_table(matrix_files, tmp_path, capsys):
     assert margin["recall_at_99_precision"] == pytest.approx(0.75)
     assert main(["evaluate", "--similarity", str(npy), "--ground-truth", str(csv), "--accept", "margin",
                  "--accept-set", "radius=1", "--json", str(out)]) == 0
-    alone = json.loads(out.read_text())
+    alone = json.loads(out.read_text())["results"][0]
     assert alone["acceptance"] == "margin" and alone["recall_at_100_precision"] == pytest.approx(0.75)
     assert "per_acceptance" not in alone
     capsys.readouterr()
@@ -438,7 +438,7 @@ def test_accept_rules_json_and_table(matrix_files, tmp_path, capsys):
     table = capsys.readouterr().out
     rows = {line.split()[1]: line.split() for line in table.splitlines() if line.startswith("toy ")}
     assert set(rows) == {"raw", "margin", "ratio"} and rows["raw"][6] == "0.250" and rows["margin"][6] == "0.750"
-    doc = json.loads(several.read_text())
+    doc = json.loads(several.read_text())["results"][0]
     assert doc["acceptance"] == "raw" and doc["recall_at_100_precision"] == pytest.approx(0.25)
     per = doc["per_acceptance"]
     assert per["margin"]["recall_at_100_precision"] == pytest.approx(0.75)
@@ -454,7 +454,7 @@ def test_sequence_matching_with_the_margin_rule(tiny_method, route, tmp_path):
     assert main(["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk", "--method", tiny_method,
                  "--sequence-length", "3", "--accept", "margin,raw", "--accept-set", "radius=1",
                  "--json", str(out)]) == 0
-    result = json.loads(out.read_text())
+    result = json.loads(out.read_text())["results"][0]
     assert result["acceptance"] == "margin" and result["settings"]["sequence_length"] == 3
     assert set(result["per_acceptance"]) == {"margin", "raw"}
 
@@ -482,4 +482,25 @@ def test_a_frame_range_inside_the_folders_is_evaluated(route, tiny_method, tmp_p
     out = tmp_path / "r.json"
     assert main(["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk", "--method", tiny_method,
                  "--frames", "5:10", "--json", str(out)]) == 0
-    assert json.loads(out.read_text())["num_queries"] == 5
+    assert json.loads(out.read_text())["results"][0]["num_queries"] == 5
+
+
+def test_one_json_schema_with_predictions_and_a_paper_table(matrix_files, tmp_path, capsys):
+    """One method or several: the same document (format, fdnet version, command, settings, a list
+    of results); --predictions adds each query's best references; --table prints a table to paste."""
+    npy, csv = matrix_files
+    out = tmp_path / "r.json"
+    assert main(["evaluate", "--similarity", str(npy), "--ground-truth", str(csv), "--json", str(out),
+                 "--predictions", "2", "--table", "markdown"]) == 0
+    printed = capsys.readouterr().out
+    assert "| method | accept | data | R@1 | R@100P | AUC-PR |" in printed and "| toy | raw |" in printed
+    doc = json.loads(out.read_text())
+    assert (doc["format"], doc["format_version"]) == ("fdnet-evaluation", 2) and doc["fdnet_version"]
+    assert doc["protocol"] == "recall-over-queries" and doc["settings"]["predictions"] == 2
+    assert isinstance(doc["results"], list) and len(doc["results"]) == 1
+    first = doc["results"][0]["predictions"][0]
+    assert set(first) >= {"query_index", "top", "scores", "correct"} and len(first["top"]) == 2
+    assert first["correct"][0] is True  # query 0's best is its true place (see the matrix above)
+    assert main(["evaluate", "--similarity", str(npy), "--ground-truth", str(csv), "--table", "latex"]) == 0
+    latex = capsys.readouterr().out
+    assert "\\begin{tabular}{lllrrr}" in latex and "toy & raw &" in latex and "\\end{tabular}" in latex

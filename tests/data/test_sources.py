@@ -141,7 +141,7 @@ def test_evaluate_samples_videos_with_fps(tmp_path):
     out = tmp_path / "r.json"
     assert main(["evaluate", "--data", str(route), "--reference", "a", "--query", "b", "--method", "sad",
                  "--fps", "4", "--json", str(out), "--workers", "0"]) == 0
-    result = json.loads(out.read_text())  # one method: its result (several: {"results": [...]})
+    result = json.loads(out.read_text())["results"][0]  # one schema: a list of results, one per method
     assert result["num_queries"] == result["num_references"] == 8  # 40 frames at 20 fps, taken at 4 fps
     assert result["recall_at_n"]["1"] == 1.0  # the same frames: each query finds itself
     with sources.using_options(sources.SourceOptions(fps=4)):

@@ -232,7 +232,7 @@ def test_cli_evaluate_with_verified_rules(textured_route, tmp_path, capsys):
                           "--json", str(out))) == 0
     printed = capsys.readouterr().out
     assert "verified" in printed and "margin+verified" in printed
-    result = json.loads(out.read_text())
+    result = json.loads(out.read_text())["results"][0]
     assert result["acceptance"] == "verified"
     verified = result["per_acceptance"]["verified"]
     # thresholds of the verified rule are inlier counts: the warped copies have many, and rank first
@@ -254,7 +254,7 @@ def test_cli_reranking_by_inliers(textured_route, tmp_path, capsys):
     out = tmp_path / "results.json"
     assert main(_evaluate(textured_route, "--accept", "verified", "--accept-set", "verified:rerank=true",
                           "--accept-set", "verified:features=orb", "--json", str(out))) == 0
-    result = json.loads(out.read_text())
+    result = json.loads(out.read_text())["results"][0]
     assert result["acceptance_settings"]["verified"]["rerank"] is True
     assert result["acceptance_settings"]["verified"]["features"] == "orb"
     # re-ranked among the top 5 (all six references here): each warped copy finds its original

@@ -31,6 +31,7 @@ def test_methods_on_images_give_results_table_and_json(route, tmp_path):
     assert outcome.table.startswith("protocol: recall-over-queries") and "raw" in outcome.table
     written = json.loads(out.read_text())
     assert [r["method"] for r in written["results"]] == ["raw", "sad"]
+    assert written["format"] == "fdnet-evaluation" and written["settings"]["method"] == "raw,sad"
     assert messages[0] == ("evaluating raw, sad on route: dusk -> day, frame-aligned, tolerance 0 frames: "
                            "10 queries x 10 references")
     assert messages[-2:] == [("table", outcome.table), f"wrote {out}"]  # shown before the files are written

@@ -32,7 +32,9 @@ def test_table_names_protocol_and_methods():
 
 
 def test_json_one_and_several(tmp_path):
-    one = results_json(_results()[:1])
+    document = results_json(_results()[:1])
+    assert document["format"] == "fdnet-evaluation" and len(document["results"]) == 1  # one schema
+    one = document["results"][0]
     assert REQUIRED <= set(one)
     assert set(one["recall_at_n"]) == {"1", "5", "10", "20"}
     assert one["protocol"] == "vprbench" and one["auc_pr"] == 1.0
@@ -50,5 +52,5 @@ def test_json_accepts_numpy_and_path_settings(tmp_path):
     result = _results()[0]
     result.settings = {"size": np.int64(3), "mean": np.zeros(2, dtype=np.float32), "weights": Path("/w.pt")}
     write_json(tmp_path / "r.json", [result])
-    assert json.loads((tmp_path / "r.json").read_text())["settings"] == {"size": 3, "mean": [0.0, 0.0],
-                                                                          "weights": "/w.pt"}
+    written = json.loads((tmp_path / "r.json").read_text())["results"][0]
+    assert written["settings"] == {"size": 3, "mean": [0.0, 0.0], "weights": "/w.pt"}

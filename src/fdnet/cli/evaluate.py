@@ -100,6 +100,10 @@ def register(sub) -> None:
                           "ratio:ceiling=1, floor:min=0.5; docs/decisions.md lists them")
     out.add_argument("--json", metavar="FILE", help="write the results as JSON")
     out.add_argument("--no-curve", action="store_true", help="leave the PR curve points out of the JSON")
+    out.add_argument("--predictions", type=int, default=0, metavar="K",
+                     help="add each query's K best references (indices, names, scores, correct) to the JSON")
+    out.add_argument("--table", choices=("csv", "markdown", "latex"),
+                     help="also print a method x data table (R@1, R@100P, AUC-PR) in this format")
     out.add_argument("--plots", metavar="DIR", help="write PR curves, similarity matrices and example matches")
     out.add_argument("--examples", type=int, default=6, help="queries shown in the example-matches figure (default 6)")
     p.add_argument("--allow-training-frames", action="store_true",
@@ -130,6 +134,7 @@ def run(args) -> int:
         batch_size=args.batch_size, workers=args.workers, device=args.device, sequence_length=args.sequence_length,
         threads=args.threads, protocol=args.protocol, thresholds=args.thresholds, accept=args.accept,
         accept_set=args.accept_set, json=args.json, include_curve=not args.no_curve, plots=args.plots,
+        predictions=args.predictions, table=args.table, command=getattr(args, "command_line", None),
         examples=args.examples, allow_training_frames=args.allow_training_frames)
     evaluate_command(settings, show=print)
     return 0

@@ -55,6 +55,12 @@ class EvaluateSettings:
     include_curve: bool = True
     plots: str | None = None
     examples: int = 6
+    #: per-query predictions (this many best references each) in the JSON; 0 = none
+    predictions: int = 0
+    #: also print a method x data table as csv, markdown or latex
+    table: str | None = None
+    #: the command line, recorded in the JSON
+    command: str | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -72,11 +78,19 @@ def evaluate_command(settings: EvaluateSettings, log: Callable[[str], None] | No
     plots are written (the command prints it there). Every setting and output path is checked
     before any image is described."""
     from fdnet.decisions.acceptance import DEFAULT_ACCEPTANCE, parse_acceptance_list
-    from fdnet.evaluation.report import format_table, write_json
+    from fdnet.evaluation.report import TABLE_STYLES, format_results_table, format_table, write_json
     from fdnet.evaluation.splits import ground_truth_path
 
     log = log or logger.info
     _check_settings(settings)
+    if settings.table is not None and settings.table not in TABLE_STYLES:
+        from fdnet.errors import ConfigError
+
+        raise ConfigError(f"--table {settings.table!r}: choose one of {', '.join(TABLE_STYLES)}")
+    if isinstance(settings.predictions, bool) or not isinstance(settings.predictions, int) or settings.predictions < 0:
+        from fdnet.errors import ConfigError
+
+        raise ConfigError(f"--predictions must be a whole number of at least 0, got {settings.predictions!r}")
     ground_truth_path(settings.ground_truth)
     # the field's protocol first (the raw best-match score, as papers and VPR-Bench report), fdnet's
     # default acceptance rule beside it
@@ -87,10 +101,13 @@ def evaluate_command(settings: EvaluateSettings, log: Callable[[str], None] | No
     else:
         results = _evaluate_methods(settings, acceptance, log)
     table = format_table(results, settings.protocol)
+    if settings.table:
+        table += "\n\n" + format_results_table(results, settings.table, settings.protocol)
     if show is not None:
         show(table)
     if settings.json:
-        write_json(settings.json, results, settings.protocol, include_curve=settings.include_curve)
+        write_json(settings.json, results, settings.protocol, include_curve=settings.include_curve,
+                   command=settings.command, settings=_recorded(settings), predictions=settings.predictions)
         log(f"wrote {settings.json}")
     if settings.plots:
         from fdnet.evaluation.plots import write_result_plots
@@ -182,3 +199,10 @@ def _create_descriptor(name: str, method_options: MethodOptions, device: str | N
     if device is not None:
         options.setdefault("device", device)  # a --method-set device=... wins, as in every command
     return create(name, **options)
+
+
+def _recorded(settings: EvaluateSettings) -> dict:
+    """The settings as the JSON records them (what was asked; callables left out)."""
+    return {f.name: getattr(settings, f.name) for f in dataclasses.fields(settings)
+            if f.name not in ("method_options", "command") and not callable(getattr(settings, f.name))}
+

@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import math
 import os
+from pathlib import Path
 from typing import Sequence
 
 from fdnet.evaluation.experiment import MethodResult
@@ -73,11 +74,90 @@ def format_table(results: Sequence[MethodResult], protocol: str | None = None) -
     return "\n".join(lines)
 
 
+#: the evaluation JSON's format (``format``, ``format_version``)
+JSON_FORMAT = "fdnet-evaluation"
+JSON_FORMAT_VERSION = 2
+
+
 def results_json(results: Sequence[MethodResult], protocol: str | None = None,
-                 include_curve: bool = True) -> dict:
-    """The JSON document: the object of the only result, or ``{"results": [...]}`` for several."""
-    objects = [r.to_dict(protocol, include_curve=include_curve) for r in results]
-    return objects[0] if len(objects) == 1 else {"results": objects}
+                 include_curve: bool = True, command: str | None = None, settings: dict | None = None,
+                 predictions: int = 0) -> dict:
+    """The JSON document, one schema whatever the number of methods: ``format``,
+    ``format_version``, ``fdnet_version``, ``command``, ``protocol``, ``settings`` (what was
+    asked) and ``results``, a list with one object per method. ``predictions`` > 0 adds to each
+    result its per-query ``predictions``: the query's name, its ``predictions`` best reference
+    indices (and names) with their scores and whether each is correct."""
+    from fdnet import __version__
+
+    objects = []
+    for r in results:
+        item = r.to_dict(protocol, include_curve=include_curve)
+        if predictions:
+            item["predictions"] = _predictions(r, predictions)
+        objects.append(item)
+    return {"format": JSON_FORMAT, "format_version": JSON_FORMAT_VERSION, "fdnet_version": __version__,
+            "command": command, "protocol": protocol or (results[0].protocols[0] if results else None),
+            "settings": settings or {}, "results": objects}
+
+
+def _predictions(result: MethodResult, k: int) -> list[dict]:
+    k = int(min(k, result.retrieved.shape[1]))
+    top, scores = result.retrieved[:, :k], result.scores[:, :k]
+    correct = result.ground_truth.correct_mask(top)
+    queries = result.query_paths
+    references = result.reference_paths
+    out = []
+    for q in range(len(top)):
+        row = {"query_index": q, "top": [int(i) for i in top[q]], "scores": [float(v) for v in scores[q]],
+               "correct": [bool(c) for c in correct[q]]}
+        if queries is not None:
+            row["query"] = Path(queries[q]).name
+        if references is not None:
+            row["top_names"] = [Path(references[i]).name if i >= 0 else None for i in top[q]]
+        out.append(row)
+    return out
+
+
+def format_results_table(results: Sequence[MethodResult], style: str, protocol: str | None = None) -> str:
+    """A method x (data, rule) table of R@1, R@100P and AUC-PR to paste into a paper or a sheet:
+    ``csv``, ``markdown`` or ``latex``."""
+    import csv
+    import io
+
+    from fdnet.errors import ConfigError
+
+    if style not in TABLE_STYLES:
+        raise ConfigError(f"--table {style!r}: choose one of {', '.join(TABLE_STYLES)}")
+    protocol = protocol or results[0].protocols[0]
+    header = ["method", "accept", "data", "R@1", "R@100P", "AUC-PR"]
+    rows = []
+    for r in results:
+        per_rule = {rule: per[protocol] for rule, per in r.by_acceptance.items()} or \
+            {r.metrics[protocol].acceptance: r.metrics[protocol]}
+        for rule, m in per_rule.items():
+            rows.append([r.method, rule, r.dataset, f"{m.recall_at_n.get(1, float('nan')):.3f}",
+                         f"{m.recall_at_100_precision:.3f}", f"{m.auc_pr:.3f}"])
+    if style == "csv":
+        buffer = io.StringIO()
+        writer = csv.writer(buffer, lineterminator="\n")
+        writer.writerows([header, *rows])
+        return buffer.getvalue().rstrip("\n")
+    if style == "markdown":
+        lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+        return "\n".join(lines + ["| " + " | ".join(row) + " |" for row in rows])
+
+    def tex(text: str) -> str:
+        import re
+
+        return re.sub(r"[\\&%$#_{}]", lambda m: "\\textbackslash{}" if m.group() == "\\" else "\\" + m.group(), text)
+
+    lines = ["\\begin{tabular}{lllrrr}", "\\hline", " & ".join(header) + " \\\\", "\\hline"]
+    lines += [" & ".join(tex(c) for c in row) + " \\\\" for row in rows]
+    return "\n".join(lines + ["\\hline", "\\end{tabular}"])
+
+
+#: the ``--table`` styles
+TABLE_STYLES = ("csv", "markdown", "latex")
 
 
 def _plain(value):
@@ -92,7 +172,8 @@ def _plain(value):
 
 
 def write_json(path: str | os.PathLike, results: Sequence[MethodResult], protocol: str | None = None,
-               include_curve: bool = True) -> None:
+               include_curve: bool = True, command: str | None = None, settings: dict | None = None,
+               predictions: int = 0) -> None:
     """Write :func:`results_json` to ``path`` atomically (a crash never leaves half a file)."""
-    document = results_json(results, protocol, include_curve)
+    document = results_json(results, protocol, include_curve, command, settings, predictions)
     atomic_write_text(path, json.dumps(document, indent=2, allow_nan=False, default=_plain) + "\n")
