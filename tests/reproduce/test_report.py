@@ -53,6 +53,11 @@ def test_every_section_and_embedded_figures(tmp_path):
     assert '<td class="best">0.500&nbsp;&#9733;</td>' in html and '<td class="best">0.750&nbsp;&#9733;</td>' in html
     assert "Not run: needs four FDNet runs" in html
     assert 'Not run yet: rerun the command with <code>--experiments similarity</code>' in html
+    # the lengths study alone needs its runs: the hint says how, so the command it gives works
+    (tmp_path / "lengths.json").unlink()
+    html = write_report(tmp_path).read_text()
+    assert ("rerun the command with <code>--experiments lengths --length-preset cpu --length-train-frames "
+            "START:END (or --length-runs") in html
     assert "night&lt;b&gt;" in html and "night<b>" not in html and "d&lt;&amp;&gt;" in html
     assert "fdnet reproduce --data d --out o" in html
 

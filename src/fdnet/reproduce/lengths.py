@@ -24,6 +24,10 @@ PAPER = "Fig. 6 (PR curves per vector length, Nordland), Table 2 (extraction and
 LENGTHS = (256, 512, 1024, 2048)
 
 
+#: what a rerun of this experiment alone needs besides the command's flags (the report's hint)
+RERUN_FLAGS = "--length-preset cpu --length-train-frames START:END (or --length-runs 256=DIR,512=DIR,1024=DIR,2048=DIR)"
+
+
 def unavailable(ctx) -> str | None:
     s = ctx.settings
     if not s.length_runs and not s.length_preset:

@@ -135,7 +135,10 @@ def _section(name: str, number: int, document: dict | None, manifest: dict | Non
     parts = [f'<section id="{name}"><h2>{number}. {_escape(module.TITLE)}</h2>',
              f'<p class="paper">Paper: {_escape(module.PAPER)}</p>']
     if document is None:
-        parts.append(f'<p class="note">Not run yet: rerun the command with <code>--experiments {name}</code>.</p>')
+        # what it needs besides the command's own flags (the lengths study: its four runs)
+        extra = getattr(module, "RERUN_FLAGS", "")
+        parts.append(f'<p class="note">Not run yet: rerun the command with <code>--experiments {name}'
+                     f'{" " + _escape(extra) if extra else ""}</code>.</p>')
     elif document.get("not_run"):
         parts.append(f'<p class="note">Not run: {_escape(document["not_run"])}</p>')
     else:
