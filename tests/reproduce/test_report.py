@@ -85,6 +85,8 @@ def test_the_papers_numbers_stand_beside_ours_labelled_as_the_papers(tmp_path):
     assert "<td>fdnet</td>" in table and "<td>0.337</td><td>0.038</td>" in table  # FDNet_512, summer-winter
     assert "netvlad (NetVLAD, paper only)" in table
     assert "paper Table 3, Nordland summer-winter, the paper&#x27;s own numbers" in table
+    # and what differs between the paper's numbers and ours is said beside them
+    assert "What differs: the paper trained at 224x224 on its own frames" in table
 
 
 def test_a_section_from_another_version_is_said_not_fatal(tmp_path):
