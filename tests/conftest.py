@@ -30,6 +30,19 @@ def shared_data() -> Path:
     return require_shared()
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _private_cache(tmp_path_factory):
+    """fdnet's caches ($FDNET_CACHE: frame filters, reproduce's vectors) under this test session's
+    own folder, never the user's ~/.cache, and never shared between test runs."""
+    old = os.environ.get("FDNET_CACHE")
+    os.environ["FDNET_CACHE"] = str(tmp_path_factory.mktemp("fdnet-cache"))
+    yield
+    if old is None:
+        os.environ.pop("FDNET_CACHE", None)
+    else:
+        os.environ["FDNET_CACHE"] = old
+
+
 @pytest.fixture(autouse=True)
 def _few_threads():
     # CI has 2 cores; keep torch (when a test uses it) from oversubscribing them.

@@ -192,3 +192,20 @@ def test_the_protocol_is_a_setting(made, tmp_path, capsys):
     assert comparison["protocol"] == "vprbench"
     assert all(r["protocol"] == "vprbench" for pair in comparison["pairs"] for r in pair["results"])
     assert document(made["out"], "comparison")["protocol"] == "recall-over-queries"
+
+
+def test_baselines_need_no_fdnet_run_and_the_cache_lives_outside_the_report(made, tmp_path, capsys):
+    import os
+
+    out = tmp_path / "out"
+    assert main(["reproduce", "--data", str(made["route"]), "--method", "sad,hog", "--frames", "12:24",
+                 "--experiments", "comparison", "--threads", "1", "--no-progress", "--out", str(out)]) == 0
+    comparison = document(out, "comparison")
+    assert {r["method"] for pair in comparison["pairs"] for r in pair["results"]} == {"sad", "hog"}
+    assert not (out / "cache" / "descriptors").exists()
+    assert any((Path(os.environ["FDNET_CACHE"]) / "reproduce" / "descriptors").glob("*.npy"))
+    mine = tmp_path / "mine"
+    assert main(["reproduce", "--data", str(made["route"]), "--method", "sad", "--frames", "12:24",
+                 "--experiments", "comparison", "--threads", "1", "--no-progress", "--cache", str(mine),
+                 "--out", str(tmp_path / "out2")]) == 0
+    assert any(mine.glob("*.npy"))

@@ -31,8 +31,9 @@ ARGUMENTS = (
                                                 "formats: the paper's)")),
     ("data", "--format-set", dict(action="append", default=[], metavar="KEY=VALUE",
                                   help="with --dataset-format: a protocol setting of the format (repeatable)")),
-    ("methods", "--checkpoint", dict(action="append", required=True, metavar="RUN_DIR",
+    ("methods", "--checkpoint", dict(action="append", default=[], metavar="RUN_DIR",
                                      help="the FDNet run (from `fdnet train`), also read by the trunk baseline; "
+                                          "without it FDNet is listed as not run and the baselines still are; "
                                           "other trained methods as METHOD=RUN_DIR (netvlad=..., calc=...), "
                                           "repeatable")),
     ("methods", "--method", dict(metavar="LIST",
@@ -76,6 +77,9 @@ ARGUMENTS = (
     ("output", "--out", dict(required=True, metavar="OUT_DIR",
                              help="folder for report.html, one JSON per experiment, figures/ and cache/")),
     ("output", "--batch-size", dict(type=int, default=32, help="images described per batch (default 32)")),
+    ("output", "--cache", dict(metavar="DIR", help="where described vectors are cached (default "
+                                                   "$FDNET_CACHE/reproduce/descriptors, else "
+                                                   "~/.cache/fdnet/reproduce/descriptors)")),
     ("output", "--protocol", dict(default="recall-over-queries", choices=("recall-over-queries", "vprbench"),
                                   help="how PR numbers are computed: the paper's (recall over queries, 500 "
                                        "thresholds; default) or VPR-Bench's (every top-1 score)")),
@@ -172,12 +176,12 @@ def run(args) -> int:
     prefixed = [c for c in args.checkpoint if c.partition("=")[0] in known and c.partition("=")[1]]
     fdnet_runs = [c for c in args.checkpoint if c not in prefixed] + \
         [c.partition("=")[2] for c in prefixed if c.startswith("fdnet=")]
-    if len(fdnet_runs) != 1:
+    if len(fdnet_runs) > 1:
         raise ConfigError("--checkpoint: give the FDNet run directory exactly once (RUN_DIR or fdnet=RUN_DIR); "
                           "other trained methods as METHOD=RUN_DIR")
     from fdnet.runs import is_run
 
-    if not is_run(fdnet_runs[0]):  # refused before any work, not written into the report
+    if fdnet_runs and not is_run(fdnet_runs[0]):  # refused before any work, not written into the report
         raise ConfigError(f"--checkpoint {fdnet_runs[0]}: not a run directory with a complete checkpoint "
                           "(make one with `fdnet train`)")
     for flag, text in (("--experiments", args.experiments), ("--method", args.method)):
@@ -194,7 +198,8 @@ def run(args) -> int:
     if viewpoint is not None and len(viewpoint) != 2:
         raise ConfigError(f"--viewpoint-pair {args.viewpoint_pair!r}: expected REFERENCE,QUERY")
     settings = ReproduceSettings(
-        data=Path(args.data), out=Path(args.out), checkpoint=Path(fdnet_runs[0]),
+        data=Path(args.data), out=Path(args.out), checkpoint=Path(fdnet_runs[0]) if fdnet_runs else None,
+        cache=Path(args.cache) if args.cache else None,
         dataset_format=args.dataset_format, conditions=_names(args.conditions), frames=args.frames,
         split=args.split, tolerance=args.tolerance, format_options=parse_overrides(args.format_set),
         methods=methods, method_options=options, experiments=_names(args.experiments),

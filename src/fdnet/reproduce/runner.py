@@ -39,6 +39,13 @@ from fdnet.reproduce.sections import EXPERIMENTS, MANIFEST, experiment_module
 #: weights) are listed in the report with the reason, unless named explicitly with --method
 DEFAULT_METHODS = reproduce_methods()  # from the method registry (its ``reproduce`` column)
 
+def default_cache_root() -> Path:
+    """$FDNET_CACHE/reproduce (default ~/.cache/fdnet/reproduce): outside the report's folder."""
+    import os
+
+    return Path(os.environ.get("FDNET_CACHE") or Path.home() / ".cache" / "fdnet") / "reproduce"
+
+
 #: the paper's protocol (section 5.1.2): 500 uniform thresholds, recall over queries
 PROTOCOL = RECALL_OVER_QUERIES
 THRESHOLDS = 500
@@ -51,6 +58,8 @@ class ReproduceSettings:
     data: Path
     out: Path
     checkpoint: Path | None = None
+    #: where vectors are cached (default: $FDNET_CACHE/reproduce/descriptors, ~/.cache/fdnet/...)
+    cache: Path | None = None
     #: recall-over-queries (the paper's, 500 thresholds) or vprbench (VPR-Bench's, every top-1 score)
     protocol: str = RECALL_OVER_QUERIES
     dataset_format: str | None = None
@@ -226,7 +235,9 @@ class Context:
         self.factory = factory
         self.log = log
         self.out = Path(settings.out)
-        self.cache = DescriptorCache(self.out / "cache" / "descriptors")
+        # shared across reports and runs (it can reach hundreds of MB): $FDNET_CACHE/reproduce by
+        # default, --cache DIR to choose; its keys name methods, settings and images
+        self.cache = DescriptorCache(Path(settings.cache) if settings.cache else default_cache_root() / "descriptors")
         self.handles: dict[str, MethodHandle] = {}
         self._similarities: dict[tuple[str, str], np.ndarray] = {}
         self._results: dict[tuple[str, str], object] = {}
