@@ -137,7 +137,9 @@ def test_a_runs_recorded_method_is_used_or_named(tmp_path, capsys):
     capsys.readouterr()
     assert main(["extract", "--checkpoint", str(run), "--images", str(data / "day"), "--out",
                  str(tmp_path / "v.npz")]) == 0
-    assert "(calc: descriptors" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    # float32 by default, as every other command describes (bf16 only with --bf16)
+    assert "(calc: descriptors" in printed and ", fp32," in printed
     assert main(["evaluate", "--data", str(data), "--reference", "day", "--query", "night", "--method", "fdnet",
                  "--checkpoint", str(run)]) == 2
     assert f"{run}: a run of `fdnet train calc`, not of fdnet: give --method calc" in capsys.readouterr().err

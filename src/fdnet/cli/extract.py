@@ -37,11 +37,12 @@ def register(sub) -> None:
     add_device_argument(p)
     precision = p.add_mutually_exclusive_group()
     precision.add_argument("--bf16", action="store_true",
-                           help="bfloat16 autocast (methods with a bf16 setting: fdnet, calc, ...; FDNet's default "
-                                "where the device runs bf16 natively: CPUs with AVX512-BF16/AMX, Ampere and newer "
-                                "GPUs; R@1 within 0.5 points of fp32 for a trained cpu-preset run, docs/performance.md)")
+                           help="bfloat16 autocast (methods with a bf16 setting: fdnet, calc, ...): about 3x faster "
+                                "where the device runs bf16 natively (CPUs with AVX512-BF16/AMX, Ampere and newer "
+                                "GPUs); vectors within cosine 0.999 of fp32, R@1 within 0.5 points "
+                                "(docs/performance.md)")
     precision.add_argument("--fp32", action="store_true",
-                           help="float32 throughout (what `fdnet evaluate --method fdnet` computes by default)")
+                           help="float32 throughout: the default, as every other command computes")
     p.add_argument("--compile", choices=("auto", "on", "off"), default="auto",
                    help="torch.compile FDNet's content encoder first: compiling takes up to a minute on 2 CPU "
                         "cores, then the cpu preset ran 1.7x faster than bf16 eager (docs/performance.md). "
@@ -53,19 +54,15 @@ def register(sub) -> None:
 
 
 def descriptor_options(args, method: str, count: int) -> dict:
-    """Precision, compiling and batch size for the methods whose descriptor takes them. Without
-    --bf16/--fp32, bf16 where the device runs it natively."""
+    """Precision, compiling and batch size for the methods whose descriptor takes them. float32
+    unless --bf16: one default for every command (a database or calibration made with vectors of
+    `extract` then matches what `evaluate`, `match` and `loop-closure` compute)."""
     import inspect
 
     from fdnet.descriptors.registry import descriptor_class
 
     params = inspect.signature(descriptor_class(method).__init__).parameters
-    if args.bf16 or args.fp32:
-        bf16 = bool(args.bf16)
-    elif "bf16" in params:
-        from fdnet.backbones import bf16_native, resolve_device
-
-        bf16 = bf16_native(resolve_device(args.device))
+    bf16 = bool(args.bf16)
     wanted = {"compile": args.compile == "on" or (args.compile == "auto" and count >= COMPILE_FROM),
               "batch_size": args.batch_size}
     if "bf16" in params:
