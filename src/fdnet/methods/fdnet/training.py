@@ -426,7 +426,10 @@ def train(config: FDNetRunConfig, run_dir, resume: bool = False, override: bool 
                      f"{synthetic_option_text(config.data.synthetic_conditions)}")
         data = with_synthetic_conditions(real, run_config.data.synthetic_conditions, run_config.runtime.seed)
         if len(data.names) > len(real.names):
-            log.info(f"training also on the synthetic conditions {', '.join(data.names[len(real.names):])}")
+            log.info(f"training also on the synthetic conditions {', '.join(data.names[len(real.names):])}, made "
+                     "from the real ones (the preset's data.synthetic_conditions, or chosen on the validation pair "
+                     "among data.synthetic_conditions_candidates; --set data.synthetic_conditions_candidates=[] "
+                     "--set data.synthetic_conditions=[] trains on the real conditions only; README)")
         return FDNetTraining(run_config, data), validation
 
     return run_training(build, run_dir, resume=resume, override=override, max_minutes=max_minutes,
