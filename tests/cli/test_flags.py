@@ -83,8 +83,8 @@ def _table_rows():
         return [line for line in lines[start:end] if line.startswith("| `--")]
 
     root = Path(__file__).resolve().parents[2]
-    tables = [flag_table((root / name).read_text()) for name in ("docs/flags.md", "README.md")]
-    assert tables[0] == tables[1], "README.md's flag table differs from docs/flags.md's"
+    tables = [flag_table((root / name).read_text()) for name in ("docs/flags.md", "docs/guide.md")]
+    assert tables[0] == tables[1], "docs/guide.md's flag table differs from docs/flags.md's"
     rows = [line.split(" | ") for line in tables[0]]
     assert len(rows) >= 20
     return rows
