@@ -111,6 +111,20 @@ def test_time_neighbourhoods_use_the_frames_timestamps():
     assert events[-1].match_timestamp == 0.25 * (PLACES - 1)
 
 
+def test_events_carry_the_positions_of_frame_and_place(tmp_path):
+    route = revisit_route()
+    detector = LoopClosureDetector(RawThumbnail(), exclude_last=3, rule="margin", threshold=0.2)
+    # the second pass drives the same line 1 m to the side
+    events = [detector.process(im, position=(10.0 * (i % PLACES), float(i >= PLACES))) for i, im in enumerate(route)]
+    closure = events[-1]
+    assert (closure.x, closure.y, closure.match_x, closure.match_y) == (10.0 * (PLACES - 1), 1.0,
+                                                                        10.0 * (PLACES - 1), 0.0)
+    with EventLog(tmp_path / "e.csv") as log:
+        log.write(closure)
+    row = next(csv.DictReader(open(tmp_path / "e.csv", newline="")))
+    assert (row["x"], row["y"], row["match_x"], row["match_y"]) == ("110.000000", "1.000000", "110.000000", "0.000000")
+
+
 def test_bad_input_is_refused_with_a_message():
     with pytest.raises(ConfigError, match="unknown acceptance rule 'best'"):
         LoopClosureDetector(RawThumbnail(), exclude_last=3, rule="best", threshold=0.1)
@@ -148,7 +162,8 @@ def test_events_are_on_disk_when_written(tmp_path):
     assert tuple(rows[0]) == EVENT_COLUMNS
     assert rows == [{"query_index": "5", "query": "b.png", "match_index": "1", "match": "a.png",
                      "score": "0.250000", "similarity": "0.900000", "rule": "margin", "threshold": "0.200000",
-                     "timestamp": "2.500000", "match_timestamp": ""}]
+                     "timestamp": "2.500000", "match_timestamp": "", "x": "", "y": "", "match_x": "",
+                     "match_y": ""}]
     assert [json.loads(line) for line in lines] == [event.to_dict()]
     with pytest.raises(ConfigError, match="two different files"):
         EventLog(tmp_path / "x.csv", tmp_path / "x.csv")

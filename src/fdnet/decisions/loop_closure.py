@@ -350,9 +350,12 @@ class LoopClosureDetector:
                 decision = FrameDecision(t, match, score, accepted, int(searchable), best, best_similarity,
                                          rule_score=rule_score)
                 if accepted:
+                    here = (None, None) if position is None else tuple(float(c) for c in list(position)[:2])
+                    there = (None, None) if self._positions is None else tuple(self._positions[match][:2])
                     closure = Closure(t, name, match, self._names[match], score, similarity, self.spec.name,
                                       self.threshold, timestamp,
-                                      None if self._times is None else float(self._times[match]))
+                                      None if self._times is None else float(self._times[match]),
+                                      *here, *there)
         elif not informative:
             self.gate_counts["uninformative"] += 1
         self._add(v, name, timestamp, position, informative, still, store=_replay is None)

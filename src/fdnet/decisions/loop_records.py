@@ -12,7 +12,7 @@ import numpy as np
 
 #: columns of the events CSV, in order (the JSON lines carry the same keys)
 EVENT_COLUMNS = ("query_index", "query", "match_index", "match", "score", "similarity", "rule", "threshold",
-                 "timestamp", "match_timestamp")
+                 "timestamp", "match_timestamp", "x", "y", "match_x", "match_y")
 
 
 @dataclass(frozen=True)
@@ -31,6 +31,12 @@ class Closure:
     threshold: float
     timestamp: float | None = None
     match_timestamp: float | None = None
+    #: planar position in metres of the frame and of the place it closes with, when frames carry
+    #: positions (a bag's GPS or odometry, the Python API's ``position=``)
+    x: float | None = None
+    y: float | None = None
+    match_x: float | None = None
+    match_y: float | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
