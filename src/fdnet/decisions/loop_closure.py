@@ -116,6 +116,12 @@ class LoopClosureDetector:
         self.descriptor = descriptor
         self.exclude_last = int(exclude_last)
         self.sequence_length = int(sequence_length)
+        # neutral values that pad the start of each similarity row with sequences: the first place
+        # that can end a full-length sequence at every velocity (0 for single images)
+        from fdnet.matching.sequence import DEFAULT_VELOCITIES
+
+        self._first_full = (int(math.ceil(max(DEFAULT_VELOCITIES) * (self.sequence_length - 1)))
+                            if self.sequence_length > 1 else 0)
         self.allow_duplicates = bool(allow_duplicates)
         self.commit_every = int(commit_every)
         from fdnet.decisions.loop_search import INDEX_FROM
@@ -380,7 +386,7 @@ class LoopClosureDetector:
             row = np.zeros(0, np.float32)
         previous = float(row[count - 1]) if t > 0 and count > 0 else None
         searchable = self._searchable(t, count, previous, still, timestamp, position)
-        row = self._mask_uninformative(row, informative)
+        row, neutral = self._mask_uninformative(row, informative)
         if self.sequence_length > 1:
             from fdnet.matching.sequence import online_sequence_scores
 
@@ -388,7 +394,9 @@ class LoopClosureDetector:
             # run off the start of the map is scored over all L frames, the missing ones neutral,
             # instead of over the few it has (a mean of one or two similarities is noisy and
             # would win by chance).
-            row = np.concatenate([np.full(self._first_full, np.median(row) if len(row) else 0.0, np.float32), row])
+            if neutral is None:  # nothing was masked: the row's own median, computed only here
+                neutral = float(np.median(row)) if len(row) else 0.0
+            row = np.concatenate([np.full(self._first_full, neutral, np.float32), row])
             pad = self._first_full
             scores = online_sequence_scores([*self._rows, row], searchable + pad)[pad:]
             self._rows.append(row)
@@ -421,37 +429,30 @@ class LoopClosureDetector:
         sequence_length - 1 frames more with sequences, so that no candidate's sequence shares a
         frame with the query's own."""
         first = self._recent.first_excluded(t, previous, still, timestamp, position)
-        if first < max(t - self.exclude_last, 0) if self.exclude_last else first < t:
+        by_count = max(t - self.exclude_last, 0) if self.exclude_last else t
+        if first < by_count:  # the still segment, seconds or metres reached further back
             self.gate_counts["still_exclusion"] += 1
         first = max(first - (self.sequence_length - 1), 0)
         return count if first >= t else self._before[first]
 
-    def _mask_uninformative(self, row: np.ndarray, informative: bool) -> np.ndarray:
-        """The frame's similarity row with uninformative places (and, for an uninformative frame,
-        every place) set to the median of its informative values: neutral in a sequence (a
-        sequence through a tunnel is scored by its other frames), and below the best candidate.
-        :meth:`_never_best` then keeps uninformative places from being matched at all."""
+    def _mask_uninformative(self, row: np.ndarray, informative: bool) -> tuple[np.ndarray, float | None]:
+        """(the frame's similarity row with uninformative places, and for an uninformative frame
+        every place, set to the median of its informative values, that value): neutral in a
+        sequence (a sequence through a tunnel is scored by its other frames), and below the best
+        candidate. :meth:`_never_best` then keeps uninformative places from being matched at all.
+        The median is the row's median too (copies of a median keep it), so the sequence padding
+        reuses it; None when nothing needed masking (the common case: no median is computed)."""
         if not len(row):
-            return row
+            return row, 0.0
         mask = self._informative.view(len(row))
+        if informative and mask.all():
+            return row, None
         neutral = float(np.median(row[mask])) if mask.any() else 0.0
         if not informative:
-            return np.full_like(row, neutral)
-        if mask.all():
-            return row
+            return np.full_like(row, neutral), neutral
         row = row.copy()
         row[~mask] = neutral
-        return row
-
-    @property
-    def _first_full(self) -> int:
-        """The first place that can end a full-length sequence at every velocity (0 for single
-        images): how many neutral values pad the start of each row."""
-        from fdnet.matching.sequence import DEFAULT_VELOCITIES
-
-        if self.sequence_length <= 1:
-            return 0
-        return int(math.ceil(max(DEFAULT_VELOCITIES) * (self.sequence_length - 1)))
+        return row, neutral
 
     def _never_best(self, scores: np.ndarray) -> np.ndarray:
         """``scores`` with uninformative places at the lowest informative score."""
