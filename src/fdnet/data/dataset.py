@@ -141,3 +141,13 @@ def parse_frame_range(text: str | None) -> tuple[int | None, int | None]:
     if start is not None and end is not None and end <= start:
         raise DataError(f"frame range {text!r}: END must be greater than START")
     return start, end
+
+
+def frame_ranges_overlap(a: str | None, b: str | None) -> bool:
+    """Whether two ``START:END`` frame ranges (None or empty: every frame) share a frame: the one
+    test for "trained on the frames it is measured on" (reproduce's lengths study, the held-out
+    check of evaluate, calibrate and loop-closure)."""
+    (a0, a1), (b0, b1) = parse_frame_range(a), parse_frame_range(b)
+    inf = float("inf")
+    return max(a0 or 0, b0 or 0) < min(inf if a1 is None else a1, inf if b1 is None else b1)
+

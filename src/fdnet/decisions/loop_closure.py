@@ -46,10 +46,11 @@ import numpy as np
 from fdnet.decisions.acceptance import AcceptanceSpec, Candidates, decide, parse_acceptance
 from fdnet.decisions.calibration import checked_calibration, stored_calibration
 # the records the detector produces live in loop_records; importable from here as before
-from fdnet.decisions.loop_records import EVENT_COLUMNS, Closure, FrameDecision, GrowingArray, place_name  # noqa: F401
+from fdnet.decisions.loop_records import EVENT_COLUMNS, Closure, FrameDecision, GrowingArray  # noqa: F401
 from fdnet.decisions.loop_gates import (ConsistencyGate, FrameSignals, LoopGates, RecentPast, frame_signals,
                                         informative_frames, is_still)
 from fdnet.errors import ConfigError, DataError
+from fdnet.matching.database.storage import place_name
 
 logger = logging.getLogger(__name__)
 

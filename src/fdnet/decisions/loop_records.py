@@ -1,10 +1,8 @@
 """What a loop-closure run records: each frame's decision (:class:`FrameDecision`), each accepted
-closure (:class:`Closure`, the events' columns), the place name a frame is stored under, and the
-growing arrays the detector keeps its map in."""
+closure (:class:`Closure`, the events' columns), and the growing arrays the detector keeps its map in."""
 
 from __future__ import annotations
 
-import os
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -64,12 +62,6 @@ class FrameDecision:
     gated: str = ""
     #: the rule's score before the consistency gate (equal to ``score`` without the gate)
     rule_score: float = float("nan")
-
-
-def place_name(path: str | os.PathLike) -> str:
-    """A frame's place name: its absolute path as listed (a symbolic link keeps its own name, so
-    two links to one file are two places, each under the name it was given)."""
-    return os.path.abspath(os.fspath(path))
 
 
 class GrowingArray:

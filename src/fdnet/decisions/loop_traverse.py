@@ -20,7 +20,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from fdnet.decisions.loop_closure import LoopClosureDetector
-from fdnet.decisions.loop_records import place_name
+from fdnet.matching.database.storage import place_name
 from fdnet.decisions.loop_evaluation import calibrate_decisions, evaluate_decisions
 from fdnet.decisions.loop_events import EventLog
 from fdnet.decisions.loop_gates import LoopGates, frame_signals

@@ -41,14 +41,6 @@ def unavailable(ctx) -> str | None:
     return None
 
 
-def _frames_overlap(a: str | None, b: str | None) -> bool:
-    from fdnet.data.dataset import parse_frame_range
-
-    (a0, a1), (b0, b1) = parse_frame_range(a), parse_frame_range(b)
-    inf = float("inf")
-    return max(a0 or 0, b0 or 0) < min(inf if a1 is None else a1, inf if b1 is None else b1)
-
-
 def training_config(settings, length: int):
     """The preset's run config for FDNet_L on ``settings.data`` (training frames only)."""
     from fdnet.config import replace_dotted
@@ -73,7 +65,9 @@ def check_training(settings) -> None:
     if not settings.length_train_frames:
         raise ConfigError("--length-preset needs --length-train-frames START:END (frames to train on, outside "
                           "the evaluated --frames)")
-    if _frames_overlap(settings.length_train_frames, settings.frames):
+    from fdnet.data.dataset import frame_ranges_overlap
+
+    if frame_ranges_overlap(settings.length_train_frames, settings.frames):
         raise ConfigError(f"--length-train-frames {settings.length_train_frames} overlaps the evaluated frames "
                           f"--frames {settings.frames or 'all'}: train and test on different frames")
 

@@ -29,13 +29,6 @@ def training_data(run_dir: str | Path) -> dict | None:
     return data if isinstance(data, dict) and data.get("root") else None
 
 
-def _range(text: str | None) -> tuple[float, float]:
-    if not text:
-        return 0, float("inf")
-    start, _, end = str(text).partition(":")
-    return (int(start) if start.strip() else 0), (int(end) if end.strip() else float("inf"))
-
-
 def _same_folder(a, b) -> bool:
     try:
         return Path(a).resolve() == Path(b).resolve()
@@ -62,8 +55,9 @@ def check_held_out(method: str, run_dir: str | Path, data: str | Path, condition
             return
         what = f"split {split or 'all'}"
     else:
-        (a, b), (c, d) = _range(trained.get("frames")), _range(frames)
-        if max(a, c) >= min(b, d):
+        from fdnet.data.dataset import frame_ranges_overlap
+
+        if not frame_ranges_overlap(trained.get("frames"), frames):
             return
         what = f"frames {frames or 'all'}"
     raise ConfigError(f"{method} ({run_dir}) was trained on frames {trained.get('frames') or 'all'} of {data} "

@@ -32,6 +32,7 @@ from fdnet.matching.database.storage import (
     check_can_create,
     check_place_names,
     holds_a_database,
+    place_name,
     migrate_command,
     refuse_old_format,
 )
@@ -39,6 +40,6 @@ from fdnet.matching.database.store import AddResult, Match, PlaceDatabase
 
 __all__ = [
     "APPLICATION_ID", "BUSY_TIMEOUT_S", "INDEX_CACHE_SUFFIX", "MEMORY", "SCHEMA_VERSION", "AddResult", "Match",
-    "MigrationReport", "PlaceDatabase", "check_can_create", "check_place_names", "holds_a_database", "migrate_command",
+    "MigrationReport", "PlaceDatabase", "check_can_create", "check_place_names", "holds_a_database", "place_name", "migrate_command",
     "migrate_old_format", "read_old_format", "refuse_old_format", "short_fingerprint",
 ]

@@ -9,7 +9,6 @@ does not import the image, pipeline and decision code these functions use.
 from __future__ import annotations
 
 import logging
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Mapping, Sequence, Union
@@ -371,18 +370,12 @@ def _spooled_batches(spool, names, paths=None):
 
 
 def _place_names(paths) -> list[str]:
-    # Absolute: the same image added from another working directory is still the same place.
-    # Not resolved: a symbolic link is listed under its own name, so every listed image is a
-    # place under that name (two links to one file are two places, in the folder's order).
-    from fdnet.errors import DataError
+    """The place names of ``paths`` (:func:`~fdnet.matching.database.storage.place_name`), refused
+    before anything is described or created when one is not UTF-8 (SQLite text is)."""
+    from fdnet.matching.database.storage import check_place_names, place_name
 
-    names = [os.path.abspath(os.fspath(p)) for p in paths]
-    for name in names:  # SQLite text is UTF-8: refuse before anything is described or created
-        try:
-            name.encode("utf-8")
-        except UnicodeEncodeError:
-            raise DataError(f"{os.fsencode(name)!r}: the file name is not valid UTF-8, which a place database "
-                            f"cannot store as a place name; rename the file") from None
+    names = [place_name(p) for p in paths]
+    check_place_names(names)
     return names
 
 

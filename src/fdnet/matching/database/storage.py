@@ -222,6 +222,14 @@ def _connect_read_only(path: Path) -> sqlite3.Connection:
                         "database and its -wal file to a writable folder and open it there") from None
 
 
+def place_name(path: str | os.PathLike) -> str:
+    """An image's place name, the one rule for every writer of places (``database build``/``add``,
+    ``loop-closure``): its absolute path as listed. Absolute, so the same image added from another
+    working directory is the same place; not resolved, so a symbolic link keeps its own name (two
+    links to one file are two places, in the folder's order)."""
+    return os.path.abspath(os.fspath(path))
+
+
 def check_place_names(names: Sequence[str]) -> None:
     """Refuse a place name that is not valid UTF-8 (a file name Python keeps as surrogates):
     SQLite text is UTF-8, so it could not be stored. Callers check before describing images."""
