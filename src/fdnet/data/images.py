@@ -200,23 +200,25 @@ def load_image_uint8(path: str | os.PathLike, size: tuple[int, int] | None = Non
 MAX_IMAGE_SIDE = 4096
 
 
+def whole_number(value) -> int:
+    """``value`` as an int when it is a whole number (an int of any size, a float or numeric text
+    with no fraction; not a bool), else ValueError: how every size setting is read."""
+    if isinstance(value, bool):
+        raise ValueError(f"{value!r} is not a whole number")
+    if isinstance(value, (float, np.floating)) and not float(value).is_integer():
+        raise ValueError(f"{value!r} is not a whole number")
+    return int(value)
+
+
 def check_image_size(size, what: str) -> tuple[int, int]:
     """(height, width) as whole numbers in 1..MAX_IMAGE_SIDE, else a ConfigError naming ``what``:
     the one check for every size an image is brought to (descriptors' input sizes, trunk choices,
     synthetic frames), made before anything is allocated."""
     from fdnet.errors import ConfigError
 
-    def whole(value) -> int:
-        if isinstance(value, bool):
-            raise ValueError
-        if isinstance(value, (float, np.floating)):
-            if not float(value).is_integer():
-                raise ValueError
-        return int(value)
-
     try:
         h, w = size
-        h, w = whole(h), whole(w)
+        h, w = whole_number(h), whole_number(w)
     except (TypeError, ValueError, OverflowError):
         raise ConfigError(f"{what}: size {size!r} must be two whole numbers (height, width)") from None
     if h < 1 or w < 1:

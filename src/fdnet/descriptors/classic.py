@@ -181,13 +181,13 @@ def check_opencv_hog(window_wh, block_wh, stride_wh, cell_wh, bins, where: str) 
     pixels >= 1, the cell divides the block, the block fits the window and steps along it by the
     stride, 1 <= bins <= 360. The one check for every OpenCV HOG fdnet builds (the ``hog``
     baseline, CALC's reconstruction target)."""
+    from fdnet.data.images import whole_number
+
     named = {"window": window_wh, "block": block_wh, "block stride": stride_wh, "cell": cell_wh}
     sizes = {}
     for name, value in named.items():
         try:
-            w, h = (int(v) for v in value)
-            if any(isinstance(v, bool) or float(v) != int(v) for v in value):
-                raise ValueError
+            w, h = (whole_number(v) for v in value)
         except (TypeError, ValueError, OverflowError):
             raise ConfigError(f"{where}: HOG {name} size {value!r} must be two whole numbers (width, height)") from None
         if w < 1 or h < 1 or w > 4096 or h > 4096:

@@ -27,6 +27,12 @@ def _number(value, digits: int = 3) -> str:
     return f"{value:.{digits}f}"
 
 
+def _per_rule(result: MethodResult, protocol: str) -> dict:
+    """rule expression -> that rule's Metrics under ``protocol`` (one entry without several rules)."""
+    return {rule: per[protocol] for rule, per in result.by_acceptance.items()} or \
+        {result.metrics[protocol].acceptance: result.metrics[protocol]}
+
+
 def format_table(results: Sequence[MethodResult], protocol: str | None = None) -> str:
     """One row per method and acceptance rule (the rule whose scores the PR numbers threshold);
     the protocol (and its definition), data and ground truth in the header."""
@@ -47,9 +53,7 @@ def format_table(results: Sequence[MethodResult], protocol: str | None = None) -
     header = f"{'method':<{width}}  {'accept':<{rule_width}}  " + "  ".join(f"{c:>8}" for c in _COLUMNS)
     lines += [header, "-" * len(header)]
     for r in results:
-        per_rule = {rule: per[protocol] for rule, per in r.by_acceptance.items()} or \
-            {r.metrics[protocol].acceptance: r.metrics[protocol]}
-        for rule, m in per_rule.items():
+        for rule, m in _per_rule(r, protocol).items():
             cells = [_number(m.recall_at_n.get(n)) for n in (1, 5, 10, 20)]
             cells += [_number(m.recall_at_100_precision), _number(m.recall_at_99_precision),
                       _number(m.recall_at_95_precision), _number(m.precision_at_max_recall), _number(m.auc_pr)]
@@ -132,9 +136,7 @@ def format_results_table(results: Sequence[MethodResult], style: str, protocol: 
     header = ["method", "accept", "data", "R@1", "R@100P", "AUC-PR"]
     rows = []
     for r in results:
-        per_rule = {rule: per[protocol] for rule, per in r.by_acceptance.items()} or \
-            {r.metrics[protocol].acceptance: r.metrics[protocol]}
-        for rule, m in per_rule.items():
+        for rule, m in _per_rule(r, protocol).items():
             rows.append([r.method, rule, r.dataset, f"{m.recall_at_n.get(1, float('nan')):.3f}",
                          f"{m.recall_at_100_precision:.3f}", f"{m.auc_pr:.3f}"])
     if style == "csv":

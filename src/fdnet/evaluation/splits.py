@@ -91,9 +91,10 @@ def _build_split(data, reference=None, query=None, *, dataset_format=None, split
             raise ConfigError("--filter-frames applies to frame-aligned folders; with --ground-truth CSV, filter "
                               "the images before writing the ground truth")
         return listed_split(dataset, reference, query, ground_truth, start, end)
-    protocol_tolerance = tolerance is None and default_folder_tolerance(data, dataset.conditions) > 0
-    if tolerance is None:
+    protocol_tolerance = False
+    if tolerance is None:  # the layout is looked at once (it may refuse a published format)
         tolerance = default_folder_tolerance(data, dataset.conditions)
+        protocol_tolerance = tolerance > 0
     if filter_frames:
         from fdnet.data.filters import filter_frames as drop_frames
 
