@@ -49,11 +49,16 @@ def test_aligned_counts_and_folders(tmp_path):
     assert out.read_text().splitlines()[1:] == ["0,0,0.png,0.png", "1,1,1.png,1.png", "2,2,2.png,2.png"]
 
 
-def test_dataset_folder_with_setting(tmp_path, capsys):
+def write_two_condition_folders(root, n=5):
+    """root/day and root/night: n blank 4x4 images each, named 0.png ... (frame-aligned)."""
     for name in ("day", "night"):
-        (tmp_path / "route" / name).mkdir(parents=True)
-        for i in range(5):
-            Image.fromarray(np.zeros((4, 4, 3), np.uint8)).save(tmp_path / "route" / name / f"{i}.png")
+        (root / name).mkdir(parents=True)
+        for i in range(n):
+            Image.fromarray(np.zeros((4, 4, 3), np.uint8)).save(root / name / f"{i}.png")
+
+
+def test_dataset_folder_with_setting(tmp_path, capsys):
+    write_two_condition_folders(tmp_path / "route")
     out = tmp_path / "gt.csv"
     assert main(["groundtruth", "--data", str(tmp_path / "route"), "--format-set", "tolerance=2",
                  "--split", "1:4", "--out", str(out)]) == 0
@@ -138,10 +143,7 @@ def test_position_files_saved_by_a_spreadsheet_with_a_byte_order_mark(tmp_path):
 
 
 def test_tolerances_are_used_or_refused_never_dropped(tmp_path, capsys):
-    for name in ("day", "night"):
-        (tmp_path / "route" / name).mkdir(parents=True)
-        for i in range(5):
-            Image.fromarray(np.zeros((4, 4, 3), np.uint8)).save(tmp_path / "route" / name / f"{i}.png")
+    write_two_condition_folders(tmp_path / "route")
     out = tmp_path / "gt.csv"
     # --tolerance with --data is the format's tolerance (it was silently 0)
     assert main(["groundtruth", "--data", str(tmp_path / "route"), "--dataset-format", "folders",

@@ -302,6 +302,17 @@ def route_with_a_tunnel_a_stop_and_a_revisit():
     return frames + [seen_again(im, 200 + i) for i, im in enumerate(first)], len(frames)
 
 
+def route_with_a_tunnel_a_stop_and_a_revisit_as_files(folder):
+    """The same route written as PNG files in ``folder``: (frames, first revisit, folder)."""
+    from PIL import Image
+
+    frames, revisit = route_with_a_tunnel_a_stop_and_a_revisit()
+    folder.mkdir()
+    for i, image in enumerate(frames):
+        Image.fromarray(image).save(folder / f"frame_{i:03d}.png")
+    return frames, revisit, folder
+
+
 @pytest.mark.parametrize("length", [1, 3])
 def test_no_closure_from_a_tunnel_or_a_stop_and_the_revisit_closed(length):
     from fdnet.decisions.loop_gates import LoopGates
@@ -349,13 +360,8 @@ def test_uninformative_places_from_an_earlier_run_stay_out_of_the_map(tmp_path):
 
 def test_resume_replays_to_the_events_of_an_uninterrupted_run(tmp_path):
     from fdnet.decisions.loop_traverse import run_traverse
-    from PIL import Image
 
-    frames, revisit = route_with_a_tunnel_a_stop_and_a_revisit()
-    folder = tmp_path / "route"
-    folder.mkdir()
-    for i, image in enumerate(frames):
-        Image.fromarray(image).save(folder / f"frame_{i:03d}.png")
+    frames, revisit, folder = route_with_a_tunnel_a_stop_and_a_revisit_as_files(tmp_path / "route")
     settings = {"exclude_last": 2, "rule": "raw", "threshold": 0.8, "sequence_length": 3, "batch_size": 4,
                 "workers": 0}
     whole = run_traverse(folder, RawThumbnail(), tmp_path / "whole.db", events_csv=tmp_path / "whole.csv",
@@ -429,13 +435,8 @@ def test_auto_search_switches_to_the_index_at_its_size():
 
 def test_resume_with_the_index_replays_the_same_events(tmp_path):
     from fdnet.decisions.loop_traverse import run_traverse
-    from PIL import Image
 
-    frames, revisit = route_with_a_tunnel_a_stop_and_a_revisit()
-    folder = tmp_path / "route"
-    folder.mkdir()
-    for i, image in enumerate(frames):
-        Image.fromarray(image).save(folder / f"frame_{i:03d}.png")
+    frames, revisit, folder = route_with_a_tunnel_a_stop_and_a_revisit_as_files(tmp_path / "route")
     settings = {"exclude_last": 2, "rule": "raw", "threshold": 0.8, "sequence_length": 3, "batch_size": 4,
                 "workers": 0, "search": "index"}
     whole = run_traverse(folder, RawThumbnail(), tmp_path / "whole.db", events_csv=tmp_path / "whole.csv",
