@@ -54,11 +54,15 @@ class RouteTraverse:
         database's places (``places_before`` places from earlier sessions first)."""
         from fdnet.data.groundtruth import GroundTruth
 
-        positives = []
-        for q in range(len(self.paths)):
-            earlier = np.flatnonzero((self.condition_of < self.condition_of[q])
-                                     & (np.abs(self.frame_ids - self.frame_ids[q]) <= self.tolerance))
-            positives.append(earlier + places_before)
+        positives: list = []
+        for i in range(len(self.conditions)):
+            # the conditions are consecutive blocks: the earlier ones are the frames before this one
+            block = np.flatnonzero(self.condition_of == i)
+            if block[0] == 0:
+                positives += [np.zeros(0, np.int64)] * len(block)
+                continue
+            aligned = GroundTruth.from_frames(self.frame_ids[block], self.frame_ids[:block[0]], self.tolerance)
+            positives += [p + places_before for p in aligned.positives]
         return GroundTruth(positives, places_before + len(self.paths),
                            f"{self.description}: a frame revisits the frames of earlier conditions within "
                            f"{self.tolerance} frames")
