@@ -82,10 +82,14 @@ class IndexedCandidates:
 
     def neutral(self, v: np.ndarray, vectors: np.ndarray, informative: np.ndarray) -> float:
         """The frame's median similarity over an evenly spaced sample of the informative places."""
-        usable = np.flatnonzero(informative)
-        if not len(usable):
-            return 0.0
-        sample = usable[np.linspace(0, len(usable) - 1, min(MEDIAN_SAMPLE, len(usable))).astype(np.int64)]
+        count = len(informative)
+        if count and informative.all():  # the usual map: every place, no index list to build per frame
+            sample = np.linspace(0, count - 1, min(MEDIAN_SAMPLE, count)).astype(np.int64)
+        else:
+            usable = np.flatnonzero(informative)
+            if not len(usable):
+                return 0.0
+            sample = usable[np.linspace(0, len(usable) - 1, min(MEDIAN_SAMPLE, len(usable))).astype(np.int64)]
         return float(np.median(vectors[sample] @ v))
 
     def search(self, v: np.ndarray, vectors: np.ndarray, searchable: int, informative: np.ndarray,
