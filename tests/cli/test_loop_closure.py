@@ -403,3 +403,32 @@ def test_what_a_failed_create_left_is_reused(route, tmp_path, capsys):
     for path in (db, tmp_path / "empty.db"):
         assert main(args(route, tmp_path, "--db", str(path))) == 0
         assert "10 loop closures in 20 frames" in capsys.readouterr().out
+
+
+def test_an_event_one_file_cannot_hold_is_taken_out_of_the_other(tmp_path, monkeypatch):
+    """The CSV took the event, the JSON lines' disk was full: both files end at the last event
+    acknowledged (a real 1 MiB tmpfs gave a CSV with one event more than its JSON lines)."""
+    import errno
+    import os
+
+    from fdnet.decisions.loop_closure import Closure
+    from fdnet.decisions.loop_events import EventLog
+    from fdnet.errors import OutputError
+
+    closure = Closure(3, "q.png", 0, "p.png", 0.5, 0.9, "margin", 0.1)
+    with EventLog(tmp_path / "e.csv", tmp_path / "e.jsonl") as log:
+        log.write(closure)
+        before = (tmp_path / "e.csv").read_bytes(), (tmp_path / "e.jsonl").read_bytes()
+        real_write = os.write
+        jsonl_fd = log._fds[1]
+
+        def jsonl_disk_full(fd, data):
+            if fd == jsonl_fd:
+                raise OSError(errno.ENOSPC, "No space left on device")
+            return real_write(fd, data)
+
+        monkeypatch.setattr(os, "write", jsonl_disk_full)
+        with pytest.raises(OutputError, match="e.jsonl: cannot write the loop-closure event"):
+            log.write(closure)
+    assert ((tmp_path / "e.csv").read_bytes(), (tmp_path / "e.jsonl").read_bytes()) == before
+

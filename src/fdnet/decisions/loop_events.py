@@ -66,9 +66,9 @@ class EventLog:
 
     def write(self, closure: Closure) -> None:
         lines = self._lines(closure)
+        sizes = [os.fstat(fd).st_size for fd in self._fds]
         for fd, line, path in zip(self._fds, lines, self.paths):
             data = line.encode("utf-8", "surrogateescape")  # a name that is not UTF-8: its own bytes
-            before = os.fstat(fd).st_size
             try:
                 # a full disk stops a write short; writing the rest then says why (ENOSPC)
                 done = 0
@@ -76,13 +76,15 @@ class EventLog:
                     done += os.write(fd, data[done:])
                 os.fsync(fd)
             except OSError as exc:
-                # no half line left behind: the file ends at its last whole event, as before the write
-                try:
-                    os.ftruncate(fd, before)
-                except OSError:
-                    pass
-                raise output_error(f"{path}: cannot write the loop-closure event ({exc.strerror or exc}); the file "
-                                   "ends at the last whole event", exc) from None
+                # no half line, and no event in one file that the other lacks: every file ends at
+                # the last whole event acknowledged, as before this write
+                for other, size in zip(self._fds, sizes):
+                    try:
+                        os.ftruncate(other, size)
+                    except OSError:
+                        pass
+                raise output_error(f"{path}: cannot write the loop-closure event ({exc.strerror or exc}); every "
+                                   "events file ends at the last whole event", exc) from None
         self.count += 1
 
     def close(self) -> None:
