@@ -49,9 +49,9 @@ def test_build_add_query_info(tmp_path, built, capsys):
     assert main(["database", "query", "--db", str(built), "--images", str(second), "--top-k", "2",
                  "--out", str(out)]) == 0
     rows = read_csv_rows(out)
-    assert list(rows[0]) == ["query", "rank", "place", "place_index", "score"]
+    assert list(rows[0]) == ["query_index", "query", "rank", "place", "place_index", "score"]
     best = [r for r in rows if r["rank"] == "1"]
-    assert [r["place"] == str(second.resolve() / r["query"]) for r in best] == [True] * 4
+    assert [r["place"] == r["query"] == str(second / f"frame_{i:03d}.png") for i, r in enumerate(best)] == [True] * 4
     assert [r["place_index"] for r in best] == ["6", "7", "8", "9"]
     summary = info(built, capsys)
     assert {"places", "method", "dim", "fingerprint", "settings", "schema_version", "data_version",
@@ -241,8 +241,8 @@ def test_query_quotes_names_a_spreadsheet_would_run_as_formulas(tmp_path, capsys
     out = tmp_path / "q.csv"
     assert main(["database", "query", "--db", str(db), "--images", str(images), "--top-k", "3", "--out", str(out)]) == 0
     rows = read_csv_rows(out)
-    assert {r["query"] for r in rows} == {"'=cmd.png", "'@x.png", "frame_002.png"}
-    # the place column holds the stored absolute path, which starts with / (nothing to quote)
+    # images are named by absolute path, which starts with / (nothing for a spreadsheet to run)
+    assert {r["query"] for r in rows} == {str(images / n) for n in ("=cmd.png", "@x.png", "frame_002.png")}
     assert all(not r["place"].startswith(("=", "@", "'")) for r in rows)
 
 

@@ -45,9 +45,9 @@ def test_build_add_query_and_info_through_the_library(tmp_path):
     assert out.read_bytes() == result.csv_text.encode() and (result.queries, result.places) == (3, 8)
     assert result.lines() == [f"wrote {out}: 3 queries against 8 places"]
     table = rows(result.csv_text)
-    assert list(table[0]) == ["query", "rank", "place", "place_index", "score"] and len(table) == 6
+    assert list(table[0]) == ["query_index", "query", "rank", "place", "place_index", "score"] and len(table) == 6
     best = [r for r in table if r["rank"] == "1"]
-    assert [r["place"] for r in best] == [str((second / r["query"]).resolve()) for r in best]
+    assert [r["place"] for r in best] == [r["query"] for r in best]  # one name per image
     assert [r["place_index"] for r in best] == ["5", "6", "7"]
     # the same answers as arrays, for a program (no CSV to parse)
     assert result.indices.shape == (3, 2) and result.indices[:, 0].tolist() == [5, 6, 7]
@@ -80,7 +80,7 @@ def test_an_acceptance_rule_adds_its_score_column(tmp_path):
     scored = query_database(db, route, top_k=1, accept=parse_acceptance("raw", []), log=messages.append,
                             progress=False)
     table = rows(scored.csv_text)
-    assert list(table[0]) == ["query", "rank", "place", "place_index", "score", "acceptance_score"]
+    assert list(table[0]) == ["query_index", "query", "rank", "place", "place_index", "score", "acceptance_score"]
     # raw: the acceptance score is the best match's similarity
     assert [float(r["acceptance_score"]) for r in table] == pytest.approx([float(r["score"]) for r in table])
     assert scored.acceptance_scores == pytest.approx(scored.scores[:, 0]) and scored.accepted is None

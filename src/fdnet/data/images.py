@@ -29,6 +29,18 @@ IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".ppm", ".
 _DIGIT_RUNS = re.compile(r"([0-9]+)")
 
 
+def image_name(path: str | os.PathLike) -> str:
+    """An image's name in every output that names images of a run (``fdnet match``'s and
+    ``database query``'s CSVs, ``evaluate --predictions``, loop-closure events, a place database's
+    places): its absolute path as listed. Absolute, so outputs made from different working
+    directories join on it; not resolved, so a symbolic link keeps its own name (two links to one
+    file are two images, in the folder's order). A video's or bag's frame is named by its frame
+    path (``SOURCE/FRAME``, :mod:`fdnet.data.sources`). A ground-truth CSV, which belongs to a
+    dataset rather than a run, names images by file name within its folders; every output also
+    carries the image's index, on which it joins with the ground truth."""
+    return os.path.abspath(os.fspath(path))
+
+
 def natural_key(name: str | os.PathLike) -> tuple:
     """Sort key of the natural order: ``frame_2`` before ``frame_10``.
 

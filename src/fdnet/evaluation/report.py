@@ -14,6 +14,7 @@ import os
 from pathlib import Path
 from typing import Sequence
 
+from fdnet.data.images import image_name
 from fdnet.evaluation.experiment import MethodResult
 from fdnet.evaluation.metrics import PROTOCOLS
 from fdnet.io import atomic_write_text
@@ -89,8 +90,9 @@ def results_json(results: Sequence[MethodResult], protocol: str | None = None,
     """The JSON document, one schema whatever the number of methods: ``format``,
     ``format_version``, ``fdnet_version``, ``command``, ``protocol``, ``settings`` (what was
     asked) and ``results``, a list with one object per method. ``predictions`` > 0 adds to each
-    result its per-query ``predictions``: the query's name, its ``predictions`` best reference
-    indices (and names) with their scores and whether each is correct."""
+    result its per-query ``predictions``: the query's index and name, its ``predictions`` best
+    reference indices (and names; :func:`fdnet.data.images.image_name`) with their scores and
+    whether each is correct."""
     from fdnet import __version__
 
     objects = []
@@ -115,9 +117,9 @@ def _predictions(result: MethodResult, k: int) -> list[dict]:
         row = {"query_index": q, "top": [int(i) for i in top[q]], "scores": [float(v) for v in scores[q]],
                "correct": [bool(c) for c in correct[q]]}
         if queries is not None:
-            row["query"] = Path(queries[q]).name
+            row["query"] = image_name(queries[q])
         if references is not None:
-            row["top_names"] = [Path(references[i]).name if i >= 0 else None for i in top[q]]
+            row["top_names"] = [image_name(references[i]) if i >= 0 else None for i in top[q]]
         out.append(row)
     return out
 

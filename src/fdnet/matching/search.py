@@ -4,7 +4,8 @@ method, SeqSLAM sequences, or a faiss index for dot-product methods), the saved-
 settings) and the ranked-candidates CSV of ``fdnet match`` with its optional decisions.
 
 Images are listed in fdnet's one order (:func:`fdnet.data.images.list_images`), and every row
-carries both the indices and the file names.
+carries both the indices and the images' names (:func:`fdnet.data.images.image_name`: the
+absolute path as listed, the name every output gives an image).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from typing import Callable
 
 import numpy as np
 
+from fdnet.data.images import image_name
 from fdnet.errors import ConfigError
 from fdnet.matching.index import INDEX_KINDS
 
@@ -257,7 +259,7 @@ def write_matches(out, indices, scores, query_paths, ref_paths, top_k: int, deci
         for rank, (i, s) in enumerate(zip(row_i, row_s), start=1):
             chosen = accepted is not None and i == decision.match[q] and bool(accepted[q])
             if i >= 0 and (rank <= top_k or chosen):
-                row = [q, spreadsheet_text(query_paths[q].name), rank, int(i), spreadsheet_text(ref_paths[i].name),
+                row = [q, spreadsheet_text(image_name(query_paths[q])), rank, int(i), spreadsheet_text(image_name(ref_paths[i])),
                        f"{float(s):.6f}"]
                 if decision is not None:
                     row.append(f"{decision.score[q]:.6f}")

@@ -15,6 +15,8 @@ from typing import Callable, Mapping, Sequence, Union
 
 import numpy as np
 
+from fdnet.data.images import image_name
+
 logger = logging.getLogger(__name__)
 
 #: a method's options: a mapping, or a function of the method's name giving them (for ``add``,
@@ -234,7 +236,7 @@ def query_database(db, images, *, top_k: int = 5, exclude_last: int = 0, min_sco
         for rank, m in enumerate(matches[:top_k]):
             indices[q, rank], scores[q, rank] = m.index, m.score
     return QueryResult(text, len(paths), places, str(out) if out else None, indices=indices, scores=scores,
-                       query_names=[p.name for p in paths], place_names=place_names,
+                       query_names=[image_name(p) for p in paths], place_names=place_names,
                        acceptance_scores=None if decision is None else np.asarray(decision.score, np.float64),
                        matches=None if decision is None else np.asarray(decision.match, np.int64),
                        accepted=None if accepted is None else np.asarray(accepted, bool))
@@ -445,13 +447,14 @@ def _query_csv(paths, results, top_k, min_score, decision, accepted) -> str:
 
     buffer = io.StringIO()
     writer = csv.writer(buffer)
-    writer.writerow(["query", "rank", "place", "place_index", "score"]
+    writer.writerow(["query_index", "query", "rank", "place", "place_index", "score"]
                     + ([] if decision is None else ["acceptance_score"]) + ([] if accepted is None else ["accepted"]))
     for q, (path, matches) in enumerate(zip(paths, results)):
         for rank, m in enumerate(matches, start=1):
             chosen = accepted is not None and m.index == decision.match[q] and bool(accepted[q])
             if (min_score is None or m.score >= min_score) and (rank <= top_k or chosen):
-                row = [spreadsheet_text(path.name), rank, spreadsheet_text(m.name), m.index, f"{m.score:.6f}"]
+                row = [q, spreadsheet_text(image_name(path)), rank, spreadsheet_text(m.name), m.index,
+                       f"{m.score:.6f}"]
                 if decision is not None:
                     row.append(f"{decision.score[q]:.6f}")
                 if accepted is not None:

@@ -21,6 +21,7 @@ from typing import Iterator, Sequence
 
 import numpy as np
 
+from fdnet.data.images import image_name
 from fdnet.errors import ConfigError, DataError, output_error
 
 #: ``PRAGMA user_version`` of the files this code writes; a newer file is refused, not guessed at.
@@ -224,10 +225,8 @@ def _connect_read_only(path: Path) -> sqlite3.Connection:
 
 def place_name(path: str | os.PathLike) -> str:
     """An image's place name, the one rule for every writer of places (``database build``/``add``,
-    ``loop-closure``): its absolute path as listed. Absolute, so the same image added from another
-    working directory is the same place; not resolved, so a symbolic link keeps its own name (two
-    links to one file are two places, in the folder's order)."""
-    return os.path.abspath(os.fspath(path))
+    ``loop-closure``): :func:`fdnet.data.images.image_name`, the name every output gives it."""
+    return image_name(path)
 
 
 def check_place_names(names: Sequence[str]) -> None:
