@@ -14,7 +14,7 @@ STAMP := $(VENV)/.fdnet-installed
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet "$(TORCH_PIN)" -e ".[dev,onnx]"
+	$(BIN)/pip install --quiet "$(TORCH_PIN)" -e ".[dev,onnx,hloc]"
 	touch $(STAMP)
 
 setup: $(STAMP)
