@@ -3,7 +3,9 @@
 The exported graph takes ``images``: float32 (N, 3, H, W) RGB in [0, 1] at the run's input size
 (NCHW, as ONNX runtimes expect) and returns ``content``: (N, L) L2-normalised content vectors —
 exactly what ``fdnet.load(run).describe`` gives, preprocessing included, so a deployment needs no
-fdnet code. The export is checked against PyTorch with onnxruntime on random images.
+fdnet code. The model's metadata says so (``fdnet.input_size`` etc.), so ``--method onnx
+--weights FILE`` reads it back with no settings. The export is checked against PyTorch with
+onnxruntime on random images.
 """
 
 from __future__ import annotations
@@ -43,7 +45,7 @@ def export_onnx(run_dir: str | os.PathLike, out: str | os.PathLike, opset: int =
     ensure_writable(out, what="ONNX file")  # before the minutes of tracing and checking
 
     try:
-        import onnx  # noqa: F401  (the exporter needs it)
+        import onnx
     except ImportError:
         raise NotAvailableError("ONNX export needs the optional extra: pip install 'fdnet[onnx]' "
                                 "(onnx and onnxruntime)") from None
@@ -62,6 +64,13 @@ def export_onnx(run_dir: str | os.PathLike, out: str | os.PathLike, opset: int =
         torch.onnx.export(module, (example,), str(tmp), input_names=["images"], output_names=["content"],
                           dynamic_axes={"images": {0: "batch"}, "content": {0: "batch"}},
                           opset_version=opset, dynamo=False)
+        # What `--method onnx` reads so the file needs no settings: the input size, RGB in [0, 1].
+        from fdnet.descriptors.onnx_model import model_metadata
+
+        graph = onnx.load(str(tmp))
+        onnx.helper.set_model_props(graph, {**model_metadata((height, width)), "fdnet.method": "fdnet",
+                                            "fdnet.run": str(Path(run_dir).resolve().name)})
+        onnx.save(graph, str(tmp))
     result = {"path": str(out), "input_size": [height, width], "dim": descriptor.dim, "max_abs_diff": None}
     if check:
         import onnxruntime

@@ -26,9 +26,12 @@ def add_method_arguments(parser: argparse.ArgumentParser, multiple: bool = False
     parser.add_argument("--checkpoint", action="append", default=[],
                         help=f"run directory of a trained method ({', '.join(trained_methods())})" + per_method)
     parser.add_argument("--weights", action="append", default=[],
-                        help="weights file a method accepts (conv3 AlexNet, hybridnet)" + per_method)
+                        help="weights file a method accepts (conv3 AlexNet, hybridnet, the onnx model)" + per_method)
     parser.add_argument("--vocabulary", action="append", default=[],
                         help="DBoW vocabulary file (from `fdnet vocabulary build`)" + per_method)
+    parser.add_argument("--vectors", action="append", default=[], metavar="FILE",
+                        help="precomputed: vectors computed elsewhere, keyed by image (fdnet extract's .npz, "
+                             ".npy with a names list, hloc's .h5); repeatable, the files merge")
     parser.add_argument("--fit", action="append", default=[], metavar="[METHOD=]DIR",
                         help=f"dataset folder a method that learns from images ({', '.join(fitting_methods())}) learns from: "
                              "every condition sub-folder, no labels (default: the reference images; the output's "
@@ -41,6 +44,8 @@ def add_method_arguments(parser: argparse.ArgumentParser, multiple: bool = False
 
 
 FILE_OPTIONS = ("checkpoint", "weights", "vocabulary", "fit")
+#: options whose every value goes to the method (a list): several files merge
+LIST_OPTIONS = ("vectors",)
 #: options given as [METHOD=]VALUE that go to the methods taking them: the files plus --fit-frames
 PER_METHOD_OPTIONS = (*FILE_OPTIONS, "fit_frames")
 
@@ -92,6 +97,13 @@ def method_options(args: argparse.Namespace, method: str | None = None) -> dict:
         explicit = any(str(v).startswith(f"{method}=") for v in (getattr(args, key, None) or []))
         if value is not None and (accepted is None or key in accepted or explicit):
             options[key] = value
+    for key in LIST_OPTIONS:
+        values = getattr(args, key, None) or []
+        if values and (accepted is None or key in accepted):
+            options[key] = list(values)
+        elif values and requested and not any(key in takes(m) for m in requested):
+            raise ConfigError(f"--{key} is for --method precomputed; none of the methods {', '.join(requested)} "
+                              f"takes {key}")
     for key, value in parse_overrides(getattr(args, "method_set", [])).items():
         target, sep, setting = key.partition(":")
         if sep:
@@ -147,8 +159,8 @@ def add_device_argument(parser: argparse.ArgumentParser) -> None:
     from fdnet.backbones import DEVICE_HELP
 
     parser.add_argument("--device", default="auto", metavar="auto|cpu|cuda|cuda:N",
-                        help=DEVICE_HELP + f". Torch methods ({', '.join(torch_methods())}) run there, images "
-                             "travel to it as uint8; the numpy/OpenCV methods run on the CPU")
+                        help=DEVICE_HELP + f". Methods that run on a device ({', '.join(torch_methods())}) run "
+                             "there (the torch ones get images as uint8); the numpy/OpenCV methods run on the CPU")
 
 
 #: options whose value may be a folder of images, so also a video or ROS bag (fdnet.data.sources)

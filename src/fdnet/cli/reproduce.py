@@ -40,7 +40,10 @@ ARGUMENTS = (
                                   help="comma-separated methods (default: fdnet, trunk and every baseline; those "
                                        "that cannot run here are listed in the report with the reason)")),
     ("methods", "--weights", dict(action="append", default=[], metavar="[METHOD=]PATH",
-                                  help="weights file a method accepts (conv3 AlexNet, hybridnet), repeatable")),
+                                  help="weights file a method accepts (conv3 AlexNet, hybridnet, the onnx model), "
+                                       "repeatable")),
+    ("methods", "--vectors", dict(action="append", default=[], metavar="FILE",
+                                  help="precomputed: vectors computed elsewhere, keyed by image (repeatable)")),
     ("methods", "--vocabulary", dict(action="append", default=[], metavar="[dbow=]FILE",
                                      help="DBoW vocabulary (default: learnt from each pair's references)")),
     ("methods", "--fit", dict(action="append", default=[], metavar="[METHOD=]DIR",

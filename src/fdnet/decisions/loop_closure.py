@@ -279,7 +279,18 @@ class LoopClosureDetector:
 
     def describe(self, image) -> np.ndarray:
         """One frame's vector (``image`` as for :meth:`load`)."""
-        return np.asarray(self.descriptor.describe(self.load(image)[None]), dtype=np.float32)[0]
+        return self._vector(image, self.load(image))
+
+    def _vector(self, image, array: np.ndarray) -> np.ndarray:
+        # A descriptor of vectors computed elsewhere finds them by the frame's path.
+        keyed = getattr(self.descriptor, "keyed_by_image", False) and isinstance(image, (str, os.PathLike))
+        if keyed:
+            self.descriptor._batch_paths = [image]
+        try:
+            return np.asarray(self.descriptor.describe(array[None]), dtype=np.float32)[0]
+        finally:
+            if keyed:
+                self.descriptor._batch_paths = None
 
     def process(self, image, timestamp: float | None = None, name: str | None = None,
                 position: tuple[float, float] | None = None) -> Closure | None:
@@ -290,7 +301,7 @@ class LoopClosureDetector:
         if name is None and isinstance(image, (str, os.PathLike)):
             name = place_name(image)
         array = self.load(image)
-        vector = np.asarray(self.descriptor.describe(array[None]), dtype=np.float32)[0]
+        vector = self._vector(image, array)
         return self.process_vector(vector, timestamp=timestamp, name=name, position=position,
                                    signals=frame_signals(array[None]))
 

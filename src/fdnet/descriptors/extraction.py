@@ -63,7 +63,8 @@ def extract(descriptor, paths, out, batch_size: int = 64, workers: int | None = 
     started = time.perf_counter()
     with NpzChunkWriter(out, {name: (shape, np.float32) for name in names}) as writer:
         for _, vectors in describe_stream(descriptor, paths, batch_size, workers=workers, timing=timing,
-                                          describe=describe, progress=progress, what=f"extract [{descriptor.name}]"):
+                                          describe=describe, progress=progress, what=f"extract [{descriptor.name}]",
+                                          reads_pixels=False):
             for name, array in zip(names, vectors):
                 writer.write(name, np.asarray(array, dtype=np.float32))
         writer.close({"names": np.array([p.name for p in paths]), **frame_arrays(paths),

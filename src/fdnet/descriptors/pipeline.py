@@ -162,15 +162,23 @@ def iter_image_batches(paths: Sequence[str | os.PathLike], size: tuple[int, int]
 def describe_stream(descriptor, paths: Sequence[str | os.PathLike], batch_size: int = 64,
                     workers: int | None = None, progress: bool = False, timing: dict | None = None,
                     describe: Callable[[np.ndarray], object] | None = None,
-                    what: str | None = None) -> Iterator[tuple[int, object]]:
+                    what: str | None = None, reads_pixels: bool | None = None) -> Iterator[tuple[int, object]]:
     """Yield ``(start, vectors)`` per batch of ``paths``: ``descriptor.describe`` of the images
     (or ``describe(images)``, e.g. content and appearance vectors at once), in order.
+
+    A descriptor ``keyed_by_image`` (vectors computed elsewhere,
+    :class:`fdnet.descriptors.precomputed.PrecomputedDescriptor`) is told each batch's paths
+    while it describes; when nothing else reads the pixels (``reads_pixels`` False, or None with
+    no ``describe`` of the caller's) no image is decoded at all.
 
     ``progress`` shows a progress bar counting images with images/s (:mod:`fdnet.progress`). ``timing`` (a dict) receives
     ``seconds_describe`` (model time only: decoding overlaps with it in the workers and is
     excluded), ``seconds_wall`` and ``num_images``.
     """
     paths = list(paths)
+    keyed = bool(getattr(descriptor, "keyed_by_image", False))
+    if reads_pixels is None:
+        reads_pixels = describe is not None
     describe = describe or descriptor.describe
     device = getattr(descriptor, "device", None)
     pin = getattr(device, "type", None) == "cuda"
@@ -181,13 +189,25 @@ def describe_stream(descriptor, paths: Sequence[str | os.PathLike], batch_size: 
 
         bar = progress_bar(total=len(paths), desc=what or f"describe [{descriptor.name}]", unit="img", leave=False,
                            smoothing=0.1)
+    if keyed and not reads_pixels:
+        batches = ((start, np.empty((len(paths[start:start + batch_size]), 0, 0, 3), np.float32))
+                   for start in range(0, len(paths), batch_size))
+    else:
+        batches = iter_image_batches(paths, descriptor.input_size, batch_size, uint8=uint8, workers=workers,
+                                     pin_memory=pin)
     spent = 0.0
     t_start = time.perf_counter()
     try:
-        for start, images in iter_image_batches(paths, descriptor.input_size, batch_size, uint8=uint8,
-                                                workers=workers, pin_memory=pin):
+        for start, images in batches:
             t0 = time.perf_counter()
-            out = describe(images)
+            if keyed:
+                descriptor._batch_paths = paths[start:start + len(images)]
+                try:
+                    out = describe(images)
+                finally:
+                    descriptor._batch_paths = None
+            else:
+                out = describe(images)
             spent += time.perf_counter() - t0
             if bar is not None:
                 bar.update(len(images))

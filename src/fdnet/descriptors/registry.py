@@ -31,7 +31,8 @@ class MethodSpec:
     summary: str
     #: the :class:`fdnet.descriptors.base.Descriptor` class ``--method NAME`` builds
     descriptor: str
-    #: runs on a torch device (takes ``--device``); the others run on the CPU whatever it says
+    #: runs on a device (takes ``--device``: a torch device, or onnxruntime's CUDA provider for
+    #: ``onnx``); the others run on the CPU whatever it says
     torch: bool = False
     #: learns from images before describing (``--fit DIR``, default the reference images)
     fit: bool = False
@@ -127,6 +128,11 @@ _METHODS: dict[str, MethodSpec] = {spec.name: spec for spec in (
        presets=("default", "small", "tiny"), default_preset="default"),
     _M("hybridnet", "HybridNet conv4 (needs converted --weights)", "fdnet.descriptors.hybridnet:HybridNetDescriptor",
        torch=True),
+    _M("onnx", "any ONNX model mapping images (N, 3, H, W) to vectors (N, D), through onnxruntime (needs --weights "
+       "MODEL.onnx; preprocessing from --method-set or the model's metadata)",
+       "fdnet.descriptors.onnx_model:ONNXDescriptor", torch=True, reproduce=False),
+    _M("precomputed", "vectors computed elsewhere, looked up by image (needs --vectors FILE: fdnet extract's .npz, "
+       ".npy + names, hloc's .h5)", "fdnet.descriptors.precomputed:PrecomputedDescriptor", reproduce=False),
 )}
 
 

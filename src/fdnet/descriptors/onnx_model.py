@@ -1,0 +1,260 @@
+"""Any ONNX model that maps images to vectors as a descriptor: ``--method onnx --weights MODEL.onnx``.
+
+The best place descriptors of the day (MegaLoc, BoQ, SALAD, ...) live in their own projects and
+travel as ONNX files; run through onnxruntime here, each serves every fdnet command after the
+descriptor. The model takes one image batch, float (N, 3, H, W) (or (N, H, W, 3)) and returns
+(N, D) vectors. How images are prepared is a setting (``--method-set KEY=VALUE``), read from the
+model's metadata when it carries them (``fdnet export`` writes them; keys ``fdnet.input_size``
+etc., or the bare names), and from the graph where it is fixed:
+
+* ``input_size``: ``HxW`` (or ``[H, W]``); the graph's own when it is fixed, else required;
+* ``mean``, ``std``: per channel, applied to RGB in [0, 1] (default 0 and 1: the model gets
+  [0, 1]; ImageNet models usually want mean=[0.485,0.456,0.406] std=[0.229,0.224,0.225]);
+* ``channels``: ``rgb`` (default) or ``bgr``; ``normalise``: ``l2`` (default) or ``none``;
+* ``output``: which graph output holds the vectors (default the first).
+
+Runs on the CPU, or CUDA when onnxruntime has its CUDA provider (``--device``). The fingerprint
+covers the model's bytes and these settings, so a database or calibration made with one model
+refuses another.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from fdnet.descriptors.base import Descriptor, l2_normalize
+from fdnet.errors import ConfigError, DataError, NotAvailableError
+
+logger = logging.getLogger(__name__)
+
+CHANNEL_CHOICES = ("rgb", "bgr")
+NORMALISE_CHOICES = ("l2", "none")
+#: model metadata keys (``fdnet.KEY`` or ``KEY``) that give a setting
+METADATA_SETTINGS = ("input_size", "mean", "std", "channels", "normalise", "output")
+
+
+def _parse_size(value, where: str) -> tuple[int, int]:
+    from fdnet.data.images import check_image_size
+
+    if isinstance(value, str):
+        text = value.lower().replace(" ", "")
+        if text.startswith("["):
+            try:
+                value = json.loads(text)
+            except ValueError:
+                raise ConfigError(f"{where}: {value!r} is not HxW (e.g. 224x224)") from None
+        else:
+            parts = text.split("x")
+            if len(parts) != 2 or not all(p.isdigit() for p in parts):
+                raise ConfigError(f"{where}: {value!r} is not HxW (e.g. 224x224)")
+            value = [int(p) for p in parts]
+    return check_image_size(value, where)
+
+
+def _parse_triple(value, where: str) -> np.ndarray:
+    if isinstance(value, str):
+        try:
+            value = json.loads(value)
+        except ValueError:
+            raise ConfigError(f"{where}: {value!r} is not a number or a list of 3 numbers") from None
+    array = np.asarray(value, dtype=np.float64).reshape(-1) if not isinstance(value, bool) else np.array([])
+    if array.size == 1:
+        array = np.repeat(array, 3)
+    if array.size != 3 or not np.isfinite(array).all():
+        raise ConfigError(f"{where}: {value!r} is not a number or a list of 3 numbers")
+    return array.astype(np.float32)
+
+
+def _providers(device: str | None) -> list[str]:
+    import onnxruntime
+
+    available = onnxruntime.get_available_providers()
+    spec = (device or "auto").lower()
+    if spec == "cpu":
+        return ["CPUExecutionProvider"]
+    if spec == "auto":
+        return (["CUDAExecutionProvider"] if "CUDAExecutionProvider" in available else []) + ["CPUExecutionProvider"]
+    if spec == "cuda" or spec.startswith("cuda:"):
+        if "CUDAExecutionProvider" not in available:
+            raise ConfigError(f"--device {device}: this onnxruntime has no CUDA provider (it has "
+                              f"{', '.join(available)}); install onnxruntime-gpu, or give --device cpu")
+        return ["CUDAExecutionProvider", "CPUExecutionProvider"]
+    from fdnet.backbones import check_device_spec
+
+    check_device_spec(device, where="onnx: device")
+    return ["CPUExecutionProvider"]
+
+
+class ONNXDescriptor(Descriptor):
+    """An ONNX model's output vectors (module docstring)."""
+
+    name = "onnx"
+
+    def __init__(self, weights: str | os.PathLike | None = None, input_size=None, mean=None, std=None,
+                 channels: str | None = None, normalise: str | None = None, output: str | None = None,
+                 device: str | None = "auto"):
+        if not weights:
+            raise ConfigError("onnx: give the model with --weights MODEL.onnx")
+        try:
+            import onnxruntime
+        except ImportError:
+            raise NotAvailableError("--method onnx needs the optional extra: pip install 'fdnet[onnx]' "
+                                    "(onnxruntime)") from None
+        path = Path(weights)
+        if not path.is_file():
+            raise DataError(f"{path}: ONNX model not found")
+        try:
+            data = path.read_bytes()
+        except OSError as exc:
+            raise DataError(f"{path}: cannot read the ONNX model ({exc.strerror or exc})") from None
+        self.weights = str(path)
+        self.model_sha256 = hashlib.sha256(data).hexdigest()
+        options = onnxruntime.SessionOptions()
+        options.log_severity_level = 3  # onnxruntime's warnings are about its graph rewrites, not the user's input
+        try:
+            self.session = onnxruntime.InferenceSession(data, options, providers=_providers(device))
+        except ConfigError:
+            raise
+        except Exception as exc:  # onnxruntime raises its own classes (InvalidProtobuf, Fail, ...)
+            detail = " ".join(str(exc).split())[:200]
+            raise DataError(f"{path}: not an ONNX model onnxruntime can load ({detail})") from None
+        self.device = device or "auto"
+        metadata = self.session.get_modelmeta().custom_metadata_map or {}
+
+        def setting(key, given):
+            if given is not None:
+                return given, "given"
+            for k in (f"fdnet.{key}", key):
+                if k in metadata:
+                    return metadata[k], f"model metadata {k}"
+            return None, None
+
+        inputs = self.session.get_inputs()
+        if len(inputs) != 1:
+            raise DataError(f"{path}: the model takes {len(inputs)} inputs ({', '.join(i.name for i in inputs)}); "
+                            "a descriptor model takes one image batch")
+        self.input_name = inputs[0].name
+        shape = list(inputs[0].shape)
+        if len(shape) != 4:
+            raise DataError(f"{path}: input {self.input_name} has shape {shape}; expected an image batch "
+                            "(N, 3, H, W)")
+        if shape[1] == 3:
+            self.layout, fixed = "nchw", shape[2:4]
+        elif shape[3] == 3:
+            self.layout, fixed = "nhwc", shape[1:3]
+        else:
+            self.layout, fixed = "nchw", shape[2:4]
+        self.batch_limit = shape[0] if isinstance(shape[0], int) and shape[0] > 0 else None
+        self.input_type = inputs[0].type
+        if self.input_type not in ("tensor(float)", "tensor(float16)"):
+            raise DataError(f"{path}: input {self.input_name} is {self.input_type}; fdnet gives a model float "
+                            "images (float32 or float16)")
+        fixed = [d if isinstance(d, int) and d > 0 else None for d in fixed]
+        given_size, where = setting("input_size", input_size)
+        if given_size is not None:
+            size = _parse_size(given_size, f"onnx: input_size ({where})")
+            if all(fixed) and tuple(fixed) != size:
+                raise ConfigError(f"{path}: the graph's input is {fixed[0]}x{fixed[1]}, but input_size ({where}) "
+                                  f"says {size[0]}x{size[1]}")
+        elif all(fixed):
+            size = (int(fixed[0]), int(fixed[1]))
+        else:
+            raise ConfigError(f"{path}: the model's input size is not fixed ({shape}) and neither "
+                              "--method-set input_size=HxW nor its metadata gives one")
+        self.input_size = size
+        value, where = setting("mean", mean)
+        self.mean = _parse_triple(0.0 if value is None else value, f"onnx: mean ({where or 'default'})")
+        value, where = setting("std", std)
+        self.std = _parse_triple(1.0 if value is None else value, f"onnx: std ({where or 'default'})")
+        if (self.std == 0).any():
+            raise ConfigError("onnx: std must not be 0")
+        value, _ = setting("channels", channels)
+        self.channels = str(value or "rgb").lower()
+        if self.channels not in CHANNEL_CHOICES:
+            raise ConfigError(f"onnx: channels={value!r}; choose {' or '.join(CHANNEL_CHOICES)}")
+        value, _ = setting("normalise", normalise)
+        self.normalise = str(value or "l2").lower()
+        if self.normalise not in NORMALISE_CHOICES:
+            raise ConfigError(f"onnx: normalise={value!r}; choose {' or '.join(NORMALISE_CHOICES)}")
+        outputs = self.session.get_outputs()
+        value, where = setting("output", output)
+        names = [o.name for o in outputs]
+        if value is not None and value not in names:
+            raise ConfigError(f"onnx: output {value!r} ({where}) is not one of the model's outputs: {', '.join(names)}")
+        self.output_name = value or names[0]
+        out_shape = next(o.shape for o in outputs if o.name == self.output_name)
+        if out_shape is not None and len(out_shape) != 2:
+            raise DataError(f"{path}: output {self.output_name} has shape {out_shape}; a descriptor model returns "
+                            "(N, D) vectors")
+        self._dim = out_shape[1] if isinstance(out_shape[1], int) and out_shape[1] > 0 else None
+        if self._dim is None:  # not fixed in the graph: one blank image says
+            self._dim = int(self.describe(np.zeros((1, *self.input_size, 3), np.float32)).shape[1])
+        logger.debug("onnx model %s: input %s %s, %s, output %s (%d-d), providers %s", path, self.input_name,
+                     self.layout, self.input_size, self.output_name, self._dim, self.session.get_providers())
+
+    @property
+    def dim(self) -> int:
+        return int(self._dim)
+
+    def settings(self) -> dict:
+        return {"input_size": list(self.input_size), "weights": self.weights, "model_sha256": self.model_sha256,
+                "mean": [float(v) for v in self.mean], "std": [float(v) for v in self.std],
+                "channels": self.channels, "normalise": self.normalise, "output": self.output_name}
+
+    def fingerprint(self, *, with_locations: bool = False) -> str:
+        # The model's bytes are in model_sha256; the session holds no array the base class could hash.
+        settings = {k: v for k, v in self.settings().items() if with_locations or k != "weights"}
+        return hashlib.sha256(f"method={self.name}\n{json.dumps(settings, sort_keys=True)}".encode()).hexdigest()
+
+    def _prepare(self, images: np.ndarray) -> np.ndarray:
+        x = np.asarray(images, dtype=np.float32)
+        if self.channels == "bgr":
+            x = x[..., ::-1]
+        x = (x - self.mean) / self.std
+        if self.layout == "nchw":
+            x = x.transpose(0, 3, 1, 2)
+        x = np.ascontiguousarray(x)
+        return x.astype(np.float16) if self.input_type == "tensor(float16)" else x
+
+    def describe(self, images: np.ndarray) -> np.ndarray:
+        images = np.asarray(images)
+        step = self.batch_limit or max(1, len(images))
+        parts = []
+        for start in range(0, len(images), step):
+            chunk = self._prepare(images[start:start + step])
+            if self.batch_limit and len(chunk) < self.batch_limit:  # a graph fixed at batch B: pad the last chunk
+                chunk = np.concatenate([chunk, np.zeros((self.batch_limit - len(chunk), *chunk.shape[1:]), chunk.dtype)])
+            try:
+                out = self.session.run([self.output_name], {self.input_name: chunk})[0]
+            except Exception as exc:  # onnxruntime's own error classes
+                detail = " ".join(str(exc).split())[:200]
+                raise DataError(f"{self.weights}: the model failed on a batch of shape {list(chunk.shape)} "
+                                f"({detail})") from None
+            out = np.asarray(out)
+            if out.ndim != 2 or out.shape[0] != len(chunk):
+                raise DataError(f"{self.weights}: output {self.output_name} has shape {list(out.shape)} for "
+                                f"{len(chunk)} images; a descriptor model returns (N, D) vectors")
+            parts.append(out[:min(step, len(images) - start)].astype(np.float32))
+        vectors = np.concatenate(parts) if parts else np.zeros((0, getattr(self, "_dim", 0) or 0), np.float32)
+        if not np.isfinite(vectors).all():
+            raise DataError(f"{self.weights}: the model returned NaN or infinity")
+        return l2_normalize(vectors) if self.normalise == "l2" else vectors
+
+
+def model_metadata(input_size: Sequence[int], mean=None, std=None, channels: str = "rgb",
+                   normalise: str = "l2") -> dict[str, str]:
+    """The metadata ``fdnet export`` writes into a model so ``--method onnx`` needs no settings."""
+    out = {"fdnet.input_size": f"{int(input_size[0])}x{int(input_size[1])}", "fdnet.channels": channels,
+           "fdnet.normalise": normalise}
+    if mean is not None:
+        out["fdnet.mean"] = json.dumps([float(v) for v in mean])
+    if std is not None:
+        out["fdnet.std"] = json.dumps([float(v) for v in std])
+    return out
