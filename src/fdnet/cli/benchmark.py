@@ -36,6 +36,8 @@ def register(sub) -> None:
                         "add e.g. fdnet with --checkpoint fdnet=RUN_DIR")
     p.add_argument("--checkpoint", action="append", default=[], metavar="METHOD=RUN_DIR",
                    help="checkpoint for a trained method (repeatable)")
+    p.add_argument("--weights", action="append", default=[], metavar="METHOD=FILE",
+                   help="weights file of a method (e.g. onnx=MODEL.onnx to time any ONNX model; repeatable)")
     p.add_argument("--images", help="folder of images to time methods on (default: a synthetic route)")
     p.add_argument("--num-images", type=int, default=32, help="images per method timing (default 32)")
     p.add_argument("--map-size", default="1000",
@@ -92,6 +94,6 @@ def run(args) -> int:
         map_vectors=args.map_vectors, query_vectors=args.query_vectors, lengths=args.lengths,
         compile=args.compile == "on" or (args.compile == "auto" and args.num_images >= COMPILE_FROM),
         quick=args.quick, threads=args.threads or os.cpu_count() or 1, device=args.device, command=command,
-        loop_map_size=args.loop_map_size)
+        loop_map_size=args.loop_map_size, weights=args.weights)
     run_benchmark(plan, out=lambda line: print(line, flush=True), json_path=args.json)
     return 0

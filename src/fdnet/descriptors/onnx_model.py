@@ -125,7 +125,7 @@ class ONNXDescriptor(Descriptor):
         except Exception as exc:  # onnxruntime raises its own classes (InvalidProtobuf, Fail, ...)
             detail = " ".join(str(exc).split())[:200]
             raise DataError(f"{path}: not an ONNX model onnxruntime can load ({detail})") from None
-        self.device = device or "auto"
+        self.device = "cuda" if self.session.get_providers()[0] == "CUDAExecutionProvider" else "cpu"
         metadata = self.session.get_modelmeta().custom_metadata_map or {}
 
         def setting(key, given):

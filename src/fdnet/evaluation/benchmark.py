@@ -52,6 +52,9 @@ class BenchmarkPlan:
     device: str = "auto"
     command: str | None = None
 
+    #: weights files by method (``--weights onnx=MODEL.onnx``)
+    weights: dict[str, str] = field(default_factory=dict)
+
     @property
     def repeats(self) -> int:
         return 2 if self.quick else 5
@@ -67,7 +70,7 @@ def plan_benchmark(*, parts: str = ",".join(PARTS), methods: str = DEFAULT_METHO
                    scale_dim: int | None = None, map_vectors: str | None = None, query_vectors: str | None = None,
                    lengths: str = "256,512,1024,2048", compile: bool = False, quick: bool = False,
                    threads: int = 2, device: str = "auto", command: str | None = None,
-                   loop_map_size: str = "10000,100000,1000000") -> BenchmarkPlan:
+                   loop_map_size: str = "10000,100000,1000000", weights=()) -> BenchmarkPlan:
     """Check the command's settings as given (comma lists, ``METHOD=RUN_DIR``,
     ``KIND:KEY=VALUE``, ``KEY=V1,V2``) and return them parsed; raises ConfigError/DataError naming
     the flag."""
@@ -104,12 +107,14 @@ def plan_benchmark(*, parts: str = ",".join(PARTS), methods: str = DEFAULT_METHO
             raise DataError(f"{path}: {flag} file not found")
     if query_vectors and not map_vectors:
         raise ConfigError("--query-vectors needs --map-vectors")
-    parsed_checkpoints = {}
-    for item in checkpoints:
-        if "=" not in item:
-            raise ConfigError(f"--checkpoint {item!r}: expected METHOD=RUN_DIR")
-        method, path = item.split("=", 1)
-        parsed_checkpoints[method.strip()] = path
+    parsed_checkpoints, parsed_weights = {}, {}
+    for flag, items, parsed, what in (("--checkpoint", checkpoints, parsed_checkpoints, "RUN_DIR"),
+                                      ("--weights", weights, parsed_weights, "FILE")):
+        for item in items:
+            if "=" not in item:
+                raise ConfigError(f"{flag} {item!r}: expected METHOD={what}")
+            method, path = item.split("=", 1)
+            parsed[method.strip()] = path
     try:
         length_list = [int(v) for v in _comma_list(lengths)]
     except ValueError:
@@ -117,6 +122,7 @@ def plan_benchmark(*, parts: str = ",".join(PARTS), methods: str = DEFAULT_METHO
     from fdnet.backbones import check_device_spec
 
     return BenchmarkPlan(parts=chosen, methods=_comma_list(methods), checkpoints=parsed_checkpoints,
+                         weights=parsed_weights,
                          map_sizes=map_sizes, loop_map_sizes=loop_map_sizes, kinds=kinds, overrides=index_overrides(index_set),
                          sweep=sweeps(sweep), images=images, num_images=num_images, queries=queries, noise=noise,
                          scale_dim=scale_dim, map_vectors=map_vectors, query_vectors=query_vectors,
@@ -374,14 +380,16 @@ def _methods(plan: BenchmarkPlan, report: dict, out) -> None:
     from fdnet.descriptors import create
     from fdnet.errors import FdnetError
 
-    methods = list(plan.methods) + [m for m in plan.checkpoints if m not in plan.methods]
+    methods = list(plan.methods) + [m for m in [*plan.checkpoints, *plan.weights] if m not in plan.methods]
+    methods = list(dict.fromkeys(methods))
     out(f"\nExtraction through the descriptor interface, {plan.num_images} images, ms/image "
         f"(decoding excluded); vs SAD = SAD's time / method's; vs paper = the paper's Table 5 time / ours")
     timings = report["method_extraction_ms"] = {}
     cache = {}
     for method in methods:
         try:
-            descriptor = create(method, checkpoint=plan.checkpoints.get(method), device="cpu")
+            descriptor = create(method, checkpoint=plan.checkpoints.get(method), weights=plan.weights.get(method),
+                                device="cpu")
             size = tuple(descriptor.input_size)
             if size not in cache:
                 cache[size] = _images(plan, size)
