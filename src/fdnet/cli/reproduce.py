@@ -194,6 +194,7 @@ def run(args) -> int:
     methods = _names(args.method)
     considered = methods or list(DEFAULT_METHODS)
     others = argparse.Namespace(method=",".join(considered), weights=args.weights, vocabulary=args.vocabulary,
+                                vectors=args.vectors,
                                 fit=args.fit, fit_frames=args.fit_frames, method_set=args.method_set,
                                 checkpoint=[c for c in prefixed if not c.startswith("fdnet=")])
     options = {name: {**method_options(others, name), "device": args.device} for name in considered if name in known}
