@@ -181,3 +181,12 @@ def test_a_database_and_a_calibration_of_one_model_refuse_another(tmp_path, caps
     assert main(["match", "--reference", str(route / "day"), "--query", str(route / "dusk"), "--method", "onnx",
                  "--weights", str(a), "--calibration", str(calibration), "--out", str(tmp_path / "m.csv")]) == 0
     assert "accepted" in read_csv_rows(tmp_path / "m.csv")[0]
+
+
+def test_benchmark_times_an_onnx_model_beside_the_others(tmp_path, capsys):
+    path = export(MeanConv(), tmp_path / "m.onnx")
+    assert main(["benchmark", "--parts", "methods", "--method", "sad", "--weights", f"onnx={path}",
+                 "--num-images", "4", "--quick", "--json", str(tmp_path / "b.json")]) == 0
+    report = json.loads((tmp_path / "b.json").read_text())
+    assert report["method_extraction_ms"]["onnx"] > 0 and report["ratio_vs_sad"]["onnx"] > 0
+    assert "onnx" in capsys.readouterr().out

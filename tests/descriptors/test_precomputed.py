@@ -152,3 +152,15 @@ def test_pixel_arrays_cannot_be_looked_up(route, tmp_path):
     assert detector.process(route / "day" / "frame_000.png") is None  # a path: looked up
     with pytest.raises(DataError, match="not pixel arrays"):
         detector.process(np.zeros((24, 32, 3), np.uint8))
+
+
+def test_reproduce_compares_precomputed_vectors_with_the_method_that_made_them(route, tmp_path):
+    day, dusk = extract(route / "day", tmp_path / "day.npz"), extract(route / "dusk", tmp_path / "dusk.npz")
+    assert main(["reproduce", "--data", str(route), "--method", "precomputed,hog", "--vectors", str(day),
+                 "--vectors", str(dusk), "--experiments", "comparison", "--out", str(tmp_path / "report"),
+                 "--cache", str(tmp_path / "cache"), "--no-progress"]) == 0
+    comparison = json.loads((tmp_path / "report" / "comparison.json").read_text())
+    for pair in comparison["pairs"]:
+        by_method = {r["method"]: r for r in pair["results"]}
+        for key in ("recall_at_n", "recall_at_100_precision", "auc_pr"):
+            assert by_method["precomputed"][key] == by_method["hog"][key], key
