@@ -1,0 +1,416 @@
+"""hloc's file formats (cvg/Hierarchical-Localization): global features and retrieval pairs.
+
+**Global features** (``hloc/extract_features.py``, read by ``hloc/pairs_from_retrieval.py``):
+an HDF5 file with one group per image, named by the image's path relative to hloc's
+``image_dir`` (``db/0001.jpg`` is the group ``0001.jpg`` inside the group ``db``, as h5py's
+``create_group`` makes it), holding the dataset ``global_descriptor`` of shape (D,). hloc's
+``extract_features.main`` stores float32 arrays as float16 unless ``as_half=False`` (the
+function's default is ``as_half=True``, its command line's is float32); its retrieval reads them
+back with ``.float()``. fdnet writes float32 (no rounding of the vectors) and reads any float
+type as float32. hloc also stores ``image_size`` beside each descriptor; nothing in hloc's
+retrieval reads it, and fdnet does not write it. fdnet's files are written with HDF5's 1.8 file
+format (``libver=("v108", "v108")``): every HDF5 since 1.8 reads them, hloc's
+``libver="latest"`` readers included; the root carries the attributes ``method`` and
+``settings`` (JSON) when fdnet extracted the vectors (hloc ignores attributes of the root).
+
+**Pairs** (``hloc/pairs_from_retrieval.py`` writes them, ``hloc/utils/parsers.py``'s
+``parse_retrieval`` reads them): a text file, one ``query_name reference_name`` per line, the
+two names separated by one space, lines joined by ``\\n`` with no newline after the last one.
+hloc's parser skips empty lines, splits every other line on whitespace and needs exactly two
+names; it knows no comments (``#`` is part of a name). So an image name holding whitespace
+cannot be written at all: it is refused with the name.
+
+Files are written crash-safely: into a hidden ``.NAME.parts.*`` folder beside the target, then
+renamed over it (a crash or an error leaves the target as it was; the folder a ``kill -9`` left
+is removed by the next writer of that target, as for ``fdnet extract``'s ``.npz``).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from fdnet.errors import DataError, NotAvailableError, OutputError, output_error
+
+logger = logging.getLogger(__name__)
+
+#: the dataset of each image group that holds its global descriptor (hloc's key)
+GLOBAL_KEY = "global_descriptor"
+#: the suffixes of hloc's HDF5 files
+H5_SUFFIXES = (".h5", ".hdf5")
+#: HDF5 file format bounds of the files fdnet writes: readable by every HDF5 since 1.8
+LIBVER = ("v108", "v108")
+
+
+def require_h5py():
+    """The h5py module, or NotAvailableError saying how to install it (the ``hloc`` extra)."""
+    try:
+        import h5py
+    except ImportError:
+        raise NotAvailableError("hloc's .h5 files need the optional extra: pip install 'fdnet[hloc]' (h5py)") from None
+    return h5py
+
+
+def _locking(h5py, value):
+    """``locking=`` for h5py.File where this h5py and HDF5 support it (HDF5 >= 1.12.1)."""
+    return {"locking": value} if h5py.version.hdf5_version_tuple >= (1, 12, 1) else {}
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
+# ---------------------------------------------------------------------------------------- names
+def check_image_name(name, where) -> str:
+    """``name`` as hloc's HDF5 files hold it (a relative path with ``/``), or DataError naming
+    ``where`` (the file) and the image: empty, absolute, with an empty, ``.`` or ``..`` part, or
+    not UTF-8."""
+    name = os.fspath(name)
+    if not isinstance(name, str):
+        raise DataError(f"{where}: image name {name!r} is not text")
+    if not name:
+        raise DataError(f"{where}: an empty image name")
+    if name.startswith("/"):
+        raise DataError(f"{where}: image name {name!r} is absolute; hloc names images relative to its image_dir")
+    if any(part in ("", ".", "..") for part in name.split("/")) or "\0" in name:
+        raise DataError(f"{where}: image name {name!r} has an empty, '.' or '..' part; hloc names images by their "
+                        "plain relative path")
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError:
+        raise DataError(f"{where}: image name {ascii(name)} is not valid UTF-8; rename the file") from None
+    return name
+
+
+def check_pair_name(name, where) -> str:
+    """``name`` as hloc's pairs file can hold it: non-empty UTF-8 text without whitespace (hloc
+    splits each line on whitespace), or DataError naming ``where`` and the image."""
+    name = os.fspath(name)
+    if not isinstance(name, str) or not name:
+        raise DataError(f"{where}: an empty image name")
+    if any(c.isspace() for c in name):
+        raise DataError(f"{where}: image name {name!r} holds whitespace, which hloc's pairs file cannot hold (it splits "
+                        "each line on whitespace); rename the image")
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError:
+        raise DataError(f"{where}: image name {ascii(name)} is not valid UTF-8; rename the file") from None
+    return name
+
+
+def image_root(inputs: Sequence[str | os.PathLike]) -> Path:
+    """The folder hloc's ``image_dir`` must be for images listed from ``inputs`` (folders of
+    images, videos, ROS bags, ``BAG:TOPIC``): a folder itself, a video's or bag's parent folder
+    (its frames are ``SOURCE/FRAME``), and for several inputs the deepest folder holding them all
+    (absolute, not resolved: symbolic links keep their names, as everywhere in fdnet)."""
+    from fdnet.data.sources import is_source, split_topic
+
+    roots = []
+    for given in inputs:
+        if is_source(given):
+            source, _ = split_topic(given)
+            roots.append(os.path.dirname(os.path.abspath(source)))
+        else:
+            roots.append(os.path.abspath(os.fspath(given)))
+    try:
+        return Path(os.path.commonpath(roots))
+    except ValueError:  # Windows: different drives
+        raise DataError(f"{', '.join(map(str, inputs))}: no folder holds them all, so no image_dir can name "
+                        "their images") from None
+
+
+def relative_names(paths: Sequence[str | os.PathLike], root: str | os.PathLike) -> list[str]:
+    """Each image's path relative to ``root`` with ``/`` (hloc's image names): ``root`` from
+    :func:`image_root`. Paths are made absolute as listed, not resolved."""
+    root = os.path.abspath(os.fspath(root))
+    names = []
+    for path in paths:
+        relative = os.path.relpath(os.path.abspath(os.fspath(path)), root)
+        if relative == ".." or relative.startswith(".." + os.sep):
+            raise DataError(f"{path}: not below {root}, the folder its name would be relative to")
+        names.append(Path(relative).as_posix())
+    return names
+
+
+# ------------------------------------------------------------------------------ global features
+class GlobalFeaturesWriter:
+    """hloc's global-features HDF5 written image by image, and atomically.
+
+    ``write(names, rows)`` adds a batch (names relative to the image root, rows (n, D)); the
+    groups go straight into an HDF5 file in a hidden ``.NAME.parts.*`` folder beside ``path``, so
+    memory holds one batch whatever the number of images. :meth:`close` renames the file over
+    ``path`` (synced first); :meth:`discard`, or leaving the ``with`` block by an exception,
+    removes it and leaves ``path`` as it was. A ``with`` block left normally closes. ``attrs``
+    become attributes of the root (strings or numbers)."""
+
+    def __init__(self, path: str | os.PathLike, key: str = GLOBAL_KEY, attrs: dict | None = None):
+        import tempfile
+
+        from fdnet.descriptors.pipeline import _lock_folder, _remove_stale_parts
+        from fdnet.io import ensure_writable
+
+        h5py = self._h5py = require_h5py()
+        self.path = Path(path)
+        self.key = key
+        self.count = 0
+        self.dim: int | None = None
+        self._file = None
+        self._lock = None
+        self._closed = False
+        ensure_writable(self.path, what="global-features file")
+        self._folder = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.parts.", dir=self.path.parent))
+        try:
+            self._lock = _lock_folder(self._folder)
+            _remove_stale_parts(self.path)
+            self._tmp = self._folder / self.path.name
+            # the file sits in this process's locked folder: HDF5's own lock would add nothing
+            # but failures on file systems without locks
+            self._file = h5py.File(self._tmp, "w", libver=LIBVER, **_locking(h5py, False))
+            for name, value in (attrs or {}).items():
+                self._file.attrs[name] = value
+            self._lcpl = h5py.h5p.create(h5py.h5p.LINK_CREATE)
+            self._lcpl.set_create_intermediate_group(True)
+            self._lcpl.set_char_encoding(h5py.h5t.CSET_UTF8)
+            self._key = key.encode("utf-8")
+            self._type = h5py.h5t.py_create(np.dtype("<f4"))
+        except OSError as exc:
+            self.discard()
+            raise self._write_error(exc) from exc
+        except BaseException:
+            self.discard()
+            raise
+
+    def _write_error(self, exc: OSError) -> OutputError:
+        return output_error(f"{self.path}: cannot write it ({_one_line(exc)}); nothing was written there", exc)
+
+    def write(self, names: Sequence[str], rows) -> None:
+        """Add one group per name holding its row as ``global_descriptor`` (float32 (D,))."""
+        h5py = self._h5py
+        if self._closed or self._file is None:
+            raise ValueError(f"{self.path}: the writer is closed")
+        rows = np.ascontiguousarray(rows, dtype=np.float32)
+        names = list(names)
+        if rows.ndim != 2 or len(rows) != len(names):
+            raise ValueError(f"{len(names)} names for rows of shape {rows.shape}; expected ({len(names)}, D)")
+        if self.dim is None:
+            self.dim = int(rows.shape[1])
+            self._space = h5py.h5s.create_simple((self.dim,))
+        elif rows.shape[1] != self.dim:
+            raise ValueError(f"rows of length {rows.shape[1]} after rows of length {self.dim}")
+        fid = self._file.id
+        try:
+            for name, row in zip(names, rows):
+                name = check_image_name(name, self.path)
+                group = self._group(fid, name)
+                if group.links.exists(self._key):
+                    if h5py.h5o.get_info(group, self._key).type == h5py.h5o.TYPE_DATASET:
+                        raise DataError(f"{self.path}: image {name!r} given twice")
+                    raise DataError(f"{self.path}: image {name!r} clashes with an image in its folder "
+                                    f"{name}/{self.key}: rename one")
+                dataset = h5py.h5d.create(group, self._key, self._type, self._space)
+                dataset.write(h5py.h5s.ALL, h5py.h5s.ALL, row)
+                self.count += 1
+        except OSError as exc:
+            raise self._write_error(exc) from exc
+
+    def _group(self, fid, name: str):
+        h5py = self._h5py
+        encoded = name.encode("utf-8")
+        try:
+            return h5py.h5g.create(fid, encoded, lcpl=self._lcpl)
+        except ValueError:  # the name exists: a folder of an image written before ("a" after "a/b.jpg")
+            pass
+        try:
+            return h5py.h5g.open(fid, encoded)
+        except (KeyError, ValueError, TypeError):
+            raise DataError(f"{self.path}: image {name!r} clashes with another image's name (one of its folders is "
+                            f"a {self.key} dataset)") from None
+
+    def close(self) -> None:
+        """Finish the file and rename it over the target (synced); a second call does nothing."""
+        from fdnet.io import fsync_directory, fsync_file
+
+        if self._closed:
+            return
+        try:
+            self._file.close()
+            fsync_file(self._tmp)
+            os.replace(self._tmp, self.path)
+            fsync_directory(self.path.parent)
+        except OSError as exc:
+            raise self._write_error(exc) from exc
+        finally:
+            self.discard()
+        logger.debug("wrote %s: %d images", self.path, self.count)
+
+    def discard(self) -> None:
+        """Drop the temporary file and folder (the target is untouched)."""
+        import shutil
+
+        self._closed = True
+        if self._file is not None:
+            try:
+                self._file.close()
+            except Exception:  # noqa: BLE001 - already failing; the folder goes anyway
+                pass
+            self._file = None
+        shutil.rmtree(self._folder, ignore_errors=True)
+        if self._lock is not None:
+            os.close(self._lock)
+            self._lock = None
+
+    def __enter__(self) -> "GlobalFeaturesWriter":
+        return self
+
+    def __exit__(self, exc_type, *rest) -> None:
+        if exc_type is not None:
+            self.discard()
+        else:
+            self.close()
+
+
+def write_global_features(path: str | os.PathLike, names: list[str], vectors: np.ndarray,
+                          key: str = GLOBAL_KEY) -> None:
+    """hloc's global-features file: a group per image name holding ``key`` (float32 (D,)),
+    written atomically (:class:`GlobalFeaturesWriter`)."""
+    vectors = np.asarray(vectors)
+    if vectors.ndim != 2 or len(vectors) != len(names):
+        raise ValueError(f"{len(names)} names for vectors of shape {vectors.shape}; expected ({len(names)}, D)")
+    with GlobalFeaturesWriter(path, key=key) as writer:
+        writer.write(names, vectors)
+
+
+def _open_error(path: Path, exc: BaseException) -> DataError:
+    text = _one_line(exc)
+    if "signature not found" in text:
+        return DataError(f"{path}: not an HDF5 file")
+    if "truncated" in text:
+        return DataError(f"{path}: a truncated HDF5 file (shorter than its header says: an interrupted write or copy)")
+    return DataError(f"{path}: cannot read it as HDF5 ({text})")
+
+
+def read_global_features(path: str | os.PathLike, key: str = GLOBAL_KEY) -> tuple[list[str], np.ndarray]:
+    """Every image of hloc's global-features file and its vector: (names, (N, D) float32).
+
+    An image is a group holding a ``key`` dataset; its name is the group's path without the
+    leading ``/`` (``db/0001.jpg``). The order is h5py's visit order: depth first, the members
+    of each group in increasing byte order of their names (HDF5's name index): ``B.jpg``,
+    ``a/b.jpg``, ``a.jpg``, ``db/10.jpg``, ``db/2.jpg``; not the order they were written in
+    (hloc itself treats the names as a set). DataError, naming the file, for a missing file,
+    one that is not HDF5 or is truncated, one without any ``key`` dataset, a vector that is not
+    1-D numbers, and vectors of different lengths."""
+    h5py = require_h5py()
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: {'not a file' if path.exists() else 'no such file'}")
+    try:
+        handle = h5py.File(path, "r", **_locking(h5py, "best-effort"))
+    except (OSError, ValueError) as exc:
+        raise _open_error(path, exc) from None
+    try:
+        with handle:
+            return _read_vectors(h5py, handle, path, key)
+    except DataError:
+        raise
+    except (OSError, KeyError, ValueError, RuntimeError, TypeError) as exc:
+        raise DataError(f"{path}: cannot read it as hloc's global features ({_one_line(exc)})") from None
+
+
+def _read_vectors(h5py, handle, path: Path, key: str) -> tuple[list[str], np.ndarray]:
+    found: list[str] = []
+    members: set[str] = set()  # a few member names, to say what the file holds instead
+    suffix = "/" + key
+
+    def visit(name: str):
+        if name.endswith(suffix):
+            found.append(name)
+        elif len(members) < 6:
+            members.add(name.rpartition("/")[2])
+
+    # names only: opening every object in Python (visititems) is several times slower
+    getattr(handle, "visit_links", handle.visit)(visit)
+    if not found:
+        held = ", ".join(sorted(members)[:5]) + (", ..." if len(members) > 5 else "") if members else "nothing"
+        raise DataError(f"{path}: no image group holds a {key!r} dataset, so these are not hloc's global features "
+                        f"(the file holds {held})")
+    fid = handle.id
+    vectors = None
+    names = []
+    first = None
+    for link in found:
+        encoded = link.encode("utf-8")
+        try:
+            dataset = h5py.h5d.open(fid, encoded)
+        except KeyError:
+            if h5py.h5o.get_info(fid, encoded).type == h5py.h5o.TYPE_GROUP:
+                continue  # a folder that happens to have the key's name ("x/global_descriptor/y.jpg")
+            raise
+        name = link[:-len(suffix)]
+        shape = tuple(dataset.shape)
+        kind = dataset.dtype.kind
+        if kind not in "fiu":
+            raise DataError(f"{path}: image {name!r}: {key} holds {dataset.dtype}, not numbers")
+        if len(shape) == 2 and shape[0] == 1:
+            shape = shape[1:]
+        if len(shape) != 1:
+            raise DataError(f"{path}: image {name!r}: {key} of shape {tuple(dataset.shape)}; expected one vector (D,)")
+        if vectors is None:
+            vectors, first = np.empty((len(found), shape[0]), dtype=np.float32), name
+        elif shape[0] != vectors.shape[1]:
+            raise DataError(f"{path}: vectors of different lengths: {vectors.shape[1]} for {first!r}, {shape[0]} for "
+                            f"{name!r}")
+        dataset.read(h5py.h5s.ALL, h5py.h5s.ALL, vectors[len(names)].reshape(dataset.shape))
+        names.append(name)
+    if not names:
+        raise DataError(f"{path}: no image group holds a {key!r} dataset, so these are not hloc's global features")
+    return names, vectors[:len(names)]
+
+
+# ------------------------------------------------------------------------------------- pairs
+def write_pairs(path: str | os.PathLike, pairs: Iterable[tuple[str, str]]) -> None:
+    """hloc's pairs file: ``query reference`` per line, one space between, ``\\n`` between lines
+    and none after the last (as ``pairs_from_retrieval`` writes it), written atomically while
+    ``pairs`` streams in. A name holding whitespace is refused (DataError naming it) and nothing
+    is written."""
+    from fdnet.io import atomic_path
+
+    path = Path(path)
+    count = 0
+    with atomic_path(path) as tmp, open(tmp, "w", encoding="utf-8", newline="\n") as handle:
+        for pair in pairs:
+            query, reference = pair
+            line = f"{check_pair_name(query, path)} {check_pair_name(reference, path)}"
+            handle.write(line if count == 0 else "\n" + line)
+            count += 1
+
+
+def read_pairs(path: str | os.PathLike) -> list[tuple[str, str]]:
+    """The (query, reference) pairs of hloc's pairs file, in file order, read as hloc's
+    ``parse_retrieval`` reads them: empty lines skipped, every other line split on whitespace
+    into exactly two names (no comments: ``#`` is part of a name). DataError naming the file and
+    line for a line that is not two names (hloc would stop there too)."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: {'not a file' if path.exists() else 'no such file'}")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise DataError(f"{path}: not UTF-8 text ({_one_line(exc)}); not a pairs file") from None
+    except OSError as exc:
+        raise DataError(f"{path}: cannot read it ({exc.strerror or _one_line(exc)})") from None
+    pairs = []
+    # read_text's universal newlines, as hloc's open(path, "r"): \r\n and \r end lines too
+    for number, line in enumerate(text.rstrip("\n").split("\n"), start=1):
+        if not line:
+            continue
+        parts = line.split()
+        if len(parts) != 2:
+            shown = line if len(line) <= 80 else line[:77] + "..."
+            raise DataError(f"{path}, line {number}: {shown!r} is not two image names (query reference) separated by "
+                            "a space")
+        pairs.append((parts[0], parts[1]))
+    return pairs
