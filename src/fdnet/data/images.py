@@ -135,9 +135,9 @@ def _open(path: Path) -> Image.Image:
     try:
         img = Image.open(path)
     except (FileNotFoundError, NotADirectoryError):
-        from fdnet.data.sources import open_frame
+        from fdnet.data.frames import open_frame
 
-        img = open_frame(path)  # a frame of a video or bag (fdnet.data.sources), or None
+        img = open_frame(path)  # a frame of a video or bag (fdnet.data.frames), or None
         if img is None:
             raise
     except (Image.DecompressionBombError, Image.DecompressionBombWarning) as exc:
