@@ -92,6 +92,25 @@ def _providers(device: str | None) -> list[str]:
     return ["CPUExecutionProvider"]
 
 
+def _open_session(onnxruntime, path: Path, device: str | None):
+    """(onnxruntime session, sha256 of the model's bytes), or one DataError naming the file."""
+    if not path.is_file():
+        raise DataError(f"{path}: ONNX model not found")
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise DataError(f"{path}: cannot read the ONNX model ({exc.strerror or exc})") from None
+    options = onnxruntime.SessionOptions()
+    options.log_severity_level = 3  # onnxruntime's warnings are about its graph rewrites, not the user's input
+    providers = _providers(device)
+    try:
+        session = onnxruntime.InferenceSession(data, options, providers=providers)
+    except Exception as exc:  # onnxruntime raises its own classes (InvalidProtobuf, Fail, ...)
+        detail = " ".join(str(exc).split())[:200]
+        raise DataError(f"{path}: not an ONNX model onnxruntime can load ({detail})") from None
+    return session, hashlib.sha256(data).hexdigest()
+
+
 class ONNXDescriptor(Descriptor):
     """An ONNX model's output vectors (module docstring)."""
 
@@ -108,23 +127,8 @@ class ONNXDescriptor(Descriptor):
             raise NotAvailableError("--method onnx needs the optional extra: pip install 'fdnet[onnx]' "
                                     "(onnxruntime)") from None
         path = Path(weights)
-        if not path.is_file():
-            raise DataError(f"{path}: ONNX model not found")
-        try:
-            data = path.read_bytes()
-        except OSError as exc:
-            raise DataError(f"{path}: cannot read the ONNX model ({exc.strerror or exc})") from None
         self.weights = str(path)
-        self.model_sha256 = hashlib.sha256(data).hexdigest()
-        options = onnxruntime.SessionOptions()
-        options.log_severity_level = 3  # onnxruntime's warnings are about its graph rewrites, not the user's input
-        try:
-            self.session = onnxruntime.InferenceSession(data, options, providers=_providers(device))
-        except ConfigError:
-            raise
-        except Exception as exc:  # onnxruntime raises its own classes (InvalidProtobuf, Fail, ...)
-            detail = " ".join(str(exc).split())[:200]
-            raise DataError(f"{path}: not an ONNX model onnxruntime can load ({detail})") from None
+        self.session, self.model_sha256 = _open_session(onnxruntime, path, device)
         self.device = "cuda" if self.session.get_providers()[0] == "CUDAExecutionProvider" else "cpu"
         metadata = self.session.get_modelmeta().custom_metadata_map or {}
 
