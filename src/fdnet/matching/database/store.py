@@ -15,17 +15,36 @@ from typing import Callable, Iterable, Iterator, Sequence
 import numpy as np
 
 from fdnet.errors import ConfigError, DataError
-from fdnet.matching.database.identity import _check_descriptor, _check_fingerprint, _Identity, _index_settings, _read_identity
+from fdnet.matching.database.identity import (
+    _check_descriptor,
+    _check_fingerprint,
+    _Identity,
+    _index_settings,
+    _read_identity,
+)
 from fdnet.matching.database.index_cache import IndexCache
+from fdnet.matching.database.places import insert_rows, names_present, prepare_batch
 from fdnet.matching.database.storage import (
-    _TABLES, _SCHEMA, APPLICATION_ID, MEMORY, SCHEMA_VERSION, _canonical_json, _check_header, _connect,
-    _connect_read_only, _describe_foreign, _is_fdnet_database, _read_only_storage, _sqlite_errors, _transaction,
-    check_can_create, check_place_names, refuse_old_format)
+    _SCHEMA,
+    _TABLES,
+    APPLICATION_ID,
+    MEMORY,
+    SCHEMA_VERSION,
+    _canonical_json,
+    _check_header,
+    _connect,
+    _connect_read_only,
+    _describe_foreign,
+    _is_fdnet_database,
+    _read_only_storage,
+    _sqlite_errors,
+    _transaction,
+    check_can_create,
+    refuse_old_format,
+)
 from fdnet.matching.index import IndexSettings, VectorIndex
 from fdnet.matching.similarity import top_k
 
-#: Stay well under SQLite's limit on bound parameters per statement.
-_NAMES_PER_QUERY = 500
 #: Rows read from the file per fetch while loading places (bounded memory besides the index).
 _ROWS_PER_FETCH = 65536
 
@@ -264,7 +283,7 @@ class PlaceDatabase:
     def existing_names(self, names: Sequence[str]) -> set[str]:
         """Which of ``names`` the database already holds (to skip describing them again)."""
         with _sqlite_errors(self.path, "looking up place names"):
-            return _names_present(self._conn, [str(n) for n in names])
+            return names_present(self._conn, [str(n) for n in names])
 
     def add(self, vectors: np.ndarray, names: Sequence[str],
             positions: Sequence[tuple[float, float] | None] | np.ndarray | None = None, *,
@@ -327,48 +346,7 @@ class PlaceDatabase:
         """Check a batch completely before the transaction starts, so a refusal changes nothing."""
         if fingerprint is not None:
             _check_fingerprint(self.path, self._identity, fingerprint, None)
-        try:
-            v = np.asarray(vectors, dtype=np.float32)
-        except (TypeError, ValueError) as exc:
-            raise ConfigError(f"{self.path}: vectors are not a numeric array ({exc})") from None
-        if v.ndim != 2 or v.shape[1] != self.dim:
-            raise ConfigError(f"{self.path}: holds {self.dim}-d vectors ({self.method}), got shape {v.shape}")
-        if names is None or len(names) != len(v):
-            raise ConfigError(f"{self.path}: {len(v)} vectors but {0 if names is None else len(names)} names")
-        names = [str(n) for n in names]
-        check_place_names(names)
-        bad = np.flatnonzero(~np.isfinite(v).all(axis=1))
-        if len(bad):
-            listed = ", ".join(names[i] for i in bad[:5]) + (f" and {len(bad) - 5} more" if len(bad) > 5 else "")
-            raise DataError(f"{self.path}: refusing {len(bad)} non-finite vector(s) (NaN or inf) for {listed}; "
-                            "nothing was added (a NaN place can never be matched)")
-        xs: list[float | None] = [None] * len(v)
-        ys: list[float | None] = [None] * len(v)
-        if positions is not None:
-            if len(positions) != len(v):
-                raise ConfigError(f"{self.path}: {len(v)} vectors but {len(positions)} positions")
-            for i, p in enumerate(positions):
-                if p is None:
-                    continue
-                try:
-                    x, y = (float(c) for c in p)
-                except (TypeError, ValueError):
-                    raise ConfigError(f"{self.path}: position of {names[i]} must be (x, y), got {p!r}") from None
-                if not (np.isfinite(x) and np.isfinite(y)):
-                    raise ConfigError(f"{self.path}: position of {names[i]} is not finite: {p!r}")
-                xs[i], ys[i] = x, y
-        texts: list[str | None] = [None] * len(v)
-        if metadata is not None:
-            if len(metadata) != len(v):
-                raise ConfigError(f"{self.path}: {len(v)} vectors but {len(metadata)} metadata entries")
-            for i, meta in enumerate(metadata):
-                if meta is not None:
-                    if not isinstance(meta, dict):
-                        raise ConfigError(f"{self.path}: metadata of {names[i]} must be a dict, got "
-                                          f"{type(meta).__name__}")
-                    texts[i] = _canonical_json(meta, f"{self.path}: metadata of {names[i]}")
-        blobs = [row.tobytes() for row in v.astype("<f4", copy=False)]
-        return {"names": names, "x": xs, "y": ys, "metadata": texts, "blobs": blobs}
+        return prepare_batch(self.path, self.dim, self.method, vectors, names, positions, metadata)
 
     def _check_same_database(self, conn: sqlite3.Connection) -> None:
         row = conn.execute("SELECT database_id FROM fdnet_database").fetchone()
@@ -385,23 +363,7 @@ class PlaceDatabase:
         return AddResult(added, skipped, int(total), int(version))
 
     def _insert_rows(self, conn: sqlite3.Connection, batch: dict, allow_duplicates: bool) -> tuple[int, list[str]]:
-        """Insert a prepared batch (inside the caller's transaction): (places added, names skipped)."""
-        names = batch["names"]
-        keep = list(range(len(names)))
-        skipped: list[str] = []
-        if not allow_duplicates:
-            present = _names_present(conn, names)
-            keep = []
-            for i, name in enumerate(names):
-                if name in present:
-                    skipped.append(name)
-                else:
-                    keep.append(i)
-                    present.add(name)  # a name twice in one batch is a duplicate too
-        conn.executemany("INSERT INTO places (name, x, y, metadata, vector) VALUES (?, ?, ?, ?, ?)",
-                         [(names[i], batch["x"][i], batch["y"][i], batch["metadata"][i], batch["blobs"][i])
-                          for i in keep])
-        return len(keep), skipped
+        return insert_rows(conn, batch, allow_duplicates)
 
     # ------------------------------------------------------------------ reading
     @property
@@ -595,14 +557,3 @@ class PlaceDatabase:
             "schema_version": int(schema), "data_version": int(version), "journal_mode": journal,
             "created": ident.created, "fdnet_version": ident.fdnet_version,
         }
-
-
-def _names_present(conn: sqlite3.Connection, names: Sequence[str]) -> set[str]:
-    unique = list(dict.fromkeys(names))
-    found: set[str] = set()
-    for start in range(0, len(unique), _NAMES_PER_QUERY):
-        chunk = unique[start:start + _NAMES_PER_QUERY]
-        marks = ", ".join("?" * len(chunk))
-        found.update(r[0] for r in conn.execute(f"SELECT DISTINCT name FROM places WHERE name IN ({marks})", chunk))
-    return found
-
