@@ -164,3 +164,25 @@ def test_reproduce_compares_precomputed_vectors_with_the_method_that_made_them(r
         by_method = {r["method"]: r for r in pair["results"]}
         for key in ("recall_at_n", "recall_at_100_precision", "auc_pr"):
             assert by_method["precomputed"][key] == by_method["hog"][key], key
+
+
+def test_hlocs_global_features_are_looked_up_by_their_relative_names(route, tmp_path, capsys):
+    pytest.importorskip("h5py", reason="optional extra fdnet[hloc] not installed")
+    from fdnet.descriptors.base import describe_paths
+    from fdnet.descriptors.hloc_formats import write_global_features
+
+    paths = sorted((route / "day").glob("*.png")) + sorted((route / "dusk").glob("*.png"))
+    vectors = describe_paths(create("hog"), paths, workers=0)
+    h5 = tmp_path / "global-feats-hog.h5"
+    write_global_features(h5, [f"{p.parent.name}/{p.name}" for p in paths], vectors)  # relative to route/
+    assert evaluate(route, tmp_path, "h5", "--method", "precomputed", "--vectors", str(h5)) == \
+        evaluate(route, tmp_path, "own", "--method", "hog")
+
+    truncated = tmp_path / "truncated.h5"
+    truncated.write_bytes(h5.read_bytes()[: h5.stat().st_size // 2])
+    capsys.readouterr()
+    assert main(["match", "--reference", str(route / "day"), "--query", str(route / "dusk"), "--method",
+                 "precomputed", "--vectors", str(truncated), "--out", str(tmp_path / "m.csv")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("fdnet match: error: ") and str(truncated) in err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1
