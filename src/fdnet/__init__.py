@@ -10,7 +10,7 @@ Quick use::
     vectors = model.describe(images)           # (N, H, W, C) float32 in [0, 1] -> (N, L)
 """
 
-__version__ = "0.1.0"
+from fdnet.version import __version__
 
 __all__ = ["load", "__version__"]
 

@@ -13,7 +13,7 @@ import importlib.util
 import shlex
 import sys
 
-from fdnet import __version__
+from fdnet.version import __version__
 from fdnet.errors import FdnetError
 from fdnet.logs import command_logging, level_for
 

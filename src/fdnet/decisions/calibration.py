@@ -278,7 +278,7 @@ def calibrate(descriptor, split, spec: AcceptanceSpec | str, target_precision: f
     every combination is scored on the same candidates (retrieved once, as deep as the deepest
     needs) and the one whose threshold reaches the target with the largest recall is kept (ties:
     the first listed); the recall of every combination is recorded in ``measured_on``."""
-    from fdnet import __version__
+    from fdnet.version import __version__
     from fdnet.evaluation.experiment import evaluate_method
 
     target = check_target(target_precision)

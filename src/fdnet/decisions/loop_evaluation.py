@@ -106,7 +106,7 @@ def calibrate_decisions(decisions: Sequence[FrameDecision], ground_truth, detect
     own recent past (docs/loop-closure.md)."""
     from datetime import datetime, timezone
 
-    from fdnet import __version__
+    from fdnet.version import __version__
     from fdnet.decisions.calibration import Calibration, check_target, choose_threshold
 
     target = check_target(target_precision)

@@ -219,7 +219,7 @@ def run_benchmark(plan: BenchmarkPlan, out: Callable[[str], None], json_path: st
     (and writes them to ``json_path`` as JSON, atomically, when given: checked writable first)."""
     import torch
 
-    from fdnet import __version__
+    from fdnet.version import __version__
     from fdnet.backbones import resolve_device
     from fdnet.evaluation import timing
     from fdnet.io import ensure_writable

@@ -93,7 +93,7 @@ def results_json(results: Sequence[MethodResult], protocol: str | None = None,
     result its per-query ``predictions``: the query's index and name, its ``predictions`` best
     reference indices (and names; :func:`fdnet.data.images.image_name`) with their scores and
     whether each is correct."""
-    from fdnet import __version__
+    from fdnet.version import __version__
 
     objects = []
     for r in results:

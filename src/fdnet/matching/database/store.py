@@ -160,7 +160,7 @@ class PlaceDatabase:
         _index_settings(json.loads(index_json), "index settings", ConfigError)
         settings_json = _canonical_json(descriptor.settings(), f"{descriptor.name} settings")
         options_json = _canonical_json(dict(method_options or {}), "method_options")
-        from fdnet import __version__
+        from fdnet.version import __version__
 
         identity = _Identity(
             database_id=uuid.uuid4().hex, method=descriptor.name, settings=json.loads(settings_json),
