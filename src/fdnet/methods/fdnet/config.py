@@ -109,6 +109,24 @@ class LossConfig:
     #: images of one condition. L_e^adv is free to change how conditions relate; L_s asks it not to
     #: take out what tells places within a condition apart. Label-free: it uses condition labels only
     structure_weight: float = 0.0
+    #: ablation switches (``fdnet reproduce --experiments ablation``; docs/runs.md says what each
+    #: removes per preset). Unlike a weight of 0, False removes the part from every stage: it is
+    #: never computed, never logged and nothing is stepped for it.
+    #: ``adversarial``: no critic D_a and no L_e^adv: D_a is never updated (its weights stay as
+    #: initialised), the critic pretraining stage is skipped (the run has
+    #: schedule.pretrain_critic_steps fewer steps; the encoders/decoder get as many updates), and
+    #: a joint step is one encoder/decoder update on L_r and L_a alone (L_s, which only acts with
+    #: L_e^adv, is refused with it)
+    adversarial: bool = True
+    #: ``appearance_triplet``: no L_a in any stage; E_a then learns only through the decoder (L_r)
+    appearance_triplet: bool = True
+    #: ``reconstruction``: no L_r and no decoder pass in any stage (the decoder is never updated);
+    #: the auto-encoder stage trains E_a on L_a alone, and is skipped when L_a is off there too
+    reconstruction: bool = True
+
+
+#: the ablation switches of :class:`LossConfig` (``loss.<name>``), in the order the docs list them
+ABLATION_SWITCHES = ("adversarial", "appearance_triplet", "reconstruction")
 
 
 @dataclass
@@ -149,15 +167,26 @@ class FDNetRunConfig:
     validation: ValidationConfig = field(default_factory=ValidationConfig)
 
     @property
+    def stage_steps(self) -> tuple[int, int, int]:
+        """Steps the run takes in each stage (auto-encoder, critic, joint): the schedule's, less a
+        stage the ablation switches leave with nothing to train (the critic stage without
+        ``loss.adversarial``; the auto-encoder stage without L_r and without L_a there)."""
+        s, loss = self.schedule, self.loss
+        autoencoder = s.pretrain_autoencoder_steps if (
+            loss.reconstruction or (loss.appearance_triplet and loss.appearance_in_pretraining)) else 0
+        critic = s.pretrain_critic_steps if loss.adversarial else 0
+        return autoencoder, critic, s.joint_steps
+
+    @property
     def total_steps(self) -> int:
-        s = self.schedule
-        return s.pretrain_autoencoder_steps + s.pretrain_critic_steps + s.joint_steps
+        return sum(self.stage_steps)
 
     def with_total_steps(self, steps: int) -> "FDNetRunConfig":
         """``steps`` in all (``fdnet train --steps``): the joint stage takes what the pretraining
         stages leave."""
         s = self.schedule
-        pretraining = s.pretrain_autoencoder_steps + s.pretrain_critic_steps
+        autoencoder, critic, _ = self.stage_steps
+        pretraining = autoencoder + critic
         if steps < pretraining:
             raise ConfigError(f"--steps {steps}: FDNet's pretraining stages alone take {pretraining} steps "
                               f"(schedule.pretrain_autoencoder_steps {s.pretrain_autoencoder_steps} + "
@@ -167,12 +196,16 @@ class FDNetRunConfig:
 
     def stage_at(self, step: int) -> str:
         """Stage of (0-based) ``step``: "autoencoder", "critic" or "joint"."""
-        s = self.schedule
-        if step < s.pretrain_autoencoder_steps:
+        autoencoder, critic, _ = self.stage_steps
+        if step < autoencoder:
             return "autoencoder"
-        if step < s.pretrain_autoencoder_steps + s.pretrain_critic_steps:
+        if step < autoencoder + critic:
             return "critic"
         return "joint"
+
+    def ablated(self) -> list[str]:
+        """The parts the ablation switches remove, by switch name (empty for the full method)."""
+        return [name for name in ABLATION_SWITCHES if not getattr(self.loss, name)]
 
 
 def _paper() -> FDNetRunConfig:
@@ -336,9 +369,15 @@ def validate(config: FDNetRunConfig) -> None:
     for name in ("reconstruction_weight", "appearance_weight", "adversarial_weight", "triplet_margin",
                  "gradient_penalty_weight", "structure_weight"):
         check_finite(f"loss.{name}", getattr(config.loss, name))
+    if not (config.loss.adversarial or config.loss.appearance_triplet or config.loss.reconstruction):
+        raise ConfigError("loss.adversarial, loss.appearance_triplet and loss.reconstruction are all false: "
+                          "nothing would be trained; keep at least one")
+    if not config.loss.adversarial and config.loss.structure_weight > 0:
+        raise ConfigError("loss.structure_weight > 0 needs loss.adversarial=true (L_s only acts beside L_e^adv); "
+                          "set loss.structure_weight=0 to train without the critic")
     if not (0.0 <= config.optim.beta1 < 1.0 and 0.0 <= config.optim.beta2 < 1.0):
         raise ConfigError(f"optim.beta1/beta2 must lie in [0, 1), got {config.optim.beta1}, {config.optim.beta2}")
 
 
-__all__ = ["FDNetRunConfig", "FDNetDataConfig", "DataConfig", "ScheduleConfig", "LossConfig", "OptimConfig", "RuntimeConfig",
+__all__ = ["ABLATION_SWITCHES", "FDNetRunConfig", "FDNetDataConfig", "DataConfig", "ScheduleConfig", "LossConfig", "OptimConfig", "RuntimeConfig",
            "ValidationConfig", "PRESETS", "preset", "apply_yaml", "validate", "to_dict"]

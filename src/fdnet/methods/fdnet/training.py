@@ -12,6 +12,12 @@ Stages, one after the other, counted in mini-batches ("steps"):
    vectors (or one batch each, ``schedule.critic_fresh_batches``), and the encoder/decoder update
    draws a batch of its own.
 
+Ablation switches (``loss.adversarial``, ``loss.appearance_triplet``, ``loss.reconstruction``;
+:class:`~fdnet.methods.fdnet.config.LossConfig`) remove a part from every stage: its loss is never
+computed (nor the forward passes only it needs), its column is left out of ``log.csv``, and
+without the critic D_a is never stepped and the critic stage is skipped
+(:attr:`FDNetRunConfig.stage_steps`). A resumed run keeps the switches it started with.
+
 What the checkpoint needs beyond weights and Adam states (the loop saves torch's global RNG,
 used by dropout): the sampler's generator and the conditions trained on.
 
@@ -36,7 +42,8 @@ import torch
 
 from fdnet.config import replace_dotted
 from fdnet.errors import ConfigError
-from fdnet.methods.fdnet.config import FDNetRunConfig, synthetic_option, synthetic_option_text, validate
+from fdnet.methods.fdnet.config import (ABLATION_SWITCHES, FDNetRunConfig, synthetic_option, synthetic_option_text,
+                                        validate)
 from fdnet.methods.fdnet.model import TRUNK_HEADS, FDNet
 from fdnet.methods.fdnet import losses
 from fdnet.training.distributed import loss_text
@@ -105,6 +112,8 @@ class FDNetTraining(TrainingMethod):
         self.block_selection: dict[str, dict[str, float]] = {}
         #: what the projection head's closed-form start found (content_fit.ProjectionFit.report)
         self.projection_fit: dict = {}
+        #: log.csv's loss columns: those of the parts the ablation switches leave
+        self.log_columns = tuple(c for c in type(self).log_columns if c not in removed_columns(config))
 
     # ------------------------------------------------------------------ loop interface
     def modules(self) -> dict[str, torch.nn.Module]:
@@ -232,17 +241,29 @@ class FDNetTraining(TrainingMethod):
 
     def _autoencoder_update(self, step: int, adversarial: bool, appearance: bool,
                             target: torch.Tensor | None = None) -> dict[str, float]:
+        """One update of E_c, E_a and the decoder on the terms asked for (``adversarial``: L_e^adv,
+        ``appearance``: L_a) that the ablation switches leave, plus L_r unless it is switched off.
+        Only the passes those terms need are computed; with no term left nothing is updated."""
         model, cfg = self.model, self.config
+        adversarial = adversarial and cfg.loss.adversarial
+        appearance = appearance and cfg.loss.appearance_triplet
+        rebuild = cfg.loss.reconstruction
+        if not (adversarial or appearance or rebuild):
+            return {}
         target = self._batch() if target is None else target
         # the trunk heads keep the trunk's information by construction; only L_e^adv moves them
         trunk_head = cfg.model.content_head in TRUNK_HEADS
+        total = torch.zeros((), device=self.device)
+        out: dict[str, float] = {}
         with _autocast(cfg, self.device):
-            content = model.content_encoder(target)
-            appearance_vec = model.appearance_encoder(target)
-            reconstruction = model.decoder(content.detach() if trunk_head else content, appearance_vec)
-        rec = losses.reconstruction_loss(target, reconstruction, cfg.loss.reconstruction_reduction)
-        total = cfg.loss.reconstruction_weight * rec
-        out = {"reconstruction": float(rec.detach())}
+            content = model.content_encoder(target) if (rebuild or adversarial) else None
+            appearance_vec = model.appearance_encoder(target) if (rebuild or appearance) else None
+            reconstruction = model.decoder(content.detach() if trunk_head else content, appearance_vec) \
+                if rebuild else None
+        if rebuild:
+            rec = losses.reconstruction_loss(target, reconstruction, cfg.loss.reconstruction_reduction)
+            total = total + cfg.loss.reconstruction_weight * rec
+            out["reconstruction"] = float(rec.detach())
         if appearance:
             app_vectors = appearance_vec.float()
             if cfg.loss.triplet_vectors == "l2":
@@ -284,6 +305,8 @@ class FDNetTraining(TrainingMethod):
         self._set_lr(stage)
         self.model.train()
         out: dict[str, float] = {}
+        # without the critic (loss.adversarial=false) there is no critic stage and no D_a update
+        critic_updates = self.config.schedule.critic_updates_per_step if self.config.loss.adversarial else 0
         if stage == "autoencoder":
             out.update(self._autoencoder_update(step, adversarial=False,
                                                 appearance=self.config.loss.appearance_in_pretraining))
@@ -292,20 +315,45 @@ class FDNetTraining(TrainingMethod):
         elif self.config.schedule.one_batch_per_step:
             batch = self._batch()
             out.update(self._autoencoder_update(step, adversarial=True, appearance=True, target=batch))
-            content = self._critic_features(batch)
-            for _ in range(self.config.schedule.critic_updates_per_step):
-                out.update(self._critic_update(content))
+            if critic_updates:
+                content = self._critic_features(batch)
+                for _ in range(critic_updates):
+                    out.update(self._critic_update(content))
         else:
             # The D_a updates of one step share one batch's content vectors (each draws new
             # pairs), or take a batch each with schedule.critic_fresh_batches: one encoder
             # forward instead of several is ~20% of a step on a 2-core CPU.
             content = None
-            for _ in range(self.config.schedule.critic_updates_per_step):
+            for _ in range(critic_updates):
                 if content is None or self.config.schedule.critic_fresh_batches:
                     content = self._critic_features()
                 out.update(self._critic_update(content))
             out.update(self._autoencoder_update(step, adversarial=True, appearance=True))
         return out
+
+
+#: log.csv's columns that belong to each ablation switch's part
+ABLATED_COLUMNS = {"adversarial": ("encoder_adversarial", "structure", "critic", "wasserstein"),
+                   "appearance_triplet": ("appearance",), "reconstruction": ("reconstruction",)}
+
+
+def removed_columns(config: FDNetRunConfig) -> set[str]:
+    """The loss columns a run with ``config``'s ablation switches never logs."""
+    return {column for name in config.ablated() for column in ABLATED_COLUMNS[name]}
+
+
+def ablation_text(config: FDNetRunConfig) -> str:
+    """What the ablation switches remove from this run, in words (empty for the full method)."""
+    trunk_head = config.model.content_head in TRUNK_HEADS
+    parts = {
+        "adversarial": "no critic D_a and no L_e^adv (D_a stays as initialised, the critic stage is skipped"
+                       + ("; the content head, which only L_e^adv moves, stays at its start)" if trunk_head else ")"),
+        "appearance_triplet": "no L_a (" + ("E_a learns only through the decoder's L_r)" if config.loss.reconstruction
+                                            else "E_a is never updated)"),
+        "reconstruction": "no L_r (the decoder is never updated"
+                          + (")" if trunk_head else "; E_c learns from L_e^adv alone)"),
+    }
+    return "; ".join(f"loss.{name}=false: {parts[name]}" for name in config.ablated())
 
 
 def content_vectors(model: FDNet, images: torch.Tensor, device: torch.device, bf16: bool = False,
@@ -401,6 +449,23 @@ def _chosen_when_started(config: FDNetRunConfig, run_dir) -> FDNetRunConfig:
     return replace_dotted(config, {"model.backbone_block": block, "data.synthetic_conditions": list(option)})
 
 
+def _same_ablation(config: FDNetRunConfig, run_dir) -> None:
+    """A resumed run keeps the ablation switches it started with (even with ``--override``): a
+    switch changes the stages and the losses logged, so the run would be neither variant."""
+    from fdnet import runs
+    from fdnet.training import distributed
+
+    if not distributed.current().is_main or not runs.is_run(run_dir):
+        return  # rank 0 alone reads the run directory; the loop says what is wrong with resuming it
+    saved = runs.load_config(run_dir, FDNetRunConfig)
+    changed = [f"loss.{name}: saved {str(getattr(saved.loss, name)).lower()}, requested "
+               f"{str(getattr(config.loss, name)).lower()}"
+               for name in ABLATION_SWITCHES if getattr(saved.loss, name) != getattr(config.loss, name)]
+    if changed:
+        raise ConfigError(f"{run_dir}: a run keeps the ablation switches it started with ({'; '.join(changed)}); "
+                          "train the other variant into a new run directory")
+
+
 def train(config: FDNetRunConfig, run_dir, resume: bool = False, override: bool = False,
           max_minutes: float | None = None, progress: bool = True, command: str = "fdnet train") -> dict:
     """Train FDNet as ``config`` says into ``run_dir`` (what ``fdnet train`` calls)."""
@@ -410,6 +475,11 @@ def train(config: FDNetRunConfig, run_dir, resume: bool = False, override: bool 
     validate(config)  # settings errors before any image is read
 
     def build():
+        if resume:
+            _same_ablation(config, run_dir)
+        if config.ablated():
+            autoencoder, critic, joint = config.stage_steps
+            log.info(f"ablation: {ablation_text(config)}; stages of {autoencoder} + {critic} + {joint} steps")
         candidates = start_candidates(config)
         run_config = _chosen_when_started(config, run_dir) if resume and len(candidates) > 1 else config
         real = load_training_images(replace_dotted(config, {"data.synthetic_conditions": []}))
