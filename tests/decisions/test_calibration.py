@@ -9,10 +9,10 @@ from PIL import Image
 from fdnet.data.dataset import RouteDataset
 from fdnet.data.split import aligned_split
 from fdnet.decisions.acceptance import Candidates, parse_acceptance
+from fdnet.tasks.calibrate import calibrate
 from fdnet.decisions.calibration import (
     Calibration,
     apply_threshold,
-    calibrate,
     check_target,
     choose_threshold,
     load_calibration,

@@ -4,7 +4,7 @@ validation pair, and store it for `fdnet match` and `fdnet database query`.
 Runs the method on the pair (the same split options as `fdnet evaluate`), scores every query with
 the acceptance rule (``--accept``, ``--accept-set``; on sequence scores with
 ``--sequence-length``), and keeps the threshold with the largest recall whose precision reaches
-``--target-precision`` (:func:`fdnet.decisions.calibration.calibrate`). The result (rule,
+``--target-precision`` (:func:`fdnet.tasks.calibrate.calibrate`). The result (rule,
 settings, threshold, target, precision and recall reached, what it was measured on, method and
 descriptor fingerprint) goes to ``--out FILE.yaml``, to ``calibration.yaml`` in the run directory
 of ``--checkpoint`` (``--store-in-run``) and/or into a place database (``--db``); at least one.
@@ -155,7 +155,8 @@ def run(args) -> int:
 
     from fdnet.cli.common import check_pipeline_arguments, create_descriptor, method_options
     from fdnet.cli.evaluate import split_from_arguments
-    from fdnet.decisions.calibration import CALIBRATION_FILE, calibrate, check_target
+    from fdnet.decisions.calibration import CALIBRATION_FILE, check_target
+    from fdnet.tasks.calibrate import calibrate
     from fdnet.errors import ConfigError
     from fdnet.io import ensure_writable
 
