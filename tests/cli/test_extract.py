@@ -143,3 +143,99 @@ def test_a_runs_recorded_method_is_used_or_named(tmp_path, capsys):
     assert main(["evaluate", "--data", str(data), "--reference", "day", "--query", "night", "--method", "fdnet",
                  "--checkpoint", str(run)]) == 2
     assert f"{run}: a run of `fdnet train calc`, not of fdnet: give --method calc" in capsys.readouterr().err
+
+
+def test_extract_h5_holds_the_npz_vectors_as_hlocs_global_features(tmp_path, capsys):
+    """`--format h5`: the place descriptor (FDNet's content) per image, named relative to --images
+    (hloc's image_dir), equal to the .npz extract's; streamed in batches, nothing left beside it."""
+    import numpy as np
+
+    from fdnet.descriptors.hloc_formats import read_global_features
+
+    run = _tiny_run(tmp_path / "run")
+    images = _images(tmp_path / "images", 13)
+    common = ["--checkpoint", str(run), "--images", str(images), "--fp32", "--batch-size", "4", "--workers", "1",
+              "--device", "cpu", "--no-progress"]
+    assert main(["extract", *common, "--out", str(tmp_path / "v.npz")]) == 0
+    assert main(["extract", *common, "--format", "h5", "--out", str(tmp_path / "v.h5")]) == 0
+    printed = capsys.readouterr().out
+    assert f"13 images -> {tmp_path / 'v.h5'} (fdnet: content as hloc's global_descriptor" in printed
+    assert f"relative to {images} (hloc's image_dir)" in printed
+    names, vectors = read_global_features(tmp_path / "v.h5")
+    with np.load(tmp_path / "v.npz", allow_pickle=False) as z:
+        npz_names, content = [str(n) for n in z["names"]], z["content"]
+    assert sorted(names) == sorted(npz_names) and "frame_2.png" in names
+    order = [npz_names.index(n) for n in names]
+    np.testing.assert_array_equal(vectors, content[order])
+    assert vectors.dtype == np.float32
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["images", "run", "v.h5", "v.npz"]
+
+
+def test_extract_format_follows_the_suffix_and_a_mismatch_is_refused(tmp_path, capsys):
+    from fdnet.descriptors.hloc_formats import read_global_features
+
+    images = _images(tmp_path / "images", 3)
+    common = ["--method", "sad", "--images", str(images), "--workers", "0", "--no-progress"]
+    assert main(["extract", *common, "--out", str(tmp_path / "v.hdf5")]) == 0  # h5, from the suffix
+    assert read_global_features(tmp_path / "v.hdf5")[0] == ["frame_0.png", "frame_1.png", "frame_2.png"]
+    assert main(["extract", *common, "--format", "h5", "--out", str(tmp_path / "w")]) == 0
+    assert (tmp_path / "w.h5").is_file()
+    capsys.readouterr()
+    for given, out in (("h5", "x.npz"), ("npz", "x.h5")):
+        assert main(["extract", *common, "--format", given, "--out", str(tmp_path / out)]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"fdnet extract: error: --format {given} --out {tmp_path / out}: the file name says")
+        assert err.count("\n") == 1 and "Traceback" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["images", "v.hdf5", "w.h5"]
+
+
+def test_extract_h5_stops_at_an_unreadable_image_and_leaves_nothing(tmp_path, capsys):
+    images = _images(tmp_path / "images", 9)
+    (images / "frame_6.png").write_bytes(b"broken")
+    out = tmp_path / "v.h5"
+    out.write_bytes(b"the old file")
+    assert main(["extract", "--method", "sad", "--images", str(images), "--format", "h5", "--out", str(out),
+                 "--batch-size", "2", "--workers", "1", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("fdnet extract: error: ") and "frame_6.png" in err and err.count("\n") == 1
+    assert out.read_bytes() == b"the old file"  # untouched, and no temporary beside it
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["images", "v.h5"]
+
+
+def test_extract_h5_names_a_videos_frames_relative_to_its_folder(tmp_path, capsys):
+    import numpy as np
+
+    from fdnet.descriptors.hloc_formats import read_global_features
+    from tests.data.source_files import write_video
+
+    frames = np.random.default_rng(0).integers(0, 256, size=(3, 16, 24, 3), dtype=np.uint8)
+    (tmp_path / "route").mkdir()
+    video = write_video(tmp_path / "route" / "summer.avi", frames)
+    out = tmp_path / "v.h5"
+    assert main(["extract", "--method", "sad", "--images", str(video), "--out", str(out), "--workers", "0",
+                 "--no-progress"]) == 0
+    names, _ = read_global_features(out)
+    assert len(names) == 3 and all(n.startswith("summer.avi/frame_") for n in names)
+    assert f"relative to {tmp_path / 'route'}" in capsys.readouterr().out
+
+
+def test_extract_recursive_h5_names_images_as_hlocs_image_dir_does(tmp_path):
+    """hloc's image_dir holds db/ and query/: --recursive names its images db/0001.png, ... as
+    hloc's extract_features does, so pairs_from_retrieval's db_prefix and query_prefix work."""
+    import h5py
+
+    from fdnet.descriptors.hloc_formats import read_global_features
+
+    root = tmp_path / "images"
+    root.mkdir()
+    _images(root / "db", 3)
+    _images(root / "query", 2)
+    (root / "query" / ".hidden").mkdir()
+    (root / "query" / ".hidden" / "x.png").write_bytes((root / "query" / "frame_0.png").read_bytes())
+    out = tmp_path / "global-feats.h5"
+    assert main(["extract", "--method", "sad", "--images", str(root), "--recursive", "--out", str(out),
+                 "--workers", "0", "--no-progress"]) == 0
+    names, vectors = read_global_features(out)
+    assert names == ["db/frame_0.png", "db/frame_1.png", "db/frame_2.png", "query/frame_0.png", "query/frame_1.png"]
+    with h5py.File(out, "r") as f:  # what hloc's get_descriptors reads
+        assert f["query/frame_1.png"]["global_descriptor"][()].tobytes() == vectors[4].tobytes()

@@ -235,3 +235,104 @@ def test_an_index_file_is_not_reused_for_another_folder_with_the_same_names(tmp_
     assert "other reference images" in printed.out + printed.err and "loaded the flat index" not in printed.out
     assert main([*common, "--reference", str(winter), "--out", str(tmp_path / "c.csv")]) == 0
     assert "loaded the flat index" in capsys.readouterr().out
+
+
+def _pairs_route(tmp_path, n=8):
+    """``route/{map,now}``: n places, the query copies darker (the names hloc's image_dir sees)."""
+    route = tmp_path / "route"
+    return make_route(route / "map", n), make_route(route / "now", n, brightness=0.7)
+
+
+def _relative(name, root):
+    return Path(name).relative_to(root).as_posix()
+
+
+def test_match_pairs_out_gives_each_querys_top_k_of_the_csv(tmp_path, capsys):
+    from fdnet.descriptors.hloc_formats import read_pairs
+
+    ref, qry = _pairs_route(tmp_path)
+    out, pairs = tmp_path / "matches.csv", tmp_path / "pairs.txt"
+    assert main(["match", "--reference", str(ref), "--query", str(qry), "--method", "raw", "--top-k", "3",
+                 "--workers", "0", "--out", str(out), "--pairs-out", str(pairs)]) == 0
+    root = tmp_path / "route"  # the folder holding --reference and --query: hloc's image_dir
+    assert f"wrote {pairs}: 24 pairs (top-3 per query) for hloc, the images named relative to {root}" in \
+        capsys.readouterr().out
+    expected = [(_relative(r["query"], root), _relative(r["reference"], root)) for r in read_csv_rows(out)]
+    assert read_pairs(pairs) == expected and len(expected) == 8 * 3
+    assert expected[0] == ("now/frame_000.png", "map/frame_000.png")
+    assert all((root / q).is_file() and (root / r).is_file() for q, r in read_pairs(pairs))
+
+
+def test_match_pairs_out_alone_and_accepted_only(tmp_path, capsys):
+    from fdnet.descriptors.hloc_formats import read_pairs
+
+    ref, qry = _pairs_route(tmp_path)
+    pairs = tmp_path / "pairs.txt"
+    common = ["match", "--reference", str(ref), "--query", str(qry), "--method", "raw", "--workers", "0",
+              "--pairs-out", str(pairs)]
+    # no --out: the pairs file alone; --accept without a threshold: every query's accepted match
+    assert main([*common, "--accept", "margin", "--pairs-accepted-only"]) == 0
+    assert read_pairs(pairs) == [(f"now/frame_{i:03d}.png", f"map/frame_{i:03d}.png") for i in range(8)]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["pairs.txt", "route"]
+    # a gate that rejects every match: every query a new place, no pair
+    assert main([*common, "--accept", "margin+floor", "--accept-set", "floor:min=2", "--pairs-accepted-only"]) == 0
+    assert read_pairs(pairs) == [] and "0 accepted pairs" in capsys.readouterr().out
+    assert main([*common, "--pairs-accepted-only"]) == 2  # no decision to accept by
+    err = capsys.readouterr().err
+    assert err.startswith("fdnet match: error: --pairs-accepted-only needs a decision") and err.count("\n") == 1
+    assert main(common[:-2]) == 2
+    assert "give --out matches.csv, --pairs-out pairs.txt, or both" in capsys.readouterr().err
+
+
+def test_match_pairs_accepted_only_with_a_calibration_are_the_accepted_rows(tmp_path, capsys):
+    from fdnet.descriptors.hloc_formats import read_pairs
+
+    rng = np.random.default_rng(1)
+    root = tmp_path / "route"
+    for condition in ("map", "now"):
+        (root / condition).mkdir(parents=True)
+    for i in range(16):  # places 3, 7 and 11 seen now show other textures: wrong best matches
+        place = rng.integers(0, 256, size=(24, 32, 3))
+        now = rng.integers(0, 256, size=place.shape) if i in (3, 7, 11) else \
+            np.clip(place * 0.25 + rng.normal(0, 90, place.shape), 0, 255)
+        Image.fromarray(place.astype(np.uint8)).save(root / "map" / f"{i:03d}.png")
+        Image.fromarray(now.astype(np.uint8)).save(root / "now" / f"{i:03d}.png")
+    cal = tmp_path / "cal.yaml"
+    assert main(["calibrate", "--data", str(root), "--reference", "map", "--query", "now", "--method", "raw",
+                 "--workers", "0", "--accept", "margin", "--target-precision", "1", "--out", str(cal)]) == 0
+    out, pairs = tmp_path / "m.csv", tmp_path / "pairs.txt"
+    assert main(["match", "--reference", str(root / "map"), "--query", str(root / "now"), "--method", "raw",
+                 "--calibration", str(cal), "--workers", "0", "--out", str(out), "--pairs-out", str(pairs),
+                 "--pairs-accepted-only"]) == 0
+    accepted = [(_relative(r["query"], root), _relative(r["reference"], root))
+                for r in read_csv_rows(out) if r["accepted"] == "1"]
+    assert read_pairs(pairs) == accepted and 0 < len(accepted) < 16
+    assert f"{len(accepted)} accepted pairs" in capsys.readouterr().out
+
+
+def test_match_pairs_never_pair_a_query_with_itself(tmp_path):
+    from fdnet.descriptors.hloc_formats import read_pairs
+
+    ref = make_route(tmp_path / "db", 6)
+    pairs = tmp_path / "pairs.txt"
+    assert main(["match", "--reference", str(ref), "--query", str(ref), "--method", "raw", "--top-k", "2",
+                 "--workers", "0", "--pairs-out", str(pairs)]) == 0
+    found = read_pairs(pairs)
+    # names relative to the one folder; each query's 2 best other images, as hloc's pairs_from_retrieval
+    assert len(found) == 12 and all(q != r for q, r in found)
+    assert [q for q, _ in found] == [f"frame_{i:03d}.png" for i in range(6) for _ in range(2)]
+
+
+def test_match_refuses_a_name_the_pairs_file_cannot_hold_before_describing(tmp_path, capsys, monkeypatch):
+    import fdnet.matching.search as search
+
+    ref, qry = _pairs_route(tmp_path, n=3)
+    (ref / "frame_001.png").rename(ref / "frame 001.png")
+    monkeypatch.setattr(search, "rank_references", lambda *a, **k: pytest.fail("described the images"))
+    out, pairs = tmp_path / "m.csv", tmp_path / "pairs.txt"
+    assert main(["match", "--reference", str(ref), "--query", str(qry), "--method", "raw", "--workers", "0",
+                 "--out", str(out), "--pairs-out", str(pairs)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"fdnet match: error: {pairs}: image name 'map/frame 001.png' holds whitespace")
+    assert err.count("\n") == 1 and "Traceback" not in err
+    assert not out.exists() and not pairs.exists()

@@ -1,8 +1,9 @@
-"""`fdnet extract`: any method's vectors for a folder of images (or a video or ROS bag), to .npz.
+"""`fdnet extract`: any method's vectors for a folder of images (or a video or ROS bag), to .npz
+or to hloc's global-features .h5 (``--format h5``).
 
 Parses the flags, builds the descriptor and calls :func:`fdnet.descriptors.extraction.extract`
-(streaming: memory stays a few batches whatever the folder's size; the file is replaced
-atomically at the end).
+(or :func:`~fdnet.descriptors.extraction.extract_h5`; streaming: memory stays a few batches
+whatever the folder's size; the file is replaced atomically at the end).
 """
 
 from __future__ import annotations
@@ -13,6 +14,8 @@ from fdnet.cli.common import add_device_argument, add_method_arguments, add_pipe
 DEFAULT_METHOD = "fdnet"
 #: folder size from which --compile auto compiles (its one-off cost is then a few percent)
 COMPILE_FROM = 50_000
+#: --format's choices and the suffixes that say each
+FORMAT_SUFFIXES = {"npz": (".npz",), "h5": (".h5", ".hdf5")}
 
 
 def register(sub) -> None:
@@ -29,10 +32,22 @@ def register(sub) -> None:
                        "that learns from images (--fit) and is given none learns from the images it describes. "
                        "Images stream through the model in batches (decoded in worker processes) and the vectors "
                        "are written in chunks: memory stays a few batches whatever the folder's size. The .npz is "
-                       "uncompressed and replaces --out atomically at the end.")
+                       "uncompressed and replaces --out atomically at the end. --format h5 writes hloc's "
+                       "global-features file instead (docs/guide.md, \"hloc\").")
     add_method_arguments(p, required=False)
     p.add_argument("--images", required=True, help="folder of images, video file or ROS bag")
-    p.add_argument("--out", required=True, help="output .npz file (written atomically)")
+    p.add_argument("--recursive", action="store_true",
+                   help="the images of --images' whole tree (sub-folders too, hidden ones left out), in natural "
+                        "order of their paths below it; with --format h5 they are named by that path "
+                        "(db/0001.jpg), as hloc names the images of an image_dir holding db/ and query/ (the "
+                        ".npz keeps file names in names and each image's folder in sources)")
+    p.add_argument("--out", required=True, help="output file, .npz or .h5 (written atomically)")
+    p.add_argument("--format", choices=tuple(FORMAT_SUFFIXES), default=None,
+                   help="npz (default): fdnet's arrays above. h5: hloc's global-features file "
+                        "(cvg/Hierarchical-Localization): one group per image holding its place descriptor "
+                        "(descriptors, or FDNet's content) as global_descriptor, float32, the image named by its "
+                        "path relative to the --images folder (a video's or bag's: relative to the folder holding "
+                        "it), so hloc's image_dir is that folder. Default: from --out's suffix (.h5 or .hdf5: h5)")
     add_pipeline_arguments(p, batch_size=256)
     add_device_argument(p)
     precision = p.add_mutually_exclusive_group()
@@ -86,18 +101,54 @@ def run(args) -> int:
     args.method = args.method or DEFAULT_METHOD
     if "," in args.method:
         raise ConfigError(f"--method {args.method}: extract writes one method's vectors; name one")
-    out = args.out if str(args.out).endswith(".npz") else f"{args.out}.npz"
+    out_format, out = output_format(args.format, args.out)
     ensure_writable(out, what="vectors file")  # before loading the model and every image
-    paths = list_images(args.images)
+    if out_format == "h5":
+        from fdnet.descriptors.hloc_formats import image_root, require_h5py
+
+        require_h5py()  # a missing h5py is said before any work
+    paths = list_images(args.images, recursive=args.recursive)
+    if out_format == "h5":
+        from fdnet.descriptors.hloc_formats import check_image_name, relative_names
+
+        root = image_root([args.images])
+        for name in relative_names(paths, root):  # a name hloc's file cannot hold: said before loading the model
+            check_image_name(name, out)
     set_threads(args.threads)
     options = {**descriptor_options(args, args.method, len(paths)), **method_options(args, args.method)}
     descriptor = create(args.method, device=args.device, **options)
-    summary = extract(descriptor, paths, out, batch_size=args.batch_size, workers=args.workers,
-                      progress=not args.no_progress)
+    if out_format == "h5":
+        from fdnet.descriptors.extraction import extract_h5
+
+        summary = extract_h5(descriptor, paths, out, root, batch_size=args.batch_size,
+                             workers=args.workers, progress=not args.no_progress)
+        written = f"{summary['array']} as hloc's global_descriptor"
+    else:
+        summary = extract(descriptor, paths, out, batch_size=args.batch_size, workers=args.workers,
+                          progress=not args.no_progress)
+        written = " and ".join(summary["arrays"])
     device = getattr(descriptor, "device", "cpu")
     precision = "bf16" if getattr(descriptor, "bf16", False) else "fp32"
-    print(f"fdnet extract: {summary['images']} images -> {out} ({args.method}: {' and '.join(summary['arrays'])}, "
+    print(f"fdnet extract: {summary['images']} images -> {out} ({args.method}: {written}, "
           f"length {summary['dim']}; {device}, {precision}{', compiled' if getattr(descriptor, 'compiled', False) else ''}, "
           f"{summary['images_per_second']:.1f} images/s"
           + (f"; learnt from {summary['fitted_on']}" if summary["fitted_on"] else "") + ")")
+    if out_format == "h5":
+        print(f"fdnet extract: image names are relative to {summary['root']} (hloc's image_dir)")
     return 0
+
+
+def output_format(given: str | None, out: str) -> tuple[str, str]:
+    """(format, output path) from --format and --out: the format --out's suffix says when
+    --format is not given (npz unless .h5/.hdf5), the format's suffix added to an --out with
+    none of its own (``vectors`` -> ``vectors.npz``, as before); a suffix that says the other
+    format is refused."""
+    from fdnet.errors import ConfigError
+
+    out = str(out)
+    said = next((name for name, suffixes in FORMAT_SUFFIXES.items() if out.lower().endswith(suffixes)), None)
+    if given is not None and said is not None and said != given:
+        raise ConfigError(f"--format {given} --out {out}: the file name says {said}; give --out with "
+                          f"{' or '.join(FORMAT_SUFFIXES[given])}, or --format {said}")
+    chosen = given or said or "npz"
+    return chosen, out if said == chosen else f"{out}{FORMAT_SUFFIXES[chosen][0]}"

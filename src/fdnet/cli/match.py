@@ -16,6 +16,11 @@ threshold, else 0; a query without an accepted row is a new place). A calibratio
 another model (descriptor fingerprint) or another ``--sequence-length`` is refused. Without a
 calibration, ``--accept RULE`` adds the rule's ``acceptance_score`` alone (no threshold, so no
 ``accepted``).
+
+``--pairs-out FILE`` also writes hloc's retrieval pairs file (each query's top-k references, or
+with ``--pairs-accepted-only`` the accepted match alone), the images named relative to the folder
+holding the reference and query folders, hloc's ``image_dir``
+(:func:`fdnet.matching.search.retrieval_pairs`); ``--out`` may then be left out.
 """
 
 from __future__ import annotations
@@ -54,9 +59,20 @@ def register(sub) -> None:
     add_decision_arguments(p, "a calibration from `fdnet calibrate` (YAML, or a run directory holding calibration.yaml): "
                               "adds acceptance_score and accepted columns (accepted 1 = the revisit the calibrated "
                               "rule accepts; none in a query = a new place)")
-    p.add_argument("--out", required=True,
+    p.add_argument("--out",
                    help="CSV to write: query_index,query,rank,reference_index,reference,score (indices are "
-                        "positions in natural file-name order, names the image file names)")
+                        "positions in natural file-name order, names the images' absolute paths); needed unless "
+                        "--pairs-out is given")
+    p.add_argument("--pairs-out", metavar="FILE",
+                   help="also write hloc's retrieval pairs file (cvg/Hierarchical-Localization, what its "
+                        "pairs_from_retrieval writes): 'query reference' per line, each query's --top-k references "
+                        "best first (a query never paired with itself), the images named by their paths relative "
+                        "to the deepest folder holding --reference and --query (a video's or bag's: the folder "
+                        "holding it), so hloc's image_dir is that folder; names holding whitespace are refused")
+    p.add_argument("--pairs-accepted-only", action="store_true",
+                   help="with --pairs-out and a decision (--calibration, or --accept RULE): only the match the "
+                        "decision accepts, one pair per query and none for a new place (with --accept alone, which "
+                        "has no threshold: every query's match except those a gate rejects)")
     add_pipeline_arguments(p)
     add_device_argument(p)
     p.set_defaults(func=run)
@@ -83,9 +99,15 @@ def run(args) -> int:
     summary = match_images(args.reference, args.query, args.out, lambda: create_descriptor(args.method, args),
                            top_k=args.top_k, index=args.index, index_set=args.index_set, index_file=args.index_file,
                            sequence_length=args.sequence_length, calibration=calibration, accept=spec,
+                           pairs_out=args.pairs_out, pairs_accepted_only=args.pairs_accepted_only,
                            batch_size=args.batch_size, workers=args.workers, log=print)
-    print(f"wrote {summary.out}: top-{summary.top_k} of {summary.num_references} references for "
-          f"{summary.num_queries} queries ({summary.method})")
+    if summary.out is not None:
+        print(f"wrote {summary.out}: top-{summary.top_k} of {summary.num_references} references for "
+              f"{summary.num_queries} queries ({summary.method})")
+    if summary.pairs_out is not None:
+        what = "accepted pairs" if args.pairs_accepted_only else f"pairs (top-{summary.top_k} per query)"
+        print(f"wrote {summary.pairs_out}: {summary.num_pairs} {what} for hloc, the images named relative to "
+              f"{summary.pairs_root} (hloc's image_dir)")
     if summary.calibration is not None:
         calibration = summary.calibration
         print(f"{summary.accepted} of {summary.num_queries} queries accepted by {calibration.rule} at threshold "

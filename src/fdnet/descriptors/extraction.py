@@ -1,4 +1,5 @@
-"""Every method's vectors for a list of images, streamed into one ``.npz`` (``fdnet extract``).
+"""Every method's vectors for a list of images, streamed into one ``.npz`` (``fdnet extract``),
+or into hloc's global-features ``.h5`` (``--format h5``, :func:`extract_h5`).
 
 Images are decoded in worker processes while the descriptor runs
 (:func:`fdnet.descriptors.pipeline.describe_stream`), and the vectors are written batch by batch
@@ -10,6 +11,11 @@ Arrays: ``descriptors`` (N, D), what the method compares (``--method``'s vectors
 that also describes appearance (``describe_both``: FDNet) writes ``content`` (its place
 descriptor) and ``appearance`` instead. Always: ``names``, ``sources``, ``timestamps`` (see
 :func:`frame_arrays`), ``method`` and ``settings`` (JSON of the descriptor's settings).
+
+hloc's ``.h5`` holds the place descriptor alone (``descriptors``, or FDNet's ``content``) as each
+image's ``global_descriptor`` (float32), the image named by its path relative to a root folder
+(hloc's ``image_dir``), written group by group as batches come
+(:class:`fdnet.descriptors.hloc_formats.GlobalFeaturesWriter`), atomically too.
 """
 
 from __future__ import annotations
@@ -42,6 +48,16 @@ def described_arrays(descriptor):
     return ("descriptors",), lambda images: (descriptor.describe(images),)
 
 
+def _fit_if_needed(descriptor, paths) -> str | None:
+    """Let a descriptor that learns from images and was given none learn from ``paths``; what it
+    learnt from (for the summary), or None."""
+    if not descriptor.needs_fit:
+        return None
+    logger.info(f"{descriptor.name}: learning from the {len(paths)} images being described (none supplied)")
+    descriptor.fit(paths)
+    return f"the {len(paths)} extracted images"
+
+
 def extract(descriptor, paths, out, batch_size: int = 64, workers: int | None = None,
             progress: bool = True) -> dict:
     """Describe ``paths`` with ``descriptor`` into the ``.npz`` file ``out`` (written atomically).
@@ -52,11 +68,7 @@ def extract(descriptor, paths, out, batch_size: int = 64, workers: int | None = 
     from fdnet.descriptors.pipeline import NpzChunkWriter, describe_stream
 
     paths = list(paths)
-    fitted = None
-    if descriptor.needs_fit:
-        logger.info(f"{descriptor.name}: learning from the {len(paths)} images being described (none supplied)")
-        descriptor.fit(paths)
-        fitted = f"the {len(paths)} extracted images"
+    fitted = _fit_if_needed(descriptor, paths)
     names, describe = described_arrays(descriptor)
     shape = (len(paths), descriptor.dim)
     timing: dict = {}
@@ -73,3 +85,35 @@ def extract(descriptor, paths, out, batch_size: int = 64, workers: int | None = 
     seconds = timing.get("seconds_wall", time.perf_counter() - started)
     return {"images": len(paths), "arrays": names, "dim": descriptor.dim, "seconds": seconds,
             "images_per_second": len(paths) / max(seconds, 1e-9), "fitted_on": fitted}
+
+
+def extract_h5(descriptor, paths, out, root, batch_size: int = 64, workers: int | None = None,
+               progress: bool = True) -> dict:
+    """Describe ``paths`` into hloc's global-features file ``out`` (written atomically): each
+    image's place descriptor (what :func:`described_arrays` calls ``descriptors``, FDNet's
+    ``content``) as the ``global_descriptor`` of the group named by its path relative to
+    ``root`` (:func:`fdnet.descriptors.hloc_formats.relative_names`; hloc's ``image_dir``).
+    The names are checked before any image is described. Returns the summary of
+    :func:`extract`, with ``array`` (what was written) and ``root``."""
+    from fdnet.descriptors.hloc_formats import GlobalFeaturesWriter, check_image_name, relative_names
+    from fdnet.descriptors.pipeline import describe_stream
+
+    paths = list(paths)
+    names = [check_image_name(n, out) for n in relative_names(paths, root)]
+    fitted = _fit_if_needed(descriptor, paths)
+    array = described_arrays(descriptor)[0][0]  # "content" for FDNet, else "descriptors"
+    timing: dict = {}
+    started = time.perf_counter()
+    attrs = {"method": descriptor.name, "array": array,
+             "settings": json.dumps(descriptor.settings(), default=str, sort_keys=True)}
+    with GlobalFeaturesWriter(out, attrs=attrs) as writer:
+        for start, vectors in describe_stream(descriptor, paths, batch_size, workers=workers, timing=timing,
+                                              progress=progress, what=f"extract [{descriptor.name}]"):
+            vectors = np.asarray(vectors, dtype=np.float32)
+            writer.write(names[start:start + len(vectors)], vectors)
+        if writer.count != len(paths):
+            raise RuntimeError(f"{out}: {writer.count} vectors for {len(paths)} images")
+    seconds = timing.get("seconds_wall", time.perf_counter() - started)
+    return {"images": len(paths), "arrays": ("global_descriptor",), "array": array, "dim": descriptor.dim,
+            "root": str(root), "seconds": seconds, "images_per_second": len(paths) / max(seconds, 1e-9),
+            "fitted_on": fitted}
