@@ -6,7 +6,8 @@ import pytest
 
 from fdnet.descriptors import create
 from fdnet.errors import ConfigError
-from fdnet.matching.search import index_settings, map_digest, match_images
+from fdnet.matching.search import index_settings, map_digest
+from fdnet.tasks.match import match_images
 
 from conftest import read_csv_rows, write_random_places
 

@@ -137,7 +137,7 @@ def _print_to_stderr(message: str) -> None:
 
 def run_build(args) -> int:
     from fdnet.cli.common import check_pipeline_arguments
-    from fdnet.matching.database.commands import build_database
+    from fdnet.tasks.database import build_database
 
     check_pipeline_arguments(args)
     summary = build_database(args.images, args.db, args.method, method_options=lambda m: _file_options(args, m),
@@ -149,7 +149,7 @@ def run_build(args) -> int:
 
 def run_add(args) -> int:
     from fdnet.cli.common import check_pipeline_arguments
-    from fdnet.matching.database.commands import add_to_database
+    from fdnet.tasks.database import add_to_database
 
     check_pipeline_arguments(args)
     given = _options_given(args)
@@ -165,7 +165,7 @@ def run_query(args) -> int:
     import sys
 
     from fdnet.cli.common import check_pipeline_arguments
-    from fdnet.matching.database.commands import query_database
+    from fdnet.tasks.database import query_database
 
     check_pipeline_arguments(args)
     result = query_database(args.db, args.images, top_k=args.top_k, exclude_last=args.exclude_last,
@@ -182,14 +182,14 @@ def run_query(args) -> int:
 def run_info(args) -> int:
     import json
 
-    from fdnet.matching.database.commands import database_info
+    from fdnet.tasks.database import database_info
 
     print(json.dumps(database_info(args.db, log=_print_to_stderr), indent=2, sort_keys=True))
     return 0
 
 
 def run_migrate(args) -> int:
-    from fdnet.matching.database.commands import migrate_database
+    from fdnet.tasks.database import migrate_database
 
     print("\n".join(migrate_database(args.source, args.db, overwrite=args.overwrite).lines()))
     return 0

@@ -1,4 +1,4 @@
-"""`fdnet match`: rank reference images (the map) for each query image (:func:`fdnet.matching.search.match_images`).
+"""`fdnet match`: rank reference images (the map) for each query image (:func:`fdnet.tasks.match.match_images`).
 
 Images are listed in fdnet's one order (:func:`fdnet.data.images.list_images`: natural order of
 file names), and every output row carries both the indices and the file names.
@@ -20,7 +20,7 @@ calibration, ``--accept RULE`` adds the rule's ``acceptance_score`` alone (no th
 ``--pairs-out FILE`` also writes hloc's retrieval pairs file (each query's top-k references, or
 with ``--pairs-accepted-only`` the accepted match alone), the images named relative to the folder
 holding the reference and query folders, hloc's ``image_dir``
-(:func:`fdnet.matching.search.retrieval_pairs`); ``--out`` may then be left out.
+(:func:`fdnet.tasks.match.retrieval_pairs`); ``--out`` may then be left out.
 """
 
 from __future__ import annotations
@@ -82,7 +82,7 @@ def run(args) -> int:
     import sys
 
     from fdnet.cli.common import check_pipeline_arguments, create_descriptor
-    from fdnet.matching.search import match_images
+    from fdnet.tasks.match import match_images
 
     check_pipeline_arguments(args)
     spec = acceptance_from_arguments(args)

@@ -1,26 +1,19 @@
-"""Match query images against a reference map: the search (``exact`` blocked top-k for any
-method, SeqSLAM sequences, or a faiss index for dot-product methods), the saved-index cache
+"""Rank a reference map's images for each query: the search (``exact`` blocked top-k for any
+method, SeqSLAM sequences, or a faiss index for dot-product methods) and the saved-index cache
 (an index file is reused when it was built for the same method, reference names and build
-settings) and the ranked-candidates CSV of ``fdnet match`` with its optional decisions, and
-hloc's retrieval pairs file (:func:`retrieval_pairs`: names relative to the folder holding the
-reference and query folders, hloc's ``image_dir``).
-
-Images are listed in fdnet's one order (:func:`fdnet.data.images.list_images`), and every row
-carries both the indices and the images' names (:func:`fdnet.data.images.image_name`: the
-absolute path as listed, the name every output gives an image).
+settings). ``fdnet match`` (:mod:`fdnet.tasks.match`) decides on the ranked candidates and writes
+them.
 """
 
 from __future__ import annotations
 
 import logging
 import os
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
-from fdnet.data.images import image_name
 from fdnet.errors import ConfigError
 from fdnet.matching.index import INDEX_KINDS
 
@@ -28,8 +21,6 @@ logger = logging.getLogger(__name__)
 
 #: ``exact`` (blocked numpy top-k, any method) or one of the faiss index kinds
 INDEX_CHOICES = ["exact", *INDEX_KINDS]
-
-MATCH_COLUMNS = ["query_index", "query", "rank", "reference_index", "reference", "score"]
 
 
 def map_digest(paths) -> str:
@@ -161,189 +152,3 @@ def _build_or_load(descriptor, ref_paths, settings, index_file, batch_size, work
                                          "references": map_digest(ref_paths), "method": descriptor.name})
         say(f"built the {settings.kind} index of {len(ref_paths)} references ({built:.1f} s), saved to {index_file}")
     return index
-
-
-@dataclass
-class MatchSummary:
-    """What :func:`match_images` wrote."""
-
-    out: str
-    method: str
-    num_references: int
-    num_queries: int
-    top_k: int
-    #: with a calibration: the calibration and how many queries it accepted
-    calibration: object = None
-    accepted: int | None = None
-    #: with pairs_out: hloc's pairs file, how many pairs it holds and the folder their names are relative to
-    pairs_out: str | None = None
-    num_pairs: int | None = None
-    pairs_root: str | None = None
-
-
-def match_images(reference, query, out, make_descriptor: Callable[[], object], *, top_k: int = 5,
-                 index: str = "exact", index_set=(), index_file=None, sequence_length: int = 0,
-                 calibration=None, accept=None, pairs_out=None, pairs_accepted_only: bool = False,
-                 batch_size: int = 64, workers: int | None = None,
-                 progress: bool = True, log: Callable[[str], None] | None = None) -> MatchSummary:
-    """Describe the ``reference`` folder (the map) and the ``query`` folder with the method
-    ``make_descriptor()`` returns (called after the settings and output paths are checked, so a
-    refusal comes before any model is loaded), rank the references of every query
-    (:func:`rank_references`) and write the top ``top_k`` to the CSV ``out`` (atomically; None:
-    no CSV, when ``pairs_out`` is given).
-
-    ``calibration`` (a file or run directory from ``fdnet calibrate``) adds ``acceptance_score``
-    and ``accepted`` columns; ``accept`` (an AcceptanceSpec, instead of a calibration) adds the
-    rule's ``acceptance_score`` alone. ``pairs_out`` also writes hloc's pairs file
-    (:func:`retrieval_pairs`; ``pairs_accepted_only``: only the accepted pairs). ``log`` gets the
-    index cache's messages (default: this module's logger)."""
-    from fdnet.data.images import list_images
-    from fdnet.io import ensure_writable
-
-    if top_k < 1:
-        raise ConfigError("--top-k must be at least 1")
-    if sequence_length < 0:
-        raise ConfigError(f"--sequence-length must be >= 0 (0 = single image), got {sequence_length}")
-    check_outputs(out, pairs_out, pairs_accepted_only, calibration is not None or accept is not None)
-    settings = index_settings(index, index_set, index_file, sequence_length)
-    if out is not None:
-        ensure_writable(out, what="matches CSV")  # before describing every image, not after
-    if pairs_out is not None:
-        ensure_writable(pairs_out, what="pairs file")
-    if index_file:
-        ensure_writable(index_file, what="index file")
-    ref_paths, query_paths = list_images(reference), list_images(query)
-    names = pair_names(reference, query, ref_paths, query_paths, pairs_out) if pairs_out is not None else None
-    descriptor = make_descriptor()
-    depth = top_k if accept is None else max(top_k, accept.depth)
-    if calibration is not None:
-        from fdnet.decisions.calibration import load_calibration
-
-        source, calibration = calibration, load_calibration(calibration)
-        calibration.check(descriptor, sequence_length=sequence_length if sequence_length > 1 else 0, source=source)
-        depth = max(top_k, calibration.spec.depth)  # the rule may need more candidates than are written
-    if names is not None and not pairs_accepted_only and set(names[0]) & set(names[1]):
-        depth = max(depth, top_k + 1)  # a query that is also a reference: its pairs skip itself
-    rule = accept if accept is not None else (calibration.spec if calibration is not None else None)
-    neighbourhood = reference_times_and_positions(ref_paths)
-    if rule is not None:  # e.g. radius_m: image folders have no positions; refused before describing
-        rule.check_available({"images", *neighbourhood}, "fdnet match (references without "
-                             + ("positions)" if "reference_times" in neighbourhood else "timestamps or positions)"))
-    if settings is not None and not descriptor.dot_product_similarity:
-        raise ConfigError(f"method {descriptor.name!r} does not compare vectors by dot product, so a "
-                          "faiss index would rank by the wrong measure; use --index exact")
-    if descriptor.needs_fit:
-        logger.info(f"{descriptor.name}: learning from the {len(ref_paths)} reference images (none supplied)")
-        descriptor.fit(ref_paths)
-    indices, scores = rank_references(descriptor, ref_paths, query_paths, depth, settings=settings,
-                                      sequence_length=sequence_length, index_file=index_file,
-                                      batch_size=batch_size, workers=workers, progress=progress, log=log)
-    decision = accepted = None
-    if rule is not None:
-        from fdnet.decisions.acceptance import Candidates, decide
-
-        candidates = Candidates(indices, scores, similarity_ceiling=float(descriptor.similarity_ceiling),
-                                query_paths=query_paths, reference_paths=ref_paths, **neighbourhood)
-        if calibration is not None:
-            decision, accepted = calibration.decide(candidates)
-        else:
-            decision = decide(accept, candidates)
-    if out is not None:
-        write_matches(out, indices, scores, query_paths, ref_paths, top_k, decision, accepted)
-    num_pairs = None
-    if pairs_out is not None:
-        from fdnet.descriptors.hloc_formats import write_pairs
-
-        counted = [0]
-
-        def pairs():
-            for pair in retrieval_pairs(indices, names[1], names[0], top_k, decision, accepted, pairs_accepted_only):
-                counted[0] += 1
-                yield pair
-
-        write_pairs(pairs_out, pairs())
-        num_pairs = counted[0]
-    return MatchSummary(out=None if out is None else str(out), method=descriptor.name, num_references=len(ref_paths),
-                        num_queries=len(query_paths), top_k=top_k, calibration=calibration,
-                        accepted=None if accepted is None else int(accepted.sum()),
-                        pairs_out=None if pairs_out is None else str(pairs_out), num_pairs=num_pairs,
-                        pairs_root=None if names is None else str(names[2]))
-
-
-def check_outputs(out, pairs_out, pairs_accepted_only: bool, has_rule: bool) -> None:
-    """Refuse output settings that cannot work, before any work: no output at all, one file for
-    both, accepted pairs without a rule to accept them or without a pairs file."""
-    if out is None and pairs_out is None:
-        raise ConfigError("give --out matches.csv, --pairs-out pairs.txt, or both")
-    if out is not None and pairs_out is not None and os.path.abspath(out) == os.path.abspath(pairs_out):
-        raise ConfigError(f"--out and --pairs-out are the same file {out}; give two names")
-    if pairs_accepted_only and pairs_out is None:
-        raise ConfigError("--pairs-accepted-only needs --pairs-out FILE")
-    if pairs_accepted_only and not has_rule:
-        raise ConfigError("--pairs-accepted-only needs a decision: --calibration FILE|RUN_DIR (or one stored in the "
-                          "run) or --accept RULE")
-
-
-def pair_names(reference, query, ref_paths, query_paths, where) -> tuple[list[str], list[str], Path]:
-    """(reference names, query names, root): the images' names in hloc's pairs file, their paths
-    relative to ``root``, the deepest folder holding the reference and query folders (a video's
-    or bag's: the folder holding it), which is hloc's ``image_dir``. A name hloc's pairs file
-    cannot hold (whitespace) is refused here, before any image is described."""
-    from fdnet.descriptors.hloc_formats import check_pair_name, image_root, relative_names
-
-    root = image_root([reference, query])
-    ref_names = [check_pair_name(n, where) for n in relative_names(ref_paths, root)]
-    query_names = [check_pair_name(n, where) for n in relative_names(query_paths, root)]
-    return ref_names, query_names, root
-
-
-def retrieval_pairs(indices, query_names, ref_names, top_k: int, decision=None, accepted=None,
-                    accepted_only: bool = False):
-    """hloc's retrieval pairs ``(query name, reference name)``, query by query in order, best
-    reference first: each query's ``top_k`` references (the rows of the matches CSV), or with
-    ``accepted_only`` the one match the decision accepts (a calibrated decision: where
-    ``accepted``; a rule without a threshold: every match no gate rejected, score above -inf);
-    none for a new place. A query is never paired with itself (the same name on both sides, when
-    the query folder is the reference folder); its next reference takes the place, as in hloc's
-    ``pairs_from_retrieval``."""
-    for q, row in enumerate(indices):
-        if accepted_only:
-            match = int(decision.match[q])
-            taken = bool(accepted[q]) if accepted is not None else bool(np.isfinite(decision.score[q]))
-            chosen = [match] if taken and match >= 0 else []
-        else:
-            chosen = [int(i) for i in row if i >= 0 and ref_names[i] != query_names[q]][:top_k]
-        for i in chosen:
-            if ref_names[i] != query_names[q]:
-                yield query_names[q], ref_names[i]
-
-
-def write_matches(out, indices, scores, query_paths, ref_paths, top_k: int, decision=None, accepted=None) -> None:
-    """The ranked-candidates CSV: :data:`MATCH_COLUMNS`, plus ``acceptance_score`` with a
-    ``decision`` and ``accepted`` with a calibrated one. Rows beyond ``top_k`` appear only for
-    the match a rule accepted (a re-ranking rule may pick it)."""
-    import csv
-    import io
-
-    from fdnet.io import atomic_write_text, spreadsheet_text
-
-    buffer = io.StringIO()
-    writer = csv.writer(buffer)
-    header = list(MATCH_COLUMNS)
-    if decision is not None:
-        header.append("acceptance_score")
-    if accepted is not None:
-        header.append("accepted")
-    writer.writerow(header)
-    for q, (row_i, row_s) in enumerate(zip(indices, scores)):
-        for rank, (i, s) in enumerate(zip(row_i, row_s), start=1):
-            chosen = accepted is not None and i == decision.match[q] and bool(accepted[q])
-            if i >= 0 and (rank <= top_k or chosen):
-                row = [q, spreadsheet_text(image_name(query_paths[q])), rank, int(i), spreadsheet_text(image_name(ref_paths[i])),
-                       f"{float(s):.6f}"]
-                if decision is not None:
-                    row.append(f"{decision.score[q]:.6f}")
-                if accepted is not None:
-                    row.append(int(chosen))
-                writer.writerow(row)
-    atomic_write_text(out, buffer.getvalue())

@@ -13,10 +13,11 @@ The package, by concern:
 * :mod:`~fdnet.matching.database.identity`: which model made the vectors (fingerprints);
 * :mod:`~fdnet.matching.database.index_cache`: the derived search index cached beside the file;
 * :mod:`~fdnet.matching.database.migration`: the old folder format and its conversion;
-* :mod:`~fdnet.matching.database.commands`: ``fdnet database build|add|query|info|migrate`` as
-  library functions (describe images into a database, rank its places for queries); imported
-  from there, not re-exported here, so importing the database does not import the image,
-  pipeline and decision code those functions use.
+* :mod:`~fdnet.matching.database.places`: a batch of places checked and inserted.
+
+``fdnet database build|add|query|info|migrate`` as library functions (describe images into a
+database, rank its places for queries, decide) are :mod:`fdnet.tasks.database`, above the
+decisions they use.
 
 See ``docs/database.md`` for the file format and the guarantees.
 """

@@ -1,4 +1,4 @@
-"""fdnet.matching.database.commands: build, add, query, info and migrate as library calls (no CLI)."""
+"""fdnet.tasks.database: build, add, query, info and migrate as library calls (no CLI)."""
 
 import csv
 import io
@@ -9,7 +9,7 @@ import pytest
 
 from fdnet.errors import ConfigError
 from fdnet.matching.database import PlaceDatabase
-from fdnet.matching.database.commands import (
+from fdnet.tasks.database import (
     add_to_database, build_database, database_info, migrate_database, query_database,
 )
 

@@ -2,8 +2,8 @@
 folder of images into a new database or onto an existing one, rank a database's places for query
 images (with a calibrated or rule-scored decision), report a database's identity, convert the old
 folder format. Each returns what the command reports; messages go to ``log`` (default: this
-module's logger). Not re-exported by :mod:`fdnet.matching.database`, so importing the database
-does not import the image, pipeline and decision code these functions use.
+module's logger). Above :mod:`fdnet.matching.database` (the file) and :mod:`fdnet.decisions`
+(the rules), which it drives.
 """
 
 from __future__ import annotations
