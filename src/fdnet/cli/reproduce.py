@@ -11,6 +11,7 @@ import shlex
 from fdnet.cli.common import dataset_format_list, thread_count
 
 EXPERIMENT_NAMES = "comparison, lengths, similarity, disentanglement, viewpoint, runtime, examples"
+OPTIONAL_EXPERIMENT_NAMES = "ablation"
 
 # (group, flag, add_argument keywords). One table serves the parser and the command line the
 # report records, so the recorded command always has the flags the parser knows.
@@ -54,19 +55,37 @@ ARGUMENTS = (
     ("methods", "--method-set", dict(action="append", default=[], metavar="[METHOD:]KEY=VALUE",
                                      help="a method setting, e.g. conv3:dim=512 (repeatable)")),
     ("experiments", "--experiments", dict(metavar="LIST",
-                                          help=f"experiments to run (default all): {EXPERIMENT_NAMES}")),
+                                          help=f"experiments to run (default the paper's: {EXPERIMENT_NAMES}); "
+                                               f"{OPTIONAL_EXPERIMENT_NAMES} runs only when named")),
     ("experiments", "--length-runs", dict(metavar="L=DIR,...",
                                           help="lengths: the FDNet runs per vector length, e.g. "
                                                "256=runs/L256,512=runs/L512,1024=runs/L1024,2048=runs/L2048")),
     ("experiments", "--length-preset", dict(metavar="PRESET",
                                             help="lengths: train the runs not given by --length-runs with this "
-                                                 "preset (paper, cpu, cpu-scratch, tiny) into OUT/length-runs/")),
+                                                 "FDNet preset (cpu, paper, paper-native, cpu-scratch, tiny) into "
+                                                 "OUT/length-runs/")),
     ("experiments", "--length-train-frames", dict(metavar="START:END",
                                                   help="lengths: frames to train on (plain folders: required, "
                                                        "outside --frames; formats: a split, default train)")),
     ("experiments", "--length-set", dict(action="append", default=[], metavar="KEY=VALUE",
                                          help="lengths: a training setting for the trained runs, e.g. "
                                               "schedule.joint_steps=500 (repeatable)")),
+    ("experiments", "--ablation-runs", dict(metavar="VARIANT=DIR,...",
+                                            help="ablation: FDNet runs of the variants (full, no-critic, no-triplet, "
+                                                 "no-reconstruction), grouped by the preset each was trained with, "
+                                                 "e.g. full=runs/a,no-critic=runs/a-nc")),
+    ("experiments", "--ablation-preset", dict(metavar="LIST",
+                                              help="ablation: FDNet presets whose variants not given by "
+                                                   "--ablation-runs are trained into OUT/ablation-runs/ (default cpu), "
+                                                   "e.g. cpu,paper-native")),
+    ("experiments", "--ablation-train-frames", dict(metavar="START:END",
+                                                    help="ablation: frames to train the variants on (plain folders: "
+                                                         "required to train, outside --frames; formats: a split, "
+                                                         "default train)")),
+    ("experiments", "--ablation-set", dict(action="append", default=[], metavar="[PRESET:]KEY=VALUE",
+                                           help="ablation: a training setting of the trained variants, for every "
+                                                "preset or one, e.g. paper-native:schedule.joint_steps=60000 "
+                                                "(repeatable)")),
     ("experiments", "--viewpoint-pair", dict(metavar="REFERENCE,QUERY",
                                              help="viewpoint: the pair to crop (default: the first pair)")),
     ("experiments", "--overlaps", dict(default="100,90,75,65", metavar="LIST",
@@ -100,7 +119,8 @@ def register(sub) -> None:
     p = sub.add_parser(
         "reproduce",
         help="run the paper's experiments and write one self-contained HTML report",
-        description="Run the paper's experiments (" + EXPERIMENT_NAMES + ") on a dataset and write "
+        description="Run the paper's experiments (" + EXPERIMENT_NAMES + "; " + OPTIONAL_EXPERIMENT_NAMES
+                    + " when named) on a dataset and write "
                     "OUT_DIR/report.html (figures embedded, opens offline), one JSON of numbers per experiment "
                     "and the figures. Descriptors are cached in OUT_DIR/cache: rerun one experiment with "
                     "--experiments NAME, add a method, or resume an interrupted run at little cost.",
@@ -145,6 +165,33 @@ def _length_runs(text: str | None) -> dict:
             raise ConfigError(f"--length-runs {item!r}: expected L=RUN_DIR, e.g. 512=runs/L512")
         runs[int(length)] = Path(folder.strip())
     return runs
+
+
+def _ablation_runs(text: str | None) -> list:
+    from pathlib import Path
+
+    from fdnet.errors import ConfigError
+
+    runs = []
+    for item in _names(text) or []:
+        variant, sep, folder = item.partition("=")
+        if not sep or not variant.strip() or not folder.strip():
+            raise ConfigError(f"--ablation-runs {item!r}: expected VARIANT=RUN_DIR, e.g. no-critic=runs/a-nc")
+        runs.append((variant.strip(), Path(folder.strip())))
+    return runs
+
+
+def _ablation_overrides(items: list[str]) -> dict:
+    """``[PRESET:]KEY=VALUE`` items -> {"": every preset's, PRESET: that preset's} settings."""
+    from fdnet.config import parse_overrides
+
+    out: dict = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        scope, colon, name = key.partition(":")
+        scope, name = (scope.strip(), name) if colon else ("", key)
+        out.setdefault(scope, {}).update(parse_overrides([f"{name}{sep}{value}"]))
+    return out
 
 
 def _overlaps(text: str) -> tuple[float, ...]:
@@ -209,6 +256,8 @@ def run(args) -> int:
         methods=methods, method_options=options, experiments=_names(args.experiments),
         length_runs=_length_runs(args.length_runs), length_preset=args.length_preset,
         length_train_frames=args.length_train_frames, length_overrides=parse_overrides(args.length_set),
+        ablation_runs=_ablation_runs(args.ablation_runs), ablation_presets=_names(args.ablation_preset),
+        ablation_train_frames=args.ablation_train_frames, ablation_overrides=_ablation_overrides(args.ablation_set),
         viewpoint_pair=tuple(viewpoint) if viewpoint else None, overlaps=_overlaps(args.overlaps),
         examples=args.examples, runtime_images=args.runtime_images, embedding_points=args.embedding_points,
         batch_size=args.batch_size, threads=args.threads, progress=not args.no_progress, protocol=args.protocol,

@@ -4,8 +4,8 @@ Figures are embedded as ``data:image/png;base64`` URIs; the style sheet is inlin
 scripts and no external resources of any kind, so the file can be mailed or archived as it is.
 The header says which dataset, protocol, checkpoint, fdnet version and command made the report;
 every experiment is a ``<section id="NAME">`` (ids fixed, see
-:data:`~fdnet.reproduce.sections.EXPERIMENTS`) whose tables carry the numbers, so the report reads
-without its figures. The report is rebuilt from ``OUT/reproduce.json`` and ``OUT/<NAME>.json`` alone,
+:data:`~fdnet.reproduce.sections.EXPERIMENTS`; an optional experiment's section once it has run)
+whose tables carry the numbers, so the report reads without its figures. The report is rebuilt from ``OUT/reproduce.json`` and ``OUT/<NAME>.json`` alone,
 so rerunning one experiment keeps the sections of the others.
 """
 
@@ -19,8 +19,8 @@ from pathlib import Path
 
 from fdnet.errors import DataError
 from fdnet.io import atomic_write_text
-from fdnet.reproduce.sections import (EXPERIMENTS, MANIFEST, REPORT, Figure, Heading, Paragraph, Table,
-                                     experiment_module)
+from fdnet.reproduce.sections import (ALL_EXPERIMENTS, EXPERIMENTS, MANIFEST, REPORT, Figure, Heading, Paragraph,
+                                     Table, experiment_module)
 
 #: the figure formats the report embeds, by their first bytes
 IMAGE_TYPES = {b"\x89PNG\r\n\x1a\n": "image/png", b"\xff\xd8\xff": "image/jpeg"}
@@ -108,7 +108,7 @@ def _read_json(path: Path) -> dict | None:
                         f"--experiments {path.stem}") from None
 
 
-def _header(manifest: dict | None) -> str:
+def _header(manifest: dict | None, shown: list[str]) -> str:
     if manifest is None:
         return "<header><h1>fdnet reproduce</h1><p class=\"note\">No run manifest (reproduce.json) found.</p></header>"
     pairs = "; ".join(f"{_escape(p['query'])} &rarr; {_escape(p['reference'])} ({p['num_queries']} queries x "
@@ -125,7 +125,7 @@ def _header(manifest: dict | None) -> str:
         ("created", _escape(manifest.get("created", ""))),
     ]
     body = "".join(f"<tr><th>{k}</th><td>{v}</td></tr>" for k, v in rows)
-    nav = "".join(f'<a href="#{name}">{name}</a>' for name in EXPERIMENTS)
+    nav = "".join(f'<a href="#{name}">{name}</a>' for name in shown)
     return (f"<header><h1>fdnet reproduce: the paper's experiments</h1>"
             f'<table class="header"><tbody>{body}</tbody></table><nav>{nav}</nav></header>')
 
@@ -160,12 +160,15 @@ def render_report(out: str | os.PathLike) -> str:
     """The report's HTML from the JSON files in ``out``."""
     out = Path(out)
     manifest = _read_json(out / MANIFEST)
-    sections = [_section(name, i, _read_json(out / f"{name}.json"), manifest, out)
-                for i, name in enumerate(EXPERIMENTS, start=1)]
+    documents = {name: _read_json(out / f"{name}.json") for name in ALL_EXPERIMENTS}
+    # the paper's experiments always (a placeholder for one not run yet); an optional one once it ran
+    shown = [name for name in ALL_EXPERIMENTS if name in EXPERIMENTS or documents[name] is not None
+             or name in (manifest or {}).get("experiments_run", [])]
+    sections = [_section(name, i, documents[name], manifest, out) for i, name in enumerate(shown, start=1)]
     return ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
             "<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">"
             "<title>fdnet reproduce report</title>"
-            f"<style>{STYLE}</style></head><body>\n{_header(manifest)}\n" + "\n".join(sections)
+            f"<style>{STYLE}</style></head><body>\n{_header(manifest, shown)}\n" + "\n".join(sections)
             + "\n</body></html>\n")
 
 

@@ -2,11 +2,11 @@
 experiments share (cached vectors, similarity matrices and metrics computed once per run).
 
 Every experiment module (``comparison``, ``lengths``, ``similarity``, ``disentanglement``,
-``viewpoint``, ``runtime`` (module ``table5_runtime``), ``examples``) has ``NAME``, ``TITLE``,
-``PAPER`` (the figures/tables it reproduces), ``unavailable(ctx)`` (why it cannot run, or None),
-``run(ctx) -> dict`` (the numbers, written to ``OUT/<NAME>.json``; figures under
-``OUT/figures/<NAME>/``) and ``render(document)`` (the report section's blocks, from that JSON
-alone, so a section survives reruns of the others).
+``viewpoint``, ``runtime`` (module ``table5_runtime``), ``examples``, and ``ablation``, which runs
+only when named) has ``NAME``, ``TITLE``, ``PAPER`` (the figures/tables it reproduces),
+``unavailable(ctx)`` (why it cannot run, or None), ``run(ctx) -> dict`` (the numbers, written to
+``OUT/<NAME>.json``; figures under ``OUT/figures/<NAME>/``) and ``render(document)`` (the report
+section's blocks, from that JSON alone, so a section survives reruns of the others).
 After each experiment the report is rendered again, so an interrupted run still leaves a report of
 what finished, and a rerun resumes from the descriptor cache (``OUT/cache/``).
 """
@@ -33,7 +33,7 @@ from fdnet.evaluation.metrics import PROTOCOLS, RECALL_OVER_QUERIES
 from fdnet.io import atomic_write_text, ensure_writable
 from fdnet.evaluation.report import _plain
 from fdnet.reproduce.cache import DescriptorCache, image_list_key
-from fdnet.reproduce.sections import EXPERIMENTS, MANIFEST, experiment_module
+from fdnet.reproduce.sections import ALL_EXPERIMENTS, EXPERIMENTS, MANIFEST, experiment_module
 
 #: FDNet, the trunk alone and every baseline; those that cannot run here (no trained model, no
 #: weights) are listed in the report with the reason, unless named explicitly with --method
@@ -75,6 +75,13 @@ class ReproduceSettings:
     length_preset: str | None = None
     length_train_frames: str | None = None
     length_overrides: dict = field(default_factory=dict)
+    #: the ablation study's given runs, (variant, run directory) pairs; grouped by each run's preset
+    ablation_runs: list[tuple[str, Path]] = field(default_factory=list)
+    #: presets whose ablation variants are trained here (None: cpu, when training is asked for)
+    ablation_presets: list[str] | None = None
+    ablation_train_frames: str | None = None
+    #: training settings of the ablation variants: "" -> for every preset, PRESET -> for that one
+    ablation_overrides: dict[str, dict] = field(default_factory=dict)
     viewpoint_pair: tuple[str, str] | None = None  # (reference, query)
     overlaps: tuple[float, ...] = (1.0, 0.9, 0.75, 0.65)
     examples: int = 5
@@ -381,9 +388,9 @@ def _check(settings: ReproduceSettings) -> list[str]:
     if settings.protocol not in PROTOCOLS:
         raise ConfigError(f"--protocol {settings.protocol!r}: choose one of {', '.join(PROTOCOLS)}")
     chosen = list(settings.experiments or EXPERIMENTS)
-    unknown = [e for e in chosen if e not in EXPERIMENTS]
+    unknown = [e for e in chosen if e not in ALL_EXPERIMENTS]
     if unknown:
-        raise ConfigError(f"unknown experiment(s) {', '.join(unknown)}; choose from {', '.join(EXPERIMENTS)}")
+        raise ConfigError(f"unknown experiment(s) {', '.join(unknown)}; choose from {', '.join(ALL_EXPERIMENTS)}")
     known = available_methods()
     bad = [m for m in settings.methods or [] if m not in known]
     if bad:
@@ -436,7 +443,8 @@ def reproduce(settings: ReproduceSettings, factory: Callable | None = None,
         required = settings.methods is not None or (name == "fdnet" and settings.checkpoint is not None)
         handle = ctx.add_method(name, name, options, required=required)
         _check_fit_size(handle, pairs, required, settings.data, log)
-    if not ctx.available():
+    # an experiment that reads only runs of its own (COMPARES_METHODS = False) needs none of them
+    if not ctx.available() and any(getattr(experiment_module(n), "COMPARES_METHODS", True) for n in chosen):
         raise ConfigError("none of the methods can run here: " + "; ".join(
             f"{s['method']}: {s['reason']}" for s in ctx.skipped()))
     # what cannot run is known before anything runs: an experiment asked for by name is an error

@@ -10,9 +10,14 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-#: experiments in report order; each name is its JSON file, its HTML section id and (but for those
-#: in EXPERIMENT_MODULES) its module under fdnet.reproduce
+#: the paper's experiments, run by default, in report order; each name is its JSON file, its HTML
+#: section id and (but for those in EXPERIMENT_MODULES) its module under fdnet.reproduce
 EXPERIMENTS = ("comparison", "lengths", "similarity", "disentanglement", "viewpoint", "runtime", "examples")
+#: experiments run only when named in --experiments (they train several runs each); their sections
+#: follow the paper's, and appear in a report once they have run
+OPTIONAL_EXPERIMENTS = ("ablation",)
+#: every experiment, in report order
+ALL_EXPERIMENTS = EXPERIMENTS + OPTIONAL_EXPERIMENTS
 #: experiment -> its module where the two names differ: the runtime experiment's module is named
 #: for the paper's table it reproduces (the timing kernels it uses are fdnet.evaluation.timing)
 EXPERIMENT_MODULES = {"runtime": "table5_runtime"}

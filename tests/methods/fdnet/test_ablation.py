@@ -206,3 +206,20 @@ def test_a_resumed_run_keeps_its_switches(tmp_path):
     assert summary["status"] == "finished" and summary["step"] == config.total_steps
     columns, _ = _log(run)
     assert "encoder_adversarial" not in columns
+
+
+def test_with_a_projection_head_neither_l_a_nor_l_r_reaches_the_content_vector(tmp_path):
+    """What docs/runs.md says of the cpu preset: its content head reads no gradient from L_a or L_r
+    (the decoder reads a detached v_c), so without either the content encoder trains exactly as in
+    the full run, weight for weight; without the critic it does not train at all."""
+    trained = {}
+    for name, switches in (("full", {}), ("no-triplet", {"loss.appearance_triplet": False}),
+                           ("no-reconstruction", {"loss.reconstruction": False})):
+        config = _config(tmp_path, **PROJECTION_HEAD, **switches)
+        train(config, tmp_path / name, progress=False)
+        trained[name] = _trained(config, tmp_path / name)
+    assert torch.count_nonzero(trained["full"]["content_encoder"]["refine"]) > 0
+    for name in ("no-triplet", "no-reconstruction"):
+        assert _same(trained[name]["content_encoder"], trained["full"]["content_encoder"]), name
+        assert _same(trained[name]["discriminator"], trained["full"]["discriminator"]), name
+    assert not _same(trained["no-triplet"]["appearance_encoder"], trained["full"]["appearance_encoder"])

@@ -1,0 +1,384 @@
+"""Experiment ``ablation`` (not in the paper, which motivates each part of FDNet without removing
+it): FDNet as a preset trains it, and the same run without each of its three training signals.
+
+Variants (the ablation switches of :class:`fdnet.methods.fdnet.config.LossConfig`):
+
+* ``full`` - the preset as it is;
+* ``no-critic`` - ``loss.adversarial=false``: no D_a and no L_e^adv (the critic stage skipped);
+* ``no-triplet`` - ``loss.appearance_triplet=false``: no L_a;
+* ``no-reconstruction`` - ``loss.reconstruction=false``: no L_r (no decoder).
+
+Per preset (``--ablation-preset``, default ``cpu``; several may be given) the four runs are given
+(``--ablation-runs VARIANT=DIR,...``; the preset is the run's own, its switches must be the
+variant's) or trained here on ``--ablation-train-frames`` into ``OUT/ablation-runs/<preset>/<variant>/``,
+with the schedule :data:`SCHEDULES` states for the preset (the preset's own otherwise) and
+``--ablation-set [PRESET:]KEY=VALUE`` on top; a finished run is reused and an interrupted one
+resumes. Per preset and pair: R@1, R@100P (raw and fdnet's margin rule), P@maxR and AUC-PR of each
+variant, how many queries' top-1 answer changes against the full run (with McNemar's exact test),
+and PR curves.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+from fdnet.errors import ConfigError
+from fdnet.reproduce.sections import Figure, Heading, Paragraph, Table, best_cells, finite_or_none, number, pair_name
+
+NAME = "ablation"
+TITLE = "Ablation: FDNet without its critic, its appearance triplet loss or its reconstruction"
+PAPER = "none (the paper motivates L_e^adv, L_a and L_r in section 3 but does not train without them)"
+#: it reads only its own FDNet runs: the command's methods (--method, --checkpoint) need not run
+COMPARES_METHODS = False
+
+#: variant -> the ablation switches it sets, in report order
+VARIANTS = {
+    "full": {},
+    "no-critic": {"loss.adversarial": False},
+    "no-triplet": {"loss.appearance_triplet": False},
+    "no-reconstruction": {"loss.reconstruction": False},
+}
+#: what each variant removes, for the report
+REMOVES = {
+    "full": "nothing",
+    "no-critic": "D_a and L_e^adv (loss.adversarial=false)",
+    "no-triplet": "L_a (loss.appearance_triplet=false)",
+    "no-reconstruction": "L_r and the decoder (loss.reconstruction=false)",
+}
+DEFAULT_PRESETS = ("cpu",)
+#: the schedule each preset's variants are trained at here (before --ablation-set), where it is not
+#: the preset's own: paper-native's whole schedule (73,000 steps, over two hours per run on 2
+#: cores) is a tenth here, each stage in the paper's proportion: about 15 minutes per variant
+SCHEDULES = {
+    "paper-native": {"schedule.pretrain_autoencoder_steps": 500, "schedule.pretrain_critic_steps": 800,
+                     "schedule.joint_steps": 6000},
+}
+
+#: what a rerun of this experiment alone needs besides the command's flags (the report's hint)
+RERUN_FLAGS = ("--ablation-train-frames START:END [--ablation-preset cpu,paper-native] "
+               "(or --ablation-runs full=DIR,no-critic=DIR,no-triplet=DIR,no-reconstruction=DIR)")
+
+
+def _trains(settings) -> bool:
+    return bool(settings.ablation_presets or settings.ablation_train_frames)
+
+
+def presets(settings) -> list[str]:
+    """The presets whose variants are trained here (none when only runs are given)."""
+    if not _trains(settings):
+        return []
+    return list(settings.ablation_presets or DEFAULT_PRESETS)
+
+
+def unavailable(ctx) -> str | None:
+    s = ctx.settings
+    if not s.ablation_runs and not _trains(s):
+        return ("needs FDNet runs of each variant: --ablation-runs full=DIR,no-critic=DIR,no-triplet=DIR,"
+                "no-reconstruction=DIR, or --ablation-train-frames START:END (with --ablation-preset, default cpu) "
+                "to train them here")
+    for variant, folder in s.ablation_runs:
+        if variant not in VARIANTS:
+            raise ConfigError(f"--ablation-runs {variant}={folder}: unknown variant; choose from {', '.join(VARIANTS)}")
+        if not Path(folder).is_dir():
+            raise ConfigError(f"--ablation-runs {variant}={folder}: run directory not found")
+    if _trains(s):
+        from fdnet.methods.fdnet.config import PRESETS
+
+        for name in presets(s):
+            if name not in PRESETS:
+                raise ConfigError(f"--ablation-preset {name}: unknown FDNet preset; choose from {', '.join(PRESETS)}")
+        for scope in s.ablation_overrides:
+            if scope and scope not in presets(s):
+                raise ConfigError(f"--ablation-set {scope}:...: {scope} is not among the trained presets "
+                                  f"({', '.join(presets(s))})")
+        check_training(s)
+        for name in presets(s):
+            for variant in VARIANTS:
+                training_config(s, name, variant)  # a bad --ablation-set is an error before any work
+    return None
+
+
+def check_training(settings) -> None:
+    """Refuse to train (or validate) on the frames the experiments evaluate on."""
+    if settings.dataset_format:
+        return  # the format's train split (or --ablation-train-frames as its split) is the paper's
+    if not settings.ablation_train_frames:
+        raise ConfigError("--ablation-preset needs --ablation-train-frames START:END (frames to train on, outside "
+                          "the evaluated --frames)")
+    from fdnet.data.dataset import frame_ranges_overlap
+
+    if frame_ranges_overlap(settings.ablation_train_frames, settings.frames):
+        raise ConfigError(f"--ablation-train-frames {settings.ablation_train_frames} overlaps the evaluated frames "
+                          f"--frames {settings.frames or 'all'}: train and test on different frames")
+    for scope, overrides in settings.ablation_overrides.items():
+        frames = overrides.get("validation.frames")
+        if frames and frame_ranges_overlap(str(frames), settings.frames):
+            raise ConfigError(f"--ablation-set {scope + ':' if scope else ''}validation.frames={frames} overlaps the "
+                              f"evaluated frames --frames {settings.frames or 'all'}: validate on other frames")
+
+
+def overrides_for(settings, preset_name: str) -> dict:
+    """The settings the experiment trains ``preset_name``'s variants with, beside the switches:
+    :data:`SCHEDULES`, then ``--ablation-set`` for every preset, then for this one."""
+    return {**SCHEDULES.get(preset_name, {}), **settings.ablation_overrides.get("", {}),
+            **settings.ablation_overrides.get(preset_name, {})}
+
+
+def training_config(settings, preset_name: str, variant: str):
+    """The run config of one variant on ``settings.data`` (training frames only)."""
+    from fdnet.config import replace_dotted
+    from fdnet.methods.fdnet.config import preset, validate
+
+    config = preset(preset_name)
+    data = dataclasses.replace(config.data, root=str(settings.data),
+                               conditions=tuple(settings.conditions or ()),
+                               dataset_format=settings.dataset_format or "")
+    if settings.dataset_format:
+        data = dataclasses.replace(data, split=settings.ablation_train_frames or "")
+    else:
+        data = dataclasses.replace(data, frames=settings.ablation_train_frames)
+    config = dataclasses.replace(config, data=data)
+    config = replace_dotted(config, {**overrides_for(settings, preset_name), **VARIANTS[variant]})
+    validate(config)
+    return config
+
+
+def _train(ctx, preset_name: str, variant: str, folder: Path) -> None:
+    from fdnet import runs
+
+    config = training_config(ctx.settings, preset_name, variant)
+    if runs.is_run(folder):
+        from fdnet.methods.fdnet.config import FDNetRunConfig
+
+        # the newest checkpoint's step (the descriptor reads best/, which may be an earlier one)
+        checkpoint = runs.latest_checkpoint(folder)
+        if runs.load_training_state(checkpoint)["step"] >= runs.load_config(checkpoint, FDNetRunConfig).total_steps:
+            ctx.log(f"[{NAME}] {preset_name}/{variant}: finished run in {folder}, reused")
+            return
+    import torch
+
+    from fdnet.methods.fdnet.training import train
+
+    ctx.log(f"[{NAME}] {preset_name}/{variant}: training {config.total_steps} steps into {folder}")
+    threads = torch.get_num_threads()
+    try:
+        train(config, folder, resume=runs.is_run(folder), progress=ctx.settings.progress,
+              command=ctx.settings.command or "fdnet reproduce")
+    finally:
+        torch.set_num_threads(threads)  # the preset sets its own; the experiments after keep --threads
+
+
+def variant_of(config) -> str:
+    """The variant a run's ablation switches make (ConfigError for a combination of several)."""
+    off = config.ablated()
+    for variant, switches in VARIANTS.items():
+        if sorted(key.partition(".")[2] for key in switches) == sorted(off):
+            return variant
+    raise ConfigError(f"a run without {' and '.join(off)} is none of this experiment's variants "
+                      f"({', '.join(VARIANTS)}: one part removed at a time)")
+
+
+def ablation_runs(ctx) -> dict[str, dict[str, Path]]:
+    """preset -> variant -> run directory: the given runs (grouped by the preset each was trained
+    with) and, for the presets trained here, the variants not given."""
+    from fdnet.methods.fdnet.config import FDNetRunConfig
+    from fdnet.runs import load_config, weights_folder
+
+    s = ctx.settings
+    groups: dict[str, dict[str, Path]] = {}
+    for variant, folder in s.ablation_runs:
+        config = load_config(weights_folder(folder), FDNetRunConfig)
+        actual = variant_of(config)
+        if actual != variant:
+            raise ConfigError(f"--ablation-runs {variant}={folder}: that run was trained as {actual} "
+                              f"({', '.join(f'loss.{n}=false' for n in config.ablated()) or 'every switch on'})")
+        group = groups.setdefault(config.preset, {})
+        if variant in group:
+            raise ConfigError(f"--ablation-runs: two {config.preset} runs for {variant} ({group[variant]}, {folder})")
+        group[variant] = Path(folder)
+    for name in presets(s):
+        group = groups.setdefault(name, {})
+        for variant in VARIANTS:
+            if variant not in group:
+                folder = ctx.out / "ablation-runs" / name / variant
+                _train(ctx, name, variant, folder)
+                group[variant] = folder
+    return {name: {v: group[v] for v in VARIANTS if v in group} for name, group in groups.items()}
+
+
+def _schedule(config) -> dict:
+    autoencoder, critic, joint = config.stage_steps
+    return {"autoencoder": autoencoder, "critic": critic, "joint": joint, "total": config.total_steps,
+            "critic_updates_per_step": config.schedule.critic_updates_per_step if config.loss.adversarial else 0}
+
+
+def _differences(full, other) -> list[str]:
+    """Settings in which a variant's run differs from the full run's, the switches aside."""
+    from fdnet.runs import config_differences
+
+    switches = {f"loss.{name}" for name in ("adversarial", "appearance_triplet", "reconstruction")}
+    return [d for d in config_differences(full, other) if d.partition(":")[0] not in switches]
+
+
+def _mcnemar(right_full, right_variant) -> dict:
+    """Queries whose top-1 answer is right in one run and wrong in the other, and McNemar's exact
+    two-sided p-value (binomial on the discordant queries)."""
+    import numpy as np
+    from scipy.stats import binomtest
+
+    only_full = int(np.sum(right_full & ~right_variant))
+    only_variant = int(np.sum(right_variant & ~right_full))
+    discordant = only_full + only_variant
+    p = binomtest(only_full, discordant, 0.5).pvalue if discordant else 1.0
+    return {"right_only_in_full": only_full, "right_only_in_variant": only_variant, "p_value": float(p)}
+
+
+def run(ctx) -> dict:
+    import numpy as np
+
+    from fdnet.decisions.acceptance import DEFAULT_ACCEPTANCE
+    from fdnet.evaluation import plots
+
+    options = {k: v for k, v in ctx.settings.method_options.get("fdnet", {}).items() if k != "checkpoint"}
+    groups = []
+    for preset_name, variants in ablation_runs(ctx).items():
+        handles = {}
+        for variant, folder in variants.items():
+            handles[variant] = ctx.add_method(f"fdnet[{preset_name}/{variant}]", "fdnet",
+                                              {**options, "checkpoint": str(folder)}, required=True, compared=False)
+        configs = {v: h.descriptor.config for v, h in handles.items()}
+        full = configs.get("full")
+        runs_info = [{"variant": v, "removes": REMOVES[v], "run": str(variants[v]), "step": h.descriptor.step,
+                      "schedule": _schedule(configs[v]),
+                      "differences_from_full": _differences(full, configs[v]) if full is not None and v != "full" else []}
+                     for v, h in handles.items()]
+        pairs = []
+        plt = plots.pyplot()
+        columns = min(3, len(ctx.pairs))
+        rows = -(-len(ctx.pairs) // columns)
+        fig, axes = plt.subplots(rows, columns, figsize=(4.8 * columns, 4.3 * rows), squeeze=False)
+        for ax, pair in zip(axes.flat, ctx.pairs):
+            results = {v: ctx.result(h, pair.split, pair.slug) for v, h in handles.items()}
+            right = {v: r.ground_truth.correct_mask(np.asarray(r.retrieved)[:, :1])[:, 0] for v, r in results.items()}
+            queries, _ = ctx.pair_vectors(handles["full"], pair.split) if "full" in handles else (None, None)
+            rows_out = []
+            for variant, result in results.items():
+                metrics = result.metrics[ctx.protocol]
+                margin = result.by_acceptance.get(DEFAULT_ACCEPTANCE, {}).get(ctx.protocol)
+                row = {"variant": variant, "recall_at_1": finite_or_none(metrics.recall_at_n[1]),
+                       "recall_at_100_precision": finite_or_none(metrics.recall_at_100_precision),
+                       "recall_at_100_precision_margin": finite_or_none(margin.recall_at_100_precision)
+                       if margin is not None else None,
+                       "precision_at_max_recall": finite_or_none(metrics.precision_at_max_recall),
+                       "auc_pr": finite_or_none(metrics.auc_pr), "pr_curve": metrics.curve.to_dict()}
+                if variant != "full" and "full" in results:
+                    row["against_full"] = _mcnemar(right["full"], right[variant])
+                    mine, _ = ctx.pair_vectors(handles[variant], pair.split)
+                    row["same_content_vectors_as_full"] = bool(np.array_equal(mine, queries))
+                rows_out.append(row)
+            plots.draw_pr_curves(ax, {v: (r.metrics[ctx.protocol].curve, r.metrics[ctx.protocol].auc_pr)
+                                      for v, r in results.items()})
+            ax.set_title(pair.label, fontsize="medium")
+            pairs.append({"reference": pair.reference, "query": pair.query,
+                          "num_queries": int(pair.split.ground_truth.num_queries), "variants": rows_out})
+        for ax in list(axes.flat)[len(ctx.pairs):]:
+            ax.axis("off")
+        fig.suptitle(f"{preset_name}: PR curves per variant ({ctx.protocol_label})", fontsize="medium")
+        fig.tight_layout()
+        figure = plots.save_figure(fig, ctx.figure_path(f"pr_{preset_name}.png"))
+        groups.append({"preset": preset_name, "trained_here": preset_name in presets(ctx.settings),
+                       "settings": overrides_for(ctx.settings, preset_name) if preset_name in presets(ctx.settings)
+                       else {}, "runs": runs_info, "pairs": pairs, "figure": ctx.relative(figure),
+                       "missing": [v for v in VARIANTS if v not in handles]})
+    return {"variants": list(VARIANTS), "removes": REMOVES, "acceptance": DEFAULT_ACCEPTANCE, "groups": groups,
+            "train_frames": ctx.settings.ablation_train_frames}
+
+
+def _schedule_text(schedule: dict) -> str:
+    return (f"{schedule['autoencoder']} auto-encoder + {schedule['critic']} critic + {schedule['joint']} joint steps "
+            f"({schedule['critic_updates_per_step']} critic updates per joint step)")
+
+
+#: how a finding names each variant
+WITHOUT = {"no-critic": "Without the critic (no D_a, no L_e^adv)", "no-triplet": "Without the triplet loss L_a",
+           "no-reconstruction": "Without reconstruction (no L_r, no decoder)"}
+
+
+def _against(name: str, value, reference) -> str:
+    if value is None or reference is None:
+        return f"{name} {number(value)} (full run {number(reference)})"
+    if value == reference:
+        return f"{name} {number(value)}, the same as the full run"
+    return f"{name} {number(value)} against the full run's {number(reference)} ({value - reference:+.3f})"
+
+
+def _finding(variant: str, row: dict, full: dict | None, pair: dict) -> str:
+    """What removing the part did on this pair, from the numbers alone."""
+    if full is None:
+        return ""
+    text = (f"{WITHOUT[variant]}: " + "; ".join(
+        _against(name, row[key], full[key]) for name, key in (("R@1", "recall_at_1"), ("AUC-PR", "auc_pr"),
+                                                             ("R@100P", "recall_at_100_precision"))))
+    if row.get("same_content_vectors_as_full"):
+        return text + (". Its content vectors are exactly the full run's: in this preset the part it removes does "
+                       "not reach the content encoder.")
+    against = row.get("against_full")
+    if not against:
+        return text + "."
+    a, b = against["right_only_in_full"], against["right_only_in_variant"]
+    if a + b == 0:
+        return text + ". Every query's top-1 answer is right or wrong in both runs alike."
+    text += (f". The top-1 answer is right only in the full run for {a} of {pair['num_queries']} queries and only "
+             f"in this variant for {b} (McNemar's exact p = {against['p_value']:.3g}")
+    if against["p_value"] >= 0.05:
+        return text + ": these queries alone cannot tell the difference from chance at the 5% level)."
+    return text + ": more than chance on these queries at the 5% level, for this one pair of runs)."
+
+
+def render(document: dict) -> list:
+    acceptance = document.get("acceptance", "margin")
+    blocks: list = [Paragraph(
+        "Each variant is the same training as the full run with one part removed (the switch stops it "
+        "being computed, not only weighted: fdnet's docs/runs.md says what each switch removes in each preset). "
+        f"R@100P raw thresholds the best-match similarity (paper 5.1.2); R@100P {acceptance} accepts each query "
+        f"by fdnet's {acceptance} score instead. Every variant is one training run with one seed: the "
+        "differences include run-to-run variation, which this experiment does not measure; McNemar's test "
+        "below counts only the evaluated queries, not that variation.")]
+    for group in document["groups"]:
+        runs = {r["variant"]: r for r in group["runs"]}
+        full_run = runs.get("full")
+        schedule = _schedule_text(full_run["schedule"]) if full_run else ""
+        where = ("trained here" + (f" with {', '.join(f'{k}={v}' for k, v in group['settings'].items())}"
+                                   if group["settings"] else " with the preset's own settings")
+                 if group["trained_here"] else "given runs")
+        blocks.append(Heading(f"preset {group['preset']}: {where}; the full run: {schedule}"))
+        if group.get("missing"):
+            blocks.append(Paragraph(f"No {group['preset']} run for {', '.join(group['missing'])}.", note=True))
+        for run in group["runs"]:
+            if run["differences_from_full"]:
+                blocks.append(Paragraph(f"{run['variant']} differs from the full run in more than its switch: "
+                                        + "; ".join(run["differences_from_full"]), note=True))
+        blocks.append(Table(["variant", "removes", "steps (auto-encoder + critic + joint)", "weights at step", "run"],
+                            [[r["variant"], r["removes"],
+                              f"{r['schedule']['autoencoder']} + {r['schedule']['critic']} + {r['schedule']['joint']}",
+                              str(r["step"]), r["run"]] for r in group["runs"]],
+                            f"{group['preset']}: the runs"))
+        for pair in group["pairs"]:
+            keys = ("recall_at_1", "recall_at_100_precision", "recall_at_100_precision_margin",
+                    "precision_at_max_recall", "auc_pr")
+            rows = [[v["variant"]] + [v[k] for k in keys] for v in pair["variants"]]
+            marked = best_cells(rows, list(range(1, len(keys) + 1)))
+            blocks.append(Table(["variant", "R@1", "R@100P raw", f"R@100P {acceptance}", "P@maxR", "AUC-PR"],
+                                [[r[0]] + [number(x) for x in r[1:]] for r in rows],
+                                f"{group['preset']}, {pair_name(pair['query'], pair['reference'])}: "
+                                f"{pair['num_queries']} queries", marked))
+            full = next((v for v in pair["variants"] if v["variant"] == "full"), None)
+            for row in pair["variants"]:
+                if row["variant"] != "full":
+                    sentence = _finding(row["variant"], row, full, pair)
+                    if sentence:
+                        blocks.append(Paragraph(sentence))
+        blocks.append(Figure(group["figure"], f"{group['preset']}: PR curves of the variants, one panel per pair "
+                                              "(legend: AUC-PR)"))
+    return blocks
