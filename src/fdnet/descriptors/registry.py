@@ -101,7 +101,7 @@ _M = MethodSpec
 _METHODS: dict[str, MethodSpec] = {spec.name: spec for spec in (
     _M("fdnet", "FDNet content vector (needs --checkpoint RUN_DIR)", "fdnet.methods.fdnet.descriptor:FDNetDescriptor",
        torch=True, export=True, config="fdnet.methods.fdnet.config:FDNetRunConfig",
-       trainer="fdnet.methods.fdnet.training:train", presets=("paper", "cpu", "cpu-scratch", "tiny"),
+       trainer="fdnet.methods.fdnet.training:train", presets=("paper", "paper-native", "cpu", "cpu-scratch", "tiny"),
        default_preset="cpu"),
     _M("trunk", "the frozen trunk FDNet reads, alone (the number to beat; --checkpoint takes an FDNet run's block "
        "and size)", "fdnet.methods.fdnet.trunk_alone:TrunkDescriptor", torch=True),
