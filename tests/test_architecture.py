@@ -200,3 +200,68 @@ def test_long_function_finder_finds_a_planted_one():
     source = f"def short():\n    pass\n\nclass A:\n    def long(self):\n{body}"
     assert long_functions(source, limit=3) == [("long", 5, 4)]
     assert long_functions(source, limit=4) == []
+
+
+#: The package's floors, bottom to top, in the order of its pipeline (sources and data, descriptors,
+#: matching, the pure metrics, decisions, training as a side path, evaluation, the tasks that drive
+#: them, the methods that train on it all, performance, the paper's experiments, the command line).
+#: A module imports only modules of its own floor or below, at module level or inside a function.
+FLOORS = (
+    ("ground", ("fdnet.errors", "fdnet.version", "fdnet.io", "fdnet.logs", "fdnet.config", "fdnet.progress",
+                "fdnet.backbones", "fdnet.paper")),
+    ("data", ("fdnet.data",)),
+    ("runs", ("fdnet.runs",)),
+    ("descriptors", ("fdnet.descriptors",)),
+    ("matching", ("fdnet.matching",)),
+    ("metrics", ("fdnet.metrics",)),
+    ("decisions", ("fdnet.decisions",)),
+    ("training", ("fdnet.training",)),
+    ("evaluation", ("fdnet.evaluation",)),
+    ("tasks", ("fdnet.tasks",)),
+    ("methods", ("fdnet.methods",)),
+    ("performance", ("fdnet.performance",)),
+    ("reproduce", ("fdnet.reproduce",)),
+    ("applications", ("fdnet.export", "fdnet.demo")),
+    ("cli", ("fdnet.cli", "fdnet.__main__")),
+    ("api", ("fdnet",)),  # the package root: fdnet.load, which reaches a trained method
+)
+
+
+def floor_of(module: str) -> int:
+    """The floor a module stands on: that of the longest prefix FLOORS names."""
+    best, floor = -1, None
+    for level, (_, prefixes) in enumerate(FLOORS):
+        for prefix in prefixes:
+            if (module == prefix or module.startswith(prefix + ".")) and len(prefix) > best:
+                best, floor = len(prefix), level
+    assert floor is not None, f"{module} stands on no floor: add it to FLOORS"
+    return floor
+
+
+def upward_imports(graph: dict[str, set[str]]) -> list[str]:
+    return [f"{a} ({FLOORS[floor_of(a)][0]}) imports {b} ({FLOORS[floor_of(b)][0]})"
+            for a in sorted(graph) for b in sorted(graph[a]) if floor_of(b) > floor_of(a)]
+
+
+def test_no_module_imports_from_a_floor_above_its_own():
+    offenders = upward_imports(import_graph())
+    assert not offenders, "imports that run up a floor:\n" + "\n".join(offenders)
+
+
+def test_upward_import_finder_sees_function_local_imports():
+    assert upward_imports({"fdnet.data.planted": {"fdnet.cli"}}) == [
+        "fdnet.data.planted (data) imports fdnet.cli (cli)"]
+    assert upward_imports({"fdnet.cli.match": {"fdnet.data.images"}}) == []
+    # the command line imports its task inside run(): the graph has that import all the same
+    modules = all_modules()
+    assert "fdnet.tasks.match" in imports_of(modules["fdnet.cli.match"], modules)
+
+
+#: the longest a source file in src/fdnet may be
+MAX_FILE_LINES = 600
+
+
+def test_no_source_file_is_longer_than_600_lines():
+    offenders = [f"{name} ({n} lines)" for name, path in sorted(all_modules().items())
+                 if (n := len(path.read_text().splitlines())) > MAX_FILE_LINES]
+    assert not offenders, f"files longer than {MAX_FILE_LINES} lines (split them by responsibility): {offenders}"

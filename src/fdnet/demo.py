@@ -113,7 +113,7 @@ def _evaluate(route: Path, run_dir: Path, query: str, test: str, methods: list[s
     from fdnet.decisions.acceptance import DEFAULT_ACCEPTANCE, parse_acceptance_list
     from fdnet.descriptors.registry import create, descriptor_class
     from fdnet.evaluation.experiment import evaluate_method
-    from fdnet.evaluation.metrics import RECALL_OVER_QUERIES
+    from fdnet.metrics import RECALL_OVER_QUERIES
     from fdnet.evaluation.plots import write_result_plots
     from fdnet.evaluation.report import format_table, write_json
     from fdnet.evaluation.splits import build_split

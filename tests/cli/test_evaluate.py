@@ -228,7 +228,7 @@ def test_gardens_point_slice(tiny_method, tmp_path):
     from fdnet.data.groundtruth import GroundTruth
     from fdnet.data.images import list_images
     from fdnet.descriptors.base import describe_paths
-    from fdnet.evaluation.metrics import evaluate_similarity
+    from fdnet.metrics import evaluate_similarity
 
     d = TinyPixels(16)
     q = describe_paths(d, list_images(gardens / "night_right")[100:140])

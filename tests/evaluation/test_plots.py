@@ -7,7 +7,7 @@ from PIL import Image
 
 from fdnet.data.groundtruth import GroundTruth
 from fdnet.evaluation import plots
-from fdnet.evaluation.metrics import evaluate_similarity
+from fdnet.metrics import evaluate_similarity
 
 
 def _is_png(path, min_size=(100, 100)):

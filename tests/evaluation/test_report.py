@@ -8,7 +8,7 @@ import numpy as np
 
 from fdnet.data.groundtruth import GroundTruth
 from fdnet.evaluation.experiment import evaluate_matrix
-from fdnet.evaluation.metrics import VPRBENCH
+from fdnet.metrics import VPRBENCH
 from fdnet.evaluation.report import format_table, results_json, write_json
 
 REQUIRED = {"recall_at_100_precision", "precision_at_max_recall", "auc_pr", "recall_at_n", "protocol",

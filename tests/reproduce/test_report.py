@@ -70,7 +70,7 @@ def test_a_missing_figure_is_said_not_shown_broken(tmp_path):
 
 
 def test_the_papers_numbers_stand_beside_ours_labelled_as_the_papers(tmp_path):
-    from fdnet.reproduce.paper import paper_pair
+    from fdnet.paper import paper_pair
 
     write_run(tmp_path)
     document = json.loads((tmp_path / "comparison.json").read_text())

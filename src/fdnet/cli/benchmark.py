@@ -1,4 +1,4 @@
-"""`fdnet benchmark` (parses the flags; :mod:`fdnet.evaluation.benchmark` measures): extraction ms/image and matching ms/query on this machine, every figure
+"""`fdnet benchmark` (parses the flags; :mod:`fdnet.performance.benchmark` measures): extraction ms/image and matching ms/query on this machine, every figure
 stated against references measured in the same run (fp32 and bf16 GEMM rates, FDNet's fp32
 eager path) and against the paper's Table 2/5 (TITAN X); GPU figures when a GPU is present; and
 indexed search on maps of 10^3-10^6 places (``--map-size``). Nothing here is asserted by tests:
@@ -6,7 +6,7 @@ machines are shared and noisy, so the command prints ratios measured side by sid
 
 from __future__ import annotations
 
-from fdnet.evaluation.benchmark import DEFAULT_INDEXES, DEFAULT_METHODS, PARTS
+from fdnet.performance.benchmark import DEFAULT_INDEXES, DEFAULT_METHODS, PARTS
 
 
 def register(sub) -> None:
@@ -84,7 +84,7 @@ def run(args) -> int:
 
     from fdnet.cli.extract import COMPILE_FROM
 
-    from fdnet.evaluation.benchmark import plan_benchmark, run_benchmark
+    from fdnet.performance.benchmark import plan_benchmark, run_benchmark
 
     command = "fdnet " + " ".join(sys.argv[1:]) if sys.argv and "benchmark" in sys.argv else None
     plan = plan_benchmark(

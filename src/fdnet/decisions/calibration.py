@@ -2,7 +2,7 @@
 
 :func:`choose_threshold` is the pure part: given each query's acceptance score, whether the match
 it vouches for is right, and which queries have a true match, it takes the threshold of the exact
-recall-over-queries PR curve (:func:`fdnet.evaluation.metrics.pr_curve_over_queries`) with the
+recall-over-queries PR curve (:func:`fdnet.metrics.pr_curve_over_queries`) with the
 largest recall among the points whose precision reaches the target; among thresholds with that
 recall, the highest (the fewest accepted queries). Accepting ``score >= threshold`` on the same
 data gives exactly the precision and recall stored with it. When even the most confident query
@@ -66,7 +66,7 @@ def choose_threshold(scores: np.ndarray, correct: np.ndarray, has_match: np.ndar
     """The threshold reaching ``target`` precision with the largest recall (see the module
     docstring). ``scores`` (Q,) acceptance scores (-inf = rejected), ``correct`` (Q,) whether the
     match each score vouches for is right, ``has_match`` (Q,) queries with a true match."""
-    from fdnet.evaluation.metrics import pr_curve_over_queries
+    from fdnet.metrics import pr_curve_over_queries
 
     target = check_target(target)
     scores = np.asarray(scores, dtype=np.float64)

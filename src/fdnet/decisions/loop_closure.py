@@ -29,7 +29,7 @@ milliseconds for 10^4 places; an approximate index would be needed for maps of 1
 
 :func:`run_traverse` is what ``fdnet loop-closure`` calls: a folder of images in fdnet's one
 order, events written as they are accepted (:class:`EventLog`), and optionally an evaluation
-against ground truth with the metrics of :mod:`fdnet.evaluation.metrics`.
+against ground truth with the metrics of :mod:`fdnet.metrics`.
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@ and the threshold that reaches a target precision on a traverse (:func:`calibrat
 
 Queries are the traverse's frames in order, references the database's places by index; each
 frame's true matches are cut to the places it could search. The metrics are those of
-:mod:`fdnet.evaluation.metrics` (recall over queries) over each frame's acceptance score and the
+:mod:`fdnet.metrics` (recall over queries) over each frame's acceptance score and the
 place its rule vouches for, so a loop's R@100P means what a pair's does.
 """
 
@@ -45,7 +45,7 @@ def _evaluable(decisions: Sequence[FrameDecision], ground_truth):
 def evaluate_decisions(decisions: Sequence[FrameDecision], ground_truth, threshold: float, rule: str) -> dict:
     """Every frame's decision against ``ground_truth`` (queries = this traverse's frames in
     order, references = the database's places by index), with the metrics of
-    :func:`fdnet.evaluation.metrics.evaluate_retrieval` over each frame's acceptance score and
+    :func:`fdnet.metrics.evaluate_retrieval` over each frame's acceptance score and
     the place it vouches for (recall over queries: R@100P, R@99P, R@95P, P@maxR, AUC-PR,
     Recall@1), and the operating point at ``threshold`` (what the run accepted).
 
@@ -53,7 +53,7 @@ def evaluate_decisions(decisions: Sequence[FrameDecision], ground_truth, thresho
     matches are cut to the places searchable for it (its own last frames are no revisit); frames
     with nothing to search are left out (they can neither find nor miss anything).
     """
-    from fdnet.evaluation.metrics import RECALL_OVER_QUERIES, evaluate_retrieval
+    from fdnet.metrics import RECALL_OVER_QUERIES, evaluate_retrieval
 
     evaluated, truth = _evaluable(decisions, ground_truth)
     score = np.array([d.score for d in evaluated], dtype=np.float64)

@@ -1,12 +1,13 @@
-"""Evaluation: metrics under named protocols, the experiment runner, reports and plots.
+"""Evaluation: the experiment runner, reports and plots, over the metrics of :mod:`fdnet.metrics`
+(pure functions under named protocols, re-exported here).
 
-``metrics`` is pure numpy (plus scikit-learn for the VPR-Bench protocol); ``experiment`` runs a
+``experiment`` runs a
 descriptor on an :class:`~fdnet.data.split.EvaluationSplit`; ``report`` prints tables and writes
 JSON; ``plots`` draws PR curves, similarity matrices and example matches (matplotlib, imported
 only when plotting).
 """
 
-from fdnet.evaluation.metrics import (
+from fdnet.metrics import (
     PROTOCOLS,
     RECALL_OVER_QUERIES,
     VPRBENCH,

@@ -17,7 +17,7 @@ used, never a method's name):
 4. acceptance scores under each requested rule (:mod:`fdnet.decisions.acceptance`: ``raw``,
    ``margin``...; the candidates retrieved are at least as many as the rules need, e.g. 2r + 2
    for a margin of radius r), on the sequence candidates when sequence matching is on;
-5. metrics under each requested protocol and rule (:mod:`fdnet.evaluation.metrics`), which need
+5. metrics under each requested protocol and rule (:mod:`fdnet.metrics`), which need
    only each query's ranked top-N, their scores and the acceptance scores.
 
 Results of a precomputed similarity matrix (no descriptor) use :func:`evaluate_matrix`, so the
@@ -38,7 +38,7 @@ from fdnet.data.split import EvaluationSplit
 from fdnet.decisions.acceptance import AcceptanceSpec, Candidates, Decision, decide, parse_acceptance
 from fdnet.descriptors.base import Descriptor, describe_paths
 from fdnet.errors import DataError
-from fdnet.evaluation.metrics import (
+from fdnet.metrics import (
     DEFAULT_NS,
     RECALL_OVER_QUERIES,
     Metrics,

@@ -63,7 +63,7 @@ def draw_pr_curves(ax, curves: dict) -> None:
 def plot_pr_curves(curves: dict, path: str | os.PathLike, title: str = "") -> Path:
     """Several methods' PR curves on one figure.
 
-    ``curves``: method name -> :class:`~fdnet.evaluation.metrics.PRCurve` (or a ``(recall,
+    ``curves``: method name -> :class:`~fdnet.metrics.PRCurve` (or a ``(recall,
     precision)`` pair); the legend shows each method's AUC when given as ``{name: (curve, auc)}``.
     """
     plt = pyplot()

@@ -11,12 +11,11 @@ from __future__ import annotations
 import json
 import math
 import os
-from pathlib import Path
 from typing import Sequence
 
 from fdnet.data.images import image_name
 from fdnet.evaluation.experiment import MethodResult
-from fdnet.evaluation.metrics import PROTOCOLS
+from fdnet.metrics import PROTOCOLS
 from fdnet.io import atomic_write_text
 
 _COLUMNS = ("R@1", "R@5", "R@10", "R@20", "R@100P", "R@99P", "R@95P", "P@maxR", "AUC-PR", "ms/image", "ms/query")

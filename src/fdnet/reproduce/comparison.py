@@ -36,7 +36,7 @@ def run(ctx) -> dict:
     from fdnet.decisions.acceptance import DEFAULT_ACCEPTANCE
     from fdnet.evaluation import plots
     from fdnet.evaluation.report import format_table
-    from fdnet.reproduce.paper import paper_pair
+    from fdnet.paper import paper_pair
     pairs = []
     for pair in ctx.pairs:
         results = [ctx.result(handle, pair.split, pair.slug) for handle in ctx.available()]

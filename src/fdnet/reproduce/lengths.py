@@ -108,8 +108,8 @@ def length_runs(ctx) -> dict[int, Path]:
 def run(ctx) -> dict:
     from fdnet.data.images import load_images
     from fdnet.evaluation import plots
-    from fdnet.evaluation.timing import descriptor_extraction
-    from fdnet.reproduce.paper import PAPER_TABLE2
+    from fdnet.performance.timing import descriptor_extraction
+    from fdnet.paper import PAPER_TABLE2
     from fdnet.reproduce.table5_runtime import ranking_ms_per_query
 
     options = {k: v for k, v in ctx.settings.method_options.get("fdnet", {}).items() if k != "checkpoint"}

@@ -25,11 +25,11 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from fdnet import __version__
+from fdnet.version import __version__
 from fdnet.data.split import EvaluationSplit
 from fdnet.descriptors.registry import reproduce_methods
 from fdnet.errors import ConfigError, FdnetError
-from fdnet.evaluation.metrics import PROTOCOLS, RECALL_OVER_QUERIES
+from fdnet.metrics import PROTOCOLS, RECALL_OVER_QUERIES
 from fdnet.io import atomic_write_text, ensure_writable
 from fdnet.evaluation.report import _plain
 from fdnet.reproduce.cache import DescriptorCache, image_list_key
@@ -248,7 +248,7 @@ class Context:
         self.handles: dict[str, MethodHandle] = {}
         self._similarities: dict[tuple[str, str], np.ndarray] = {}
         self._results: dict[tuple[str, str], object] = {}
-        from fdnet.reproduce.paper import dataset_key
+        from fdnet.paper import dataset_key
 
         self.dataset = dataset_key(settings.dataset_format, Path(settings.data).resolve().name)
         self.experiment = ""

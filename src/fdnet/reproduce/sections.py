@@ -19,7 +19,7 @@ OPTIONAL_EXPERIMENTS = ("ablation",)
 #: every experiment, in report order
 ALL_EXPERIMENTS = EXPERIMENTS + OPTIONAL_EXPERIMENTS
 #: experiment -> its module where the two names differ: the runtime experiment's module is named
-#: for the paper's table it reproduces (the timing kernels it uses are fdnet.evaluation.timing)
+#: for the paper's table it reproduces (the timing kernels it uses are fdnet.performance.timing)
 EXPERIMENT_MODULES = {"runtime": "table5_runtime"}
 
 MANIFEST = "reproduce.json"

@@ -2,7 +2,7 @@
 method on this machine, the hardware named, the paper's TITAN X figures beside them as ratios.
 
 Extraction is ``describe`` on images already decoded at the method's input size (median of
-repeats after a warm-up, :func:`fdnet.evaluation.timing.descriptor_extraction`); matching is finding one
+repeats after a warm-up, :func:`fdnet.performance.timing.descriptor_extraction`); matching is finding one
 query's best reference by the method's own comparison over the first pair's vectors, queries one
 at a time (:func:`ranking_ms_per_query`). Nothing here is asserted anywhere: it is measured and
 reported, on whatever else the machine is doing.
@@ -27,7 +27,7 @@ def ranking_ms_per_query(descriptor, queries, references, repeats: int = 3, max_
     "matching between reference and a single query image" (a batch of queries would share one
     matrix product and hide the per-query cost)."""
     from fdnet.matching.similarity import top_k
-    from fdnet.evaluation.timing import median_seconds
+    from fdnet.performance.timing import median_seconds
 
     chosen = queries[:max_queries]
 
@@ -46,7 +46,7 @@ def machine_description() -> dict:
     import torch
     from threadpoolctl import threadpool_info
 
-    from fdnet.evaluation.timing import cpu_model
+    from fdnet.performance.timing import cpu_model
 
     gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
     blas = [pool["num_threads"] for pool in threadpool_info() if pool.get("user_api") == "blas"]
@@ -60,8 +60,8 @@ def _ratio(paper: float | None, ours: float | None) -> float | None:
 
 def run(ctx) -> dict:
     from fdnet.data.images import load_images
-    from fdnet.evaluation import timing
-    from fdnet.reproduce.paper import PAPER_HARDWARE, paper_runtime
+    from fdnet.performance import timing
+    from fdnet.paper import PAPER_HARDWARE, paper_runtime
 
     pair = ctx.pairs[0]
     split = pair.split

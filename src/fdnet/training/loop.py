@@ -160,7 +160,7 @@ def autocast(device: torch.device, enabled: bool):
 
 def validation_metrics(method: TrainingMethod, data: ValidationImages) -> dict[str, float]:
     """R@1, R@5, R@100P and AUC (recall over queries with a match) of cosine matching."""
-    from fdnet.evaluation.metrics import evaluate_similarity
+    from fdnet.metrics import evaluate_similarity
 
     reference = method.validation_vectors(data.reference)
     query = method.validation_vectors(data.query)

@@ -1,10 +1,10 @@
-"""fdnet.evaluation.benchmark: the settings are checked before anything is measured, and the
+"""fdnet.performance.benchmark: the settings are checked before anything is measured, and the
 tables go to the ``out`` callable (library code never prints)."""
 
 import pytest
 
 from fdnet.errors import ConfigError
-from fdnet.evaluation.benchmark import plan_benchmark, run_benchmark
+from fdnet.performance.benchmark import plan_benchmark, run_benchmark
 
 
 def test_plan_parses_the_command_spellings():

@@ -8,7 +8,7 @@ import re
 import pytest
 
 from conftest import REPO_ROOT
-from fdnet.reproduce import paper
+from fdnet import paper
 
 PAPER_TEXT = REPO_ROOT.parent / "shared" / "paper" / "fdnet-paper.txt"
 

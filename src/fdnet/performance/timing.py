@@ -1,7 +1,7 @@
 """How fast: the timing kernels of ``fdnet benchmark`` and of reproduce's runtime experiment.
 
 Extraction ms/image and matching ms/query, with references measured in the same run (the
-paper's Table 2/5 GPU figures, :mod:`fdnet.reproduce.paper`, are quoted; this machine's own fp32
+paper's Table 2/5 GPU figures, :mod:`fdnet.paper`, are quoted; this machine's own fp32
 and bf16 GEMM speeds and fp32-eager FDNet are measured) so every figure comes with a ratio.
 Timings are medians over repeats after a warm-up; nothing here is asserted in tests (machines
 are shared and noisy), the command prints what it measured.

@@ -23,7 +23,7 @@ curve. Every result names the one it used (``Metrics.protocol``) and its definit
 
 ``recall-over-queries`` -- the definition of the paper (Qin et al., section 5.1.2, eq. 12) and of
     VPR_Tutorial (Schubert et al., "Visual Place Recognition: A Tutorial", IEEE RAM 2023; code:
-    github.com/stschubert/VPR_Tutorial ``evaluation/metrics.py``, ``createPR`` with
+    github.com/stschubert/VPR_Tutorial ``metrics.py``, ``createPR`` with
     ``matching='single'``). A threshold t accepts every query whose best-match score is >= t;
     TP = accepted queries whose best match is correct, FP = accepted queries whose best match is
     wrong (queries without any true match can only add FPs), precision = TP / (TP + FP),

@@ -18,7 +18,7 @@ import pytest
 
 from conftest import require_shared
 from fdnet.data.groundtruth import GroundTruth
-from fdnet.evaluation.metrics import VPRBENCH, evaluate_similarity
+from fdnet.metrics import VPRBENCH, evaluate_similarity
 
 # technique: (AUC-PR, top-1 accuracy) to 3 decimals
 PINNED = {

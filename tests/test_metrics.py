@@ -7,7 +7,7 @@ import pytest
 
 from fdnet.data.groundtruth import GroundTruth
 from fdnet.errors import DataError
-from fdnet.evaluation.metrics import (
+from fdnet.metrics import (
     RECALL_OVER_QUERIES,
     VPRBENCH,
     evaluate_retrieval,

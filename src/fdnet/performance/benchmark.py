@@ -147,7 +147,7 @@ def index_overrides(items) -> dict:
 
 def sweeps(items) -> dict:
     """``KEY=V1,V2,...`` items -> {key: [values]} for the search-time settings that can be swept."""
-    from fdnet.evaluation.timing import SWEEPABLE
+    from fdnet.performance.timing import SWEEPABLE
 
     out = {}
     for item in items:
@@ -221,7 +221,7 @@ def run_benchmark(plan: BenchmarkPlan, out: Callable[[str], None], json_path: st
 
     from fdnet.version import __version__
     from fdnet.backbones import resolve_device
-    from fdnet.evaluation import timing
+    from fdnet.performance import timing
     from fdnet.io import ensure_writable
 
     if json_path:
@@ -268,7 +268,7 @@ def run_benchmark(plan: BenchmarkPlan, out: Callable[[str], None], json_path: st
 
 def _gemm_references(plan: BenchmarkPlan, report: dict, out) -> None:
     from fdnet.backbones import bf16_native
-    from fdnet.evaluation import timing
+    from fdnet.performance import timing
 
     size = 1024 if plan.quick else 2048
     gflops = timing.gemm_gflops(size=size, repeats=plan.repeats)
@@ -280,8 +280,8 @@ def _gemm_references(plan: BenchmarkPlan, report: dict, out) -> None:
 
 
 def _fdnet_extraction(plan: BenchmarkPlan, lengths, report: dict, out) -> None:
-    from fdnet.evaluation import timing
-    from fdnet.reproduce.paper import PAPER_TABLE2
+    from fdnet.performance import timing
+    from fdnet.paper import PAPER_TABLE2
     from fdnet.methods.fdnet.config import preset
 
     gflops, bf16_gflops = report["gemm_gflops_fp32"], report["gemm_gflops_bf16"]
@@ -307,7 +307,7 @@ def _fdnet_extraction(plan: BenchmarkPlan, lengths, report: dict, out) -> None:
 
 
 def _public_api(plan: BenchmarkPlan, workdir: str, report: dict, out) -> None:
-    from fdnet.evaluation import timing
+    from fdnet.performance import timing
 
     run_dir, config = timing.temporary_fdnet_run(workdir, "cpu")
     flops = timing.content_flops(config.model)
@@ -338,7 +338,7 @@ def _public_api(plan: BenchmarkPlan, workdir: str, report: dict, out) -> None:
 
 
 def _gpu(plan: BenchmarkPlan, device, workdir: str, report: dict, out) -> None:
-    from fdnet.evaluation import timing
+    from fdnet.performance import timing
 
     if device.type != "cuda":
         report["gpu"] = None
@@ -358,8 +358,8 @@ def _gpu(plan: BenchmarkPlan, device, workdir: str, report: dict, out) -> None:
 
 
 def _matching(plan: BenchmarkPlan, lengths, report: dict, out) -> None:
-    from fdnet.evaluation import timing
-    from fdnet.reproduce.paper import PAPER_TABLE2
+    from fdnet.performance import timing
+    from fdnet.paper import PAPER_TABLE2
 
     map_size = plan.map_sizes[0]
     out(f"\nMatching: best of {map_size} references per query, ms/query")
@@ -375,8 +375,8 @@ def _matching(plan: BenchmarkPlan, lengths, report: dict, out) -> None:
 
 
 def _methods(plan: BenchmarkPlan, report: dict, out) -> None:
-    from fdnet.evaluation import timing
-    from fdnet.reproduce.paper import PAPER_TABLE5
+    from fdnet.performance import timing
+    from fdnet.paper import PAPER_TABLE5
     from fdnet.descriptors import create
     from fdnet.errors import FdnetError
 
@@ -417,7 +417,7 @@ def _methods(plan: BenchmarkPlan, report: dict, out) -> None:
 
 
 def _scale(plan: BenchmarkPlan, report: dict, out) -> None:
-    from fdnet.evaluation import timing
+    from fdnet.performance import timing
 
     dim = plan.scale_dim
     if dim is None:
@@ -450,7 +450,7 @@ def _scale(plan: BenchmarkPlan, report: dict, out) -> None:
 
 
 def _loop(plan: BenchmarkPlan, report: dict, out) -> None:
-    from fdnet.evaluation.loop_benchmark import loop_rows
+    from fdnet.performance.loop_benchmark import loop_rows
 
     # loop-closure describes frame batches in fp32 (the descriptor's default), not extract's bf16 path
     describe = (report.get("cpu_preset_descriptor_ms") or {}).get("fp32_eager")
