@@ -239,3 +239,65 @@ def test_extract_recursive_h5_names_images_as_hlocs_image_dir_does(tmp_path):
     assert names == ["db/frame_0.png", "db/frame_1.png", "db/frame_2.png", "query/frame_0.png", "query/frame_1.png"]
     with h5py.File(out, "r") as f:  # what hloc's get_descriptors reads
         assert f["query/frame_1.png"]["global_descriptor"][()].tobytes() == vectors[4].tobytes()
+
+
+def test_torchrun_two_processes_write_the_npz_one_process_writes(tmp_path):
+    """`torchrun --nproc-per-node 2 -m fdnet extract`: each process describes half the images,
+    rank 0 writes the file: names, sources and timestamps exactly, vectors within 1e-5 of one
+    process's, settings the same but for world_size; nothing left beside it or in TMPDIR."""
+    import json
+
+    import numpy as np
+
+    from tests.descriptors.test_sharding import spools, torchrun
+
+    run = _tiny_run(tmp_path / "run")
+    images = _images(tmp_path / "images", 23)
+    common = ["extract", "--checkpoint", str(run), "--images", str(images), "--fp32", "--batch-size", "4",
+              "--workers", "0", "--device", "cpu", "--no-progress"]
+    assert main([*common, "--out", str(tmp_path / "one.npz")]) == 0
+    result = torchrun(*common, "--out", tmp_path / "two.npz", tmpdir=tmp_path / "tmp")
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.count("fdnet extract: 23 images ->") == 1 and "2 processes, cpu" in result.stdout
+    with np.load(tmp_path / "one.npz", allow_pickle=False) as one, np.load(tmp_path / "two.npz") as two:
+        assert set(one.files) == set(two.files)
+        for name in ("names", "sources", "method"):
+            np.testing.assert_array_equal(two[name], one[name])
+        np.testing.assert_array_equal(two["timestamps"], one["timestamps"])  # NaN for image files, in both
+        for name in ("content", "appearance"):
+            np.testing.assert_allclose(two[name], one[name], rtol=0, atol=1e-5)
+        settings_one, settings_two = json.loads(str(one["settings"])), json.loads(str(two["settings"]))
+    assert settings_one.pop("world_size") == 1 and settings_two.pop("world_size") == 2
+    assert settings_one == settings_two
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["images", "one.npz", "run", "tmp", "two.npz"]
+    assert spools(tmp_path / "tmp") == []
+
+
+def test_torchrun_a_killed_process_stops_the_other_and_a_rerun_writes_the_whole_file(tmp_path):
+    """Process 1 killed (SIGKILL) after 2 of its 4 batches: process 0 stops with one error line
+    and leaves no output and no parts; the killed one's spool stays in its TMPDIR until the next
+    run there removes it; that run writes the whole file, as one process does."""
+    import numpy as np
+
+    from fdnet.descriptors.sharding import KILL_VARIABLE
+    from tests.descriptors.test_sharding import error_lines, spools, torchrun
+
+    images = _images(tmp_path / "images", 30)
+    out = tmp_path / "v.npz"
+    common = ["extract", "--method", "sad", "--images", str(images), "--out", str(out), "--batch-size", "4",
+              "--workers", "0", "--no-progress"]
+    killed = torchrun(*common, tmpdir=tmp_path / "tmp", env={KILL_VARIABLE: "1:2"})
+    assert killed.returncode != 0
+    errors = error_lines(killed)
+    assert len(errors) == 1, killed.stderr
+    assert "process 0 of 2 lost contact" in errors[0] or "stopped by SIGTERM" in errors[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["images", "tmp"]  # no output, no parts
+    assert len(spools(tmp_path / "tmp")) == 1  # the killed process's
+    again = torchrun(*common, tmpdir=tmp_path / "tmp")
+    assert again.returncode == 0, again.stderr
+    assert spools(tmp_path / "tmp") == []
+    assert main([*common[:5], "--out", str(tmp_path / "one.npz"), *common[7:]]) == 0
+    with np.load(out) as two, np.load(tmp_path / "one.npz") as one:
+        assert len(two["names"]) == 30
+        np.testing.assert_array_equal(two["names"], one["names"])
+        np.testing.assert_allclose(two["descriptors"], one["descriptors"], rtol=0, atol=1e-5)

@@ -3,7 +3,9 @@ or to hloc's global-features .h5 (``--format h5``).
 
 Parses the flags, builds the descriptor and calls :func:`fdnet.descriptors.extraction.extract`
 (or :func:`~fdnet.descriptors.extraction.extract_h5`; streaming: memory stays a few batches
-whatever the folder's size; the file is replaced atomically at the end).
+whatever the folder's size; the file is replaced atomically at the end). Under
+``torchrun --nproc-per-node N -m fdnet extract ...`` every process describes its share of the
+images and rank 0 writes the file (:mod:`fdnet.descriptors.sharding`).
 """
 
 from __future__ import annotations
@@ -86,10 +88,22 @@ def descriptor_options(args, method: str, count: int) -> dict:
 
 
 def run(args) -> int:
+    """The command, in one process or in each process of a torchrun launch
+    (:mod:`fdnet.descriptors.sharding`: each describes its block of the images, rank 0 writes
+    --out and alone prints)."""
+    from fdnet.descriptors.sharding import launch
+
+    with launch(command=True) as shards:
+        return _run(args, shards)
+
+
+def _prepare(args, shards):
+    """``(out_format, out, paths, root, descriptor)``: every check that can refuse the command, in
+    the order that refuses before the slow work (loading the model and every image); the output
+    is checked by rank 0 alone, which writes it."""
     from fdnet.cli.common import check_pipeline_arguments, method_options, set_threads
     from fdnet.data.images import list_images
     from fdnet.descriptors import create
-    from fdnet.descriptors.extraction import extract
     from fdnet.errors import ConfigError
     from fdnet.io import ensure_writable
 
@@ -102,21 +116,31 @@ def run(args) -> int:
     if "," in args.method:
         raise ConfigError(f"--method {args.method}: extract writes one method's vectors; name one")
     out_format, out = output_format(args.format, args.out)
-    ensure_writable(out, what="vectors file")  # before loading the model and every image
+    if shards.is_main:
+        ensure_writable(out, what="vectors file")  # before loading the model and every image
     if out_format == "h5":
         from fdnet.descriptors.hloc_formats import image_root, require_h5py
 
         require_h5py()  # a missing h5py is said before any work
     paths = list_images(args.images, recursive=args.recursive)
+    root = None
     if out_format == "h5":
         from fdnet.descriptors.hloc_formats import check_image_name, relative_names
 
         root = image_root([args.images])
         for name in relative_names(paths, root):  # a name hloc's file cannot hold: said before loading the model
             check_image_name(name, out)
-    set_threads(args.threads)
+    set_threads(args.threads or shards.threads())
     options = {**descriptor_options(args, args.method, len(paths)), **method_options(args, args.method)}
     descriptor = create(args.method, device=args.device, **options)
+    shards.check_device(getattr(descriptor, "device", None))
+    return out_format, out, paths, root, descriptor
+
+
+def _run(args, shards) -> int:
+    from fdnet.descriptors.extraction import extract
+
+    out_format, out, paths, root, descriptor = shards.collectively(lambda: _prepare(args, shards))
     if out_format == "h5":
         from fdnet.descriptors.extraction import extract_h5
 
@@ -129,8 +153,10 @@ def run(args) -> int:
         written = " and ".join(summary["arrays"])
     device = getattr(descriptor, "device", "cpu")
     precision = "bf16" if getattr(descriptor, "bf16", False) else "fp32"
+    processes = f"{shards.world_size} processes, " if shards.world_size > 1 else ""
     print(f"fdnet extract: {summary['images']} images -> {out} ({args.method}: {written}, "
-          f"length {summary['dim']}; {device}, {precision}{', compiled' if getattr(descriptor, 'compiled', False) else ''}, "
+          f"length {summary['dim']}; {processes}{device}, {precision}"
+          f"{', compiled' if getattr(descriptor, 'compiled', False) else ''}, "
           f"{summary['images_per_second']:.1f} images/s"
           + (f"; learnt from {summary['fitted_on']}" if summary["fitted_on"] else "") + ")")
     if out_format == "h5":

@@ -16,10 +16,16 @@ hloc's ``.h5`` holds the place descriptor alone (``descriptors``, or FDNet's ``c
 image's ``global_descriptor`` (float32), the image named by its path relative to a root folder
 (hloc's ``image_dir``), written group by group as batches come
 (:class:`fdnet.descriptors.hloc_formats.GlobalFeaturesWriter`), atomically too.
+
+Under ``torchrun`` (:mod:`fdnet.descriptors.sharding`) every process describes its block of the
+images and rank 0 writes the one file from its own vectors and the others' (the same file one
+process writes, up to floating-point reduction order); ``settings`` records ``world_size``, the
+number of processes that made it (1 for one process).
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import time
@@ -58,33 +64,61 @@ def _fit_if_needed(descriptor, paths) -> str | None:
     return f"the {len(paths)} extracted images"
 
 
+def _settings(descriptor, world_size: int) -> str:
+    """The descriptor's settings as JSON, with the number of processes that described the images."""
+    return json.dumps({**descriptor.settings(), "world_size": int(world_size)}, default=str, sort_keys=True)
+
+
+def _seconds(shards, timing: dict, started: float) -> float:
+    """The describing's wall time: the stream's own for one process; under torchrun, until rank 0
+    held every process's vectors."""
+    if shards.enabled:
+        return time.perf_counter() - started
+    return timing.get("seconds_wall", time.perf_counter() - started)
+
+
+def _summary(paths, arrays, descriptor, seconds: float, fitted) -> dict:
+    return {"images": len(paths), "arrays": arrays, "dim": descriptor.dim, "seconds": seconds,
+            "images_per_second": len(paths) / max(seconds, 1e-9), "fitted_on": fitted}
+
+
 def extract(descriptor, paths, out, batch_size: int = 64, workers: int | None = None,
             progress: bool = True) -> dict:
     """Describe ``paths`` with ``descriptor`` into the ``.npz`` file ``out`` (written atomically).
 
     A descriptor that learns from images and was given none (``needs_fit``: dbow without a
     vocabulary, trunk-whitened without ``fit``) learns from ``paths`` first, and its settings say
-    so. Returns a summary: images, arrays, dim, seconds, images_per_second, fitted_on."""
-    from fdnet.descriptors.pipeline import NpzChunkWriter, describe_stream
+    so. Under torchrun (:func:`fdnet.descriptors.sharding.launch`) each process describes its
+    block and rank 0 writes ``out``; a method that learns does so on rank 0, which shares the
+    result. Returns a summary: images, arrays, dim, seconds, images_per_second, fitted_on (in
+    every process; seconds from the start of describing until rank 0 holds every vector)."""
+    from fdnet.descriptors.pipeline import NpzChunkWriter
+    from fdnet.descriptors.sharding import current, describe_blocks, share_fitted
 
+    shards = current()
     paths = list(paths)
-    fitted = _fit_if_needed(descriptor, paths)
+    fitted = share_fitted(shards, descriptor, paths, _fit_if_needed)
     names, describe = described_arrays(descriptor)
     shape = (len(paths), descriptor.dim)
     timing: dict = {}
     started = time.perf_counter()
-    with NpzChunkWriter(out, {name: (shape, np.float32) for name in names}) as writer:
-        for _, vectors in describe_stream(descriptor, paths, batch_size, workers=workers, timing=timing,
-                                          describe=describe, progress=progress, what=f"extract [{descriptor.name}]",
-                                          reads_pixels=False):
-            for name, array in zip(names, vectors):
-                writer.write(name, np.asarray(array, dtype=np.float32))
-        writer.close({"names": np.array([p.name for p in paths]), **frame_arrays(paths),
-                      "method": np.array(descriptor.name),
-                      "settings": np.array(json.dumps(descriptor.settings(), default=str, sort_keys=True))})
-    seconds = timing.get("seconds_wall", time.perf_counter() - started)
-    return {"images": len(paths), "arrays": names, "dim": descriptor.dim, "seconds": seconds,
-            "images_per_second": len(paths) / max(seconds, 1e-9), "fitted_on": fitted}
+    writer = shards.collectively(
+        lambda: NpzChunkWriter(out, {name: (shape, np.float32) for name in names}) if shards.is_main else None)
+
+    def write(start, arrays):
+        for name, array in zip(names, arrays):
+            writer.write(name, array)
+
+    with writer if writer is not None else contextlib.nullcontext():
+        describe_blocks(shards, descriptor, paths, [descriptor.dim] * len(names), write, batch_size=batch_size,
+                        workers=workers, progress=progress, what=f"extract [{descriptor.name}]", describe=describe,
+                        reads_pixels=False, timing=timing)
+        if writer is not None:
+            writer.close({"names": np.array([p.name for p in paths]), **frame_arrays(paths),
+                          "method": np.array(descriptor.name),
+                          "settings": np.array(_settings(descriptor, shards.world_size))})
+    seconds = _seconds(shards, timing, started)
+    return _summary(paths, names, descriptor, seconds, fitted)
 
 
 def extract_h5(descriptor, paths, out, root, batch_size: int = 64, workers: int | None = None,
@@ -93,27 +127,29 @@ def extract_h5(descriptor, paths, out, root, batch_size: int = 64, workers: int 
     image's place descriptor (what :func:`described_arrays` calls ``descriptors``, FDNet's
     ``content``) as the ``global_descriptor`` of the group named by its path relative to
     ``root`` (:func:`fdnet.descriptors.hloc_formats.relative_names`; hloc's ``image_dir``).
-    The names are checked before any image is described. Returns the summary of
-    :func:`extract`, with ``array`` (what was written) and ``root``."""
+    The names are checked before any image is described. Under torchrun, as :func:`extract`.
+    Returns the summary of :func:`extract`, with ``array`` (what was written) and ``root``."""
     from fdnet.descriptors.hloc_formats import GlobalFeaturesWriter, check_image_name, relative_names
-    from fdnet.descriptors.pipeline import describe_stream
+    from fdnet.descriptors.sharding import current, describe_blocks, share_fitted
 
+    shards = current()
     paths = list(paths)
     names = [check_image_name(n, out) for n in relative_names(paths, root)]
-    fitted = _fit_if_needed(descriptor, paths)
+    fitted = share_fitted(shards, descriptor, paths, _fit_if_needed)
     array = described_arrays(descriptor)[0][0]  # "content" for FDNet, else "descriptors"
     timing: dict = {}
     started = time.perf_counter()
-    attrs = {"method": descriptor.name, "array": array,
-             "settings": json.dumps(descriptor.settings(), default=str, sort_keys=True)}
-    with GlobalFeaturesWriter(out, attrs=attrs) as writer:
-        for start, vectors in describe_stream(descriptor, paths, batch_size, workers=workers, timing=timing,
-                                              progress=progress, what=f"extract [{descriptor.name}]"):
-            vectors = np.asarray(vectors, dtype=np.float32)
-            writer.write(names[start:start + len(vectors)], vectors)
-        if writer.count != len(paths):
+    attrs = {"method": descriptor.name, "array": array, "settings": _settings(descriptor, shards.world_size)}
+    writer = shards.collectively(lambda: GlobalFeaturesWriter(out, attrs=attrs) if shards.is_main else None)
+
+    def write(start, arrays):
+        writer.write(names[start:start + len(arrays[0])], arrays[0])
+
+    with writer if writer is not None else contextlib.nullcontext():
+        describe_blocks(shards, descriptor, paths, [descriptor.dim], write, batch_size=batch_size, workers=workers,
+                        progress=progress, what=f"extract [{descriptor.name}]", timing=timing)
+        if writer is not None and writer.count != len(paths):
             raise RuntimeError(f"{out}: {writer.count} vectors for {len(paths)} images")
-    seconds = timing.get("seconds_wall", time.perf_counter() - started)
-    return {"images": len(paths), "arrays": ("global_descriptor",), "array": array, "dim": descriptor.dim,
-            "root": str(root), "seconds": seconds, "images_per_second": len(paths) / max(seconds, 1e-9),
-            "fitted_on": fitted}
+    seconds = _seconds(shards, timing, started)
+    return {**_summary(paths, ("global_descriptor",), descriptor, seconds, fitted), "array": array,
+            "root": str(root)}
