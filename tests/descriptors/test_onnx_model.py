@@ -190,3 +190,194 @@ def test_benchmark_times_an_onnx_model_beside_the_others(tmp_path, capsys):
     report = json.loads((tmp_path / "b.json").read_text())
     assert report["method_extraction_ms"]["onnx"] > 0 and report["ratio_vs_sad"]["onnx"] > 0
     assert "onnx" in capsys.readouterr().out
+
+
+# ------------------------------------------------------------------ hand-built graphs (onnx.helper)
+def graph_model(path, input_shape, metadata=None, dtype="float", output_shape=("n", 4), tail=(), axes=None):
+    """A model that averages its input over the two image axes of ``input_shape`` (``axes``,
+    default as its shape says) and maps the 3 channel means to 4 numbers; ``tail``: more nodes
+    after ``v``."""
+    onnx = pytest.importorskip("onnx")
+    from onnx import TensorProto, helper, numpy_helper
+
+    types = {"float": TensorProto.FLOAT, "uint8": TensorProto.UINT8}
+    axes = axes or ([1, 2] if input_shape[-1] == 3 and input_shape[1] != 3 else [2, 3])
+    channels = input_shape[-1] if axes == [1, 2] else input_shape[1]
+    channels = channels if isinstance(channels, int) else 3
+    nodes = ([helper.make_node("Cast", ["images"], ["xf"], to=TensorProto.FLOAT)] if dtype != "float" else [])
+    nodes += [helper.make_node("ReduceMean", ["xf" if nodes else "images"], ["p"], axes=axes, keepdims=0),
+              helper.make_node("MatMul", ["p", "W"], ["v"]), *tail]
+    weights = np.arange(channels * 4, dtype=np.float32).reshape(channels, 4) / 10 + 0.1
+    graph = helper.make_graph(nodes, "g", [helper.make_tensor_value_info("images", types[dtype], list(input_shape))],
+                              [helper.make_tensor_value_info(nodes[-1].output[0], TensorProto.FLOAT,
+                                                             list(output_shape))],
+                              initializer=[numpy_helper.from_array(weights, "W")])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    for key, value in (metadata or {}).items():
+        entry = model.metadata_props.add()
+        entry.key, entry.value = key, value
+    onnx.save(model, str(path))
+    return path
+
+
+def match_error(tmp_path, capsys, model, *settings):
+    images = tmp_path / "images"
+    if not images.exists():
+        write_random_places(images, 3)
+    capsys.readouterr()
+    code = main(["match", "--reference", str(images), "--query", str(images), "--method", "onnx", "--weights",
+                 str(model), *[a for s in settings for a in ("--method-set", s)], "--out", str(tmp_path / "m.csv"),
+                 "--workers", "0"])
+    err = capsys.readouterr().err
+    return code, err
+
+
+@pytest.mark.parametrize("metadata, message", [
+    ({"fdnet.input_size": "abc"}, "'abc' is not HxW"),
+    ({"fdnet.mean": "[1,2]"}, "is not a number or a list of 3 numbers"),
+    ({"std": "0"}, "std must not be 0"),
+    ({"channels": "BGRA"}, "channels='BGRA'"),
+    ({"output": "nope"}, "'nope' (model metadata output) is not one of the model's outputs"),
+    ({"fdnet.mean": "[123.675,116.28,103.53]", "fdnet.std": "[58.395,57.12,57.375]"}, "not on the [0, 1] scale"),
+])
+def test_garbage_in_the_models_metadata_is_one_line_naming_the_model(metadata, message, tmp_path, capsys):
+    model = graph_model(tmp_path / "meta model.onnx", ["n", 3, "h", "w"], {"fdnet.input_size": "16x32", **metadata})
+    code, err = match_error(tmp_path, capsys, model)
+    assert code == 2 and err.startswith("fdnet match: error: ") and message in err and str(model) in err, err
+    assert len(err.strip().splitlines()) == 1 and not (tmp_path / "m.csv").exists()
+
+
+def test_mean_and_std_on_the_0_255_scale_are_refused_not_applied_to_0_1_images(tmp_path):
+    model = graph_model(tmp_path / "m.onnx", ["n", 3, 16, 32])
+    with pytest.raises(ConfigError, match="divided by 255"):
+        create("onnx", weights=str(model), mean=[123.675, 116.28, 103.53], std=[58.395, 57.12, 57.375])
+    with pytest.raises(ConfigError, match="not on the"):
+        create("onnx", weights=str(model), std=255)
+    assert create("onnx", weights=str(model), mean=0.5, std=1 / 255).std[0] == pytest.approx(1 / 255)
+
+
+def test_a_graph_that_does_not_say_where_the_channels_are_is_fed_nchw_with_a_warning_or_as_told(tmp_path, caplog):
+    rng = np.random.default_rng(2)
+    images = rng.random((5, 8, 3, 3), dtype=np.float32)  # 8x3 images: (N, 3, 8, 3) fits both layouts
+    both = graph_model(tmp_path / "both.onnx", ["n", 3, 8, 3], axes=[1, 2])  # in truth NHWC, 3x8 images
+    with caplog.at_level("WARNING", logger="fdnet"):
+        guessed = create("onnx", weights=str(both), normalise="none")
+    assert guessed.layout == "nchw" and "layout=nhwc" in caplog.text and str(both) in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="fdnet"):
+        told = create("onnx", weights=str(both), layout="nhwc", normalise="none")
+    assert told.layout == "nhwc" and told.input_size == (3, 8) and not caplog.text
+    # as told: the channel means reach the model's channel axis (axis 3 for NHWC)
+    weights = np.arange(12, dtype=np.float32).reshape(3, 4) / 10 + 0.1
+    nhwc_images = rng.random((5, 3, 8, 3), dtype=np.float32)
+    np.testing.assert_allclose(told.describe(nhwc_images), nhwc_images.mean(axis=(1, 2)) @ weights, rtol=1e-5)
+    assert told.fingerprint() != guessed.fingerprint()  # the layout is part of what the vectors are
+    assert guessed.describe(images).shape == (5, 4)
+    fixed = graph_model(tmp_path / "fixed.onnx", ["n", 3, 16, 32])
+    assert "layout" not in create("onnx", weights=str(fixed)).settings()  # the graph's own: fingerprint as before
+    with pytest.raises(ConfigError, match="is NCHW, but layout"):
+        create("onnx", weights=str(fixed), layout="nhwc")
+    with pytest.raises(ConfigError, match="choose nchw or nhwc"):
+        create("onnx", weights=str(both), layout="chw")
+
+
+def test_an_input_that_takes_other_than_3_channels_is_refused_when_loaded(tmp_path, capsys):
+    model = graph_model(tmp_path / "grey.onnx", ["n", 1, 16, 32])
+    code, err = match_error(tmp_path, capsys, model)
+    assert code == 2 and "takes neither 3 channels first" in err and str(model) in err
+    assert len(err.strip().splitlines()) == 1
+
+
+def test_a_dynamic_channel_axis_warns_only_when_the_model_is_accepted(tmp_path, capsys):
+    model = graph_model(tmp_path / "any.onnx", ["n", "c", "h", "w"])
+    code, err = match_error(tmp_path, capsys, model)  # no input size: refused, one line, no warning before it
+    assert code == 2 and "input size is not fixed" in err and len(err.strip().splitlines()) == 1
+    code, err = match_error(tmp_path, capsys, model, "input_size=16x32")
+    assert code == 0 and "warning: " in err and "layout=nhwc" in err
+
+
+@pytest.mark.parametrize("case, message", [
+    ("uint8", "is tensor(uint8); fdnet gives a model float images"),
+    ("two_inputs", "the model takes 2 inputs"),
+    ("output_n_d_1", "a descriptor model returns (N, D) vectors"),
+    ("output_d", "a descriptor model returns (N, D) vectors"),
+    ("nan", "the model returned NaN or infinity"),
+    ("empty", "not an ONNX model onnxruntime can load"),
+    ("truncated", "not an ONNX model onnxruntime can load"),
+    ("directory", "ONNX model not found"),
+])
+def test_odd_models_are_one_line_naming_the_file(case, message, tmp_path, capsys):
+    from onnx import TensorProto, helper, numpy_helper
+
+    path = tmp_path / f"{case}.onnx"
+    shape = ["n", 3, 16, 32]
+    if case == "uint8":
+        graph_model(path, shape, dtype="uint8")
+    elif case == "two_inputs":
+        import onnx
+
+        graph_model(path, shape)
+        model = onnx.load(str(path))
+        model.graph.input.append(helper.make_tensor_value_info("mask", TensorProto.FLOAT, shape))
+        onnx.save(model, str(path))
+    elif case == "output_n_d_1":
+        graph = graph_model(tmp_path / "base.onnx", shape)
+        import onnx
+
+        model = onnx.load(str(graph))
+        model.graph.node.append(helper.make_node("Unsqueeze", ["v", "axis"], ["v3"]))
+        model.graph.initializer.append(numpy_helper.from_array(np.array([2], np.int64), "axis"))
+        del model.graph.output[:]
+        model.graph.output.append(helper.make_tensor_value_info("v3", TensorProto.FLOAT, ["n", 4, 1]))
+        onnx.save(model, str(path))
+    elif case == "output_d":
+        graph_model(path, shape, output_shape=[4],
+                    tail=[helper.make_node("ReduceMean", ["v"], ["v1"], axes=[0], keepdims=0)])
+    elif case == "nan":
+        import onnx
+
+        graph_model(path, shape, tail=[helper.make_node("Sub", ["v", "c"], ["vs"]),
+                                       helper.make_node("Log", ["vs"], ["vn"])])
+        model = onnx.load(str(path))
+        model.graph.initializer.append(numpy_helper.from_array(np.array(100, np.float32), "c"))
+        onnx.save(model, str(path))
+    elif case == "empty":
+        path.write_bytes(b"")
+    elif case == "truncated":
+        path.write_bytes(graph_model(tmp_path / "whole.onnx", shape).read_bytes()[:100])
+    elif case == "directory":
+        path.mkdir()
+    code, err = match_error(tmp_path, capsys, path)
+    assert code == 2 and err.startswith("fdnet match: error: ") and message in err and str(path) in err, err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1 and not (tmp_path / "m.csv").exists()
+
+
+def test_a_graph_fixed_at_batch_3_and_an_nhwc_graph_give_the_nchw_models_vectors(tmp_path):
+    images = np.random.default_rng(3).random((7, 16, 32, 3), dtype=np.float32)
+    expected = create("onnx", weights=str(graph_model(tmp_path / "n.onnx", ["n", 3, 16, 32]))).describe(images)
+    three = create("onnx", weights=str(graph_model(tmp_path / "b3.onnx", [3, 3, 16, 32], output_shape=[3, 4])))
+    assert three.batch_limit == 3
+    np.testing.assert_allclose(three.describe(images), expected, atol=1e-6)  # 3 + 3 + 1 padded
+    nhwc = create("onnx", weights=str(graph_model(tmp_path / "h.onnx", ["n", 16, 32, 3])))
+    assert nhwc.layout == "nhwc"
+    np.testing.assert_allclose(nhwc.describe(images), expected, atol=1e-6)
+
+
+def test_an_unreadable_model_and_cuda_without_its_provider_are_one_line(tmp_path, capsys, monkeypatch):
+    from pathlib import Path
+
+    model = graph_model(tmp_path / "m.onnx", ["n", 3, 16, 32])
+    if "CUDAExecutionProvider" not in onnxruntime.get_available_providers():
+        images = write_random_places(tmp_path / "images", 3)
+        assert main(["match", "--reference", str(images), "--query", str(images), "--method", "onnx", "--weights",
+                     str(model), "--device", "cuda", "--out", str(tmp_path / "m.csv")]) == 2
+        err = capsys.readouterr().err
+        assert "no CUDA provider" in err and len(err.strip().splitlines()) == 1
+
+    def refuse(self):  # chmod 000 does not stop root: the read itself refuses
+        raise PermissionError(13, "Permission denied", str(self))
+
+    monkeypatch.setattr(Path, "read_bytes", refuse)
+    with pytest.raises(DataError, match="cannot read the ONNX model .Permission denied"):
+        create("onnx", weights=str(model))

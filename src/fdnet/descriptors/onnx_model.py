@@ -11,7 +11,12 @@ etc., or the bare names), and from the graph where it is fixed:
 * ``mean``, ``std``: per channel, applied to RGB in [0, 1] (default 0 and 1: the model gets
   [0, 1]; ImageNet models usually want mean=[0.485,0.456,0.406] std=[0.229,0.224,0.225]);
 * ``channels``: ``rgb`` (default) or ``bgr``; ``normalise``: ``l2`` (default) or ``none``;
-* ``output``: which graph output holds the vectors (default the first).
+* ``output``: which graph output holds the vectors (default the first);
+* ``layout``: ``nchw`` or ``nhwc``, only where the graph does not say which axis holds the 3
+  channels (both could, or neither is fixed): then (N, 3, H, W) with a warning unless given.
+
+Every error names the model file. A ``mean`` outside [0, 1] or a ``std`` above 1 is refused:
+those are values on the 0..255 scale (fdnet's images are in [0, 1]; divide them by 255).
 
 Runs on the CPU, or CUDA when onnxruntime has its CUDA provider (``--device``). The fingerprint
 covers the model's bytes and these settings, so a database or calibration made with one model
@@ -36,8 +41,9 @@ logger = logging.getLogger(__name__)
 
 CHANNEL_CHOICES = ("rgb", "bgr")
 NORMALISE_CHOICES = ("l2", "none")
+LAYOUT_CHOICES = ("nchw", "nhwc")
 #: model metadata keys (``fdnet.KEY`` or ``KEY``) that give a setting
-METADATA_SETTINGS = ("input_size", "mean", "std", "channels", "normalise", "output")
+METADATA_SETTINGS = ("input_size", "mean", "std", "channels", "normalise", "output", "layout")
 
 
 def _parse_size(value, where: str) -> tuple[int, int]:
@@ -111,6 +117,39 @@ def _open_session(onnxruntime, path: Path, device: str | None):
     return session, hashlib.sha256(data).hexdigest()
 
 
+def _input_layout(path: Path, shape: list, layout, where) -> tuple[str | None, list, bool]:
+    """(layout, the graph's (H, W) dims, whether the graph fixes the layout) of an image input of
+    ``shape``; ``layout`` (given or from metadata, ``where``) settles a graph that does not say
+    which axis holds the 3 channels; None where nothing does (the caller warns, then takes
+    NCHW). DataError for an input whose channels are fixed and not 3."""
+    fixed = [d if isinstance(d, int) and d > 0 else None for d in shape]
+    if layout is not None:
+        layout = str(layout).lower()
+        if layout not in LAYOUT_CHOICES:
+            raise ConfigError(f"{path}: layout={layout!r} ({where}); choose {' or '.join(LAYOUT_CHOICES)}")
+    first, last = fixed[1] == 3, fixed[3] == 3
+    if first != last:  # the graph says
+        own = "nchw" if first else "nhwc"
+        if layout is not None and layout != own:
+            raise ConfigError(f"{path}: the graph's input {shape} is {own.upper()}, but layout ({where}) says "
+                              f"{layout}")
+        return own, (shape[2:4] if first else shape[1:3]), True
+    if not first and fixed[1] is not None and fixed[3] is not None:
+        raise DataError(f"{path}: input of shape {shape} takes neither 3 channels first (N, 3, H, W) nor last "
+                        "(N, H, W, 3); fdnet gives a model RGB (or BGR) images")
+    return layout, (shape[2:4] if layout != "nhwc" else shape[1:3]), False
+
+
+def _check_scale(mean: np.ndarray, std: np.ndarray, path: Path) -> None:
+    """Refuse mean/std on the 0..255 scale: applied to images in [0, 1] they give the model
+    values far from any it was trained on, and every vector would be silently wrong."""
+    if ((mean < 0) | (mean > 1)).any() or (std > 1).any():
+        raise ConfigError(f"{path}: mean [{', '.join(f'{v:.6g}' for v in mean)}] and std "
+                          f"[{', '.join(f'{v:.6g}' for v in std)}] "
+                          "are not on the [0, 1] scale fdnet's images have (mean within [0, 1], std at most 1); "
+                          "values on the 0..255 scale are divided by 255 (123.675 -> 0.485)")
+
+
 class ONNXDescriptor(Descriptor):
     """An ONNX model's output vectors (module docstring)."""
 
@@ -118,7 +157,7 @@ class ONNXDescriptor(Descriptor):
 
     def __init__(self, weights: str | os.PathLike | None = None, input_size=None, mean=None, std=None,
                  channels: str | None = None, normalise: str | None = None, output: str | None = None,
-                 device: str | None = "auto"):
+                 layout: str | None = None, device: str | None = "auto"):
         if not weights:
             raise ConfigError("onnx: give the model with --weights MODEL.onnx")
         try:
@@ -149,12 +188,9 @@ class ONNXDescriptor(Descriptor):
         if len(shape) != 4:
             raise DataError(f"{path}: input {self.input_name} has shape {shape}; expected an image batch "
                             "(N, 3, H, W)")
-        if shape[1] == 3:
-            self.layout, fixed = "nchw", shape[2:4]
-        elif shape[3] == 3:
-            self.layout, fixed = "nhwc", shape[1:3]
-        else:
-            self.layout, fixed = "nchw", shape[2:4]
+        given_layout, where = setting("layout", layout)
+        self.layout, fixed, self._graph_layout = _input_layout(path, shape, given_layout, where)
+        guessed, self.layout = self.layout is None, self.layout or "nchw"
         self.batch_limit = shape[0] if isinstance(shape[0], int) and shape[0] > 0 else None
         self.input_type = inputs[0].type
         if self.input_type not in ("tensor(float)", "tensor(float16)"):
@@ -163,7 +199,7 @@ class ONNXDescriptor(Descriptor):
         fixed = [d if isinstance(d, int) and d > 0 else None for d in fixed]
         given_size, where = setting("input_size", input_size)
         if given_size is not None:
-            size = _parse_size(given_size, f"onnx: input_size ({where})")
+            size = _parse_size(given_size, f"{path}: input_size ({where})")
             if all(fixed) and tuple(fixed) != size:
                 raise ConfigError(f"{path}: the graph's input is {fixed[0]}x{fixed[1]}, but input_size ({where}) "
                                   f"says {size[0]}x{size[1]}")
@@ -174,24 +210,25 @@ class ONNXDescriptor(Descriptor):
                               "--method-set input_size=HxW nor its metadata gives one")
         self.input_size = size
         value, where = setting("mean", mean)
-        self.mean = _parse_triple(0.0 if value is None else value, f"onnx: mean ({where or 'default'})")
+        self.mean = _parse_triple(0.0 if value is None else value, f"{path}: mean ({where or 'default'})")
         value, where = setting("std", std)
-        self.std = _parse_triple(1.0 if value is None else value, f"onnx: std ({where or 'default'})")
-        if (self.std == 0).any():
-            raise ConfigError("onnx: std must not be 0")
-        value, _ = setting("channels", channels)
+        self.std = _parse_triple(1.0 if value is None else value, f"{path}: std ({where or 'default'})")
+        if (self.std <= 0).any():
+            raise ConfigError(f"{path}: std must not be 0 or below ({where or 'default'})")
+        _check_scale(self.mean, self.std, path)
+        value, where = setting("channels", channels)
         self.channels = str(value or "rgb").lower()
         if self.channels not in CHANNEL_CHOICES:
-            raise ConfigError(f"onnx: channels={value!r}; choose {' or '.join(CHANNEL_CHOICES)}")
-        value, _ = setting("normalise", normalise)
+            raise ConfigError(f"{path}: channels={value!r} ({where}); choose {' or '.join(CHANNEL_CHOICES)}")
+        value, where = setting("normalise", normalise)
         self.normalise = str(value or "l2").lower()
         if self.normalise not in NORMALISE_CHOICES:
-            raise ConfigError(f"onnx: normalise={value!r}; choose {' or '.join(NORMALISE_CHOICES)}")
+            raise ConfigError(f"{path}: normalise={value!r} ({where}); choose {' or '.join(NORMALISE_CHOICES)}")
         outputs = self.session.get_outputs()
         value, where = setting("output", output)
         names = [o.name for o in outputs]
         if value is not None and value not in names:
-            raise ConfigError(f"onnx: output {value!r} ({where}) is not one of the model's outputs: {', '.join(names)}")
+            raise ConfigError(f"{path}: output {value!r} ({where}) is not one of the model's outputs: {', '.join(names)}")
         self.output_name = value or names[0]
         out_shape = next(o.shape for o in outputs if o.name == self.output_name)
         if out_shape is not None and len(out_shape) != 2:
@@ -202,6 +239,9 @@ class ONNXDescriptor(Descriptor):
             self._dim = int(self.describe(np.zeros((1, *self.input_size, 3), np.float32)).shape[1])
         logger.debug("onnx model %s: input %s %s, %s, output %s (%d-d), providers %s", path, self.input_name,
                      self.layout, self.input_size, self.output_name, self._dim, self.session.get_providers())
+        if guessed:  # said once the model is accepted: a refused one gets its one error line only
+            logger.warning(f"{path}: the graph's input {shape} does not say which axis holds the channels; fdnet "
+                           "feeds it (N, 3, H, W): give --method-set layout=nhwc if it takes (N, H, W, 3)")
 
     @property
     def dim(self) -> int:
@@ -210,7 +250,8 @@ class ONNXDescriptor(Descriptor):
     def settings(self) -> dict:
         return {"input_size": list(self.input_size), "weights": self.weights, "model_sha256": self.model_sha256,
                 "mean": [float(v) for v in self.mean], "std": [float(v) for v in self.std],
-                "channels": self.channels, "normalise": self.normalise, "output": self.output_name}
+                "channels": self.channels, "normalise": self.normalise, "output": self.output_name,
+                **({} if self._graph_layout else {"layout": self.layout})}
 
     def fingerprint(self, *, with_locations: bool = False) -> str:
         # The model's bytes are in model_sha256; the session holds no array the base class could hash.
