@@ -258,3 +258,40 @@ def test_image_root_and_relative_names(tmp_path):
     assert image_root([relative]) == ref  # made absolute, as listed
     with pytest.raises(DataError, match="not below"):
         relative_names([tmp_path / "elsewhere.png"], ref)
+
+
+def test_the_attributes_fdnet_records_read_back_and_hlocs_files_have_none(tmp_path):
+    from fdnet.descriptors.hloc_formats import read_global_attributes
+
+    path = tmp_path / "fdnet.h5"
+    with GlobalFeaturesWriter(path, attrs={"method": "hog", "settings": '{"input_size": [64, 64]}'}) as writer:
+        writer.write(["a b/0001.jpg"], _vectors(1))  # a name holding a space: fine in HDF5
+    assert read_global_attributes(path) == {"method": "hog", "settings": {"input_size": [64, 64]}}
+    assert read_global_features(path)[0] == ["a b/0001.jpg"]
+    write_global_features(tmp_path / "hloc.h5", NAMES, _vectors(len(NAMES)))
+    assert read_global_attributes(tmp_path / "hloc.h5") == {}
+    with h5py.File(tmp_path / "odd.h5", "w") as handle:  # not fdnet's: numbers, a settings that is no dict
+        handle.attrs["method"] = 3
+        handle.attrs["settings"] = "[1, 2]"
+        handle["x.jpg/global_descriptor"] = _vectors(1)[0]
+    assert read_global_attributes(tmp_path / "odd.h5") == {}
+
+
+@pytest.mark.parametrize("case, message", [
+    ("directory", "not a file"),
+    ("empty", "not an HDF5 file"),
+    ("lengths", "vectors of different lengths"),
+])
+def test_a_global_features_file_that_is_a_folder_empty_or_of_mixed_lengths_is_one_line(case, message, tmp_path):
+    path = tmp_path / f"{case}.h5"
+    if case == "directory":
+        path.mkdir()
+    elif case == "empty":
+        path.write_bytes(b"")
+    else:
+        with h5py.File(path, "w") as handle:
+            handle["a.jpg/global_descriptor"] = np.ones(4, np.float32)
+            handle["b.jpg/global_descriptor"] = np.ones(3, np.float32)
+    with pytest.raises(DataError) as caught:
+        read_global_features(path)
+    assert message in _one_line_naming(caught, path)

@@ -186,3 +186,160 @@ def test_hlocs_global_features_are_looked_up_by_their_relative_names(route, tmp_
     err = capsys.readouterr().err
     assert err.startswith("fdnet match: error: ") and str(truncated) in err
     assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+# ------------------------------------------------------------------ one vector, one image
+def test_names_without_folders_never_give_one_folders_vector_to_another(route, tmp_path, capsys):
+    """fdnet extract --format h5 of one folder names its images without a folder (hloc's names
+    relative to that folder): day's file used for day and dusk once gave dusk day's vectors."""
+    pytest.importorskip("h5py", reason="optional extra fdnet[hloc] not installed")
+    day = tmp_path / "day.h5"
+    assert main(["extract", "--method", "hog", "--images", str(route / "day"), "--out", str(day), "--workers",
+                 "0"]) == 0
+    capsys.readouterr()
+    out = tmp_path / "m.csv"
+    assert main(["match", "--reference", str(route / "day"), "--query", str(route / "dusk"), "--method",
+                 "precomputed", "--vectors", str(day), "--out", str(out), "--workers", "0"]) == 2
+    err = capsys.readouterr().err
+    assert "one vector cannot be two images'" in err and str(route / "dusk" / "frame_000.png") in err
+    assert "warning: " in err and "without a folder" in err  # said when the file is loaded
+    assert [line for line in err.splitlines() if "error" in line][0].startswith("fdnet match: error: ")
+    assert "Traceback" not in err and not out.exists()
+    # the folder it was made from: its own vectors, with the warning
+    assert main(["match", "--reference", str(route / "day"), "--query", str(route / "day"), "--method",
+                 "precomputed", "--vectors", str(day), "--out", str(out), "--workers", "0"]) == 0
+
+
+def test_a_folder_name_shared_by_two_routes_is_not_one_routes_vectors_for_both(tmp_path, capsys):
+    first, second = tmp_path / "first" / "day", tmp_path / "second" / "day"
+    write_random_places(first, 4, seed=1)
+    write_random_places(second, 4, seed=2)
+    np.save(tmp_path / "v.npy", np.random.default_rng(0).random((4, 8)).astype(np.float32))
+    (tmp_path / "v.txt").write_text("".join(f"day/frame_{i:03d}.png\n" for i in range(4)))  # relative to first/
+    d = create("precomputed", vectors=str(tmp_path / "v.npy"))
+    d.lookup([first / "frame_000.png", first / "frame_000.png"])  # the same image twice: fine
+    with pytest.raises(DataError, match="already took"):
+        d.lookup([second / "frame_000.png"])
+
+
+def test_a_name_at_two_depths_resolves_to_the_one_whose_folders_agree(tmp_path):
+    """hloc's names of a tree (--recursive) may hold day/0001.png and x/day/0001.png: the first is
+    ROOT/day/0001.png's, not an equal candidate."""
+    np.save(tmp_path / "v.npy", np.eye(2, 4, dtype=np.float32))
+    (tmp_path / "v.txt").write_text("day/0001.png\nx/day/0001.png\n")
+    d = create("precomputed", vectors=str(tmp_path / "v.npy"))
+    assert d.row_of(tmp_path / "root" / "day" / "0001.png") == 0
+    assert d.row_of(tmp_path / "root" / "x" / "day" / "0001.png") == 1
+
+
+def test_a_symlinked_image_folder_finds_the_vectors_of_its_target(route, tmp_path):
+    day, dusk = extract(route / "day", tmp_path / "day.npz"), extract(route / "dusk", tmp_path / "dusk.npz")
+    (tmp_path / "linked").symlink_to(route / "day", target_is_directory=True)
+    out = tmp_path / "m.csv"
+    assert main(["match", "--reference", str(tmp_path / "linked"), "--query", str(route / "dusk"), "--method",
+                 "precomputed", "--vectors", str(day), "--vectors", str(dusk), "--out", str(out),
+                 "--workers", "0"]) == 0
+    own = tmp_path / "own.csv"
+    assert main(["match", "--reference", str(tmp_path / "linked"), "--query", str(route / "dusk"), "--method",
+                 "hog", "--out", str(own), "--workers", "0"]) == 0
+    assert read_csv_rows(out) == read_csv_rows(own)
+
+
+def test_images_whose_names_differ_only_by_case_are_two_images(tmp_path):
+    np.save(tmp_path / "v.npy", np.eye(2, 4, dtype=np.float32))
+    (tmp_path / "v.txt").write_text("day/A.png\nday/a.png\n")
+    d = create("precomputed", vectors=str(tmp_path / "v.npy"))
+    assert d.row_of(tmp_path / "day" / "A.png") == 0 and d.row_of(tmp_path / "day" / "a.png") == 1
+    with pytest.raises(DataError, match="no vector for this image"):
+        d.row_of(tmp_path / "Day" / "a.png")
+
+
+# ------------------------------------------------------------------ what a vectors file may hold
+VECTORS = np.random.default_rng(0).random((3, 4)).astype(np.float32)
+NAMES = np.array([f"day/frame_{i:03d}.png" for i in range(3)])
+
+
+def _write_npz(path, **arrays):
+    np.savez(path, **arrays)
+    return path
+
+
+@pytest.mark.parametrize("case, message", [
+    ("object_vectors", "not a readable .npz"),
+    ("object_names", "not a readable .npz"),
+    ("no_names", "no names array"),
+    ("one_dimensional", "vectors of shape (4,)"),
+    ("nan_row", "the vector of day/frame_001.png holds NaN"),
+    ("integer_names", "names is an array of int64"),
+    ("names_2d", "expected one text per image"),
+    ("complex", "holds complex64, not real numbers"),
+    ("empty_name", "row 0 has an empty image name"),
+    ("sources_short", "2 sources for 3 names"),
+    ("directory", "not a file"),
+    ("beyond_float32", "beyond float32's range"),
+])
+def test_a_vectors_file_holding_the_wrong_things_is_one_error_naming_it(case, message, tmp_path):
+    path = tmp_path / f"{case}.npz"
+    if case == "object_vectors":
+        _write_npz(path, descriptors=np.array(list(VECTORS), dtype=object), names=NAMES)
+    elif case == "object_names":
+        _write_npz(path, descriptors=VECTORS, names=np.array(list(NAMES), dtype=object))
+    elif case == "no_names":
+        _write_npz(path, descriptors=VECTORS)
+    elif case == "one_dimensional":
+        _write_npz(path, descriptors=VECTORS[0], names=NAMES[:1])
+    elif case == "nan_row":
+        _write_npz(path, descriptors=np.where(np.arange(3)[:, None] == 1, np.nan, VECTORS), names=NAMES)
+    elif case == "integer_names":
+        _write_npz(path, descriptors=VECTORS, names=np.arange(3))
+    elif case == "names_2d":
+        _write_npz(path, descriptors=VECTORS, names=NAMES.reshape(3, 1))
+    elif case == "complex":
+        _write_npz(path, descriptors=VECTORS.astype(np.complex64), names=NAMES)
+    elif case == "empty_name":
+        _write_npz(path, descriptors=VECTORS, names=np.array(["", "a.png", "b.png"]))
+    elif case == "sources_short":
+        _write_npz(path, descriptors=VECTORS, names=NAMES, sources=np.array(["/x", "/y"]))
+    elif case == "directory":
+        path.mkdir()
+    elif case == "beyond_float32":
+        _write_npz(path, descriptors=np.full((3, 4), 1e300), names=NAMES)
+    with pytest.raises(DataError) as caught:
+        create("precomputed", vectors=str(path))
+    text = str(caught.value)
+    assert text.startswith(str(path)) and message in text and "\n" not in text, text
+
+
+def test_names_kept_as_bytes_and_huge_numbers_are_read_as_meant(tmp_path):
+    path = _write_npz(tmp_path / "v.npz", descriptors=VECTORS * 1e30, names=np.array([n.encode() for n in NAMES]))
+    d = create("precomputed", vectors=str(path))
+    assert d.row_of(tmp_path / "day" / "frame_002.png") == 2  # not "b'day/frame_002.png'"
+    np.testing.assert_allclose(np.linalg.norm(d.vectors, axis=1), 1.0, rtol=1e-6)  # not zeros from an overflow
+    np.testing.assert_allclose(d.vectors, VECTORS / np.linalg.norm(VECTORS, axis=1, keepdims=True), rtol=1e-5)
+
+
+def test_a_names_list_of_the_wrong_length_or_with_blank_lines(tmp_path):
+    np.save(tmp_path / "v.npy", VECTORS)
+    (tmp_path / "v.txt").write_text("a.png\nb.png\n")
+    with pytest.raises(DataError, match="3 vectors but 2 image names"):
+        create("precomputed", vectors=str(tmp_path / "v.npy"))
+    (tmp_path / "v.txt").write_text("day/a.png\n\nday/b.png\r\nday/c.png\n\n")  # blank lines are no rows
+    assert create("precomputed", vectors=str(tmp_path / "v.npy")).row_of(tmp_path / "day" / "c.png") == 2
+
+
+def test_the_same_file_given_twice_is_said_so(route, tmp_path, capsys):
+    day = extract(route / "day", tmp_path / "day.npz")
+    (tmp_path / "again.npz").symlink_to(day)
+    for second in (str(tmp_path / "." / "day.npz"), str(tmp_path / "again.npz")):
+        with pytest.raises(DataError, match="given twice"):
+            create("precomputed", vectors=[str(day), second])
+
+
+def test_fdnets_own_h5_records_its_method_so_another_methods_vectors_are_refused(route, tmp_path):
+    pytest.importorskip("h5py", reason="optional extra fdnet[hloc] not installed")
+    raw, sad = tmp_path / "day_raw.npz", tmp_path / "dusk_sad.h5"
+    extract(route / "day", raw, method="raw")
+    extract(route / "dusk", sad, method="sad")  # the same length (2048), another method
+    with pytest.raises(DataError, match="vectors of raw, but .*dusk_sad.h5's are of sad"):
+        create("precomputed", vectors=[str(sad), str(raw)])
+    assert create("precomputed", vectors=str(sad)).settings()["source_method"] == "sad"

@@ -320,6 +320,36 @@ def read_global_features(path: str | os.PathLike, key: str = GLOBAL_KEY) -> tupl
         raise DataError(f"{path}: cannot read it as hloc's global features ({_one_line(exc)})") from None
 
 
+def read_global_attributes(path: str | os.PathLike) -> dict:
+    """What a global-features file fdnet wrote records about how its vectors were made: the root's
+    ``method`` (text) and ``settings`` (a dict, from JSON); {} for hloc's own files. Attributes of
+    another kind are left out, never guessed at."""
+    import json
+
+    h5py = require_h5py()
+    path = Path(path)
+    try:
+        with h5py.File(path, "r", **_locking(h5py, "best-effort")) as handle:
+            attrs = {name: handle.attrs[name] for name in ("method", "settings") if name in handle.attrs}
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise _open_error(path, exc) from None
+    recorded = {}
+    for name, value in attrs.items():
+        if isinstance(value, bytes):
+            value = value.decode("utf-8", "replace")
+        if isinstance(value, str):
+            recorded[name] = value
+    if "settings" in recorded:
+        try:
+            recorded["settings"] = json.loads(recorded["settings"])
+        except ValueError:
+            del recorded["settings"]
+        else:
+            if not isinstance(recorded["settings"], dict):
+                del recorded["settings"]
+    return recorded
+
+
 def _read_vectors(h5py, handle, path: Path, key: str) -> tuple[list[str], np.ndarray]:
     found: list[str] = []
     members: set[str] = set()  # a few member names, to say what the file holds instead

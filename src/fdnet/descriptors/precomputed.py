@@ -21,15 +21,20 @@ bit for bit); ``normalise=none`` compares them as stored (dot product).
 An image is found by its file name and, when the vectors file names one, its folder's name
 (``day/0001.png`` is never ``dusk/0001.png``'s vector); where several vectors still fit
 (``a/day/0001.png``, ``b/day/0001.png``), by the most trailing folders in common with the image's
-path. So relative names (hloc's), moved data and absolute paths all resolve. Two equally good
-candidates are an error naming both, never a guess; so is an image with no vector (naming it and
-the files searched).
+path, then by a name whose every folder agrees with the path (``day/0001.png`` before
+``x/day/0001.png`` for ``ROOT/day/0001.png``). So relative names (hloc's), moved data and absolute
+paths all resolve; an image listed through a symbolic link that matches nothing is looked up
+again by its resolved path. Two equally good candidates are an error naming both, never a guess;
+so is an image with no vector (naming it and the files searched), and so is one vector asked for
+by two different images (a name without folders, ``0001.png``, fits every folder's
+``0001.png``: a file of such names is warned about when loaded).
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 from collections import defaultdict
 from pathlib import Path
@@ -37,8 +42,10 @@ from typing import Sequence
 
 import numpy as np
 
-from fdnet.descriptors.base import Descriptor, l2_normalize
+from fdnet.descriptors.base import Descriptor
 from fdnet.errors import ConfigError, DataError
+
+logger = logging.getLogger(__name__)
 
 #: what ``normalise`` may be: ``l2`` (unit vectors, cosine similarity) or ``none`` (as stored)
 NORMALISE_CHOICES = ("l2", "none")
@@ -66,9 +73,9 @@ def _read_npz(path: Path, array: str | None) -> tuple[list[str], np.ndarray, dic
                                 "give the array with --method-set array=NAME")
             if "names" not in keys:
                 raise DataError(f"{path}: no names array: an image's vector cannot be found without its name")
-            vectors = np.asarray(data[chosen], dtype=np.float32)
-            names = [str(n) for n in data["names"]]
-            sources = [str(s) for s in data["sources"]] if "sources" in keys else None
+            vectors = _numbers(path, data[chosen], chosen)
+            names = _texts(path, data["names"], "names")
+            sources = _texts(path, data["sources"], "sources") if "sources" in keys else None
             recorded = {}
             if "method" in keys:
                 recorded["method"] = str(data["method"])
@@ -81,15 +88,36 @@ def _read_npz(path: Path, array: str | None) -> tuple[list[str], np.ndarray, dic
         raise
     except (OSError, ValueError, KeyError, EOFError) as exc:
         raise DataError(f"{path}: not a readable .npz of vectors ({' '.join(str(exc).split())})") from None
-    if sources is not None and len(sources) == len(names):
+    if sources is not None:
+        if len(sources) != len(names):  # without them the names lose their folders: refused, not guessed
+            raise DataError(f"{path}: {len(sources)} sources for {len(names)} names; each image's source (its "
+                            "folder) is needed to find its vector")
         names = [os.path.join(s, n) for s, n in zip(sources, names)]
     return names, vectors, recorded
+
+
+def _texts(path: Path, array: np.ndarray, what: str) -> list[str]:
+    """A 1-D array of text (``str``, or UTF-8 ``bytes`` as older writers keep it) as a list."""
+    if array.ndim != 1 or array.dtype.kind not in "US":
+        raise DataError(f"{path}: {what} is an array of {array.dtype} of shape {array.shape}; expected one text "
+                        "per image")
+    if array.dtype.kind == "S":
+        return [bytes(n).decode("utf-8", "surrogateescape") for n in array]
+    return [str(n) for n in array]
+
+
+def _numbers(path: Path, array: np.ndarray, what: str) -> np.ndarray:
+    """``array`` as float32, refusing what is not real numbers (complex ones would lose a part)."""
+    if array.dtype.kind not in "fiu":
+        raise DataError(f"{path}: {what} holds {array.dtype}, not real numbers")
+    with np.errstate(over="ignore", invalid="ignore"):  # beyond float32's range: infinity, said below
+        return np.asarray(array, dtype=np.float32)
 
 
 def _read_npy(path: Path, names_file: str | None) -> tuple[list[str], np.ndarray, dict]:
     listing = Path(names_file) if names_file else path.with_suffix(".txt")
     try:
-        vectors = np.load(path, allow_pickle=False)
+        vectors = _numbers(path, np.load(path, allow_pickle=False), "the array")
     except (OSError, ValueError, EOFError) as exc:
         raise DataError(f"{path}: not a readable .npy array ({' '.join(str(exc).split())})") from None
     if not listing.is_file():
@@ -99,14 +127,14 @@ def _read_npy(path: Path, names_file: str | None) -> tuple[list[str], np.ndarray
         names = [line.strip() for line in listing.read_text(encoding="utf-8").splitlines() if line.strip()]
     except (OSError, UnicodeDecodeError) as exc:
         raise DataError(f"{listing}: cannot read the names list ({exc})") from None
-    return names, np.asarray(vectors, dtype=np.float32), {}
+    return names, vectors, {}
 
 
 def _read_h5(path: Path) -> tuple[list[str], np.ndarray, dict]:
-    from fdnet.descriptors.hloc_formats import read_global_features
+    from fdnet.descriptors.hloc_formats import read_global_attributes, read_global_features
 
     names, vectors = read_global_features(path)
-    return names, np.asarray(vectors, dtype=np.float32), {}
+    return names, np.asarray(vectors, dtype=np.float32), read_global_attributes(path)
 
 
 def read_vectors(path: str | os.PathLike, names_file: str | None = None,
@@ -115,7 +143,7 @@ def read_vectors(path: str | os.PathLike, names_file: str | None = None,
     from one vectors file, by its suffix (``.npz``, ``.npy``, ``.h5``/``.hdf5``)."""
     path = Path(path)
     if not path.is_file():
-        raise DataError(f"{path}: vectors file not found")
+        raise DataError(f"{path}: {'not a file' if path.exists() else 'vectors file not found'}")
     suffix = path.suffix.lower()
     if suffix == ".npz":
         names, vectors, recorded = _read_npz(path, array)
@@ -132,8 +160,18 @@ def read_vectors(path: str | os.PathLike, names_file: str | None = None,
         raise DataError(f"{path}: {len(vectors)} vectors but {len(names)} image names")
     if not np.isfinite(vectors).all():
         row = int(np.flatnonzero(~np.isfinite(vectors).all(axis=1))[0])
-        raise DataError(f"{path}: the vector of {names[row]} holds NaN or infinity")
+        raise DataError(f"{path}: the vector of {names[row]} holds NaN, infinity or a number beyond float32's range")
+    empty = next((i for i, name in enumerate(names) if not _parts(name)), None)
+    if empty is not None:
+        raise DataError(f"{path}: row {empty} has an empty image name")
     return names, vectors, recorded
+
+
+def _same_file(a: str, b: str) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return os.path.abspath(a) == os.path.abspath(b)
 
 
 class PrecomputedDescriptor(Descriptor):
@@ -160,7 +198,10 @@ class PrecomputedDescriptor(Descriptor):
         self.recorded: dict = {}
         by_key: dict[tuple[str, ...], str] = {}
         digest = hashlib.sha256()
-        for file in self.files:
+        for i, file in enumerate(self.files):
+            twice = next((f for f in self.files[:i] if _same_file(f, file)), None)
+            if twice is not None:
+                raise DataError(f"{file}: given twice (as {twice} too); give each vectors file once")
             file_names, file_vectors, recorded = read_vectors(file, names, array)
             if rows and file_vectors.shape[1] != rows[0].shape[1]:
                 raise DataError(f"{file}: vectors of length {file_vectors.shape[1]}, but {self.files[0]}'s are "
@@ -169,6 +210,10 @@ class PrecomputedDescriptor(Descriptor):
                 raise DataError(f"{file}: vectors of {recorded.get('method')}, but {self.files[0]}'s are of "
                                 f"{self.recorded.get('method')}: one descriptor's vectors only")
             self.recorded = self.recorded or recorded
+            bare = next((name for name in file_names if len(_parts(name)) == 1), None)
+            if bare is not None:
+                logger.warning(f"{file}: images named without a folder (e.g. {bare}) are found by their file name "
+                               f"alone: this file's {bare} is the vector of any folder's {bare}")
             for name in file_names:
                 key = _parts(name)
                 if key in by_key:
@@ -183,20 +228,26 @@ class PrecomputedDescriptor(Descriptor):
         # the vectors' own method read them, when the file records it.
         from fdnet.data.images import check_image_size
 
-        if input_size is None:
-            input_size = self.recorded.get("settings", {}).get("input_size") or (120, 160)
-        self.input_size = check_image_size(input_size, "precomputed: input_size")
+        where = "precomputed: input_size"
+        recorded_settings = self.recorded.get("settings")
+        if input_size is None and isinstance(recorded_settings, dict) and recorded_settings.get("input_size"):
+            input_size, where = recorded_settings["input_size"], f"{self.files[0]}: the recorded input_size"
+        self.input_size = check_image_size((120, 160) if input_size is None else input_size, where)
         matrix = np.concatenate(rows)
         if normalise == "l2":
             # Rows already of unit length are kept bit for bit: dividing by a norm of 1 +- 1e-7
             # would change last bits, and the vectors' own method's numbers must come back exactly.
-            off = np.abs(np.linalg.norm(matrix, axis=1) - 1.0) > 1e-5
-            matrix[off] = l2_normalize(matrix[off])
+            # (norms in float64: large float32 values would overflow to infinity and give zeros)
+            norms = np.linalg.norm(matrix.astype(np.float64), axis=1)
+            off = np.abs(norms - 1.0) > 1e-5
+            matrix[off] = (matrix[off] / np.maximum(norms[off, None], 1e-12)).astype(np.float32)
         self.vectors = matrix
         self._by_name: dict[str, list[int]] = defaultdict(list)
         for row, key in enumerate(self._keys):
             self._by_name[key[-1] if key else ""].append(row)
         self.vectors_sha256 = digest.hexdigest()
+        #: row -> the (resolved) image it described: one vector is never two images'
+        self._served: dict[int, tuple[str, str]] = {}
 
     @property
     def dim(self) -> int:
@@ -215,27 +266,47 @@ class PrecomputedDescriptor(Descriptor):
 
     def row_of(self, path: str | os.PathLike) -> int:
         """The row holding ``path``'s vector (module docstring: by name, then trailing folders)."""
-        key = _parts(os.path.abspath(os.fspath(path)))
-        # the file name and, where the stored name has one, its folder's name must agree
-        candidates = [row for row in self._by_name.get(key[-1] if key else "", [])
-                      if _common_tail(key, self._keys[row]) >= min(2, len(self._keys[row]))]
+        listed = os.path.abspath(os.fspath(path))
+        key = _parts(listed)
+        candidates = self._candidates(key)
+        if not candidates and os.path.realpath(listed) != listed:  # through a symbolic link
+            key = _parts(os.path.realpath(listed))
+            candidates = self._candidates(key)
         if not candidates:
             raise DataError(f"{path}: no vector for this image in {', '.join(self.files)} (looked up by its file "
                             f"name and folder, {'/'.join(key[-2:]) if key else path!r}); every image a command reads needs one")
         if len(candidates) == 1:
             return candidates[0]
-        tails = [_common_tail(key, self._keys[row]) for row in candidates]
-        best = max(tails)
-        chosen = [row for row, tail in zip(candidates, tails) if tail == best]
+        # most trailing folders in common; then a name all of whose folders agree (not moved data)
+        fits = [(_common_tail(key, self._keys[row]), _common_tail(key, self._keys[row]) == len(self._keys[row]))
+                for row in candidates]
+        best = max(fits)
+        chosen = [row for row, fit in zip(candidates, fits) if fit == best]
         if len(chosen) > 1:
             a, b = ("/".join(self._keys[row]) for row in chosen[:2])
             raise DataError(f"{path}: two vectors fit this image equally well ({a} and {b}); name the images by "
                             "their folders in the vectors files")
         return chosen[0]
 
+    def _candidates(self, key: tuple[str, ...]) -> list[int]:
+        # the file name and, where the stored name has one, its folder's name must agree
+        return [row for row in self._by_name.get(key[-1] if key else "", [])
+                if _common_tail(key, self._keys[row]) >= min(2, len(self._keys[row]))]
+
     def lookup(self, paths: Sequence[str | os.PathLike]) -> np.ndarray:
-        """(len(paths), dim) float32: each image's vector."""
-        return self.vectors[[self.row_of(p) for p in paths]]
+        """(len(paths), dim) float32: each image's vector. DataError when a vector was already
+        another image's (two images, one vector: at least one would get a wrong one)."""
+        rows = []
+        for path in paths:
+            row = self.row_of(path)
+            image = os.path.realpath(os.fspath(path))
+            first = self._served.setdefault(row, (image, os.fspath(path)))
+            if first[0] != image:
+                raise DataError(f"{path}: its vector would be {'/'.join(self._keys[row])}'s, which {first[1]} "
+                                "already took: one vector cannot be two images'; name the images by their folders "
+                                "in the vectors files (e.g. extract the folder holding both with --recursive)")
+            rows.append(row)
+        return self.vectors[rows]
 
     def describe(self, images: np.ndarray) -> np.ndarray:
         names = getattr(self, "_batch_paths", None)
