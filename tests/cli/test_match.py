@@ -336,3 +336,73 @@ def test_match_refuses_a_name_the_pairs_file_cannot_hold_before_describing(tmp_p
     assert err.startswith(f"fdnet match: error: {pairs}: image name 'map/frame 001.png' holds whitespace")
     assert err.count("\n") == 1 and "Traceback" not in err
     assert not out.exists() and not pairs.exists()
+
+
+def test_match_on_a_full_disk_writes_both_outputs_or_neither(small_disk, tmp_path, capsys):
+    """Room for one output: the CSV was once renamed into place, then the pairs file failed and
+    the command said it had written nothing."""
+    ref, qry = _pairs_route(tmp_path, n=4)
+    out, pairs = small_disk.path / "m.csv", small_disk.path / "pairs.txt"
+    small_disk.fill(4096)  # one page: each file alone fits, not both
+    assert main(["match", "--reference", str(ref), "--query", str(qry), "--method", "raw", "--top-k", "3",
+                 "--workers", "0", "--out", str(out), "--pairs-out", str(pairs)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("fdnet match: error: ") and "no space left" in err and err.count("\n") == 1
+    assert small_disk.files() == []
+
+
+def test_match_pairs_out_to_a_read_only_folder_is_refused_before_any_work(make_read_only, tmp_path, capsys,
+                                                                           monkeypatch):
+    import fdnet.matching.search as search
+
+    ref, qry = _pairs_route(tmp_path, n=3)
+    folder = tmp_path / "read-only"
+    folder.mkdir()
+    make_read_only(folder)
+    monkeypatch.setattr(search, "rank_references", lambda *a, **k: pytest.fail("described the images"))
+    out = tmp_path / "m.csv"
+    assert main(["match", "--reference", str(ref), "--query", str(qry), "--method", "raw", "--workers", "0",
+                 "--out", str(out), "--pairs-out", str(folder / "pairs.txt")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"fdnet match: error: {folder / 'pairs.txt'}: ") and "Read-only" in err
+    assert err.count("\n") == 1 and not out.exists()
+
+
+@pytest.mark.parametrize("outputs, message", [
+    (["--pairs-out", "{tmp}/p.txt", "--index-file", "{tmp}/./p.txt", "--index", "flat"],
+     "--pairs-out and --index-file are the same file"),
+    (["--out", "{tmp}/m.csv", "--index-file", "{tmp}/m.csv", "--index", "flat"],
+     "--out and --index-file are the same file"),
+    (["--pairs-out", "{tmp}/link.npz"], "--pairs-out {tmp}/link.npz is the --vectors file"),
+    (["--out", "{tmp}/day.npz"], "--out {tmp}/day.npz is the --vectors file"),
+    (["--out", "{tmp}/m.csv", "--index-file", "{tmp}/day.npz", "--index", "flat"], "--index-file {tmp}/day.npz is the --vectors file"),
+])
+def test_match_never_writes_one_output_over_another_or_over_its_input(outputs, message, tmp_path, capsys, monkeypatch):
+    import fdnet.matching.search as search
+
+    ref, qry = _pairs_route(tmp_path, n=3)
+    vectors = tmp_path / "day.npz"
+    assert main(["extract", "--method", "raw", "--images", str(tmp_path / "route"), "--recursive", "--out",
+                 str(vectors), "--workers", "0"]) == 0
+    (tmp_path / "link.npz").symlink_to(vectors)
+    before = vectors.read_bytes()
+    capsys.readouterr()
+    monkeypatch.setattr(search, "rank_references", lambda *a, **k: pytest.fail("described the images"))
+    argv = ["match", "--reference", str(ref), "--query", str(qry), "--method", "precomputed", "--vectors",
+            str(vectors), "--workers", "0", *[a.format(tmp=tmp_path) for a in outputs]]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("fdnet match: error: ") and message.format(tmp=tmp_path) in err and err.count("\n") == 1
+    assert vectors.read_bytes() == before and not (tmp_path / "p.txt").exists() and not (tmp_path / "m.csv").exists()
+
+
+def test_match_pairs_out_with_a_name_holding_odd_characters(tmp_path):
+    from fdnet.descriptors.hloc_formats import read_pairs
+
+    ref, qry = _pairs_route(tmp_path, n=3)
+    for folder in (ref, qry):
+        (folder / "frame_001.png").rename(folder / "-=@frame_001.png")
+    pairs = tmp_path / "-pairs list @x=1.txt"
+    assert main(["match", "--reference", str(ref), "--query", str(qry), "--method", "raw", "--workers", "0",
+                 f"--pairs-out={pairs}"]) == 0
+    assert ("now/-=@frame_001.png", "map/-=@frame_001.png") in read_pairs(pairs)

@@ -78,6 +78,20 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
+def input_files(args) -> list[tuple[str, str]]:
+    """(option, path) of every file the method reads (``--vectors``, ``--weights``, ``--vocabulary``;
+    a ``METHOD=PATH`` value's path), which no output may overwrite."""
+    from fdnet.descriptors.registry import available_methods
+
+    known = set(available_methods())
+    files = []
+    for option in ("vectors", "weights", "vocabulary"):
+        for value in getattr(args, option, None) or []:
+            prefix, sep, rest = str(value).partition("=")
+            files.append((f"--{option}", rest if sep and prefix in known else value))
+    return files
+
+
 def run(args) -> int:
     import sys
 
@@ -100,7 +114,7 @@ def run(args) -> int:
                            top_k=args.top_k, index=args.index, index_set=args.index_set, index_file=args.index_file,
                            sequence_length=args.sequence_length, calibration=calibration, accept=spec,
                            pairs_out=args.pairs_out, pairs_accepted_only=args.pairs_accepted_only,
-                           batch_size=args.batch_size, workers=args.workers, log=print)
+                           batch_size=args.batch_size, workers=args.workers, inputs=input_files(args), log=print)
     if summary.out is not None:
         print(f"wrote {summary.out}: top-{summary.top_k} of {summary.num_references} references for "
               f"{summary.num_queries} queries ({summary.method})")

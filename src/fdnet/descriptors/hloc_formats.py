@@ -409,13 +409,21 @@ def write_pairs(path: str | os.PathLike, pairs: Iterable[tuple[str, str]]) -> No
     from fdnet.io import atomic_path
 
     path = Path(path)
-    count = 0
     with atomic_path(path) as tmp, open(tmp, "w", encoding="utf-8", newline="\n") as handle:
-        for pair in pairs:
-            query, reference = pair
-            line = f"{check_pair_name(query, path)} {check_pair_name(reference, path)}"
-            handle.write(line if count == 0 else "\n" + line)
-            count += 1
+        write_pairs_to(handle, pairs, path)
+
+
+def write_pairs_to(handle, pairs: Iterable[tuple[str, str]], where) -> int:
+    """:func:`write_pairs`' lines into an open text ``handle`` (UTF-8, ``newline="\\n"``), for a
+    caller that renames several files into place together; DataError naming ``where`` for a name
+    holding whitespace. Returns the number of pairs."""
+    count = 0
+    for pair in pairs:
+        query, reference = pair
+        line = f"{check_pair_name(query, where)} {check_pair_name(reference, where)}"
+        handle.write(line if count == 0 else "\n" + line)
+        count += 1
+    return count
 
 
 def read_pairs(path: str | os.PathLike) -> list[tuple[str, str]]:

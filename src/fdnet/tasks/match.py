@@ -47,7 +47,7 @@ class MatchSummary:
 def match_images(reference, query, out, make_descriptor: Callable[[], object], *, top_k: int = 5,
                  index: str = "exact", index_set=(), index_file=None, sequence_length: int = 0,
                  calibration=None, accept=None, pairs_out=None, pairs_accepted_only: bool = False,
-                 batch_size: int = 64, workers: int | None = None,
+                 batch_size: int = 64, workers: int | None = None, inputs=(),
                  progress: bool = True, log: Callable[[str], None] | None = None) -> MatchSummary:
     """Describe the ``reference`` folder (the map) and the ``query`` folder with the method
     ``make_descriptor()`` returns (called after the settings and output paths are checked, so a
@@ -58,16 +58,23 @@ def match_images(reference, query, out, make_descriptor: Callable[[], object], *
     ``calibration`` (a file or run directory from ``fdnet calibrate``) adds ``acceptance_score``
     and ``accepted`` columns; ``accept`` (an AcceptanceSpec, instead of a calibration) adds the
     rule's ``acceptance_score`` alone. ``pairs_out`` also writes hloc's pairs file
-    (:func:`retrieval_pairs`; ``pairs_accepted_only``: only the accepted pairs). ``log`` gets the
-    index cache's messages (default: this module's logger)."""
+    (:func:`retrieval_pairs`; ``pairs_accepted_only``: only the accepted pairs); the CSV and the
+    pairs file are renamed into place together, once both are written (a full disk leaves both
+    as they were). ``inputs``: (option, path) of the files the method reads (``--vectors``,
+    ``--weights``, ...), which no output may be. ``log`` gets the index cache's messages
+    (default: this module's logger)."""
+    import contextlib
+
     from fdnet.data.images import list_images
-    from fdnet.io import ensure_writable
+    from fdnet.io import atomic_path, ensure_writable
 
     if top_k < 1:
         raise ConfigError("--top-k must be at least 1")
     if sequence_length < 0:
         raise ConfigError(f"--sequence-length must be >= 0 (0 = single image), got {sequence_length}")
-    check_outputs(out, pairs_out, pairs_accepted_only, calibration is not None or accept is not None)
+    check_outputs(out, pairs_out, pairs_accepted_only, calibration is not None or accept is not None,
+                  index_file=index_file, inputs=[*inputs, ("--reference", reference), ("--query", query),
+                                                 *([("--calibration", calibration)] if calibration else [])])
     settings = index_settings(index, index_set, index_file, sequence_length)
     if out is not None:
         ensure_writable(out, what="matches CSV")  # before describing every image, not after
@@ -111,21 +118,19 @@ def match_images(reference, query, out, make_descriptor: Callable[[], object], *
             decision, accepted = calibration.decide(candidates)
         else:
             decision = decide(accept, candidates)
-    if out is not None:
-        write_matches(out, indices, scores, query_paths, ref_paths, top_k, decision, accepted)
     num_pairs = None
-    if pairs_out is not None:
-        from fdnet.descriptors.hloc_formats import write_pairs
+    with contextlib.ExitStack() as outputs:  # both outputs or neither: renamed over their targets at the end
+        if pairs_out is not None:
+            from fdnet.descriptors.hloc_formats import write_pairs_to
 
-        counted = [0]
-
-        def pairs():
-            for pair in retrieval_pairs(indices, names[1], names[0], top_k, decision, accepted, pairs_accepted_only):
-                counted[0] += 1
-                yield pair
-
-        write_pairs(pairs_out, pairs())
-        num_pairs = counted[0]
+            tmp = outputs.enter_context(atomic_path(pairs_out))
+            with open(tmp, "w", encoding="utf-8", newline="\n") as handle:
+                num_pairs = write_pairs_to(handle, retrieval_pairs(indices, names[1], names[0], top_k, decision, accepted,
+                                                                   pairs_accepted_only), pairs_out)
+        if out is not None:
+            tmp = outputs.enter_context(atomic_path(out))
+            tmp.write_text(matches_text(indices, scores, query_paths, ref_paths, top_k, decision, accepted),
+                           encoding="utf-8", errors="surrogateescape")
     return MatchSummary(out=None if out is None else str(out), method=descriptor.name, num_references=len(ref_paths),
                         num_queries=len(query_paths), top_k=top_k, calibration=calibration,
                         accepted=None if accepted is None else int(accepted.sum()),
@@ -133,13 +138,31 @@ def match_images(reference, query, out, make_descriptor: Callable[[], object], *
                         pairs_root=None if names is None else str(names[2]))
 
 
-def check_outputs(out, pairs_out, pairs_accepted_only: bool, has_rule: bool) -> None:
+def _same_path(a, b) -> bool:
+    """Whether ``a`` and ``b`` name one file (after ``.``, ``..`` and symbolic links)."""
+    try:
+        return os.path.samefile(a, b)
+    except OSError:  # one does not exist yet
+        return os.path.realpath(a) == os.path.realpath(b)
+
+
+def check_outputs(out, pairs_out, pairs_accepted_only: bool, has_rule: bool, index_file=None, inputs=()) -> None:
     """Refuse output settings that cannot work, before any work: no output at all, one file for
-    both, accepted pairs without a rule to accept them or without a pairs file."""
+    two outputs (``--out``, ``--pairs-out``, ``--index-file``), an output that is a file the
+    command reads (``inputs``: (option, path); writing it would destroy it), accepted pairs
+    without a rule to accept them or without a pairs file."""
     if out is None and pairs_out is None:
         raise ConfigError("give --out matches.csv, --pairs-out pairs.txt, or both")
-    if out is not None and pairs_out is not None and os.path.abspath(out) == os.path.abspath(pairs_out):
-        raise ConfigError(f"--out and --pairs-out are the same file {out}; give two names")
+    written = [(option, path) for option, path in (("--out", out), ("--pairs-out", pairs_out),
+                                                   ("--index-file", index_file)) if path is not None]
+    for i, (option, path) in enumerate(written):
+        for other, other_path in written[:i]:
+            if _same_path(path, other_path):
+                raise ConfigError(f"{other} and {option} are the same file {path}; give two names")
+        for given, source in inputs:
+            if source is not None and _same_path(path, source):
+                raise ConfigError(f"{option} {path} is the {given} file {source}: writing it would destroy what the "
+                                  "command reads; give another name")
     if pairs_accepted_only and pairs_out is None:
         raise ConfigError("--pairs-accepted-only needs --pairs-out FILE")
     if pairs_accepted_only and not has_rule:
@@ -182,13 +205,20 @@ def retrieval_pairs(indices, query_names, ref_names, top_k: int, decision=None, 
 
 
 def write_matches(out, indices, scores, query_paths, ref_paths, top_k: int, decision=None, accepted=None) -> None:
+    """The ranked-candidates CSV (:func:`matches_text`), written atomically."""
+    from fdnet.io import atomic_write_text
+
+    atomic_write_text(out, matches_text(indices, scores, query_paths, ref_paths, top_k, decision, accepted))
+
+
+def matches_text(indices, scores, query_paths, ref_paths, top_k: int, decision=None, accepted=None) -> str:
     """The ranked-candidates CSV: :data:`MATCH_COLUMNS`, plus ``acceptance_score`` with a
     ``decision`` and ``accepted`` with a calibrated one. Rows beyond ``top_k`` appear only for
     the match a rule accepted (a re-ranking rule may pick it)."""
     import csv
     import io
 
-    from fdnet.io import atomic_write_text, spreadsheet_text
+    from fdnet.io import spreadsheet_text
 
     buffer = io.StringIO()
     writer = csv.writer(buffer)
@@ -209,4 +239,4 @@ def write_matches(out, indices, scores, query_paths, ref_paths, top_k: int, deci
                 if accepted is not None:
                     row.append(int(chosen))
                 writer.writerow(row)
-    atomic_write_text(out, buffer.getvalue())
+    return buffer.getvalue()
