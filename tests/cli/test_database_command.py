@@ -364,3 +364,55 @@ def test_every_listed_image_is_a_place_under_its_own_name_links_too(tmp_path, ca
         stored = [row[0] for row in conn.execute("SELECT name FROM places ORDER BY id")]
     assert [s.rsplit("/", 1)[1] for s in stored] == names
     assert str(folder / "b_link.png") in stored
+
+
+def test_torchrun_database_build_writes_the_one_process_database_and_its_index(tmp_path, capsys):
+    """`torchrun --nproc-per-node 2 -m fdnet database build`: each process describes half the
+    images, rank 0 writes the database (names exactly, vectors within 1e-5 of one process's, the
+    same fingerprint) and builds the hnsw index once on all of them; info records world_size 2."""
+    from fdnet.matching.database.store import PlaceDatabase
+    from tests.descriptors.test_sharding import spools, torchrun
+
+    images = make_route(tmp_path / "route", n=11)
+    common = ["database", "build", "--images", str(images), "--method", "raw", "--index", "hnsw",
+              "--batch-size", "2", "--workers", "0"]
+    assert main([*common, "--db", str(tmp_path / "one.db")]) == 0
+    result = torchrun(*common, "--db", tmp_path / "two.db", tmpdir=tmp_path / "tmp")
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.count("wrote ") == 1 and "11 places" in result.stdout and "hnsw index built" in result.stdout
+    with PlaceDatabase.open(tmp_path / "one.db") as one, PlaceDatabase.open(tmp_path / "two.db") as two:
+        assert two.names == one.names and two.fingerprint == one.fingerprint
+        np.testing.assert_allclose(two.vectors, one.vectors, rtol=0, atol=1e-5)
+        queries = one.vectors[:3]
+        assert [[m.name for m in q] for q in two.query(queries, k=2)] == \
+            [[m.name for m in q] for q in one.query(queries, k=2)]
+    assert info(tmp_path / "two.db", capsys)["build"] == {"world_size": 2}
+    assert "build" not in info(tmp_path / "one.db", capsys)
+    assert (tmp_path / "two.db.fdnet-index").is_file()
+    assert not list(tmp_path.glob(".fdnet-spool.*")) and spools(tmp_path / "tmp") == []
+
+
+def test_torchrun_database_build_with_rank_0_killed_leaves_no_database_and_a_rerun_builds_it(tmp_path):
+    """Rank 0 (the writer) killed after its first batch: process 1 stops with one error line, no
+    database is written; the killed writer's spool beside it is removed by the next build, which
+    writes every place."""
+    from fdnet.descriptors.sharding import KILL_VARIABLE
+    from fdnet.matching.database.store import PlaceDatabase
+    from tests.descriptors.test_sharding import error_lines, torchrun
+
+    images = make_route(tmp_path / "route", n=12)
+    db = tmp_path / "maps" / "map.db"
+    common = ["database", "build", "--images", images, "--method", "raw", "--db", db, "--batch-size", "2",
+              "--workers", "0"]
+    killed = torchrun(*common, tmpdir=tmp_path / "tmp", env={KILL_VARIABLE: "0:1"})
+    assert killed.returncode != 0
+    errors = error_lines(killed, "database")
+    assert len(errors) == 1, killed.stderr
+    assert "process 1 of 2 lost contact" in errors[0] or "stopped by SIGTERM" in errors[0]
+    left = [p.name for p in db.parent.iterdir()]
+    assert len(left) == 1 and left[0].startswith(".fdnet-spool."), left  # no database; the killed writer's spool
+    again = torchrun(*common, tmpdir=tmp_path / "tmp")
+    assert again.returncode == 0, again.stderr
+    assert sorted(p.name for p in db.parent.iterdir()) == ["map.db"]
+    with PlaceDatabase.open(db) as database:
+        assert len(database) == 12

@@ -136,21 +136,28 @@ def _print_to_stderr(message: str) -> None:
 
 
 def run_build(args) -> int:
+    """``database build``, in one process or in each process of a torchrun launch
+    (:mod:`fdnet.descriptors.sharding`: each describes its block of the images, rank 0 writes the
+    database and alone prints)."""
     from fdnet.cli.common import check_pipeline_arguments
+    from fdnet.descriptors.sharding import launch
     from fdnet.tasks.database import build_database
 
-    check_pipeline_arguments(args)
-    summary = build_database(args.images, args.db, args.method, method_options=lambda m: _file_options(args, m),
-                             device=args.device, overwrite=args.overwrite, index=args.index, index_set=args.index_set,
-                             batch_size=args.batch_size, workers=args.workers)
-    print("\n".join(summary.lines()))
+    with launch(command=True) as shards:
+        shards.collectively(lambda: check_pipeline_arguments(args))
+        summary = build_database(args.images, args.db, args.method, method_options=lambda m: _file_options(args, m),
+                                 device=args.device, overwrite=args.overwrite, index=args.index,
+                                 index_set=args.index_set, batch_size=args.batch_size, workers=args.workers)
+        print("\n".join(summary.lines()))
     return 0
 
 
 def run_add(args) -> int:
     from fdnet.cli.common import check_pipeline_arguments
+    from fdnet.descriptors.sharding import refuse_under_torchrun
     from fdnet.tasks.database import add_to_database
 
+    refuse_under_torchrun("fdnet database add")  # every process would append the images
     check_pipeline_arguments(args)
     given = _options_given(args)
     summary = add_to_database(args.db, args.images, method=args.method,
@@ -189,7 +196,10 @@ def run_info(args) -> int:
 
 
 def run_migrate(args) -> int:
+    from fdnet.descriptors.sharding import refuse_under_torchrun
     from fdnet.tasks.database import migrate_database
+
+    refuse_under_torchrun("fdnet database migrate")
 
     print("\n".join(migrate_database(args.source, args.db, overwrite=args.overwrite).lines()))
     return 0

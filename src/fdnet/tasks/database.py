@@ -112,26 +112,56 @@ class MigrateSummary:
         return lines
 
 
+#: the database metadata key (:meth:`PlaceDatabase.set_metadata`) recording how a database was
+#: built: ``{"world_size": N}`` when N processes described its images under torchrun (absent when
+#: one process did, as for every database built before)
+BUILD_KEY = "build"
+
+
 def build_database(images, db, method: str, *, method_options: MethodOptions = None, device: str | None = None,
                    overwrite: bool = False, index: str = "flat", index_set: Sequence[str] = (), batch_size: int = 64,
                    workers: int | None = None, progress: bool = True) -> BuildSummary:
     """Describe the images of ``images`` (traversal order) with ``method`` and write them as a new
     database file ``db``; ``method_options`` (file paths absolute) are recorded so later ``add``
     and ``query`` calls rebuild the descriptor; ``device`` is where it runs, never recorded.
-    Approximate indexes (``index`` hnsw, ivf, ivfpq) are built at the end and cached beside the file."""
-    import time
+    Approximate indexes (``index`` hnsw, ivf, ivfpq) are built at the end and cached beside the file.
 
+    Under torchrun (:mod:`fdnet.descriptors.sharding`) each process describes its block of the
+    images and rank 0 alone writes the database, in one transaction as one process does, and
+    builds its index on all the vectors; its metadata ``build`` records ``world_size``. Every
+    process returns the summary (the others' without the index's timing)."""
+    from fdnet.descriptors.sharding import check_same_inputs, current
+    from fdnet.matching.database.store import PlaceDatabase
+
+    shards = current()
+    settings, descriptor, paths, names = shards.collectively(
+        lambda: _build_inputs(images, db, method, method_options, device, overwrite, index, index_set,
+                              check_output=shards.is_main))
+    check_same_inputs(shards, paths, descriptor)
+    with _spool(descriptor, paths, batch_size, workers, progress, Path(db).resolve().parent, shards) as spool:
+        if not shards.is_main:
+            return BuildSummary(str(db), len(paths), descriptor.name, descriptor.dim, descriptor.fingerprint(),
+                                settings.kind)
+        database = PlaceDatabase.create(db, descriptor, index=settings,
+                                        method_options=_options_for(method_options, method), overwrite=overwrite,
+                                        batches=_spooled_batches(spool, names, paths))
+    return _finish_build(db, database, descriptor, settings, shards.world_size)
+
+
+def _build_inputs(images, db, method, method_options, device, overwrite, index, index_set, check_output=True):
+    """``(index settings, descriptor, paths, place names)`` for :func:`build_database`, every
+    refusal the output path can cause first (``check_output``), before minutes of describing."""
     from fdnet.data.images import list_images
+    from fdnet.descriptors.sharding import current
     from fdnet.errors import ConfigError
     from fdnet.io import ensure_writable
     from fdnet.matching.database.storage import check_can_create
-    from fdnet.matching.database.store import PlaceDatabase
     from fdnet.matching.index import parse_index_settings
 
-    # Every refusal the output path can cause comes before minutes of describing images.
     settings = parse_index_settings(index, list(index_set))
-    check_can_create(db, overwrite)
-    ensure_writable(db, what="place database")
+    if check_output:
+        check_can_create(db, overwrite)
+        ensure_writable(db, what="place database")
     descriptor = _create_descriptor(method, method_options, device)
     if descriptor.needs_fit:
         raise ConfigError(f"method {descriptor.name!r} must be given what it learns from (--fit DIR, or dbow's --vocabulary) "
@@ -139,14 +169,20 @@ def build_database(images, db, method: str, *, method_options: MethodOptions = N
     if settings.kind != "flat" and not descriptor.dot_product_similarity:
         raise ConfigError(f"--index {settings.kind}: method {descriptor.name!r} does not compare vectors by dot "
                           "product, so it is searched exhaustively with its own similarity; use --index flat")
+    current().check_device(getattr(descriptor, "device", None))  # under torchrun: this process's own GPU
     paths = list_images(images)
-    names = _place_names(paths)
-    with _spool(descriptor, paths, batch_size, workers, progress, Path(db).resolve().parent) as spool:
-        database = PlaceDatabase.create(db, descriptor, index=settings,
-                                        method_options=_options_for(method_options, method), overwrite=overwrite,
-                                        batches=_spooled_batches(spool, names, paths))
+    return settings, descriptor, paths, _place_names(paths)
+
+
+def _finish_build(db, database, descriptor, settings, world_size: int) -> BuildSummary:
+    """Record how many processes built ``database`` (the file ``db``), build its approximate
+    index (if any) and summarise."""
+    import time
+
     seconds = cache = None
     with database:
+        if world_size > 1:
+            database.set_metadata(BUILD_KEY, {"world_size": int(world_size)})
         places = len(database)
         if database.index_cache_path is not None and places:
             t0 = time.perf_counter()
@@ -154,8 +190,8 @@ def build_database(images, db, method: str, *, method_options: MethodOptions = N
             if built is not None:
                 seconds = time.perf_counter() - t0
                 cache = str(database.index_cache_path) if database.index_cache_path.exists() else None
-    return BuildSummary(str(db), places, descriptor.name, descriptor.dim, database.fingerprint, settings.kind,
-                        seconds, cache)
+    return BuildSummary(str(db), places, descriptor.name, descriptor.dim, database.fingerprint,
+                        settings.kind, seconds, cache)
 
 
 def add_to_database(db, images, *, method: str | None = None, method_options: MethodOptions = None,
@@ -248,6 +284,9 @@ def database_info(db, log: Log | None = None) -> dict:
 
     with PlaceDatabase.open(db) as database:
         info = database.info()
+        build = database.get_metadata(BUILD_KEY)
+        if build is not None:  # built by several processes (torchrun)
+            info["build"] = build
         _note_read_only(database, log or logger.info)
     return info
 
@@ -323,29 +362,40 @@ def _describe(descriptor, paths, batch_size, workers, progress):
     return describe_paths(descriptor, paths, batch_size, progress=progress, workers=workers)
 
 
-def _spool(descriptor, paths, batch_size, workers, progress, folder):
+def _spool(descriptor, paths, batch_size, workers, progress, folder, shards=None):
     """Describe ``paths`` through the streaming pipeline into a spool file in ``folder`` (a few
     batches in memory whatever the folder's size). Non-finite vectors stop it here, naming the
-    images, before the database is touched."""
+    images, before the database is touched. Under torchrun (``shards``, default: the running
+    launch's) every process describes its block and rank 0's spool receives every vector; the
+    other processes get an empty ``with`` block's context (None)."""
+    import contextlib
+
+    from fdnet.descriptors.pipeline import VectorSpool
+    from fdnet.descriptors.sharding import current, describe_blocks
+
+    shards = shards or current()
+    spool = shards.collectively(lambda: VectorSpool(folder, descriptor.dim) if shards.is_main else None)
+    try:
+        describe_blocks(shards, descriptor, paths, [descriptor.dim], lambda start, arrays: spool.write(arrays[0]),
+                        batch_size=batch_size, workers=workers, progress=progress,
+                        check=lambda start, arrays: _refuse_non_finite(paths, start, arrays[0]))
+    except BaseException:
+        if spool is not None:
+            spool.close()
+        raise
+    return spool if spool is not None else contextlib.nullcontext()
+
+
+def _refuse_non_finite(paths, start: int, vectors) -> None:
     import numpy as np
 
-    from fdnet.descriptors.pipeline import VectorSpool, describe_stream
     from fdnet.errors import DataError
 
-    spool = VectorSpool(folder, descriptor.dim)
-    try:
-        for start, vectors in describe_stream(descriptor, paths, batch_size, workers=workers, progress=progress):
-            vectors = np.asarray(vectors, dtype=np.float32)
-            bad = np.flatnonzero(~np.isfinite(vectors).all(axis=1))
-            if len(bad):
-                listed = ", ".join(str(paths[start + i]) for i in bad[:5])
-                raise DataError(f"refusing {len(bad)} non-finite vector(s) (NaN or inf) for {listed}; "
-                                "nothing was added (a NaN place can never be matched)")
-            spool.write(vectors)
-    except BaseException:
-        spool.close()
-        raise
-    return spool
+    bad = np.flatnonzero(~np.isfinite(vectors).all(axis=1))
+    if len(bad):
+        listed = ", ".join(str(paths[start + i]) for i in bad[:5])
+        raise DataError(f"refusing {len(bad)} non-finite vector(s) (NaN or inf) for {listed}; "
+                        "nothing was added (a NaN place can never be matched)")
 
 
 def _spooled_batches(spool, names, paths=None):
