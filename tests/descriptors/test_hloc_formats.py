@@ -295,3 +295,33 @@ def test_a_global_features_file_that_is_a_folder_empty_or_of_mixed_lengths_is_on
     with pytest.raises(DataError) as caught:
         read_global_features(path)
     assert message in _one_line_naming(caught, path)
+
+
+FULL_DISK_WRITER = """
+import sys
+import numpy as np
+from fdnet.descriptors.hloc_formats import GlobalFeaturesWriter
+from fdnet.errors import OutputError
+count, dim = int(sys.argv[2]), int(sys.argv[3])
+try:
+    with GlobalFeaturesWriter(sys.argv[1]) as writer:
+        for i in range(count):
+            writer.write([f"db/{i:05d}.jpg"], np.ones((1, dim), np.float32))
+except OutputError as exc:
+    print(exc)
+"""
+
+
+@pytest.mark.parametrize("count, dim", [(7, 2048), (300, 4), (50, 4)])
+def test_a_full_disk_is_one_error_naming_the_file_and_leaves_nothing(small_disk, count, dim):
+    """Rows smaller than HDF5's data sieve buffer once met the full disk inside an object's close:
+    h5py printed the errors ("Exception ignored") and closing the file crashed the process. Run
+    in a child process, so a crash is this test's failure, not the test run's end. (7, 2048): the
+    data fails; (300, 4): the metadata while writing; (50, 4): only the final flush."""
+    target = small_disk.path / "global-feats.h5"
+    small_disk.fill(4096)
+    done = subprocess.run([sys.executable, "-c", FULL_DISK_WRITER, str(target), str(count), str(dim)],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip() == f"{target}: cannot write it (no space left on the device); nothing was written there"
+    assert done.stderr == "" and small_disk.files() == []

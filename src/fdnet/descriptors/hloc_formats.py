@@ -167,9 +167,7 @@ class GlobalFeaturesWriter:
             self._lock = _lock_folder(self._folder)
             _remove_stale_parts(self.path)
             self._tmp = self._folder / self.path.name
-            # the file sits in this process's locked folder: HDF5's own lock would add nothing
-            # but failures on file systems without locks
-            self._file = h5py.File(self._tmp, "w", libver=LIBVER, **_locking(h5py, False))
+            self._file = h5py.File(self._create(h5py))
             for name, value in (attrs or {}).items():
                 self._file.attrs[name] = value
             self._lcpl = h5py.h5p.create(h5py.h5p.LINK_CREATE)
@@ -177,15 +175,40 @@ class GlobalFeaturesWriter:
             self._lcpl.set_char_encoding(h5py.h5t.CSET_UTF8)
             self._key = key.encode("utf-8")
             self._type = h5py.h5t.py_create(np.dtype("<f4"))
-        except OSError as exc:
+        except (OSError, RuntimeError) as exc:
             self.discard()
             raise self._write_error(exc) from exc
         except BaseException:
             self.discard()
             raise
 
-    def _write_error(self, exc: OSError) -> OutputError:
-        return output_error(f"{self.path}: cannot write it ({_one_line(exc)}); nothing was written there", exc)
+    def _create(self, h5py):
+        """The temporary file's HDF5 id: the 1.8 format (:data:`LIBVER`); no lock (the file sits in
+        this process's locked folder: HDF5's own lock would add nothing but failures on file
+        systems without locks); and no data sieve buffer, so a full disk fails the write that
+        meets it: with the buffer, HDF5 met it later, flushing inside an object's close, where
+        h5py can only print the error, and closing the file then crashed the process."""
+        fapl = h5py.h5p.create(h5py.h5p.FILE_ACCESS)
+        fapl.set_libver_bounds(h5py.h5f.LIBVER_V18, h5py.h5f.LIBVER_V18)
+        fapl.set_sieve_buf_size(0)
+        if _locking(h5py, False):
+            fapl.set_file_locking(False, True)
+        return h5py.h5f.create(os.fsencode(self._tmp), h5py.h5f.ACC_TRUNC, fapl=fapl)
+
+    def _write_error(self, exc: BaseException) -> OutputError:
+        """One line for a failed write: HDF5 reports a full disk as an OSError or, from a flush
+        while closing, a RuntimeError whose text holds the errno."""
+        import errno as errnos
+        import re
+
+        code = getattr(exc, "errno", None)
+        if code is None:
+            found = re.search(r"errno = (\d+)", str(exc))
+            code = int(found.group(1)) if found else None
+        reason = ("no space left on the device" if code == errnos.ENOSPC else
+                  os.strerror(code) if code else _one_line(exc))
+        return output_error(f"{self.path}: cannot write it ({reason}); nothing was written there",
+                            OSError(code, reason))
 
     def write(self, names: Sequence[str], rows) -> None:
         """Add one group per name holding its row as ``global_descriptor`` (float32 (D,))."""
@@ -214,7 +237,7 @@ class GlobalFeaturesWriter:
                 dataset = h5py.h5d.create(group, self._key, self._type, self._space)
                 dataset.write(h5py.h5s.ALL, h5py.h5s.ALL, row)
                 self.count += 1
-        except OSError as exc:
+        except (OSError, RuntimeError) as exc:  # RuntimeError: HDF5's flushes (a full disk)
             raise self._write_error(exc) from exc
 
     def _group(self, fid, name: str):
@@ -241,7 +264,7 @@ class GlobalFeaturesWriter:
             fsync_file(self._tmp)
             os.replace(self._tmp, self.path)
             fsync_directory(self.path.parent)
-        except OSError as exc:
+        except (OSError, RuntimeError) as exc:  # RuntimeError: HDF5's flush while closing (a full disk)
             raise self._write_error(exc) from exc
         finally:
             self.discard()
