@@ -120,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
             else:
                 result = args.func(args)
     except FdnetError as exc:
-        print(f"fdnet {args.command}: error: {_one_line(exc)}", file=sys.stderr)
+        _error_line(f"fdnet {args.command}: error: {_one_line(exc)}")
         return 2
     except Exception as exc:  # noqa: BLE001 (re-raised below unless it is the environment's)
         # The one place where a full disk, a read-only folder, a permission or a file name that
@@ -129,12 +129,19 @@ def main(argv: list[str] | None = None) -> int:
         message = _environment_message(exc, args)
         if message is None:
             raise
-        print(f"fdnet {args.command}: error: {_one_line(message)}", file=sys.stderr)
+        _error_line(f"fdnet {args.command}: error: {_one_line(message)}")
         return 2
     except KeyboardInterrupt:
         print(f"fdnet {args.command}: interrupted", file=sys.stderr)
         return 130
     return int(result or 0)
+
+
+def _error_line(text: str) -> None:
+    """One error line in one write: processes of a torchrun group share standard error, and a
+    line written as message then newline could run into another process's."""
+    sys.stderr.write(text + "\n")
+    sys.stderr.flush()
 
 
 #: arguments naming what a command writes, named in an error that carries no path of its own
@@ -151,13 +158,17 @@ def _environment_message(exc: BaseException, args: argparse.Namespace) -> str | 
 
 
 def run(argv: list[str] | None = None) -> None:
-    """The ``fdnet`` command: :func:`main`, then the exit that a process of a distributed
-    training needs (:func:`fdnet.training.distributed.exit_process`)."""
+    """The ``fdnet`` command: :func:`main`, then the exit that a process of a torchrun group needs
+    (:func:`fdnet.training.distributed.exit_process` for a training,
+    :func:`fdnet.descriptors.sharding.exit_process` for extract and database build)."""
     code = main(argv)
-    distributed = sys.modules.get("fdnet.training.distributed")  # only a training imported it
-    if distributed is None:
-        sys.exit(code)
-    distributed.exit_process(code)
+    training = sys.modules.get("fdnet.training.distributed")  # only a training imported it
+    if training is not None:
+        training.exit_process(code)
+    sharding = sys.modules.get("fdnet.descriptors.sharding")
+    if sharding is not None and sharding._exit_hook is not None:  # a torchrun group was joined
+        sharding.exit_process(code)
+    sys.exit(code)
 
 
 if __name__ == "__main__":  # pragma: no cover
