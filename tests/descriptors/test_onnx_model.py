@@ -381,3 +381,25 @@ def test_an_unreadable_model_and_cuda_without_its_provider_are_one_line(tmp_path
     monkeypatch.setattr(Path, "read_bytes", refuse)
     with pytest.raises(DataError, match="cannot read the ONNX model .Permission denied"):
         create("onnx", weights=str(model))
+
+
+def test_an_all_zero_vector_is_an_error_not_a_silent_score_of_zero(tmp_path):
+    class Zero(torch.nn.Module):
+        def forward(self, x):
+            return x.mean(dim=(2, 3)) * 0.0
+
+    d = create("onnx", weights=str(export(Zero(), tmp_path / "zero.onnx")))
+    assert d.dim == 3
+    with pytest.raises(DataError, match="all-zero vector"):
+        d.describe(np.random.default_rng(0).random((2, 16, 32, 3), dtype=np.float32))
+    assert create("onnx", weights=str(tmp_path / "zero.onnx"), normalise="none").describe(
+        np.ones((1, 16, 32, 3), np.float32)).tolist() == [[0.0, 0.0, 0.0]]
+
+
+def test_a_model_the_user_named_that_cannot_load_fails_the_benchmark(tmp_path, capsys):
+    bad = tmp_path / "bad.onnx"
+    bad.write_text("not a model")
+    assert main(["benchmark", "--parts", "methods", "--method", "sad", "--weights", f"onnx={bad}", "--quick",
+                 "--num-images", "2"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("fdnet benchmark: error: ") and str(bad) in err

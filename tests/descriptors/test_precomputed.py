@@ -190,12 +190,15 @@ def test_hlocs_global_features_are_looked_up_by_their_relative_names(route, tmp_
 
 # ------------------------------------------------------------------ one vector, one image
 def test_names_without_folders_never_give_one_folders_vector_to_another(route, tmp_path, capsys):
-    """fdnet extract --format h5 of one folder names its images without a folder (hloc's names
-    relative to that folder): day's file used for day and dusk once gave dusk day's vectors."""
+    """hloc's own file of one folder names its images without a folder (names relative to that
+    folder, and no record of which): day's file used for day and dusk once gave dusk day's vectors."""
     pytest.importorskip("h5py", reason="optional extra fdnet[hloc] not installed")
+    from fdnet.descriptors.base import describe_paths
+    from fdnet.descriptors.hloc_formats import write_global_features
+
+    paths = sorted((route / "day").glob("*.png"))
     day = tmp_path / "day.h5"
-    assert main(["extract", "--method", "hog", "--images", str(route / "day"), "--out", str(day), "--workers",
-                 "0"]) == 0
+    write_global_features(day, [p.name for p in paths], describe_paths(create("hog"), paths, workers=0))
     capsys.readouterr()
     out = tmp_path / "m.csv"
     assert main(["match", "--reference", str(route / "day"), "--query", str(route / "dusk"), "--method",
@@ -343,3 +346,27 @@ def test_fdnets_own_h5_records_its_method_so_another_methods_vectors_are_refused
     with pytest.raises(DataError, match="vectors of raw, but .*dusk_sad.h5's are of sad"):
         create("precomputed", vectors=[str(sad), str(raw)])
     assert create("precomputed", vectors=str(sad)).settings()["source_method"] == "sad"
+
+
+def test_fdnets_own_h5_keeps_its_folder_so_one_folders_vectors_never_serve_another(route, tmp_path, capsys):
+    pytest.importorskip("h5py", reason="optional extra fdnet[hloc] not installed")
+    day = tmp_path / "day.h5"
+    assert main(["extract", "--method", "hog", "--format", "h5", "--images", str(route / "day"), "--out",
+                 str(day), "--workers", "0"]) == 0
+    capsys.readouterr()
+    assert main(["match", "--reference", str(route / "day"), "--query", str(route / "dusk"), "--method",
+                 "precomputed", "--vectors", str(day), "--out", str(tmp_path / "m.csv")]) == 2
+    err = capsys.readouterr().err
+    assert "no vector for this image" in err and "dusk" in err and not (tmp_path / "m.csv").exists()
+    assert main(["match", "--reference", str(route / "day"), "--query", str(route / "day"), "--method",
+                 "precomputed", "--vectors", str(day), "--out", str(tmp_path / "m.csv")]) == 0
+
+
+def test_extract_never_writes_over_the_vectors_it_reads(route, tmp_path, capsys):
+    vectors = extract(route / "day", tmp_path / "day.npz")
+    before = vectors.read_bytes()
+    capsys.readouterr()
+    assert main(["extract", "--method", "precomputed", "--vectors", str(vectors), "--images", str(route / "day"),
+                 "--out", str(vectors)]) == 2
+    assert "is the --vectors file the command reads" in capsys.readouterr().err
+    assert vectors.read_bytes() == before

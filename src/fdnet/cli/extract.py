@@ -97,6 +97,25 @@ def run(args) -> int:
         return _run(args, shards)
 
 
+def _refuse_writing_an_input(args, out) -> None:
+    """--out naming a file the command reads (the vectors of --method precomputed, a model, a
+    vocabulary) would replace it with the new vectors: refused before any work."""
+    import os
+
+    from fdnet.errors import ConfigError
+
+    for option in ("vectors", "weights", "vocabulary", "checkpoint"):
+        for value in getattr(args, option, None) or []:
+            path = str(value).partition("=")[2] if "=" in str(value) and not os.path.exists(str(value)) else value
+            try:
+                same = os.path.samefile(out, path)
+            except OSError:  # one of them does not exist
+                same = False
+            if same:
+                raise ConfigError(f"--out {out} is the --{option} file the command reads; writing it would "
+                                  "destroy it: give another name")
+
+
 def _prepare(args, shards):
     """``(out_format, out, paths, root, descriptor)``: every check that can refuse the command, in
     the order that refuses before the slow work (loading the model and every image); the output
@@ -116,6 +135,7 @@ def _prepare(args, shards):
     if "," in args.method:
         raise ConfigError(f"--method {args.method}: extract writes one method's vectors; name one")
     out_format, out = output_format(args.format, args.out)
+    _refuse_writing_an_input(args, out)
     if shards.is_main:
         ensure_writable(out, what="vectors file")  # before loading the model and every image
     if out_format == "h5":

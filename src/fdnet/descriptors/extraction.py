@@ -28,6 +28,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import os
 import time
 
 import numpy as np
@@ -139,7 +140,10 @@ def extract_h5(descriptor, paths, out, root, batch_size: int = 64, workers: int 
     array = described_arrays(descriptor)[0][0]  # "content" for FDNet, else "descriptors"
     timing: dict = {}
     started = time.perf_counter()
-    attrs = {"method": descriptor.name, "array": array, "settings": _settings(descriptor, shards.world_size)}
+    # "root": the folder the names are relative to (hloc ignores it; --method precomputed reads the
+    # names below it, so day/0001.png's vector never serves dusk/0001.png)
+    attrs = {"method": descriptor.name, "array": array, "settings": _settings(descriptor, shards.world_size),
+             "root": os.path.abspath(os.fspath(root))}
     writer = shards.collectively(lambda: GlobalFeaturesWriter(out, attrs=attrs) if shards.is_main else None)
 
     def write(start, arrays):

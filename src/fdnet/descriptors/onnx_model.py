@@ -235,8 +235,12 @@ class ONNXDescriptor(Descriptor):
             raise DataError(f"{path}: output {self.output_name} has shape {out_shape}; a descriptor model returns "
                             "(N, D) vectors")
         self._dim = out_shape[1] if isinstance(out_shape[1], int) and out_shape[1] > 0 else None
-        if self._dim is None:  # not fixed in the graph: one blank image says
-            self._dim = int(self.describe(np.zeros((1, *self.input_size, 3), np.float32)).shape[1])
+        if self._dim is None:  # not fixed in the graph: one grey image says (as returned, unnormalised)
+            normalise, self.normalise = self.normalise, "none"
+            try:
+                self._dim = int(self.describe(np.full((1, *self.input_size, 3), 0.5, np.float32)).shape[1])
+            finally:
+                self.normalise = normalise
         logger.debug("onnx model %s: input %s %s, %s, output %s (%d-d), providers %s", path, self.input_name,
                      self.layout, self.input_size, self.output_name, self._dim, self.session.get_providers())
         if guessed:  # said once the model is accepted: a refused one gets its one error line only
@@ -290,6 +294,10 @@ class ONNXDescriptor(Descriptor):
         vectors = np.concatenate(parts) if parts else np.zeros((0, getattr(self, "_dim", 0) or 0), np.float32)
         if not np.isfinite(vectors).all():
             raise DataError(f"{self.weights}: the model returned NaN or infinity")
+        zero = np.flatnonzero(np.linalg.norm(vectors, axis=1) == 0) if self.normalise == "l2" else []
+        if len(zero):  # no direction: every score against it would be 0, never a match, without a word
+            raise DataError(f"{self.weights}: the model returned an all-zero vector (image {int(zero[0])} of a "
+                            f"batch of {len(vectors)}); it cannot be compared")
         return l2_normalize(vectors) if self.normalise == "l2" else vectors
 
 

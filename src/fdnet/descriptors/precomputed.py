@@ -134,7 +134,11 @@ def _read_h5(path: Path) -> tuple[list[str], np.ndarray, dict]:
     from fdnet.descriptors.hloc_formats import read_global_attributes, read_global_features
 
     names, vectors = read_global_features(path)
-    return names, np.asarray(vectors, dtype=np.float32), read_global_attributes(path)
+    recorded = read_global_attributes(path)
+    root = recorded.pop("root", None)
+    if root:  # fdnet's own file: its names are relative to this folder, so they keep their folders
+        names = [os.path.join(root, name) for name in names]
+    return names, np.asarray(vectors, dtype=np.float32), recorded
 
 
 def read_vectors(path: str | os.PathLike, names_file: str | None = None,

@@ -398,6 +398,8 @@ def _methods(plan: BenchmarkPlan, report: dict, out) -> None:
                 descriptor.fit(images)
             ms = timing.descriptor_extraction(descriptor, images, repeats=max(1, plan.repeats - 2))
         except FdnetError as exc:
+            if method in plan.weights or method in plan.checkpoints:
+                raise  # a model the user named that cannot run is an error, not a skipped row
             out(f"  {method:10s} skipped: {exc}")
             timings[method] = None
             continue
