@@ -198,3 +198,11 @@ def test_an_error_that_spans_lines_is_printed_as_one(capsys, monkeypatch):
     assert main(["evaluate", "--similarity", "x.npy", "--ground-truth", "g.csv"]) == 2
     err = capsys.readouterr().err
     assert err == "fdnet evaluate: error: bag/metadata.yaml: not valid YAML (while parsing in 'x', line 1 ^ expected)\n"
+
+
+def test_a_value_that_starts_with_a_dash_is_explained(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["match", "--reference", str(tmp_path), "--query", str(tmp_path), "--method", "raw", "--out", "-x.csv"])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err.startswith("fdnet match: error: argument --out: expected one argument") and "--out=-x.csv" in err

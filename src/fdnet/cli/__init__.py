@@ -39,8 +39,18 @@ COMMAND_MODULES = [
 ]
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser, whose "expected one argument" also says how to give a value that starts
+    with '-' (a file named -x.csv reads as a flag otherwise). Sub-commands inherit it."""
+
+    def error(self, message):
+        if "expected one argument" in message:
+            message += " (a value that starts with '-' is given with '=', e.g. --out=-x.csv)"
+        super().error(message)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="fdnet",
         description="Appearance-invariant visual place recognition (FDNet and baselines).",
     )
