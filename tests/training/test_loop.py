@@ -72,6 +72,18 @@ def test_tiny_trains_with_finite_losses_and_round_trips(tmp_path):
     for (name, a), b in zip(trainer.model.state_dict().items(), fresh.state_dict().values()):
         assert torch.equal(a, b), name
     assert load_training_state(tmp_path / "run")["step"] == trainer.config.total_steps
+    # the weights at the end of each stage are kept, each loadable on its own, at its last step
+    schedule = trainer.config.schedule
+    ends = {"autoencoder": schedule.pretrain_autoencoder_steps,
+            "critic": schedule.pretrain_autoencoder_steps + schedule.pretrain_critic_steps,
+            "joint": trainer.config.total_steps}
+    for stage, step in ends.items():
+        folder = tmp_path / "run" / "stages" / stage
+        assert runs.is_run(folder), stage
+        assert runs.latest_checkpoint(folder).name == f"step-{step:09d}", stage
+    final = FDNet(trainer.config.model)
+    load_weights(tmp_path / "run" / "stages" / "joint", final.named_parts())
+    assert all(torch.equal(a, b) for a, b in zip(trainer.model.state_dict().values(), final.state_dict().values()))
 
 
 # the tiny preset as is, and with a frozen trunk (whose maps the trainer caches)

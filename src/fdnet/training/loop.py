@@ -50,6 +50,8 @@ from fdnet.training.distributed import DistributedContext
 from fdnet.training.logging import TrainingLog
 
 BEST_DIR = runs.BEST_DIR
+#: RUN/stages/STAGE/: the weights at the end of each training stage
+STAGES_DIR = "stages"
 
 
 @dataclass
@@ -395,6 +397,14 @@ class Trainer:
             method_state = dist_module.merge_rank_state(shared, fresh, keys)
         dist.collectively(lambda: method.load_state(method_state))
 
+    def save_stage_end(self, stage: str) -> None:
+        """Keep the weights at the end of ``stage`` in ``RUN/stages/STAGE/`` (weights and config,
+        loadable as ``--checkpoint RUN/stages/STAGE``), so what each stage did can be measured on
+        any frames afterwards; rolling checkpoints keep only the newest."""
+        self.method.before_save()
+        self.dist.collectively(lambda: runs.save_weights(self.run_dir / STAGES_DIR / stage, self.method.modules(),
+                                                         self.method.config, step=self.step), main_only=True)
+
     # ------------------------------------------------------------------ validation
     def validate_now(self) -> dict[str, float]:
         metrics = validation_metrics(self.method, self.validation)
@@ -451,6 +461,8 @@ class Trainer:
                                     **numbers, **(row or {})})
                 if self.step % settings.checkpoint_every == 0:
                     self.save()
+                if self.step == total or method.stage(self.step) != stage:
+                    self.save_stage_end(stage)
                 if bar is not None:  # this step's numbers first, so the update shows them
                     shown = {k[:5]: f"{v:.3g}" for k, v in numbers.items()}
                     if self.last_validation:
