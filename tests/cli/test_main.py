@@ -63,7 +63,11 @@ def _commands(route, vocabulary_images, tiny_run, out):
 
 #: what a training that failed at its start keeps: its lock files (never deleted, see runs.RunLock)
 #: and an empty log; no checkpoint, no configuration
-RUN_LOCKS = {"run", "run/.lock", "run/log.csv", "run/checkpoints", "run/checkpoints/.save.lock"}
+#: what a training stopped by a failed write leaves: the run's lock, an empty log, and the save
+#: locks of the checkpoints and of a stage's weights (no half generation)
+RUN_LOCKS = {"run", "run/.lock", "run/log.csv", "run/checkpoints", "run/checkpoints/.save.lock", "run/stages",
+             *(f"run/stages/{stage}{tail}" for stage in ("autoencoder", "critic", "joint")
+               for tail in ("", "/checkpoints", "/checkpoints/.save.lock"))}
 COMMANDS = ["database build", "match", "evaluate", "groundtruth", "vocabulary", "synth", "extract", "train"]
 
 
