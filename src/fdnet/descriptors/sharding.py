@@ -51,6 +51,7 @@ from typing import Callable, Iterator, Mapping, Sequence, TypeVar
 import numpy as np
 
 from fdnet.errors import ConfigError, FdnetError
+from fdnet.torchrun import environment_int, leave, quiet_unless
 
 log = logging.getLogger(__name__)
 
@@ -70,19 +71,6 @@ class ShardingError(FdnetError):
 
 class OtherProcessFailed(FdnetError):
     """Raised on the processes that did not fail themselves when another one failed."""
-
-
-def _int_variable(environ: Mapping[str, str], name: str, default: int | None = None) -> int:
-    text = environ.get(name)
-    if text is None and default is None:
-        raise ConfigError(f"WORLD_SIZE is set but {name} is not: start several processes with torchrun "
-                          "(it sets WORLD_SIZE, RANK, LOCAL_RANK, MASTER_ADDR and MASTER_PORT)")
-    if text is None:
-        return default
-    try:
-        return int(text)
-    except ValueError:
-        raise ConfigError(f"environment variable {name}={text!r} is not an integer") from None
 
 
 def _backend_message(exc: BaseException) -> str:
@@ -120,11 +108,11 @@ class Shards:
         """torchrun's ``WORLD_SIZE``, ``RANK``, ``LOCAL_RANK``, ``LOCAL_WORLD_SIZE``; one process
         when ``WORLD_SIZE`` is absent or 1."""
         environ = os.environ if environ is None else environ
-        if "WORLD_SIZE" not in environ or _int_variable(environ, "WORLD_SIZE") == 1:
+        if "WORLD_SIZE" not in environ or environment_int(environ, "WORLD_SIZE") == 1:
             return cls()
-        world_size = _int_variable(environ, "WORLD_SIZE")
-        return cls(world_size, _int_variable(environ, "RANK"), _int_variable(environ, "LOCAL_RANK", 0),
-                   _int_variable(environ, "LOCAL_WORLD_SIZE", 1))
+        world_size = environment_int(environ, "WORLD_SIZE")
+        return cls(world_size, environment_int(environ, "RANK"), environment_int(environ, "LOCAL_RANK", 0),
+                   environment_int(environ, "LOCAL_WORLD_SIZE", 1))
 
     @property
     def is_main(self) -> bool:
@@ -274,21 +262,9 @@ class Shards:
         return self.broadcast(result) if main_only else result
 
     # ------------------------------------------------------------------ output
-    @contextlib.contextmanager
-    def quiet_unless_main(self) -> Iterator[None]:
-        """Standard output and the messages below WARNING of processes other than rank 0 go
-        nowhere (their warnings and errors still reach standard error): one process reports."""
-        if self.is_main:
-            yield
-            return
-        logger = logging.getLogger("fdnet")
-        level = logger.level
-        logger.setLevel(max(level, logging.WARNING))
-        try:
-            with open(os.devnull, "w") as sink, contextlib.redirect_stdout(sink):
-                yield
-        finally:
-            logger.setLevel(level)
+    def quiet_unless_main(self):
+        """One process reports (:func:`fdnet.torchrun.quiet_unless`)."""
+        return quiet_unless(self.is_main)
 
 
 _SINGLE = Shards()
@@ -391,19 +367,15 @@ def _exit_after_handlers(code: int) -> None:
 
 
 def exit_process(code: int) -> None:
-    """End this process with ``code``: exit handlers, output flushed, ``os._exit`` (see above)."""
+    """End this process with ``code`` by :func:`fdnet.torchrun.leave` (exit handlers, flushed
+    output, ``os._exit``), its pending exit hook taken out first."""
     import atexit
-    import sys
 
     global _exit_hook
     if _exit_hook is not None:
         atexit.unregister(_exit_hook)
         _exit_hook = None
-    atexit._run_exitfuncs()
-    for stream in (sys.stdout, sys.stderr):
-        with contextlib.suppress(Exception):
-            stream.flush()
-    os._exit(code)
+    leave(code)
 
 
 # ---------------------------------------------------------------------- the work

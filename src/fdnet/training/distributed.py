@@ -51,6 +51,7 @@ from typing import Any, Callable, Iterable, Iterator, Mapping, Sequence, TypeVar
 import torch
 
 from fdnet.errors import ConfigError, FdnetError
+from fdnet.torchrun import environment_int, leave, quiet_unless
 
 T = TypeVar("T")
 
@@ -59,22 +60,13 @@ T = TypeVar("T")
 TIMEOUT = datetime.timedelta(minutes=30)
 
 
+#: how a training's processes are started, named when torchrun's variables are missing
+_START = "start distributed training"
+
+
 class OtherRankFailed(FdnetError):
     """Raised on the ranks that did not fail themselves when another rank failed (see
     :meth:`DistributedContext.collectively`)."""
-
-
-def _environment_int(environ: Mapping[str, str], name: str, default: int | None = None) -> int:
-    text = environ.get(name)
-    if text is None:
-        if default is None:
-            raise ConfigError(f"WORLD_SIZE is set but {name} is not: start distributed training with torchrun "
-                              "(it sets WORLD_SIZE, RANK, LOCAL_RANK, MASTER_ADDR and MASTER_PORT)")
-        return default
-    try:
-        return int(text)
-    except ValueError:
-        raise ConfigError(f"environment variable {name}={text!r} is not an integer") from None
 
 
 class DistributedContext:
@@ -110,9 +102,9 @@ class DistributedContext:
         environ = os.environ if environ is None else environ
         if "WORLD_SIZE" not in environ:
             return cls()
-        world_size = _environment_int(environ, "WORLD_SIZE")
-        rank = _environment_int(environ, "RANK")
-        local_rank = _environment_int(environ, "LOCAL_RANK", default=0)
+        world_size = environment_int(environ, "WORLD_SIZE", start=_START)
+        rank = environment_int(environ, "RANK", start=_START)
+        local_rank = environment_int(environ, "LOCAL_RANK", default=0)
         return cls(world_size, rank, local_rank, launched=True)
 
     @property
@@ -309,24 +301,9 @@ class DistributedContext:
         return self.broadcast_object(result) if main_only else result
 
     # ------------------------------------------------------------------ output
-    @contextlib.contextmanager
-    def quiet_unless_main(self) -> Iterator[None]:
-        """Standard output and the messages below WARNING (:mod:`fdnet.logs`) of the ranks other
-        than 0 go nowhere (their warnings and errors still reach standard error): one process
-        reports, not N copies of it."""
-        if self.is_main:
-            yield
-            return
-        import logging
-
-        logger = logging.getLogger("fdnet")
-        level = logger.level
-        logger.setLevel(max(level, logging.WARNING))
-        try:
-            with open(os.devnull, "w") as sink, contextlib.redirect_stdout(sink):
-                yield
-        finally:
-            logger.setLevel(level)
+    def quiet_unless_main(self):
+        """One process reports (:func:`fdnet.torchrun.quiet_unless`)."""
+        return quiet_unless(self.is_main)
 
 
 _SINGLE = DistributedContext()
@@ -337,26 +314,14 @@ _joined_a_group = False
 
 def exit_process(code: int) -> None:
     """End this process with ``code``: :func:`sys.exit`, except in a process that joined a
-    process group, which runs the ``atexit`` handlers, flushes its output and leaves by
-    :func:`os._exit`.
-
-    Why: after ``destroy_process_group`` a gloo process still holds native threads that C++
-    tears down at interpreter exit; now and then (a few runs in a hundred, more under load) one is
-    still joinable then and the process dies of ``std::terminate`` ("terminate called without an
-    active exception", SIGABRT) after the training had finished and saved everything, so torchrun
-    reports a failed run. Skipping the native teardown avoids it; nothing of ours is left to it.
+    process group, which leaves by :func:`fdnet.torchrun.leave` (exit handlers, flushed output,
+    ``os._exit``: gloo's native teardown at interpreter exit now and then aborts a finished run).
     """
     import sys
 
     if not _joined_a_group:
         sys.exit(code)
-    import atexit
-
-    atexit._run_exitfuncs()  # what a normal exit would still run (logging handlers, temp files)
-    for stream in (sys.stdout, sys.stderr):
-        with contextlib.suppress(Exception):
-            stream.flush()
-    os._exit(code)
+    leave(code)
 
 
 def current() -> DistributedContext:
