@@ -494,20 +494,17 @@ def _query_csv(paths, results, top_k, min_score, decision, accepted) -> str:
     import io
 
     from fdnet.io import spreadsheet_text
+    from fdnet.tasks.match import decision_cells, decision_columns
 
     buffer = io.StringIO()
     writer = csv.writer(buffer)
     writer.writerow(["query_index", "query", "rank", "place", "place_index", "score"]
-                    + ([] if decision is None else ["acceptance_score"]) + ([] if accepted is None else ["accepted"]))
+                    + decision_columns(decision, accepted))
     for q, (path, matches) in enumerate(zip(paths, results)):
         for rank, m in enumerate(matches, start=1):
             chosen = accepted is not None and m.index == decision.match[q] and bool(accepted[q])
             if (min_score is None or m.score >= min_score) and (rank <= top_k or chosen):
                 row = [q, spreadsheet_text(image_name(path)), rank, spreadsheet_text(m.name), m.index,
                        f"{m.score:.6f}"]
-                if decision is not None:
-                    row.append(f"{decision.score[q]:.6f}")
-                if accepted is not None:
-                    row.append(int(chosen))
-                writer.writerow(row)
+                writer.writerow(row + decision_cells(q, chosen, decision, accepted))
     return buffer.getvalue()

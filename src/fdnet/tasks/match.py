@@ -211,6 +211,18 @@ def write_matches(out, indices, scores, query_paths, ref_paths, top_k: int, deci
     atomic_write_text(out, matches_text(indices, scores, query_paths, ref_paths, top_k, decision, accepted))
 
 
+def decision_columns(decision=None, accepted=None) -> list[str]:
+    """The columns a decision adds to a ranked-candidates CSV (``fdnet match``, ``database
+    query``): ``acceptance_score`` with a rule's decision, ``accepted`` with a calibrated one."""
+    return ([] if decision is None else ["acceptance_score"]) + ([] if accepted is None else ["accepted"])
+
+
+def decision_cells(q: int, chosen: bool, decision=None, accepted=None) -> list:
+    """Query ``q``'s cells under :func:`decision_columns` on one row (``chosen``: the row of the
+    match the calibrated rule accepted)."""
+    return ([] if decision is None else [f"{decision.score[q]:.6f}"]) + ([] if accepted is None else [int(chosen)])
+
+
 def matches_text(indices, scores, query_paths, ref_paths, top_k: int, decision=None, accepted=None) -> str:
     """The ranked-candidates CSV: :data:`MATCH_COLUMNS`, plus ``acceptance_score`` with a
     ``decision`` and ``accepted`` with a calibrated one. Rows beyond ``top_k`` appear only for
@@ -222,21 +234,12 @@ def matches_text(indices, scores, query_paths, ref_paths, top_k: int, decision=N
 
     buffer = io.StringIO()
     writer = csv.writer(buffer)
-    header = list(MATCH_COLUMNS)
-    if decision is not None:
-        header.append("acceptance_score")
-    if accepted is not None:
-        header.append("accepted")
-    writer.writerow(header)
+    writer.writerow(MATCH_COLUMNS + decision_columns(decision, accepted))
     for q, (row_i, row_s) in enumerate(zip(indices, scores)):
         for rank, (i, s) in enumerate(zip(row_i, row_s), start=1):
             chosen = accepted is not None and i == decision.match[q] and bool(accepted[q])
             if i >= 0 and (rank <= top_k or chosen):
                 row = [q, spreadsheet_text(image_name(query_paths[q])), rank, int(i), spreadsheet_text(image_name(ref_paths[i])),
                        f"{float(s):.6f}"]
-                if decision is not None:
-                    row.append(f"{decision.score[q]:.6f}")
-                if accepted is not None:
-                    row.append(int(chosen))
-                writer.writerow(row)
+                writer.writerow(row + decision_cells(q, chosen, decision, accepted))
     return buffer.getvalue()
