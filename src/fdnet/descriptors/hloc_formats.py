@@ -65,6 +65,15 @@ def _one_line(exc: BaseException) -> str:
 
 
 # ---------------------------------------------------------------------------------------- names
+def _utf8(name: str, where) -> str:
+    """``name`` when it is valid UTF-8 (what HDF5 and the pairs file store), else DataError."""
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError:
+        raise DataError(f"{where}: image name {ascii(name)} is not valid UTF-8; rename the file") from None
+    return name
+
+
 def check_image_name(name, where) -> str:
     """``name`` as hloc's HDF5 files hold it (a relative path with ``/``), or DataError naming
     ``where`` (the file) and the image: empty, absolute, with an empty, ``.`` or ``..`` part, or
@@ -79,11 +88,7 @@ def check_image_name(name, where) -> str:
     if any(part in ("", ".", "..") for part in name.split("/")) or "\0" in name:
         raise DataError(f"{where}: image name {name!r} has an empty, '.' or '..' part; hloc names images by their "
                         "plain relative path")
-    try:
-        name.encode("utf-8")
-    except UnicodeEncodeError:
-        raise DataError(f"{where}: image name {ascii(name)} is not valid UTF-8; rename the file") from None
-    return name
+    return _utf8(name, where)
 
 
 def check_pair_name(name, where) -> str:
@@ -95,11 +100,7 @@ def check_pair_name(name, where) -> str:
     if any(c.isspace() for c in name):
         raise DataError(f"{where}: image name {name!r} holds whitespace, which hloc's pairs file cannot hold (it splits "
                         "each line on whitespace); rename the image")
-    try:
-        name.encode("utf-8")
-    except UnicodeEncodeError:
-        raise DataError(f"{where}: image name {ascii(name)} is not valid UTF-8; rename the file") from None
-    return name
+    return _utf8(name, where)
 
 
 def image_root(inputs: Sequence[str | os.PathLike]) -> Path:
