@@ -151,3 +151,15 @@ def frame_ranges_overlap(a: str | None, b: str | None) -> bool:
     inf = float("inf")
     return max(a0 or 0, b0 or 0) < min(inf if a1 is None else a1, inf if b1 is None else b1)
 
+
+def check_training_frames(train_frames: str | None, evaluated: str | None, train_flag: str, by: str) -> None:
+    """Refuse an experiment that trains (``by``, e.g. ``--length-preset``) without training
+    frames (``train_flag``), or on frames that overlap the ``evaluated`` ones (``--frames``)."""
+    from fdnet.errors import ConfigError
+
+    if not train_frames:
+        raise ConfigError(f"{by} needs {train_flag} START:END (frames to train on, outside the evaluated --frames)")
+    if frame_ranges_overlap(train_frames, evaluated):
+        raise ConfigError(f"{train_flag} {train_frames} overlaps the evaluated frames --frames {evaluated or 'all'}: "
+                          "train and test on different frames")
+

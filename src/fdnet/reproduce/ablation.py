@@ -103,14 +103,10 @@ def check_training(settings) -> None:
     """Refuse to train (or validate) on the frames the experiments evaluate on."""
     if settings.dataset_format:
         return  # the format's train split (or --ablation-train-frames as its split) is the paper's
-    if not settings.ablation_train_frames:
-        raise ConfigError("--ablation-preset needs --ablation-train-frames START:END (frames to train on, outside "
-                          "the evaluated --frames)")
-    from fdnet.data.dataset import frame_ranges_overlap
+    from fdnet.data.dataset import check_training_frames, frame_ranges_overlap
 
-    if frame_ranges_overlap(settings.ablation_train_frames, settings.frames):
-        raise ConfigError(f"--ablation-train-frames {settings.ablation_train_frames} overlaps the evaluated frames "
-                          f"--frames {settings.frames or 'all'}: train and test on different frames")
+    check_training_frames(settings.ablation_train_frames, settings.frames, "--ablation-train-frames",
+                          "--ablation-preset")
     for scope, overrides in settings.ablation_overrides.items():
         frames = overrides.get("validation.frames")
         if frames and frame_ranges_overlap(str(frames), settings.frames):

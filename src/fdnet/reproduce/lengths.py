@@ -62,14 +62,9 @@ def check_training(settings) -> None:
     """Refuse to train on the frames the experiments evaluate on."""
     if settings.dataset_format:
         return  # the format's train split (or --length-train-frames as its split) is the paper's
-    if not settings.length_train_frames:
-        raise ConfigError("--length-preset needs --length-train-frames START:END (frames to train on, outside "
-                          "the evaluated --frames)")
-    from fdnet.data.dataset import frame_ranges_overlap
+    from fdnet.data.dataset import check_training_frames
 
-    if frame_ranges_overlap(settings.length_train_frames, settings.frames):
-        raise ConfigError(f"--length-train-frames {settings.length_train_frames} overlaps the evaluated frames "
-                          f"--frames {settings.frames or 'all'}: train and test on different frames")
+    check_training_frames(settings.length_train_frames, settings.frames, "--length-train-frames", "--length-preset")
 
 
 def _train(ctx, length: int, folder: Path) -> None:
