@@ -46,7 +46,7 @@ def test_the_experiment_trains_the_variants_and_writes_its_section_and_json(rout
     assert runs["full"]["schedule"] == {"autoencoder": 3, "critic": 2, "joint": 3, "total": 8,
                                         "critic_updates_per_step": 2}
     assert runs["no-critic"]["schedule"]["critic"] == 0 and runs["no-critic"]["schedule"]["critic_updates_per_step"] == 0
-    assert all(r["step"] == r["schedule"]["total"] for r in runs.values())
+    assert all(r["step"] == r["schedule"]["total"] and r["weights_stage"] == "joint" for r in runs.values())
     assert all(r["differences_from_full"] == [] for r in runs.values())
     assert (out / "ablation-runs" / "tiny" / "no-reconstruction" / "checkpoints").is_dir()
     assert [(p["query"], p["reference"]) for p in group["pairs"]] == [("night", "day"), ("day", "night")]
@@ -163,3 +163,23 @@ def test_the_ablation_alone_needs_none_of_the_compared_methods(route, tmp_path):
     with pytest.raises(ConfigError, match="none of the methods can run here"):
         reproduce(ablation(route, tmp_path / "both", methods=None, experiments=["ablation", "comparison"]),
                   factory=fdnet_only, log=lambda m: None)
+
+
+def test_weights_from_before_the_joint_stage_are_named_and_flagged_in_the_report():
+    from fdnet.reproduce.ablation import render, weights_stage
+
+    schedule = {"autoencoder": 500, "critic": 800, "joint": 6000, "total": 7300, "critic_updates_per_step": 2}
+    assert [weights_stage(schedule, s) for s in (1, 500, 501, 1300, 1301, 7300)] == [
+        "auto-encoder", "auto-encoder", "critic", "critic", "joint", "joint"]
+    runs = [{"variant": v, "removes": "x", "run": f"runs/{v}", "step": step, "schedule": schedule,
+             "weights_stage": weights_stage(schedule, step), "differences_from_full": []}
+            for v, step in (("full", 7000), ("no-reconstruction", 1000))]
+    document = {"groups": [{"preset": "paper-native", "trained_here": False, "settings": {}, "runs": runs,
+                            "pairs": [], "figure": "f.png", "missing": ["no-critic", "no-triplet"]}]}
+    texts = [getattr(block, "text", "") for block in render(document)]
+    flagged = [t for t in texts if "before any joint step" in t]
+    assert flagged == ["no-reconstruction's weights (its best by validation) are from step 1000, in its critic "
+                       "stage, before any joint step: its numbers below are those of its weights before the joint "
+                       "training, which its validation scored lower."]
+    table = next(block for block in render(document) if getattr(block, "rows", None))
+    assert [row[3] for row in table.rows] == ["7000 (joint)", "1000 (critic)"]

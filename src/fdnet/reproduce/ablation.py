@@ -209,6 +209,15 @@ def _schedule(config) -> dict:
             "critic_updates_per_step": config.schedule.critic_updates_per_step if config.loss.adversarial else 0}
 
 
+def weights_stage(schedule: dict, step: int) -> str:
+    """The training stage the weights at ``step`` end (a stage's last step belongs to it)."""
+    if step <= schedule["autoencoder"]:
+        return "auto-encoder"
+    if step <= schedule["autoencoder"] + schedule["critic"]:
+        return "critic"
+    return "joint"
+
+
 def _differences(full, other) -> list[str]:
     """Settings in which a variant's run differs from the full run's, the switches aside."""
     from fdnet.runs import config_differences
@@ -247,6 +256,7 @@ def run(ctx) -> dict:
         full = configs.get("full")
         runs_info = [{"variant": v, "removes": REMOVES[v], "run": str(variants[v]), "step": h.descriptor.step,
                       "schedule": _schedule(configs[v]),
+                      "weights_stage": weights_stage(_schedule(configs[v]), h.descriptor.step),
                       "differences_from_full": _differences(full, configs[v]) if full is not None and v != "full" else []}
                      for v, h in handles.items()]
         pairs = []
@@ -352,13 +362,20 @@ def render(document: dict) -> list:
         if group.get("missing"):
             blocks.append(Paragraph(f"No {group['preset']} run for {', '.join(group['missing'])}.", note=True))
         for run in group["runs"]:
+            if run.get("weights_stage", "joint") != "joint":
+                # best/ by validation can predate the joint stage (e.g. an encoder that the variant's
+                # joint training made worse): its numbers are then not those of the trained variant
+                blocks.append(Paragraph(
+                    f"{run['variant']}'s weights (its best by validation) are from step {run['step']}, in its "
+                    f"{run['weights_stage']} stage, before any joint step: its numbers below are those of its "
+                    "weights before the joint training, which its validation scored lower.", note=True))
             if run["differences_from_full"]:
                 blocks.append(Paragraph(f"{run['variant']} differs from the full run in more than its switch: "
                                         + "; ".join(run["differences_from_full"]), note=True))
         blocks.append(Table(["variant", "removes", "steps (auto-encoder + critic + joint)", "weights at step", "run"],
                             [[r["variant"], r["removes"],
                               f"{r['schedule']['autoencoder']} + {r['schedule']['critic']} + {r['schedule']['joint']}",
-                              str(r["step"]), r["run"]] for r in group["runs"]],
+                              f"{r['step']} ({r.get('weights_stage', 'joint')})", r["run"]] for r in group["runs"]],
                             f"{group['preset']}: the runs"))
         for pair in group["pairs"]:
             keys = ("recall_at_1", "recall_at_100_precision", "recall_at_100_precision_margin",
