@@ -29,6 +29,14 @@ def environment_int(environ: Mapping[str, str], name: str, default: int | None =
         raise ConfigError(f"environment variable {name}={text!r} is not an integer") from None
 
 
+def require_rendezvous(environ: Mapping[str, str], world_size: int,
+                       start: str = "start several processes") -> None:
+    """ConfigError unless torchrun's rendezvous address is set (``env://`` needs both)."""
+    missing = [name for name in ("MASTER_ADDR", "MASTER_PORT") if name not in environ]
+    if missing:
+        raise ConfigError(f"WORLD_SIZE={world_size} is set but {' and '.join(missing)} not: {start} with torchrun")
+
+
 @contextlib.contextmanager
 def quiet_unless(is_main: bool) -> Iterator[None]:
     """Standard output and the messages below WARNING (:mod:`fdnet.logs`) of the processes other

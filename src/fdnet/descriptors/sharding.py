@@ -51,7 +51,7 @@ from typing import Callable, Iterator, Mapping, Sequence, TypeVar
 import numpy as np
 
 from fdnet.errors import ConfigError, FdnetError
-from fdnet.torchrun import environment_int, leave, quiet_unless
+from fdnet.torchrun import environment_int, leave, quiet_unless, require_rendezvous
 
 log = logging.getLogger(__name__)
 
@@ -152,10 +152,7 @@ class Shards:
                                   f"{dist.get_world_size()} processes")
             self.enabled = True
             return self
-        missing = [name for name in ("MASTER_ADDR", "MASTER_PORT") if name not in os.environ]
-        if missing:
-            raise ConfigError(f"WORLD_SIZE={self.world_size} is set but {' and '.join(missing)} not: start "
-                              "several processes with torchrun")
+        require_rendezvous(os.environ, self.world_size)
         self._call("joining the other processes",
                    lambda: dist.init_process_group("gloo", init_method="env://", world_size=self.world_size,
                                                    rank=self.rank, timeout=TIMEOUT))

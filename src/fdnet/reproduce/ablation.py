@@ -254,11 +254,13 @@ def run(ctx) -> dict:
                                               {**options, "checkpoint": str(folder)}, required=True, compared=False)
         configs = {v: h.descriptor.config for v, h in handles.items()}
         full = configs.get("full")
-        runs_info = [{"variant": v, "removes": REMOVES[v], "run": str(variants[v]), "step": h.descriptor.step,
-                      "schedule": _schedule(configs[v]),
-                      "weights_stage": weights_stage(_schedule(configs[v]), h.descriptor.step),
-                      "differences_from_full": _differences(full, configs[v]) if full is not None and v != "full" else []}
-                     for v, h in handles.items()]
+        runs_info = []
+        for v, h in handles.items():
+            schedule = _schedule(configs[v])
+            runs_info.append({"variant": v, "removes": REMOVES[v], "run": str(variants[v]), "step": h.descriptor.step,
+                              "schedule": schedule, "weights_stage": weights_stage(schedule, h.descriptor.step),
+                              "differences_from_full": _differences(full, configs[v])
+                              if full is not None and v != "full" else []})
         pairs = []
         plt = plots.pyplot()
         columns = min(3, len(ctx.pairs))

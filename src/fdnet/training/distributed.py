@@ -51,7 +51,7 @@ from typing import Any, Callable, Iterable, Iterator, Mapping, Sequence, TypeVar
 import torch
 
 from fdnet.errors import ConfigError, FdnetError
-from fdnet.torchrun import environment_int, leave, quiet_unless
+from fdnet.torchrun import environment_int, leave, quiet_unless, require_rendezvous
 
 T = TypeVar("T")
 
@@ -123,10 +123,7 @@ class DistributedContext:
 
         if not dist.is_available() or not dist.is_gloo_available():
             raise ConfigError("this torch build has no torch.distributed with gloo; distributed training needs it")
-        missing = [name for name in ("MASTER_ADDR", "MASTER_PORT") if name not in os.environ]
-        if missing:
-            raise ConfigError(f"WORLD_SIZE={self.world_size} is set but {' and '.join(missing)} not: start "
-                              "distributed training with torchrun")
+        require_rendezvous(os.environ, self.world_size, start=_START)
         backend = "cpu:gloo,cuda:nccl" if torch.cuda.is_available() and dist.is_nccl_available() else "gloo"
         dist.init_process_group(backend, init_method="env://", world_size=self.world_size, rank=self.rank,
                                 timeout=TIMEOUT)
