@@ -87,8 +87,10 @@ def register(sub) -> None:
     p.add_argument("--db", help="place database file: one from earlier sessions (`fdnet database build`, or an "
                                 "earlier loop-closure run), which must hold this method's vectors, or a new file to "
                                 "create; the traverse's frames are added to it. Default: an in-memory database")
-    p.add_argument("--exclude-last", type=_whole_number(0), required=True, metavar="N",
-                   help="never match this traverse's last N frames (they always look like the current one)")
+    p.add_argument("--exclude-last", type=_whole_number(0), default=0, metavar="N",
+                   help="also never match this traverse's last N frames, whatever they look like (an extra floor; "
+                        "by default the robot's recent past is found from the traverse itself, "
+                        "docs/loop-closure.md)")
     p.add_argument("--accept", metavar="RULE",
                    help="acceptance rule: raw, margin, ratio, verified, or a score with gates (margin+verified, "
                         "margin+floor); default: the calibration's, else margin (docs/loop-closure.md says why)")
@@ -245,6 +247,11 @@ def _print_report(args, report) -> None:
           f"made no decision, {counts['still_exclusion']} frames with the robot's still segment excluded, "
           f"{counts['held_by_consistency']} candidates held back by the consistency gate "
           f"(k={report.gates['consistency']})")
+    past = report.recent_past
+    if past:
+        print(f"recent past excluded: median {past['median']:.0f} frames back, 90th percentile "
+              f"{past['p90']:.0f}, most {past['max']} ({past['segments']} segment(s): a sequence never spans the start "
+              "of a pass or recording)")
     if report.calibrated is not None:
         c = report.calibrated
         print(f"wrote {c['path']}: threshold {c['threshold']:.6g} reaches precision {c['precision']:.3f} at recall "

@@ -102,6 +102,13 @@ class Calibration:
     created: str = ""
     fdnet_version: str = ""
     notes: list = field(default_factory=list)
+    #: the probability that an accepted match is right, as a function of the score
+    #: (:func:`fit_probability`): {"scores": [...], "p_correct": [...], "frames": N}; empty when
+    #: the calibration data could not fit one
+    probability: dict = field(default_factory=dict)
+    #: what the threshold assumes: the quantiles of the scores it was measured on
+    #: (:func:`score_distribution`): {"levels": [...], "quantiles": [...], "frames": N}
+    score_distribution: dict = field(default_factory=dict)
 
     # ------------------------------------------------------------------ use
     @property
@@ -124,6 +131,16 @@ class Calibration:
         if sequence_length is not None and int(sequence_length) != int(self.sequence_length):
             raise ConfigError(f"{source}: calibrated with --sequence-length {self.sequence_length}, used with "
                               f"{sequence_length}: sequence scores and single-image scores need their own thresholds")
+
+    def p_correct(self, scores) -> np.ndarray:
+        """The fitted probability that a match with each score is right (NaN without a fit;
+        0 for a rejected score, -inf)."""
+        scores = np.asarray(scores, dtype=np.float64)
+        fit = self.probability or {}
+        if not fit.get("scores"):
+            return np.full(scores.shape, np.nan)
+        p = np.interp(scores, np.asarray(fit["scores"], np.float64), np.asarray(fit["p_correct"], np.float64))
+        return np.where(np.isneginf(scores), 0.0, p)
 
     def decide(self, candidates: Candidates) -> tuple[Decision, np.ndarray]:
         """(the rule's decision, (Q,) accepted) for ranked candidates of this model."""
@@ -174,6 +191,19 @@ class Calibration:
             if key in values and (isinstance(values[key], bool) or not isinstance(values[key], int)
                                   or values[key] < 0):
                 raise DataError(f"{source}: {key} must be a whole number >= 0, got {values[key]!r}")
+        for key in ("probability", "score_distribution"):
+            value = values.get(key, {}) or {}
+            if not isinstance(value, dict) or not all(
+                    isinstance(value.get(k, []), list) and all(_is_real(x) for x in value.get(k, []))
+                    for k in ("scores", "p_correct", "levels", "quantiles")):
+                raise DataError(f"{source}: {key} must map 'scores'/'p_correct' (or 'levels'/'quantiles') to lists "
+                                "of numbers")
+            values[key] = value
+        fit = values.get("probability") or {}
+        if len(fit.get("scores", [])) != len(fit.get("p_correct", [])) \
+                or any(not 0.0 <= p <= 1.0 for p in fit.get("p_correct", [])):
+            raise DataError(f"{source}: probability: 'scores' and 'p_correct' must be lists of one length, "
+                            "probabilities in [0, 1]")
         if not isinstance(values.get("measured_on", {}), dict):
             raise DataError(f"{source}: measured_on must map names to values")
         if not isinstance(values.get("notes", []), list) or not all(isinstance(n, str) for n in values.get("notes", [])):
@@ -193,6 +223,67 @@ class Calibration:
         except ConfigError as exc:
             raise DataError(f"{source}: {exc}") from None
         return calibration
+
+
+def _is_real(value) -> bool:
+    return not isinstance(value, bool) and isinstance(value, (int, float)) and math.isfinite(value)
+
+
+#: the quantiles of a calibration's scores it stores (what its threshold assumes)
+DISTRIBUTION_LEVELS = tuple(round(0.05 * i, 2) for i in range(1, 20))
+
+
+def score_distribution(scores: np.ndarray) -> dict:
+    """The stored form of a score distribution: the :data:`DISTRIBUTION_LEVELS` quantiles of the
+    finite ``scores`` (rejections, -inf, left out) and how many there were."""
+    scores = np.asarray(scores, dtype=np.float64)
+    scores = scores[np.isfinite(scores)]
+    if not len(scores):
+        return {}
+    return {"levels": list(DISTRIBUTION_LEVELS),
+            "quantiles": [float(q) for q in np.quantile(scores, DISTRIBUTION_LEVELS)], "frames": int(len(scores))}
+
+
+def distribution_distance(distribution: dict, scores: np.ndarray) -> float:
+    """How far ``scores`` lie from a stored :func:`score_distribution`: the largest difference
+    between the stored levels and the share of ``scores`` below each stored quantile (the
+    Kolmogorov-Smirnov distance, read at the stored quantiles)."""
+    scores = np.asarray(scores, dtype=np.float64)
+    scores = np.sort(scores[np.isfinite(scores)])
+    if not distribution or not len(scores):
+        return 0.0
+    below = np.searchsorted(scores, np.asarray(distribution["quantiles"]), side="right") / len(scores)
+    return float(np.max(np.abs(below - np.asarray(distribution["levels"]))))
+
+
+def fit_probability(scores: np.ndarray, correct: np.ndarray, prior: float = 1.0) -> dict:
+    """The probability that a match is right as a non-decreasing function of its score: isotonic
+    regression (scikit-learn) of ``correct`` on the finite ``scores``, each of its constant
+    blocks then shrunk towards 1/2 by ``prior`` pseudo-observations ((right + prior/2) /
+    (n + prior)), so that a block of a few right answers does not claim certainty: 1.0 is never
+    given, and 0.99 needs a block of about 50 right answers. Stored as the block ends (scores,
+    p_correct), read by linear interpolation (:meth:`Calibration.p_correct`)."""
+    from sklearn.isotonic import IsotonicRegression
+
+    scores = np.asarray(scores, dtype=np.float64)
+    correct = np.asarray(correct, dtype=np.float64)
+    finite = np.isfinite(scores)
+    scores, correct = scores[finite], correct[finite]
+    if len(scores) < 2 or len(np.unique(scores)) < 2:
+        return {}
+    fitted = IsotonicRegression(out_of_bounds="clip").fit(scores, correct).predict(scores)
+    order = np.argsort(scores, kind="stable")
+    scores, correct, fitted = scores[order], correct[order], fitted[order]
+    xs, ps = [], []
+    for value in np.unique(fitted):
+        block = fitted == value
+        n, right = int(block.sum()), float(correct[block].sum())
+        p = (right + prior / 2) / (n + prior)
+        lo, hi = float(scores[block].min()), float(scores[block].max())
+        xs += [lo, hi] if hi > lo else [lo]
+        ps += [p, p] if hi > lo else [p]
+    ps = list(np.maximum.accumulate(ps))  # shrinking may not reorder the blocks
+    return {"scores": xs, "p_correct": [float(p) for p in ps], "frames": int(len(scores))}
 
 
 def _yaml_text(value) -> str:

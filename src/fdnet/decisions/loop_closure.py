@@ -47,6 +47,7 @@ from fdnet.decisions.acceptance import AcceptanceSpec, Candidates, decide, parse
 from fdnet.decisions.calibration import checked_calibration, stored_calibration
 # the records the detector produces live in loop_records; importable from here as before
 from fdnet.decisions.loop_records import EVENT_COLUMNS, Closure, FrameDecision, GrowingArray  # noqa: F401
+from fdnet.decisions.loop_recency import GapDetector, Seams, similar_past
 from fdnet.decisions.loop_gates import (ConsistencyGate, FrameSignals, LoopGates, RecentPast, frame_signals,
                                         informative_frames, is_still)
 from fdnet.errors import ConfigError, DataError
@@ -76,6 +77,29 @@ def _single_blas_thread():
     return _BLAS.limit(limits=1, user_api="blas")
 
 
+def _resolved_calibration(calibration, source: str | None):
+    """(a Calibration, where it came from) for a Calibration, a calibration file or a run
+    directory (its loop calibration, else its pair calibration, in RUN or RUN/best); (None,
+    source) for None."""
+    from fdnet.decisions.calibration import CALIBRATION_FILE, Calibration, load_calibration, stored_in_run
+
+    if calibration is None or isinstance(calibration, Calibration):
+        return calibration, source
+    path = Path(calibration)
+    if path.is_dir():
+        found = stored_in_run(path, (LOOP_CALIBRATION_FILE, CALIBRATION_FILE))
+        if found is None:
+            raise DataError(f"{path}: no {LOOP_CALIBRATION_FILE} or {CALIBRATION_FILE} in this run directory (or its "
+                            "best/): calibrate on a loop with ground truth first, e.g. `fdnet loop-closure --data "
+                            f"ROUTE --conditions A,B --calibrate-out {path} ...`")
+        path = found
+    return load_calibration(path), str(path)
+
+
+#: decided frames after which a run compares its scores with its calibration's, and how often
+DRIFT_AFTER, DRIFT_EVERY = 200, 50
+
+
 class LoopClosureDetector:
     """Online loop-closure detection over a place database (see the module docstring).
 
@@ -98,14 +122,21 @@ class LoopClosureDetector:
     detector searches its own copy of the vectors) but a crash loses up to N - 1 frames.
     """
 
-    def __init__(self, descriptor, database=None, *, exclude_last: int, rule: str | AcceptanceSpec | None = None,
-                 rule_settings=None, threshold: float | None = None, calibration=None, sequence_length: int = 1,
+    def __init__(self, descriptor, database=None, *, exclude_last: int = 0, rule: str | AcceptanceSpec | None = None,
+                 rule_settings=None, threshold: float | None = None, calibration=None,
+                 sequence_length: int | None = None,
                  method_options: dict | None = None, allow_duplicates: bool = False, commit_every: int = 1,
                  gates: LoopGates | None = None, search: str = "auto", index_from: int | None = None):
         from fdnet.matching.database import PlaceDatabase
 
         if isinstance(exclude_last, bool) or not isinstance(exclude_last, (int, np.integer)) or exclude_last < 0:
             raise ConfigError(f"exclude-last must be a whole number of at least 0, got {exclude_last!r}")
+        source = None
+        if threshold is None and calibration is None:
+            calibration, source = stored_calibration(database)
+        calibration, source = _resolved_calibration(calibration, source)
+        if sequence_length is None:  # a calibration's own, else single images
+            sequence_length = max(int(calibration.sequence_length), 1) if calibration is not None else 1
         if isinstance(sequence_length, bool) or not isinstance(sequence_length, (int, np.integer)) \
                 or sequence_length < 1:
             raise ConfigError(f"sequence length must be a whole number of at least 1, got {sequence_length!r}")
@@ -123,6 +154,7 @@ class LoopClosureDetector:
 
         self._first_full = (int(math.ceil(max(DEFAULT_VELOCITIES) * (self.sequence_length - 1)))
                             if self.sequence_length > 1 else 0)
+        self._seams = Seams(self._first_full)
         self.allow_duplicates = bool(allow_duplicates)
         self.commit_every = int(commit_every)
         from fdnet.decisions.loop_search import INDEX_FROM
@@ -135,9 +167,7 @@ class LoopClosureDetector:
             raise ConfigError(f"gates must be a LoopGates, got {type(gates).__name__}")
         # frames decided but not yet stored (commit_every > 1): vectors, names, positions, metadata
         self._pending: list[tuple] = []
-        source = None
-        if threshold is None and calibration is None:
-            calibration, source = stored_calibration(database)
+        self._calibration_source = source or "the calibration"
         self.spec, self.threshold, self.calibration = self._decision_rule(rule, rule_settings, threshold, calibration,
                                                                           source)
         self.gates = self._gates(gates, source)
@@ -157,6 +187,15 @@ class LoopClosureDetector:
         self._before: list[int] = []
         self._rows: deque[np.ndarray] = deque(maxlen=max(self.sequence_length - 1, 0) or None)
         self._recent = RecentPast(self.exclude_last, self.gates)
+        # the current segment's first frame, and per frame: the first frame its own recent past
+        # reached (min over a sequence's frames) and how many frames back its exclusion went
+        self._segment_first = 0
+        self._own_first: list[int] = []
+        self.excluded_back: list[int] = []
+        self._gaps = GapDetector()
+        #: the rule scores of the frames that decided (for the drift check against the calibration)
+        self.scores: list[float] = []
+        self.drift: dict | None = None
         self._indexed = None
         self._consistency = ConsistencyGate(self.gates.consistency, self.gates.consistency_window)
         self._last_thumbnail: np.ndarray | None = None
@@ -253,11 +292,24 @@ class LoopClosureDetector:
         # places an earlier run found uninformative (dark, blank) are never candidates
         self._informative = GrowingArray(None, [not (m or {}).get("uninformative", False) for m in metadata])
         self._still = GrowingArray(None, [bool((m or {}).get("still", False)) for m in metadata])
+        # an earlier session, or a segment an earlier run marked, starts a new segment of the map
+        self._seams = Seams(self._first_full)
+        previous = None
+        self._sessions = [(m or {}).get("session") for m in metadata]
+        for m in metadata:
+            m = m or {}
+            self._seams.add(bool(m.get("segment_start")) or m.get("session") != previous)
+            previous = m.get("session")
 
     @property
     def places(self) -> int:
         """Places the detector searches over (the database's, including this traverse's frames)."""
         return len(self._vectors)
+
+    @property
+    def segments(self) -> int:
+        """Segments of the map (recordings driven without a break, :mod:`fdnet.decisions.loop_recency`)."""
+        return self._seams.segments
 
     @property
     def frames(self) -> int:
@@ -293,7 +345,7 @@ class LoopClosureDetector:
                 self.descriptor._batch_paths = None
 
     def process(self, image, timestamp: float | None = None, name: str | None = None,
-                position: tuple[float, float] | None = None) -> Closure | None:
+                position: tuple[float, float] | None = None, new_segment: bool = False) -> Closure | None:
         """Describe the next frame, decide, add it to the database; the accepted closure or None.
         ``image``: a path or an (H, W, 3) RGB array (see :meth:`load`). ``name`` (default: the
         path of ``image``, else a name unique to this run) is the place's name in the database;
@@ -303,15 +355,17 @@ class LoopClosureDetector:
         array = self.load(image)
         vector = self._vector(image, array)
         return self.process_vector(vector, timestamp=timestamp, name=name, position=position,
-                                   signals=frame_signals(array[None]))
+                                   signals=frame_signals(array[None]), new_segment=new_segment)
 
     def process_vector(self, vector: np.ndarray, timestamp: float | None = None, name: str | None = None,
                        position: tuple[float, float] | None = None, signals: FrameSignals | None = None,
-                       _replay: dict | None = None) -> Closure | None:
+                       new_segment: bool = False, _replay: dict | None = None) -> Closure | None:
         """:meth:`process` for a frame already described by the detector's descriptor.
         ``signals``: the frame's :class:`~fdnet.decisions.loop_gates.FrameSignals` (from its
         pixels) for the uninformative-frame and still-robot gates; without them those gates
-        cannot see the frame and let it through."""
+        cannot see the frame and let it through. ``new_segment``: the frame starts a new
+        recording (a new pass of the route, after a break): no sequence spans the seam
+        (:mod:`fdnet.decisions.loop_recency`); a gap in the timestamps starts one too."""
         v = np.asarray(vector, dtype=np.float32).reshape(-1)
         if v.shape[0] != self.database.dim:
             raise DataError(f"frame vector has {v.shape[0]} values, the {self.descriptor.name} places have "
@@ -327,14 +381,20 @@ class LoopClosureDetector:
                                       or not math.isfinite(timestamp)):
             raise DataError(f"{name}: timestamp must be a finite number of seconds, got {timestamp!r}")
         count = self.places
+        gap = self._gaps.gap(None if timestamp is None else float(timestamp))
         if _replay is not None:  # resume(): what the interrupted run stored for this frame
             informative, still = _replay["informative"], _replay["still"]
+            new_segment = _replay["segment_start"]
         else:
             informative, still = True, False
             if signals is not None:
                 informative = bool(informative_frames(signals.statistics[:1], self.gates)[0])
                 still = t > 0 and is_still(signals.thumbnails[0], self._last_thumbnail, self.gates)
                 self._last_thumbnail = signals.thumbnails[0]
+        new_segment = bool(new_segment) or gap or t == 0
+        if new_segment:
+            self._segment_first = t
+            self._rows.clear()
         if self._indexed is None and self.search != "exact" and (self.search == "index" or count >= self.index_from):
             from fdnet.decisions.loop_search import IndexedCandidates
 
@@ -350,6 +410,8 @@ class LoopClosureDetector:
             gated = "" if informative else "uninformative"
             if not gated and still and not self.gates.decide_when_still:
                 gated = "still"
+            if not gated and t - self._segment_first + 1 < self.sequence_length:
+                gated = "incomplete sequence"
             if not gated and (not len(ids) or not self._informative.view(searchable).any()):
                 gated = "no informative place"
             best = int(ids[0]) if len(ids) else -1
@@ -367,21 +429,56 @@ class LoopClosureDetector:
                     self.gate_counts["held_by_consistency"] += 1
                 decision = FrameDecision(t, match, score, accepted, int(searchable), best, best_similarity,
                                          rule_score=rule_score)
+                if math.isfinite(rule_score):
+                    self.scores.append(float(rule_score))
+                    self._check_drift()
                 if accepted:
                     here = (None, None) if position is None else tuple(float(c) for c in list(position)[:2])
                     there = (None, None) if self._positions is None else tuple(self._positions[match][:2])
                     closure = Closure(t, name, match, self._names[match], score, similarity, self.spec.name,
                                       self.threshold, timestamp,
                                       None if self._times is None else float(self._times[match]),
-                                      *here, *there)
+                                      *here, *there, self._p_correct(score))
         elif not informative:
             self.gate_counts["uninformative"] += 1
-        self._add(v, name, timestamp, position, informative, still, store=_replay is None)
+        self._add(v, name, timestamp, position, informative, still, new_segment, store=_replay is None)
         self._before.append(count)
         self.decisions.append(decision)
         if closure is not None:
             self.closures.append(closure)
         return closure
+
+    def _p_correct(self, score: float) -> float | None:
+        if self.calibration is None:
+            return None
+        p = float(self.calibration.p_correct([score])[0])
+        return p if math.isfinite(p) else None
+
+    def _check_drift(self) -> None:
+        """Warn once when this run's scores depart from those its calibration was measured on
+        (two-sample Kolmogorov-Smirnov distance at the stored quantiles, above its 1 % critical
+        value): the threshold's precision was measured on the other distribution."""
+        from fdnet.decisions.calibration import distribution_distance
+
+        stored = (self.calibration.score_distribution or {}) if self.calibration is not None else {}
+        n = len(self.scores)
+        if not stored or self.drift is not None or n < DRIFT_AFTER or n % DRIFT_EVERY:
+            return
+        m = int(stored.get("frames", 0)) or n
+        distance = distribution_distance(stored, np.asarray(self.scores))
+        critical = 1.63 * math.sqrt((n + m) / (n * m))
+        if distance <= critical:
+            return
+        median = float(np.median(self.scores))
+        stored_median = float(np.interp(0.5, stored["levels"], stored["quantiles"]))
+        self.drift = {"distance": distance, "critical": critical, "frames": n, "median": median,
+                      "calibration_median": stored_median}
+        where = (self.calibration.measured_on or {}).get("ground_truth") or "its calibration loop"
+        logger.warning(f"{self._calibration_source}: the acceptance scores of this run's first {n} deciding frames "
+                       f"(median {median:.4g}) depart from those it was calibrated on ({where}: median "
+                       f"{stored_median:.4g}, {m} frames; Kolmogorov-Smirnov distance {distance:.2f} > {critical:.2f}): "
+                       "its precision was measured on another kind of route and may not hold here; calibrate on a "
+                       "loop like this one (--calibrate-out) when you can")
 
     #: best-match similarity recorded for a frame whose search found no candidate
     _floor = -1.0
@@ -397,23 +494,25 @@ class LoopClosureDetector:
         else:
             row = np.zeros(0, np.float32)
         previous = float(row[count - 1]) if t > 0 and count > 0 else None
-        searchable = self._searchable(t, count, previous, still, timestamp, position)
         row, neutral = self._mask_uninformative(row, informative)
         if self.sequence_length > 1:
             from fdnet.matching.sequence import online_sequence_scores
 
-            # Each row starts with _first_full neutral values (its median): a sequence that would
-            # run off the start of the map is scored over all L frames, the missing ones neutral,
-            # instead of over the few it has (a mean of one or two similarities is noisy and
-            # would win by chance).
+            # Each segment of the map starts with _first_full neutral columns (the row's median):
+            # a sequence that would run off the start of its segment is scored over all L frames,
+            # the missing ones neutral, instead of over the few it has (a mean of one or two
+            # similarities is noisy and would win by chance) or over another recording's frames.
             if neutral is None:  # nothing was masked: the row's own median, computed only here
                 neutral = float(np.median(row)) if len(row) else 0.0
-            row = np.concatenate([np.full(self._first_full, neutral, np.float32), row])
-            pad = self._first_full
-            scores = online_sequence_scores([*self._rows, row], searchable + pad)[pad:]
-            self._rows.append(row)
+            padded = self._seams.padded(row, neutral)
+            every = online_sequence_scores([*self._rows, padded], self._seams.width(count))
+            every = every[self._seams.columns(count)]
+            self._rows.append(padded)
         else:
-            scores = row[:searchable]
+            every = row
+        back = self._similar_back(row, t, informative)
+        searchable = self._searchable(t, count, previous, still, timestamp, position, back)
+        scores = every[:searchable]
         if not searchable:
             return np.zeros(0, np.int64), np.zeros(0, np.float32), 0
         from fdnet.matching.similarity import top_k_of_matrix
@@ -421,6 +520,17 @@ class LoopClosureDetector:
         scores = self._never_best(scores)
         idx, top = top_k_of_matrix(scores[None], min(self.spec.depth, len(scores)))
         return idx[0], top[0], searchable
+
+    def _similar_back(self, row: np.ndarray, t: int, informative: bool) -> int:
+        """How many of its segment's earlier frames the frame still resembles more than unrelated
+        places (:func:`fdnet.decisions.loop_recency.similar_past` over its row); an uninformative
+        frame's row says nothing, so it keeps its predecessor's reach, one frame further."""
+        if t <= self._segment_first or not self.gates.similar_past:
+            return 0
+        if not informative:
+            return (t - self._own_first[-1]) if self._own_first else 0
+        places = np.asarray(self._before[self._segment_first:t], np.int64)[::-1]
+        return similar_past(row, places)
 
     def _indexed_candidates(self, v, t, count, informative, still, timestamp, position):
         """(candidate places best first, their scores, searchable) from the index (large maps,
@@ -434,17 +544,27 @@ class LoopClosureDetector:
         ids, scores = self._indexed.search(v, vectors, searchable, mask, neutral, informative)
         return ids[:max(self.spec.depth, 1)], scores[:max(self.spec.depth, 1)], searchable
 
-    def _searchable(self, t: int, count: int, previous: float | None, still: bool, timestamp, position) -> int:
+    def _searchable(self, t: int, count: int, previous: float | None, still: bool, timestamp, position,
+                    back: int = 0) -> int:
         """How many places frame ``t`` may match (a prefix of the map): places from earlier
         sessions and this traverse's frames before its recent past (:class:`RecentPast`:
-        exclude_last, the current still segment, the last seconds or metres), moved back by
-        sequence_length - 1 frames more with sequences, so that no candidate's sequence shares a
-        frame with the query's own."""
+        exclude_last, the current still segment, the last seconds or metres; and the ``back``
+        frames it still resembles, :meth:`_similar_back`), for sequences the recent past of
+        every frame of the query's sequence, moved back by sequence_length - 1 frames more, so
+        that no candidate's sequence shares a frame with the query's own."""
         first = self._recent.first_excluded(t, previous, still, timestamp, position)
         by_count = max(t - self.exclude_last, 0) if self.exclude_last else t
         if first < by_count:  # the still segment, seconds or metres reached further back
             self.gate_counts["still_exclusion"] += 1
-        first = max(first - (self.sequence_length - 1), 0)
+        first = min(first, t - back)
+        self._own_first.append(first)
+        length = self.sequence_length
+        if length > 1:
+            first = min(self._own_first[max(self._segment_first, t - length + 1):])
+            moved = first - (length - 1)
+            first = max(moved, self._segment_first) if first >= self._segment_first else moved
+        first = max(first, 0)
+        self.excluded_back.append(t - first)
         return count if first >= t else self._before[first]
 
     def _mask_uninformative(self, row: np.ndarray, informative: bool) -> tuple[np.ndarray, float | None]:
@@ -496,8 +616,10 @@ class LoopClosureDetector:
         return match, float(decision.score[0]), similarity
 
     def _add(self, v: np.ndarray, name: str, timestamp, position, informative: bool = True, still: bool = False,
-             store: bool = True) -> None:
+             new_segment: bool = False, store: bool = True) -> None:
         metadata = {"loop_closure_frame": self.frames, "session": self._session}
+        if new_segment:
+            metadata["segment_start"] = True
         if timestamp is not None:
             metadata["timestamp"] = float(timestamp)
         if not informative:
@@ -511,6 +633,8 @@ class LoopClosureDetector:
         self._known.add(name)
         self._informative.append(bool(informative))
         self._still.append(bool(still))
+        self._seams.add(new_segment)
+        self._sessions.append(self._session)
         if self._positions is not None:
             if position is None:
                 self._positions = None
@@ -544,12 +668,18 @@ class LoopClosureDetector:
         vectors = self._vectors.view()[start:].copy()
         names = self._names[start:]
         informative, still = self._informative.view()[start:].copy(), self._still.view()[start:].copy()
+        starts = set(self._seams._segment_starts)
+        segment_start = [start + k in starts for k in range(frames)]
+        if frames and self._sessions[start] is not None:
+            self._session = self._sessions[start]  # the interrupted traverse goes on: one session
         times = None if self._times is None else self._times[start:]
         positions = None if self._positions is None else self._positions[start:]
         self._vectors = GrowingArray(self.database.dim, self._vectors.view(start))
         del self._names[start:]
         self._informative = GrowingArray(None, self._informative.view(start))
         self._still = GrowingArray(None, self._still.view(start))
+        self._seams.truncate(start)
+        del self._sessions[start:]
         self._known = set(self._names)
         if self._times is not None:
             del self._times[start:]
@@ -559,7 +689,8 @@ class LoopClosureDetector:
         for k in range(frames):
             self.process_vector(vectors[k], timestamp=None if times is None else times[k], name=names[k],
                                 position=None if positions is None else positions[k],
-                                _replay={"informative": bool(informative[k]), "still": bool(still[k])})
+                                _replay={"informative": bool(informative[k]), "still": bool(still[k]),
+                                         "segment_start": segment_start[k]})
         self._last_thumbnail = None if last_thumbnail is None else np.asarray(last_thumbnail, np.float32)
         return list(self.closures)
 

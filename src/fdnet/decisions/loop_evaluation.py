@@ -107,7 +107,8 @@ def calibrate_decisions(decisions: Sequence[FrameDecision], ground_truth, detect
     from datetime import datetime, timezone
 
     from fdnet.version import __version__
-    from fdnet.decisions.calibration import Calibration, check_target, choose_threshold
+    from fdnet.decisions.calibration import (Calibration, check_target, choose_threshold, fit_probability,
+                                             score_distribution)
 
     target = check_target(target_precision)
     evaluated, truth = _evaluable(decisions, ground_truth)
@@ -129,4 +130,5 @@ def calibrate_decisions(decisions: Sequence[FrameDecision], ground_truth, detect
         target_precision=target, precision=chosen.precision, recall=chosen.recall, accepted=chosen.accepted,
         num_queries=len(evaluated), method=detector.descriptor.name, fingerprint=detector.descriptor.fingerprint(),
         sequence_length=length, measured_on=where,
-        created=datetime.now(timezone.utc).isoformat(timespec="seconds"), fdnet_version=__version__, notes=notes)
+        created=datetime.now(timezone.utc).isoformat(timespec="seconds"), fdnet_version=__version__, notes=notes,
+        probability=fit_probability(score, correct), score_distribution=score_distribution(score))

@@ -59,7 +59,10 @@ class LoopGates:
     frame did not, and the places of a stop all look alike, so its match would be a guess among
     them (ORB-SLAM3 likewise closes loops only at keyframes). It is still added as a place.
     ``exclude_seconds`` / ``exclude_metres``: also exclude the frames of the last seconds /
-    metres travelled (when frames carry timestamps / positions). ``consistency``: how many
+    metres travelled (when frames carry timestamps / positions). ``similar_past``: also exclude
+    the frames of the current segment the new frame still resembles more than unrelated places,
+    found from its own similarities (:mod:`fdnet.decisions.loop_recency`; the default, which
+    needs no frame count). ``consistency``: how many
     consecutive frames must agree (1 = off); ``consistency_window``: how far (in places) a
     frame's candidate may be from the previous frame's candidate.
     """
@@ -71,6 +74,7 @@ class LoopGates:
     exclude_seconds: float | None = None
     exclude_metres: float | None = None
     decide_when_still: bool = False
+    similar_past: bool = True
     consistency: int = 1
     consistency_window: int = 3
 
@@ -86,8 +90,9 @@ class LoopGates:
             value = getattr(self, name)
             if value is not None and not (_is_number(value) and math.isfinite(float(value)) and float(value) >= 0):
                 raise ConfigError(f"loop gate {name} must be a number of at least 0, got {value!r}")
-        if not isinstance(self.decide_when_still, bool):
-            raise ConfigError(f"loop gate decide_when_still must be true or false, got {self.decide_when_still!r}")
+        for name in ("decide_when_still", "similar_past"):
+            if not isinstance(getattr(self, name), bool):
+                raise ConfigError(f"loop gate {name} must be true or false, got {getattr(self, name)!r}")
         if not _is_whole(self.consistency) or self.consistency < 1:
             raise ConfigError(f"loop gate consistency must be a whole number of at least 1 (1 = off), got "
                               f"{self.consistency!r}")
@@ -118,9 +123,9 @@ class LoopGates:
             if key not in data:
                 raise ConfigError(f"unknown loop gate setting {key!r}; known: {', '.join(sorted(data))}")
             text = text.strip()
-            if key == "decide_when_still":
+            if key in ("decide_when_still", "similar_past"):
                 if text.lower() not in ("true", "false", "yes", "no", "1", "0"):
-                    raise ConfigError(f"loop gate setting decide_when_still={text!r}: give true or false")
+                    raise ConfigError(f"loop gate setting {key}={text!r}: give true or false")
                 data[key] = text.lower() in ("true", "yes", "1")
                 continue
             if text.lower() in ("none", "off"):

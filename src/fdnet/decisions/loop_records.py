@@ -10,7 +10,7 @@ import numpy as np
 
 #: columns of the events CSV, in order (the JSON lines carry the same keys)
 EVENT_COLUMNS = ("query_index", "query", "match_index", "match", "score", "similarity", "rule", "threshold",
-                 "timestamp", "match_timestamp", "x", "y", "match_x", "match_y")
+                 "timestamp", "match_timestamp", "x", "y", "match_x", "match_y", "p_correct")
 
 
 @dataclass(frozen=True)
@@ -35,6 +35,9 @@ class Closure:
     y: float | None = None
     match_x: float | None = None
     match_y: float | None = None
+    #: the probability that the closure is right, from the calibration's fit of it against the
+    #: score (None when the threshold came without one)
+    p_correct: float | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -67,10 +70,10 @@ class FrameDecision:
 class GrowingArray:
     """The database's vectors in memory, appended a row at a time (capacity doubles, so adding
     N rows copies O(N) rows in all, where np.vstack per frame would copy O(N^2)). With ``dim``
-    None it holds one flag per place (bool)."""
+    None it holds one value per place (bool unless ``dtype`` says otherwise)."""
 
-    def __init__(self, dim: int | None, initial: np.ndarray | None = None):
-        dtype = bool if dim is None else np.float32
+    def __init__(self, dim: int | None, initial: np.ndarray | None = None, dtype=None):
+        dtype = dtype if dtype is not None else bool if dim is None else np.float32
         shape = () if dim is None else (dim,)
         rows = np.zeros((0, *shape), dtype) if initial is None else np.asarray(initial, dtype)
         self._data = np.empty((max(1024, 2 * len(rows)), *shape), dtype=dtype)

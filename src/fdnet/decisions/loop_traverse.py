@@ -118,6 +118,11 @@ class TraverseReport:
     #: what the gates did: uninformative frames, frames with a still-robot exclusion, candidates
     #: held back by the consistency gate
     gate_counts: dict = field(default_factory=dict)
+    #: how far back each frame's exclusion of the robot's recent past reached (frames): median,
+    #: 90th percentile, largest, a histogram, and the segments the traverse was cut into
+    recent_past: dict = field(default_factory=dict)
+    #: this run's scores against its calibration's (set when they departed from them)
+    score_drift: dict | None = None
     #: frames of an interrupted run taken over from the database (replayed, not described again)
     resumed_frames: int = 0
     evaluation: dict | None = None
@@ -137,10 +142,10 @@ class TraverseReport:
         return out
 
 
-def run_traverse(images, descriptor, database=None, *, exclude_last: int,
+def run_traverse(images, descriptor, database=None, *, exclude_last: int = 0,
                  events_csv: str | os.PathLike, events_jsonl: str | os.PathLike | None = None,
                  rule: str | None = None, rule_settings=None, threshold: float | None = None, calibration=None,
-                 sequence_length: int = 1, ground_truth=None,
+                 sequence_length: int | None = None, ground_truth=None,
                  calibrate_to: str | os.PathLike | None = None, target_precision: float = 1.0,
                  method_options: dict | None = None, commit_every: int = 1, batch_size: int = 16,
                  workers: int | None = None, progress: bool = False, gates: LoopGates | None = None,
@@ -220,8 +225,9 @@ def run_traverse(images, descriptor, database=None, *, exclude_last: int,
         say(f"loop closure over {len(paths)} frames of {where} with {descriptor.name}, rule {detector.spec.name} "
             f"(threshold {detector.threshold:g}), {places_before} places in {db.path} before the run")
         t0 = time.perf_counter()
+        starts = set() if route is None else {int(i) for i in np.flatnonzero(np.diff(route.condition_of)) + 1}
         events = _detect_over(detector, descriptor, paths, names, times, positions, events_csv, events_jsonl,
-                              batch_size, workers, progress, start=done, initial=initial)
+                              batch_size, workers, progress, start=done, initial=initial, segment_starts=starts)
         detector.flush()
         seconds = time.perf_counter() - t0
         report = _report(detector, seconds, places_before, events, done, calibration)
@@ -242,8 +248,22 @@ def _report(detector: LoopClosureDetector, seconds: float, places_before: int, e
         places_after=detector.places, rule=detector.spec.name, rule_settings=detector.spec.settings,
         threshold=detector.threshold, sequence_length=detector.sequence_length, exclude_last=detector.exclude_last,
         database=str(detector.database.path), events=[str(p) for p in events.paths], gates=detector.gates.to_dict(),
-        gate_counts=dict(detector.gate_counts), resumed_frames=resumed,
+        gate_counts=dict(detector.gate_counts), resumed_frames=resumed, recent_past=recent_past_summary(detector),
+        score_drift=detector.drift,
         calibration=None if calibration is None else str(calibration))
+
+
+def recent_past_summary(detector: LoopClosureDetector) -> dict:
+    """How far back the detector's exclusion of the robot's recent past reached, over the frames
+    of this traverse: median, 90th percentile, largest, and a histogram (frames back -> count,
+    in bins of 5)."""
+    back = np.asarray(detector.excluded_back, dtype=np.int64)
+    if not len(back):
+        return {}
+    bins = np.bincount(back // 5)
+    return {"median": float(np.median(back)), "p90": float(np.percentile(back, 90)), "max": int(back.max()),
+            "histogram": {f"{5 * i}-{5 * i + 4}": int(n) for i, n in enumerate(bins) if n},
+            "segments": int(detector.segments)}
 
 
 def _check_searchable_revisit(truth, places_before: int, exclude_last: int, length: int) -> None:
@@ -312,7 +332,7 @@ def _signals_of(paths, descriptor):
 
 def _detect_over(detector: LoopClosureDetector, descriptor, paths, names, times, positions, events_csv,
                  events_jsonl, batch_size: int, workers: int | None, progress: bool, start: int = 0,
-                 initial=()) -> EventLog:
+                 initial=(), segment_starts=frozenset()) -> EventLog:
     """Describe ``paths[start:]`` ``batch_size`` at a time (with each frame's pixel signals) and
     feed each to ``detector``, writing each accepted closure to the event log as it is accepted
     (the log starts from the ``initial`` events of a resumed run); returns the (closed) log."""
@@ -334,7 +354,8 @@ def _detect_over(detector: LoopClosureDetector, descriptor, paths, names, times,
                 for i, vector in enumerate(np.asarray(vectors, dtype=np.float32)):
                     k = start + offset + i
                     closure = detector.process_vector(vector, name=names[k], timestamp=times[k],
-                                                      position=positions[k], signals=signals[i])
+                                                      position=positions[k], signals=signals[i],
+                                                      new_segment=k in segment_starts)
                     if closure is not None:
                         events.write(closure)
                 if bar is not None:
