@@ -47,7 +47,7 @@ from fdnet.decisions.acceptance import AcceptanceSpec, Candidates, decide, parse
 from fdnet.decisions.calibration import checked_calibration, stored_calibration
 # the records the detector produces live in loop_records; importable from here as before
 from fdnet.decisions.loop_records import EVENT_COLUMNS, Closure, FrameDecision, GrowingArray  # noqa: F401
-from fdnet.decisions.loop_recency import GapDetector, Seams, similar_past
+from fdnet.decisions.loop_recency import NULL_SAMPLE, GapDetector, Seams, similar_past
 from fdnet.decisions.loop_gates import (ConsistencyGate, FrameSignals, LoopGates, RecentPast, frame_signals,
                                         informative_frames, is_still)
 from fdnet.errors import ConfigError, DataError
@@ -95,6 +95,9 @@ def _resolved_calibration(calibration, source: str | None):
         path = found
     return load_calibration(path), str(path)
 
+
+#: how many recent frames of its segment a frame walks back through at most on the indexed path
+RECENT_WINDOW = 2000
 
 #: decided frames after which a run compares its scores with its calibration's, and how often
 DRIFT_AFTER, DRIFT_EVERY = 200, 50
@@ -538,10 +541,25 @@ class LoopClosureDetector:
         vectors = self._vectors.view()
         previous = float(self.descriptor.similarity(v[None], vectors[count - 1:count])[0, 0]) \
             if t > 0 and count > 0 else None
-        searchable = self._searchable(t, count, previous, still, timestamp, position)
+        back = 0
+        if t > self._segment_first and informative and self.gates.similar_past:
+            # the walk reads the frame's similarity to its segment's recent frames and to an even
+            # sample of the map (the null level), not the whole row
+            recent = np.asarray(self._before[max(self._segment_first, t - RECENT_WINDOW):t], np.int64)[::-1]
+            sample = np.linspace(0, count - 1, min(NULL_SAMPLE, count)).astype(np.int64)
+            sample = np.setdiff1d(sample, recent)
+            places = np.concatenate([recent, sample])
+            row = np.asarray(self.descriptor.similarity(v[None], vectors[places]), np.float64)[0]
+            back = similar_past(row, np.arange(len(recent)))
+        elif t > self._segment_first and not informative and self.gates.similar_past and self._own_first:
+            back = t - self._own_first[-1]
+        searchable = self._searchable(t, count, previous, still, timestamp, position, back)
         mask = self._informative.view(count)
         neutral = self._indexed.neutral(v, vectors, mask)
-        ids, scores = self._indexed.search(v, vectors, searchable, mask, neutral, informative)
+        if t == self._segment_first:
+            self._indexed.new_segment()
+        ids, scores = self._indexed.search(v, vectors, searchable, mask, neutral, informative,
+                                           np.asarray(self._seams._segment_starts, np.int64))
         return ids[:max(self.spec.depth, 1)], scores[:max(self.spec.depth, 1)], searchable
 
     def _searchable(self, t: int, count: int, previous: float | None, still: bool, timestamp, position,
