@@ -103,6 +103,26 @@ RECENT_WINDOW = 2000
 DRIFT_AFTER, DRIFT_EVERY = 200, 50
 
 
+class _one_torch_thread:
+    """torch on one intra-op thread while one frame is described: a single image gives each of
+    several threads too little work to pay for their barriers, and on cores shared with other
+    work a descheduled thread stalls the others at every layer (measured on 2 loaded cores: 6.7
+    frames/s with 2 threads, 47 with 1; docs/loop-closure.md)."""
+
+    def __enter__(self):
+        import sys
+
+        self._torch = sys.modules.get("torch")  # a descriptor without torch never loads it
+        if self._torch is not None:
+            self._threads = self._torch.get_num_threads()
+            if self._threads != 1:
+                self._torch.set_num_threads(1)
+
+    def __exit__(self, *exc):
+        if self._torch is not None and self._threads != 1:
+            self._torch.set_num_threads(self._threads)
+
+
 class LoopClosureDetector:
     """Online loop-closure detection over a place database (see the module docstring).
 
@@ -342,7 +362,8 @@ class LoopClosureDetector:
         if keyed:
             self.descriptor._batch_paths = [image]
         try:
-            return np.asarray(self.descriptor.describe(array[None]), dtype=np.float32)[0]
+            with _one_torch_thread():
+                return np.asarray(self.descriptor.describe(array[None]), dtype=np.float32)[0]
         finally:
             if keyed:
                 self.descriptor._batch_paths = None
