@@ -14,6 +14,8 @@ from __future__ import annotations
 import dataclasses
 import platform
 import tempfile
+
+import numpy as np
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -255,7 +257,7 @@ def run_benchmark(plan: BenchmarkPlan, out: Callable[[str], None], json_path: st
         if "scale" in plan.parts:
             _scale(plan, report, out)
         if "loop" in plan.parts:
-            _loop(plan, report, out)
+            _loop(plan, workdir, report, out)
     if json_path:
         import json
 
@@ -451,7 +453,7 @@ def _scale(plan: BenchmarkPlan, report: dict, out) -> None:
                                               source=str(plan.map_vectors), log=out, sweep=plan.sweep)
 
 
-def _loop(plan: BenchmarkPlan, report: dict, out) -> None:
+def _loop(plan: BenchmarkPlan, workdir: str, report: dict, out) -> None:
     from fdnet.performance.loop_benchmark import loop_rows
 
     # loop-closure describes frame batches in fp32 (the descriptor's default), not extract's bf16 path
@@ -464,4 +466,30 @@ def _loop(plan: BenchmarkPlan, report: dict, out) -> None:
                                     f"runs it ({describe:.1f} ms)"))
     report["loop"] = loop_rows(plan.loop_map_sizes, dim=512, route=route, noise=plan.noise, describe_ms=describe,
                                log=out)
+    _loop_per_frame(plan, workdir, report, out)
+
+
+def _loop_per_frame(plan: BenchmarkPlan, workdir: str, report: dict, out) -> None:
+    """The robot's path (one frame at a time) against the command's (batched) on the same frames."""
+    from pathlib import Path
+
+    from PIL import Image
+
+    from fdnet.performance import timing
+    from fdnet.performance.loop_benchmark import per_frame_rows
+
+    run_dir = plan.checkpoints.get("fdnet") or timing.temporary_fdnet_run(workdir, "cpu")[0]
+    folder = plan.images
+    frames = 40 if plan.quick else 120
+    if folder is None:
+        from fdnet.data.synthetic import render_route
+
+        folder = Path(workdir) / "loop-frames"
+        folder.mkdir(exist_ok=True)
+        rendered = render_route(frames=frames, conditions=("summer",), seed=0)["summer"]
+        for i, image in enumerate(rendered):
+            Image.fromarray((np.clip(image, 0, 1) * 255).round().astype(np.uint8)).save(folder / f"frame_{i:04d}.png")
+    out(f"\nLoop closure, the robot's path: {folder}, FDNet ({run_dir}), frames/s of the command against "
+        "LoopClosureDetector.process one frame at a time:")
+    report["loop_per_frame"] = per_frame_rows(run_dir, folder, frames=frames, repeats=2 if plan.quick else 3, log=out)
 

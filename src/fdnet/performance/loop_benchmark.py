@@ -124,3 +124,53 @@ def _gemv_ms(vectors: np.ndarray, repeats: int = 5) -> float:
             vectors @ v
             times.append(time.perf_counter() - t0)
     return 1e3 * float(np.median(times)) if times else math.nan
+
+
+def per_frame_rows(run_dir, images_folder, frames: int = 120, repeats: int = 3,
+                   log: Callable[[str], None] = lambda line: None) -> dict:
+    """A robot's path against the command's: the same frames through ``fdnet loop-closure``'s
+    :func:`~fdnet.decisions.loop_traverse.run_traverse` (frames described ``batch_size`` at a
+    time, decoded by worker processes) and through :meth:`LoopClosureDetector.process` one frame
+    at a time (as a robot node calls it), with FDNet from ``run_dir`` and the command's defaults
+    (margin, sequences of 10, the gates). The two are alternated ``repeats`` times and each
+    reports its best run (the least disturbed by other work on the machine); the per-frame path
+    also reports its latency per frame (median and 99th percentile over all its runs)."""
+    import tempfile
+    from pathlib import Path
+
+    from fdnet.data.images import list_images
+    from fdnet.decisions.loop_closure import LoopClosureDetector
+    from fdnet.decisions.loop_traverse import run_traverse
+    from fdnet.descriptors import create
+
+    paths = list_images(images_folder)[:frames]
+    descriptor = create("fdnet", checkpoint=str(run_dir))
+    batched, single, latency = [], [], []
+    with tempfile.TemporaryDirectory(prefix="fdnet-loop-") as scratch:
+        folder = Path(scratch) / "frames"
+        folder.mkdir()
+        for path in paths:  # exactly these frames for both paths
+            (folder / Path(path).name).symlink_to(Path(path).resolve())
+        for _ in range(repeats):
+            report = run_traverse(folder, descriptor, None, events_csv=Path(scratch) / "events.csv", rule="margin",
+                                  threshold=math.inf, sequence_length=10)
+            batched.append(report.frames_per_second)
+            detector = LoopClosureDetector(descriptor, None, rule="margin", threshold=math.inf, sequence_length=10)
+            with detector:
+                t0 = time.perf_counter()
+                for path in sorted(folder.iterdir()):
+                    t1 = time.perf_counter()
+                    detector.process(path)
+                    latency.append(time.perf_counter() - t1)
+                single.append(len(paths) / (time.perf_counter() - t0))
+    row = {"frames": len(paths), "command_frames_per_s": max(batched), "process_frames_per_s": max(single),
+           "process_latency_ms_median": 1e3 * float(np.median(latency)),
+           "process_latency_ms_p99": 1e3 * float(np.percentile(latency, 99)),
+           "command_runs": batched, "process_runs": single}
+    row["ratio"] = row["process_frames_per_s"] / row["command_frames_per_s"]
+    log(f"  {len(paths)} frames, FDNet {descriptor.input_size[0]}x{descriptor.input_size[1]}: fdnet loop-closure "
+        f"{row['command_frames_per_s']:.1f} frames/s (batched); LoopClosureDetector.process one frame at a time "
+        f"{row['process_frames_per_s']:.1f} frames/s = {row['ratio']:.2f} x the command, latency per frame median "
+        f"{row['process_latency_ms_median']:.1f} ms, p99 {row['process_latency_ms_p99']:.1f} ms (best of {repeats} "
+        "alternated runs each)")
+    return row
