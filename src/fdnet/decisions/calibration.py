@@ -233,27 +233,51 @@ def _is_real(value) -> bool:
 DISTRIBUTION_LEVELS = tuple(round(0.05 * i, 2) for i in range(1, 20))
 
 
-def score_distribution(scores: np.ndarray) -> dict:
+def score_distribution(scores: np.ndarray, below: float = math.inf) -> dict:
     """The stored form of a score distribution: the :data:`DISTRIBUTION_LEVELS` quantiles of the
-    finite ``scores`` (rejections, -inf, left out) and how many there were."""
+    finite ``scores`` under ``below`` (rejections, -inf, left out) and how many there were. A
+    calibration stores those under its threshold: the frames it rejects are mostly places the
+    robot had not seen, whose scores say how a route's wrong candidates stand out, and a run
+    sees them from its first frame on (its revisits come later, in a proportion no calibration
+    can know)."""
     scores = np.asarray(scores, dtype=np.float64)
-    scores = scores[np.isfinite(scores)]
+    scores = scores[np.isfinite(scores) & (scores < below)]
     if not len(scores):
         return {}
     return {"levels": list(DISTRIBUTION_LEVELS),
             "quantiles": [float(q) for q in np.quantile(scores, DISTRIBUTION_LEVELS)], "frames": int(len(scores))}
 
 
-def distribution_distance(distribution: dict, scores: np.ndarray) -> float:
-    """How far ``scores`` lie from a stored :func:`score_distribution`: the largest difference
-    between the stored levels and the share of ``scores`` below each stored quantile (the
-    Kolmogorov-Smirnov distance, read at the stored quantiles)."""
+#: the upper levels of a stored distribution the drift check reads, and the z-score above which a
+#: run's share of scores over them counts as departed (one-sided: a route whose wrong candidates
+#: stand out less than the calibration loop's only costs recall)
+TAIL_LEVELS = (0.8, 0.85, 0.9, 0.95)
+TAIL_Z = 3.0
+
+
+def tail_departure(distribution: dict, scores: np.ndarray) -> dict | None:
+    """Whether ``scores`` reach into the upper tail of a stored :func:`score_distribution` more
+    often than it did: for each of :data:`TAIL_LEVELS`, the share of ``scores`` above the stored
+    quantile against the share expected (1 - level), as a binomial z-score. Returns the worst
+    level's {level, quantile, share, expected, z} when its z exceeds :data:`TAIL_Z`, else None."""
     scores = np.asarray(scores, dtype=np.float64)
-    scores = np.sort(scores[np.isfinite(scores)])
+    scores = scores[np.isfinite(scores)]
     if not distribution or not len(scores):
-        return 0.0
-    below = np.searchsorted(scores, np.asarray(distribution["quantiles"]), side="right") / len(scores)
-    return float(np.max(np.abs(below - np.asarray(distribution["levels"]))))
+        return None
+    levels = np.asarray(distribution["levels"], np.float64)
+    quantiles = np.asarray(distribution["quantiles"], np.float64)
+    worst = None
+    for level in TAIL_LEVELS:
+        at = np.flatnonzero(np.isclose(levels, level))
+        if not len(at):
+            continue
+        quantile = float(quantiles[at[0]])
+        share = float(np.mean(scores > quantile))
+        expected = 1.0 - level
+        z = (share - expected) / math.sqrt(level * expected / len(scores))
+        if worst is None or z > worst["z"]:
+            worst = {"level": level, "quantile": quantile, "share": share, "expected": expected, "z": z}
+    return worst if worst is not None and worst["z"] > TAIL_Z else None
 
 
 #: p_correct is the lower bound of this one-sided confidence level on each block's share right

@@ -216,8 +216,8 @@ class LoopClosureDetector:
         self._own_first: list[int] = []
         self.excluded_back: list[int] = []
         self._gaps = GapDetector()
-        #: the rule scores of the frames that decided (for the drift check against the calibration)
-        self.scores: list[float] = []
+        #: the rule scores under the threshold (the drift check against the calibration's)
+        self.rejected_scores: list[float] = []
         self.drift: dict | None = None
         self._indexed = None
         self._consistency = ConsistencyGate(self.gates.consistency, self.gates.consistency_window)
@@ -453,8 +453,8 @@ class LoopClosureDetector:
                     self.gate_counts["held_by_consistency"] += 1
                 decision = FrameDecision(t, match, score, accepted, int(searchable), best, best_similarity,
                                          rule_score=rule_score)
-                if math.isfinite(rule_score):
-                    self.scores.append(float(rule_score))
+                if math.isfinite(rule_score) and rule_score < self.threshold:
+                    self.rejected_scores.append(float(rule_score))
                     self._check_drift()
                 if accepted:
                     here = (None, None) if position is None else tuple(float(c) for c in list(position)[:2])
@@ -479,30 +479,28 @@ class LoopClosureDetector:
         return p if math.isfinite(p) else None
 
     def _check_drift(self) -> None:
-        """Warn once when this run's scores depart from those its calibration was measured on
-        (two-sample Kolmogorov-Smirnov distance at the stored quantiles, above its 1 % critical
-        value): the threshold's precision was measured on the other distribution."""
-        from fdnet.decisions.calibration import distribution_distance
+        """Warn once when this run's rejected scores reach into the upper tail of those its
+        calibration loop rejected more often than they did there
+        (:func:`fdnet.decisions.calibration.tail_departure`): this route's wrong candidates
+        stand out more than the ones the threshold was set against, so its precision may not
+        hold here."""
+        from fdnet.decisions.calibration import tail_departure
 
         stored = (self.calibration.score_distribution or {}) if self.calibration is not None else {}
-        n = len(self.scores)
+        n = len(self.rejected_scores)
         if not stored or self.drift is not None or n < DRIFT_AFTER or n % DRIFT_EVERY:
             return
-        m = int(stored.get("frames", 0)) or n
-        distance = distribution_distance(stored, np.asarray(self.scores))
-        critical = 1.63 * math.sqrt((n + m) / (n * m))
-        if distance <= critical:
+        departed = tail_departure(stored, np.asarray(self.rejected_scores))
+        if departed is None:
             return
-        median = float(np.median(self.scores))
-        stored_median = float(np.interp(0.5, stored["levels"], stored["quantiles"]))
-        self.drift = {"distance": distance, "critical": critical, "frames": n, "median": median,
-                      "calibration_median": stored_median}
+        self.drift = {**departed, "frames": n, "calibration_frames": int(stored.get("frames", 0))}
         where = (self.calibration.measured_on or {}).get("ground_truth") or "its calibration loop"
-        logger.warning(f"{self._calibration_source}: the acceptance scores of this run's first {n} deciding frames "
-                       f"(median {median:.4g}) depart from those it was calibrated on ({where}: median "
-                       f"{stored_median:.4g}, {m} frames; Kolmogorov-Smirnov distance {distance:.2f} > {critical:.2f}): "
-                       "its precision was measured on another kind of route and may not hold here; calibrate on a "
-                       "loop like this one (--calibrate-out) when you can")
+        logger.warning(f"{self._calibration_source}: {100 * departed['share']:.0f} % of the scores this run rejected "
+                       f"in its first {n} rejections lie above {departed['quantile']:.4g}, where "
+                       f"{100 * departed['expected']:.0f} % did on the loop it was calibrated on ({where}; "
+                       f"{stored.get('frames', 0)} rejections; z = {departed['z']:.1f}): this route's wrong candidates "
+                       "stand out more than those the threshold was set against, so its precision may not hold here; "
+                       "calibrate on a loop like this one (--calibrate-out) when you can")
 
     #: best-match similarity recorded for a frame whose search found no candidate
     _floor = -1.0

@@ -131,4 +131,4 @@ def calibrate_decisions(decisions: Sequence[FrameDecision], ground_truth, detect
         num_queries=len(evaluated), method=detector.descriptor.name, fingerprint=detector.descriptor.fingerprint(),
         sequence_length=length, measured_on=where,
         created=datetime.now(timezone.utc).isoformat(timespec="seconds"), fdnet_version=__version__, notes=notes,
-        probability=fit_probability(score, correct), score_distribution=score_distribution(score))
+        probability=fit_probability(score, correct), score_distribution=score_distribution(score, chosen.threshold))
