@@ -9,7 +9,7 @@ is evaluated with the same functions as the command (so a row equals what
 in docs/loop-closure.md):
 
     python benchmarks/loop_closure_grid.py --data ../shared/data/nordland_trimmed \\
-        --conditions summer,winter --frames 1576:2576 --tolerance 0 --exclude-last 5 \\
+        --conditions summer,winter --frames 1576:2576 --tolerance 0 \\
         --calibrate-frames 1576:2076 --test-frames 2076:2576 \\
         --method fdnet --checkpoint runs/nordland/best --out loop-grid-nordland.json
 
@@ -38,10 +38,11 @@ from fdnet.descriptors.pipeline import describe_stream
 
 #: gate settings compared (name -> LoopGates); "none" switches every gate off
 GATES = {
-    "none": LoopGates(min_brightness=None, min_contrast=None, still_difference=None),
-    "uninformative": LoopGates(still_difference=None),
-    "uninformative+still": LoopGates(),
-    "uninformative+still+k3": LoopGates(consistency=3),
+    "none": LoopGates(min_brightness=None, min_contrast=None, still_difference=None, similar_past=False),
+    "uninformative": LoopGates(still_difference=None, similar_past=False),
+    "uninformative+still": LoopGates(similar_past=False),
+    "uninformative+still+past": LoopGates(),
+    "uninformative+still+past+k3": LoopGates(consistency=3),
 }
 
 
@@ -59,10 +60,11 @@ def describe(descriptor, paths, batch_size: int = 32):
 def run(descriptor, cache, traverse, exclude_last, rule, length, gates, threshold=math.inf):
     detector = LoopClosureDetector(descriptor, None, exclude_last=exclude_last, rule=rule, threshold=threshold,
                                    sequence_length=length, gates=gates)
+    starts = set(np.flatnonzero(np.diff(traverse.condition_of)) + 1)  # each condition is a new recording
     with detector:
-        for path in traverse.paths:
+        for i, path in enumerate(traverse.paths):
             vector, signals = cache[path]
-            detector.process_vector(vector, name=str(path), signals=signals)
+            detector.process_vector(vector, name=str(path), signals=signals, new_segment=i in starts)
         return detector, list(detector.decisions), dict(detector.gate_counts)
 
 
@@ -72,7 +74,7 @@ def main(argv=None) -> int:
     parser.add_argument("--conditions", required=True)
     parser.add_argument("--frames", required=True)
     parser.add_argument("--tolerance", type=int, default=0)
-    parser.add_argument("--exclude-last", type=int, required=True)
+    parser.add_argument("--exclude-last", type=int, default=0)
     parser.add_argument("--calibrate-frames")
     parser.add_argument("--test-frames")
     parser.add_argument("--rules", default="raw,margin")
