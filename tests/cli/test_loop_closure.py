@@ -437,3 +437,24 @@ def test_an_event_one_file_cannot_hold_is_taken_out_of_the_other(tmp_path, monke
             log.write(closure)
     assert ((tmp_path / "e.csv").read_bytes(), (tmp_path / "e.jsonl").read_bytes()) == before
 
+
+
+def test_no_frame_count_needed_and_closures_carry_p_correct(tmp_path, capsys):
+    """Without --exclude-last the recent past comes from the traverse (the report says how far
+    back); a calibration's p_correct fit goes into each event; --calibration takes a run directory."""
+    root = write_two_condition_route(tmp_path / "route", n=30)
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    assert main(["loop-closure", "--data", str(root), "--conditions", "day,dusk", "--tolerance", "1", "--method",
+                 "raw", "--sequence-length", "3", "--calibrate-out", str(run_dir), "--out", str(tmp_path / "cal.csv"),
+                 "--report", str(tmp_path / "cal.json")]) == 0
+    out = capsys.readouterr().out
+    assert "recent past excluded: median" in out and "(2 segment(s)" in out
+    assert "p_correct fitted on" in out
+    report = json.loads((tmp_path / "cal.json").read_text())
+    assert report["exclude_last"] == 0 and report["recent_past"]["segments"] == 2
+    assert sum(report["recent_past"]["histogram"].values()) == 60
+    assert main(["loop-closure", "--data", str(root), "--conditions", "day,dusk", "--tolerance", "1", "--method",
+                 "raw", "--calibration", str(run_dir), "--out", str(tmp_path / "events.csv")]) == 0
+    rows = read_csv_rows(tmp_path / "events.csv")
+    assert rows and all(0.0 < float(r["p_correct"]) < 1.0 for r in rows)

@@ -46,8 +46,11 @@ def _default_calibration(args):
     from fdnet.decisions.calibration import stored_calibration
     from fdnet.decisions.loop_closure import LOOP_CALIBRATION_FILE
 
-    if args.calibration:
-        return args.calibration, load_calibration(args.calibration)
+    if args.calibration:  # a file, or a run directory's loop calibration (else its pair calibration)
+        from fdnet.decisions.loop_closure import resolve_calibration
+
+        calibrated, source = resolve_calibration(args.calibration, None)
+        return source, calibrated
     if args.threshold is not None or args.calibrate_out:
         return None, None
     if args.db and Path(args.db).is_file() and Path(args.db).stat().st_size > 0:
@@ -256,4 +259,11 @@ def _print_report(args, report) -> None:
         c = report.calibrated
         print(f"wrote {c['path']}: threshold {c['threshold']:.6g} reaches precision {c['precision']:.3f} at recall "
               f"{c['recall']:.3f} on this traverse (target {c['target_precision']:g})"
+              + (f"; p_correct fitted on {c['p_correct_frames']} frames (at the threshold: "
+                 f"{c['p_correct_at_threshold']:.3f})" if c.get("p_correct_at_threshold") is not None else "")
               + "".join(f"; {note}" for note in c["notes"]))
+    if report.score_drift is not None:
+        d = report.score_drift
+        print(f"warning: {100 * d['share']:.0f} % of the rejected scores lie above the calibration loop's "
+              f"{100 * d['level']:.0f}th percentile ({100 * d['expected']:.0f} % there): its precision may not hold "
+              "on this route")

@@ -77,7 +77,7 @@ def _single_blas_thread():
     return _BLAS.limit(limits=1, user_api="blas")
 
 
-def _resolved_calibration(calibration, source: str | None):
+def resolve_calibration(calibration, source: str | None):
     """(a Calibration, where it came from) for a Calibration, a calibration file or a run
     directory (its loop calibration, else its pair calibration, in RUN or RUN/best); (None,
     source) for None."""
@@ -157,7 +157,7 @@ class LoopClosureDetector:
         source = None
         if threshold is None and calibration is None:
             calibration, source = stored_calibration(database)
-        calibration, source = _resolved_calibration(calibration, source)
+        calibration, source = resolve_calibration(calibration, source)
         if sequence_length is None:  # a calibration's own, else single images
             sequence_length = max(int(calibration.sequence_length), 1) if calibration is not None else 1
         if isinstance(sequence_length, bool) or not isinstance(sequence_length, (int, np.integer)) \

@@ -375,7 +375,11 @@ def _calibrate_on_traverse(detector: LoopClosureDetector, truth, target_precisio
 
     calibrated = calibrate_decisions(detector.decisions, truth, detector, target_precision, source)
     written = save_calibration(calibrated, calibrate_to)
+    fitted = calibrated.probability or {}
+    at = float(calibrated.p_correct([calibrated.threshold])[0]) if math.isfinite(calibrated.threshold) else None
     return {"path": str(written), "threshold": calibrated.threshold,
             "target_precision": calibrated.target_precision,
+            "p_correct_frames": int(fitted.get("frames", 0)),
+            "p_correct_at_threshold": at if at is not None and math.isfinite(at) else None,
             "precision": calibrated.precision, "recall": calibrated.recall,
             "accepted": calibrated.accepted, "notes": list(calibrated.notes)}
