@@ -3,33 +3,21 @@
 For each new frame, :class:`LoopClosureDetector`:
 
 1. describes it (or takes its vector);
-2. scores it against the places in the database *except this traverse's last ``exclude_last``
-   frames* (a robot's previous few frames always look like its current one and are no revisit):
-   the single-image similarity, or with ``sequence_length`` > 1 the SeqSLAM sequence similarity
-   over the robot's last frames (:func:`fdnet.matching.sequence.online_sequence_scores`);
-3. ranks those places and turns the candidates into one acceptance score with a named rule of
-   :mod:`fdnet.decisions.acceptance` (``raw``, ``margin``, ``ratio``, gates such as ``floor``,
-   and geometric verification ``verified`` from :mod:`fdnet.decisions.verification`, e.g.
-   ``margin+verified``);
-4. accepts the best candidate as a loop closure when that score reaches the threshold (given, or
-   from a calibration file of :mod:`fdnet.decisions.calibration` made for the same model);
-5. adds the frame to the database (one transaction, see :mod:`fdnet.matching.database`) and
-   returns the :class:`Closure`, or None.
+2. scores it against the places in the database *except the robot's recent past*, found from the
+   traverse itself (:mod:`fdnet.decisions.loop_recency`) with the gates of
+   :mod:`fdnet.decisions.loop_gates`: single images, or with ``sequence_length`` > 1 the SeqSLAM
+   sequence similarity over the robot's last frames, never across a seam between recordings;
+3. turns the candidates into one acceptance score with a rule of :mod:`fdnet.decisions.acceptance`;
+4. accepts the best candidate when that score reaches the threshold (given, or from a calibration
+   made for the same model, :mod:`fdnet.decisions.loop_trust`), with its ``p_correct``;
+5. adds the frame to the database (one transaction) and returns the :class:`Closure`, or None.
 
 **Causal.** Every number a frame's decision uses comes from that frame and frames processed
-before it: the places searched were added before it, the sequence rows are those of earlier
-frames as they were computed then, and nothing is revised later. So the events up to frame t do
-not depend on frames after t (a test changes the future frames and gets the same events).
-
-**Search.** The database file is the map that persists between sessions; the detector keeps the
-database's vectors in memory as well (read once when it starts, then appended as it adds frames)
-and scores the new frame against all of them exhaustively, because sequence scores need each
-frame's whole similarity row, not a top-k. Cost per frame is one (places x dim) product:
-milliseconds for 10^4 places; an approximate index would be needed for maps of 10^6.
-
-:func:`run_traverse` is what ``fdnet loop-closure`` calls: a folder of images in fdnet's one
-order, events written as they are accepted (:class:`EventLog`), and optionally an evaluation
-against ground truth with the metrics of :mod:`fdnet.metrics`.
+before it, and nothing is revised later: the events up to frame t do not depend on frames after t.
+The detector keeps the database's vectors in memory (read once, then appended) and scores a frame
+against all of them (sequences need whole rows), or through an index on large maps
+(:mod:`fdnet.decisions.loop_search`). :func:`fdnet.decisions.loop_traverse.run_traverse` is what
+``fdnet loop-closure`` runs.
 """
 
 from __future__ import annotations
@@ -43,11 +31,13 @@ from pathlib import Path
 
 import numpy as np
 
-from fdnet.decisions.acceptance import AcceptanceSpec, Candidates, decide, parse_acceptance
-from fdnet.decisions.calibration import checked_calibration, stored_calibration
-# the records the detector produces live in loop_records; importable from here as before
+from fdnet.decisions.acceptance import AcceptanceSpec, Candidates, decide
+from fdnet.decisions.calibration import stored_calibration
 from fdnet.decisions.loop_records import EVENT_COLUMNS, Closure, FrameDecision, GrowingArray  # noqa: F401
-from fdnet.decisions.loop_recency import NULL_SAMPLE, GapDetector, Seams, similar_past
+from fdnet.decisions.loop_threads import single_blas_thread, single_torch_thread
+from fdnet.decisions.loop_trust import (LOOP_CALIBRATION_FILE, DriftCheck, calibrated_gates,  # noqa: F401
+                                        decision_rule, resolve_calibration)
+from fdnet.decisions.loop_recency import RECENT_WINDOW, GapDetector, Seams, sampled_similar_past, similar_past
 from fdnet.decisions.loop_gates import (ConsistencyGate, FrameSignals, LoopGates, RecentPast, frame_signals,
                                         informative_frames, is_still)
 from fdnet.errors import ConfigError, DataError
@@ -55,73 +45,9 @@ from fdnet.matching.database.storage import place_name
 
 logger = logging.getLogger(__name__)
 
-#: file name of a loop calibration in a run directory (``fdnet loop-closure --calibrate-out RUN_DIR``),
-#: which loop closure with ``--checkpoint RUN_DIR`` uses when given no threshold
-LOOP_CALIBRATION_FILE = "loop-calibration.yaml"
-
 #: how the detector finds a frame's candidates: every place, an index, or the index once the map
 #: has ``index_from`` places (:mod:`fdnet.decisions.loop_search`)
 SEARCH_KINDS = ("auto", "exact", "index")
-
-_BLAS = None
-
-
-def _single_blas_thread():
-    """A context in which numpy's BLAS runs one thread (threadpoolctl, the controller made once:
-    making it per frame would cost more than the product)."""
-    global _BLAS
-    if _BLAS is None:
-        from threadpoolctl import ThreadpoolController
-
-        _BLAS = ThreadpoolController()
-    return _BLAS.limit(limits=1, user_api="blas")
-
-
-def resolve_calibration(calibration, source: str | None):
-    """(a Calibration, where it came from) for a Calibration, a calibration file or a run
-    directory (its loop calibration, else its pair calibration, in RUN or RUN/best); (None,
-    source) for None."""
-    from fdnet.decisions.calibration import CALIBRATION_FILE, Calibration, load_calibration, stored_in_run
-
-    if calibration is None or isinstance(calibration, Calibration):
-        return calibration, source
-    path = Path(calibration)
-    if path.is_dir():
-        found = stored_in_run(path, (LOOP_CALIBRATION_FILE, CALIBRATION_FILE))
-        if found is None:
-            raise DataError(f"{path}: no {LOOP_CALIBRATION_FILE} or {CALIBRATION_FILE} in this run directory (or its "
-                            "best/): calibrate on a loop with ground truth first, e.g. `fdnet loop-closure --data "
-                            f"ROUTE --conditions A,B --calibrate-out {path} ...`")
-        path = found
-    return load_calibration(path), str(path)
-
-
-#: how many recent frames of its segment a frame walks back through at most on the indexed path
-RECENT_WINDOW = 2000
-
-#: decided frames after which a run compares its scores with its calibration's, and how often
-DRIFT_AFTER, DRIFT_EVERY = 200, 50
-
-
-class _one_torch_thread:
-    """torch on one intra-op thread while one frame is described: a single image gives each of
-    several threads too little work to pay for their barriers, and on cores shared with other
-    work a descheduled thread stalls the others at every layer (measured on 2 loaded cores: 6.7
-    frames/s with 2 threads, 47 with 1; docs/loop-closure.md)."""
-
-    def __enter__(self):
-        import sys
-
-        self._torch = sys.modules.get("torch")  # a descriptor without torch never loads it
-        if self._torch is not None:
-            self._threads = self._torch.get_num_threads()
-            if self._threads != 1:
-                self._torch.set_num_threads(1)
-
-    def __exit__(self, *exc):
-        if self._torch is not None and self._threads != 1:
-            self._torch.set_num_threads(self._threads)
-
 
 class LoopClosureDetector:
     """Online loop-closure detection over a place database (see the module docstring).
@@ -191,9 +117,9 @@ class LoopClosureDetector:
         # frames decided but not yet stored (commit_every > 1): vectors, names, positions, metadata
         self._pending: list[tuple] = []
         self._calibration_source = source or "the calibration"
-        self.spec, self.threshold, self.calibration = self._decision_rule(rule, rule_settings, threshold, calibration,
-                                                                          source)
-        self.gates = self._gates(gates, source)
+        self.spec, self.threshold, self.calibration = decision_rule(descriptor, self.sequence_length, rule,
+                                                                    rule_settings, threshold, calibration, source)
+        self.gates = calibrated_gates(self.calibration, gates, source)
         self._owns_database = not isinstance(database, PlaceDatabase)
         self.database = self._database(database, method_options)
         try:
@@ -216,9 +142,8 @@ class LoopClosureDetector:
         self._own_first: list[int] = []
         self.excluded_back: list[int] = []
         self._gaps = GapDetector()
-        #: the rule scores under the threshold (the drift check against the calibration's)
-        self.rejected_scores: list[float] = []
-        self.drift: dict | None = None
+        #: the rule scores under the threshold, checked against the calibration's
+        self._drift = DriftCheck(self.calibration, self._calibration_source)
         self._indexed = None
         self._consistency = ConsistencyGate(self.gates.consistency, self.gates.consistency_window)
         self._last_thumbnail: np.ndarray | None = None
@@ -230,64 +155,6 @@ class LoopClosureDetector:
         self.gate_counts = {"uninformative": 0, "still_frames": 0, "still_exclusion": 0, "held_by_consistency": 0}
 
     # ------------------------------------------------------------------ setting up
-    def _decision_rule(self, rule, rule_settings, threshold, calibration, source=None):
-        if calibration is not None:
-            if threshold is not None:
-                raise ConfigError("give a threshold or a calibration file, not both (the calibration sets the "
-                                  "threshold)")
-            calibrated, source = checked_calibration(calibration, self.descriptor, self.sequence_length, source)
-            spec = calibrated.spec
-            where = calibrated.measured_on or {}
-            if not where.get("loop_closure"):
-                logger.warning(f"{source}: this calibration was measured on a pair of traverses, not on a loop: "
-                               "in loop closure the robot's own recent frames are look-alikes a pair never shows, "
-                               "and its precision is not reached there (docs/loop-closure.md). Calibrate on a loop: "
-                               "fdnet loop-closure ... --ground-truth CSV --calibrate-out FILE")
-            logger.info(f"{source}: threshold {calibrated.threshold:.6g} of rule {spec.name} reached precision "
-                        f"{calibrated.precision:.3f} at recall {calibrated.recall:.3f} on {calibrated.accepted} "
-                        f"accepted of {calibrated.num_queries} frames where it was measured")
-            if rule is not None or rule_settings:
-                wanted = rule if isinstance(rule, AcceptanceSpec) else parse_acceptance(str(rule or spec.name),
-                                                                                       rule_settings)
-                if wanted.to_dict() != spec.to_dict():
-                    raise ConfigError(f"{source}: calibrates rule {spec.name!r} with settings {spec.settings}, "
-                                      f"but rule {wanted.name!r} with settings {wanted.settings} was asked for; "
-                                      "its threshold means nothing for another rule")
-            return spec, float(calibrated.threshold), calibrated
-        if threshold is None:
-            raise ConfigError("a loop closure needs an acceptance threshold: give one (--threshold T), a "
-                              "calibration file (--calibration FILE), or a database holding a calibration "
-                              "(`fdnet calibrate --db`); or calibrate on a loop with ground truth first, e.g. "
-                              "`fdnet loop-closure --data ROUTE --conditions A,B --calibrate-out RUN_DIR ...`, which "
-                              f"writes RUN_DIR/{LOOP_CALIBRATION_FILE} that runs with --checkpoint RUN_DIR use")
-        # +inf accepts nothing: a run that only measures (e.g. to calibrate: calibrate_decisions)
-        if isinstance(threshold, bool) or not isinstance(threshold, (int, float, np.floating, np.integer)) \
-                or math.isnan(float(threshold)) or float(threshold) == -math.inf:
-            raise ConfigError(f"threshold must be a number (+inf accepts nothing), got {threshold!r}")
-        if rule is None:
-            raise ConfigError("name the acceptance rule (e.g. rule='margin'); `fdnet loop-closure --accept RULE`")
-        spec = rule if isinstance(rule, AcceptanceSpec) else parse_acceptance(str(rule), rule_settings)
-        return spec, float(threshold), None
-
-    def _gates(self, gates: LoopGates | None, source: str | None) -> LoopGates:
-        """The gates: given, else those a loop calibration was measured with (its threshold holds
-        for them: the consistency gate changes what a score means), else the defaults. Gates
-        that differ from a loop calibration's are refused."""
-        calibrated = None
-        if self.calibration is not None:
-            stored = (self.calibration.measured_on or {}).get("gates")
-            calibrated = LoopGates.from_dict(stored) if stored else None
-        if gates is None:
-            return calibrated or LoopGates()
-        if calibrated is not None and calibrated != gates:
-            changed = {k: (v, gates.to_dict()[k]) for k, v in calibrated.to_dict().items() if gates.to_dict()[k] != v}
-            raise ConfigError(f"{source or 'the calibration'}: was measured with loop gates "
-                              + ", ".join(f"{k}={a}" for k, (a, _) in changed.items()) + ", but "
-                              + ", ".join(f"{k}={b}" for k, (_, b) in changed.items())
-                              + " were asked for; its threshold holds for its own gates (leave the gates out to "
-                              "use them)")
-        return gates
-
     def _database(self, database, method_options):
         from fdnet.matching.database import PlaceDatabase, holds_a_database
 
@@ -330,6 +197,11 @@ class LoopClosureDetector:
         return len(self._vectors)
 
     @property
+    def drift(self) -> dict | None:
+        """How this run's rejected scores departed from its calibration's (None: they did not)."""
+        return self._drift.drift
+
+    @property
     def segments(self) -> int:
         """Segments of the map (recordings driven without a break, :mod:`fdnet.decisions.loop_recency`)."""
         return self._seams.segments
@@ -362,7 +234,7 @@ class LoopClosureDetector:
         if keyed:
             self.descriptor._batch_paths = [image]
         try:
-            with _one_torch_thread():
+            with single_torch_thread():
                 return np.asarray(self.descriptor.describe(array[None]), dtype=np.float32)[0]
         finally:
             if keyed:
@@ -454,8 +326,7 @@ class LoopClosureDetector:
                 decision = FrameDecision(t, match, score, accepted, int(searchable), best, best_similarity,
                                          rule_score=rule_score)
                 if math.isfinite(rule_score) and rule_score < self.threshold:
-                    self.rejected_scores.append(float(rule_score))
-                    self._check_drift()
+                    self._drift.add(rule_score)
                 if accepted:
                     here = (None, None) if position is None else tuple(float(c) for c in list(position)[:2])
                     there = (None, None) if self._positions is None else tuple(self._positions[match][:2])
@@ -473,34 +344,8 @@ class LoopClosureDetector:
         return closure
 
     def _p_correct(self, score: float) -> float | None:
-        if self.calibration is None:
-            return None
-        p = float(self.calibration.p_correct([score])[0])
+        p = float(self.calibration.p_correct([score])[0]) if self.calibration is not None else math.nan
         return p if math.isfinite(p) else None
-
-    def _check_drift(self) -> None:
-        """Warn once when this run's rejected scores reach into the upper tail of those its
-        calibration loop rejected more often than they did there
-        (:func:`fdnet.decisions.calibration.tail_departure`): this route's wrong candidates
-        stand out more than the ones the threshold was set against, so its precision may not
-        hold here."""
-        from fdnet.decisions.calibration import tail_departure
-
-        stored = (self.calibration.score_distribution or {}) if self.calibration is not None else {}
-        n = len(self.rejected_scores)
-        if not stored or self.drift is not None or n < DRIFT_AFTER or n % DRIFT_EVERY:
-            return
-        departed = tail_departure(stored, np.asarray(self.rejected_scores))
-        if departed is None:
-            return
-        self.drift = {**departed, "frames": n, "calibration_frames": int(stored.get("frames", 0))}
-        where = (self.calibration.measured_on or {}).get("ground_truth") or "its calibration loop"
-        logger.warning(f"{self._calibration_source}: {100 * departed['share']:.0f} % of the scores this run rejected "
-                       f"in its first {n} rejections lie above {departed['quantile']:.4g}, where "
-                       f"{100 * departed['expected']:.0f} % did on the loop it was calibrated on ({where}; "
-                       f"{stored.get('frames', 0)} rejections; z = {departed['z']:.1f}): this route's wrong candidates "
-                       "stand out more than those the threshold was set against, so its precision may not hold here; "
-                       "calibrate on a loop like this one (--calibrate-out) when you can")
 
     #: best-match similarity recorded for a frame whose search found no candidate
     _floor = -1.0
@@ -508,10 +353,7 @@ class LoopClosureDetector:
     def _exhaustive_candidates(self, v, t, count, informative, still, timestamp, position):
         """(candidate places best first, their scores, searchable) by scoring every place."""
         if count:
-            # One row against the map is a memory-bound matrix-vector product: BLAS threads only
-            # add synchronisation, and on shared cores they made it ~5x slower (17 ms vs 3.7 ms
-            # for 3000 x 2048 on the 2-core machine of docs/loop-closure.md).
-            with _single_blas_thread():
+            with single_blas_thread():
                 row = np.asarray(self.descriptor.similarity(v[None], self._vectors.view()), dtype=np.float32)[0]
         else:
             row = np.zeros(0, np.float32)
@@ -532,7 +374,7 @@ class LoopClosureDetector:
             self._rows.append(padded)
         else:
             every = row
-        back = self._similar_back(row, t, informative)
+        back = self._similar_back(t, informative, row)
         searchable = self._searchable(t, count, previous, still, timestamp, position, back)
         scores = every[:searchable]
         if not searchable:
@@ -543,16 +385,19 @@ class LoopClosureDetector:
         idx, top = top_k_of_matrix(scores[None], min(self.spec.depth, len(scores)))
         return idx[0], top[0], searchable
 
-    def _similar_back(self, row: np.ndarray, t: int, informative: bool) -> int:
+    def _similar_back(self, t: int, informative: bool, row: np.ndarray | None = None, v=None) -> int:
         """How many of its segment's earlier frames the frame still resembles more than unrelated
-        places (:func:`fdnet.decisions.loop_recency.similar_past` over its row); an uninformative
-        frame's row says nothing, so it keeps its predecessor's reach, one frame further."""
+        places (:func:`fdnet.decisions.loop_recency.similar_past` over its ``row``; without one,
+        on the indexed path, over a sample of the map); an uninformative frame's row says nothing,
+        so it keeps its predecessor's reach, one frame further."""
         if t <= self._segment_first or not self.gates.similar_past:
             return 0
         if not informative:
             return (t - self._own_first[-1]) if self._own_first else 0
-        places = np.asarray(self._before[self._segment_first:t], np.int64)[::-1]
-        return similar_past(row, places)
+        if row is None:
+            recent = np.asarray(self._before[max(self._segment_first, t - RECENT_WINDOW):t], np.int64)[::-1]
+            return sampled_similar_past(self.descriptor.similarity, v, self._vectors.view(), recent)
+        return similar_past(row, np.asarray(self._before[self._segment_first:t], np.int64)[::-1])
 
     def _indexed_candidates(self, v, t, count, informative, still, timestamp, position):
         """(candidate places best first, their scores, searchable) from the index (large maps,
@@ -560,18 +405,7 @@ class LoopClosureDetector:
         vectors = self._vectors.view()
         previous = float(self.descriptor.similarity(v[None], vectors[count - 1:count])[0, 0]) \
             if t > 0 and count > 0 else None
-        back = 0
-        if t > self._segment_first and informative and self.gates.similar_past:
-            # the walk reads the frame's similarity to its segment's recent frames and to an even
-            # sample of the map (the null level), not the whole row
-            recent = np.asarray(self._before[max(self._segment_first, t - RECENT_WINDOW):t], np.int64)[::-1]
-            sample = np.linspace(0, count - 1, min(NULL_SAMPLE, count)).astype(np.int64)
-            sample = np.setdiff1d(sample, recent)
-            places = np.concatenate([recent, sample])
-            row = np.asarray(self.descriptor.similarity(v[None], vectors[places]), np.float64)[0]
-            back = similar_past(row, np.arange(len(recent)))
-        elif t > self._segment_first and not informative and self.gates.similar_past and self._own_first:
-            back = t - self._own_first[-1]
+        back = self._similar_back(t, informative, v=v)
         searchable = self._searchable(t, count, previous, still, timestamp, position, back)
         mask = self._informative.view(count)
         neutral = self._indexed.neutral(v, vectors, mask)

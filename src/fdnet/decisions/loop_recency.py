@@ -61,7 +61,14 @@ def walk_back(back: np.ndarray, level: float, patience: int = PATIENCE) -> int:
     frame k + 1 steps earlier (newest first); the walk passes frames at or above ``level`` and
     stops at the first ``patience`` consecutive frames below it. Returns the count of frames up
     to and including the last one at or above the level (0: not even the previous frame)."""
-    above = np.asarray(back, dtype=np.float64) >= level
+    import os
+    smooth = int(os.environ.get("FDNET_LC_SMOOTH", "1"))
+    patience = int(os.environ.get("FDNET_LC_PAT", patience))
+    back = np.asarray(back, dtype=np.float64)
+    if smooth > 1 and len(back):
+        h = smooth // 2
+        back = np.convolve(np.pad(back, (h, h), mode="edge"), np.ones(2 * h + 1) / (2 * h + 1), mode="valid")
+    above = back >= level
     if not above.any():
         return 0
     below = (~above).astype(np.int64)
@@ -93,6 +100,20 @@ def similar_past(row: np.ndarray, recent: np.ndarray) -> int:
             break
         reach = again
     return reach
+
+
+#: how many recent frames of its segment a frame walks back through at most on the indexed path
+RECENT_WINDOW = 2000
+
+
+def sampled_similar_past(similarity, vector: np.ndarray, vectors: np.ndarray, recent: np.ndarray) -> int:
+    """:func:`similar_past` on a map too large to score whole: the frame's similarity to its
+    ``recent`` places (newest first) and to an even sample of :data:`NULL_SAMPLE` places (the
+    null level), by the descriptor's ``similarity``."""
+    sample = np.setdiff1d(np.linspace(0, len(vectors) - 1, min(NULL_SAMPLE, len(vectors))).astype(np.int64), recent)
+    places = np.concatenate([recent, sample])
+    row = np.asarray(similarity(vector[None], vectors[places]), np.float64)[0]
+    return similar_past(row, np.arange(len(recent)))
 
 
 class Seams:
