@@ -61,13 +61,10 @@ def walk_back(back: np.ndarray, level: float, patience: int = PATIENCE) -> int:
     frame k + 1 steps earlier (newest first); the walk passes frames at or above ``level`` and
     stops at the first ``patience`` consecutive frames below it. Returns the count of frames up
     to and including the last one at or above the level (0: not even the previous frame)."""
-    import os
-    smooth = int(os.environ.get("FDNET_LC_SMOOTH", "1"))
-    patience = int(os.environ.get("FDNET_LC_PAT", patience))
     back = np.asarray(back, dtype=np.float64)
-    if smooth > 1 and len(back):
-        h = smooth // 2
-        back = np.convolve(np.pad(back, (h, h), mode="edge"), np.ones(2 * h + 1) / (2 * h + 1), mode="valid")
+    # a short segment's frames are few and its null level rests on few places: unrelated frames
+    # cross it more often than on a long one, so a walk there may not bridge as many of them
+    patience = min(patience, max(1, len(back) // 4))
     above = back >= level
     if not above.any():
         return 0
