@@ -100,3 +100,26 @@ def test_a_run_whose_scores_depart_from_the_calibration_warns_once(tmp_path, cap
     other, warnings = run(np.concatenate(slow_route(n=150, seed=5, persistence=0.97)))
     assert other.drift is not None and other.drift["share"] > 0.15 and len(warnings) == 1
     assert str(path) in warnings[0] and "stand out more" in warnings[0]
+
+
+def test_a_threshold_for_precision_one_is_set_for_a_thousand_wrong_frames_not_just_this_loops():
+    from fdnet.decisions.calibration import tail_threshold
+
+    rng = np.random.default_rng(0)
+    # an exponential tail of scale 1: fewer than one of 1000 draws above ln(1000) ~ 6.9
+    tail = tail_threshold(rng.exponential(1.0, 200))
+    assert 5.5 < tail["threshold"] < 8.5 and 0.7 < tail["beta"] < 1.4
+    assert tail_threshold(rng.exponential(1.0, 10)) is None
+    # on a loop where the most confident wrong frame already lies above that level, it is kept
+    calibration, *_ = calibrated(None, n=80)
+    assert calibration.threshold > calibration.measured_on["wrong_score_tail"]["threshold"]
+    assert not calibration.notes
+    # where it lies below, the threshold is raised to it, and the calibration says so
+    from fdnet.decisions.loop_evaluation import calibrate_decisions
+
+    first, second = slow_route(n=150, seed=2)
+    detector = drive(first, second)
+    raised = calibrate_decisions(detector.decisions, revisit_truth(150), detector, 1.0)
+    tail = raised.measured_on["wrong_score_tail"]
+    assert raised.threshold == tail["threshold"] and "raised from" in raised.notes[0]
+    assert raised.precision == 1.0

@@ -248,6 +248,32 @@ def score_distribution(scores: np.ndarray, below: float = math.inf) -> dict:
             "quantiles": [float(q) for q in np.quantile(scores, DISTRIBUTION_LEVELS)], "frames": int(len(scores))}
 
 
+#: a loop calibration for precision 1.0 also keeps the expected number of wrong closures among this
+#: many wrong-candidate frames under one (:func:`tail_threshold`)
+EXTRAPOLATE_TO = 1000
+
+
+def tail_threshold(wrong_scores: np.ndarray, frames: int = EXTRAPOLATE_TO) -> dict | None:
+    """The score above which fewer than one of ``frames`` wrong candidates is expected, from an
+    exponential fit of the upper tail of ``wrong_scores`` (the finite scores of frames whose
+    candidate was wrong): the top k = max(10, n / 10) scores over the k-th, whose mean excess is
+    the tail's scale beta; P(score > t) = (k / n) exp(-(t - u) / beta), so t = u + beta ln(frames
+    k / n). Why: a threshold set just above the most confident wrong frame of a loop bounds the
+    largest of that loop's n wrong frames, not of a longer route's (a 300-frame loop's threshold
+    admitted a 2000-frame loop's stronger look-alikes, docs/loop-closure.md); this one is set for
+    ``frames`` of them. None with fewer than 20 wrong scores (no tail to fit)."""
+    wrong = np.sort(np.asarray(wrong_scores, dtype=np.float64)[np.isfinite(wrong_scores)])[::-1]
+    if len(wrong) < 20:
+        return None
+    k = max(10, len(wrong) // 10)
+    u = float(wrong[k])
+    beta = float(np.mean(wrong[:k] - u))
+    if beta <= 0:
+        return None
+    return {"threshold": u + beta * math.log(frames * k / len(wrong)), "u": u, "beta": beta, "k": k,
+            "wrong": int(len(wrong)), "frames": int(frames)}
+
+
 #: the upper levels of a stored distribution the drift check reads, and the z-score above which a
 #: run's share of scores over them counts as departed (one-sided: a route whose wrong candidates
 #: stand out less than the calibration loop's only costs recall)

@@ -107,8 +107,8 @@ def calibrate_decisions(decisions: Sequence[FrameDecision], ground_truth, detect
     from datetime import datetime, timezone
 
     from fdnet.version import __version__
-    from fdnet.decisions.calibration import (Calibration, check_target, choose_threshold, fit_probability,
-                                             score_distribution)
+    from fdnet.decisions.calibration import (Calibration, Threshold, check_target, choose_threshold,
+                                             fit_probability, score_distribution, tail_threshold)
 
     target = check_target(target_precision)
     evaluated, truth = _evaluable(decisions, ground_truth)
@@ -117,6 +117,15 @@ def calibrate_decisions(decisions: Sequence[FrameDecision], ground_truth, detect
     correct = truth.correct_mask(match[:, None])[:, 0]
     chosen = choose_threshold(score, correct, truth.has_match, target)
     notes = []
+    tail = tail_threshold(score[~correct]) if target == 1.0 else None
+    if tail is not None and math.isfinite(chosen.threshold) and tail["threshold"] > chosen.threshold:
+        at = score >= tail["threshold"]
+        right = int((at & correct).sum())
+        notes.append(f"raised from {chosen.threshold:.6g} (just above this traverse's most confident wrong frame, "
+                     f"of {tail['wrong']}) to {tail['threshold']:.6g}, where fewer than one wrong closure is expected "
+                     f"among {tail['frames']} wrong frames (exponential tail of this traverse's wrong scores)")
+        chosen = Threshold(tail["threshold"], right / int(at.sum()) if at.any() else 1.0,
+                           right / max(int(truth.has_match.sum()), 1), int(at.sum()))
     if not math.isfinite(chosen.threshold):
         notes.append(f"no threshold reaches precision {target:g} on this traverse (its most confident frame is "
                      "already wrong): nothing will be accepted")
@@ -124,6 +133,7 @@ def calibrate_decisions(decisions: Sequence[FrameDecision], ground_truth, detect
     where = {"loop_closure": True, "ground_truth": truth.description, "exclude_last": detector.exclude_last,
              "gates": detector.gates.to_dict(),
              "frames": len(decisions), "frames_evaluated": len(evaluated), "sequence_length": length,
+             **({"wrong_score_tail": tail} if tail is not None else {}),
              **(measured_on or {})}
     return Calibration(
         rule=detector.spec.name, settings=detector.spec.settings, threshold=chosen.threshold,
