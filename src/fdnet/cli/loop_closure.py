@@ -120,7 +120,9 @@ def register(sub) -> None:
                         "query_index,reference_indices")
     p.add_argument("--calibrate-out", metavar="FILE.yaml|RUN_DIR",
                    help="with ground truth (--ground-truth, or --data): choose the threshold of the rule that reaches "
-                        "--target-precision on this traverse and write it as a calibration for later runs "
+                        "--target-precision on this traverse (at 1.0, raised where needed so that fewer than one "
+                        "wrong closure is expected among 1000 wrong frames) and write it, with p_correct's fit, as "
+                        "a calibration for later runs "
                         "(--calibration FILE; a run directory gets RUN_DIR/loop-calibration.yaml, which runs with "
                         "--checkpoint RUN_DIR then use by default); without --threshold this run accepts nothing")
     p.add_argument("--target-precision", type=float, default=1.0,
