@@ -15,7 +15,7 @@ from fdnet.decisions.loop_evaluation import calibrate_decisions
 from fdnet.errors import DataError
 from fdnet.performance.loop_benchmark import StoredVectors
 
-from tests.decisions.test_loop_recency import drive, revisit_truth, slow_route, unit
+from tests.decisions.test_loop_recency import drive, revisit_truth, slow_route
 
 
 def test_p_correct_is_non_decreasing_and_a_lower_bound_of_each_block():
