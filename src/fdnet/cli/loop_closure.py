@@ -266,6 +266,6 @@ def _print_report(args, report) -> None:
               + "".join(f"; {note}" for note in c["notes"]))
     if report.score_drift is not None:
         d = report.score_drift
-        print(f"warning: {100 * d['share']:.0f} % of the rejected scores lie above the calibration loop's "
-              f"{100 * d['level']:.0f}th percentile ({100 * d['expected']:.0f} % there): its precision may not hold "
-              "on this route")
+        print(f"warning: {100 * d['share']:.0f} % of the scores rejected on {args.images or args.data} lie above the "
+              f"{100 * d['level']:.0f}th percentile of those rejected on the loop of {report.calibration} "
+              f"({100 * d['expected']:.0f} % there): its precision may not hold on this route")
