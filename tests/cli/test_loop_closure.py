@@ -458,3 +458,36 @@ def test_no_frame_count_needed_and_closures_carry_p_correct(tmp_path, capsys):
                  "raw", "--calibration", str(run_dir), "--out", str(tmp_path / "events.csv")]) == 0
     rows = read_csv_rows(tmp_path / "events.csv")
     assert rows and all(0.0 < float(r["p_correct"]) < 1.0 for r in rows)
+
+
+def test_a_run_unlike_its_calibration_loop_says_so(tmp_path, capsys):
+    """Vectors computed elsewhere (--method precomputed): a calibration made on one kind of route
+    and used on a route whose wrong candidates stand out more prints a warning naming both."""
+    from PIL import Image
+
+    from fdnet.data.groundtruth import GroundTruth
+    from tests.decisions.test_loop_recency import slow_route
+
+    rng = np.random.default_rng(0)
+    names, vectors = [], []
+    for folder, persistence in (("calibration", 0.93), ("slower", 0.97)):
+        (tmp_path / folder).mkdir()
+        first, second = slow_route(n=150, seed=5 if folder == "slower" else 0, persistence=persistence)
+        for i, vector in enumerate(np.concatenate([first, second])):
+            path = tmp_path / folder / f"frame_{i:03d}.png"
+            Image.fromarray(rng.integers(0, 256, size=(32, 64, 3)).astype(np.uint8)).save(path)
+            names.append(str(path))
+            vectors.append(vector)
+    np.savez(tmp_path / "vectors.npz", names=np.array(names), descriptors=np.array(vectors, np.float32))
+    GroundTruth([[] for _ in range(150)] + [[q - 151, q - 150, q - 149] if q > 150 else [0, 1] for q in range(150, 300)],
+                300).to_csv(tmp_path / "gt.csv")
+    common = ["--method", "precomputed", "--vectors", str(tmp_path / "vectors.npz"), "--workers", "0", "--no-progress"]
+    assert main(["loop-closure", "--images", str(tmp_path / "calibration"), *common, "--ground-truth",
+                 str(tmp_path / "gt.csv"), "--calibrate-out", str(tmp_path / "cal.yaml"),
+                 "--out", str(tmp_path / "cal.csv")]) == 0
+    capsys.readouterr()
+    assert main(["loop-closure", "--images", str(tmp_path / "slower"), *common, "--calibration",
+                 str(tmp_path / "cal.yaml"), "--out", str(tmp_path / "events.csv")]) == 0
+    captured = capsys.readouterr()
+    assert f"scores rejected on {tmp_path / 'slower'}" in captured.out and str(tmp_path / "cal.yaml") in captured.out
+    assert "stand out more" in captured.err
