@@ -491,3 +491,23 @@ def test_a_run_unlike_its_calibration_loop_says_so(tmp_path, capsys):
     captured = capsys.readouterr()
     assert f"scores rejected on {tmp_path / 'slower'}" in captured.out and str(tmp_path / "cal.yaml") in captured.out
     assert "stand out more" in captured.err
+
+
+def test_a_resumed_run_says_how_many_frames_it_took_over(route, tmp_path, capsys):
+    """The frames an interrupted run stored are replayed, and the summary says so (they are part
+    of this traverse, not places from before it)."""
+    partial = tmp_path / "partial"
+    partial.mkdir()
+    frames = sorted(route.iterdir())
+    for path in frames[:12]:  # the run was killed after storing its first 12 frames
+        (partial / path.name).write_bytes(path.read_bytes())
+    common = ["loop-closure", "--images", str(partial), "--method", "raw", "--sequence-length", "1", "--accept",
+              "margin", "--threshold", "0.2", "--db", str(tmp_path / "map.db"), "--no-progress", "--workers", "0"]
+    assert main([*common, "--out", str(tmp_path / "first.csv")]) == 0
+    for path in frames[12:]:
+        (partial / path.name).write_bytes(path.read_bytes())
+    capsys.readouterr()
+    assert main([*common, "--resume", "--out", str(tmp_path / "events.csv")]) == 0
+    out = capsys.readouterr().out
+    assert (f"{tmp_path / 'map.db'}: 0 places before this traverse, {len(frames)} after (12 of its frames stored by "
+            "the interrupted run, replayed, not added again)") in out

@@ -233,7 +233,9 @@ def _print_report(args, report) -> None:
                                                        else "") + "), "
           f"{report.frames_per_second:.1f} frames/s ({report.seconds:.1f} s)")
     if args.db:
-        print(f"{args.db}: {report.places_before} places before, {report.places_after} after")
+        print(f"{args.db}: {report.places_before} places before this traverse, {report.places_after} after"
+              + (f" ({report.resumed_frames} of its frames stored by the interrupted run, replayed, not added "
+                 "again)" if report.resumed_frames else ""))
     if report.evaluation is not None:
         ev = report.evaluation
         m, at = ev["metrics"], ev["at_threshold"]
