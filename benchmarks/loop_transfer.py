@@ -42,7 +42,7 @@ sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parent))
 from loop_closure_grid import describe  # noqa: E402
 
 from fdnet.decisions.loop_closure import LoopClosureDetector  # noqa: E402
-from fdnet.decisions.loop_evaluation import calibrate_decisions, evaluate_decisions  # noqa: E402
+from fdnet.decisions.loop_evaluation import calibrate_decisions, evaluate_decisions, frame_outcomes  # noqa: E402
 from fdnet.decisions.loop_traverse import DEFAULT_RULE, DEFAULT_SEQUENCE_LENGTH, route_traverse  # noqa: E402
 
 #: p_correct bins of the reliability table
@@ -96,16 +96,6 @@ def decide_loop(descriptor, cache, traverse) -> LoopClosureDetector:
     return detector
 
 
-def correct_of(decisions, truth) -> tuple[np.ndarray, np.ndarray]:
-    """(scores, whether each frame's match is right) over the frames that searched a place."""
-    evaluated = [d for d in decisions if d.searchable > 0]
-    scores = np.array([d.score for d in evaluated], np.float64)
-    right = np.array([d.match in set(truth.positives[d.query_index][truth.positives[d.query_index]
-                                                                     < d.searchable].tolist())
-                      for d in evaluated])
-    return scores, right
-
-
 def main(argv=None) -> int:
     from fdnet.descriptors import create
 
@@ -152,7 +142,7 @@ def main(argv=None) -> int:
                 if target == source or loops[source].overlaps(loops[target]):
                     continue
                 at = evaluate_decisions(target_decisions, truth, calibration.threshold, DEFAULT_RULE)["at_threshold"]
-                scores, right = correct_of(target_decisions, truth)
+                scores, right, _ = frame_outcomes(target_decisions, truth)
                 p = calibration.p_correct(scores)
                 finite = np.isfinite(scores) & np.isfinite(p)
                 sure = finite & (p >= 0.99)

@@ -87,7 +87,7 @@ def test_seams_lay_each_segment_after_its_own_padding():
     for new in (True, False, False, True, False):
         seams.add(new)
     assert list(seams.columns()) == [3, 4, 5, 9, 10]
-    assert seams.segments == 2 and seams.segment_start(4) == 3 and seams.segment_start(2) == 0
+    assert seams.segments == 2 and list(seams.first_places(np.array([4, 2, 3]))) == [3, 0, 3]
     assert list(seams.padded(np.array([1.0, 2, 3, 4, 5]), 0.5)) == [0.5, 0.5, 0.5, 1, 2, 3, 0.5, 0.5, 0.5, 4, 5]
     seams.truncate(3)
     assert seams.segments == 1 and len(seams) == 3

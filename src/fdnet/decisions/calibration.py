@@ -281,6 +281,36 @@ TAIL_LEVELS = (0.8, 0.85, 0.9, 0.95)
 TAIL_Z = 3.0
 
 
+def tail_quantiles(distribution: dict) -> list[tuple[float, float]]:
+    """(level, quantile) of a stored :func:`score_distribution` at each of :data:`TAIL_LEVELS`."""
+    if not distribution:
+        return []
+    levels = np.asarray(distribution["levels"], np.float64)
+    quantiles = np.asarray(distribution["quantiles"], np.float64)
+    out = []
+    for level in TAIL_LEVELS:
+        at = np.flatnonzero(np.isclose(levels, level))
+        if len(at):
+            out.append((level, float(quantiles[at[0]])))
+    return out
+
+
+def tail_departure_of_counts(tails: list[tuple[float, float]], above, n: int) -> dict | None:
+    """:func:`tail_departure` from counts: ``above[i]`` of ``n`` scores lie above the quantile of
+    ``tails[i]`` (:func:`tail_quantiles`), so a run can count as it goes instead of keeping its
+    scores."""
+    if not tails or n <= 0:
+        return None
+    worst = None
+    for (level, quantile), count in zip(tails, above):
+        share = float(count) / n
+        expected = 1.0 - level
+        z = (share - expected) / math.sqrt(level * expected / n)
+        if worst is None or z > worst["z"]:
+            worst = {"level": level, "quantile": quantile, "share": share, "expected": expected, "z": z}
+    return worst if worst is not None and worst["z"] > TAIL_Z else None
+
+
 def tail_departure(distribution: dict, scores: np.ndarray) -> dict | None:
     """Whether ``scores`` reach into the upper tail of a stored :func:`score_distribution` more
     often than it did: for each of :data:`TAIL_LEVELS`, the share of ``scores`` above the stored
@@ -288,22 +318,8 @@ def tail_departure(distribution: dict, scores: np.ndarray) -> dict | None:
     level's {level, quantile, share, expected, z} when its z exceeds :data:`TAIL_Z`, else None."""
     scores = np.asarray(scores, dtype=np.float64)
     scores = scores[np.isfinite(scores)]
-    if not distribution or not len(scores):
-        return None
-    levels = np.asarray(distribution["levels"], np.float64)
-    quantiles = np.asarray(distribution["quantiles"], np.float64)
-    worst = None
-    for level in TAIL_LEVELS:
-        at = np.flatnonzero(np.isclose(levels, level))
-        if not len(at):
-            continue
-        quantile = float(quantiles[at[0]])
-        share = float(np.mean(scores > quantile))
-        expected = 1.0 - level
-        z = (share - expected) / math.sqrt(level * expected / len(scores))
-        if worst is None or z > worst["z"]:
-            worst = {"level": level, "quantile": quantile, "share": share, "expected": expected, "z": z}
-    return worst if worst is not None and worst["z"] > TAIL_Z else None
+    tails = tail_quantiles(distribution)
+    return tail_departure_of_counts(tails, [int((scores > q).sum()) for _, q in tails], len(scores))
 
 
 #: p_correct is the lower bound of this one-sided confidence level on each block's share right

@@ -103,7 +103,6 @@ class LoopClosureDetector:
 
         self._first_full = (int(math.ceil(max(DEFAULT_VELOCITIES) * (self.sequence_length - 1)))
                             if self.sequence_length > 1 else 0)
-        self._seams = Seams(self._first_full)
         self.allow_duplicates = bool(allow_duplicates)
         self.commit_every = int(commit_every)
         from fdnet.decisions.loop_search import INDEX_FROM
@@ -359,6 +358,8 @@ class LoopClosureDetector:
             row = np.zeros(0, np.float32)
         previous = float(row[count - 1]) if t > 0 and count > 0 else None
         row, neutral = self._mask_uninformative(row, informative)
+        back = self._similar_back(t, informative, row)
+        searchable = self._searchable(t, count, previous, still, timestamp, position, back)
         if self.sequence_length > 1:
             from fdnet.matching.sequence import online_sequence_scores
 
@@ -366,17 +367,16 @@ class LoopClosureDetector:
             # a sequence that would run off the start of its segment is scored over all L frames,
             # the missing ones neutral, instead of over the few it has (a mean of one or two
             # similarities is noisy and would win by chance) or over another recording's frames.
+            # The whole row is kept for the next frames' sequences; only the searchable places
+            # are scored.
             if neutral is None:  # nothing was masked: the row's own median, computed only here
                 neutral = float(np.median(row)) if len(row) else 0.0
             padded = self._seams.padded(row, neutral)
-            every = online_sequence_scores([*self._rows, padded], self._seams.width(count))
-            every = every[self._seams.columns(count)]
+            scores = online_sequence_scores([*self._rows, padded], self._seams.width(searchable))
+            scores = scores[self._seams.columns(searchable)]
             self._rows.append(padded)
         else:
-            every = row
-        back = self._similar_back(t, informative, row)
-        searchable = self._searchable(t, count, previous, still, timestamp, position, back)
-        scores = every[:searchable]
+            scores = row[:searchable]
         if not searchable:
             return np.zeros(0, np.int64), np.zeros(0, np.float32), 0
         from fdnet.matching.similarity import top_k_of_matrix
@@ -411,8 +411,7 @@ class LoopClosureDetector:
         neutral = self._indexed.neutral(v, vectors, mask)
         if t == self._segment_first:
             self._indexed.new_segment()
-        ids, scores = self._indexed.search(v, vectors, searchable, mask, neutral, informative,
-                                           np.asarray(self._seams._segment_starts, np.int64))
+        ids, scores = self._indexed.search(v, vectors, searchable, mask, neutral, informative, self._seams)
         return ids[:max(self.spec.depth, 1)], scores[:max(self.spec.depth, 1)], searchable
 
     def _searchable(self, t: int, count: int, previous: float | None, still: bool, timestamp, position,
@@ -539,7 +538,7 @@ class LoopClosureDetector:
         vectors = self._vectors.view()[start:].copy()
         names = self._names[start:]
         informative, still = self._informative.view()[start:].copy(), self._still.view()[start:].copy()
-        starts = set(self._seams._segment_starts)
+        starts = set(self._seams.starts.tolist())
         segment_start = [start + k in starts for k in range(frames)]
         if frames and self._sessions[start] is not None:
             self._session = self._sessions[start]  # the interrupted traverse goes on: one session

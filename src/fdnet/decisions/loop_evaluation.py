@@ -95,6 +95,16 @@ def evaluate_decisions(decisions: Sequence[FrameDecision], ground_truth, thresho
     }
 
 
+def frame_outcomes(decisions: Sequence[FrameDecision], ground_truth):
+    """(acceptance scores, whether the place each vouches for is right, the ground truth cut to
+    what each could search) over the frames that had a place to search, as evaluation and
+    calibration count them."""
+    evaluated, truth = _evaluable(decisions, ground_truth)
+    score = np.array([d.score for d in evaluated], dtype=np.float64)
+    match = np.array([d.match for d in evaluated], dtype=np.int64)
+    return score, truth.correct_mask(match[:, None])[:, 0], truth
+
+
 def calibrate_decisions(decisions: Sequence[FrameDecision], ground_truth, detector: "LoopClosureDetector",
                         target_precision: float, measured_on: dict | None = None):
     """A :class:`~fdnet.decisions.calibration.Calibration` of ``detector``'s rule from one
@@ -111,10 +121,7 @@ def calibrate_decisions(decisions: Sequence[FrameDecision], ground_truth, detect
                                              fit_probability, score_distribution, tail_threshold)
 
     target = check_target(target_precision)
-    evaluated, truth = _evaluable(decisions, ground_truth)
-    score = np.array([d.score for d in evaluated], dtype=np.float64)
-    match = np.array([d.match for d in evaluated], dtype=np.int64)
-    correct = truth.correct_mask(match[:, None])[:, 0]
+    score, correct, truth = frame_outcomes(decisions, ground_truth)
     chosen = choose_threshold(score, correct, truth.has_match, target)
     notes = []
     tail = tail_threshold(score[~correct]) if target == 1.0 else None
@@ -132,13 +139,13 @@ def calibrate_decisions(decisions: Sequence[FrameDecision], ground_truth, detect
     length = detector.sequence_length if detector.sequence_length > 1 else 0
     where = {"loop_closure": True, "ground_truth": truth.description, "exclude_last": detector.exclude_last,
              "gates": detector.gates.to_dict(),
-             "frames": len(decisions), "frames_evaluated": len(evaluated), "sequence_length": length,
+             "frames": len(decisions), "frames_evaluated": len(score), "sequence_length": length,
              **({"wrong_score_tail": tail} if tail is not None else {}),
              **(measured_on or {})}
     return Calibration(
         rule=detector.spec.name, settings=detector.spec.settings, threshold=chosen.threshold,
         target_precision=target, precision=chosen.precision, recall=chosen.recall, accepted=chosen.accepted,
-        num_queries=len(evaluated), method=detector.descriptor.name, fingerprint=detector.descriptor.fingerprint(),
+        num_queries=len(score), method=detector.descriptor.name, fingerprint=detector.descriptor.fingerprint(),
         sequence_length=length, measured_on=where,
         created=datetime.now(timezone.utc).isoformat(timespec="seconds"), fdnet_version=__version__, notes=notes,
         probability=fit_probability(score, correct), score_distribution=score_distribution(score, chosen.threshold))

@@ -138,7 +138,7 @@ class Seams:
 
     def truncate(self, count: int) -> None:
         """Forget the places from ``count`` on (a traverse being replayed)."""
-        self._columns._count = int(count)
+        self._columns.truncate(count)
         self._segment_starts = [s for s in self._segment_starts if s < count]
 
     def columns(self, count: int | None = None) -> np.ndarray:
@@ -155,10 +155,17 @@ class Seams:
         out[self.columns(count)] = row
         return out
 
-    def segment_start(self, place: int) -> int:
-        """The first place of the segment that holds ``place``."""
-        i = int(np.searchsorted(np.asarray(self._segment_starts), place, side="right")) - 1
-        return self._segment_starts[max(i, 0)] if self._segment_starts else 0
+    def first_places(self, places: np.ndarray) -> np.ndarray:
+        """The first place of the segment that holds each of ``places``."""
+        starts = self.starts
+        if not len(starts):
+            return np.zeros(np.shape(places), np.int64)
+        return starts[np.maximum(np.searchsorted(starts, places, side="right") - 1, 0)]
+
+    @property
+    def starts(self) -> np.ndarray:
+        """The first place of each segment, in order."""
+        return np.asarray(self._segment_starts, np.int64)
 
     @property
     def segments(self) -> int:

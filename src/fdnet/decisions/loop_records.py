@@ -91,5 +91,9 @@ class GrowingArray:
         self._data[self._count] = row
         self._count += 1
 
+    def truncate(self, count: int) -> None:
+        """Forget the rows from ``count`` on."""
+        self._count = min(int(count), self._count)
+
     def view(self, count: int | None = None) -> np.ndarray:
         return self._data[:self._count if count is None else count]

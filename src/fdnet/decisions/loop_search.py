@@ -97,13 +97,12 @@ class IndexedCandidates:
         self._recent.clear()
 
     def search(self, v: np.ndarray, vectors: np.ndarray, searchable: int, informative: np.ndarray,
-               neutral: float, frame_informative: bool = True,
-               segment_starts: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+               neutral: float, frame_informative: bool = True, seams=None) -> tuple[np.ndarray, np.ndarray]:
         """Record the new frame and return its candidates: (place ids, scores) best first, all
         below ``searchable`` and informative; scores are single-image similarities, or with
-        sequences the sequence scores of the proposed ends. ``segment_starts``: the first place of
-        each segment of the map (sorted); a sequence ending in a segment counts the places before
-        its start as missing (neutral), as the exhaustive path does."""
+        sequences the sequence scores of the proposed ends. ``seams``: the map's
+        :class:`~fdnet.decisions.loop_recency.Seams`; a sequence ending in a segment counts the
+        places before its start as missing (neutral), as the exhaustive path does."""
         count = len(vectors)
         self.sync(vectors)
         ids, sims = np.zeros(0, np.int64), np.zeros(0, np.float32)
@@ -130,9 +129,9 @@ class IndexedCandidates:
             if len(ends) > RESCORED:
                 # a first ranking from the similarities the index already returned (a pair it did
                 # not return counts as neutral), then the best RESCORED ends exactly
-                rough = self._sequence_scores(ends, vectors, informative, exact=False, segment_starts=segment_starts)
+                rough = self._sequence_scores(ends, vectors, informative, exact=False, seams=seams)
                 ends = np.sort(ends[np.argsort(-rough, kind="stable")[:RESCORED]])
-            scores = self._sequence_scores(ends, vectors, informative, segment_starts=segment_starts)
+            scores = self._sequence_scores(ends, vectors, informative, seams=seams)
         order = np.lexsort((ends, -scores))  # best first, ties to the lower place
         return ends[order], scores[order].astype(np.float32)
 
@@ -148,7 +147,7 @@ class IndexedCandidates:
         return np.concatenate(ends) if ends else np.zeros(0, np.int64)
 
     def _sequence_scores(self, ends: np.ndarray, vectors: np.ndarray, informative: np.ndarray,
-                         exact: bool = True, segment_starts: np.ndarray | None = None) -> np.ndarray:
+                         exact: bool = True, seams=None) -> np.ndarray:
         """Sequence scores of ``ends`` over the recent frames, each (frame, place) pair read from
         the vectors as online_sequence_scores reads it from the rows (the frame's row held the
         places that existed then: later places count as missing). ``exact=False``: a pair's
@@ -157,9 +156,8 @@ class IndexedCandidates:
         pad = int(math.ceil(velocities.max() * (self.sequence_length - 1)))
         total = np.zeros((len(velocities), len(ends)))
         count = np.zeros((len(velocities), len(ends)))
-        first = np.zeros(len(ends), np.int64)  # each end's segment's first place
-        if segment_starts is not None and len(segment_starts):
-            first = segment_starts[np.maximum(np.searchsorted(segment_starts, ends, side="right") - 1, 0)]
+        # each end's segment's first place
+        first = np.zeros(len(ends), np.int64) if seams is None else seams.first_places(ends)
         for k, (frame, ids, neutral, places_then, frame_informative, sims) in enumerate(reversed(self._recent)):
             # the places this frame pairs with, for every end and velocity: one product for all
             places = np.rint(ends[None, :] - k * velocities[:, None]).astype(np.int64)

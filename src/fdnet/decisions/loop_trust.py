@@ -113,25 +113,36 @@ class DriftCheck:
     calibration loop rejected more often than they did there
     (:func:`fdnet.decisions.calibration.tail_departure`): this route's wrong candidates stand
     out more than the ones the threshold was set against, so its precision may not hold here.
-    ``add`` takes each score under the threshold; ``drift`` is None until it warned."""
+    ``add`` takes each score under the threshold and counts it against the stored tail
+    quantiles (constant work per frame, nothing kept per frame); ``drift`` is None until it
+    warned."""
 
     def __init__(self, calibration, source: str):
+        from fdnet.decisions.calibration import tail_quantiles
+
         self.calibration = calibration
         self.source = source
-        self.rejected: list[float] = []
+        self.stored = (calibration.score_distribution or {}) if calibration is not None else {}
+        self.tails = tail_quantiles(self.stored)
+        self.above = [0] * len(self.tails)
+        self.count = 0
         self.drift: dict | None = None
 
     def add(self, score: float) -> None:
-        from fdnet.decisions.calibration import tail_departure
+        from fdnet.decisions.calibration import tail_departure_of_counts
 
-        self.rejected.append(float(score))
-        stored = (self.calibration.score_distribution or {}) if self.calibration is not None else {}
-        n = len(self.rejected)
-        if not stored or self.drift is not None or n < DRIFT_AFTER or n % DRIFT_EVERY:
+        if not self.tails or self.drift is not None:
             return
-        departed = tail_departure(stored, np.asarray(self.rejected))
+        self.count += 1
+        for i, (_, quantile) in enumerate(self.tails):
+            self.above[i] += score > quantile
+        n = self.count
+        if n < DRIFT_AFTER or n % DRIFT_EVERY:
+            return
+        departed = tail_departure_of_counts(self.tails, self.above, n)
         if departed is None:
             return
+        stored = self.stored
         self.drift = {**departed, "frames": n, "calibration_frames": int(stored.get("frames", 0))}
         where = (self.calibration.measured_on or {}).get("ground_truth") or "its calibration loop"
         logger.warning(f"{self.source}: {100 * departed['share']:.0f} % of the scores this run rejected in its first "
