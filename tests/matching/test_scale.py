@@ -151,3 +151,29 @@ def test_database_index_cache_is_derived_current_and_reused(tmp_path, rng):
     # flat databases have no cache: rebuilding is a copy
     with PlaceDatabase.create(tmp_path / "flat.db", d, method_options={}, vectors=v[:10], names=names[:10]) as flat:
         assert flat.index_cache_path is None
+
+
+def test_a_restored_backup_never_loads_the_index_cache_of_places_it_does_not_hold(tmp_path, rng):
+    """A copy restored from a backup shares the database's id, its place ids and (after other
+    adds) its count: the cache is identified by the places' content, so it is rebuilt."""
+    import shutil
+
+    d = Unit()
+    v = unit(rng, 80, 16)
+    path = tmp_path / "map.db"
+    with PlaceDatabase.create(path, d, method_options={}, index=IndexSettings(kind="hnsw", hnsw_neighbors=8),
+                              vectors=v[:60], names=[f"p{i}" for i in range(60)]):
+        pass
+    shutil.copyfile(path, tmp_path / "backup.db")
+    with PlaceDatabase.open(path) as db:
+        db.add(v[60:70], [f"a{i}" for i in range(10)])
+        db.build_index()
+        assert VectorIndex.read_header(db.index_cache_path)["metadata"]["last_id"] == 70
+    shutil.copyfile(tmp_path / "backup.db", path)
+    for extra in ("-wal", "-shm"):
+        (tmp_path / f"map.db{extra}").unlink(missing_ok=True)
+    with PlaceDatabase.open(path) as db:
+        db.add(v[70:80], [f"b{i}" for i in range(10)])
+        hits = db.query(v[70:80], k=1)
+    assert [row[0].name for row in hits] == [f"b{i}" for i in range(10)]
+    assert all(abs(row[0].score - 1.0) < 1e-5 for row in hits)

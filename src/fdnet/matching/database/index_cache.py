@@ -4,11 +4,15 @@ The faiss index is derived data: it is rebuilt from the stored vectors when a da
 queried and extended when other processes add places, so it can never disagree with the file.
 For the approximate kinds (hnsw, ivf, ivfpq), whose building (training) costs, it is also kept in
 a cache file beside the database (``map.db.fdnet-index``), used only when it belongs to this
-database (same database_id, build settings and fingerprint) and holds exactly its first places.
+database (same database_id, build settings and fingerprint) and holds exactly its first places,
+by content: the cache records a digest of those places' ids, names and stored vectors, so a copy
+of the database restored from a backup (same database_id, same ids, other places after it) never
+loads an index built from places it does not hold.
 """
 
 from __future__ import annotations
 
+import hashlib
 import sqlite3
 from pathlib import Path
 
@@ -62,6 +66,8 @@ class IndexCache:
                 return None, 0
             if conn.execute("SELECT count(*) FROM places WHERE id <= ?", (last_id,)).fetchone()[0] != count:
                 return None, 0
+            if meta.get("content") != places_digest(conn, last_id):
+                return None, 0  # same ids and count, other places (a restored backup): not this index
             search = {k: getattr(ident.index_settings, k) for k in _SEARCH_SETTINGS}
             index = VectorIndex.load(cache, search=search)
         except (DataError, ConfigError, ValueError, TypeError, KeyError):
@@ -69,7 +75,8 @@ class IndexCache:
         self.places = count
         return index, last_id
 
-    def save(self, index: VectorIndex | None, data_version: int, last_id: int, force: bool = False) -> bool:
+    def save(self, index: VectorIndex | None, conn: sqlite3.Connection, data_version: int, last_id: int,
+             force: bool = False) -> bool:
         """Write ``index`` (holding the places up to ``last_id``) to the cache file when it was
         built here or grew by 5 % (at least 1000 places) since the cache was read; a cache that
         cannot be written is skipped."""
@@ -80,10 +87,30 @@ class IndexCache:
         if not force and self.places and grown < max(1000, 0.05 * self.places):
             return False
         try:
+            conn.execute("BEGIN DEFERRED")
+            try:
+                content = places_digest(conn, last_id)
+            finally:
+                conn.execute("COMMIT")
             index.save(cache, metadata={"database_id": self._identity.database_id, "data_version": data_version,
                                         "last_id": last_id, "fingerprint": self._identity.fingerprint,
-                                        "database": self._database_name})
-        except OSError:
+                                        "database": self._database_name, "content": content})
+        except (OSError, sqlite3.Error):
             return False
         self.places = len(index)
         return True
+
+
+def places_digest(conn: sqlite3.Connection, last_id: int) -> str:
+    """sha256 over the id, name and stored vector of every place with id <= ``last_id``, in id
+    order: what an index built from those places was built from."""
+    digest = hashlib.sha256()
+    rows = conn.execute("SELECT id, name, vector FROM places WHERE id <= ? ORDER BY id", (last_id,))
+    while chunk := rows.fetchmany(4096):
+        for place_id, name, vector in chunk:
+            name_bytes = str(name).encode("utf-8", "surrogateescape")
+            blob = vector if isinstance(vector, bytes) else b""
+            digest.update(b"%d:%d:%d:" % (place_id, len(name_bytes), len(blob)))
+            digest.update(name_bytes)
+            digest.update(blob)
+    return digest.hexdigest()

@@ -374,7 +374,7 @@ class PlaceDatabase:
         return self._index_cache.path
 
     def _save_index_cache(self, force: bool = False) -> bool:
-        return self._index_cache.save(self._index, self._loaded_version, self._last_id, force)
+        return self._index_cache.save(self._index, self._conn, self._loaded_version, self._last_id, force)
 
     def build_index(self) -> VectorIndex | None:
         """Load every place and build (train) the search index now rather than at the first query,
