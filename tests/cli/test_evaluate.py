@@ -177,7 +177,7 @@ def test_method_mode_several_methods_json_and_plots(tiny_method, route, tmp_path
     out = tmp_path / "several.json"
     plots = tmp_path / "plots"
     argv = ["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk",
-            "--method", f"{tiny_method},{tiny_method}", "--method-set", "size=4", "--tolerance", "0",
+            "--method", f"{tiny_method},raw", "--method-set", f"{tiny_method}:size=4", "--tolerance", "0",
             "--threads", "1", "--json", str(out), "--plots", str(plots)]
     assert main(argv) == 0
     table = capsys.readouterr().out
@@ -188,6 +188,25 @@ def test_method_mode_several_methods_json_and_plots(tiny_method, route, tmp_path
     assert results[0]["num_queries"] == 10 and results[0]["timing"]["ms_per_image"] >= 0
     names = {p.name for p in plots.iterdir()}
     assert {"pr_curves.png", "similarity_tiny-pixels.png", "matches_tiny-pixels.png"} <= names
+
+
+def test_methods_that_cannot_be_told_apart_are_refused(tiny_method, route, tmp_path, capsys):
+    """A method named twice gave two identical rows under one name (the last --weights METHOD= for
+    both); two values of one option for one method kept only one of them. Both are refused
+    before any image is described, and nothing is written."""
+    out = tmp_path / "r.json"
+    base = ["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk", "--json", str(out)]
+    err = _error(capsys, [*base, "--method", f"{tiny_method},raw,{tiny_method}"])
+    assert err.startswith("fdnet evaluate: error: --method names tiny-pixels more than once")
+    assert "fdnet table" in err and not out.exists()
+    (tmp_path / "a.onnx").write_bytes(b"a")
+    (tmp_path / "b.onnx").write_bytes(b"b")
+    err = _error(capsys, [*base, "--method", "onnx", "--weights", f"onnx={tmp_path / 'a.onnx'}",
+                          "--weights", f"onnx={tmp_path / 'b.onnx'}"])
+    assert err.startswith("fdnet evaluate: error: --weights gives onnx 2 values") and not out.exists()
+    err = _error(capsys, [*base, "--method", "onnx,onnx", "--weights", f"onnx={tmp_path / 'a.onnx'}",
+                          "--weights", f"onnx={tmp_path / 'b.onnx'}"])
+    assert "--method names onnx more than once" in err and not out.exists()
 
 
 def test_method_mode_frames_and_explicit_ground_truth(tiny_method, route, tmp_path):

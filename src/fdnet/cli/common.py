@@ -65,6 +65,19 @@ def _for_method(values, method: str, known_methods) -> str | None:
     return chosen
 
 
+def _check_one_value(values, key: str, method: str | None, known_methods) -> None:
+    """Refuse two different ``--KEY METHOD=...`` for one method: only one could be used, and the
+    results would not say which."""
+    from fdnet.errors import ConfigError
+
+    if method is None or values is None or isinstance(values, str):
+        return
+    given = list(dict.fromkeys(v.partition("=")[2] for v in map(str, values) if v.startswith(f"{method}=")))
+    if len(given) > 1:
+        raise ConfigError(f"--{key.replace('_', '-')} gives {method} {len(given)} values ({', '.join(given)}); one "
+                          "method takes one: evaluate each in its own command and merge the results with `fdnet table`")
+
+
 def method_options(args: argparse.Namespace, method: str | None = None) -> dict:
     """Keyword options for ``create(method, ...)`` from parsed arguments (YAML-typed values).
 
@@ -93,6 +106,7 @@ def method_options(args: argparse.Namespace, method: str | None = None) -> dict:
                                   f"takes a {key}")
     options = {}
     for key in PER_METHOD_OPTIONS:
+        _check_one_value(getattr(args, key, None), key, method, known)
         value = _for_method(getattr(args, key, None), method, known)
         explicit = any(str(v).startswith(f"{method}=") for v in (getattr(args, key, None) or []))
         if value is not None and (accepted is None or key in accepted or explicit):

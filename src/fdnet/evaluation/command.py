@@ -174,7 +174,7 @@ def _evaluate_methods(settings: EvaluateSettings, acceptance, log) -> list:
         raise ConfigError("--method needs --data DIR (one sub-folder per condition)")
     check_pipeline_settings(settings.batch_size, settings.workers)
     device = check_device_spec(settings.device) if settings.device is not None else None
-    names = [n.strip() for n in settings.method.split(",") if n.strip()]
+    names = method_names(settings.method)
     split = _split(settings)
     results = []
     with torch_threads(settings.threads or os.cpu_count() or 1):
@@ -190,6 +190,21 @@ def _evaluate_methods(settings: EvaluateSettings, acceptance, log) -> list:
                                            keep_similarity=bool(settings.plots), progress=True, log=log,
                                            workers=settings.workers, acceptance=acceptance))
     return results
+
+
+def method_names(text: str) -> list[str]:
+    """The names of a comma-separated ``--method`` list. A name given twice is refused: its two
+    rows would carry one name and one set of options (the last ``--weights METHOD=`` given), so
+    they could not be told apart."""
+    from fdnet.errors import ConfigError
+
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    repeated = sorted({n for n in names if names.count(n) > 1})
+    if repeated:
+        raise ConfigError(f"--method names {', '.join(repeated)} more than once: its rows would be one method under "
+                          "one name with one set of options, not told apart; evaluate each model in its own command "
+                          "(each with its own --json) and merge the results with `fdnet table`")
+    return names
 
 
 def _create_descriptor(name: str, method_options: MethodOptions, device: str | None):
