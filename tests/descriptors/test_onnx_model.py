@@ -403,3 +403,43 @@ def test_a_model_the_user_named_that_cannot_load_fails_the_benchmark(tmp_path, c
                  "--num-images", "2"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("fdnet benchmark: error: ") and str(bad) in err
+
+
+def external_data_model(folder, seed):
+    """``folder/m.onnx`` with every weight in ``folder/w.data``."""
+    import onnx
+
+    folder.mkdir(parents=True, exist_ok=True)
+    export(MeanConv(seed=seed), folder / "whole.onnx")
+    model = onnx.load(str(folder / "whole.onnx"))
+    onnx.save_model(model, str(folder / "m.onnx"), save_as_external_data=True, all_tensors_to_one_file=True,
+                    location="w.data", size_threshold=0)
+    return folder / "m.onnx"
+
+
+def test_external_weight_data_is_read_beside_the_model_and_fingerprinted(tmp_path, monkeypatch):
+    a = external_data_model(tmp_path / "extA", seed=0)
+    b = external_data_model(tmp_path / "extB", seed=1)
+    assert a.read_bytes() == b.read_bytes()  # the same graph file: only w.data tells them apart
+    images = np.random.default_rng(0).random((2, 16, 32, 3), dtype=np.float32)
+    whole = create("onnx", weights=str(tmp_path / "extA" / "whole.onnx")).describe(images)
+    monkeypatch.chdir(tmp_path / "extB")  # its w.data holds other weights
+    from_b = create("onnx", weights="../extA/m.onnx")
+    np.testing.assert_allclose(from_b.describe(images), whole, rtol=1e-5, atol=1e-6)
+    monkeypatch.chdir(tmp_path)
+    assert create("onnx", weights=str(a)).fingerprint() != create("onnx", weights=str(b)).fingerprint()
+
+
+def test_external_data_outside_the_models_folder_is_refused_naming_the_model(tmp_path):
+    import onnx
+
+    model_path = external_data_model(tmp_path / "m", seed=0)
+    model = onnx.load(str(model_path), load_external_data=False)
+    for tensor in model.graph.initializer:
+        for entry in tensor.external_data:
+            if entry.key == "location":
+                entry.value = "../w.data"
+    (tmp_path / "w.data").write_bytes((tmp_path / "m" / "w.data").read_bytes())
+    onnx.save_model(model, str(tmp_path / "m" / "escape.onnx"))
+    with pytest.raises(DataError, match=r"escape\.onnx.*not a file inside the model's folder"):
+        create("onnx", weights=str(tmp_path / "m" / "escape.onnx"))

@@ -18,8 +18,10 @@ etc., or the bare names), and from the graph where it is fixed:
 Every error names the model file. A ``mean`` outside [0, 1] or a ``std`` above 1 is refused:
 those are values on the 0..255 scale (fdnet's images are in [0, 1]; divide them by 255).
 
-Runs on the CPU, or CUDA when onnxruntime has its CUDA provider (``--device``). The fingerprint
-covers the model's bytes and these settings, so a database or calibration made with one model
+Runs on the CPU, or CUDA when onnxruntime has its CUDA provider (``--device``). The model is
+loaded from its path: weights stored as external data (``w.data``) are read beside the model, a
+location outside the model's folder is refused. The fingerprint covers the model's bytes, the
+bytes of its external data files and these settings, so a database or calibration made with one model
 refuses another.
 """
 
@@ -99,22 +101,80 @@ def _providers(device: str | None) -> list[str]:
 
 
 def _open_session(onnxruntime, path: Path, device: str | None):
-    """(onnxruntime session, sha256 of the model's bytes), or one DataError naming the file."""
+    """(onnxruntime session, sha256 of the model's bytes and of the external data files its
+    tensors name), or one DataError naming the file. The session is loaded from the model's path,
+    so external data (``w.data``) is found beside the model, never in the current folder."""
     if not path.is_file():
         raise DataError(f"{path}: ONNX model not found")
     try:
         data = path.read_bytes()
     except OSError as exc:
         raise DataError(f"{path}: cannot read the ONNX model ({exc.strerror or exc})") from None
+    digest = hashlib.sha256(data)
+    for location, file in _external_data_files(path, data):
+        digest.update(f"\nexternal {location}\n".encode("utf-8", "surrogateescape"))
+        try:
+            with open(file, "rb") as fh:
+                for block in iter(lambda: fh.read(1 << 20), b""):
+                    digest.update(block)
+        except OSError as exc:
+            raise DataError(f"{path}: cannot read its external data {file} ({exc.strerror or exc})") from exc
     options = onnxruntime.SessionOptions()
     options.log_severity_level = 3  # onnxruntime's warnings are about its graph rewrites, not the user's input
     providers = _providers(device)
     try:
-        session = onnxruntime.InferenceSession(data, options, providers=providers)
+        session = onnxruntime.InferenceSession(str(path), options, providers=providers)
     except Exception as exc:  # onnxruntime raises its own classes (InvalidProtobuf, Fail, ...)
         detail = " ".join(str(exc).split())[:200]
         raise DataError(f"{path}: not an ONNX model onnxruntime can load ({detail})") from None
-    return session, hashlib.sha256(data).hexdigest()
+    return session, digest.hexdigest()
+
+
+def _external_data_files(path: Path, data: bytes) -> list[tuple[str, Path]]:
+    """(location as written, file) of every external data file the model's tensors name, sorted;
+    a location that is absolute or leaves the model's folder is refused (DataError)."""
+    try:
+        import onnx
+        from onnx.external_data_helper import ExternalDataInfo, uses_external_data
+    except ImportError:
+        raise NotAvailableError("--method onnx needs the optional extra: pip install 'fdnet[onnx]' "
+                                "(onnx, onnxruntime)") from None
+    try:
+        model = onnx.load_from_string(data)
+    except Exception as exc:  # onnx raises DecodeError and others for what is not a model
+        detail = " ".join(str(exc).split())[:200]
+        raise DataError(f"{path}: not an ONNX model onnxruntime can load ({detail})") from None
+    folder = path.resolve().parent
+    found: dict[str, Path] = {}
+    for tensor in _tensors(model.graph):
+        if not uses_external_data(tensor):
+            continue
+        location = ExternalDataInfo(tensor).location
+        file = (folder / location).resolve()
+        if not location or os.path.isabs(location) or not file.is_relative_to(folder):
+            raise DataError(f"{path}: a tensor's external data {location!r} is not a file inside the model's "
+                            f"folder {folder}; such a model is refused")
+        if not file.is_file():
+            raise DataError(f"{path}: its external data file {file} is missing")
+        found[location] = file
+    return sorted(found.items())
+
+
+def _tensors(graph):
+    """Every tensor a graph holds: initializers, sparse ones, and node attributes (subgraphs too)."""
+    yield from graph.initializer
+    for sparse in graph.sparse_initializer:
+        yield sparse.values
+        yield sparse.indices
+    for node in graph.node:
+        for attribute in node.attribute:
+            if attribute.HasField("t"):
+                yield attribute.t
+            yield from attribute.tensors
+            if attribute.HasField("g"):
+                yield from _tensors(attribute.g)
+            for sub in attribute.graphs:
+                yield from _tensors(sub)
 
 
 def _input_layout(path: Path, shape: list, layout, where) -> tuple[str | None, list, bool]:
