@@ -209,6 +209,20 @@ def test_methods_that_cannot_be_told_apart_are_refused(tiny_method, route, tmp_p
     assert "--method names onnx more than once" in err and not out.exists()
 
 
+@pytest.mark.parametrize("extra, message", [
+    (["--predictions", "2"], "--predictions K needs --json FILE"),
+    (["--no-curve"], "--no-curve needs --json FILE"),
+    (["--examples", "3"], "--examples N needs --plots DIR"),
+    (["--name", "mine"], "--name needs --similarity FILE.npy"),
+    (["--distance"], "--distance needs --similarity FILE.npy"),
+])
+def test_a_flag_whose_output_has_nowhere_to_go_is_refused(tiny_method, route, capsys, extra, message):
+    """--predictions without --json (and the like) was ignored without a word."""
+    err = _error(capsys, ["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk",
+                          "--method", tiny_method, *extra])
+    assert err.startswith(f"fdnet evaluate: error: {message}") and "would do nothing" in err
+
+
 def test_method_mode_frames_and_explicit_ground_truth(tiny_method, route, tmp_path):
     # explicit list: query i matches reference i (full-traverse indices), sliced by --frames 2:8
     csv = tmp_path / "gt.csv"

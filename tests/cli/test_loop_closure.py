@@ -99,6 +99,8 @@ def no_describing(monkeypatch):
     (["--accept-set", "margin:nonsense=1"], "no setting 'nonsense'"),
     (["--images", "/no/such/folder"], "/no/such/folder: not a folder of images"),
     (["--sequence-length", "1", "--method", "nosuch"], "unknown method 'nosuch'"),
+    # it was ignored without a word: there is no calibration for it to choose
+    (["--target-precision", "0.9"], "--target-precision needs --calibrate-out"),
 ])
 def test_bad_input_is_one_line_before_any_frame_is_described(route, tmp_path, capsys, no_describing, extra, message):
     assert main(args(route, tmp_path, *extra)) == 2

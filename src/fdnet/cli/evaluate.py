@@ -99,13 +99,15 @@ def register(sub) -> None:
                      help="an acceptance rule setting (repeatable), e.g. radius=3 (neighbourhood in frames), "
                           "ratio:ceiling=1, floor:min=0.5; docs/decisions.md lists them")
     out.add_argument("--json", metavar="FILE", help="write the results as JSON")
-    out.add_argument("--no-curve", action="store_true", help="leave the PR curve points out of the JSON")
+    out.add_argument("--no-curve", action="store_true", help="with --json: leave the PR curve points out of the JSON")
     out.add_argument("--predictions", type=int, default=0, metavar="K",
-                     help="add each query's K best references (indices, names, scores, correct) to the JSON")
+                     help="with --json: add each query's K best references (indices, names, scores, correct) to "
+                          "the JSON")
     out.add_argument("--table", choices=("csv", "markdown", "latex"),
                      help="also print a method x data table (R@1, R@100P, AUC-PR) in this format")
     out.add_argument("--plots", metavar="DIR", help="write PR curves, similarity matrices and example matches")
-    out.add_argument("--examples", type=int, default=6, help="queries shown in the example-matches figure (default 6)")
+    out.add_argument("--examples", type=int, default=None,
+                     help="with --plots: queries shown in the example-matches figure (default 6)")
     p.add_argument("--allow-training-frames", action="store_true",
                    help="evaluate a trained method on frames it was trained on (refused by default: the numbers "
                         "would measure memory, not recognition)")

@@ -125,7 +125,7 @@ def register(sub) -> None:
                         "a calibration for later runs "
                         "(--calibration FILE; a run directory gets RUN_DIR/loop-calibration.yaml, which runs with "
                         "--checkpoint RUN_DIR then use by default); without --threshold this run accepts nothing")
-    p.add_argument("--target-precision", type=float, default=1.0,
+    p.add_argument("--target-precision", type=float, default=None,
                    help="with --calibrate-out: the precision to reach, in (0, 1] (default 1.0)")
     p.add_argument("--commit-every", type=_whole_number(1), default=1, metavar="N",
                    help="frames stored in --db per transaction (default 1: every frame is on disk before the next "
@@ -177,6 +177,9 @@ def run(args) -> int:
         raise ConfigError("--data needs --conditions A,B[,...]: the conditions to drive one after another")
     if args.data and args.ground_truth and args.tolerance is not None:
         raise ConfigError("give --tolerance (frame-aligned ground truth) or --ground-truth CSV, not both")
+    if args.target_precision is not None and not args.calibrate_out:
+        raise ConfigError("--target-precision needs --calibrate-out (the threshold it chooses is written there); "
+                          "without it the flag would do nothing")
     gates = LoopGates().with_settings(args.gate) if args.gate else None
     calibration, calibrated = _default_calibration(args)
     rule = args.accept or (None if calibrated is not None else DEFAULT_RULE)
@@ -214,7 +217,7 @@ def run(args) -> int:
         images, descriptor, args.db, exclude_last=args.exclude_last, events_csv=args.out,
         events_jsonl=args.jsonl, rule=rule, rule_settings=args.accept_set or None, threshold=args.threshold,
         calibration=calibration, sequence_length=sequence_length, ground_truth=args.ground_truth,
-        calibrate_to=calibrate_out, target_precision=args.target_precision,
+        calibrate_to=calibrate_out, target_precision=1.0 if args.target_precision is None else args.target_precision,
         method_options=_file_options(args, args.method), commit_every=args.commit_every,
         batch_size=args.batch_size, workers=args.workers, gates=gates, resume=args.resume, search=args.search,
         progress=not args.no_progress, log=logging.getLogger("fdnet.loop_closure").info)

@@ -54,7 +54,7 @@ class EvaluateSettings:
     json: str | None = None
     include_curve: bool = True
     plots: str | None = None
-    examples: int = 6
+    examples: int | None = None  # queries in the example-matches figure (with ``plots``); None: 6
     #: per-query predictions (this many best references each) in the JSON; 0 = none
     predictions: int = 0
     #: also print a method x data table as csv, markdown or latex
@@ -112,14 +112,42 @@ def evaluate_command(settings: EvaluateSettings, log: Callable[[str], None] | No
     if settings.plots:
         from fdnet.evaluation.plots import write_result_plots
 
-        for path in write_result_plots(results, settings.protocol, settings.plots, settings.examples):
+        examples = DEFAULT_EXAMPLES if settings.examples is None else settings.examples
+        for path in write_result_plots(results, settings.protocol, settings.plots, examples):
             log(f"wrote {path}")
     return EvaluationOutcome(results, table)
+
+
+#: queries in the example-matches figure when ``examples`` is not given
+DEFAULT_EXAMPLES = 6
+
+
+def _check_nowhere_to_go(settings: EvaluateSettings) -> None:
+    """Refuse a setting whose effect would go nowhere (it was ignored without a word): what only
+    the JSON holds without ``json``, the figure's size without ``plots``, the matrix's options
+    without ``similarity``."""
+    from fdnet.errors import ConfigError
+
+    needs = [("--predictions K", bool(settings.predictions), settings.json, "--json FILE", "the JSON holds them"),
+             ("--no-curve", not settings.include_curve, settings.json, "--json FILE", "the curve is left out of "
+              "the JSON"),
+             ("--examples N", settings.examples is not None, settings.plots, "--plots DIR", "the figure is a plot"),
+             ("--distance", settings.distance, settings.similarity, "--similarity FILE.npy", "it says what the "
+              "matrix holds"),
+             ("--name", settings.name is not None, settings.similarity, "--similarity FILE.npy", "methods are "
+              "named by --method")]
+    for flag, given, target, needed, why in needs:
+        if given and not target:
+            raise ConfigError(f"{flag} needs {needed} ({why}); without it the flag would do nothing")
 
 
 def _check_settings(settings: EvaluateSettings) -> None:
     from fdnet.errors import ConfigError
     from fdnet.io import ensure_writable
+
+    _check_nowhere_to_go(settings)
+    if settings.examples is not None and (isinstance(settings.examples, bool) or settings.examples < 1):
+        raise ConfigError(f"--examples must be at least 1, got {settings.examples!r}")
 
     if settings.similarity and settings.method:
         raise ConfigError("give either --similarity FILE.npy or --method NAME, not both")
