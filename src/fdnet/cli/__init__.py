@@ -35,6 +35,7 @@ COMMAND_MODULES = [
     "choose_trunk",
     "benchmark",
     "reproduce",
+    "table",
     "demo",
 ]
 
