@@ -603,3 +603,25 @@ def test_a_damaged_newest_checkpoint_is_skipped_with_a_warning_naming_it(tmp_pat
         used = runs.latest_checkpoint(tmp_path)
     assert used != newest and used.name.startswith("step-000000001")
     assert f"skipped the newest checkpoint(s), damaged ({newest.name}" in caplog.text and used.name in caplog.text
+
+
+@pytest.mark.parametrize("fill", [0x3F, 0xFF])
+def test_bytes_rotted_inside_the_weights_or_the_state_are_refused_naming_the_file(tmp_path, fill):
+    """Bytes overwritten inside the tensor data leave a file safetensors reads without a word (other
+    numbers, or NaN for 0xff): the checksum saved with the generation refuses it."""
+    _save(tmp_path, 1)
+    folder = runs.latest_checkpoint(tmp_path)
+    weights = folder / runs.WEIGHTS_FILE
+    data = bytearray(weights.read_bytes())
+    data[-16:-8] = bytes([fill]) * 8  # inside the last tensor's data, past the header
+    weights.write_bytes(bytes(data))
+    with pytest.raises(ConfigError, match=r"model\.safetensors: the weights do not match the checksum"):
+        runs.load_weights(tmp_path, {"net": _model()})
+    _save(tmp_path / "b", 1)
+    state = runs.latest_checkpoint(tmp_path / "b") / checkpoints.STATE_FILE
+    data = bytearray(state.read_bytes())
+    middle = len(data) // 2
+    data[middle:middle + 4] = bytes([fill]) * 4
+    state.write_bytes(bytes(data))
+    with pytest.raises(ConfigError, match=r"training_state\.pt: the training state does not match the checksum"):
+        runs.load_training_state(tmp_path / "b", {"opt": torch.optim.SGD(_model().parameters(), lr=1.0)})

@@ -301,3 +301,39 @@ def test_torchrun_a_killed_process_stops_the_other_and_a_rerun_writes_the_whole_
         assert len(two["names"]) == 30
         np.testing.assert_array_equal(two["names"], one["names"])
         np.testing.assert_allclose(two["descriptors"], one["descriptors"], rtol=0, atol=1e-5)
+
+
+def test_a_checkpoint_rotted_on_disk_is_refused_naming_the_file(tmp_path, capsys):
+    run = _tiny_run(tmp_path / "run")
+    weights = next(run.rglob("model.safetensors"))
+    data = bytearray(weights.read_bytes())
+    data[-4096 - 64:-64] = b"\xff" * 4096  # inside the tensor data: safetensors itself reads it without a word
+    weights.write_bytes(bytes(data))
+    out = tmp_path / "v.npz"
+    code = main(["extract", "--checkpoint", str(run), "--images", str(_images(tmp_path / "images", 3)),
+                 "--out", str(out), "--workers", "0", "--device", "cpu"])
+    err = capsys.readouterr().err
+    assert code == 2 and f"{weights}: the weights do not match the checksum" in err, err
+    assert len(err.strip().splitlines()) == 1 and not out.exists()
+
+
+def test_extract_refuses_vectors_that_are_not_finite_naming_the_first_image(tmp_path, capsys):
+    import torch
+
+    from fdnet.methods.fdnet.config import preset
+    from fdnet.methods.fdnet.model import FDNet
+    from fdnet.runs import save_run
+
+    config = preset("tiny")
+    model = FDNet(config.model)
+    with torch.no_grad():
+        for parameter in model.parameters():
+            parameter.fill_(float("nan"))  # saved so, checksum and all: the vectors are NaN
+    save_run(tmp_path / "run", model.named_parts(), config, state={"step": 1})
+    images = _images(tmp_path / "images", 3)
+    out = tmp_path / "v.npz"
+    code = main(["extract", "--checkpoint", str(tmp_path / "run"), "--images", str(images), "--out", str(out),
+                 "--workers", "0", "--device", "cpu", "--fp32"])
+    err = capsys.readouterr().err
+    assert code == 2 and f"the vector of {images / 'frame_0.png'} holds NaN" in err, err
+    assert len(err.strip().splitlines()) == 1 and not out.exists()

@@ -302,7 +302,7 @@ def test_a_dynamic_channel_axis_warns_only_when_the_model_is_accepted(tmp_path, 
     ("two_inputs", "the model takes 2 inputs"),
     ("output_n_d_1", "a descriptor model returns (N, D) vectors"),
     ("output_d", "a descriptor model returns (N, D) vectors"),
-    ("nan", "the model returned NaN or infinity"),
+    ("nan", "the model's output: the vector of image 0 of a batch of 3 holds NaN, infinity"),
     ("empty", "not an ONNX model onnxruntime can load"),
     ("truncated", "not an ONNX model onnxruntime can load"),
     ("directory", "ONNX model not found"),
@@ -390,7 +390,7 @@ def test_an_all_zero_vector_is_an_error_not_a_silent_score_of_zero(tmp_path):
 
     d = create("onnx", weights=str(export(Zero(), tmp_path / "zero.onnx")))
     assert d.dim == 3
-    with pytest.raises(DataError, match="all-zero vector"):
+    with pytest.raises(DataError, match="is all zero"):
         d.describe(np.random.default_rng(0).random((2, 16, 32, 3), dtype=np.float32))
     assert create("onnx", weights=str(tmp_path / "zero.onnx"), normalise="none").describe(
         np.ones((1, 16, 32, 3), np.float32)).tolist() == [[0.0, 0.0, 0.0]]
@@ -443,3 +443,22 @@ def test_external_data_outside_the_models_folder_is_refused_naming_the_model(tmp
     onnx.save_model(model, str(tmp_path / "m" / "escape.onnx"))
     with pytest.raises(DataError, match=r"escape\.onnx.*not a file inside the model's folder"):
         create("onnx", weights=str(tmp_path / "m" / "escape.onnx"))
+
+
+@pytest.mark.parametrize("scale", [1e25, 1e-29])
+def test_outputs_of_huge_or_tiny_values_keep_their_direction(scale, tmp_path):
+    """Float32's sum of squares overflows at 1e25 (every vector became zero) and underflows at
+    1e-29 (called all-zero): norms are taken in float64."""
+    class Scaled(torch.nn.Module):
+        def __init__(self, factor):
+            super().__init__()
+            self.conv, self.factor = MeanConv().conv, factor
+
+        def forward(self, x):
+            return self.conv(x).mean(dim=(2, 3)) * self.factor
+
+    images = np.random.default_rng(0).random((3, 16, 32, 3), dtype=np.float32)
+    plain = create("onnx", weights=str(export(Scaled(1.0), tmp_path / "plain.onnx"))).describe(images)
+    scaled = create("onnx", weights=str(export(Scaled(scale), tmp_path / "scaled.onnx"))).describe(images)
+    np.testing.assert_allclose(scaled, plain, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(np.linalg.norm(scaled, axis=1), 1.0, rtol=1e-5)

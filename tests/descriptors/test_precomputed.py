@@ -280,6 +280,7 @@ def _write_npz(path, **arrays):
     ("sources_short", "2 sources for 3 names"),
     ("directory", "not a file"),
     ("beyond_float32", "beyond float32's range"),
+    ("zero_row", "the vector of day/frame_001.png is all zero"),
 ])
 def test_a_vectors_file_holding_the_wrong_things_is_one_error_naming_it(case, message, tmp_path):
     path = tmp_path / f"{case}.npz"
@@ -307,6 +308,8 @@ def test_a_vectors_file_holding_the_wrong_things_is_one_error_naming_it(case, me
         path.mkdir()
     elif case == "beyond_float32":
         _write_npz(path, descriptors=np.full((3, 4), 1e300), names=NAMES)
+    elif case == "zero_row":
+        _write_npz(path, descriptors=np.where(np.arange(3)[:, None] == 1, 0.0, VECTORS), names=NAMES)
     with pytest.raises(DataError) as caught:
         create("precomputed", vectors=str(path))
     text = str(caught.value)

@@ -191,12 +191,22 @@ def test_non_finite_vectors_are_refused_and_nothing_is_added(tmp_path, rng):
     db = PlaceDatabase.create(tmp_path / "map.db", Projection())
     v = unit(rng, 3, 8)
     v[1, 2] = np.nan
-    with pytest.raises(DataError, match="non-finite.*frame_1.png"):
+    with pytest.raises(DataError, match="map.db: nothing was added: the vector of frame_1.png holds NaN"):
         db.add(v, ["frame_0.png", "frame_1.png", "frame_2.png"])
     assert len(db) == 0
     with pytest.raises(DataError, match="frame_1.png"):
         PlaceDatabase.create(tmp_path / "new.db", Projection(), vectors=v, names=["frame_0.png", "frame_1.png", "x"])
     assert not (tmp_path / "new.db").exists()
+
+
+def test_all_zero_vectors_are_refused_and_nothing_is_added(tmp_path, rng):
+    db = PlaceDatabase.create(tmp_path / "map.db", Projection())
+    v = unit(rng, 3, 8)
+    zero = v.copy()
+    zero[1] = 0.0
+    with pytest.raises(DataError, match="the vector of frame_1.png is all zero"):
+        db.add(zero, ["frame_0.png", "frame_1.png", "frame_2.png"])
+    assert len(db) == 0
 
 
 def test_duplicates_are_skipped_and_reported_unless_allowed(tmp_path, rng):

@@ -21,8 +21,42 @@ import numpy as np
 
 def l2_normalize(x: np.ndarray, eps: float = 1e-12) -> np.ndarray:
     x = np.asarray(x, dtype=np.float32)
-    norm = np.linalg.norm(x, axis=-1, keepdims=True)
-    return x / np.maximum(norm, eps)
+    with np.errstate(over="ignore"):
+        norm = np.linalg.norm(x, axis=-1, keepdims=True)
+    odd = ~np.isfinite(norm) | (norm < 1e-18)
+    norm = np.maximum(norm, eps)
+    if odd.any():
+        # float32's sum of squares overflows (values near 1e20) or underflows (near 1e-20): take
+        # those rows' norms in float64 instead of giving zeros (1e25) or tiny vectors (1e-29)
+        exact = np.linalg.norm(x.astype(np.float64), axis=-1, keepdims=True)
+        norm[odd] = np.where(exact > 0, exact, eps)[odd].astype(np.float32)
+    return x / norm
+
+
+def check_vectors(vectors, source, label=None, *, directions: bool = True) -> np.ndarray:
+    """The one guard for vectors entering fdnet (a model's output, a vectors file, a database
+    add, an extraction): ``vectors`` as (N, D) float32, or a DataError naming ``source`` (a file)
+    and the first bad row (``label(i)`` names row i; default "row i"). Refused: a value that is
+    NaN, infinite or beyond float32's range, and (``directions``) an all-zero row, which has no
+    direction and so could never be matched. Norms are taken in float64, so vectors of tiny
+    (1e-29) or huge (1e25) values are neither zero nor overflowing."""
+    from fdnet.errors import DataError
+
+    label = label or (lambda i: f"row {i}")
+    with np.errstate(over="ignore", invalid="ignore"):
+        v = np.asarray(vectors, dtype=np.float32)
+    if v.ndim != 2:
+        raise DataError(f"{source}: vectors of shape {tuple(v.shape)}; expected (images, length)")
+    bad = np.flatnonzero(~np.isfinite(v).all(axis=1))
+    if len(bad):
+        raise DataError(f"{source}: the vector of {label(int(bad[0]))} holds NaN, infinity or a number beyond "
+                        f"float32's range ({len(bad)} of {len(v)} vectors); refused")
+    if directions and v.size:
+        zero = np.flatnonzero(np.linalg.norm(v.astype(np.float64), axis=1) == 0)
+        if len(zero):
+            raise DataError(f"{source}: the vector of {label(int(zero[0]))} is all zero ({len(zero)} of {len(v)} "
+                            "vectors): it has no direction and could never be matched; refused")
+    return v
 
 
 #: settings that say where a descriptor's weights were read from, not what they are: left out of

@@ -33,6 +33,8 @@ import time
 
 import numpy as np
 
+from fdnet.descriptors.base import check_vectors
+
 logger = logging.getLogger(__name__)
 
 
@@ -78,6 +80,15 @@ def _seconds(shards, timing: dict, started: float) -> float:
     return timing.get("seconds_wall", time.perf_counter() - started)
 
 
+def _checked(descriptor, paths, start: int, array) -> np.ndarray:
+    """A batch of vectors as written: NaN or infinity (a damaged checkpoint's weights) is refused
+    naming the first image, never written for a later command to stumble on."""
+    settings = descriptor.settings()
+    made_by = settings.get("checkpoint") or settings.get("weights")
+    source = f"{descriptor.name} vectors" + (f" of {made_by}" if made_by else "")
+    return check_vectors(array, source, lambda i: f"{paths[start + i]}", directions=False)
+
+
 def _summary(paths, arrays, descriptor, seconds: float, fitted) -> dict:
     return {"images": len(paths), "arrays": arrays, "dim": descriptor.dim, "seconds": seconds,
             "images_per_second": len(paths) / max(seconds, 1e-9), "fitted_on": fitted}
@@ -108,7 +119,7 @@ def extract(descriptor, paths, out, batch_size: int = 64, workers: int | None = 
 
     def write(start, arrays):
         for name, array in zip(names, arrays):
-            writer.write(name, array)
+            writer.write(name, _checked(descriptor, paths, start, array))
 
     with writer if writer is not None else contextlib.nullcontext():
         describe_blocks(shards, descriptor, paths, [descriptor.dim] * len(names), write, batch_size=batch_size,
@@ -147,7 +158,7 @@ def extract_h5(descriptor, paths, out, root, batch_size: int = 64, workers: int 
     writer = shards.collectively(lambda: GlobalFeaturesWriter(out, attrs=attrs) if shards.is_main else None)
 
     def write(start, arrays):
-        writer.write(names[start:start + len(arrays[0])], arrays[0])
+        writer.write(names[start:start + len(arrays[0])], _checked(descriptor, paths, start, arrays[0]))
 
     with writer if writer is not None else contextlib.nullcontext():
         describe_blocks(shards, descriptor, paths, [descriptor.dim], write, batch_size=batch_size, workers=workers,

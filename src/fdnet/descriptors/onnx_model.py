@@ -36,7 +36,7 @@ from typing import Sequence
 
 import numpy as np
 
-from fdnet.descriptors.base import Descriptor, l2_normalize
+from fdnet.descriptors.base import Descriptor, check_vectors, l2_normalize
 from fdnet.errors import ConfigError, DataError, NotAvailableError
 
 logger = logging.getLogger(__name__)
@@ -352,12 +352,10 @@ class ONNXDescriptor(Descriptor):
                                 f"{len(chunk)} images; a descriptor model returns (N, D) vectors")
             parts.append(out[:min(step, len(images) - start)].astype(np.float32))
         vectors = np.concatenate(parts) if parts else np.zeros((0, getattr(self, "_dim", 0) or 0), np.float32)
-        if not np.isfinite(vectors).all():
-            raise DataError(f"{self.weights}: the model returned NaN or infinity")
-        zero = np.flatnonzero(np.linalg.norm(vectors, axis=1) == 0) if self.normalise == "l2" else []
-        if len(zero):  # no direction: every score against it would be 0, never a match, without a word
-            raise DataError(f"{self.weights}: the model returned an all-zero vector (image {int(zero[0])} of a "
-                            f"batch of {len(vectors)}); it cannot be compared")
+        # no direction: every score against an all-zero vector would be 0, never a match, without a word
+        vectors = check_vectors(vectors, f"{self.weights}: the model's output",
+                                lambda i: f"image {i} of a batch of {len(vectors)}",
+                                directions=self.normalise == "l2")
         return l2_normalize(vectors) if self.normalise == "l2" else vectors
 
 

@@ -42,7 +42,7 @@ from typing import Sequence
 
 import numpy as np
 
-from fdnet.descriptors.base import Descriptor
+from fdnet.descriptors.base import Descriptor, check_vectors
 from fdnet.errors import ConfigError, DataError
 
 logger = logging.getLogger(__name__)
@@ -162,9 +162,7 @@ def read_vectors(path: str | os.PathLike, names_file: str | None = None,
         raise DataError(f"{path}: vectors of shape {tuple(vectors.shape)}; expected (images, length)")
     if len(names) != len(vectors):
         raise DataError(f"{path}: {len(vectors)} vectors but {len(names)} image names")
-    if not np.isfinite(vectors).all():
-        row = int(np.flatnonzero(~np.isfinite(vectors).all(axis=1))[0])
-        raise DataError(f"{path}: the vector of {names[row]} holds NaN, infinity or a number beyond float32's range")
+    vectors = check_vectors(vectors, path, lambda row: names[row])
     empty = next((i for i, name in enumerate(names) if not _parts(name)), None)
     if empty is not None:
         raise DataError(f"{path}: row {empty} has an empty image name")

@@ -7,12 +7,11 @@ This module must not import :mod:`fdnet.training`: inference code loads trained 
 
 from __future__ import annotations
 
-import logging
-
 import contextlib
 import dataclasses
 import errno
 import io
+import logging
 import operator
 import os
 import re
@@ -30,6 +29,7 @@ from safetensors.torch import save as safetensors_bytes
 from fdnet.config import flatten_dotted, load_yaml, read_yaml_file, to_dict
 from fdnet.errors import ConfigError, output_error
 from fdnet.io import fsync_directory
+from fdnet.runs.checksums import STATE_KEY, TENSORS_KEY, bytes_sha256, tensors_sha256, verify_state, verify_tensors
 
 try:
     import fcntl
@@ -360,9 +360,9 @@ def _publish(run_dir: str | Path, modules: Mapping[str, torch.nn.Module], config
         "config_class": type(config).__name__,
         "save_id": save_id,
         "step": str(step),
+        TENSORS_KEY: tensors_sha256(tensors),
     }
-    files = {WEIGHTS_FILE: safetensors_bytes(tensors, metadata=metadata)}
-    del tensors
+    files = {}
     if kind == KIND_TRAINING:
         buffer = io.BytesIO()
         torch.save({
@@ -373,6 +373,9 @@ def _publish(run_dir: str | Path, modules: Mapping[str, torch.nn.Module], config
             "state": dict(state or {}),
         }, buffer)
         files[STATE_FILE] = buffer.getbuffer()
+        metadata[STATE_KEY] = bytes_sha256(files[STATE_FILE])
+    files = {WEIGHTS_FILE: safetensors_bytes(tensors, metadata=metadata), **files}
+    del tensors
     files[CONFIG_FILE] = _config_text(config, save_id, step).encode("utf-8")
 
     run_dir = Path(run_dir)
@@ -491,10 +494,7 @@ def load_config(run_dir: str | Path, cls: type[T]) -> T:
 
 def config_differences(saved: Any, requested: Any, keys: list[str] | None = None) -> list[str]:
     """``"a.b: saved X, requested Y"`` for every differing setting (only dotted ``keys`` if given)."""
-    def flat(d: Any) -> dict[str, Any]:
-        return flatten_dotted(to_dict(d) if dataclasses.is_dataclass(d) else dict(d))
-
-    a, b = flat(saved), flat(requested)
+    a, b = (flatten_dotted(to_dict(d) if dataclasses.is_dataclass(d) else dict(d)) for d in (saved, requested))
     names = keys if keys is not None else sorted(set(a) | set(b))
     return [f"{k}: saved {a.get(k)!r}, requested {b.get(k)!r}" for k in names if a.get(k) != b.get(k)]
 
@@ -509,6 +509,7 @@ def _load_weights_from(folder: Path, modules: Mapping[str, torch.nn.Module],
         raise
     except (SafetensorError, OSError) as exc:
         raise ConfigError(f"{path}: cannot read weights ({exc})") from None
+    verify_tensors(path, tensors, metadata)
     for name, module in modules.items():
         prefix = f"{name}."
         own = {k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)}
@@ -560,15 +561,18 @@ def _load_training_state_from(folder: Path, optimizers: Mapping[str, torch.optim
         what = "a weights-only checkpoint" if kind == KIND_WEIGHTS else f"no {STATE_FILE}"
         raise ConfigError(f"{folder}: {what}; this run cannot be resumed (final, best or exported weights)")
     try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
-    except FileNotFoundError:
+        weights_metadata = _weights_metadata(folder / WEIGHTS_FILE)
+    except (SafetensorError, OSError) as exc:
+        raise ConfigError(f"{folder / WEIGHTS_FILE}: cannot read weights ({exc})") from None
+    weights_id = weights_metadata.get("save_id")
+    try:
+        data = path.read_bytes()
+        verify_state(path, data, weights_metadata)
+        payload = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
+    except (FileNotFoundError, ConfigError):
         raise
     except Exception as exc:  # torch raises several types for a corrupt or foreign file
         raise ConfigError(f"{path}: cannot read training state ({exc.__class__.__name__}: {exc})") from None
-    try:
-        weights_id = _weights_metadata(folder / WEIGHTS_FILE).get("save_id")
-    except (SafetensorError, OSError) as exc:
-        raise ConfigError(f"{folder / WEIGHTS_FILE}: cannot read weights ({exc})") from None
     if weights_id != payload.get("save_id"):
         raise ConfigError(
             f"{path}: training state and {WEIGHTS_FILE} come from different saves "

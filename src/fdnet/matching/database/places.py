@@ -9,6 +9,7 @@ from typing import Sequence
 
 import numpy as np
 
+from fdnet.descriptors.base import check_vectors
 from fdnet.errors import ConfigError, DataError
 from fdnet.matching.database.storage import _canonical_json, check_place_names
 
@@ -16,7 +17,8 @@ from fdnet.matching.database.storage import _canonical_json, check_place_names
 _NAMES_PER_QUERY = 500
 
 
-def prepare_batch(path: str, dim: int, method: str, vectors, names, positions, metadata) -> dict:
+def prepare_batch(path: str, dim: int, method: str, vectors, names, positions, metadata,
+                  dot_product: bool = True) -> dict:
     """The batch as rows to insert (names, x, y, metadata JSON, vector blobs), or the
     ConfigError/DataError naming the database ``path`` and what is wrong with it."""
     try:
@@ -29,11 +31,8 @@ def prepare_batch(path: str, dim: int, method: str, vectors, names, positions, m
         raise ConfigError(f"{path}: {len(v)} vectors but {0 if names is None else len(names)} names")
     names = [str(n) for n in names]
     check_place_names(names)
-    bad = np.flatnonzero(~np.isfinite(v).all(axis=1))
-    if len(bad):
-        listed = ", ".join(names[i] for i in bad[:5]) + (f" and {len(bad) - 5} more" if len(bad) > 5 else "")
-        raise DataError(f"{path}: refusing {len(bad)} non-finite vector(s) (NaN or inf) for {listed}; "
-                        "nothing was added (a NaN place can never be matched)")
+    # NaN, infinite and all-zero vectors: a place that can never be matched
+    check_vectors(v, f"{path}: nothing was added", lambda i: names[i], directions=dot_product)
     xs: list[float | None] = [None] * len(v)
     ys: list[float | None] = [None] * len(v)
     if positions is not None:

@@ -346,7 +346,7 @@ class PlaceDatabase:
         """Check a batch completely before the transaction starts, so a refusal changes nothing."""
         if fingerprint is not None:
             _check_fingerprint(self.path, self._identity, fingerprint, None)
-        return prepare_batch(self.path, self.dim, self.method, vectors, names, positions, metadata)
+        return prepare_batch(self.path, self.dim, self.method, vectors, names, positions, metadata, self.dot_product)
 
     def _check_same_database(self, conn: sqlite3.Connection) -> None:
         row = conn.execute("SELECT database_id FROM fdnet_database").fetchone()
