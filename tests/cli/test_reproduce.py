@@ -40,6 +40,21 @@ def document(out: Path, name: str) -> dict:
     return json.loads((out / f"{name}.json").read_text())
 
 
+def test_a_tiny_run_is_called_a_smoke_test_with_its_seeds_recorded(made):
+    """The README's example trains FDNet for a few steps: the report says it is a smoke test, and
+    every document records the run's seed with its provenance."""
+    out = made["out"]
+    manifest = document(out, "reproduce")
+    assert manifest["checkpoint_run"]["preset"] == "tiny" and "is a smoke test of the pipeline" in manifest["smoke_test"]
+    assert "is a smoke test of the pipeline" in (out / "report.html").read_text()
+    comparison = document(out, "comparison")
+    assert comparison["smoke_test"] == manifest["smoke_test"]
+    assert comparison["provenance"]["seeds"]["checkpoint"] == 0 and comparison["provenance"]["command"].startswith(
+        "fdnet reproduce --data")
+    seeds = document(out, "ablation").get("provenance", {}).get("seeds", {}) if (out / "ablation.json").exists() else {}
+    assert all(isinstance(v, int) for k, v in seeds.items() if k != "checkpoint")
+
+
 def test_every_experiment_writes_its_numbers(made):
     out = made["out"]
     comparison = document(out, "comparison")

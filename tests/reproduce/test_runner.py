@@ -164,6 +164,17 @@ def test_comparison_shows_r100p_under_the_default_acceptance_rule_beside_raw(rou
     assert f"{per[DEFAULT_ACCEPTANCE]['recall_at_100_precision']:.3f}" in section
 
 
+def test_the_manifest_and_every_experiment_record_their_provenance(route, tmp_path):
+    out = tmp_path / "out"
+    reproduce(settings(route, out, conditions=["day", "night"]), factory, quiet)
+    for name in ("reproduce", "comparison"):
+        document = json.loads((out / f"{name}.json").read_text())
+        record = document["provenance"]
+        assert record["command"] == "fdnet reproduce (test)" and record["seeds"] == {"checkpoint": None}
+        assert {"fdnet_version", "git", "libraries", "device", "cpu"} <= set(record)
+        assert document["smoke_test"] is None  # no FDNet run was given
+
+
 def test_every_experiment_loads_its_own_module():
     """The runner finds each experiment's module by its name (the runtime experiment's module is
     table5_runtime); each module says it is that experiment."""

@@ -223,7 +223,10 @@ def run(args) -> int:
         progress=not args.no_progress, log=logging.getLogger("fdnet.loop_closure").info)
     _print_report(args, report)
     if args.report:
-        atomic_write_text(args.report, json.dumps(report.to_dict(), indent=2, sort_keys=True, default=str) + "\n")
+        from fdnet.provenance import provenance
+
+        document = {**report.to_dict(), "provenance": provenance(getattr(args, "command_line", None), device=args.device)}
+        atomic_write_text(args.report, json.dumps(document, indent=2, sort_keys=True, default=str) + "\n")
         print(f"wrote {args.report}")
     return 0
 

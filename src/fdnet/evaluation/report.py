@@ -92,6 +92,7 @@ def results_json(results: Sequence[MethodResult], protocol: str | None = None,
     result its per-query ``predictions``: the query's index and name, its ``predictions`` best
     reference indices (and names; :func:`fdnet.data.images.image_name`) with their scores and
     whether each is correct."""
+    from fdnet.provenance import provenance
     from fdnet.version import __version__
 
     objects = []
@@ -102,7 +103,8 @@ def results_json(results: Sequence[MethodResult], protocol: str | None = None,
         objects.append(item)
     return {"format": JSON_FORMAT, "format_version": JSON_FORMAT_VERSION, "fdnet_version": __version__,
             "command": command, "protocol": protocol or (results[0].protocols[0] if results else None),
-            "settings": settings or {}, "results": objects}
+            "settings": settings or {}, "results": objects,
+            "provenance": provenance(command, device=(settings or {}).get("device"))}
 
 
 def _predictions(result: MethodResult, k: int) -> list[dict]:

@@ -239,6 +239,11 @@ def run_benchmark(plan: BenchmarkPlan, out: Callable[[str], None], json_path: st
     cpu = timing.cpu_model()
     report: dict = {"threads": plan.threads, "machine": platform.processor() or platform.machine(), "cpu": cpu,
                     "torch": torch.__version__, "fdnet": __version__, "device": str(device), "command": plan.command}
+    from fdnet.provenance import provenance
+
+    # the synthetic inputs' seeds (the route, the random FDNet weights, the random maps and their revisits)
+    report["provenance"] = provenance(plan.command, seeds={"synthetic_route": 0, "fdnet_weights": 0, "random_map": 0,
+                                                           "revisit_queries": 1}, device=str(device))
     out(f"fdnet benchmark: {plan.threads} threads, {cpu} ({platform.machine()}), torch {torch.__version__}, "
         f"device {device}")
     _gemm_references(plan, report, out)

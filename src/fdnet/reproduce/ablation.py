@@ -258,6 +258,7 @@ def run(ctx) -> dict:
         for v, h in handles.items():
             schedule = _schedule(configs[v])
             runs_info.append({"variant": v, "removes": REMOVES[v], "run": str(variants[v]), "step": h.descriptor.step,
+                              "seed": configs[v].runtime.seed,
                               "schedule": schedule, "weights_stage": weights_stage(schedule, h.descriptor.step),
                               "differences_from_full": _differences(full, configs[v])
                               if full is not None and v != "full" else []})

@@ -124,6 +124,8 @@ def _header(manifest: dict | None, shown: list[str]) -> str:
         ("command", f"<code>{_escape(manifest.get('command', ''))}</code>"),
         ("created", _escape(manifest.get("created", ""))),
     ]
+    if manifest.get("smoke_test"):
+        rows.insert(0, ("smoke test", f"<b>{_escape(manifest['smoke_test'])}</b>"))
     body = "".join(f"<tr><th>{k}</th><td>{v}</td></tr>" for k, v in rows)
     nav = "".join(f'<a href="#{name}">{name}</a>' for name in shown)
     return (f"<header><h1>fdnet reproduce: the paper's experiments</h1>"

@@ -31,6 +31,7 @@ from fdnet.descriptors.registry import reproduce_methods
 from fdnet.errors import ConfigError, FdnetError
 from fdnet.metrics import PROTOCOLS, RECALL_OVER_QUERIES
 from fdnet.io import atomic_write_text, ensure_writable
+from fdnet.provenance import provenance
 from fdnet.evaluation.report import _plain
 from fdnet.reproduce.cache import DescriptorCache, image_list_key
 from fdnet.reproduce.sections import ALL_EXPERIMENTS, EXPERIMENTS, MANIFEST, experiment_module
@@ -492,6 +493,10 @@ def _run_experiments(ctx: Context, chosen: list[str], reasons: dict, write_repor
         "checkpoint": str(settings.checkpoint) if settings.checkpoint else None,
         "experiments_run": chosen,
     }
+    run = _checkpoint_run(settings.checkpoint)
+    manifest.update(checkpoint_run=run, smoke_test=_smoke_test(run),
+                    provenance=provenance(settings.command, seeds={"checkpoint": run and run["seed"]},
+                                          device=getattr(settings, "device", None)))
     atomic_write_text(out / MANIFEST, json.dumps(manifest, indent=2) + "\n")
     for name in chosen:
         module = experiment_module(name)
@@ -503,7 +508,9 @@ def _run_experiments(ctx: Context, chosen: list[str], reasons: dict, write_repor
         document = {"experiment": name, "title": module.TITLE, "paper": module.PAPER,
                     "fdnet_version": __version__, "command": settings.command, "created": _now(),
                     "dataset": str(settings.data), "checkpoint": manifest["checkpoint"],
-                    "protocol": ctx.protocol, **document}
+                    "protocol": ctx.protocol, "smoke_test": manifest["smoke_test"], **document,
+                    "provenance": provenance(settings.command, seeds=_seeds(run, document),
+                                             device=getattr(settings, "device", None))}
         atomic_write_text(out / f"{name}.json", json.dumps(document, indent=1, allow_nan=False,
                                                             default=_plain) + "\n")
         ctx.remove_stale_figures()
@@ -513,6 +520,52 @@ def _run_experiments(ctx: Context, chosen: list[str], reasons: dict, write_repor
     report = write_report(out)
     log(f"wrote {report}")
     return report
+
+
+#: the most training steps a run may have and still be called a smoke test in the report
+SMOKE_TEST_STEPS = 100
+
+
+def _checkpoint_run(checkpoint) -> dict | None:
+    """The FDNet run behind ``checkpoint``: its preset, seed, planned and trained steps (None
+    when there is none, or it is not an FDNet run)."""
+    if checkpoint is None:
+        return None
+    from fdnet.methods.fdnet.config import FDNetRunConfig
+    from fdnet.runs import latest_checkpoint, load_config, weights_folder
+
+    try:
+        folder = weights_folder(checkpoint)
+        config = load_config(folder, FDNetRunConfig)
+        found = re.match(r"step-(\d+)", latest_checkpoint(folder).name)  # a generation's folder names its step
+    except (FdnetError, OSError, ValueError):
+        return None
+    step = int(found.group(1)) if found else None
+    return {"preset": config.preset, "seed": config.runtime.seed, "total_steps": config.total_steps, "step": step}
+
+
+def _smoke_test(run: dict | None) -> str | None:
+    """The report's warning when the FDNet run is a smoke test (the ``tiny`` preset, or at most
+    :data:`SMOKE_TEST_STEPS` steps): its numbers say the pipeline runs, not what FDNet does."""
+    if run is None:
+        return None
+    steps = run["step"] if isinstance(run.get("step"), int) else run["total_steps"]
+    if run["preset"] != "tiny" and steps > SMOKE_TEST_STEPS:
+        return None
+    return (f"the FDNet run ({run['preset']} preset, {steps} training steps) is a smoke test of the pipeline, not a "
+            "result: its FDNet numbers say that training, evaluation and the report run, not what FDNet does "
+            "(train with --preset cpu for that)")
+
+
+def _seeds(run: dict | None, document: dict) -> dict:
+    """The seeds an experiment's numbers depend on: the checkpoint run's, and every variant it
+    trained or read (the ablation's)."""
+    seeds = {"checkpoint": run and run["seed"]}
+    for group in document.get("groups") or []:
+        for info in group.get("runs") or []:
+            if "seed" in info:
+                seeds[f"{group.get('preset')}/{info['variant']}"] = info["seed"]
+    return seeds
 
 
 def _now() -> str:
