@@ -195,3 +195,40 @@ def test_torchrun_an_unreadable_image_in_one_block_stops_both_with_one_line_each
     assert PACKAGE not in result.stderr  # no traceback through fdnet's code (torchrun prints its own)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["images", "tmp"]
     assert spools(tmp_path / "tmp") == []
+
+
+class _TwoProcesses(Shards):
+    """Process 0 of 2, with process 1's answers to each exchange given (no process group)."""
+
+    def __init__(self, theirs):
+        super().__init__(2, 0)
+        self.enabled, self._theirs = True, list(theirs)
+
+    def collectively(self, fn, main_only=False):
+        return fn()
+
+    def gather(self, obj):
+        return [obj, self._theirs.pop(0)]
+
+
+def test_processes_given_other_folders_with_the_same_file_names_are_refused(tmp_path):
+    """Two conditions of one route share every file name: the processes compare absolute paths,
+    sizes and modification times, not names, and name the first image that differs."""
+    from fdnet.data.identity import image_facts, images_digest
+
+    a = sorted(images(tmp_path / "A", 3, seed=0).iterdir())
+    b = sorted(images(tmp_path / "B", 3, seed=1).iterdir())
+    assert [p.name for p in a] == [p.name for p in b]
+    descriptor = sharding_descriptor()
+    theirs = [(len(b), images_digest(b), descriptor.fingerprint(), descriptor.dim), [image_facts(p) for p in b]]
+    with pytest.raises(ConfigError, match=rf"process 1 of 2 lists other images than process 0: image 0 is "
+                                          rf"{tmp_path / 'B' / 'frame_0.png'}"):
+        sharding.check_same_inputs(_TwoProcesses(theirs), a, descriptor)
+    same = [(len(a), images_digest(a), descriptor.fingerprint(), descriptor.dim)]
+    sharding.check_same_inputs(_TwoProcesses(same), a, descriptor)  # the same images: accepted
+
+
+def sharding_descriptor():
+    from fdnet.descriptors import create
+
+    return create("sad")

@@ -10,7 +10,8 @@ starts N processes per machine; each reads ``WORLD_SIZE``, ``RANK``, ``LOCAL_RAN
 block of them (:meth:`Shards.block`: process r of W takes ``r*N//W`` to ``(r+1)*N//W``) on its own
 GPU (``cuda:LOCAL_RANK`` becomes the current device, so ``--device auto``/``cuda`` mean it) or on
 the CPU (the machine's cores divided among its processes). First the processes compare the images'
-number and names and the model's fingerprint (:func:`check_same_inputs`).
+number, absolute paths, sizes and modification times and the model's fingerprint
+(:func:`check_same_inputs`).
 
 **Transport.** Rank 0 writes the one output file. Its block comes first, so it writes its vectors
 as they are made; every other process spools its own to a temporary file on its machine
@@ -41,7 +42,6 @@ from __future__ import annotations
 
 import contextlib
 import datetime
-import hashlib
 import logging
 import os
 import signal
@@ -377,19 +377,34 @@ def exit_process(code: int) -> None:
 
 # ---------------------------------------------------------------------- the work
 def check_same_inputs(shards: Shards, paths: Sequence, descriptor) -> None:
-    """ConfigError in every process unless all of them list the same images (count and file
-    names, in order) and hold the same model (its fingerprint)."""
+    """ConfigError in every process unless all of them list the same images (by content:
+    :func:`fdnet.data.identity.images_digest`, each image's absolute path, size and modification
+    time, in order) and hold the same model (its fingerprint). Two folders whose images share
+    file names are two image lists."""
     if not shards.enabled:
         return
-    names = hashlib.sha256("\n".join(Path(p).name for p in paths).encode("utf-8", "surrogateescape")).hexdigest()
-    mine = shards.collectively(lambda: (len(paths), names, descriptor.fingerprint(), int(descriptor.dim)))
+    from fdnet.data.identity import describe_facts, image_facts, images_digest
+
+    mine = shards.collectively(lambda: (len(paths), images_digest(paths), descriptor.fingerprint(),
+                                        int(descriptor.dim)))
     everyone = shards.gather(mine)
     first = everyone[0]
     for rank, theirs in enumerate(everyone[1:], start=1):
-        if theirs[:2] != first[:2]:
+        if theirs[0] != first[0]:
             raise ConfigError(f"process {rank} of {shards.world_size} lists {theirs[0]} images, process 0 "
-                              f"{first[0]}{' (other names)' if theirs[0] == first[0] else ''}: every process must "
-                              "see the same images (the same folder, readable on every machine)")
+                              f"{first[0]}: every process must see the same images (the same folder, readable on "
+                              "every machine)")
+    if any(theirs[1] != first[1] for theirs in everyone[1:]):
+        # every process sees the mismatch: all take part in this second exchange, of each image's facts
+        lists = shards.gather([image_facts(p) for p in paths])
+        for rank, theirs in enumerate(lists[1:], start=1):
+            at = next((i for i, (a, b) in enumerate(zip(lists[0], theirs)) if a != b), None)
+            if at is not None:
+                raise ConfigError(f"process {rank} of {shards.world_size} lists other images than process 0: image "
+                                  f"{at} is {describe_facts(theirs[at])} there, {describe_facts(lists[0][at])} in "
+                                  "process 0; every process must see the same files (the same absolute paths, "
+                                  "sizes and modification times)")
+    for rank, theirs in enumerate(everyone[1:], start=1):
         if theirs[2:] != first[2:]:
             raise ConfigError(f"process {rank} of {shards.world_size} holds another {descriptor.name} model than "
                               f"process 0 (fingerprint {theirs[2][:12]} vs {first[2][:12]}): every machine must "

@@ -28,22 +28,9 @@ def map_digest(paths) -> str:
     listed and the size and modification time of the file behind it (for a frame of a video or
     bag, that file's), so an index built for one folder is not reused for another whose images
     share file names (two conditions of one route), nor for rewritten images."""
-    import hashlib
+    from fdnet.data.identity import images_digest
 
-    from fdnet.data.sources import locate
-
-    digest = hashlib.sha256()
-    for path in paths:
-        path = Path(path)
-        found = None if path.is_file() else locate(path)
-        backing = found[0] if found is not None else path
-        try:
-            stat = backing.stat()
-            facts = f"{stat.st_size}\0{stat.st_mtime_ns}"
-        except OSError:
-            facts = "unreadable"
-        digest.update(os.fsencode(os.path.abspath(path)) + b"\0" + facts.encode() + b"\n")
-    return digest.hexdigest()
+    return images_digest(paths)
 
 
 def cached_index(path, descriptor, ref_paths, settings, log: Callable[[str], None] | None = None):
