@@ -208,7 +208,7 @@ def test_long_function_finder_finds_a_planted_one():
 #: A module imports only modules of its own floor or below, at module level or inside a function.
 FLOORS = (
     ("ground", ("fdnet.errors", "fdnet.version", "fdnet.io", "fdnet.logs", "fdnet.config", "fdnet.progress",
-                "fdnet.backbones", "fdnet.paper", "fdnet.torchrun")),
+                "fdnet.backbones", "fdnet.paper", "fdnet.torchrun", "fdnet.provenance")),
     ("data", ("fdnet.data",)),
     ("runs", ("fdnet.runs",)),
     ("descriptors", ("fdnet.descriptors",)),
