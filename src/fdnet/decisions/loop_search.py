@@ -12,10 +12,10 @@ detector switches to :class:`IndexedCandidates`:
    the same decisions);
 2. without sequences the candidates are those places; with sequences of L frames, a candidate
    sequence end is any place a recent frame's neighbour points to (place p of the frame k steps
-   back, moved on by k x v places for each velocity v), and each such end is scored exactly as
-   :func:`fdnet.matching.sequence.online_sequence_scores` scores it (the same mean over the same
-   (frame, place) pairs, read from the stored vectors), so the sequence score of every place
-   the search proposes is exact; places it does not propose are not scored;
+   back, moved on by k x v places for each velocity v), and each such end is scored by
+   :func:`fdnet.matching.sequence.online_sequence_scores`, the exhaustive path's scorer, over
+   rows read from the stored vectors at the pairs the sum needs, so the sequence score of every
+   place the search proposes is exact; places it does not propose are not scored;
 3. the missing terms of a sequence that runs off the start of the map, and the places a gate
    marked uninformative, take the frame's neutral value (its median similarity, estimated on an
    evenly spaced sample of the map), as in the exhaustive path.
@@ -31,7 +31,7 @@ from collections import deque
 
 import numpy as np
 
-from fdnet.matching.sequence import DEFAULT_VELOCITIES
+from fdnet.matching.sequence import DEFAULT_VELOCITIES, SequenceRow
 
 #: maps of at least this many places are searched through the index (``search="auto"``)
 INDEX_FROM = 20_000
@@ -148,36 +148,47 @@ class IndexedCandidates:
 
     def _sequence_scores(self, ends: np.ndarray, vectors: np.ndarray, informative: np.ndarray,
                          exact: bool = True, seams=None) -> np.ndarray:
-        """Sequence scores of ``ends`` over the recent frames, each (frame, place) pair read from
-        the vectors as online_sequence_scores reads it from the rows (the frame's row held the
-        places that existed then: later places count as missing). ``exact=False``: a pair's
-        similarity only when the index returned that place for that frame, else neutral."""
-        velocities = np.asarray(DEFAULT_VELOCITIES, dtype=np.float64)
-        pad = int(math.ceil(velocities.max() * (self.sequence_length - 1)))
-        total = np.zeros((len(velocities), len(ends)))
-        count = np.zeros((len(velocities), len(ends)))
-        # each end's segment's first place
+        """Sequence scores of ``ends`` over the recent frames by
+        :func:`~fdnet.matching.sequence.online_sequence_scores`, each frame a
+        :class:`_RecentRow` read from the stored vectors (the frame's row held the places that
+        existed then: later places count as missing). ``exact=False``: a pair's similarity only
+        when the index returned that place for that frame, else neutral."""
+        from fdnet.matching.sequence import online_sequence_scores
+
+        # each end's segment's first place: a sequence ending in a segment counts the places
+        # just before its start as neutral padding, as the exhaustive path's padded rows do
         first = np.zeros(len(ends), np.int64) if seams is None else seams.first_places(ends)
-        for k, (frame, ids, neutral, places_then, frame_informative, sims) in enumerate(reversed(self._recent)):
-            # the places this frame pairs with, for every end and velocity: one product for all
-            places = np.rint(ends[None, :] - k * velocities[:, None]).astype(np.int64)
-            inside = (places >= first[None, :]) & (places < places_then)
-            padded = (places < first[None, :]) & (places >= first[None, :] - pad)
-            values = np.full(places.shape, neutral)
-            if inside.any() and frame_informative and exact:  # an uninformative frame's pairs stay neutral
-                needed, where = np.unique(places[inside], return_inverse=True)
-                found = vectors[needed] @ frame
-                values[inside] = np.where(informative[needed], found, neutral)[where]
-            elif inside.any() and frame_informative and len(ids):
-                wanted = places[inside]
-                at = np.minimum(np.searchsorted(ids, wanted), len(ids) - 1)
-                hit = (ids[at] == wanted) & informative[wanted]
-                values[inside] = np.where(hit, sims[at], neutral)
-            use = inside | padded
-            total += np.where(use, values, 0.0)
-            count += use
-        best = np.where(count > 0, total / np.maximum(count, 1), -np.inf).max(axis=0)
-        return best
+        pad = int(math.ceil(max(DEFAULT_VELOCITIES) * (self.sequence_length - 1)))
+        rows = [_RecentRow(recent, vectors, informative, first, pad, exact) for recent in self._recent]
+        return online_sequence_scores(rows, ends=ends, exact_sums=True)
+
+
+class _RecentRow(SequenceRow):
+    """One recent frame of :class:`IndexedCandidates` as a row of the sequence scorer: the
+    similarity to a place computed from the vectors (or, for a rough ranking, the one the index
+    returned), neutral where a gate marked the place or the frame uninformative, and padding
+    just before each end's segment."""
+
+    def __init__(self, recent: tuple, vectors: np.ndarray, informative: np.ndarray, first: np.ndarray,
+                 pad: int, exact: bool):
+        self.frame, self.ids, self.neutral, self.places_then, self.frame_informative, self.sims = recent
+        self.vectors, self.informative, self.first, self.pad, self.exact = vectors, informative, first, pad, exact
+
+    def values(self, places: np.ndarray, end: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        first = self.first[None, :]
+        inside = (places >= first) & (places < self.places_then)
+        padded = (places < first) & (places >= first - self.pad)
+        values = np.full(places.shape, self.neutral)
+        if inside.any() and self.frame_informative and self.exact:
+            needed, where = np.unique(places[inside], return_inverse=True)
+            found = self.vectors[needed] @ self.frame
+            values[inside] = np.where(self.informative[needed], found, self.neutral)[where]
+        elif inside.any() and self.frame_informative and len(self.ids):
+            wanted = places[inside]
+            at = np.minimum(np.searchsorted(self.ids, wanted), len(self.ids) - 1)
+            hit = (self.ids[at] == wanted) & self.informative[wanted]
+            values[inside] = np.where(hit, self.sims[at], self.neutral)
+        return values, inside | padded
 
 
 class _one_faiss_thread:

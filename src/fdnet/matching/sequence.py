@@ -48,29 +48,17 @@ def sequence_similarity(similarity: np.ndarray, length: int = 10,
     Entry (q, r) is the best, over velocities v, of the mean of
     ``similarity[q - k, round(r - k * v)]`` for k = 0..length-1 (the sequence ends at q, r).
     At the start of the query traverse the sequence is shortened to the frames available;
-    reference indices that fall off the map are ignored in the mean.
+    reference indices that fall off the map are ignored in the mean. Each row is
+    :func:`online_sequence_scores` over the rows up to it: one scorer, offline and online.
     """
     s = np.asarray(similarity, dtype=np.float32)
     if contrast_window:
         s = enhance_contrast(s, contrast_window)
     if length <= 1:
         return s.copy()
-    num_q, num_r = s.shape
-    v = np.asarray(velocities, dtype=np.float64)
-    refs = np.arange(num_r)
-    best = np.full((num_q, num_r), -np.inf, dtype=np.float32)
-    for q in range(num_q):
-        steps = min(length, q + 1)
-        total = np.zeros((len(v), num_r), dtype=np.float64)
-        count = np.zeros((len(v), num_r), dtype=np.float64)
-        for k in range(steps):
-            cols = np.rint(refs[None, :] - k * v[:, None]).astype(np.int64)
-            valid = (cols >= 0) & (cols < num_r)
-            row = s[q - k]
-            total += np.where(valid, row[np.clip(cols, 0, num_r - 1)], 0.0)
-            count += valid
-        mean = np.where(count > 0, total / np.maximum(count, 1), -np.inf)
-        best[q] = mean.max(axis=0)
+    best = np.empty(s.shape, dtype=np.float32)
+    for q in range(len(s)):
+        best[q] = online_sequence_scores(s[max(0, q - length + 1):q + 1], velocities=velocities)
     return best
 
 
@@ -105,39 +93,67 @@ def sequence_top_k(queries: np.ndarray, references: np.ndarray, k: int, length: 
     return best_idx, best_score
 
 
-def online_sequence_scores(rows: Sequence[np.ndarray], searchable: int | None = None,
-                           velocities: tuple[float, ...] | np.ndarray = DEFAULT_VELOCITIES) -> np.ndarray:
-    """Sequence similarity of the newest frame of a robot's traverse, from the frames seen so far.
+class SequenceRow:
+    """A frame's similarities to chosen places only (a search that does not score every place):
+    :meth:`values` gives, for an array of place ids, (the similarities, which of them count in
+    the mean). Subclasses say how they are read; :func:`online_sequence_scores` does the rest."""
+
+    def values(self, places: np.ndarray, end: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(similarity, counted) for ``places`` (shape (velocities, ends)); ``end`` holds the
+        sequence end of each column, for rows whose reading depends on it."""
+        raise NotImplementedError
+
+
+def online_sequence_scores(rows: Sequence[np.ndarray | SequenceRow], searchable: int | None = None,
+                           velocities: tuple[float, ...] | np.ndarray = DEFAULT_VELOCITIES,
+                           ends: np.ndarray | None = None, exact_sums: bool = False) -> np.ndarray:
+    """Sequence similarity of the newest frame of a robot's traverse, from the frames seen so
+    far: the one sequence scorer (the matrix version, loop closure and its indexed search all
+    call it).
 
     ``rows[-1]`` is the newest frame's single-image similarity to the map's places, ``rows[-1 - k]``
     that of the frame ``k`` steps earlier (oldest first; the sequence length is ``len(rows)``).
     A row may be shorter than the newest one: the map grew since that frame was seen, and the
     places added later are simply not in it. Entry ``r`` (for the first ``searchable`` places,
-    default all of the newest row) is the best, over velocities ``v``, of the mean of
-    ``rows[-1 - k][round(r - k * v)]`` over the ``k`` whose index falls inside that row. With
-    rows of one length this is the last row of :func:`sequence_similarity` over the same
-    frames, computed without the others (one gather per frame and velocity): causal, since it
-    reads only similarities of frames already seen.
+    default all of the newest row, or for the place ids ``ends``) is the best, over velocities
+    ``v``, of the mean of ``rows[-1 - k][round(r - k * v)]`` over the ``k`` whose index falls
+    inside that row. With rows of one length this is the last row of :func:`sequence_similarity`
+    over the same frames, computed without the others: causal, since it reads only
+    similarities of frames already seen. A row may also be a :class:`SequenceRow` (with
+    ``ends``): a frame whose similarities are read only where the sum needs them.
+    ``exact_sums``: return the float64 means (a search ranking many ends keeps their order)
+    instead of float32 scores.
     """
     if not len(rows):
         raise ValueError("online_sequence_scores needs at least the newest frame's row")
-    newest = np.asarray(rows[-1], dtype=np.float32)
-    count = len(newest) if searchable is None else int(searchable)
-    if count > len(newest) or count < 0:
-        raise ValueError(f"searchable={count} is outside the newest row of {len(newest)} places")
     v = np.asarray(velocities, dtype=np.float64)
-    refs = np.arange(count)
+    if ends is None:
+        newest = np.asarray(rows[-1], dtype=np.float32)
+        count = len(newest) if searchable is None else int(searchable)
+        if count > len(newest) or count < 0:
+            raise ValueError(f"searchable={count} is outside the newest row of {len(newest)} places")
+        refs = np.arange(count)
+    else:
+        refs = np.asarray(ends, dtype=np.int64)
+        count = len(refs)
     total = np.zeros((len(v), count), dtype=np.float64)
     valid_count = np.zeros((len(v), count), dtype=np.float64)
     for k in range(len(rows)):
-        row = np.asarray(rows[-1 - k], dtype=np.float32)
+        row = rows[-1 - k]
+        if isinstance(row, SequenceRow):
+            places = np.rint(refs[None, :] - k * v[:, None]).astype(np.int64)
+            values, counted = row.values(places, refs)
+            total += np.where(counted, values, 0.0)
+            valid_count += counted
+            continue
+        row = np.asarray(row, dtype=np.float32)
         if not len(row):
             continue
         for i, velocity in enumerate(v):
             step = k * velocity
-            if abs(step - np.floor(step) - 0.5) > 1e-9:
+            if ends is None and abs(step - np.floor(step) - 0.5) > 1e-9:
                 # round(r - step) = r - round(step) for whole r when step is no half-way case: one
-                # shifted slice (a copy) instead of a gather, as sequence_similarity's indices
+                # shifted slice (a copy) instead of a gather
                 shift = int(np.rint(step))
                 lo, hi = max(shift, 0), min(count, len(row) + shift)
                 if lo < hi:
@@ -150,4 +166,5 @@ def online_sequence_scores(rows: Sequence[np.ndarray], searchable: int | None = 
             total[i] += np.where(valid, row[np.clip(cols, 0, len(row) - 1)], 0.0)
             valid_count[i] += valid
     mean = np.where(valid_count > 0, total / np.maximum(valid_count, 1), -np.inf)
-    return mean.max(axis=0).astype(np.float32) if count else np.zeros(0, dtype=np.float32)
+    best = mean.max(axis=0) if count else np.zeros(0)
+    return best if exact_sums else best.astype(np.float32)
