@@ -269,3 +269,63 @@ def test_a_worker_that_cannot_hand_its_batch_over_is_one_line_not_a_hang(tmp_pat
     assert done.returncode == 2, done.stderr
     assert "Traceback" not in done.stderr
     assert done.stderr.strip().splitlines()[-1].startswith("fdnet extract: error: ")
+
+
+def _state(pid: int) -> str | None:
+    """A process's state letter from /proc (None when it is gone; 'Z' for a zombie: dead)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()[0]
+    except (OSError, IndexError):
+        return None
+
+
+def _children(pid: int) -> list[int]:
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rpartition(")")[2].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            found.append(int(stat.parent.name))
+    return found
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads processes from /proc (Linux)")
+def test_decoding_workers_die_with_their_parent_whatever_kills_it(tmp_path):
+    """kill -9 of a command left a decoding worker alive for good, blocked writing a batch nobody
+    would read (its parent PID 1). Workers now die with the process that started them."""
+    import os
+    import signal
+    import time
+
+    make_folder(tmp_path / "images", 12, size=(256, 256))
+    # batches of 256x256 float32 images: each is larger than a pipe holds, so a worker whose
+    # parent stopped reading blocks on the pipe (as the user's did)
+    script = textwrap.dedent(f"""
+        import sys, time
+        from pathlib import Path
+        from fdnet.descriptors.pipeline import iter_image_batches
+        paths = sorted(Path({str(tmp_path / 'images')!r}).iterdir())
+        batches = iter_image_batches(paths, (256, 256), batch_size=2, workers=2)
+        next(batches)
+        print("ready", flush=True)
+        time.sleep(600)
+    """)
+    parent = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True, cwd=REPO)
+    try:
+        assert parent.stdout.readline().strip() == "ready"
+        workers = _children(parent.pid)
+        assert len(workers) == 2, workers
+        time.sleep(1)  # the workers fill their queue and block on the pipe
+    finally:
+        os.kill(parent.pid, signal.SIGKILL)
+        parent.wait()
+    # wait for the workers to go (at once with the fix; never without: a wait, not a timing)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and any(_state(pid) not in (None, "Z") for pid in workers):
+        time.sleep(0.2)
+    alive = [pid for pid in workers if _state(pid) not in (None, "Z")]
+    for pid in alive:  # leave nothing behind, then fail
+        os.kill(pid, signal.SIGKILL)
+    assert not alive, f"decoding workers {alive} outlived their killed parent"

@@ -80,6 +80,54 @@ class _Images:
         return i, image, None
 
 
+#: prctl's option that sends the calling process a signal when its parent dies (linux/prctl.h)
+PR_SET_PDEATHSIG = 1
+#: seconds between a worker's checks that its parent lives, where prctl is not there
+PARENT_CHECK_S = 1.0
+
+
+def die_with_parent(parent: int) -> None:
+    """Make this (worker) process end when process ``parent`` does, whatever ends it (kill -9
+    included): on Linux the kernel sends it SIGKILL (``prctl(PR_SET_PDEATHSIG)``); elsewhere a
+    daemon thread checks every :data:`PARENT_CHECK_S` seconds that its parent is still
+    ``parent``. A parent already gone ends it at once. Without this a worker blocked writing a
+    batch nobody reads outlived a killed command for good."""
+    import signal
+    import sys
+
+    armed = False
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+            armed = libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0) == 0
+        except (OSError, AttributeError):
+            armed = False
+    if os.getppid() != parent:  # the parent died before the signal was armed
+        os._exit(1)
+    if not armed:
+        import threading
+
+        def watch() -> None:
+            while os.getppid() == parent:
+                time.sleep(PARENT_CHECK_S)
+            os._exit(1)
+
+        threading.Thread(target=watch, name="fdnet-parent-watch", daemon=True).start()
+
+
+class _DieWithParent:
+    """DataLoader's ``worker_init_fn`` (picklable, for any start method): :func:`die_with_parent`
+    of the process that made the loader."""
+
+    def __init__(self) -> None:
+        self.parent = os.getpid()
+
+    def __call__(self, worker_id: int) -> None:
+        die_with_parent(self.parent)
+
+
 def _collate(items, as_tensor: bool = True):
     for _, image, error in items:
         if error is not None:
@@ -135,7 +183,8 @@ def iter_image_batches(paths: Sequence[str | os.PathLike], size: tuple[int, int]
     # pinned memory (a GPU) needs tensors; otherwise batches travel as arrays (see _collate_arrays)
     loader = DataLoader(_Images(paths, size, uint8), batch_size=batch_size, shuffle=False,
                         num_workers=workers, collate_fn=_collate if pin_memory else _collate_arrays,
-                        prefetch_factor=PREFETCH, pin_memory=pin_memory, persistent_workers=False)
+                        prefetch_factor=PREFETCH, pin_memory=pin_memory, persistent_workers=False,
+                        worker_init_fn=_DieWithParent())
     iterator = iter(loader)
     try:
         while True:
