@@ -325,3 +325,49 @@ def test_a_full_disk_is_one_error_naming_the_file_and_leaves_nothing(small_disk,
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.strip() == f"{target}: cannot write it (no space left on the device); nothing was written there"
     assert done.stderr == "" and small_disk.files() == []
+
+
+@pytest.mark.parametrize("case", ["external_storage", "virtual", "external_link"])
+def test_a_vectors_file_that_reads_other_files_is_refused(case, tmp_path):
+    """HDF5 can keep a dataset's bytes in any file (external storage, a virtual dataset, an external
+    link): a vectors file pointing at /etc/passwd would give its bytes as a vector."""
+    secret = tmp_path / "secret.bin"
+    secret.write_bytes(np.arange(4, dtype=np.float32).tobytes())
+    other = tmp_path / "other.h5"
+    with h5py.File(other, "w") as f:
+        f["x.jpg/global_descriptor"] = np.arange(4, dtype=np.float32) + 1
+    path = tmp_path / f"{case}.h5"
+    with h5py.File(path, "w") as f:
+        f["own.jpg/global_descriptor"] = np.ones(4, np.float32)
+        if case == "external_storage":
+            f.create_dataset("a.jpg/global_descriptor", shape=(4,), dtype="f4", external=[(str(secret), 0, 16)])
+        elif case == "virtual":
+            layout = h5py.VirtualLayout(shape=(4,), dtype="f4")
+            layout[:] = h5py.VirtualSource(str(other), "x.jpg/global_descriptor", shape=(4,))
+            f.create_group("a.jpg").create_virtual_dataset("global_descriptor", layout)
+        else:
+            f.create_group("a.jpg")["global_descriptor"] = h5py.ExternalLink(str(other), "x.jpg/global_descriptor")
+    with h5py.File(path, "r") as f:  # HDF5 itself reads the other file's bytes
+        assert f["a.jpg/global_descriptor"][()].tolist() in ([0, 1, 2, 3], [1, 2, 3, 4])
+    with pytest.raises(DataError, match=rf"{case}\.h5: .*(external|virtual|another file)"):
+        read_global_features(path)
+
+
+def test_a_file_declaring_vectors_it_does_not_hold_is_refused_before_allocating(tmp_path, monkeypatch):
+    from fdnet.data import arrays
+
+    path = tmp_path / "claims.h5"
+    with h5py.File(path, "w") as f:
+        for i in range(3):  # a few KB declaring 3 vectors of a million floats, never written
+            f.create_dataset(f"{i}.jpg/global_descriptor", shape=(1_000_000,), dtype="f4", chunks=(100_000,))
+    assert path.stat().st_size < 20_000
+    with pytest.raises(DataError, match=r"claims\.h5: image '0\.jpg': declares a vector of shape \(1000000,\) but "
+                                        r"holds no data"):
+        read_global_features(path)
+    written = tmp_path / "written.h5"
+    with h5py.File(written, "w") as f:
+        for i in range(3):
+            f.create_dataset(f"{i}.jpg/global_descriptor", data=np.ones(100_000, np.float32), compression="gzip")
+    monkeypatch.setattr(arrays, "physical_memory_bytes", lambda: 1 << 20)  # this process may use 1 MiB
+    with pytest.raises(DataError, match=r"written\.h5: 3 vectors of length 100000 need 1\.1 MiB of memory"):
+        read_global_features(written)

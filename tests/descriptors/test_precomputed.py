@@ -268,8 +268,8 @@ def _write_npz(path, **arrays):
 
 
 @pytest.mark.parametrize("case, message", [
-    ("object_vectors", "not a readable .npz"),
-    ("object_names", "not a readable .npz"),
+    ("object_vectors", "holds Python objects (dtype object), which are never unpickled"),
+    ("object_names", "holds Python objects (dtype object), which are never unpickled"),
     ("no_names", "no names array"),
     ("one_dimensional", "vectors of shape (4,)"),
     ("nan_row", "the vector of day/frame_001.png holds NaN"),
@@ -373,3 +373,38 @@ def test_extract_never_writes_over_the_vectors_it_reads(route, tmp_path, capsys)
                  "--out", str(vectors)]) == 2
     assert "is the --vectors file the command reads" in capsys.readouterr().err
     assert vectors.read_bytes() == before
+
+
+def test_vectors_of_another_route_with_the_same_layout_are_refused_naming_the_image(tmp_path, capsys):
+    """Route r's vectors (file name and parent folder match) must not serve route r2: fdnet's own
+    files record each image's size and modification time, and the image is checked against them."""
+    r, r2 = tmp_path / "r", tmp_path / "r2"
+    write_random_places(r / "summer", 4, seed=1)
+    write_random_places(r2 / "summer", 4, seed=2, brightness=0.5)
+    vectors = extract(r / "summer", tmp_path / "r.npz")
+    with np.load(vectors) as data:
+        assert data["sizes"].tolist() == [(r / "summer" / f"frame_{i:03d}.png").stat().st_size for i in range(4)]
+    d = create("precomputed", vectors=str(vectors))
+    d.lookup([r / "summer" / "frame_000.png"])  # its own image: fine
+    with pytest.raises(DataError, match=r"r2/summer/frame_000\.png: not the image that .*r\.npz's vector for "
+                                        r".*/r/summer/frame_000\.png was computed from \(\d+ bytes here"):
+        create("precomputed", vectors=str(vectors)).lookup([r2 / "summer" / "frame_000.png"])
+    code = main(["extract", "--method", "precomputed", "--vectors", str(vectors), "--images", str(r2 / "summer"),
+                 "--out", str(tmp_path / "again.npz"), "--workers", "0"])
+    err = capsys.readouterr().err
+    assert code == 2 and "r2/summer/frame_000.png: not the image" in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_compressed_npz_claiming_more_memory_than_allowed_is_refused_before_it_is_read(tmp_path, monkeypatch):
+    from fdnet.data import arrays
+
+    path = tmp_path / "bomb.npz"
+    np.savez_compressed(path, descriptors=np.ones((2000, 400), np.float32), names=np.array(["a.png"] * 2000))
+    monkeypatch.setattr(arrays, "physical_memory_bytes", lambda: 1 << 20)  # this process may use 1 MiB
+
+    def never(*args, **kwargs):
+        raise AssertionError("the array was read")
+
+    monkeypatch.setattr(np.lib.format, "read_array", never)
+    with pytest.raises(DataError, match=r"bomb\.npz \(array 'descriptors'\): shape \(2000, 400\) float32 needs 3\.1 MiB"):
+        create("precomputed", vectors=str(path))

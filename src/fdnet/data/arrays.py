@@ -24,11 +24,23 @@ NPY_MAGIC = b"\x93NUMPY"
 
 
 def physical_memory_bytes() -> int | None:
-    """This machine's RAM, or None where the OS does not say (then only the file-size check applies)."""
+    """The memory this process may use: this machine's RAM, or less where a limit on the process's
+    address space or data (``ulimit -v``/``-d``) says so; None where the OS says nothing (then
+    only the file-size check applies)."""
     try:
-        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+        found = int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
     except (AttributeError, ValueError, OSError):
-        return None
+        found = None
+    try:
+        import resource
+
+        for limit in (resource.RLIMIT_AS, resource.RLIMIT_DATA):
+            soft = resource.getrlimit(limit)[0]
+            if soft != resource.RLIM_INFINITY and soft > 0:
+                found = soft if found is None else min(found, soft)
+    except (ImportError, AttributeError, ValueError, OSError):
+        pass
+    return found
 
 
 def format_bytes(count: float) -> str:

@@ -40,13 +40,21 @@ logger = logging.getLogger(__name__)
 
 def frame_arrays(paths) -> dict:
     """``sources`` (N,): the video, bag or folder each image came from; ``timestamps`` (N,) seconds
-    (a video's from its first frame, a bag's recording time since the epoch; NaN for image files)."""
+    (a video's from its first frame, a bag's recording time since the epoch; NaN for image files);
+    ``sizes`` and ``mtimes_ns`` (N,): the size and modification time of each image's file (a
+    frame's video or bag), so ``--method precomputed`` can tell these images from others of the
+    same names (:mod:`fdnet.data.identity`)."""
     from fdnet.data.sources import frame_records
 
+    from fdnet.data.identity import image_facts
+
     records = frame_records(paths)
+    facts = [image_facts(p) for p in paths]
     return {"sources": np.array([r.source for r in records]),
             "timestamps": np.array([np.nan if r.timestamp is None else r.timestamp for r in records],
-                                   dtype=np.float64)}
+                                   dtype=np.float64),
+            "sizes": np.array([-1 if f is None else f[1] for f in facts], dtype=np.int64),
+            "mtimes_ns": np.array([-1 if f is None else f[2] for f in facts], dtype=np.int64)}
 
 
 def described_arrays(descriptor):

@@ -398,6 +398,7 @@ def _read_vectors(h5py, handle, path: Path, key: str) -> tuple[list[str], np.nda
     first = None
     for link in found:
         encoded = link.encode("utf-8")
+        _refuse_links_out(h5py, fid, link, path)
         try:
             dataset = h5py.h5d.open(fid, encoded)
         except KeyError:
@@ -405,6 +406,7 @@ def _read_vectors(h5py, handle, path: Path, key: str) -> tuple[list[str], np.nda
                 continue  # a folder that happens to have the key's name ("x/global_descriptor/y.jpg")
             raise
         name = link[:-len(suffix)]
+        _refuse_storage_elsewhere(h5py, fid, dataset, path, name)
         shape = tuple(dataset.shape)
         kind = dataset.dtype.kind
         if kind not in "fiu":
@@ -413,6 +415,7 @@ def _read_vectors(h5py, handle, path: Path, key: str) -> tuple[list[str], np.nda
             shape = shape[1:]
         if len(shape) != 1:
             raise DataError(f"{path}: image {name!r}: {key} of shape {tuple(dataset.shape)}; expected one vector (D,)")
+        _check_claim(dataset, (len(found), shape[0]), path, name)
         if vectors is None:
             vectors, first = np.empty((len(found), shape[0]), dtype=np.float32), name
         elif shape[0] != vectors.shape[1]:
@@ -423,6 +426,48 @@ def _read_vectors(h5py, handle, path: Path, key: str) -> tuple[list[str], np.nda
     if not names:
         raise DataError(f"{path}: no image group holds a {key!r} dataset, so these are not hloc's global features")
     return names, vectors[:len(names)]
+
+
+def _refuse_links_out(h5py, fid, link: str, path: Path) -> None:
+    """A vectors file reads nothing but itself: an external link on the way to a dataset (to
+    another HDF5 file, anywhere on the disk) is refused."""
+    parts = link.split("/")
+    for depth in range(1, len(parts) + 1):
+        step = "/".join(parts[:depth]).encode("utf-8")
+        if fid.links.get_info(step).type == h5py.h5l.TYPE_EXTERNAL:
+            raise DataError(f"{path}: {step.decode('utf-8', 'replace')!r} is an external link to another file; a "
+                            "vectors file that reads other files is refused")
+
+
+def _refuse_storage_elsewhere(h5py, fid, dataset, path: Path, name: str) -> None:
+    """Refused: a dataset whose bytes live in other files (HDF5 external storage, e.g. pointing at
+    /etc/passwd; a virtual dataset mapping other files) or in another file reached by any link."""
+    plist = dataset.get_create_plist()
+    if plist.get_external_count() > 0:
+        raise DataError(f"{path}: image {name!r}: its vector is stored in an external file "
+                        f"({plist.get_external(0)[0].decode('utf-8', 'replace')}); a vectors file that reads other "
+                        "files is refused")
+    if plist.get_layout() == h5py.h5d.VIRTUAL:
+        raise DataError(f"{path}: image {name!r}: its vector is a virtual dataset (mapped from other files); a "
+                        "vectors file that reads other files is refused")
+    if h5py.h5f.get_name(dataset) != h5py.h5f.get_name(fid):
+        raise DataError(f"{path}: image {name!r}: its vector lives in another file "
+                        f"({h5py.h5f.get_name(dataset).decode('utf-8', 'replace')}); refused")
+
+
+def _check_claim(dataset, shape: tuple[int, int], path: Path, name: str) -> None:
+    """Before anything is allocated: a dataset must hold data (a few bytes can declare
+    300 million floats never written), and the vectors must fit in this process's memory."""
+    from fdnet.data.arrays import format_bytes, physical_memory_bytes
+
+    if dataset.shape and int(np.prod(dataset.shape)) > 0 and dataset.get_storage_size() == 0:
+        raise DataError(f"{path}: image {name!r}: declares a vector of shape {tuple(dataset.shape)} but holds no "
+                        "data (never written); refused")
+    needed = int(shape[0]) * int(shape[1]) * 4
+    allowed = physical_memory_bytes()
+    if allowed is not None and needed > allowed:
+        raise DataError(f"{path}: {shape[0]} vectors of length {shape[1]} need {format_bytes(needed)} of memory, "
+                        f"more than the {format_bytes(allowed)} this process may use")
 
 
 # ------------------------------------------------------------------------------------- pairs

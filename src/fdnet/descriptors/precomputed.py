@@ -42,6 +42,7 @@ from typing import Sequence
 
 import numpy as np
 
+from fdnet.data.arrays import load_npz_member
 from fdnet.descriptors.base import Descriptor, check_vectors
 from fdnet.errors import ConfigError, DataError
 
@@ -73,21 +74,33 @@ def _read_npz(path: Path, array: str | None) -> tuple[list[str], np.ndarray, dic
                                 "give the array with --method-set array=NAME")
             if "names" not in keys:
                 raise DataError(f"{path}: no names array: an image's vector cannot be found without its name")
-            vectors = _numbers(path, data[chosen], chosen)
-            names = _texts(path, data["names"], "names")
-            sources = _texts(path, data["sources"], "sources") if "sources" in keys else None
+
+            def member(key: str, ndim: int | None = None) -> np.ndarray:
+                # the header's shape is checked against the member's size and this process's memory
+                # before anything is allocated: a few compressed bytes may claim gigabytes
+                return load_npz_member(path, key, ndim=ndim, what=f"{key} array")
+
+            vectors = _numbers(path, member(chosen), chosen)
+            names = _texts(path, member("names"), "names")
+            sources = _texts(path, member("sources"), "sources") if "sources" in keys else None
             recorded = {}
             if "method" in keys:
-                recorded["method"] = str(data["method"])
+                recorded["method"] = str(member("method"))
             if "settings" in keys:
                 try:
-                    recorded["settings"] = json.loads(str(data["settings"]))
+                    recorded["settings"] = json.loads(str(member("settings")))
                 except ValueError:
                     pass
+            if "sizes" in keys and "mtimes_ns" in keys:  # what each image was when described
+                recorded["facts"] = (member("sizes", 1).astype(np.int64), member("mtimes_ns", 1).astype(np.int64))
     except DataError:
         raise
     except (OSError, ValueError, KeyError, EOFError) as exc:
         raise DataError(f"{path}: not a readable .npz of vectors ({' '.join(str(exc).split())})") from None
+    facts = recorded.get("facts")
+    if facts is not None and not len(facts[0]) == len(facts[1]) == len(names):
+        raise DataError(f"{path}: {len(facts[0])} sizes and {len(facts[1])} modification times for {len(names)} "
+                        "names; the file is damaged")
     if sources is not None:
         if len(sources) != len(names):  # without them the names lose their folders: refused, not guessed
             raise DataError(f"{path}: {len(sources)} sources for {len(names)} names; each image's source (its "
@@ -197,14 +210,21 @@ class PrecomputedDescriptor(Descriptor):
         self.normalise = normalise
         rows: list[np.ndarray] = []
         self._keys: list[tuple[str, ...]] = []
+        self._row_files: list[str] = []
         self.recorded: dict = {}
         by_key: dict[tuple[str, ...], str] = {}
         digest = hashlib.sha256()
+        sizes: list[np.ndarray] = []
+        mtimes: list[np.ndarray] = []
         for i, file in enumerate(self.files):
             twice = next((f for f in self.files[:i] if _same_file(f, file)), None)
             if twice is not None:
                 raise DataError(f"{file}: given twice (as {twice} too); give each vectors file once")
             file_names, file_vectors, recorded = read_vectors(file, names, array)
+            facts = recorded.pop("facts", None)
+            unknown = np.full(len(file_names), -1, np.int64)
+            sizes.append(facts[0] if facts is not None else unknown)
+            mtimes.append(facts[1] if facts is not None else unknown)
             if rows and file_vectors.shape[1] != rows[0].shape[1]:
                 raise DataError(f"{file}: vectors of length {file_vectors.shape[1]}, but {self.files[0]}'s are "
                                 f"{rows[0].shape[1]} long: one descriptor's vectors only")
@@ -223,6 +243,7 @@ class PrecomputedDescriptor(Descriptor):
                                     "image's vector once")
                 by_key[key] = file
                 self._keys.append(key)
+                self._row_files.append(file)
             rows.append(file_vectors)
             digest.update(np.ascontiguousarray(file_vectors).tobytes())
             digest.update("\n".join(file_names).encode("utf-8", "surrogateescape"))
@@ -248,6 +269,9 @@ class PrecomputedDescriptor(Descriptor):
         for row, key in enumerate(self._keys):
             self._by_name[key[-1] if key else ""].append(row)
         self.vectors_sha256 = digest.hexdigest()
+        #: per row, the size and modification time (ns) of the image file it was computed from; -1: not recorded
+        self._sizes, self._mtimes = np.concatenate(sizes), np.concatenate(mtimes)
+        self._warned_mtime = False
         #: row -> the (resolved) image it described: one vector is never two images'
         self._served: dict[int, tuple[str, str]] = {}
 
@@ -307,8 +331,34 @@ class PrecomputedDescriptor(Descriptor):
                 raise DataError(f"{path}: its vector would be {'/'.join(self._keys[row])}'s, which {first[1]} "
                                 "already took: one vector cannot be two images'; name the images by their folders "
                                 "in the vectors files (e.g. extract the folder holding both with --recursive)")
+            self._check_same_image(path, row)
             rows.append(row)
         return self.vectors[rows]
+
+    def _check_same_image(self, path, row: int) -> None:
+        """The image must be the file the vector was computed from, where the vectors file records
+        its size and modification time (``fdnet extract`` does): another route's or condition's
+        image of the same name and folder is refused; a file of the same size with another time
+        (copied without keeping times) is warned about once."""
+        if self._sizes[row] < 0:
+            return
+        from fdnet.data.identity import image_facts
+
+        facts = image_facts(path)
+        if facts is None:
+            return  # unreadable: the command's own reading says so
+        file = self._file_of(row)
+        if facts[1] != self._sizes[row]:
+            raise DataError(f"{path}: not the image that {file}'s vector for {Path(*self._keys[row])} was computed "
+                            f"from ({facts[1]} bytes here, {int(self._sizes[row])} then): these vectors are of "
+                            "other images with the same names (another route or copy); extract them for these")
+        if facts[2] != self._mtimes[row] and not self._warned_mtime:
+            self._warned_mtime = True
+            logger.warning(f"{path}: modified at another time than the image that {file}'s vector for "
+                           f"{Path(*self._keys[row])} was computed from (same size); using the vector")
+
+    def _file_of(self, row: int) -> str:
+        return self._row_files[row]
 
     def describe(self, images: np.ndarray) -> np.ndarray:
         names = getattr(self, "_batch_paths", None)
