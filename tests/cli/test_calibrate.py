@@ -51,7 +51,7 @@ def test_calibrate_then_match_writes_decisions(route, tmp_path, capsys):
     assert stored["target_precision"] == 1.0 and stored["precision"] == 1.0 and 0 < stored["recall"] < 1
     assert stored["method"] == "raw" and len(stored["fingerprint"]) == 64
     assert stored["measured_on"]["reference"] == "map" and stored["measured_on"]["tolerance"] == 0
-    assert stored["sequence_length"] == 0
+    assert stored["sequence_length"] == 1  # 1 = single images, as everywhere
 
     out = tmp_path / "matches.csv"
     assert main(["match", "--reference", str(route / "map"), "--query", str(route / "now"), "--method", "raw",
@@ -117,7 +117,7 @@ def test_a_calibration_from_another_model_is_refused(route, tmp_path, capsys):
     assert err.startswith("fdnet match: error: ") and "calibrated for method 'raw'" in err and "another model" in err
     assert main(["match", "--reference", str(route / "map"), "--query", str(route / "now"), "--method", "raw",
                  "--sequence-length", "3", "--calibration", str(cal), "--out", str(out)]) == 2
-    assert "--sequence-length 0, used with 3" in capsys.readouterr().err
+    assert "--sequence-length 1, used with 3" in capsys.readouterr().err
     db = tmp_path / "hog.db"
     assert main(["database", "build", "--images", str(route / "map"), "--method", "hog", "--db", str(db),
                  "--workers", "0"]) == 0

@@ -168,7 +168,7 @@ def test_bad_combinations(matrix_files, route, capsys):
     # a sequence length was silently ignored with a precomputed matrix
     assert "--sequence-length applies to --method" in _error(
         capsys, ["evaluate", "--similarity", str(npy), "--ground-truth", str(csv), "--sequence-length", "3"])
-    assert "--sequence-length must be >= 0" in _error(
+    assert "--sequence-length must be a whole number of frames, at least 1" in _error(
         capsys, ["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk", "--method", "raw",
                  "--sequence-length=-3"])
 

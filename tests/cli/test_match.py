@@ -203,7 +203,7 @@ def test_a_negative_sequence_length_is_refused(tmp_path, capsys):
     ref = make_route(tmp_path / "ref", n=3)
     assert main(["match", "--reference", str(ref), "--query", str(ref), "--method", "raw",
                  "--out", str(tmp_path / "m.csv"), "--sequence-length", "-2"]) == 2
-    assert "fdnet match: error: --sequence-length must be >= 0" in capsys.readouterr().err
+    assert "fdnet match: error: --sequence-length must be a whole number of frames, at least 1" in capsys.readouterr().err
     assert not (tmp_path / "m.csv").exists()
 
 

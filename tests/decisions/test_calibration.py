@@ -111,8 +111,8 @@ def test_yaml_round_trip_and_checks(tmp_path):
     back.check(raw, sequence_length=3)
     with pytest.raises(ConfigError, match="another model"):
         back.check(hog, sequence_length=3)
-    with pytest.raises(ConfigError, match="--sequence-length 3, used with 0"):
-        back.check(raw, sequence_length=0)
+    with pytest.raises(ConfigError, match="--sequence-length 3, used with 1"):
+        back.check(raw, sequence_length=1)
     # JSON form (a place database's metadata) keeps an infinite threshold
     never = Calibration(**{**cal.__dict__, "threshold": math.inf})
     assert Calibration.from_dict(never.to_dict(json_safe=True)).threshold == math.inf

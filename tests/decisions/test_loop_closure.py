@@ -198,7 +198,7 @@ def test_evaluation_by_hand():
         evaluate_decisions(decisions, GroundTruth([[], [], [], [], []], 5), 0.2, "margin")
 
 
-def calibration_for(descriptor, threshold=0.2, rule="margin", sequence_length=0):
+def calibration_for(descriptor, threshold=0.2, rule="margin", sequence_length=1):
     from fdnet.decisions.acceptance import parse_acceptance
     from fdnet.decisions.calibration import Calibration
 
@@ -265,7 +265,7 @@ def test_calibrating_on_a_traverse_picks_the_threshold_of_the_target_precision()
     detector = LoopClosureDetector(RawThumbnail(), exclude_last=1, rule="margin", threshold=float("inf"))
     exact = calibrate_decisions(decisions, truth, detector, 1.0)
     assert (exact.threshold, exact.precision, exact.recall) == (0.40, 1.0, 0.5)
-    assert (exact.rule, exact.method, exact.sequence_length) == ("margin", "raw", 0)
+    assert (exact.rule, exact.method, exact.sequence_length) == ("margin", "raw", 1)
     assert exact.fingerprint == RawThumbnail().fingerprint()
     loose = calibrate_decisions(decisions, truth, detector, 0.6)
     assert (loose.threshold, loose.recall) == (0.10, 1.0) and loose.precision == pytest.approx(2 / 3)

@@ -52,7 +52,9 @@ def test_a_similarity_matrix_against_frame_aligned_ground_truth(route, tmp_path)
 @pytest.mark.parametrize("settings, message", [
     (EvaluateSettings(), "nothing to evaluate"),
     (EvaluateSettings(method="raw", similarity="s.npy"), "not both"),
-    (EvaluateSettings(method="raw", data="d", sequence_length=-1), "--sequence-length must be >= 0"),
+    (EvaluateSettings(method="raw", data="d", sequence_length=-1), "--sequence-length must be a whole number"),
+    # one convention everywhere: 1 is single images, 0 means nothing
+    (EvaluateSettings(method="raw", data="d", sequence_length=0), r"at least 1 \(1 = single images\), got 0"),
     (EvaluateSettings(method="raw", data="d", thresholds=1), "--thresholds must be at least 2"),
     (EvaluateSettings(method="raw"), "--method needs --data DIR"),
 ])

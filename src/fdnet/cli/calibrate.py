@@ -40,9 +40,9 @@ def register(sub) -> None:
     add_method_arguments(methods)
     add_pipeline_arguments(methods)
     add_device_argument(methods)
-    methods.add_argument("--sequence-length", type=int, default=0,
-                         help="calibrate SeqSLAM sequence scores over this many consecutive queries (0 = single "
-                              "image); the calibration is then only valid with the same --sequence-length")
+    methods.add_argument("--sequence-length", type=int, default=1,
+                         help="calibrate SeqSLAM sequence scores over this many consecutive queries (1 = single "
+                              "images); the calibration is then only valid with the same --sequence-length")
     decision = p.add_argument_group("decision")
     decision.add_argument("--accept", default=None, metavar="RULE",
                           help="the acceptance rule (one expression, e.g. margin, ratio, margin+floor; default "
@@ -164,8 +164,6 @@ def run(args) -> int:
     choose = _choices(args.choose, args.accept_set)
     spec = _rule(args, choose)
     _check_choices(spec, choose)  # a setting the rule lacks, or a bad value, fails before any work
-    if args.sequence_length < 0:
-        raise ConfigError(f"--sequence-length must be >= 0, got {args.sequence_length}")
     if args.tolerance is not None and args.tolerance < 0:
         raise ConfigError(f"--tolerance must be >= 0, got {args.tolerance}")
     if not (args.out or args.store_in_run or args.db):

@@ -71,9 +71,9 @@ def register(sub) -> None:
                          help="image decoding processes running alongside the model (default: one per spare "
                               "core, at least 1; 0 = decode in the main process)")
     add_device_argument(methods)
-    methods.add_argument("--sequence-length", type=int, default=0,
+    methods.add_argument("--sequence-length", type=int, default=1,
                          help="rank by SeqSLAM sequence similarity over this many consecutive queries "
-                              "(0 = single image)")
+                              "(1 = single images)")
     methods.add_argument("--threads", type=thread_count(), help="torch CPU threads (default: all cores)")
     matrix = p.add_argument_group("precomputed similarity")
     matrix.add_argument("--similarity", metavar="FILE.npy",

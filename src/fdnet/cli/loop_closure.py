@@ -185,7 +185,7 @@ def run(args) -> int:
     rule = args.accept or (None if calibrated is not None else DEFAULT_RULE)
     sequence_length = args.sequence_length
     if sequence_length is None:
-        sequence_length = max(calibrated.sequence_length, 1) if calibrated is not None else DEFAULT_SEQUENCE_LENGTH
+        sequence_length = calibrated.sequence_length if calibrated is not None else DEFAULT_SEQUENCE_LENGTH
     # every output path is refused before the first image is described
     for path, what in ((args.out, "events CSV"), (args.jsonl, "events JSON lines"), (args.report, "report JSON")):
         if path:

@@ -54,8 +54,8 @@ def register(sub) -> None:
                    help="keep the built faiss index in FILE (written atomically); when FILE holds the index of "
                         "the same method, reference images and build settings, it is loaded and the map is "
                         "not described again")
-    p.add_argument("--sequence-length", type=int, default=0,
-                   help="SeqSLAM sequence matching over this many consecutive queries (0 = single image)")
+    p.add_argument("--sequence-length", type=int, default=1,
+                   help="SeqSLAM sequence matching over this many consecutive queries (1 = single images)")
     add_decision_arguments(p, "a calibration from `fdnet calibrate` (YAML, or a run directory holding calibration.yaml): "
                               "adds acceptance_score and accepted columns (accepted 1 = the revisit the calibrated "
                               "rule accepts; none in a query = a new place)")

@@ -97,7 +97,7 @@ class Calibration:
     num_queries: int
     method: str
     fingerprint: str
-    sequence_length: int = 0
+    sequence_length: int = 1
     measured_on: dict = field(default_factory=dict)
     created: str = ""
     fdnet_version: str = ""
@@ -187,7 +187,12 @@ class Calibration:
         for key in ("rule", "method", "fingerprint"):
             if not isinstance(values[key], str) or not values[key]:
                 raise DataError(f"{source}: {key} must be text, got {values[key]!r}")
-        for key in ("sequence_length", "accepted", "num_queries"):
+        if "sequence_length" in values and (isinstance(values["sequence_length"], bool)
+                                            or not isinstance(values["sequence_length"], int)
+                                            or values["sequence_length"] < 1):
+            raise DataError(f"{source}: sequence_length must be a whole number of frames, at least 1 (1 = single "
+                            f"images), got {values['sequence_length']!r}")
+        for key in ("accepted", "num_queries"):
             if key in values and (isinstance(values[key], bool) or not isinstance(values[key], int)
                                   or values[key] < 0):
                 raise DataError(f"{source}: {key} must be a whole number >= 0, got {values[key]!r}")
@@ -474,7 +479,5 @@ def checked_calibration(calibration, descriptor, sequence_length: int, source: s
     if not isinstance(calibration, Calibration):
         source = str(calibration)
         calibration = load_calibration(calibration)
-    # the calibration counts single images as sequence length 0
-    calibration.check(descriptor=descriptor, sequence_length=sequence_length if sequence_length > 1 else 0,
-                      source=source)
+    calibration.check(descriptor=descriptor, sequence_length=sequence_length, source=source)
     return calibration, source

@@ -85,7 +85,7 @@ class LoopClosureDetector:
             calibration, source = stored_calibration(database)
         calibration, source = resolve_calibration(calibration, source)
         if sequence_length is None:  # a calibration's own, else single images
-            sequence_length = max(int(calibration.sequence_length), 1) if calibration is not None else 1
+            sequence_length = int(calibration.sequence_length) if calibration is not None else 1
         if isinstance(sequence_length, bool) or not isinstance(sequence_length, (int, np.integer)) \
                 or sequence_length < 1:
             raise ConfigError(f"sequence length must be a whole number of at least 1, got {sequence_length!r}")

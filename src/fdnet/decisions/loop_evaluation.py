@@ -136,7 +136,7 @@ def calibrate_decisions(decisions: Sequence[FrameDecision], ground_truth, detect
     if not math.isfinite(chosen.threshold):
         notes.append(f"no threshold reaches precision {target:g} on this traverse (its most confident frame is "
                      "already wrong): nothing will be accepted")
-    length = detector.sequence_length if detector.sequence_length > 1 else 0
+    length = detector.sequence_length
     where = {"loop_closure": True, "ground_truth": truth.description, "exclude_last": detector.exclude_last,
              "gates": detector.gates.to_dict(),
              "frames": len(decisions), "frames_evaluated": len(score), "sequence_length": length,

@@ -44,7 +44,7 @@ class EvaluateSettings:
     batch_size: int = 64
     workers: int | None = None
     device: str | None = None
-    sequence_length: int = 0
+    sequence_length: int = 1
     threads: int | None = None  # torch CPU threads while describing; None: every core
     # metrics and output
     protocol: str = "recall-over-queries"
@@ -160,8 +160,9 @@ def _check_settings(settings: EvaluateSettings) -> None:
         raise ConfigError(f"--thresholds must be at least 2, got {settings.thresholds}")
     if settings.tolerance is not None and settings.tolerance < 0:
         raise ConfigError(f"--tolerance must be >= 0, got {settings.tolerance}")
-    if settings.sequence_length < 0:
-        raise ConfigError(f"--sequence-length must be >= 0 (0 = single image), got {settings.sequence_length}")
+    from fdnet.matching.sequence import check_sequence_length
+
+    check_sequence_length(settings.sequence_length)
     if settings.similarity and settings.sequence_length > 1:
         # it was silently ignored: single-image numbers reported as if sequence-matched
         raise ConfigError("--sequence-length applies to --method; a --similarity matrix is evaluated as given "

@@ -202,7 +202,7 @@ def evaluate_method(
     thresholds: int | None = None,
     ns: Sequence[int] = DEFAULT_NS,
     batch_size: int = 64,
-    sequence_length: int = 0,
+    sequence_length: int = 1,
     keep_similarity: bool = False,
     progress: bool = False,
     log: Callable[[str], None] | None = None,

@@ -74,7 +74,7 @@ def reference_times_and_positions(paths) -> dict:
     return out
 
 
-def index_settings(index: str, index_set=(), index_file=None, sequence_length: int = 0):
+def index_settings(index: str, index_set=(), index_file=None, sequence_length: int = 1):
     """The faiss :class:`~fdnet.matching.index.IndexSettings` of ``index`` with ``index_set``
     (``KEY=VALUE``) applied, or None for ``exact``; refuses combinations that cannot work."""
     from fdnet.matching.index import parse_index_settings
@@ -88,7 +88,7 @@ def index_settings(index: str, index_set=(), index_file=None, sequence_length: i
     return parse_index_settings(index, list(index_set)) if index != "exact" else None
 
 
-def rank_references(descriptor, ref_paths, query_paths, depth: int, *, settings=None, sequence_length: int = 0,
+def rank_references(descriptor, ref_paths, query_paths, depth: int, *, settings=None, sequence_length: int = 1,
                     index_file=None, batch_size: int = 64, workers: int | None = None, progress: bool = True,
                     log: Callable[[str], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The ``depth`` best references of each query (indices, scores; (Q, depth) each): exact

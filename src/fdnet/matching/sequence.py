@@ -21,6 +21,16 @@ import numpy as np
 DEFAULT_VELOCITIES = (0.8, 0.9, 1.0, 1.1, 1.25)
 
 
+def check_sequence_length(value, where: str = "--sequence-length") -> int:
+    """``value`` as a sequence length: a whole number of frames, at least 1 (1 = single images,
+    everywhere: matching, evaluation, calibration and loop closure)."""
+    from fdnet.errors import ConfigError
+
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise ConfigError(f"{where} must be a whole number of frames, at least 1 (1 = single images), got {value!r}")
+    return int(value)
+
+
 def enhance_contrast(similarity: np.ndarray, window: int = 10) -> np.ndarray:
     """SeqSLAM's local contrast enhancement: normalise each entry by the mean and std of the
     ``window`` references around it in the same query row (column-wise in the original's

@@ -23,10 +23,11 @@ from fdnet.decisions.calibration import (
     choose_threshold,
 )
 from fdnet.evaluation.experiment import evaluate_method
+from fdnet.matching.sequence import check_sequence_length
 from fdnet.version import __version__
 
 
-def calibrate(descriptor, split, spec: AcceptanceSpec | str, target_precision: float, sequence_length: int = 0,
+def calibrate(descriptor, split, spec: AcceptanceSpec | str, target_precision: float, sequence_length: int = 1,
               measured_on: dict | None = None, batch_size: int = 64, workers: int | None = None,
               progress: bool = False, log: Callable[[str], None] | None = None,
               choose: dict[str, Sequence] | None = None) -> Calibration:
@@ -38,7 +39,7 @@ def calibrate(descriptor, split, spec: AcceptanceSpec | str, target_precision: f
     needs) and the one whose threshold reaches the target with the largest recall is kept (ties:
     the first listed); the recall of every combination is recorded in ``measured_on``."""
     target = check_target(target_precision)
-    sequence_length = int(sequence_length) if sequence_length > 1 else 0  # 0 and 1 both mean single images
+    sequence_length = check_sequence_length(sequence_length)
     if isinstance(spec, str):
         spec = parse_acceptance(spec)
     specs = candidate_specs(spec, choose)

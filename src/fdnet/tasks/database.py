@@ -456,7 +456,7 @@ def _query_calibration(database, descriptor, calibration, db, log: Log):
             f"{calibrated.threshold:.6g} (it reached precision {calibrated.precision:.3f} on {calibrated.accepted} "
             f"accepted of {calibrated.num_queries} queries where it was measured; target "
             f"{calibrated.target_precision:g})")
-    calibrated.check(descriptor, sequence_length=0, source=source)
+    calibrated.check(descriptor, sequence_length=1, source=source)
     return calibrated
 
 

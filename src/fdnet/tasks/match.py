@@ -20,6 +20,7 @@ import numpy as np
 from fdnet.data.images import image_name
 from fdnet.errors import ConfigError
 from fdnet.matching.search import index_settings, rank_references, reference_times_and_positions
+from fdnet.matching.sequence import check_sequence_length
 
 logger = logging.getLogger(__name__)
 
@@ -45,7 +46,7 @@ class MatchSummary:
 
 
 def match_images(reference, query, out, make_descriptor: Callable[[], object], *, top_k: int = 5,
-                 index: str = "exact", index_set=(), index_file=None, sequence_length: int = 0,
+                 index: str = "exact", index_set=(), index_file=None, sequence_length: int = 1,
                  calibration=None, accept=None, pairs_out=None, pairs_accepted_only: bool = False,
                  batch_size: int = 64, workers: int | None = None, inputs=(),
                  progress: bool = True, log: Callable[[str], None] | None = None) -> MatchSummary:
@@ -70,8 +71,7 @@ def match_images(reference, query, out, make_descriptor: Callable[[], object], *
 
     if top_k < 1:
         raise ConfigError("--top-k must be at least 1")
-    if sequence_length < 0:
-        raise ConfigError(f"--sequence-length must be >= 0 (0 = single image), got {sequence_length}")
+    sequence_length = check_sequence_length(sequence_length)
     check_outputs(out, pairs_out, pairs_accepted_only, calibration is not None or accept is not None,
                   index_file=index_file, inputs=[*inputs, ("--reference", reference), ("--query", query),
                                                  *([("--calibration", calibration)] if calibration else [])])
@@ -90,7 +90,7 @@ def match_images(reference, query, out, make_descriptor: Callable[[], object], *
         from fdnet.decisions.calibration import load_calibration
 
         source, calibration = calibration, load_calibration(calibration)
-        calibration.check(descriptor, sequence_length=sequence_length if sequence_length > 1 else 0, source=source)
+        calibration.check(descriptor, sequence_length=sequence_length, source=source)
         depth = max(top_k, calibration.spec.depth)  # the rule may need more candidates than are written
     if names is not None and not pairs_accepted_only and set(names[0]) & set(names[1]):
         depth = max(depth, top_k + 1)  # a query that is also a reference: its pairs skip itself
