@@ -125,3 +125,28 @@ def test_spreadsheet_text_quotes_formula_starts_and_reads_back(name, cell):
 
     assert spreadsheet_text(name) == cell
     assert from_spreadsheet_text(cell) == name
+
+
+def test_no_output_is_written_over_a_noted_input_under_any_name(tmp_path):
+    """The one guard of outputs against inputs: the input itself, a symbolic link and a hard link
+    to it are refused by the atomic writer and by the check made before any work."""
+    import os
+
+    from fdnet.errors import ConfigError
+    from fdnet.io import atomic_write_text, ensure_writable, forget_inputs, note_inputs
+
+    image = tmp_path / "frame.png"
+    image.write_bytes(b"\x89PNG pixels")
+    (tmp_path / "soft.csv").symlink_to(image)
+    os.link(image, tmp_path / "hard.csv")
+    note_inputs([image])
+    try:
+        for name in ("frame.png", "soft.csv", "hard.csv"):
+            with pytest.raises(ConfigError, match=rf"{name}: this output is the input image {image} the command reads"):
+                atomic_write_text(tmp_path / name, "csv")
+            with pytest.raises(ConfigError, match="the command reads"):
+                ensure_writable(tmp_path / name)
+        atomic_write_text(tmp_path / "other.csv", "csv")  # anything else is written
+    finally:
+        forget_inputs()
+    assert image.read_bytes() == b"\x89PNG pixels"

@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import os
+import stat
 import tempfile
 from pathlib import Path
 from typing import Iterator
@@ -41,6 +42,60 @@ def fsync_file(path: str | os.PathLike) -> None:
         os.close(fd)
 
 
+#: every file this process's command reads (images, videos, bags, and files such as --vectors),
+#: by path as given -> what it is; :func:`refuse_writing_an_input` keeps outputs off them
+_INPUTS: dict[str, str] = {}
+
+
+def note_inputs(paths, what: str = "input image") -> None:
+    """Record files the command reads, so no output is ever written over one
+    (:func:`refuse_writing_an_input`). A frame of a video or bag stands for its file."""
+    for path in paths:
+        _INPUTS.setdefault(os.fspath(path), what)
+
+
+def forget_inputs() -> None:
+    """Start a new command: what earlier commands in this process read is no longer protected."""
+    _INPUTS.clear()
+
+
+def refuse_writing_an_input(target: str | os.PathLike, what: str = "output") -> None:
+    """The one guard of outputs against inputs: ConfigError when ``target`` is a file the command
+    reads (:func:`note_inputs`) under any name: the same path, a symbolic link to it or a hard
+    link (compared by device and inode). Writing it would destroy what the command reads."""
+    if not _INPUTS:
+        return
+    try:
+        own = os.stat(target)
+    except OSError:
+        return  # nothing there yet: no input to destroy
+    if not stat.S_ISREG(own.st_mode):
+        return
+    seen: set[str] = set()
+    for name, kind in _INPUTS.items():
+        backing = _backing_file(name)
+        if backing in seen:
+            continue
+        seen.add(backing)
+        try:
+            theirs = os.stat(backing)
+        except OSError:
+            continue
+        if (theirs.st_dev, theirs.st_ino) == (own.st_dev, own.st_ino):
+            raise ConfigError(f"{target}: this {what} is the {kind} {name} the command reads; writing it would "
+                              "destroy it: give another name")
+
+
+def _backing_file(name: str) -> str:
+    """The file behind an input name: itself, or the video or bag a frame path lies in."""
+    path = Path(name)
+    if not path.exists():
+        for parent in path.parents:
+            if parent.is_file():
+                return str(parent)
+    return name
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; on success it is synced and renamed over ``path``.
@@ -51,6 +106,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """
     target = Path(path)
     _refuse_special_file(target, "output")
+    refuse_writing_an_input(target)
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
@@ -123,6 +179,7 @@ def ensure_writable(path: str | os.PathLike, what: str = "output", directory: bo
         raise ConfigError(f"{target}: {what} folder exists and is not a folder")
     if not directory:
         _refuse_special_file(target, what)
+        refuse_writing_an_input(target, what)
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

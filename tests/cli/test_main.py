@@ -210,3 +210,62 @@ def test_a_value_that_starts_with_a_dash_is_explained(tmp_path, capsys):
     assert exit_info.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert err.startswith("fdnet match: error: argument --out: expected one argument") and "--out=-x.csv" in err
+
+
+@pytest.mark.parametrize("case", ["match --out", "evaluate --json", "loop-closure --out", "match hard link",
+                                  "match symlink"])
+def test_an_output_that_is_one_of_the_commands_input_images_is_refused_and_the_image_kept(case, tmp_path, capsys):
+    """Every image and video a command reads is protected from its outputs, under any name (a
+    symbolic or a hard link too): one line naming both, the image byte for byte as it was."""
+    import os
+    import shutil
+
+    from conftest import write_day_night_route
+
+    route = write_day_night_route(tmp_path, 6)
+    image = route / "night" / "003.png"
+    before = image.read_bytes()
+    target = image
+    if case == "match hard link":
+        target = tmp_path / "link.csv"
+        os.link(image, target)
+    elif case == "match symlink":
+        target = tmp_path / "link.csv"
+        target.symlink_to(image)
+    command = case.split()[0]
+    if command == "match":
+        argv = ["match", "--reference", str(route / "day"), "--query", str(route / "night"), "--method", "raw",
+                "--out", str(target)]
+    elif command == "evaluate":
+        argv = ["evaluate", "--data", str(route), "--reference", "day", "--query", "night", "--method", "raw",
+                "--json", str(target)]
+    else:
+        shutil.copytree(route / "night", tmp_path / "loop")
+        image = target = tmp_path / "loop" / "003.png"
+        argv = ["loop-closure", "--images", str(tmp_path / "loop"), "--method", "raw", "--exclude-last", "2",
+                "--threshold", "0.5", "--out", str(image)]
+    code = main([*argv, "--workers", "0"])
+    err = capsys.readouterr().err
+    errors = [line for line in err.splitlines() if ": error: " in line]
+    assert code == 2 and len(errors) == 1 and "Traceback" not in err, err
+    assert errors[0].startswith(f"fdnet {command}: error: {target}: ")
+    assert f"the input image {image} the command reads" in errors[0]
+    assert image.read_bytes() == before
+
+
+def test_output_to_a_reader_that_left_ends_quietly(tmp_path):
+    """`fdnet ... | head -c 10`: the reader closes the pipe; the command ends without a traceback,
+    with the shell's code for SIGPIPE, as Unix tools do. The read end is closed before the command
+    starts, so its first write meets the closed pipe."""
+    import os
+    import subprocess
+    import sys
+
+    read_end, write_end = os.pipe()
+    os.close(read_end)
+    try:
+        result = subprocess.run([sys.executable, "-m", "fdnet", "methods"], stdout=write_end,
+                                stderr=subprocess.PIPE, text=True, timeout=120)
+    finally:
+        os.close(write_end)
+    assert result.returncode == 141 and result.stderr == "", result.stderr

@@ -15,6 +15,7 @@ import sys
 
 from fdnet.version import __version__
 from fdnet.errors import FdnetError
+from fdnet.io import forget_inputs
 from fdnet.logs import command_logging, level_for
 
 # Order = order in `fdnet --help`.
@@ -106,6 +107,21 @@ def _one_line(message) -> str:
     return " ".join(text.split()) if "\n" in text or "\r" in text else text
 
 
+def _reader_left() -> int:
+    """The reader of standard output closed it (``fdnet ... | head``): end quietly, as Unix tools
+    do, with the shell's code for SIGPIPE; output still buffered goes nowhere instead of raising
+    again when Python flushes at exit."""
+    import os
+
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError, AttributeError):  # no real stdout (a test's capture): nothing to redirect
+        pass
+    return 141
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args, unknown = parser.parse_known_args(argv)
@@ -122,6 +138,7 @@ def main(argv: list[str] | None = None) -> int:
             from fdnet.cli.flags import note_old_spellings
 
             note_old_spellings(args)  # an old flag spelling still works, with a one-line note
+            forget_inputs()  # the files this command reads are protected from its outputs (fdnet.io)
             if hasattr(args, "fps"):  # a command that takes images: its video/bag sampling flags
                 from fdnet.cli.common import source_options
                 from fdnet.data.sources import using_options
@@ -130,6 +147,9 @@ def main(argv: list[str] | None = None) -> int:
                     result = args.func(args)
             else:
                 result = args.func(args)
+            sys.stdout.flush()  # a reader that left (| head) is met here, not at the interpreter's exit
+    except BrokenPipeError:
+        return _reader_left()
     except FdnetError as exc:
         _error_line(f"fdnet {args.command}: error: {_one_line(exc)}")
         return 2

@@ -163,7 +163,8 @@ def run(args) -> int:
     from fdnet.decisions.loop_gates import LoopGates
     from fdnet.decisions.loop_traverse import DEFAULT_RULE, DEFAULT_SEQUENCE_LENGTH, route_traverse, run_traverse
     from fdnet.errors import ConfigError
-    from fdnet.io import atomic_write_text, ensure_writable
+    from fdnet.data.images import list_images
+    from fdnet.io import atomic_write_text, ensure_writable, refuse_writing_an_input
     import os
 
     from fdnet.matching.database import check_can_create, holds_a_database
@@ -207,6 +208,11 @@ def run(args) -> int:
     if args.data:
         images = route_traverse(args.data, args.conditions.split(","), args.frames,
                                 0 if args.tolerance is None else args.tolerance)
+    else:
+        list_images(images)  # its frames are noted as inputs (fdnet.io), checked against every output now
+    for path in (args.out, args.jsonl, args.report, args.db, calibrate_out):
+        if path:
+            refuse_writing_an_input(path)
     descriptor = create_descriptor(args.method, args)
     if args.data:
         from fdnet.evaluation.splits import check_descriptors_held_out

@@ -78,9 +78,12 @@ def list_images(folder: str | os.PathLike, recursive: bool = False) -> list[Path
     matrices, ``fdnet match`` output and ``fdnet extract`` arrays.
     """
     from fdnet.data import sources
+    from fdnet.io import note_inputs
 
     if sources.is_source(folder):  # a video or ROS bag: its frames, as frame paths (fdnet.data.sources)
-        return sources.list_frames(folder)
+        frames = sources.list_frames(folder)
+        note_inputs([sources.split_topic(folder)[0]], "video or bag")
+        return frames
     folder = Path(folder)
     if not folder.is_dir():
         reason = ("it is a file, and not a video or ROS bag by its extension" if folder.exists()
@@ -92,6 +95,7 @@ def list_images(folder: str | os.PathLike, recursive: bool = False) -> list[Path
              and (p.is_file() or _dangling_link(p))]
     if not paths:
         raise DataError(f"{folder}: contains no images (looked for {', '.join(IMAGE_EXTENSIONS)})")
+    note_inputs(paths)  # no output of the command is written over one (fdnet.io.refuse_writing_an_input)
     return sorted(paths, key=lambda p: natural_key(p.relative_to(folder).as_posix()))
 
 
