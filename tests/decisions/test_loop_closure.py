@@ -18,6 +18,14 @@ from fdnet.matching.database import PlaceDatabase
 PLACES = 12
 
 
+def traverse_settings(events_csv, events_jsonl=None, resume=False, batch_size=16, workers=None, **detector):
+    """run_traverse's settings object from one flat set of keywords (the detector's fields among them)."""
+    from fdnet.decisions.loop_settings import LoopClosureSettings, PipelineSettings, TraverseSettings
+
+    return TraverseSettings(events_csv, LoopClosureSettings(**detector), PipelineSettings(batch_size, workers),
+                            events_jsonl=events_jsonl, resume=resume)
+
+
 def places(seed=0, n=PLACES):
     rng = np.random.default_rng(seed)
     return [rng.integers(0, 256, size=(32, 64, 3)).astype(np.uint8) for _ in range(n)]
@@ -367,8 +375,8 @@ def test_resume_replays_to_the_events_of_an_uninterrupted_run(tmp_path):
     frames, revisit, folder = route_with_a_tunnel_a_stop_and_a_revisit_as_files(tmp_path / "route")
     settings = {"exclude_last": 2, "rule": "raw", "threshold": 0.8, "sequence_length": 3, "batch_size": 4,
                 "workers": 0}
-    whole = run_traverse(folder, RawThumbnail(), tmp_path / "whole.db", events_csv=tmp_path / "whole.csv",
-                         events_jsonl=tmp_path / "whole.jsonl", **settings)
+    whole = run_traverse(folder, RawThumbnail(), tmp_path / "whole.db", traverse_settings(
+        events_csv=tmp_path / "whole.csv", events_jsonl=tmp_path / "whole.jsonl", **settings))
     assert whole.closures >= 9 and revisit < 40
 
     class Killed(Exception):
@@ -390,7 +398,8 @@ def test_resume_replays_to_the_events_of_an_uninterrupted_run(tmp_path):
     for cut in (20, 40):  # batches of 4: in the first pass, and among the revisits
         db, csv_path, jsonl = tmp_path / f"cut{cut}.db", tmp_path / f"cut{cut}.csv", tmp_path / f"cut{cut}.jsonl"
         with pytest.raises(Killed):
-            run_traverse(folder, DiesAfter(cut), db, events_csv=csv_path, events_jsonl=jsonl, **settings)
+            run_traverse(folder, DiesAfter(cut), db, traverse_settings(events_csv=csv_path, events_jsonl=jsonl,
+                                                                        **settings))
         with PlaceDatabase.open(db) as stored:
             assert len(stored) == cut
         # a kill between storing a frame and writing its event: the last event line is lost, and
@@ -400,9 +409,9 @@ def test_resume_replays_to_the_events_of_an_uninterrupted_run(tmp_path):
             csv_path.write_text("".join(lines[:-1]) + lines[-1][:7])
         # without --resume the traverse is refused; with it, the events are those of one whole run
         with pytest.raises(DataError, match="give --resume"):
-            run_traverse(folder, RawThumbnail(), db, events_csv=csv_path, **settings)
-        report = run_traverse(folder, RawThumbnail(), db, events_csv=csv_path, events_jsonl=jsonl, resume=True,
-                              **settings)
+            run_traverse(folder, RawThumbnail(), db, traverse_settings(events_csv=csv_path, **settings))
+        report = run_traverse(folder, RawThumbnail(), db, traverse_settings(events_csv=csv_path, events_jsonl=jsonl,
+                                                                             resume=True, **settings))
         assert report.resumed_frames == cut and report.frames == len(frames)
         assert csv_path.read_text() == (tmp_path / "whole.csv").read_text()
         assert jsonl.read_text() == (tmp_path / "whole.jsonl").read_text()
@@ -410,7 +419,8 @@ def test_resume_replays_to_the_events_of_an_uninterrupted_run(tmp_path):
             assert stored.names == reference.names
             np.testing.assert_array_equal(stored.vectors, reference.vectors)
     with pytest.raises(ConfigError, match="needs the place database"):
-        run_traverse(folder, RawThumbnail(), None, events_csv=tmp_path / "x.csv", resume=True, **settings)
+        run_traverse(folder, RawThumbnail(), None, traverse_settings(events_csv=tmp_path / "x.csv", resume=True,
+                                                                     **settings))
 
 
 @pytest.mark.parametrize("length", [1, 3])
@@ -442,8 +452,8 @@ def test_resume_with_the_index_replays_the_same_events(tmp_path):
     frames, revisit, folder = route_with_a_tunnel_a_stop_and_a_revisit_as_files(tmp_path / "route")
     settings = {"exclude_last": 2, "rule": "raw", "threshold": 0.8, "sequence_length": 3, "batch_size": 4,
                 "workers": 0, "search": "index"}
-    whole = run_traverse(folder, RawThumbnail(), tmp_path / "whole.db", events_csv=tmp_path / "whole.csv",
-                         **settings)
+    whole = run_traverse(folder, RawThumbnail(), tmp_path / "whole.db",
+                         traverse_settings(events_csv=tmp_path / "whole.csv", **settings))
     assert whole.closures >= 9
     # a run interrupted after 40 frames (among the revisits): the database holds those frames only
     with PlaceDatabase.open(tmp_path / "whole.db") as stored:
@@ -451,7 +461,8 @@ def test_resume_with_the_index_replays_the_same_events(tmp_path):
     with PlaceDatabase.create(tmp_path / "cut.db", RawThumbnail()) as cut:
         cut.add(vectors[:40], names[:40], metadata=metadata[:40])
     (tmp_path / "cut.csv").write_text("")
-    run_traverse(folder, RawThumbnail(), tmp_path / "cut.db", events_csv=tmp_path / "cut.csv", resume=True, **settings)
+    run_traverse(folder, RawThumbnail(), tmp_path / "cut.db",
+                 traverse_settings(events_csv=tmp_path / "cut.csv", resume=True, **settings))
     assert (tmp_path / "cut.csv").read_text() == (tmp_path / "whole.csv").read_text()
 
 

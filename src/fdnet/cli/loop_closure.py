@@ -152,6 +152,26 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
+    """The command, holding a lock on each file it writes over the whole run (the events CSV and
+    JSON lines, the database): a second run on them, ``--resume`` or not, is refused in one line
+    naming the holder before it touches anything (``.NAME.lock`` beside each; the kernel drops a
+    killed run's lock)."""
+    import contextlib
+
+    from fdnet.io import ensure_writable
+    from fdnet.runs.lock import RunLock
+
+    outputs = [(args.out, "events CSV"), (args.jsonl, "events JSON lines"), (args.db, "place database")]
+    with contextlib.ExitStack() as locks:
+        for path, what in outputs:
+            if path:
+                ensure_writable(path, what=what)
+        for path in sorted({str(path) for path, _ in outputs if path}):
+            locks.enter_context(RunLock.for_file(path, getattr(args, "command_line", None) or "fdnet loop-closure"))
+        return _run(args)
+
+
+def _run(args) -> int:
     import json
     from pathlib import Path
 
@@ -161,6 +181,7 @@ def run(args) -> int:
 
     from fdnet.decisions.loop_closure import LOOP_CALIBRATION_FILE
     from fdnet.decisions.loop_gates import LoopGates
+    from fdnet.decisions.loop_settings import LoopClosureSettings, PipelineSettings, TraverseSettings
     from fdnet.decisions.loop_traverse import DEFAULT_RULE, DEFAULT_SEQUENCE_LENGTH, route_traverse, run_traverse
     from fdnet.errors import ConfigError
     from fdnet.data.images import list_images
@@ -219,14 +240,16 @@ def run(args) -> int:
 
         check_descriptors_held_out([descriptor], args.data, images.conditions, args.frames,
                                    allow=args.allow_training_frames)
-    report = run_traverse(
-        images, descriptor, args.db, exclude_last=args.exclude_last, events_csv=args.out,
-        events_jsonl=args.jsonl, rule=rule, rule_settings=args.accept_set or None, threshold=args.threshold,
-        calibration=calibration, sequence_length=sequence_length, ground_truth=args.ground_truth,
-        calibrate_to=calibrate_out, target_precision=1.0 if args.target_precision is None else args.target_precision,
-        method_options=_file_options(args, args.method), commit_every=args.commit_every,
-        batch_size=args.batch_size, workers=args.workers, gates=gates, resume=args.resume, search=args.search,
-        progress=not args.no_progress, log=logging.getLogger("fdnet.loop_closure").info)
+    detector = LoopClosureSettings(
+        exclude_last=args.exclude_last, rule=rule, rule_settings=args.accept_set or None, threshold=args.threshold,
+        calibration=calibration, sequence_length=sequence_length, gates=gates, search=args.search,
+        method_options=_file_options(args, args.method), commit_every=args.commit_every)
+    settings = TraverseSettings(
+        events_csv=args.out, events_jsonl=args.jsonl, detector=detector,
+        pipeline=PipelineSettings(batch_size=args.batch_size, workers=args.workers, progress=not args.no_progress),
+        ground_truth=args.ground_truth, calibrate_to=calibrate_out,
+        target_precision=1.0 if args.target_precision is None else args.target_precision, resume=args.resume)
+    report = run_traverse(images, descriptor, args.db, settings, log=logging.getLogger("fdnet.loop_closure").info)
     _print_report(args, report)
     if args.report:
         from fdnet.provenance import provenance

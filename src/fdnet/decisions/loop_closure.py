@@ -38,16 +38,14 @@ from fdnet.decisions.loop_threads import single_blas_thread, single_torch_thread
 from fdnet.decisions.loop_trust import (LOOP_CALIBRATION_FILE, DriftCheck, calibrated_gates,  # noqa: F401
                                         decision_rule, resolve_calibration)
 from fdnet.decisions.loop_recency import RECENT_WINDOW, GapDetector, Seams, sampled_similar_past, similar_past
-from fdnet.decisions.loop_gates import (ConsistencyGate, FrameSignals, LoopGates, RecentPast, frame_signals,
+from fdnet.decisions.loop_gates import (ConsistencyGate, FrameSignals, LoopGates, RecentPast, frame_signals,  # noqa: F401
                                         informative_frames, is_still)
+from fdnet.decisions.loop_settings import SEARCH_KINDS, LoopClosureSettings  # noqa: F401
 from fdnet.errors import ConfigError, DataError
 from fdnet.matching.database.storage import place_name
 
 logger = logging.getLogger(__name__)
 
-#: how the detector finds a frame's candidates: every place, an index, or the index once the map
-#: has ``index_from`` places (:mod:`fdnet.decisions.loop_search`)
-SEARCH_KINDS = ("auto", "exact", "index")
 
 class LoopClosureDetector:
     """Online loop-closure detection over a place database (see the module docstring).
@@ -55,47 +53,34 @@ class LoopClosureDetector:
     ``descriptor``: a :mod:`fdnet.descriptors` method. ``database``: a
     :class:`~fdnet.matching.database.PlaceDatabase` (e.g. from earlier sessions), a path (opened
     when the file exists, else created), or None (a scratch database in memory); its vectors
-    must come from ``descriptor`` (same fingerprint). ``exclude_last``: how many of this
-    traverse's most recent frames are never candidates. ``rule``: an acceptance expression
-    (``"margin"``, ``"margin+verified"``) or a parsed :class:`AcceptanceSpec`, with
-    ``rule_settings`` (``{"radius": 5}`` or ``["margin:radius=5"]``); ``threshold``: the score
-    at which a candidate is accepted; or ``calibration``: a calibration file giving rule,
-    settings and threshold for this model. ``sequence_length``: score by sequences of the
-    robot's last N frames (1 = single images). Without threshold and calibration, the
-    calibration stored in the database (``fdnet calibrate --db``) is used. ``method_options``:
-    what rebuilds the descriptor, recorded in a database created here. ``allow_duplicates``: add
-    a frame whose name the database already holds (default: refuse it, it was added in an
-    earlier run). ``commit_every``: frames stored per database transaction; 1 (default) makes
-    every frame durable before :meth:`process` returns (one fsync per frame); N > 1 stores them
-    N at a time (the rest at :meth:`flush`/:meth:`close`), which changes no decision (the
+    must come from ``descriptor`` (same fingerprint). ``settings``: a
+    :class:`~fdnet.decisions.loop_settings.LoopClosureSettings` (rule, threshold or calibration,
+    sequence length, gates, search, storage), with any of its fields given as keywords on top
+    (``LoopClosureDetector(d, db, sequence_length=10, calibration="runs/nordland")``). Without
+    threshold and calibration, the calibration stored in the database (``fdnet calibrate
+    --db``) is used. ``commit_every`` > 1 stores frames N at a time (the rest at
+    :meth:`flush`/:meth:`close`), which changes no decision (the
     detector searches its own copy of the vectors) but a crash loses up to N - 1 frames.
     """
 
-    def __init__(self, descriptor, database=None, *, exclude_last: int = 0, rule: str | AcceptanceSpec | None = None,
-                 rule_settings=None, threshold: float | None = None, calibration=None,
-                 sequence_length: int | None = None,
-                 method_options: dict | None = None, allow_duplicates: bool = False, commit_every: int = 1,
-                 gates: LoopGates | None = None, search: str = "auto", index_from: int | None = None):
+    def __init__(self, descriptor, database=None, settings: LoopClosureSettings | None = None, **options):
         from fdnet.matching.database import PlaceDatabase
 
-        if isinstance(exclude_last, bool) or not isinstance(exclude_last, (int, np.integer)) or exclude_last < 0:
-            raise ConfigError(f"exclude-last must be a whole number of at least 0, got {exclude_last!r}")
+        settings = (settings or LoopClosureSettings()).with_options(**options)
         source = None
+        threshold, calibration = settings.threshold, settings.calibration
         if threshold is None and calibration is None:
             calibration, source = stored_calibration(database)
         calibration, source = resolve_calibration(calibration, source)
+        sequence_length = settings.sequence_length
         if sequence_length is None:  # a calibration's own, else single images
             sequence_length = int(calibration.sequence_length) if calibration is not None else 1
-        if isinstance(sequence_length, bool) or not isinstance(sequence_length, (int, np.integer)) \
-                or sequence_length < 1:
-            raise ConfigError(f"sequence length must be a whole number of at least 1, got {sequence_length!r}")
-        if isinstance(commit_every, bool) or not isinstance(commit_every, (int, np.integer)) or commit_every < 1:
-            raise ConfigError(f"commit-every must be a whole number of at least 1, got {commit_every!r}")
         if getattr(descriptor, "needs_fit", False):
             raise ConfigError(f"method {descriptor.name!r} must be given what it learns from (--fit DIR, or dbow's "
                               "--vocabulary) before it can describe frames online")
         self.descriptor = descriptor
-        self.exclude_last = int(exclude_last)
+        self.settings = settings
+        self.exclude_last = settings.exclude_last
         self.sequence_length = int(sequence_length)
         # neutral values that pad the start of each similarity row with sequences: the first place
         # that can end a full-length sequence at every velocity (0 for single images)
@@ -103,24 +88,21 @@ class LoopClosureDetector:
 
         self._first_full = (int(math.ceil(max(DEFAULT_VELOCITIES) * (self.sequence_length - 1)))
                             if self.sequence_length > 1 else 0)
-        self.allow_duplicates = bool(allow_duplicates)
-        self.commit_every = int(commit_every)
+        self.allow_duplicates = settings.allow_duplicates
+        self.commit_every = settings.commit_every
         from fdnet.decisions.loop_search import INDEX_FROM
 
-        if search not in SEARCH_KINDS:
-            raise ConfigError(f"search must be one of {', '.join(SEARCH_KINDS)}, got {search!r}")
-        self.search = search
-        self.index_from = INDEX_FROM if index_from is None else int(index_from)
-        if gates is not None and not isinstance(gates, LoopGates):
-            raise ConfigError(f"gates must be a LoopGates, got {type(gates).__name__}")
+        self.search = settings.search
+        self.index_from = INDEX_FROM if settings.index_from is None else settings.index_from
         # frames decided but not yet stored (commit_every > 1): vectors, names, positions, metadata
         self._pending: list[tuple] = []
         self._calibration_source = source or "the calibration"
-        self.spec, self.threshold, self.calibration = decision_rule(descriptor, self.sequence_length, rule,
-                                                                    rule_settings, threshold, calibration, source)
-        self.gates = calibrated_gates(self.calibration, gates, source)
+        self.spec, self.threshold, self.calibration = decision_rule(descriptor, self.sequence_length, settings.rule,
+                                                                    settings.rule_settings, threshold, calibration,
+                                                                    source)
+        self.gates = calibrated_gates(self.calibration, settings.gates, source)
         self._owns_database = not isinstance(database, PlaceDatabase)
-        self.database = self._database(database, method_options)
+        self.database = self._database(database, settings.method_options)
         try:
             self._load_places()
         except BaseException:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 import os
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -23,7 +23,8 @@ from fdnet.decisions.loop_closure import LoopClosureDetector
 from fdnet.matching.database.storage import place_name
 from fdnet.decisions.loop_evaluation import calibrate_decisions, evaluate_decisions
 from fdnet.decisions.loop_events import EventLog
-from fdnet.decisions.loop_gates import LoopGates, frame_signals
+from fdnet.decisions.loop_gates import frame_signals
+from fdnet.decisions.loop_settings import LoopClosureSettings, PipelineSettings, TraverseSettings  # noqa: F401
 from fdnet.errors import ConfigError, DataError
 
 
@@ -142,67 +143,55 @@ class TraverseReport:
         return out
 
 
-def run_traverse(images, descriptor, database=None, *, exclude_last: int = 0,
-                 events_csv: str | os.PathLike, events_jsonl: str | os.PathLike | None = None,
-                 rule: str | None = None, rule_settings=None, threshold: float | None = None, calibration=None,
-                 sequence_length: int | None = None, ground_truth=None,
-                 calibrate_to: str | os.PathLike | None = None, target_precision: float = 1.0,
-                 method_options: dict | None = None, commit_every: int = 1, batch_size: int = 16,
-                 workers: int | None = None, progress: bool = False, gates: LoopGates | None = None,
-                 resume: bool = False, search: str = "auto",
+def run_traverse(images, descriptor, database=None, settings: TraverseSettings | None = None,
                  log: Callable[[str], None] | None = None) -> TraverseReport:
     """Run a :class:`LoopClosureDetector` over one traverse, writing each accepted closure to
-    ``events_csv`` (and ``events_jsonl``) as it is accepted.
+    ``settings.events_csv`` (and ``events_jsonl``) as it is accepted.
 
     ``images``: a folder (or video or ROS bag: its frames bring their timestamps, and a bag's its
     positions, for ``radius_s`` / ``radius_m`` and the gates' seconds / metres), in fdnet's one
     image order, or a :class:`RouteTraverse` (a route's conditions one after another, which
     brings its own ground truth). ``database``: a place-database file from earlier sessions (or a
-    new file to create; None = in memory only). ``ground_truth``: a CSV of
-    :class:`~fdnet.data.groundtruth.GroundTruth` whose queries are the frames and whose
-    references are the database's places (for a new database: the same frames); the run is then
-    evaluated (:func:`~fdnet.decisions.loop_evaluation.evaluate_decisions`). ``gates``: the
-    :class:`~fdnet.decisions.loop_gates.LoopGates` (default settings when None).
-    ``commit_every``: frames per database transaction. ``calibrate_to``: also choose the
-    threshold that reaches ``target_precision`` on this traverse (needs ground truth) and write
-    that calibration there (YAML); without a threshold or calibration such a run accepts nothing
-    (threshold +inf). ``resume``: the database holds the first frames of this traverse from an
-    interrupted run: replay their decisions from the stored vectors (nothing is described or
-    stored twice), rewrite the events they accepted, and go on with the rest. ``search``: how
-    candidates are found (``auto``: every place up to 20,000, then the index;
-    :mod:`fdnet.decisions.loop_search`). Every refusal
-    (paths, rule, calibration, ground truth, database) comes before the first frame is described.
+    new file to create; None = in memory only). ``settings``: a
+    :class:`~fdnet.decisions.loop_settings.TraverseSettings`: the detector's settings, the
+    outputs, the ground truth (a CSV of :class:`~fdnet.data.groundtruth.GroundTruth` whose
+    queries are the frames and whose references are the database's places; the run is then
+    evaluated by :func:`~fdnet.decisions.loop_evaluation.evaluate_decisions`), the calibration
+    to write (without a threshold or calibration such a run accepts nothing: threshold +inf),
+    and ``resume`` (replay the frames an interrupted run stored from their vectors: nothing is
+    described or stored twice; rewrite the events they accepted, go on with the rest). Every
+    refusal (paths, rule, calibration, ground truth, database) comes before the first frame is
+    described.
     """
     from fdnet.data.groundtruth import GroundTruth
     from fdnet.io import ensure_writable
 
+    if not isinstance(settings, TraverseSettings):
+        raise ConfigError(f"run_traverse needs TraverseSettings (at least events_csv), got {type(settings).__name__}")
     say = log or (lambda message: None)
     route = images if isinstance(images, RouteTraverse) else None
+    detector_settings = settings.detector
+    ground_truth, calibrate_to = settings.ground_truth, settings.calibrate_to
     if calibrate_to is not None:
         from fdnet.decisions.calibration import check_target
 
         if ground_truth is None and route is None:
             raise ConfigError("calibrating on a traverse needs its ground truth (--ground-truth CSV, or a route "
                               "given as --data DIR --conditions A,B)")
-        check_target(target_precision)
+        check_target(settings.target_precision)
         ensure_writable(calibrate_to, what="calibration file")
-        if threshold is None and calibration is None:
-            threshold = math.inf
-    for path, what in ((events_csv, "events CSV"), (events_jsonl, "events JSON lines")):
+        if detector_settings.threshold is None and detector_settings.calibration is None:
+            detector_settings = replace(detector_settings, threshold=math.inf)
+    for path, what in ((settings.events_csv, "events CSV"), (settings.events_jsonl, "events JSON lines")):
         if path is not None:
             ensure_writable(path, what=what)
-    if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
-        raise ConfigError(f"batch size must be a whole number of at least 1, got {batch_size!r}")
-    if resume and database is None:
+    if settings.resume and database is None:
         raise ConfigError("resuming needs the place database the interrupted run wrote (--db FILE): an in-memory "
                           "run keeps nothing to resume from")
     paths, where, names, times, positions = _traverse_frames(images, route)
-    with LoopClosureDetector(descriptor, database, exclude_last=exclude_last, rule=rule,
-                             rule_settings=rule_settings, threshold=threshold, calibration=calibration,
-                             sequence_length=sequence_length, method_options=method_options,
-                             commit_every=commit_every, gates=gates, search=search) as detector:
+    with LoopClosureDetector(descriptor, database, detector_settings) as detector:
         db = detector.database
-        done = _frames_done(db, names, resume)
+        done = _frames_done(db, names, settings.resume)
         places_before = detector.places - done
         truth = None
         if ground_truth is not None:
@@ -212,7 +201,7 @@ def run_traverse(images, descriptor, database=None, *, exclude_last: int = 0,
         elif route is not None:
             truth = route.ground_truth(places_before)
         if truth is not None:
-            _check_searchable_revisit(truth, places_before, exclude_last, detector.sequence_length)
+            _check_searchable_revisit(truth, places_before, detector.exclude_last, detector.sequence_length)
         # a rule that looks at the images (verification) refuses unusable ones (too small for
         # local features) before the first frame is described
         detector.spec.check_images(paths, [*detector._names[:places_before], *names])
@@ -226,18 +215,19 @@ def run_traverse(images, descriptor, database=None, *, exclude_last: int = 0,
             f"(threshold {detector.threshold:g}), {places_before} places in {db.path} before the run")
         t0 = time.perf_counter()
         starts = set() if route is None else {int(i) for i in np.flatnonzero(np.diff(route.condition_of)) + 1}
-        events = _detect_over(detector, descriptor, paths, names, times, positions, events_csv, events_jsonl,
-                              batch_size, workers, progress, start=done, initial=initial, segment_starts=starts)
+        frames = TraverseFrames(paths, names, times, positions, frozenset(starts))
+        events = _detect_over(detector, frames, settings, start=done, initial=initial)
         detector.flush()
         seconds = time.perf_counter() - t0
-        report = _report(detector, seconds, places_before, events, done, calibration)
+        report = _report(detector, seconds, places_before, events, done, detector_settings.calibration)
         if truth is not None:
             report.evaluation = evaluate_decisions(detector.decisions, truth, detector.threshold, detector.spec.name)
         if calibrate_to is not None:
             source = {"images": where if route is not None else str(Path(images).resolve()),
                       **({"ground_truth_file": str(Path(ground_truth).resolve())} if ground_truth is not None
                          else {"ground_truth": truth.description})}
-            report.calibrated = _calibrate_on_traverse(detector, truth, target_precision, source, calibrate_to)
+            report.calibrated = _calibrate_on_traverse(detector, truth, settings.target_precision, source,
+                                                       calibrate_to)
     return report
 
 
@@ -330,32 +320,45 @@ def _signals_of(paths, descriptor):
     raise DataError("no frame to read")
 
 
-def _detect_over(detector: LoopClosureDetector, descriptor, paths, names, times, positions, events_csv,
-                 events_jsonl, batch_size: int, workers: int | None, progress: bool, start: int = 0,
-                 initial=(), segment_starts=frozenset()) -> EventLog:
-    """Describe ``paths[start:]`` ``batch_size`` at a time (with each frame's pixel signals) and
+@dataclass(frozen=True)
+class TraverseFrames:
+    """The frames of a traverse in order: paths, place names, timestamps and positions (None
+    where unknown), and the frames that start a new recording."""
+
+    paths: list
+    names: list
+    times: list
+    positions: list
+    segment_starts: frozenset = frozenset()
+
+
+def _detect_over(detector: LoopClosureDetector, frames: TraverseFrames, settings: TraverseSettings,
+                 start: int = 0, initial=()) -> EventLog:
+    """Describe ``frames.paths[start:]`` a batch at a time (with each frame's pixel signals) and
     feed each to ``detector``, writing each accepted closure to the event log as it is accepted
     (the log starts from the ``initial`` events of a resumed run); returns the (closed) log."""
     from fdnet.descriptors.pipeline import describe_stream
+
+    descriptor, pipeline = detector.descriptor, settings.pipeline
 
     def describe(images):
         return descriptor.describe(images), frame_signals(images)
 
     bar = None
-    if progress:
+    if pipeline.progress:
         from fdnet.progress import progress_bar
 
-        bar = progress_bar(total=len(paths), initial=start, desc=f"loop closure [{descriptor.name}]",
+        bar = progress_bar(total=len(frames.paths), initial=start, desc=f"loop closure [{descriptor.name}]",
                            unit="frame", smoothing=0.1)
     try:
-        with EventLog(events_csv, events_jsonl, initial=initial) as events:
-            for offset, (vectors, signals) in describe_stream(descriptor, paths[start:], batch_size,
-                                                              workers=workers, describe=describe):
+        with EventLog(settings.events_csv, settings.events_jsonl, initial=initial) as events:
+            for offset, (vectors, signals) in describe_stream(descriptor, frames.paths[start:], pipeline.batch_size,
+                                                              workers=pipeline.workers, describe=describe):
                 for i, vector in enumerate(np.asarray(vectors, dtype=np.float32)):
                     k = start + offset + i
-                    closure = detector.process_vector(vector, name=names[k], timestamp=times[k],
-                                                      position=positions[k], signals=signals[i],
-                                                      new_segment=k in segment_starts)
+                    closure = detector.process_vector(vector, name=frames.names[k], timestamp=frames.times[k],
+                                                      position=frames.positions[k], signals=signals[i],
+                                                      new_segment=k in frames.segment_starts)
                     if closure is not None:
                         events.write(closure)
                 if bar is not None:

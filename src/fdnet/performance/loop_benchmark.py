@@ -140,6 +140,7 @@ def per_frame_rows(run_dir, images_folder, frames: int = 120, repeats: int = 3,
 
     from fdnet.data.images import list_images
     from fdnet.decisions.loop_closure import LoopClosureDetector
+    from fdnet.decisions.loop_settings import LoopClosureSettings, TraverseSettings
     from fdnet.decisions.loop_traverse import run_traverse
     from fdnet.descriptors import create
 
@@ -152,8 +153,9 @@ def per_frame_rows(run_dir, images_folder, frames: int = 120, repeats: int = 3,
         for path in paths:  # exactly these frames for both paths
             (folder / Path(path).name).symlink_to(Path(path).resolve())
         for _ in range(repeats):
-            report = run_traverse(folder, descriptor, None, events_csv=Path(scratch) / "events.csv", rule="margin",
-                                  threshold=math.inf, sequence_length=10)
+            settings = TraverseSettings(Path(scratch) / "events.csv", LoopClosureSettings(
+                rule="margin", threshold=math.inf, sequence_length=10))
+            report = run_traverse(folder, descriptor, None, settings)
             batched.append(report.frames_per_second)
             detector = LoopClosureDetector(descriptor, None, rule="margin", threshold=math.inf, sequence_length=10)
             with detector:
