@@ -513,3 +513,27 @@ def test_a_resumed_run_says_how_many_frames_it_took_over(route, tmp_path, capsys
     out = capsys.readouterr().out
     assert (f"{tmp_path / 'map.db'}: 0 places before this traverse, {len(frames)} after (12 of its frames stored by "
             "the interrupted run, replayed, not added again)") in out
+
+
+def test_a_second_run_on_the_same_events_is_refused_before_it_touches_anything(route, tmp_path, capsys):
+    """Two `--resume` runs at once: the loser used to cut the events back after the winner wrote.
+    Each run holds a lock on its events files and database; a second is one line naming the holder."""
+    from fdnet.runs.lock import RunLock
+
+    common = ["loop-closure", "--images", str(route), "--method", "raw", "--sequence-length", "1", "--accept",
+              "margin", "--threshold", "0.2", "--db", str(tmp_path / "map.db"), "--no-progress", "--workers", "0",
+              "--out", str(tmp_path / "events.csv")]
+    assert main(common) == 0
+    capsys.readouterr()
+    events = (tmp_path / "events.csv").read_bytes()
+    database = (tmp_path / "map.db").read_bytes()
+    with RunLock.for_file(tmp_path / "events.csv", "fdnet loop-closure (the first run)"):
+        assert main([*common, "--resume"]) == 2
+        err = capsys.readouterr().err
+        assert f"{tmp_path / 'events.csv'} is in use by process" in err and "(the first run)" in err, err
+        assert len(err.strip().splitlines()) == 1
+        assert (tmp_path / "events.csv").read_bytes() == events and (tmp_path / "map.db").read_bytes() == database
+    with RunLock.for_file(tmp_path / "map.db", "fdnet loop-closure (the first run)"):
+        assert main([*common, "--resume"]) == 2
+        assert f"{tmp_path / 'map.db'} is in use by process" in capsys.readouterr().err
+    assert main([*common, "--resume"]) == 0  # once the first run has ended

@@ -35,11 +35,21 @@ class RunLock:
     while the lock is held (DataLoader workers) share it until they exit too.
     """
 
-    def __init__(self, run_dir: str | Path, command: str = "fdnet train"):
+    def __init__(self, run_dir: str | Path, command: str = "fdnet train", lock_file: str = LOCK_FILE,
+                 subject: str | None = None):
         self.run_dir = Path(run_dir)
-        self.path = self.run_dir / LOCK_FILE
+        self.path = self.run_dir / lock_file
         self.command = command
+        #: what the messages say is in use (default: the run directory)
+        self.subject = subject or str(self.run_dir)
         self._fd: int | None = None
+
+    @classmethod
+    def for_file(cls, path: str | Path, command: str) -> "RunLock":
+        """The lock of one output file that a run writes over a long time and may resume
+        (``fdnet loop-closure``'s events): ``.NAME.lock`` beside it."""
+        path = Path(path)
+        return cls(path.parent, command, lock_file=f".{path.name}.lock", subject=str(path))
 
     def _holder(self) -> dict:
         # The holder writes its details right after locking; give it a moment if we came between.
@@ -71,11 +81,11 @@ class RunLock:
             os.close(fd)
             holder = self._holder()
             if not holder:
-                raise ConfigError(f"{self.run_dir} is in use by another process (see {self.path}); "
+                raise ConfigError(f"{self.subject} is in use by another process (see {self.path}); "
                                   "wait for it to finish or stop it") from None
             where = "" if holder.get("host") in (None, socket.gethostname()) else f" on {holder['host']}"
             raise ConfigError(
-                f"{self.run_dir} is in use by process {holder.get('pid')}{where} "
+                f"{self.subject} is in use by process {holder.get('pid')}{where} "
                 f"({holder.get('command', '?')}, started {holder.get('started', '?')}); "
                 "wait for it to finish or stop it"
             ) from None
