@@ -181,6 +181,7 @@ def _run(args) -> int:
 
     from fdnet.decisions.loop_closure import LOOP_CALIBRATION_FILE
     from fdnet.decisions.loop_gates import LoopGates
+    from fdnet.decisions.loop_settings import LoopClosureSettings, PipelineSettings, TraverseSettings
     from fdnet.decisions.loop_traverse import DEFAULT_RULE, DEFAULT_SEQUENCE_LENGTH, route_traverse, run_traverse
     from fdnet.errors import ConfigError
     from fdnet.data.images import list_images
@@ -239,14 +240,16 @@ def _run(args) -> int:
 
         check_descriptors_held_out([descriptor], args.data, images.conditions, args.frames,
                                    allow=args.allow_training_frames)
-    report = run_traverse(
-        images, descriptor, args.db, exclude_last=args.exclude_last, events_csv=args.out,
-        events_jsonl=args.jsonl, rule=rule, rule_settings=args.accept_set or None, threshold=args.threshold,
-        calibration=calibration, sequence_length=sequence_length, ground_truth=args.ground_truth,
-        calibrate_to=calibrate_out, target_precision=1.0 if args.target_precision is None else args.target_precision,
-        method_options=_file_options(args, args.method), commit_every=args.commit_every,
-        batch_size=args.batch_size, workers=args.workers, gates=gates, resume=args.resume, search=args.search,
-        progress=not args.no_progress, log=logging.getLogger("fdnet.loop_closure").info)
+    detector = LoopClosureSettings(
+        exclude_last=args.exclude_last, rule=rule, rule_settings=args.accept_set or None, threshold=args.threshold,
+        calibration=calibration, sequence_length=sequence_length, gates=gates, search=args.search,
+        method_options=_file_options(args, args.method), commit_every=args.commit_every)
+    settings = TraverseSettings(
+        events_csv=args.out, events_jsonl=args.jsonl, detector=detector,
+        pipeline=PipelineSettings(batch_size=args.batch_size, workers=args.workers, progress=not args.no_progress),
+        ground_truth=args.ground_truth, calibrate_to=calibrate_out,
+        target_precision=1.0 if args.target_precision is None else args.target_precision, resume=args.resume)
+    report = run_traverse(images, descriptor, args.db, settings, log=logging.getLogger("fdnet.loop_closure").info)
     _print_report(args, report)
     if args.report:
         from fdnet.provenance import provenance
