@@ -66,7 +66,7 @@ def run_demo(out, *, num_frames: int = 400, max_minutes: float = 9.0, preset: st
             f"$ fdnet evaluate --data {route} --reference summer --query {query} --frames {test} --tolerance 1 "
             f"--method {','.join(chosen)} --checkpoint {run_dir}{fit} --json {out / f'results-{query}-summer.json'} "
             f"--plots {out / f'plots-{query}-summer'}")
-        results[query] = _evaluate(route, run_dir, query, test, chosen, train_end, out, say)
+        results[query] = _evaluate(route, run_dir, query, test, chosen, train_end, out, say, seed)
     say(f"\ndemo finished in {(time.perf_counter() - started) / 60:.1f} min; results, plots and the trained run "
         f"are in {out}/")
     return results
@@ -109,7 +109,7 @@ def _train(route: Path, run_dir: Path, preset: str, train_end: int, val_end: int
 
 
 def _evaluate(route: Path, run_dir: Path, query: str, test: str, methods: list[str], train_end: int, out: Path,
-              say) -> list:
+              say, seed: int = 0) -> list:
     from fdnet.decisions.acceptance import DEFAULT_ACCEPTANCE, parse_acceptance_list
     from fdnet.descriptors.registry import create, descriptor_class
     from fdnet.evaluation.experiment import evaluate_method
@@ -129,6 +129,6 @@ def _evaluate(route: Path, run_dir: Path, query: str, test: str, methods: list[s
                                acceptance=acceptance) for d in descriptors]
     say(format_table(results, RECALL_OVER_QUERIES))
     json_path, plots = out / f"results-{query}-summer.json", out / f"plots-{query}-summer"
-    write_json(json_path, results)
+    write_json(json_path, results, seeds={"synthetic_route": seed, "runtime": seed})  # the route's and training's
     write_result_plots(results, RECALL_OVER_QUERIES, plots)
     return results

@@ -255,7 +255,9 @@ def add_training_arguments(parser: argparse.ArgumentParser, data_required: bool 
     parser.add_argument("--config", help="YAML file of settings applied on top of the preset")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override one setting, e.g. --set optim.lr=1e-4 (repeatable)")
-    parser.add_argument("--max-minutes", type=float, help="stop cleanly (with a checkpoint) after M minutes")
+    parser.add_argument("--max-minutes", type=float,
+                        help="stop cleanly (with a checkpoint) after M minutes of the whole command, choosing the "
+                             "start included")
     parser.add_argument("--resume", action="store_true",
                         help="continue the run in --out from its newest complete checkpoint")
     parser.add_argument("--override", action="store_true",

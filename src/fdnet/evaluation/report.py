@@ -85,7 +85,7 @@ JSON_FORMAT_VERSION = 2
 
 def results_json(results: Sequence[MethodResult], protocol: str | None = None,
                  include_curve: bool = True, command: str | None = None, settings: dict | None = None,
-                 predictions: int = 0) -> dict:
+                 predictions: int = 0, seeds=None) -> dict:
     """The JSON document, one schema whatever the number of methods: ``format``,
     ``format_version``, ``fdnet_version``, ``command``, ``protocol``, ``settings`` (what was
     asked) and ``results``, a list with one object per method. ``predictions`` > 0 adds to each
@@ -104,7 +104,7 @@ def results_json(results: Sequence[MethodResult], protocol: str | None = None,
     return {"format": JSON_FORMAT, "format_version": JSON_FORMAT_VERSION, "fdnet_version": __version__,
             "command": command, "protocol": protocol or (results[0].protocols[0] if results else None),
             "settings": settings or {}, "results": objects,
-            "provenance": provenance(command, device=(settings or {}).get("device"))}
+            "provenance": provenance(command, seeds=seeds, device=(settings or {}).get("device"))}
 
 
 def _predictions(result: MethodResult, k: int) -> list[dict]:
@@ -178,7 +178,7 @@ def _plain(value):
 
 def write_json(path: str | os.PathLike, results: Sequence[MethodResult], protocol: str | None = None,
                include_curve: bool = True, command: str | None = None, settings: dict | None = None,
-               predictions: int = 0) -> None:
+               predictions: int = 0, seeds=None) -> None:
     """Write :func:`results_json` to ``path`` atomically (a crash never leaves half a file)."""
-    document = results_json(results, protocol, include_curve, command, settings, predictions)
+    document = results_json(results, protocol, include_curve, command, settings, predictions, seeds)
     atomic_write_text(path, json.dumps(document, indent=2, allow_nan=False, default=_plain) + "\n")

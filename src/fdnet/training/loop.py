@@ -422,8 +422,10 @@ class Trainer:
         return metrics
 
     # ------------------------------------------------------------------ loop
-    def fit(self, max_minutes: float | None = None, progress: bool = True) -> dict:
-        """Train until the schedule ends, ``max_minutes`` pass or Ctrl-C; always checkpoint.
+    def fit(self, max_minutes: float | None = None, progress: bool = True, since: float | None = None) -> dict:
+        """Train until the schedule ends, ``max_minutes`` pass (counted from ``since``, a
+        :func:`time.monotonic` time, default now: the command's start counts what came before
+        training) or Ctrl-C; always checkpoint (after at least one step).
 
         Returns a summary dict (``status`` is "finished", "time limit" or "interrupted").
         Re-raises KeyboardInterrupt after saving when interrupted. In a distributed run every
@@ -440,6 +442,7 @@ class Trainer:
             bar = progress_bar(total=total, initial=self.step, unit="step")
         status = "finished"
         started = time.monotonic()
+        since = started if since is None else since
         base_elapsed = self.elapsed
         interrupted = False
         signals = (signal.SIGINT, signal.SIGTERM) if dist.launched else (signal.SIGINT,)
@@ -470,7 +473,7 @@ class Trainer:
                     bar.set_description(stage, refresh=False)
                     bar.set_postfix(shown, refresh=False)
                     bar.update(1)
-                out_of_time = max_minutes is not None and time.monotonic() - started >= max_minutes * 60.0
+                out_of_time = max_minutes is not None and time.monotonic() - since >= max_minutes * 60.0
                 stop_now, out_of_time = dist.agree(stop.requested, out_of_time)
                 if stop_now:
                     status, interrupted = "interrupted", True
@@ -520,6 +523,7 @@ def run_training(build: Callable[[], tuple[TrainingMethod, ValidationImages | No
     building, stops every rank with its message.
     """
     run_dir = Path(run_dir)
+    since = time.monotonic()  # --max-minutes counts from here: reading images and choosing a start too
     if runtime is not None:  # settings errors (a GPU that is not there) before the lock and any image
         training_device(runtime)
     with dist_module.launch() as dist, contextlib.ExitStack() as held:
@@ -538,4 +542,4 @@ def run_training(build: Callable[[], tuple[TrainingMethod, ValidationImages | No
         method, validation = dist.collectively(build_here)
         trainer = Trainer(method, run_dir, validation=validation, resume=resume, override=override,
                           command=command)
-        return trainer.fit(max_minutes=max_minutes, progress=progress)
+        return trainer.fit(max_minutes=max_minutes, progress=progress, since=since)

@@ -97,7 +97,18 @@ def test_the_block_that_validates_best_is_trained_as_if_it_had_been_set(tmp_path
         assert torch.equal(x, y), name
 
 
-def test_resume_keeps_the_chosen_block_without_choosing_again(tmp_path, caplog):
+@pytest.fixture
+def every_start_scored(monkeypatch):
+    """max_minutes=0 stops a training after its first step (a run to resume) and the choice of the
+    start after its first candidate; with this fixture the choice scores every start regardless."""
+    from fdnet.methods.fdnet import training
+
+    choose = training.choose_start
+    monkeypatch.setattr(training, "choose_start", lambda config, real, validation, deadline=None, progress=True:
+                        choose(config, real, validation, None, progress))
+
+
+def test_resume_keeps_the_chosen_block_without_choosing_again(tmp_path, caplog, every_start_scored):
     caplog.set_level(logging.INFO, logger="fdnet")
     config = _config(tmp_path, **{"model.backbone_block_candidates": [2, 4]})
     run = tmp_path / "run"
@@ -117,6 +128,21 @@ def test_resume_keeps_the_chosen_block_without_choosing_again(tmp_path, caplog):
     assert load_training_state(run)["method_state"]["block_selection"] == selection
 
 
+def test_max_minutes_bounds_the_choice_of_the_start_too(tmp_path, caplog):
+    """--max-minutes 8 took 29.7 minutes: the choice of the start ran outside the budget. Now the
+    budget counts from the command's start; spent, the choice keeps the best start scored so far
+    and training stops after its first step, with a checkpoint."""
+    caplog.set_level(logging.INFO, logger="fdnet")
+    config = _config(tmp_path, **{"model.backbone_block_candidates": [2, 4]})
+    run = tmp_path / "run"
+    summary = train(config, run, max_minutes=0.0, progress=False)
+    assert summary["status"] == "time limit"
+    state = load_training_state(run)
+    assert list(state["method_state"]["block_selection"]) == ["2"]  # block 4 was never scored
+    assert state["step"] == 1 and load_config(run, FDNetRunConfig).model.backbone_block == 2
+    assert "the time ran out while choosing the start, after 1 of 2 candidates" in _said(caplog)
+
+
 def test_without_a_validation_pair_the_set_block_is_trained_and_that_is_said(tmp_path, caplog):
     caplog.set_level(logging.INFO, logger="fdnet")
     config = _config(tmp_path, **{"model.backbone_block": 4, "model.backbone_block_candidates": [2, 4],
@@ -128,7 +154,7 @@ def test_without_a_validation_pair_the_set_block_is_trained_and_that_is_said(tmp
     assert load_training_state(tmp_path / "run")["method_state"]["block_selection"] == {}
 
 
-def test_synthetic_conditions_are_chosen_with_the_block_and_kept_on_resume(tmp_path, caplog):
+def test_synthetic_conditions_are_chosen_with_the_block_and_kept_on_resume(tmp_path, caplog, every_start_scored):
     caplog.set_level(logging.INFO, logger="fdnet")
     config = _config(tmp_path, **{"model.backbone_block_candidates": [2, 4],
                                   "data.synthetic_conditions_candidates": ["none", "night+contrast"]})
@@ -179,7 +205,8 @@ def _best_by_block(selection: dict) -> dict[int, float]:
 
 
 @pytest.mark.shared_data
-def test_gardens_point_validation_chooses_the_deeper_block_and_nordland_the_shallower_one(tmp_path):
+def test_gardens_point_validation_chooses_the_deeper_block_and_nordland_the_shallower_one(tmp_path,
+                                                                                         every_start_scored):
     """On the training range only: day_left -> night_right 0:100 (tolerance 2) prefers block 11,
     Nordland summer/winter 200:300 (tolerance 0, training 0:300) block 7 (docs/results.md); on
     Gardens Point each with and without the synthetic night copy."""

@@ -391,7 +391,8 @@ def _start_label(config: FDNetRunConfig, option: tuple[str, ...], block: int) ->
     return f"{block}, synthetic {synthetic_option_text(option)}"
 
 
-def choose_start(config: FDNetRunConfig, real: TrainingImages, validation) -> FDNetTraining:
+def choose_start(config: FDNetRunConfig, real: TrainingImages, validation,
+                 deadline: float | None = None, progress: bool = True) -> FDNetTraining:
     """The FDNet training whose closed-form content start scores best on ``validation`` among
     :func:`start_candidates`: R@1, ties to the higher AUC, then to the earlier candidate, as
     ``best/`` is chosen. ``real`` are the training images without synthetic conditions. Each
@@ -399,12 +400,29 @@ def choose_start(config: FDNetRunConfig, real: TrainingImages, validation) -> FD
     step); the trunk maps of a condition are computed once per block and shared between the
     candidates. The scores are kept in ``block_selection``. The chosen one comes back in the state
     a run of those settings alone would have (torch's RNG as after building it), so choosing does
-    not change what training then does."""
+    not change what training then does.
+
+    ``deadline`` (a :func:`time.monotonic` time: ``--max-minutes`` bounds the whole command) stops
+    the choice after the first candidate that ends past it, keeping the best of those scored (a
+    run on several processes scores every candidate: its ranks must choose alike)."""
+    import time
+
+    from fdnet.progress import progress_bar
+    from fdnet.training import distributed
     from fdnet.training.loop import validation_metrics
 
     best, scores, maps = None, {}, {}
     candidates = start_candidates(config)
-    for option, block in candidates:
+    if distributed.current().enabled:
+        deadline = None
+    # each candidate takes minutes on a large route: a bar with the time left (fdnet.progress)
+    bar = progress_bar(total=len(candidates), desc="choosing the start", unit="start", disable=not progress)
+    for number, (option, block) in enumerate(candidates):
+        if deadline is not None and number and time.monotonic() >= deadline:
+            log.warning(f"--max-minutes: the time ran out while choosing the start, after {number} of "
+                        f"{len(candidates)} candidates; training the best of those (give one start to skip the "
+                        "choice: docs/guide.md, \"One start\")")
+            break
         settings = {"model.backbone_block": int(block), "data.synthetic_conditions": list(option)}
         data = with_synthetic_conditions(real, option, config.runtime.seed)
         method = FDNetTraining(replace_dotted(config, settings), data, trunk_maps=maps)
@@ -419,6 +437,8 @@ def choose_start(config: FDNetRunConfig, real: TrainingImages, validation) -> FD
         key = (metrics["recall@1"], metrics["auc"])
         if best is None or key > best[0]:
             best = (key, method, rng)
+        bar.update(1)
+    bar.close()
     _, method, rng = best
     torch.set_rng_state(rng)
     method.block_selection = scores
@@ -469,10 +489,14 @@ def _same_ablation(config: FDNetRunConfig, run_dir) -> None:
 def train(config: FDNetRunConfig, run_dir, resume: bool = False, override: bool = False,
           max_minutes: float | None = None, progress: bool = True, command: str = "fdnet train") -> dict:
     """Train FDNet as ``config`` says into ``run_dir`` (what ``fdnet train`` calls)."""
+    import time
+
     from fdnet.training.data import load_validation_images
     from fdnet.training.loop import run_training
 
     validate(config)  # settings errors before any image is read
+    # --max-minutes bounds the whole command: choosing the start spends from it too
+    deadline = None if max_minutes is None else time.monotonic() + 60.0 * float(max_minutes)
 
     def build():
         if resume:
@@ -489,7 +513,7 @@ def train(config: FDNetRunConfig, run_dir, resume: bool = False, override: bool 
                  f"{config.total_steps} steps -> {run_dir}")
         if len(candidates) > 1 and not resume:
             if validation is not None:
-                return choose_start(config, real, validation), validation
+                return choose_start(config, real, validation, deadline, progress), validation
             log.info(f"no validation pair to choose a start from "
                      f"({', '.join(_start_label(config, o, b) for o, b in candidates)}); training on "
                      f"model.backbone_block = {config.model.backbone_block}, data.synthetic_conditions = "
