@@ -198,6 +198,35 @@ def ensure_writable(path: str | os.PathLike, what: str = "output", directory: bo
     return target
 
 
+def private_folder(path: str | os.PathLike, what: str = "temporary folder") -> Path:
+    """A folder under a shared directory (``/tmp``) that only this user can use: created with
+    mode 0700; an existing one is refused when it is a symbolic link, is not a folder, belongs to
+    another user or is writable by others (whoever made it could read or replace the files put
+    there), and made 0700 when it is merely readable by others."""
+    folder = Path(path)
+    try:
+        os.mkdir(folder, 0o700)
+    except FileExistsError:
+        pass
+    except OSError as exc:
+        raise output_error(f"{folder}: cannot create the {what} ({exc.strerror or exc})", exc) from None
+    info = os.lstat(folder)
+    if stat.S_ISLNK(info.st_mode):
+        raise ConfigError(f"{folder}: the {what} is a symbolic link (to {os.readlink(folder)}); refused, since "
+                          "its files would go wherever it points: remove it")
+    if not stat.S_ISDIR(info.st_mode):
+        raise ConfigError(f"{folder}: the {what} exists and is not a folder; remove it")
+    if hasattr(os, "getuid") and info.st_uid != os.getuid():
+        raise ConfigError(f"{folder}: the {what} belongs to another user (uid {info.st_uid}); refused: remove it "
+                          "or set TMPDIR to a folder of your own")
+    if info.st_mode & 0o022:
+        raise ConfigError(f"{folder}: the {what} is writable by other users (mode {stat.S_IMODE(info.st_mode):o}); "
+                          "refused: remove it or set TMPDIR to a folder of your own")
+    if info.st_mode & 0o077:
+        os.chmod(folder, 0o700)
+    return folder
+
+
 #: first characters that make a spreadsheet read a CSV cell as a formula (OWASP, "CSV injection"),
 #: plus the quote itself, so that the escape can be undone exactly
 _SPREADSHEET_TRIGGERS = ("=", "+", "-", "@", "\t", "\r", "'")

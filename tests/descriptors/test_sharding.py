@@ -232,3 +232,30 @@ def sharding_descriptor():
     from fdnet.descriptors import create
 
     return create("sad")
+
+
+@pytest.mark.parametrize("case", ["symlink", "writable_by_others", "fresh"])
+def test_the_spool_folder_in_a_shared_temporary_folder_is_this_users_alone(case, tmp_path, monkeypatch):
+    """``TMPDIR/fdnet-shards-UID`` has a predictable name: one made beforehand by someone else (a
+    link to their world-writable folder) would receive the spooled vectors."""
+    import stat
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "gettempdir", lambda: str(tmp_path))
+    folder = tmp_path / f"fdnet-shards-{os.getuid()}"
+    trap = tmp_path / "theirs"
+    trap.mkdir()
+    os.chmod(trap, 0o777)
+    if case == "symlink":
+        folder.symlink_to(trap)
+        with pytest.raises(ConfigError, match="is a symbolic link"):
+            sharding._spool_folder()
+    elif case == "writable_by_others":
+        folder.mkdir()
+        os.chmod(folder, 0o777)
+        with pytest.raises(ConfigError, match="writable by other users"):
+            sharding._spool_folder()
+    else:
+        assert sharding._spool_folder() == folder
+        assert stat.S_IMODE(folder.stat().st_mode) == 0o700
+    assert list(trap.iterdir()) == []

@@ -464,8 +464,11 @@ def kill_after(rank: int, environ: Mapping[str, str] | None = None) -> int | Non
 def _spool_folder() -> Path:
     import tempfile
 
+    from fdnet.io import private_folder
+
     user = os.getuid() if hasattr(os, "getuid") else "user"
-    return Path(tempfile.gettempdir()) / f"fdnet-shards-{user}"
+    # a predictable name in a shared folder: this user's alone, never a link someone else made
+    return private_folder(Path(tempfile.gettempdir()) / f"fdnet-shards-{user}", "spool folder of torchrun processes")
 
 
 def describe_blocks(shards: Shards, descriptor, paths: Sequence, dims: Sequence[int],
