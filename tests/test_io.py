@@ -150,3 +150,25 @@ def test_no_output_is_written_over_a_noted_input_under_any_name(tmp_path):
     finally:
         forget_inputs()
     assert image.read_bytes() == b"\x89PNG pixels"
+
+
+def test_a_replaced_output_keeps_its_permissions(tmp_path):
+    from fdnet.io import output_mode
+
+    private = tmp_path / "private.csv"
+    private.write_text("old")
+    os.chmod(private, 0o600)
+    atomic_write_text(private, "new")
+    assert private.read_text() == "new" and stat.S_IMODE(private.stat().st_mode) == 0o600
+    shared = tmp_path / "shared.csv"
+    shared.write_text("old")
+    os.chmod(shared, 0o664)
+    atomic_write_text(shared, "new")
+    assert stat.S_IMODE(shared.stat().st_mode) == 0o664
+    assert output_mode(tmp_path / "new.csv") == stat.S_IMODE(0o666 & ~_umask())
+
+
+def _umask() -> int:
+    umask = os.umask(0)
+    os.umask(umask)
+    return umask

@@ -117,10 +117,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     try:
         try:
             yield tmp_path
-            # mkstemp creates 0600; give the result the permissions a plain open() would (umask).
-            umask = os.umask(0)
-            os.umask(umask)
-            os.chmod(tmp_path, 0o666 & ~umask)
+            os.chmod(tmp_path, output_mode(target))  # mkstemp creates 0600
             fsync_file(tmp_path)
             os.replace(tmp_path, target)
         except OutputError:
@@ -133,6 +130,18 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
+
+
+def output_mode(target: str | os.PathLike) -> int:
+    """The one file-mode rule of outputs: a file that replaces another keeps the replaced file's
+    permissions (a 0600 CSV stays 0600); a new one gets what a plain open() would give (0666
+    less the umask)."""
+    try:
+        return stat.S_IMODE(os.stat(target).st_mode)
+    except OSError:
+        umask = os.umask(0)
+        os.umask(umask)
+        return 0o666 & ~umask
 
 
 #: errors that are always about the file being written

@@ -338,3 +338,17 @@ def test_extract_refuses_vectors_that_are_not_finite_naming_the_first_image(tmp_
     err = capsys.readouterr().err
     assert code == 2 and f"the vector of {images / 'frame_0.png'} holds NaN" in err, err
     assert len(err.strip().splitlines()) == 1 and not out.exists()
+
+
+def test_replacing_a_private_vectors_file_keeps_it_private(tmp_path):
+    import os
+    import stat
+
+    images = _images(tmp_path / "images", 3)
+    for name in ("v.npz", "v.h5"):
+        out = tmp_path / name
+        out.write_bytes(b"old")
+        os.chmod(out, 0o600)
+        assert main(["extract", "--method", "sad", "--images", str(images), "--out", str(out), "--workers", "0",
+                     "--no-progress"]) == 0
+        assert out.stat().st_size > 3 and stat.S_IMODE(out.stat().st_mode) == 0o600, name

@@ -256,12 +256,13 @@ class GlobalFeaturesWriter:
 
     def close(self) -> None:
         """Finish the file and rename it over the target (synced); a second call does nothing."""
-        from fdnet.io import fsync_directory, fsync_file
+        from fdnet.io import fsync_directory, fsync_file, output_mode
 
         if self._closed:
             return
         try:
             self._file.close()
+            os.chmod(self._tmp, output_mode(self.path))
             fsync_file(self._tmp)
             os.replace(self._tmp, self.path)
             fsync_directory(self.path.parent)
