@@ -253,3 +253,11 @@ def spreadsheet_text(name: str) -> str:
 def from_spreadsheet_text(cell: str) -> str:
     """The name :func:`spreadsheet_text` wrote as ``cell``."""
     return cell[1:] if cell.startswith("'") and cell[1:].startswith(_SPREADSHEET_TRIGGERS) else cell
+
+
+def markdown_cell(text) -> str:
+    """Text for one cell of a Markdown table: a ``|`` (which would start another column), a
+    backslash and the characters that would format it are escaped; line breaks become spaces."""
+    import re
+
+    return re.sub(r"([\\|*_`])", r"\\\1", " ".join(str(text).split()))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 
@@ -54,3 +55,23 @@ def test_json_accepts_numpy_and_path_settings(tmp_path):
     write_json(tmp_path / "r.json", [result])
     written = json.loads((tmp_path / "r.json").read_text())["results"][0]
     assert written["settings"] == {"size": 3, "mean": [0.0, 0.0], "weights": "/w.pt"}
+
+
+def test_paper_tables_quote_formulas_in_csv_and_escape_pipes_in_markdown():
+    """A folder name reaches the table's data column: in CSV a cell starting with '=' is run by a
+    spreadsheet; in Markdown a '|' starts another column."""
+    import csv
+    import io
+
+    from fdnet.evaluation.report import format_results_table
+    from fdnet.io import from_spreadsheet_text
+
+    s = np.eye(5) + 0.01 * np.arange(5)
+    result = evaluate_matrix(s, GroundTruth.aligned(5, 5, 0), "perfect", (VPRBENCH,))
+    result.dataset = '=HYPERLINK("http://x")|b'
+    rows = list(csv.reader(io.StringIO(format_results_table([result], "csv"))))
+    assert rows[1][2] == "'" + result.dataset and from_spreadsheet_text(rows[1][2]) == result.dataset
+    markdown = format_results_table([result], "markdown").splitlines()
+    cells = re.split(r"(?<!\\)\|", markdown[2])[1:-1]
+    assert len(cells) == len(markdown[0].split("|")[1:-1]) == 6
+    assert "\\|b" in cells[2]

@@ -132,6 +132,7 @@ def format_results_table(results: Sequence[MethodResult], style: str, protocol: 
     import io
 
     from fdnet.errors import ConfigError
+    from fdnet.io import markdown_cell, spreadsheet_text
 
     if style not in TABLE_STYLES:
         raise ConfigError(f"--table {style!r}: choose one of {', '.join(TABLE_STYLES)}")
@@ -142,14 +143,14 @@ def format_results_table(results: Sequence[MethodResult], style: str, protocol: 
         for rule, m in _per_rule(r, protocol).items():
             rows.append([r.method, rule, r.dataset, f"{m.recall_at_n.get(1, float('nan')):.3f}",
                          f"{m.recall_at_100_precision:.3f}", f"{m.auc_pr:.3f}"])
-    if style == "csv":
+    if style == "csv":  # names (a folder's, a method's) that a spreadsheet would run are quoted
         buffer = io.StringIO()
         writer = csv.writer(buffer, lineterminator="\n")
-        writer.writerows([header, *rows])
+        writer.writerows([header, *([spreadsheet_text(c) for c in row[:3]] + row[3:] for row in rows)])
         return buffer.getvalue().rstrip("\n")
-    if style == "markdown":
+    if style == "markdown":  # a | in a name would shift the columns
         lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-        return "\n".join(lines + ["| " + " | ".join(row) + " |" for row in rows])
+        return "\n".join(lines + ["| " + " | ".join(markdown_cell(c) for c in row) + " |" for row in rows])
 
     def tex(text: str) -> str:
         import re
