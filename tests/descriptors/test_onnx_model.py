@@ -462,3 +462,21 @@ def test_outputs_of_huge_or_tiny_values_keep_their_direction(scale, tmp_path):
     scaled = create("onnx", weights=str(export(Scaled(scale), tmp_path / "scaled.onnx"))).describe(images)
     np.testing.assert_allclose(scaled, plain, rtol=1e-4, atol=1e-5)
     np.testing.assert_allclose(np.linalg.norm(scaled, axis=1), 1.0, rtol=1e-5)
+
+
+def test_an_output_whose_length_varies_with_the_batch_is_one_line_naming_the_model(tmp_path, capsys):
+    class BatchTiled(torch.nn.Module):
+        def forward(self, x):
+            return x.mean(dim=(2, 3)).repeat(1, x.shape[0])  # (N, 3N): the length follows the batch
+
+    path = tmp_path / "tiled.onnx"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(BatchTiled(), (torch.rand(2, 3, 16, 32),), str(path), input_names=["images"],
+                          output_names=["vectors"], dynamic_axes={"images": {0: "n"}, "vectors": {0: "n", 1: "d"}},
+                          opset_version=17, dynamo=False)
+    d = create("onnx", weights=str(path))
+    assert d.dim == 3
+    with pytest.raises(DataError, match=r"tiled\.onnx: output vectors has shape \[4, 12\] for a batch of 4 images "
+                                        r"but \(3,\) per image for one"):
+        d.describe(np.random.default_rng(0).random((4, 16, 32, 3), dtype=np.float32))

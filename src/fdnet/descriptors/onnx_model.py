@@ -350,6 +350,11 @@ class ONNXDescriptor(Descriptor):
             if out.ndim != 2 or out.shape[0] != len(chunk):
                 raise DataError(f"{self.weights}: output {self.output_name} has shape {list(out.shape)} for "
                                 f"{len(chunk)} images; a descriptor model returns (N, D) vectors")
+            dim = getattr(self, "_dim", None)
+            if dim is not None and out.shape[1] != dim:
+                raise DataError(f"{self.weights}: output {self.output_name} has shape {list(out.shape)} for a batch "
+                                f"of {len(chunk)} images but ({dim},) per image for one; a descriptor model's "
+                                "vector length must not depend on the batch")
             parts.append(out[:min(step, len(images) - start)].astype(np.float32))
         vectors = np.concatenate(parts) if parts else np.zeros((0, getattr(self, "_dim", 0) or 0), np.float32)
         # no direction: every score against an all-zero vector would be 0, never a match, without a word
