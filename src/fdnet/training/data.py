@@ -54,7 +54,14 @@ def to_uint8_tensor(images: np.ndarray) -> torch.Tensor:
 def load_uint8(paths, size, chunk: int = 256) -> torch.Tensor:
     """Images at ``size`` as one uint8 (N, 3, H, W) tensor, decoded chunk by chunk so the float
     copy never holds more than ``chunk`` images."""
-    parts = [to_uint8_tensor(load_images(paths[i:i + chunk], size)) for i in range(0, len(paths), chunk)]
+    from fdnet.progress import progress_bar
+
+    parts = []
+    # minutes for a large route on a small machine: a bar with the time left (fdnet.progress)
+    with progress_bar(total=len(paths), desc="reading training images", unit="img", leave=False) as bar:
+        for i in range(0, len(paths), chunk):
+            parts.append(to_uint8_tensor(load_images(paths[i:i + chunk], size)))
+            bar.update(len(paths[i:i + chunk]))
     if not parts:
         return torch.zeros((0, 3, int(size[0]), int(size[1])), dtype=torch.uint8)
     return torch.cat(parts)

@@ -143,6 +143,20 @@ def test_max_minutes_bounds_the_choice_of_the_start_too(tmp_path, caplog):
     assert "the time ran out while choosing the start, after 1 of 2 candidates" in _said(caplog)
 
 
+def test_reading_the_images_and_choosing_the_start_show_progress_with_the_time_left(tmp_path, caplog, monkeypatch):
+    """The minutes before the first training step were silent: reading the images, each
+    candidate's trunk maps and the choice now each show a progress line with elapsed<left (off a
+    terminal, a line per interval: here every update)."""
+    monkeypatch.setenv("FDNET_PROGRESS_INTERVAL", "0.000001")
+    caplog.set_level(logging.INFO, logger="fdnet")
+    train(_config(tmp_path, **{"model.backbone_block_candidates": [2, 4]}), tmp_path / "run", progress=True)
+    lines = [r.getMessage() for r in caplog.records if r.name == "fdnet.progress"]
+    for desc in ("reading training images: ", "trunk maps [block 2, summer]: ", "trunk maps [block 4, winter]: ",
+                 "choosing the start: 2/2 start (100 %) ["):
+        assert any(line.startswith(desc) for line in lines), (desc, lines)
+    assert all("<" in line for line in lines if line.startswith("choosing the start"))  # elapsed<left
+
+
 def test_without_a_validation_pair_the_set_block_is_trained_and_that_is_said(tmp_path, caplog):
     caplog.set_level(logging.INFO, logger="fdnet")
     config = _config(tmp_path, **{"model.backbone_block": 4, "model.backbone_block_candidates": [2, 4],

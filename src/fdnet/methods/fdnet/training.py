@@ -180,24 +180,34 @@ class FDNetTraining(TrainingMethod):
         of the same block computed it. A real condition's images are the same in every candidate;
         a synthetic one's depend on the whole synthetic setting (one generator draws them all), so
         its key carries that setting."""
+        desc = f"trunk maps [block {self.config.model.backbone_block}, {condition}]"
         if shared is None:
-            return self._preprocess(images)
+            return self._preprocess(images, desc=desc)
         key = (int(self.config.model.backbone_block), condition)
         if SEPARATOR in condition:
             key += (tuple(self.config.data.synthetic_conditions),)
         if key not in shared:
-            shared[key] = self._preprocess(images)
+            shared[key] = self._preprocess(images, desc=desc)
         return shared[key]
 
-    def _preprocess(self, images: torch.Tensor, chunk: int = 64) -> torch.Tensor:
-        """uint8 (N, 3, H, W) -> what the encoders read (``FDNet.preprocess``), in chunks."""
+    def _preprocess(self, images: torch.Tensor, chunk: int = 64, desc: str | None = None) -> torch.Tensor:
+        """uint8 (N, 3, H, W) -> what the encoders read (``FDNet.preprocess``), in chunks; with
+        ``desc``, a progress bar with the time left (a condition's trunk maps take minutes on a
+        large route; a training batch has none)."""
+        from fdnet.progress import progress_bar
+
         out = []
+        bar = progress_bar(total=len(images), desc=desc, unit="img", leave=False) if desc else None
         for start in range(0, len(images), chunk):
             x = images[start:start + chunk].float().div_(255.0)
             if self.config.runtime.channels_last:
                 x = x.contiguous(memory_format=torch.channels_last)
             with torch.no_grad(), _autocast(self.config, self.device):
                 out.append(self.model.preprocess(x).float())
+            if bar is not None:
+                bar.update(len(x))
+        if bar is not None:
+            bar.close()
         return torch.cat(out)
 
     def _batch(self) -> torch.Tensor:
@@ -416,7 +426,7 @@ def choose_start(config: FDNetRunConfig, real: TrainingImages, validation,
     if distributed.current().enabled:
         deadline = None
     # each candidate takes minutes on a large route: a bar with the time left (fdnet.progress)
-    bar = progress_bar(total=len(candidates), desc="choosing the start", unit="start", disable=not progress)
+    bar = progress_bar(total=len(candidates), desc="choosing the start", unit="start") if progress else None
     for number, (option, block) in enumerate(candidates):
         if deadline is not None and number and time.monotonic() >= deadline:
             log.warning(f"--max-minutes: the time ran out while choosing the start, after {number} of "
@@ -437,8 +447,10 @@ def choose_start(config: FDNetRunConfig, real: TrainingImages, validation,
         key = (metrics["recall@1"], metrics["auc"])
         if best is None or key > best[0]:
             best = (key, method, rng)
-        bar.update(1)
-    bar.close()
+        if bar is not None:
+            bar.update(1)
+    if bar is not None:
+        bar.close()
     _, method, rng = best
     torch.set_rng_state(rng)
     method.block_selection = scores
