@@ -14,7 +14,8 @@ STAMP := $(VENV)/.fdnet-installed
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet "$(TORCH_PIN)" -e ".[dev,onnx,hloc]"
+	@echo "make: installing torch (CPU) and fdnet's dependencies into $(VENV) (about 2 GB installed; pip shows its progress)"
+	$(BIN)/pip install --progress-bar on "$(TORCH_PIN)" -e ".[dev,onnx,hloc]"
 	touch $(STAMP)
 
 setup: $(STAMP)
