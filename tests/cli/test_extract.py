@@ -115,7 +115,7 @@ def test_extract_works_for_every_kind_of_method(tmp_path, capsys):
             d.fit(paths)
         with np.load(out, allow_pickle=False) as z:
             assert set(z.files) == {"descriptors", "names", "sources", "timestamps", "sizes", "mtimes_ns", "method",
-                                    "settings"}
+                                    "fingerprint", "settings"}
             assert str(z["method"]) == method and isinstance(json.loads(str(z["settings"])), dict)
             np.testing.assert_allclose(z["descriptors"], d.describe(load_images(paths, d.input_size)),
                                        rtol=1e-4, atol=1e-5)

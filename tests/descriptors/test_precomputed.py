@@ -408,3 +408,26 @@ def test_a_compressed_npz_claiming_more_memory_than_allowed_is_refused_before_it
     monkeypatch.setattr(np.lib.format, "read_array", never)
     with pytest.raises(DataError, match=r"bomb\.npz \(array 'descriptors'\): shape \(2000, 400\) float32 needs 3\.1 MiB"):
         create("precomputed", vectors=str(path))
+
+
+def test_a_precomputed_database_grows_with_later_vectors_of_the_same_model(tmp_path, capsys):
+    """fdnet extract's files record the model that made them: a database built from one folder's
+    vectors takes another folder's of the same model; vectors that record no model are identified
+    by their bytes, and the refusal says so."""
+    first, second = write_random_places(tmp_path / "a", 4, seed=1), write_random_places(tmp_path / "b", 3, seed=2)
+    db = tmp_path / "map.db"
+    assert main(["database", "build", "--images", str(first), "--method", "precomputed", "--vectors",
+                 str(extract(first, tmp_path / "a.npz")), "--db", str(db)]) == 0
+    assert main(["database", "add", "--db", str(db), "--images", str(second), "--method", "precomputed",
+                 "--vectors", str(extract(second, tmp_path / "b.npz"))]) == 0
+    from fdnet.matching.database import PlaceDatabase
+
+    with PlaceDatabase.open(db) as opened:
+        assert len(opened) == 7
+    with np.load(tmp_path / "b.npz") as data:
+        np.save(tmp_path / "b.npy", data["descriptors"])
+    (tmp_path / "b.txt").write_text("".join(f"b/frame_{i:03d}.png\n" for i in range(3)))
+    capsys.readouterr()
+    assert main(["database", "add", "--db", str(db), "--images", str(second), "--method", "precomputed",
+                 "--vectors", str(tmp_path / "b.npy")]) == 2
+    assert "a precomputed database grows only with vectors files that record the model" in capsys.readouterr().err

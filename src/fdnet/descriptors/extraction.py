@@ -135,7 +135,7 @@ def extract(descriptor, paths, out, batch_size: int = 64, workers: int | None = 
                         reads_pixels=False, timing=timing)
         if writer is not None:
             writer.close({"names": np.array([p.name for p in paths]), **frame_arrays(paths),
-                          "method": np.array(descriptor.name),
+                          "method": np.array(descriptor.name), "fingerprint": np.array(descriptor.fingerprint()),
                           "settings": np.array(_settings(descriptor, shards.world_size))})
     seconds = _seconds(shards, timing, started)
     return _summary(paths, names, descriptor, seconds, fitted)
@@ -161,7 +161,8 @@ def extract_h5(descriptor, paths, out, root, batch_size: int = 64, workers: int 
     started = time.perf_counter()
     # "root": the folder the names are relative to (hloc ignores it; --method precomputed reads the
     # names below it, so day/0001.png's vector never serves dusk/0001.png)
-    attrs = {"method": descriptor.name, "array": array, "settings": _settings(descriptor, shards.world_size),
+    attrs = {"method": descriptor.name, "fingerprint": descriptor.fingerprint(), "array": array,
+             "settings": _settings(descriptor, shards.world_size),
              "root": os.path.abspath(os.fspath(root))}
     writer = shards.collectively(lambda: GlobalFeaturesWriter(out, attrs=attrs) if shards.is_main else None)
 

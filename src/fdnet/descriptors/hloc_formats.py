@@ -347,7 +347,7 @@ def read_global_features(path: str | os.PathLike, key: str = GLOBAL_KEY) -> tupl
 
 def read_global_attributes(path: str | os.PathLike) -> dict:
     """What a global-features file fdnet wrote records about how its vectors were made: the root's
-    ``method`` (text), ``settings`` (a dict, from JSON) and ``root`` (the absolute folder its
+    ``method`` and the model's ``fingerprint`` (text), ``settings`` (a dict, from JSON) and ``root`` (the absolute folder its
     image names are relative to); {} for hloc's own files. Attributes of
     another kind are left out, never guessed at."""
     import json
@@ -356,7 +356,8 @@ def read_global_attributes(path: str | os.PathLike) -> dict:
     path = Path(path)
     try:
         with h5py.File(path, "r", **_locking(h5py, "best-effort")) as handle:
-            attrs = {name: handle.attrs[name] for name in ("method", "settings", "root") if name in handle.attrs}
+            attrs = {name: handle.attrs[name] for name in ("method", "fingerprint", "settings", "root")
+                     if name in handle.attrs}
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise _open_error(path, exc) from None
     recorded = {}

@@ -86,6 +86,8 @@ def _read_npz(path: Path, array: str | None) -> tuple[list[str], np.ndarray, dic
             recorded = {}
             if "method" in keys:
                 recorded["method"] = str(member("method"))
+            if "fingerprint" in keys:
+                recorded["fingerprint"] = str(member("fingerprint"))
             if "settings" in keys:
                 try:
                     recorded["settings"] = json.loads(str(member("settings")))
@@ -215,6 +217,7 @@ class PrecomputedDescriptor(Descriptor):
         by_key: dict[tuple[str, ...], str] = {}
         digest = hashlib.sha256()
         sizes: list[np.ndarray] = []
+        made_by: list[str | None] = []  # the model each file records, if it does
         mtimes: list[np.ndarray] = []
         for i, file in enumerate(self.files):
             twice = next((f for f in self.files[:i] if _same_file(f, file)), None)
@@ -231,6 +234,10 @@ class PrecomputedDescriptor(Descriptor):
             if recorded and self.recorded and recorded.get("method") != self.recorded.get("method"):
                 raise DataError(f"{file}: vectors of {recorded.get('method')}, but {self.files[0]}'s are of "
                                 f"{self.recorded.get('method')}: one descriptor's vectors only")
+            made_by.append(recorded.get("fingerprint"))
+            if len({f for f in made_by if f is not None}) > 1:
+                raise DataError(f"{file}: vectors of another {recorded.get('method')} model than {self.files[0]}'s "
+                                "(the files record different models): one model's vectors only")
             self.recorded = self.recorded or recorded
             bare = next((name for name in file_names if len(_parts(name)) == 1), None)
             if bare is not None:
@@ -269,6 +276,8 @@ class PrecomputedDescriptor(Descriptor):
         for row, key in enumerate(self._keys):
             self._by_name[key[-1] if key else ""].append(row)
         self.vectors_sha256 = digest.hexdigest()
+        if None in made_by:  # a file that does not say which model made it: identified by its vectors
+            self.recorded.pop("fingerprint", None)
         #: per row, the size and modification time (ns) of the image file it was computed from; -1: not recorded
         self._sizes, self._mtimes = np.concatenate(sizes), np.concatenate(mtimes)
         self._warned_mtime = False
@@ -282,12 +291,17 @@ class PrecomputedDescriptor(Descriptor):
     def settings(self) -> dict:
         return {"input_size": list(self.input_size), "vectors": self.files, "normalise": self.normalise,
                 "vectors_sha256": self.vectors_sha256, "images": len(self._keys),
-                **({"source_method": self.recorded["method"]} if "method" in self.recorded else {})}
+                **({"source_method": self.recorded["method"]} if "method" in self.recorded else {}),
+                **({"source_fingerprint": self.recorded["fingerprint"]} if "fingerprint" in self.recorded else {})}
 
     def fingerprint(self, *, with_locations: bool = False) -> str:
-        # The vectors' bytes and names (vectors_sha256) say what they are; hashing the merged
-        # matrix again, as the base class would, only costs time on a large map.
+        # Files that record the model that made them (fdnet extract's) are that model's vectors,
+        # whatever images they hold: a database of them grows with later files of the same model.
+        # Others are identified by their vectors' bytes and names (vectors_sha256): hashing the
+        # merged matrix again, as the base class would, only costs time on a large map.
         settings = {k: v for k, v in self.settings().items() if with_locations or k != "vectors"}
+        if "source_fingerprint" in settings:
+            settings = {k: v for k, v in settings.items() if k not in ("vectors", "vectors_sha256", "images")}
         return hashlib.sha256(f"method={self.name}\n{json.dumps(settings, sort_keys=True)}".encode()).hexdigest()
 
     def row_of(self, path: str | os.PathLike) -> int:

@@ -94,5 +94,8 @@ def _check_fingerprint(path, identity: _Identity, fingerprint: str | Sequence[st
             f"{path}: descriptor fingerprint mismatch: the database holds {identity.method!r} vectors with "
             f"fingerprint {short_fingerprint(identity.fingerprint)}, {made_by} {short_fingerprint(fingerprint)}; "
             "a different model (weights or settings changed since the database was built). Describe with "
-            "the database's model, or build a new database (--overwrite)")
+            "the database's model, or build a new database (--overwrite)"
+            + ("; a precomputed database grows only with vectors files that record the model that made them "
+               "(fdnet extract's do), others are identified by their vectors alone" if identity.method == "precomputed"
+               else ""))
 
