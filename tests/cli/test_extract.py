@@ -144,6 +144,11 @@ def test_a_runs_recorded_method_is_used_or_named(tmp_path, capsys):
     assert main(["evaluate", "--data", str(data), "--reference", "day", "--query", "night", "--method", "fdnet",
                  "--checkpoint", str(run)]) == 2
     assert f"{run}: a run of `fdnet train calc`, not of fdnet: give --method calc" in capsys.readouterr().err
+    # a method that reads an FDNet run's trunk names the run's method too, not the run config's keys
+    assert main(["extract", "--method", "trunk", "--checkpoint", str(run), "--images", str(data / "day"), "--out",
+                 str(tmp_path / "t.npz")]) == 2
+    assert (f"{run}: a run of `fdnet train calc`, but --method trunk takes a run of `fdnet train fdnet`: give "
+            "--method calc for this run") in capsys.readouterr().err
 
 
 def test_extract_h5_holds_the_npz_vectors_as_hlocs_global_features(tmp_path, capsys):

@@ -199,13 +199,18 @@ def _check_run_method(name: str, checkpoint) -> None:
     """A trained method given another method's run (``--method fdnet --checkpoint CALC_RUN``) is
     refused naming the method the run records, instead of failing on its config's keys: the one
     place every command's descriptor goes through."""
-    if not checkpoint or name not in trained_methods():
+    if not checkpoint or "checkpoint" not in inspect.signature(descriptor_class(name).__init__).parameters:
         return
     from fdnet.runs import recorded_method
 
+    reads = name if name in trained_methods() else "fdnet"  # trunk, trunk-whitened: an FDNet run's trunk
     recorded = recorded_method(checkpoint)
-    if recorded and recorded != name:
-        raise ConfigError(f"{checkpoint}: a run of `fdnet train {recorded}`, not of {name}: give --method {recorded}")
+    if recorded and recorded != reads:
+        if reads == name:
+            raise ConfigError(f"{checkpoint}: a run of `fdnet train {recorded}`, not of {name}: give --method "
+                              f"{recorded}")
+        raise ConfigError(f"{checkpoint}: a run of `fdnet train {recorded}`, but --method {name} takes a run of "
+                          f"`fdnet train {reads}`: give --method {recorded} for this run, or a {reads} run")
 
 
 def create(name: str, **options):
