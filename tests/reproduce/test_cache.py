@@ -60,3 +60,31 @@ def test_an_entry_holding_nan_is_named_and_described_again(tmp_path, caplog):
     assert np.all(again == 2.0) and cache.computed == ["raw", "raw"]
     assert f"{cache.path(parts)}: cached vectors hold NaN or infinite values" in caplog.text
     assert np.all(np.load(cache.path(parts)) == 2.0)
+
+
+def test_the_cache_is_kept_under_its_size_cap_removing_what_was_used_longest_ago(tmp_path, monkeypatch):
+    import pytest
+
+    from fdnet.errors import ConfigError
+    from fdnet.reproduce.cache import cache_cap
+
+    def make(cache, n, vectors):
+        return cache.vectors({"set": n}, lambda: vectors, label=f"set {n}")
+
+    one_set = np.ones((64, 64), np.float32)  # 16 KiB of vectors (plus the .npy header)
+    first = DescriptorCache(tmp_path)
+    for n in range(3):
+        make(first, n, one_set)
+    for n, age in ((0, 300), (1, 200), (2, 100)):  # set 0 used longest ago
+        os.utime(first.path({"set": n}), (1e9 - age, 1e9 - age))
+    later = DescriptorCache(tmp_path, max_bytes=3 * 17_000)
+    make(later, 3, one_set)  # a fourth set does not fit: the oldest goes, with its .json
+    kept = sorted(p.name for p in tmp_path.glob("*.npy"))
+    assert len(kept) == 3 and not first.path({"set": 0}).exists()
+    assert not first.path({"set": 0}).with_suffix(".json").exists()
+    assert all(first.path({"set": n}).exists() for n in (1, 2, 3))
+    monkeypatch.setenv("FDNET_CACHE_MAX_MB", "12")
+    assert cache_cap() == 12 << 20
+    monkeypatch.setenv("FDNET_CACHE_MAX_MB", "lots")
+    with pytest.raises(ConfigError, match="FDNET_CACHE_MAX_MB='lots'"):
+        cache_cap()
