@@ -33,7 +33,7 @@ import numpy as np
 
 from fdnet.decisions.acceptance import AcceptanceSpec, Candidates, decide
 from fdnet.decisions.calibration import stored_calibration
-from fdnet.decisions.loop_records import EVENT_COLUMNS, Closure, FrameDecision, GrowingArray  # noqa: F401
+from fdnet.decisions.loop_records import EVENT_COLUMNS, Closure, FrameDecision  # noqa: F401
 from fdnet.decisions.loop_threads import single_blas_thread, single_torch_thread
 from fdnet.decisions.loop_trust import (LOOP_CALIBRATION_FILE, DriftCheck, calibrated_gates,  # noqa: F401
                                         decision_rule, resolve_calibration)
@@ -152,30 +152,34 @@ class LoopClosureDetector:
 
     def _load_places(self) -> None:
         db = self.database
-        self._names: list[str] = db.names
-        self._known = set(self._names)
-        self._vectors = GrowingArray(db.dim, db.vectors)
-        positions = db.positions
-        self._positions: list | None = positions if all(p is not None for p in positions) else None
-        metadata = db.metadata
-        times = [(m or {}).get("timestamp") for m in metadata]
-        self._times: list | None = times if all(isinstance(t, (int, float)) for t in times) else None
-        # places an earlier run found uninformative (dark, blank) are never candidates
-        self._informative = GrowingArray(None, [not (m or {}).get("uninformative", False) for m in metadata])
-        self._still = GrowingArray(None, [bool((m or {}).get("still", False)) for m in metadata])
+        self.map = db.place_map(vectors=True)
+        # times and positions are used (radius_s, radius_m, the events' columns) only while every
+        # place has them
+        self._has_times = all(t is not None for t in self.map.loop_column("timestamp"))
+        self._has_positions = all(p is not None for p in self.map.positions)
         # an earlier session, or a segment an earlier run marked, starts a new segment of the map
         self._seams = Seams(self._first_full)
         previous = None
-        self._sessions = [(m or {}).get("session") for m in metadata]
-        for m in metadata:
-            m = m or {}
-            self._seams.add(bool(m.get("segment_start")) or m.get("session") != previous)
-            previous = m.get("session")
+        for start, session in zip(self.map.loop_column("segment_start"), self.map.loop_column("session")):
+            self._seams.add(start or session != previous)
+            previous = session
+
+    @property
+    def _times(self) -> list | None:
+        return self.map.loop_column("timestamp") if self._has_times else None
+
+    @property
+    def _positions(self) -> list | None:
+        return self.map.positions if self._has_positions else None
+
+    @property
+    def _informative(self):
+        return self.map.loop_column("informative")
 
     @property
     def places(self) -> int:
         """Places the detector searches over (the database's, including this traverse's frames)."""
-        return len(self._vectors)
+        return len(self.map)
 
     @property
     def drift(self) -> dict | None:
@@ -251,7 +255,7 @@ class LoopClosureDetector:
         name = f"loop-closure-{self._session}/frame_{t:06d}" if name is None else str(name)
         if not np.isfinite(v).all():
             raise DataError(f"{name}: its {self.descriptor.name} vector is not finite (NaN or inf)")
-        if name in self._known and not self.allow_duplicates:
+        if name in self.map and not self.allow_duplicates:
             raise DataError(f"{self.database.path}: already holds a place named {name!r} (added in an earlier run?); "
                             "give each frame a new name, or allow duplicates")
         if timestamp is not None and (isinstance(timestamp, bool) or not isinstance(timestamp, (int, float))
@@ -311,7 +315,7 @@ class LoopClosureDetector:
                 if accepted:
                     here = (None, None) if position is None else tuple(float(c) for c in list(position)[:2])
                     there = (None, None) if self._positions is None else tuple(self._positions[match][:2])
-                    closure = Closure(t, name, match, self._names[match], score, similarity, self.spec.name,
+                    closure = Closure(t, name, match, self.map.names[match], score, similarity, self.spec.name,
                                       self.threshold, timestamp,
                                       None if self._times is None else float(self._times[match]),
                                       *here, *there, self._p_correct(score))
@@ -335,7 +339,7 @@ class LoopClosureDetector:
         """(candidate places best first, their scores, searchable) by scoring every place."""
         if count:
             with single_blas_thread():
-                row = np.asarray(self.descriptor.similarity(v[None], self._vectors.view()), dtype=np.float32)[0]
+                row = np.asarray(self.descriptor.similarity(v[None], self.map.vectors.view()), dtype=np.float32)[0]
         else:
             row = np.zeros(0, np.float32)
         previous = float(row[count - 1]) if t > 0 and count > 0 else None
@@ -378,13 +382,13 @@ class LoopClosureDetector:
             return (t - self._own_first[-1]) if self._own_first else 0
         if row is None:
             recent = np.asarray(self._before[max(self._segment_first, t - RECENT_WINDOW):t], np.int64)[::-1]
-            return sampled_similar_past(self.descriptor.similarity, v, self._vectors.view(), recent)
+            return sampled_similar_past(self.descriptor.similarity, v, self.map.vectors.view(), recent)
         return similar_past(row, np.asarray(self._before[self._segment_first:t], np.int64)[::-1])
 
     def _indexed_candidates(self, v, t, count, informative, still, timestamp, position):
         """(candidate places best first, their scores, searchable) from the index (large maps,
         :mod:`fdnet.decisions.loop_search`)."""
-        vectors = self._vectors.view()
+        vectors = self.map.vectors.view()
         previous = float(self.descriptor.similarity(v[None], vectors[count - 1:count])[0, 0]) \
             if t > 0 and count > 0 else None
         back = self._similar_back(t, informative, v=v)
@@ -460,7 +464,7 @@ class LoopClosureDetector:
             reference_times=None if self._times is None else np.asarray(self._times[:searchable], np.float64),
             reference_positions=None if self._positions is None else np.asarray(self._positions[:searchable]),
             query_paths=[Path(name)] if needs_images else None,
-            reference_paths=self._names if needs_images else None,
+            reference_paths=self.map.names if needs_images else None,
             query_indices=np.array([self.frames]))
         decision = decide(self.spec, candidates)
         match = int(decision.match[0])
@@ -480,23 +484,10 @@ class LoopClosureDetector:
             metadata["still"] = True
         if store:
             self._pending.append((v, name, position, metadata))
-        self._vectors.append(v)
-        self._names.append(name)
-        self._known.add(name)
-        self._informative.append(bool(informative))
-        self._still.append(bool(still))
+        self.map.append(v, name, None if position is None else tuple(float(c) for c in position)[:2], metadata)
         self._seams.add(new_segment)
-        self._sessions.append(self._session)
-        if self._positions is not None:
-            if position is None:
-                self._positions = None
-            else:
-                self._positions.append(tuple(float(c) for c in position))
-        if self._times is not None:
-            if timestamp is None:
-                self._times = None
-            else:
-                self._times.append(float(timestamp))
+        self._has_positions = self._has_positions and position is not None
+        self._has_times = self._has_times and timestamp is not None
         if len(self._pending) >= self.commit_every:
             self.flush()
 
@@ -517,30 +508,24 @@ class LoopClosureDetector:
             raise ConfigError(f"cannot resume {frames!r} frames of a database of {self.places} places")
         frames = int(frames)
         start = self.places - frames
-        vectors = self._vectors.view()[start:].copy()
-        names = self._names[start:]
-        informative, still = self._informative.view()[start:].copy(), self._still.view()[start:].copy()
+        vectors = self.map.vectors.view()[start:].copy()
+        names = self.map.names[start:]
+        informative = self.map.loop_column("informative").view()[start:].copy()
+        still = self.map.loop_column("still").view()[start:].copy()
         starts = set(self._seams.starts.tolist())
         segment_start = [start + k in starts for k in range(frames)]
-        if frames and self._sessions[start] is not None:
-            self._session = self._sessions[start]  # the interrupted traverse goes on: one session
-        times = None if self._times is None else self._times[start:]
-        positions = None if self._positions is None else self._positions[start:]
-        self._vectors = GrowingArray(self.database.dim, self._vectors.view(start))
-        del self._names[start:]
-        self._informative = GrowingArray(None, self._informative.view(start))
-        self._still = GrowingArray(None, self._still.view(start))
+        sessions = self.map.loop_column("session")
+        if frames and sessions[start] is not None:
+            self._session = sessions[start]  # the interrupted traverse goes on: one session
+        times = self.map.loop_column("timestamp")[start:]
+        positions = self.map.positions[start:]
+        self.map.truncate(start)
         self._seams.truncate(start)
-        del self._sessions[start:]
-        self._known = set(self._names)
-        if self._times is not None:
-            del self._times[start:]
-        if self._positions is not None:
-            del self._positions[start:]
+        self._has_times = all(t is not None for t in self.map.loop_column("timestamp"))
+        self._has_positions = all(p is not None for p in self.map.positions)
         self._start_traverse()
         for k in range(frames):
-            self.process_vector(vectors[k], timestamp=None if times is None else times[k], name=names[k],
-                                position=None if positions is None else positions[k],
+            self.process_vector(vectors[k], timestamp=times[k], name=names[k], position=positions[k],
                                 _replay={"informative": bool(informative[k]), "still": bool(still[k]),
                                          "segment_start": segment_start[k]})
         self._last_thumbnail = None if last_thumbnail is None else np.asarray(last_thumbnail, np.float32)

@@ -30,7 +30,7 @@ import math
 
 import numpy as np
 
-from fdnet.decisions.loop_records import GrowingArray
+from fdnet.matching.place_map import GrowingArray
 
 #: below-level frames in a row that end the walk back through the recent past (a frame or two
 #: below can be noise: a passing car, a blink of the exposure, a 64x32 frame's grain)

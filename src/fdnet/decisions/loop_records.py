@@ -1,12 +1,9 @@
 """What a loop-closure run records: each frame's decision (:class:`FrameDecision`), each accepted
-closure (:class:`Closure`, the events' columns), and the growing arrays the detector keeps its map in."""
+closure (:class:`Closure`, the events' columns)."""
 
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
-
-import numpy as np
-
 
 #: columns of the events CSV, in order (the JSON lines carry the same keys)
 EVENT_COLUMNS = ("query_index", "query", "match_index", "match", "score", "similarity", "rule", "threshold",
@@ -65,35 +62,3 @@ class FrameDecision:
     gated: str = ""
     #: the rule's score before the consistency gate (equal to ``score`` without the gate)
     rule_score: float = float("nan")
-
-
-class GrowingArray:
-    """The database's vectors in memory, appended a row at a time (capacity doubles, so adding
-    N rows copies O(N) rows in all, where np.vstack per frame would copy O(N^2)). With ``dim``
-    None it holds one value per place (bool unless ``dtype`` says otherwise)."""
-
-    def __init__(self, dim: int | None, initial: np.ndarray | None = None, dtype=None):
-        dtype = dtype if dtype is not None else bool if dim is None else np.float32
-        shape = () if dim is None else (dim,)
-        rows = np.zeros((0, *shape), dtype) if initial is None else np.asarray(initial, dtype)
-        self._data = np.empty((max(1024, 2 * len(rows)), *shape), dtype=dtype)
-        self._data[:len(rows)] = rows
-        self._count = len(rows)
-
-    def __len__(self) -> int:
-        return self._count
-
-    def append(self, row: np.ndarray) -> None:
-        if self._count == len(self._data):
-            grown = np.empty((2 * len(self._data), *self._data.shape[1:]), dtype=self._data.dtype)
-            grown[:self._count] = self._data[:self._count]
-            self._data = grown
-        self._data[self._count] = row
-        self._count += 1
-
-    def truncate(self, count: int) -> None:
-        """Forget the rows from ``count`` on."""
-        self._count = min(int(count), self._count)
-
-    def view(self, count: int | None = None) -> np.ndarray:
-        return self._data[:self._count if count is None else count]

@@ -197,14 +197,14 @@ def run_traverse(images, descriptor, database=None, settings: TraverseSettings |
         if ground_truth is not None:
             truth = GroundTruth.from_csv(ground_truth, num_references=places_before + len(paths),
                                          num_queries=len(paths))
-            truth.check_names(paths, [*detector._names[:places_before], *paths])
+            truth.check_names(paths, [*detector.map.names[:places_before], *paths])
         elif route is not None:
             truth = route.ground_truth(places_before)
         if truth is not None:
             _check_searchable_revisit(truth, places_before, detector.exclude_last, detector.sequence_length)
         # a rule that looks at the images (verification) refuses unusable ones (too small for
         # local features) before the first frame is described
-        detector.spec.check_images(paths, [*detector._names[:places_before], *names])
+        detector.spec.check_images(paths, [*detector.map.names[:places_before], *names])
         initial = []
         if done:
             last = _signals_of(paths[done - 1:done], descriptor)

@@ -43,6 +43,7 @@ from fdnet.matching.database.storage import (
     refuse_old_format,
 )
 from fdnet.matching.index import IndexSettings, VectorIndex
+from fdnet.matching.place_map import PlaceMap
 from fdnet.matching.similarity import top_k
 
 #: Rows read from the file per fetch while loading places (bounded memory besides the index).
@@ -86,12 +87,10 @@ class PlaceDatabase:
         # What this process has loaded so far; `_refresh` brings it up to the file's state.
         self._loaded_version = -1
         self._last_id = 0
-        self._names: list[str] = []
-        self._positions: list[tuple[float, float] | None] = []
-        self._metadata: list[str | None] = []
-        # Vectors kept in this process only for methods searched with their own similarity;
-        # a dot-product database keeps them in its index (reading them back on request).
-        self._vector_chunks: list[np.ndarray] = []
+        # The places loaded: their vectors are kept in this process only for methods searched
+        # with their own similarity; a dot-product database keeps them in its index (reading
+        # them back on request).
+        self._map = PlaceMap(None if identity.dot_product else identity.dim)
         # Made on the first read, so a process that only adds never imports faiss.
         self._index: VectorIndex | None = None
         # The derived index's cache file beside the database (see _refresh).
@@ -409,15 +408,14 @@ class PlaceDatabase:
                                     (self._last_id,))
                 last = self._last_id
                 while chunk := rows.fetchmany(_ROWS_PER_FETCH):
-                    self._names.extend(r[1] for r in chunk)
-                    self._positions.extend(None if r[2] is None else (float(r[2]), float(r[3])) for r in chunk)
-                    self._metadata.extend(r[4] for r in chunk)
+                    self._map.extend([r[1] for r in chunk], [None if r[2] is None else (r[2], r[3]) for r in chunk],
+                                     [r[4] for r in chunk])
                     last = chunk[-1][0]
                 for vectors in self._read_vectors(conn, vectors_after, last):
                     if self.dot_product:
                         self._index.add(vectors)
                     else:
-                        self._vector_chunks.append(vectors)
+                        self._map.vectors.extend(vectors)
                 self._last_id = last
                 self._loaded_version = version
         if built_here and self._index is not None and self._index.trainable and len(self._index) >= 10_000:
@@ -442,18 +440,18 @@ class PlaceDatabase:
     @property
     def names(self) -> list[str]:
         self._refresh()
-        return list(self._names)
+        return list(self._map.names)
 
     @property
     def positions(self) -> list[tuple[float, float] | None]:
         self._refresh()
-        return list(self._positions)
+        return list(self._map.positions)
 
     @property
     def metadata(self) -> list[dict | None]:
         """Every place's metadata (e.g. a loop-closure frame's timestamp), in insertion order."""
         self._refresh()
-        return [None if text is None else json.loads(text) for text in self._metadata]
+        return self._map.all_metadata()
 
     @property
     def vectors(self) -> np.ndarray:
@@ -465,11 +463,16 @@ class PlaceDatabase:
                 with _transaction(self._conn, "DEFERRED") as conn:
                     chunks = list(self._read_vectors(conn, 0, self._last_id))
             return np.concatenate(chunks) if chunks else np.zeros((0, self.dim), dtype=np.float32)
-        if not self._vector_chunks:
-            return np.zeros((0, self.dim), dtype=np.float32)
-        if len(self._vector_chunks) > 1:
-            self._vector_chunks = [np.concatenate(self._vector_chunks)]
-        return self._vector_chunks[0]
+        return self._map.vectors.view()
+
+    def place_map(self, vectors: bool = True) -> PlaceMap:
+        """Every place (up to the file's state) as a :class:`~fdnet.matching.place_map.PlaceMap`
+        of its own, with the vectors when asked: the loop-closure detector appends its frames to
+        this copy and searches it."""
+        self._refresh()
+        out = PlaceMap(self.dim if vectors else None)
+        out.extend(self._map.names, self._map.positions, self._map.metadata_text, self.vectors if vectors else None)
+        return out
 
     def query(self, vectors: np.ndarray, k: int = 5, exclude_last: int = 0) -> list[list[Match]]:
         """Top-``k`` stored places per query vector, best first.
@@ -483,7 +486,7 @@ class PlaceDatabase:
         if isinstance(exclude_last, bool) or not isinstance(exclude_last, (int, np.integer)) or exclude_last < 0:
             raise ConfigError(f"{self.path}: exclude-last must be a whole number of at least 0, got {exclude_last!r}")
         self._refresh()
-        count = len(self._names)
+        count = len(self._map)
         if count == 0:
             raise ConfigError(f"{self.path}: the place database is empty: add places before querying")
         q = np.asarray(vectors, dtype=np.float32)
@@ -510,8 +513,7 @@ class PlaceDatabase:
         out = []
         for row_i, row_s in zip(idx, scores):
             keep = [(int(i), float(s)) for i, s in zip(row_i, row_s) if 0 <= i < searchable][:want]
-            out.append([Match(i, self._names[i], s, self._positions[i],
-                              None if self._metadata[i] is None else json.loads(self._metadata[i]))
+            out.append([Match(i, self._map.names[i], s, self._map.positions[i], self._map.metadata(i))
                         for i, s in keep])
         return out
 

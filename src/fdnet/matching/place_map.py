@@ -1,0 +1,149 @@
+"""The one in-memory map of places: what a place database has loaded and what the loop-closure
+detector searches, append-only.
+
+A :class:`PlaceMap` holds, per place in insertion order: its name, position (or None), metadata
+(the stored JSON text, parsed on demand) and, when kept, its vector; and what loop closure reads
+from the metadata (timestamp, the gates' flags, the recording it belongs to). Both
+:class:`~fdnet.matching.database.PlaceDatabase` (which persists a map: load, append, commit) and
+:class:`~fdnet.decisions.loop_closure.LoopClosureDetector` (gates, rule and consistency over a
+map) hold one, so the two never keep parallel copies of the same columns.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Sequence
+
+import numpy as np
+
+
+class GrowingArray:
+    """Rows appended one at a time (capacity doubles, so adding N rows copies O(N) rows in all,
+    where np.vstack per row would copy O(N^2)). With ``dim`` None it holds one value per place
+    (bool unless ``dtype`` says otherwise)."""
+
+    def __init__(self, dim: int | None, initial: np.ndarray | None = None, dtype=None):
+        dtype = dtype if dtype is not None else bool if dim is None else np.float32
+        shape = () if dim is None else (dim,)
+        rows = np.zeros((0, *shape), dtype) if initial is None else np.asarray(initial, dtype)
+        self._data = np.empty((max(1024, 2 * len(rows)), *shape), dtype=dtype)
+        self._data[:len(rows)] = rows
+        self._count = len(rows)
+
+    def __len__(self) -> int:
+        return self._count
+
+    def append(self, row) -> None:
+        if self._count == len(self._data):
+            grown = np.empty((2 * len(self._data), *self._data.shape[1:]), dtype=self._data.dtype)
+            grown[:self._count] = self._data[:self._count]
+            self._data = grown
+        self._data[self._count] = row
+        self._count += 1
+
+    def extend(self, rows: np.ndarray) -> None:
+        rows = np.asarray(rows, dtype=self._data.dtype)
+        need = self._count + len(rows)
+        if need > len(self._data):
+            grown = np.empty((max(2 * len(self._data), need), *self._data.shape[1:]), dtype=self._data.dtype)
+            grown[:self._count] = self._data[:self._count]
+            self._data = grown
+        self._data[self._count:need] = rows
+        self._count = need
+
+    def truncate(self, count: int) -> None:
+        """Forget the rows from ``count`` on."""
+        self._count = min(int(count), self._count)
+
+    def view(self, count: int | None = None) -> np.ndarray:
+        return self._data[:self._count if count is None else count]
+
+
+def _number(value) -> float | None:
+    return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else None
+
+
+class PlaceMap:
+    """Places in insertion order (see the module docstring). ``dim``: the vectors' length, or
+    None for a map that keeps no vectors (a dot-product database keeps them in its index)."""
+
+    def __init__(self, dim: int | None = None):
+        self.dim = dim
+        self.vectors = GrowingArray(dim) if dim is not None else None
+        self.names: list[str] = []
+        self.positions: list[tuple[float, float] | None] = []
+        self.metadata_text: list[str | None] = []
+        self._known: set[str] | None = None
+        self._loop: dict | None = None  # loop closure's columns, made from the metadata when first read
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    # ------------------------------------------------------------------ growing
+    def extend(self, names: Sequence[str], positions: Sequence, metadata_text: Sequence[str | None],
+               vectors: np.ndarray | None = None, metadata: Sequence[dict | None] | None = None) -> None:
+        """Append places: names, positions ((x, y) or None), metadata as stored JSON text (or None;
+        with ``metadata``, the same already parsed), and their vectors when the map keeps them."""
+        start = len(self.names)
+        self.names.extend(names)
+        self.positions.extend(None if p is None else (float(p[0]), float(p[1])) for p in positions)
+        self.metadata_text.extend(metadata_text)
+        if self.vectors is not None and vectors is not None:
+            self.vectors.extend(vectors)
+        if self._known is not None:
+            self._known.update(names)
+        if self._loop is not None:
+            self._read_loop_columns(start, metadata)
+
+    def append(self, vector: np.ndarray | None, name: str, position, metadata: dict | None) -> None:
+        """Append one place (its metadata as a dict, stored as the JSON a database would hold)."""
+        text = None if metadata is None else json.dumps(metadata, sort_keys=True)
+        self.extend([name], [position], [text], None if vector is None else np.asarray(vector)[None], [metadata])
+
+    def truncate(self, count: int) -> None:
+        """Forget the places from ``count`` on (a resumed traverse replays them)."""
+        del self.names[count:], self.positions[count:], self.metadata_text[count:]
+        if self.vectors is not None:
+            self.vectors.truncate(count)
+        self._known = None
+        if self._loop is not None:
+            for column in self._loop.values():
+                if isinstance(column, GrowingArray):
+                    column.truncate(count)
+                else:
+                    del column[count:]
+
+    # ------------------------------------------------------------------ reading
+    def metadata(self, index: int) -> dict | None:
+        text = self.metadata_text[index]
+        return None if text is None else json.loads(text)
+
+    def all_metadata(self) -> list[dict | None]:
+        return [None if text is None else json.loads(text) for text in self.metadata_text]
+
+    def __contains__(self, name: str) -> bool:
+        if self._known is None:
+            self._known = set(self.names)
+        return name in self._known
+
+    def loop_column(self, key: str):
+        """What loop closure reads from each place's metadata: ``timestamp`` (float or None),
+        ``informative``/``still`` (GrowingArray of bool: the gates' flags an earlier run stored),
+        ``segment_start`` (bool list: the place starts a recording), ``session`` (the run that
+        added it, or None)."""
+        if self._loop is None:
+            self._loop = {"timestamp": [], "informative": GrowingArray(None), "still": GrowingArray(None),
+                          "segment_start": [], "session": []}
+            self._read_loop_columns(0)
+        return self._loop[key]
+
+    def _read_loop_columns(self, start: int, parsed: Sequence[dict | None] | None = None) -> None:
+        loop = self._loop
+        texts = self.metadata_text[start:]
+        for k, text in enumerate(texts):
+            m = (parsed[k] if parsed is not None else None if text is None else json.loads(text)) or {}
+            loop["timestamp"].append(_number(m.get("timestamp")))
+            loop["informative"].append(not m.get("uninformative", False))
+            loop["still"].append(bool(m.get("still", False)))
+            loop["segment_start"].append(bool(m.get("segment_start")))
+            loop["session"].append(m.get("session"))

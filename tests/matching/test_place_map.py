@@ -1,0 +1,89 @@
+"""The one in-memory map of places (fdnet.matching.place_map), and the one sequence scorer: each
+defined once and used by the place database, the loop-closure detector and matching."""
+
+import ast
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fdnet.matching.place_map import GrowingArray, PlaceMap
+
+SRC = Path(__file__).resolve().parents[2] / "src" / "fdnet"
+
+
+def test_a_map_grows_truncates_and_reads_loop_columns():
+    m = PlaceMap(3)
+    m.extend(["a", "b"], [(0, 1), None], [json.dumps({"timestamp": 1.5, "session": "s1"}), None],
+             np.eye(3, dtype=np.float32)[:2])
+    assert len(m) == 2 and "a" in m and "c" not in m
+    assert m.loop_column("timestamp") == [1.5, None] and m.loop_column("session") == ["s1", None]
+    m.append(np.ones(3, np.float32), "c", (2.0, 3.0), {"uninformative": True, "segment_start": True, "still": True})
+    assert "c" in m and m.metadata(2)["uninformative"] is True
+    assert m.loop_column("informative").view().tolist() == [True, True, False]
+    assert m.loop_column("still").view().tolist() == [False, False, True]
+    assert m.loop_column("segment_start") == [False, False, True]
+    np.testing.assert_array_equal(m.vectors.view()[2], np.ones(3))
+    m.truncate(1)
+    assert m.names == ["a"] and "b" not in m and len(m.vectors) == 1
+    assert m.loop_column("timestamp") == [1.5] and len(m.loop_column("informative")) == 1
+    assert m.positions == [(0.0, 1.0)]
+
+
+def test_growing_array_keeps_rows_across_growth():
+    g = GrowingArray(2)
+    rows = np.arange(5000, dtype=np.float32).reshape(2500, 2)
+    for row in rows[:1500]:
+        g.append(row)
+    g.extend(rows[1500:])
+    np.testing.assert_array_equal(g.view(), rows)
+
+
+def test_the_detector_searches_a_copy_of_the_database_map(tmp_path):
+    from fdnet.decisions.loop_closure import LoopClosureDetector
+    from fdnet.descriptors.classic import RawThumbnail
+    from fdnet.matching.database import PlaceDatabase
+
+    d = RawThumbnail()
+    rng = np.random.default_rng(0)
+    v = rng.standard_normal((4, d.dim)).astype(np.float32)
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    with PlaceDatabase.create(tmp_path / "map.db", d) as db:
+        db.add(v, [f"p{i}" for i in range(4)], metadata=[{"timestamp": float(i)} for i in range(4)])
+        copy = db.place_map()
+        assert isinstance(db._map, PlaceMap) and copy is not db._map and copy.names == db.names
+        copy.append(v[0], "extra", None, None)
+        assert len(db) == 4 and db.names == [f"p{i}" for i in range(4)]  # the copy is the caller's
+        with LoopClosureDetector(d, db, rule="margin", threshold=2.0) as detector:
+            assert isinstance(detector.map, PlaceMap) and detector.map.names == db.names
+            np.testing.assert_array_equal(detector.map.vectors.view(), v)
+            assert detector._times == [0.0, 1.0, 2.0, 3.0]
+
+
+def _definitions(name: str) -> list[str]:
+    found = []
+    for path in SRC.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.ClassDef)) and node.name == name:
+                found.append(str(path.relative_to(SRC)))
+    return found
+
+
+@pytest.mark.parametrize("name, module", [
+    ("PlaceMap", "matching/place_map.py"), ("GrowingArray", "matching/place_map.py"),
+    ("online_sequence_scores", "matching/sequence.py"), ("sequence_similarity", "matching/sequence.py"),
+])
+def test_one_map_and_one_sequence_scorer(name, module):
+    assert _definitions(name) == [module]
+
+
+def test_every_sequence_score_goes_through_the_one_scorer():
+    """The matrix version, the exhaustive loop search and the indexed one call
+    online_sequence_scores; nothing else sums a sequence (no second loop over velocities)."""
+    callers = sorted(str(p.relative_to(SRC)) for p in SRC.rglob("*.py")
+                     if "online_sequence_scores(" in p.read_text() and p.name != "sequence.py")
+    assert callers == ["decisions/loop_closure.py", "decisions/loop_search.py"]
+    # the mean along a sequence's line (the sum over its frames divided by the frames counted)
+    means = sorted(str(p.relative_to(SRC)) for p in SRC.rglob("*.py") if "total / np.maximum(" in p.read_text())
+    assert means == ["matching/sequence.py"]
