@@ -375,22 +375,28 @@ def test_extract_never_writes_over_the_vectors_it_reads(route, tmp_path, capsys)
     assert vectors.read_bytes() == before
 
 
-def test_vectors_of_another_route_with_the_same_layout_are_refused_naming_the_image(tmp_path, capsys):
+@pytest.mark.parametrize("suffix", ["npz", "h5"])
+def test_vectors_of_another_route_with_the_same_layout_are_refused_naming_the_image(suffix, tmp_path, capsys):
     """Route r's vectors (file name and parent folder match) must not serve route r2: fdnet's own
-    files record each image's size and modification time, and the image is checked against them."""
+    files (.npz and .h5) record each image's size and modification time, and the image is checked
+    against them."""
+    if suffix == "h5":
+        pytest.importorskip("h5py", reason="optional extra fdnet[hloc] not installed")
     r, r2 = tmp_path / "r", tmp_path / "r2"
     write_random_places(r / "summer", 4, seed=1)
     write_random_places(r2 / "summer", 4, seed=2, brightness=0.5)
-    vectors = extract(r / "summer", tmp_path / "r.npz")
-    with np.load(vectors) as data:
-        assert data["sizes"].tolist() == [(r / "summer" / f"frame_{i:03d}.png").stat().st_size for i in range(4)]
+    vectors = extract(r / "summer", tmp_path / f"r.{suffix}")
+    if suffix == "npz":
+        with np.load(vectors) as data:
+            sizes = [(r / "summer" / f"frame_{i:03d}.png").stat().st_size for i in range(4)]
+            assert data["sizes"].tolist() == sizes
     d = create("precomputed", vectors=str(vectors))
     d.lookup([r / "summer" / "frame_000.png"])  # its own image: fine
-    with pytest.raises(DataError, match=r"r2/summer/frame_000\.png: not the image that .*r\.npz's vector for "
+    with pytest.raises(DataError, match=rf"r2/summer/frame_000\.png: not the image that .*r\.{suffix}'s vector for "
                                         r".*/r/summer/frame_000\.png was computed from \(\d+ bytes here"):
         create("precomputed", vectors=str(vectors)).lookup([r2 / "summer" / "frame_000.png"])
     code = main(["extract", "--method", "precomputed", "--vectors", str(vectors), "--images", str(r2 / "summer"),
-                 "--out", str(tmp_path / "again.npz"), "--workers", "0"])
+                 "--out", str(tmp_path / f"again.{suffix}"), "--workers", "0"])
     err = capsys.readouterr().err
     assert code == 2 and "r2/summer/frame_000.png: not the image" in err and len(err.strip().splitlines()) == 1
 

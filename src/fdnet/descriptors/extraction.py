@@ -149,6 +149,7 @@ def extract_h5(descriptor, paths, out, root, batch_size: int = 64, workers: int 
     ``root`` (:func:`fdnet.descriptors.hloc_formats.relative_names`; hloc's ``image_dir``).
     The names are checked before any image is described. Under torchrun, as :func:`extract`.
     Returns the summary of :func:`extract`, with ``array`` (what was written) and ``root``."""
+    from fdnet.data.identity import image_facts
     from fdnet.descriptors.hloc_formats import GlobalFeaturesWriter, check_image_name, relative_names
     from fdnet.descriptors.sharding import current, describe_blocks, share_fitted
 
@@ -167,7 +168,9 @@ def extract_h5(descriptor, paths, out, root, batch_size: int = 64, workers: int 
     writer = shards.collectively(lambda: GlobalFeaturesWriter(out, attrs=attrs) if shards.is_main else None)
 
     def write(start, arrays):
-        writer.write(names[start:start + len(arrays[0])], _checked(descriptor, paths, start, arrays[0]))
+        end = start + len(arrays[0])
+        writer.write(names[start:end], _checked(descriptor, paths, start, arrays[0]),
+                     facts=[None if f is None else f[1:] for f in map(image_facts, paths[start:end])])
 
     with writer if writer is not None else contextlib.nullcontext():
         describe_blocks(shards, descriptor, paths, [descriptor.dim], write, batch_size=batch_size, workers=workers,

@@ -211,8 +211,10 @@ class GlobalFeaturesWriter:
         return output_error(f"{self.path}: cannot write it ({reason}); nothing was written there",
                             OSError(code, reason))
 
-    def write(self, names: Sequence[str], rows) -> None:
-        """Add one group per name holding its row as ``global_descriptor`` (float32 (D,))."""
+    def write(self, names: Sequence[str], rows, facts: Sequence | None = None) -> None:
+        """Add one group per name holding its row as ``global_descriptor`` (float32 (D,)); with
+        ``facts`` (per name: (size, modification time in ns) of the image's file, or None), the
+        dataset's attributes ``size`` and ``mtime_ns`` record them (hloc ignores them)."""
         h5py = self._h5py
         if self._closed or self._file is None:
             raise ValueError(f"{self.path}: the writer is closed")
@@ -227,7 +229,7 @@ class GlobalFeaturesWriter:
             raise ValueError(f"rows of length {rows.shape[1]} after rows of length {self.dim}")
         fid = self._file.id
         try:
-            for name, row in zip(names, rows):
+            for i, (name, row) in enumerate(zip(names, rows)):
                 name = check_image_name(name, self.path)
                 group = self._group(fid, name)
                 if group.links.exists(self._key):
@@ -237,6 +239,12 @@ class GlobalFeaturesWriter:
                                     f"{name}/{self.key}: rename one")
                 dataset = h5py.h5d.create(group, self._key, self._type, self._space)
                 dataset.write(h5py.h5s.ALL, h5py.h5s.ALL, row)
+                fact = facts[i] if facts is not None else None
+                if fact is not None:
+                    for attribute, value in zip((b"size", b"mtime_ns"), fact):
+                        handle = h5py.h5a.create(dataset, attribute, h5py.h5t.STD_I64LE,
+                                                 h5py.h5s.create(h5py.h5s.SCALAR))
+                        handle.write(np.array(value, dtype="<i8"))
                 self.count += 1
         except (OSError, RuntimeError) as exc:  # RuntimeError: HDF5's flushes (a full disk)
             raise self._write_error(exc) from exc
@@ -318,14 +326,16 @@ def _open_error(path: Path, exc: BaseException) -> DataError:
     return DataError(f"{path}: cannot read it as HDF5 ({text})")
 
 
-def read_global_features(path: str | os.PathLike, key: str = GLOBAL_KEY) -> tuple[list[str], np.ndarray]:
+def read_global_features(path: str | os.PathLike, key: str = GLOBAL_KEY,
+                         facts: list | None = None) -> tuple[list[str], np.ndarray]:
     """Every image of hloc's global-features file and its vector: (names, (N, D) float32).
 
     An image is a group holding a ``key`` dataset; its name is the group's path without the
     leading ``/`` (``db/0001.jpg``). The order is h5py's visit order: depth first, the members
     of each group in increasing byte order of their names (HDF5's name index): ``B.jpg``,
     ``a/b.jpg``, ``a.jpg``, ``db/10.jpg``, ``db/2.jpg``; not the order they were written in
-    (hloc itself treats the names as a set). DataError, naming the file, for a missing file,
+    (hloc itself treats the names as a set). ``facts``, a list, receives per image the (size,
+    modification time in ns) fdnet's writer recorded, (-1, -1) where none. DataError, naming the file, for a missing file,
     one that is not HDF5 or is truncated, one without any ``key`` dataset, a vector that is not
     1-D numbers, and vectors of different lengths."""
     h5py = require_h5py()
@@ -338,7 +348,7 @@ def read_global_features(path: str | os.PathLike, key: str = GLOBAL_KEY) -> tupl
         raise _open_error(path, exc) from None
     try:
         with handle:
-            return _read_vectors(h5py, handle, path, key)
+            return _read_vectors(h5py, handle, path, key, facts)
     except DataError:
         raise
     except (OSError, KeyError, ValueError, RuntimeError, TypeError) as exc:
@@ -377,7 +387,7 @@ def read_global_attributes(path: str | os.PathLike) -> dict:
     return recorded
 
 
-def _read_vectors(h5py, handle, path: Path, key: str) -> tuple[list[str], np.ndarray]:
+def _read_vectors(h5py, handle, path: Path, key: str, facts: list | None = None) -> tuple[list[str], np.ndarray]:
     found: list[str] = []
     members: set[str] = set()  # a few member names, to say what the file holds instead
     suffix = "/" + key
@@ -425,9 +435,26 @@ def _read_vectors(h5py, handle, path: Path, key: str) -> tuple[list[str], np.nda
                             f"{name!r}")
         dataset.read(h5py.h5s.ALL, h5py.h5s.ALL, vectors[len(names)].reshape(dataset.shape))
         names.append(name)
+        if facts is not None:
+            facts.append(_image_facts(h5py, dataset))
     if not names:
         raise DataError(f"{path}: no image group holds a {key!r} dataset, so these are not hloc's global features")
     return names, vectors[:len(names)]
+
+
+def _image_facts(h5py, dataset) -> tuple[int, int]:
+    """(size, modification time in ns) that fdnet's writer recorded for an image; -1 where not."""
+    values = []
+    for attribute in (b"size", b"mtime_ns"):
+        if not h5py.h5a.exists(dataset, attribute):
+            return -1, -1
+        handle = h5py.h5a.open(dataset, attribute)
+        if handle.shape != () or handle.dtype.kind not in "iu":
+            return -1, -1
+        value = np.zeros((), dtype="<i8")
+        handle.read(value)
+        values.append(int(value))
+    return values[0], values[1]
 
 
 def _refuse_links_out(h5py, fid, link: str, path: Path) -> None:

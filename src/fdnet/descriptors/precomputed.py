@@ -148,8 +148,11 @@ def _read_npy(path: Path, names_file: str | None) -> tuple[list[str], np.ndarray
 def _read_h5(path: Path) -> tuple[list[str], np.ndarray, dict]:
     from fdnet.descriptors.hloc_formats import read_global_attributes, read_global_features
 
-    names, vectors = read_global_features(path)
+    facts: list[tuple[int, int]] = []
+    names, vectors = read_global_features(path, facts=facts)
     recorded = read_global_attributes(path)
+    if any(size >= 0 for size, _ in facts):  # what each image was when described (fdnet's own file)
+        recorded["facts"] = (np.array([f[0] for f in facts], np.int64), np.array([f[1] for f in facts], np.int64))
     root = recorded.pop("root", None)
     if root:  # fdnet's own file: its names are relative to this folder, so they keep their folders
         names = [os.path.join(root, name) for name in names]
