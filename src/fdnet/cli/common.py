@@ -371,3 +371,15 @@ def thread_count(minimum: int = 1):
         return value
 
     return parse
+
+
+def file_options(args, method: str) -> dict:
+    """The method's options from the flags, with file paths made absolute (a database records
+    them, and later `add`/`query` calls may run from another directory)."""
+    from pathlib import Path
+
+    options = method_options(args, method)
+    options.update({k: str(Path(v).resolve()) for k, v in options.items() if k in FILE_OPTIONS})
+    # --method-set device=...: where it runs is the command's business, not the database's
+    options.pop("device", None)
+    return options

@@ -109,19 +109,6 @@ def register(sub) -> None:
     migrate.set_defaults(func=run_migrate)
 
 
-def _file_options(args, method: str) -> dict:
-    from pathlib import Path
-
-    from fdnet.cli.common import FILE_OPTIONS, method_options
-
-    options = method_options(args, method)
-    # Absolute paths: later `add`/`query` calls may run from another directory.
-    options.update({k: str(Path(v).resolve()) for k, v in options.items() if k in FILE_OPTIONS})
-    # --method-set device=...: where it runs is the command's business, not the database's
-    options.pop("device", None)
-    return options
-
-
 def _options_given(args) -> bool:
     """Whether ``add`` was given method options (else it describes with the database's own)."""
     from fdnet.cli.common import FILE_OPTIONS
@@ -139,13 +126,13 @@ def run_build(args) -> int:
     """``database build``, in one process or in each process of a torchrun launch
     (:mod:`fdnet.descriptors.sharding`: each describes its block of the images, rank 0 writes the
     database and alone prints)."""
-    from fdnet.cli.common import check_pipeline_arguments
+    from fdnet.cli.common import check_pipeline_arguments, file_options
     from fdnet.descriptors.sharding import launch
     from fdnet.tasks.database import build_database
 
     with launch(command=True) as shards:
         shards.collectively(lambda: check_pipeline_arguments(args))
-        summary = build_database(args.images, args.db, args.method, method_options=lambda m: _file_options(args, m),
+        summary = build_database(args.images, args.db, args.method, method_options=lambda m: file_options(args, m),
                                  device=args.device, overwrite=args.overwrite, index=args.index,
                                  index_set=args.index_set, batch_size=args.batch_size, workers=args.workers)
         print("\n".join(summary.lines()))
@@ -153,7 +140,7 @@ def run_build(args) -> int:
 
 
 def run_add(args) -> int:
-    from fdnet.cli.common import check_pipeline_arguments
+    from fdnet.cli.common import check_pipeline_arguments, file_options
     from fdnet.descriptors.sharding import refuse_under_torchrun
     from fdnet.tasks.database import add_to_database
 
@@ -161,7 +148,7 @@ def run_add(args) -> int:
     check_pipeline_arguments(args)
     given = _options_given(args)
     summary = add_to_database(args.db, args.images, method=args.method,
-                              method_options=(lambda m: _file_options(args, m)) if given else None,
+                              method_options=(lambda m: file_options(args, m)) if given else None,
                               device=args.device, allow_duplicates=args.allow_duplicates,
                               batch_size=args.batch_size, workers=args.workers)
     print("\n".join(summary.lines()))

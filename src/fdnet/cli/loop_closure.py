@@ -33,38 +33,6 @@ def _finite(text: str) -> float:
     return value
 
 
-def _default_calibration(args):
-    """(the calibration to use, the loaded Calibration or None): ``--calibration``; else, without
-    ``--threshold``, the one stored in ``--db``, else the one stored in ``--checkpoint RUN_DIR``
-    (``loop-calibration.yaml``, else a pair's ``calibration.yaml``:
-    :func:`fdnet.decisions.calibration.stored_in_run`); else (None, None). Loaded here so that its
-    rule and sequence length become the defaults."""
-    from pathlib import Path
-
-    from fdnet.cli.common import method_options
-    from fdnet.decisions.calibration import CALIBRATION_FILE, load_calibration, stored_in_run
-    from fdnet.decisions.calibration import stored_calibration
-    from fdnet.decisions.loop_closure import LOOP_CALIBRATION_FILE
-
-    if args.calibration:  # a file, or a run directory's loop calibration (else its pair calibration)
-        from fdnet.decisions.loop_closure import resolve_calibration
-
-        calibrated, source = resolve_calibration(args.calibration, None)
-        return source, calibrated
-    if args.threshold is not None or args.calibrate_out:
-        return None, None
-    if args.db and Path(args.db).is_file() and Path(args.db).stat().st_size > 0:
-        calibrated, _ = stored_calibration(args.db)
-        if calibrated is not None:
-            return None, calibrated  # the detector reads it from the database
-    checkpoint = method_options(args, args.method).get("checkpoint") if args.method else None
-    # the run's loop calibration, else its pair calibration (`calibrate --store-in-run`: used with a warning)
-    candidate = stored_in_run(checkpoint, (LOOP_CALIBRATION_FILE, CALIBRATION_FILE)) if checkpoint else None
-    if candidate is not None:
-        return str(candidate), load_calibration(candidate)
-    return None, None
-
-
 def register(sub) -> None:
     p = sub.add_parser(
         "loop-closure",
@@ -152,110 +120,26 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    """The command, holding a lock on each file it writes over the whole run (the events CSV and
-    JSON lines, the database): a second run on them, ``--resume`` or not, is refused in one line
-    naming the holder before it touches anything (``.NAME.lock`` beside each; the kernel drops a
-    killed run's lock)."""
-    import contextlib
-
-    from fdnet.io import ensure_writable
-    from fdnet.runs.lock import RunLock
-
-    outputs = [(args.out, "events CSV"), (args.jsonl, "events JSON lines"), (args.db, "place database")]
-    with contextlib.ExitStack() as locks:
-        for path, what in outputs:
-            if path:
-                ensure_writable(path, what=what)
-        for path in sorted({str(path) for path, _ in outputs if path}):
-            locks.enter_context(RunLock.for_file(path, getattr(args, "command_line", None) or "fdnet loop-closure"))
-        return _run(args)
-
-
-def _run(args) -> int:
-    import json
-    from pathlib import Path
-
-    from fdnet.cli.common import check_pipeline_arguments, create_descriptor
-    from fdnet.cli.database import _file_options
-    import logging
-
-    from fdnet.decisions.loop_closure import LOOP_CALIBRATION_FILE
-    from fdnet.decisions.loop_gates import LoopGates
-    from fdnet.decisions.loop_settings import LoopClosureSettings, PipelineSettings, TraverseSettings
-    from fdnet.decisions.loop_traverse import DEFAULT_RULE, DEFAULT_SEQUENCE_LENGTH, route_traverse, run_traverse
-    from fdnet.errors import ConfigError
-    from fdnet.data.images import list_images
-    from fdnet.io import atomic_write_text, ensure_writable, refuse_writing_an_input
-    import os
-
-    from fdnet.matching.database import check_can_create, holds_a_database
+    from fdnet.cli.common import check_pipeline_arguments, create_descriptor, file_options, method_options
+    from fdnet.decisions.loop_settings import PipelineSettings
+    from fdnet.tasks.loop_closure import LoopClosureRequest, loop_closure
 
     check_pipeline_arguments(args)
-    route_flags = [f"--{name}" for name in ("conditions", "frames", "tolerance")
-                   if getattr(args, name) is not None]
-    if args.images and route_flags:
-        raise ConfigError(f"{', '.join(route_flags)} go with --data DIR (a route's conditions), not --images")
-    if args.data and not args.conditions:
-        raise ConfigError("--data needs --conditions A,B[,...]: the conditions to drive one after another")
-    if args.data and args.ground_truth and args.tolerance is not None:
-        raise ConfigError("give --tolerance (frame-aligned ground truth) or --ground-truth CSV, not both")
-    if args.target_precision is not None and not args.calibrate_out:
-        raise ConfigError("--target-precision needs --calibrate-out (the threshold it chooses is written there); "
-                          "without it the flag would do nothing")
-    gates = LoopGates().with_settings(args.gate) if args.gate else None
-    calibration, calibrated = _default_calibration(args)
-    rule = args.accept or (None if calibrated is not None else DEFAULT_RULE)
-    sequence_length = args.sequence_length
-    if sequence_length is None:
-        sequence_length = calibrated.sequence_length if calibrated is not None else DEFAULT_SEQUENCE_LENGTH
-    # every output path is refused before the first image is described
-    for path, what in ((args.out, "events CSV"), (args.jsonl, "events JSON lines"), (args.report, "report JSON")):
-        if path:
-            ensure_writable(path, what=what)
-    if args.db:
-        # before any frame: the database's folder takes new files (SQLite writes a journal beside
-        # it), an existing database file is writable, a new one could be created there
-        ensure_writable(args.db, what="place database")
-        if holds_a_database(args.db):
-            if not os.access(args.db, os.W_OK):
-                raise ConfigError(f"{args.db}: the place database is read-only; loop closure adds every frame to "
-                                  "it (copy it somewhere writable, or leave --db out for an in-memory map)")
-        else:
-            check_can_create(args.db)
-    calibrate_out = args.calibrate_out
-    if calibrate_out and Path(calibrate_out).is_dir():
-        calibrate_out = str(Path(calibrate_out) / LOOP_CALIBRATION_FILE)
-    images = args.images
-    if args.data:
-        images = route_traverse(args.data, args.conditions.split(","), args.frames,
-                                0 if args.tolerance is None else args.tolerance)
-    else:
-        list_images(images)  # its frames are noted as inputs (fdnet.io), checked against every output now
-    for path in (args.out, args.jsonl, args.report, args.db, calibrate_out):
-        if path:
-            refuse_writing_an_input(path)
-    descriptor = create_descriptor(args.method, args)
-    if args.data:
-        from fdnet.evaluation.splits import check_descriptors_held_out
-
-        check_descriptors_held_out([descriptor], args.data, images.conditions, args.frames,
-                                   allow=args.allow_training_frames)
-    detector = LoopClosureSettings(
-        exclude_last=args.exclude_last, rule=rule, rule_settings=args.accept_set or None, threshold=args.threshold,
-        calibration=calibration, sequence_length=sequence_length, gates=gates, search=args.search,
-        method_options=_file_options(args, args.method), commit_every=args.commit_every)
-    settings = TraverseSettings(
-        events_csv=args.out, events_jsonl=args.jsonl, detector=detector,
+    request = LoopClosureRequest(
+        events_csv=args.out, images=args.images, data=args.data,
+        conditions=tuple(args.conditions.split(",")) if args.conditions else None, frames=args.frames,
+        tolerance=args.tolerance, db=args.db,
+        checkpoint=method_options(args, args.method).get("checkpoint") if args.method else None,
+        calibration=args.calibration, threshold=args.threshold, accept=args.accept,
+        accept_set=tuple(args.accept_set), sequence_length=args.sequence_length, exclude_last=args.exclude_last,
+        gate=tuple(args.gate), search=args.search, commit_every=args.commit_every, events_jsonl=args.jsonl,
+        report=args.report, ground_truth=args.ground_truth, calibrate_out=args.calibrate_out,
+        target_precision=args.target_precision, resume=args.resume, allow_training_frames=args.allow_training_frames,
         pipeline=PipelineSettings(batch_size=args.batch_size, workers=args.workers, progress=not args.no_progress),
-        ground_truth=args.ground_truth, calibrate_to=calibrate_out,
-        target_precision=1.0 if args.target_precision is None else args.target_precision, resume=args.resume)
-    report = run_traverse(images, descriptor, args.db, settings, log=logging.getLogger("fdnet.loop_closure").info)
+        command_line=getattr(args, "command_line", None), device=args.device)
+    report = loop_closure(request, lambda: create_descriptor(args.method, args), file_options(args, args.method))
     _print_report(args, report)
     if args.report:
-        from fdnet.provenance import provenance
-
-        document = {**report.to_dict(), "provenance": provenance(getattr(args, "command_line", None), device=args.device)}
-        atomic_write_text(args.report, json.dumps(document, indent=2, sort_keys=True, default=str) + "\n")
         print(f"wrote {args.report}")
     return 0
 
