@@ -17,12 +17,19 @@ KEYS = {"fdnet_version", "git", "python", "libraries", "device", "cpu", "cpu_cou
         "created"}
 
 
-def _checkout_commit() -> str | None:
+def _in_checkout() -> bool:
     try:
         found = subprocess.run(["git", "-C", str(REPO), "rev-parse", "HEAD"], capture_output=True, text=True)
     except OSError:
-        return None
-    return found.stdout.strip() if found.returncode == 0 else None
+        return False
+    return found.returncode == 0
+
+
+def _is_in_history(commit: str) -> bool:
+    """Whether ``commit`` is HEAD or before it (commits made while the tests run move HEAD on)."""
+    found = subprocess.run(["git", "-C", str(REPO), "merge-base", "--is-ancestor", commit, "HEAD"],
+                           capture_output=True, text=True)
+    return found.returncode == 0
 
 
 def _check(record: dict, command: str | None = None) -> None:
@@ -32,9 +39,9 @@ def _check(record: dict, command: str | None = None) -> None:
     assert record["fdnet_version"] == __version__
     assert set(record["libraries"]) == {"torch", "numpy", "faiss"} and record["libraries"]["numpy"] == np.__version__
     assert record["cpu"] and record["device"]
-    commit = _checkout_commit()
-    if commit is not None and (REPO / "src" / "fdnet").resolve() == Path(__import__("fdnet").__file__).parent.resolve():
-        assert record["git"]["commit"] == commit and isinstance(record["git"]["dirty"], bool)
+    if _in_checkout() and (REPO / "src" / "fdnet").resolve() == Path(__import__("fdnet").__file__).parent.resolve():
+        assert len(record["git"]["commit"]) == 40 and _is_in_history(record["git"]["commit"])
+        assert isinstance(record["git"]["dirty"], bool)
     if command is not None:
         assert record["command"] == command
 

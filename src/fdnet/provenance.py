@@ -35,7 +35,8 @@ def _version(names) -> str | None:
 
 @functools.lru_cache(maxsize=1)
 def git_commit() -> dict | None:
-    """``{"commit": SHA, "dirty": bool}`` of the checkout this package's source lies in, or None
+    """``{"commit": SHA, "dirty": bool}`` of the checkout this package's source lies in (read once per
+    process: the code running is the code imported), or None
     when it is not in one (an installed wheel) or git is not there."""
     source = Path(__file__).resolve().parent
     try:
