@@ -20,7 +20,8 @@ PLACES = 12
 
 def traverse_settings(events_csv, events_jsonl=None, resume=False, batch_size=16, workers=None, **detector):
     """run_traverse's settings object from one flat set of keywords (the detector's fields among them)."""
-    from fdnet.decisions.loop_settings import LoopClosureSettings, PipelineSettings, TraverseSettings
+    from fdnet.decisions.loop_settings import LoopClosureSettings, TraverseSettings
+    from fdnet.descriptors.pipeline import PipelineSettings
 
     return TraverseSettings(events_csv, LoopClosureSettings(**detector), PipelineSettings(batch_size, workers),
                             events_jsonl=events_jsonl, resume=resume)

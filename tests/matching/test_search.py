@@ -7,7 +7,8 @@ import pytest
 from fdnet.descriptors import create
 from fdnet.errors import ConfigError
 from fdnet.matching.search import index_settings, map_digest
-from fdnet.tasks.match import match_images
+from fdnet.descriptors.pipeline import PipelineSettings
+from fdnet.tasks.match import MatchRequest, match_images
 
 from conftest import read_csv_rows, write_random_places
 
@@ -21,9 +22,10 @@ def test_exact_and_indexed_search_find_the_same_places_and_the_index_is_reused(t
     qry = make_route(tmp_path / "qry", n=30, brightness=0.7)
     messages = []
     for index, out in (("exact", "e.csv"), ("ivf", "i1.csv"), ("ivf", "i2.csv")):
-        summary = match_images(ref, qry, tmp_path / out, lambda: create("raw"), top_k=2, index=index,
-                               index_file=None if index == "exact" else tmp_path / "map.index", workers=0,
-                               progress=False, log=messages.append)
+        request = MatchRequest(ref, qry, tmp_path / out, top_k=2, index=index,
+                               index_file=None if index == "exact" else tmp_path / "map.index",
+                               pipeline=PipelineSettings(workers=0, progress=False))
+        summary = match_images(request, lambda: create("raw"), log=messages.append)
         assert (summary.num_references, summary.num_queries, summary.method) == (30, 30, "raw")
     exact, first, second = (read_csv_rows(tmp_path / n) for n in ("e.csv", "i1.csv", "i2.csv"))
     assert all(Path(r["query"]).name == Path(r["reference"]).name for r in exact if r["rank"] == "1")
@@ -40,7 +42,7 @@ def test_settings_are_refused_before_the_method_is_made(tmp_path):
                             ({"index_set": ["ivf_lists=2"]}, "apply to the faiss indexes"),
                             ({"index": "hnsw", "sequence_length": 3}, "use --index exact")):
         with pytest.raises(ConfigError, match=message):
-            match_images(ref, ref, tmp_path / "m.csv", never, **kwargs)
+            match_images(MatchRequest(ref, ref, tmp_path / "m.csv", **kwargs), never)
 
 
 def test_index_settings_and_the_identity_of_a_map(tmp_path):

@@ -121,7 +121,7 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from fdnet.cli.common import check_pipeline_arguments, create_descriptor, file_options, method_options
-    from fdnet.decisions.loop_settings import PipelineSettings
+    from fdnet.descriptors.pipeline import PipelineSettings
     from fdnet.tasks.loop_closure import LoopClosureRequest, loop_closure
 
     check_pipeline_arguments(args)

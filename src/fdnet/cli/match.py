@@ -96,7 +96,8 @@ def run(args) -> int:
     import sys
 
     from fdnet.cli.common import check_pipeline_arguments, create_descriptor
-    from fdnet.tasks.match import match_images
+    from fdnet.descriptors.pipeline import PipelineSettings
+    from fdnet.tasks.match import MatchRequest, match_images
 
     check_pipeline_arguments(args)
     spec = acceptance_from_arguments(args)
@@ -110,11 +111,13 @@ def run(args) -> int:
         if stored is not None:
             calibration = str(stored)
             print(f"fdnet match: using the calibration stored in the run, {stored}", file=sys.stderr)
-    summary = match_images(args.reference, args.query, args.out, lambda: create_descriptor(args.method, args),
-                           top_k=args.top_k, index=args.index, index_set=args.index_set, index_file=args.index_file,
+    request = MatchRequest(args.reference, args.query, args.out, top_k=args.top_k, index=args.index,
+                           index_set=tuple(args.index_set), index_file=args.index_file,
                            sequence_length=args.sequence_length, calibration=calibration, accept=spec,
                            pairs_out=args.pairs_out, pairs_accepted_only=args.pairs_accepted_only,
-                           batch_size=args.batch_size, workers=args.workers, inputs=input_files(args), log=print)
+                           inputs=tuple(input_files(args)),
+                           pipeline=PipelineSettings(batch_size=args.batch_size, workers=args.workers, progress=True))
+    summary = match_images(request, lambda: create_descriptor(args.method, args), log=print)
     if summary.out is not None:
         print(f"wrote {summary.out}: top-{summary.top_k} of {summary.num_references} references for "
               f"{summary.num_queries} queries ({summary.method})")

@@ -1,6 +1,6 @@
 """What loop closure is set with, as objects passed whole: :class:`LoopClosureSettings` (how a
 :class:`~fdnet.decisions.loop_closure.LoopClosureDetector` decides and stores),
-:class:`PipelineSettings` (how frames are decoded and described) and :class:`TraverseSettings`
+:class:`~fdnet.descriptors.pipeline.PipelineSettings` (how frames are decoded and described) and :class:`TraverseSettings`
 (one ``fdnet loop-closure`` run: the detector's settings, the outputs, the ground truth, the
 calibration to make). Each checks its values when made, so a bad setting is refused before
 anything is opened or described.
@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from fdnet.decisions.loop_gates import LoopGates
+from fdnet.descriptors.pipeline import PipelineSettings
 from fdnet.errors import ConfigError
 
 #: how the detector finds a frame's candidates: every place, an index, or the index once the map
@@ -84,21 +85,6 @@ class LoopClosureSettings:
 
 
 @dataclass(frozen=True)
-class PipelineSettings:
-    """How frames are decoded and described: ``batch_size`` frames per forward pass, ``workers``
-    decoding processes (None: one per spare core), ``progress``: a progress bar on standard error."""
-
-    batch_size: int = 16
-    workers: int | None = None
-    progress: bool = False
-
-    def __post_init__(self):
-        _whole(self.batch_size, 1, "batch size")
-        if self.workers is not None:
-            _whole(self.workers, 0, "workers")
-
-
-@dataclass(frozen=True)
 class TraverseSettings:
     """One run over a traverse (:func:`~fdnet.decisions.loop_traverse.run_traverse`).
 
@@ -111,7 +97,7 @@ class TraverseSettings:
 
     events_csv: str | os.PathLike
     detector: LoopClosureSettings = field(default_factory=LoopClosureSettings)
-    pipeline: PipelineSettings = field(default_factory=PipelineSettings)
+    pipeline: PipelineSettings = field(default_factory=lambda: PipelineSettings(batch_size=16))
     events_jsonl: str | os.PathLike | None = None
     ground_truth: str | os.PathLike | None = None
     calibrate_to: str | os.PathLike | None = None

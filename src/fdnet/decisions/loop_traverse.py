@@ -24,7 +24,7 @@ from fdnet.matching.database.storage import place_name
 from fdnet.decisions.loop_evaluation import calibrate_decisions, evaluate_decisions
 from fdnet.decisions.loop_events import EventLog
 from fdnet.decisions.loop_gates import frame_signals
-from fdnet.decisions.loop_settings import LoopClosureSettings, PipelineSettings, TraverseSettings  # noqa: F401
+from fdnet.decisions.loop_settings import TraverseSettings
 from fdnet.errors import ConfigError, DataError
 
 

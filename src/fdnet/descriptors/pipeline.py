@@ -23,12 +23,13 @@ from __future__ import annotations
 import logging
 import os
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator, Sequence
 
 import numpy as np
 
-from fdnet.errors import DataError
+from fdnet.errors import ConfigError, DataError
 
 try:
     import fcntl
@@ -45,6 +46,23 @@ def default_workers() -> int:
     """Decoding processes when the caller does not say: one per spare core, at least 1, at most 8
     (a 2-core machine: 1 worker decodes while torch runs on the cores)."""
     return max(1, min(8, (os.cpu_count() or 2) - 1))
+
+
+@dataclass(frozen=True)
+class PipelineSettings:
+    """How images are decoded and described, passed whole: ``batch_size`` images per forward
+    pass, ``workers`` decoding processes (None: :func:`default_workers`; 0: in the calling
+    process), ``progress``: a progress bar on standard error."""
+
+    batch_size: int = 64
+    workers: int | None = None
+    progress: bool = False
+
+    def __post_init__(self):
+        for name, value, minimum in (("batch size", self.batch_size, 1), ("workers", self.workers, 0)):
+            if value is not None and (isinstance(value, bool) or not isinstance(value, (int, np.integer))
+                                      or value < minimum):
+                raise ConfigError(f"{name} must be a whole number of at least {minimum}, got {value!r}")
 
 
 def check_pipeline_settings(batch_size: int | None = 64, workers: int | None = None) -> None:

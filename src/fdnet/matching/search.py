@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import os
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -88,17 +89,35 @@ def index_settings(index: str, index_set=(), index_file=None, sequence_length: i
     return parse_index_settings(index, list(index_set)) if index != "exact" else None
 
 
-def rank_references(descriptor, ref_paths, query_paths, depth: int, *, settings=None, sequence_length: int = 1,
-                    index_file=None, batch_size: int = 64, workers: int | None = None, progress: bool = True,
-                    log: Callable[[str], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
+@dataclass(frozen=True)
+class SearchSettings:
+    """How references are ranked: ``index`` (faiss :class:`~fdnet.matching.index.IndexSettings`,
+    or None for exact search), ``sequence_length`` (SeqSLAM sequences, exact search only; 1 =
+    single images) and ``index_file`` (where a built index is kept and reloaded)."""
+
+    index: object = None
+    sequence_length: int = 1
+    index_file: str | None = None
+
+
+def rank_references(descriptor, ref_paths, query_paths, depth: int, search: SearchSettings | None = None,
+                    pipeline=None, log: Callable[[str], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The ``depth`` best references of each query (indices, scores; (Q, depth) each): exact
-    search (by SeqSLAM sequence similarity when ``sequence_length`` > 1) when ``settings`` is
-    None, else through a faiss index built chunk by chunk from the map (or loaded from
-    ``index_file`` when it holds this map's index; saved there when built)."""
+    search (by SeqSLAM sequence similarity when ``search.sequence_length`` > 1) when
+    ``search.index`` is None, else through a faiss index built chunk by chunk from the map (or
+    loaded from ``search.index_file`` when it holds this map's index; saved there when built).
+    ``pipeline``: :class:`~fdnet.descriptors.pipeline.PipelineSettings` (default: batches of 64,
+    a progress bar)."""
     from fdnet.descriptors.base import describe_paths
+    from fdnet.descriptors.pipeline import PipelineSettings
+
+    search = search or SearchSettings()
+    pipeline = pipeline or PipelineSettings(batch_size=64, progress=True)
+    settings, sequence_length = search.index, search.sequence_length
 
     def describe(paths):
-        return describe_paths(descriptor, paths, batch_size, progress=progress, workers=workers)
+        return describe_paths(descriptor, paths, pipeline.batch_size, progress=pipeline.progress,
+                              workers=pipeline.workers)
 
     if settings is None:
         from fdnet.matching.similarity import similarity_matrix, top_k, top_k_of_matrix
@@ -113,23 +132,24 @@ def rank_references(descriptor, ref_paths, query_paths, depth: int, *, settings=
     if not descriptor.dot_product_similarity:
         raise ConfigError(f"method {descriptor.name!r} does not compare vectors by dot product, so a "
                           "faiss index would rank by the wrong measure; use --index exact")
-    index = _build_or_load(descriptor, ref_paths, settings, index_file, batch_size, workers, progress,
-                           log or logger.info)
+    index = _build_or_load(descriptor, ref_paths, search, pipeline, log or logger.info)
     return index.search(describe(query_paths), depth)
 
 
-def _build_or_load(descriptor, ref_paths, settings, index_file, batch_size, workers, progress, say):
+def _build_or_load(descriptor, ref_paths, search: SearchSettings, pipeline, say):
     import time
 
     from fdnet.descriptors.pipeline import describe_stream
     from fdnet.matching.index import VectorIndex
 
+    settings, index_file = search.index, search.index_file
     index = cached_index(index_file, descriptor, ref_paths, settings, say) if index_file else None
     if index is not None:
         say(f"loaded the {settings.kind} index of {len(ref_paths)} references from {index_file}")
         return index
     index = VectorIndex(descriptor.dim, settings)
-    for _, vectors in describe_stream(descriptor, ref_paths, batch_size, workers=workers, progress=progress):
+    for _, vectors in describe_stream(descriptor, ref_paths, pipeline.batch_size, workers=pipeline.workers,
+                                      progress=pipeline.progress):
         index.add(vectors)  # the map goes into the index chunk by chunk
     t0 = time.perf_counter()
     index.build()

@@ -20,7 +20,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from fdnet.decisions.loop_settings import LoopClosureSettings, PipelineSettings, TraverseSettings
+from fdnet.decisions.loop_settings import LoopClosureSettings, TraverseSettings
+from fdnet.descriptors.pipeline import PipelineSettings
 from fdnet.errors import ConfigError
 
 logger = logging.getLogger("fdnet.loop_closure")

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import logging
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -19,7 +19,8 @@ import numpy as np
 
 from fdnet.data.images import image_name
 from fdnet.errors import ConfigError
-from fdnet.matching.search import index_settings, rank_references, reference_times_and_positions
+from fdnet.descriptors.pipeline import PipelineSettings
+from fdnet.matching.search import SearchSettings, index_settings, rank_references, reference_times_and_positions
 from fdnet.matching.sequence import check_sequence_length
 
 logger = logging.getLogger(__name__)
@@ -45,25 +46,46 @@ class MatchSummary:
     pairs_root: str | None = None
 
 
-def match_images(reference, query, out, make_descriptor: Callable[[], object], *, top_k: int = 5,
-                 index: str = "exact", index_set=(), index_file=None, sequence_length: int = 1,
-                 calibration=None, accept=None, pairs_out=None, pairs_accepted_only: bool = False,
-                 batch_size: int = 64, workers: int | None = None, inputs=(),
-                 progress: bool = True, log: Callable[[str], None] | None = None) -> MatchSummary:
-    """Describe the ``reference`` folder (the map) and the ``query`` folder with the method
+@dataclass(frozen=True)
+class MatchRequest:
+    """What ``fdnet match`` was asked: the ``reference`` folder (the map) and the ``query``
+    folder; ``out``: the ranked-candidates CSV (None: none, when ``pairs_out`` is given);
+    ``top_k``; the search (``index``, ``index_set`` as KEY=VALUE, ``index_file``,
+    ``sequence_length``); the decision (``calibration``, a file or run directory from
+    ``fdnet calibrate``, which adds ``acceptance_score`` and ``accepted`` columns; or ``accept``,
+    an AcceptanceSpec, which adds the rule's ``acceptance_score`` alone); ``pairs_out`` (hloc's
+    pairs file; ``pairs_accepted_only``: only the accepted pairs); ``inputs``: (option, path) of
+    the files the method reads (``--vectors``, ``--weights``, ...), which no output may be;
+    ``pipeline``: how images are decoded and described."""
+
+    reference: str
+    query: str
+    out: str | None = None
+    top_k: int = 5
+    index: str = "exact"
+    index_set: tuple = ()
+    index_file: str | None = None
+    sequence_length: int = 1
+    calibration: str | None = None
+    accept: object = None
+    pairs_out: str | None = None
+    pairs_accepted_only: bool = False
+    inputs: tuple = ()
+    pipeline: PipelineSettings = field(default_factory=lambda: PipelineSettings(batch_size=64, progress=True))
+
+
+def match_images(request: MatchRequest, make_descriptor: Callable[[], object],
+                 log: Callable[[str], None] | None = None) -> MatchSummary:
+    """Describe the reference folder (the map) and the query folder with the method
     ``make_descriptor()`` returns (called after the settings and output paths are checked, so a
     refusal comes before any model is loaded), rank the references of every query
-    (:func:`rank_references`) and write the top ``top_k`` to the CSV ``out`` (atomically; None:
-    no CSV, when ``pairs_out`` is given).
-
-    ``calibration`` (a file or run directory from ``fdnet calibrate``) adds ``acceptance_score``
-    and ``accepted`` columns; ``accept`` (an AcceptanceSpec, instead of a calibration) adds the
-    rule's ``acceptance_score`` alone. ``pairs_out`` also writes hloc's pairs file
-    (:func:`retrieval_pairs`; ``pairs_accepted_only``: only the accepted pairs); the CSV and the
-    pairs file are renamed into place together, once both are written (a full disk leaves both
-    as they were). ``inputs``: (option, path) of the files the method reads (``--vectors``,
-    ``--weights``, ...), which no output may be. ``log`` gets the index cache's messages
-    (default: this module's logger)."""
+    (:func:`rank_references`) and write the top ``top_k`` to the CSV (atomically) and hloc's pairs
+    file (:func:`retrieval_pairs`); the CSV and the pairs file are renamed into place together,
+    once both are written (a full disk leaves both as they were). ``log`` gets the index cache's
+    messages (default: this module's logger)."""
+    r = request
+    reference, query, out, top_k, calibration, accept = r.reference, r.query, r.out, r.top_k, r.calibration, r.accept
+    pairs_out, pairs_accepted_only, index_file = r.pairs_out, r.pairs_accepted_only, r.index_file
     import contextlib
 
     from fdnet.data.images import list_images
@@ -71,11 +93,11 @@ def match_images(reference, query, out, make_descriptor: Callable[[], object], *
 
     if top_k < 1:
         raise ConfigError("--top-k must be at least 1")
-    sequence_length = check_sequence_length(sequence_length)
+    sequence_length = check_sequence_length(r.sequence_length)
     check_outputs(out, pairs_out, pairs_accepted_only, calibration is not None or accept is not None,
-                  index_file=index_file, inputs=[*inputs, ("--reference", reference), ("--query", query),
+                  index_file=index_file, inputs=[*r.inputs, ("--reference", reference), ("--query", query),
                                                  *([("--calibration", calibration)] if calibration else [])])
-    settings = index_settings(index, index_set, index_file, sequence_length)
+    settings = index_settings(r.index, r.index_set, index_file, sequence_length)
     if out is not None:
         ensure_writable(out, what="matches CSV")  # before describing every image, not after
     if pairs_out is not None:
@@ -105,9 +127,8 @@ def match_images(reference, query, out, make_descriptor: Callable[[], object], *
     if descriptor.needs_fit:
         logger.info(f"{descriptor.name}: learning from the {len(ref_paths)} reference images (none supplied)")
         descriptor.fit(ref_paths)
-    indices, scores = rank_references(descriptor, ref_paths, query_paths, depth, settings=settings,
-                                      sequence_length=sequence_length, index_file=index_file,
-                                      batch_size=batch_size, workers=workers, progress=progress, log=log)
+    indices, scores = rank_references(descriptor, ref_paths, query_paths, depth,
+                                      SearchSettings(settings, sequence_length, index_file), r.pipeline, log=log)
     decision = accepted = None
     if rule is not None:
         from fdnet.decisions.acceptance import Candidates, decide
