@@ -325,7 +325,7 @@ def test_a_database_whose_folder_is_not_writable_opens_immutable_on_any_machine(
     with database.PlaceDatabase.open(built) as db:
         assert db.read_only and len(db) == 6
         with pytest.raises(storage.DataError, match="readonly"):
-            db.add(np.zeros((1, db.dim), np.float32), ["new"])
+            db.add(np.ones((1, db.dim), np.float32), ["new"])
 
 
 @pytest.mark.parametrize("value", ["nan", "inf", "-inf"])

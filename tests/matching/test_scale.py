@@ -111,7 +111,7 @@ def test_database_takes_chunks_in_one_transaction(tmp_path, rng):
     assert (result.added, result.places, result.data_version) == (20, 20, 1)
     bad = v[20:].copy()
     bad[5, 0] = np.nan
-    with pytest.raises(DataError, match="non-finite"):
+    with pytest.raises(DataError, match="the vector of p25 holds NaN"):
         db.add_batches([(v[20:25], names[20:25]), (bad, names[20:])])
     assert len(db) == 20                       # the good first chunk was rolled back too
     again = db.add_batches([(v[:5], names[:5]), (v[20:], names[20:] )])
