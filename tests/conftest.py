@@ -218,3 +218,60 @@ def file_size_limit():
             signal.signal(signal.SIGXFSZ, handler)
 
     return limit
+
+
+# ---------------------------------------------------------------------------- make test-fast
+# `make test-fast` runs `pytest -m "not slow"`: the unit tests, under 3 minutes on 2 idle cores.
+# Marked slow here, by path (no test file needs to say it): the modules that train a model or run
+# a whole command end to end, and the single tests measured over 2 s on a loaded 2-core machine.
+# `make test` runs everything.
+
+#: test modules that train models or run whole pipelines (demo, reproduce, torchrun trainings)
+SLOW_MODULES = (
+    "tests/training/test_crash_resume.py", "tests/training/test_distributed.py", "tests/training/test_loop.py",
+    "tests/methods/calc/", "tests/methods/netvlad/", "tests/methods/fdnet/test_ablation.py",
+    "tests/methods/fdnet/test_beats_trunk.py", "tests/methods/fdnet/test_paper_native.py",
+    "tests/methods/fdnet/test_training.py", "tests/methods/fdnet/test_trunk_alone.py",
+    "tests/cli/test_reproduce.py", "tests/cli/test_demo.py", "tests/cli/test_train_baseline.py",
+    "tests/reproduce/test_ablation.py", "tests/data/test_appearance.py",
+)
+#: single tests measured over 2 s (torchrun groups, benchmarks, kill-at-any-moment loops, real data)
+SLOW_TESTS = (
+    "tests/cli/test_benchmark.py::test_quick_benchmark_reports_figures_and_ratios",
+    "tests/cli/test_benchmark.py::test_sweep_measures_one_built_index_at_several_search_settings",
+    "tests/cli/test_benchmark.py::test_scale_on_real_vectors_from_an_extract_file",
+    "tests/test_devices.py::test_bf16_is_as_accurate_as_fp32_for_retrieval",
+    "tests/test_devices.py::test_compiled_content_pads_short_batches_and_matches_eager",
+    "tests/cli/test_calibrate.py::test_one_rule_for_a_calibration_stored_in_the_run",
+    "tests/cli/test_calibrate.py::test_calibration_stored_in_an_fdnet_run_directory",
+    "tests/cli/test_calibrate.py::test_a_calibration_from_another_model_is_refused",
+    "tests/cli/test_database_command.py::test_torchrun_",
+    "tests/cli/test_extract.py::test_torchrun_",
+    "tests/cli/test_extract.py::test_a_runs_recorded_method_is_used_or_named",
+    "tests/descriptors/test_sharding.py::test_torchrun_",
+    "tests/descriptors/test_pipeline.py::test_a_folder_streams_in_memory_far_below_its_decoded_size",
+    "tests/descriptors/test_pipeline.py::test_decoding_workers_die_with_their_parent_whatever_kills_it",
+    "tests/descriptors/test_classic.py::test_real_",
+    "tests/descriptors/test_landmarks.py::test_recognises_gardens_point_across_viewpoint",
+    "tests/test_runs.py::test_sigkill_during_saves_always_leaves_a_complete_checkpoint",
+    "tests/matching/test_database.py::test_a_writer_killed_at_any_moment_leaves_whole_batches",
+    "tests/cli/test_common.py::test_fit_folder_and_frames_are_recorded_in_the_output",
+    "tests/cli/test_common.py::test_a_database_rebuilds_the_whitening_from_its_fit_folder",
+    "tests/test_export.py::test_projection_head_gives_its_length_to_extract_export_and_the_database",
+    "tests/test_provenance.py::test_benchmark_json_records_it",
+    "tests/data/test_sources.py::test_evaluate_on_videos_matches_evaluate_on_the_frames_as_folders",
+    "tests/test_logs.py::test_train_into_a_log_file_writes_lines_not_redraws",
+    "tests/methods/fdnet/test_trunk_choice.py::test_choice_is_the_best_candidate_and_trunk_methods_read_it",
+    "tests/methods/fdnet/test_trunk.py::test_condition_means_init_removes_the_direction_between_the_conditions",
+)
+
+
+def is_slow(nodeid: str) -> bool:
+    """Whether ``make test-fast`` leaves the test ``nodeid`` out (SLOW_MODULES, SLOW_TESTS)."""
+    return nodeid.startswith(SLOW_MODULES) or nodeid.split("[")[0].startswith(SLOW_TESTS)
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if is_slow(item.nodeid):
+            item.add_marker(pytest.mark.slow)
