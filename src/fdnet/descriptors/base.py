@@ -33,6 +33,15 @@ def l2_normalize(x: np.ndarray, eps: float = 1e-12) -> np.ndarray:
     return x / norm
 
 
+def row_norms(v: np.ndarray, block_bytes: int = 64 << 20) -> np.ndarray:
+    """Every row's L2 norm, taken in float64 (no float32 overflow or underflow) a block of rows
+    at a time, so a large matrix never gets a float64 copy of itself."""
+    v = np.asarray(v)
+    rows = max(1, block_bytes // max(1, 8 * v.shape[1]))
+    return np.concatenate([np.linalg.norm(v[i:i + rows].astype(np.float64), axis=1)
+                           for i in range(0, len(v), rows)]) if len(v) else np.zeros(0)
+
+
 def check_vectors(vectors, source, label=None, *, directions: bool = True) -> np.ndarray:
     """The one guard for vectors entering fdnet (a model's output, a vectors file, a database
     add, an extraction): ``vectors`` as (N, D) float32, or a DataError naming ``source`` (a file)
@@ -52,7 +61,7 @@ def check_vectors(vectors, source, label=None, *, directions: bool = True) -> np
         raise DataError(f"{source}: the vector of {label(int(bad[0]))} holds NaN, infinity or a number beyond "
                         f"float32's range ({len(bad)} of {len(v)} vectors); refused")
     if directions and v.size:
-        zero = np.flatnonzero(np.linalg.norm(v.astype(np.float64), axis=1) == 0)
+        zero = np.flatnonzero(row_norms(v) == 0)
         if len(zero):
             raise DataError(f"{source}: the vector of {label(int(zero[0]))} is all zero ({len(zero)} of {len(v)} "
                             "vectors): it has no direction and could never be matched; refused")

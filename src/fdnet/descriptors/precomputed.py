@@ -43,7 +43,7 @@ from typing import Sequence
 import numpy as np
 
 from fdnet.data.arrays import load_npz_member
-from fdnet.descriptors.base import Descriptor, check_vectors
+from fdnet.descriptors.base import Descriptor, check_vectors, row_norms
 from fdnet.errors import ConfigError, DataError
 
 logger = logging.getLogger(__name__)
@@ -271,7 +271,7 @@ class PrecomputedDescriptor(Descriptor):
             # Rows already of unit length are kept bit for bit: dividing by a norm of 1 +- 1e-7
             # would change last bits, and the vectors' own method's numbers must come back exactly.
             # (norms in float64: large float32 values would overflow to infinity and give zeros)
-            norms = np.linalg.norm(matrix.astype(np.float64), axis=1)
+            norms = row_norms(matrix)
             off = np.abs(norms - 1.0) > 1e-5
             matrix[off] = (matrix[off] / np.maximum(norms[off, None], 1e-12)).astype(np.float32)
         self.vectors = matrix
