@@ -110,11 +110,16 @@ def choose_trunk(split, candidates: Sequence[Candidate], input_size=(128, 256), 
         if reserved in options:
             raise ConfigError(f"choose-trunk: {reserved} is what is being chosen or fixed by the command; "
                               "not a method setting here")
+    from fdnet.progress import progress_bar
+
     scores = []
+    # every candidate describes the whole pair: bars per candidate and over them, with the time left
+    bar = progress_bar(total=len(candidates), desc="choosing the trunk", unit="candidate")
     for candidate in candidates:
         descriptor = create(method, backbone=candidate.backbone, block=candidate.block,
                             input_size=list(input_size), **options)
-        result = evaluate_method(descriptor, split, batch_size=batch_size, workers=workers)
+        result = evaluate_method(descriptor, split, batch_size=batch_size, workers=workers, progress=True)
+        bar.update(1)
         m = result.to_dict(include_curve=False)
         score = {"backbone": candidate.backbone, "block": candidate.block, "dim": int(descriptor.dim),
                  "recall_at_1": float(m["recall_at_n"]["1"]), "recall_at_5": float(m["recall_at_n"]["5"]),
@@ -124,6 +129,7 @@ def choose_trunk(split, candidates: Sequence[Candidate], input_size=(128, 256), 
         scores.append(score)
         say(f"{method} {candidate}: R@1 {score['recall_at_1']:.3f}, AUC-PR {score['auc_pr']:.3f} "
             f"({score['dim']}-d)")
+    bar.close()
     chosen = candidates[pick_best(scores)]
     recorded = {k: (str(v) if isinstance(v, Path) else v) for k, v in options.items() if k not in ("device",)}
     return TrunkChoice(method, chosen, scores, tuple(int(s) for s in input_size), split.description, recorded)
