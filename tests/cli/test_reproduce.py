@@ -224,3 +224,19 @@ def test_baselines_need_no_fdnet_run_and_the_cache_lives_outside_the_report(made
                  "--experiments", "comparison", "--threads", "1", "--no-progress", "--cache", str(mine),
                  "--out", str(tmp_path / "out2")]) == 0
     assert any(mine.glob("*.npy"))
+
+
+def test_a_flag_of_an_experiment_left_out_is_warned_about(tmp_path, capsys):
+    """--examples with --experiments comparison did nothing without a word; now a warning names
+    the flag and its experiment (a warning: a rerun of one experiment keeps the command's flags)."""
+    route = tmp_path / "route"
+    assert main(["synth", "--out", str(route), "--num-frames", "8", "--conditions", "summer,night"]) == 0
+    capsys.readouterr()
+    assert main(["reproduce", "--data", str(route), "--method", "sad", "--experiments", "comparison",
+                 "--examples", "3", "--runtime-images", "4", "--threads", "1", "--no-progress",
+                 "--out", str(tmp_path / "out")]) == 0
+    err = capsys.readouterr().err
+    assert ("fdnet reproduce: warning: --examples is for the examples experiment, which this run leaves out "
+            "(--experiments): it does nothing here") in err
+    assert "--runtime-images is for the runtime and lengths experiments" in err
+    assert "--overlaps" not in err  # left at its default

@@ -209,6 +209,27 @@ def _overlaps(text: str) -> tuple[float, ...]:
     return tuple(values)
 
 
+def _warn_unused_experiment_flags(args) -> None:
+    """A flag of an experiment this run leaves out does nothing: say so (a warning, not a refusal:
+    rerunning a command with ``--experiments NAME`` keeps its other flags). Each flag's help names
+    its experiments before the colon."""
+    import logging
+    import re
+
+    from fdnet.reproduce.sections import EXPERIMENTS
+
+    chosen = set(_names(args.experiments) or EXPERIMENTS)
+    for group, flag, keywords in ARGUMENTS:
+        value = getattr(args, flag.lstrip("-").replace("-", "_"), None)
+        if group != "experiments" or value in (None, [], keywords.get("default")):
+            continue
+        owners = re.split(r", | and ", keywords["help"].partition(":")[0])
+        if not chosen & set(owners):
+            logging.getLogger(__name__).warning(
+                f"{flag} is for the {' and '.join(owners)} experiment{'s' if len(owners) > 1 else ''}, which this run "
+                "leaves out (--experiments): it does nothing here")
+
+
 def run(args) -> int:
     import argparse
     from pathlib import Path
@@ -238,6 +259,7 @@ def run(args) -> int:
         if text is not None and not _names(text):
             raise ConfigError(f"{flag} {text!r}: names no {flag.lstrip('-').rstrip('s')}; leave the flag out for "
                               "the default")
+    _warn_unused_experiment_flags(args)
     methods = _names(args.method)
     considered = methods or list(DEFAULT_METHODS)
     others = argparse.Namespace(method=",".join(considered), weights=args.weights, vocabulary=args.vocabulary,
