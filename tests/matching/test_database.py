@@ -123,12 +123,13 @@ def test_an_open_database_sees_places_another_connection_adds(tmp_path, rng):
         assert reader.names == ["a", "b", "c", "d", "e", "f"]
 
 
-def test_exclude_last_skips_recent_places(rng):
+def test_a_query_searches_the_first_places_it_is_given(rng):
     v = unit(rng, 10, 8)
     db = PlaceDatabase.for_descriptor(Projection())
     db.add(v, [str(i) for i in range(10)])
-    matches = db.query(v[9], k=3, exclude_last=5)[0]
+    matches = db.query(v[9], k=3, searchable=5)[0]
     assert matches and all(m.index < 5 for m in matches)
+    assert db.query(v[9], k=1)[0][0].index == 9 and db.query(v[9], k=1, searchable=0) == [[]]
 
 
 def test_custom_similarity_database(tmp_path, rng):
@@ -150,8 +151,8 @@ def test_errors_are_clear(tmp_path, rng):
     db.add(unit(rng, 2, 8), ["a", "b"])
     with pytest.raises(ConfigError, match="top-k"):
         db.query(unit(rng, 1, 8), k=0)
-    with pytest.raises(ConfigError, match="exclude-last"):
-        db.query(unit(rng, 1, 8), exclude_last=-1)
+    with pytest.raises(ConfigError, match="searchable"):
+        db.query(unit(rng, 1, 8), searchable=-1)
     with pytest.raises(DataError, match="no such place database"):
         PlaceDatabase.open(tmp_path / "missing.db")
     assert not (tmp_path / "missing.db").exists()

@@ -9,9 +9,13 @@ import pytest
 
 from fdnet.errors import ConfigError
 from fdnet.matching.database import PlaceDatabase
+from fdnet.descriptors.pipeline import PipelineSettings
 from fdnet.tasks.database import (
-    add_to_database, build_database, database_info, migrate_database, query_database,
+    AddRequest, BuildRequest, QueryRequest, add_to_database, build_database, database_info, migrate_database,
+    query_database,
 )
+
+QUIET = PipelineSettings(progress=False)
 
 from conftest import write_random_places
 
@@ -28,20 +32,20 @@ def rows(text):
 def test_build_add_query_and_info_through_the_library(tmp_path):
     first, second = make_route(tmp_path / "first", seed=1), make_route(tmp_path / "second", n=3, seed=2)
     db = tmp_path / "map.db"
-    built = build_database(first, db, "raw", method_options={"size": [16, 32]}, progress=False)
+    built = build_database(BuildRequest(first, db, "raw", method_options={"size": [16, 32]}, pipeline=QUIET))
     assert (built.places, built.method, built.dim, built.index_seconds) == (5, "raw", 16 * 32 * 1, None)
     assert built.lines()[0].startswith(f"wrote {db}: 5 places, raw (512-d), fingerprint ")
     with PlaceDatabase.open(db) as opened:
         assert opened.method_options == {"size": [16, 32]}  # recorded, so add/query rebuild it
 
-    added = add_to_database(db, second, progress=False)
+    added = add_to_database(AddRequest(db, second, pipeline=QUIET))
     assert (added.added, added.skipped, added.places) == (3, 0, 8)
-    again = add_to_database(db, first, progress=False)
+    again = add_to_database(AddRequest(db, first, pipeline=QUIET))
     assert (again.added, again.skipped, again.places) == (0, 5, 8)
     assert "skipped 5 already in the database" in again.lines()[0]
 
     out = tmp_path / "q.csv"
-    result = query_database(db, second, top_k=2, out=out, progress=False)
+    result = query_database(QueryRequest(db, second, top_k=2, out=out, pipeline=QUIET))
     assert out.read_bytes() == result.csv_text.encode() and (result.queries, result.places) == (3, 8)
     assert result.lines() == [f"wrote {out}: 3 queries against 8 places"]
     table = rows(result.csv_text)
@@ -56,7 +60,7 @@ def test_build_add_query_and_info_through_the_library(tmp_path):
     assert result.query_names == [r["query"] for r in best] and result.acceptance_scores is None
 
     # the last 3 places (the second route) excluded: the best answers come from the first route
-    result = query_database(db, second, top_k=1, exclude_last=3, progress=False)
+    result = query_database(QueryRequest(db, second, top_k=1, exclude_last=3, pipeline=QUIET))
     assert all(int(r["place_index"]) < 5 for r in rows(result.csv_text)) and result.lines() == []
 
     info = database_info(db)
@@ -66,7 +70,7 @@ def test_build_add_query_and_info_through_the_library(tmp_path):
 def test_an_approximate_index_for_a_method_without_dot_product_is_refused_before_any_file(tmp_path):
     db = tmp_path / "map.db"
     with pytest.raises(ConfigError, match="use --index flat"):
-        build_database(make_route(tmp_path / "route"), db, "sad", index="hnsw", progress=False)
+        build_database(BuildRequest(make_route(tmp_path / "route"), db, "sad", index="hnsw", pipeline=QUIET))
     assert not db.exists()
 
 
@@ -75,10 +79,10 @@ def test_an_acceptance_rule_adds_its_score_column(tmp_path):
 
     route = make_route(tmp_path / "route", seed=3)
     db = tmp_path / "map.db"
-    build_database(route, db, "raw", progress=False)
+    build_database(BuildRequest(route, db, "raw", pipeline=QUIET))
     messages = []
-    scored = query_database(db, route, top_k=1, accept=parse_acceptance("raw", []), log=messages.append,
-                            progress=False)
+    scored = query_database(QueryRequest(db, route, top_k=1, accept=parse_acceptance("raw", []), pipeline=QUIET),
+                            log=messages.append)
     table = rows(scored.csv_text)
     assert list(table[0]) == ["query_index", "query", "rank", "place", "place_index", "score", "acceptance_score"]
     # raw: the acceptance score is the best match's similarity
@@ -113,7 +117,7 @@ def test_messages_go_to_the_module_logger_by_default(tmp_path, caplog, monkeypat
     from fdnet.matching.database import store
 
     db = tmp_path / "map.db"
-    build_database(make_route(tmp_path / "route"), db, "raw", progress=False)
+    build_database(BuildRequest(make_route(tmp_path / "route"), db, "raw", pipeline=QUIET))
     monkeypatch.setattr(store, "_read_only_storage", lambda path: True)
     with caplog.at_level(logging.INFO, logger="fdnet"):
         database_info(db)

@@ -128,13 +128,15 @@ def run_build(args) -> int:
     database and alone prints)."""
     from fdnet.cli.common import check_pipeline_arguments, file_options
     from fdnet.descriptors.sharding import launch
-    from fdnet.tasks.database import build_database
+    from fdnet.descriptors.pipeline import PipelineSettings
+    from fdnet.tasks.database import BuildRequest, build_database
 
     with launch(command=True) as shards:
         shards.collectively(lambda: check_pipeline_arguments(args))
-        summary = build_database(args.images, args.db, args.method, method_options=lambda m: file_options(args, m),
-                                 device=args.device, overwrite=args.overwrite, index=args.index,
-                                 index_set=args.index_set, batch_size=args.batch_size, workers=args.workers)
+        summary = build_database(BuildRequest(
+            args.images, args.db, args.method, method_options=lambda m: file_options(args, m), device=args.device,
+            overwrite=args.overwrite, index=args.index, index_set=tuple(args.index_set),
+            pipeline=PipelineSettings(batch_size=args.batch_size, workers=args.workers, progress=True)))
         print("\n".join(summary.lines()))
     return 0
 
@@ -142,15 +144,16 @@ def run_build(args) -> int:
 def run_add(args) -> int:
     from fdnet.cli.common import check_pipeline_arguments, file_options
     from fdnet.descriptors.sharding import refuse_under_torchrun
-    from fdnet.tasks.database import add_to_database
+    from fdnet.descriptors.pipeline import PipelineSettings
+    from fdnet.tasks.database import AddRequest, add_to_database
 
     refuse_under_torchrun("fdnet database add")  # every process would append the images
     check_pipeline_arguments(args)
     given = _options_given(args)
-    summary = add_to_database(args.db, args.images, method=args.method,
-                              method_options=(lambda m: file_options(args, m)) if given else None,
-                              device=args.device, allow_duplicates=args.allow_duplicates,
-                              batch_size=args.batch_size, workers=args.workers)
+    summary = add_to_database(AddRequest(
+        args.db, args.images, method=args.method, method_options=(lambda m: file_options(args, m)) if given else None,
+        device=args.device, allow_duplicates=args.allow_duplicates,
+        pipeline=PipelineSettings(batch_size=args.batch_size, workers=args.workers, progress=True)))
     print("\n".join(summary.lines()))
     return 0
 
@@ -159,13 +162,15 @@ def run_query(args) -> int:
     import sys
 
     from fdnet.cli.common import check_pipeline_arguments
-    from fdnet.tasks.database import query_database
+    from fdnet.descriptors.pipeline import PipelineSettings
+    from fdnet.tasks.database import QueryRequest, query_database
 
     check_pipeline_arguments(args)
-    result = query_database(args.db, args.images, top_k=args.top_k, exclude_last=args.exclude_last,
-                            min_score=args.min_score, accept=acceptance_from_arguments(args),
-                            calibration=args.calibration, out=args.out, device=args.device,
-                            batch_size=args.batch_size, workers=args.workers, log=_print_to_stderr)
+    result = query_database(QueryRequest(
+        args.db, args.images, top_k=args.top_k, exclude_last=args.exclude_last, min_score=args.min_score,
+        accept=acceptance_from_arguments(args), calibration=args.calibration, out=args.out, device=args.device,
+        pipeline=PipelineSettings(batch_size=args.batch_size, workers=args.workers, progress=True)),
+        log=_print_to_stderr)
     if args.out:
         print("\n".join(result.lines()))
     else:

@@ -9,13 +9,14 @@ module's logger). Above :mod:`fdnet.matching.database` (the file) and :mod:`fdne
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Mapping, Sequence, Union
 
 import numpy as np
 
 from fdnet.data.images import image_name
+from fdnet.descriptors.pipeline import PipelineSettings
 
 logger = logging.getLogger(__name__)
 
@@ -118,13 +119,66 @@ class MigrateSummary:
 BUILD_KEY = "build"
 
 
-def build_database(images, db, method: str, *, method_options: MethodOptions = None, device: str | None = None,
-                   overwrite: bool = False, index: str = "flat", index_set: Sequence[str] = (), batch_size: int = 64,
-                   workers: int | None = None, progress: bool = True) -> BuildSummary:
-    """Describe the images of ``images`` (traversal order) with ``method`` and write them as a new
-    database file ``db``; ``method_options`` (file paths absolute) are recorded so later ``add``
-    and ``query`` calls rebuild the descriptor; ``device`` is where it runs, never recorded.
-    Approximate indexes (``index`` hnsw, ivf, ivfpq) are built at the end and cached beside the file.
+def _pipeline() -> PipelineSettings:
+    return PipelineSettings(batch_size=64, progress=True)
+
+
+@dataclass(frozen=True)
+class BuildRequest:
+    """``fdnet database build``: describe the images of ``images`` (traversal order) with
+    ``method`` into a new database file ``db``; ``method_options`` (file paths absolute; or a
+    function of the method's name giving them) are recorded so later ``add`` and ``query`` calls
+    rebuild the descriptor; ``device`` is where it runs, never recorded; ``index`` (flat, hnsw,
+    ivf, ivfpq) with ``index_set`` (KEY=VALUE)."""
+
+    images: str
+    db: str
+    method: str
+    method_options: MethodOptions = None
+    device: str | None = None
+    overwrite: bool = False
+    index: str = "flat"
+    index_set: Sequence[str] = ()
+    pipeline: PipelineSettings = field(default_factory=_pipeline)
+
+
+@dataclass(frozen=True)
+class AddRequest:
+    """``fdnet database add``: describe the images of ``images`` and append them to ``db``,
+    skipping names already there unless ``allow_duplicates``; with neither ``method`` nor
+    ``method_options`` the descriptor is the one the database records."""
+
+    db: str
+    images: str
+    method: str | None = None
+    method_options: MethodOptions = None
+    device: str | None = None
+    allow_duplicates: bool = False
+    pipeline: PipelineSettings = field(default_factory=_pipeline)
+
+
+@dataclass(frozen=True)
+class QueryRequest:
+    """``fdnet database query``: rank ``db``'s places for each image of ``images``: ``top_k``
+    candidates per query (the ``exclude_last`` most recent places ignored, those under
+    ``min_score`` left out); ``accept`` (an AcceptanceSpec) or ``calibration`` (a file or run
+    folder; default: the one stored in the database) decide; written to ``out`` when given."""
+
+    db: str
+    images: str
+    top_k: int = 5
+    exclude_last: int = 0
+    min_score: float | None = None
+    accept: object = None
+    calibration: str | None = None
+    out: str | None = None
+    device: str | None = None
+    pipeline: PipelineSettings = field(default_factory=_pipeline)
+
+
+def build_database(request: BuildRequest) -> BuildSummary:
+    """Describe ``request.images`` and write them as a new database file (:class:`BuildRequest`).
+    Approximate indexes (hnsw, ivf, ivfpq) are built at the end and cached beside the file.
 
     Under torchrun (:mod:`fdnet.descriptors.sharding`) each process describes its block of the
     images and rank 0 alone writes the database, in one transaction as one process does, and
@@ -134,21 +188,22 @@ def build_database(images, db, method: str, *, method_options: MethodOptions = N
     from fdnet.matching.database.store import PlaceDatabase
 
     shards = current()
+    db = request.db
     settings, descriptor, paths, names = shards.collectively(
-        lambda: _build_inputs(images, db, method, method_options, device, overwrite, index, index_set,
-                              check_output=shards.is_main))
+        lambda: _build_inputs(request, check_output=shards.is_main))
     check_same_inputs(shards, paths, descriptor)
-    with _spool(descriptor, paths, batch_size, workers, progress, Path(db).resolve().parent, shards) as spool:
+    with _spool(descriptor, paths, request.pipeline, Path(db).resolve().parent, shards) as spool:
         if not shards.is_main:
             return BuildSummary(str(db), len(paths), descriptor.name, descriptor.dim, descriptor.fingerprint(),
                                 settings.kind)
         database = PlaceDatabase.create(db, descriptor, index=settings,
-                                        method_options=_options_for(method_options, method), overwrite=overwrite,
+                                        method_options=_options_for(request.method_options, request.method),
+                                        overwrite=request.overwrite,
                                         batches=_spooled_batches(spool, names, paths))
     return _finish_build(db, database, descriptor, settings, shards.world_size)
 
 
-def _build_inputs(images, db, method, method_options, device, overwrite, index, index_set, check_output=True):
+def _build_inputs(request: BuildRequest, check_output=True):
     """``(index settings, descriptor, paths, place names)`` for :func:`build_database`, every
     refusal the output path can cause first (``check_output``), before minutes of describing."""
     from fdnet.data.images import list_images
@@ -158,11 +213,11 @@ def _build_inputs(images, db, method, method_options, device, overwrite, index, 
     from fdnet.matching.database.storage import check_can_create
     from fdnet.matching.index import parse_index_settings
 
-    settings = parse_index_settings(index, list(index_set))
+    settings = parse_index_settings(request.index, list(request.index_set))
     if check_output:
-        check_can_create(db, overwrite)
-        ensure_writable(db, what="place database")
-    descriptor = _create_descriptor(method, method_options, device)
+        check_can_create(request.db, request.overwrite)
+        ensure_writable(request.db, what="place database")
+    descriptor = _create_descriptor(request.method, request.method_options, request.device)
     if descriptor.needs_fit:
         raise ConfigError(f"method {descriptor.name!r} must be given what it learns from (--fit DIR, or dbow's --vocabulary) "
                           "to build a database that later queries can reuse")
@@ -170,7 +225,7 @@ def _build_inputs(images, db, method, method_options, device, overwrite, index, 
         raise ConfigError(f"--index {settings.kind}: method {descriptor.name!r} does not compare vectors by dot "
                           "product, so it is searched exhaustively with its own similarity; use --index flat")
     current().check_device(getattr(descriptor, "device", None))  # under torchrun: this process's own GPU
-    paths = list_images(images)
+    paths = list_images(request.images)
     return settings, descriptor, paths, _place_names(paths)
 
 
@@ -194,17 +249,16 @@ def _finish_build(db, database, descriptor, settings, world_size: int) -> BuildS
                         settings.kind, seconds, cache)
 
 
-def add_to_database(db, images, *, method: str | None = None, method_options: MethodOptions = None,
-                    device: str | None = None, allow_duplicates: bool = False, batch_size: int = 64,
-                    workers: int | None = None, progress: bool = True) -> AddSummary:
-    """Describe the images of ``images`` and append them to ``db`` in one transaction, skipping
-    names already there unless ``allow_duplicates``. With neither ``method`` nor
-    ``method_options`` the descriptor is the one the database records; with them, that copy of
-    the model (its fingerprint must match the database's)."""
+def add_to_database(request: AddRequest) -> AddSummary:
+    """Describe ``request.images`` and append them to the database in one transaction
+    (:class:`AddRequest`); with a method or its options, that copy of the model (its fingerprint
+    must match the database's)."""
     from fdnet.data.images import list_images
     from fdnet.errors import DataError
 
-    database, descriptor = open_with_descriptor(db, method=method, method_options=method_options, device=device,
+    db, images, method, method_options = request.db, request.images, request.method, request.method_options
+    allow_duplicates = request.allow_duplicates
+    database, descriptor = open_with_descriptor(db, method=method, method_options=method_options, device=request.device,
                                                 given=method is not None or method_options is not None)
     with database:
         if database.read_only:
@@ -215,45 +269,48 @@ def add_to_database(db, images, *, method: str | None = None, method_options: Me
         known = set() if allow_duplicates else database.existing_names(names)
         todo = [i for i, name in enumerate(names) if name not in known]
         # described into a spool first (bounded memory), then stored in ONE transaction
-        with _spool(descriptor, [paths[i] for i in todo], batch_size, workers, progress,
-                    Path(db).resolve().parent) as spool:
+        with _spool(descriptor, [paths[i] for i in todo], request.pipeline, Path(db).resolve().parent) as spool:
             result = database.add_batches(
                 _spooled_batches(spool, [names[i] for i in todo], [paths[i] for i in todo]),
                 fingerprint=descriptor.fingerprints(), allow_duplicates=allow_duplicates)
     return AddSummary(str(db), result.added, len(known) + len(result.skipped), result.places, result.data_version)
 
 
-def query_database(db, images, *, top_k: int = 5, exclude_last: int = 0, min_score: float | None = None,
-                   accept=None, calibration=None, out=None, device: str | None = None, batch_size: int = 64,
-                   workers: int | None = None, progress: bool = True, log: Log | None = None) -> QueryResult:
-    """Rank ``db``'s places for each image of ``images``: ``top_k`` candidates per query
-    (``exclude_last`` most recent places ignored, those under ``min_score`` left out) as CSV rows
-    ``query,rank,place,place_index,score``. ``accept`` (an AcceptanceSpec) adds its
-    ``acceptance_score`` column; else ``calibration`` (a file or run folder; default: the one
-    stored in the database, if any) adds ``acceptance_score`` and ``accepted`` (the accepted
-    match is listed even below ``top_k``). Written atomically to ``out`` when given."""
+def query_database(request: QueryRequest, log: Log | None = None) -> QueryResult:
+    """Rank the database's places for each query image (:class:`QueryRequest`) as CSV rows
+    ``query,rank,place,place_index,score``. ``accept`` adds its ``acceptance_score`` column;
+    else a calibration adds ``acceptance_score`` and ``accepted`` (the accepted match is listed
+    even below ``top_k``). Written atomically to ``out`` when given."""
     import numpy as np
+
+    from fdnet.errors import ConfigError
 
     from fdnet.data.images import list_images
     from fdnet.errors import DataError
     from fdnet.io import atomic_write_text, ensure_writable
 
+    db, images, top_k, accept, out = request.db, request.images, request.top_k, request.accept, request.out
+    exclude_last = request.exclude_last
+    if isinstance(exclude_last, bool) or not isinstance(exclude_last, int) or exclude_last < 0:
+        raise ConfigError(f"{db}: exclude-last must be a whole number of at least 0, got {exclude_last!r}")
     log = log or logger.info
     if out:
         ensure_writable(out, what="query CSV")
-    database, descriptor = open_with_descriptor(db, device=device)
+    database, descriptor = open_with_descriptor(db, device=request.device)
     _note_read_only(database, log)
     with database:
-        calibrated = None if accept is not None else _query_calibration(database, descriptor, calibration, db, log)
+        calibrated = (None if accept is not None else
+                      _query_calibration(database, descriptor, request.calibration, db, log))
         rule = accept if accept is not None else (calibrated.spec if calibrated is not None else None)
         depth = top_k if rule is None else max(top_k, rule.depth)
         paths = list_images(images)
-        vectors = _describe(descriptor, paths, batch_size, workers, progress)
+        vectors = _describe(descriptor, paths, request.pipeline)
         bad = np.flatnonzero(~np.isfinite(vectors).all(axis=1))
         if len(bad):
             raise DataError(f"{paths[bad[0]]}: its {descriptor.name} vector is not finite (NaN or inf); "
                             f"{len(bad)} query image(s) affected")
-        results = database.query(vectors, k=depth, exclude_last=exclude_last)
+        # the most recent places (a robot's own last frames) are not searched
+        results = database.query(vectors, k=depth, searchable=max(len(database) - exclude_last, 0))
         places = len(database)
         decision = accepted = None
         if calibrated is not None:
@@ -263,7 +320,7 @@ def query_database(db, images, *, top_k: int = 5, exclude_last: int = 0, min_sco
 
             decision = decide(accept, _candidates(database, descriptor, paths, results))
         place_names = list(database.names)
-    text = _query_csv(paths, results, top_k, min_score, decision, accepted)
+    text = _query_csv(paths, results, top_k, request.min_score, decision, accepted)
     if out:
         atomic_write_text(out, text)
     indices = np.full((len(paths), top_k), -1, dtype=np.int64)
@@ -356,13 +413,14 @@ def _note_read_only(database, log: Log) -> None:
             "read-only; query and info work, add does not")
 
 
-def _describe(descriptor, paths, batch_size, workers, progress):
+def _describe(descriptor, paths, pipeline: PipelineSettings):
     from fdnet.descriptors.base import describe_paths
 
-    return describe_paths(descriptor, paths, batch_size, progress=progress, workers=workers)
+    return describe_paths(descriptor, paths, pipeline.batch_size, progress=pipeline.progress,
+                          workers=pipeline.workers)
 
 
-def _spool(descriptor, paths, batch_size, workers, progress, folder, shards=None):
+def _spool(descriptor, paths, pipeline: PipelineSettings, folder, shards=None):
     """Describe ``paths`` through the streaming pipeline into a spool file in ``folder`` (a few
     batches in memory whatever the folder's size). Non-finite vectors stop it here, naming the
     images, before the database is touched. Under torchrun (``shards``, default: the running
@@ -377,7 +435,7 @@ def _spool(descriptor, paths, batch_size, workers, progress, folder, shards=None
     spool = shards.collectively(lambda: VectorSpool(folder, descriptor.dim) if shards.is_main else None)
     try:
         describe_blocks(shards, descriptor, paths, [descriptor.dim], lambda start, arrays: spool.write(arrays[0]),
-                        batch_size=batch_size, workers=workers, progress=progress,
+                        batch_size=pipeline.batch_size, workers=pipeline.workers, progress=pipeline.progress,
                         check=lambda start, arrays: _refuse_non_finite(paths, start, arrays[0]))
     except BaseException:
         if spool is not None:

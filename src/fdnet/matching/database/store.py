@@ -474,17 +474,16 @@ class PlaceDatabase:
         out.extend(self._map.names, self._map.positions, self._map.metadata_text, self.vectors if vectors else None)
         return out
 
-    def query(self, vectors: np.ndarray, k: int = 5, exclude_last: int = 0) -> list[list[Match]]:
-        """Top-``k`` stored places per query vector, best first.
-
-        ``exclude_last`` ignores the most recently added places: for loop closure a robot's
-        previous few frames always look alike and must not count as revisits. Places other
-        processes added since the last call are included.
-        """
+    def query(self, vectors: np.ndarray, k: int = 5, searchable: int | None = None) -> list[list[Match]]:
+        """Top-``k`` stored places per query vector, best first, among the first ``searchable``
+        places (None: every place; a robot's own last frames are left out by the caller, e.g.
+        ``fdnet database query --exclude-last``). Places other processes added since the last
+        call are included."""
         if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
             raise ConfigError(f"{self.path}: top-k must be a whole number of at least 1, got {k!r}")
-        if isinstance(exclude_last, bool) or not isinstance(exclude_last, (int, np.integer)) or exclude_last < 0:
-            raise ConfigError(f"{self.path}: exclude-last must be a whole number of at least 0, got {exclude_last!r}")
+        if searchable is not None and (isinstance(searchable, bool) or not isinstance(searchable, (int, np.integer))
+                                       or searchable < 0):
+            raise ConfigError(f"{self.path}: searchable must be a whole number of places, got {searchable!r}")
         self._refresh()
         count = len(self._map)
         if count == 0:
@@ -498,13 +497,13 @@ class PlaceDatabase:
         bad = np.flatnonzero(~np.isfinite(q).all(axis=1))
         if len(bad):
             raise DataError(f"{self.path}: query vector(s) {', '.join(map(str, bad[:5]))} are not finite (NaN or inf)")
-        searchable = count - int(exclude_last)
+        searchable = count if searchable is None else min(int(searchable), count)
         if searchable <= 0:
             return [[] for _ in range(len(q))]
         want = min(int(k), searchable)
         if self._index is not None:
             # Ask for extra candidates, then drop the excluded (most recent) ones.
-            idx, scores = self._index.search(q, min(count, want + int(exclude_last)))
+            idx, scores = self._index.search(q, min(count, want + count - searchable))
         else:
             if self.similarity is None:
                 raise ConfigError(f"{self.path}: method {self.method!r} compares vectors with its own similarity; "
@@ -559,3 +558,4 @@ class PlaceDatabase:
             "schema_version": int(schema), "data_version": int(version), "journal_mode": journal,
             "created": ident.created, "fdnet_version": ident.fdnet_version,
         }
+
