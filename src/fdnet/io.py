@@ -42,16 +42,16 @@ def fsync_file(path: str | os.PathLike) -> None:
         os.close(fd)
 
 
-#: every file this process's command reads (images, videos, bags, and files such as --vectors),
-#: by path as given -> what it is; :func:`refuse_writing_an_input` keeps outputs off them
-_INPUTS: dict[str, str] = {}
+#: every file this process's command reads (images, videos, bags), as the lists the command holds
+#: anyway (no copy) and what they are; :func:`refuse_writing_an_input` keeps outputs off them
+_INPUTS: list[tuple[object, str]] = []
 
 
 def note_inputs(paths, what: str = "input image") -> None:
     """Record files the command reads, so no output is ever written over one
-    (:func:`refuse_writing_an_input`). A frame of a video or bag stands for its file."""
-    for path in paths:
-        _INPUTS.setdefault(os.fspath(path), what)
+    (:func:`refuse_writing_an_input`). ``paths`` is kept as it is, not copied: give the list the
+    command itself holds. A frame of a video or bag stands for its file."""
+    _INPUTS.append((paths, what))
 
 
 def forget_inputs() -> None:
@@ -71,19 +71,16 @@ def refuse_writing_an_input(target: str | os.PathLike, what: str = "output") -> 
         return  # nothing there yet: no input to destroy
     if not stat.S_ISREG(own.st_mode):
         return
-    seen: set[str] = set()
-    for name, kind in _INPUTS.items():
-        backing = _backing_file(name)
-        if backing in seen:
-            continue
-        seen.add(backing)
-        try:
-            theirs = os.stat(backing)
-        except OSError:
-            continue
-        if (theirs.st_dev, theirs.st_ino) == (own.st_dev, own.st_ino):
-            raise ConfigError(f"{target}: this {what} is the {kind} {name} the command reads; writing it would "
-                              "destroy it: give another name")
+    for paths, kind in list(_INPUTS):
+        for name in paths:
+            name = os.fspath(name)
+            try:
+                theirs = os.stat(_backing_file(name))
+            except OSError:
+                continue
+            if (theirs.st_dev, theirs.st_ino) == (own.st_dev, own.st_ino):
+                raise ConfigError(f"{target}: this {what} is the {kind} {name} the command reads; writing it "
+                                  "would destroy it: give another name")
 
 
 def _backing_file(name: str) -> str:

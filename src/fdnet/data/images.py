@@ -95,8 +95,9 @@ def list_images(folder: str | os.PathLike, recursive: bool = False) -> list[Path
              and (p.is_file() or _dangling_link(p))]
     if not paths:
         raise DataError(f"{folder}: contains no images (looked for {', '.join(IMAGE_EXTENSIONS)})")
+    paths = sorted(paths, key=lambda p: natural_key(p.relative_to(folder).as_posix()))
     note_inputs(paths)  # no output of the command is written over one (fdnet.io.refuse_writing_an_input)
-    return sorted(paths, key=lambda p: natural_key(p.relative_to(folder).as_posix()))
+    return paths
 
 
 def _dangling_link(path: Path) -> bool:
