@@ -84,16 +84,16 @@ def run(args) -> int:
 
     from fdnet.cli.extract import COMPILE_FROM
 
-    from fdnet.performance.benchmark import plan_benchmark, run_benchmark
+    from fdnet.performance.benchmark import BenchmarkRequest, plan_benchmark, run_benchmark
 
     command = "fdnet " + " ".join(sys.argv[1:]) if sys.argv and "benchmark" in sys.argv else None
-    plan = plan_benchmark(
-        parts=args.parts, methods=args.method, checkpoints=args.checkpoint, map_size=args.map_size,
-        indexes=args.indexes, index_set=args.index_set, sweep=args.sweep, images=args.images,
+    plan = plan_benchmark(BenchmarkRequest(
+        parts=args.parts, methods=args.method, checkpoints=tuple(args.checkpoint), map_size=args.map_size,
+        indexes=args.indexes, index_set=tuple(args.index_set), sweep=tuple(args.sweep), images=args.images,
         num_images=args.num_images, queries=args.queries, noise=args.noise, scale_dim=args.scale_dim,
         map_vectors=args.map_vectors, query_vectors=args.query_vectors, lengths=args.lengths,
         compile=args.compile == "on" or (args.compile == "auto" and args.num_images >= COMPILE_FROM),
         quick=args.quick, threads=args.threads or os.cpu_count() or 1, device=args.device, command=command,
-        loop_map_size=args.loop_map_size, weights=args.weights)
+        loop_map_size=args.loop_map_size, weights=tuple(args.weights)))
     run_benchmark(plan, out=lambda line: print(line, flush=True), json_path=args.json)
     return 0

@@ -66,17 +66,46 @@ def _comma_list(text: str) -> list[str]:
     return [v.strip() for v in str(text).split(",") if v.strip()]
 
 
-def plan_benchmark(*, parts: str = ",".join(PARTS), methods: str = DEFAULT_METHODS, checkpoints=(),
-                   map_size: str = "1000", indexes: str = DEFAULT_INDEXES, index_set=(), sweep=(),
-                   images: str | None = None, num_images: int = 32, queries: int = 1000, noise: float = 0.5,
-                   scale_dim: int | None = None, map_vectors: str | None = None, query_vectors: str | None = None,
-                   lengths: str = "256,512,1024,2048", compile: bool = False, quick: bool = False,
-                   threads: int = 2, device: str = "auto", command: str | None = None,
-                   loop_map_size: str = "10000,100000,1000000", weights=()) -> BenchmarkPlan:
-    """Check the command's settings as given (comma lists, ``METHOD=RUN_DIR``,
-    ``KIND:KEY=VALUE``, ``KEY=V1,V2``) and return them parsed; raises ConfigError/DataError naming
-    the flag."""
+@dataclass(frozen=True)
+class BenchmarkRequest:
+    """``fdnet benchmark``'s settings as the command spells them: comma lists (``parts``,
+    ``methods``, ``map_size``, ``indexes``, ``lengths``, ``loop_map_size``), ``METHOD=RUN_DIR``
+    (``checkpoints``) and ``METHOD=FILE`` (``weights``), ``KIND:KEY=VALUE`` (``index_set``),
+    ``KEY=V1,V2`` (``sweep``); :func:`plan_benchmark` checks and parses them."""
+
+    parts: str = ",".join(PARTS)
+    methods: str = DEFAULT_METHODS
+    checkpoints: tuple = ()
+    map_size: str = "1000"
+    indexes: str = DEFAULT_INDEXES
+    index_set: tuple = ()
+    sweep: tuple = ()
+    images: str | None = None
+    num_images: int = 32
+    queries: int = 1000
+    noise: float = 0.5
+    scale_dim: int | None = None
+    map_vectors: str | None = None
+    query_vectors: str | None = None
+    lengths: str = "256,512,1024,2048"
+    compile: bool = False
+    quick: bool = False
+    threads: int = 2
+    device: str = "auto"
+    command: str | None = None
+    loop_map_size: str = "10000,100000,1000000"
+    weights: tuple = ()
+
+
+def plan_benchmark(request: BenchmarkRequest) -> BenchmarkPlan:
+    """Check the command's settings as given (:class:`BenchmarkRequest`) and return them parsed;
+    raises ConfigError/DataError naming the flag."""
     from fdnet.matching.index import INDEX_KINDS
+
+    r = request
+    parts, map_size, loop_map_size, quick, indexes = r.parts, r.map_size, r.loop_map_size, r.quick, r.indexes
+    queries, num_images, threads, noise = r.queries, r.num_images, r.threads, r.noise
+    map_vectors, query_vectors, lengths = r.map_vectors, r.query_vectors, r.lengths
 
     chosen = _comma_list(parts)
     unknown = sorted(set(chosen) - set(PARTS))
@@ -110,8 +139,8 @@ def plan_benchmark(*, parts: str = ",".join(PARTS), methods: str = DEFAULT_METHO
     if query_vectors and not map_vectors:
         raise ConfigError("--query-vectors needs --map-vectors")
     parsed_checkpoints, parsed_weights = {}, {}
-    for flag, items, parsed, what in (("--checkpoint", checkpoints, parsed_checkpoints, "RUN_DIR"),
-                                      ("--weights", weights, parsed_weights, "FILE")):
+    for flag, items, parsed, what in (("--checkpoint", r.checkpoints, parsed_checkpoints, "RUN_DIR"),
+                                      ("--weights", r.weights, parsed_weights, "FILE")):
         for item in items:
             if "=" not in item:
                 raise ConfigError(f"{flag} {item!r}: expected METHOD={what}")
@@ -123,13 +152,12 @@ def plan_benchmark(*, parts: str = ",".join(PARTS), methods: str = DEFAULT_METHO
         raise ConfigError(f"--lengths {lengths!r}: expected whole numbers, e.g. 256,512") from None
     from fdnet.backbones import check_device_spec
 
-    return BenchmarkPlan(parts=chosen, methods=_comma_list(methods), checkpoints=parsed_checkpoints,
-                         weights=parsed_weights,
-                         map_sizes=map_sizes, loop_map_sizes=loop_map_sizes, kinds=kinds, overrides=index_overrides(index_set),
-                         sweep=sweeps(sweep), images=images, num_images=num_images, queries=queries, noise=noise,
-                         scale_dim=scale_dim, map_vectors=map_vectors, query_vectors=query_vectors,
-                         lengths=length_list, compile=compile, quick=quick, threads=threads,
-                         device=check_device_spec(device), command=command)
+    return BenchmarkPlan(parts=chosen, methods=_comma_list(r.methods), checkpoints=parsed_checkpoints,
+                         weights=parsed_weights, map_sizes=map_sizes, loop_map_sizes=loop_map_sizes, kinds=kinds,
+                         overrides=index_overrides(r.index_set), sweep=sweeps(r.sweep), images=r.images,
+                         num_images=num_images, queries=queries, noise=noise, scale_dim=r.scale_dim,
+                         map_vectors=map_vectors, query_vectors=query_vectors, lengths=length_list, compile=r.compile,
+                         quick=quick, threads=threads, device=check_device_spec(r.device), command=r.command)
 
 
 def index_overrides(items) -> dict:
