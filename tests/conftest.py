@@ -221,7 +221,7 @@ def file_size_limit():
 
 
 # ---------------------------------------------------------------------------- make test-fast
-# `make test-fast` runs `pytest -m "not slow"`: the unit tests, under 3 minutes on 2 idle cores.
+# `make test-fast` runs `pytest -m "not slow"`: the unit tests (3.3 minutes measured on 2 loaded cores).
 # Marked slow here, by path (no test file needs to say it): the modules that train a model or run
 # a whole command end to end, and the single tests measured over 2 s on a loaded 2-core machine.
 # `make test` runs everything.
