@@ -286,7 +286,7 @@ def query_database(request: QueryRequest, log: Log | None = None) -> QueryResult
     from fdnet.errors import ConfigError
 
     from fdnet.data.images import list_images
-    from fdnet.errors import DataError
+    from fdnet.descriptors.base import check_vectors
     from fdnet.io import atomic_write_text, ensure_writable
 
     db, images, top_k, accept, out = request.db, request.images, request.top_k, request.accept, request.out
@@ -305,10 +305,7 @@ def query_database(request: QueryRequest, log: Log | None = None) -> QueryResult
         depth = top_k if rule is None else max(top_k, rule.depth)
         paths = list_images(images)
         vectors = _describe(descriptor, paths, request.pipeline)
-        bad = np.flatnonzero(~np.isfinite(vectors).all(axis=1))
-        if len(bad):
-            raise DataError(f"{paths[bad[0]]}: its {descriptor.name} vector is not finite (NaN or inf); "
-                            f"{len(bad)} query image(s) affected")
+        check_vectors(vectors, f"{descriptor.name} query vectors", lambda i: str(paths[i]), directions=False)
         # the most recent places (a robot's own last frames) are not searched
         results = database.query(vectors, k=depth, searchable=max(len(database) - exclude_last, 0))
         places = len(database)
@@ -436,7 +433,7 @@ def _spool(descriptor, paths, pipeline: PipelineSettings, folder, shards=None):
     try:
         describe_blocks(shards, descriptor, paths, [descriptor.dim], lambda start, arrays: spool.write(arrays[0]),
                         batch_size=pipeline.batch_size, workers=pipeline.workers, progress=pipeline.progress,
-                        check=lambda start, arrays: _refuse_non_finite(paths, start, arrays[0]))
+                        check=lambda start, arrays: _refuse_non_finite(paths, start, arrays[0], descriptor))
     except BaseException:
         if spool is not None:
             spool.close()
@@ -444,16 +441,13 @@ def _spool(descriptor, paths, pipeline: PipelineSettings, folder, shards=None):
     return spool if spool is not None else contextlib.nullcontext()
 
 
-def _refuse_non_finite(paths, start: int, vectors) -> None:
-    import numpy as np
+def _refuse_non_finite(paths, start: int, vectors, descriptor) -> None:
+    """The batch's vectors through the one guard of vectors coming in (NaN, infinity, and for
+    dot-product methods an all-zero vector, which no query could ever match), naming the image."""
+    from fdnet.descriptors.base import check_vectors
 
-    from fdnet.errors import DataError
-
-    bad = np.flatnonzero(~np.isfinite(vectors).all(axis=1))
-    if len(bad):
-        listed = ", ".join(str(paths[start + i]) for i in bad[:5])
-        raise DataError(f"refusing {len(bad)} non-finite vector(s) (NaN or inf) for {listed}; "
-                        "nothing was added (a NaN place can never be matched)")
+    check_vectors(vectors, f"nothing was added ({descriptor.name} vectors)", lambda i: str(paths[start + i]),
+                  directions=descriptor.dot_product_similarity)
 
 
 def _spooled_batches(spool, names, paths=None):
