@@ -112,7 +112,8 @@ def _evaluate(route: Path, run_dir: Path, query: str, test: str, methods: list[s
               say, seed: int = 0) -> list:
     from fdnet.decisions.acceptance import DEFAULT_ACCEPTANCE, parse_acceptance_list
     from fdnet.descriptors.registry import create, descriptor_class
-    from fdnet.evaluation.experiment import evaluate_method
+    from fdnet.descriptors.pipeline import PipelineSettings
+    from fdnet.evaluation.experiment import ScoringSettings, evaluate_method
     from fdnet.metrics import RECALL_OVER_QUERIES
     from fdnet.evaluation.plots import write_result_plots
     from fdnet.evaluation.report import format_table, write_json
@@ -125,8 +126,8 @@ def _evaluate(route: Path, run_dir: Path, query: str, test: str, methods: list[s
         takes = inspect.signature(descriptor_class(name).__init__).parameters
         descriptors.append(create(name, **{k: v for k, v in given.items() if k in takes}))
     acceptance = parse_acceptance_list(DEFAULT_ACCEPTANCE, [])
-    results = [evaluate_method(d, split, (RECALL_OVER_QUERIES,), thresholds=None, keep_similarity=True, progress=True,
-                               acceptance=acceptance) for d in descriptors]
+    results = [evaluate_method(d, split, ScoringSettings((RECALL_OVER_QUERIES,), acceptance=acceptance),
+                               PipelineSettings(progress=True), keep_similarity=True) for d in descriptors]
     say(format_table(results, RECALL_OVER_QUERIES))
     json_path, plots = out / f"results-{query}-summer.json", out / f"plots-{query}-summer"
     write_json(json_path, results, seeds={"synthetic_route": seed, "runtime": seed})  # the route's and training's

@@ -86,9 +86,10 @@ def test_calibration_reaches_its_target_on_its_split(tmp_path, rule, target):
     assert cal.rule == rule and cal.method == "raw" and cal.fingerprint == descriptor.fingerprint()
     assert cal.measured_on["ground_truth"].startswith("frame-aligned")
     # applying the threshold to the same split's scores gives back the precision and recall stored
-    from fdnet.evaluation.experiment import evaluate_method
+    from fdnet.descriptors.pipeline import PipelineSettings
+    from fdnet.evaluation.experiment import ScoringSettings, evaluate_method
 
-    result = evaluate_method(descriptor, split, acceptance=[cal.spec], workers=0)
+    result = evaluate_method(descriptor, split, ScoringSettings(acceptance=[cal.spec]), PipelineSettings(workers=0))
     decision = result.decisions[rule]
     reached = apply_threshold(cal, decision.score, split.ground_truth.correct_mask(decision.match[:, None])[:, 0],
                               split.ground_truth.has_match)

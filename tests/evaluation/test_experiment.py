@@ -8,7 +8,8 @@ import pytest
 from fdnet.data.dataset import RouteDataset
 from fdnet.data.split import aligned_split
 from fdnet.descriptors.base import Descriptor, l2_normalize
-from fdnet.evaluation.experiment import evaluate_matrix, evaluate_method
+from fdnet.descriptors.pipeline import PipelineSettings
+from fdnet.evaluation.experiment import ScoringSettings, evaluate_matrix, evaluate_method
 from fdnet.metrics import RECALL_OVER_QUERIES, VPRBENCH, evaluate_similarity, top_k_of_matrix
 from fdnet.matching.similarity import similarity_matrix
 
@@ -64,7 +65,7 @@ def split(tmp_path):
 
 
 def test_evaluate_method_end_to_end(split):
-    result = evaluate_method(TinyPixels(), split, protocols=(RECALL_OVER_QUERIES, VPRBENCH), keep_similarity=True)
+    result = evaluate_method(TinyPixels(), split, ScoringSettings(protocols=(RECALL_OVER_QUERIES, VPRBENCH)), keep_similarity=True)
     roq = result.metrics[RECALL_OVER_QUERIES]
     assert roq.recall_at_n[1] == 1.0 and roq.recall_at_100_precision == 1.0
     assert result.metrics[VPRBENCH].top1_accuracy == 1.0
@@ -115,7 +116,7 @@ def test_descriptor_path_agrees_with_the_matrix_path(split):
     from fdnet.descriptors.base import describe_paths
 
     s = similarity_matrix(describe_paths(d, split.query.paths), describe_paths(d, split.reference.paths))
-    by_runner = evaluate_method(d, split, protocols=(VPRBENCH,)).metrics[VPRBENCH]
+    by_runner = evaluate_method(d, split, ScoringSettings(protocols=(VPRBENCH,))).metrics[VPRBENCH]
     by_matrix = evaluate_similarity(s, split.ground_truth, VPRBENCH)
     assert by_runner.auc_pr == pytest.approx(by_matrix.auc_pr)
     assert by_runner.recall_at_n == by_matrix.recall_at_n
@@ -129,7 +130,7 @@ def test_large_splits_are_ranked_without_the_full_matrix(split):
     np.testing.assert_array_equal(blocked.retrieved, full.retrieved)
     np.testing.assert_allclose(blocked.scores, full.scores, rtol=1e-6)
     assert blocked.similarity is None and any("too large" in n for n in blocked.notes)
-    plain = evaluate_method(TinyPixels(), split, workers=0)
+    plain = evaluate_method(TinyPixels(), split, pipeline=PipelineSettings(workers=0))
     assert plain.similarity is None   # never made unless asked for
 
 
@@ -144,7 +145,8 @@ def test_a_neighbourhood_the_split_cannot_give_is_refused_before_describing(spli
             raise AssertionError("described before the rule was checked")
 
     with pytest.raises(ConfigError, match=message):
-        evaluate_method(Untouchable(), split, acceptance=[parse_acceptance("margin", [setting])], workers=0)
+        evaluate_method(Untouchable(), split, ScoringSettings(acceptance=[parse_acceptance("margin", [setting])]),
+                        PipelineSettings(workers=0))
 
 
 def test_a_rule_that_looks_at_images_is_refused_on_a_bare_matrix(rng):
@@ -152,4 +154,4 @@ def test_a_rule_that_looks_at_images_is_refused_on_a_bare_matrix(rng):
     from fdnet.errors import ConfigError
 
     with pytest.raises(ConfigError, match="looks at the images, but a similarity matrix has no image paths"):
-        evaluate_matrix(rng.random((4, 4)), GroundTruth.aligned(4, 4, 0), "m", acceptance=["verified"])
+        evaluate_matrix(rng.random((4, 4)), GroundTruth.aligned(4, 4, 0), "m", ScoringSettings(acceptance=["verified"]))

@@ -8,7 +8,7 @@ import re
 import numpy as np
 
 from fdnet.data.groundtruth import GroundTruth
-from fdnet.evaluation.experiment import evaluate_matrix
+from fdnet.evaluation.experiment import ScoringSettings, evaluate_matrix
 from fdnet.metrics import VPRBENCH
 from fdnet.evaluation.report import format_table, results_json, write_json
 
@@ -19,8 +19,8 @@ REQUIRED = {"recall_at_100_precision", "precision_at_max_recall", "auc_pr", "rec
 def _results():
     s = np.eye(5) + 0.01 * np.arange(5)
     gt = GroundTruth.aligned(5, 5, 0)
-    return [evaluate_matrix(s, gt, "perfect", (VPRBENCH,)),
-            evaluate_matrix(np.roll(s, 1, axis=1), gt, "shifted", (VPRBENCH,))]
+    return [evaluate_matrix(s, gt, "perfect", ScoringSettings((VPRBENCH,))),
+            evaluate_matrix(np.roll(s, 1, axis=1), gt, "shifted", ScoringSettings((VPRBENCH,)))]
 
 
 def test_table_names_protocol_and_methods():
@@ -67,7 +67,7 @@ def test_paper_tables_quote_formulas_in_csv_and_escape_pipes_in_markdown():
     from fdnet.io import from_spreadsheet_text
 
     s = np.eye(5) + 0.01 * np.arange(5)
-    result = evaluate_matrix(s, GroundTruth.aligned(5, 5, 0), "perfect", (VPRBENCH,))
+    result = evaluate_matrix(s, GroundTruth.aligned(5, 5, 0), "perfect", ScoringSettings((VPRBENCH,)))
     result.dataset = '=HYPERLINK("http://x")|b'
     rows = list(csv.reader(io.StringIO(format_results_table([result], "csv"))))
     assert rows[1][2] == "'" + result.dataset and from_spreadsheet_text(rows[1][2]) == result.dataset

@@ -196,7 +196,8 @@ def _evaluate_methods(settings: EvaluateSettings, acceptance, log) -> list:
     from fdnet.backbones import check_device_spec, torch_threads
     from fdnet.descriptors.pipeline import check_pipeline_settings
     from fdnet.errors import ConfigError
-    from fdnet.evaluation.experiment import evaluate_method
+    from fdnet.descriptors.pipeline import PipelineSettings
+    from fdnet.evaluation.experiment import ScoringSettings, evaluate_method
     from fdnet.evaluation.splits import check_descriptors_held_out
 
     if not settings.data:
@@ -214,10 +215,10 @@ def _evaluate_methods(settings: EvaluateSettings, acceptance, log) -> list:
         log(f"evaluating {', '.join(names)} on {split.description}: {len(split.query)} queries x "
             f"{len(split.reference)} references")
         for descriptor in descriptors:
-            results.append(evaluate_method(descriptor, split, (settings.protocol,), settings.thresholds,
-                                           batch_size=settings.batch_size, sequence_length=settings.sequence_length,
-                                           keep_similarity=bool(settings.plots), progress=True, log=log,
-                                           workers=settings.workers, acceptance=acceptance))
+            results.append(evaluate_method(
+                descriptor, split, ScoringSettings((settings.protocol,), settings.thresholds, acceptance=acceptance),
+                PipelineSettings(settings.batch_size, settings.workers, progress=True),
+                sequence_length=settings.sequence_length, keep_similarity=bool(settings.plots), log=log))
     return results
 
 

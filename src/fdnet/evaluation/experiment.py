@@ -37,6 +37,7 @@ from fdnet.data.groundtruth import GroundTruth
 from fdnet.data.split import EvaluationSplit
 from fdnet.decisions.acceptance import AcceptanceSpec, Candidates, Decision, decide, parse_acceptance
 from fdnet.descriptors.base import Descriptor, describe_paths
+from fdnet.descriptors.pipeline import PipelineSettings
 from fdnet.errors import DataError
 from fdnet.metrics import (
     DEFAULT_NS,
@@ -135,11 +136,25 @@ def _acceptance_specs(acceptance) -> list[AcceptanceSpec]:
     return [parse_acceptance(a) if isinstance(a, str) else a for a in acceptance]
 
 
-def _decide_and_score(retrieved, scores, gt, protocols, thresholds, ns, specs, candidates_context, timing=None):
+@dataclass(frozen=True)
+class ScoringSettings:
+    """How ranked candidates are scored: the named metric ``protocols``, the recall-over-queries
+    sweep's ``thresholds`` (None = exact, 500 = the paper's), the recall@N cut-offs ``ns``, and the
+    ``acceptance`` rules whose scores the PR curve thresholds (None = ``raw``; the first gives
+    ``metrics``)."""
+
+    protocols: Sequence[str] = (RECALL_OVER_QUERIES,)
+    thresholds: int | None = None
+    ns: Sequence[int] = DEFAULT_NS
+    acceptance: Sequence[AcceptanceSpec | str] | None = None
+
+
+def _decide_and_score(retrieved, scores, gt, scoring: ScoringSettings, candidates_context, timing=None):
     """(metrics of the first rule, by_acceptance, decisions) for ranked candidates. ``timing``, when
     given, gets ``acceptance_ms_per_query``: each rule's wall time over the queries (what a rule
     that looks at images, e.g. geometric verification, costs; a later rule reusing an earlier
     one's verified pairs costs less)."""
+    specs = _acceptance_specs(scoring.acceptance)
     candidates = Candidates(retrieved, scores, **candidates_context)
     by_acceptance: dict[str, dict[str, Metrics]] = {}
     decisions: dict[str, Decision] = {}
@@ -150,23 +165,26 @@ def _decide_and_score(retrieved, scores, gt, protocols, thresholds, ns, specs, c
             timing.setdefault("acceptance_ms_per_query", {})[spec.name] = \
                 1000.0 * (time.perf_counter() - t0) / max(candidates.num_queries, 1)
         decisions[spec.name] = decision
-        by_acceptance[spec.name] = _metrics(retrieved, scores, gt, protocols, thresholds, ns, decision)
+        by_acceptance[spec.name] = _metrics(retrieved, scores, gt, scoring, decision)
     return by_acceptance[specs[0].name], by_acceptance, decisions
 
 
-def _metrics(retrieved, scores, gt, protocols, thresholds, ns, decision: Decision | None = None
+def _metrics(retrieved, scores, gt, scoring: ScoringSettings, decision: Decision | None = None
              ) -> dict[str, Metrics]:
     accept = {} if decision is None else {"acceptance_scores": decision.score, "accepted_matches": decision.match,
                                           "acceptance": decision.rule}
-    return {p: evaluate_retrieval(retrieved, scores, gt, p, thresholds=thresholds if p == RECALL_OVER_QUERIES
-                                  else None, ns=ns, **accept) for p in protocols}
+    return {p: evaluate_retrieval(retrieved, scores, gt, p, thresholds=scoring.thresholds
+                                  if p == RECALL_OVER_QUERIES else None, ns=scoring.ns, **accept)
+            for p in scoring.protocols}
 
 
 def _rank(descriptor: Descriptor, queries, refs, k: int, sequence_length: int, keep_similarity: bool,
-          max_matrix_entries: int, timing: dict, notes: list[str]):
-    """The top ``k`` references of each query (by sequence similarity when ``sequence_length`` > 1)
-    and, when it fits in ``max_matrix_entries`` and is wanted, the (Q, R) similarity matrix;
-    records the matching time in ``timing`` and what it did in ``notes``."""
+          max_matrix_entries: int):
+    """(the top ``k`` references of each query, their scores, the (Q, R) similarity matrix or
+    None, the matching timing, notes): by sequence similarity when ``sequence_length`` > 1; the
+    matrix when it fits in ``max_matrix_entries`` and is wanted."""
+    timing: dict = {}
+    notes: list[str] = []
     small = len(queries) * len(refs) <= max_matrix_entries
     similarity = None
     t0 = time.perf_counter()
@@ -192,35 +210,32 @@ def _rank(descriptor: Descriptor, queries, refs, k: int, sequence_length: int, k
             similarity = similarity_matrix(queries, refs, descriptor.similarity)
         else:
             notes.append(f"similarity matrix not kept for plots ({len(queries)} x {len(refs)} is too large)")
-    return retrieved, scores, similarity
+    return retrieved, scores, similarity, timing, notes
 
 
 def evaluate_method(
     descriptor: Descriptor,
     split: EvaluationSplit,
-    protocols: Sequence[str] = (RECALL_OVER_QUERIES,),
-    thresholds: int | None = None,
-    ns: Sequence[int] = DEFAULT_NS,
-    batch_size: int = 64,
+    scoring: ScoringSettings | None = None,
+    pipeline: PipelineSettings | None = None,
     sequence_length: int = 1,
     keep_similarity: bool = False,
-    progress: bool = False,
     log: Callable[[str], None] | None = None,
-    workers: int | None = None,
     max_matrix_entries: int = MAX_MATRIX_ENTRIES,
-    acceptance: Sequence[AcceptanceSpec | str] | None = None,
 ) -> MethodResult:
     """Describe, match and score ``descriptor`` on ``split`` (see the module docstring).
 
-    ``thresholds`` is the recall-over-queries sweep (None = exact, 500 = the paper's);
-    ``sequence_length`` > 1 ranks by SeqSLAM sequence similarity
+    ``scoring``: :class:`ScoringSettings` (default: recall over queries, exact, the raw rule);
+    ``pipeline``: how images are decoded and described (default: batches of 64, no progress
+    bar); ``sequence_length`` > 1 ranks by SeqSLAM sequence similarity
     (:func:`fdnet.matching.sequence.sequence_similarity`; in blocks of query rows beyond
     ``max_matrix_entries``); ``keep_similarity`` keeps the (Q, R) matrix on the result for plots
-    (skipped, with a note, beyond ``max_matrix_entries``). ``workers``: image decoding processes
-    (None = one per spare core, 0 = none). ``acceptance``: the rules whose scores the PR curve
-    thresholds (:mod:`fdnet.decisions.acceptance`; None = ``raw``), the first in ``metrics``.
+    (skipped, with a note, beyond ``max_matrix_entries``).
     """
-    specs = _acceptance_specs(acceptance)
+    scoring = scoring or ScoringSettings()
+    pipeline = pipeline or PipelineSettings(batch_size=64)
+    batch_size, progress, workers = pipeline.batch_size, pipeline.progress, pipeline.workers
+    specs = _acceptance_specs(scoring.acceptance)
     say = log or (lambda message: None)
     ref_paths, query_paths = list(split.reference.paths), list(split.query.paths)
     for spec in specs:  # e.g. images too small for geometric verification: say so before describing
@@ -245,9 +260,11 @@ def evaluate_method(
     seconds_describe = ref_timing["seconds_describe"] + query_timing["seconds_describe"]
     timing["ms_per_image"] = 1000.0 * seconds_describe / max(num_images, 1)
 
-    k = max(max(ns), *(spec.depth for spec in specs))
-    retrieved, scores, similarity = _rank(descriptor, queries, refs, k, sequence_length, keep_similarity,
-                                          max_matrix_entries, timing, notes)
+    k = max(max(scoring.ns), *(spec.depth for spec in specs))
+    retrieved, scores, similarity, rank_timing, rank_notes = _rank(descriptor, queries, refs, k, sequence_length,
+                                                                   keep_similarity, max_matrix_entries)
+    timing.update(rank_timing)
+    notes.extend(rank_notes)
 
     settings = dict(descriptor.settings())
     settings.setdefault("dim", int(descriptor.dim))
@@ -255,8 +272,8 @@ def evaluate_method(
         settings["sequence_length"] = int(sequence_length)
     context = {"similarity_ceiling": float(descriptor.similarity_ceiling), "query_paths": query_paths,
                "reference_paths": ref_paths}
-    metrics, by_acceptance, decisions = _decide_and_score(retrieved, scores, split.ground_truth, protocols,
-                                                          thresholds, ns, specs, context, timing)
+    metrics, by_acceptance, decisions = _decide_and_score(retrieved, scores, split.ground_truth, scoring, context,
+                                                          timing)
     return MethodResult(
         method=descriptor.name,
         metrics=metrics,
@@ -279,32 +296,29 @@ def evaluate_matrix(
     similarity: np.ndarray,
     ground_truth: GroundTruth,
     method: str,
-    protocols: Sequence[str] = (RECALL_OVER_QUERIES,),
-    thresholds: int | None = None,
-    ns: Sequence[int] = DEFAULT_NS,
+    scoring: ScoringSettings | None = None,
     dataset: str = "",
     query_paths: Sequence[Path] | None = None,
     reference_paths: Sequence[Path] | None = None,
-    acceptance: Sequence[AcceptanceSpec | str] | None = None,
     similarity_ceiling: float = 1.0,
 ) -> MethodResult:
     """A precomputed (Q, R) similarity matrix (higher = more similar) as a :class:`MethodResult`.
-    ``acceptance`` as for :func:`evaluate_method`; ``similarity_ceiling`` the largest similarity
+    ``scoring`` as for :func:`evaluate_method`; ``similarity_ceiling`` the largest similarity
     the matrix's method can produce (for the ``ratio`` rule)."""
+    scoring = scoring or ScoringSettings()
     s = np.asarray(similarity)
     if s.shape != (ground_truth.num_queries, ground_truth.num_references):
         raise DataError(f"similarity matrix is {s.shape[0]} x {s.shape[1]} but the ground truth is for "
                         f"{ground_truth.num_queries} queries x {ground_truth.num_references} references")
-    specs = _acceptance_specs(acceptance)
+    specs = _acceptance_specs(scoring.acceptance)
     for spec in specs:
         spec.check_available({"images"} if query_paths is not None and reference_paths is not None else set(),
                              "a similarity matrix")
-    retrieved, scores = top_k_of_matrix(s, max(max(ns), *(spec.depth for spec in specs)))
+    retrieved, scores = top_k_of_matrix(s, max(max(scoring.ns), *(spec.depth for spec in specs)))
     context = {"similarity_ceiling": float(similarity_ceiling),
                "query_paths": None if query_paths is None else [Path(p) for p in query_paths],
                "reference_paths": None if reference_paths is None else [Path(p) for p in reference_paths]}
-    metrics, by_acceptance, decisions = _decide_and_score(retrieved, scores, ground_truth, protocols, thresholds,
-                                                          ns, specs, context)
+    metrics, by_acceptance, decisions = _decide_and_score(retrieved, scores, ground_truth, scoring, context)
     return MethodResult(
         method=method,
         metrics=metrics,

@@ -177,7 +177,7 @@ def evaluate_similarity_file(path, *, split=None, ground_truth=None, distance: b
     import re
 
     from fdnet.data.groundtruth import GroundTruth
-    from fdnet.evaluation.experiment import evaluate_matrix
+    from fdnet.evaluation.experiment import ScoringSettings, evaluate_matrix
 
     matrix = load_similarity(path, distance)
     if split is not None:
@@ -191,12 +191,13 @@ def evaluate_similarity_file(path, *, split=None, ground_truth=None, distance: b
         raise DataError(f"{path}: matrix is {matrix.shape[0]} x {matrix.shape[1]} but the ground "
                         f"truth is for {gt.num_queries} queries x {gt.num_references} references")
     return evaluate_matrix(
-        matrix, gt, name or re.sub(r"_similarity$", "", Path(path).stem), protocols, thresholds,
+        matrix, gt, name or re.sub(r"_similarity$", "", Path(path).stem),
+        ScoringSettings(protocols=protocols, thresholds=thresholds, acceptance=acceptance),
         dataset=split.description if split else f"{Path(path).name} vs {gt.description}",
         query_paths=split.query.paths if split else None,
         reference_paths=split.reference.paths if split else None,
         # a distance matrix was negated: its largest possible similarity is 0
-        acceptance=acceptance, similarity_ceiling=0.0 if distance else 1.0)
+        similarity_ceiling=0.0 if distance else 1.0)
 
 
 def check_descriptors_held_out(descriptors, data, conditions, frames=None, dataset_format=None, split=None,

@@ -322,14 +322,15 @@ class Context:
         (``raw``: the best-match similarity); ``per_acceptance`` adds fdnet's default acceptance
         rule (:data:`fdnet.decisions.acceptance.DEFAULT_ACCEPTANCE`) beside it."""
         from fdnet.decisions.acceptance import DEFAULT_ACCEPTANCE
-        from fdnet.evaluation.experiment import evaluate_matrix
+        from fdnet.evaluation.experiment import ScoringSettings, evaluate_matrix
 
         memo = (handle.label, key)
         if memo not in self._results:
-            result = evaluate_matrix(self.similarity(handle, split, key), split.ground_truth, handle.label,
-                                     (self.protocol,), self.thresholds, dataset=split.description,
-                                     query_paths=split.query.paths, reference_paths=split.reference.paths,
-                                     acceptance=list(dict.fromkeys(["raw", DEFAULT_ACCEPTANCE])),
+            scoring = ScoringSettings((self.protocol,), self.thresholds,
+                                      acceptance=list(dict.fromkeys(["raw", DEFAULT_ACCEPTANCE])))
+            result = evaluate_matrix(self.similarity(handle, split, key), split.ground_truth, handle.label, scoring,
+                                     dataset=split.description, query_paths=split.query.paths,
+                                     reference_paths=split.reference.paths,
                                      similarity_ceiling=float(getattr(handle.descriptor, "similarity_ceiling", 1.0)))
             result.settings = dict(handle.descriptor.settings())
             self._results[memo] = result

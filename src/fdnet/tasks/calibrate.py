@@ -22,7 +22,8 @@ from fdnet.decisions.calibration import (
     check_target,
     choose_threshold,
 )
-from fdnet.evaluation.experiment import evaluate_method
+from fdnet.descriptors.pipeline import PipelineSettings
+from fdnet.evaluation.experiment import ScoringSettings, evaluate_method
 from fdnet.matching.sequence import check_sequence_length
 from fdnet.version import __version__
 
@@ -47,8 +48,8 @@ def calibrate(descriptor, split, spec: AcceptanceSpec | str, target_precision: f
         candidate.check_available({"images"}, "calibration on image folders")
     say = log or (lambda message: None)
     deepest = max(specs, key=lambda s: s.depth)
-    result = evaluate_method(descriptor, split, sequence_length=sequence_length, acceptance=[deepest],
-                             batch_size=batch_size, workers=workers, progress=progress, log=log)
+    result = evaluate_method(descriptor, split, ScoringSettings(acceptance=[deepest]),
+                             PipelineSettings(batch_size, workers, progress), sequence_length=sequence_length, log=log)
     gt = split.ground_truth
     candidates = Candidates(result.retrieved, result.scores, similarity_ceiling=float(descriptor.similarity_ceiling),
                             query_paths=result.query_paths, reference_paths=result.reference_paths)

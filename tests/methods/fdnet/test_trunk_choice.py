@@ -46,10 +46,11 @@ def test_choice_is_the_best_candidate_and_trunk_methods_read_it(route, tmp_path)
     assert [(s["backbone"], s["block"]) for s in choice.scores] == [(c.backbone, c.block) for c in candidates]
     assert choice.chosen == candidates[pick_best(choice.scores)]
     # each score is what evaluating that trunk alone gives
+    from fdnet.descriptors.pipeline import PipelineSettings
     from fdnet.evaluation.experiment import evaluate_method
 
     alone = evaluate_method(create("trunk", backbone="efficientnet-lite1", block=8, input_size=[32, 64], bf16=False),
-                            split, workers=0).to_dict(include_curve=False)
+                            split, pipeline=PipelineSettings(workers=0)).to_dict(include_curve=False)
     assert choice.scores[2]["recall_at_1"] == alone["recall_at_n"]["1"]
     assert choice.scores[2]["auc_pr"] == pytest.approx(alone["auc_pr"])
     path = tmp_path / "choice.yaml"

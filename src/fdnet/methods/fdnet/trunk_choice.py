@@ -99,6 +99,7 @@ def choose_trunk(split, candidates: Sequence[Candidate], input_size=(128, 256), 
     (``device``, and for ``trunk-whitened`` ``dim``, ``power``, ``fit``, ``fit_frames``: without
     ``fit`` it learns from the split's reference images). ``create`` builds a method (default
     :func:`fdnet.descriptors.create`)."""
+    from fdnet.descriptors.pipeline import PipelineSettings
     from fdnet.evaluation.experiment import evaluate_method
 
     if create is None:
@@ -118,7 +119,7 @@ def choose_trunk(split, candidates: Sequence[Candidate], input_size=(128, 256), 
     for candidate in candidates:
         descriptor = create(method, backbone=candidate.backbone, block=candidate.block,
                             input_size=list(input_size), **options)
-        result = evaluate_method(descriptor, split, batch_size=batch_size, workers=workers, progress=True)
+        result = evaluate_method(descriptor, split, pipeline=PipelineSettings(batch_size, workers, progress=True))
         bar.update(1)
         m = result.to_dict(include_curve=False)
         score = {"backbone": candidate.backbone, "block": candidate.block, "dim": int(descriptor.dim),
