@@ -9,6 +9,7 @@ from PIL import Image
 from fdnet.data.dataset import RouteDataset
 from fdnet.data.split import aligned_split
 from fdnet.decisions.acceptance import Candidates, parse_acceptance
+from fdnet.descriptors.pipeline import PipelineSettings
 from fdnet.tasks.calibrate import calibrate
 from fdnet.decisions.calibration import (
     Calibration,
@@ -81,12 +82,11 @@ def test_calibration_reaches_its_target_on_its_split(tmp_path, rule, target):
     split = make_split(tmp_path)
     descriptor = create("raw")
     cal = calibrate(descriptor, split, parse_acceptance(rule, ["radius=1"] if rule != "raw" else []), target,
-                    workers=0)
+                    pipeline=PipelineSettings(workers=0))
     assert cal.precision >= target and cal.accepted > 0
     assert cal.rule == rule and cal.method == "raw" and cal.fingerprint == descriptor.fingerprint()
     assert cal.measured_on["ground_truth"].startswith("frame-aligned")
     # applying the threshold to the same split's scores gives back the precision and recall stored
-    from fdnet.descriptors.pipeline import PipelineSettings
     from fdnet.evaluation.experiment import ScoringSettings, evaluate_method
 
     result = evaluate_method(descriptor, split, ScoringSettings(acceptance=[cal.spec]), PipelineSettings(workers=0))
@@ -102,7 +102,8 @@ def test_calibration_reaches_its_target_on_its_split(tmp_path, rule, target):
 def test_yaml_round_trip_and_checks(tmp_path):
     split = make_split(tmp_path)
     raw, hog = create("raw"), create("hog")
-    cal = calibrate(raw, split, parse_acceptance("margin", ["radius=2"]), 1.0, sequence_length=3, workers=0)
+    cal = calibrate(raw, split, parse_acceptance("margin", ["radius=2"]), 1.0, sequence_length=3,
+                    pipeline=PipelineSettings(workers=0))
     path = save_calibration(cal, tmp_path / "cal.yaml")
     back = load_calibration(path)
     assert back == cal and back.spec.settings["margin"]["radius"] == 2
@@ -168,17 +169,20 @@ def test_hand_edited_calibration_values_are_refused_on_loading(tmp_path, edit, m
 def test_calibration_can_choose_the_radius_on_its_split(tmp_path):
     split = make_split(tmp_path)
     descriptor = create("raw")
-    chosen = calibrate(descriptor, split, parse_acceptance("margin"), 1.0, workers=0, choose={"radius": [0, 1, 4]})
+    chosen = calibrate(descriptor, split, parse_acceptance("margin"), 1.0, pipeline=PipelineSettings(workers=0),
+                       choose={"radius": [0, 1, 4]})
     tried = chosen.measured_on["chosen_from"]
     assert [t["radius"] for t in tried] == [0, 1, 4]
     best = max(tried, key=lambda t: t["recall"])
     assert chosen.recall == best["recall"] and chosen.settings["margin"]["radius"] == best["radius"]
     # each value tried is what calibrating with that radius alone gives
     for t in tried:
-        alone = calibrate(descriptor, split, parse_acceptance("margin", [f"radius={t['radius']}"]), 1.0, workers=0)
+        alone = calibrate(descriptor, split, parse_acceptance("margin", [f"radius={t['radius']}"]), 1.0,
+                          pipeline=PipelineSettings(workers=0))
         assert alone.recall == t["recall"]
     with pytest.raises(ConfigError, match="has no setting 'radius'"):
-        calibrate(descriptor, split, parse_acceptance("raw"), 1.0, workers=0, choose={"radius": [1]})
+        calibrate(descriptor, split, parse_acceptance("raw"), 1.0, pipeline=PipelineSettings(workers=0),
+                  choose={"radius": [1]})
 
 
 def test_a_neighbourhood_in_metres_is_refused_before_describing(tmp_path):
@@ -189,4 +193,5 @@ def test_a_neighbourhood_in_metres_is_refused_before_describing(tmp_path):
             raise AssertionError("described before the rule was checked")
 
     with pytest.raises(ConfigError, match="radius_m: calibration on image folders has no positions"):
-        calibrate(Untouchable(), split, parse_acceptance("margin"), 1.0, workers=0, choose={"radius_m": [1.0, 2.0]})
+        calibrate(Untouchable(), split, parse_acceptance("margin"), 1.0, pipeline=PipelineSettings(workers=0),
+                  choose={"radius_m": [1.0, 2.0]})

@@ -156,6 +156,7 @@ def run(args) -> int:
     from fdnet.cli.common import check_pipeline_arguments, create_descriptor, method_options
     from fdnet.cli.evaluate import split_from_arguments
     from fdnet.decisions.calibration import CALIBRATION_FILE, check_target
+    from fdnet.descriptors.pipeline import PipelineSettings
     from fdnet.tasks.calibrate import calibrate
     from fdnet.errors import ConfigError
     from fdnet.io import ensure_writable
@@ -204,8 +205,8 @@ def run(args) -> int:
         log(f"calibrating {descriptor.name} with rule {spec.name} for precision {args.target_precision:g} on "
             f"{split.description}: {len(split.query)} queries x {len(split.reference)} references")
         calibration = calibrate(descriptor, split, spec, args.target_precision, args.sequence_length,
-                                measured_on=measured_on, batch_size=args.batch_size, workers=args.workers,
-                                progress=True, log=log,
+                                measured_on=measured_on,
+                                pipeline=PipelineSettings(args.batch_size, args.workers, progress=True), log=log,
                                 choose=choose)
         print(f"{descriptor.name}, rule {calibration.rule}: threshold {calibration.threshold:.6g} reaches precision "
               f"{calibration.precision:.3f} at recall {calibration.recall:.3f} ({calibration.accepted} of "

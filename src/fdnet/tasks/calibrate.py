@@ -29,11 +29,11 @@ from fdnet.version import __version__
 
 
 def calibrate(descriptor, split, spec: AcceptanceSpec | str, target_precision: float, sequence_length: int = 1,
-              measured_on: dict | None = None, batch_size: int = 64, workers: int | None = None,
-              progress: bool = False, log: Callable[[str], None] | None = None,
-              choose: dict[str, Sequence] | None = None) -> Calibration:
+              measured_on: dict | None = None, pipeline: PipelineSettings | None = None,
+              log: Callable[[str], None] | None = None, choose: dict[str, Sequence] | None = None) -> Calibration:
     """Run ``descriptor`` on ``split`` (an :class:`~fdnet.data.split.EvaluationSplit`), score every
-    query with ``spec`` and choose the threshold reaching ``target_precision``.
+    query with ``spec`` and choose the threshold reaching ``target_precision``. ``pipeline``: how
+    images are decoded and described (default: batches of 64, no progress bar).
 
     ``choose`` (e.g. ``{"radius": [0, 1, 2, 3, 5]}``) also chooses rule settings on this split:
     every combination is scored on the same candidates (retrieved once, as deep as the deepest
@@ -49,7 +49,7 @@ def calibrate(descriptor, split, spec: AcceptanceSpec | str, target_precision: f
     say = log or (lambda message: None)
     deepest = max(specs, key=lambda s: s.depth)
     result = evaluate_method(descriptor, split, ScoringSettings(acceptance=[deepest]),
-                             PipelineSettings(batch_size, workers, progress), sequence_length=sequence_length, log=log)
+                             pipeline, sequence_length=sequence_length, log=log)
     gt = split.ground_truth
     candidates = Candidates(result.retrieved, result.scores, similarity_ceiling=float(descriptor.similarity_ceiling),
                             query_paths=result.query_paths, reference_paths=result.reference_paths)
