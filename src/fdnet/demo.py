@@ -117,9 +117,9 @@ def _evaluate(route: Path, run_dir: Path, query: str, test: str, methods: list[s
     from fdnet.metrics import RECALL_OVER_QUERIES
     from fdnet.evaluation.plots import write_result_plots
     from fdnet.evaluation.report import format_table, write_json
-    from fdnet.evaluation.splits import build_split
+    from fdnet.evaluation.splits import SplitSpec, build_split
 
-    split = build_split(route, "summer", query, frames=test, tolerance=1)
+    split = build_split(SplitSpec(route, "summer", query, frames=test, tolerance=1))
     given = {"checkpoint": str(run_dir), "fit": str(route), "fit_frames": f"0:{train_end}"}
     descriptors = []
     for name in methods:  # each method gets the options its constructor takes, as --checkpoint/--fit give them

@@ -5,7 +5,7 @@ import pytest
 from PIL import Image
 
 from fdnet.errors import ConfigError, DataError
-from fdnet.evaluation.splits import build_split, ground_truth_path, load_similarity
+from fdnet.evaluation.splits import SplitSpec, build_split, ground_truth_path, load_similarity
 
 
 def make_folders(root, n=6):
@@ -17,7 +17,7 @@ def make_folders(root, n=6):
 
 
 def test_frame_aligned_split_sliced_by_frames(tmp_path):
-    split = build_split(make_folders(tmp_path / "d"), "day", "night", frames="1:5", tolerance=1)
+    split = build_split(SplitSpec(make_folders(tmp_path / "d"), "day", "night", frames="1:5", tolerance=1))
     assert len(split.query) == len(split.reference) == 4
     assert split.ground_truth.num_queries == 4
 
@@ -30,7 +30,7 @@ def test_frame_aligned_split_sliced_by_frames(tmp_path):
 def test_bad_split_settings_name_the_flag(tmp_path, kwargs, message):
     settings = {"reference": "day", "query": "night", **kwargs}
     with pytest.raises(ConfigError, match=message):
-        build_split(make_folders(tmp_path / "d"), settings.pop("reference"), settings.pop("query"), **settings)
+        build_split(SplitSpec(make_folders(tmp_path / "d"), settings.pop("reference"), settings.pop("query"), **settings))
 
 
 def test_similarity_files(tmp_path):
@@ -68,10 +68,10 @@ def test_a_published_layout_is_not_read_as_plain_folders_without_a_word(tmp_path
             Image.fromarray(np.full((8, 8, 3), 40 * i, np.uint8)).save(root / condition / f"{i:03d}.png")
     (root / "ground_truth.csv").write_text("query_index,reference_indices\n0,1\n1,2\n2,3\n3,0\n")
     with pytest.raises(ConfigError, match="'vprbench' dataset format, which carries its own ground truth"):
-        build_split(root, "ref", "query")
+        build_split(SplitSpec(root, "ref", "query"))
     # said on purpose: frame alignment; or the format's own ground truth
-    assert build_split(root, "ref", "query", tolerance=0).ground_truth.positives[3].tolist() == [3]
-    assert build_split(root, dataset_format="auto").ground_truth.positives[3].tolist() == [0]
+    assert build_split(SplitSpec(root, "ref", "query", tolerance=0)).ground_truth.positives[3].tolist() == [3]
+    assert build_split(SplitSpec(root, dataset_format="auto")).ground_truth.positives[3].tolist() == [0]
 
 
 def test_the_tolerance_in_use_is_said_and_gardens_point_gets_its_protocol(tmp_path, caplog):
@@ -80,11 +80,11 @@ def test_the_tolerance_in_use_is_said_and_gardens_point_gets_its_protocol(tmp_pa
         (root / condition).mkdir(parents=True)
         for i in range(8):
             Image.fromarray(np.full((8, 8, 3), 20 * i, np.uint8)).save(root / condition / f"Image{i:03d}.jpg")
-    split = build_split(root, "day_right", "night_right")
+    split = build_split(SplitSpec(root, "day_right", "night_right"))
     assert split.ground_truth.positives[4].tolist() == [2, 3, 4, 5, 6]
     # the description every command prints names the tolerance and where it came from
     assert split.description == ("gardens_point: night_right -> day_right, frame-aligned, tolerance 2 frames "
                                  "(Gardens Point's protocol, as VPR-Bench; --tolerance changes it)")
-    exact = build_split(root, "day_right", "night_right", tolerance=0)
+    exact = build_split(SplitSpec(root, "day_right", "night_right", tolerance=0))
     assert exact.ground_truth.positives[4].tolist() == [4] and "protocol" not in exact.description
-    assert "frame-aligned, tolerance 0 frames" in build_split(make_folders(tmp_path / "own"), "day", "night").description
+    assert "frame-aligned, tolerance 0 frames" in build_split(SplitSpec(make_folders(tmp_path / "own"), "day", "night")).description

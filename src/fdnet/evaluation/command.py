@@ -175,12 +175,13 @@ def _check_settings(settings: EvaluateSettings) -> None:
 
 
 def _split(settings: EvaluateSettings):
-    from fdnet.evaluation.splits import build_split
+    from fdnet.evaluation.splits import SplitSpec, build_split
 
-    return build_split(settings.data, settings.reference, settings.query, dataset_format=settings.dataset_format,
-                       split=settings.split, format_set=list(settings.format_set), frames=settings.frames,
-                       tolerance=settings.tolerance, filter_frames=settings.filter_frames,
-                       ground_truth=settings.ground_truth)
+    return build_split(SplitSpec(settings.data, settings.reference, settings.query,
+                                 dataset_format=settings.dataset_format, split=settings.split,
+                                 format_set=tuple(settings.format_set), frames=settings.frames,
+                                 tolerance=settings.tolerance, filter_frames=settings.filter_frames,
+                                 ground_truth=settings.ground_truth))
 
 
 def _evaluate_matrix(settings: EvaluateSettings, acceptance):

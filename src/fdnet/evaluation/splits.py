@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 
 from fdnet.errors import ConfigError, DataError
@@ -30,18 +31,38 @@ def ground_truth_path(ground_truth) -> Path | None:
     return path  # as typed, so errors name the file the way the user wrote it
 
 
-def _format_split(data, reference, query, dataset_format, split, format_set, frames, tolerance, filter_frames,
-                  ground_truth):
+@dataclass(frozen=True)
+class SplitSpec:
+    """Which reference and query images a command evaluates or calibrates on, as the data flags
+    give them: ``data`` (a folder of condition sub-folders, or a published layout with
+    ``dataset_format``), ``reference`` and ``query`` conditions, a named ``split`` or a ``frames``
+    range, the format's ``format_set`` (KEY=VALUE), the frame ``tolerance``, ``filter_frames``,
+    and a ``ground_truth`` CSV replacing the frame alignment."""
+
+    data: str
+    reference: str | None = None
+    query: str | None = None
+    dataset_format: str | None = None
+    split: str | None = None
+    format_set: tuple = ()
+    frames: str | None = None
+    tolerance: int | None = None
+    filter_frames: bool = False
+    ground_truth: str | None = None
+
+
+def _format_split(spec: SplitSpec, ground_truth):
     """``--dataset-format``: the adapter's split; ``--ground-truth`` replaces its ground truth for
     the chosen split (indices over the split's images, as ``fdnet groundtruth --data`` writes)."""
     from fdnet.config import parse_overrides
     from fdnet.data.formats import detect_format, get_format, open_split
 
-    if frames and split:
+    data, tolerance, filter_frames = spec.data, spec.tolerance, spec.filter_frames
+    if spec.frames and spec.split:
         raise ConfigError("give --split or --frames, not both")
-    name = detect_format(data) if dataset_format == "auto" else dataset_format
+    name = detect_format(data) if spec.dataset_format == "auto" else spec.dataset_format
     fields = {f.name for f in dataclasses.fields(get_format(name).Options)}
-    options = parse_overrides(list(format_set))
+    options = parse_overrides(list(spec.format_set))
     if tolerance is not None:
         options["tolerance"] = tolerance
     if filter_frames:
@@ -52,21 +73,20 @@ def _format_split(data, reference, query, dataset_format, split, format_set, fra
     if ground_truth is not None and options.get("ground_truth"):
         raise ConfigError(f"two explicit ground truths: --ground-truth {ground_truth} and "
                           f"--format-set ground_truth={options['ground_truth']}; give one")
-    return open_split(data, reference, query, dataset_format=name, split=split or frames,
+    return open_split(data, spec.reference, spec.query, dataset_format=name, split=spec.split or spec.frames,
                       listed_ground_truth=ground_truth, **options)
 
 
-def build_split(data, reference=None, query=None, *, dataset_format=None, split=None, format_set=(), frames=None,
-                tolerance=None, filter_frames: bool = False, ground_truth=None):
+def build_split(spec: SplitSpec):
     """:func:`_build_split`. Its ``description`` names the ground truth and the tolerance in use
     (Gardens Point's protocol tolerance is said there too), and every command that evaluates or
     calibrates on a split prints it."""
-    return _build_split(data, reference, query, dataset_format=dataset_format, split=split, format_set=format_set,
-                        frames=frames, tolerance=tolerance, filter_frames=filter_frames, ground_truth=ground_truth)
+    if not isinstance(spec, SplitSpec):
+        raise ConfigError(f"build_split needs a SplitSpec, got {type(spec).__name__}")
+    return _build_split(spec)
 
 
-def _build_split(data, reference=None, query=None, *, dataset_format=None, split=None, format_set=(), frames=None,
-                 tolerance=None, filter_frames: bool = False, ground_truth=None):
+def _build_split(spec: SplitSpec):
     """The :class:`~fdnet.data.split.EvaluationSplit` these settings describe. Without
     ``dataset_format``: ``data/reference/query`` frame-aligned (:func:`fdnet.data.split.aligned_split`,
     after the frame filter with ``filter_frames``) or with ``ground_truth`` over all images of the
@@ -75,11 +95,12 @@ def _build_split(data, reference=None, query=None, *, dataset_format=None, split
     from fdnet.data.dataset import RouteDataset, parse_frame_range
     from fdnet.data.split import aligned_split, listed_split
 
-    ground_truth = ground_truth_path(ground_truth)
-    if dataset_format:
-        return _format_split(data, reference, query, dataset_format, split, format_set, frames, tolerance,
-                             filter_frames, ground_truth)
-    if split or format_set:
+    ground_truth = ground_truth_path(spec.ground_truth)
+    if spec.dataset_format:
+        return _format_split(spec, ground_truth)
+    data, reference, query, frames = spec.data, spec.reference, spec.query, spec.frames
+    tolerance, filter_frames = spec.tolerance, spec.filter_frames
+    if spec.split or spec.format_set:
         raise ConfigError("--split and --format-set need --dataset-format")
     if not (reference and query):
         raise ConfigError("--data needs --reference COND and --query COND (sub-folders of --data)")
