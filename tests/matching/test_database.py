@@ -115,7 +115,7 @@ def test_a_full_disk_is_an_output_error_and_adds_nothing(tmp_path, rng):
 def test_an_open_database_sees_places_another_connection_adds(tmp_path, rng):
     v = unit(rng, 6, 8)
     path = tmp_path / "map.db"
-    with PlaceDatabase.create(path, Projection(), vectors=v[:3], names=["a", "b", "c"]) as reader:
+    with PlaceDatabase.create(path, Projection(), places=[(v[:3], ["a", "b", "c"])]) as reader:
         assert reader.query(v[0], k=1)[0][0].name == "a"
         with PlaceDatabase.open(path) as writer:
             writer.add(v[3:], ["d", "e", "f"])
@@ -135,7 +135,7 @@ def test_a_query_searches_the_first_places_it_is_given(rng):
 def test_custom_similarity_database(tmp_path, rng):
     v = rng.normal(size=(20, 8)).astype(np.float32)
     path = tmp_path / "l1.db"
-    PlaceDatabase.create(path, NegativeL1(), vectors=v, names=[str(i) for i in range(20)]).close()
+    PlaceDatabase.create(path, NegativeL1(), places=[(v, [str(i) for i in range(20)])]).close()
     with PlaceDatabase.open(path, descriptor=NegativeL1()) as db:
         assert db.query(v[4], k=1)[0][0].index == 4
     with PlaceDatabase.open(path) as db, pytest.raises(ConfigError, match="its own similarity"):
@@ -177,7 +177,7 @@ def test_descriptor_base_does_not_import_torch():
 def test_vectors_from_another_model_are_refused(tmp_path, rng):
     path = tmp_path / "map.db"
     built, retrained = Projection(seed=0), Projection(seed=1)
-    PlaceDatabase.create(path, built, vectors=unit(rng, 3, 8), names=["a", "b", "c"]).close()
+    PlaceDatabase.create(path, built, places=[(unit(rng, 3, 8), ["a", "b", "c"])]).close()
     with pytest.raises(ConfigError, match="fingerprint mismatch") as refused:
         PlaceDatabase.open(path, descriptor=retrained)
     assert built.fingerprint()[:12] in str(refused.value) and retrained.fingerprint()[:12] in str(refused.value)
@@ -196,7 +196,7 @@ def test_non_finite_vectors_are_refused_and_nothing_is_added(tmp_path, rng):
         db.add(v, ["frame_0.png", "frame_1.png", "frame_2.png"])
     assert len(db) == 0
     with pytest.raises(DataError, match="frame_1.png"):
-        PlaceDatabase.create(tmp_path / "new.db", Projection(), vectors=v, names=["frame_0.png", "frame_1.png", "x"])
+        PlaceDatabase.create(tmp_path / "new.db", Projection(), places=[(v, ["frame_0.png", "frame_1.png", "x"])])
     assert not (tmp_path / "new.db").exists()
 
 
@@ -222,11 +222,11 @@ def test_duplicates_are_skipped_and_reported_unless_allowed(tmp_path, rng):
 
 def test_create_refuses_an_existing_file_unless_overwrite(tmp_path, rng):
     path = tmp_path / "map.db"
-    PlaceDatabase.create(path, Projection(), vectors=unit(rng, 4, 8), names=list("abcd")).close()
+    PlaceDatabase.create(path, Projection(), places=[(unit(rng, 4, 8), list("abcd"))]).close()
     with pytest.raises(ConfigError, match="already exists.*overwrite"):
         PlaceDatabase.create(path, Projection())
-    with PlaceDatabase.create(path, Projection(seed=3), overwrite=True, vectors=unit(rng, 2, 8),
-                              names=["x", "y"]) as db:
+    with PlaceDatabase.create(path, Projection(seed=3), overwrite=True,
+                              places=[(unit(rng, 2, 8), ["x", "y"])]) as db:
         assert db.names == ["x", "y"] and db.fingerprint == Projection(seed=3).fingerprint()
     foreign = tmp_path / "other.db"
     with sqlite3.connect(foreign) as conn:
@@ -241,7 +241,7 @@ def test_create_refuses_an_existing_file_unless_overwrite(tmp_path, rng):
     assert noise.read_bytes() == b"\x00\x01" * 600
     empty = tmp_path / "empty.db"
     empty.touch()  # nothing to lose (e.g. made by mktemp): used as it is
-    assert len(PlaceDatabase.create(empty, Projection(), vectors=unit(rng, 1, 8), names=["a"])) == 1
+    assert len(PlaceDatabase.create(empty, Projection(), places=[(unit(rng, 1, 8), ["a"])])) == 1
 
 
 @pytest.mark.parametrize("content, message", [
@@ -386,7 +386,7 @@ def test_a_writer_killed_at_any_moment_leaves_whole_batches(tmp_path):
 
 def test_database_metadata_is_stored_in_one_transaction_and_survives_reopening(tmp_path, rng):
     path = tmp_path / "map.db"
-    with PlaceDatabase.create(path, Projection(), vectors=unit(rng, 3, 8), names=["a", "b", "c"]) as db:
+    with PlaceDatabase.create(path, Projection(), places=[(unit(rng, 3, 8), ["a", "b", "c"])]) as db:
         assert db.get_metadata("calibration") is None  # no metadata table yet: nothing stored
         db.set_metadata("calibration", {"rule": "margin", "threshold": 0.25})
         db.set_metadata("calibration", {"rule": "margin", "threshold": 0.5})  # replaced, not duplicated

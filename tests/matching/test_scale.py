@@ -126,7 +126,7 @@ def test_database_index_cache_is_derived_current_and_reused(tmp_path, rng):
     names = [f"p{i}" for i in range(len(v))]
     path = tmp_path / "map.db"
     db = PlaceDatabase.create(path, d, method_options={}, index=IndexSettings(kind="ivf", ivf_probe=8),
-                              batches=[(v[:6000], names[:6000]), (v[6000:], names[6000:])])
+                              places=[(v[:6000], names[:6000]), (v[6000:], names[6000:])])
     assert db.build_index() is not None
     cache = db.index_cache_path
     assert cache.is_file() and VectorIndex.read_header(cache)["metadata"]["last_id"] == 12000
@@ -144,12 +144,12 @@ def test_database_index_cache_is_derived_current_and_reused(tmp_path, rng):
         assert [row[0].name for row in hits] == [f"new{i}" for i in range(5)]
     # a cache from another database is ignored, not trusted
     other = PlaceDatabase.create(tmp_path / "other.db", d, method_options={}, index=IndexSettings(kind="ivf"),
-                                 vectors=v[:100], names=names[:100])
+                                 places=[(v[:100], names[:100])])
     cache.replace(other.index_cache_path)
     assert other.query(v[:3], k=1)[0][0].index == 0 and other._index_cache.places == 0
     other.close()
     # flat databases have no cache: rebuilding is a copy
-    with PlaceDatabase.create(tmp_path / "flat.db", d, method_options={}, vectors=v[:10], names=names[:10]) as flat:
+    with PlaceDatabase.create(tmp_path / "flat.db", d, method_options={}, places=[(v[:10], names[:10])]) as flat:
         assert flat.index_cache_path is None
 
 
@@ -162,7 +162,7 @@ def test_a_restored_backup_never_loads_the_index_cache_of_places_it_does_not_hol
     v = unit(rng, 80, 16)
     path = tmp_path / "map.db"
     with PlaceDatabase.create(path, d, method_options={}, index=IndexSettings(kind="hnsw", hnsw_neighbors=8),
-                              vectors=v[:60], names=[f"p{i}" for i in range(60)]):
+                              places=[(v[:60], [f"p{i}" for i in range(60)])]):
         pass
     shutil.copyfile(path, tmp_path / "backup.db")
     with PlaceDatabase.open(path) as db:

@@ -199,7 +199,7 @@ def build_database(request: BuildRequest) -> BuildSummary:
         database = PlaceDatabase.create(db, descriptor, index=settings,
                                         method_options=_options_for(request.method_options, request.method),
                                         overwrite=request.overwrite,
-                                        batches=_spooled_batches(spool, names, paths))
+                                        places=_spooled_batches(spool, names, paths))
     return _finish_build(db, database, descriptor, settings, shards.world_size)
 
 

@@ -160,8 +160,8 @@ def migrate_old_format(folder: str | os.PathLike, out: str | os.PathLike, overwr
     positions = meta["positions"]
     PlaceDatabase.create(
         out, descriptor, index=meta["index"], method_options=meta["method_options"], overwrite=overwrite,
-        vectors=vectors[keep], names=[names[i] for i in keep],
-        positions=None if positions is None else [positions[i] for i in keep],
+        places=[(vectors[keep], [names[i] for i in keep],
+                 None if positions is None else [positions[i] for i in keep], None)],
         allow_duplicates=True).close()
     return MigrationReport(places=len(keep), dropped_non_finite=[names[i] for i in np.flatnonzero(~finite)],
                            duplicate_names=len(names) - len(set(names)))

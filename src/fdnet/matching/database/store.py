@@ -135,18 +135,15 @@ class PlaceDatabase:
 
     @classmethod
     def create(cls, path: str | os.PathLike, descriptor, *, index: IndexSettings | None = None,
-               method_options: dict | None = None, overwrite: bool = False,
-               vectors: np.ndarray | None = None, names: Sequence[str] | None = None,
-               positions: Sequence[tuple[float, float] | None] | np.ndarray | None = None,
-               metadata: Sequence[dict | None] | None = None, allow_duplicates: bool = False,
-               batches: Iterable | None = None) -> "PlaceDatabase":
-        """Write a new database for ``descriptor``'s vectors, with an optional first batch of
-        places, in one transaction: a crash leaves no half-made database behind.
+               method_options: dict | None = None, overwrite: bool = False, places: Iterable | None = None,
+               allow_duplicates: bool = False) -> "PlaceDatabase":
+        """Write a new database for ``descriptor``'s vectors, with optional first places, in one
+        transaction: a crash leaves no half-made database behind.
 
-        ``batches`` (instead of ``vectors``/``names``...) gives the first places as an iterable of
-        ``(vectors, names)`` or ``(vectors, names, positions, metadata)`` chunks, all stored in
-        the same transaction (see :meth:`add_batches`): a map of any size, a chunk in memory at a
-        time.
+        ``places`` gives the first places as an iterable of ``(vectors, names)`` or ``(vectors,
+        names, positions, metadata)`` chunks, all stored in the same transaction (see
+        :meth:`add_batches`): a list of chunks is checked whole before the file is touched (a
+        refused chunk leaves no file); a generator, a map of any size a chunk in memory at a time.
 
         ``method_options`` rebuild the descriptor later (``fdnet.descriptors.create(method,
         **method_options)``). An existing file is refused unless ``overwrite``; then an existing
@@ -169,10 +166,9 @@ class PlaceDatabase:
             created=datetime.now(timezone.utc).isoformat(timespec="seconds"), fdnet_version=__version__)
         similarity = None if identity.dot_product else descriptor.similarity
         db = cls(target, None, identity, similarity)
-        # Before the file is touched: a refused first batch must not leave a file behind.
-        if batches is not None and vectors is not None:
-            raise ConfigError("give the first places as vectors/names or as batches, not both")
-        batch = None if vectors is None else db._prepare(vectors, names, positions, metadata, None)
+        # Before the file is touched: refused places given whole must not leave a file behind.
+        prepared = ([db._prepare(*_chunk_parts(db.path, chunk), None) for chunk in places]
+                    if isinstance(places, (list, tuple)) else None)
         if target != MEMORY:
             Path(target).parent.mkdir(parents=True, exist_ok=True)
         with _sqlite_errors(target, "creating the place database"):
@@ -208,10 +204,11 @@ class PlaceDatabase:
                         (identity.database_id, identity.method, settings_json, options_json, identity.dim,
                          int(identity.dot_product), index_json, identity.fingerprint, identity.created,
                          identity.fdnet_version))
-                    if batch is not None:
-                        db._insert(conn, batch, allow_duplicates)
-                    elif batches is not None:
-                        db._insert_batches(conn, batches, allow_duplicates)
+                    if prepared is not None:
+                        for batch in prepared:
+                            db._insert(conn, batch, allow_duplicates)
+                    elif places is not None:
+                        db._insert_batches(conn, places, allow_duplicates)
         except BaseException:
             conn.close()
             raise
@@ -325,12 +322,7 @@ class PlaceDatabase:
     def _insert_batches(self, conn: sqlite3.Connection, batches: Iterable, allow_duplicates: bool) -> AddResult:
         added, skipped = 0, []
         for chunk in batches:
-            if not isinstance(chunk, (tuple, list)) or len(chunk) not in (2, 4):
-                raise ConfigError(f"{self.path}: a batch must be (vectors, names) or (vectors, names, positions, "
-                                  "metadata)")
-            vectors, names = chunk[0], chunk[1]
-            positions, metadata = (chunk[2], chunk[3]) if len(chunk) == 4 else (None, None)
-            prepared = self._prepare(vectors, names, positions, metadata, None)
+            prepared = self._prepare(*_chunk_parts(self.path, chunk), None)
             if prepared["names"]:
                 kept, refused = self._insert_rows(conn, prepared, allow_duplicates)
                 added += kept
@@ -559,3 +551,10 @@ class PlaceDatabase:
             "created": ident.created, "fdnet_version": ident.fdnet_version,
         }
 
+
+def _chunk_parts(path, chunk) -> tuple:
+    """(vectors, names, positions, metadata) of a chunk of places given as (vectors, names) or
+    (vectors, names, positions, metadata)."""
+    if not isinstance(chunk, (tuple, list)) or len(chunk) not in (2, 4):
+        raise ConfigError(f"{path}: a batch must be (vectors, names) or (vectors, names, positions, metadata)")
+    return (chunk[0], chunk[1], *((chunk[2], chunk[3]) if len(chunk) == 4 else (None, None)))
