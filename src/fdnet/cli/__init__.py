@@ -65,9 +65,6 @@ def build_parser() -> argparse.ArgumentParser:
         importlib.import_module(module_name).register(sub)
     _add_source_arguments(sub)
     _add_logging_arguments(sub)
-    from fdnet.cli.flags import add_shared_old_spellings
-
-    add_shared_old_spellings(sub)  # --methods for --method everywhere (docs/flags.md)
     return parser
 
 
@@ -135,9 +132,6 @@ def main(argv: list[str] | None = None) -> int:
     try:
         # the library's messages: standard error, "fdnet COMMAND: ..." (fdnet.logs)
         with command_logging(args.command, level_for(getattr(args, "quiet", False), getattr(args, "verbose", False))):
-            from fdnet.cli.flags import note_old_spellings
-
-            note_old_spellings(args)  # an old flag spelling still works, with a one-line note
             forget_inputs()  # the files this command reads are protected from its outputs (fdnet.io)
             if hasattr(args, "fps"):  # a command that takes images: its video/bag sampling flags
                 from fdnet.cli.common import source_options

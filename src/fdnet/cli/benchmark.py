@@ -72,9 +72,6 @@ def register(sub) -> None:
     p.add_argument("--quick", action="store_true", help="fewer repeats and only L=512 (for smoke tests)")
     p.add_argument("--json", help="write all figures as JSON")
     add_device_argument(p)
-    from fdnet.cli.flags import add_old_spelling
-
-    add_old_spelling(p, "--methods", "--method")
     p.set_defaults(func=run)
 
 

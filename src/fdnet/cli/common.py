@@ -178,7 +178,7 @@ def add_device_argument(parser: argparse.ArgumentParser) -> None:
 
 
 #: options whose value may be a folder of images, so also a video or ROS bag (fdnet.data.sources)
-IMAGE_OPTIONS = ("--images", "--reference", "--query", "--data", "--dataset", "--positions", "--fit")
+IMAGE_OPTIONS = ("--images", "--reference", "--query", "--data", "--positions", "--fit")
 
 
 def add_source_arguments(parser: argparse.ArgumentParser) -> None:

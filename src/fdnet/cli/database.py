@@ -43,8 +43,6 @@ def _whole_number(text: str) -> int:
 
 
 def register(sub) -> None:
-    from fdnet.cli.flags import add_old_spelling
-
     p = sub.add_parser("database", help="build, extend, query, inspect and migrate a persistent place database")
     actions = p.add_subparsers(dest="action", metavar="ACTION", required=True)
 
@@ -64,7 +62,6 @@ def register(sub) -> None:
                             "hnsw_neighbors, hnsw_ef_construction, hnsw_ef_search (see docs/performance.md)")
     add_pipeline_arguments(build)
     add_device_argument(build)
-    add_old_spelling(build, "--out", "--db")
     build.set_defaults(func=run_build)
 
     add = actions.add_parser(
@@ -105,7 +102,6 @@ def register(sub) -> None:
     migrate.add_argument("--from", dest="source", required=True, help="old-format database folder")
     migrate.add_argument("--db", required=True, help="database file to write, e.g. map.db")
     migrate.add_argument("--overwrite", action="store_true", help="replace an existing place database at --db")
-    add_old_spelling(migrate, "--out", "--db")
     migrate.set_defaults(func=run_migrate)
 
 
@@ -131,7 +127,7 @@ def run_build(args) -> int:
     from fdnet.descriptors.pipeline import PipelineSettings
     from fdnet.tasks.database import BuildRequest, build_database
 
-    with launch(command=True) as shards:
+    with launch() as shards:
         shards.collectively(lambda: check_pipeline_arguments(args))
         summary = build_database(BuildRequest(
             args.images, args.db, args.method, method_options=lambda m: file_options(args, m), device=args.device,

@@ -20,9 +20,6 @@ def register(sub) -> None:
                         "training frames, the rows to beat)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--resume", action="store_true", help="continue an interrupted demo training run")
-    from fdnet.cli.flags import add_old_spellings
-
-    add_old_spellings(p, {"--frames": "--num-frames", "--train-minutes": "--max-minutes", "--methods": "--method"})
     p.set_defaults(func=run)
 
 

@@ -61,11 +61,6 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, help="ground-truth CSV to write")
     p.add_argument("--warn-unmatched", type=float, default=0.2, metavar="FRACTION",
                    help="warn when more than this fraction of queries has no true match (default 0.2)")
-    from fdnet.cli.flags import add_old_spelling
-
-    add_old_spelling(source, "--dataset", "--data")  # in the group: still one source of three
-    add_old_spelling(p, "--tolerance-frames", "--tolerance")
-    add_old_spelling(p, "--set", "--format-set")
     p.set_defaults(func=run)
 
 

@@ -128,9 +128,6 @@ def register(sub) -> None:
     groups = {name: p.add_argument_group(name) for name in ("data", "methods", "experiments", "output")}
     for group, flag, keywords in ARGUMENTS:
         groups[group].add_argument(flag, **keywords)
-    from fdnet.cli.flags import add_old_spelling
-
-    add_old_spelling(groups["methods"], "--methods", "--method")
     p.set_defaults(func=run)
 
 

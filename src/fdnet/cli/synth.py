@@ -19,9 +19,6 @@ def register(sub) -> None:
     p.add_argument("--size", default="64x128", help="frame size HxW in pixels (default 64x128)")
     p.add_argument("--step", type=float, default=0.5,
                    help="camera movement between frames, in frame heights (default 0.5)")
-    from fdnet.cli.flags import add_old_spelling
-
-    add_old_spelling(p, "--frames", "--num-frames")
     p.set_defaults(func=run)
 
 
