@@ -86,6 +86,10 @@ ARGUMENTS = (
                                            help="ablation: a training setting of the trained variants, for every "
                                                 "preset or one, e.g. paper-native:schedule.joint_steps=60000 "
                                                 "(repeatable)")),
+    ("experiments", "--seeds", dict(type=int, default=1, metavar="N",
+                                    help="ablation: train each variant trained here N times, seeds S, S+1, ... (S "
+                                         "its runtime.seed), and report each number's mean, sample standard "
+                                         "deviation and min-max over the N runs (default 1)")),
     ("experiments", "--viewpoint-pair", dict(metavar="REFERENCE,QUERY",
                                              help="viewpoint: the pair to crop (default: the first pair)")),
     ("experiments", "--overlaps", dict(default="100,90,75,65", metavar="LIST",
@@ -277,6 +281,7 @@ def run(args) -> int:
         length_train_frames=args.length_train_frames, length_overrides=parse_overrides(args.length_set),
         ablation_runs=_ablation_runs(args.ablation_runs), ablation_presets=_names(args.ablation_preset),
         ablation_train_frames=args.ablation_train_frames, ablation_overrides=_ablation_overrides(args.ablation_set),
+        seeds=args.seeds,
         viewpoint_pair=tuple(viewpoint) if viewpoint else None, overlaps=_overlaps(args.overlaps),
         examples=args.examples, runtime_images=args.runtime_images, embedding_points=args.embedding_points,
         batch_size=args.batch_size, threads=args.threads, progress=not args.no_progress, protocol=args.protocol,

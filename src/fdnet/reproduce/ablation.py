@@ -121,8 +121,9 @@ def overrides_for(settings, preset_name: str) -> dict:
             **settings.ablation_overrides.get(preset_name, {})}
 
 
-def training_config(settings, preset_name: str, variant: str):
-    """The run config of one variant on ``settings.data`` (training frames only)."""
+def training_config(settings, preset_name: str, variant: str, seed: int | None = None):
+    """The run config of one variant on ``settings.data`` (training frames only); ``seed`` replaces
+    its ``runtime.seed`` (None: the preset's, or ``--ablation-set runtime.seed=S``)."""
     from fdnet.config import replace_dotted
     from fdnet.methods.fdnet.config import preset, validate
 
@@ -136,14 +137,34 @@ def training_config(settings, preset_name: str, variant: str):
         data = dataclasses.replace(data, frames=settings.ablation_train_frames)
     config = dataclasses.replace(config, data=data)
     config = replace_dotted(config, {**overrides_for(settings, preset_name), **VARIANTS[variant]})
+    if seed is not None and seed != config.runtime.seed:
+        config = replace_dotted(config, {"runtime.seed": seed})
     validate(config)
     return config
 
 
-def _train(ctx, preset_name: str, variant: str, folder: Path) -> None:
+def trained_runs(ctx, preset_name: str, variant: str) -> list[Path]:
+    """Train (or reuse, or resume) one variant ``--seeds N`` times, seeds S, S+1, ... from its
+    config's own S: the first into ``OUT/ablation-runs/<preset>/<variant>/``, seed S+k into
+    ``...<variant>-seed<S+k>/`` (see :mod:`fdnet.reproduce.seeds`); returns the run folders."""
+    from fdnet.reproduce.seeds import seed_folder, seeds_from
+
+    folder = ctx.out / "ablation-runs" / preset_name / variant
+    first = training_config(ctx.settings, preset_name, variant).runtime.seed
+    folders = []
+    for seed in seeds_from(first, ctx.settings.seeds):
+        where = seed_folder(folder, first, seed)
+        _train(ctx, preset_name, variant, where, None if seed == first else seed)
+        folders.append(where)
+    return folders
+
+
+def _train(ctx, preset_name: str, variant: str, folder: Path, seed: int | None = None) -> None:
     from fdnet import runs
 
-    config = training_config(ctx.settings, preset_name, variant)
+    config = training_config(ctx.settings, preset_name, variant, seed)
+    if seed is not None:
+        variant = f"{variant} (seed {seed})"  # how the log names this run
     if runs.is_run(folder):
         from fdnet.methods.fdnet.config import FDNetRunConfig
 
@@ -175,9 +196,10 @@ def variant_of(config) -> str:
                       f"({', '.join(VARIANTS)}: one part removed at a time)")
 
 
-def ablation_runs(ctx) -> dict[str, dict[str, Path]]:
-    """preset -> variant -> run directory: the given runs (grouped by the preset each was trained
-    with) and, for the presets trained here, the variants not given."""
+def ablation_runs(ctx) -> dict[str, dict[str, list[Path]]]:
+    """preset -> variant -> its run directories: the given run (one; grouped by the preset it was
+    trained with) and, for the presets trained here, the variants not given (``--seeds N``: N runs,
+    one per seed)."""
     from fdnet.methods.fdnet.config import FDNetRunConfig
     from fdnet.runs import load_config, weights_folder
 
@@ -191,15 +213,14 @@ def ablation_runs(ctx) -> dict[str, dict[str, Path]]:
                               f"({', '.join(f'loss.{n}=false' for n in config.ablated()) or 'every switch on'})")
         group = groups.setdefault(config.preset, {})
         if variant in group:
-            raise ConfigError(f"--ablation-runs: two {config.preset} runs for {variant} ({group[variant]}, {folder})")
-        group[variant] = Path(folder)
+            raise ConfigError(f"--ablation-runs: two {config.preset} runs for {variant} ({group[variant][0]}, "
+                              f"{folder})")
+        group[variant] = [Path(folder)]
     for name in presets(s):
         group = groups.setdefault(name, {})
         for variant in VARIANTS:
             if variant not in group:
-                folder = ctx.out / "ablation-runs" / name / variant
-                _train(ctx, name, variant, folder)
-                group[variant] = folder
+                group[variant] = trained_runs(ctx, name, variant)
     return {name: {v: group[v] for v in VARIANTS if v in group} for name, group in groups.items()}
 
 
@@ -239,53 +260,103 @@ def _mcnemar(right_full, right_variant) -> dict:
     return {"right_only_in_full": only_full, "right_only_in_variant": only_variant, "p_value": float(p)}
 
 
-def run(ctx) -> dict:
+#: the numbers of a variant on a pair (the report's columns), averaged over its seeds with --seeds N
+METRICS = ("recall_at_1", "recall_at_100_precision", "recall_at_100_precision_margin", "precision_at_max_recall",
+           "auc_pr")
+
+
+def _compare(ctx, pair, handles: dict) -> tuple[dict, list[dict]]:
+    """The results and table rows of one pair for one run per variant (``handles``: variant ->
+    handle); each variant but the full one is compared with the full run given beside it."""
     import numpy as np
 
+    from fdnet.decisions.acceptance import DEFAULT_ACCEPTANCE
+
+    results = {v: ctx.result(h, pair.split, pair.slug) for v, h in handles.items()}
+    right = {v: r.ground_truth.correct_mask(np.asarray(r.retrieved)[:, :1])[:, 0] for v, r in results.items()}
+    queries, _ = ctx.pair_vectors(handles["full"], pair.split) if "full" in handles else (None, None)
+    rows_out = []
+    for variant, result in results.items():
+        metrics = result.metrics[ctx.protocol]
+        margin = result.by_acceptance.get(DEFAULT_ACCEPTANCE, {}).get(ctx.protocol)
+        row = {"variant": variant, "recall_at_1": finite_or_none(metrics.recall_at_n[1]),
+               "recall_at_100_precision": finite_or_none(metrics.recall_at_100_precision),
+               "recall_at_100_precision_margin": finite_or_none(margin.recall_at_100_precision)
+               if margin is not None else None,
+               "precision_at_max_recall": finite_or_none(metrics.precision_at_max_recall),
+               "auc_pr": finite_or_none(metrics.auc_pr), "pr_curve": metrics.curve.to_dict()}
+        if variant != "full" and "full" in results:
+            row["against_full"] = _mcnemar(right["full"], right[variant])
+            mine, _ = ctx.pair_vectors(handles[variant], pair.split)
+            row["same_content_vectors_as_full"] = bool(np.array_equal(mine, queries))
+        rows_out.append(row)
+    return results, rows_out
+
+
+def _over_seeds(ctx, pair, seeded: dict, seeds: dict, first_rows: list[dict]) -> None:
+    """With ``--seeds N``: each row of a variant with several runs gets ``per_seed`` (each run's
+    numbers, its seed, and its comparison with the full run of the same seed index) and ``spread``
+    (each number's n, mean, sample standard deviation, min and max); its numbers become the means,
+    ``same_content_vectors_as_full`` holds when it holds for every seed, and ``pr_curve`` and
+    ``against_full`` stay the first seed's."""
+    from fdnet.reproduce.seeds import spread
+
+    longest = max(len(hs) for hs in seeded.values())
+    by_seed = [{row["variant"]: row for row in first_rows}]
+    for k in range(1, longest):
+        handles = {v: hs[k] for v, hs in seeded.items() if len(hs) > k}
+        if "full" not in handles and "full" in seeded:
+            handles["full"] = seeded["full"][0]  # a given full run (one seed) stands for every seed
+        by_seed.append({row["variant"]: row for row in _compare(ctx, pair, handles)[1]})
+    for row in first_rows:
+        variant = row["variant"]
+        if len(seeded[variant]) < 2:
+            continue
+        runs = [(seeds[variant][k], by_seed[k][variant]) for k in range(len(seeded[variant]))]
+        row["per_seed"] = [{"seed": seed, **{key: r[key] for key in METRICS},
+                            **{key: r[key] for key in ("against_full", "same_content_vectors_as_full") if key in r}}
+                           for seed, r in runs]
+        row["spread"] = {key: spread([r[key] for _, r in runs]) for key in METRICS}
+        row.update({key: row["spread"][key]["mean"] for key in METRICS})
+        if "same_content_vectors_as_full" in row:
+            row["same_content_vectors_as_full"] = all(r.get("same_content_vectors_as_full") for _, r in runs)
+
+
+def run(ctx) -> dict:
     from fdnet.decisions.acceptance import DEFAULT_ACCEPTANCE
     from fdnet.evaluation import plots
 
     options = {k: v for k, v in ctx.settings.method_options.get("fdnet", {}).items() if k != "checkpoint"}
     groups = []
     for preset_name, variants in ablation_runs(ctx).items():
-        handles = {}
-        for variant, folder in variants.items():
-            handles[variant] = ctx.add_method(f"fdnet[{preset_name}/{variant}]", "fdnet",
-                                              {**options, "checkpoint": str(folder)}, required=True, compared=False)
-        configs = {v: h.descriptor.config for v, h in handles.items()}
-        full = configs.get("full")
+        # variant -> one handle per run (per seed), the first labelled as a single run always was
+        seeded = {variant: [ctx.add_method(f"fdnet[{preset_name}/{variant if k == 0 else folder.name}]", "fdnet",
+                                           {**options, "checkpoint": str(folder)}, required=True, compared=False)
+                            for k, folder in enumerate(folders)]
+                  for variant, folders in variants.items()}
+        handles = {v: hs[0] for v, hs in seeded.items()}
+        seeds = {v: [h.descriptor.config.runtime.seed for h in hs] for v, hs in seeded.items()}
+        full = seeded.get("full")
         runs_info = []
-        for v, h in handles.items():
-            schedule = _schedule(configs[v])
-            runs_info.append({"variant": v, "removes": REMOVES[v], "run": str(variants[v]), "step": h.descriptor.step,
-                              "seed": configs[v].runtime.seed,
-                              "schedule": schedule, "weights_stage": weights_stage(schedule, h.descriptor.step),
-                              "differences_from_full": _differences(full, configs[v])
-                              if full is not None and v != "full" else []})
+        for v, hs in seeded.items():
+            for k, h in enumerate(hs):
+                config = h.descriptor.config
+                against = full[min(k, len(full) - 1)].descriptor.config if full else None
+                schedule = _schedule(config)
+                runs_info.append({"variant": v, "removes": REMOVES[v], "run": str(variants[v][k]),
+                                  "step": h.descriptor.step, "seed": config.runtime.seed,
+                                  "schedule": schedule, "weights_stage": weights_stage(schedule, h.descriptor.step),
+                                  "differences_from_full": _differences(against, config)
+                                  if against is not None and v != "full" else []})
         pairs = []
         plt = plots.pyplot()
         columns = min(3, len(ctx.pairs))
         rows = -(-len(ctx.pairs) // columns)
         fig, axes = plt.subplots(rows, columns, figsize=(4.8 * columns, 4.3 * rows), squeeze=False)
         for ax, pair in zip(axes.flat, ctx.pairs):
-            results = {v: ctx.result(h, pair.split, pair.slug) for v, h in handles.items()}
-            right = {v: r.ground_truth.correct_mask(np.asarray(r.retrieved)[:, :1])[:, 0] for v, r in results.items()}
-            queries, _ = ctx.pair_vectors(handles["full"], pair.split) if "full" in handles else (None, None)
-            rows_out = []
-            for variant, result in results.items():
-                metrics = result.metrics[ctx.protocol]
-                margin = result.by_acceptance.get(DEFAULT_ACCEPTANCE, {}).get(ctx.protocol)
-                row = {"variant": variant, "recall_at_1": finite_or_none(metrics.recall_at_n[1]),
-                       "recall_at_100_precision": finite_or_none(metrics.recall_at_100_precision),
-                       "recall_at_100_precision_margin": finite_or_none(margin.recall_at_100_precision)
-                       if margin is not None else None,
-                       "precision_at_max_recall": finite_or_none(metrics.precision_at_max_recall),
-                       "auc_pr": finite_or_none(metrics.auc_pr), "pr_curve": metrics.curve.to_dict()}
-                if variant != "full" and "full" in results:
-                    row["against_full"] = _mcnemar(right["full"], right[variant])
-                    mine, _ = ctx.pair_vectors(handles[variant], pair.split)
-                    row["same_content_vectors_as_full"] = bool(np.array_equal(mine, queries))
-                rows_out.append(row)
+            results, rows_out = _compare(ctx, pair, handles)
+            if any(len(hs) > 1 for hs in seeded.values()):
+                _over_seeds(ctx, pair, seeded, seeds, rows_out)
             plots.draw_pr_curves(ax, {v: (r.metrics[ctx.protocol].curve, r.metrics[ctx.protocol].auc_pr)
                                       for v, r in results.items()})
             ax.set_title(pair.label, fontsize="medium")
@@ -296,12 +367,18 @@ def run(ctx) -> dict:
         fig.suptitle(f"{preset_name}: PR curves per variant ({ctx.protocol_label})", fontsize="medium")
         fig.tight_layout()
         figure = plots.save_figure(fig, ctx.figure_path(f"pr_{preset_name}.png"))
-        groups.append({"preset": preset_name, "trained_here": preset_name in presets(ctx.settings),
-                       "settings": overrides_for(ctx.settings, preset_name) if preset_name in presets(ctx.settings)
-                       else {}, "runs": runs_info, "pairs": pairs, "figure": ctx.relative(figure),
-                       "missing": [v for v in VARIANTS if v not in handles]})
-    return {"variants": list(VARIANTS), "removes": REMOVES, "acceptance": DEFAULT_ACCEPTANCE, "groups": groups,
-            "train_frames": ctx.settings.ablation_train_frames}
+        group = {"preset": preset_name, "trained_here": preset_name in presets(ctx.settings),
+                 "settings": overrides_for(ctx.settings, preset_name) if preset_name in presets(ctx.settings)
+                 else {}, "runs": runs_info, "pairs": pairs, "figure": ctx.relative(figure),
+                 "missing": [v for v in VARIANTS if v not in handles]}
+        if any(len(s) > 1 for s in seeds.values()):
+            group["seeds"] = seeds  # variant -> the seeds of its runs, in run order
+        groups.append(group)
+    document = {"variants": list(VARIANTS), "removes": REMOVES, "acceptance": DEFAULT_ACCEPTANCE, "groups": groups,
+                "train_frames": ctx.settings.ablation_train_frames}
+    if ctx.settings.seeds > 1:
+        document["seeds"] = ctx.settings.seeds  # runs per variant trained here (--seeds N)
+    return document
 
 
 def _schedule_text(schedule: dict) -> str:
@@ -322,10 +399,38 @@ def _against(name: str, value, reference) -> str:
     return f"{name} {number(value)} against the full run's {number(reference)} ({value - reference:+.3f})"
 
 
+def _finding_over_seeds(variant: str, row: dict, full: dict) -> str:
+    """What removing the part did on this pair over the runs of several seeds (--seeds N): the
+    change of each mean against the spread of both, and McNemar's test per seed."""
+    from fdnet.reproduce.seeds import spread_text
+
+    parts = []
+    for name, key in (("R@1", "recall_at_1"), ("AUC-PR", "auc_pr"), ("R@100P", "recall_at_100_precision")):
+        mine, theirs = row["spread"][key], (full.get("spread") or {}).get(key) or {"mean": full[key]}
+        change = (f" ({mine['mean'] - theirs['mean']:+.3f})"
+                  if mine["mean"] is not None and theirs["mean"] is not None else "")
+        parts.append(f"{name} {spread_text(mine)} against the full run's {spread_text(theirs)}{change}")
+    text = (f"{WITHOUT[variant]}, mean ± sample standard deviation (min–max) over {len(row['per_seed'])} "
+            "seeds: " + "; ".join(parts))
+    if row.get("same_content_vectors_as_full"):
+        return text + (". For every seed its content vectors are exactly the full run's: in this preset the part "
+                       "it removes does not reach the content encoder.")
+    tests = [r["against_full"] for r in row["per_seed"] if r.get("against_full")]
+    if not tests:
+        return text + "."
+    below = sum(t["p_value"] < 0.05 for t in tests)
+    values = ", ".join(f"{t['p_value']:.3g}" for t in tests)
+    return text + (f". McNemar's exact test on the evaluated queries, run against run of the same seed index: p "
+                   f"below 0.05 for {below} of {len(tests)} pairs of runs (p = {values}); it counts the queries, "
+                   "the spread above the runs.")
+
+
 def _finding(variant: str, row: dict, full: dict | None, pair: dict) -> str:
     """What removing the part did on this pair, from the numbers alone."""
     if full is None:
         return ""
+    if row.get("per_seed"):
+        return _finding_over_seeds(variant, row, full)
     text = (f"{WITHOUT[variant]}: " + "; ".join(
         _against(name, row[key], full[key]) for name, key in (("R@1", "recall_at_1"), ("AUC-PR", "auc_pr"),
                                                              ("R@100P", "recall_at_100_precision"))))
@@ -345,15 +450,43 @@ def _finding(variant: str, row: dict, full: dict | None, pair: dict) -> str:
     return text + ": more than chance on these queries at the 5% level, for this one pair of runs)."
 
 
+def _variation_text(document: dict) -> str:
+    """What the section says about run-to-run variation: not measured with one seed, else how."""
+    if not document.get("seeds"):
+        return ("Every variant is one training run with one seed: the differences include run-to-run variation, "
+                "which this experiment does not measure; McNemar's test below counts only the evaluated queries, "
+                "not that variation.")
+    return (f"Every variant trained here is trained {document['seeds']} times (--seeds {document['seeds']}), with "
+            "seeds S, S+1, ... from its run's own S: each number in the tables is the mean over its runs, shown as "
+            "mean ± sample standard deviation (min–max over the runs), and each run's own numbers follow "
+            "in a table per pair; a variant given by --ablation-runs is one run. The PR curves are the first "
+            "seed's runs; McNemar's test counts the evaluated queries of one pair of runs at a time, not the "
+            "run-to-run variation.")
+
+
+def _number_or_spread(row: dict, key: str) -> str:
+    from fdnet.reproduce.seeds import spread_text
+
+    return spread_text(row["spread"][key]) if row.get("spread") else number(row[key])
+
+
+def _per_seed_table(group: dict, pair: dict, acceptance: str) -> Table | None:
+    """Each run's numbers on one pair, a row per (variant, seed), when a variant has several."""
+    rows = [[v["variant"], str(r["seed"])] + [number(r[k]) for k in METRICS]
+            for v in pair["variants"] for r in v.get("per_seed") or []]
+    if not rows:
+        return None
+    return Table(["variant", "seed", "R@1", "R@100P raw", f"R@100P {acceptance}", "P@maxR", "AUC-PR"], rows,
+                 f"{group['preset']}, {pair_name(pair['query'], pair['reference'])}: each seed's run")
+
+
 def render(document: dict) -> list:
     acceptance = document.get("acceptance", "margin")
     blocks: list = [Paragraph(
         "Each variant is the same training as the full run with one part removed (the switch stops it "
         "being computed, not only weighted: fdnet's docs/runs.md says what each switch removes in each preset). "
         f"R@100P raw thresholds the best-match similarity (paper 5.1.2); R@100P {acceptance} accepts each query "
-        f"by fdnet's {acceptance} score instead. Every variant is one training run with one seed: the "
-        "differences include run-to-run variation, which this experiment does not measure; McNemar's test "
-        "below counts only the evaluated queries, not that variation.")]
+        f"by fdnet's {acceptance} score instead. " + _variation_text(document))]
     for group in document["groups"]:
         runs = {r["variant"]: r for r in group["runs"]}
         full_run = runs.get("full")
@@ -375,20 +508,29 @@ def render(document: dict) -> list:
             if run["differences_from_full"]:
                 blocks.append(Paragraph(f"{run['variant']} differs from the full run in more than its switch: "
                                         + "; ".join(run["differences_from_full"]), note=True))
-        blocks.append(Table(["variant", "removes", "steps (auto-encoder + critic + joint)", "weights at step", "run"],
-                            [[r["variant"], r["removes"],
-                              f"{r['schedule']['autoencoder']} + {r['schedule']['critic']} + {r['schedule']['joint']}",
-                              f"{r['step']} ({r.get('weights_stage', 'joint')})", r["run"]] for r in group["runs"]],
+        seeded = bool(group.get("seeds"))  # a column for the seed when a variant has several runs
+        blocks.append(Table(["variant"] + ["seed"] * seeded + ["removes", "steps (auto-encoder + critic + joint)",
+                                                               "weights at step", "run"],
+                            [[r["variant"]] + [str(r.get("seed"))] * seeded + [
+                                r["removes"],
+                                f"{r['schedule']['autoencoder']} + {r['schedule']['critic']} + {r['schedule']['joint']}",
+                                f"{r['step']} ({r.get('weights_stage', 'joint')})", r["run"]] for r in group["runs"]],
                             f"{group['preset']}: the runs"))
         for pair in group["pairs"]:
             keys = ("recall_at_1", "recall_at_100_precision", "recall_at_100_precision_margin",
                     "precision_at_max_recall", "auc_pr")
             rows = [[v["variant"]] + [v[k] for k in keys] for v in pair["variants"]]
             marked = best_cells(rows, list(range(1, len(keys) + 1)))
+            counts = sorted({len(v["per_seed"]) for v in pair["variants"] if v.get("per_seed")})
+            over = (f"; mean ± sample standard deviation (min–max) over {' or '.join(map(str, counts))} "
+                    "seeds" if counts else "")
             blocks.append(Table(["variant", "R@1", "R@100P raw", f"R@100P {acceptance}", "P@maxR", "AUC-PR"],
-                                [[r[0]] + [number(x) for x in r[1:]] for r in rows],
+                                [[v["variant"]] + [_number_or_spread(v, k) for k in keys] for v in pair["variants"]],
                                 f"{group['preset']}, {pair_name(pair['query'], pair['reference'])}: "
-                                f"{pair['num_queries']} queries", marked))
+                                f"{pair['num_queries']} queries{over}", marked))
+            per_seed = _per_seed_table(group, pair, acceptance)
+            if per_seed is not None:
+                blocks.append(per_seed)
             full = next((v for v in pair["variants"] if v["variant"] == "full"), None)
             for row in pair["variants"]:
                 if row["variant"] != "full":
@@ -396,5 +538,6 @@ def render(document: dict) -> list:
                     if sentence:
                         blocks.append(Paragraph(sentence))
         blocks.append(Figure(group["figure"], f"{group['preset']}: PR curves of the variants, one panel per pair "
-                                              "(legend: AUC-PR)"))
+                                              "(legend: AUC-PR)" + ("; the first seed's run of each variant"
+                                                                    if group.get("seeds") else "")))
     return blocks

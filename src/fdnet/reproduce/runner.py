@@ -83,6 +83,8 @@ class ReproduceSettings:
     ablation_train_frames: str | None = None
     #: training settings of the ablation variants: "" -> for every preset, PRESET -> for that one
     ablation_overrides: dict[str, dict] = field(default_factory=dict)
+    #: how many times each variant trained here is trained (seeds S, S+1, ...; 1: once, as before)
+    seeds: int = 1
     viewpoint_pair: tuple[str, str] | None = None  # (reference, query)
     overlaps: tuple[float, ...] = (1.0, 0.9, 0.75, 0.65)
     examples: int = 5
@@ -402,6 +404,8 @@ def _check(settings: ReproduceSettings) -> list[str]:
     for overlap in settings.overlaps:
         if not 0.0 < overlap <= 1.0:
             raise ConfigError(f"overlap {overlap}: must be in (0, 1] (e.g. 1,0.9,0.75,0.65)")
+    if not isinstance(settings.seeds, int) or settings.seeds < 1:
+        raise ConfigError(f"--seeds must be a whole number >= 1 (runs per trained variant), got {settings.seeds}")
     if settings.threads is not None and settings.threads < 1:
         raise ConfigError(f"--threads must be >= 1, got {settings.threads}")
     for name, value in (("--examples", settings.examples), ("--runtime-images", settings.runtime_images),
@@ -560,12 +564,16 @@ def _smoke_test(run: dict | None) -> str | None:
 
 def _seeds(run: dict | None, document: dict) -> dict:
     """The seeds an experiment's numbers depend on: the checkpoint run's, and every variant it
-    trained or read (the ablation's)."""
+    trained or read (the ablation's; a list for a variant trained with several seeds)."""
     seeds = {"checkpoint": run and run["seed"]}
     for group in document.get("groups") or []:
         for info in group.get("runs") or []:
             if "seed" in info:
-                seeds[f"{group.get('preset')}/{info['variant']}"] = info["seed"]
+                key = f"{group.get('preset')}/{info['variant']}"
+                if key in seeds:  # a variant trained with several seeds (--seeds N): all of them
+                    seeds[key] = [*(seeds[key] if isinstance(seeds[key], list) else [seeds[key]]), info["seed"]]
+                else:
+                    seeds[key] = info["seed"]
     return seeds
 
 
