@@ -232,7 +232,7 @@ SLOW_MODULES = (
     "tests/methods/calc/", "tests/methods/netvlad/", "tests/methods/fdnet/test_ablation.py",
     "tests/methods/fdnet/test_beats_trunk.py", "tests/methods/fdnet/test_paper_native.py",
     "tests/methods/fdnet/test_training.py", "tests/methods/fdnet/test_trunk_alone.py",
-    "tests/cli/test_reproduce.py", "tests/cli/test_demo.py", "tests/cli/test_train_baseline.py",
+    "tests/cli/test_reproduce.py", "tests/cli/test_demo.py", "tests/cli/test_train_baselines.py",
     "tests/reproduce/test_ablation.py", "tests/data/test_appearance.py",
 )
 #: single tests measured over 2 s (torchrun groups, benchmarks, kill-at-any-moment loops, real data)

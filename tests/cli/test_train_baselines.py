@@ -1,4 +1,4 @@
-"""`fdnet train-baseline`: flags to config, training, resume, and one-line errors."""
+"""`fdnet train calc|netvlad`: the baselines' flags to config, training, resume, and one-line errors."""
 
 from __future__ import annotations
 
@@ -30,7 +30,7 @@ def route(tmp_path):
 def test_calc_train_and_resume(route, tmp_path, capsys):
     out = tmp_path / "run"
     # "1:10" is a base-60 integer to YAML; the frame range must reach the config as text
-    rc = main(["train-baseline", "calc", "--data", str(route), "--out", str(out), "--preset", "tiny", "--no-progress",
+    rc = main(["train", "calc", "--data", str(route), "--out", str(out), "--preset", "tiny", "--no-progress",
                "--frames", "1:10", "--conditions", "summer,winter", "--steps", "2", "--threads", "1",
                "--set", "train.batch_size=4"])
     assert rc == 0
@@ -39,20 +39,20 @@ def test_calc_train_and_resume(route, tmp_path, capsys):
     assert config["data"]["conditions"] == ["summer", "winter"] and config["train"]["batch_size"] == 4
     assert "--method calc --checkpoint" in capsys.readouterr().out
 
-    assert main(["train-baseline", "calc", "--out", str(out), "--resume", "--steps", "3", "--threads", "1"]) == 2
+    assert main(["train", "calc", "--out", str(out), "--resume", "--steps", "3", "--threads", "1"]) == 2
     assert "train.steps: saved 2, requested 3" in capsys.readouterr().err
-    assert main(["train-baseline", "calc", "--out", str(out), "--resume", "--override", "--steps", "3",
+    assert main(["train", "calc", "--out", str(out), "--resume", "--override", "--steps", "3",
                  "--threads", "1", "--no-progress"]) == 0
     log = (out / "log.csv").read_text().splitlines()
     assert log[-1].startswith("3,")
     # resuming with other model settings is refused, naming the setting
-    assert main(["train-baseline", "calc", "--out", str(out), "--resume", "--set", "model.channels=8,8,4"]) == 2
+    assert main(["train", "calc", "--out", str(out), "--resume", "--set", "model.channels=8,8,4"]) == 2
     assert "model.channels" in capsys.readouterr().err
 
 
 def test_netvlad_train(route, tmp_path):
     out = tmp_path / "nv"
-    rc = main(["train-baseline", "netvlad", "--data", str(route), "--out", str(out), "--preset", "tiny",
+    rc = main(["train", "netvlad", "--data", str(route), "--out", str(out), "--preset", "tiny",
                "--tolerance", "1", "--steps", "2", "--threads", "1", "--no-progress"])
     assert rc == 0
     config = saved_config(out)
@@ -63,7 +63,7 @@ def test_netvlad_train(route, tmp_path):
 def test_baselines_train_on_a_dataset_format_split_with_validation(route, tmp_path, capsys):
     """What FDNet had and the baselines lacked: --dataset-format/--split, validation with best/."""
     out = tmp_path / "calc"
-    assert main(["train-baseline", "calc", "--data", str(route), "--dataset-format", "folders", "--split", "0:8",
+    assert main(["train", "calc", "--data", str(route), "--dataset-format", "folders", "--split", "0:8",
                  "--out", str(out), "--preset", "tiny", "--steps", "4", "--threads", "1", "--no-progress",
                  "--set", "train.batch_size=4", "--validate-reference", "summer", "--validate-query", "winter",
                  "--validate-frames", "8:12", "--validate-every", "2"]) == 0
@@ -76,13 +76,13 @@ def test_baselines_train_on_a_dataset_format_split_with_validation(route, tmp_pa
 
 
 def test_errors_are_one_line(route, tmp_path, capsys):
-    assert main(["train-baseline", "netvlad", "--data", str(route), "--conditions", "summer",
+    assert main(["train", "netvlad", "--data", str(route), "--conditions", "summer",
                  "--out", str(tmp_path / "a"), "--preset", "tiny"]) == 2
     assert "at least 2 conditions" in capsys.readouterr().err
-    assert main(["train-baseline", "calc", "--data", str(route), "--out", str(tmp_path / "b"),
+    assert main(["train", "calc", "--data", str(route), "--out", str(tmp_path / "b"),
                  "--set", "train.no_such=1"]) == 2
     assert "no_such" in capsys.readouterr().err
-    assert main(["train-baseline", "calc", "--data", str(tmp_path / "missing"), "--out", str(tmp_path / "c")]) == 2
+    assert main(["train", "calc", "--data", str(tmp_path / "missing"), "--out", str(tmp_path / "c")]) == 2
     assert "not found" in capsys.readouterr().err
-    assert main(["train-baseline", "calc", "--out", str(tmp_path / "none"), "--resume"]) == 2
+    assert main(["train", "calc", "--out", str(tmp_path / "none"), "--resume"]) == 2
     assert "no run to resume" in capsys.readouterr().err

@@ -239,8 +239,8 @@ def set_threads(threads: int | None) -> None:
 
 
 def add_training_arguments(parser: argparse.ArgumentParser, data_required: bool = True) -> None:
-    """The flags of ``fdnet train [METHOD]`` (and its alias ``fdnet train-baseline``), the same for
-    every trained method; each sets a setting of the run config (docs/runs.md)."""
+    """The flags of ``fdnet train [METHOD]``, the same for every trained method; each sets a
+    setting of the run config (docs/runs.md)."""
     parser.add_argument("--data", required=data_required,
                         help="dataset folder with one sub-folder per condition (or a published layout, "
                              "with --dataset-format)" + ("" if data_required else "; optional with --resume"))

@@ -18,20 +18,18 @@ and, on ``--resume``, the run's own settings) and broadcasts them, and it alone 
 from __future__ import annotations
 
 import argparse
-import sys
 
 from fdnet.cli.common import add_training_arguments
 
 DEFAULT_METHOD = "fdnet"
 
 
-def add_arguments(parser: argparse.ArgumentParser, methods: list[str], default: str | None) -> None:
+def add_arguments(parser: argparse.ArgumentParser, methods: list[str], default: str) -> None:
     """The method argument and every training flag, with choices and help from the registry."""
     from fdnet.descriptors.registry import spec
 
-    parser.add_argument("method", choices=methods, nargs=None if default is None else "?", default=default,
-                        metavar="METHOD", help=f"the method to train: {', '.join(methods)}"
-                        + (f" (default {default})" if default else ""))
+    parser.add_argument("method", choices=methods, nargs="?", default=default, metavar="METHOD",
+                        help=f"the method to train: {', '.join(methods)} (default {default})")
     add_training_arguments(parser, data_required=False)
     presets = list(dict.fromkeys(p for m in methods for p in spec(m).presets))
     per_method = "; ".join(f"{m}: {'|'.join(spec(m).presets)} (default {spec(m).default_preset})" for m in methods)
@@ -146,8 +144,3 @@ def _train(args, config) -> int:
     if summary["status"] == "time limit":
         print("fdnet train: continue with --resume to finish the schedule")
     return 0
-
-
-def note_alias(args) -> None:
-    """What ``fdnet train-baseline`` says before it trains (it is an alias)."""
-    print(f"fdnet train-baseline: an alias of `fdnet train {args.method}` (same flags); use that", file=sys.stderr)
