@@ -240,3 +240,24 @@ def test_a_flag_of_an_experiment_left_out_is_warned_about(tmp_path, capsys):
             "(--experiments): it does nothing here") in err
     assert "--runtime-images is for the runtime and lengths experiments" in err
     assert "--overlaps" not in err  # left at its default
+
+
+def test_seeds_below_one_is_one_error_line_and_seeds_outside_the_ablation_a_warning(tmp_path, capsys):
+    """--seeds N trains each ablation variant N times: 0 is refused with one line before any work,
+    and the flag with the ablation left out is warned about like every experiment's flag."""
+    route = tmp_path / "route"
+    assert main(["synth", "--out", str(route), "--num-frames", "8", "--conditions", "summer,night"]) == 0
+    capsys.readouterr()
+    out = tmp_path / "out"
+    assert main(["reproduce", "--data", str(route), "--frames", "4:8", "--experiments", "ablation",
+                 "--ablation-preset", "tiny", "--ablation-train-frames", "0:4", "--seeds", "0", "--no-progress",
+                 "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert [line for line in err.splitlines() if "error" in line] == [
+        "fdnet reproduce: error: --seeds must be a whole number >= 1 (runs per trained variant), got 0"]
+    assert not (out / "ablation-runs").exists()
+    assert main(["reproduce", "--data", str(route), "--method", "sad", "--experiments", "comparison", "--seeds", "2",
+                 "--threads", "1", "--no-progress", "--out", str(out)]) == 0
+    assert ("--seeds is for the ablation experiment, which this run leaves out (--experiments): it does nothing "
+            "here") in capsys.readouterr().err
+    assert " --seeds 2 " in document(out, "comparison")["command"]
