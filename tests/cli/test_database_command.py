@@ -1,6 +1,5 @@
-"""`fdnet database build|add|query|info|migrate` on images and files the tests make."""
+"""`fdnet database build|add|query|info` on images and files the tests make."""
 
-import csv
 import json
 import sqlite3
 
@@ -133,50 +132,17 @@ def test_a_file_that_is_not_a_place_database(tmp_path, capsys, make, message):
         assert capsys.readouterr().err == f"fdnet database: error: {path}: {message}\n"
 
 
-def write_old_folder(folder, vectors, place_names, **changes):
-    """An old-format database as the previous PlaceDatabase.save wrote it (Ellipsis = leave a
-    field out)."""
+def test_a_folder_is_not_a_place_database(tmp_path, capsys):
+    folder = tmp_path / "maps"
     folder.mkdir()
-    np.save(folder / "vectors.npy", np.asarray(vectors, np.float32))
-    meta = {"format_version": 1, "dim": int(np.shape(vectors)[1]), "method": "raw",
-            "method_settings": create("raw").settings(), "method_options": {}, "dot_product": True,
-            "index": {"kind": "flat"}, "names": place_names, "positions": [None] * len(place_names)}
-    meta.update(changes)
-    (folder / "database.json").write_text(json.dumps({k: v for k, v in meta.items() if v is not Ellipsis}))
-    return folder
-
-
-def test_migrate_an_old_folder_then_query_it(tmp_path, capsys):
-    images = make_route(tmp_path / "map", n=4, seed=8)
-    from fdnet.descriptors.base import describe_paths
-
-    paths = sorted(images.iterdir())
-    old = write_old_folder(tmp_path / "old", describe_paths(create("raw"), paths), [str(p) for p in paths])
-    assert main(["database", "query", "--db", str(old), "--images", str(images)]) == 2
-    assert f"convert it once with: fdnet database migrate --from {old} --db {old}.db" in capsys.readouterr().err
-    new = tmp_path / "new.db"
-    assert main(["database", "migrate", "--from", str(old), "--db", str(new)]) == 0
-    summary = info(new, capsys)
-    assert (summary["places"], summary["fingerprint"]) == (4, create("raw").fingerprint())
-    assert main(["database", "query", "--db", str(new), "--images", str(images), "--top-k", "1"]) == 0
-    rows = list(csv.DictReader(capsys.readouterr().out.splitlines()))
-    assert [r["place"] for r in rows] == [str(p) for p in paths]
-
-
-@pytest.mark.parametrize("change, message", [
-    ({"dim": ...}, "field 'dim' is missing"),
-    ({"names": "frame.png"}, "field 'names' must be a list of image names, got str"),
-    ({"dot_product": "yes"}, "field 'dot_product' must be true or false"),
-    ({"positions": [[0, 0], "here"]}, "field 'positions' entry 1 must be [x, y] or null"),
-    ({"index": {"kind": "kd-tree"}}, "index kind 'kd-tree' is not one of flat, hnsw, ivf"),
-    ({"method_settings": {"input_size": [16, 16]}}, "vectors were made by another model"),
-])
-def test_migrate_refuses_a_broken_old_folder(tmp_path, capsys, change, message):
-    old = write_old_folder(tmp_path / "old", np.zeros((2, 2048)), ["a.png", "b.png"], **change)
-    assert main(["database", "migrate", "--from", str(old), "--db", str(tmp_path / "new.db")]) == 2
-    err = capsys.readouterr().err
-    assert err.startswith(f"fdnet database: error: {old / 'database.json'}: ") and message in err
-    assert not (tmp_path / "new.db").exists()
+    (folder / "database.json").write_text("{}")  # whatever it holds, a folder is not a database file
+    for action in (["info"], ["add", "--images", str(tmp_path)], ["query", "--images", str(tmp_path)]):
+        assert main(["database", action[0], "--db", str(folder), *action[1:]]) == 2
+        assert capsys.readouterr().err == (f"fdnet database: error: {folder}: is a folder, not a place database "
+                                           f"file (e.g. {folder / 'map.db'})\n")
+    with pytest.raises(SystemExit):  # no command converts folders: there is one format, the file
+        main(["database", "migrate", "--from", str(folder), "--db", str(tmp_path / "map.db")])
+    assert "invalid choice: 'migrate'" in capsys.readouterr().err
 
 
 def test_unwritable_outputs_fail_before_describing(tmp_path, built, capsys, no_describing):

@@ -1,7 +1,6 @@
 """The SQLite place database: round trips, refusals, fingerprints, and what several processes
 (and a kill -9) may and may not do to one file."""
 
-import json
 import os
 import random
 import signal
@@ -17,7 +16,7 @@ import pytest
 import fdnet
 from fdnet.descriptors.base import Descriptor, l2_normalize
 from fdnet.errors import ConfigError, DataError
-from fdnet.matching.database import PlaceDatabase, migrate_old_format, read_old_format
+from fdnet.matching.database import PlaceDatabase
 
 SRC = str(Path(fdnet.__file__).resolve().parents[1])
 
@@ -260,53 +259,10 @@ def test_a_file_that_is_not_a_place_database_is_a_clear_error(tmp_path, content,
         PlaceDatabase.open(path)
 
 
-def write_old_folder(folder, vectors, names, method="raw", settings=None, options=None, **changes):
-    """An old-format database exactly as the previous PlaceDatabase.save wrote it."""
-    from fdnet.descriptors import create
-
-    folder.mkdir()
-    np.save(folder / "vectors.npy", np.asarray(vectors, np.float32))
-    meta = {"format_version": 1, "dim": int(np.shape(vectors)[1]), "method": method,
-            "method_settings": create(method, **(options or {})).settings() if settings is None else settings,
-            "method_options": options or {}, "dot_product": True,
-            "index": {"kind": "flat", "hnsw_neighbors": 32, "hnsw_ef_search": 128, "ivf_lists": 0, "ivf_probe": 16},
-            "names": names, "positions": [[i, 2 * i] for i in range(len(names))]}
-    meta.update(changes)
-    meta = {k: v for k, v in meta.items() if v is not Ellipsis}  # Ellipsis = leave the field out
-    (folder / "database.json").write_text(json.dumps(meta))
-    return folder
-
-
-def test_migrate_keeps_places_and_fingerprints_the_rebuilt_descriptor(tmp_path, rng):
-    from fdnet.descriptors import create
-
-    v = unit(rng, 4, 2048)
-    v[2] = np.nan  # the old format stored NaN vectors that could never match
-    old = write_old_folder(tmp_path / "old", v, ["p0.png", "p1.png", "p2.png", "p3.png"])
-    with pytest.raises(ConfigError, match="fdnet database migrate --from .*old --db .*old.db"):
-        PlaceDatabase.open(old)
-    report = migrate_old_format(old, tmp_path / "new.db")
-    assert report.places == 3 and report.dropped_non_finite == ["p2.png"]
-    with PlaceDatabase.open(tmp_path / "new.db", descriptor=create("raw")) as db:
-        assert db.names == ["p0.png", "p1.png", "p3.png"]
-        assert db.positions == [(0.0, 0.0), (1.0, 2.0), (3.0, 6.0)]
-        assert db.query(v[3], k=1)[0][0].name == "p3.png"
-
-
-def test_old_npy_header_claiming_a_huge_array_is_refused_before_reading(tmp_path, rng):
-    from numpy.lib import format as npy_format
-
-    old = write_old_folder(tmp_path / "old", unit(rng, 2, 2048), ["a", "b"])
-    with open(old / "vectors.npy", "wb") as fh:
-        npy_format.write_array_header_1_0(fh, {"descr": "<f4", "fortran_order": False, "shape": (10**6, 10**6)})
-    with pytest.raises(DataError, match=r"vectors.npy: holds an array of shape \(1000000, 1000000\)"):
-        read_old_format(old)
-    with open(old / "vectors.npy", "wb") as fh:  # the JSON agrees, but the data is not there
-        npy_format.write_array_header_1_0(fh, {"descr": "<f4", "fortran_order": False, "shape": (2, 10**9)})
-    meta = json.loads((old / "database.json").read_text())
-    (old / "database.json").write_text(json.dumps({**meta, "dim": 10**9}))
-    with pytest.raises(DataError, match="header promises"):
-        read_old_format(old)
+def test_a_folder_is_refused_in_one_line_naming_it(tmp_path):
+    (tmp_path / "maps").mkdir()
+    with pytest.raises(DataError, match=r"maps: is a folder, not a place database file \(e\.g\. .*map\.db\)$"):
+        PlaceDatabase.open(tmp_path / "maps")
 
 
 # ---------------------------------------------------------------------- several processes

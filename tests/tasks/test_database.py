@@ -1,4 +1,4 @@
-"""fdnet.tasks.database: build, add, query, info and migrate as library calls (no CLI)."""
+"""fdnet.tasks.database: build, add, query and info as library calls (no CLI)."""
 
 import csv
 import io
@@ -11,7 +11,7 @@ from fdnet.errors import ConfigError
 from fdnet.matching.database import PlaceDatabase
 from fdnet.descriptors.pipeline import PipelineSettings
 from fdnet.tasks.database import (
-    AddRequest, BuildRequest, QueryRequest, add_to_database, build_database, database_info, migrate_database,
+    AddRequest, BuildRequest, QueryRequest, add_to_database, build_database, database_info,
     query_database,
 )
 
@@ -89,28 +89,6 @@ def test_an_acceptance_rule_adds_its_score_column(tmp_path):
     assert [float(r["acceptance_score"]) for r in table] == pytest.approx([float(r["score"]) for r in table])
     assert scored.acceptance_scores == pytest.approx(scored.scores[:, 0]) and scored.accepted is None
     assert messages == []  # no stored calibration to announce, none used
-
-
-def test_migrate_converts_the_old_folder_format(tmp_path):
-    import json
-
-    from fdnet.descriptors import create
-
-    old = tmp_path / "old"
-    old.mkdir()
-    vectors = np.ones((3, 2048), dtype=np.float32)
-    vectors[2, 0] = np.nan
-    np.save(old / "vectors.npy", vectors)
-    (old / "database.json").write_text(json.dumps({
-        "format_version": 1, "dim": 2048, "method": "raw", "method_settings": create("raw").settings(),
-        "method_options": {}, "dot_product": True, "index": {"kind": "flat"}, "names": ["a.png", "b.png", "c.png"],
-        "positions": [None] * 3}))
-    new = tmp_path / "map.db"
-    summary = migrate_database(old, new)
-    assert (summary.places, list(summary.dropped_non_finite)) == (2, ["c.png"])
-    assert summary.lines()[0] == f"wrote {new}: 2 places from {old}"
-    assert summary.lines()[1].startswith("dropped 1 place(s) whose stored vector was NaN/inf")
-    assert database_info(new)["places"] == 2
 
 
 def test_messages_go_to_the_module_logger_by_default(tmp_path, caplog, monkeypatch):

@@ -43,7 +43,7 @@ def _whole_number(text: str) -> int:
 
 
 def register(sub) -> None:
-    p = sub.add_parser("database", help="build, extend, query, inspect and migrate a persistent place database")
+    p = sub.add_parser("database", help="build, extend, query and inspect a persistent place database")
     actions = p.add_subparsers(dest="action", metavar="ACTION", required=True)
 
     build = actions.add_parser("build", help="describe a folder of images and write them as a new database file")
@@ -96,13 +96,6 @@ def register(sub) -> None:
     info = actions.add_parser("info", help="print the database's identity and size as one JSON object")
     info.add_argument("--db", required=True, help="database file")
     info.set_defaults(func=run_info)
-
-    migrate = actions.add_parser("migrate", help="convert an old-format folder (database.json + vectors.npy) "
-                                                 "into a database file")
-    migrate.add_argument("--from", dest="source", required=True, help="old-format database folder")
-    migrate.add_argument("--db", required=True, help="database file to write, e.g. map.db")
-    migrate.add_argument("--overwrite", action="store_true", help="replace an existing place database at --db")
-    migrate.set_defaults(func=run_migrate)
 
 
 def _options_given(args) -> bool:
@@ -180,14 +173,4 @@ def run_info(args) -> int:
     from fdnet.tasks.database import database_info
 
     print(json.dumps(database_info(args.db, log=_print_to_stderr), indent=2, sort_keys=True))
-    return 0
-
-
-def run_migrate(args) -> int:
-    from fdnet.descriptors.sharding import refuse_under_torchrun
-    from fdnet.tasks.database import migrate_database
-
-    refuse_under_torchrun("fdnet database migrate")
-
-    print("\n".join(migrate_database(args.source, args.db, overwrite=args.overwrite).lines()))
     return 0

@@ -1,7 +1,6 @@
-"""The work of ``fdnet database build|add|query|info|migrate`` as library functions: describe a
-folder of images into a new database or onto an existing one, rank a database's places for query
-images (with a calibrated or rule-scored decision), report a database's identity, convert the old
-folder format. Each returns what the command reports; messages go to ``log`` (default: this
+"""The work of ``fdnet database build|add|query|info`` as library functions: describe a folder of
+images into a new database or onto an existing one, rank a database's places for query images
+(with a calibrated or rule-scored decision), report a database's identity. Each returns what the command reports; messages go to ``log`` (default: this
 module's logger). Above :mod:`fdnet.matching.database` (the file) and :mod:`fdnet.decisions`
 (the rules), which it drives.
 """
@@ -89,28 +88,6 @@ class QueryResult:
 
     def lines(self) -> list[str]:
         return [f"wrote {self.out}: {self.queries} queries against {self.places} places"] if self.out else []
-
-
-@dataclass(frozen=True)
-class MigrateSummary:
-    """What :func:`migrate_database` converted."""
-
-    source: str
-    path: str
-    places: int
-    dropped_non_finite: Sequence[str]
-    duplicate_names: int
-
-    def lines(self) -> list[str]:
-        lines = [f"wrote {self.path}: {self.places} places from {self.source}"]
-        dropped = self.dropped_non_finite
-        if dropped:
-            more = f" and {len(dropped) - 5} more" if len(dropped) > 5 else ""
-            lines.append(f"dropped {len(dropped)} place(s) whose stored vector was NaN/inf "
-                         f"(they could never be matched): {', '.join(dropped[:5])}{more}")
-        if self.duplicate_names:
-            lines.append(f"kept {self.duplicate_names} repeated place name(s), as the old database held them")
-        return lines
 
 
 #: the database metadata key (:meth:`PlaceDatabase.set_metadata`) recording how a database was
@@ -343,20 +320,6 @@ def database_info(db, log: Log | None = None) -> dict:
             info["build"] = build
         _note_read_only(database, log or logger.info)
     return info
-
-
-def migrate_database(source, db, *, overwrite: bool = False) -> MigrateSummary:
-    """Convert the old-format folder ``source`` (database.json + vectors.npy) into the database
-    file ``db`` (:func:`~fdnet.matching.database.migration.migrate_old_format`)."""
-    from fdnet.io import ensure_writable
-    from fdnet.matching.database.migration import migrate_old_format
-    from fdnet.matching.database.storage import check_can_create
-
-    check_can_create(db, overwrite)
-    ensure_writable(db, what="place database")
-    report = migrate_old_format(source, db, overwrite=overwrite)
-    return MigrateSummary(str(source), str(db), report.places, list(report.dropped_non_finite),
-                          report.duplicate_names)
 
 
 def open_with_descriptor(db, *, method: str | None = None, method_options: MethodOptions = None,

@@ -12,10 +12,9 @@ The package, by concern:
   checks before a file is created or opened);
 * :mod:`~fdnet.matching.database.identity`: which model made the vectors (fingerprints);
 * :mod:`~fdnet.matching.database.index_cache`: the derived search index cached beside the file;
-* :mod:`~fdnet.matching.database.migration`: the old folder format and its conversion;
 * :mod:`~fdnet.matching.database.places`: a batch of places checked and inserted.
 
-``fdnet database build|add|query|info|migrate`` as library functions (describe images into a
+``fdnet database build|add|query|info`` as library functions (describe images into a
 database, rank its places for queries, decide) are :mod:`fdnet.tasks.database`, above the
 decisions they use.
 
@@ -24,7 +23,6 @@ See ``docs/database.md`` for the file format and the guarantees.
 
 from fdnet.matching.database.identity import short_fingerprint
 from fdnet.matching.database.index_cache import INDEX_CACHE_SUFFIX
-from fdnet.matching.database.migration import MigrationReport, migrate_old_format, read_old_format
 from fdnet.matching.database.storage import (
     APPLICATION_ID,
     BUSY_TIMEOUT_S,
@@ -34,13 +32,10 @@ from fdnet.matching.database.storage import (
     check_place_names,
     holds_a_database,
     place_name,
-    migrate_command,
-    refuse_old_format,
 )
 from fdnet.matching.database.store import AddResult, Match, PlaceDatabase
 
 __all__ = [
     "APPLICATION_ID", "BUSY_TIMEOUT_S", "INDEX_CACHE_SUFFIX", "MEMORY", "SCHEMA_VERSION", "AddResult", "Match",
-    "MigrationReport", "PlaceDatabase", "check_can_create", "check_place_names", "holds_a_database", "place_name", "migrate_command",
-    "migrate_old_format", "read_old_format", "refuse_old_format", "short_fingerprint",
+    "PlaceDatabase", "check_can_create", "check_place_names", "holds_a_database", "place_name", "short_fingerprint",
 ]

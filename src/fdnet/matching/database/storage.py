@@ -1,6 +1,6 @@
 """The SQLite file under a place database: its schema and format constants, connections and
 transactions, SQLite's errors as the project's, and the checks made before a file is created or
-opened (including the old folder format, named with the command that converts it).
+opened.
 
 Why SQLite: every ``add`` is one transaction (``BEGIN IMMEDIATE``), so concurrent writers queue
 behind each other instead of overwriting each other's batch, readers see the database before or
@@ -14,7 +14,6 @@ import contextlib
 import errno
 import json
 import os
-import shlex
 import sqlite3
 from pathlib import Path
 from typing import Iterator, Sequence
@@ -33,7 +32,6 @@ APPLICATION_ID = int.from_bytes(b"fdPD", "big")
 BUSY_TIMEOUT_S = 60.0
 MEMORY = ":memory:"
 SQLITE_MAGIC = b"SQLite format 3\x00"
-OLD_FORMAT_FILES = ("database.json", "vectors.npy")
 
 _SCHEMA = """
 CREATE TABLE fdnet_database (
@@ -64,20 +62,6 @@ CREATE INDEX places_by_name ON places (name);
 _TABLES = ("fdnet_database", "places")
 
 
-def migrate_command(folder: str | os.PathLike) -> str:
-    folder = Path(folder)
-    return f"fdnet database migrate --from {shlex.quote(str(folder))} --db {shlex.quote(str(folder) + '.db')}"
-
-
-def refuse_old_format(path: str | os.PathLike) -> None:
-    """A folder holding the old ``database.json`` + ``vectors.npy`` is named with the exact
-    command that converts it, instead of a puzzling 'not a database'."""
-    path = Path(path)
-    if path.is_dir() and any((path / name).exists() for name in OLD_FORMAT_FILES):
-        raise ConfigError(f"{path}: a place database in the old folder format (database.json + vectors.npy); "
-                          f"convert it once with: {migrate_command(path)}")
-
-
 def _canonical_json(value, where: str) -> str:
     try:
         return json.dumps(value, sort_keys=True, allow_nan=False, default=_json_default)
@@ -97,7 +81,6 @@ def _json_default(value):
 
 def _check_header(path: Path) -> None:
     if path.is_dir():
-        refuse_old_format(path)
         raise DataError(f"{path}: is a folder, not a place database file (e.g. {path / 'map.db'})")
     try:
         with open(path, "rb") as fh:
@@ -271,7 +254,6 @@ def check_can_create(path: str | os.PathLike, overwrite: bool = False) -> None:
     path = Path(path)
     if str(path) == MEMORY:
         return
-    refuse_old_format(path)
     if path.is_dir():
         raise ConfigError(f"{path}: is a folder; name the database file to write (e.g. {path / 'map.db'})")
     if path.exists():

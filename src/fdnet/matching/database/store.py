@@ -40,7 +40,6 @@ from fdnet.matching.database.storage import (
     _sqlite_errors,
     _transaction,
     check_can_create,
-    refuse_old_format,
 )
 from fdnet.matching.index import IndexSettings, VectorIndex
 from fdnet.matching.place_map import PlaceMap
@@ -220,7 +219,6 @@ class PlaceDatabase:
         database's (same method, settings and weights), and use its similarity for methods whose
         comparison is not a dot product."""
         path = Path(path)
-        refuse_old_format(path)
         _check_header(path)
         target = str(path)
         read_only = _read_only_storage(path)
