@@ -115,9 +115,6 @@ def from_dict(cls: type[T], data: dict, where: str = "config") -> T:
     """Build dataclass ``cls`` from a dict; unknown keys are an error naming the valid ones."""
     fields = {f.name: f for f in dataclasses.fields(cls)}
     hints = typing.get_type_hints(cls)
-    legacy = getattr(cls, "from_legacy", None)  # a config whose layout changed reads older files
-    if legacy is not None and isinstance(data, dict):
-        data = legacy(data)
     unknown = sorted(set(data) - set(fields))
     if unknown:
         raise ConfigError(f"{where}: unknown setting(s) {', '.join(unknown)}; valid: {', '.join(fields)}")

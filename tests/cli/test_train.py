@@ -292,12 +292,15 @@ def test_baselines_train_on_a_gpu(tmp_path, capsys, method):
     assert runs.load_training_state(tmp_path / "r")["step"] == 2
 
 
-def test_old_setting_paths_of_the_baselines_still_work_with_a_warning(tmp_path, capsys):
+def test_a_baselines_shared_settings_have_one_path(tmp_path, capsys):
     from fdnet.methods.calc.config import CALCRunConfig
     from fdnet.runs import load_config
 
     data = _dataset(tmp_path / "data")
+    assert main(["train", "calc", "--data", str(data), "--preset", "tiny", "--out", str(tmp_path / "bad"),
+                 "--steps", "1", "--set", "train.lr=5e-4", "--no-progress"]) == 2
+    assert "override train.lr: unknown setting 'lr'" in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()
     assert main(["train", "calc", "--data", str(data), "--preset", "tiny", "--out", str(tmp_path / "r"),
-                 "--steps", "1", "--set", "train.batch_size=2", "--set", "train.lr=5e-4", "--no-progress"]) == 0
-    assert "--set train.lr: the setting is now optim.lr" in capsys.readouterr().err
+                 "--steps", "1", "--set", "train.batch_size=2", "--set", "optim.lr=5e-4", "--no-progress"]) == 0
     assert load_config(tmp_path / "r", CALCRunConfig).optim.lr == 5e-4

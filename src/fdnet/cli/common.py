@@ -331,14 +331,7 @@ def apply_training_arguments(config, args: argparse.Namespace):
         config = dataclasses.replace(config, data=dataclasses.replace(config.data, tolerance=int(args.tolerance)))
     if getattr(args, "steps", None) is not None:
         config = config.with_total_steps(int(args.steps))
-    overrides = parse_overrides(args.set)
-    renamed = getattr(type(config), "renamed_settings", {})
-    for old in [key for key in overrides if key in renamed]:
-        import logging
-
-        logging.getLogger(__name__).warning(f"--set {old}: the setting is now {renamed[old]} (the old name still works)")
-        overrides[renamed[old]] = overrides.pop(old)
-    return replace_dotted(config, overrides)
+    return replace_dotted(config, parse_overrides(args.set))
 
 
 def check_resume_target(args: argparse.Namespace) -> None:

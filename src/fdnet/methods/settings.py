@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import ClassVar
 
 
 @dataclass
@@ -60,41 +59,9 @@ class OptimizerConfig:
     weight_decay: float = 0.0
 
 
-#: settings that moved from a method's ``train`` section to the shared sections: run configs
-#: written before read through :func:`moved_to_shared_sections`
-MOVED_SETTINGS = {"optimizer": "optim", "lr": "optim", "momentum": "optim", "weight_decay": "optim",
-                  "seed": "runtime", "bf16": "runtime", "checkpoint_every": "runtime", "log_every": "runtime"}
-
-
-#: ``--set`` paths of those settings as they were -> where they are now (still accepted, with a warning)
-RENAMED_SETTINGS = {f"train.{key}": f"{section}.{key}" for key, section in MOVED_SETTINGS.items()}
-
-
-def moved_to_shared_sections(data: dict) -> dict:
-    """A run config written with ``train.lr``, ``train.seed`` ... (before the shared ``optim`` and
-    ``runtime`` sections) -> the current layout; a current one is returned unchanged."""
-    train = data.get("train")
-    if not isinstance(train, dict) or not set(train) & set(MOVED_SETTINGS):
-        return data
-    data, train = dict(data), dict(train)
-    for key in [k for k in train if k in MOVED_SETTINGS]:
-        section = MOVED_SETTINGS[key]
-        data[section] = {**(data.get(section) or {}), key: train.pop(key)}
-    data["train"] = train
-    return data
-
-
 class StepsInTrainSection:
     """What the run configs of the methods that count their steps in ``train.steps`` (CALC,
-    NetVLAD) share: the old ``--set`` paths, reading runs in the old layout, ``--steps``."""
-
-    #: old ``--set`` paths still accepted (``train.lr`` -> ``optim.lr`` ...)
-    renamed_settings: ClassVar[dict[str, str]] = RENAMED_SETTINGS
-
-    @staticmethod
-    def from_legacy(data: dict) -> dict:
-        """Runs written with ``train.lr``, ``train.seed`` ... read in the current layout."""
-        return moved_to_shared_sections(data)
+    NetVLAD) share: ``--steps`` sets ``train.steps``."""
 
     @property
     def total_steps(self) -> int:

@@ -9,7 +9,6 @@ import pytest
 import torch
 from PIL import Image
 
-from fdnet.methods.settings import MOVED_SETTINGS
 from fdnet.config import replace_dotted
 from fdnet import runs
 from fdnet.descriptors.base import describe_paths
@@ -43,8 +42,14 @@ def make_route(root, frames=12, size=(48, 64), seed=0):
 def tiny(root, steps=4, **train):
     config = calc_config.tiny_config()
     config.data.root = str(root)
-    overrides = {"train.steps": steps, **{f"{MOVED_SETTINGS.get(k, 'train')}.{k}": v for k, v in train.items()}}
+    overrides = {"train.steps": steps, **{_path(config, k): v for k, v in train.items()}}
     return replace_dotted(config, overrides)
+
+
+def _path(config, key: str) -> str:
+    """Where a setting given by name lives: the shared ``optim``/``runtime`` sections, else ``train``."""
+    section = next((s for s in ("optim", "runtime") if hasattr(getattr(config, s), key)), "train")
+    return f"{section}.{key}"
 
 
 def test_original_dimensions():

@@ -10,7 +10,6 @@ import pytest
 import torch
 from PIL import Image
 
-from fdnet.methods.settings import MOVED_SETTINGS
 from fdnet.config import replace_dotted
 from fdnet import runs
 from fdnet.descriptors.base import describe_paths
@@ -44,7 +43,13 @@ def tiny(root, steps=4, tolerance=0, **train):
     config = netvlad_config.tiny_config()
     config.data.root = str(root)
     config.data.tolerance = tolerance
-    return replace_dotted(config, {"train.steps": steps, **{f"{MOVED_SETTINGS.get(k, 'train')}.{k}": v for k, v in train.items()}})
+    return replace_dotted(config, {"train.steps": steps, **{_path(config, k): v for k, v in train.items()}})
+
+
+def _path(config, key: str) -> str:
+    """Where a setting given by name lives: the shared ``optim``/``runtime`` sections, else ``train``."""
+    section = next((s for s in ("optim", "runtime") if hasattr(getattr(config, s), key)), "train")
+    return f"{section}.{key}"
 
 
 

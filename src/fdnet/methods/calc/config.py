@@ -69,7 +69,7 @@ def _runtime() -> RuntimeConfig:
 @dataclass
 class CALCRunConfig(StepsInTrainSection):
     method: str = METHOD
-    #: the preset the run started from ("" in runs written before runs recorded it)
+    #: the preset the run started from ("" for a config built without one)
     preset: str = ""
     model: CALCModelConfig = field(default_factory=CALCModelConfig)
     train: CALCTrainConfig = field(default_factory=CALCTrainConfig)

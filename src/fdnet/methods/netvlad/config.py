@@ -68,7 +68,7 @@ def _runtime() -> RuntimeConfig:
 @dataclass
 class NetVLADRunConfig(StepsInTrainSection):
     method: str = METHOD
-    #: the preset the run started from ("" in runs written before runs recorded it)
+    #: the preset the run started from ("" for a config built without one)
     preset: str = ""
     model: NetVLADModelConfig = field(default_factory=NetVLADModelConfig)
     train: NetVLADTrainConfig = field(default_factory=NetVLADTrainConfig)
