@@ -121,7 +121,7 @@ class Descriptor(ABC):
         """(Q, D), (R, D) -> (Q, R) float32, higher = more similar."""
         return np.asarray(queries, dtype=np.float32) @ np.asarray(references, dtype=np.float32).T
 
-    def fingerprint(self, *, with_locations: bool = False) -> str:
+    def fingerprint(self) -> str:
         """sha256 hex of what makes this descriptor's vectors what they are: its name, its
         settings, and the bytes of every weight it holds (the state_dict of each torch module and
         every numpy array among its attributes, and one level inside fdnet helper objects such as
@@ -135,17 +135,12 @@ class Descriptor(ABC):
         digest.update(f"method={self.name}\n".encode())
         # Where the weights were read from is no part of them: the same run directory named as
         # "run", "./run" or an absolute path (a database records absolute paths) must match.
-        settings = {k: v for k, v in self.settings().items() if with_locations or k not in LOCATION_SETTINGS}
+        settings = {k: v for k, v in self.settings().items() if k not in LOCATION_SETTINGS}
         digest.update(json.dumps(settings, sort_keys=True, default=str).encode())
         for label, data in _weight_bytes(self, "self", depth=1, seen=set()):
             digest.update(f"\n{label}\n".encode())
             digest.update(data)
         return digest.hexdigest()
-
-    def fingerprints(self) -> tuple[str, str]:
-        """(fingerprint, the fingerprint fdnet wrote before it left the weights' locations out).
-        Place databases built before then hold the second; both name the same weights."""
-        return self.fingerprint(), self.fingerprint(with_locations=True)
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.settings()})"

@@ -317,9 +317,9 @@ class ONNXDescriptor(Descriptor):
                 "channels": self.channels, "normalise": self.normalise, "output": self.output_name,
                 **({} if self._graph_layout else {"layout": self.layout})}
 
-    def fingerprint(self, *, with_locations: bool = False) -> str:
+    def fingerprint(self) -> str:
         # The model's bytes are in model_sha256; the session holds no array the base class could hash.
-        settings = {k: v for k, v in self.settings().items() if with_locations or k != "weights"}
+        settings = {k: v for k, v in self.settings().items() if k != "weights"}
         return hashlib.sha256(f"method={self.name}\n{json.dumps(settings, sort_keys=True)}".encode()).hexdigest()
 
     def _prepare(self, images: np.ndarray) -> np.ndarray:

@@ -297,12 +297,12 @@ class PrecomputedDescriptor(Descriptor):
                 **({"source_method": self.recorded["method"]} if "method" in self.recorded else {}),
                 **({"source_fingerprint": self.recorded["fingerprint"]} if "fingerprint" in self.recorded else {})}
 
-    def fingerprint(self, *, with_locations: bool = False) -> str:
+    def fingerprint(self) -> str:
         # Files that record the model that made them (fdnet extract's) are that model's vectors,
         # whatever images they hold: a database of them grows with later files of the same model.
         # Others are identified by their vectors' bytes and names (vectors_sha256): hashing the
         # merged matrix again, as the base class would, only costs time on a large map.
-        settings = {k: v for k, v in self.settings().items() if with_locations or k != "vectors"}
+        settings = {k: v for k, v in self.settings().items() if k != "vectors"}
         if "source_fingerprint" in settings:
             settings = {k: v for k, v in settings.items() if k not in ("vectors", "vectors_sha256", "images")}
         return hashlib.sha256(f"method={self.name}\n{json.dumps(settings, sort_keys=True)}".encode()).hexdigest()

@@ -249,7 +249,7 @@ def add_to_database(request: AddRequest) -> AddSummary:
         with _spool(descriptor, [paths[i] for i in todo], request.pipeline, Path(db).resolve().parent) as spool:
             result = database.add_batches(
                 _spooled_batches(spool, [names[i] for i in todo], [paths[i] for i in todo]),
-                fingerprint=descriptor.fingerprints(), allow_duplicates=allow_duplicates)
+                fingerprint=descriptor.fingerprint(), allow_duplicates=allow_duplicates)
     return AddSummary(str(db), result.added, len(known) + len(result.skipped), result.places, result.data_version)
 
 

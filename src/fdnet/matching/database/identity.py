@@ -8,7 +8,6 @@ from __future__ import annotations
 import json
 import sqlite3
 from dataclasses import dataclass, fields
-from typing import Sequence
 
 from fdnet.errors import ConfigError, DataError
 from fdnet.matching.index import INDEX_KINDS, IndexSettings, check_settings
@@ -79,16 +78,12 @@ def _read_identity(path, conn: sqlite3.Connection) -> _Identity:
 
 
 def _check_descriptor(path, identity: _Identity, descriptor) -> None:
-    _check_fingerprint(path, identity, descriptor.fingerprints(), descriptor.name)
+    _check_fingerprint(path, identity, descriptor.fingerprint(), descriptor.name)
 
 
-def _check_fingerprint(path, identity: _Identity, fingerprint: str | Sequence[str], method: str | None) -> None:
-    """Refuse vectors of another model. ``fingerprint`` may list several spellings of the same
-    model's fingerprint (``Descriptor.fingerprints()``: databases built before the weights'
-    locations were left out of it hold the older one)."""
-    accepted = (fingerprint,) if isinstance(fingerprint, str) else tuple(fingerprint)
-    fingerprint = accepted[0]
-    if identity.fingerprint not in accepted:
+def _check_fingerprint(path, identity: _Identity, fingerprint: str, method: str | None) -> None:
+    """Refuse vectors of another model (``Descriptor.fingerprint()``)."""
+    if identity.fingerprint != fingerprint:
         made_by = f"the {method!r} descriptor given has" if method else "these vectors come from"
         raise ConfigError(
             f"{path}: descriptor fingerprint mismatch: the database holds {identity.method!r} vectors with "

@@ -281,7 +281,7 @@ class PlaceDatabase:
 
     def add(self, vectors: np.ndarray, names: Sequence[str],
             positions: Sequence[tuple[float, float] | None] | np.ndarray | None = None, *,
-            metadata: Sequence[dict | None] | None = None, fingerprint: str | Sequence[str] | None = None,
+            metadata: Sequence[dict | None] | None = None, fingerprint: str | None = None,
             allow_duplicates: bool = False) -> AddResult:
         """Store a batch of places in one transaction: all of it is added or none.
 
@@ -300,7 +300,7 @@ class PlaceDatabase:
                 self._check_same_database(conn)
                 return self._insert(conn, batch, allow_duplicates)
 
-    def add_batches(self, batches: Iterable, *, fingerprint: str | Sequence[str] | None = None,
+    def add_batches(self, batches: Iterable, *, fingerprint: str | None = None,
                     allow_duplicates: bool = False) -> AddResult:
         """Store many chunks of places in ONE transaction: all of them are added or none (an
         ``add`` of a million images, a chunk in memory at a time). Each chunk is

@@ -7,8 +7,8 @@ sub-folder (the checkpoint with the best validation R@1, when training validated
 ``device``: ``auto`` (default: a GPU when there is one), ``cpu``, ``cuda`` or ``cuda:N``. Images
 (float32 in [0, 1], or uint8 as the streaming pipeline loads them) go to the device as they are
 and are converted there. ``bf16``: bfloat16 autocast with channels_last tensors (False by
-default, so vectors and database fingerprints stay what they were; None = on where the device
-runs bf16 natively, what ``fdnet extract`` uses).
+default: fp32 vectors, the same on every device; None = on where the device runs bf16 natively,
+what ``fdnet extract`` uses).
 """
 
 from __future__ import annotations

@@ -213,10 +213,10 @@ class TrunkWhitenedDescriptor(TrunkDescriptor):
         self._ensure_fitted()
         return self._whitening.transform(self._raw(images))
 
-    def fingerprint(self, *, with_locations: bool = False) -> str:
+    def fingerprint(self) -> str:
         # The whitening is part of what the vectors are: with a fit folder, learn it before hashing.
         # Without one, an unfitted copy hashes as it is (reproduce keys its caches on that plus the
         # reference images it is then fitted on), a fitted one with its whitening.
         if self.fit_folder:
             self._ensure_fitted()
-        return super().fingerprint(with_locations=with_locations)
+        return super().fingerprint()
