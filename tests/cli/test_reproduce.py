@@ -258,6 +258,6 @@ def test_seeds_below_one_is_one_error_line_and_seeds_outside_the_ablation_a_warn
     assert not (out / "ablation-runs").exists()
     assert main(["reproduce", "--data", str(route), "--method", "sad", "--experiments", "comparison", "--seeds", "2",
                  "--threads", "1", "--no-progress", "--out", str(out)]) == 0
-    assert ("--seeds is for the ablation experiment, which this run leaves out (--experiments): it does nothing "
-            "here") in capsys.readouterr().err
+    assert ("--seeds is for the lengths and ablation experiments, which this run leaves out (--experiments): it "
+            "does nothing here") in capsys.readouterr().err
     assert " --seeds 2 " in document(out, "comparison")["command"]

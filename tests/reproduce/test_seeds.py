@@ -4,6 +4,7 @@ per-seed values beside; ``--seeds 1`` writes what a run without the flag always 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 import statistics
@@ -108,3 +109,38 @@ def test_the_spread_of_a_number_and_the_folders_of_the_seeds(tmp_path):
     assert spread_text(spread([None, None])) == "-"
     assert seed_folder(tmp_path / "full", 3, 3) == tmp_path / "full"
     assert seed_folder(tmp_path / "full", 3, 5) == tmp_path / "full-seed5"
+
+
+def test_two_seeds_train_each_length_twice_and_report_mean_and_spread(route, tmp_path):
+    from tests.reproduce.conftest import settings
+
+    out = tmp_path / "out"
+    lengths = settings(route, out, experiments=["lengths"], conditions=["day", "night"], frames="6:10",
+                       length_preset="tiny", length_train_frames="0:6", runtime_images=2, cache=out / "cache",
+                       seeds=2)
+    said = []
+    reproduce(lengths, factory=factory, log=said.append)
+    document = json.loads((out / "lengths.json").read_text())
+    assert document["seeds"] == 2 and document["run_seeds"] == {str(n): [0, 1] for n in (256, 512, 1024, 2048)}
+    assert (out / "length-runs" / "L512" / "checkpoints").is_dir()
+    assert (out / "length-runs" / "L512-seed1" / "checkpoints").is_dir()
+    assert document["provenance"]["seeds"]["L2048"] == [0, 1]
+    assert len(document["accuracy"]) == 4 * 2 and len(document["timing"]) == 4  # timed once per length
+    for entry in document["accuracy"]:
+        assert [r["seed"] for r in entry["per_seed"]] == [0, 1]
+        for key in ("recall_at_100_precision", "precision_at_max_recall", "recall_at_1", "auc_pr"):
+            values = [r[key] for r in entry["per_seed"]]
+            assert entry[key] == entry["spread"][key]["mean"] == pytest.approx(sum(values) / 2)
+            assert entry["spread"][key]["std"] == pytest.approx(statistics.stdev(values))
+    section = (out / "report.html").read_text()
+    section = section[section.index('<section id="lengths">'):]
+    assert "over 2 seeds" in section and "each seed&#x27;s run per vector length and pair" in section
+
+    said.clear()
+    reproduce(dataclasses.replace(lengths, seeds=1), factory=factory, log=said.append)
+    assert sum("finished run in" in line for line in said) == 4 and not any("seed 1" in line for line in said)
+    single = json.loads((out / "lengths.json").read_text())
+    assert "seeds" not in single and "run_seeds" not in single
+    assert set(single["provenance"]["seeds"]) == {"checkpoint"}
+    assert all(set(a) == {"length", "reference", "query", "recall_at_100_precision", "precision_at_max_recall",
+                          "recall_at_1", "auc_pr"} for a in single["accuracy"])

@@ -87,9 +87,9 @@ ARGUMENTS = (
                                                 "preset or one, e.g. paper-native:schedule.joint_steps=60000 "
                                                 "(repeatable)")),
     ("experiments", "--seeds", dict(type=int, default=1, metavar="N",
-                                    help="ablation: train each variant trained here N times, seeds S, S+1, ... (S "
-                                         "its runtime.seed), and report each number's mean, sample standard "
-                                         "deviation and min-max over the N runs (default 1)")),
+                                    help="lengths and ablation: train each run trained here N times, seeds S, "
+                                         "S+1, ... (S its runtime.seed), and report each number's mean, sample "
+                                         "standard deviation and min-max over the N runs (default 1)")),
     ("experiments", "--viewpoint-pair", dict(metavar="REFERENCE,QUERY",
                                              help="viewpoint: the pair to crop (default: the first pair)")),
     ("experiments", "--overlaps", dict(default="100,90,75,65", metavar="LIST",

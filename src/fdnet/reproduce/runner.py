@@ -574,6 +574,8 @@ def _seeds(run: dict | None, document: dict) -> dict:
                     seeds[key] = [*(seeds[key] if isinstance(seeds[key], list) else [seeds[key]]), info["seed"]]
                 else:
                     seeds[key] = info["seed"]
+    for length, values in (document.get("run_seeds") or {}).items():  # the lengths' runs, with --seeds N
+        seeds[f"L{length}"] = values
     return seeds
 
 
