@@ -135,25 +135,22 @@ def test_commands_that_run_in_one_process_are_refused_under_torchrun():
 
 
 def test_a_lost_process_is_one_line_without_glooss_source_location():
-    message = sharding._backend_message(RuntimeError(
+    from fdnet.torchrun import _backend_message
+
+    message = _backend_message(RuntimeError(
         "[/pytorch/third_party/gloo/gloo/transport/tcp/pair.cc:553] Connection closed by peer [127.0.0.1]:61105. "
         "This is typically caused by a remote worker crashing.\nGLHF!"))
     assert message == "Connection closed by peer [127.0.0.1]:61105"
 
 
-def test_a_command_process_leaves_by_os_exit_after_its_exit_handlers_with_its_code(tmp_path):
-    marker = tmp_path / "atexit-ran"
-    script = f"""
-import atexit, pathlib, sys
-from fdnet.descriptors import sharding
-atexit.register(lambda: pathlib.Path({str(marker)!r}).write_text("yes"))
-sharding._exit_after_handlers(3)
-sys.stdout.write("unflushed output")
-sys.exit(0)
-"""
-    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
-    assert result.returncode == 3 and result.stdout == "unflushed output", (result.stdout, result.stderr)
-    assert marker.read_text() == "yes"
+def test_extract_and_training_share_the_one_process_group():
+    from fdnet.torchrun import ProcessGroup
+    from fdnet.training.distributed import DistributedContext
+
+    assert issubclass(Shards, ProcessGroup) and issubclass(DistributedContext, ProcessGroup)
+    # each adds no collective of its own: the lockstep is written once
+    shared = {"init", "destroy", "agree", "any", "gather", "broadcast", "collectively", "stop_if_failed"}
+    assert not shared & (set(vars(Shards)) | set(vars(DistributedContext)))
 
 
 # ---------------------------------------------------------------------- torchrun, 2 CPU processes

@@ -201,7 +201,7 @@ def test_a_single_process_context_changes_nothing():
     assert context.average_gradients(optimizer, torch.tensor(float("nan"))) is False
     assert all(torch.equal(a, p.grad) for a, p in zip(before, layer.parameters()))
     assert context.agree(True, False) == (True, False)
-    assert context.gather_objects("x") == ["x"] and context.broadcast_object(7) == 7
+    assert context.gather_to_main("x") == ["x"] and context.broadcast(7) == 7
     assert context.collectively(lambda: 5, main_only=True) == 5
     # a resumed rank: the shared state with its own entries
     shared = {"generator": 0, "cache": "rank 0's"}
@@ -230,17 +230,17 @@ def test_exit_process_after_a_process_group_runs_exit_handlers_flushes_and_keeps
     marker = tmp_path / "atexit-ran"
     script = f"""
 import atexit, pathlib, sys
-from fdnet.training import distributed
+from fdnet import torchrun
 atexit.register(lambda: pathlib.Path({str(marker)!r}).write_text("yes"))
-distributed._joined_a_group = True
+torchrun._joined_a_group = True
 sys.stdout.write("unflushed output")
-distributed.exit_process(3)
+torchrun.exit_process(3)
 print("not reached")
 """
     result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
     assert result.returncode == 3 and result.stdout == "unflushed output", (result.stdout, result.stderr)
     assert marker.read_text() == "yes"
     # a process that never joined a group exits the ordinary way
-    plain = subprocess.run([sys.executable, "-c", "from fdnet.training import distributed; distributed.exit_process(4)"],
+    plain = subprocess.run([sys.executable, "-c", "from fdnet import torchrun; torchrun.exit_process(4)"],
                            capture_output=True, text=True, timeout=120)
     assert plain.returncode == 4

@@ -183,16 +183,10 @@ def _environment_message(exc: BaseException, args: argparse.Namespace) -> str | 
 
 def run(argv: list[str] | None = None) -> None:
     """The ``fdnet`` command: :func:`main`, then the exit that a process of a torchrun group needs
-    (:func:`fdnet.training.distributed.exit_process` for a training,
-    :func:`fdnet.descriptors.sharding.exit_process` for extract and database build)."""
-    code = main(argv)
-    training = sys.modules.get("fdnet.training.distributed")  # only a training imported it
-    if training is not None:
-        training.exit_process(code)
-    sharding = sys.modules.get("fdnet.descriptors.sharding")
-    if sharding is not None and sharding._exit_hook is not None:  # a torchrun group was joined
-        sharding.exit_process(code)
-    sys.exit(code)
+    (:func:`fdnet.torchrun.exit_process`)."""
+    from fdnet.torchrun import exit_process
+
+    exit_process(main(argv))
 
 
 if __name__ == "__main__":  # pragma: no cover

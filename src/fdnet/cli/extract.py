@@ -93,7 +93,7 @@ def run(args) -> int:
     --out and alone prints)."""
     from fdnet.descriptors.sharding import launch
 
-    with launch(command=True) as shards:
+    with launch() as shards:
         return _run(args, shards)
 
 

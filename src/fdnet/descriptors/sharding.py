@@ -24,11 +24,11 @@ holds more than its batches and one chunk.
 **Lockstep and failures.** Every process enters every collective in the same order: an all-reduce
 of an error flag after each batch (a process out of batches still takes part) and before each
 chunk sent. A process that fails (an unreadable image, a full disk) raises its own error, the others
-:class:`OtherProcessFailed` naming it, at the same step: one line each, never a hang. A process that
+:class:`~fdnet.torchrun.OtherProcessFailed` naming it, at the same step: one line each, never a hang. A process that
 dies (``kill -9``) closes its connections: the others' next collective fails with
-:class:`ShardingError`, as does torchrun's SIGTERM, so ``with`` blocks run and rank 0 removes its
+:class:`~fdnet.torchrun.LostContact`, as does torchrun's SIGTERM, so ``with`` blocks run and rank 0 removes its
 parts (a killed rank 0's, or another's spool, is removed by the next run there, as for one
-process). Collectives time out after :data:`TIMEOUT`.
+process). Collectives time out after :data:`fdnet.torchrun.TIMEOUT`.
 
 **Learning from images.** A method that learns from the images it describes (``needs_fit``:
 dbow without a vocabulary, trunk-whitened without ``--fit``) learns on rank 0 from all of them;
@@ -41,7 +41,6 @@ after BATCHES batches, how the tests kill one mid-run. Never set it otherwise.
 from __future__ import annotations
 
 import contextlib
-import datetime
 import logging
 import os
 import signal
@@ -50,218 +49,27 @@ from typing import Callable, Iterator, Mapping, Sequence, TypeVar
 
 import numpy as np
 
-from fdnet.errors import ConfigError, FdnetError
-from fdnet.torchrun import environment_int, leave, quiet_unless, require_rendezvous
+from fdnet.errors import ConfigError
+from fdnet.torchrun import LostContact, OtherProcessFailed, ProcessGroup  # noqa: F401  (raised in every process)
 
 log = logging.getLogger(__name__)
 
 T = TypeVar("T")
 
-#: how long a collective waits for the slowest process (the longest wait: rank 0 fitting a method)
-TIMEOUT = datetime.timedelta(minutes=30)
 #: bytes of vectors sent to rank 0 at a time
 CHUNK_BYTES = 16 << 20
 #: the test hook's environment variable (module docstring)
 KILL_VARIABLE = "FDNET_TEST_KILL_RANK"
 
 
-class ShardingError(FdnetError):
-    """The processes lost contact (one died, or torchrun stopped them), or the launch is unusable."""
+class Shards(ProcessGroup):
+    """The :class:`~fdnet.torchrun.ProcessGroup` of processes describing one image list (module
+    docstring): gloo only (the vectors are on the CPU by then), a CPU process using the machine's
+    cores divided among its processes."""
 
-
-class OtherProcessFailed(FdnetError):
-    """Raised on the processes that did not fail themselves when another one failed."""
-
-
-def _backend_message(exc: BaseException) -> str:
-    """A gloo error's first sentence without its source location ("Connection closed by peer ...")."""
-    import re
-
-    text = re.sub(r"\[[^\]]*\.(cc|cpp|h):\d+\]\s*", "", " ".join(str(exc).split()))
-    return (text.split(". ")[0] or type(exc).__name__)[:300]
-
-
-def _one_line(exc: BaseException) -> str:
-    text = str(exc) if isinstance(exc, FdnetError) else f"{type(exc).__name__}: {exc}"
-    return " ".join(text.split())
-
-
-class Shards:
-    """This process's place among ``world_size`` processes describing one image list (module
-    docstring). ``rank`` 0 writes the output; ``local_rank`` is the process's index on its
-    machine (its GPU). Until :meth:`init` (and always for one process) every collective below
-    returns at once with this process's own value."""
-
-    def __init__(self, world_size: int = 1, rank: int = 0, local_rank: int = 0, local_world_size: int = 1):
-        if world_size < 1 or not 0 <= rank < world_size or local_rank < 0 or local_world_size < 1:
-            raise ConfigError(f"invalid torchrun setup: RANK={rank}, LOCAL_RANK={local_rank}, "
-                              f"WORLD_SIZE={world_size}, LOCAL_WORLD_SIZE={local_world_size}")
-        self.world_size = int(world_size)
-        self.rank = int(rank)
-        self.local_rank = int(local_rank)
-        self.local_world_size = int(local_world_size)
-        self.enabled = False
-        self._owns_group = False
-
-    @classmethod
-    def from_env(cls, environ: Mapping[str, str] | None = None) -> "Shards":
-        """torchrun's ``WORLD_SIZE``, ``RANK``, ``LOCAL_RANK``, ``LOCAL_WORLD_SIZE``; one process
-        when ``WORLD_SIZE`` is absent or 1."""
-        environ = os.environ if environ is None else environ
-        if "WORLD_SIZE" not in environ or environment_int(environ, "WORLD_SIZE") == 1:
-            return cls()
-        world_size = environment_int(environ, "WORLD_SIZE")
-        return cls(world_size, environment_int(environ, "RANK"), environment_int(environ, "LOCAL_RANK", 0),
-                   environment_int(environ, "LOCAL_WORLD_SIZE", 1))
-
-    @property
-    def is_main(self) -> bool:
-        """Rank 0: the process that writes the output."""
-        return self.rank == 0
-
-    def block(self, count: int, rank: int | None = None) -> tuple[int, int]:
-        """``(start, end)`` of process ``rank``'s (default: this one's) block of ``count`` items: the
-        blocks of ranks 0..W-1 follow each other and differ in size by at most one."""
-        rank = self.rank if rank is None else int(rank)
-        return rank * count // self.world_size, (rank + 1) * count // self.world_size
-
-    def threads(self) -> int | None:
-        """torch CPU threads: the machine's cores divided among its processes (None: one process)."""
-        if self.world_size == 1:
-            return None
-        return max(1, (os.cpu_count() or 1) // self.local_world_size)
-
-    # ------------------------------------------------------------------ set-up
-    def init(self) -> "Shards":
-        """Join the process group (gloo; a no-op for one process), after making ``cuda:LOCAL_RANK``
-        this process's current CUDA device on a machine with GPUs."""
-        import torch
-
-        if self.world_size == 1 or self.enabled:
-            return self
-        if torch.cuda.is_available() and self.local_rank < torch.cuda.device_count():
-            torch.cuda.set_device(self.local_rank)
-        import torch.distributed as dist
-
-        if not dist.is_available() or not dist.is_gloo_available():
-            raise ConfigError("this torch build has no torch.distributed with gloo; describing images in "
-                              "several processes needs it")
-        if dist.is_initialized():  # the caller's own process group: used, left to the caller to destroy
-            if dist.get_world_size() != self.world_size:
-                raise ConfigError(f"WORLD_SIZE={self.world_size} but the running process group has "
-                                  f"{dist.get_world_size()} processes")
-            self.enabled = True
-            return self
-        require_rendezvous(os.environ, self.world_size)
-        self._call("joining the other processes",
-                   lambda: dist.init_process_group("gloo", init_method="env://", world_size=self.world_size,
-                                                   rank=self.rank, timeout=TIMEOUT))
-        self.enabled = self._owns_group = True
-        torch.set_num_threads(self.threads())
-        return self
-
-    def destroy(self) -> None:
-        if self.enabled and self._owns_group:
-            import torch.distributed as dist
-
-            with contextlib.suppress(Exception):  # after a lost process it may fail too: nothing to save
-                dist.destroy_process_group()
-        self.enabled = self._owns_group = False
-
-    def check_device(self, device) -> None:
-        """ConfigError unless a CUDA ``device`` is this process's own GPU, ``cuda:LOCAL_RANK``."""
-        if device is None or not self.enabled:
-            return
-        import torch
-
-        device = torch.device(device)
-        if device.type != "cuda":
-            return
-        count = torch.cuda.device_count()
-        if self.local_rank >= count:
-            raise ConfigError(f"process {self.rank} (LOCAL_RANK {self.local_rank}) has no GPU of its own: this "
-                              f"machine has {count} GPU(s) and each process describes on cuda:LOCAL_RANK; start at "
-                              f"most {count} processes per machine (torchrun --nproc-per-node {count}) or use "
-                              "--device cpu")
-        if device.index is not None and device.index != self.local_rank:
-            raise ConfigError(f"--device {device} for process {self.rank}: under torchrun each process describes on "
-                              f"its own GPU, cuda:LOCAL_RANK (here cuda:{self.local_rank}); give --device cuda or "
-                              "auto, not cuda:N")
-
-    # ------------------------------------------------------------------ collectives
-    def _call(self, what: str, fn: Callable[[], T]) -> T:
-        """``fn()``, a torch.distributed call: a lost process becomes one line, not a traceback."""
-        try:
-            return fn()
-        except RuntimeError as exc:  # gloo: connection closed or reset by a peer, a timeout
-            raise ShardingError(f"process {self.rank} of {self.world_size} lost contact with the others while "
-                                f"{what} (another process stopped or was killed; its error, if any, is above): "
-                                f"{_backend_message(exc)}") from None
-
-    def any(self, flag: bool) -> bool:
-        """Whether ``flag`` is true in any process (one small all-reduce)."""
-        if not self.enabled:
-            return bool(flag)
-        import torch
-        import torch.distributed as dist
-
-        tensor = torch.tensor([1 if flag else 0], dtype=torch.int32)
-        self._call("agreeing on errors", lambda: dist.all_reduce(tensor, op=dist.ReduceOp.MAX))
-        return bool(tensor.item())
-
-    def gather(self, obj) -> list:
-        """Every process's ``obj``, in rank order, in every process."""
-        if not self.enabled:
-            return [obj]
-        import torch.distributed as dist
-
-        out = [None] * self.world_size
-        self._call("exchanging settings", lambda: dist.all_gather_object(out, obj))
-        return out
-
-    def broadcast(self, obj: T) -> T:
-        """Rank 0's ``obj`` in every process (pickled)."""
-        if not self.enabled:
-            return obj
-        import torch.distributed as dist
-
-        box = [obj if self.is_main else None]
-        self._call("receiving rank 0's settings", lambda: dist.broadcast_object_list(box, src=0))
-        return box[0]
-
-    def stop_if_failed(self, error: BaseException | None) -> None:
-        """Called by every process at the same point with its error or None: when any had one, the
-        failing ones raise theirs, the others :class:`OtherProcessFailed` naming the first."""
-        if not self.enabled:
-            if error is not None:
-                raise error
-            return
-        if not self.any(error is not None):
-            return
-        messages = self.gather(None if error is None else _one_line(error))
-        if error is not None:
-            raise error
-        rank, message = next((r, m) for r, m in enumerate(messages) if m is not None)
-        raise OtherProcessFailed(f"stopped because process {rank} of {self.world_size} failed: {message}")
-
-    def collectively(self, fn: Callable[[], T], main_only: bool = False) -> T:
-        """``fn()`` (no collective inside) in every process, or in rank 0 alone (``main_only``: its
-        result broadcast), every process stopping when it fails in any (:meth:`stop_if_failed`)."""
-        if not self.enabled:
-            return fn()
-        result, error = None, None
-        if not main_only or self.is_main:
-            try:
-                result = fn()
-            except Exception as exc:  # noqa: BLE001 - raised below, in every process
-                error = exc
-        self.stop_if_failed(error)
-        return self.broadcast(result) if main_only else result
-
-    # ------------------------------------------------------------------ output
-    def quiet_unless_main(self):
-        """One process reports (:func:`fdnet.torchrun.quiet_unless`)."""
-        return quiet_unless(self.is_main)
+    WORK = "describes"
+    CPU_HINT = "--device cpu"
+    DIVIDES_CORES = True
 
 
 _SINGLE = Shards()
@@ -280,11 +88,11 @@ def refuse_under_torchrun(what: str, environ: Mapping[str, str] | None = None) -
 
 
 @contextlib.contextmanager
-def launch(environ: Mapping[str, str] | None = None, command: bool = False) -> Iterator[Shards]:
+def launch(environ: Mapping[str, str] | None = None) -> Iterator[Shards]:
     """Join the processes the environment describes for the block, make them :func:`current`, stop
     on SIGTERM with an error and quiet all but rank 0; one process gets a no-op context, a nested
-    launch the running one. ``command``: an fdnet command, whose process, having joined a group,
-    leaves by ``os._exit`` once its exit handlers ran (:func:`exit_process`)."""
+    launch the running one. A process that joined a group leaves by ``os._exit`` once its exit
+    handlers ran (:func:`fdnet.torchrun.exit_process`, which ``fdnet``'s command line calls)."""
     global _current
     if _current is not _SINGLE:
         yield _current
@@ -296,23 +104,17 @@ def launch(environ: Mapping[str, str] | None = None, command: bool = False) -> I
     shards.init()
     _current = shards
     restore = _stop_on_sigterm()
-    code = 0
     try:
         with shards.quiet_unless_main():
             yield shards
-    except BaseException as exc:
-        code = _exit_code(exc)
-        raise
     finally:
         restore()
         _current = _SINGLE
         shards.destroy()
-        if command:
-            _exit_after_handlers(code)
 
 
 def _stop_on_sigterm() -> Callable[[], None]:
-    """SIGTERM (torchrun stopping every process, one having failed) raises ShardingError here, so
+    """SIGTERM (torchrun stopping every process, one having failed) raises LostContact here, so
     ``with`` blocks remove their files (forked decoding workers just end). Returns the undo."""
     import threading
 
@@ -325,54 +127,11 @@ def _stop_on_sigterm() -> Callable[[], None]:
             signal.signal(signum, signal.SIG_DFL)
             os.kill(os.getpid(), signum)
             return
-        raise ShardingError("stopped by SIGTERM: torchrun stops every process when one of them fails or is "
+        raise LostContact("stopped by SIGTERM: torchrun stops every process when one of them fails or is "
                             "killed (its error, if any, is above)")
 
     previous = signal.signal(signal.SIGTERM, stop)
     return lambda: signal.signal(signal.SIGTERM, previous)
-
-
-def _exit_code(exc: BaseException) -> int:
-    """``fdnet``'s exit status for ``exc`` (:func:`fdnet.cli.main`): 130, 2 (one line) or 1 (a bug)."""
-    if isinstance(exc, KeyboardInterrupt):
-        return 130
-    if isinstance(exc, SystemExit):
-        return exc.code if isinstance(exc.code, int) else 1
-    if isinstance(exc, (FdnetError, OSError, MemoryError)):
-        return 2
-    return 1
-
-
-_exit_hook: Callable[[], None] | None = None
-
-
-def _exit_after_handlers(code: int) -> None:
-    """At exit (the command line has printed its result or error), run the exit handlers and leave
-    by ``os._exit(code)``: a gloo process's native threads, torn down at interpreter exit, now and
-    then die of ``std::terminate`` (SIGABRT) after the work is done (as training found)."""
-    import atexit
-
-    global _exit_hook
-    if _exit_hook is not None:
-        atexit.unregister(_exit_hook)
-
-    def hook() -> None:
-        exit_process(code)
-
-    _exit_hook = hook
-    atexit.register(hook)
-
-
-def exit_process(code: int) -> None:
-    """End this process with ``code`` by :func:`fdnet.torchrun.leave` (exit handlers, flushed
-    output, ``os._exit``), its pending exit hook taken out first."""
-    import atexit
-
-    global _exit_hook
-    if _exit_hook is not None:
-        atexit.unregister(_exit_hook)
-        _exit_hook = None
-    leave(code)
 
 
 # ---------------------------------------------------------------------- the work

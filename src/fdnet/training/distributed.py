@@ -25,11 +25,11 @@ checkpoint. Before each checkpoint every rank's own random state (its sampler ge
 torch's RNG) is gathered to rank 0 and saved, so a resume with the same world size continues each
 rank's random streams exactly. The other ranks only compute and take part in the collectives.
 
-**Lockstep.** Every collective is entered by every rank in the same order. Failures that only one
-rank sees (a held lock, a bad setting, a full disk at a save) are agreed on with
-:meth:`collectively`, so all ranks stop together with the first rank's message instead of
-waiting for ever in a collective; stop decisions (Ctrl-C, SIGTERM from torchrun, the time budget)
-are agreed every step with :meth:`agree`.
+**Lockstep.** Every collective is entered by every rank in the same order (the one process group,
+:class:`fdnet.torchrun.ProcessGroup`). Failures that only one rank sees (a held lock, a bad
+setting, a full disk at a save) are agreed on with ``collectively``, so all ranks stop together
+with the first rank's message instead of waiting for ever in a collective; stop decisions
+(Ctrl-C, SIGTERM from torchrun, the time budget) are agreed every step with ``agree``.
 
 **Backends.** ``gloo`` for CPU tensors, ``NCCL`` for CUDA tensors: on a machine with GPUs the
 process group is ``cpu:gloo,cuda:nccl`` and each collective takes the backend of its tensors'
@@ -38,128 +38,33 @@ lockstep through gloo); without GPUs it is ``gloo``. A process that trains on CU
 ``cuda:LOCAL_RANK``.
 
 A single process (no ``WORLD_SIZE`` in the environment, or ``WORLD_SIZE=1``) gets a context on
-which every method is a no-op, so a plain ``fdnet train`` behaves as it always did.
+which every method is a no-op: a plain ``fdnet train`` enters no collective.
 """
 
 from __future__ import annotations
 
 import contextlib
-import datetime
-import os
 from typing import Any, Callable, Iterable, Iterator, Mapping, Sequence, TypeVar
 
 import torch
 
-from fdnet.errors import ConfigError, FdnetError
-from fdnet.torchrun import environment_int, leave, quiet_unless, require_rendezvous
+from fdnet.errors import ConfigError
+from fdnet.torchrun import ProcessGroup
 
 T = TypeVar("T")
 
-#: How long a collective may wait for the slowest rank. Rank 0 validates alone while the others
-#: wait in the next step's collective, so a validation must take less than this.
-TIMEOUT = datetime.timedelta(minutes=30)
 
+class DistributedContext(ProcessGroup):
+    """This process's place in a data-parallel training: the one
+    :class:`~fdnet.torchrun.ProcessGroup` (CUDA tensors through NCCL on a machine with GPUs, CPU
+    objects through gloo) with what training adds, gradient averaging and module broadcasts (see
+    the module docstring). Until :meth:`init` (and always for a single process) every collective
+    returns at once with this process's own value."""
 
-#: how a training's processes are started, named when torchrun's variables are missing
-_START = "start distributed training"
-
-
-class OtherRankFailed(FdnetError):
-    """Raised on the ranks that did not fail themselves when another rank failed (see
-    :meth:`DistributedContext.collectively`)."""
-
-
-class DistributedContext:
-    """This process's place in a data-parallel training (see the module docstring).
-
-    ``world_size`` processes in all, this one is ``rank`` (0 = the one that writes) and
-    ``local_rank`` on its machine. :attr:`enabled` once a process group with more than one
-    process is initialised; until then (and always for a single process) every collective below
-    returns at once with this process's own value.
-    """
-
-    def __init__(self, world_size: int = 1, rank: int = 0, local_rank: int = 0, launched: bool = False) -> None:
-        if world_size < 1 or not 0 <= rank < world_size or local_rank < 0:
-            raise ConfigError(f"invalid distributed setup: RANK={rank}, LOCAL_RANK={local_rank}, "
-                              f"WORLD_SIZE={world_size} (need 0 <= RANK < WORLD_SIZE)")
-        self.world_size = int(world_size)
-        self.rank = int(rank)
-        self.local_rank = int(local_rank)
-        #: started by torchrun (or another launcher that sets WORLD_SIZE)
-        self.launched = bool(launched)
-        self.enabled = False
-        self.backend: str | None = None
-
-    def __repr__(self) -> str:
-        return (f"DistributedContext(world_size={self.world_size}, rank={self.rank}, "
-                f"local_rank={self.local_rank}, backend={self.backend})")
-
-    # ------------------------------------------------------------------ set-up
-    @classmethod
-    def from_env(cls, environ: Mapping[str, str] | None = None) -> "DistributedContext":
-        """``WORLD_SIZE``, ``RANK`` and ``LOCAL_RANK`` as torchrun sets them; a single process when
-        ``WORLD_SIZE`` is absent."""
-        environ = os.environ if environ is None else environ
-        if "WORLD_SIZE" not in environ:
-            return cls()
-        world_size = environment_int(environ, "WORLD_SIZE", start=_START)
-        rank = environment_int(environ, "RANK", start=_START)
-        local_rank = environment_int(environ, "LOCAL_RANK", default=0)
-        return cls(world_size, rank, local_rank, launched=True)
-
-    @property
-    def is_main(self) -> bool:
-        """Rank 0: the process that holds the lock and writes the run directory."""
-        return self.rank == 0
-
-    def init(self) -> "DistributedContext":
-        """Join the process group (a no-op for one process). On a machine with GPUs, this process's
-        current CUDA device becomes ``cuda:LOCAL_RANK`` first, so ``cuda``/``auto`` mean that GPU."""
-        if torch.cuda.is_available() and self.local_rank < torch.cuda.device_count():
-            torch.cuda.set_device(self.local_rank)
-        if self.world_size == 1 or self.enabled:
-            return self
-        import torch.distributed as dist
-
-        if not dist.is_available() or not dist.is_gloo_available():
-            raise ConfigError("this torch build has no torch.distributed with gloo; distributed training needs it")
-        require_rendezvous(os.environ, self.world_size, start=_START)
-        backend = "cpu:gloo,cuda:nccl" if torch.cuda.is_available() and dist.is_nccl_available() else "gloo"
-        dist.init_process_group(backend, init_method="env://", world_size=self.world_size, rank=self.rank,
-                                timeout=TIMEOUT)
-        global _joined_a_group
-        _joined_a_group = True
-        self.backend = backend
-        self.enabled = True
-        return self
-
-    def destroy(self) -> None:
-        if self.enabled:
-            import torch.distributed as dist
-
-            dist.destroy_process_group()
-            self.enabled = False
-            self.backend = None
-
-    def check_device(self, device: torch.device | None) -> None:
-        """ConfigError unless a CUDA ``device`` is this process's own GPU, ``cuda:LOCAL_RANK``
-        (two processes on one GPU would slow each other down and NCCL refuses them)."""
-        if device is None or not self.launched or self.world_size == 1:
-            return
-        device = torch.device(device)
-        if device.type != "cuda":
-            return
-        count = torch.cuda.device_count()
-        index = device.index if device.index is not None else torch.cuda.current_device()
-        if self.local_rank >= count:
-            raise ConfigError(
-                f"process {self.rank} (LOCAL_RANK {self.local_rank}) has no GPU of its own: this machine has "
-                f"{count} GPU(s) and each process trains on cuda:LOCAL_RANK; start at most {count} processes "
-                f"per machine (torchrun --nproc-per-node {count}) or train on CPUs (runtime.device=cpu)")
-        if index != self.local_rank:
-            raise ConfigError(
-                f"device {device} for process {self.rank}: with torchrun each process trains on its own GPU, "
-                f"cuda:LOCAL_RANK (here cuda:{self.local_rank}); set the device to cuda or auto, not cuda:N")
+    WORK = "trains"
+    START = "start distributed training"
+    CPU_HINT = "runtime.device=cpu"
+    USES_NCCL = True
 
     def rank_seed(self, seed: int) -> int:
         """The seed of this rank's data streams: ``seed + rank``. Rank 0 keeps ``seed``, so a
@@ -241,84 +146,10 @@ class DistributedContext:
                 for tensor, value in zip(group, _unflatten_dense_tensors(flat, group)):
                     tensor.copy_(value)
 
-    def broadcast_object(self, obj: T) -> T:
-        """Rank 0's ``obj`` on every rank (pickled; CPU tensors inside it stay CPU tensors)."""
-        if not self.enabled:
-            return obj
-        import torch.distributed as dist
-
-        box = [obj if self.is_main else None]
-        dist.broadcast_object_list(box, src=0)
-        return box[0]
-
-    def gather_objects(self, obj: Any) -> list | None:
-        """Every rank's ``obj``, in rank order, on rank 0 (None on the other ranks)."""
-        if not self.enabled:
-            return [obj]
-        import torch.distributed as dist
-
-        out = [None] * self.world_size if self.is_main else None
-        dist.gather_object(obj, out, dst=0)
-        return out
-
-    def agree(self, *flags: bool) -> tuple[bool, ...]:
-        """Each flag true on any rank, on every rank (one small all-reduce): stop decisions that
-        every rank must take at the same step."""
-        if not self.enabled:
-            return tuple(bool(f) for f in flags)
-        import torch.distributed as dist
-
-        tensor = torch.tensor([1 if f else 0 for f in flags], dtype=torch.int32)  # CPU: gloo
-        dist.all_reduce(tensor, op=dist.ReduceOp.MAX)
-        return tuple(bool(v) for v in tensor.tolist())
-
-    def collectively(self, fn: Callable[[], T], main_only: bool = False) -> T:
-        """Run ``fn`` on every rank (or on rank 0 alone, with ``main_only``, whose result is then
-        broadcast) and agree on failure: when ``fn`` raised on any rank, every rank raises, the
-        failing ones their own exception and the others :class:`OtherRankFailed` with the first
-        failure's message. ``fn`` must not itself enter a collective."""
-        if not self.enabled:
-            return fn()
-        result, error = None, None
-        if not main_only or self.is_main:
-            try:
-                result = fn()
-            except Exception as exc:  # noqa: BLE001 - re-raised below, on every rank
-                error = exc
-        import torch.distributed as dist
-
-        failures: list = [None] * self.world_size
-        dist.all_gather_object(failures, None if error is None else
-                               (str(error) if isinstance(error, FdnetError) else f"{type(error).__name__}: {error}"))
-        if error is not None:
-            raise error
-        for rank, failure in enumerate(failures):
-            if failure is not None:
-                raise OtherRankFailed(f"stopped because process {rank} of {self.world_size} failed: {failure}")
-        return self.broadcast_object(result) if main_only else result
-
-    # ------------------------------------------------------------------ output
-    def quiet_unless_main(self):
-        """One process reports (:func:`fdnet.torchrun.quiet_unless`)."""
-        return quiet_unless(self.is_main)
 
 
 _SINGLE = DistributedContext()
 _current: DistributedContext = _SINGLE
-#: whether this process ever joined a process group (see :func:`exit_process`)
-_joined_a_group = False
-
-
-def exit_process(code: int) -> None:
-    """End this process with ``code``: :func:`sys.exit`, except in a process that joined a
-    process group, which leaves by :func:`fdnet.torchrun.leave` (exit handlers, flushed output,
-    ``os._exit``: gloo's native teardown at interpreter exit now and then aborts a finished run).
-    """
-    import sys
-
-    if not _joined_a_group:
-        sys.exit(code)
-    leave(code)
 
 
 def current() -> DistributedContext:
@@ -339,18 +170,10 @@ def launch(environ: Mapping[str, str] | None = None) -> Iterator[DistributedCont
     context = DistributedContext.from_env(environ)
     import torch.distributed as dist
 
-    if dist.is_available() and dist.is_initialized():
-        # the caller's own process group: use it, and leave it to the caller to destroy
+    if dist.is_available() and dist.is_initialized() and context.world_size != dist.get_world_size():
+        # the caller's own process group, started without torchrun's variables: it is the group
         context = DistributedContext(dist.get_world_size(), dist.get_rank(), context.local_rank, launched=True)
-        context.enabled = context.world_size > 1
-        context.backend = str(dist.get_backend())
-        _current = context
-        try:
-            yield context
-        finally:
-            _current = _SINGLE
-        return
-    context.init()
+    context.init()  # a group the caller started is used, and left to the caller to destroy
     _current = context
     try:
         yield context

@@ -310,7 +310,7 @@ class Trainer:
         run with the previous complete checkpoint still current."""
         # On every rank, so a model changed here (NetVLAD's PCA) stays the same on all of them.
         self.method.before_save()
-        rank_states = self.dist.gather_objects(self._own_random_state()) if self.dist.enabled else None
+        rank_states = self.dist.gather_to_main(self._own_random_state()) if self.dist.enabled else None
         published = self.dist.collectively(lambda: self._write(rank_states), main_only=True)
         self._saved_step = self.step
         return published
