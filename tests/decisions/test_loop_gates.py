@@ -18,11 +18,15 @@ def test_settings_are_checked_and_parsed():
     for bad, message in ((["min_brightness=2"], "must be in [0, 1]"), (["consistency=0"], "at least 1"),
                          (["consistency=x"], "not a number"), (["nosuch=1"], "unknown loop gate setting"),
                          (["exclude_metres=-1"], "at least 0"), (["consistency"], "expected KEY=VALUE"),
-                         (["decide_when_still=maybe"], "true or false")):
+                         (["decide_when_still=maybe"], "true or false"),
+                         (["consistency=2.5"], "give a whole number of frames"),
+                         (["consistency_window=inf"], "give a whole number of frames")):
         with pytest.raises(ConfigError, match=message.replace("[", r"\[").replace("]", r"\]")):
             LoopGates().with_settings(bad)
     with pytest.raises(ConfigError, match="unknown loop gate"):
         LoopGates.from_dict({"colour": 1})
+    # a number written with an exponent is a number of frames, not "not a number"
+    assert LoopGates().with_settings(["consistency=1e3"]).consistency == 1000
 
 
 def test_signals_find_dark_and_blank_frames_whatever_the_dtype():

@@ -135,9 +135,15 @@ class LoopGates:
                     data[key] = None
                 continue
             try:
-                data[key] = int(text) if key in ("consistency", "consistency_window") else float(text)
-            except ValueError:
-                raise ConfigError(f"loop gate setting {key}={text!r}: not a number") from None
+                value = float(text)
+            except ValueError as exc:
+                raise ConfigError(f"loop gate setting {key}={text!r}: not a number") from exc
+            if key in ("consistency", "consistency_window"):
+                # 1e9 is a number: say what is wrong with it (whole? in range?), not that it is none
+                if not math.isfinite(value) or value != int(value):
+                    raise ConfigError(f"loop gate setting {key}={text!r}: give a whole number of frames")
+                value = int(value)
+            data[key] = value
         return LoopGates.from_dict(data)
 
 
