@@ -116,11 +116,11 @@ def test_device_does_not_change_the_fingerprint():
 def fdnet_run(tmp_path):
     from fdnet.methods.fdnet.config import preset
     from fdnet.methods.fdnet.model import FDNet
-    from fdnet.runs import save_run
+    from fdnet.runs import save_checkpoint
 
     config = preset("tiny")
     torch.manual_seed(0)
-    save_run(tmp_path / "run", FDNet(config.model).named_parts(), config, state={"step": 1})
+    save_checkpoint(tmp_path / "run", FDNet(config.model).named_parts(), config, state={"step": 1})
     return tmp_path / "run"
 
 

@@ -1,5 +1,5 @@
 """Crash-safe run directories (fdnet.runs): what a reader finds after kill -9, a full disk, a
-second training into the same folder, and older runs' layout."""
+second training into the same folder, and what is not a run."""
 
 from __future__ import annotations
 
@@ -20,7 +20,6 @@ from pathlib import Path
 import pytest
 import torch
 import yaml
-from safetensors.torch import save_file
 
 from fdnet import runs
 from fdnet.config import to_dict
@@ -177,57 +176,19 @@ def test_best_weights_only_checkpoint(tmp_path):
     assert _value_of(other) == 3.0
 
 
-def test_save_run_keeps_the_old_call_working(tmp_path):
+def test_files_at_the_top_of_a_folder_are_a_run_only_as_a_complete_generation(tmp_path):
     model, optimizer = _trained(0)
-    runs.save_run(tmp_path / "a", {"net": model}, _Cfg(), optimizers={"opt": optimizer}, state={"step": 3})
-    assert runs.load_training_state(tmp_path / "a")["step"] == 3
-    runs.save_run(tmp_path / "b", {"net": model}, _Cfg())
-    with pytest.raises(ConfigError, match="cannot be resumed"):
-        runs.load_training_state(tmp_path / "b")
-
-
-def _write_legacy_run(run_dir, model, optimizer, step, config):
-    """The layout fdnet.training.checkpoint wrote before run generations (files at the top)."""
-    run_dir.mkdir(parents=True)
-    save_id = "0123456789abcdef0123456789abcdef"
-    save_file({f"net.{k}": v.contiguous().clone() for k, v in model.state_dict().items()},
-              str(run_dir / runs.WEIGHTS_FILE),
-              metadata={"format": "fdnet-run/1", "modules": "net", "config_class": "_Cfg",
-                        "save_id": save_id, "step": str(step)})
-    torch.save({"format": "1", "save_id": save_id, "optimizers": {"opt": optimizer.state_dict()},
-                "state": {"step": step}}, run_dir / runs.STATE_FILE)
-    (run_dir / runs.CONFIG_FILE).write_text(yaml.safe_dump(to_dict(config), sort_keys=False))
-
-
-def test_legacy_layout_still_loads_and_resumes_into_generations(tmp_path):
-    run_dir = tmp_path / "old"
-    model, optimizer = _trained(0)
-    _write_legacy_run(run_dir, model, optimizer, 900, _Cfg(lr=0.25))
-
-    assert runs.is_run(run_dir) and runs.latest_checkpoint(run_dir) == run_dir
-    other, other_optimizer = _trained(1)
-    assert runs.load_weights(run_dir, {"net": other})["step"] == "900"
-    assert torch.equal(other[0].weight, model[0].weight)
-    assert runs.load_training_state(run_dir, {"opt": other_optimizer})["step"] == 900
-    assert torch.equal(other_optimizer.state_dict()["state"][0]["exp_avg"],
-                       optimizer.state_dict()["state"][0]["exp_avg"])
-    assert runs.load_config(run_dir, _Cfg) == _Cfg(lr=0.25)
-
-    # Resumed with this module: the new generation is current, the old files are left alone.
-    _save(run_dir, 1000)
-    _assert_current_step(run_dir, 1000)
-    assert (run_dir / runs.WEIGHTS_FILE).is_file()
-
-
-def test_legacy_mixed_pair_is_refused(tmp_path):
-    model, optimizer = _trained(0)
-    _write_legacy_run(tmp_path / "a", model, optimizer, 1, _Cfg())
-    _write_legacy_run(tmp_path / "b", model, optimizer, 2, _Cfg())
-    state = torch.load(tmp_path / "b" / runs.STATE_FILE, weights_only=True)
-    state["save_id"] = "f" * 32
-    torch.save(state, tmp_path / "a" / runs.STATE_FILE)
-    with pytest.raises(ConfigError, match="different saves"):
-        runs.load_training_state(tmp_path / "a")
+    generation = runs.save_checkpoint(tmp_path / "run", {"net": model}, _Cfg(), optimizers={"opt": optimizer},
+                                      state={"step": 3})
+    assert runs.latest_checkpoint(generation) == generation  # a generation folder given directly
+    assert runs.load_training_state(generation)["step"] == 3
+    # weights, state and an unstamped config.yaml at the top of a folder: no generation, no run
+    flat = tmp_path / "flat"
+    shutil.copytree(generation, flat)
+    (flat / runs.CONFIG_FILE).write_text(yaml.safe_dump(to_dict(_Cfg()), sort_keys=False))
+    assert not runs.is_run(flat)
+    with pytest.raises(ConfigError, match=r"flat: not a complete checkpoint \(config.yaml belongs to another save"):
+        runs.load_weights(flat, {"net": model})
 
 
 # ---------------------------------------------------------------------------- incomplete generations

@@ -175,11 +175,11 @@ def _tiny_fdnet_run(path, seed):
 
     from fdnet.methods.fdnet.config import preset
     from fdnet.methods.fdnet.model import FDNet
-    from fdnet.runs import save_run
+    from fdnet.runs import save_checkpoint
 
     config = preset("tiny")
     torch.manual_seed(seed)
-    save_run(path, FDNet(config.model).named_parts(), config, state={"step": 1})
+    save_checkpoint(path, FDNet(config.model).named_parts(), config, state={"step": 1})
     return path
 
 
@@ -243,12 +243,12 @@ def test_one_rule_for_a_calibration_stored_in_the_run(tmp_path, capsys, caplog):
     from conftest import write_random_places
     from fdnet.methods.fdnet.config import preset
     from fdnet.methods.fdnet.model import FDNet
-    from fdnet.runs import save_run
+    from fdnet.runs import save_checkpoint
 
     torch.manual_seed(0)
     config = preset("tiny")
     run = tmp_path / "run"
-    save_run(run, FDNet(config.model).named_parts(), config, state={"step": 1})
+    save_checkpoint(run, FDNet(config.model).named_parts(), config, state={"step": 1})
     root = tmp_path / "route"
     write_random_places(root / "day", 12, seed=3)
     write_random_places(root / "dusk", 12, seed=3, brightness=0.8)

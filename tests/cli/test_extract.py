@@ -28,11 +28,11 @@ def _tiny_run(path):
 
     from fdnet.methods.fdnet.config import preset
     from fdnet.methods.fdnet.model import FDNet
-    from fdnet.runs import save_run
+    from fdnet.runs import save_checkpoint
 
     config = preset("tiny")
     torch.manual_seed(0)
-    save_run(path, FDNet(config.model).named_parts(), config, state={"step": 1})
+    save_checkpoint(path, FDNet(config.model).named_parts(), config, state={"step": 1})
     return path
 
 
@@ -93,12 +93,12 @@ def test_extract_works_for_every_kind_of_method(tmp_path, capsys):
     from fdnet.descriptors import create
     from fdnet.methods.calc import model as calc
     from fdnet.methods.calc.config import tiny_config
-    from fdnet.runs import save_run
+    from fdnet.runs import save_checkpoint
 
     images = _images(tmp_path / "images", 12)
     calc_run = tmp_path / "calc-run"
     torch.manual_seed(0)
-    save_run(calc_run, {"calc": calc.build_network(tiny_config().model)}, tiny_config(), state={"step": 1})
+    save_checkpoint(calc_run, {"calc": calc.build_network(tiny_config().model)}, tiny_config(), state={"step": 1})
     paths = list_images(images)
     for method, extra, fitted in (("sad", [], False), ("trunk-whitened", ["--method-set", "dim=4"], True),
                                   ("calc", ["--checkpoint", str(calc_run)], False)):
@@ -328,14 +328,14 @@ def test_extract_refuses_vectors_that_are_not_finite_naming_the_first_image(tmp_
 
     from fdnet.methods.fdnet.config import preset
     from fdnet.methods.fdnet.model import FDNet
-    from fdnet.runs import save_run
+    from fdnet.runs import save_checkpoint
 
     config = preset("tiny")
     model = FDNet(config.model)
     with torch.no_grad():
         for parameter in model.parameters():
             parameter.fill_(float("nan"))  # saved so, checksum and all: the vectors are NaN
-    save_run(tmp_path / "run", model.named_parts(), config, state={"step": 1})
+    save_checkpoint(tmp_path / "run", model.named_parts(), config, state={"step": 1})
     images = _images(tmp_path / "images", 3)
     out = tmp_path / "v.npz"
     code = main(["extract", "--checkpoint", str(tmp_path / "run"), "--images", str(images), "--out", str(out),

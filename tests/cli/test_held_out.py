@@ -11,7 +11,7 @@ from PIL import Image
 from fdnet.cli import main
 from fdnet.methods.fdnet.config import preset
 from fdnet.methods.fdnet.model import FDNet
-from fdnet.runs import save_run
+from fdnet.runs import save_checkpoint
 
 
 @pytest.fixture
@@ -27,7 +27,7 @@ def route_and_run(tmp_path):
     config = dataclasses.replace(config, data=dataclasses.replace(config.data, root=str(root),
                                                                   conditions=["day", "night"], frames="0:6"))
     torch.manual_seed(0)
-    save_run(tmp_path / "run", FDNet(config.model).named_parts(), config, state={"step": 1})
+    save_checkpoint(tmp_path / "run", FDNet(config.model).named_parts(), config, state={"step": 1})
     return root, tmp_path / "run"
 
 

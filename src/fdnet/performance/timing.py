@@ -134,14 +134,14 @@ def temporary_fdnet_run(folder, preset_name: str = "cpu", vector_length: int | N
 
     from fdnet.methods.fdnet.config import preset
     from fdnet.methods.fdnet.model import FDNet
-    from fdnet.runs import save_run
+    from fdnet.runs import save_checkpoint
 
     config = preset(preset_name)
     if vector_length:
         config = dataclasses.replace(config, model=dataclasses.replace(config.model, vector_length=vector_length))
     torch.manual_seed(seed)
     run = Path(folder) / f"{preset_name}-{config.model.vector_length}"
-    save_run(run, FDNet(config.model).named_parts(), config, state={"step": 0})
+    save_checkpoint(run, FDNet(config.model).named_parts(), config, state={"step": 0})
     return run, config
 
 

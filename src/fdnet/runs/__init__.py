@@ -20,10 +20,8 @@ folder fsynced. Until that rename the previous generation is untouched and curre
 beyond ``keep`` are removed only after the new one is published. Every file of a generation
 carries the same ``save_id`` (weights metadata, training state, a comment line in config.yaml),
 so a reader can prove the three belong together. Readers take the newest generation that is
-complete (:func:`latest_checkpoint`); folders starting with "." are never read.
-
-Older runs (``model.safetensors`` etc. directly in ``RUN_DIR``) are read as before. Every load
-function accepts a run directory, a generation folder or a legacy run directory.
+complete (:func:`latest_checkpoint`); folders starting with "." are never read. Every load
+function accepts a run directory or a generation folder.
 
 The package, by concern: :mod:`~fdnet.runs.checkpoints` (the generations: save, find, load),
 :mod:`~fdnet.runs.lock` (:class:`RunLock`) and :mod:`~fdnet.runs.changes` (``changes.yaml``).
@@ -48,7 +46,6 @@ from fdnet.runs.checkpoints import (
     load_training_state,
     load_weights,
     save_checkpoint,
-    save_run,
     save_weights,
     recorded_method,
     weights_folder,
@@ -60,5 +57,5 @@ __all__ = [
     "BEST_DIR", "recorded_method", "weights_folder", "weights_note", "CHANGES_FILE", "CHECKPOINTS_DIR", "CONFIG_FILE", "FORMAT_VERSION", "KIND_TRAINING", "KIND_WEIGHTS", "LOCK_FILE",
     "STATE_FILE", "WEIGHTS_FILE", "RunLock", "check_run_state", "config_differences", "is_run",
     "latest_checkpoint", "load_config", "load_training_state", "load_weights", "read_changes",
-    "record_changes", "save_checkpoint", "save_run", "save_weights",
+    "record_changes", "save_checkpoint", "save_weights",
 ]

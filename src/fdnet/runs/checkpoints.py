@@ -100,7 +100,7 @@ def _read_state(path: Path) -> dict:
 
 
 def _config_stamp(path: Path) -> tuple[str, int] | None:
-    """(save_id, step) from config.yaml's first line, None for a legacy config without one."""
+    """(save_id, step) from config.yaml's first line, None when that line is not the stamp."""
     with open(path, encoding="utf-8") as handle:
         match = _CONFIG_STAMP.match(handle.readline())
     return (match.group(1), int(match.group(2))) if match else None
@@ -148,10 +148,9 @@ def latest_checkpoint(run_dir: str | Path) -> Path:
     """Folder of the newest complete checkpoint of ``run_dir``.
 
     Generations ``run_dir/checkpoints/step-*`` are tried newest first; the first whose files are
-    all readable and carry the same ``save_id`` is returned. A folder holding ``model.safetensors``
-    itself (an older run's layout, or a generation folder given directly) is returned as it is
-    when no newer-layout generation is complete. Raises ConfigError naming ``run_dir`` when there
-    is nothing complete to read.
+    all readable and carry the same ``save_id`` is returned. A complete generation folder given
+    directly (``RUN/checkpoints/step-...``) is returned as it is. Raises ConfigError naming
+    ``run_dir`` when there is nothing complete to read.
     """
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
@@ -168,7 +167,10 @@ def latest_checkpoint(run_dir: str | Path) -> Path:
             return generation.path
         rejected.append(f"{generation.path.name}: {reason}")
     if (run_dir / WEIGHTS_FILE).is_file():
-        return run_dir
+        reason = _incomplete_reason(run_dir)
+        if reason is None:
+            return run_dir
+        raise ConfigError(f"{run_dir}: not a complete checkpoint ({reason})")
     if checkpoints_dir.is_dir():
         detail = "; ".join(rejected[:3]) if rejected else "no step-* folder was ever published"
         raise ConfigError(f"{run_dir}: no complete checkpoint in {CHECKPOINTS_DIR}/ ({detail})")
@@ -179,7 +181,7 @@ def latest_checkpoint(run_dir: str | Path) -> Path:
 
 
 def is_run(run_dir: str | Path) -> bool:
-    """True when ``run_dir`` holds at least one complete checkpoint (or an older run's files)."""
+    """True when ``run_dir`` holds at least one complete checkpoint (or is one)."""
     try:
         latest_checkpoint(run_dir)
     except ConfigError:
@@ -188,9 +190,9 @@ def is_run(run_dir: str | Path) -> bool:
 
 
 def recorded_method(run_dir: str | Path) -> str | None:
-    """The trained method a run directory records (``method:`` in its config.yaml, written by
-    ``fdnet train METHOD`` for every method but FDNet, whose runs predate the key), "fdnet" for a
-    run without the key, None when ``run_dir`` holds no readable run."""
+    """The trained method a run directory records: ``method:`` in its config.yaml, which every
+    method's run config has but FDNet's (the default method, whose config has no such key), so
+    "fdnet" for a run without the key; None when ``run_dir`` holds no readable run."""
     from fdnet.config import read_yaml_file
 
     try:
@@ -474,16 +476,6 @@ def save_weights(run_dir: str | Path, modules: Mapping[str, torch.nn.Module], co
     return _publish(run_dir, modules, config, None, None, _as_step(step), KIND_WEIGHTS, keep)
 
 
-def save_run(run_dir: str | Path, modules: Mapping[str, torch.nn.Module], config: Any,
-             optimizers: Mapping[str, torch.optim.Optimizer] | None = None,
-             state: Mapping[str, Any] | None = None) -> Path:
-    """The former ``fdnet.training.checkpoint.save_run`` call: a resumable checkpoint when
-    ``optimizers`` or ``state`` is given, a weights-only one otherwise (one generation kept)."""
-    if optimizers is None and state is None:
-        return save_weights(run_dir, modules, config)
-    return save_checkpoint(run_dir, modules, config, optimizers=optimizers, state=state)
-
-
 # ---------------------------------------------------------------------------- loading
 
 def load_config(run_dir: str | Path, cls: type[T]) -> T:
@@ -546,7 +538,7 @@ def load_weights(run_dir: str | Path, modules: Mapping[str, torch.nn.Module],
                  device: str | torch.device = "cpu") -> dict[str, str]:
     """Load the current checkpoint's weights into ``modules`` (all must be present, with the same
     tensor names and shapes). Returns the weights' metadata: ``step``, ``save_id``, ``modules``,
-    ``kind`` (absent in older runs) and ``checkpoint`` (the folder read)."""
+    ``kind`` and ``checkpoint`` (the folder read)."""
     return _with_latest(run_dir, lambda folder: _load_weights_from(folder, modules, device))
 
 
@@ -592,7 +584,7 @@ def _load_training_state_from(folder: Path, optimizers: Mapping[str, torch.optim
 def load_training_state(run_dir: str | Path,
                         optimizers: Mapping[str, torch.optim.Optimizer] | None = None) -> dict[str, Any]:
     """Return the current checkpoint's resume ``state`` dict and load the saved optimiser states
-    into ``optimizers``. ConfigError when the checkpoint is weights-only, or (older runs) when its
-    training state belongs to a different save than its weights."""
+    into ``optimizers``. ConfigError when the checkpoint is weights-only, or when its training
+    state belongs to a different save than its weights."""
     return _with_latest(run_dir, lambda folder: _load_training_state_from(folder, optimizers))
 

@@ -8,7 +8,7 @@ import fdnet
 from fdnet.descriptors import create
 from fdnet.errors import DataError, NotAvailableError
 from fdnet.methods.fdnet.model import FDNet
-from fdnet.runs import save_run
+from fdnet.runs import save_checkpoint
 from fdnet.methods.fdnet.config import preset
 
 
@@ -17,7 +17,7 @@ def run_dir(tmp_path):
     config = preset("tiny")
     torch.manual_seed(0)
     model = FDNet(config.model)
-    save_run(tmp_path / "run", model.named_parts(), config, state={"step": 3})
+    save_checkpoint(tmp_path / "run", model.named_parts(), config, state={"step": 3})
     return tmp_path / "run"
 
 
