@@ -15,7 +15,9 @@ with the schedule :data:`SCHEDULES` states for the preset (the preset's own othe
 ``--ablation-set [PRESET:]KEY=VALUE`` on top; a finished run is reused and an interrupted one
 resumes. Per preset and pair: R@1, R@100P (raw and fdnet's margin rule), P@maxR and AUC-PR of each
 variant, how many queries' top-1 answer changes against the full run (with McNemar's exact test),
-and PR curves.
+and PR curves. With ``--seeds N`` each variant trained here is trained N times (seeds S, S+1, ...;
+:mod:`fdnet.reproduce.seeds`) and each number is the mean over its runs, with the spread and each
+run's numbers beside.
 """
 
 from __future__ import annotations
@@ -421,8 +423,8 @@ def _finding_over_seeds(variant: str, row: dict, full: dict) -> str:
     below = sum(t["p_value"] < 0.05 for t in tests)
     values = ", ".join(f"{t['p_value']:.3g}" for t in tests)
     return text + (f". McNemar's exact test on the evaluated queries, run against run of the same seed index: p "
-                   f"below 0.05 for {below} of {len(tests)} pairs of runs (p = {values}); it counts the queries, "
-                   "the spread above the runs.")
+                   f"below 0.05 for {below} of {len(tests)} pairs of runs (p = {values}): it tests the queries of "
+                   "one pair of runs, where the spread above is over the runs.")
 
 
 def _finding(variant: str, row: dict, full: dict | None, pair: dict) -> str:

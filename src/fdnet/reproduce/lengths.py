@@ -6,7 +6,9 @@ The four FDNet runs are given (``length_runs``: L -> run directory), or trained 
 settings from ``length_overrides``) into ``OUT/length-runs/L<L>/``; an interrupted training resumes
 from its last checkpoint on the next run, and a finished one is reused. Per length: PR curves on
 every pair (Fig. 6), R@100P and R@1, extraction ms/image and matching ms/query on this machine
-beside the paper's Table 2.
+beside the paper's Table 2. With ``--seeds N`` each length trained here is trained N times (seeds S,
+S+1, ...; :mod:`fdnet.reproduce.seeds`): its accuracy numbers are the means over the runs, with the
+spread and each run's numbers beside; curves and timings are the first seed's run.
 """
 
 from __future__ import annotations
