@@ -63,6 +63,19 @@ def test_methods_by_datasets_with_the_best_of_each_column_marked(two_datasets, t
     assert "trunk & 0.500 &" in latex and "\\textbf{1.000}" in latex and latex.rstrip().endswith("\\end{tabular}")
 
 
+def test_names_a_spreadsheet_would_run_or_that_split_markdown_columns_are_escaped(tmp_path, capsys):
+    a = _evaluate(tmp_path, "route", {"=HYPERLINK(1)": 3, "a|b": 2})
+    capsys.readouterr()
+    out = tmp_path / "t.csv"
+    assert main(["table", f"@cmd={a}", "--metrics", "R@1", "--format", "csv", "--out", str(out)]) == 0
+    rows = out.read_text().splitlines()
+    assert rows[0] == "method (R@1),'@cmd" and rows[1].startswith("'=HYPERLINK(1),0.750")
+    capsys.readouterr()
+    assert main(["table", f"x|y={a}", "--metrics", "R@1", "--format", "markdown"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == "| method (R@1) | x\\|y |" and lines[3].startswith("| a\\|b |")
+
+
 def test_the_acceptance_rule_chooses_the_pr_numbers(two_datasets, capsys):
     a, _ = two_datasets
     assert main(["table", str(a), "--metrics", "AUC-PR", "--format", "csv"]) == 0

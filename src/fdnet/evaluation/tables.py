@@ -209,10 +209,6 @@ def _latex_escape(text: str) -> str:
     return re.sub(r"[\\&%$#_{}~^]", lambda m: specials.get(m.group(), "\\" + m.group()), text)
 
 
-def _markdown_escape(text: str) -> str:
-    return re.sub(r"([\\|*_`])", r"\\\1", " ".join(str(text).split()))
-
-
 def format_table(table: ResultsTable, style: str, digits: int = 3) -> str:
     """``table`` as ``latex`` (booktabs-free tabular, a dataset header spanning its metrics, the
     best of each column in bold), ``markdown`` (best in bold) or ``csv`` (best marked with a
@@ -224,13 +220,18 @@ def format_table(table: ResultsTable, style: str, digits: int = 3) -> str:
     headers = [(f"{d} {m}" if multi else d) for d in table.datasets for m in table.metrics]
     first = "method" if multi else f"method ({table.metrics[0]})"
     if style == "csv":
+        from fdnet.io import spreadsheet_text
+
+        # names (methods, datasets: folder names) as text no spreadsheet evaluates; numbers as they are
         buffer = io.StringIO()
         writer = csv.writer(buffer, lineterminator="\n")
-        writer.writerow([first, *headers])
+        writer.writerow([spreadsheet_text(first), *(spreadsheet_text(h) for h in headers)])
         for method, row in zip(table.methods, cells):
-            writer.writerow([method, *(t + (CSV_BEST_MARK if b else "") for t, b in row)])
+            writer.writerow([spreadsheet_text(method), *(t + (CSV_BEST_MARK if b else "") for t, b in row)])
         return buffer.getvalue().rstrip("\n")
     if style == "markdown":
+        from fdnet.io import markdown_cell as _markdown_escape
+
         lines = [f"| {_markdown_escape(first)} | " + " | ".join(_markdown_escape(h) for h in headers) + " |",
                  "|---|" + "---:|" * len(headers)]
         for method, row in zip(table.methods, cells):
