@@ -437,7 +437,7 @@ def test_unwritable_outputs_fail_before_any_work(route, tmp_path, capsys, monkey
 
 
 def test_filter_frames_with_a_format_that_has_no_filter_is_an_error(route, capsys):
-    # it used to be ignored silently: the numbers would have been for unfiltered frames
+    # ignored silently, the numbers would be for unfiltered frames
     err = _error(capsys, ["evaluate", "--data", str(route), "--dataset-format", "folders", "--reference", "day",
                           "--query", "dusk", "--method", "raw", "--filter-frames"])
     assert "--filter-frames: the folders format has no frame filter" in err

@@ -516,7 +516,7 @@ def test_a_resumed_run_says_how_many_frames_it_took_over(route, tmp_path, capsys
 
 
 def test_a_second_run_on_the_same_events_is_refused_before_it_touches_anything(route, tmp_path, capsys):
-    """Two `--resume` runs at once: the loser used to cut the events back after the winner wrote.
+    """Two `--resume` runs at once: the loser must not cut the events back after the winner wrote.
     Each run holds a lock on its events files and database; a second is one line naming the holder."""
     from fdnet.runs.lock import RunLock
 

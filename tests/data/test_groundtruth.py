@@ -122,7 +122,7 @@ def test_csv_with_names_round_trip_and_two_column_files_still_read(tmp_path):
     back = GroundTruth.from_csv(path, num_references=3, num_queries=2)
     assert _lists(back) == [[0, 2], []]
     back.check_names(["/x/q 1.png", "/x/q,2.png"], ["/y/r1.png", "/y/r2.png", "/y/r10.png"])
-    # the VPR-Bench form (no names) is read as before and has nothing to check
+    # the VPR-Bench form (no names) has nothing to check
     (tmp_path / "plain.csv").write_text("0,1\n1,0\n")
     plain = GroundTruth.from_csv(tmp_path / "plain.csv", num_references=2, num_queries=2)
     assert plain.listed_names is None

@@ -73,7 +73,7 @@ def test_video_frames_stream_through_worker_processes(video):
 
     path, frames = video
     paths = list_images(path)
-    load_image_uint8(paths[5])  # this process holds the video open when the workers start (used to hang them)
+    load_image_uint8(paths[5])  # this process holds the video open when the workers start (which must not hang them)
     batches = list(iter_image_batches(paths, (32, 48), batch_size=8, uint8=True, workers=2))
     assert [start for start, _ in batches] == list(range(0, 50, 8))
     assert np.array_equal(np.concatenate([b for _, b in batches]), frames)

@@ -187,7 +187,7 @@ def _run(args, shards) -> int:
 def output_format(given: str | None, out: str) -> tuple[str, str]:
     """(format, output path) from --format and --out: the format --out's suffix says when
     --format is not given (npz unless .h5/.hdf5), the format's suffix added to an --out with
-    none of its own (``vectors`` -> ``vectors.npz``, as before); a suffix that says the other
+    none of its own (``vectors`` -> ``vectors.npz``); a suffix that says the other
     format is refused."""
     from fdnet.errors import ConfigError
 

@@ -12,7 +12,7 @@ Stored sparsely (one sorted index array per query) so 100k x 100k maps fit in me
 Indices are positions in :func:`fdnet.data.images.list_images` order. A CSV written with image
 names (``fdnet groundtruth`` writes ``query_index,reference_indices,query_name,reference_names``)
 lets a reader check that its indices still mean the images being evaluated
-(:meth:`GroundTruth.check_names`); the two-column VPR-Bench form is read as before.
+(:meth:`GroundTruth.check_names`); the two-column VPR-Bench form has no names to check.
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ A query is accepted when its score reaches a threshold (chosen by :mod:`fdnet.de
 Rules (``rule_names()``; settings with ``--accept-set [RULE:]KEY=VALUE``):
 
 ``raw``
-    the best candidate's similarity (what fdnet did before rules existed).
+    the best candidate's similarity itself (the field's usual score).
 ``margin``
     the best similarity minus the best similarity *outside a neighbourhood* of the best
     candidate: how much the best place stands out from every other place. The neighbourhood is

@@ -137,7 +137,7 @@ class Conv3Descriptor(Descriptor):
             raise ValueError(f"conv3 expects images at {self.input_size}, got {images.shape[1:3]}")
         maps = self.feature_maps(images).reshape(len(images), -1)
         if maps.device.type == "cpu":
-            # numpy on the CPU, exactly as before devices existed (same BLAS, same vectors)
+            # numpy on the CPU: the same BLAS, so the same vectors on every CPU run
             flat = maps.numpy()
             if self._projection is not None:
                 flat = flat @ self._projection

@@ -5,7 +5,7 @@ import pytest
 
 from fdnet.data.dataset import Traverse
 from fdnet.data.formats._common import (
-    check_image_sizes, fixed, frame_number, ground_truth_from_correspondences, image_files,
+    check_image_sizes, fixed, frame_number, ground_truth_from_correspondences, list_images,
     natural_key, read_correspondences, resolve_split,
 )
 from fdnet.errors import ConfigError, DataError
@@ -15,7 +15,7 @@ from .conftest import write_frames, write_image
 
 def test_natural_order_and_frame_numbers(tmp_path):
     write_frames(tmp_path, ["10.png", "2.png", "1.png"])
-    assert [p.name for p in image_files(tmp_path)] == ["1.png", "2.png", "10.png"]
+    assert [p.name for p in list_images(tmp_path)] == ["1.png", "2.png", "10.png"]
     assert frame_number("images-00010.png") == 10
     assert frame_number("Image00042.jpg") == 42
     assert frame_number("section2/17.png") == 17
@@ -69,7 +69,7 @@ def test_mixed_image_sizes_in_one_condition(tmp_path):
     write_image(tmp_path / "a.png", (8, 6))
     write_image(tmp_path / "b.png", (8, 6))
     write_image(tmp_path / "c.png", (10, 6))
-    traverse = Traverse("day", image_files(tmp_path))
+    traverse = Traverse("day", list_images(tmp_path))
     with pytest.raises(DataError, match=r"mixed image sizes.*a.png is 8x6 but c.png is 10x6"):
         check_image_sizes(traverse)
     assert check_image_sizes(traverse.frames(0, 2)) == (8, 6)

@@ -1,6 +1,6 @@
 """Pieces every dataset adapter needs: frame numbers, named splits, size checks and
 frame-correspondence files. The image order (``list_images``, ``natural_key``) belongs to
-:mod:`fdnet.data.images` (re-exported here, ``image_files`` being its former name) and the
+:mod:`fdnet.data.images` (re-exported here) and the
 tunnel/stationary frame filter to :mod:`fdnet.data.filters` (``filter_frames``).
 
 Kept in one place so that each adapter module reads as "where the files are, what the protocol
@@ -27,9 +27,6 @@ from fdnet.errors import ConfigError, DataError
 # ----------------------------------------------------------------------------- file order
 
 _LAST_NUMBER = re.compile(r"(\d+)(?!.*\d)")
-
-# The one image order lives in fdnet.data.images; ``image_files`` is its former name here.
-image_files = list_images
 
 
 def frame_number(path: str | os.PathLike) -> int | None:

@@ -510,7 +510,7 @@ class PlaceDatabase:
     def set_metadata(self, key: str, value: dict) -> None:
         """Store ``value`` (a JSON object, e.g. a calibration) under ``key`` in the database's own
         metadata, in one transaction (readers see the old or the new value). The table is created
-        on first use, so files written before it existed stay readable by every version."""
+        on first use, so a database that never stored metadata holds only its schema's tables."""
         text = _canonical_json(value, f"{self.path}: metadata {key!r}")
         with _sqlite_errors(self.path, f"storing metadata {key!r}"):
             with _transaction(self._conn, "IMMEDIATE") as conn:

@@ -8,7 +8,7 @@ puts the first ``backbone_block + 1`` blocks of EfficientNet-Lite0 (the only Ima
 available offline here, see :mod:`fdnet.backbones`) in front of both encoders. The
 whole FDNet objective is unchanged but acts on the trunk's feature map instead of pixels: the
 encoders read the map, the decoder reconstructs the map (L_r is the MSE between maps), and the
-critic and triplet loss act on the content and appearance vectors as before.
+critic and triplet loss act on the content and appearance vectors as they do without a trunk.
 
 The trunk is frozen and always in eval mode: its weights come from the package (they are not
 written to run directories), and BatchNorm statistics learnt on ImageNet must not drift towards
