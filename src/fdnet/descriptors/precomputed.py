@@ -112,7 +112,7 @@ def _read_npz(path: Path, array: str | None) -> tuple[list[str], np.ndarray, dic
 
 
 def _texts(path: Path, array: np.ndarray, what: str) -> list[str]:
-    """A 1-D array of text (``str``, or UTF-8 ``bytes`` as older writers keep it) as a list."""
+    """A 1-D array of text (``str``, or UTF-8 ``bytes`` as some writers store it) as a list."""
     if array.ndim != 1 or array.dtype.kind not in "US":
         raise DataError(f"{path}: {what} is an array of {array.dtype} of shape {array.shape}; expected one text "
                         "per image")

@@ -73,7 +73,7 @@ class IndexSettings:
 
 def ivf_lists_for(count: int, settings: IndexSettings) -> int:
     """Cells for ``count`` vectors: ``ivf_lists`` when set; else 4*sqrt(N) for maps up to 10^4
-    (the old rule) and sqrt(N) beyond (k-means over 4*sqrt(N) cells of 10^6 vectors would take
+    (faiss's guideline) and sqrt(N) beyond (k-means over 4*sqrt(N) cells of 10^6 vectors would take
     many minutes on a small machine; sqrt(N) cells with 32 probes gave recall@1 0.985 at 10^6,
     docs/performance.md). Never more than N / 39: faiss's k-means wants 39 points per cell."""
     if settings.ivf_lists:
