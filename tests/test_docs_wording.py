@@ -1,8 +1,8 @@
 """The docs, sources, tests and benchmarks speak to the project's users.
 
-No file in README.md, docs/, src/, tests/ or benchmarks/ numbers past work the way a work log
-does (a numbered session or issue), and none names an absolute folder of a developer's machine
-as the place where data or scripts live. Examples of what is meant are built from pieces below,
+No file in README.md, CHANGELOG.md, docs/, src/, tests/ or benchmarks/ numbers past work the
+way a work log does (a numbered session or issue), and none names an absolute folder of a
+developer's machine as the place where data or scripts live. Examples of what is meant are built from pieces below,
 so that this file does not trip its own check.
 """
 
@@ -33,9 +33,9 @@ SKIPPED_DIRS = {"__pycache__", ".pytest_cache", ".mypy_cache", ".ruff_cache"}
 
 
 def checked_files(root: Path = REPO_ROOT) -> list[Path]:
-    """README.md, docs/**/*.md, src/**/*.py, tests/**/*.py and every text file under
-    benchmarks/."""
-    files = [root / "README.md"]
+    """README.md, CHANGELOG.md, docs/**/*.md, src/**/*.py, tests/**/*.py and every text file
+    under benchmarks/."""
+    files = [root / "README.md", root / "CHANGELOG.md"]
     files += sorted((root / "docs").rglob("*.md"))
     files += sorted((root / "src").rglob("*.py"))
     files += sorted((root / "tests").rglob("*.py"))
