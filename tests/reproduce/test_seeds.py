@@ -1,6 +1,6 @@
 """``--seeds N`` on the ``ablation`` experiment (tiny runs): each variant trained here is trained N
 times with seeds S, S+1, ..., and its numbers are the mean over those runs, with the spread and the
-per-seed values beside; ``--seeds 1`` writes what a run without the flag always wrote."""
+per-seed values beside; ``--seeds 1`` writes one run's numbers under the one-run keys."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from fdnet.reproduce.seeds import seed_folder, spread, spread_text
 
 from tests.reproduce.test_ablation import ablation, factory
 
-#: the keys an ablation.json had before --seeds, at each level (a one-seed run keeps exactly these)
+#: the keys of a one-seed ablation.json, at each level (no seed keys: one run's numbers)
 DOCUMENT_KEYS = {"experiment", "title", "paper", "fdnet_version", "command", "created", "dataset", "checkpoint",
                  "protocol", "smoke_test", "variants", "removes", "acceptance", "groups", "train_frames", "provenance"}
 GROUP_KEYS = {"preset", "trained_here", "settings", "runs", "pairs", "figure", "missing"}

@@ -331,7 +331,7 @@ def run(ctx) -> dict:
     options = {k: v for k, v in ctx.settings.method_options.get("fdnet", {}).items() if k != "checkpoint"}
     groups = []
     for preset_name, variants in ablation_runs(ctx).items():
-        # variant -> one handle per run (per seed), the first labelled as a single run always was
+        # variant -> one handle per run (per seed); the first seed's has a single run's label
         seeded = {variant: [ctx.add_method(f"fdnet[{preset_name}/{variant if k == 0 else folder.name}]", "fdnet",
                                            {**options, "checkpoint": str(folder)}, required=True, compared=False)
                             for k, folder in enumerate(folders)]

@@ -146,7 +146,7 @@ def run(ctx) -> dict:
     from fdnet.reproduce.table5_runtime import ranking_ms_per_query
 
     options = {k: v for k, v in ctx.settings.method_options.get("fdnet", {}).items() if k != "checkpoint"}
-    seeded = {}  # L -> one handle per run (per seed), the first labelled as a single run always was
+    seeded = {}  # L -> one handle per run (per seed); the first seed's has a single run's label
     for length, folders in length_runs(ctx).items():
         seeded[length] = []
         for k, folder in enumerate(folders):

@@ -83,7 +83,7 @@ class ReproduceSettings:
     ablation_train_frames: str | None = None
     #: training settings of the ablation variants: "" -> for every preset, PRESET -> for that one
     ablation_overrides: dict[str, dict] = field(default_factory=dict)
-    #: how many times each variant trained here is trained (seeds S, S+1, ...; 1: once, as before)
+    #: how many times each variant and length trained here is trained (seeds S, S+1, ...; default once)
     seeds: int = 1
     viewpoint_pair: tuple[str, str] | None = None  # (reference, query)
     overlaps: tuple[float, ...] = (1.0, 0.9, 0.75, 0.65)

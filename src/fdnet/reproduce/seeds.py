@@ -2,8 +2,8 @@
 N times, and each number's mean and spread over those runs.
 
 A variant trained with seeds S, S+1, ..., S+N-1 (S the run config's own ``runtime.seed``) keeps its
-first run in the folder a single run has always used, so a run trained before ``--seeds`` existed
-is reused (or resumed) as the first seed's, and seed S+k trains into ``<folder>-seed<S+k>``.
+first run in a single run's folder, so a run trained there with ``--seeds 1`` is reused (or resumed)
+as the first seed's, and seed S+k trains into ``<folder>-seed<S+k>``.
 """
 
 from __future__ import annotations
