@@ -21,9 +21,9 @@ def test_two_conditions_or_none_are_a_validation_pair():
     check_validation_pair(ValidationConfig())
 
 
-def test_runs_written_before_the_shared_sections_read_in_the_current_layout(tmp_path):
-    """CALC/NetVLAD runs once kept lr, seed, bf16, checkpoint_every ... under ``train``; their
-    config.yaml still loads (optim.* and runtime.* now, as for every method)."""
+def test_a_shared_setting_under_train_is_an_unknown_setting(tmp_path):
+    """lr, seed, bf16, checkpoint_every ... live in ``optim`` and ``runtime`` for every method; a
+    CALC/NetVLAD config.yaml with one of them under ``train`` is refused naming it."""
     import yaml
 
     from fdnet.config import load_yaml, to_dict
@@ -31,13 +31,9 @@ def test_runs_written_before_the_shared_sections_read_in_the_current_layout(tmp_
     from fdnet.methods.netvlad.config import NetVLADRunConfig
 
     for cls in (CALCRunConfig, NetVLADRunConfig):
-        old = to_dict(cls())
-        old["train"].update({"optimizer": "sgd", "lr": 9e-4, "seed": 3, "bf16": False, "checkpoint_every": 7,
-                             "log_every": 5, "momentum": 0.8, "weight_decay": 0.01})
-        del old["optim"], old["runtime"], old["preset"]
+        data = to_dict(cls())
+        data["train"]["lr"] = 9e-4
         path = tmp_path / f"{cls.__name__}.yaml"
-        path.write_text(yaml.safe_dump(old))
-        config = load_yaml(cls, path)
-        assert (config.optim.optimizer, config.optim.lr, config.optim.momentum) == ("sgd", 9e-4, 0.8)
-        assert (config.runtime.seed, config.runtime.checkpoint_every, config.runtime.log_every) == (3, 7, 5)
-        assert config.runtime.device == "auto" and config.preset == ""
+        path.write_text(yaml.safe_dump(data))
+        with pytest.raises(ConfigError, match=r"unknown setting\(s\) lr"):
+            load_yaml(cls, path)
