@@ -34,7 +34,7 @@ from fdnet.decisions.loop_closure import LoopClosureDetector
 from fdnet.decisions.loop_evaluation import calibrate_decisions, evaluate_decisions
 from fdnet.decisions.loop_gates import LoopGates, frame_signals
 from fdnet.decisions.loop_traverse import route_traverse
-from fdnet.descriptors.pipeline import describe_stream
+from fdnet.descriptors.pipeline import DescribeJob, PipelineSettings, describe_stream
 
 #: gate settings compared (name -> LoopGates); "none" switches every gate off
 GATES = {
@@ -50,8 +50,8 @@ def describe(descriptor, paths, batch_size: int = 32):
     """{path: (vector, signals)} for every path, in one pass."""
     out = {}
     for start, (vectors, signals) in describe_stream(
-            descriptor, paths, batch_size, describe=lambda images: (descriptor.describe(images),
-                                                                   frame_signals(images))):
+            descriptor, paths, PipelineSettings(batch_size),
+            DescribeJob(lambda images: (descriptor.describe(images), frame_signals(images)))):
         for i, vector in enumerate(np.asarray(vectors, np.float32)):
             out[paths[start + i]] = (vector, signals[i])
     return out

@@ -16,7 +16,8 @@ from PIL import Image
 
 from fdnet.data.images import load_image, load_image_uint8
 from fdnet.descriptors.base import Descriptor, describe_paths
-from fdnet.descriptors.pipeline import NpzChunkWriter, VectorSpool, describe_stream, iter_image_batches
+from fdnet.descriptors.pipeline import (NpzChunkWriter, PipelineSettings, VectorSpool, describe_stream,
+                                       iter_image_batches)
 from fdnet.errors import DataError
 
 REPO = Path(__file__).resolve().parents[2]
@@ -82,7 +83,7 @@ def test_an_unreadable_image_is_a_data_error_naming_it(tmp_path, workers):
     paths = make_folder(tmp_path / "f", 12)
     paths[9].write_bytes(b"not an image")
     with pytest.raises(DataError) as info:
-        list(describe_stream(MeanColour(), paths, batch_size=4, workers=workers))
+        list(describe_stream(MeanColour(), paths, PipelineSettings(batch_size=4, workers=workers)))
     assert str(paths[9]) in str(info.value) and "Traceback" not in str(info.value)
 
 

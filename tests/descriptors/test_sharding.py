@@ -20,6 +20,7 @@ from PIL import Image
 import fdnet
 from fdnet.cli import main
 from fdnet.descriptors import sharding
+from fdnet.descriptors.pipeline import PipelineSettings
 from fdnet.descriptors.sharding import KILL_VARIABLE, Shards
 from fdnet.errors import ConfigError, DataError
 
@@ -110,9 +111,9 @@ def test_one_process_describes_every_batch_in_order(tmp_path):
     paths = list_images(images(tmp_path / "images", 11))
     descriptor = create("sad")
     got = []
-    sharding.describe_blocks(Shards(), descriptor, paths, [descriptor.dim],
-                             lambda start, arrays: got.append((start, arrays[0])), batch_size=4, workers=0,
-                             progress=False)
+    sharding.describe_blocks(Shards(), descriptor, paths,
+                             sharding.BlockOutput([descriptor.dim], lambda start, arrays: got.append((start, arrays[0]))),
+                             PipelineSettings(batch_size=4, workers=0))
     assert [start for start, _ in got] == [0, 4, 8]
     from fdnet.data.images import load_images
 

@@ -337,7 +337,7 @@ def _detect_over(detector: LoopClosureDetector, frames: TraverseFrames, settings
     """Describe ``frames.paths[start:]`` a batch at a time (with each frame's pixel signals) and
     feed each to ``detector``, writing each accepted closure to the event log as it is accepted
     (the log starts from the ``initial`` events of a resumed run); returns the (closed) log."""
-    from fdnet.descriptors.pipeline import describe_stream
+    from fdnet.descriptors.pipeline import DescribeJob, PipelineSettings, describe_stream
 
     descriptor, pipeline = detector.descriptor, settings.pipeline
 
@@ -352,8 +352,10 @@ def _detect_over(detector: LoopClosureDetector, frames: TraverseFrames, settings
                            unit="frame", smoothing=0.1)
     try:
         with EventLog(settings.events_csv, settings.events_jsonl, initial=initial) as events:
-            for offset, (vectors, signals) in describe_stream(descriptor, frames.paths[start:], pipeline.batch_size,
-                                                              workers=pipeline.workers, describe=describe):
+            # the stream shows no bar of its own: this loop's counts frames and closures
+            quiet = PipelineSettings(pipeline.batch_size, pipeline.workers, progress=False)
+            for offset, (vectors, signals) in describe_stream(descriptor, frames.paths[start:], quiet,
+                                                              DescribeJob(describe)):
                 for i, vector in enumerate(np.asarray(vectors, dtype=np.float32)):
                     k = start + offset + i
                     closure = detector.process_vector(vector, name=frames.names[k], timestamp=frames.times[k],

@@ -205,11 +205,11 @@ def describe_paths(
     decoding) and ``num_images``, for ms/image reports. ``workers``: decoding processes (None =
     one per spare core; 0 = decode in this process).
     """
-    from fdnet.descriptors.pipeline import describe_stream
+    from fdnet.descriptors.pipeline import PipelineSettings, describe_stream
 
     paths = list(paths)
     out = None
-    for start, vectors in describe_stream(descriptor, paths, batch_size, workers=workers, progress=progress,
+    for start, vectors in describe_stream(descriptor, paths, PipelineSettings(batch_size, workers, progress),
                                           timing=timing):
         vectors = np.asarray(vectors, dtype=np.float32)
         if out is None:

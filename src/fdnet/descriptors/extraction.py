@@ -112,8 +112,8 @@ def extract(descriptor, paths, out, batch_size: int = 64, workers: int | None = 
     block and rank 0 writes ``out``; a method that learns does so on rank 0, which shares the
     result. Returns a summary: images, arrays, dim, seconds, images_per_second, fitted_on (in
     every process; seconds from the start of describing until rank 0 holds every vector)."""
-    from fdnet.descriptors.pipeline import NpzChunkWriter
-    from fdnet.descriptors.sharding import current, describe_blocks, share_fitted
+    from fdnet.descriptors.pipeline import DescribeJob, NpzChunkWriter, PipelineSettings
+    from fdnet.descriptors.sharding import BlockOutput, current, describe_blocks, share_fitted
 
     shards = current()
     paths = list(paths)
@@ -130,9 +130,9 @@ def extract(descriptor, paths, out, batch_size: int = 64, workers: int | None = 
             writer.write(name, _checked(descriptor, paths, start, array))
 
     with writer if writer is not None else contextlib.nullcontext():
-        describe_blocks(shards, descriptor, paths, [descriptor.dim] * len(names), write, batch_size=batch_size,
-                        workers=workers, progress=progress, what=f"extract [{descriptor.name}]", describe=describe,
-                        reads_pixels=False, timing=timing)
+        describe_blocks(shards, descriptor, paths, BlockOutput([descriptor.dim] * len(names), write),
+                        PipelineSettings(batch_size, workers, progress),
+                        DescribeJob(describe, what=f"extract [{descriptor.name}]", reads_pixels=False), timing)
         if writer is not None:
             writer.close({"names": np.array([p.name for p in paths]), **frame_arrays(paths),
                           "method": np.array(descriptor.name), "fingerprint": np.array(descriptor.fingerprint()),
@@ -151,7 +151,8 @@ def extract_h5(descriptor, paths, out, root, batch_size: int = 64, workers: int 
     Returns the summary of :func:`extract`, with ``array`` (what was written) and ``root``."""
     from fdnet.data.identity import image_facts
     from fdnet.descriptors.hloc_formats import GlobalFeaturesWriter, check_image_name, relative_names
-    from fdnet.descriptors.sharding import current, describe_blocks, share_fitted
+    from fdnet.descriptors.pipeline import DescribeJob, PipelineSettings
+    from fdnet.descriptors.sharding import BlockOutput, current, describe_blocks, share_fitted
 
     shards = current()
     paths = list(paths)
@@ -173,8 +174,9 @@ def extract_h5(descriptor, paths, out, root, batch_size: int = 64, workers: int 
                      facts=[None if f is None else f[1:] for f in map(image_facts, paths[start:end])])
 
     with writer if writer is not None else contextlib.nullcontext():
-        describe_blocks(shards, descriptor, paths, [descriptor.dim], write, batch_size=batch_size, workers=workers,
-                        progress=progress, what=f"extract [{descriptor.name}]", timing=timing)
+        describe_blocks(shards, descriptor, paths, BlockOutput([descriptor.dim], write),
+                        PipelineSettings(batch_size, workers, progress),
+                        DescribeJob(what=f"extract [{descriptor.name}]"), timing)
         if writer is not None and writer.count != len(paths):
             raise RuntimeError(f"{out}: {writer.count} vectors for {len(paths)} images")
     seconds = _seconds(shards, timing, started)

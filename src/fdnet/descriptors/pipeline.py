@@ -226,22 +226,37 @@ def iter_image_batches(paths: Sequence[str | os.PathLike], size: tuple[int, int]
             shutdown()
 
 
-def describe_stream(descriptor, paths: Sequence[str | os.PathLike], batch_size: int = 64,
-                    workers: int | None = None, progress: bool = False, timing: dict | None = None,
-                    describe: Callable[[np.ndarray], object] | None = None,
-                    what: str | None = None, reads_pixels: bool | None = None) -> Iterator[tuple[int, object]]:
+@dataclass(frozen=True)
+class DescribeJob:
+    """What is done with each batch of images: ``describe(images)`` instead of the descriptor's
+    own ``describe`` (e.g. content and appearance vectors at once); ``what``: the progress bar's
+    label; ``reads_pixels``: whether that ``describe`` reads the pixels (None: it does when there
+    is one; a descriptor ``keyed_by_image`` alone decodes no image)."""
+
+    describe: Callable[[np.ndarray], object] | None = None
+    what: str | None = None
+    reads_pixels: bool | None = None
+
+
+def describe_stream(descriptor, paths: Sequence[str | os.PathLike], pipeline: PipelineSettings | None = None,
+                    job: DescribeJob | None = None, timing: dict | None = None) -> Iterator[tuple[int, object]]:
     """Yield ``(start, vectors)`` per batch of ``paths``: ``descriptor.describe`` of the images
-    (or ``describe(images)``, e.g. content and appearance vectors at once), in order.
+    (or ``job.describe(images)``), in order, decoded and described as ``pipeline`` says (default:
+    batches of 64, no progress bar).
 
     A descriptor ``keyed_by_image`` (vectors computed elsewhere,
     :class:`fdnet.descriptors.precomputed.PrecomputedDescriptor`) is told each batch's paths
-    while it describes; when nothing else reads the pixels (``reads_pixels`` False, or None with
-    no ``describe`` of the caller's) no image is decoded at all.
+    while it describes; when nothing else reads the pixels (:class:`DescribeJob`) no image is
+    decoded at all.
 
-    ``progress`` shows a progress bar counting images with images/s (:mod:`fdnet.progress`). ``timing`` (a dict) receives
-    ``seconds_describe`` (model time only: decoding overlaps with it in the workers and is
-    excluded), ``seconds_wall`` and ``num_images``.
+    The progress bar counts images with images/s (:mod:`fdnet.progress`). ``timing`` (a dict)
+    receives ``seconds_describe`` (model time only: decoding overlaps with it in the workers and
+    is excluded), ``seconds_wall`` and ``num_images``.
     """
+    pipeline = pipeline or PipelineSettings()
+    job = job or DescribeJob()
+    batch_size, workers, progress = pipeline.batch_size, pipeline.workers, pipeline.progress
+    describe, what, reads_pixels = job.describe, job.what, job.reads_pixels
     paths = list(paths)
     keyed = bool(getattr(descriptor, "keyed_by_image", False))
     if reads_pixels is None:

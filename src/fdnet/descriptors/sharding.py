@@ -44,6 +44,7 @@ import contextlib
 import logging
 import os
 import signal
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator, Mapping, Sequence, TypeVar
 
@@ -230,23 +231,34 @@ def _spool_folder() -> Path:
     return private_folder(Path(tempfile.gettempdir()) / f"fdnet-shards-{user}", "spool folder of torchrun processes")
 
 
-def describe_blocks(shards: Shards, descriptor, paths: Sequence, dims: Sequence[int],
-                    write: Callable[[int, tuple], None], *, batch_size: int = 64, workers: int | None = None,
-                    progress: bool = True, what: str | None = None, describe=None, reads_pixels=None,
-                    check: Callable[[int, tuple], None] | None = None, timing: dict | None = None) -> None:
-    """Describe ``paths`` (:func:`fdnet.descriptors.pipeline.describe_stream`), this process its
-    :meth:`Shards.block`, and call ``write(start, arrays)`` on rank 0 for every batch of the whole
-    list, in order (``start`` indexes ``paths``; ``arrays`` one float32 (n, dim) array per entry
-    of ``dims``: ``describe``'s tuple, or the descriptor's vectors). ``check(start, arrays)`` runs
-    where each batch is described (e.g. refusing non-finite vectors). A single process does what
-    the loop over ``describe_stream`` always did."""
-    from fdnet.descriptors.pipeline import describe_stream
+@dataclass(frozen=True)
+class BlockOutput:
+    """Where :func:`describe_blocks` puts what it describes: ``write(start, arrays)`` on rank 0
+    for every batch of the whole list, in order (``start`` indexes the paths; ``arrays`` one
+    float32 (n, dim) array per entry of ``dims``: the job's ``describe`` tuple, or the
+    descriptor's vectors); ``check(start, arrays)`` where each batch is described (e.g. refusing
+    non-finite vectors)."""
 
+    dims: Sequence[int]
+    write: Callable[[int, tuple], None]
+    check: Callable[[int, tuple], None] | None = None
+
+
+def describe_blocks(shards: Shards, descriptor, paths: Sequence, output: BlockOutput, pipeline=None,
+                    job=None, timing: dict | None = None) -> None:
+    """Describe ``paths`` (:func:`fdnet.descriptors.pipeline.describe_stream` with ``pipeline``,
+    default batches of 64 with a progress bar, and ``job``), this process its
+    :meth:`Shards.block`, and hand every batch of the whole list to ``output`` on rank 0, in
+    order. A single process does what a loop over ``describe_stream`` does."""
+    from fdnet.descriptors.pipeline import PipelineSettings, describe_stream
+
+    pipeline = pipeline or PipelineSettings(batch_size=64, progress=True)
+    batch_size, write, check = pipeline.batch_size, output.write, output.check
     paths = list(paths)
     start, end = shards.block(len(paths))
-    stream = describe_stream(descriptor, paths[start:end], batch_size, workers=workers,
-                             progress=progress and shards.is_main, timing=timing, describe=describe, what=what,
-                             reads_pixels=reads_pixels)
+    stream = describe_stream(descriptor, paths[start:end],
+                             PipelineSettings(batch_size, pipeline.workers, pipeline.progress and shards.is_main),
+                             job, timing)
     kill = kill_after(shards.rank)
     if not shards.enabled:
         for done, (first, out) in enumerate(stream, start=1):
@@ -258,8 +270,8 @@ def describe_blocks(shards: Shards, descriptor, paths: Sequence, dims: Sequence[
         return
     spools: list = []
     try:
-        _describe_in_lockstep(shards, stream, paths, dims, write, spools, batch_size, check, kill)
-        _send_to_main(shards, spools, dims, len(paths), write)
+        _describe_in_lockstep(shards, stream, paths, output, spools, batch_size, kill)
+        _send_to_main(shards, spools, output.dims, len(paths), write)
     finally:
         stream.close()
         for spool in spools:
@@ -272,11 +284,12 @@ def _kill_if(kill: int | None, done: int) -> None:
         os.kill(os.getpid(), signal.SIGKILL)
 
 
-def _describe_in_lockstep(shards, stream, paths, dims, write, spools, batch_size, check, kill) -> None:
+def _describe_in_lockstep(shards, stream, paths, output: BlockOutput, spools, batch_size, kill) -> None:
     """Rank 0 writes its batches, the others spool theirs; every process agrees on errors after
     each batch, as many times as the process with the most batches has batches."""
     from fdnet.descriptors.pipeline import VectorSpool
 
+    dims, write, check = output.dims, output.write, output.check
     start, end = shards.block(len(paths))
     steps = max(_batches(*shards.block(len(paths), r), batch_size) for r in range(shards.world_size))
     mine = _batches(start, end, batch_size)

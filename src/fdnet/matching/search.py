@@ -148,8 +148,7 @@ def _build_or_load(descriptor, ref_paths, search: SearchSettings, pipeline, say)
         say(f"loaded the {settings.kind} index of {len(ref_paths)} references from {index_file}")
         return index
     index = VectorIndex(descriptor.dim, settings)
-    for _, vectors in describe_stream(descriptor, ref_paths, pipeline.batch_size, workers=pipeline.workers,
-                                      progress=pipeline.progress):
+    for _, vectors in describe_stream(descriptor, ref_paths, pipeline):
         index.add(vectors)  # the map goes into the index chunk by chunk
     t0 = time.perf_counter()
     index.build()

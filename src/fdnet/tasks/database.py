@@ -389,14 +389,14 @@ def _spool(descriptor, paths, pipeline: PipelineSettings, folder, shards=None):
     import contextlib
 
     from fdnet.descriptors.pipeline import VectorSpool
-    from fdnet.descriptors.sharding import current, describe_blocks
+    from fdnet.descriptors.sharding import BlockOutput, current, describe_blocks
 
     shards = shards or current()
     spool = shards.collectively(lambda: VectorSpool(folder, descriptor.dim) if shards.is_main else None)
     try:
-        describe_blocks(shards, descriptor, paths, [descriptor.dim], lambda start, arrays: spool.write(arrays[0]),
-                        batch_size=pipeline.batch_size, workers=pipeline.workers, progress=pipeline.progress,
-                        check=lambda start, arrays: _refuse_non_finite(paths, start, arrays[0], descriptor))
+        output = BlockOutput([descriptor.dim], lambda start, arrays: spool.write(arrays[0]),
+                             check=lambda start, arrays: _refuse_non_finite(paths, start, arrays[0], descriptor))
+        describe_blocks(shards, descriptor, paths, output, pipeline)
     except BaseException:
         if spool is not None:
             spool.close()

@@ -187,12 +187,12 @@ class TrunkWhitenedDescriptor(TrunkDescriptor):
         self._learn(self._describe_raw_paths(self._fit_paths), self._fit_description)
 
     def _describe_raw_paths(self, paths) -> np.ndarray:
-        from fdnet.descriptors.pipeline import describe_stream
+        from fdnet.descriptors.pipeline import DescribeJob, PipelineSettings, describe_stream
 
         paths = list(paths)
         out = np.empty((len(paths), self.feature_dim), dtype=np.float32)
-        for start, vectors in describe_stream(self, paths, batch_size=64, describe=self._raw,
-                                              what=f"{self.name}: fitting"):
+        for start, vectors in describe_stream(self, paths, PipelineSettings(batch_size=64),
+                                              DescribeJob(self._raw, what=f"{self.name}: fitting")):
             out[start:start + len(vectors)] = vectors
         return out
 
