@@ -222,8 +222,8 @@ def _warn_unused_experiment_flags(args) -> None:
     chosen = set(_names(args.experiments) or EXPERIMENTS)
     for group, flag, keywords in ARGUMENTS:
         value = getattr(args, flag.lstrip("-").replace("-", "_"), None)
-        if group != "experiments" or value in (None, [], keywords.get("default")):
-            continue
+        if group != "experiments" or flag == "--experiments" or value in (None, [], keywords.get("default")):
+            continue  # --experiments chooses the experiments: it is never one's own flag
         owners = re.split(r", | and ", keywords["help"].partition(":")[0])
         if not chosen & set(owners):
             logging.getLogger(__name__).warning(
