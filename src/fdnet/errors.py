@@ -119,6 +119,6 @@ def invalid_settings_are_config_errors(init: Callable) -> Callable:
         try:
             return init(self, *args, **kwargs)
         except (TypeError, ValueError) as exc:
-            raise ConfigError(f"{self.name}: invalid setting ({exc})") from None
+            raise ConfigError(f"{self.name}: invalid setting ({exc})") from exc
 
     return wrapper

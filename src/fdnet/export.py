@@ -46,9 +46,9 @@ def export_onnx(run_dir: str | os.PathLike, out: str | os.PathLike, opset: int =
 
     try:
         import onnx
-    except ImportError:
+    except ImportError as exc:
         raise NotAvailableError("ONNX export needs the optional extra: pip install 'fdnet[onnx]' "
-                                "(onnx and onnxruntime)") from None
+                                "(onnx and onnxruntime)") from exc
     descriptor = FDNetDescriptor.from_run(run_dir)
     module = _content_module(descriptor)
     height, width = descriptor.input_size

@@ -190,7 +190,7 @@ def ensure_writable(path: str | os.PathLike, what: str = "output", directory: bo
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         where = "" if directory else f" (its folder {folder})"
-        raise output_error(f"{target}: cannot create the {what} folder{where}: {exc.strerror or exc}", exc) from None
+        raise output_error(f"{target}: cannot create the {what} folder{where}: {exc.strerror or exc}", exc) from exc
     try:
         fd, probe = tempfile.mkstemp(prefix=".fdnet-write-test.", dir=folder)
         try:
@@ -200,7 +200,7 @@ def ensure_writable(path: str | os.PathLike, what: str = "output", directory: bo
             os.unlink(probe)
     except OSError as exc:
         reason = "no space left" if exc.errno == errno.ENOSPC else (exc.strerror or str(exc))
-        raise output_error(f"{target}: cannot write the {what} here ({reason})", exc) from None
+        raise output_error(f"{target}: cannot write the {what} here ({reason})", exc) from exc
     return target
 
 
@@ -215,7 +215,7 @@ def private_folder(path: str | os.PathLike, what: str = "temporary folder") -> P
     except FileExistsError:
         pass
     except OSError as exc:
-        raise output_error(f"{folder}: cannot create the {what} ({exc.strerror or exc})", exc) from None
+        raise output_error(f"{folder}: cannot create the {what} ({exc.strerror or exc})", exc) from exc
     info = os.lstat(folder)
     if stat.S_ISLNK(info.st_mode):
         raise ConfigError(f"{folder}: the {what} is a symbolic link (to {os.readlink(folder)}); refused, since "

@@ -52,8 +52,8 @@ def environment_int(environ: Mapping[str, str], name: str, default: int | None =
         return default
     try:
         return int(text)
-    except ValueError:
-        raise ConfigError(f"environment variable {name}={text!r} is not an integer") from None
+    except ValueError as exc:
+        raise ConfigError(f"environment variable {name}={text!r} is not an integer") from exc
 
 
 def require_rendezvous(environ: Mapping[str, str], world_size: int,

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import errno
 
+import numpy as np
 import pytest
 
 from fdnet.cli import main
@@ -202,6 +203,22 @@ def test_an_error_that_spans_lines_is_printed_as_one(capsys, monkeypatch):
     assert main(["evaluate", "--similarity", "x.npy", "--ground-truth", "g.csv"]) == 2
     err = capsys.readouterr().err
     assert err == "fdnet evaluate: error: bag/metadata.yaml: not valid YAML (while parsing in 'x', line 1 ^ expected)\n"
+
+
+def test_a_refusal_keeps_its_cause_and_verbose_shows_the_traceback(tmp_path, capsys):
+    """One line by default; with -v the traceback first, the cause chained (the parser's error that
+    made the data error), then the same line."""
+    bad = tmp_path / "gt.csv"
+    bad.write_text("query_index,reference_indices\nx,1\n")
+    np.save(tmp_path / "s.npy", np.eye(2))
+    argv = ["evaluate", "--similarity", str(tmp_path / "s.npy"), "--ground-truth", str(bad)]
+    assert main(argv) == 2
+    quiet = capsys.readouterr().err
+    assert quiet.startswith("fdnet evaluate: error: ") and quiet.count("\n") == 1 and "Traceback" not in quiet
+    assert main([*argv, "-v"]) == 2
+    loud = capsys.readouterr().err
+    assert "Traceback" in loud and "ValueError" in loud and "direct cause of the following exception" in loud
+    assert loud.rstrip("\n").splitlines()[-1] == quiet.rstrip("\n")
 
 
 def test_a_value_that_starts_with_a_dash_is_explained(tmp_path, capsys):

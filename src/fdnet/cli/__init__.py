@@ -144,6 +144,7 @@ def main(argv: list[str] | None = None) -> int:
     except BrokenPipeError:
         return _reader_left()
     except FdnetError as exc:
+        _traceback_when_verbose(exc, args)
         _error_line(f"fdnet {args.command}: error: {_one_line(exc)}")
         return 2
     except Exception as exc:  # noqa: BLE001 (re-raised below unless it is the environment's)
@@ -153,12 +154,22 @@ def main(argv: list[str] | None = None) -> int:
         message = _environment_message(exc, args)
         if message is None:
             raise
+        _traceback_when_verbose(exc, args)
         _error_line(f"fdnet {args.command}: error: {_one_line(message)}")
         return 2
     except KeyboardInterrupt:
         print(f"fdnet {args.command}: interrupted", file=sys.stderr)
         return 130
     return int(result or 0)
+
+
+def _traceback_when_verbose(exc: BaseException, args: argparse.Namespace) -> None:
+    """With ``--verbose``, the traceback of a refused command, its causes chained (what raised
+    first: the OS error, the parser's ValueError), before the one error line."""
+    if getattr(args, "verbose", False):
+        import traceback
+
+        sys.stderr.write("".join(traceback.format_exception(exc)))
 
 
 def _error_line(text: str) -> None:

@@ -97,7 +97,7 @@ def _check_choices(spec, choose) -> None:
             try:
                 candidate_specs(spec, {key: [value]})
             except ConfigError as exc:
-                raise ConfigError(f"--choose {key}={value}: {str(exc).split(': ', 1)[-1]}") from None
+                raise ConfigError(f"--choose {key}={value}: {str(exc).split(': ', 1)[-1]}") from exc
     candidate_specs(spec, choose)  # no values at all
 
 
@@ -119,8 +119,8 @@ def _rule(args, choose: dict):
             return parse_acceptance(args.accept or DEFAULT_ACCEPTANCE, [*args.accept_set, *first])
         except ConfigError as exc:
             if str(exc) == str(missing):  # the choice was not the missing setting
-                raise missing from None
-            raise ConfigError(f"--choose {', '.join(first)}: {str(exc).split(': ', 1)[-1]}") from None
+                raise missing from exc
+            raise ConfigError(f"--choose {', '.join(first)}: {str(exc).split(': ', 1)[-1]}") from exc
 
 
 def _store(calibration, out, run_dir, db, db_path) -> tuple[list, list[str]]:

@@ -357,8 +357,8 @@ def thread_count(minimum: int = 1):
 
         try:
             value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"must be a whole number of threads, got {text!r}") from None
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(f"must be a whole number of threads, got {text!r}") from exc
         if not minimum <= value <= MAX_THREADS:
             raise argparse.ArgumentTypeError(f"must be between {minimum} and {MAX_THREADS}, got {text}")
         return value

@@ -28,8 +28,8 @@ def _non_negative_int(text: str) -> int:
 def _finite_number(text: str) -> float:
     try:
         value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from exc
     if value != value or value in (float("inf"), float("-inf")):  # nan would keep no row, inf all or none
         raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
     return value
@@ -38,8 +38,8 @@ def _finite_number(text: str) -> float:
 def _whole_number(text: str) -> int:
     try:
         return int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a whole number, got {text!r}") from None
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"must be a whole number, got {text!r}") from exc
 
 
 def register(sub) -> None:

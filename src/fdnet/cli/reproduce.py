@@ -202,8 +202,8 @@ def _overlaps(text: str) -> tuple[float, ...]:
     for item in _names(text) or []:
         try:
             value = float(item)
-        except ValueError:
-            raise ConfigError(f"--overlaps {text!r}: {item!r} is not a number (percent, e.g. 100,90,75,65)") from None
+        except ValueError as exc:
+            raise ConfigError(f"--overlaps {text!r}: {item!r} is not a number (percent, e.g. 100,90,75,65)") from exc
         values.append(value / 100.0 if value > 1.0 else value)
     if not values:
         raise ConfigError("--overlaps is empty")

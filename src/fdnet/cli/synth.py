@@ -27,8 +27,8 @@ def parse_size(text: str) -> tuple[int, int]:
 
     try:
         h, w = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise ConfigError(f"--size {text!r}: expected HxW, e.g. 64x128") from None
+    except ValueError as exc:
+        raise ConfigError(f"--size {text!r}: expected HxW, e.g. 64x128") from exc
     return h, w
 
 

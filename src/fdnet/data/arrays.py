@@ -67,7 +67,7 @@ def read_npy_header(handle: BinaryIO, where: str) -> tuple[tuple[int, ...], bool
             raise ValueError(f".npy format version {version[0]}.{version[1]} is not supported")
         return read_any(handle, version)
     except (ValueError, EOFError) as exc:
-        raise DataError(f"{where}: not a readable .npy file ({exc})") from None
+        raise DataError(f"{where}: not a readable .npy file ({exc})") from exc
 
 
 def check_npy_claim(shape: tuple[int, ...], dtype: np.dtype, where: str, data_bytes: int,
@@ -106,12 +106,12 @@ def load_npy(path: str | os.PathLike, *, max_bytes: int | None | str = "memory",
     where = str(path)
     try:
         handle = open(path, "rb")
-    except FileNotFoundError:
-        raise DataError(f"{path}: {what} file not found") from None
-    except IsADirectoryError:
-        raise DataError(f"{path}: is a folder; expected a .npy file") from None
+    except FileNotFoundError as exc:
+        raise DataError(f"{path}: {what} file not found") from exc
+    except IsADirectoryError as exc:
+        raise DataError(f"{path}: is a folder; expected a .npy file") from exc
     except OSError as exc:
-        raise DataError(f"{path}: cannot read ({exc.strerror or exc})") from None
+        raise DataError(f"{path}: cannot read ({exc.strerror or exc})") from exc
     with handle:
         start = handle.read(len(NPY_MAGIC))
         if start[:2] == b"PK":
@@ -129,7 +129,7 @@ def load_npy(path: str | os.PathLike, *, max_bytes: int | None | str = "memory",
         try:
             return np.load(handle, allow_pickle=False)
         except (ValueError, OSError, EOFError) as exc:
-            raise DataError(f"{path}: not a readable .npy file ({exc.__class__.__name__}: {exc})") from None
+            raise DataError(f"{path}: not a readable .npy file ({exc.__class__.__name__}: {exc})") from exc
 
 
 def load_npz_member(path: str | os.PathLike, key: str, *, max_bytes: int | None | str = "memory",
@@ -139,10 +139,10 @@ def load_npz_member(path: str | os.PathLike, key: str, *, max_bytes: int | None 
     where = f"{path} (array {key!r})"
     try:
         archive = zipfile.ZipFile(path)
-    except FileNotFoundError:
-        raise DataError(f"{path}: {what} file not found") from None
+    except FileNotFoundError as exc:
+        raise DataError(f"{path}: {what} file not found") from exc
     except (zipfile.BadZipFile, OSError) as exc:
-        raise DataError(f"{path}: not a readable .npz archive ({exc})") from None
+        raise DataError(f"{path}: not a readable .npz archive ({exc})") from exc
     with archive:
         names = [n[:-4] for n in archive.namelist() if n.endswith(".npy")]
         if key not in names:
@@ -159,4 +159,4 @@ def load_npz_member(path: str | os.PathLike, key: str, *, max_bytes: int | None 
             with archive.open(info) as member:
                 return np.lib.format.read_array(member, allow_pickle=False)
         except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
-            raise DataError(f"{where}: not a readable array ({exc.__class__.__name__}: {exc})") from None
+            raise DataError(f"{where}: not a readable array ({exc.__class__.__name__}: {exc})") from exc

@@ -88,10 +88,10 @@ class RouteDataset:
     def __getitem__(self, condition: str) -> Traverse:
         try:
             return self.traverses[condition]
-        except KeyError:
+        except KeyError as exc:
             raise DataError(
                 f"{self.root}: no condition {condition!r}; available: {', '.join(self.conditions) or 'none'}"
-            ) from None
+            ) from exc
 
     @classmethod
     def from_folder(cls, root: str | os.PathLike, conditions: Sequence[str] | None = None) -> "RouteDataset":
@@ -136,8 +136,8 @@ def parse_frame_range(text: str | None) -> tuple[int | None, int | None]:
     try:
         start = int(start_s) if start_s.strip() else None
         end = int(end_s) if end_s.strip() else None
-    except ValueError:
-        raise DataError(f"frame range {text!r}: START and END must be integers") from None
+    except ValueError as exc:
+        raise DataError(f"frame range {text!r}: START and END must be integers") from exc
     if start is not None and end is not None and end <= start:
         raise DataError(f"frame range {text!r}: END must be greater than START")
     return start, end

@@ -104,7 +104,7 @@ def decode_image_message(message, msgtype: str, where: str):
             image = Image.open(io.BytesIO(bytes(message.data)))
             image.load()
         except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
-            raise DataError(f"{where}: compressed image ({message.format!r}) cannot be decoded ({exc})") from None
+            raise DataError(f"{where}: compressed image ({message.format!r}) cannot be decoded ({exc})") from exc
         return image
     encoding = message.encoding
     if encoding not in RAW_ENCODINGS:

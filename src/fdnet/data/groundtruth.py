@@ -177,12 +177,12 @@ class GroundTruth:
         try:
             # utf-8-sig: spreadsheet programs start CSV files with a byte-order mark.
             text = path.read_text(encoding="utf-8-sig")
-        except FileNotFoundError:
-            raise DataError(f"{path}: ground-truth file not found") from None
-        except IsADirectoryError:
-            raise DataError(f"{path}: is a folder; expected a ground-truth CSV file") from None
-        except UnicodeDecodeError:
-            raise DataError(f"{path}: not a text CSV file") from None
+        except FileNotFoundError as exc:
+            raise DataError(f"{path}: ground-truth file not found") from exc
+        except IsADirectoryError as exc:
+            raise DataError(f"{path}: is a folder; expected a ground-truth CSV file") from exc
+        except UnicodeDecodeError as exc:
+            raise DataError(f"{path}: not a text CSV file") from exc
         reader = csv.reader(io.StringIO(text))
         rows = [(reader.line_num, row) for row in reader]
         if not rows:
@@ -204,8 +204,8 @@ class GroundTruth:
             try:
                 q = int(row[0].strip())
                 refs = [int(v) for v in (row[1].split() if len(row) > 1 else [])]
-            except ValueError:
-                raise DataError(f"{path}, line {line_no}: non-integer value in {','.join(row)!r}") from None
+            except ValueError as exc:
+                raise DataError(f"{path}, line {line_no}: non-integer value in {','.join(row)!r}") from exc
             if q < 0 or (num_queries is not None and q >= num_queries):
                 raise DataError(f"{path}, line {line_no}: query index {q} out of range"
                                 + (f" (0..{num_queries - 1})" if num_queries is not None else ""))

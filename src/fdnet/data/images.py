@@ -148,7 +148,7 @@ def _open(path: Path) -> Image.Image:
     except (Image.DecompressionBombError, Image.DecompressionBombWarning) as exc:
         # The warning arrives as an exception when warnings are errors (python -W error).
         found = _BOMB_PIXELS.search(str(exc))
-        raise _too_many_pixels(path, int(found.group(1)) if found else None) from None
+        raise _too_many_pixels(path, int(found.group(1)) if found else None) from exc
     limit = Image.MAX_IMAGE_PIXELS
     if limit is not None and img.width * img.height > limit:
         img.close()
@@ -162,10 +162,10 @@ def image_size(path: str | os.PathLike) -> tuple[int, int]:
     try:
         with _open(path) as img:
             return img.size
-    except FileNotFoundError:
-        raise DataError(f"{path}: image file not found") from None
+    except FileNotFoundError as exc:
+        raise DataError(f"{path}: image file not found") from exc
     except (UnidentifiedImageError, OSError) as exc:
-        raise DataError(f"{path}: cannot read image header ({exc})") from None
+        raise DataError(f"{path}: cannot read image header ({exc})") from exc
 
 
 def _to_float_rgb(img: Image.Image, path: Path, source_mode: str | None = None) -> np.ndarray:
@@ -236,8 +236,8 @@ def check_image_size(size, what: str) -> tuple[int, int]:
     try:
         h, w = size
         h, w = whole_number(h), whole_number(w)
-    except (TypeError, ValueError, OverflowError):
-        raise ConfigError(f"{what}: size {size!r} must be two whole numbers (height, width)") from None
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise ConfigError(f"{what}: size {size!r} must be two whole numbers (height, width)") from exc
     if h < 1 or w < 1:
         raise ConfigError(f"{what}: size {h}x{w} must be positive")
     if h > MAX_IMAGE_SIDE or w > MAX_IMAGE_SIDE:
@@ -271,10 +271,10 @@ def load_image(path: str | os.PathLike, size: tuple[int, int] | None = None, *, 
                         img = img.convert("RGBA")
                     img = img.resize((width, height), resample)
             return convert(img, path, source_mode)
-    except FileNotFoundError:
-        raise DataError(f"{path}: image file not found") from None
+    except FileNotFoundError as exc:
+        raise DataError(f"{path}: image file not found") from exc
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
-        raise DataError(f"{path}: cannot read image ({exc.__class__.__name__}: {exc})") from None
+        raise DataError(f"{path}: cannot read image ({exc.__class__.__name__}: {exc})") from exc
 
 
 def resize_array(array: np.ndarray, size: tuple[int, int]) -> np.ndarray:

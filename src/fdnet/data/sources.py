@@ -103,8 +103,8 @@ def parse_window(text: str | None) -> tuple[float | None, float | None]:
     parts = text.split(":", 1)
     try:
         return tuple(float(p) if p.strip() else None for p in parts)  # type: ignore[return-value]
-    except ValueError:
-        raise ConfigError(f"--window {text!r}: START and END must be numbers of seconds") from None
+    except ValueError as exc:
+        raise ConfigError(f"--window {text!r}: START and END must be numbers of seconds") from exc
 
 
 _default = SourceOptions()
@@ -326,7 +326,7 @@ def _bag_errors(source: Path, topic: str | None = None):
         except Exception as exc:  # noqa: BLE001 (see the docstring)
             where = f"{source}" + (f", topic {topic}" if topic else "")
             raise DataError(f"{where}: cannot read the bag ({exc.__class__.__name__}: {exc}); is it truncated or "
-                            f"damaged? (ROS 1: `rosbag reindex`; ROS 2: `ros2 bag reindex`)") from None
+                            f"damaged? (ROS 1: `rosbag reindex`; ROS 2: `ros2 bag reindex`)") from exc
 
     return guard()
 

@@ -234,9 +234,9 @@ def get_rule(name: str) -> Rule:
     _load_plugins()
     try:
         return _RULES[name]
-    except KeyError:
+    except KeyError as exc:
         raise ConfigError(f"unknown acceptance rule {name!r}; choose from {', '.join(rule_names())} "
-                          f"(combine a score with gates as A+B)") from None
+                          f"(combine a score with gates as A+B)") from exc
 
 
 # ---------------------------------------------------------------------------- parsing

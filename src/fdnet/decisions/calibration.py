@@ -177,8 +177,8 @@ class Calibration:
                     if isinstance(values[key], bool):
                         raise TypeError(key)
                     values[key] = float(values[key])
-        except (TypeError, ValueError):
-            raise DataError(f"{source}: threshold, target_precision, precision and recall must be numbers") from None
+        except (TypeError, ValueError) as exc:
+            raise DataError(f"{source}: threshold, target_precision, precision and recall must be numbers") from exc
         check_target(values["target_precision"], f"{source}: target_precision")
         if math.isnan(values["threshold"]) or values["threshold"] == -math.inf:
             # -inf would accept the queries a gate rejected (their score is -inf): never stored
@@ -226,7 +226,7 @@ class Calibration:
         try:
             calibration.spec  # the rule exists and its settings are valid here
         except ConfigError as exc:
-            raise DataError(f"{source}: {exc}") from None
+            raise DataError(f"{source}: {exc}") from exc
         return calibration
 
 
@@ -398,7 +398,7 @@ def load_calibration(path: str | Path) -> Calibration:
     try:
         data = read_yaml_file(path, "calibration file", DataError)
     except OSError as exc:
-        raise DataError(f"{path}: cannot read the calibration file ({exc.strerror or exc})") from None
+        raise DataError(f"{path}: cannot read the calibration file ({exc.strerror or exc})") from exc
     return Calibration.from_dict(data, source=str(path))
 
 

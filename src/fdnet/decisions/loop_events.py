@@ -47,7 +47,7 @@ class EventLog:
                 self._fds.append(os.open(path, os.O_WRONLY | os.O_APPEND))
         except OSError as exc:
             self.close()
-            raise DataError(f"cannot open the events file for appending ({exc.strerror or exc})") from None
+            raise DataError(f"cannot open the events file for appending ({exc.strerror or exc})") from exc
         self.count = len(lines)
 
     @staticmethod
@@ -84,7 +84,7 @@ class EventLog:
                     except OSError:
                         pass
                 raise output_error(f"{path}: cannot write the loop-closure event ({exc.strerror or exc}); every "
-                                   "events file ends at the last whole event", exc) from None
+                                   "events file ends at the last whole event", exc) from exc
         self.count += 1
 
     def close(self) -> None:

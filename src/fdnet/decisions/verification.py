@@ -452,7 +452,7 @@ def _rule_settings(values) -> tuple[VerificationSettings, int]:
     try:
         return VerificationSettings(**values), min_inliers
     except TypeError as exc:  # a key that is no setting (the registry normally refuses it first)
-        raise ConfigError(f"verification settings: {exc}") from None
+        raise ConfigError(f"verification settings: {exc}") from exc
 
 
 def shared_verifier(settings: VerificationSettings) -> Verifier:

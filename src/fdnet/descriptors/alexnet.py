@@ -73,7 +73,7 @@ def load_state_dict_file(path: str | Path, what: str) -> dict:
 
             state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # any reader failure is a bad file, reported as such
-        raise ConfigError(f"{path}: cannot read {what} weights ({exc.__class__.__name__}: {exc})") from None
+        raise ConfigError(f"{path}: cannot read {what} weights ({exc.__class__.__name__}: {exc})") from exc
     if isinstance(state, dict) and "state_dict" in state and isinstance(state["state_dict"], dict):
         state = state["state_dict"]
     if not isinstance(state, dict):

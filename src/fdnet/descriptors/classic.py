@@ -30,13 +30,13 @@ def _size_pair(size, what: str) -> tuple[int, int]:
     if isinstance(size, str):
         try:
             h, w = (int(v) for v in size.lower().split("x"))
-        except ValueError:
-            raise ConfigError(f"{what}: size {size!r} must look like HxW, e.g. 32x64") from None
+        except ValueError as exc:
+            raise ConfigError(f"{what}: size {size!r} must look like HxW, e.g. 32x64") from exc
         size = (h, w)
     try:
         h, w = (int(v) for v in size)
-    except (TypeError, ValueError):
-        raise ConfigError(f"{what}: size {size!r} must be (height, width)") from None
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{what}: size {size!r} must be (height, width)") from exc
     from fdnet.data.images import check_image_size
 
     return check_image_size((h, w), what)
@@ -188,8 +188,8 @@ def check_opencv_hog(window_wh, block_wh, stride_wh, cell_wh, bins, where: str) 
     for name, value in named.items():
         try:
             w, h = (whole_number(v) for v in value)
-        except (TypeError, ValueError, OverflowError):
-            raise ConfigError(f"{where}: HOG {name} size {value!r} must be two whole numbers (width, height)") from None
+        except (TypeError, ValueError, OverflowError) as exc:
+            raise ConfigError(f"{where}: HOG {name} size {value!r} must be two whole numbers (width, height)") from exc
         if w < 1 or h < 1 or w > 4096 or h > 4096:
             raise ConfigError(f"{where}: HOG {name} size {w}x{h} must be between 1 and 4096 pixels a side")
         sizes[name] = (w, h)

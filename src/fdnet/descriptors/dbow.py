@@ -261,7 +261,7 @@ class Vocabulary:
                 meta = yaml.safe_load((f.metadata() or {}).get("config", "")) or {}
                 arrays = {k: f.get_tensor(k) for k in f.keys()}
         except Exception as exc:  # any reader failure means the file is not a vocabulary
-            raise ConfigError(f"{path}: not a DBoW vocabulary file ({exc.__class__.__name__}: {exc})") from None
+            raise ConfigError(f"{path}: not a DBoW vocabulary file ({exc.__class__.__name__}: {exc})") from exc
         if meta.get("format") != "fdnet-dbow-vocabulary-1" or not {"centres", "children", "word", "idf"} <= set(arrays):
             raise ConfigError(f"{path}: not an fdnet DBoW vocabulary (missing format tag or arrays)")
         info = {k: v for k, v in meta.items() if k not in ("format", "branching", "depth", "num_words")}

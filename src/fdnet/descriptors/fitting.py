@@ -50,9 +50,9 @@ def fit_image_paths(folder, fit_frames: str | None = None, where: str = "fit") -
     else:
         try:
             traverses = list(RouteDataset.from_folder(root).traverses.values())
-        except DataError:
+        except DataError as exc:
             raise DataError(f"{where} {folder}: no images to fit on (neither images in the folder nor condition "
-                            "sub-folders with images)") from None
+                            "sub-folders with images)") from exc
     chosen = [t.frames(start, end) for t in traverses]
     paths = [p for t in chosen for p in t.paths]
     frames = f"; frames {fit_frames}" if fit_frames else ""

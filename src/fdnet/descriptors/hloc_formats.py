@@ -50,8 +50,8 @@ def require_h5py():
     """The h5py module, or NotAvailableError saying how to install it (the ``hloc`` extra)."""
     try:
         import h5py
-    except ImportError:
-        raise NotAvailableError("hloc's .h5 files need the optional extra: pip install 'fdnet[hloc]' (h5py)") from None
+    except ImportError as exc:
+        raise NotAvailableError("hloc's .h5 files need the optional extra: pip install 'fdnet[hloc]' (h5py)") from exc
     return h5py
 
 
@@ -69,8 +69,8 @@ def _utf8(name: str, where) -> str:
     """``name`` when it is valid UTF-8 (what HDF5 and the pairs file store), else DataError."""
     try:
         name.encode("utf-8")
-    except UnicodeEncodeError:
-        raise DataError(f"{where}: image name {ascii(name)} is not valid UTF-8; rename the file") from None
+    except UnicodeEncodeError as exc:
+        raise DataError(f"{where}: image name {ascii(name)} is not valid UTF-8; rename the file") from exc
     return name
 
 
@@ -119,9 +119,9 @@ def image_root(inputs: Sequence[str | os.PathLike]) -> Path:
             roots.append(os.path.abspath(os.fspath(given)))
     try:
         return Path(os.path.commonpath(roots))
-    except ValueError:  # Windows: different drives
+    except ValueError as exc:  # Windows: different drives
         raise DataError(f"{', '.join(map(str, inputs))}: no folder holds them all, so no image_dir can name "
-                        "their images") from None
+                        "their images") from exc
 
 
 def relative_names(paths: Sequence[str | os.PathLike], root: str | os.PathLike) -> list[str]:
@@ -258,9 +258,9 @@ class GlobalFeaturesWriter:
             pass
         try:
             return h5py.h5g.open(fid, encoded)
-        except (KeyError, ValueError, TypeError):
+        except (KeyError, ValueError, TypeError) as exc:
             raise DataError(f"{self.path}: image {name!r} clashes with another image's name (one of its folders is "
-                            f"a {self.key} dataset)") from None
+                            f"a {self.key} dataset)") from exc
 
     def close(self) -> None:
         """Finish the file and rename it over the target (synced); a second call does nothing."""
@@ -345,14 +345,14 @@ def read_global_features(path: str | os.PathLike, key: str = GLOBAL_KEY,
     try:
         handle = h5py.File(path, "r", **_locking(h5py, "best-effort"))
     except (OSError, ValueError) as exc:
-        raise _open_error(path, exc) from None
+        raise _open_error(path, exc) from exc
     try:
         with handle:
             return _read_vectors(h5py, handle, path, key, facts)
     except DataError:
         raise
     except (OSError, KeyError, ValueError, RuntimeError, TypeError) as exc:
-        raise DataError(f"{path}: cannot read it as hloc's global features ({_one_line(exc)})") from None
+        raise DataError(f"{path}: cannot read it as hloc's global features ({_one_line(exc)})") from exc
 
 
 def read_global_attributes(path: str | os.PathLike) -> dict:
@@ -369,7 +369,7 @@ def read_global_attributes(path: str | os.PathLike) -> dict:
             attrs = {name: handle.attrs[name] for name in ("method", "fingerprint", "settings", "root")
                      if name in handle.attrs}
     except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise _open_error(path, exc) from None
+        raise _open_error(path, exc) from exc
     recorded = {}
     for name, value in attrs.items():
         if isinstance(value, bytes):
@@ -536,9 +536,9 @@ def read_pairs(path: str | os.PathLike) -> list[tuple[str, str]]:
     try:
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError as exc:
-        raise DataError(f"{path}: not UTF-8 text ({_one_line(exc)}); not a pairs file") from None
+        raise DataError(f"{path}: not UTF-8 text ({_one_line(exc)}); not a pairs file") from exc
     except OSError as exc:
-        raise DataError(f"{path}: cannot read it ({exc.strerror or _one_line(exc)})") from None
+        raise DataError(f"{path}: cannot read it ({exc.strerror or _one_line(exc)})") from exc
     pairs = []
     # read_text's universal newlines, as hloc's open(path, "r"): \r\n and \r end lines too
     for number, line in enumerate(text.rstrip("\n").split("\n"), start=1):

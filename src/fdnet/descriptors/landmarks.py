@@ -85,7 +85,7 @@ class ProposalGenerator:
             try:
                 self._forest = cv2.ximgproc.createStructuredEdgeDetection(self.edge_model)
             except cv2.error as exc:
-                raise ConfigError(f"{self.edge_model}: not a structured-edge model ({str(exc).strip()[:200]})") from None
+                raise ConfigError(f"{self.edge_model}: not a structured-edge model ({str(exc).strip()[:200]})") from exc
         # min_box_area is in pixels of the described image; proposals are searched at ``scale``
         self._boxes = cv2.ximgproc.createEdgeBoxes(maxBoxes=self.max_boxes,
                                                    minBoxArea=float(min_box_area) * self.scale ** 2)

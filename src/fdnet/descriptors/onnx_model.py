@@ -56,8 +56,8 @@ def _parse_size(value, where: str) -> tuple[int, int]:
         if text.startswith("["):
             try:
                 value = json.loads(text)
-            except ValueError:
-                raise ConfigError(f"{where}: {value!r} is not HxW (e.g. 224x224)") from None
+            except ValueError as exc:
+                raise ConfigError(f"{where}: {value!r} is not HxW (e.g. 224x224)") from exc
         else:
             parts = text.split("x")
             if len(parts) != 2 or not all(p.isdigit() for p in parts):
@@ -70,8 +70,8 @@ def _parse_triple(value, where: str) -> np.ndarray:
     if isinstance(value, str):
         try:
             value = json.loads(value)
-        except ValueError:
-            raise ConfigError(f"{where}: {value!r} is not a number or a list of 3 numbers") from None
+        except ValueError as exc:
+            raise ConfigError(f"{where}: {value!r} is not a number or a list of 3 numbers") from exc
     array = np.asarray(value, dtype=np.float64).reshape(-1) if not isinstance(value, bool) else np.array([])
     if array.size == 1:
         array = np.repeat(array, 3)
@@ -109,7 +109,7 @@ def _open_session(onnxruntime, path: Path, device: str | None):
     try:
         data = path.read_bytes()
     except OSError as exc:
-        raise DataError(f"{path}: cannot read the ONNX model ({exc.strerror or exc})") from None
+        raise DataError(f"{path}: cannot read the ONNX model ({exc.strerror or exc})") from exc
     digest = hashlib.sha256(data)
     for location, file in _external_data_files(path, data):
         digest.update(f"\nexternal {location}\n".encode("utf-8", "surrogateescape"))
@@ -126,7 +126,7 @@ def _open_session(onnxruntime, path: Path, device: str | None):
         session = onnxruntime.InferenceSession(str(path), options, providers=providers)
     except Exception as exc:  # onnxruntime raises its own classes (InvalidProtobuf, Fail, ...)
         detail = " ".join(str(exc).split())[:200]
-        raise DataError(f"{path}: not an ONNX model onnxruntime can load ({detail})") from None
+        raise DataError(f"{path}: not an ONNX model onnxruntime can load ({detail})") from exc
     return session, digest.hexdigest()
 
 
@@ -136,14 +136,14 @@ def _external_data_files(path: Path, data: bytes) -> list[tuple[str, Path]]:
     try:
         import onnx
         from onnx.external_data_helper import ExternalDataInfo, uses_external_data
-    except ImportError:
+    except ImportError as exc:
         raise NotAvailableError("--method onnx needs the optional extra: pip install 'fdnet[onnx]' "
-                                "(onnx, onnxruntime)") from None
+                                "(onnx, onnxruntime)") from exc
     try:
         model = onnx.load_from_string(data)
     except Exception as exc:  # onnx raises DecodeError and others for what is not a model
         detail = " ".join(str(exc).split())[:200]
-        raise DataError(f"{path}: not an ONNX model onnxruntime can load ({detail})") from None
+        raise DataError(f"{path}: not an ONNX model onnxruntime can load ({detail})") from exc
     folder = path.resolve().parent
     found: dict[str, Path] = {}
     for tensor in _tensors(model.graph):
@@ -222,9 +222,9 @@ class ONNXDescriptor(Descriptor):
             raise ConfigError("onnx: give the model with --weights MODEL.onnx")
         try:
             import onnxruntime
-        except ImportError:
+        except ImportError as exc:
             raise NotAvailableError("--method onnx needs the optional extra: pip install 'fdnet[onnx]' "
-                                    "(onnxruntime)") from None
+                                    "(onnxruntime)") from exc
         path = Path(weights)
         self.weights = str(path)
         self.session, self.model_sha256 = _open_session(onnxruntime, path, device)
@@ -345,7 +345,7 @@ class ONNXDescriptor(Descriptor):
             except Exception as exc:  # onnxruntime's own error classes
                 detail = " ".join(str(exc).split())[:200]
                 raise DataError(f"{self.weights}: the model failed on a batch of shape {list(chunk.shape)} "
-                                f"({detail})") from None
+                                f"({detail})") from exc
             out = np.asarray(out)
             if out.ndim != 2 or out.shape[0] != len(chunk):
                 raise DataError(f"{self.weights}: output {self.output_name} has shape {list(out.shape)} for "

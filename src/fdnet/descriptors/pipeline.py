@@ -214,7 +214,7 @@ def iter_image_batches(paths: Sequence[str | os.PathLike], size: tuple[int, int]
                 if "DataLoader worker" not in str(exc):
                     raise
                 raise DataError(f"an image-decoding worker process failed ({' '.join(str(exc).split())}); "
-                                "with little memory, give --workers 0 to decode in this process") from None
+                                "with little memory, give --workers 0 to decode in this process") from exc
             if error is not None:
                 raise DataError(error)
             # .numpy() shares the (possibly pinned) memory: no copy

@@ -98,7 +98,7 @@ def _read_npz(path: Path, array: str | None) -> tuple[list[str], np.ndarray, dic
     except DataError:
         raise
     except (OSError, ValueError, KeyError, EOFError) as exc:
-        raise DataError(f"{path}: not a readable .npz of vectors ({' '.join(str(exc).split())})") from None
+        raise DataError(f"{path}: not a readable .npz of vectors ({' '.join(str(exc).split())})") from exc
     facts = recorded.get("facts")
     if facts is not None and not len(facts[0]) == len(facts[1]) == len(names):
         raise DataError(f"{path}: {len(facts[0])} sizes and {len(facts[1])} modification times for {len(names)} "
@@ -134,14 +134,14 @@ def _read_npy(path: Path, names_file: str | None) -> tuple[list[str], np.ndarray
     try:
         vectors = _numbers(path, np.load(path, allow_pickle=False), "the array")
     except (OSError, ValueError, EOFError) as exc:
-        raise DataError(f"{path}: not a readable .npy array ({' '.join(str(exc).split())})") from None
+        raise DataError(f"{path}: not a readable .npy array ({' '.join(str(exc).split())})") from exc
     if not listing.is_file():
         raise DataError(f"{path}: no names list {listing} (one image name per line, in the rows' order); give "
                         "it with --method-set names=FILE")
     try:
         names = [line.strip() for line in listing.read_text(encoding="utf-8").splitlines() if line.strip()]
     except (OSError, UnicodeDecodeError) as exc:
-        raise DataError(f"{listing}: cannot read the names list ({exc})") from None
+        raise DataError(f"{listing}: cannot read the names list ({exc})") from exc
     return names, vectors, {}
 
 

@@ -139,8 +139,8 @@ _METHODS: dict[str, MethodSpec] = {spec.name: spec for spec in (
 def spec(name: str) -> MethodSpec:
     try:
         return _METHODS[name]
-    except KeyError:
-        raise ConfigError(f"unknown method {name!r}; available: {', '.join(_METHODS)}") from None
+    except KeyError as exc:
+        raise ConfigError(f"unknown method {name!r}; available: {', '.join(_METHODS)}") from exc
 
 
 def all_specs() -> list[MethodSpec]:

@@ -216,8 +216,8 @@ def kill_after(rank: int, environ: Mapping[str, str] | None = None) -> int | Non
     who, _, batches = text.partition(":")
     try:
         who, batches = int(who), int(batches)
-    except ValueError:
-        raise ConfigError(f"{KILL_VARIABLE}={text!r}: expected RANK:BATCHES (a test hook)") from None
+    except ValueError as exc:
+        raise ConfigError(f"{KILL_VARIABLE}={text!r}: expected RANK:BATCHES (a test hook)") from exc
     return batches if who == rank else None
 
 

@@ -119,8 +119,8 @@ def parse_index_settings(kind: str, pairs: list[str] | None = None, where: str =
                               f"{', '.join(sorted(known - {'kind'}))}")
         try:
             values[key] = int(value)
-        except ValueError:
-            raise ConfigError(f"{where} {pair!r}: {key} must be a whole number") from None
+        except ValueError as exc:
+            raise ConfigError(f"{where} {pair!r}: {key} must be a whole number") from exc
     return check_settings(IndexSettings(**values), where)
 
 
@@ -325,10 +325,10 @@ class VectorIndex:
         try:
             with open(path, "rb") as fh:
                 return _read_header(fh, path)
-        except FileNotFoundError:
-            raise DataError(f"{path}: index file not found") from None
+        except FileNotFoundError as exc:
+            raise DataError(f"{path}: index file not found") from exc
         except OSError as exc:
-            raise DataError(f"{path}: cannot read the index file ({exc.strerror or exc})") from None
+            raise DataError(f"{path}: cannot read the index file ({exc.strerror or exc})") from exc
 
     @classmethod
     def load(cls, path: str | os.PathLike, search: dict | None = None) -> "VectorIndex":
@@ -345,11 +345,11 @@ class VectorIndex:
                     index = faiss.read_index(reader)
                     del reader
                 except RuntimeError as exc:
-                    raise DataError(f"{path}: the faiss index in this file cannot be read ({exc})") from None
-        except FileNotFoundError:
-            raise DataError(f"{path}: index file not found") from None
+                    raise DataError(f"{path}: the faiss index in this file cannot be read ({exc})") from exc
+        except FileNotFoundError as exc:
+            raise DataError(f"{path}: index file not found") from exc
         except OSError as exc:
-            raise DataError(f"{path}: cannot read the index file ({exc.strerror or exc})") from None
+            raise DataError(f"{path}: cannot read the index file ({exc.strerror or exc})") from exc
         values = dict(header["settings"])
         for key, value in (search or {}).items():
             if key not in SEARCH_SETTINGS:
@@ -380,7 +380,7 @@ def _read_header(fh, path: Path) -> dict:
     try:
         header = json.loads(fh.read(size))
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise DataError(f"{path}: damaged index header ({exc})") from None
+        raise DataError(f"{path}: damaged index header ({exc})") from exc
     if not isinstance(header, dict) or header.get("format") != FORMAT_VERSION:
         raise DataError(f"{path}: index format {header.get('format') if isinstance(header, dict) else '?'} "
                         f"is not {FORMAT_VERSION}")

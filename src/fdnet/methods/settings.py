@@ -94,8 +94,8 @@ def check_finite(name: str, value, positive: bool = False) -> None:
 
     try:
         number = float(value)
-    except (TypeError, ValueError):
-        raise ConfigError(f"{name}: expected a number, got {value!r}") from None
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{name}: expected a number, got {value!r}") from exc
     if number != number or number in (float("inf"), float("-inf")):
         raise ConfigError(f"{name}: must be a finite number, got {value!r}")
     if positive and number <= 0:

@@ -113,14 +113,14 @@ def plan_benchmark(request: BenchmarkRequest) -> BenchmarkPlan:
         raise ConfigError(f"--parts: unknown {', '.join(unknown)}; choose from {','.join(PARTS)}")
     try:
         map_sizes = [int(v) for v in _comma_list(map_size)]
-    except ValueError:
-        raise ConfigError(f"--map-size {map_size!r}: expected whole numbers, e.g. 1000,100000") from None
+    except ValueError as exc:
+        raise ConfigError(f"--map-size {map_size!r}: expected whole numbers, e.g. 1000,100000") from exc
     if not map_sizes or min(map_sizes) < 2:
         raise ConfigError(f"--map-size {map_size!r}: every map needs at least 2 places")
     try:
         loop_map_sizes = [int(v) for v in _comma_list(loop_map_size)]
-    except ValueError:
-        raise ConfigError(f"--loop-map-size {loop_map_size!r}: expected whole numbers, e.g. 10000,100000") from None
+    except ValueError as exc:
+        raise ConfigError(f"--loop-map-size {loop_map_size!r}: expected whole numbers, e.g. 10000,100000") from exc
     if not loop_map_sizes or min(loop_map_sizes) < 1:
         raise ConfigError(f"--loop-map-size {loop_map_size!r}: every map needs at least 1 place")
     if quick:
@@ -148,8 +148,8 @@ def plan_benchmark(request: BenchmarkRequest) -> BenchmarkPlan:
             parsed[method.strip()] = path
     try:
         length_list = [int(v) for v in _comma_list(lengths)]
-    except ValueError:
-        raise ConfigError(f"--lengths {lengths!r}: expected whole numbers, e.g. 256,512") from None
+    except ValueError as exc:
+        raise ConfigError(f"--lengths {lengths!r}: expected whole numbers, e.g. 256,512") from exc
     from fdnet.backbones import check_device_spec
 
     return BenchmarkPlan(parts=chosen, methods=_comma_list(r.methods), checkpoints=parsed_checkpoints,
@@ -235,7 +235,7 @@ def _read_vectors(path: str, what: str):
 
             v = load_npy(p, ndim=2, what=what)
     except (ValueError, OSError) as exc:
-        raise DataError(f"{p}: cannot read {what} ({exc})") from None
+        raise DataError(f"{p}: cannot read {what} ({exc})") from exc
     v = np.asarray(v, dtype=np.float32)
     if v.ndim != 2 or len(v) == 0 or not np.isfinite(v).all():
         raise DataError(f"{p}: {what} must be a finite (N, D) array with N > 0, got shape {v.shape}")

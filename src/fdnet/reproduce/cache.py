@@ -145,8 +145,8 @@ def cache_cap() -> int:
         return DEFAULT_MAX_BYTES
     try:
         megabytes = int(text)
-    except ValueError:
-        raise ConfigError(f"FDNET_CACHE_MAX_MB={text!r}: give a whole number of mebibytes (0 for no cap)") from None
+    except ValueError as exc:
+        raise ConfigError(f"FDNET_CACHE_MAX_MB={text!r}: give a whole number of mebibytes (0 for no cap)") from exc
     if megabytes < 0:
         raise ConfigError(f"FDNET_CACHE_MAX_MB={text!r}: give a whole number of mebibytes (0 for no cap)")
     return megabytes << 20

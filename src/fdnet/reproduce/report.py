@@ -105,7 +105,7 @@ def _read_json(path: Path) -> dict | None:
         return json.loads(path.read_text())
     except (OSError, ValueError) as exc:
         raise DataError(f"{path}: cannot read this experiment's results ({exc}); rerun it with "
-                        f"--experiments {path.stem}") from None
+                        f"--experiments {path.stem}") from exc
 
 
 def _header(manifest: dict | None, shown: list[str]) -> str:

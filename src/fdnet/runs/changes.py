@@ -24,7 +24,7 @@ def read_changes(run_dir: str | Path) -> list[dict]:
     except FileNotFoundError:
         return []
     except OSError as exc:
-        raise ConfigError(f"{path}: cannot read the record of changed settings ({exc})") from None
+        raise ConfigError(f"{path}: cannot read the record of changed settings ({exc})") from exc
     if data is None:
         return []
     if not isinstance(data, list) or not all(isinstance(e, dict) for e in data):

@@ -247,7 +247,7 @@ def _with_latest(run_dir: str | Path, read):
             return read(folder)
         except OSError as exc:
             if folder.is_dir() or attempt == 2:
-                raise ConfigError(f"{folder}: cannot read the checkpoint ({exc.strerror or exc})") from None
+                raise ConfigError(f"{folder}: cannot read the checkpoint ({exc.strerror or exc})") from exc
         except ConfigError:
             if folder.is_dir() or attempt == 2:
                 raise
@@ -389,7 +389,7 @@ def _publish(run_dir: str | Path, modules: Mapping[str, torch.nn.Module], config
             fsync_directory(run_dir)
     except OSError as exc:
         raise output_error(f"{checkpoints_dir}: cannot create the checkpoint folder ({exc.strerror or exc})",
-                           exc) from None
+                           exc) from exc
 
     with _save_lock(checkpoints_dir):
         _remove_leftovers(checkpoints_dir)
@@ -500,7 +500,7 @@ def _load_weights_from(folder: Path, modules: Mapping[str, torch.nn.Module],
     except FileNotFoundError:
         raise
     except (SafetensorError, OSError) as exc:
-        raise ConfigError(f"{path}: cannot read weights ({exc})") from None
+        raise ConfigError(f"{path}: cannot read weights ({exc})") from exc
     verify_tensors(path, tensors, metadata)
     for name, module in modules.items():
         prefix = f"{name}."
@@ -555,7 +555,7 @@ def _load_training_state_from(folder: Path, optimizers: Mapping[str, torch.optim
     try:
         weights_metadata = _weights_metadata(folder / WEIGHTS_FILE)
     except (SafetensorError, OSError) as exc:
-        raise ConfigError(f"{folder / WEIGHTS_FILE}: cannot read weights ({exc})") from None
+        raise ConfigError(f"{folder / WEIGHTS_FILE}: cannot read weights ({exc})") from exc
     weights_id = weights_metadata.get("save_id")
     try:
         data = path.read_bytes()
@@ -564,7 +564,7 @@ def _load_training_state_from(folder: Path, optimizers: Mapping[str, torch.optim
     except (FileNotFoundError, ConfigError):
         raise
     except Exception as exc:  # torch raises several types for a corrupt or foreign file
-        raise ConfigError(f"{path}: cannot read training state ({exc.__class__.__name__}: {exc})") from None
+        raise ConfigError(f"{path}: cannot read training state ({exc.__class__.__name__}: {exc})") from exc
     if weights_id != payload.get("save_id"):
         raise ConfigError(
             f"{path}: training state and {WEIGHTS_FILE} come from different saves "
@@ -577,7 +577,7 @@ def _load_training_state_from(folder: Path, optimizers: Mapping[str, torch.optim
         try:
             opt.load_state_dict(saved_optimizers[name])
         except (ValueError, KeyError) as exc:
-            raise ConfigError(f"{path}: optimiser state for {name!r} does not fit this optimiser ({exc})") from None
+            raise ConfigError(f"{path}: optimiser state for {name!r} does not fit this optimiser ({exc})") from exc
     return payload["state"]
 
 

@@ -74,25 +74,25 @@ class RunLock:
             fd = os.open(str(self.path), os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
         except OSError as exc:
             raise output_error(f"{self.path}: cannot create the run directory's lock file "
-                               f"({exc.strerror or exc})", exc) from None
+                               f"({exc.strerror or exc})", exc) from exc
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
+        except BlockingIOError as exc:
             os.close(fd)
             holder = self._holder()
             if not holder:
                 raise ConfigError(f"{self.subject} is in use by another process (see {self.path}); "
-                                  "wait for it to finish or stop it") from None
+                                  "wait for it to finish or stop it") from exc
             where = "" if holder.get("host") in (None, socket.gethostname()) else f" on {holder['host']}"
             raise ConfigError(
                 f"{self.subject} is in use by process {holder.get('pid')}{where} "
                 f"({holder.get('command', '?')}, started {holder.get('started', '?')}); "
                 "wait for it to finish or stop it"
-            ) from None
+            ) from exc
         except OSError as exc:
             os.close(fd)
             raise ConfigError(f"{self.path}: cannot lock the run directory ({exc.strerror or exc}); "
-                              "its filesystem may not support file locks") from None
+                              "its filesystem may not support file locks") from exc
         info = yaml.safe_dump({"pid": os.getpid(), "host": socket.gethostname(),
                                "command": self.command, "started": _now()}, sort_keys=False)
         try:

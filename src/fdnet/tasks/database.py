@@ -347,7 +347,7 @@ def recorded_descriptor(database, device: str | None = None):
         return create(database.method, **database.method_options, **_device(device))
     except FdnetError as exc:
         raise ConfigError(f"{database.path}: cannot rebuild its {database.method!r} descriptor from the recorded "
-                          f"options {database.method_options} ({exc})") from None
+                          f"options {database.method_options} ({exc})") from exc
 
 
 def _options_for(method_options: MethodOptions, method: str) -> dict:

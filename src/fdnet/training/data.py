@@ -113,7 +113,7 @@ def load_validation_images(root: str | Path, validation, size) -> ValidationImag
         split = aligned_split(RouteDataset.from_folder(root, [v.reference, v.query]), v.reference, v.query,
                               v.tolerance, start, end)
     except DataError as exc:
-        raise DataError(f"validation {v.query}->{v.reference}: {exc}") from None
+        raise DataError(f"validation {v.query}->{v.reference}: {exc}") from exc
     ref, query, gt = split.reference, split.query, split.ground_truth
     if not gt.has_match.any():
         raise DataError(f"validation {v.query}->{v.reference} frames {v.frames or 'all'}: no query has a match")

@@ -334,7 +334,7 @@ class Trainer:
                            f"the previous complete checkpoint (step {previous}) is intact: fix the cause "
                            "(e.g. free disk space) and continue with --resume")
             # a full disk or a lost mount stays an operating-system error (OutputError is both)
-            raise (output_error(message, exc) if isinstance(exc, OSError) else ConfigError(message)) from None
+            raise (output_error(message, exc) if isinstance(exc, OSError) else ConfigError(message)) from exc
 
     def _read_run(self, override: bool, command: str) -> dict:
         """Rank 0: check the resume and load weights and optimiser states from the run directory.

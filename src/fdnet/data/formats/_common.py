@@ -154,10 +154,10 @@ def read_text_lines(path: Path, what: str, not_text: str,
         # utf-8-sig: spreadsheet programs (Excel's "CSV UTF-8") start the file with a byte-order
         # mark, which would otherwise be read as part of the first column's name
         text = path.read_text(encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise DataError(f"{path}: {what} not found") from None
-    except UnicodeDecodeError:
-        raise DataError(f"{path}: {not_text}") from None
+    except FileNotFoundError as exc:
+        raise DataError(f"{path}: {what} not found") from exc
+    except UnicodeDecodeError as exc:
+        raise DataError(f"{path}: {not_text}") from exc
     return [(i + 1, line) for i, line in enumerate(text.splitlines())
             if line.strip() and not line.lstrip().startswith(comments)]
 
@@ -206,8 +206,8 @@ def read_correspondences(path: Path, query_column: int = 0, reference_column: in
             continue
         try:
             qf, rf = float(q), float(r)
-        except ValueError:
-            raise DataError(f"{path}, line {no}: non-numeric frame number in {cells!r}") from None
+        except ValueError as exc:
+            raise DataError(f"{path}, line {no}: non-numeric frame number in {cells!r}") from exc
         if not (qf.is_integer() and rf.is_integer()):
             raise DataError(f"{path}, line {no}: frame numbers must be integers, got {q!r}, {r!r}")
         query.append(int(qf))

@@ -107,8 +107,8 @@ def read_track(path: Path) -> tuple[np.ndarray, np.ndarray]:
             reader = csv.reader(f)
             header = [h.strip().lower() for h in next(reader, [])]
             rows = list(enumerate(reader, start=2))
-    except FileNotFoundError:
-        raise DataError(f"{path}: GPS/INS file not found") from None
+    except FileNotFoundError as exc:
+        raise DataError(f"{path}: GPS/INS file not found") from exc
     missing = [c for c in ("timestamp", "northing", "easting") if c not in header]
     if missing:
         raise DataError(f"{path}: missing column(s) {', '.join(missing)}; found: {', '.join(header) or 'none'}")
@@ -120,9 +120,9 @@ def read_track(path: Path) -> tuple[np.ndarray, np.ndarray]:
         try:
             stamps.append(int(row[it]))
             xy.append((float(row[ie]), float(row[inn])))
-        except (ValueError, IndexError):
+        except (ValueError, IndexError) as exc:
             raise DataError(f"{path}, line {line_no}: expected numeric timestamp, northing, easting; "
-                            f"got {','.join(row)!r}") from None
+                            f"got {','.join(row)!r}") from exc
     if not stamps:
         raise DataError(f"{path}: no GPS/INS rows")
     stamps_arr, xy_arr = np.asarray(stamps, dtype=np.int64), np.asarray(xy, dtype=np.float64)

@@ -125,17 +125,17 @@ def read_positions(path: str | os.PathLike, image_column: str | None = None,
         for j, idx in enumerate((a_idx, b_idx)):
             try:
                 v = float(row[idx])
-            except ValueError:
-                raise DataError(f"{path}, line {line_no}: {header[idx]} is not a number: {row[idx]!r}") from None
+            except ValueError as exc:
+                raise DataError(f"{path}, line {line_no}: {header[idx]} is not a number: {row[idx]!r}") from exc
             if not math.isfinite(v):
                 raise DataError(f"{path}, line {line_no}: {header[idx]} is not a finite number: {row[idx]!r}")
             values[k, j] = v
         if stamps is not None:
             try:
                 stamps[k] = float(row[time_idx])
-            except ValueError:
+            except ValueError as exc:
                 raise DataError(f"{path}, line {line_no}: {header[time_idx]} is not a number: "
-                                f"{row[time_idx]!r}") from None
+                                f"{row[time_idx]!r}") from exc
         if img_idx is not None:
             images.append(row[img_idx])
         if kind == "degrees" and not (-90 <= values[k, 0] <= 90 and -180 <= values[k, 1] <= 180):

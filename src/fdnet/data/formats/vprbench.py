@@ -68,14 +68,14 @@ def load_object_npy(path: Path) -> np.ndarray:
             check_npy_claim(shape, dtype, str(path), os.fstat(f.fileno()).st_size - f.tell(),
                             physical_memory_bytes(), what="ground-truth array")
             array = _NumpyOnlyUnpickler(f, encoding="latin1").load()
-    except FileNotFoundError:
-        raise DataError(f"{path}: ground-truth file not found") from None
+    except FileNotFoundError as exc:
+        raise DataError(f"{path}: ground-truth file not found") from exc
     except (ValueError, OSError, EOFError, pickle.UnpicklingError) as exc:
-        raise DataError(f"{path}: not a readable VPR-Bench ground-truth .npy ({exc})") from None
+        raise DataError(f"{path}: not a readable VPR-Bench ground-truth .npy ({exc})") from exc
     try:
         return np.asarray(array, dtype=object).reshape(shape)
-    except ValueError:
-        raise DataError(f"{path}: the pickled rows do not have the shape {shape} its header claims") from None
+    except ValueError as exc:
+        raise DataError(f"{path}: the pickled rows do not have the shape {shape} its header claims") from exc
 
 
 def ground_truth_from_npy(path: Path, num_queries: int, num_references: int) -> GroundTruth:
@@ -88,8 +88,8 @@ def ground_truth_from_npy(path: Path, num_queries: int, num_references: int) -> 
         try:
             q = int(row[0])
             refs = np.atleast_1d(np.asarray(row[1])).astype(np.int64).ravel()
-        except (TypeError, ValueError, IndexError):
-            raise DataError(f"{path}: row {i} is not [query_index, [reference indices]]: {row!r}") from None
+        except (TypeError, ValueError, IndexError) as exc:
+            raise DataError(f"{path}: row {i} is not [query_index, [reference indices]]: {row!r}") from exc
         if not 0 <= q < num_queries:
             raise DataError(f"{path}: row {i}: query index {q} out of range (0..{num_queries - 1})")
         bad = refs[(refs < 0) | (refs >= num_references)]

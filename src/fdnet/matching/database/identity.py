@@ -63,7 +63,7 @@ def _read_identity(path, conn: sqlite3.Connection) -> _Identity:
         try:
             value = json.loads(text)
         except json.JSONDecodeError as exc:
-            raise DataError(f"{path}: column {name} of fdnet_database is not valid JSON ({exc})") from None
+            raise DataError(f"{path}: column {name} of fdnet_database is not valid JSON ({exc})") from exc
         if not isinstance(value, dict):
             raise DataError(f"{path}: column {name} of fdnet_database must be a JSON object")
         return value

@@ -24,7 +24,7 @@ def prepare_batch(path: str, dim: int, method: str, vectors, names, positions, m
     try:
         v = np.asarray(vectors, dtype=np.float32)
     except (TypeError, ValueError) as exc:
-        raise ConfigError(f"{path}: vectors are not a numeric array ({exc})") from None
+        raise ConfigError(f"{path}: vectors are not a numeric array ({exc})") from exc
     if v.ndim != 2 or v.shape[1] != dim:
         raise ConfigError(f"{path}: holds {dim}-d vectors ({method}), got shape {v.shape}")
     if names is None or len(names) != len(v):
@@ -43,8 +43,8 @@ def prepare_batch(path: str, dim: int, method: str, vectors, names, positions, m
                 continue
             try:
                 x, y = (float(c) for c in p)
-            except (TypeError, ValueError):
-                raise ConfigError(f"{path}: position of {names[i]} must be (x, y), got {p!r}") from None
+            except (TypeError, ValueError) as exc:
+                raise ConfigError(f"{path}: position of {names[i]} must be (x, y), got {p!r}") from exc
             if not (np.isfinite(x) and np.isfinite(y)):
                 raise ConfigError(f"{path}: position of {names[i]} is not finite: {p!r}")
             xs[i], ys[i] = x, y

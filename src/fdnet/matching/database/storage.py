@@ -66,7 +66,7 @@ def _canonical_json(value, where: str) -> str:
     try:
         return json.dumps(value, sort_keys=True, allow_nan=False, default=_json_default)
     except (TypeError, ValueError) as exc:
-        raise ConfigError(f"{where}: cannot be stored as JSON ({exc})") from None
+        raise ConfigError(f"{where}: cannot be stored as JSON ({exc})") from exc
 
 
 def _json_default(value):
@@ -85,10 +85,10 @@ def _check_header(path: Path) -> None:
     try:
         with open(path, "rb") as fh:
             head = fh.read(len(SQLITE_MAGIC))
-    except FileNotFoundError:
-        raise DataError(f"{path}: no such place database (make one with `fdnet database build`)") from None
+    except FileNotFoundError as exc:
+        raise DataError(f"{path}: no such place database (make one with `fdnet database build`)") from exc
     except OSError as exc:
-        raise DataError(f"{path}: cannot read the place database ({exc.strerror or exc})") from None
+        raise DataError(f"{path}: cannot read the place database ({exc.strerror or exc})") from exc
     if not head:
         raise DataError(f"{path}: an empty file, not an fdnet place database")
     if head != SQLITE_MAGIC:
@@ -157,8 +157,8 @@ def _sqlite_errors(path, doing: str) -> Iterator[None]:
     except sqlite3.Error as exc:
         message = f"{path}: {doing}: {_sqlite_message(exc, path)}"
         if getattr(exc, "sqlite_errorcode", None) == sqlite3.SQLITE_FULL:
-            raise output_error(message, OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))) from None
-        raise DataError(message) from None
+            raise output_error(message, OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))) from exc
+        raise DataError(message) from exc
 
 
 @contextlib.contextmanager
@@ -200,10 +200,10 @@ def _connect_read_only(path: Path) -> sqlite3.Connection:
         conn = _connect(uri + "?mode=ro", uri=True)
         conn.execute("SELECT count(*) FROM sqlite_master").fetchone()
         return conn
-    except sqlite3.Error:
+    except sqlite3.Error as exc:
         raise DataError(f"{path}: its folder cannot be written and its write-ahead log {wal} holds adds not yet "
                         f"copied into the file, which SQLite can only read with {path}-shm beside it; copy the "
-                        "database and its -wal file to a writable folder and open it there") from None
+                        "database and its -wal file to a writable folder and open it there") from exc
 
 
 def place_name(path: str | os.PathLike) -> str:
@@ -218,9 +218,9 @@ def check_place_names(names: Sequence[str]) -> None:
     for name in names:
         try:
             str(name).encode("utf-8")
-        except UnicodeEncodeError:
+        except UnicodeEncodeError as exc:
             raise DataError(f"{os.fsencode(str(name))!r}: the file name is not valid UTF-8, which a place database "
-                            "cannot store as a place name; rename the file") from None
+                            "cannot store as a place name; rename the file") from exc
 
 
 def _is_fdnet_database(conn: sqlite3.Connection) -> bool:

@@ -530,7 +530,7 @@ class PlaceDatabase:
         try:
             return json.loads(row[0])
         except json.JSONDecodeError as exc:
-            raise DataError(f"{self.path}: metadata {key!r} is not valid JSON ({exc})") from None
+            raise DataError(f"{self.path}: metadata {key!r} is not valid JSON ({exc})") from exc
 
     def info(self) -> dict:
         """What ``fdnet database info`` prints: identity, size and versions, without loading vectors."""

@@ -327,8 +327,8 @@ PRESETS = {"paper": _paper, "paper-native": _paper_native, "cpu": _cpu, "cpu-scr
 def preset(name: str) -> FDNetRunConfig:
     try:
         return PRESETS[name]()
-    except KeyError:
-        raise ConfigError(f"unknown preset {name!r}; available: {', '.join(PRESETS)}") from None
+    except KeyError as exc:
+        raise ConfigError(f"unknown preset {name!r}; available: {', '.join(PRESETS)}") from exc
 
 
 def validate(config: FDNetRunConfig) -> None:
@@ -348,7 +348,7 @@ def validate(config: FDNetRunConfig) -> None:
         try:
             check_changes(list(option))
         except ConfigError as exc:
-            raise ConfigError(f"data.synthetic_conditions_candidates: {synthetic_option_text(option)}: {exc}") from None
+            raise ConfigError(f"data.synthetic_conditions_candidates: {synthetic_option_text(option)}: {exc}") from exc
     if options:
         if len(set(options)) != len(options):
             raise ConfigError(f"data.synthetic_conditions_candidates: {list(config.data.synthetic_conditions_candidates)} "

@@ -196,7 +196,7 @@ def validate_architecture(config: FDNetConfig) -> None:
                 try:
                     validate_architecture(dataclasses.replace(config, backbone_block=block, backbone_block_candidates=()))
                 except ConfigError as exc:
-                    raise ConfigError(f"model.backbone_block_candidates: block {block}: {exc}") from None
+                    raise ConfigError(f"model.backbone_block_candidates: block {block}: {exc}") from exc
     if config.content_head not in CONTENT_HEADS:
         raise ConfigError(f"model.content_head: {config.content_head!r}; choose one of {', '.join(CONTENT_HEADS)}")
     if config.content_head == "trunk_residual":

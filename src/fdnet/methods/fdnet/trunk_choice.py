@@ -152,10 +152,10 @@ def read_choice(path) -> dict:
     path = Path(path)
     try:
         data = read_yaml_file(path, "trunk choice file")
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: trunk choice file not found (write one with `fdnet choose-trunk`)") from None
+    except FileNotFoundError as exc:
+        raise ConfigError(f"{path}: trunk choice file not found (write one with `fdnet choose-trunk`)") from exc
     except OSError as exc:
-        raise ConfigError(f"{path}: not a readable trunk choice file ({exc})") from None
+        raise ConfigError(f"{path}: not a readable trunk choice file ({exc})") from exc
     if not isinstance(data, dict) or data.get("format") != CHOICE_FORMAT:
         raise ConfigError(f"{path}: not a trunk choice file from `fdnet choose-trunk` (format {CHOICE_FORMAT} "
                           "missing)")
@@ -164,7 +164,7 @@ def read_choice(path) -> dict:
         chosen = {"backbone": str(data["backbone"]), "block": int(data["block"]),
                   "input_size": (int(size[0]), int(size[1]))}
     except (KeyError, TypeError, ValueError, IndexError, OverflowError) as exc:
-        raise ConfigError(f"{path}: trunk choice file lacks a valid backbone, block or input_size ({exc})") from None
+        raise ConfigError(f"{path}: trunk choice file lacks a valid backbone, block or input_size ({exc})") from exc
     from fdnet.data.images import check_image_size
 
     check_image_size(chosen["input_size"], f"{path}: input_size")
