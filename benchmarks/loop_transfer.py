@@ -39,11 +39,11 @@ from dataclasses import dataclass
 import numpy as np
 
 sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parent))
-from loop_closure_grid import describe  # noqa: E402
-
 from fdnet.decisions.loop_closure import LoopClosureDetector  # noqa: E402
 from fdnet.decisions.loop_evaluation import calibrate_decisions, evaluate_decisions, frame_outcomes  # noqa: E402
 from fdnet.decisions.loop_traverse import DEFAULT_RULE, DEFAULT_SEQUENCE_LENGTH, route_traverse  # noqa: E402
+
+from loop_closure_grid import describe  # noqa: E402
 
 #: p_correct bins of the reliability table
 BINS = (0.0, 0.5, 0.8, 0.9, 0.95, 0.99, 1.0)

@@ -58,8 +58,9 @@ def test_deterministic_and_batch_independent(rng):
 def test_pretrained_features_separate_real_places():
     """ImageNet features of the same place (left vs right camera) are more alike than of
     places 60 frames apart: the weights carry real visual knowledge."""
-    from conftest import require_shared
     from fdnet.data.images import load_images
+
+    from conftest import require_shared
 
     root = require_shared("gardens_point")
     left = load_images([root / "day_left" / f"Image{i:03d}.jpg" for i in (20, 80, 140)], (224, 224))

@@ -13,12 +13,13 @@ import pytest
 import torch
 from PIL import Image
 
-from conftest import require_shared
+from fdnet.backbones import autocast, bf16_native, check_device_spec, images_to_device, resolve_device
 from fdnet.cli import main
-from fdnet.data.images import list_images, load_image, load_image_uint8, load_images
+from fdnet.data.images import list_images, load_image, load_image_uint8
 from fdnet.descriptors import create
 from fdnet.errors import ConfigError
-from fdnet.backbones import autocast, bf16_native, check_device_spec, images_to_device, resolve_device
+
+from conftest import require_shared
 
 
 def test_device_specs_are_checked_and_normalised():

@@ -7,8 +7,9 @@ import re
 
 import pytest
 
-from conftest import REPO_ROOT
 from fdnet import paper
+
+from conftest import REPO_ROOT
 
 PAPER_TEXT = REPO_ROOT.parent / "shared" / "paper" / "fdnet-paper.txt"
 

@@ -16,9 +16,10 @@ import csv
 import numpy as np
 import pytest
 
-from conftest import require_shared
 from fdnet.data.groundtruth import GroundTruth
 from fdnet.metrics import VPRBENCH, evaluate_similarity
+
+from conftest import require_shared
 
 # technique: (AUC-PR, top-1 accuracy) to 3 decimals
 PINNED = {

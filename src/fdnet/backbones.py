@@ -50,7 +50,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import threading
-from typing import Callable, Iterator
+from typing import Iterator
 
 import numpy as np
 

@@ -111,13 +111,13 @@ def _train(route: Path, run_dir: Path, preset: str, train_end: int, val_end: int
 def _evaluate(route: Path, run_dir: Path, query: str, test: str, methods: list[str], train_end: int, out: Path,
               say, seed: int = 0) -> list:
     from fdnet.decisions.acceptance import DEFAULT_ACCEPTANCE, parse_acceptance_list
-    from fdnet.descriptors.registry import create, descriptor_class
     from fdnet.descriptors.pipeline import PipelineSettings
+    from fdnet.descriptors.registry import create, descriptor_class
     from fdnet.evaluation.experiment import ScoringSettings, evaluate_method
-    from fdnet.metrics import RECALL_OVER_QUERIES
     from fdnet.evaluation.plots import write_result_plots
     from fdnet.evaluation.report import format_table, write_json
     from fdnet.evaluation.splits import SplitSpec, build_split
+    from fdnet.metrics import RECALL_OVER_QUERIES
 
     split = build_split(SplitSpec(route, "summer", query, frames=test, tolerance=1))
     given = {"checkpoint": str(run_dir), "fit": str(route), "fit_frames": f"0:{train_end}"}

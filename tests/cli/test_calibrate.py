@@ -240,10 +240,11 @@ def test_one_rule_for_a_calibration_stored_in_the_run(tmp_path, capsys, caplog):
     no threshold or calibration (and the database stores none)."""
     import torch
 
-    from conftest import write_random_places
     from fdnet.methods.fdnet.config import preset
     from fdnet.methods.fdnet.model import FDNet
     from fdnet.runs import save_checkpoint
+
+    from conftest import write_random_places
 
     torch.manual_seed(0)
     config = preset("tiny")

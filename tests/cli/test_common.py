@@ -8,9 +8,9 @@ import json
 
 import pytest
 
-from conftest import write_day_night_route
-
 from fdnet.cli import main
+
+from conftest import write_day_night_route
 
 SMALL = ["--method-set", "trunk-whitened:block=4", "--method-set", "trunk-whitened:input_size=[32,64]",
          "--method-set", "trunk-whitened:bf16=false", "--workers", "0"]

@@ -9,10 +9,11 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from conftest import require_shared, write_day_dusk_route
 from fdnet.cli import main
 from fdnet.descriptors import registry
 from fdnet.descriptors.base import Descriptor, l2_normalize
+
+from conftest import require_shared, write_day_dusk_route
 
 REQUIRED = {"recall_at_100_precision", "precision_at_max_recall", "auc_pr", "recall_at_n", "protocol",
             "method", "num_queries"}

@@ -80,8 +80,8 @@ def test_a_run_directory_in_use_is_refused_with_the_holders_pid(tmp_path, capsys
 
 
 def test_train_with_dataset_format_and_named_split(tmp_path, capsys):
-    from fdnet.runs import load_config
     from fdnet.methods.fdnet.config import FDNetRunConfig
+    from fdnet.runs import load_config
 
     root = _dataset(tmp_path / "data", n=10)
     out = tmp_path / "run"

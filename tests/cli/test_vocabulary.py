@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
-from conftest import require_shared
 from fdnet.cli import main
 from fdnet.descriptors.dbow import DBoWDescriptor
+
+from conftest import require_shared
 
 
 def test_build_writes_a_loadable_vocabulary(tmp_path, capsys):

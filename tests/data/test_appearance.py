@@ -8,12 +8,11 @@ import torch
 
 from fdnet.cli import main
 from fdnet.config import replace_dotted
+from fdnet.data import appearance
 from fdnet.errors import ConfigError
 from fdnet.methods.fdnet.config import preset, validate
 from fdnet.methods.fdnet.training import load_training_images
-from fdnet.data import appearance
 from fdnet.training.data import TrainingImages
-
 from tests.training.test_loop import make_dataset
 
 

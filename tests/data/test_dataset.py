@@ -6,11 +6,12 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from conftest import require_shared
 from fdnet.data.dataset import RouteDataset, Traverse, parse_frame_range
 from fdnet.data.groundtruth import GroundTruth
 from fdnet.data.split import EvaluationSplit, aligned_split
 from fdnet.errors import DataError
+
+from conftest import require_shared
 
 
 def _make(root, counts: dict[str, int]):

@@ -6,11 +6,12 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from conftest import require_shared
 from fdnet.data.dataset import RouteDataset
 from fdnet.data.filters import filter_route, near_duplicates
 from fdnet.data.groundtruth import GroundTruth
 from fdnet.errors import ConfigError, DataError
+
+from conftest import require_shared
 
 
 def _route(tmp_path, frames: dict[str, list[np.ndarray]]) -> RouteDataset:

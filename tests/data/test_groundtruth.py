@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from conftest import require_shared
 from fdnet.data.groundtruth import GroundTruth, latlon_to_metres
 from fdnet.errors import DataError
+
+from conftest import require_shared
 
 
 def _lists(gt):

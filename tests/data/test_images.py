@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from conftest import require_shared
 from fdnet.data.images import image_size, list_images, load_image, load_images, natural_key, to_grey
 from fdnet.errors import DataError
+
+from conftest import require_shared
 
 
 def _save(path, array, mode=None, **kw):

@@ -19,9 +19,14 @@ from fdnet.data.dataset import RouteDataset
 from fdnet.data.formats.positions import source_positions
 from fdnet.data.images import list_images, load_image, load_image_uint8
 from fdnet.errors import ConfigError, DataError
-
 from tests.data.source_files import (
-    T0_NS, _store, camera_bag, image_message, route_frames, write_bag, write_video,
+    T0_NS,
+    _store,
+    camera_bag,
+    image_message,
+    route_frames,
+    write_bag,
+    write_video,
 )
 
 

@@ -9,8 +9,6 @@ from PIL import Image
 from fdnet.data.dataset import RouteDataset
 from fdnet.data.split import aligned_split
 from fdnet.decisions.acceptance import Candidates, parse_acceptance
-from fdnet.descriptors.pipeline import PipelineSettings
-from fdnet.tasks.calibrate import calibrate
 from fdnet.decisions.calibration import (
     Calibration,
     apply_threshold,
@@ -20,7 +18,9 @@ from fdnet.decisions.calibration import (
     save_calibration,
 )
 from fdnet.descriptors import create
+from fdnet.descriptors.pipeline import PipelineSettings
 from fdnet.errors import ConfigError, DataError
+from fdnet.tasks.calibrate import calibrate
 
 # scores best first: right, right, wrong, right, right, wrong, right
 SCORES = np.array([0.9, 0.8, 0.7, 0.6, 0.5, 0.4, 0.3])

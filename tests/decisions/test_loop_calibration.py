@@ -8,13 +8,18 @@ import math
 import numpy as np
 import pytest
 
-from fdnet.decisions.calibration import (Calibration, fit_probability, load_calibration, save_calibration,
-                                         score_distribution, tail_departure)
+from fdnet.decisions.calibration import (
+    Calibration,
+    fit_probability,
+    load_calibration,
+    save_calibration,
+    score_distribution,
+    tail_departure,
+)
 from fdnet.decisions.loop_closure import LOOP_CALIBRATION_FILE, LoopClosureDetector
 from fdnet.decisions.loop_evaluation import calibrate_decisions
 from fdnet.errors import DataError
 from fdnet.performance.loop_benchmark import StoredVectors
-
 from tests.decisions.test_loop_recency import drive, revisit_truth, slow_route
 
 

@@ -6,8 +6,14 @@ import math
 import numpy as np
 import pytest
 
-from fdnet.decisions.loop_gates import (ConsistencyGate, LoopGates, RecentPast, frame_signals, informative_frames,
-                                        is_still)
+from fdnet.decisions.loop_gates import (
+    ConsistencyGate,
+    LoopGates,
+    RecentPast,
+    frame_signals,
+    informative_frames,
+    is_still,
+)
 from fdnet.errors import ConfigError
 
 

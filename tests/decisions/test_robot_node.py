@@ -11,7 +11,6 @@ import numpy as np
 from fdnet.decisions.calibration import save_calibration
 from fdnet.decisions.loop_evaluation import calibrate_decisions
 from fdnet.performance.loop_benchmark import StoredVectors
-
 from tests.decisions.test_loop_recency import drive, revisit_truth, slow_route
 
 GUIDE = Path(__file__).resolve().parents[2] / "docs" / "guide.md"

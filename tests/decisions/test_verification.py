@@ -12,8 +12,8 @@ from PIL import Image
 from fdnet.decisions import Candidates, decide, parse_acceptance, parse_acceptance_list
 from fdnet.decisions.verification import (
     FEATURES,
-    Verifier,
     VerificationSettings,
+    Verifier,
     settings_from_overrides,
     verify_candidates,
 )

@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from conftest import require_shared
 from fdnet.data.dataset import RouteDataset
 from fdnet.data.groundtruth import GroundTruth
 from fdnet.data.split import aligned_split
@@ -14,6 +13,8 @@ from fdnet.descriptors.classic import HOGDescriptor, RawThumbnail, SeqSLAMFrontE
 from fdnet.descriptors.registry import create
 from fdnet.errors import ConfigError
 from fdnet.matching.similarity import similarity_matrix, top_k
+
+from conftest import require_shared
 
 
 def _images(rng, n, h, w):

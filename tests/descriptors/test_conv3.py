@@ -5,10 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from conftest import require_shared
 from fdnet.descriptors.alexnet import build_alexnet_features
 from fdnet.descriptors.conv3 import Conv3Descriptor, gaussian_random_projection
 from fdnet.errors import ConfigError, NotAvailableError
+
+from conftest import require_shared
 
 
 def test_projection_is_seeded_and_jl_scaled():

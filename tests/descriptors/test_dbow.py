@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from conftest import require_shared
 from fdnet.descriptors.dbow import DBoWDescriptor, Vocabulary
 from fdnet.errors import ConfigError, NotAvailableError
+
+from conftest import require_shared
 
 
 def _clustered_descriptors(rng, prototypes=4, per=60, flip=0.05):

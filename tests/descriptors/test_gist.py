@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from conftest import require_shared
 from fdnet.descriptors.gist import GistDescriptor, gabor_bank
 from fdnet.errors import ConfigError
+
+from conftest import require_shared
 
 
 def test_shape_dtype_norm_and_determinism(rng):

@@ -12,7 +12,12 @@ import pytest
 h5py = pytest.importorskip("h5py")
 
 from fdnet.descriptors.hloc_formats import (  # noqa: E402
-    GlobalFeaturesWriter, image_root, read_global_features, read_pairs, relative_names, write_global_features,
+    GlobalFeaturesWriter,
+    image_root,
+    read_global_features,
+    read_pairs,
+    relative_names,
+    write_global_features,
     write_pairs,
 )
 from fdnet.errors import DataError, NotAvailableError  # noqa: E402

@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from conftest import require_shared
 from fdnet.descriptors.landmarks import LandmarksDescriptor
 from fdnet.errors import ConfigError, NotAvailableError
+
+from conftest import require_shared
 
 
 @pytest.fixture(scope="module")

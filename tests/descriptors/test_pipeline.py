@@ -16,8 +16,13 @@ from PIL import Image
 
 from fdnet.data.images import load_image, load_image_uint8
 from fdnet.descriptors.base import Descriptor, describe_paths
-from fdnet.descriptors.pipeline import (NpzChunkWriter, PipelineSettings, VectorSpool, describe_stream,
-                                       iter_image_batches)
+from fdnet.descriptors.pipeline import (
+    NpzChunkWriter,
+    PipelineSettings,
+    VectorSpool,
+    describe_stream,
+    iter_image_batches,
+)
 from fdnet.errors import DataError
 
 REPO = Path(__file__).resolve().parents[2]

@@ -10,8 +10,8 @@ from fdnet.data.split import aligned_split
 from fdnet.descriptors.base import Descriptor, l2_normalize
 from fdnet.descriptors.pipeline import PipelineSettings
 from fdnet.evaluation.experiment import ScoringSettings, evaluate_matrix, evaluate_method
-from fdnet.metrics import RECALL_OVER_QUERIES, VPRBENCH, evaluate_similarity, top_k_of_matrix
 from fdnet.matching.similarity import similarity_matrix
+from fdnet.metrics import RECALL_OVER_QUERIES, VPRBENCH, evaluate_similarity, top_k_of_matrix
 
 from conftest import write_day_dusk_route
 

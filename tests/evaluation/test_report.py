@@ -9,8 +9,8 @@ import numpy as np
 
 from fdnet.data.groundtruth import GroundTruth
 from fdnet.evaluation.experiment import ScoringSettings, evaluate_matrix
-from fdnet.metrics import VPRBENCH
 from fdnet.evaluation.report import format_table, results_json, write_json
+from fdnet.metrics import VPRBENCH
 
 REQUIRED = {"recall_at_100_precision", "precision_at_max_recall", "auc_pr", "recall_at_n", "protocol",
             "method", "num_queries"}

@@ -10,7 +10,11 @@ from fdnet.descriptors.base import Descriptor, l2_normalize
 from fdnet.errors import ConfigError, DataError
 from fdnet.matching.database import PlaceDatabase
 from fdnet.matching.index import (
-    INDEX_KINDS, IndexSettings, VectorIndex, ivf_lists_for, parse_index_settings,
+    INDEX_KINDS,
+    IndexSettings,
+    VectorIndex,
+    ivf_lists_for,
+    parse_index_settings,
 )
 from fdnet.matching.similarity import top_k
 

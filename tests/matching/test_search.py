@@ -5,9 +5,9 @@ from pathlib import Path
 import pytest
 
 from fdnet.descriptors import create
+from fdnet.descriptors.pipeline import PipelineSettings
 from fdnet.errors import ConfigError
 from fdnet.matching.search import index_settings, map_digest
-from fdnet.descriptors.pipeline import PipelineSettings
 from fdnet.tasks.match import MatchRequest, match_images
 
 from conftest import read_csv_rows, write_random_places

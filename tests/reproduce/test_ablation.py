@@ -12,7 +12,6 @@ import pytest
 from fdnet.errors import ConfigError
 from fdnet.reproduce import reproduce
 from fdnet.reproduce.ablation import VARIANTS
-
 from tests.reproduce.conftest import Pixels, settings
 
 

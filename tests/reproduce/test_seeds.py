@@ -15,7 +15,6 @@ from fdnet.errors import ConfigError
 from fdnet.reproduce import reproduce
 from fdnet.reproduce.ablation import METRICS, VARIANTS
 from fdnet.reproduce.seeds import seed_folder, spread, spread_text
-
 from tests.reproduce.test_ablation import ablation, factory
 
 #: the keys of a one-seed ablation.json, at each level (no seed keys: one run's numbers)

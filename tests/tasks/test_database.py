@@ -7,11 +7,16 @@ import logging
 import numpy as np
 import pytest
 
+from fdnet.descriptors.pipeline import PipelineSettings
 from fdnet.errors import ConfigError
 from fdnet.matching.database import PlaceDatabase
-from fdnet.descriptors.pipeline import PipelineSettings
 from fdnet.tasks.database import (
-    AddRequest, BuildRequest, QueryRequest, add_to_database, build_database, database_info,
+    AddRequest,
+    BuildRequest,
+    QueryRequest,
+    add_to_database,
+    build_database,
+    database_info,
     query_database,
 )
 

@@ -15,7 +15,6 @@ import torch
 from fdnet import runs
 from fdnet.methods.fdnet.config import FDNetRunConfig
 from fdnet.methods.fdnet.model import FDNet
-
 from tests.training.test_loop import make_dataset
 
 STEPS = ["--set", "schedule.joint_steps=150", "--set", "runtime.checkpoint_every=1", "--set", "runtime.threads=1"]

@@ -5,7 +5,6 @@ import pytest
 from fdnet.errors import DataError
 from fdnet.methods.settings import ValidationConfig
 from fdnet.training.data import load_validation_images
-
 from tests.training.test_loop import make_dataset
 
 

@@ -19,7 +19,6 @@ from fdnet import runs
 from fdnet.cli import main
 from fdnet.methods.fdnet.config import FDNetRunConfig
 from fdnet.methods.fdnet.model import FDNet
-
 from tests.training.test_loop import make_dataset
 
 # Saves the weights this rank holds when Trainer.fit returns (or raises), as rank-<RANK>.pt.
@@ -212,9 +211,9 @@ def test_a_single_process_context_changes_nothing():
 
 def test_a_non_finite_loss_stops_before_the_optimiser_step(tmp_path, data, monkeypatch):
     from fdnet.config import replace_dotted
+    from fdnet.methods.fdnet import losses
     from fdnet.methods.fdnet.config import preset
     from fdnet.methods.fdnet.training import FDNetTraining, load_training_images
-    from fdnet.methods.fdnet import losses
 
     config = replace_dotted(preset("tiny"), {"data.root": str(data)})
     method = FDNetTraining(config, load_training_images(config))

@@ -11,11 +11,11 @@ import pytest
 import torch
 from PIL import Image
 
+from fdnet import runs
 from fdnet.config import replace_dotted
 from fdnet.errors import ConfigError, DataError
-from fdnet.methods.fdnet.model import FDNet
-from fdnet import runs
 from fdnet.methods.fdnet.config import preset, validate
+from fdnet.methods.fdnet.model import FDNet
 from fdnet.methods.fdnet.training import FDNetTraining, load_training_images
 from fdnet.runs import load_training_state, load_weights
 from fdnet.training.data import load_validation_images

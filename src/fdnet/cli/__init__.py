@@ -13,10 +13,10 @@ import importlib.util
 import shlex
 import sys
 
-from fdnet.version import __version__
 from fdnet.errors import FdnetError
 from fdnet.io import forget_inputs
 from fdnet.logs import command_logging, level_for
+from fdnet.version import __version__
 
 # Order = order in `fdnet --help`.
 COMMAND_MODULES = [

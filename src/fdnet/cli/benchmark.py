@@ -10,9 +10,7 @@ from fdnet.performance.benchmark import DEFAULT_INDEXES, DEFAULT_METHODS, PARTS
 
 
 def register(sub) -> None:
-    from fdnet.cli.common import thread_count
-
-    from fdnet.cli.common import add_device_argument
+    from fdnet.cli.common import add_device_argument, thread_count
 
     p = sub.add_parser(
         "benchmark",
@@ -80,7 +78,6 @@ def run(args) -> int:
     import sys
 
     from fdnet.cli.extract import COMPILE_FROM
-
     from fdnet.performance.benchmark import BenchmarkRequest, plan_benchmark, run_benchmark
 
     command = "fdnet " + " ".join(sys.argv[1:]) if sys.argv and "benchmark" in sys.argv else None

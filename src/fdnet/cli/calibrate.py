@@ -57,7 +57,7 @@ def register(sub) -> None:
     out = p.add_argument_group("where to store it (at least one)")
     out.add_argument("--out", metavar="FILE.yaml", help="write the calibration as YAML")
     out.add_argument("--store-in-run", action="store_true",
-                     help=f"write calibration.yaml into the --checkpoint run directory")
+                     help="write calibration.yaml into the --checkpoint run directory")
     out.add_argument("--db", metavar="MAP.db",
                      help="store it in this place database (built with the same model); `fdnet database query` "
                           "then uses it")
@@ -157,9 +157,9 @@ def run(args) -> int:
     from fdnet.cli.evaluate import split_from_arguments
     from fdnet.decisions.calibration import CALIBRATION_FILE, check_target
     from fdnet.descriptors.pipeline import PipelineSettings
-    from fdnet.tasks.calibrate import calibrate
     from fdnet.errors import ConfigError
     from fdnet.io import ensure_writable
+    from fdnet.tasks.calibrate import calibrate
 
     check_target(args.target_precision)
     choose = _choices(args.choose, args.accept_set)

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 def register(sub) -> None:
     from fdnet.cli.common import thread_count
-
     from fdnet.methods.fdnet.trunk_choice import RULE
 
     p = sub.add_parser(

@@ -88,7 +88,6 @@ def method_options(args: argparse.Namespace, method: str | None = None) -> dict:
 
     from fdnet.config import parse_overrides, parse_value
     from fdnet.descriptors.registry import available_methods, descriptor_class
-
     from fdnet.errors import ConfigError
 
     known = available_methods()
@@ -169,8 +168,8 @@ def acceptance_from_arguments(args: argparse.Namespace):
 
 def add_device_argument(parser: argparse.ArgumentParser) -> None:
     """``--device`` for commands that run a model for inference."""
-    from fdnet.descriptors.registry import torch_methods
     from fdnet.backbones import DEVICE_HELP
+    from fdnet.descriptors.registry import torch_methods
 
     parser.add_argument("--device", default="auto", metavar="auto|cpu|cuda|cuda:N",
                         help=DEVICE_HELP + f". Methods that run on a device ({', '.join(torch_methods())}) run "

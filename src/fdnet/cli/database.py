@@ -5,10 +5,14 @@ from __future__ import annotations
 
 import argparse
 
-from fdnet.matching.index import INDEX_KINDS
 from fdnet.cli.common import (
-    acceptance_from_arguments, add_decision_arguments, add_device_argument, add_method_arguments, add_pipeline_arguments,
+    acceptance_from_arguments,
+    add_decision_arguments,
+    add_device_argument,
+    add_method_arguments,
+    add_pipeline_arguments,
 )
+from fdnet.matching.index import INDEX_KINDS
 
 
 def _positive_int(text: str) -> int:
@@ -116,8 +120,8 @@ def run_build(args) -> int:
     (:mod:`fdnet.descriptors.sharding`: each describes its block of the images, rank 0 writes the
     database and alone prints)."""
     from fdnet.cli.common import check_pipeline_arguments, file_options
-    from fdnet.descriptors.sharding import launch
     from fdnet.descriptors.pipeline import PipelineSettings
+    from fdnet.descriptors.sharding import launch
     from fdnet.tasks.database import BuildRequest, build_database
 
     with launch() as shards:
@@ -132,8 +136,8 @@ def run_build(args) -> int:
 
 def run_add(args) -> int:
     from fdnet.cli.common import check_pipeline_arguments, file_options
-    from fdnet.descriptors.sharding import refuse_under_torchrun
     from fdnet.descriptors.pipeline import PipelineSettings
+    from fdnet.descriptors.sharding import refuse_under_torchrun
     from fdnet.tasks.database import AddRequest, add_to_database
 
     refuse_under_torchrun("fdnet database add")  # every process would append the images

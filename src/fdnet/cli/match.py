@@ -26,9 +26,12 @@ holding the reference and query folders, hloc's ``image_dir``
 from __future__ import annotations
 
 from fdnet.cli.common import (
-    acceptance_from_arguments, add_decision_arguments, add_device_argument, add_method_arguments, add_pipeline_arguments,
+    acceptance_from_arguments,
+    add_decision_arguments,
+    add_device_argument,
+    add_method_arguments,
+    add_pipeline_arguments,
 )
-
 from fdnet.matching.search import INDEX_CHOICES
 
 

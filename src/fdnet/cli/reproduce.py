@@ -235,13 +235,12 @@ def run(args) -> int:
     import argparse
     from pathlib import Path
 
+    from fdnet.backbones import check_device_spec
     from fdnet.cli.common import method_options, set_threads
     from fdnet.config import parse_overrides
     from fdnet.descriptors.registry import available_methods
     from fdnet.errors import ConfigError
     from fdnet.reproduce import DEFAULT_METHODS, ReproduceSettings, reproduce
-
-    from fdnet.backbones import check_device_spec
 
     check_device_spec(args.device, where="--device")  # before any work
     known = available_methods()

@@ -30,7 +30,6 @@ import numpy as np
 from fdnet.errors import DataError
 from fdnet.io import atomic_write_text, from_spreadsheet_text, spreadsheet_text
 
-
 # Separates the names in the reference_names column. A file name can contain spaces and commas
 # but never "/" (on POSIX, and on Windows), so no name is ever split in two.
 NAME_SEPARATOR = "/"

@@ -31,16 +31,28 @@ from pathlib import Path
 
 import numpy as np
 
-from fdnet.decisions.acceptance import AcceptanceSpec, Candidates, decide
+from fdnet.decisions.acceptance import Candidates, decide
 from fdnet.decisions.calibration import stored_calibration
-from fdnet.decisions.loop_records import EVENT_COLUMNS, Closure, FrameDecision  # noqa: F401
-from fdnet.decisions.loop_threads import single_blas_thread, single_torch_thread
-from fdnet.decisions.loop_trust import (LOOP_CALIBRATION_FILE, DriftCheck, calibrated_gates,  # noqa: F401
-                                        decision_rule, resolve_calibration)
+from fdnet.decisions.loop_gates import (  # noqa: F401
+    ConsistencyGate,
+    FrameSignals,
+    LoopGates,
+    RecentPast,
+    frame_signals,
+    informative_frames,
+    is_still,
+)
 from fdnet.decisions.loop_recency import RECENT_WINDOW, GapDetector, Seams, sampled_similar_past, similar_past
-from fdnet.decisions.loop_gates import (ConsistencyGate, FrameSignals, LoopGates, RecentPast, frame_signals,  # noqa: F401
-                                        informative_frames, is_still)
+from fdnet.decisions.loop_records import EVENT_COLUMNS, Closure, FrameDecision  # noqa: F401
 from fdnet.decisions.loop_settings import SEARCH_KINDS, LoopClosureSettings  # noqa: F401
+from fdnet.decisions.loop_threads import single_blas_thread, single_torch_thread
+from fdnet.decisions.loop_trust import (  # noqa: F401
+    LOOP_CALIBRATION_FILE,
+    DriftCheck,
+    calibrated_gates,
+    decision_rule,
+    resolve_calibration,
+)
 from fdnet.errors import ConfigError, DataError
 from fdnet.matching.database.storage import place_name
 

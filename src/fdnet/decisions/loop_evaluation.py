@@ -116,9 +116,16 @@ def calibrate_decisions(decisions: Sequence[FrameDecision], ground_truth, detect
     own recent past (docs/loop-closure.md)."""
     from datetime import datetime, timezone
 
+    from fdnet.decisions.calibration import (
+        Calibration,
+        Threshold,
+        check_target,
+        choose_threshold,
+        fit_probability,
+        score_distribution,
+        tail_threshold,
+    )
     from fdnet.version import __version__
-    from fdnet.decisions.calibration import (Calibration, Threshold, check_target, choose_threshold,
-                                             fit_probability, score_distribution, tail_threshold)
 
     target = check_target(target_precision)
     score, correct, truth = frame_outcomes(decisions, ground_truth)

@@ -20,13 +20,12 @@ from typing import Callable, Sequence
 import numpy as np
 
 from fdnet.decisions.loop_closure import LoopClosureDetector
-from fdnet.matching.database.storage import place_name
 from fdnet.decisions.loop_evaluation import calibrate_decisions, evaluate_decisions
 from fdnet.decisions.loop_events import EventLog
 from fdnet.decisions.loop_gates import frame_signals
 from fdnet.decisions.loop_settings import TraverseSettings
 from fdnet.errors import ConfigError, DataError
-
+from fdnet.matching.database.storage import place_name
 
 #: What ``fdnet loop-closure`` does when given no rule and no sequence length, chosen on the
 #: development loops (Nordland summer then winter, Gardens Point day -> night -> day;

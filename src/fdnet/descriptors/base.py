@@ -18,7 +18,6 @@ from typing import ClassVar, Sequence
 import numpy as np
 
 
-
 def l2_normalize(x: np.ndarray, eps: float = 1e-12) -> np.ndarray:
     x = np.asarray(x, dtype=np.float32)
     with np.errstate(over="ignore"):

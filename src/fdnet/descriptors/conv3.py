@@ -26,9 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from fdnet.errors import invalid_settings_are_config_errors
 from fdnet.descriptors.base import Descriptor, l2_normalize
-from fdnet.errors import ConfigError
+from fdnet.errors import ConfigError, invalid_settings_are_config_errors
 
 
 def gaussian_random_projection(in_dim: int, out_dim: int, seed: int) -> np.ndarray:

@@ -43,9 +43,8 @@ import numpy as np
 import yaml
 
 from fdnet.data.images import load_images, to_grey
-from fdnet.errors import invalid_settings_are_config_errors
 from fdnet.descriptors.base import Descriptor
-from fdnet.errors import ConfigError, DataError, NotAvailableError
+from fdnet.errors import ConfigError, DataError, NotAvailableError, invalid_settings_are_config_errors
 from fdnet.io import atomic_path
 
 log = logging.getLogger(__name__)

@@ -26,9 +26,8 @@ import numpy as np
 import scipy.fft
 
 from fdnet.data.images import to_grey
-from fdnet.errors import invalid_settings_are_config_errors
 from fdnet.descriptors.base import Descriptor, l2_normalize
-from fdnet.errors import ConfigError
+from fdnet.errors import ConfigError, invalid_settings_are_config_errors
 
 
 def gabor_bank(size: int, orientations_per_scale: tuple[int, ...]) -> np.ndarray:

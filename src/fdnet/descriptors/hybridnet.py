@@ -23,9 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from fdnet.errors import invalid_settings_are_config_errors
 from fdnet.descriptors.base import Descriptor, l2_normalize
-from fdnet.errors import ConfigError, NotAvailableError
+from fdnet.errors import ConfigError, NotAvailableError, invalid_settings_are_config_errors
 
 HOW_TO_SUPPLY_WEIGHTS = (
     "HybridNet's weights are distributed only as Caffe files and are not bundled with fdnet. "
@@ -59,8 +58,8 @@ class HybridNetDescriptor(Descriptor):
             raise NotAvailableError("hybridnet: no weights given. " + HOW_TO_SUPPLY_WEIGHTS)
         if not Path(weights).is_file():
             raise NotAvailableError(f"{weights}: HybridNet weights file not found. " + HOW_TO_SUPPLY_WEIGHTS)
-        from fdnet.descriptors.alexnet import CaffeNetTrunk
         from fdnet.backbones import DeviceCopies, resolve_device
+        from fdnet.descriptors.alexnet import CaffeNetTrunk
 
         self.device = resolve_device("auto" if device is None else device, where=f"{self.name}: device")
         self._on_device = DeviceCopies()

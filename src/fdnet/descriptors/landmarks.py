@@ -44,9 +44,8 @@ from pathlib import Path
 
 import numpy as np
 
-from fdnet.errors import invalid_settings_are_config_errors
 from fdnet.descriptors.base import Descriptor
-from fdnet.errors import ConfigError, NotAvailableError
+from fdnet.errors import ConfigError, NotAvailableError, invalid_settings_are_config_errors
 
 
 def _dollar_orientation(edges: np.ndarray) -> np.ndarray:

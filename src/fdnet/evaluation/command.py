@@ -195,9 +195,8 @@ def _evaluate_matrix(settings: EvaluateSettings, acceptance):
 
 def _evaluate_methods(settings: EvaluateSettings, acceptance, log) -> list:
     from fdnet.backbones import check_device_spec, torch_threads
-    from fdnet.descriptors.pipeline import check_pipeline_settings
+    from fdnet.descriptors.pipeline import PipelineSettings, check_pipeline_settings
     from fdnet.errors import ConfigError
-    from fdnet.descriptors.pipeline import PipelineSettings
     from fdnet.evaluation.experiment import ScoringSettings, evaluate_method
     from fdnet.evaluation.splits import check_descriptors_held_out
 

@@ -39,6 +39,7 @@ from fdnet.decisions.acceptance import AcceptanceSpec, Candidates, Decision, dec
 from fdnet.descriptors.base import Descriptor, describe_paths
 from fdnet.descriptors.pipeline import PipelineSettings
 from fdnet.errors import DataError
+from fdnet.matching.similarity import similarity_matrix, top_k
 from fdnet.metrics import (
     DEFAULT_NS,
     RECALL_OVER_QUERIES,
@@ -46,7 +47,6 @@ from fdnet.metrics import (
     evaluate_retrieval,
     top_k_of_matrix,
 )
-from fdnet.matching.similarity import similarity_matrix, top_k
 
 #: largest Q x R matrix kept for plots (float32: 400 MB); larger maps are ranked blockwise only
 MAX_MATRIX_ENTRIES = 100_000_000

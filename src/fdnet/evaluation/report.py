@@ -15,8 +15,8 @@ from typing import Sequence
 
 from fdnet.data.images import image_name
 from fdnet.evaluation.experiment import MethodResult
-from fdnet.metrics import PROTOCOLS
 from fdnet.io import atomic_write_text
+from fdnet.metrics import PROTOCOLS
 
 _COLUMNS = ("R@1", "R@5", "R@10", "R@20", "R@100P", "R@99P", "R@95P", "P@maxR", "AUC-PR", "ms/image", "ms/query")
 

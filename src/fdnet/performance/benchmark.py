@@ -14,11 +14,11 @@ from __future__ import annotations
 import dataclasses
 import platform
 import tempfile
-
-import numpy as np
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
+
+import numpy as np
 
 from fdnet.errors import ConfigError, DataError
 
@@ -249,10 +249,10 @@ def run_benchmark(plan: BenchmarkPlan, out: Callable[[str], None], json_path: st
     (and writes them to ``json_path`` as JSON, atomically, when given: checked writable first)."""
     import torch
 
-    from fdnet.version import __version__
     from fdnet.backbones import resolve_device
-    from fdnet.performance import timing
     from fdnet.io import ensure_writable
+    from fdnet.performance import timing
+    from fdnet.version import __version__
 
     if json_path:
         ensure_writable(json_path, what="benchmark JSON")
@@ -315,9 +315,9 @@ def _gemm_references(plan: BenchmarkPlan, report: dict, out) -> None:
 
 
 def _fdnet_extraction(plan: BenchmarkPlan, lengths, report: dict, out) -> None:
-    from fdnet.performance import timing
-    from fdnet.paper import PAPER_TABLE2
     from fdnet.methods.fdnet.config import preset
+    from fdnet.paper import PAPER_TABLE2
+    from fdnet.performance import timing
 
     gflops, bf16_gflops = report["gemm_gflops_fp32"], report["gemm_gflops_bf16"]
     paper_model = preset("paper").model
@@ -393,8 +393,8 @@ def _gpu(plan: BenchmarkPlan, device, workdir: str, report: dict, out) -> None:
 
 
 def _matching(plan: BenchmarkPlan, lengths, report: dict, out) -> None:
-    from fdnet.performance import timing
     from fdnet.paper import PAPER_TABLE2
+    from fdnet.performance import timing
 
     map_size = plan.map_sizes[0]
     out(f"\nMatching: best of {map_size} references per query, ms/query")
@@ -410,10 +410,10 @@ def _matching(plan: BenchmarkPlan, lengths, report: dict, out) -> None:
 
 
 def _methods(plan: BenchmarkPlan, report: dict, out) -> None:
-    from fdnet.performance import timing
-    from fdnet.paper import PAPER_TABLE5
     from fdnet.descriptors import create
     from fdnet.errors import FdnetError
+    from fdnet.paper import PAPER_TABLE5
+    from fdnet.performance import timing
 
     methods = list(plan.methods) + [m for m in [*plan.checkpoints, *plan.weights] if m not in plan.methods]
     methods = list(dict.fromkeys(methods))

@@ -52,8 +52,8 @@ def loop_rows(sizes, dim: int = 512, route: int = 300, noise: float = 0.5, descr
               log: Callable[[str], None] = lambda line: None) -> list[dict]:
     """Measure the detector on each map size (see the module docstring); one row per size."""
     from fdnet.decisions.loop_closure import LoopClosureDetector
-    from fdnet.performance.timing import random_map, revisit_queries
     from fdnet.matching.database import PlaceDatabase
+    from fdnet.performance.timing import random_map, revisit_queries
 
     places = random_map(route, dim, seed=7)
     first = revisit_queries(places, route, noise, seed=8)

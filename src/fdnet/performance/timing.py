@@ -97,8 +97,8 @@ def fdnet_extraction(vector_length=512, batch: int = 32, repeats: int = 5) -> di
 
     import torch
 
-    from fdnet.methods.fdnet.model import FDNet
     from fdnet.methods.fdnet.config import preset
+    from fdnet.methods.fdnet.model import FDNet
 
     config = dataclasses.replace(preset("paper").model, vector_length=vector_length)
     model = FDNet(config).eval()

@@ -141,8 +141,8 @@ def _over_seeds(ctx, pair, handles: list, entry: dict) -> None:
 def run(ctx) -> dict:
     from fdnet.data.images import load_images
     from fdnet.evaluation import plots
-    from fdnet.performance.timing import descriptor_extraction
     from fdnet.paper import PAPER_TABLE2
+    from fdnet.performance.timing import descriptor_extraction
     from fdnet.reproduce.table5_runtime import ranking_ms_per_query
 
     options = {k: v for k, v in ctx.settings.method_options.get("fdnet", {}).items() if k != "checkpoint"}

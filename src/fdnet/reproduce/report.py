@@ -19,8 +19,17 @@ from pathlib import Path
 
 from fdnet.errors import DataError
 from fdnet.io import atomic_write_text
-from fdnet.reproduce.sections import (ALL_EXPERIMENTS, EXPERIMENTS, MANIFEST, REPORT, Figure, Heading, Paragraph,
-                                     Table, experiment_module)
+from fdnet.reproduce.sections import (
+    ALL_EXPERIMENTS,
+    EXPERIMENTS,
+    MANIFEST,
+    REPORT,
+    Figure,
+    Heading,
+    Paragraph,
+    Table,
+    experiment_module,
+)
 
 #: the figure formats the report embeds, by their first bytes
 IMAGE_TYPES = {b"\x89PNG\r\n\x1a\n": "image/png", b"\xff\xd8\xff": "image/jpeg"}

@@ -25,16 +25,16 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from fdnet.version import __version__
 from fdnet.data.split import EvaluationSplit
 from fdnet.descriptors.registry import reproduce_methods
 from fdnet.errors import ConfigError, FdnetError
-from fdnet.metrics import PROTOCOLS, RECALL_OVER_QUERIES
-from fdnet.io import atomic_write_text, ensure_writable
-from fdnet.provenance import provenance
 from fdnet.evaluation.report import _plain
+from fdnet.io import atomic_write_text, ensure_writable
+from fdnet.metrics import PROTOCOLS, RECALL_OVER_QUERIES
+from fdnet.provenance import provenance
 from fdnet.reproduce.cache import DescriptorCache, image_list_key
 from fdnet.reproduce.sections import ALL_EXPERIMENTS, EXPERIMENTS, MANIFEST, experiment_module
+from fdnet.version import __version__
 
 #: FDNet, the trunk alone and every baseline; those that cannot run here (no trained model, no
 #: weights) are listed in the report with the reason, unless named explicitly with --method

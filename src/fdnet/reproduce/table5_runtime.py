@@ -60,8 +60,8 @@ def _ratio(paper: float | None, ours: float | None) -> float | None:
 
 def run(ctx) -> dict:
     from fdnet.data.images import load_images
-    from fdnet.performance import timing
     from fdnet.paper import PAPER_HARDWARE, paper_runtime
+    from fdnet.performance import timing
 
     pair = ctx.pairs[0]
     split = pair.split

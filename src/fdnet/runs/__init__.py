@@ -45,9 +45,9 @@ from fdnet.runs.checkpoints import (
     load_config,
     load_training_state,
     load_weights,
+    recorded_method,
     save_checkpoint,
     save_weights,
-    recorded_method,
     weights_folder,
     weights_note,
 )

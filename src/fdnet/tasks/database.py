@@ -260,10 +260,9 @@ def query_database(request: QueryRequest, log: Log | None = None) -> QueryResult
     even below ``top_k``). Written atomically to ``out`` when given."""
     import numpy as np
 
-    from fdnet.errors import ConfigError
-
     from fdnet.data.images import list_images
     from fdnet.descriptors.base import check_vectors
+    from fdnet.errors import ConfigError
     from fdnet.io import atomic_write_text, ensure_writable
 
     db, images, top_k, accept, out = request.db, request.images, request.top_k, request.accept, request.out

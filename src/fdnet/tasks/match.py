@@ -18,8 +18,8 @@ from typing import Callable
 import numpy as np
 
 from fdnet.data.images import image_name
-from fdnet.errors import ConfigError
 from fdnet.descriptors.pipeline import PipelineSettings
+from fdnet.errors import ConfigError
 from fdnet.matching.search import SearchSettings, index_settings, rank_references, reference_times_and_positions
 from fdnet.matching.sequence import check_sequence_length
 

@@ -1,12 +1,17 @@
 """Shared adapter pieces: file order, frame numbers, correspondence files, size checks, splits."""
 
-import numpy as np
 import pytest
 
 from fdnet.data.dataset import Traverse
 from fdnet.data.formats._common import (
-    check_image_sizes, fixed, frame_number, ground_truth_from_correspondences, list_images,
-    natural_key, read_correspondences, resolve_split,
+    check_image_sizes,
+    fixed,
+    frame_number,
+    ground_truth_from_correspondences,
+    list_images,
+    natural_key,
+    read_correspondences,
+    resolve_split,
 )
 from fdnet.errors import ConfigError, DataError
 

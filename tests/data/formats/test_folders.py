@@ -1,13 +1,12 @@
 """The plain one-folder-per-condition layout."""
 
-import numpy as np
 import pytest
 
-from conftest import require_shared
 from fdnet.data.formats import detect_format, open_split, open_training
 from fdnet.errors import ConfigError, DataError
 
 from .conftest import write_frames
+from conftest import require_shared
 
 
 def make_route(root, conditions=("day", "night"), n=6):

@@ -4,11 +4,11 @@ release (train/test, sections)."""
 import numpy as np
 import pytest
 
-from conftest import require_shared
 from fdnet.data.formats import detect_format, open_split, open_training
 from fdnet.errors import DataError
 
 from .conftest import write_frames
+from conftest import require_shared
 
 
 def make_trimmed(root, n=12, step=10, seasons=("summer", "winter")):

@@ -1,6 +1,5 @@
 """Position files: image column + lat,lon degrees or easting,northing metres."""
 
-import numpy as np
 import pytest
 
 from fdnet.data.formats.positions import positions_ground_truth, read_positions

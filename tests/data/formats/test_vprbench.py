@@ -1,16 +1,15 @@
 """VPR-Bench layout: query/, ref/, ground_truth_new.npy (pickled object rows) or ground_truth.csv."""
 
-import pickle
 
 import numpy as np
 import pytest
 
-from conftest import require_shared
 from fdnet.data.formats import detect_format, open_split
 from fdnet.data.formats.vprbench import load_object_npy
 from fdnet.errors import DataError
 
 from .conftest import write_frames
+from conftest import require_shared
 
 
 def make_vprbench(root, n_query=4, n_ref=5):

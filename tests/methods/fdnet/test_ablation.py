@@ -17,7 +17,6 @@ from fdnet.methods.fdnet.config import FDNetRunConfig, preset, validate
 from fdnet.methods.fdnet.model import FDNet
 from fdnet.methods.fdnet.training import FDNetTraining, load_training_images, train
 from fdnet.runs import load_config, load_weights
-
 from tests.training.test_loop import make_dataset
 
 # a projection content head on a frozen trunk, as the cpu preset's (block 4: a 4x8 map at 32x64)

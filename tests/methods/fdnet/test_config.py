@@ -3,8 +3,8 @@
 import pytest
 
 from fdnet.errors import ConfigError
-from fdnet.methods.fdnet.model import FDNet
 from fdnet.methods.fdnet.config import PRESETS, preset, validate
+from fdnet.methods.fdnet.model import FDNet
 
 
 @pytest.mark.parametrize("name", sorted(PRESETS))

@@ -7,9 +7,9 @@ import torch
 import fdnet
 from fdnet.descriptors import create
 from fdnet.errors import DataError, NotAvailableError
+from fdnet.methods.fdnet.config import preset
 from fdnet.methods.fdnet.model import FDNet
 from fdnet.runs import save_checkpoint
-from fdnet.methods.fdnet.config import preset
 
 
 @pytest.fixture

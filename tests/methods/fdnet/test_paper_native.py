@@ -10,7 +10,6 @@ from fdnet.methods.fdnet.config import FDNetRunConfig, preset
 from fdnet.methods.fdnet.model import FDNet
 from fdnet.methods.fdnet.training import train
 from fdnet.runs import load_config, load_training_state, load_weights
-
 from tests.training.test_loop import make_dataset
 
 

@@ -8,13 +8,12 @@ import torch
 
 from fdnet.config import replace_dotted
 from fdnet.errors import ConfigError
+from fdnet.methods.fdnet.config import preset
 from fdnet.methods.fdnet.model import FDNet, FDNetConfig
+from fdnet.methods.fdnet.training import FDNetTraining, load_training_images
 from fdnet.methods.fdnet.trunk import FrozenTrunk, trunk_map_size
 from fdnet.runs import load_weights
-from fdnet.methods.fdnet.config import preset
-from fdnet.methods.fdnet.training import FDNetTraining, load_training_images
 from fdnet.training.loop import Trainer
-
 from tests.training.test_loop import make_dataset
 
 # block 4: stride 8, 40 channels; a 32x64 image gives a 4x8 map, one FDNet block makes it 2x4

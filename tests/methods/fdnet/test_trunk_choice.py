@@ -5,15 +5,20 @@ from __future__ import annotations
 import pytest
 import yaml
 
-from conftest import write_day_night_route
-
 from fdnet.data.dataset import RouteDataset
 from fdnet.data.split import aligned_split
 from fdnet.descriptors import create
 from fdnet.errors import ConfigError
 from fdnet.methods.fdnet.trunk_choice import (
-    Candidate, choose_trunk, parse_candidates, pick_best, read_choice, write_choice,
+    Candidate,
+    choose_trunk,
+    parse_candidates,
+    pick_best,
+    read_choice,
+    write_choice,
 )
+
+from conftest import write_day_night_route
 
 
 def test_rule_r1_then_auc_then_earlier():

@@ -10,8 +10,8 @@ import pytest
 import torch
 from PIL import Image
 
-from fdnet.config import replace_dotted
 from fdnet import runs
+from fdnet.config import replace_dotted
 from fdnet.descriptors.base import describe_paths
 from fdnet.errors import ConfigError, DataError
 from fdnet.methods.netvlad import config as netvlad_config

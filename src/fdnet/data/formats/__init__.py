@@ -22,10 +22,9 @@ from typing import Sequence
 
 from fdnet.config import from_dict, to_dict
 from fdnet.data.dataset import RouteDataset
+from fdnet.data.formats._common import DatasetFormat, check_image_sizes
 from fdnet.data.split import EvaluationSplit
 from fdnet.errors import ConfigError, DataError
-
-from fdnet.data.formats._common import DatasetFormat, check_image_sizes
 
 # Detection order: most specific layouts first, the plain one-folder-per-condition layout last.
 FORMAT_MODULES = {

@@ -15,15 +15,22 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from fdnet.data.dataset import RouteDataset, Traverse
+from fdnet.data.formats._common import (
+    Correspondences,
+    DatasetFormat,
+    SplitRule,
+    check_correspondences_cover,
+    describe,
+    find_child,
+    frame_numbers,
+    ground_truth_from_correspondences,
+    image_folder,
+    read_correspondences,
+    resolve_split,
+)
 from fdnet.data.images import list_images
 from fdnet.data.split import EvaluationSplit
 from fdnet.errors import ConfigError, DataError
-
-from fdnet.data.formats._common import (
-    Correspondences, DatasetFormat, SplitRule, check_correspondences_cover, describe,
-    find_child, frame_numbers, ground_truth_from_correspondences, image_folder,
-    read_correspondences, resolve_split,
-)
 
 
 def swap(corr: Correspondences) -> Correspondences:

@@ -20,11 +20,10 @@ from pathlib import Path
 from typing import Sequence
 
 from fdnet.data.dataset import RouteDataset, Traverse
+from fdnet.data.formats._common import DatasetFormat, describe, pick_conditions, resolve_split
 from fdnet.data.images import has_images, list_images
 from fdnet.data.split import EvaluationSplit, aligned_split, listed_split, read_listed_ground_truth
 from fdnet.errors import ConfigError, DataError
-
-from fdnet.data.formats._common import DatasetFormat, describe, pick_conditions, resolve_split
 
 GARDENS_POINT = {"day_left", "day_right", "night_right"}
 

@@ -34,14 +34,19 @@ import numpy as np
 
 from fdnet.data.dataset import RouteDataset, Traverse
 from fdnet.data.filters import filter_frames
+from fdnet.data.formats._common import (
+    DatasetFormat,
+    common_frames,
+    describe,
+    frame_numbers,
+    image_folder,
+    pick_conditions,
+    resolve_split,
+)
 from fdnet.data.groundtruth import GroundTruth
+from fdnet.data.images import list_images, natural_key
 from fdnet.data.split import EvaluationSplit
 from fdnet.errors import DataError
-
-from fdnet.data.formats._common import (
-    DatasetFormat, common_frames, describe, frame_numbers, image_folder, pick_conditions, resolve_split,
-)
-from fdnet.data.images import list_images, natural_key
 
 SEASONS = ("spring", "summer", "fall", "winter")
 _SEASON_WORDS = {"spring": "spring", "summer": "summer", "fall": "fall", "autumn": "fall", "winter": "winter"}
@@ -128,7 +133,7 @@ class NordlandFormat(DatasetFormat):
     summary = "Nordland four seasons: per-season folders (1 fps, trimmed) or the Olid et al. partition"
     Options = NordlandOptions
     splits = {"test": f"last {TEST_FRAMES} frames after filtering (partitioned: test/)",
-              "train": f"all frames before the test ones (partitioned: train/)"}
+              "train": "all frames before the test ones (partitioned: train/)"}
     default_eval_split = "test"
     default_train_split = "train"
 

@@ -36,13 +36,12 @@ from pathlib import Path
 import numpy as np
 
 from fdnet.data.dataset import RouteDataset, Traverse
+from fdnet.data.formats._common import DatasetFormat, describe, fixed, pick_conditions, resolve_split
 from fdnet.data.groundtruth import GroundTruth
 from fdnet.data.images import list_images
 from fdnet.data.split import EvaluationSplit
 from fdnet.errors import ConfigError, DataError
 from fdnet.io import atomic_write_bytes
-
-from fdnet.data.formats._common import DatasetFormat, describe, fixed, pick_conditions, resolve_split
 
 RUN_NAME = re.compile(r"^\d{4}-\d{2}-\d{2}-\d{2}-\d{2}-\d{2}$")
 DAY, NIGHT = "2014-12-16-09-14-09", "2014-12-10-18-10-50"

@@ -28,16 +28,20 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from fdnet.data.dataset import RouteDataset, Traverse
+from fdnet.data.formats._common import (
+    DatasetFormat,
+    describe,
+    find_child,
+    fixed,
+    image_folder,
+    pick_conditions,
+    resolve_split,
+)
+from fdnet.data.formats.positions import PositionTable, align_to_images, read_positions, to_metres
 from fdnet.data.groundtruth import GroundTruth
 from fdnet.data.images import list_images
 from fdnet.data.split import EvaluationSplit
 from fdnet.errors import ConfigError, DataError
-
-from fdnet.data.formats._common import (
-    DatasetFormat, describe, find_child, fixed, image_folder, pick_conditions,
-    resolve_split,
-)
-from fdnet.data.formats.positions import PositionTable, align_to_images, read_positions, to_metres
 
 RUN_NAME = re.compile(r"^\d{6}_\d{4}$")
 TRAIN_FRAMES, TEST_FRAMES = 3500, 500

@@ -25,12 +25,11 @@ from pathlib import Path
 import numpy as np
 
 from fdnet.data.dataset import RouteDataset, Traverse, parse_frame_range
-from fdnet.data.groundtruth import GroundTruth
-from fdnet.data.split import EvaluationSplit
-from fdnet.data.images import list_images
-from fdnet.errors import DataError
-
 from fdnet.data.formats._common import DatasetFormat, describe
+from fdnet.data.groundtruth import GroundTruth
+from fdnet.data.images import list_images
+from fdnet.data.split import EvaluationSplit
+from fdnet.errors import DataError
 
 PARTS = ("test", "val", "train")
 

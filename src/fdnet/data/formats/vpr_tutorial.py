@@ -28,14 +28,17 @@ import numpy as np
 
 from fdnet.data.arrays import load_npz_member
 from fdnet.data.dataset import RouteDataset, Traverse
+from fdnet.data.formats._common import (
+    DatasetFormat,
+    describe,
+    has_images,
+    pick_conditions,
+    resolve_split,
+)
 from fdnet.data.groundtruth import GroundTruth
 from fdnet.data.images import list_images
 from fdnet.data.split import EvaluationSplit, read_listed_ground_truth
 from fdnet.errors import ConfigError, DataError
-
-from fdnet.data.formats._common import (
-    DatasetFormat, describe, has_images, pick_conditions, resolve_split,
-)
 
 KNOWN_PAIRS = {  # (reference = tutorial's database, query)
     frozenset({"100909_0845", "180809_1545"}): ("100909_0845", "180809_1545"),

@@ -25,12 +25,11 @@ from pathlib import Path
 import numpy as np
 
 from fdnet.data.dataset import RouteDataset, Traverse
+from fdnet.data.formats._common import DatasetFormat, describe, has_images, resolve_split
 from fdnet.data.groundtruth import GroundTruth
 from fdnet.data.images import list_images
 from fdnet.data.split import EvaluationSplit, read_listed_ground_truth
 from fdnet.errors import DataError
-
-from fdnet.data.formats._common import DatasetFormat, describe, has_images, resolve_split
 
 GT_FILES = ("ground_truth.csv", "ground_truth_new.npy", "ground_truth.npy")
 

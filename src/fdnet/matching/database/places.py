@@ -10,7 +10,7 @@ from typing import Sequence
 import numpy as np
 
 from fdnet.descriptors.base import check_vectors
-from fdnet.errors import ConfigError, DataError
+from fdnet.errors import ConfigError
 from fdnet.matching.database.storage import _canonical_json, check_place_names
 
 #: Stay well under SQLite's limit on bound parameters per statement.

@@ -28,9 +28,8 @@ class CALCDescriptor(Descriptor):
                  threads: int | None = None, device: str | None = None):
         import torch
 
-        from fdnet.backbones import bf16_supported
+        from fdnet.backbones import bf16_supported, resolve_device
         from fdnet.runs import load_weights
-        from fdnet.backbones import resolve_device
 
         if checkpoint is None:
             raise ConfigError("method 'calc' needs a trained model: --checkpoint RUN_DIR "
@@ -60,9 +59,7 @@ class CALCDescriptor(Descriptor):
         return self.network.descriptor_dim
 
     def describe(self, images: np.ndarray) -> np.ndarray:
-        from fdnet.backbones import torch_threads
-
-        from fdnet.backbones import autocast
+        from fdnet.backbones import autocast, torch_threads
 
         torch = self._torch
         images = np.asarray(images)

@@ -48,12 +48,11 @@ Where this implementation differs (all are settings in :class:`CALCTrainConfig` 
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
 from fdnet.errors import ConfigError
 from fdnet.methods.calc.config import CALCModelConfig, HOGTargetConfig
+
 
 # ----------------------------------------------------------------------------- HOG and warps
 def hog_descriptor(config: HOGTargetConfig):

@@ -19,8 +19,15 @@ from fdnet.methods.calc.config import CALCRunConfig
 from fdnet.methods.settings import check_finite, check_validation_pair
 from fdnet.training.data import TrainingImages, route_images, training_route
 from fdnet.training.distributed import loss_text
-from fdnet.training.loop import (LoopSettings, TrainingMethod, autocast, numpy_rng_state, set_numpy_rng_state,
-                                 training_device, training_precision)
+from fdnet.training.loop import (
+    LoopSettings,
+    TrainingMethod,
+    autocast,
+    numpy_rng_state,
+    set_numpy_rng_state,
+    training_device,
+    training_precision,
+)
 from fdnet.training.optimizers import make_optimizer
 
 

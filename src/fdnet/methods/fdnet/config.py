@@ -29,9 +29,6 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any
-
 
 from fdnet.config import apply_yaml, to_dict
 from fdnet.errors import ConfigError

@@ -14,7 +14,6 @@ what ``fdnet extract`` uses).
 from __future__ import annotations
 
 import logging
-
 from pathlib import Path
 from typing import ClassVar
 
@@ -43,11 +42,10 @@ class FDNetDescriptor(Descriptor):
             raise NotAvailableError("method 'fdnet' needs a trained run: --checkpoint RUN_DIR (make one with `fdnet train`)")
         import torch
 
+        from fdnet.backbones import bf16_native, resolve_device
+        from fdnet.methods.fdnet.config import FDNetRunConfig
         from fdnet.methods.fdnet.model import FDNet
         from fdnet.runs import load_config, load_weights, weights_folder
-        from fdnet.methods.fdnet.config import FDNetRunConfig
-
-        from fdnet.backbones import bf16_native, resolve_device
 
         # a run directory means its best-validating weights when it kept them (best/)
         self.run_dir = weights_folder(checkpoint)

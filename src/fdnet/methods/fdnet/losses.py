@@ -27,7 +27,6 @@ when the content vectors carry no appearance information.
 from __future__ import annotations
 
 import torch
-from torch import nn
 
 
 def reconstruction_loss(target: torch.Tensor, reconstruction: torch.Tensor, reduction: str = "mean") -> torch.Tensor:

@@ -161,7 +161,7 @@ def validate_architecture(config: FDNetConfig) -> None:
             raise ConfigError(
                 f"model.input_size: {name} {value} cannot go through {len(config.widths)} stride-2 blocks"
                 + (f" after the backbone's stride {stride}" if config.backbone != "none" else "")
-                + f"; it must be a positive multiple of "
+                + "; it must be a positive multiple of "
                 + (f"{stride} x " if config.backbone != "none" else "") + f"2^{len(config.widths)} = {scale} "
                 f"(e.g. {max(scale, round(value / scale) * scale)}), or use fewer blocks (model.widths)"
             )

@@ -41,16 +41,21 @@ import numpy as np
 import torch
 
 from fdnet.config import replace_dotted
-from fdnet.errors import ConfigError
-from fdnet.methods.fdnet.config import (ABLATION_SWITCHES, FDNetRunConfig, synthetic_option, synthetic_option_text,
-                                        validate)
-from fdnet.methods.fdnet.model import TRUNK_HEADS, FDNet
-from fdnet.methods.fdnet import losses
-from fdnet.training.distributed import loss_text
 from fdnet.data.appearance import SEPARATOR, with_synthetic_conditions
-from fdnet.training.data import TrainingImages, route_images, training_route
-from fdnet.training.loop import LoopSettings, TrainingMethod, autocast, training_device, training_precision
+from fdnet.errors import ConfigError
+from fdnet.methods.fdnet import losses
+from fdnet.methods.fdnet.config import (
+    ABLATION_SWITCHES,
+    FDNetRunConfig,
+    synthetic_option,
+    synthetic_option_text,
+    validate,
+)
+from fdnet.methods.fdnet.model import TRUNK_HEADS, FDNet
 from fdnet.methods.fdnet.sampler import DomainBalancedSampler
+from fdnet.training.data import TrainingImages, route_images, training_route
+from fdnet.training.distributed import loss_text
+from fdnet.training.loop import LoopSettings, TrainingMethod, autocast, training_device, training_precision
 
 log = logging.getLogger(__name__)
 

@@ -21,8 +21,18 @@ import torch
 from torch import nn
 
 from fdnet.backbones import (
-    BACKBONES as PRETRAINED_BACKBONES, DEFAULT_BACKBONE, INPUT_MEAN, INPUT_STD, block_channels, block_stride,
-    build_efficientnet_lite, check_block, map_size, trunk_forward,
+    BACKBONES as PRETRAINED_BACKBONES,
+)
+from fdnet.backbones import (
+    DEFAULT_BACKBONE,
+    INPUT_MEAN,
+    INPUT_STD,
+    block_channels,
+    block_stride,
+    build_efficientnet_lite,
+    check_block,
+    map_size,
+    trunk_forward,
 )
 
 #: what FDNet's model.backbone accepts today (model.py checks channels with the Lite0 table)

@@ -7,9 +7,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from fdnet.errors import ConfigError
-from fdnet.methods.settings import (DataConfig, OptimizerConfig, RuntimeConfig, StepsInTrainSection,
-                                    ValidationConfig)
+from fdnet.methods.settings import DataConfig, OptimizerConfig, RuntimeConfig, StepsInTrainSection, ValidationConfig
 
 METHOD = "netvlad"
 

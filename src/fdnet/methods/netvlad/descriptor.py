@@ -27,9 +27,8 @@ class NetVLADDescriptor(Descriptor):
 
     def __init__(self, checkpoint: str | Path | None = None, bf16: bool | None = None,
                  threads: int | None = None, device: str | None = None):
-        from fdnet.backbones import FeatureExtractor
+        from fdnet.backbones import FeatureExtractor, resolve_device
         from fdnet.runs import load_weights
-        from fdnet.backbones import resolve_device
 
         if checkpoint is None:
             raise ConfigError("method 'netvlad' needs a trained model: --checkpoint RUN_DIR "
@@ -63,9 +62,7 @@ class NetVLADDescriptor(Descriptor):
     def describe(self, images: np.ndarray) -> np.ndarray:
         import torch
 
-        from fdnet.backbones import torch_threads
-
-        from fdnet.backbones import autocast
+        from fdnet.backbones import autocast, torch_threads
 
         images = np.asarray(images)
         if images.dtype != np.uint8:

@@ -44,12 +44,11 @@ Where this implementation differs (each a setting in :class:`NetVLADModelConfig`
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
 from fdnet.errors import ConfigError
 from fdnet.methods.netvlad.config import NetVLADModelConfig
+
 
 def check_model_config(model: NetVLADModelConfig) -> None:
     from fdnet.backbones import NUM_BLOCKS, check_block
