@@ -2,6 +2,7 @@
 #   make demo  -- set up .venv, generate the synthetic route, train FDNet (cpu preset), evaluate vs baselines
 #   make test  -- set up .venv and run the test suite
 #   make test-fast -- the unit tests only (no training, no whole pipelines; tests/conftest.py marks the rest slow)
+#   make lint  -- ruff's checks (pyproject.toml), which CI runs before make test
 # torch is pinned in the same pip command as everything that depends on it, so pip takes the
 # CPU wheel and never pulls a multi-GB CUDA build.
 PYTHON ?= python3
@@ -10,7 +11,7 @@ BIN := $(VENV)/bin
 TORCH_PIN := torch==2.13.0
 STAMP := $(VENV)/.fdnet-installed
 
-.PHONY: setup demo test test-fast clean
+.PHONY: setup demo test test-fast lint clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -26,6 +27,9 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q tests
+
+lint: $(STAMP)
+	$(BIN)/ruff check .
 
 test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -m "not slow" tests

@@ -60,7 +60,8 @@ def test_calibrate_then_match_writes_decisions(route, tmp_path, capsys):
     assert {"acceptance_score", "accepted"} <= set(written[0])
     accepted = [r for r in written if r["accepted"] == "1"]
     # on the calibration pair itself: exactly the accepted count stored, and all of them right
-    assert len(accepted) == stored["accepted"] and all(Path(r["query"]).name == Path(r["reference"]).name for r in accepted)
+    assert len(accepted) == stored["accepted"]
+    assert all(Path(r["query"]).name == Path(r["reference"]).name for r in accepted)
     assert not any(Path(r["query"]).name == f"{i:03d}.png" for r in accepted for i in UNRELATED)  # new places
     assert len({r["query"] for r in accepted}) == len(accepted)  # at most one per query
 

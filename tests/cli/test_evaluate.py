@@ -42,7 +42,8 @@ class TinyPixels(Descriptor):
 @pytest.fixture
 def tiny_method(monkeypatch):
     # registered under this module's import name so `--method tiny-pixels` resolves through the registry
-    monkeypatch.setitem(registry._METHODS, "tiny-pixels", registry.MethodSpec("tiny-pixels", "test stand-in", f"{__name__}:TinyPixels"))
+    monkeypatch.setitem(registry._METHODS, "tiny-pixels",
+                        registry.MethodSpec("tiny-pixels", "test stand-in", f"{__name__}:TinyPixels"))
     return "tiny-pixels"
 
 

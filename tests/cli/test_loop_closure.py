@@ -481,7 +481,8 @@ def test_a_run_unlike_its_calibration_loop_says_so(tmp_path, capsys):
             names.append(str(path))
             vectors.append(vector)
     np.savez(tmp_path / "vectors.npz", names=np.array(names), descriptors=np.array(vectors, np.float32))
-    GroundTruth([[] for _ in range(150)] + [[q - 151, q - 150, q - 149] if q > 150 else [0, 1] for q in range(150, 300)],
+    GroundTruth([[] for _ in range(150)]
+                + [[q - 151, q - 150, q - 149] if q > 150 else [0, 1] for q in range(150, 300)],
                 300).to_csv(tmp_path / "gt.csv")
     common = ["--method", "precomputed", "--vectors", str(tmp_path / "vectors.npz"), "--workers", "0", "--no-progress"]
     assert main(["loop-closure", "--images", str(tmp_path / "calibration"), *common, "--ground-truth",

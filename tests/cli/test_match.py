@@ -108,8 +108,10 @@ def test_match_lists_unpadded_names_in_natural_order_with_indices_and_names(tmp_
     rows = read_csv_rows(out)
     assert list(rows[0]) == ["query_index", "query", "rank", "reference_index", "reference", "score"]
     best = [r for r in rows if r["rank"] == "1"]
-    assert [(r["query_index"], r["query"]) for r in best] == [(str(i), str(tmp_path / "qry" / n)) for i, n in enumerate(names)]
-    assert all(r["reference_index"] == r["query_index"] and Path(r["reference"]).name == Path(r["query"]).name for r in best)
+    assert [(r["query_index"], r["query"]) for r in best] == [
+        (str(i), str(tmp_path / "qry" / n)) for i, n in enumerate(names)]
+    assert all(r["reference_index"] == r["query_index"] and Path(r["reference"]).name == Path(r["query"]).name
+               for r in best)
 
 
 def test_match_unwritable_out_fails_before_describing_images(tmp_path, capsys, monkeypatch):
@@ -203,7 +205,8 @@ def test_a_negative_sequence_length_is_refused(tmp_path, capsys):
     ref = make_route(tmp_path / "ref", n=3)
     assert main(["match", "--reference", str(ref), "--query", str(ref), "--method", "raw",
                  "--out", str(tmp_path / "m.csv"), "--sequence-length", "-2"]) == 2
-    assert "fdnet match: error: --sequence-length must be a whole number of frames, at least 1" in capsys.readouterr().err
+    assert ("fdnet match: error: --sequence-length must be a whole number of frames, at least 1"
+            in capsys.readouterr().err)
     assert not (tmp_path / "m.csv").exists()
 
 
@@ -375,7 +378,8 @@ def test_match_pairs_out_to_a_read_only_folder_is_refused_before_any_work(make_r
      "--out and --index-file are the same file"),
     (["--pairs-out", "{tmp}/link.npz"], "--pairs-out {tmp}/link.npz is the --vectors file"),
     (["--out", "{tmp}/day.npz"], "--out {tmp}/day.npz is the --vectors file"),
-    (["--out", "{tmp}/m.csv", "--index-file", "{tmp}/day.npz", "--index", "flat"], "--index-file {tmp}/day.npz is the --vectors file"),
+    (["--out", "{tmp}/m.csv", "--index-file", "{tmp}/day.npz", "--index", "flat"],
+     "--index-file {tmp}/day.npz is the --vectors file"),
 ])
 def test_match_never_writes_one_output_over_another_or_over_its_input(outputs, message, tmp_path, capsys, monkeypatch):
     import fdnet.matching.search as search

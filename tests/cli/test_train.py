@@ -7,6 +7,8 @@ import numpy as np
 
 from fdnet.cli import main
 
+from conftest import write_day_night_set
+
 
 def _dataset(root, n=8):
     return write_day_night_set(root, n, prefix="im")
@@ -146,8 +148,6 @@ from dataclasses import dataclass, field  # noqa: E402
 import pytest  # noqa: E402
 
 from fdnet.methods.settings import DataConfig, RuntimeConfig, ValidationConfig  # noqa: E402
-
-from conftest import write_day_night_set
 
 
 @dataclass

@@ -23,7 +23,8 @@ def route(tmp_path):
     for i in range(12):
         place = np.kron(rng.random((6, 8, 3)), np.ones((8, 8, 1)))
         for name, img in (("summer", place), ("winter", 0.6 * place + 0.3)):
-            Image.fromarray((np.clip(img, 0, 1) * 255).astype(np.uint8)).save(tmp_path / "route" / name / f"{i:03d}.png")
+            pixels = (np.clip(img, 0, 1) * 255).astype(np.uint8)
+            Image.fromarray(pixels).save(tmp_path / "route" / name / f"{i:03d}.png")
     return tmp_path / "route"
 
 

@@ -78,7 +78,8 @@ def test_sad_similarity_equals_brute_force_numpy(rng):
     assert got.shape == (7, 11) and got.dtype == np.float32
     np.testing.assert_allclose(got, expected, rtol=1e-4, atol=1e-5)
     # Through the blocked matcher as well: identical image scores 0, the best possible.
-    np.testing.assert_allclose(similarity_matrix(q, r, similarity=d.similarity, block=4), expected, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(similarity_matrix(q, r, similarity=d.similarity, block=4), expected,
+                               rtol=1e-4, atol=1e-5)
     idx, scores = top_k(q, q, 1, similarity=d.similarity)
     assert np.array_equal(idx[:, 0], np.arange(7)) and np.allclose(scores, 0.0, atol=1e-5)
 

@@ -275,7 +275,8 @@ def test_a_graph_that_does_not_say_where_the_channels_are_is_fed_nchw_with_a_war
     assert told.fingerprint() != guessed.fingerprint()  # the layout is part of what the vectors are
     assert guessed.describe(images).shape == (5, 4)
     fixed = graph_model(tmp_path / "fixed.onnx", ["n", 3, 16, 32])
-    assert "layout" not in create("onnx", weights=str(fixed)).settings()  # the graph's own layout: not a setting of its own
+    # the graph's own layout: not a setting of its own
+    assert "layout" not in create("onnx", weights=str(fixed)).settings()
     with pytest.raises(ConfigError, match="is NCHW, but layout"):
         create("onnx", weights=str(fixed), layout="nhwc")
     with pytest.raises(ConfigError, match="choose nchw or nhwc"):

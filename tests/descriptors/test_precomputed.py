@@ -148,7 +148,8 @@ def test_pixel_arrays_cannot_be_looked_up(route, tmp_path):
     from fdnet.decisions.loop_closure import LoopClosureDetector
 
     day = extract(route / "day", tmp_path / "day.npz")
-    detector = LoopClosureDetector(create("precomputed", vectors=str(day)), exclude_last=3, rule="margin", threshold=0.5)
+    detector = LoopClosureDetector(create("precomputed", vectors=str(day)), exclude_last=3, rule="margin",
+                                   threshold=0.5)
     assert detector.process(route / "day" / "frame_000.png") is None  # a path: looked up
     with pytest.raises(DataError, match="not pixel arrays"):
         detector.process(np.zeros((24, 32, 3), np.uint8))
@@ -412,7 +413,8 @@ def test_a_compressed_npz_claiming_more_memory_than_allowed_is_refused_before_it
         raise AssertionError("the array was read")
 
     monkeypatch.setattr(np.lib.format, "read_array", never)
-    with pytest.raises(DataError, match=r"bomb\.npz \(array 'descriptors'\): shape \(2000, 400\) float32 needs 3\.1 MiB"):
+    with pytest.raises(DataError,
+                       match=r"bomb\.npz \(array 'descriptors'\): shape \(2000, 400\) float32 needs 3\.1 MiB"):
         create("precomputed", vectors=str(path))
 
 

@@ -112,7 +112,8 @@ def test_one_process_describes_every_batch_in_order(tmp_path):
     descriptor = create("sad")
     got = []
     sharding.describe_blocks(Shards(), descriptor, paths,
-                             sharding.BlockOutput([descriptor.dim], lambda start, arrays: got.append((start, arrays[0]))),
+                             sharding.BlockOutput([descriptor.dim],
+                                                  lambda start, arrays: got.append((start, arrays[0]))),
                              PipelineSettings(batch_size=4, workers=0))
     assert [start for start, _ in got] == [0, 4, 8]
     from fdnet.data.images import load_images

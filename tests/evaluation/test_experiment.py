@@ -65,7 +65,8 @@ def split(tmp_path):
 
 
 def test_evaluate_method_end_to_end(split):
-    result = evaluate_method(TinyPixels(), split, ScoringSettings(protocols=(RECALL_OVER_QUERIES, VPRBENCH)), keep_similarity=True)
+    result = evaluate_method(TinyPixels(), split, ScoringSettings(protocols=(RECALL_OVER_QUERIES, VPRBENCH)),
+                             keep_similarity=True)
     roq = result.metrics[RECALL_OVER_QUERIES]
     assert roq.recall_at_n[1] == 1.0 and roq.recall_at_100_precision == 1.0
     assert result.metrics[VPRBENCH].top1_accuracy == 1.0
@@ -134,8 +135,10 @@ def test_large_splits_are_ranked_without_the_full_matrix(split):
     assert plain.similarity is None   # never made unless asked for
 
 
-@pytest.mark.parametrize("setting, message", [("radius_m=5", "radius_m: evaluation on image folders has no positions"),
-                                              ("radius_s=2", "radius_s: evaluation on image folders has no timestamps")])
+@pytest.mark.parametrize("setting, message", [
+    ("radius_m=5", "radius_m: evaluation on image folders has no positions"),
+    ("radius_s=2", "radius_s: evaluation on image folders has no timestamps"),
+])
 def test_a_neighbourhood_the_split_cannot_give_is_refused_before_describing(split, setting, message):
     from fdnet.decisions.acceptance import parse_acceptance
     from fdnet.errors import ConfigError

@@ -30,7 +30,8 @@ def test_frame_aligned_split_sliced_by_frames(tmp_path):
 def test_bad_split_settings_name_the_flag(tmp_path, kwargs, message):
     settings = {"reference": "day", "query": "night", **kwargs}
     with pytest.raises(ConfigError, match=message):
-        build_split(SplitSpec(make_folders(tmp_path / "d"), settings.pop("reference"), settings.pop("query"), **settings))
+        build_split(SplitSpec(make_folders(tmp_path / "d"), settings.pop("reference"), settings.pop("query"),
+                              **settings))
 
 
 def test_similarity_files(tmp_path):
@@ -87,4 +88,5 @@ def test_the_tolerance_in_use_is_said_and_gardens_point_gets_its_protocol(tmp_pa
                                  "(Gardens Point's protocol, as VPR-Bench; --tolerance changes it)")
     exact = build_split(SplitSpec(root, "day_right", "night_right", tolerance=0))
     assert exact.ground_truth.positives[4].tolist() == [4] and "protocol" not in exact.description
-    assert "frame-aligned, tolerance 0 frames" in build_split(SplitSpec(make_folders(tmp_path / "own"), "day", "night")).description
+    own = build_split(SplitSpec(make_folders(tmp_path / "own"), "day", "night"))
+    assert "frame-aligned, tolerance 0 frames" in own.description

@@ -139,7 +139,8 @@ def test_database_index_cache_is_derived_current_and_reused(tmp_path, rng):
     db.close()
     # a new process (here: a new handle) loads the cache; its answers are the same
     with PlaceDatabase.open(path) as again:
-        assert [[m.index for m in row] for row in again.query(queries, k=3)] == [[m.index for m in row] for row in first]
+        assert ([[m.index for m in row] for row in again.query(queries, k=3)]
+                == [[m.index for m in row] for row in first])
         assert again._index_cache.places == 12000
         # places added later are added to the loaded index, never missing from answers
         more = unit(rng, 5, 16)

@@ -44,7 +44,8 @@ def test_the_experiment_trains_the_variants_and_writes_its_section_and_json(rout
     # the schedule each variant was trained at is stated: without the critic there is no critic stage
     assert runs["full"]["schedule"] == {"autoencoder": 3, "critic": 2, "joint": 3, "total": 8,
                                         "critic_updates_per_step": 2}
-    assert runs["no-critic"]["schedule"]["critic"] == 0 and runs["no-critic"]["schedule"]["critic_updates_per_step"] == 0
+    assert runs["no-critic"]["schedule"]["critic"] == 0
+    assert runs["no-critic"]["schedule"]["critic_updates_per_step"] == 0
     assert all(r["step"] == r["schedule"]["total"] and r["weights_stage"] == "joint" for r in runs.values())
     assert all(r["differences_from_full"] == [] for r in runs.values())
     assert (out / "ablation-runs" / "tiny" / "no-reconstruction" / "checkpoints").is_dir()

@@ -159,7 +159,8 @@ def test_comparison_shows_r100p_under_the_default_acceptance_rule_beside_raw(rou
     per = result["per_acceptance"]
     assert per["raw"]["recall_at_100_precision"] == result["recall_at_100_precision"]
     html = (out / "report.html").read_text()
-    section = html[html.index('<section id="comparison">'):html.index("</table>", html.index('<section id="comparison">'))]
+    start = html.index('<section id="comparison">')
+    section = html[start:html.index("</table>", start)]
     assert f"<th>R@100P</th><th>R@100P {DEFAULT_ACCEPTANCE}</th>" in section
     assert f"{per[DEFAULT_ACCEPTANCE]['recall_at_100_precision']:.3f}" in section
 

@@ -20,9 +20,9 @@ from fdnet.tasks.database import (
     query_database,
 )
 
-QUIET = PipelineSettings(progress=False)
-
 from conftest import write_random_places
+
+QUIET = PipelineSettings(progress=False)
 
 
 def make_route(folder, n=5, seed=0):

@@ -1,8 +1,9 @@
-"""`fdnet benchmark` (parses the flags; :mod:`fdnet.performance.benchmark` measures): extraction ms/image and matching ms/query on this machine, every figure
-stated against references measured in the same run (fp32 and bf16 GEMM rates, FDNet's fp32
-eager path) and against the paper's Table 2/5 (TITAN X); GPU figures when a GPU is present; and
-indexed search on maps of 10^3-10^6 places (``--map-size``). Nothing here is asserted by tests:
-machines are shared and noisy, so the command prints ratios measured side by side."""
+"""`fdnet benchmark` (parses the flags; :mod:`fdnet.performance.benchmark` measures): extraction
+ms/image and matching ms/query on this machine, every figure stated against references measured
+in the same run (fp32 and bf16 GEMM rates, FDNet's fp32 eager path) and against the paper's
+Table 2/5 (TITAN X); GPU figures when a GPU is present; and indexed search on maps of
+10^3-10^6 places (``--map-size``). Nothing here is asserted by tests: machines are shared and
+noisy, so the command prints ratios measured side by side."""
 
 from __future__ import annotations
 
@@ -30,8 +31,8 @@ def register(sub) -> None:
                    help=f"what to measure, comma-separated from {','.join(PARTS)} (default all; the GEMM "
                         "references are always measured)")
     p.add_argument("--method", default=DEFAULT_METHODS,
-                   help=f"comma-separated methods to time through the descriptor interface (default {DEFAULT_METHODS}); "
-                        "add e.g. fdnet with --checkpoint fdnet=RUN_DIR")
+                   help="comma-separated methods to time through the descriptor interface "
+                        f"(default {DEFAULT_METHODS}); add e.g. fdnet with --checkpoint fdnet=RUN_DIR")
     p.add_argument("--checkpoint", action="append", default=[], metavar="METHOD=RUN_DIR",
                    help="checkpoint for a trained method (repeatable)")
     p.add_argument("--weights", action="append", default=[], metavar="METHOD=FILE",

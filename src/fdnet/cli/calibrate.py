@@ -168,7 +168,8 @@ def run(args) -> int:
     if args.tolerance is not None and args.tolerance < 0:
         raise ConfigError(f"--tolerance must be >= 0, got {args.tolerance}")
     if not (args.out or args.store_in_run or args.db):
-        raise ConfigError("nothing to store the calibration in: give --out FILE.yaml, --store-in-run and/or --db MAP.db")
+        raise ConfigError("nothing to store the calibration in: give --out FILE.yaml, --store-in-run and/or "
+                          "--db MAP.db")
     check_pipeline_arguments(args)
     run_dir = None
     if args.store_in_run:

@@ -33,9 +33,10 @@ def add_method_arguments(parser: argparse.ArgumentParser, multiple: bool = False
                         help="precomputed: vectors computed elsewhere, keyed by image (fdnet extract's .npz, "
                              ".npy with a names list, hloc's .h5); repeatable, the files merge")
     parser.add_argument("--fit", action="append", default=[], metavar="[METHOD=]DIR",
-                        help=f"dataset folder a method that learns from images ({', '.join(fitting_methods())}) learns from: "
-                             "every condition sub-folder, no labels (default: the reference images; the output's "
-                             "settings say which as fitted_on)" + per_method)
+                        help="dataset folder a method that learns from images "
+                             f"({', '.join(fitting_methods())}) learns from: every condition sub-folder, no labels "
+                             "(default: the reference images; the output's settings say which as fitted_on)"
+                             + per_method)
     parser.add_argument("--fit-frames", action="append", default=[], metavar="[METHOD=]START:END",
                         help="with --fit: only these frames of every condition (e.g. the training frames)")
     parser.add_argument("--method-set", action="append", default=[], metavar="[METHOD:]KEY=VALUE",

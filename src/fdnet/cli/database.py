@@ -88,7 +88,8 @@ def register(sub) -> None:
     query.add_argument("--top-k", type=_positive_int, default=5, help="candidates per query (at least 1)")
     query.add_argument("--exclude-last", type=_non_negative_int, default=0,
                        help="ignore the most recently added N places (a robot's own recent frames)")
-    query.add_argument("--min-score", type=_finite_number, default=None, help="only report candidates scoring at least this")
+    query.add_argument("--min-score", type=_finite_number, default=None,
+                       help="only report candidates scoring at least this")
     add_decision_arguments(query, "a calibration from `fdnet calibrate` (default: the one stored in the database by "
                                   "`fdnet calibrate --db`, if any): adds acceptance_score and accepted columns")
     query.add_argument("--out", help="CSV to write (query,rank,place,place_index,score[,acceptance_score,accepted]); "

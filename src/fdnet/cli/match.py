@@ -59,9 +59,9 @@ def register(sub) -> None:
                         "not described again")
     p.add_argument("--sequence-length", type=int, default=1,
                    help="SeqSLAM sequence matching over this many consecutive queries (1 = single images)")
-    add_decision_arguments(p, "a calibration from `fdnet calibrate` (YAML, or a run directory holding calibration.yaml): "
-                              "adds acceptance_score and accepted columns (accepted 1 = the revisit the calibrated "
-                              "rule accepts; none in a query = a new place)")
+    add_decision_arguments(p, "a calibration from `fdnet calibrate` (YAML, or a run directory holding "
+                              "calibration.yaml): adds acceptance_score and accepted columns (accepted 1 = the "
+                              "revisit the calibrated rule accepts; none in a query = a new place)")
     p.add_argument("--out",
                    help="CSV to write: query_index,query,rank,reference_index,reference,score (indices are "
                         "positions in natural file-name order, names the images' absolute paths); needed unless "
@@ -131,7 +131,7 @@ def run(args) -> int:
     if summary.calibration is not None:
         calibration = summary.calibration
         print(f"{summary.accepted} of {summary.num_queries} queries accepted by {calibration.rule} at threshold "
-              f"{calibration.threshold:.6g} (it reached precision {calibration.precision:.3f} on {calibration.accepted} "
-              f"accepted queries where it was measured; target {calibration.target_precision:g}); the "
-              f"others are new places")
+              f"{calibration.threshold:.6g} (it reached precision {calibration.precision:.3f} on "
+              f"{calibration.accepted} accepted queries where it was measured; target "
+              f"{calibration.target_precision:g}); the others are new places")
     return 0

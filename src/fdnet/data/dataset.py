@@ -1,8 +1,9 @@
 """Datasets: a route traversed under several conditions.
 
 On disk the common layout is one sub-folder per condition (``summer/``, ``winter/``...), whose
-file names sort in traversal order (the natural order of :func:`fdnet.data.images.list_images`). A :class:`Traverse` is one condition's ordered images; a
-:class:`RouteDataset` is the set of traverses of one route.
+file names sort in traversal order (the natural order of :func:`fdnet.data.images.list_images`).
+A :class:`Traverse` is one condition's ordered images; a :class:`RouteDataset` is the set of
+traverses of one route.
 """
 
 from __future__ import annotations

@@ -211,12 +211,14 @@ class Calibration:
                             "probabilities in [0, 1]")
         if not isinstance(values.get("measured_on", {}), dict):
             raise DataError(f"{source}: measured_on must map names to values")
-        if not isinstance(values.get("notes", []), list) or not all(isinstance(n, str) for n in values.get("notes", [])):
+        notes = values.get("notes", [])
+        if not isinstance(notes, list) or not all(isinstance(n, str) for n in notes):
             raise DataError(f"{source}: notes must be a list of text lines")
         for key in ("created", "fdnet_version"):
             if key in values and not isinstance(values[key], str):
                 values[key] = str(values[key])  # YAML reads an unquoted date or version as a date/number
-        if not isinstance(values["settings"], dict) or not all(isinstance(v, dict) for v in values["settings"].values()):
+        settings = values["settings"]
+        if not isinstance(settings, dict) or not all(isinstance(v, dict) for v in settings.values()):
             raise DataError(f"{source}: settings must map each rule to its settings")
         values.setdefault("precision", math.nan)
         values.setdefault("recall", math.nan)

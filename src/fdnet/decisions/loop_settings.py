@@ -1,7 +1,7 @@
 """What loop closure is set with, as objects passed whole: :class:`LoopClosureSettings` (how a
 :class:`~fdnet.decisions.loop_closure.LoopClosureDetector` decides and stores),
-:class:`~fdnet.descriptors.pipeline.PipelineSettings` (how frames are decoded and described) and :class:`TraverseSettings`
-(one ``fdnet loop-closure`` run: the detector's settings, the outputs, the ground truth, the
+:class:`~fdnet.descriptors.pipeline.PipelineSettings` (how frames are decoded and described) and
+:class:`TraverseSettings` (one ``fdnet loop-closure`` run: the detector's settings, the outputs, the ground truth, the
 calibration to make). Each checks its values when made, so a bad setting is refused before
 anything is opened or described.
 """

@@ -497,7 +497,8 @@ def _verified_gate(candidates, match, **values):
     passed = np.zeros(len(match), dtype=bool)
     for i, j in enumerate(match):
         if j >= 0:
-            passed[i] = verifier.verify(candidates.query_paths[i], [candidates.reference_paths[int(j)]])[0] >= min_inliers
+            inliers = verifier.verify(candidates.query_paths[i], [candidates.reference_paths[int(j)]])[0]
+            passed[i] = inliers >= min_inliers
     return passed
 
 

@@ -98,8 +98,8 @@ def check_pair_name(name, where) -> str:
     if not isinstance(name, str) or not name:
         raise DataError(f"{where}: an empty image name")
     if any(c.isspace() for c in name):
-        raise DataError(f"{where}: image name {name!r} holds whitespace, which hloc's pairs file cannot hold (it splits "
-                        "each line on whitespace); rename the image")
+        raise DataError(f"{where}: image name {name!r} holds whitespace, which hloc's pairs file cannot hold "
+                        "(it splits each line on whitespace); rename the image")
     return _utf8(name, where)
 
 
@@ -335,9 +335,9 @@ def read_global_features(path: str | os.PathLike, key: str = GLOBAL_KEY,
     of each group in increasing byte order of their names (HDF5's name index): ``B.jpg``,
     ``a/b.jpg``, ``a.jpg``, ``db/10.jpg``, ``db/2.jpg``; not the order they were written in
     (hloc itself treats the names as a set). ``facts``, a list, receives per image the (size,
-    modification time in ns) fdnet's writer recorded, (-1, -1) where none. DataError, naming the file, for a missing file,
-    one that is not HDF5 or is truncated, one without any ``key`` dataset, a vector that is not
-    1-D numbers, and vectors of different lengths."""
+    modification time in ns) fdnet's writer recorded, (-1, -1) where none. DataError, naming the
+    file, for a missing file, one that is not HDF5 or is truncated, one without any ``key``
+    dataset, a vector that is not 1-D numbers, and vectors of different lengths."""
     h5py = require_h5py()
     path = Path(path)
     if not path.is_file():
@@ -357,9 +357,9 @@ def read_global_features(path: str | os.PathLike, key: str = GLOBAL_KEY,
 
 def read_global_attributes(path: str | os.PathLike) -> dict:
     """What a global-features file fdnet wrote records about how its vectors were made: the root's
-    ``method`` and the model's ``fingerprint`` (text), ``settings`` (a dict, from JSON) and ``root`` (the absolute folder its
-    image names are relative to); {} for hloc's own files. Attributes of
-    another kind are left out, never guessed at."""
+    ``method`` and the model's ``fingerprint`` (text), ``settings`` (a dict, from JSON) and
+    ``root`` (the absolute folder its image names are relative to); {} for hloc's own files.
+    Attributes of another kind are left out, never guessed at."""
     import json
 
     h5py = require_h5py()

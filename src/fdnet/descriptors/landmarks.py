@@ -207,7 +207,8 @@ class LandmarksDescriptor(Descriptor):
                 "region_dim": self.region_dim, "pool_grid": self.pool_grid,
                 "proposals": ("edge boxes (structured edges: " + self.proposals.edge_model + ")"
                               if self.proposals.edge_model else "edge boxes on gradient edges (substitute)"),
-                "min_box_area": self.min_box_area, "proposal_scale": self.proposal_scale, "seed": self.seed, **self.extractor.settings()}
+                "min_box_area": self.min_box_area, "proposal_scale": self.proposal_scale, "seed": self.seed,
+                **self.extractor.settings()}
 
     # -- packing --------------------------------------------------------------------------
     def pack(self, regions: np.ndarray, boxes: np.ndarray, valid: np.ndarray) -> np.ndarray:

@@ -288,7 +288,8 @@ class ONNXDescriptor(Descriptor):
         value, where = setting("output", output)
         names = [o.name for o in outputs]
         if value is not None and value not in names:
-            raise ConfigError(f"{path}: output {value!r} ({where}) is not one of the model's outputs: {', '.join(names)}")
+            raise ConfigError(f"{path}: output {value!r} ({where}) is not one of the model's outputs: "
+                              f"{', '.join(names)}")
         self.output_name = value or names[0]
         out_shape = next(o.shape for o in outputs if o.name == self.output_name)
         if out_shape is not None and len(out_shape) != 2:
@@ -339,7 +340,8 @@ class ONNXDescriptor(Descriptor):
         for start in range(0, len(images), step):
             chunk = self._prepare(images[start:start + step])
             if self.batch_limit and len(chunk) < self.batch_limit:  # a graph fixed at batch B: pad the last chunk
-                chunk = np.concatenate([chunk, np.zeros((self.batch_limit - len(chunk), *chunk.shape[1:]), chunk.dtype)])
+                padding = np.zeros((self.batch_limit - len(chunk), *chunk.shape[1:]), chunk.dtype)
+                chunk = np.concatenate([chunk, padding])
             try:
                 out = self.session.run([self.output_name], {self.input_name: chunk})[0]
             except Exception as exc:  # onnxruntime's own error classes

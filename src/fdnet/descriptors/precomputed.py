@@ -70,8 +70,8 @@ def _read_npz(path: Path, array: str | None) -> tuple[list[str], np.ndarray, dic
             keys = set(data.files)
             chosen = array or next((k for k in ("descriptors", "content") if k in keys), None)
             if chosen is None or chosen not in keys:
-                raise DataError(f"{path}: no {array or 'descriptors or content'} array (holds {', '.join(sorted(keys))}); "
-                                "give the array with --method-set array=NAME")
+                raise DataError(f"{path}: no {array or 'descriptors or content'} array "
+                                f"(holds {', '.join(sorted(keys))}); give the array with --method-set array=NAME")
             if "names" not in keys:
                 raise DataError(f"{path}: no names array: an image's vector cannot be found without its name")
 
@@ -317,7 +317,8 @@ class PrecomputedDescriptor(Descriptor):
             candidates = self._candidates(key)
         if not candidates:
             raise DataError(f"{path}: no vector for this image in {', '.join(self.files)} (looked up by its file "
-                            f"name and folder, {'/'.join(key[-2:]) if key else path!r}); every image a command reads needs one")
+                            f"name and folder, {'/'.join(key[-2:]) if key else path!r}); every image a command "
+                            "reads needs one")
         if len(candidates) == 1:
             return candidates[0]
         # most trailing folders in common; then a name all of whose folders agree (not moved data)

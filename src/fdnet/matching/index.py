@@ -16,9 +16,9 @@ Kinds (``IndexSettings.kind``), all by inner product (cosine for unit vectors):
     :meth:`VectorIndex.build` is called).
 ``ivfpq``
     IVF-PQ: cells as ``ivf``, each vector compressed to ``pq_bytes`` bytes (product quantisation,
-    8 bits per sub-vector, fewer below 9,984 vectors: :func:`pq_bits_for`; default dim / 8). Memory ~pq_bytes + 8 bytes per place; scores are
-    approximate, ``refine`` > 0 re-ranks ``refine`` x k candidates by exact dot products (which
-    keeps the full vectors too).
+    8 bits per sub-vector, fewer below 9,984 vectors: :func:`pq_bits_for`; default dim / 8).
+    Memory ~pq_bytes + 8 bytes per place; scores are approximate, ``refine`` > 0 re-ranks
+    ``refine`` x k candidates by exact dot products (which keeps the full vectors too).
 ``hnsw``
     HNSW graph (``hnsw_neighbors`` links per node, ``hnsw_ef_construction`` / ``hnsw_ef_search``
     beam widths). No training, fast queries, the slowest to build; memory 4 * dim + ~8 *

@@ -168,7 +168,8 @@ def index_overrides(items) -> dict:
     for item in items:
         kind, sep, pair = item.partition(":")
         if not sep or kind not in INDEX_KINDS:
-            raise ConfigError(f"--index-set {item!r}: expected KIND:KEY=VALUE with KIND one of {', '.join(INDEX_KINDS)}")
+            raise ConfigError(f"--index-set {item!r}: expected KIND:KEY=VALUE with KIND one of "
+                              f"{', '.join(INDEX_KINDS)}")
         settings = parse_index_settings(kind, [pair], where="--index-set")
         key = pair.split("=", 1)[0].strip()
         out.setdefault(kind, {})[key] = getattr(settings, key)

@@ -109,7 +109,9 @@ def fdnet_extraction(vector_length=512, batch: int = 32, repeats: int = 5) -> di
         x = torch.rand(b, 3, *input_size)
         with torch.inference_mode():
             fp32 = median_seconds(lambda: model.content(x), repeats=repeats)
-            encoder_cl = encoder.to(memory_format=torch.channels_last)
+            # Module.to converts the weights in place (and returns the same module): model.content now runs
+            # the channels_last encoder, restored below
+            encoder.to(memory_format=torch.channels_last)
             x_cl = x.contiguous(memory_format=torch.channels_last)
 
             def bf16():
@@ -166,7 +168,8 @@ def descriptor_paths(run_dir, images_u8: np.ndarray, repeats: int = 3, device="c
         comp = FDNetDescriptor(run_dir, device=device, bf16=None, compile=True, batch_size=len(images_u8))
         comp.describe(images_u8)
         out["compile_seconds"] = time.perf_counter() - t0
-        out["extract_compiled"] = median_seconds(lambda: comp.describe(images_u8), repeats=repeats) / len(images_u8) * 1e3
+        compiled_seconds = median_seconds(lambda: comp.describe(images_u8), repeats=repeats)
+        out["extract_compiled"] = compiled_seconds / len(images_u8) * 1e3
     return out
 
 

@@ -515,7 +515,8 @@ def render(document: dict) -> list:
                                                                "weights at step", "run"],
                             [[r["variant"]] + [str(r.get("seed"))] * seeded + [
                                 r["removes"],
-                                f"{r['schedule']['autoencoder']} + {r['schedule']['critic']} + {r['schedule']['joint']}",
+                                f"{r['schedule']['autoencoder']} + {r['schedule']['critic']} + "
+                                f"{r['schedule']['joint']}",
                                 f"{r['step']} ({r.get('weights_stage', 'joint')})", r["run"]] for r in group["runs"]],
                             f"{group['preset']}: the runs"))
         for pair in group["pairs"]:

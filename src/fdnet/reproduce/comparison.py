@@ -125,8 +125,8 @@ def render(document: dict) -> list:
                         f"direction is not stated, so they stand beside both directions). What differs: the "
                         f"paper trained at 224x224 on its own frames and tested on its own split of the full "
                         f"dataset; ours are {pair.get('description') or 'these frames'}, at the run's input size, "
-                        f"under {pair['ground_truth']}; its R@100P and P@maxR are those of the raw best-match score over "
-                        f"500 thresholds (ours in the columns marked raw), so compare the orders of the methods "
+                        f"under {pair['ground_truth']}; its R@100P and P@maxR are those of the raw best-match score "
+                        f"over 500 thresholds (ours in the columns marked raw), so compare the orders of the methods "
                         f"more than the values")
         blocks.append(Table(header, cells, caption, marked))
         if "fdnet" in ours:

@@ -5,8 +5,9 @@ scripts and no external resources of any kind, so the file can be mailed or arch
 The header says which dataset, protocol, checkpoint, fdnet version and command made the report;
 every experiment is a ``<section id="NAME">`` (ids fixed, see
 :data:`~fdnet.reproduce.sections.EXPERIMENTS`; an optional experiment's section once it has run)
-whose tables carry the numbers, so the report reads without its figures. The report is rebuilt from ``OUT/reproduce.json`` and ``OUT/<NAME>.json`` alone,
-so rerunning one experiment keeps the sections of the others.
+whose tables carry the numbers, so the report reads without its figures. The report is rebuilt
+from ``OUT/reproduce.json`` and ``OUT/<NAME>.json`` alone, so rerunning one experiment keeps the
+sections of the others.
 """
 
 from __future__ import annotations

@@ -54,7 +54,8 @@ from fdnet.runs.checkpoints import (
 from fdnet.runs.lock import LOCK_FILE, RunLock
 
 __all__ = [
-    "BEST_DIR", "recorded_method", "weights_folder", "weights_note", "CHANGES_FILE", "CHECKPOINTS_DIR", "CONFIG_FILE", "FORMAT_VERSION", "KIND_TRAINING", "KIND_WEIGHTS", "LOCK_FILE",
+    "BEST_DIR", "recorded_method", "weights_folder", "weights_note", "CHANGES_FILE", "CHECKPOINTS_DIR",
+    "CONFIG_FILE", "FORMAT_VERSION", "KIND_TRAINING", "KIND_WEIGHTS", "LOCK_FILE",
     "STATE_FILE", "WEIGHTS_FILE", "RunLock", "check_run_state", "config_differences", "is_run",
     "latest_checkpoint", "load_config", "load_training_state", "load_weights", "read_changes",
     "record_changes", "save_checkpoint", "save_weights",

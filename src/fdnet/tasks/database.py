@@ -1,8 +1,9 @@
 """The work of ``fdnet database build|add|query|info`` as library functions: describe a folder of
 images into a new database or onto an existing one, rank a database's places for query images
-(with a calibrated or rule-scored decision), report a database's identity. Each returns what the command reports; messages go to ``log`` (default: this
-module's logger). Above :mod:`fdnet.matching.database` (the file) and :mod:`fdnet.decisions`
-(the rules), which it drives.
+(with a calibrated or rule-scored decision), report a database's identity. Each returns what the
+command reports; messages go to ``log`` (default: this module's logger). Above
+:mod:`fdnet.matching.database` (the file) and :mod:`fdnet.decisions` (the rules), which it
+drives.
 """
 
 from __future__ import annotations
@@ -196,8 +197,8 @@ def _build_inputs(request: BuildRequest, check_output=True):
         ensure_writable(request.db, what="place database")
     descriptor = _create_descriptor(request.method, request.method_options, request.device)
     if descriptor.needs_fit:
-        raise ConfigError(f"method {descriptor.name!r} must be given what it learns from (--fit DIR, or dbow's --vocabulary) "
-                          "to build a database that later queries can reuse")
+        raise ConfigError(f"method {descriptor.name!r} must be given what it learns from (--fit DIR, or dbow's "
+                          "--vocabulary) to build a database that later queries can reuse")
     if settings.kind != "flat" and not descriptor.dot_product_similarity:
         raise ConfigError(f"--index {settings.kind}: method {descriptor.name!r} does not compare vectors by dot "
                           "product, so it is searched exhaustively with its own similarity; use --index flat")

@@ -146,8 +146,8 @@ def match_images(request: MatchRequest, make_descriptor: Callable[[], object],
 
             tmp = outputs.enter_context(atomic_path(pairs_out))
             with open(tmp, "w", encoding="utf-8", newline="\n") as handle:
-                num_pairs = write_pairs_to(handle, retrieval_pairs(indices, names[1], names[0], top_k, decision, accepted,
-                                                                   pairs_accepted_only), pairs_out)
+                pairs = retrieval_pairs(indices, names[1], names[0], top_k, decision, accepted, pairs_accepted_only)
+                num_pairs = write_pairs_to(handle, pairs, pairs_out)
         if out is not None:
             tmp = outputs.enter_context(atomic_path(out))
             tmp.write_text(matches_text(indices, scores, query_paths, ref_paths, top_k, decision, accepted),
@@ -260,7 +260,7 @@ def matches_text(indices, scores, query_paths, ref_paths, top_k: int, decision=N
         for rank, (i, s) in enumerate(zip(row_i, row_s), start=1):
             chosen = accepted is not None and i == decision.match[q] and bool(accepted[q])
             if i >= 0 and (rank <= top_k or chosen):
-                row = [q, spreadsheet_text(image_name(query_paths[q])), rank, int(i), spreadsheet_text(image_name(ref_paths[i])),
-                       f"{float(s):.6f}"]
+                row = [q, spreadsheet_text(image_name(query_paths[q])), rank, int(i),
+                       spreadsheet_text(image_name(ref_paths[i])), f"{float(s):.6f}"]
                 writer.writerow(row + decision_cells(q, chosen, decision, accepted))
     return buffer.getvalue()

@@ -18,11 +18,11 @@ from fdnet.methods.calc import model as calc
 from fdnet.methods.calc.descriptor import CALCDescriptor
 from fdnet.methods.calc.training import train
 
+from conftest import require_shared
+
 
 def train_calc(config, run_dir, resume=False, **kwargs):
     return train(config, run_dir, resume=resume, progress=False, **kwargs)
-
-from conftest import require_shared
 
 
 def make_route(root, frames=12, size=(48, 64), seed=0):

@@ -150,7 +150,8 @@ def test_without_the_triplet_loss_the_appearance_encoder_gets_the_reconstruction
         assert ("appearance" in out) == triplet
         got = [p.grad for p in method.model.appearance_encoder.parameters()]
         same = all(torch.allclose(g, e, rtol=1e-5, atol=1e-8) for g, e in zip(got, expected))
-        assert same != triplet, f"triplet {'on' if triplet else 'off'}: E_a's gradient {'is' if same else 'is not'} L_r's alone"
+        assert same != triplet, (f"triplet {'on' if triplet else 'off'}: E_a's gradient "
+                                 f"{'is' if same else 'is not'} L_r's alone")
 
 
 def test_without_the_triplet_loss_and_reconstruction_the_appearance_encoder_never_changes(tmp_path, monkeypatch):

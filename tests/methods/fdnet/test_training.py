@@ -189,7 +189,8 @@ def test_synthetic_conditions_are_chosen_with_the_block_and_kept_on_resume(tmp_p
     assert "at the start" not in _said(caplog)
     alone = tmp_path / "alone"
     train(_config(tmp_path, **{"model.backbone_block": saved.model.backbone_block,
-                               "data.synthetic_conditions": list(saved.data.synthetic_conditions)}), alone, progress=False)
+                               "data.synthetic_conditions": list(saved.data.synthetic_conditions)}),
+          alone, progress=False)
     for (name, x), y in zip(_weights(run).items(), _weights(alone).values()):
         assert torch.equal(x, y), name
 

@@ -19,11 +19,11 @@ from fdnet.methods.netvlad import model as netvlad
 from fdnet.methods.netvlad.descriptor import NetVLADDescriptor
 from fdnet.methods.netvlad.training import train
 
+from conftest import require_shared
+
 
 def train_netvlad(config, run_dir, resume=False, **kwargs):
     return train(config, run_dir, resume=resume, progress=False, **kwargs)
-
-from conftest import require_shared
 
 
 def make_route(root, frames=12, size=(48, 64), seed=0):
@@ -76,7 +76,8 @@ def test_vlad_layer_matches_reference_formula():
 
 
 def test_alpha_initialisation(rng):
-    net = netvlad.build_network(netvlad_config.NetVLADModelConfig(clusters=4, frozen_block=7, last_block=8), pretrained=False)
+    net = netvlad.build_network(netvlad_config.NetVLADModelConfig(clusters=4, frozen_block=7, last_block=8),
+                                pretrained=False)
     centroids = rng.normal(size=(4, 112)).astype(np.float32)
     local = rng.normal(size=(200, 112)).astype(np.float32)
     local /= np.linalg.norm(local, axis=1, keepdims=True)

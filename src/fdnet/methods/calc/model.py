@@ -94,7 +94,8 @@ def random_perspective_warp(image: np.ndarray, rng: np.random.Generator) -> np.n
     height, width = image.shape[:2]
     qx, qy = width / 4.0, height / 4.0
     corners = np.array([[0, 0], [0, height], [width, 0], [width, height]], np.float32)
-    low_x = np.array([0, 0, 3 * qx, 3 * qx]); low_y = np.array([0, 3 * qy, 0, 3 * qy])
+    low_x = np.array([0, 0, 3 * qx, 3 * qx])
+    low_y = np.array([0, 3 * qy, 0, 3 * qy])
     source = np.stack([low_x + rng.uniform(0, qx, 4), low_y + rng.uniform(0, qy, 4)], axis=1).astype(np.float32)
     transform = cv2.getPerspectiveTransform(source, corners)
     return cv2.warpPerspective(image, transform, (width, height))

@@ -161,7 +161,8 @@ def train(config: CALCRunConfig, run_dir, resume: bool = False, override: bool =
         method = CALCTraining(config, data)
         method.log(f"CALC: {sum(len(x) for x in data.images)} training images from {', '.join(data.names)} at "
                    f"{config.model.input_size[0]}x{config.model.input_size[1]}, HOG targets "
-                   f"{method.targets.shape[1]}-d, descriptor {method.network.descriptor_dim}-d, on {method.device} -> {run_dir}")
+                   f"{method.targets.shape[1]}-d, descriptor {method.network.descriptor_dim}-d, on {method.device} "
+                   f"-> {run_dir}")
         return method, validation
 
     return run_training(build, run_dir, resume=resume, override=override, max_minutes=max_minutes,

@@ -243,7 +243,8 @@ def _paper_native() -> FDNetRunConfig:
     return config
 
 
-def _two_cores(name: str, model: FDNetConfig, schedule: ScheduleConfig, adversarial_weight: float = 0.1) -> FDNetRunConfig:
+def _two_cores(name: str, model: FDNetConfig, schedule: ScheduleConfig,
+               adversarial_weight: float = 0.1) -> FDNetRunConfig:
     """What the CPU presets share: B = 8 per condition, a critic fed L2-normalised content vectors
     (docs/results.md, learnt 1), one torch thread (OpenMP spin-waiting against other processes on
     2 shared cores made steps ~6x slower), bf16 autocast and channels_last."""
@@ -348,13 +349,14 @@ def validate(config: FDNetRunConfig) -> None:
             raise ConfigError(f"data.synthetic_conditions_candidates: {synthetic_option_text(option)}: {exc}") from exc
     if options:
         if len(set(options)) != len(options):
-            raise ConfigError(f"data.synthetic_conditions_candidates: {list(config.data.synthetic_conditions_candidates)} "
-                              "names a setting twice")
+            raise ConfigError("data.synthetic_conditions_candidates: "
+                              f"{list(config.data.synthetic_conditions_candidates)} names a setting twice")
         if tuple(config.data.synthetic_conditions) not in options:
             raise ConfigError(
                 f"data.synthetic_conditions={list(config.data.synthetic_conditions)} is not among "
-                f"data.synthetic_conditions_candidates={list(config.data.synthetic_conditions_candidates)} (it is what a "
-                "run without a validation pair uses); add it, or set data.synthetic_conditions_candidates=[]")
+                f"data.synthetic_conditions_candidates={list(config.data.synthetic_conditions_candidates)} "
+                "(it is what a run without a validation pair uses); add it, or set "
+                "data.synthetic_conditions_candidates=[]")
         if config.model.content_head not in ("trunk_residual", "trunk_projection"):
             raise ConfigError("data.synthetic_conditions_candidates: choosing needs model.content_head=trunk_residual "
                               "or trunk_projection (it scores the head's closed-form start); set "
@@ -376,11 +378,13 @@ def validate(config: FDNetRunConfig) -> None:
     if config.loss.triplet_margin < 0 or config.loss.gradient_penalty_weight < 0:
         raise ConfigError("loss.triplet_margin and loss.gradient_penalty_weight must be >= 0")
     if config.loss.reconstruction_reduction not in ("mean", "sum"):
-        raise ConfigError(f"loss.reconstruction_reduction: {config.loss.reconstruction_reduction!r}; choose mean or sum")
+        raise ConfigError(f"loss.reconstruction_reduction: {config.loss.reconstruction_reduction!r}; "
+                          "choose mean or sum")
     if config.loss.triplet_vectors not in ("raw", "l2"):
         raise ConfigError(f"loss.triplet_vectors: {config.loss.triplet_vectors!r}; choose raw or l2")
     for name in ("lr", "critic_lr", "joint_lr_scale", "beta1", "beta2"):
-        check_finite(f"optim.{name}", getattr(config.optim, name), positive=name in ("lr", "critic_lr", "joint_lr_scale"))
+        check_finite(f"optim.{name}", getattr(config.optim, name),
+                     positive=name in ("lr", "critic_lr", "joint_lr_scale"))
     for name in ("reconstruction_weight", "appearance_weight", "adversarial_weight", "triplet_margin",
                  "gradient_penalty_weight", "structure_weight"):
         check_finite(f"loss.{name}", getattr(config.loss, name))
@@ -394,5 +398,5 @@ def validate(config: FDNetRunConfig) -> None:
         raise ConfigError(f"optim.beta1/beta2 must lie in [0, 1), got {config.optim.beta1}, {config.optim.beta2}")
 
 
-__all__ = ["ABLATION_SWITCHES", "FDNetRunConfig", "FDNetDataConfig", "DataConfig", "ScheduleConfig", "LossConfig", "OptimConfig", "RuntimeConfig",
-           "ValidationConfig", "PRESETS", "preset", "apply_yaml", "validate", "to_dict"]
+__all__ = ["ABLATION_SWITCHES", "FDNetRunConfig", "FDNetDataConfig", "DataConfig", "ScheduleConfig", "LossConfig",
+           "OptimConfig", "RuntimeConfig", "ValidationConfig", "PRESETS", "preset", "apply_yaml", "validate", "to_dict"]

@@ -124,9 +124,10 @@ def fit_projection(maps: list[np.ndarray], length: int, init: str = "mined_pairs
                    pca_power: float = 0.25, pair_sequence_length: int = 5,
                    pair_shrinkage: float = 1.0, names: list[str] | None = None) -> ProjectionFit:
     """The head's start from the training maps (one (N_c, D) float array per condition, frame
-    order; ``names`` the conditions', for messages). ``init``: ``pca`` (step 1 of the module docstring) or ``mined_pairs`` (steps 1 and 2).
-    With fewer training images than ``length`` the vector keeps its length and the last
-    columns are zero (the maps span at most one fewer directions than there are images)."""
+    order; ``names`` the conditions', for messages). ``init``: ``pca`` (step 1 of the module
+    docstring) or ``mined_pairs`` (steps 1 and 2). With fewer training images than ``length``
+    the vector keeps its length and the last columns are zero (the maps span at most one fewer
+    directions than there are images)."""
     maps = [np.asarray(m, dtype=np.float64).reshape(len(m), -1) for m in maps]
     total = sum(len(m) for m in maps)
     if total < 3:

@@ -39,7 +39,8 @@ class FDNetDescriptor(Descriptor):
     def __init__(self, checkpoint: str | Path | None = None, device: str | None = "auto", bf16: bool | None = False,
                  batch_size: int = 256, compile: bool = False) -> None:
         if checkpoint is None:
-            raise NotAvailableError("method 'fdnet' needs a trained run: --checkpoint RUN_DIR (make one with `fdnet train`)")
+            raise NotAvailableError("method 'fdnet' needs a trained run: --checkpoint RUN_DIR "
+                                    "(make one with `fdnet train`)")
         import torch
 
         from fdnet.backbones import bf16_native, resolve_device

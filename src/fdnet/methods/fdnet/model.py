@@ -194,7 +194,8 @@ def validate_architecture(config: FDNetConfig) -> None:
         for block in candidates:
             if block != config.backbone_block:
                 try:
-                    validate_architecture(dataclasses.replace(config, backbone_block=block, backbone_block_candidates=()))
+                    validate_architecture(dataclasses.replace(config, backbone_block=block,
+                                                              backbone_block_candidates=()))
                 except ConfigError as exc:
                     raise ConfigError(f"model.backbone_block_candidates: block {block}: {exc}") from exc
     if config.content_head not in CONTENT_HEADS:
@@ -208,7 +209,8 @@ def validate_architecture(config: FDNetConfig) -> None:
             raise ConfigError(f"model.residual_init: {config.residual_init!r}; choose zero or condition_means")
     if config.content_head == "trunk_projection":
         if config.backbone == "none":
-            raise ConfigError("model.content_head=trunk_projection needs a model.backbone (it projects the trunk's map)")
+            raise ConfigError("model.content_head=trunk_projection needs a model.backbone "
+                              "(it projects the trunk's map)")
         if config.projection_init not in PROJECTION_INITS:
             raise ConfigError(f"model.projection_init: {config.projection_init!r}; choose one of "
                               f"{', '.join(PROJECTION_INITS)}")

@@ -28,14 +28,17 @@ class DomainBalancedSampler:
         names = list(names) if names is not None else [str(i) for i in range(len(sizes))]
         if len(sizes) < 2:
             raise ConfigError(
-                f"FDNet needs images of at least two conditions (domains) to train; got {len(sizes)} ({', '.join(names) or 'none'})"
+                f"FDNet needs images of at least two conditions (domains) to train; got {len(sizes)} "
+                f"({', '.join(names) or 'none'})"
             )
         if batch_per_domain < 2:
-            raise ConfigError(f"data.batch_per_domain must be >= 2 (batch-hard triplets need a positive), got {batch_per_domain}")
+            raise ConfigError("data.batch_per_domain must be >= 2 (batch-hard triplets need a positive), "
+                              f"got {batch_per_domain}")
         for name, size in zip(names, sizes):
             if size < batch_per_domain:
                 raise ConfigError(
-                    f"condition {name!r} has {size} training images, fewer than data.batch_per_domain = {batch_per_domain}"
+                    f"condition {name!r} has {size} training images, fewer than "
+                    f"data.batch_per_domain = {batch_per_domain}"
                 )
         self.sizes = [int(s) for s in sizes]
         self.batch_per_domain = int(batch_per_domain)

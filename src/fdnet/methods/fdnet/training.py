@@ -147,9 +147,9 @@ class FDNetTraining(TrainingMethod):
 
             m = self.config.model
             fit = fit_projection([x.flatten(1).cpu().numpy() for x in inputs], m.vector_length,
-                                 init=m.projection_init, pca_dims=m.projection_pca_dims, pca_power=m.projection_pca_power,
-                                 pair_sequence_length=m.pair_sequence_length, pair_shrinkage=m.pair_shrinkage,
-                                 names=list(self.data.names))
+                                 init=m.projection_init, pca_dims=m.projection_pca_dims,
+                                 pca_power=m.projection_pca_power, pair_sequence_length=m.pair_sequence_length,
+                                 pair_shrinkage=m.pair_shrinkage, names=list(self.data.names))
             head.set_start(fit.mean, fit.projection)
             self.projection_fit = fit.report
             self.log(f"content head starts in closed form ({m.projection_init}): "
@@ -311,7 +311,8 @@ class FDNetTraining(TrainingMethod):
         total.backward()
         # False when the loss is not finite here or on another rank: every rank stops at this step
         if not self.distributed.average_gradients(self.opt_autoencoder, total):
-            raise FloatingPointError(f"loss became {loss_text(total)} at step {step}; lower optim.lr or the loss weights")
+            raise FloatingPointError(f"loss became {loss_text(total)} at step {step}; lower optim.lr or the loss "
+                                     "weights")
         self.opt_autoencoder.step()
         return out
 

@@ -113,8 +113,8 @@ class NetVLADTraining(TrainingMethod):
         self.maps = {c: self._trunk_maps(images) for c, images in zip(data.names, data.images)}
         self.all_maps = torch.cat([self.maps[c] for c in self.conditions])
         self.log(f"NetVLAD: {len(self.frame_ids)} frames x {len(self.conditions)} conditions "
-                 f"({', '.join(self.conditions)}) on {self.device}, trunk maps {tuple(self.all_maps.shape[1:])} cached in "
-                 f"{time.perf_counter() - t_prep:.0f} s")
+                 f"({', '.join(self.conditions)}) on {self.device}, trunk maps {tuple(self.all_maps.shape[1:])} "
+                 f"cached in {time.perf_counter() - t_prep:.0f} s")
         parameters = [p for p in self.network.parameters() if p.requires_grad]
         self.optimizer = make_optimizer(parameters, config.optim)
         self.cache: dict[str, np.ndarray] = {}
