@@ -469,15 +469,6 @@ def shared_verifier(settings: VerificationSettings) -> Verifier:
     return verifier
 
 
-def verification_stats() -> dict:
-    """Totals over the shared verifiers: seconds describing and matching, images, pairs."""
-    total = {"seconds_describe": 0.0, "seconds_match": 0.0, "images_described": 0, "pairs_verified": 0}
-    for verifier in _SHARED.values():
-        for key in total:
-            total[key] += verifier.stats[key]
-    return total
-
-
 def _verified_score(candidates, **values):
     """``verified`` as a score: the inlier count of the best candidate (after re-ranking the
     top-K by inliers when ``rerank``), and that candidate as the match."""

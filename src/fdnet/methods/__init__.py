@@ -9,7 +9,6 @@ a trainer); inference modules never import ``training``, and importing this modu
 
 from __future__ import annotations
 
-import importlib
 from pathlib import Path
 
 from fdnet.errors import ConfigError
@@ -20,14 +19,6 @@ def trained_packages() -> dict[str, str]:
     from fdnet.descriptors.registry import all_specs
 
     return {s.name: s.package for s in all_specs() if s.trained}
-
-
-def method_module(method: str, part: str):
-    """``fdnet.methods.<method>.<part>`` (part: config, model, descriptor, training)."""
-    packages = trained_packages()
-    if method not in packages:
-        raise ConfigError(f"unknown trained method {method!r}; available: {', '.join(packages)}")
-    return importlib.import_module(f"{packages[method]}.{part}")
 
 
 def load_method_config(run_dir, cls, method: str):

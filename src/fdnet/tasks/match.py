@@ -225,13 +225,6 @@ def retrieval_pairs(indices, query_names, ref_names, top_k: int, decision=None, 
                 yield query_names[q], ref_names[i]
 
 
-def write_matches(out, indices, scores, query_paths, ref_paths, top_k: int, decision=None, accepted=None) -> None:
-    """The ranked-candidates CSV (:func:`matches_text`), written atomically."""
-    from fdnet.io import atomic_write_text
-
-    atomic_write_text(out, matches_text(indices, scores, query_paths, ref_paths, top_k, decision, accepted))
-
-
 def decision_columns(decision=None, accepted=None) -> list[str]:
     """The columns a decision adds to a ranked-candidates CSV (``fdnet match``, ``database
     query``): ``acceptance_score`` with a rule's decision, ``accepted`` with a calibrated one."""

@@ -283,22 +283,16 @@ class PlaceDatabase:
             positions: Sequence[tuple[float, float] | None] | np.ndarray | None = None, *,
             metadata: Sequence[dict | None] | None = None, fingerprint: str | None = None,
             allow_duplicates: bool = False) -> AddResult:
-        """Store a batch of places in one transaction: all of it is added or none.
+        """Store a batch of places in one transaction: all of it is added or none (:meth:`add_batches`
+        of one chunk).
 
         ``fingerprint`` is that of the descriptor that made ``vectors``; a different one is
         refused (another model's vectors are not comparable). Names already in the database are
         skipped and reported in the result unless ``allow_duplicates``. Non-finite vectors are
         refused (a NaN would be stored and never found).
         """
-        batch = self._prepare(vectors, names, positions, metadata, fingerprint)
-        if not batch["names"]:
-            with _sqlite_errors(self.path, "reading the data version"):
-                version = self._conn.execute("SELECT data_version FROM fdnet_database").fetchone()[0]
-            return AddResult(0, [], len(self), int(version))
-        with _sqlite_errors(self.path, "adding places"):
-            with _transaction(self._conn, "IMMEDIATE") as conn:
-                self._check_same_database(conn)
-                return self._insert(conn, batch, allow_duplicates)
+        return self.add_batches([(vectors, names, positions, metadata)], fingerprint=fingerprint,
+                                allow_duplicates=allow_duplicates)
 
     def add_batches(self, batches: Iterable, *, fingerprint: str | None = None,
                     allow_duplicates: bool = False) -> AddResult:
