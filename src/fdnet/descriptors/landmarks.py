@@ -44,6 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fdnet.data.images import to_grey
 from fdnet.descriptors.base import Descriptor
 from fdnet.errors import ConfigError, NotAvailableError, invalid_settings_are_config_errors
 
@@ -97,8 +98,7 @@ class ProposalGenerator:
             e = self._forest.detectEdges(np.ascontiguousarray(image, dtype=np.float32))
             o = self._forest.computeOrientation(e)
             return self._forest.edgesNms(e, o), o
-        grey = np.ascontiguousarray(image[..., 0] * 0.299 + image[..., 1] * 0.587 + image[..., 2] * 0.114,
-                                    dtype=np.float32)
+        grey = np.ascontiguousarray(to_grey(image), dtype=np.float32)
         blurred = cv2.GaussianBlur(grey, (0, 0), 1.0)
         gx = cv2.Sobel(blurred, cv2.CV_32F, 1, 0, ksize=3)
         gy = cv2.Sobel(blurred, cv2.CV_32F, 0, 1, ksize=3)
