@@ -10,6 +10,7 @@ from fdnet.errors import DataError
 from fdnet.metrics import (
     RECALL_OVER_QUERIES,
     VPRBENCH,
+    Accepted,
     evaluate_retrieval,
     evaluate_similarity,
     pr_curve_over_queries,
@@ -206,17 +207,16 @@ def test_acceptance_scores_replace_the_best_match_score_but_not_the_ranking():
     # a rule that trusts q1's match least and vouches for q1's 2nd candidate (its true reference 1)
     score = np.array([0.9, 0.1, 0.7, 0.6])
     match = np.array([0, 1, 2, 3])
-    m = evaluate_retrieval(idx, top, gt, RECALL_OVER_QUERIES, acceptance_scores=score, accepted_matches=match,
-                           acceptance="test")
+    m = evaluate_retrieval(idx, top, gt, RECALL_OVER_QUERIES, accepted=Accepted(score, match, "test"))
     assert m.acceptance == "test" and m.to_dict()["acceptance"] == "test"
     assert m.recall_at_100_precision == 1.0 and m.recall_at_99_precision == 1.0 and m.auc_pr == pytest.approx(1.0)
     assert m.recall_at_n[1] == 0.75 and m.top1_accuracy == 0.75  # ranking unchanged
     # rejected queries (-inf) are never accepted: recall stops at 3/4
     score[1] = -np.inf
-    m = evaluate_retrieval(idx, top, gt, RECALL_OVER_QUERIES, acceptance_scores=score, accepted_matches=match)
+    m = evaluate_retrieval(idx, top, gt, RECALL_OVER_QUERIES, accepted=Accepted(score, match))
     assert m.recall_at_100_precision == pytest.approx(0.75) and m.curve.recall.max() == pytest.approx(0.75)
     # VPR-Bench puts every query on the curve: the rejected one sorts last
-    m = evaluate_retrieval(idx, top, gt, VPRBENCH, acceptance_scores=score, accepted_matches=match)
+    m = evaluate_retrieval(idx, top, gt, VPRBENCH, accepted=Accepted(score, match))
     assert m.recall_at_100_precision == pytest.approx(1.0)
 
 
@@ -224,9 +224,8 @@ def test_acceptance_scores_must_be_one_per_query_and_not_nan():
     s, gt = _case_a()
     idx, top = top_k_of_matrix(s, 5)
     with pytest.raises(DataError, match="one value per query"):
-        evaluate_retrieval(idx, top, gt, acceptance_scores=np.zeros(3), accepted_matches=np.zeros(3, int))
+        evaluate_retrieval(idx, top, gt, accepted=Accepted(np.zeros(3), np.zeros(3, int)))
     with pytest.raises(DataError, match="NaN"):
-        evaluate_retrieval(idx, top, gt, acceptance_scores=np.array([1, np.nan, 0, 0]),
-                           accepted_matches=np.zeros(4, int))
+        evaluate_retrieval(idx, top, gt, accepted=Accepted(np.array([1, np.nan, 0, 0]), np.zeros(4, int)))
     with pytest.raises(DataError, match="go together"):
-        evaluate_retrieval(idx, top, gt, acceptance_scores=np.zeros(4))
+        evaluate_retrieval(idx, top, gt, accepted=Accepted(np.zeros(4), None))

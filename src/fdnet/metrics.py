@@ -253,16 +253,26 @@ def recall_at_n(correct_topk: np.ndarray, ns=DEFAULT_NS, over: np.ndarray | None
 
 
 # ---------------------------------------------------------------------------- protocols
+@dataclass(frozen=True)
+class Accepted:
+    """What an acceptance rule named ``rule`` made of each query's candidates: one score per query
+    (``scores``, (Q,); -inf = rejected) and the reference index it vouches for (``matches``, (Q,))."""
+
+    scores: np.ndarray | None
+    matches: np.ndarray | None
+    rule: str = "raw"
+
+
 def evaluate_retrieval(retrieved: np.ndarray, scores: np.ndarray, ground_truth: GroundTruth,
                        protocol: str = RECALL_OVER_QUERIES, thresholds: int | None = None,
-                       ns=DEFAULT_NS, acceptance_scores: np.ndarray | None = None,
-                       accepted_matches: np.ndarray | None = None, acceptance: str = "raw") -> Metrics:
+                       ns=DEFAULT_NS, accepted: Accepted | None = None) -> Metrics:
     """All metrics from ranked candidates: ``retrieved``/``scores`` (Q, k) best first, k >= max(ns)
     (or all references). ``thresholds`` applies to ``recall-over-queries`` only.
 
-    ``acceptance_scores`` (Q,) and ``accepted_matches`` (Q,) reference indices, named
-    ``acceptance``: the PR curve thresholds these scores, and a query is correct when its accepted
+    ``accepted``: the PR curve thresholds its scores, and a query is correct when its accepted
     match is (None: the best-match similarity and the best match, rule ``raw``)."""
+    acceptance_scores, accepted_matches = (None, None) if accepted is None else (accepted.scores, accepted.matches)
+    acceptance = "raw" if accepted is None else accepted.rule
     if protocol not in PROTOCOLS:
         raise DataError(f"unknown protocol {protocol!r}; choose one of {', '.join(PROTOCOLS)}")
     retrieved = np.asarray(retrieved)

@@ -53,15 +53,14 @@ def evaluate_decisions(decisions: Sequence[FrameDecision], ground_truth, thresho
     matches are cut to the places searchable for it (its own last frames are no revisit); frames
     with nothing to search are left out (they can neither find nor miss anything).
     """
-    from fdnet.metrics import RECALL_OVER_QUERIES, evaluate_retrieval
+    from fdnet.metrics import RECALL_OVER_QUERIES, Accepted, evaluate_retrieval
 
     evaluated, truth = _evaluable(decisions, ground_truth)
     score = np.array([d.score for d in evaluated], dtype=np.float64)
     match = np.array([d.match for d in evaluated], dtype=np.int64)
     metrics = evaluate_retrieval(np.array([[d.best] for d in evaluated]),
                                  np.array([[d.best_similarity] for d in evaluated]), truth,
-                                 protocol=RECALL_OVER_QUERIES, ns=(1,), acceptance_scores=score,
-                                 accepted_matches=match, acceptance=rule)
+                                 protocol=RECALL_OVER_QUERIES, ns=(1,), accepted=Accepted(score, match, rule))
     accepted = score >= float(threshold)
     correct = truth.correct_mask(match[:, None])[:, 0]
     true_closures = int((accepted & correct).sum())

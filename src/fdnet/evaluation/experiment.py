@@ -43,6 +43,7 @@ from fdnet.matching.similarity import similarity_matrix, top_k
 from fdnet.metrics import (
     DEFAULT_NS,
     RECALL_OVER_QUERIES,
+    Accepted,
     Metrics,
     evaluate_retrieval,
     top_k_of_matrix,
@@ -171,10 +172,9 @@ def _decide_and_score(retrieved, scores, gt, scoring: ScoringSettings, candidate
 
 def _metrics(retrieved, scores, gt, scoring: ScoringSettings, decision: Decision | None = None
              ) -> dict[str, Metrics]:
-    accept = {} if decision is None else {"acceptance_scores": decision.score, "accepted_matches": decision.match,
-                                          "acceptance": decision.rule}
+    accepted = None if decision is None else Accepted(decision.score, decision.match, decision.rule)
     return {p: evaluate_retrieval(retrieved, scores, gt, p, thresholds=scoring.thresholds
-                                  if p == RECALL_OVER_QUERIES else None, ns=scoring.ns, **accept)
+                                  if p == RECALL_OVER_QUERIES else None, ns=scoring.ns, accepted=accepted)
             for p in scoring.protocols}
 
 
