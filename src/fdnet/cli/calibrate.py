@@ -206,9 +206,9 @@ def run(args) -> int:
         log(f"calibrating {descriptor.name} with rule {spec.name} for precision {args.target_precision:g} on "
             f"{split.description}: {len(split.query)} queries x {len(split.reference)} references")
         calibration = calibrate(descriptor, split, spec, args.target_precision, args.sequence_length,
-                                measured_on=measured_on,
                                 pipeline=PipelineSettings(args.batch_size, args.workers, progress=True), log=log,
                                 choose=choose)
+        calibration.measured_on.update(measured_on)  # where the data came from, beside what was measured
         print(f"{descriptor.name}, rule {calibration.rule}: threshold {calibration.threshold:.6g} reaches precision "
               f"{calibration.precision:.3f} at recall {calibration.recall:.3f} ({calibration.accepted} of "
               f"{calibration.num_queries} queries accepted; target {calibration.target_precision:g})")

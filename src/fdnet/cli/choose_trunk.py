@@ -46,6 +46,7 @@ def run(args) -> int:
     from fdnet.cli.common import check_pipeline_arguments, set_threads
     from fdnet.data.dataset import RouteDataset, parse_frame_range
     from fdnet.data.split import aligned_split
+    from fdnet.descriptors.pipeline import PipelineSettings
     from fdnet.errors import ConfigError
     from fdnet.io import ensure_writable
     from fdnet.methods.fdnet.trunk_choice import DEFAULT_CANDIDATES, choose_trunk, parse_candidates, write_choice
@@ -72,8 +73,7 @@ def run(args) -> int:
     log = logging.getLogger(__name__).info  # standard error, as the library's messages (fdnet.logs)
     log(f"{len(candidates)} candidates on {split.description}")
     choice = choose_trunk(split, candidates, tuple(args.input_size), whitened=args.whitened, options=options,
-                          batch_size=args.batch_size, workers=args.workers,
-                          log=log)
+                          pipeline=PipelineSettings(args.batch_size, args.workers), log=log)
     if args.frames:
         choice.validation = f"{choice.validation}, frames {args.frames}"
     print(f"{'candidate':<22} {'dim':>6} {'R@1':>6} {'R@5':>6} {'R@100P':>7} {'AUC-PR':>7}")

@@ -29,8 +29,8 @@ from fdnet.version import __version__
 
 
 def calibrate(descriptor, split, spec: AcceptanceSpec | str, target_precision: float, sequence_length: int = 1,
-              measured_on: dict | None = None, pipeline: PipelineSettings | None = None,
-              log: Callable[[str], None] | None = None, choose: dict[str, Sequence] | None = None) -> Calibration:
+              pipeline: PipelineSettings | None = None, log: Callable[[str], None] | None = None,
+              choose: dict[str, Sequence] | None = None) -> Calibration:
     """Run ``descriptor`` on ``split`` (an :class:`~fdnet.data.split.EvaluationSplit`), score every
     query with ``spec`` and choose the threshold reaching ``target_precision``. ``pipeline``: how
     images are decoded and described (default: batches of 64, no progress bar).
@@ -38,7 +38,9 @@ def calibrate(descriptor, split, spec: AcceptanceSpec | str, target_precision: f
     ``choose`` (e.g. ``{"radius": [0, 1, 2, 3, 5]}``) also chooses rule settings on this split:
     every combination is scored on the same candidates (retrieved once, as deep as the deepest
     needs) and the one whose threshold reaches the target with the largest recall is kept (ties:
-    the first listed); the recall of every combination is recorded in ``measured_on``."""
+    the first listed); the recall of every combination is recorded in the calibration's
+    ``measured_on`` (with the split, its ground truth and the sequence length; a caller adds
+    where the data came from)."""
     target = check_target(target_precision)
     sequence_length = check_sequence_length(sequence_length)
     if isinstance(spec, str):
@@ -76,7 +78,6 @@ def calibrate(descriptor, split, spec: AcceptanceSpec | str, target_precision: f
              "sequence_length": int(sequence_length)}
     if choose:
         where["chosen_from"] = [{**values, "recall": t.recall, "precision": t.precision} for values, t in tried]
-    where.update(measured_on or {})
     return Calibration(
         rule=spec.name, settings=spec.settings, threshold=chosen.threshold, target_precision=target,
         precision=chosen.precision, recall=chosen.recall, accepted=chosen.accepted,

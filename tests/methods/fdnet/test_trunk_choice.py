@@ -8,6 +8,7 @@ import yaml
 from fdnet.data.dataset import RouteDataset
 from fdnet.data.split import aligned_split
 from fdnet.descriptors import create
+from fdnet.descriptors.pipeline import PipelineSettings
 from fdnet.errors import ConfigError
 from fdnet.methods.fdnet.trunk_choice import (
     Candidate,
@@ -47,11 +48,11 @@ def route(tmp_path):
 def test_choice_is_the_best_candidate_and_trunk_methods_read_it(route, tmp_path):
     split = aligned_split(RouteDataset.from_folder(route), "day", "night", 0, None, None)
     candidates = parse_candidates("lite0:4,lite0:7,lite1:8")
-    choice = choose_trunk(split, candidates, input_size=(32, 64), options={"bf16": False}, workers=0)
+    choice = choose_trunk(split, candidates, input_size=(32, 64), options={"bf16": False},
+                          pipeline=PipelineSettings(workers=0))
     assert [(s["backbone"], s["block"]) for s in choice.scores] == [(c.backbone, c.block) for c in candidates]
     assert choice.chosen == candidates[pick_best(choice.scores)]
     # each score is what evaluating that trunk alone gives
-    from fdnet.descriptors.pipeline import PipelineSettings
     from fdnet.evaluation.experiment import evaluate_method
 
     alone = evaluate_method(create("trunk", backbone="efficientnet-lite1", block=8, input_size=[32, 64], bf16=False),
@@ -70,7 +71,7 @@ def test_choice_is_the_best_candidate_and_trunk_methods_read_it(route, tmp_path)
 def test_whitened_candidates_learn_from_the_pairs_references(route):
     split = aligned_split(RouteDataset.from_folder(route), "day", "night", 0, None, None)
     choice = choose_trunk(split, parse_candidates("lite0:7"), input_size=(32, 64), whitened=True,
-                          options={"dim": 3, "bf16": False}, workers=0)
+                          options={"dim": 3, "bf16": False}, pipeline=PipelineSettings(workers=0))
     assert choice.method == "trunk-whitened" and choice.scores[0]["dim"] == 3
     assert choice.scores[0]["fitted_on"] == "reference images (6)"
     with pytest.raises(ConfigError, match="block is what is being chosen"):

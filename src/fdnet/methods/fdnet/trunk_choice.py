@@ -92,13 +92,14 @@ class TrunkChoice:
 
 
 def choose_trunk(split, candidates: Sequence[Candidate], input_size=(128, 256), whitened: bool = False,
-                 options: dict | None = None, batch_size: int = 64, workers: int | None = None,
-                 log: Callable[[str], None] | None = None, create: Callable | None = None) -> TrunkChoice:
+                 options: dict | None = None, pipeline=None, log: Callable[[str], None] | None = None,
+                 create: Callable | None = None) -> TrunkChoice:
     """Evaluate every candidate on ``split`` (an :class:`~fdnet.data.split.EvaluationSplit`, the
     validation pair) and choose by :data:`RULE`. ``options`` go to every candidate's method
     (``device``, and for ``trunk-whitened`` ``dim``, ``power``, ``fit``, ``fit_frames``: without
-    ``fit`` it learns from the split's reference images). ``create`` builds a method (default
-    :func:`fdnet.descriptors.create`)."""
+    ``fit`` it learns from the split's reference images). ``pipeline``: how images are decoded
+    and described (default: batches of 64; every candidate shows a progress bar). ``create``
+    builds a method (default :func:`fdnet.descriptors.create`)."""
     from fdnet.descriptors.pipeline import PipelineSettings
     from fdnet.evaluation.experiment import evaluate_method
 
@@ -113,13 +114,15 @@ def choose_trunk(split, candidates: Sequence[Candidate], input_size=(128, 256), 
                               "not a method setting here")
     from fdnet.progress import progress_bar
 
+    pipeline = pipeline or PipelineSettings()
+    describing = PipelineSettings(pipeline.batch_size, pipeline.workers, progress=True)
     scores = []
     # every candidate describes the whole pair: bars per candidate and over them, with the time left
     bar = progress_bar(total=len(candidates), desc="choosing the trunk", unit="candidate")
     for candidate in candidates:
         descriptor = create(method, backbone=candidate.backbone, block=candidate.block,
                             input_size=list(input_size), **options)
-        result = evaluate_method(descriptor, split, pipeline=PipelineSettings(batch_size, workers, progress=True))
+        result = evaluate_method(descriptor, split, pipeline=describing)
         bar.update(1)
         m = result.to_dict(include_curve=False)
         score = {"backbone": candidate.backbone, "block": candidate.block, "dim": int(descriptor.dim),
