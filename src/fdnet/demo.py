@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import inspect
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -35,13 +36,27 @@ def demo_frames(num_frames: int) -> tuple[int, int, str]:
     return train_end, val_end, f"{val_end}:{num_frames}"
 
 
-def run_demo(out, *, num_frames: int = 400, max_minutes: float = 9.0, preset: str = "cpu",
-             methods: str = DEFAULT_METHODS, seed: int = 0, resume: bool = False,
-             say: Callable[[str], None] = lambda line: None) -> dict:
+@dataclass(frozen=True)
+class DemoSettings:
+    """``fdnet demo``'s settings: frames per condition of the synthetic route, the training's
+    time budget, preset and seed, the methods evaluated, and whether to resume the run."""
+
+    num_frames: int = 400
+    max_minutes: float = 9.0
+    preset: str = "cpu"
+    methods: str = DEFAULT_METHODS
+    seed: int = 0
+    resume: bool = False
+
+
+def run_demo(out, settings: DemoSettings | None = None, say: Callable[[str], None] = lambda line: None) -> dict:
     """Synthesise, train and evaluate into the folder ``out`` (``route/``, ``fdnet-run/``,
     ``results-QUERY-summer.json``, ``plots-QUERY-summer/``); returns {query: [MethodResult]}."""
     from fdnet.io import ensure_writable
 
+    settings = settings or DemoSettings()
+    num_frames, max_minutes, preset, seed, resume = (settings.num_frames, settings.max_minutes, settings.preset,
+                                                     settings.seed, settings.resume)
     train_end, val_end, test = demo_frames(num_frames)
     out = Path(out)
     ensure_writable(out, what="demo output", directory=True)  # a file or read-only path: refused first
@@ -55,8 +70,8 @@ def run_demo(out, *, num_frames: int = 400, max_minutes: float = 9.0, preset: st
         f"--frames 0:{train_end} --max-minutes {max_minutes:g} --validate-reference summer --validate-query night "
         f"--validate-frames {train_end}:{val_end} --validate-tolerance 1 --set runtime.seed={seed}"
         + (" --resume" if resume else ""))
-    config = _train(route, run_dir, preset, train_end, val_end, max_minutes, seed, resume, say)
-    chosen = [m.strip() for m in methods.split(",") if m.strip()]
+    config = _train(route, run_dir, settings, say)
+    chosen = [m.strip() for m in settings.methods.split(",") if m.strip()]
     if config.model.backbone == "none":  # a preset whose encoders read pixels has no trunk to compare with
         chosen = [m for m in chosen if not m.startswith("trunk")]
     results = {}
@@ -66,7 +81,7 @@ def run_demo(out, *, num_frames: int = 400, max_minutes: float = 9.0, preset: st
             f"$ fdnet evaluate --data {route} --reference summer --query {query} --frames {test} --tolerance 1 "
             f"--method {','.join(chosen)} --checkpoint {run_dir}{fit} --json {out / f'results-{query}-summer.json'} "
             f"--plots {out / f'plots-{query}-summer'}")
-        results[query] = _evaluate(route, run_dir, query, test, chosen, train_end, out, say, seed)
+        results[query] = _evaluate(route, run_dir, query, chosen, settings, out, say)
     say(f"\ndemo finished in {(time.perf_counter() - started) / 60:.1f} min; results, plots and the trained run "
         f"are in {out}/")
     return results
@@ -81,13 +96,14 @@ def _synthesise(route: Path, num_frames: int, seed: int, say) -> None:
     say(f"wrote SYNTHETIC route to {dataset.root} ({counts} frames) in {time.perf_counter() - t0:.1f} s")
 
 
-def _train(route: Path, run_dir: Path, preset: str, train_end: int, val_end: int, max_minutes: float, seed: int,
-           resume: bool, say):
+def _train(route: Path, run_dir: Path, settings: DemoSettings, say):
     from fdnet import runs
     from fdnet.config import replace_dotted
     from fdnet.descriptors.registry import spec
 
     method = spec("fdnet")
+    train_end, val_end, _ = demo_frames(settings.num_frames)
+    preset, max_minutes, seed, resume = settings.preset, settings.max_minutes, settings.seed, settings.resume
     if resume:
         runs.check_run_state(run_dir, resume=True)
         config = runs.load_config(run_dir, method.config_class())
@@ -108,8 +124,8 @@ def _train(route: Path, run_dir: Path, preset: str, train_end: int, val_end: int
     return config
 
 
-def _evaluate(route: Path, run_dir: Path, query: str, test: str, methods: list[str], train_end: int, out: Path,
-              say, seed: int = 0) -> list:
+def _evaluate(route: Path, run_dir: Path, query: str, methods: list[str], settings: DemoSettings, out: Path,
+              say) -> list:
     from fdnet.decisions.acceptance import DEFAULT_ACCEPTANCE, parse_acceptance_list
     from fdnet.descriptors.pipeline import PipelineSettings
     from fdnet.descriptors.registry import create, descriptor_class
@@ -119,6 +135,8 @@ def _evaluate(route: Path, run_dir: Path, query: str, test: str, methods: list[s
     from fdnet.evaluation.splits import SplitSpec, build_split
     from fdnet.metrics import RECALL_OVER_QUERIES
 
+    train_end, _, test = demo_frames(settings.num_frames)
+    seed = settings.seed
     split = build_split(SplitSpec(route, "summer", query, frames=test, tolerance=1))
     given = {"checkpoint": str(run_dir), "fit": str(route), "fit_frames": f"0:{train_end}"}
     descriptors = []

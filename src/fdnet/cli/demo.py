@@ -24,8 +24,9 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from fdnet.demo import run_demo
+    from fdnet.demo import DemoSettings, run_demo
 
-    run_demo(args.out, num_frames=args.num_frames, max_minutes=args.max_minutes, preset=args.preset,
-             methods=args.method, seed=args.seed, resume=args.resume, say=lambda line: print(line, flush=True))
+    settings = DemoSettings(num_frames=args.num_frames, max_minutes=args.max_minutes, preset=args.preset,
+                            methods=args.method, seed=args.seed, resume=args.resume)
+    run_demo(args.out, settings, say=lambda line: print(line, flush=True))
     return 0
