@@ -192,6 +192,27 @@ def test_method_mode_several_methods_json_and_plots(tiny_method, route, tmp_path
     assert {"pr_curves.png", "similarity_tiny-pixels.png", "matches_tiny-pixels.png"} <= names
 
 
+def test_two_models_of_one_method_compare_side_by_side_under_labels(tiny_method, route, tmp_path, capsys):
+    """--method LABEL=METHOD names each row; each label takes its own options (here two sizes of
+    one stand-in method: two ONNX models or two runs are given the same way)."""
+    out = tmp_path / "labelled.json"
+    argv = ["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk", "--tolerance", "0",
+            "--method", f"small={tiny_method},large={tiny_method},raw", "--method-set", "small:size=4",
+            "--method-set", "large:size=8", "--threads", "1", "--json", str(out)]
+    assert main(argv) == 0
+    table = capsys.readouterr().out
+    assert "small" in table and "large" in table
+    results = json.loads(out.read_text())["results"]
+    assert [r["method"] for r in results] == ["small", "large", "raw"]
+    assert [r["settings"].get("method") for r in results] == [tiny_method, tiny_method, None]
+    assert [r["settings"]["input_size"] for r in results[:2]] == [[4, 4], [8, 8]]
+    for bad, message in ((f"raw={tiny_method}", "the label 'raw' is another method's name"),
+                         ("a b=raw", "a label is letters, digits"), ("x=nosuch", "unknown method 'nosuch'")):
+        err = _error(capsys, ["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk",
+                              "--method", bad])
+        assert err.startswith("fdnet evaluate: error: ") and message in err
+
+
 def test_methods_that_cannot_be_told_apart_are_refused(tiny_method, route, tmp_path, capsys):
     """A method named twice gave two identical rows under one name (the last --weights METHOD= for
     both); two values of one option for one method kept only one of them. Both are refused
@@ -200,7 +221,7 @@ def test_methods_that_cannot_be_told_apart_are_refused(tiny_method, route, tmp_p
     base = ["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk", "--json", str(out)]
     err = _error(capsys, [*base, "--method", f"{tiny_method},raw,{tiny_method}"])
     assert err.startswith("fdnet evaluate: error: --method names tiny-pixels more than once")
-    assert "fdnet table" in err and not out.exists()
+    assert "give each its own label" in err and not out.exists()
     (tmp_path / "a.onnx").write_bytes(b"a")
     (tmp_path / "b.onnx").write_bytes(b"b")
     err = _error(capsys, [*base, "--method", "onnx", "--weights", f"onnx={tmp_path / 'a.onnx'}",

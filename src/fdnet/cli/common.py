@@ -20,7 +20,9 @@ def add_method_arguments(parser: argparse.ArgumentParser, multiple: bool = False
     from fdnet.descriptors.registry import fitting_methods, trained_methods
 
     parser.add_argument("--method", required=required,
-                        help="descriptor method" + (" (comma-separated for several)" if multiple else "")
+                        help="descriptor method" + (" (comma-separated for several; LABEL=METHOD names a row, so "
+                                                    "two models of one method compare: a=onnx,b=onnx with "
+                                                    "--weights a=A.onnx --weights b=B.onnx)" if multiple else "")
                         + "; `fdnet methods` lists them")
     per_method = " (with several methods: METHOD=PATH, repeatable; a bare PATH goes to every method that takes one)"
     parser.add_argument("--checkpoint", action="append", default=[],
@@ -76,13 +78,27 @@ def _check_one_value(values, key: str, method: str | None, known_methods) -> Non
     given = list(dict.fromkeys(v.partition("=")[2] for v in map(str, values) if v.startswith(f"{method}=")))
     if len(given) > 1:
         raise ConfigError(f"--{key.replace('_', '-')} gives {method} {len(given)} values ({', '.join(given)}); one "
-                          "method takes one: evaluate each in its own command and merge the results with `fdnet table`")
+                          "method takes one: give each model its own label, e.g. --method a=onnx,b=onnx "
+                          "--weights a=A.onnx --weights b=B.onnx")
+
+
+def method_labels(args: argparse.Namespace) -> dict[str, str]:
+    """label -> method of the command's ``--method`` list (:func:`fdnet.descriptors.registry.method_entries`:
+    ``METHOD`` is its own label, ``LABEL=METHOD`` names a row); names it does not know are left
+    for the method's creation to refuse."""
+    labels = {}
+    for item in (getattr(args, "method", None) or "").split(","):
+        label, sep, method = item.strip().partition("=")
+        if label:
+            labels[label.strip()] = method.strip() if sep else label.strip()
+    return labels
 
 
 def method_options(args: argparse.Namespace, method: str | None = None) -> dict:
     """Keyword options for ``create(method, ...)`` from parsed arguments (YAML-typed values).
+    ``method`` is a method's name or its label in ``--method LABEL=METHOD``.
 
-    File options given as ``METHOD=PATH`` go to that method only; bare paths go to every method
+    File options given as ``LABEL=PATH`` go to that method only; bare paths go to every method
     whose constructor takes that option (so ``--method fdnet,sad --checkpoint RUN`` works).
     """
     import inspect
@@ -91,13 +107,14 @@ def method_options(args: argparse.Namespace, method: str | None = None) -> dict:
     from fdnet.descriptors.registry import available_methods, descriptor_class
     from fdnet.errors import ConfigError
 
-    known = available_methods()
+    labels = method_labels(args)
+    known = {**{name: name for name in available_methods()}, **labels}
 
     def takes(name: str) -> set:
-        return set(inspect.signature(descriptor_class(name).__init__).parameters)
+        return set(inspect.signature(descriptor_class(known.get(name, name)).__init__).parameters)
 
     accepted = takes(method) if method is not None else None
-    requested = [m.strip() for m in (getattr(args, "method", None) or "").split(",") if m.strip() in known]
+    requested = [label for label, kind in labels.items() if kind in available_methods()]
     for key in PER_METHOD_OPTIONS:
         for value in getattr(args, key, None) or []:
             prefix, sep, _ = str(value).partition("=")
@@ -129,14 +146,17 @@ def method_options(args: argparse.Namespace, method: str | None = None) -> dict:
 
 
 def create_descriptor(name: str, args: argparse.Namespace):
-    """Method ``name`` with its options from ``args`` and the command's ``--device`` (which goes
-    to the torch methods only; see :func:`fdnet.descriptors.create`)."""
+    """Method ``name`` (or ``LABEL=METHOD``, or a label of ``--method``) with its options from
+    ``args`` and the command's ``--device`` (which goes to the torch methods only; see
+    :func:`fdnet.descriptors.create`)."""
     from fdnet.descriptors import create
 
-    options = method_options(args, name)
+    label, sep, kind = name.partition("=")
+    label, kind = (label.strip(), kind.strip()) if sep else (name, method_labels(args).get(name, name))
+    options = method_options(args, label)
     if getattr(args, "device", None) is not None:
         options.setdefault("device", args.device)
-    return create(name, **options)
+    return create(kind, **options)
 
 
 def add_decision_arguments(parser, calibration_help: str) -> None:

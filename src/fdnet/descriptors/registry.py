@@ -148,6 +148,41 @@ def all_specs() -> list[MethodSpec]:
     return list(_METHODS.values())
 
 
+#: what a row label may be made of (``--method LABEL=METHOD``)
+LABEL_PATTERN = r"[A-Za-z0-9_.+-]+"
+
+
+def method_entries(text: str | None) -> list[tuple[str, str]]:
+    """``(label, method)`` of each entry of a comma-separated ``--method`` list: ``METHOD`` (its
+    label is its name) or ``LABEL=METHOD``, a name of one's own for a row, so that two models of one
+    method compare side by side (``--method a=onnx,b=onnx --weights a=A.onnx --weights b=B.onnx``,
+    ``--method old=fdnet,new=fdnet --checkpoint old=RUN1 --checkpoint new=RUN2``). A label is a
+    method's key for its options (``--weights LABEL=...``, ``--method-set LABEL:KEY=VALUE``).
+    Unknown methods, bad labels and a label given twice are refused."""
+    import re
+
+    entries, seen = [], set()
+    for item in (text or "").split(","):
+        item = item.strip()
+        if not item:
+            continue
+        label, sep, method = item.partition("=")
+        label, method = (label.strip(), method.strip()) if sep else (item, item)
+        if not re.fullmatch(LABEL_PATTERN, label):
+            raise ConfigError(f"--method {item!r}: a label is letters, digits and _ . + - (LABEL=METHOD)")
+        if method not in _METHODS:
+            raise ConfigError(f"unknown method {method!r}; available: {', '.join(_METHODS)}")
+        if sep and label in _METHODS and label != method:
+            raise ConfigError(f"--method {item!r}: the label {label!r} is another method's name; choose another")
+        if label in seen:
+            raise ConfigError(f"--method names {label} more than once: its rows would be one method under one name "
+                              "with one set of options, not told apart; give each its own label "
+                              "(--method a=onnx,b=onnx --weights a=A.onnx --weights b=B.onnx)")
+        seen.add(label)
+        entries.append((label, method))
+    return entries
+
+
 def available_methods() -> dict[str, str]:
     """Method name -> one-line summary."""
     return {name: s.summary for name, s in _METHODS.items()}

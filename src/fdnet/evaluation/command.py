@@ -204,46 +204,48 @@ def _evaluate_methods(settings: EvaluateSettings, acceptance, log) -> list:
         raise ConfigError("--method needs --data DIR (one sub-folder per condition)")
     check_pipeline_settings(settings.batch_size, settings.workers)
     device = check_device_spec(settings.device) if settings.device is not None else None
-    names = method_names(settings.method)
+    entries = method_names(settings.method)
+    names = [label for label, _ in entries]
     split = _split(settings)
     results = []
     with torch_threads(settings.threads or os.cpu_count() or 1):
-        descriptors = [_create_descriptor(name, settings.method_options, device) for name in names]  # fail fast
+        descriptors = [_create_descriptor(entry, settings.method_options, device) for entry in entries]  # fail fast
         check_descriptors_held_out(descriptors, settings.data, [split.reference.name, split.query.name],
                                    settings.frames, settings.dataset_format, settings.split,
                                    settings.allow_training_frames)
         log(f"evaluating {', '.join(names)} on {split.description}: {len(split.query)} queries x "
             f"{len(split.reference)} references")
-        for descriptor in descriptors:
-            results.append(evaluate_method(
+        for (label, method), descriptor in zip(entries, descriptors):
+            result = evaluate_method(
                 descriptor, split, ScoringSettings((settings.protocol,), settings.thresholds, acceptance=acceptance),
                 PipelineSettings(settings.batch_size, settings.workers, progress=True),
-                sequence_length=settings.sequence_length, keep_similarity=bool(settings.plots), log=log))
+                sequence_length=settings.sequence_length, keep_similarity=bool(settings.plots), log=log)
+            if label != method:  # a row of its own name; the settings say which method made it
+                result.method = label
+                result.settings = {"method": method, **result.settings}
+            results.append(result)
     return results
 
 
-def method_names(text: str) -> list[str]:
-    """The names of a comma-separated ``--method`` list. A name given twice is refused: its two
-    rows would carry one name and one set of options (the last ``--weights METHOD=`` given), so
-    they could not be told apart."""
-    from fdnet.errors import ConfigError
+def method_names(text: str) -> list[tuple[str, str]]:
+    """``(label, method)`` of a comma-separated ``--method`` list
+    (:func:`fdnet.descriptors.registry.method_entries`): a label given twice is refused, since its
+    two rows could not be told apart; ``LABEL=METHOD`` names each row of one method
+    (``--method a=onnx,b=onnx``)."""
+    from fdnet.descriptors.registry import method_entries
 
-    names = [n.strip() for n in text.split(",") if n.strip()]
-    repeated = sorted({n for n in names if names.count(n) > 1})
-    if repeated:
-        raise ConfigError(f"--method names {', '.join(repeated)} more than once: its rows would be one method under "
-                          "one name with one set of options, not told apart; evaluate each model in its own command "
-                          "(each with its own --json) and merge the results with `fdnet table`")
-    return names
+    return method_entries(text)
 
 
-def _create_descriptor(name: str, method_options: MethodOptions, device: str | None):
+def _create_descriptor(entry: tuple[str, str], method_options: MethodOptions, device: str | None):
+    """Method ``entry`` = (label, method) with the options given for its label."""
     from fdnet.descriptors import create
 
-    options = dict((method_options(name) if callable(method_options) else method_options) or {})
+    label, method = entry
+    options = dict((method_options(label) if callable(method_options) else method_options) or {})
     if device is not None:
         options.setdefault("device", device)  # a --method-set device=... wins, as in every command
-    return create(name, **options)
+    return create(method, **options)
 
 
 def _recorded(settings: EvaluateSettings) -> dict:
