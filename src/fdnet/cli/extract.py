@@ -153,7 +153,7 @@ def _prepare(args, shards):
     set_threads(args.threads or shards.threads())
     options = {**descriptor_options(args, args.method, len(paths)), **method_options(args, args.method)}
     descriptor = create(args.method, device=args.device, **options)
-    shards.check_device(getattr(descriptor, "device", None))
+    shards.check_device(descriptor.device)
     return out_format, out, paths, root, descriptor
 
 
@@ -171,7 +171,7 @@ def _run(args, shards) -> int:
         summary = extract(descriptor, paths, out, batch_size=args.batch_size, workers=args.workers,
                           progress=not args.no_progress)
         written = " and ".join(summary["arrays"])
-    device = getattr(descriptor, "device", "cpu")
+    device = descriptor.device or "cpu"
     precision = "bf16" if getattr(descriptor, "bf16", False) else "fp32"
     processes = f"{shards.world_size} processes, " if shards.world_size > 1 else ""
     print(f"fdnet extract: {summary['images']} images -> {out} ({args.method}: {written}, "

@@ -87,7 +87,7 @@ class LoopClosureDetector:
         sequence_length = settings.sequence_length
         if sequence_length is None:  # a calibration's own, else single images
             sequence_length = int(calibration.sequence_length) if calibration is not None else 1
-        if getattr(descriptor, "needs_fit", False):
+        if descriptor.needs_fit:
             raise ConfigError(f"method {descriptor.name!r} must be given what it learns from (--fit DIR, or dbow's "
                               "--vocabulary) before it can describe frames online")
         self.descriptor = descriptor
@@ -226,16 +226,10 @@ class LoopClosureDetector:
         return self._vector(image, self.load(image))
 
     def _vector(self, image, array: np.ndarray) -> np.ndarray:
-        # A descriptor of vectors computed elsewhere finds them by the frame's path.
-        keyed = getattr(self.descriptor, "keyed_by_image", False) and isinstance(image, (str, os.PathLike))
-        if keyed:
-            self.descriptor._batch_paths = [image]
-        try:
-            with single_torch_thread():
-                return np.asarray(self.descriptor.describe(array[None]), dtype=np.float32)[0]
-        finally:
-            if keyed:
-                self.descriptor._batch_paths = None
+        # a descriptor of vectors computed elsewhere finds them by the frame's path
+        paths = [image] if isinstance(image, (str, os.PathLike)) else []
+        with single_torch_thread(), self.descriptor.images_of(paths):
+            return np.asarray(self.descriptor.describe(array[None]), dtype=np.float32)[0]
 
     def process(self, image, timestamp: float | None = None, name: str | None = None,
                 position: tuple[float, float] | None = None, new_segment: bool = False) -> Closure | None:
@@ -472,7 +466,7 @@ class LoopClosureDetector:
                               "image file; process frames by path (or give name=PATH)")
         candidates = Candidates(
             retrieved=np.asarray(ids, np.int64)[None], scores=np.asarray(scores, np.float64)[None],
-            similarity_ceiling=float(getattr(self.descriptor, "similarity_ceiling", 1.0)),
+            similarity_ceiling=float(self.descriptor.similarity_ceiling),
             reference_times=None if self._times is None else np.asarray(self._times[:searchable], np.float64),
             reference_positions=None if self._positions is None else np.asarray(self._positions[:searchable]),
             query_paths=[Path(name)] if needs_images else None,

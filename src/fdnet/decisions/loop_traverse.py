@@ -313,7 +313,7 @@ def _signals_of(paths, descriptor):
     """The pixel signals of a few frames, decoded as the descriptor gets them."""
     from fdnet.descriptors.pipeline import iter_image_batches
 
-    uint8 = bool(getattr(descriptor, "accepts_uint8", False))
+    uint8 = descriptor.accepts_uint8
     for _, images in iter_image_batches(paths, descriptor.input_size, len(paths), uint8=uint8, workers=0):
         return frame_signals(images)
     raise DataError("no frame to read")

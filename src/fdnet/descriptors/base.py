@@ -11,6 +11,7 @@ refuses it instead of silently computing the wrong thing.
 
 from __future__ import annotations
 
+import contextlib
 from abc import ABC, abstractmethod
 from pathlib import Path
 from typing import ClassVar, Sequence
@@ -84,6 +85,14 @@ class Descriptor(ABC):
     #: loads: a quarter of the bytes, converted on the descriptor's device). The torch
     #: descriptors do; float32 in [0, 1] is always accepted.
     accepts_uint8: ClassVar[bool] = False
+    #: True when ``describe`` reads vectors computed elsewhere, by each image's path: callers
+    #: describe a batch inside :meth:`images_of` its paths (the pixels are not needed)
+    keyed_by_image: ClassVar[bool] = False
+    #: the torch device a method runs on (None: numpy and OpenCV methods, on the CPU)
+    device = None
+    #: the run directory a trained method's weights (or a trunk's block) come from; None for
+    #: untrained methods (held-out checks and calibrations stored in runs read it)
+    run_dir = None
 
     #: (height, width) images are resized to before ``describe``
     input_size: tuple[int, int]
@@ -104,6 +113,12 @@ class Descriptor(ABC):
     def fit(self, images_or_paths: Sequence[Path] | np.ndarray) -> None:  # noqa: B027 - optional hook
         """Learn from training/reference images, for methods that need to (e.g. a DBoW
         vocabulary). Default: nothing to learn."""
+
+    @contextlib.contextmanager
+    def images_of(self, paths: Sequence):
+        """Within the block, the images ``describe`` gets are those of ``paths``, in order: a
+        method :attr:`keyed_by_image` reads their vectors by path; the others do not need them."""
+        yield self
 
     @property
     def needs_fit(self) -> bool:

@@ -258,13 +258,12 @@ def describe_stream(descriptor, paths: Sequence[str | os.PathLike], pipeline: Pi
     batch_size, workers, progress = pipeline.batch_size, pipeline.workers, pipeline.progress
     describe, what, reads_pixels = job.describe, job.what, job.reads_pixels
     paths = list(paths)
-    keyed = bool(getattr(descriptor, "keyed_by_image", False))
+    keyed = descriptor.keyed_by_image
     if reads_pixels is None:
         reads_pixels = describe is not None
     describe = describe or descriptor.describe
-    device = getattr(descriptor, "device", None)
-    pin = getattr(device, "type", None) == "cuda"
-    uint8 = bool(getattr(descriptor, "accepts_uint8", False))
+    pin = getattr(descriptor.device, "type", None) == "cuda"
+    uint8 = descriptor.accepts_uint8
     bar = None
     if progress:
         from fdnet.progress import progress_bar
@@ -282,13 +281,7 @@ def describe_stream(descriptor, paths: Sequence[str | os.PathLike], pipeline: Pi
     try:
         for start, images in batches:
             t0 = time.perf_counter()
-            if keyed:
-                descriptor._batch_paths = paths[start:start + len(images)]
-                try:
-                    out = describe(images)
-                finally:
-                    descriptor._batch_paths = None
-            else:
+            with descriptor.images_of(paths[start:start + len(images)]):
                 out = describe(images)
             spent += time.perf_counter() - t0
             if bar is not None:

@@ -32,6 +32,7 @@ by two different images (a name without folders, ``0001.png``, fits every folder
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -377,6 +378,15 @@ class PrecomputedDescriptor(Descriptor):
 
     def _file_of(self, row: int) -> str:
         return self._row_files[row]
+
+    @contextlib.contextmanager
+    def images_of(self, paths: Sequence):
+        """Within the block, :meth:`describe` looks up the vectors of ``paths``."""
+        self._batch_paths = list(paths)
+        try:
+            yield self
+        finally:
+            self._batch_paths = None
 
     def describe(self, images: np.ndarray) -> np.ndarray:
         names = getattr(self, "_batch_paths", None)

@@ -230,7 +230,7 @@ def check_descriptors_held_out(descriptors, data, conditions, frames=None, datas
 
     trained = set(trained_methods())
     for descriptor in descriptors:
-        run_dir = getattr(descriptor, "run_dir", None) or getattr(descriptor, "checkpoint", None)
+        run_dir = descriptor.run_dir
         if descriptor.name in trained and run_dir is not None:
             check_held_out(descriptor.name, run_dir, data, conditions, frames, dataset_format, split, allow)
 

@@ -333,7 +333,7 @@ class Context:
             result = evaluate_matrix(self.similarity(handle, split, key), split.ground_truth, handle.label, scoring,
                                      dataset=split.description, query_paths=split.query.paths,
                                      reference_paths=split.reference.paths,
-                                     similarity_ceiling=float(getattr(handle.descriptor, "similarity_ceiling", 1.0)))
+                                     similarity_ceiling=float(handle.descriptor.similarity_ceiling))
             result.settings = dict(handle.descriptor.settings())
             self._results[memo] = result
         return self._results[memo]

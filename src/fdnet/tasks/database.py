@@ -202,7 +202,7 @@ def _build_inputs(request: BuildRequest, check_output=True):
     if settings.kind != "flat" and not descriptor.dot_product_similarity:
         raise ConfigError(f"--index {settings.kind}: method {descriptor.name!r} does not compare vectors by dot "
                           "product, so it is searched exhaustively with its own similarity; use --index flat")
-    current().check_device(getattr(descriptor, "device", None))  # under torchrun: this process's own GPU
+    current().check_device(descriptor.device)  # under torchrun: this process's own GPU
     paths = list_images(request.images)
     return settings, descriptor, paths, _place_names(paths)
 
@@ -452,7 +452,7 @@ def _query_calibration(database, descriptor, calibration, db, log: Log):
     else None; checked against the descriptor (another model's calibration is an error)."""
     from fdnet.decisions.calibration import DATABASE_KEY, Calibration, load_calibration, stored_in_run
 
-    run_file = stored_in_run(getattr(descriptor, "run_dir", None) or getattr(descriptor, "checkpoint", None))
+    run_file = stored_in_run(descriptor.run_dir)
     stored = None if calibration else database.get_metadata(DATABASE_KEY)
     if calibration:
         calibrated, source = load_calibration(calibration), calibration

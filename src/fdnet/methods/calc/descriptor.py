@@ -37,13 +37,13 @@ class CALCDescriptor(Descriptor):
         from fdnet.runs import weights_folder, weights_note
 
         # a run directory means its best-validating weights when it kept them (best/)
-        self.checkpoint = weights_folder(checkpoint)
-        self.config = load_run_config(self.checkpoint)
+        self.run_dir = weights_folder(checkpoint)
+        self.config = load_run_config(self.run_dir)
         self.input_size = tuple(int(v) for v in self.config.model.input_size)
         self.device = resolve_device("auto" if device is None else device, where="calc: device")
         self.network = build_network(self.config.model).eval()
-        metadata = load_weights(self.checkpoint, {"calc": self.network})
-        note = weights_note(checkpoint, self.checkpoint, metadata.get("step"))
+        metadata = load_weights(self.run_dir, {"calc": self.network})
+        note = weights_note(checkpoint, self.run_dir, metadata.get("step"))
         if note:
             import logging
 
@@ -77,5 +77,5 @@ class CALCDescriptor(Descriptor):
             return l2_normalize(out.float().cpu().numpy())
 
     def settings(self) -> dict:
-        return {"input_size": list(self.input_size), "checkpoint": str(self.checkpoint), "step": self.step,
+        return {"input_size": list(self.input_size), "checkpoint": str(self.run_dir), "step": self.step,
                 "dim": self.dim, "bf16": self.bf16}

@@ -51,7 +51,7 @@ class TrunkDescriptor(Conv3Descriptor):
                  choice: str | Path | None = None):
         from fdnet.backbones import check_backbone
 
-        self.checkpoint = str(checkpoint) if checkpoint else None
+        self.run_dir = str(checkpoint) if checkpoint else None
         self.choice = str(Path(choice).resolve()) if choice else None
         if checkpoint is not None and choice:
             raise ConfigError(f"{self.name}: give an FDNet run (checkpoint) or a trunk choice file (choice), not both")
@@ -83,8 +83,8 @@ class TrunkDescriptor(Conv3Descriptor):
 
     def settings(self) -> dict:
         out = super().settings()
-        if self.checkpoint:
-            out["checkpoint"] = self.checkpoint
+        if self.run_dir:
+            out["checkpoint"] = self.run_dir
         if self.choice:
             out["choice"] = self.choice
         return out

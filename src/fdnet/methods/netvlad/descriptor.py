@@ -36,15 +36,15 @@ class NetVLADDescriptor(Descriptor):
         from fdnet.runs import weights_folder, weights_note
 
         # a run directory means its best-validating weights when it kept them (best/)
-        self.checkpoint = weights_folder(checkpoint)
-        self.config = load_run_config(self.checkpoint)
+        self.run_dir = weights_folder(checkpoint)
+        self.config = load_run_config(self.run_dir)
         model = self.config.model
         self.input_size = tuple(int(v) for v in model.input_size)
         # pretrained=False: every fine-tuned weight comes from the checkpoint
         self.device = resolve_device("auto" if device is None else device, where="netvlad: device")
         self.network = build_network(model, pretrained=False).eval()
-        metadata = load_weights(self.checkpoint, {"netvlad": self.network})
-        note = weights_note(checkpoint, self.checkpoint, metadata.get("step"))
+        metadata = load_weights(self.run_dir, {"netvlad": self.network})
+        note = weights_note(checkpoint, self.run_dir, metadata.get("step"))
         if note:
             import logging
 
@@ -77,6 +77,6 @@ class NetVLADDescriptor(Descriptor):
 
     def settings(self) -> dict:
         model = self.config.model
-        return {"input_size": list(self.input_size), "checkpoint": str(self.checkpoint), "step": self.step,
+        return {"input_size": list(self.input_size), "checkpoint": str(self.run_dir), "step": self.step,
                 "dim": self.dim, "clusters": model.clusters, "frozen_block": model.frozen_block,
                 "last_block": model.last_block, "pca_dim": model.pca_dim, "bf16": self.bf16}
