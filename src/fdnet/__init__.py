@@ -17,8 +17,10 @@ __all__ = ["load", "__version__"]
 
 def load(run_dir, device: str = "auto"):
     """Load a trained FDNet run directory (or its ``best/``) and return its descriptor
-    (``.describe(images)``); ``device`` "auto" takes a GPU when there is one."""
+    (``.describe(images)``); ``device`` "auto" takes a GPU when there is one. Built as every
+    command builds it (:func:`fdnet.descriptors.create`), so another method's run is refused
+    naming the method it records."""
     # Imported lazily so `import fdnet` stays cheap (no torch) for metrics-only users.
-    from fdnet.methods.fdnet.descriptor import FDNetDescriptor
+    from fdnet.descriptors import create
 
-    return FDNetDescriptor.from_run(run_dir, device=device)
+    return create("fdnet", checkpoint=str(run_dir), device=device)

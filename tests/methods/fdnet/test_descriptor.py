@@ -39,6 +39,17 @@ def test_fdnet_load_is_the_same_descriptor(run_dir, rng):
                                create("fdnet", checkpoint=run_dir).describe(images))
 
 
+def test_fdnet_load_refuses_another_methods_run_naming_it(run_dir, monkeypatch):
+    """fdnet.load goes through the check every command's descriptor goes through: a run that
+    records another method is refused naming it (it failed on the run config's keys)."""
+    import fdnet.runs
+    from fdnet.errors import ConfigError
+
+    monkeypatch.setattr(fdnet.runs, "recorded_method", lambda path: "calc")  # what a CALC run records
+    with pytest.raises(ConfigError, match="a run of `fdnet train calc`, not of fdnet"):
+        fdnet.load(run_dir)
+
+
 def test_errors(run_dir, rng):
     with pytest.raises(NotAvailableError, match="--checkpoint"):
         create("fdnet")
