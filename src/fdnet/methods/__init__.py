@@ -25,17 +25,14 @@ def load_method_config(run_dir, cls, method: str):
     """Read a baseline run's config into ``cls``, first checking that the run directory holds a run
     of ``method`` (a CALC run given to NetVLAD is an error that says so)."""
     from fdnet import runs
-    from fdnet.config import read_yaml_file
 
     run_dir = Path(run_dir)
     if runs.is_run(run_dir):
-        path = runs.latest_checkpoint(run_dir) / runs.CONFIG_FILE
-        try:
-            saved_method = (read_yaml_file(path) or {}).get("method")
-        except (ConfigError, AttributeError, OSError):
-            saved_method = None
+        # which method made a run is answered in one place (runs.recorded_method)
+        saved_method = runs.recorded_method(run_dir)
         if saved_method != method:
-            what = f"a {saved_method!r} run" if saved_method else "not a baseline run (no 'method' setting)"
+            path = runs.latest_checkpoint(run_dir) / runs.CONFIG_FILE
+            what = f"a {saved_method!r} run" if saved_method else "not a readable run"
             raise ConfigError(f"{path}: is {what}, not a {method} run; give --checkpoint the --out folder "
                               f"of `fdnet train {method}`")
     return runs.load_config(run_dir, cls)
