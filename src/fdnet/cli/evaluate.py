@@ -127,7 +127,7 @@ def split_from_arguments(args):
 
 def run(args) -> int:
     from fdnet.cli.common import method_options
-    from fdnet.evaluation.command import EvaluateSettings, evaluate_command
+    from fdnet.tasks.evaluate import EvaluateSettings, evaluate_command
 
     settings = EvaluateSettings(
         method=args.method, method_options=lambda name: method_options(args, name), similarity=args.similarity,

@@ -1,4 +1,4 @@
-"""fdnet.evaluation.command: the work of `fdnet evaluate` as one library call (no CLI)."""
+"""fdnet.tasks.evaluate: the work of `fdnet evaluate` as one library call (no CLI)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from fdnet.errors import ConfigError, FdnetError
-from fdnet.evaluation.command import EvaluateSettings, evaluate_command
+from fdnet.tasks.evaluate import EvaluateSettings, evaluate_command
 
 from conftest import write_day_dusk_route
 
