@@ -1,8 +1,8 @@
 """`fdnet extract`: any method's vectors for a folder of images (or a video or ROS bag), to .npz
 or to hloc's global-features .h5 (``--format h5``).
 
-Parses the flags, builds the descriptor and calls :func:`fdnet.descriptors.extraction.extract`
-(or :func:`~fdnet.descriptors.extraction.extract_h5`; streaming: memory stays a few batches
+Parses the flags, builds the descriptor and calls :func:`fdnet.tasks.extract.extract`
+(or :func:`~fdnet.tasks.extract.extract_h5`; streaming: memory stays a few batches
 whatever the folder's size; the file is replaced atomically at the end). Under
 ``torchrun --nproc-per-node N -m fdnet extract ...`` every process describes its share of the
 images and rank 0 writes the file (:mod:`fdnet.descriptors.sharding`).
@@ -158,11 +158,11 @@ def _prepare(args, shards):
 
 
 def _run(args, shards) -> int:
-    from fdnet.descriptors.extraction import extract
+    from fdnet.tasks.extract import extract
 
     out_format, out, paths, root, descriptor = shards.collectively(lambda: _prepare(args, shards))
     if out_format == "h5":
-        from fdnet.descriptors.extraction import extract_h5
+        from fdnet.tasks.extract import extract_h5
 
         summary = extract_h5(descriptor, paths, out, root, batch_size=args.batch_size,
                              workers=args.workers, progress=not args.no_progress)
