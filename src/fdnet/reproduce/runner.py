@@ -26,6 +26,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from fdnet.data.split import EvaluationSplit
+from fdnet.descriptors.base import Descriptor
 from fdnet.descriptors.registry import reproduce_methods
 from fdnet.errors import ConfigError, FdnetError
 from fdnet.evaluation.report import _plain
@@ -217,14 +218,18 @@ def _check_fit_size(handle: MethodHandle, pairs: list[Pair], required: bool, dat
     log(f"{handle.label}: not run ({reason})")
 
 
-class _AppearanceView:
+class _AppearanceView(Descriptor):
     """A descriptor whose ``describe`` is FDNet's ``describe_appearance`` (for batching/loading)."""
 
     def __init__(self, descriptor) -> None:
         self.inner = descriptor
         self.name = f"{descriptor.name} appearance"
         self.input_size = descriptor.input_size
-        self.dim = descriptor.dim
+        self._dim = descriptor.dim
+
+    @property
+    def dim(self) -> int:
+        return self._dim
 
     def describe(self, images):
         return self.inner.describe_appearance(images)
