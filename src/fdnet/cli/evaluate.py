@@ -114,17 +114,6 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def split_from_arguments(args):
-    """The :class:`~fdnet.data.split.EvaluationSplit` of the data flags
-    (:func:`fdnet.evaluation.splits.build_split`; shared with ``fdnet calibrate``)."""
-    from fdnet.evaluation.splits import SplitSpec, build_split
-
-    return build_split(SplitSpec(args.data, args.reference, args.query, dataset_format=args.dataset_format,
-                                 split=args.split, format_set=tuple(args.format_set), frames=args.frames,
-                                 tolerance=args.tolerance, filter_frames=args.filter_frames,
-                                 ground_truth=args.ground_truth))
-
-
 def run(args) -> int:
     from fdnet.cli.common import method_options
     from fdnet.tasks.evaluate import EvaluateSettings, evaluate_command

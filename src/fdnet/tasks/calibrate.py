@@ -7,6 +7,7 @@ applies."""
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from typing import Callable, Sequence
 
@@ -17,6 +18,7 @@ from fdnet.decisions.acceptance import (
     parse_acceptance,
 )
 from fdnet.decisions.calibration import (
+    CALIBRATION_FILE,
     Calibration,
     candidate_specs,
     check_target,
@@ -24,6 +26,7 @@ from fdnet.decisions.calibration import (
 )
 from fdnet.descriptors.pipeline import PipelineSettings
 from fdnet.evaluation.experiment import ScoringSettings, evaluate_method
+from fdnet.evaluation.splits import SplitSpec
 from fdnet.matching.sequence import check_sequence_length
 from fdnet.version import __version__
 
@@ -84,3 +87,179 @@ def calibrate(descriptor, split, spec: AcceptanceSpec | str, target_precision: f
         num_queries=int(gt.num_queries), method=descriptor.name, fingerprint=descriptor.fingerprint(),
         sequence_length=int(sequence_length), measured_on=where,
         created=datetime.now(timezone.utc).isoformat(timespec="seconds"), fdnet_version=__version__, notes=notes)
+
+
+def _choices(items, accept_set=()) -> dict:
+    """``["radius=0,1,3"]`` -> ``{"radius": [0, 1, 3]}`` (values read as YAML, as --accept-set's)."""
+    from fdnet.decisions.acceptance import _typed
+    from fdnet.errors import ConfigError
+
+    fixed = {item.partition("=")[0].strip().rpartition(":")[2] for item in accept_set}
+    out = {}
+    for item in items:
+        key, sep, values = item.partition("=")
+        key = key.strip()
+        if not sep or not key or not values.strip():
+            raise ConfigError(f"--choose {item!r}: expected KEY=V1,V2,... (e.g. radius=0,1,2,3,5)")
+        if key in out:
+            raise ConfigError(f"--choose {key} given twice: list every value once, e.g. {key}=0,1,2")
+        if key in fixed:
+            raise ConfigError(f"--choose {key} and --accept-set {key}: a setting is either fixed or chosen; give one")
+        out[key] = [_typed(v.strip()) for v in values.split(",") if v.strip()]
+    return out
+
+
+def _check_choices(spec, choose) -> None:
+    """Every value of every --choose setting is valid for the rule, named as the user gave it."""
+    from fdnet.decisions.calibration import candidate_specs
+    from fdnet.errors import ConfigError
+
+    for key, values in choose.items():
+        for value in values:
+            try:
+                candidate_specs(spec, {key: [value]})
+            except ConfigError as exc:
+                raise ConfigError(f"--choose {key}={value}: {str(exc).split(': ', 1)[-1]}") from exc
+    candidate_specs(spec, choose)  # no values at all
+
+
+def _rule(accept, accept_set, choose: dict):
+    """The acceptance rule of --accept/--accept-set; a setting the rule requires (floor's min) may
+    be one that --choose chooses: then it is parsed with the first chosen value."""
+    from fdnet.decisions.acceptance import DEFAULT_ACCEPTANCE, parse_acceptance
+    from fdnet.errors import ConfigError
+
+    try:
+        return parse_acceptance(accept or DEFAULT_ACCEPTANCE, list(accept_set))
+    except ConfigError as missing:
+        from fdnet.decisions.calibration import _yaml_text
+
+        first = [f"{key}={_yaml_text(values[0])}" for key, values in choose.items() if values]
+        if not first:
+            raise
+        try:
+            return parse_acceptance(accept or DEFAULT_ACCEPTANCE, [*accept_set, *first])
+        except ConfigError as exc:
+            if str(exc) == str(missing):  # the choice was not the missing setting
+                raise missing from exc
+            raise ConfigError(f"--choose {', '.join(first)}: {str(exc).split(': ', 1)[-1]}") from exc
+
+
+def _store(calibration, out, run_dir, db, db_path) -> tuple[list[str], list[str]]:
+    """Write the calibration to each place asked for, each even when another fails (a full disk,
+    a read-only database): the work is done, so what can be kept is kept, and the rest is
+    reported. Returns (the places written, the failures' messages)."""
+    from fdnet.decisions.calibration import CALIBRATION_FILE, DATABASE_KEY, save_calibration
+    from fdnet.errors import FdnetError
+
+    writes = []
+    if out:
+        writes.append((str(out), lambda: save_calibration(calibration, out)))
+    if run_dir is not None:
+        writes.append((str(run_dir / CALIBRATION_FILE),
+                       lambda: save_calibration(calibration, run_dir / CALIBRATION_FILE)))
+    if db is not None:
+        writes.append((f"{db_path} (database metadata)",
+                       lambda: db.set_metadata(DATABASE_KEY, calibration.to_dict(json_safe=True))))
+    written, failed = [], []
+    for where, write in writes:
+        try:
+            write()
+            written.append(where)
+        except FdnetError as exc:
+            failed.append(str(exc))
+    return written, failed
+
+# ---------------------------------------------------------------------- the command
+@dataclass(frozen=True)
+class CalibrateRequest:
+    """What ``fdnet calibrate`` was asked: the validation pair (``split``, as ``fdnet evaluate``
+    reads it), the rule (``accept`` with ``accept_set``; ``choose``: KEY=V1,V2 settings chosen on
+    the pair), ``target_precision``, ``sequence_length``, where to store the calibration (``out``,
+    ``run_dir`` for ``--store-in-run``, ``db``) and how to describe (``pipeline``)."""
+
+    split: SplitSpec
+    target_precision: float = 1.0
+    accept: str | None = None
+    accept_set: tuple = ()
+    choose: tuple = ()
+    sequence_length: int = 1
+    out: str | None = None
+    store_in_run: bool = False
+    run_dir: str | None = None
+    db: str | None = None
+    allow_training_frames: bool = False
+    pipeline: PipelineSettings = field(default_factory=lambda: PipelineSettings(progress=True))
+
+
+@dataclass
+class CalibrateResult:
+    """What :func:`calibrate_command` made and where it was kept (``failed``: the places that
+    could not be written, with why)."""
+
+    calibration: Calibration
+    written: list
+    failed: list
+
+
+def calibrate_command(request: CalibrateRequest, make_descriptor: Callable[[], object]) -> CalibrateResult:
+    """``fdnet calibrate``'s work: every setting and output checked before the method is made,
+    the calibration measured on the pair (:func:`calibrate`), what it was measured on recorded,
+    and the calibration stored in each place asked for."""
+    import logging
+    from pathlib import Path
+
+    from fdnet.errors import ConfigError
+    from fdnet.evaluation.splits import build_split, check_descriptors_held_out, default_folder_tolerance
+    from fdnet.io import ensure_writable
+
+    r, spec_of = request, request.split
+    check_target(r.target_precision)
+    choose = _choices(r.choose, r.accept_set)
+    spec = _rule(r.accept, r.accept_set, choose)
+    _check_choices(spec, choose)  # a setting the rule lacks, or a bad value, fails before any work
+    if spec_of.tolerance is not None and spec_of.tolerance < 0:
+        raise ConfigError(f"--tolerance must be >= 0, got {spec_of.tolerance}")
+    if not (r.out or r.store_in_run or r.db):
+        raise ConfigError("nothing to store the calibration in: give --out FILE.yaml, --store-in-run and/or "
+                          "--db MAP.db")
+    run_dir = None
+    if r.store_in_run:
+        if not r.run_dir:
+            raise ConfigError("--store-in-run needs the run directory: --checkpoint RUN_DIR (the method was given "
+                              "none)")
+        run_dir = Path(r.run_dir)
+        if not run_dir.is_dir():
+            raise ConfigError(f"--store-in-run: {run_dir} is not a run directory")
+        ensure_writable(run_dir / CALIBRATION_FILE, what="calibration in the run directory")
+    if r.out:
+        ensure_writable(r.out, what="calibration YAML")
+    descriptor = make_descriptor()
+    db = None
+    if r.db:
+        from fdnet.matching.database import PlaceDatabase
+
+        db = PlaceDatabase.open(r.db, descriptor=descriptor)  # another model's database: refused now
+    try:
+        split = build_split(spec_of)
+        check_descriptors_held_out([descriptor], spec_of.data, [split.reference.name, split.query.name],
+                                   spec_of.frames, spec_of.dataset_format, spec_of.split, r.allow_training_frames)
+        tolerance = (spec_of.tolerance if spec_of.tolerance is not None or spec_of.dataset_format
+                     or spec_of.ground_truth else default_folder_tolerance(spec_of.data,
+                                                                           [spec_of.reference, spec_of.query]))
+        measured_on = {"data_root": str(spec_of.data), "reference": spec_of.reference, "query": spec_of.query,
+                       "frames": spec_of.frames, "split": spec_of.split, "dataset_format": spec_of.dataset_format,
+                       "tolerance": tolerance, "ground_truth": split.description,
+                       "ground_truth_file": spec_of.ground_truth}
+        log = logging.getLogger(__name__).info  # standard error, as the library's messages (fdnet.logs)
+        log(f"calibrating {descriptor.name} with rule {spec.name} for precision {r.target_precision:g} on "
+            f"{split.description}: {len(split.query)} queries x {len(split.reference)} references")
+        calibration = calibrate(descriptor, split, spec, r.target_precision, r.sequence_length, pipeline=r.pipeline,
+                                log=log, choose=choose)
+        # where the data came from, beside what was measured
+        calibration.measured_on.update({k: v for k, v in measured_on.items() if v is not None})
+        written, failed = _store(calibration, r.out, run_dir, db, r.db)
+    finally:
+        if db is not None:
+            db.close()
+    return CalibrateResult(calibration, written, failed)
