@@ -86,12 +86,10 @@ def method_labels(args: argparse.Namespace) -> dict[str, str]:
     """label -> method of the command's ``--method`` list (:func:`fdnet.descriptors.registry.method_entries`:
     ``METHOD`` is its own label, ``LABEL=METHOD`` names a row); names it does not know are left
     for the method's creation to refuse."""
-    labels = {}
-    for item in (getattr(args, "method", None) or "").split(","):
-        label, sep, method = item.strip().partition("=")
-        if label:
-            labels[label.strip()] = method.strip() if sep else label.strip()
-    return labels
+    from fdnet.descriptors.registry import parse_method_entry
+
+    entries = (parse_method_entry(item) for item in (getattr(args, "method", None) or "").split(","))
+    return {label: method for label, method in entries if label}
 
 
 def method_options(args: argparse.Namespace, method: str | None = None) -> dict:
@@ -150,9 +148,10 @@ def create_descriptor(name: str, args: argparse.Namespace):
     ``args`` and the command's ``--device`` (which goes to the torch methods only; see
     :func:`fdnet.descriptors.create`)."""
     from fdnet.descriptors import create
+    from fdnet.descriptors.registry import parse_method_entry
 
-    label, sep, kind = name.partition("=")
-    label, kind = (label.strip(), kind.strip()) if sep else (name, method_labels(args).get(name, name))
+    label, kind = parse_method_entry(name)
+    kind = method_labels(args).get(label, kind) if "=" not in name else kind
     options = method_options(args, label)
     if getattr(args, "device", None) is not None:
         options.setdefault("device", args.device)

@@ -96,10 +96,9 @@ class LoopClosureDetector:
         self.sequence_length = int(sequence_length)
         # neutral values that pad the start of each similarity row with sequences: the first place
         # that can end a full-length sequence at every velocity (0 for single images)
-        from fdnet.matching.sequence import DEFAULT_VELOCITIES
+        from fdnet.matching.sequence import sequence_reach
 
-        self._first_full = (int(math.ceil(max(DEFAULT_VELOCITIES) * (self.sequence_length - 1)))
-                            if self.sequence_length > 1 else 0)
+        self._first_full = sequence_reach(self.sequence_length)
         self.allow_duplicates = settings.allow_duplicates
         self.commit_every = settings.commit_every
         from fdnet.decisions.loop_search import INDEX_FROM

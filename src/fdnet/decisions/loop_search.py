@@ -26,12 +26,11 @@ An approximate search can miss a place the exhaustive one would rank first: the 
 
 from __future__ import annotations
 
-import math
 from collections import deque
 
 import numpy as np
 
-from fdnet.matching.sequence import DEFAULT_VELOCITIES, SequenceRow
+from fdnet.matching.sequence import DEFAULT_VELOCITIES, SequenceRow, sequence_reach
 
 #: maps of at least this many places are searched through the index (``search="auto"``)
 INDEX_FROM = 20_000
@@ -158,7 +157,7 @@ class IndexedCandidates:
         # each end's segment's first place: a sequence ending in a segment counts the places
         # just before its start as neutral padding, as the exhaustive path's padded rows do
         first = np.zeros(len(ends), np.int64) if seams is None else seams.first_places(ends)
-        pad = int(math.ceil(max(DEFAULT_VELOCITIES) * (self.sequence_length - 1)))
+        pad = sequence_reach(self.sequence_length)
         rows = [_RecentRow(recent, vectors, informative, first, pad, exact) for recent in self._recent]
         return online_sequence_scores(rows, ends=ends, exact_sums=True)
 

@@ -59,10 +59,10 @@ class PipelineSettings:
     progress: bool = False
 
     def __post_init__(self):
-        for name, value, minimum in (("batch size", self.batch_size, 1), ("workers", self.workers, 0)):
-            if value is not None and (isinstance(value, bool) or not isinstance(value, (int, np.integer))
-                                      or value < minimum):
-                raise ConfigError(f"{name} must be a whole number of at least {minimum}, got {value!r}")
+        for flag, value in (("--batch-size", self.batch_size), ("--workers", self.workers)):
+            if value is not None and (isinstance(value, bool) or not isinstance(value, (int, np.integer))):
+                raise ConfigError(f"{flag} must be a whole number, got {value!r}")
+        check_pipeline_settings(self.batch_size, self.workers)  # the one range check, naming the flags
 
 
 def check_pipeline_settings(batch_size: int | None = 64, workers: int | None = None) -> None:

@@ -152,6 +152,13 @@ def all_specs() -> list[MethodSpec]:
 LABEL_PATTERN = r"[A-Za-z0-9_.+-]+"
 
 
+def parse_method_entry(item: str) -> tuple[str, str]:
+    """``(label, method)`` of one ``--method`` entry: ``METHOD`` is its own label,
+    ``LABEL=METHOD`` names the row (nothing is checked here: :func:`method_entries` does)."""
+    label, sep, method = item.strip().partition("=")
+    return (label.strip(), method.strip()) if sep else (label.strip(), label.strip())
+
+
 def method_entries(text: str | None) -> list[tuple[str, str]]:
     """``(label, method)`` of each entry of a comma-separated ``--method`` list: ``METHOD`` (its
     label is its name) or ``LABEL=METHOD``, a name of one's own for a row, so that two models of one
@@ -166,13 +173,13 @@ def method_entries(text: str | None) -> list[tuple[str, str]]:
         item = item.strip()
         if not item:
             continue
-        label, sep, method = item.partition("=")
-        label, method = (label.strip(), method.strip()) if sep else (item, item)
+        label, method = parse_method_entry(item)
+        named = "=" in item
         if not re.fullmatch(LABEL_PATTERN, label):
             raise ConfigError(f"--method {item!r}: a label is letters, digits and _ . + - (LABEL=METHOD)")
         if method not in _METHODS:
             raise ConfigError(f"unknown method {method!r}; available: {', '.join(_METHODS)}")
-        if sep and label in _METHODS and label != method:
+        if named and label in _METHODS and label != method:
             raise ConfigError(f"--method {item!r}: the label {label!r} is another method's name; choose another")
         if label in seen:
             raise ConfigError(f"--method names {label} more than once: its rows would be one method under one name "

@@ -230,12 +230,12 @@ def format_table(table: ResultsTable, style: str, digits: int = 3) -> str:
             writer.writerow([spreadsheet_text(method), *(t + (CSV_BEST_MARK if b else "") for t, b in row)])
         return buffer.getvalue().rstrip("\n")
     if style == "markdown":
-        from fdnet.io import markdown_cell as _markdown_escape
+        from fdnet.io import markdown_cell
 
-        lines = [f"| {_markdown_escape(first)} | " + " | ".join(_markdown_escape(h) for h in headers) + " |",
+        lines = [f"| {markdown_cell(first)} | " + " | ".join(markdown_cell(h) for h in headers) + " |",
                  "|---|" + "---:|" * len(headers)]
         for method, row in zip(table.methods, cells):
-            lines.append(f"| {_markdown_escape(method)} | "
+            lines.append(f"| {markdown_cell(method)} | "
                          + " | ".join(f"**{t}**" if b else t for t, b in row) + " |")
         return "\n".join(lines)
     width = len(table.datasets) * len(table.metrics)

@@ -13,12 +13,20 @@ vectorised over references and velocities (one gather per sequence step).
 
 from __future__ import annotations
 
+import math
 from typing import Sequence
 
 import numpy as np
 
 #: slopes (reference frames per query frame) SeqSLAM tries by default
 DEFAULT_VELOCITIES = (0.8, 0.9, 1.0, 1.1, 1.25)
+
+
+def sequence_reach(length: int, velocities=DEFAULT_VELOCITIES) -> int:
+    """How many places before its end a sequence of ``length`` frames can reach at the fastest
+    velocity (0 for single images): the neutral padding a map segment needs so that no sequence
+    runs into the segment before it."""
+    return int(math.ceil(max(velocities) * (length - 1))) if length > 1 else 0
 
 
 def check_sequence_length(value, where: str = "--sequence-length") -> int:
