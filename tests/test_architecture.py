@@ -202,6 +202,43 @@ def test_long_function_finder_finds_a_planted_one():
     assert long_functions(source, limit=4) == []
 
 
+#: the most parameters a function outside the command line takes: settings travel as objects
+MAX_PARAMETERS = 8
+#: the constructors still taking their settings one by one; each is to become a settings dataclass
+#: of its method (the list may only shrink)
+WIDE_CONSTRUCTORS = {"fdnet.descriptors.dbow", "fdnet.descriptors.landmarks", "fdnet.descriptors.onnx_model",
+                     "fdnet.descriptors.conv3", "fdnet.methods.fdnet.trunk_alone"}
+
+
+def wide_functions(source: str, limit: int = MAX_PARAMETERS) -> list[tuple[str, int, int]]:
+    """(name, line, parameters) of each function in ``source`` taking more than ``limit``
+    parameters (self and cls not counted; ``*args``/``**kwargs`` not counted)."""
+    out = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            a = node.args
+            names = [x.arg for x in (*a.posonlyargs, *a.args, *a.kwonlyargs) if x.arg not in ("self", "cls")]
+            if len(names) > limit:
+                out.append((node.name, node.lineno, len(names)))
+    return out
+
+
+def test_no_function_outside_the_command_line_takes_more_than_8_parameters():
+    wide = [(name, fn, line, count) for name, path in sorted(all_modules().items()) if not name.startswith("fdnet.cli")
+            for fn, line, count in wide_functions(path.read_text())]
+    offenders = [f"{name}:{fn} (line {line}, {count} parameters)" for name, fn, line, count in wide
+                 if not (fn == "__init__" and name in WIDE_CONSTRUCTORS)]
+    assert not offenders, f"functions taking more than {MAX_PARAMETERS} parameters (use a settings object): {offenders}"
+    # a constructor that no longer needs its exemption leaves the list
+    assert WIDE_CONSTRUCTORS == {name for name, fn, _, _ in wide if fn == "__init__"}
+
+
+def test_wide_function_finder_finds_a_planted_one():
+    source = "def wide(a, b, c, *, d=1):\n    pass\n\nclass A:\n    def ok(self, a, b, c):\n        pass\n"
+    assert wide_functions(source, limit=3) == [("wide", 1, 4)]
+    assert wide_functions(source, limit=4) == []
+
+
 #: The package's floors, bottom to top, in the order of its pipeline (sources and data, descriptors,
 #: matching, the pure metrics, decisions, training as a side path, evaluation, the tasks that drive
 #: them, the methods that train on it all, performance, the paper's experiments, the command line).
