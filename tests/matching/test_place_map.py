@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fdnet.errors import ConfigError
 from fdnet.matching.place_map import GrowingArray, PlaceMap
 
 SRC = Path(__file__).resolve().parents[2] / "src" / "fdnet"
@@ -87,3 +88,66 @@ def test_every_sequence_score_goes_through_the_one_scorer():
     # the mean along a sequence's line (the sum over its frames divided by the frames counted)
     means = sorted(str(p.relative_to(SRC)) for p in SRC.rglob("*.py") if "total / np.maximum(" in p.read_text())
     assert means == ["matching/sequence.py"]
+
+
+def _unit_rows(count: int, dim: int, seed: int) -> np.ndarray:
+    rows = np.random.default_rng(seed).normal(size=(count, dim)).astype(np.float32)
+    return rows / np.linalg.norm(rows, axis=1, keepdims=True)
+
+
+def test_the_one_batch_search_ranks_exhaustively_by_sequences_and_through_an_index():
+    from fdnet.matching import VectorIndex, sequence_similarity, similarity_matrix, top_k_of_matrix
+    from fdnet.matching.index import IndexSettings
+    from fdnet.matching.place_map import PlaceMap
+
+    refs, queries = _unit_rows(40, 8, 0), _unit_rows(12, 8, 1)
+    names = [f"r{i}" for i in range(40)]
+    exact = PlaceMap.of_vectors(names, refs)
+    idx, scores = exact.search(queries, 5)
+    want_idx, want_scores = top_k_of_matrix(queries @ refs.T, 5)
+    np.testing.assert_array_equal(idx, want_idx)
+    np.testing.assert_allclose(scores, want_scores, atol=1e-6)
+    # sequences: the same numbers as the full sequence-similarity matrix
+    idx, scores = exact.search(queries, 3, sequence_length=4)
+    want_idx, want_scores = top_k_of_matrix(sequence_similarity(similarity_matrix(queries, refs), 4), 3)
+    np.testing.assert_array_equal(idx, want_idx)
+    np.testing.assert_allclose(scores, want_scores, atol=1e-6)
+    # through an index: the same ranking; the last places left out when fewer are searchable
+    index = VectorIndex(8, IndexSettings(kind="flat"))
+    index.add(refs)
+    indexed = PlaceMap.of_vectors(names, index=index)
+    np.testing.assert_array_equal(indexed.search(queries, 5)[0], exact.search(queries, 5)[0])
+    got, _ = indexed.search(queries, 5, searchable=30)
+    np.testing.assert_array_equal(got, exact.search(queries, 5, searchable=30)[0])
+    assert (got < 30).all()
+    # nothing searchable: an empty row per query; more asked than there are places: all of them
+    assert exact.search(queries, 5, searchable=0)[0].shape == (12, 0)
+    assert exact.search(queries, 100)[0].shape == (12, 40)
+    with pytest.raises(ConfigError, match="sequence similarity needs every place"):
+        indexed.search(queries, 3, sequence_length=4)
+
+
+def test_match_and_the_database_query_are_one_search(tmp_path):
+    """``fdnet match``'s ranking and a place database's query are the same call on a map, so the
+    same vectors give the same places and scores."""
+    from fdnet.matching import PlaceDatabase
+    from fdnet.matching.place_map import PlaceMap
+
+    class Vectors:
+        name, dim, dot_product_similarity, similarity_ceiling = "vectors", 8, True, 1.0
+        similarity = None
+
+        def fingerprint(self):
+            return "vectors-8"
+
+        def settings(self):
+            return {}
+
+    refs, queries = _unit_rows(30, 8, 2), _unit_rows(6, 8, 3)
+    names = [f"r{i}" for i in range(30)]
+    ranked = PlaceMap.of_vectors(names, refs).search(queries, 4)
+    with PlaceDatabase.create(tmp_path / "map.db", Vectors()) as db:
+        db.add(refs, names)
+        answers = db.query(queries, k=4)
+    np.testing.assert_array_equal([[m.index for m in row] for row in answers], ranked[0])
+    np.testing.assert_allclose([[m.score for m in row] for row in answers], ranked[1], atol=1e-6)

@@ -16,6 +16,8 @@ from typing import Sequence
 
 import numpy as np
 
+from fdnet.errors import ConfigError
+
 
 class GrowingArray:
     """Rows appended one at a time (capacity doubles, so adding N rows copies O(N) rows in all,
@@ -59,17 +61,33 @@ class GrowingArray:
         return self._data[:self._count if count is None else count]
 
 
+def _first_within(idx: np.ndarray, scores: np.ndarray, searchable: int, want: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each row's first ``want`` entries with an id below ``searchable``, padded with -1 / -inf."""
+    out_idx = np.full((len(idx), want), -1, np.int64)
+    out_scores = np.full((len(idx), want), -np.inf, np.float32)
+    for row, (ids, values) in enumerate(zip(idx, scores)):
+        keep = (ids >= 0) & (ids < searchable)
+        chosen = ids[keep][:want]
+        out_idx[row, :len(chosen)] = chosen
+        out_scores[row, :len(chosen)] = values[keep][:want]
+    return out_idx, out_scores
+
+
 def _number(value) -> float | None:
     return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else None
 
 
 class PlaceMap:
     """Places in insertion order (see the module docstring). ``dim``: the vectors' length, or
-    None for a map that keeps no vectors (a dot-product database keeps them in its index)."""
+    None for a map that keeps no vectors in memory (its ``index`` holds them). ``index``: a
+    :class:`~fdnet.matching.index.VectorIndex` over the same places in the same order, searched
+    instead of the vectors (a dot-product database's, or ``fdnet match --index``'s); whoever adds
+    places adds their vectors to it."""
 
-    def __init__(self, dim: int | None = None):
+    def __init__(self, dim: int | None = None, index=None):
         self.dim = dim
         self.vectors = GrowingArray(dim) if dim is not None else None
+        self.index = index
         self.names: list[str] = []
         self.positions: list[tuple[float, float] | None] = []
         self.metadata_text: list[str | None] = []
@@ -112,6 +130,48 @@ class PlaceMap:
                     column.truncate(count)
                 else:
                     del column[count:]
+
+    @classmethod
+    def of_vectors(cls, names: Sequence[str], vectors: np.ndarray | None = None, index=None) -> "PlaceMap":
+        """A map of ``names`` with their ``vectors`` (kept in memory) or ``index`` (searched
+        instead), no positions or metadata: the references of ``fdnet match``."""
+        out = cls(None if vectors is None else np.asarray(vectors).shape[1], index=index)
+        out.extend(list(names), [None] * len(names), [None] * len(names), vectors)
+        return out
+
+    # ------------------------------------------------------------------ searching
+    def search(self, queries: np.ndarray, k: int, searchable: int | None = None, similarity=None,
+               sequence_length: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        """The one batch search over a map (``fdnet match``, ``fdnet database query``): the best
+        ``k`` of the first ``searchable`` places (None: all) for each query, as (place ids, scores),
+        each (Q, min(k, searchable)), best first, ties to the lower id; -1 (score -inf) pads a row
+        the index could not fill. Through :attr:`index` when the map has one, else exhaustively
+        with ``similarity`` (default: dot product), by SeqSLAM sequence similarity when
+        ``sequence_length`` > 1 (exhaustive search only: a sequence needs every place's score)."""
+        q = np.asarray(queries, dtype=np.float32)
+        count = len(self)
+        searchable = count if searchable is None else max(0, min(int(searchable), count))
+        want = min(int(k), searchable)
+        if want <= 0:
+            return np.full((len(q), 0), -1, np.int64), np.zeros((len(q), 0), np.float32)
+        if self.index is not None:
+            if sequence_length > 1:
+                raise ConfigError("sequence similarity needs every place's score: search the vectors, not an index")
+            # the excluded places are the last ones: ask for as many more, then drop them
+            idx, scores = self.index.search(q, min(count, want + count - searchable))
+            if searchable == count:
+                return idx, scores
+            return _first_within(idx, scores, searchable, want)
+        if self.vectors is None:
+            raise ConfigError("this map keeps neither vectors nor an index to search")
+        references = self.vectors.view(searchable)
+        if sequence_length > 1:
+            from fdnet.matching.sequence import sequence_top_k
+
+            return sequence_top_k(q, references, want, sequence_length, similarity=similarity)
+        from fdnet.matching.similarity import top_k
+
+        return top_k(q, references, want, similarity=similarity)
 
     # ------------------------------------------------------------------ reading
     def metadata(self, index: int) -> dict | None:

@@ -104,7 +104,9 @@ def rank_references(descriptor, ref_paths, query_paths, depth: int, search: Sear
     """The ``depth`` best references of each query (indices, scores; (Q, depth) each): exact
     search (by SeqSLAM sequence similarity when ``search.sequence_length`` > 1) when
     ``search.index`` is None, else through a faiss index built chunk by chunk from the map (or
-    loaded from ``search.index_file`` when it holds this map's index; saved there when built).
+    loaded from ``search.index_file`` when it holds this map's index; saved there when built):
+    the references become a :class:`~fdnet.matching.place_map.PlaceMap`, searched by its one
+    batch search, as a place database's are.
     ``pipeline``: :class:`~fdnet.descriptors.pipeline.PipelineSettings` (default: batches of 64,
     a progress bar)."""
     from fdnet.descriptors.base import describe_paths
@@ -118,21 +120,19 @@ def rank_references(descriptor, ref_paths, query_paths, depth: int, search: Sear
         return describe_paths(descriptor, paths, pipeline.batch_size, progress=pipeline.progress,
                               workers=pipeline.workers)
 
+    from fdnet.matching.place_map import PlaceMap
+
+    names = [str(p) for p in ref_paths]
     if settings is None:
-        from fdnet.matching.similarity import similarity_matrix, top_k, top_k_of_matrix
-
-        refs, queries = describe(ref_paths), describe(query_paths)
-        if sequence_length > 1:
-            from fdnet.matching.sequence import sequence_similarity
-
-            sim = sequence_similarity(similarity_matrix(queries, refs, descriptor.similarity), sequence_length)
-            return top_k_of_matrix(sim, depth)
-        return top_k(queries, refs, depth, similarity=descriptor.similarity)
-    if not descriptor.dot_product_similarity:
-        raise ConfigError(f"method {descriptor.name!r} does not compare vectors by dot product, so a "
-                          "faiss index would rank by the wrong measure; use --index exact")
-    index = _build_or_load(descriptor, ref_paths, search, pipeline, log or logger.info)
-    return index.search(describe(query_paths), depth)
+        references = PlaceMap.of_vectors(names, describe(ref_paths))
+    else:
+        if not descriptor.dot_product_similarity:
+            raise ConfigError(f"method {descriptor.name!r} does not compare vectors by dot product, so a "
+                              "faiss index would rank by the wrong measure; use --index exact")
+        references = PlaceMap.of_vectors(names, index=_build_or_load(descriptor, ref_paths, search, pipeline,
+                                                                     log or logger.info))
+    return references.search(describe(query_paths), depth, similarity=descriptor.similarity,
+                             sequence_length=sequence_length)
 
 
 def _build_or_load(descriptor, ref_paths, search: SearchSettings, pipeline, say):

@@ -43,7 +43,6 @@ from fdnet.matching.database.storage import (
 )
 from fdnet.matching.index import IndexSettings, VectorIndex
 from fdnet.matching.place_map import PlaceMap
-from fdnet.matching.similarity import top_k
 
 #: Rows read from the file per fetch while loading places (bounded memory besides the index).
 _ROWS_PER_FETCH = 65536
@@ -87,11 +86,10 @@ class PlaceDatabase:
         self._loaded_version = -1
         self._last_id = 0
         # The places loaded: their vectors are kept in this process only for methods searched
-        # with their own similarity; a dot-product database keeps them in its index (reading
-        # them back on request).
+        # with their own similarity; a dot-product database keeps them in the map's index, made
+        # on the first read so that a process that only adds never imports faiss (and reads
+        # them back from the file on request).
         self._map = PlaceMap(None if identity.dot_product else identity.dim)
-        # Made on the first read, so a process that only adds never imports faiss.
-        self._index: VectorIndex | None = None
         # The derived index's cache file beside the database (see _refresh).
         self._index_cache = IndexCache(path, identity)
 
@@ -357,7 +355,7 @@ class PlaceDatabase:
         return self._index_cache.path
 
     def _save_index_cache(self, force: bool = False) -> bool:
-        return self._index_cache.save(self._index, self._conn, self._loaded_version, self._last_id, force)
+        return self._index_cache.save(self._map.index, self._conn, self._loaded_version, self._last_id, force)
 
     def build_index(self) -> VectorIndex | None:
         """Load every place and build (train) the search index now rather than at the first query,
@@ -365,10 +363,10 @@ class PlaceDatabase:
         processes load it instead of building it again. Returns the index (None for methods
         searched exhaustively with their own similarity)."""
         self._refresh()
-        if self._index is not None:
-            self._index.build()
+        if self._map.index is not None:
+            self._map.index.build()
             self._save_index_cache()
-        return self._index
+        return self._map.index
 
     def _refresh(self) -> None:
         """Load the places committed since the last call, from one consistent snapshot, a
@@ -382,11 +380,11 @@ class PlaceDatabase:
                 if version == self._loaded_version:
                     return
                 vectors_after = self._last_id
-                if self.dot_product and self._index is None:
-                    self._index, cached_last = self._index_cache.load(conn)
+                if self.dot_product and self._map.index is None:
+                    self._map.index, cached_last = self._index_cache.load(conn)
                     vectors_after = max(vectors_after, cached_last)
-                    if self._index is None:
-                        self._index = VectorIndex(self.dim, self.index_settings)
+                    if self._map.index is None:
+                        self._map.index = VectorIndex(self.dim, self.index_settings)
                         built_here = True
                 rows = conn.execute("SELECT id, name, x, y, metadata FROM places WHERE id > ? ORDER BY id",
                                     (self._last_id,))
@@ -397,14 +395,15 @@ class PlaceDatabase:
                     last = chunk[-1][0]
                 for vectors in self._read_vectors(conn, vectors_after, last):
                     if self.dot_product:
-                        self._index.add(vectors)
+                        self._map.index.add(vectors)
                     else:
                         self._map.vectors.extend(vectors)
                 self._last_id = last
                 self._loaded_version = version
-        if built_here and self._index is not None and self._index.trainable and len(self._index) >= 10_000:
+        index = self._map.index
+        if built_here and index is not None and index.trainable and len(index) >= 10_000:
             # an approximate index worth caching: train it once, here, and keep it
-            self._index.build()
+            index.build()
             self._save_index_cache(force=True)
 
     def _read_vectors(self, conn: sqlite3.Connection, after_id: int, up_to_id: int) -> Iterator[np.ndarray]:
@@ -481,24 +480,12 @@ class PlaceDatabase:
         bad = np.flatnonzero(~np.isfinite(q).all(axis=1))
         if len(bad):
             raise DataError(f"{self.path}: query vector(s) {', '.join(map(str, bad[:5]))} are not finite (NaN or inf)")
-        searchable = count if searchable is None else min(int(searchable), count)
-        if searchable <= 0:
-            return [[] for _ in range(len(q))]
-        want = min(int(k), searchable)
-        if self._index is not None:
-            # Ask for extra candidates, then drop the excluded (most recent) ones.
-            idx, scores = self._index.search(q, min(count, want + count - searchable))
-        else:
-            if self.similarity is None:
-                raise ConfigError(f"{self.path}: method {self.method!r} compares vectors with its own similarity; "
-                                  "open the database with its descriptor: PlaceDatabase.open(path, descriptor)")
-            idx, scores = top_k(q, self.vectors[:searchable], want, similarity=self.similarity)
-        out = []
-        for row_i, row_s in zip(idx, scores):
-            keep = [(int(i), float(s)) for i, s in zip(row_i, row_s) if 0 <= i < searchable][:want]
-            out.append([Match(i, self._map.names[i], s, self._map.positions[i], self._map.metadata(i))
-                        for i, s in keep])
-        return out
+        if self._map.index is None and self.similarity is None:
+            raise ConfigError(f"{self.path}: method {self.method!r} compares vectors with its own similarity; "
+                              "open the database with its descriptor: PlaceDatabase.open(path, descriptor)")
+        idx, scores = self._map.search(q, int(k), searchable, similarity=self.similarity)
+        return [[Match(int(i), self._map.names[i], float(s), self._map.positions[i], self._map.metadata(i))
+                 for i, s in zip(row_i, row_s) if i >= 0] for row_i, row_s in zip(idx, scores)]
 
     # ------------------------------------------------------------------ database metadata
     def set_metadata(self, key: str, value: dict) -> None:
