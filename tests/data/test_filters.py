@@ -93,3 +93,29 @@ def test_real_nordland_tunnel_and_stationary_frames():
     assert 12 <= len(report.dark["summer"]) <= 30 and 12 <= len(report.dark["winter"]) <= 30
     assert list(filtered["summer"].frame_ids) == list(filtered["winter"].frame_ids)
     assert not set(filtered["summer"].frame_ids.tolist()) & dropped
+
+
+def test_one_grey_conversion_and_one_measure_of_brightness_and_change():
+    """The training filters and loop closure's gates read the same measures: the BT.601 weights
+    are written once (fdnet.data.images), and neither module measures pixels its own way."""
+    from pathlib import Path
+
+    src = Path(__file__).resolve().parents[2] / "src" / "fdnet"
+    weights = sorted(str(p.relative_to(src)) for p in src.rglob("*.py") if "0.587" in p.read_text())
+    assert weights == ["data/images.py"]
+    for module in ("data/filters.py", "decisions/loop_gates.py"):
+        text = (src / module).read_text()
+        assert "grey_levels(" in text and "thumbnail_difference(" in text
+        assert ".mean(axis=1)" not in text and "np.abs(" not in text
+
+
+def test_grey_levels_and_thumbnail_difference():
+    from fdnet.data.images import grey_levels, thumbnail_difference, to_grey
+
+    frames = np.zeros((2, 4, 4, 3), np.float32)
+    frames[1, :2] = 1.0  # top half white
+    grey = to_grey(frames)
+    np.testing.assert_allclose(grey_levels(grey), [[0.0, 0.0], [0.5, 0.5]], atol=1e-6)
+    assert grey_levels(grey[:0]).shape == (0, 2)
+    np.testing.assert_allclose(thumbnail_difference(grey[0], grey[1]), 0.5, atol=1e-6)
+    np.testing.assert_allclose(thumbnail_difference(grey[None], grey[None]), [[0.0, 0.0]])

@@ -13,6 +13,12 @@ stationary" from Nordland but do not say how; these are simple, configurable det
   still removed until the view has really changed. On Nordland (16x32 thumbnails) moving
   frames differ by about 0.1 and stationary ones by under 0.002.
 
+Both are thresholds on the measures loop closure's gates read too (:func:`fdnet.data.images.grey_levels`,
+:func:`fdnet.data.images.thumbnail_difference`; :mod:`fdnet.decisions.loop_gates`). The
+thresholds differ because the questions do: a training set drops a frame for good only when it
+is nearly black or shows nothing new since the last frame kept (0.01), while a robot's still
+frames are compared with the frame just before, online, and only stop deciding (0.04).
+
 **Alignment rule.** Conditions of one route are filtered together, so frame-aligned ground
 truth stays valid: a frame *position* is dropped from every condition when it is dark in
 **any** condition, or a near-duplicate (of the last kept position) in **any** condition. The
@@ -30,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from fdnet.data.dataset import RouteDataset
-from fdnet.data.images import load_images, to_grey
+from fdnet.data.images import grey_levels, load_images, thumbnail_difference, to_grey
 from fdnet.errors import ConfigError, DataError
 
 
@@ -100,7 +106,7 @@ class FilterReport:
 
 def dark_frames(grey: np.ndarray, threshold: float) -> np.ndarray:
     """(N, h, w) grey in [0, 1] -> (N,) bool: mean brightness below ``threshold``."""
-    return grey.reshape(len(grey), -1).mean(axis=1) < threshold
+    return grey_levels(grey)[:, 0] < threshold
 
 
 def near_duplicates(thumbnails: np.ndarray, threshold: float, skip: np.ndarray | None = None) -> np.ndarray:
@@ -113,7 +119,6 @@ def near_duplicates(thumbnails: np.ndarray, threshold: float, skip: np.ndarray |
     Python loop over frames; each step is a vectorised comparison over all conditions.
     """
     c, n = thumbnails.shape[:2]
-    flat = thumbnails.reshape(c, n, -1)
     skip = np.zeros(n, dtype=bool) if skip is None else np.asarray(skip, dtype=bool)
     out = np.zeros((c, n), dtype=bool)
     last = None
@@ -121,7 +126,7 @@ def near_duplicates(thumbnails: np.ndarray, threshold: float, skip: np.ndarray |
         if skip[j]:
             continue
         if last is not None:
-            diff = np.abs(flat[:, j] - flat[:, last]).mean(axis=1)
+            diff = thumbnail_difference(thumbnails[:, j], thumbnails[:, last])
             out[:, j] = diff < threshold
             if out[:, j].any():
                 continue

@@ -323,6 +323,30 @@ def load_images(
     return out
 
 
+#: ITU-R BT.601 luminance weights (R, G, B), as OpenCV and Pillow use
+GREY_WEIGHTS = (0.299, 0.587, 0.114)
+
+
 def to_grey(images: np.ndarray) -> np.ndarray:
-    """(N, H, W, 3) RGB -> (N, H, W) luminance (ITU-R BT.601 weights, as OpenCV/Pillow use)."""
-    return images[..., 0] * 0.299 + images[..., 1] * 0.587 + images[..., 2] * 0.114
+    """(..., 3) RGB -> (...) luminance (:data:`GREY_WEIGHTS`): the one grey conversion of images
+    (descriptors, frame filters, loop-closure gates)."""
+    r, g, b = GREY_WEIGHTS
+    return images[..., 0] * r + images[..., 1] * g + images[..., 2] * b
+
+
+def grey_levels(grey: np.ndarray) -> np.ndarray:
+    """(N, ...) grey frames in [0, 1] -> (N, 2): each frame's mean (how bright) and standard
+    deviation (how textured). The training filters' dark frames and loop closure's
+    uninformative frames are thresholds on these."""
+    grey = np.asarray(grey)
+    if not len(grey):
+        return np.zeros((0, 2), np.float32)
+    flat = grey.reshape(len(grey), -1)
+    return np.stack([flat.mean(axis=1), flat.std(axis=1)], axis=1)
+
+
+def thumbnail_difference(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Mean absolute difference of grey thumbnails over their last two axes (how much the view
+    changed): the training filters' near-duplicates and loop closure's still frames are
+    thresholds on it."""
+    return np.abs(np.asarray(a, np.float32) - np.asarray(b, np.float32)).mean(axis=(-2, -1))

@@ -9,6 +9,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from fdnet.data.images import GREY_WEIGHTS
+
 CONDITIONS = ("summer", "autumn", "winter", "night")
 
 # Vertical layout, in units of the frame height (0 = top).
@@ -179,7 +181,8 @@ _LAMP_LIGHT = np.array([1.0, 0.9, 0.6], dtype=np.float32)
 
 def _desaturate(colour, s: float) -> np.ndarray:
     c = np.asarray(colour, dtype=np.float32)
-    grey = float(c @ np.array([0.299, 0.587, 0.114], dtype=np.float32))
+    # a colour's luminance as a float32 dot product: the scenes' pixels were generated so
+    grey = float(c @ np.array(GREY_WEIGHTS, dtype=np.float32))
     return grey + s * (c - grey)
 
 

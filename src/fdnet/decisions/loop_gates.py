@@ -39,10 +39,8 @@ from typing import Sequence
 
 import numpy as np
 
+from fdnet.data.images import grey_levels, thumbnail_difference, to_grey
 from fdnet.errors import ConfigError
-
-#: BT.601 luminance weights (as fdnet.data.images.to_grey)
-_GREY = np.array([0.299, 0.587, 0.114], dtype=np.float32)
 
 
 @dataclass(frozen=True)
@@ -183,9 +181,8 @@ def frame_signals(images: np.ndarray) -> FrameSignals:
     if array.ndim != 4 or array.shape[-1] != 3:
         raise ConfigError(f"frame signals need (N, H, W, 3) images, got shape {array.shape}")
     scale = 1.0 / 255.0 if array.dtype == np.uint8 else 1.0
-    grey = (array.astype(np.float32) @ _GREY) * scale
-    flat = grey.reshape(len(grey), -1)
-    statistics = np.stack([flat.mean(axis=1), flat.std(axis=1)], axis=1)
+    grey = to_grey(array.astype(np.float32)) * scale
+    statistics = grey_levels(grey)
     h, w = THUMBNAIL
     thumbnails = np.stack([cv2.resize(g, (w, h), interpolation=cv2.INTER_AREA) for g in grey]) if len(grey) \
         else np.zeros((0, h, w), np.float32)
@@ -209,7 +206,7 @@ def is_still(thumbnail: np.ndarray | None, previous: np.ndarray | None, gates: L
     ``gates.still_difference`` (mean absolute difference): the robot has not moved."""
     if thumbnail is None or previous is None or gates.still_difference is None:
         return False
-    return float(np.abs(np.asarray(thumbnail, np.float32) - previous).mean()) < float(gates.still_difference)
+    return float(thumbnail_difference(thumbnail, previous)) < float(gates.still_difference)
 
 
 class RecentPast:
