@@ -101,7 +101,7 @@ def test_messages_go_to_the_module_logger_by_default(tmp_path, caplog, monkeypat
 
     db = tmp_path / "map.db"
     build_database(BuildRequest(make_route(tmp_path / "route"), db, "raw", pipeline=QUIET))
-    monkeypatch.setattr(store, "_read_only_storage", lambda path: True)
+    monkeypatch.setattr(store, "read_only_storage", lambda path: True)
     with caplog.at_level(logging.INFO, logger="fdnet"):
         database_info(db)
     assert any("is in a folder that cannot be written" in r.getMessage() for r in caplog.records)

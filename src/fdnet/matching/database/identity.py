@@ -18,7 +18,7 @@ def short_fingerprint(fingerprint: str) -> str:
 
 
 @dataclass(frozen=True)
-class _Identity:
+class Identity:
     database_id: str
     method: str
     settings: dict
@@ -31,7 +31,7 @@ class _Identity:
     fdnet_version: str
 
 
-def _index_settings(value, where: str, error: type = DataError) -> IndexSettings:
+def read_index_settings(value, where: str, error: type = DataError) -> IndexSettings:
     if not isinstance(value, dict):
         raise error(f"{where}: must be an object of index settings, got {type(value).__name__}")
     known = {f.name: f.type for f in fields(IndexSettings)}
@@ -44,7 +44,7 @@ def _index_settings(value, where: str, error: type = DataError) -> IndexSettings
     return check_settings(settings, where, error)
 
 
-def _read_identity(path, conn: sqlite3.Connection) -> _Identity:
+def read_identity(path, conn: sqlite3.Connection) -> Identity:
     columns = ("database_id", "method", "settings", "method_options", "dim", "dot_product", "index_settings",
                "fingerprint", "created", "fdnet_version")
     row = conn.execute(f"SELECT {', '.join(columns)} FROM fdnet_database").fetchone()
@@ -68,20 +68,20 @@ def _read_identity(path, conn: sqlite3.Connection) -> _Identity:
             raise DataError(f"{path}: column {name} of fdnet_database must be a JSON object")
         return value
 
-    return _Identity(
+    return Identity(
         database_id=column("database_id", str), method=column("method", str),
         settings=json_column("settings"), method_options=json_column("method_options"),
         dim=column("dim", int), dot_product=bool(column("dot_product", int)),
-        index_settings=_index_settings(json_column("index_settings"), f"{path}: column index_settings"),
+        index_settings=read_index_settings(json_column("index_settings"), f"{path}: column index_settings"),
         fingerprint=column("fingerprint", str), created=column("created", str),
         fdnet_version=column("fdnet_version", str))
 
 
-def _check_descriptor(path, identity: _Identity, descriptor) -> None:
-    _check_fingerprint(path, identity, descriptor.fingerprint(), descriptor.name)
+def check_descriptor(path, identity: Identity, descriptor) -> None:
+    check_fingerprint(path, identity, descriptor.fingerprint(), descriptor.name)
 
 
-def _check_fingerprint(path, identity: _Identity, fingerprint: str, method: str | None) -> None:
+def check_fingerprint(path, identity: Identity, fingerprint: str, method: str | None) -> None:
     """Refuse vectors of another model (``Descriptor.fingerprint()``)."""
     if identity.fingerprint != fingerprint:
         made_by = f"the {method!r} descriptor given has" if method else "these vectors come from"

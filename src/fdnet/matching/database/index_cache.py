@@ -17,7 +17,7 @@ import sqlite3
 from pathlib import Path
 
 from fdnet.errors import ConfigError, DataError
-from fdnet.matching.database.identity import _Identity
+from fdnet.matching.database.identity import Identity
 from fdnet.matching.database.storage import MEMORY
 from fdnet.matching.index import VectorIndex
 
@@ -27,7 +27,7 @@ INDEX_CACHE_SUFFIX = ".fdnet-index"
 _SEARCH_SETTINGS = ("ivf_probe", "hnsw_ef_search", "refine")
 
 
-def index_cache_path(database_path: str, identity: _Identity) -> Path | None:
+def index_cache_path(database_path: str, identity: Identity) -> Path | None:
     """Where the derived index of an approximate kind (hnsw, ivf, ivfpq) is cached: beside the
     database file, ``map.db.fdnet-index``. None for ``flat`` (rebuilding it is a copy), for
     methods searched with their own similarity and for in-memory databases."""
@@ -40,7 +40,7 @@ class IndexCache:
     """The cache file of one database's index: :meth:`load` it when it is current, :meth:`save`
     it when the index was built here or has grown enough since."""
 
-    def __init__(self, database_path: str, identity: _Identity):
+    def __init__(self, database_path: str, identity: Identity):
         self.path = index_cache_path(database_path, identity)
         self._database_name = Path(database_path).name
         self._identity = identity

@@ -11,7 +11,7 @@ import numpy as np
 
 from fdnet.descriptors.base import check_vectors
 from fdnet.errors import ConfigError
-from fdnet.matching.database.storage import _canonical_json, check_place_names
+from fdnet.matching.database.storage import canonical_json, check_place_names
 
 #: Stay well under SQLite's limit on bound parameters per statement.
 _NAMES_PER_QUERY = 500
@@ -57,7 +57,7 @@ def prepare_batch(path: str, dim: int, method: str, vectors, names, positions, m
                 if not isinstance(meta, dict):
                     raise ConfigError(f"{path}: metadata of {names[i]} must be a dict, got "
                                       f"{type(meta).__name__}")
-                texts[i] = _canonical_json(meta, f"{path}: metadata of {names[i]}")
+                texts[i] = canonical_json(meta, f"{path}: metadata of {names[i]}")
     blobs = [row.tobytes() for row in v.astype("<f4", copy=False)]
     return {"names": names, "x": xs, "y": ys, "metadata": texts, "blobs": blobs}
 

@@ -33,7 +33,7 @@ BUSY_TIMEOUT_S = 60.0
 MEMORY = ":memory:"
 SQLITE_MAGIC = b"SQLite format 3\x00"
 
-_SCHEMA = """
+SCHEMA = """
 CREATE TABLE fdnet_database (
     singleton INTEGER PRIMARY KEY CHECK (singleton = 1),
     database_id TEXT NOT NULL,
@@ -59,10 +59,10 @@ CREATE TABLE places (
 );
 CREATE INDEX places_by_name ON places (name);
 """
-_TABLES = ("fdnet_database", "places")
+TABLES = ("fdnet_database", "places")
 
 
-def _canonical_json(value, where: str) -> str:
+def canonical_json(value, where: str) -> str:
     try:
         return json.dumps(value, sort_keys=True, allow_nan=False, default=_json_default)
     except (TypeError, ValueError) as exc:
@@ -79,7 +79,7 @@ def _json_default(value):
     raise TypeError(f"{type(value).__name__} is not JSON")
 
 
-def _check_header(path: Path) -> None:
+def check_header(path: Path) -> None:
     if path.is_dir():
         raise DataError(f"{path}: is a folder, not a place database file (e.g. {path / 'map.db'})")
     try:
@@ -95,7 +95,7 @@ def _check_header(path: Path) -> None:
         raise DataError(f"{path}: not an fdnet place database (not a SQLite file)")
 
 
-def _describe_foreign(conn: sqlite3.Connection) -> str:
+def describe_foreign(conn: sqlite3.Connection) -> str:
     tables = [r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table' ORDER BY name")]
     return f"it has tables: {', '.join(tables)}" if tables else "it has no tables"
 
@@ -141,14 +141,14 @@ def _storage_problem(path) -> str:
     return "; ".join(problems)
 
 
-def _read_only_storage(path: Path) -> bool:
+def read_only_storage(path: Path) -> bool:
     """True when the database's folder cannot be written (read-only media, a read-only mount or
     share): SQLite's write-ahead log then cannot create its ``-shm`` file to open it as usual."""
     return not os.access(path.resolve().parent, os.W_OK)
 
 
 @contextlib.contextmanager
-def _sqlite_errors(path, doing: str) -> Iterator[None]:
+def sqlite_errors(path, doing: str) -> Iterator[None]:
     """SQLite's exceptions as the project's errors, naming the file and what was being done: a
     full disk (SQLITE_FULL) is an :class:`~fdnet.errors.OutputError` with ENOSPC, anything else
     a DataError."""
@@ -162,7 +162,7 @@ def _sqlite_errors(path, doing: str) -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def _transaction(conn: sqlite3.Connection, mode: str) -> Iterator[sqlite3.Connection]:
+def transaction(conn: sqlite3.Connection, mode: str) -> Iterator[sqlite3.Connection]:
     """``BEGIN IMMEDIATE`` takes the write lock up front, so two writers queue (busy timeout)
     instead of both reading, then one failing to upgrade its lock; ``BEGIN DEFERRED`` gives a
     reader one consistent snapshot across several SELECTs."""
@@ -176,7 +176,7 @@ def _transaction(conn: sqlite3.Connection, mode: str) -> Iterator[sqlite3.Connec
     conn.execute("COMMIT")
 
 
-def _connect(target: str, uri: bool = False) -> sqlite3.Connection:
+def connect_database(target: str, uri: bool = False) -> sqlite3.Connection:
     # isolation_level=None: the module must not open transactions behind our back; each add is
     # exactly the BEGIN IMMEDIATE ... COMMIT written below.
     conn = sqlite3.connect(target, timeout=BUSY_TIMEOUT_S, isolation_level=None, uri=uri)
@@ -186,7 +186,7 @@ def _connect(target: str, uri: bool = False) -> sqlite3.Connection:
     return conn
 
 
-def _connect_read_only(path: Path) -> sqlite3.Connection:
+def connect_read_only(path: Path) -> sqlite3.Connection:
     """A database on storage this process cannot write. Without a write-ahead log left beside it
     the file holds every committed add and is opened ``immutable`` (no -shm needed, no locks: on
     read-only storage nobody can change it). A log left there (a writer killed, the medium then
@@ -195,9 +195,9 @@ def _connect_read_only(path: Path) -> sqlite3.Connection:
     uri = path.resolve().as_uri()
     wal = Path(f"{path}-wal")
     if not (wal.exists() and wal.stat().st_size > 0):
-        return _connect(uri + "?immutable=1", uri=True)
+        return connect_database(uri + "?immutable=1", uri=True)
     try:
-        conn = _connect(uri + "?mode=ro", uri=True)
+        conn = connect_database(uri + "?mode=ro", uri=True)
         conn.execute("SELECT count(*) FROM sqlite_master").fetchone()
         return conn
     except sqlite3.Error as exc:
@@ -223,7 +223,7 @@ def check_place_names(names: Sequence[str]) -> None:
                             "cannot store as a place name; rename the file") from exc
 
 
-def _is_fdnet_database(conn: sqlite3.Connection) -> bool:
+def is_fdnet_database(conn: sqlite3.Connection) -> bool:
     return conn.execute("PRAGMA application_id").fetchone()[0] == APPLICATION_ID
 
 
@@ -236,9 +236,9 @@ def holds_a_database(path: str | os.PathLike) -> bool:
     with open(path, "rb") as fh:
         if fh.read(len(SQLITE_MAGIC)) != SQLITE_MAGIC:
             return True  # not SQLite: opening it says what it is
-    conn = _connect(path.resolve().as_uri() + "?mode=ro", uri=True)
+    conn = connect_database(path.resolve().as_uri() + "?mode=ro", uri=True)
     try:
-        with _sqlite_errors(path, "checking the existing file"):
+        with sqlite_errors(path, "checking the existing file"):
             return bool(conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'").fetchall())
     finally:
         conn.close()
@@ -263,13 +263,13 @@ def check_can_create(path: str | os.PathLike, overwrite: bool = False) -> None:
             if fh.read(len(SQLITE_MAGIC)) != SQLITE_MAGIC:
                 raise DataError(f"{path}: exists and is not an fdnet place database (not a SQLite file); "
                                 "refusing to overwrite it")
-        conn = _connect(path.resolve().as_uri() + "?mode=rw", uri=True)
+        conn = connect_database(path.resolve().as_uri() + "?mode=rw", uri=True)
         try:
-            with _sqlite_errors(path, "checking the existing file"):
+            with sqlite_errors(path, "checking the existing file"):
                 tables = conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'").fetchall()
-                if tables and not _is_fdnet_database(conn):
+                if tables and not is_fdnet_database(conn):
                     raise DataError(f"{path}: is a SQLite database but not an fdnet place database "
-                                    f"({_describe_foreign(conn)}); refusing to overwrite it")
+                                    f"({describe_foreign(conn)}); refusing to overwrite it")
         finally:
             conn.close()
         if tables and not overwrite:
@@ -279,3 +279,59 @@ def check_can_create(path: str | os.PathLike, overwrite: bool = False) -> None:
         raise DataError(f"{path}-wal: a write-ahead log left without its database; remove it "
                         f"(and {path}-shm) before creating {path}")
 
+
+
+def use_write_ahead_log(conn: sqlite3.Connection, target: str) -> None:
+    """Put a new database file in SQLite's write-ahead log (readers beside one writer, and a
+    commit survives a crash); refuse a file system that cannot (a network share)."""
+    if target == MEMORY:
+        return
+    mode = conn.execute("PRAGMA journal_mode = WAL").fetchone()[0]
+    if str(mode).lower() != "wal":
+        raise DataError(f"{target}: the file system does not support SQLite's write-ahead log "
+                        f"(journal mode stays {mode!r}); put the database on a local disk")
+
+
+def write_schema(conn: sqlite3.Connection, target: str, overwrite: bool, identity: dict) -> None:
+    """Inside the caller's write transaction: drop an existing place database's tables when
+    ``overwrite`` (anything else in the file is refused), create the tables and write the
+    database's one identity row (``identity``: column -> value)."""
+    existing = [r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'")]
+    if existing:
+        # Checked again under the write lock: another build may have won the race.
+        if not is_fdnet_database(conn):
+            raise DataError(f"{target}: is a SQLite database but not an fdnet place database "
+                            f"({describe_foreign(conn)}); refusing to overwrite it")
+        if not overwrite:
+            raise ConfigError(f"{target}: already exists; pass --overwrite (overwrite=True) to replace it")
+        for table in TABLES:
+            conn.execute(f"DROP TABLE IF EXISTS {table}")
+    for statement in SCHEMA.split(";"):
+        if statement.strip():
+            conn.execute(statement)
+    conn.execute(f"PRAGMA application_id = {APPLICATION_ID}")
+    conn.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
+    columns = ", ".join(identity)
+    conn.execute(f"INSERT INTO fdnet_database (singleton, {columns}) VALUES (1, {', '.join('?' * len(identity))})",
+                 tuple(identity.values()))
+
+
+def check_schema(conn: sqlite3.Connection, target: str, read_only: bool) -> None:
+    """Refuse a file that is not an fdnet place database this version reads (another SQLite
+    database, one a killed build left empty, a newer schema, a damaged one)."""
+    if not is_fdnet_database(conn):
+        foreign = describe_foreign(conn)
+        if foreign == "it has no tables":  # what a create stopped before its first commit leaves
+            raise DataError(f"{target}: an empty SQLite file, not yet an fdnet place database (a "
+                            "`database build` that did not finish, e.g. on a full disk or killed, "
+                            "leaves this); build it again with --db there (the file is reused)")
+        raise DataError(f"{target}: a SQLite database but not an fdnet place database ({foreign})")
+    schema = conn.execute("PRAGMA user_version").fetchone()[0]
+    if schema > SCHEMA_VERSION:
+        raise DataError(f"{target}: written by a newer fdnet (schema version {schema}; this one "
+                        f"reads up to {SCHEMA_VERSION}); upgrade fdnet")
+    if schema < 1:
+        raise DataError(f"{target}: has no fdnet schema version; the file is damaged")
+    if not read_only:
+        # Persistent once set; this only matters for a file copied from a non-WAL tool.
+        conn.execute("PRAGMA journal_mode = WAL")

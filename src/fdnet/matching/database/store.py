@@ -16,30 +16,27 @@ import numpy as np
 
 from fdnet.errors import ConfigError, DataError
 from fdnet.matching.database.identity import (
-    _check_descriptor,
-    _check_fingerprint,
-    _Identity,
-    _index_settings,
-    _read_identity,
+    Identity,
+    check_descriptor,
+    check_fingerprint,
+    read_identity,
+    read_index_settings,
 )
 from fdnet.matching.database.index_cache import IndexCache
 from fdnet.matching.database.places import insert_rows, names_present, prepare_batch
 from fdnet.matching.database.storage import (
-    _SCHEMA,
-    _TABLES,
-    APPLICATION_ID,
     MEMORY,
-    SCHEMA_VERSION,
-    _canonical_json,
-    _check_header,
-    _connect,
-    _connect_read_only,
-    _describe_foreign,
-    _is_fdnet_database,
-    _read_only_storage,
-    _sqlite_errors,
-    _transaction,
+    canonical_json,
     check_can_create,
+    check_header,
+    check_schema,
+    connect_database,
+    connect_read_only,
+    read_only_storage,
+    sqlite_errors,
+    transaction,
+    use_write_ahead_log,
+    write_schema,
 )
 from fdnet.matching.index import IndexSettings, VectorIndex
 from fdnet.matching.place_map import PlaceMap
@@ -73,7 +70,7 @@ class PlaceDatabase:
     :meth:`for_descriptor`, open it with :meth:`open`; :meth:`add` and :meth:`query` may be
     called by several processes on the same file at once."""
 
-    def __init__(self, path: str, conn: sqlite3.Connection | None, identity: _Identity,
+    def __init__(self, path: str, conn: sqlite3.Connection | None, identity: Identity,
                  similarity: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None):
         self.path = path
         self._conn = conn
@@ -149,13 +146,13 @@ class PlaceDatabase:
         target = str(path)
         check_can_create(target, overwrite)
         index = index or IndexSettings()
-        index_json = _canonical_json(vars(index), "index settings")
-        _index_settings(json.loads(index_json), "index settings", ConfigError)
-        settings_json = _canonical_json(descriptor.settings(), f"{descriptor.name} settings")
-        options_json = _canonical_json(dict(method_options or {}), "method_options")
+        index_json = canonical_json(vars(index), "index settings")
+        read_index_settings(json.loads(index_json), "index settings", ConfigError)
+        settings_json = canonical_json(descriptor.settings(), f"{descriptor.name} settings")
+        options_json = canonical_json(dict(method_options or {}), "method_options")
         from fdnet.version import __version__
 
-        identity = _Identity(
+        identity = Identity(
             database_id=uuid.uuid4().hex, method=descriptor.name, settings=json.loads(settings_json),
             method_options=json.loads(options_json), dim=int(descriptor.dim),
             dot_product=bool(descriptor.dot_product_similarity), index_settings=index,
@@ -168,39 +165,17 @@ class PlaceDatabase:
                     if isinstance(places, (list, tuple)) else None)
         if target != MEMORY:
             Path(target).parent.mkdir(parents=True, exist_ok=True)
-        with _sqlite_errors(target, "creating the place database"):
-            conn = db._conn = _connect(target)
+        with sqlite_errors(target, "creating the place database"):
+            conn = db._conn = connect_database(target)
         try:
-            with _sqlite_errors(target, "creating the place database"):
-                if target != MEMORY:
-                    mode = conn.execute("PRAGMA journal_mode = WAL").fetchone()[0]
-                    if str(mode).lower() != "wal":
-                        raise DataError(f"{target}: the file system does not support SQLite's write-ahead log "
-                                        f"(journal mode stays {mode!r}); put the database on a local disk")
-                with _transaction(conn, "IMMEDIATE"):
-                    existing = [r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'")]
-                    if existing:
-                        # Checked again under the write lock: another build may have won the race.
-                        if not _is_fdnet_database(conn):
-                            raise DataError(f"{target}: is a SQLite database but not an fdnet place database "
-                                            f"({_describe_foreign(conn)}); refusing to overwrite it")
-                        if not overwrite:
-                            raise ConfigError(f"{target}: already exists; pass --overwrite (overwrite=True) "
-                                              "to replace it")
-                        for table in _TABLES:
-                            conn.execute(f"DROP TABLE IF EXISTS {table}")
-                    for statement in _SCHEMA.split(";"):
-                        if statement.strip():
-                            conn.execute(statement)
-                    conn.execute(f"PRAGMA application_id = {APPLICATION_ID}")
-                    conn.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
-                    conn.execute(
-                        "INSERT INTO fdnet_database (singleton, database_id, method, settings, method_options, dim, "
-                        "dot_product, index_settings, fingerprint, data_version, created, fdnet_version) "
-                        "VALUES (1, ?, ?, ?, ?, ?, ?, ?, ?, 0, ?, ?)",
-                        (identity.database_id, identity.method, settings_json, options_json, identity.dim,
-                         int(identity.dot_product), index_json, identity.fingerprint, identity.created,
-                         identity.fdnet_version))
+            with sqlite_errors(target, "creating the place database"):
+                use_write_ahead_log(conn, target)
+                with transaction(conn, "IMMEDIATE"):
+                    write_schema(conn, target, overwrite, {
+                        "database_id": identity.database_id, "method": identity.method, "settings": settings_json,
+                        "method_options": options_json, "dim": identity.dim, "dot_product": int(identity.dot_product),
+                        "index_settings": index_json, "fingerprint": identity.fingerprint, "data_version": 0,
+                        "created": identity.created, "fdnet_version": identity.fdnet_version})
                     if prepared is not None:
                         for batch in prepared:
                             db._insert(conn, batch, allow_duplicates)
@@ -217,34 +192,20 @@ class PlaceDatabase:
         database's (same method, settings and weights), and use its similarity for methods whose
         comparison is not a dot product."""
         path = Path(path)
-        _check_header(path)
+        check_header(path)
         target = str(path)
-        read_only = _read_only_storage(path)
-        with _sqlite_errors(target, "opening the place database"):
+        read_only = read_only_storage(path)
+        with sqlite_errors(target, "opening the place database"):
             # mode=rw: a path that vanished since the check must not become a new empty file.
-            conn = _connect_read_only(path) if read_only else _connect(path.resolve().as_uri() + "?mode=rw", uri=True)
+            conn = (connect_read_only(path) if read_only
+                    else connect_database(path.resolve().as_uri() + "?mode=rw", uri=True))
         try:
-            with _sqlite_errors(target, "reading the place database"):
-                if not _is_fdnet_database(conn):
-                    foreign = _describe_foreign(conn)
-                    if foreign == "it has no tables":  # what a create stopped before its first commit leaves
-                        raise DataError(f"{target}: an empty SQLite file, not yet an fdnet place database (a "
-                                        "`database build` that did not finish, e.g. on a full disk or killed, "
-                                        "leaves this); build it again with --db there (the file is reused)")
-                    raise DataError(f"{target}: a SQLite database but not an fdnet place database ({foreign})")
-                schema = conn.execute("PRAGMA user_version").fetchone()[0]
-                if schema > SCHEMA_VERSION:
-                    raise DataError(f"{target}: written by a newer fdnet (schema version {schema}; this one "
-                                    f"reads up to {SCHEMA_VERSION}); upgrade fdnet")
-                if schema < 1:
-                    raise DataError(f"{target}: has no fdnet schema version; the file is damaged")
-                if not read_only:
-                    # Persistent once set; this only matters for a file copied from a non-WAL tool.
-                    conn.execute("PRAGMA journal_mode = WAL")
-                identity = _read_identity(target, conn)
+            with sqlite_errors(target, "reading the place database"):
+                check_schema(conn, target, read_only)
+                identity = read_identity(target, conn)
             similarity = None
             if descriptor is not None:
-                _check_descriptor(target, identity, descriptor)
+                check_descriptor(target, identity, descriptor)
                 similarity = None if identity.dot_product else descriptor.similarity
         except BaseException:
             conn.close()
@@ -255,7 +216,7 @@ class PlaceDatabase:
 
     def check_descriptor(self, descriptor) -> None:
         """Refuse ``descriptor`` unless it is the model whose vectors the database holds."""
-        _check_descriptor(self.path, self._identity, descriptor)
+        check_descriptor(self.path, self._identity, descriptor)
 
     def close(self) -> None:
         self._conn.close()
@@ -269,12 +230,12 @@ class PlaceDatabase:
     # ------------------------------------------------------------------ adding
     def __len__(self) -> int:
         """Places in the database now (including other processes' committed adds)."""
-        with _sqlite_errors(self.path, "counting places"):
+        with sqlite_errors(self.path, "counting places"):
             return int(self._conn.execute("SELECT count(*) FROM places").fetchone()[0])
 
     def existing_names(self, names: Sequence[str]) -> set[str]:
         """Which of ``names`` the database already holds (to skip describing them again)."""
-        with _sqlite_errors(self.path, "looking up place names"):
+        with sqlite_errors(self.path, "looking up place names"):
             return names_present(self._conn, [str(n) for n in names])
 
     def add(self, vectors: np.ndarray, names: Sequence[str],
@@ -303,9 +264,9 @@ class PlaceDatabase:
         writers wait.
         """
         if fingerprint is not None:
-            _check_fingerprint(self.path, self._identity, fingerprint, None)
-        with _sqlite_errors(self.path, "adding places"):
-            with _transaction(self._conn, "IMMEDIATE") as conn:
+            check_fingerprint(self.path, self._identity, fingerprint, None)
+        with sqlite_errors(self.path, "adding places"):
+            with transaction(self._conn, "IMMEDIATE") as conn:
                 self._check_same_database(conn)
                 return self._insert_batches(conn, batches, allow_duplicates)
 
@@ -326,7 +287,7 @@ class PlaceDatabase:
     def _prepare(self, vectors, names, positions, metadata, fingerprint) -> dict:
         """Check a batch completely before the transaction starts, so a refusal changes nothing."""
         if fingerprint is not None:
-            _check_fingerprint(self.path, self._identity, fingerprint, None)
+            check_fingerprint(self.path, self._identity, fingerprint, None)
         return prepare_batch(self.path, self.dim, self.method, vectors, names, positions, metadata, self.dot_product)
 
     def _check_same_database(self, conn: sqlite3.Connection) -> None:
@@ -373,8 +334,8 @@ class PlaceDatabase:
         bounded number of rows at a time. Vectors of a dot-product database go into its index
         (loaded from the cache file when it is current, then extended by the newer places)."""
         built_here = False
-        with _sqlite_errors(self.path, "reading places"):
-            with _transaction(self._conn, "DEFERRED") as conn:
+        with sqlite_errors(self.path, "reading places"):
+            with transaction(self._conn, "DEFERRED") as conn:
                 self._check_same_database(conn)
                 version = conn.execute("SELECT data_version FROM fdnet_database").fetchone()[0]
                 if version == self._loaded_version:
@@ -442,8 +403,8 @@ class PlaceDatabase:
         whose vectors otherwise live only in the index)."""
         self._refresh()
         if self.dot_product:
-            with _sqlite_errors(self.path, "reading vectors"):
-                with _transaction(self._conn, "DEFERRED") as conn:
+            with sqlite_errors(self.path, "reading vectors"):
+                with transaction(self._conn, "DEFERRED") as conn:
                     chunks = list(self._read_vectors(conn, 0, self._last_id))
             return np.concatenate(chunks) if chunks else np.zeros((0, self.dim), dtype=np.float32)
         return self._map.vectors.view()
@@ -492,16 +453,16 @@ class PlaceDatabase:
         """Store ``value`` (a JSON object, e.g. a calibration) under ``key`` in the database's own
         metadata, in one transaction (readers see the old or the new value). The table is created
         on first use, so a database that never stored metadata holds only its schema's tables."""
-        text = _canonical_json(value, f"{self.path}: metadata {key!r}")
-        with _sqlite_errors(self.path, f"storing metadata {key!r}"):
-            with _transaction(self._conn, "IMMEDIATE") as conn:
+        text = canonical_json(value, f"{self.path}: metadata {key!r}")
+        with sqlite_errors(self.path, f"storing metadata {key!r}"):
+            with transaction(self._conn, "IMMEDIATE") as conn:
                 self._check_same_database(conn)
                 conn.execute("CREATE TABLE IF NOT EXISTS fdnet_metadata (key TEXT PRIMARY KEY, value TEXT NOT NULL)")
                 conn.execute("INSERT OR REPLACE INTO fdnet_metadata (key, value) VALUES (?, ?)", (key, text))
 
     def get_metadata(self, key: str) -> dict | None:
         """The value stored under ``key`` by :meth:`set_metadata`, or None."""
-        with _sqlite_errors(self.path, f"reading metadata {key!r}"):
+        with sqlite_errors(self.path, f"reading metadata {key!r}"):
             exists = self._conn.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'fdnet_metadata'"
                                         ).fetchone()
             row = self._conn.execute("SELECT value FROM fdnet_metadata WHERE key = ?", (key,)).fetchone() \
@@ -515,8 +476,8 @@ class PlaceDatabase:
 
     def info(self) -> dict:
         """What ``fdnet database info`` prints: identity, size and versions, without loading vectors."""
-        with _sqlite_errors(self.path, "reading the database summary"):
-            with _transaction(self._conn, "DEFERRED") as conn:
+        with sqlite_errors(self.path, "reading the database summary"):
+            with transaction(self._conn, "DEFERRED") as conn:
                 version = conn.execute("SELECT data_version FROM fdnet_database").fetchone()[0]
                 places = conn.execute("SELECT count(*) FROM places").fetchone()[0]
                 schema = conn.execute("PRAGMA user_version").fetchone()[0]
