@@ -18,14 +18,14 @@ from pathlib import Path
 import numpy as np
 
 from fdnet.data.sources import (
-    _BAG_NAME,
-    _READ_FORWARD,
-    _VIDEO_NAME,
+    BAG_FRAME_NAME,
     RAW_ENCODINGS,
-    _bag_errors,
-    _open_capture,
-    _reader,
+    READ_FORWARD,
+    VIDEO_FRAME_NAME,
+    bag_errors,
+    bag_reader,
     locate,
+    open_capture,
 )
 from fdnet.errors import DataError
 
@@ -35,13 +35,13 @@ class _VideoReader:
 
     def __init__(self, source: Path):
         self.source = source
-        self.capture = _open_capture(source)
+        self.capture = open_capture(source)
         self.next = 0
 
     def read(self, index: int) -> np.ndarray:
         import cv2
 
-        if index < self.next or index - self.next > _READ_FORWARD:
+        if index < self.next or index - self.next > READ_FORWARD:
             self.capture.set(cv2.CAP_PROP_POS_FRAMES, index)
             self.next = index
         while self.next < index:
@@ -65,8 +65,8 @@ class _BagReader:
 
     def __init__(self, source: Path, topic: str):
         self.source, self.topic = source, topic
-        with _bag_errors(source, topic):
-            self.reader = _reader(source)
+        with bag_errors(source, topic):
+            self.reader = bag_reader(source)
         self.connections = [c for c in self.reader.connections if c.topic == topic]
         if not self.connections:
             raise DataError(f"{source}: has no topic {topic}")
@@ -74,8 +74,8 @@ class _BagReader:
         self.ordinal = -1  # ordinal of the last message taken from self.messages
 
     def read(self, ordinal: int, nanos: int, repeat: int):
-        with _bag_errors(self.source, self.topic):
-            if self.messages is None or ordinal <= self.ordinal or ordinal - self.ordinal > _READ_FORWARD:
+        with bag_errors(self.source, self.topic):
+            if self.messages is None or ordinal <= self.ordinal or ordinal - self.ordinal > READ_FORWARD:
                 self.messages = self.reader.messages(connections=self.connections, start=nanos)
                 self.ordinal = ordinal - repeat - 1
             for connection, timestamp, raw in self.messages:
@@ -168,9 +168,9 @@ def _read_frame(source: Path, topic: str | None, name: str):
         reader = _VideoReader(source) if topic is None else _BagReader(source, topic)
         _READERS[key] = reader
     if topic is None:
-        index = int(_VIDEO_NAME.match(name).group(1))
+        index = int(VIDEO_FRAME_NAME.match(name).group(1))
         return Image.fromarray(reader.read(index))
-    match = _BAG_NAME.match(name)
+    match = BAG_FRAME_NAME.match(name)
     return reader.read(int(match.group(1)), int(match.group(2)), int(match.group(3) or 0))
 
 

@@ -57,11 +57,11 @@ ODOMETRY = "nav_msgs/msg/Odometry"
 RAW_ENCODINGS = ("rgb8", "bgr8", "rgba8", "bgra8", "mono8", "8UC1", "8UC3", "mono16",
                  "bayer_rggb8", "bayer_bggr8", "bayer_gbrg8", "bayer_grbg8")
 
-_VIDEO_NAME = re.compile(r"^frame_([0-9]+)_([0-9]+)ms$")
-_BAG_NAME = re.compile(r"^frame_([0-9]+)_([0-9]+)ns(?:_([0-9]+))?$")
+VIDEO_FRAME_NAME = re.compile(r"^frame_([0-9]+)_([0-9]+)ms$")
+BAG_FRAME_NAME = re.compile(r"^frame_([0-9]+)_([0-9]+)ns(?:_([0-9]+))?$")
 
 #: frames a reader grabs forward before it seeks instead (seeking costs a key-frame decode)
-_READ_FORWARD = 256
+READ_FORWARD = 256
 
 
 @dataclass(frozen=True)
@@ -266,7 +266,7 @@ def _no_frames(source: Path, options: SourceOptions, total: int, what: str = "fr
                      f"{total} {what}")
 
 
-def _open_capture(source: Path):
+def open_capture(source: Path):
     # FFmpeg's own messages ("EBML header parsing failed") would precede fdnet's one-line error;
     # read when OpenCV first opens a video, so set before (a user's own setting wins)
     os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
@@ -283,7 +283,7 @@ def _open_capture(source: Path):
 def _list_video(source: Path, options: SourceOptions) -> SourceListing:
     import cv2
 
-    capture = _open_capture(source)
+    capture = open_capture(source)
     try:
         rate = float(capture.get(cv2.CAP_PROP_FPS) or 0.0)
         count = int(capture.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
@@ -312,7 +312,7 @@ def _list_video(source: Path, options: SourceOptions) -> SourceListing:
 
 # ----------------------------------------------------------------------------- bags
 
-def _bag_errors(source: Path, topic: str | None = None):
+def bag_errors(source: Path, topic: str | None = None):
     """rosbags raises many kinds of exception for a damaged or truncated bag (its own reader
     errors, sqlite/apsw errors, struct and EOF errors from the ROS 1 parser, KeyError for a
     missing index); all become one DataError naming the bag (and topic)."""
@@ -331,7 +331,7 @@ def _bag_errors(source: Path, topic: str | None = None):
     return guard()
 
 
-def _reader(source: Path):
+def bag_reader(source: Path):
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
 
@@ -399,16 +399,16 @@ def _check_image_message(source: Path, topic: str, message, msgtype: str) -> Non
 
 
 def _list_bag(source: Path, options: SourceOptions) -> SourceListing:
-    with _bag_errors(source):
-        reader = _reader(source)
+    with bag_errors(source):
+        reader = bag_reader(source)
     try:
-        with _bag_errors(source):
+        with bag_errors(source):
             topics = reader.topics
         topic = _image_topic(source, topics, options.topic)
         position_topic = _position_topic(source, topics, options.position_topic)
         connections = [c for c in reader.connections if c.topic == topic]
         stamps: list[int] = []
-        with _bag_errors(source, topic):
+        with bag_errors(source, topic):
             for connection, timestamp, raw in reader.messages(connections=connections):
                 if not stamps:
                     _check_image_message(source, topic, reader.deserialize(raw, connection.msgtype),
@@ -431,7 +431,7 @@ def _list_bag(source: Path, options: SourceOptions) -> SourceListing:
                 paths.append(prefix / (f"frame_{i:06d}_{nanos[i]}ns" + (f"_{repeat}" if repeat else "")))
         listing = SourceListing(source, "bag", paths, seconds[chosen], topic=topic)
         if position_topic is not None:
-            with _bag_errors(source, position_topic):
+            with bag_errors(source, position_topic):
                 _add_positions(reader, listing, position_topic)
         return listing
     finally:
@@ -494,8 +494,8 @@ def locate(path: str | os.PathLike) -> tuple[Path, str | None, str] | None:
     """(source, topic, frame name) of a frame path, or None when ``path`` is no frame of a source."""
     path = Path(path)
     name = path.name
-    video = _VIDEO_NAME.match(name)
-    bag = _BAG_NAME.match(name)
+    video = VIDEO_FRAME_NAME.match(name)
+    bag = BAG_FRAME_NAME.match(name)
     if not (video or bag):
         return None
     if video and path.parent.is_file() and kind_of(path.parent) == "video":
@@ -521,7 +521,7 @@ def frame_records(paths: Sequence[str | os.PathLike]) -> list[FrameRecord]:
             found = locate(p)
             if found is not None:  # a frame path listed in another process: its name has its time
                 source, topic, name = found
-                match = (_VIDEO_NAME if topic is None else _BAG_NAME).match(name)
+                match = (VIDEO_FRAME_NAME if topic is None else BAG_FRAME_NAME).match(name)
                 scale = 1e3 if topic is None else 1e9
                 out.append(FrameRecord(str(source), int(match.group(2)) / scale, topic=topic))
             else:

@@ -297,7 +297,7 @@ class AcceptanceSpec:
         return {"rule": self.name, "settings": self.settings}
 
 
-def _typed(value):
+def setting_value(value):
     """A command-line setting value as YAML reads it (3 -> int, 2.5 -> float, null -> None)."""
     if not isinstance(value, str):
         return value
@@ -325,7 +325,7 @@ def _split_settings(items: Sequence[str] | Mapping[str, object] | None) -> list[
     out = []
     for key, value in pairs:
         target, sep, setting = str(key).partition(":")
-        out.append((target if sep else None, setting if sep else target, _typed(value)))
+        out.append((target if sep else None, setting if sep else target, setting_value(value)))
     return out
 
 

@@ -151,7 +151,7 @@ class GlobalFeaturesWriter:
     def __init__(self, path: str | os.PathLike, key: str = GLOBAL_KEY, attrs: dict | None = None):
         import tempfile
 
-        from fdnet.descriptors.pipeline import _lock_folder, _remove_stale_parts
+        from fdnet.descriptors.pipeline import lock_folder, remove_stale_parts
         from fdnet.io import ensure_writable
 
         h5py = self._h5py = require_h5py()
@@ -165,8 +165,8 @@ class GlobalFeaturesWriter:
         ensure_writable(self.path, what="global-features file")
         self._folder = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.parts.", dir=self.path.parent))
         try:
-            self._lock = _lock_folder(self._folder)
-            _remove_stale_parts(self.path)
+            self._lock = lock_folder(self._folder)
+            remove_stale_parts(self.path)
             self._tmp = self._folder / self.path.name
             self._file = h5py.File(self._create(h5py))
             for name, value in (attrs or {}).items():

@@ -324,8 +324,8 @@ class NpzChunkWriter:
         self._shapes: dict[str, tuple[int, ...]] = {}
         self._dtypes: dict = {}
         try:
-            self._lock = _lock_folder(self._folder)
-            _remove_stale_parts(self.path)
+            self._lock = lock_folder(self._folder)
+            remove_stale_parts(self.path)
             for name, (shape, dtype) in arrays.items():
                 dtype = np.dtype(dtype)
                 shape = tuple(int(v) for v in shape)
@@ -462,7 +462,7 @@ class VectorSpool:
 _PARTS_LOCK = ".lock"
 
 
-def _lock_folder(folder: Path) -> int | None:
+def lock_folder(folder: Path) -> int | None:
     """Hold a lock on ``folder`` for as long as this process lives (or until the returned
     descriptor is closed): ``folder/.lock``, created under another name and renamed once locked,
     so a sweeping writer never finds it unlocked while its owner is alive."""
@@ -475,7 +475,7 @@ def _lock_folder(folder: Path) -> int | None:
     return fd
 
 
-def _remove_stale_parts(target: Path) -> None:
+def remove_stale_parts(target: Path) -> None:
     """Remove the ``.NAME.parts.*`` folders beside ``target`` whose writer has died (kill -9):
     those whose lock no live process holds. A folder without its lock file is left alone (being
     set up right now, or written by an older fdnet)."""

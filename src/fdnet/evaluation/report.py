@@ -166,7 +166,7 @@ def format_results_table(results: Sequence[MethodResult], style: str, protocol: 
 TABLE_STYLES = ("csv", "markdown", "latex")
 
 
-def _plain(value):
+def json_fallback(value):
     """JSON fallback for what descriptor settings may hold (numpy scalars/arrays, paths)."""
     import numpy as np
 
@@ -182,4 +182,4 @@ def write_json(path: str | os.PathLike, results: Sequence[MethodResult], protoco
                predictions: int = 0, seeds=None) -> None:
     """Write :func:`results_json` to ``path`` atomically (a crash never leaves half a file)."""
     document = results_json(results, protocol, include_curve, command, settings, predictions, seeds)
-    atomic_write_text(path, json.dumps(document, indent=2, allow_nan=False, default=_plain) + "\n")
+    atomic_write_text(path, json.dumps(document, indent=2, allow_nan=False, default=json_fallback) + "\n")

@@ -90,9 +90,9 @@ def sequence_top_k(queries: np.ndarray, references: np.ndarray, k: int, length: 
     queries before it, so blocks of query rows are computed with that many rows of overlap and
     reduced to their top ``k`` at once. Memory: about ``max_entries`` similarity values.
     """
-    from fdnet.matching.similarity import _dot, top_k_of_matrix
+    from fdnet.matching.similarity import dot_similarity, top_k_of_matrix
 
-    fn = similarity or _dot
+    fn = similarity or dot_similarity
     q = np.asarray(queries)
     r = np.asarray(references)
     num_q, num_r = len(q), len(r)

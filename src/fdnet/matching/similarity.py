@@ -13,7 +13,7 @@ import numpy as np
 SimilarityFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 
-def _dot(q: np.ndarray, r: np.ndarray) -> np.ndarray:
+def dot_similarity(q: np.ndarray, r: np.ndarray) -> np.ndarray:
     return q @ r.T
 
 
@@ -21,7 +21,7 @@ def similarity_matrix(queries: np.ndarray, references: np.ndarray,
                       similarity: SimilarityFn | None = None, block: int = 4096) -> np.ndarray:
     """Full (Q, R) float32 similarity; ``similarity`` defaults to the dot product
     (cosine for L2-normalised vectors). Pass ``descriptor.similarity`` for other methods."""
-    fn = similarity or _dot
+    fn = similarity or dot_similarity
     q = np.asarray(queries)
     r = np.asarray(references)
     out = np.empty((len(q), len(r)), dtype=np.float32)
@@ -38,7 +38,7 @@ def top_k(queries: np.ndarray, references: np.ndarray, k: int = 1,
 
     Returns ``(indices, scores)``, both (Q, k), best first. Ties keep the lower index first.
     """
-    fn = similarity or _dot
+    fn = similarity or dot_similarity
     q = np.asarray(queries)
     r = np.asarray(references)
     k = int(min(k, len(r)))

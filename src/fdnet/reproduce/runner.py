@@ -13,7 +13,6 @@ what finished, and a rerun resumes from the descriptor cache (``OUT/cache/``).
 
 from __future__ import annotations
 
-import datetime
 import itertools
 import json
 import logging
@@ -29,12 +28,13 @@ from fdnet.data.split import EvaluationSplit
 from fdnet.descriptors.base import Descriptor
 from fdnet.descriptors.registry import reproduce_methods
 from fdnet.errors import ConfigError, FdnetError
-from fdnet.evaluation.report import _plain
+from fdnet.evaluation.report import json_fallback
 from fdnet.io import atomic_write_text, ensure_writable
 from fdnet.metrics import PROTOCOLS, RECALL_OVER_QUERIES
 from fdnet.provenance import provenance
 from fdnet.reproduce.cache import DescriptorCache, image_list_key
 from fdnet.reproduce.sections import ALL_EXPERIMENTS, EXPERIMENTS, MANIFEST, experiment_module
+from fdnet.runs.lock import local_time_stamp
 from fdnet.version import __version__
 
 #: FDNet, the trunk alone and every baseline; those that cannot run here (no trained model, no
@@ -490,7 +490,7 @@ def _run_experiments(ctx: Context, chosen: list[str], reasons: dict, write_repor
     manifest = {
         "fdnet_version": __version__,
         "command": settings.command,
-        "created": _now(),
+        "created": local_time_stamp(),
         "dataset": str(settings.data),
         "dataset_format": settings.dataset_format or "folders (one sub-folder per condition)",
         "pairs": [{"reference": p.reference, "query": p.query, "description": p.split.description,
@@ -516,13 +516,13 @@ def _run_experiments(ctx: Context, chosen: list[str], reasons: dict, write_repor
         started = time.monotonic()
         document = {"not_run": reason} if reason else module.run(ctx)
         document = {"experiment": name, "title": module.TITLE, "paper": module.PAPER,
-                    "fdnet_version": __version__, "command": settings.command, "created": _now(),
+                    "fdnet_version": __version__, "command": settings.command, "created": local_time_stamp(),
                     "dataset": str(settings.data), "checkpoint": manifest["checkpoint"],
                     "protocol": ctx.protocol, "smoke_test": manifest["smoke_test"], **document,
                     "provenance": provenance(settings.command, seeds=_seeds(run, document),
                                              device=getattr(settings, "device", None))}
         atomic_write_text(out / f"{name}.json", json.dumps(document, indent=1, allow_nan=False,
-                                                            default=_plain) + "\n")
+                                                            default=json_fallback) + "\n")
         ctx.remove_stale_figures()
         write_report(out)
         log(f"[{name}] done in {time.monotonic() - started:.1f} s")
@@ -584,5 +584,3 @@ def _seeds(run: dict | None, document: dict) -> dict:
     return seeds
 
 
-def _now() -> str:
-    return datetime.datetime.now().astimezone().isoformat(timespec="seconds")

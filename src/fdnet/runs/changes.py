@@ -10,7 +10,7 @@ import yaml
 from fdnet.config import read_yaml_file
 from fdnet.errors import ConfigError
 from fdnet.io import atomic_write_text
-from fdnet.runs.lock import _now  # the same local time stamp as the lock's holder details
+from fdnet.runs.lock import local_time_stamp  # the same local time stamp as the lock's holder details
 
 CHANGES_FILE = "changes.yaml"
 
@@ -39,5 +39,5 @@ def record_changes(run_dir: str | Path, step: int, differences: list[str], comma
     if not differences:
         return
     entries = read_changes(run_dir)
-    entries.append({"step": int(step), "time": _now(), "command": command, "changes": list(differences)})
+    entries.append({"step": int(step), "time": local_time_stamp(), "command": command, "changes": list(differences)})
     atomic_write_text(Path(run_dir) / CHANGES_FILE, yaml.safe_dump(entries, sort_keys=False))

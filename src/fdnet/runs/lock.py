@@ -20,7 +20,8 @@ except ImportError:  # Windows: loading runs works; RunLock says it cannot lock 
 LOCK_FILE = ".lock"
 
 
-def _now() -> str:
+def local_time_stamp() -> str:
+    """Now, in local time with its offset, to the second: what run records and locks say."""
     return datetime.datetime.now().astimezone().isoformat(timespec="seconds")
 
 
@@ -94,7 +95,7 @@ class RunLock:
             raise ConfigError(f"{self.path}: cannot lock the run directory ({exc.strerror or exc}); "
                               "its filesystem may not support file locks") from exc
         info = yaml.safe_dump({"pid": os.getpid(), "host": socket.gethostname(),
-                               "command": self.command, "started": _now()}, sort_keys=False)
+                               "command": self.command, "started": local_time_stamp()}, sort_keys=False)
         try:
             os.ftruncate(fd, 0)
             os.pwrite(fd, info.encode("utf-8"), 0)

@@ -91,7 +91,7 @@ def calibrate(descriptor, split, spec: AcceptanceSpec | str, target_precision: f
 
 def _choices(items, accept_set=()) -> dict:
     """``["radius=0,1,3"]`` -> ``{"radius": [0, 1, 3]}`` (values read as YAML, as --accept-set's)."""
-    from fdnet.decisions.acceptance import _typed
+    from fdnet.decisions.acceptance import setting_value
     from fdnet.errors import ConfigError
 
     fixed = {item.partition("=")[0].strip().rpartition(":")[2] for item in accept_set}
@@ -105,7 +105,7 @@ def _choices(items, accept_set=()) -> dict:
             raise ConfigError(f"--choose {key} given twice: list every value once, e.g. {key}=0,1,2")
         if key in fixed:
             raise ConfigError(f"--choose {key} and --accept-set {key}: a setting is either fixed or chosen; give one")
-        out[key] = [_typed(v.strip()) for v in values.split(",") if v.strip()]
+        out[key] = [setting_value(v.strip()) for v in values.split(",") if v.strip()]
     return out
 
 
