@@ -114,7 +114,7 @@ class Calibration:
     @property
     def spec(self) -> AcceptanceSpec:
         """The rule expression with its stored settings."""
-        items = [f"{name}:{key}={_yaml_text(value)}" for name, values in self.settings.items()
+        items = [f"{name}:{key}={yaml_text(value)}" for name, values in self.settings.items()
                  for key, value in values.items()]
         return parse_acceptance(self.rule, items)
 
@@ -366,7 +366,7 @@ def fit_probability(scores: np.ndarray, correct: np.ndarray) -> dict:
     return {"scores": xs, "p_correct": [float(p) for p in ps], "frames": int(len(scores))}
 
 
-def _yaml_text(value) -> str:
+def yaml_text(value) -> str:
     import yaml
 
     return yaml.safe_dump(value, default_flow_style=True).strip().removesuffix("...").strip()
@@ -435,9 +435,9 @@ def candidate_specs(spec: AcceptanceSpec, choose: dict[str, Sequence] | None) ->
             raise ConfigError(f"--choose {key}: no values to choose from")
     out = []
     for combination in itertools.product(*choose.values()):
-        items = [f"{name}:{key}={_yaml_text(value)}" for name, values in spec.parts for key, value in values.items()
+        items = [f"{name}:{key}={yaml_text(value)}" for name, values in spec.parts for key, value in values.items()
                  if key not in choose]
-        items += [f"{name}:{key}={_yaml_text(value)}" for name, values in spec.parts
+        items += [f"{name}:{key}={yaml_text(value)}" for name, values in spec.parts
                   for key, value in zip(choose, combination) if key in values]
         out.append(parse_acceptance(spec.name, items))
     return out

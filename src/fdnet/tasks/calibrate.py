@@ -132,9 +132,9 @@ def _rule(accept, accept_set, choose: dict):
     try:
         return parse_acceptance(accept or DEFAULT_ACCEPTANCE, list(accept_set))
     except ConfigError as missing:
-        from fdnet.decisions.calibration import _yaml_text
+        from fdnet.decisions.calibration import yaml_text
 
-        first = [f"{key}={_yaml_text(values[0])}" for key, values in choose.items() if values]
+        first = [f"{key}={yaml_text(values[0])}" for key, values in choose.items() if values]
         if not first:
             raise
         try:
