@@ -433,7 +433,7 @@ def test_the_index_closes_the_same_loops_as_every_place(length):
     exact, exact_events = run(frames, search="exact", **settings)
     indexed, indexed_events = run(frames, search="index", **settings)
     assert exact_events == indexed_events and any(e is not None for e in exact_events)
-    assert indexed._indexed is not None and exact._indexed is None
+    assert indexed.candidates.indexed is not None and exact.candidates.indexed is None
     assert [d.match for d in indexed.decisions[revisit:]] == [d.match for d in exact.decisions[revisit:]]
     with pytest.raises(ConfigError, match="search must be one of"):
         run(frames[:2], search="faiss", **settings)
@@ -442,9 +442,9 @@ def test_the_index_closes_the_same_loops_as_every_place(length):
 def test_auto_search_switches_to_the_index_at_its_size():
     frames = places(seed=4, n=30)
     detector, _ = run(frames, search="auto", index_from=20, rule="raw", threshold=2.0)
-    assert detector._indexed is not None and len(detector._indexed) == 29   # every place but the newest
+    assert detector.candidates.indexed is not None and len(detector.candidates.indexed) == 29   # every place but the newest
     small, _ = run(frames, search="auto", rule="raw", threshold=2.0)
-    assert small._indexed is None
+    assert small.candidates.indexed is None
 
 
 def test_resume_with_the_index_replays_the_same_events(tmp_path):

@@ -84,7 +84,7 @@ def test_every_sequence_score_goes_through_the_one_scorer():
     online_sequence_scores; nothing else sums a sequence (no second loop over velocities)."""
     callers = sorted(str(p.relative_to(SRC)) for p in SRC.rglob("*.py")
                      if "online_sequence_scores(" in p.read_text() and p.name != "sequence.py")
-    assert callers == ["decisions/loop_closure.py", "decisions/loop_search.py"]
+    assert callers == ["decisions/loop_candidates.py", "decisions/loop_search.py"]
     # the mean along a sequence's line (the sum over its frames divided by the frames counted)
     means = sorted(str(p.relative_to(SRC)) for p in SRC.rglob("*.py") if "total / np.maximum(" in p.read_text())
     assert means == ["matching/sequence.py"]

@@ -14,9 +14,10 @@ For each new frame, :class:`LoopClosureDetector`:
 
 **Causal.** Every number a frame's decision uses comes from that frame and frames processed
 before it, and nothing is revised later: the events up to frame t do not depend on frames after t.
-The detector keeps the database's vectors in memory (read once, then appended) and scores a frame
-against all of them (sequences need whole rows), or through an index on large maps
-(:mod:`fdnet.decisions.loop_search`). :func:`fdnet.decisions.loop_traverse.run_traverse` is what
+The detector keeps the database's vectors in memory (read once, then appended); which places a
+frame may match and how each scores (every place, or through an index on large maps) is its
+search, :mod:`fdnet.decisions.loop_candidates`; the detector itself is gates, rule and
+consistency over those candidates, and the storage of each frame. :func:`fdnet.decisions.loop_traverse.run_traverse` is what
 ``fdnet loop-closure`` runs.
 """
 
@@ -26,13 +27,13 @@ import logging
 import math
 import os
 import uuid
-from collections import deque
 from pathlib import Path
 
 import numpy as np
 
 from fdnet.decisions.acceptance import Candidates, decide
 from fdnet.decisions.calibration import stored_calibration
+from fdnet.decisions.loop_candidates import FrameQuery, LoopCandidates, SearchPlan
 from fdnet.decisions.loop_gates import (  # noqa: F401
     ConsistencyGate,
     FrameSignals,
@@ -42,10 +43,10 @@ from fdnet.decisions.loop_gates import (  # noqa: F401
     informative_frames,
     is_still,
 )
-from fdnet.decisions.loop_recency import RECENT_WINDOW, GapDetector, Seams, sampled_similar_past, similar_past
+from fdnet.decisions.loop_recency import GapDetector, Seams
 from fdnet.decisions.loop_records import EVENT_COLUMNS, Closure, FrameDecision  # noqa: F401
 from fdnet.decisions.loop_settings import SEARCH_KINDS, LoopClosureSettings  # noqa: F401
-from fdnet.decisions.loop_threads import single_blas_thread, single_torch_thread
+from fdnet.decisions.loop_threads import single_torch_thread
 from fdnet.decisions.loop_trust import (  # noqa: F401
     LOOP_CALIBRATION_FILE,
     DriftCheck,
@@ -123,28 +124,34 @@ class LoopClosureDetector:
         self._start_traverse()
 
     def _start_traverse(self) -> None:
-        # per frame of this traverse: the places in the database before it was added (so frame
-        # t searches the places before its first excluded frame), and its similarity row for sequences
-        self._before: list[int] = []
-        self._rows: deque[np.ndarray] = deque(maxlen=max(self.sequence_length - 1, 0) or None)
-        self._recent = RecentPast(self.exclude_last, self.gates)
-        # the current segment's first frame, and per frame: the first frame its own recent past
-        # reached (min over a sequence's frames) and how many frames back its exclusion went
-        self._segment_first = 0
-        self._own_first: list[int] = []
-        self.excluded_back: list[int] = []
-        self._gaps = GapDetector()
+        # the search's state over this traverse: per frame, the places before it, its recent past,
+        # its similarity row for sequences (:mod:`fdnet.decisions.loop_candidates`)
+        self.candidates = LoopCandidates(SearchPlan(self.descriptor.similarity, self.sequence_length,
+                                                    self._first_full, self.spec.depth, self.gates,
+                                                    self.exclude_last))
         #: the rule scores under the threshold, checked against the calibration's
         self._drift = DriftCheck(self.calibration, self._calibration_source)
-        self._indexed = None
         self._consistency = ConsistencyGate(self.gates.consistency, self.gates.consistency_window)
+        self._gaps = GapDetector()
         self._last_thumbnail: np.ndarray | None = None
         self.decisions: list[FrameDecision] = []
         self.closures: list[Closure] = []
-        #: what the gates did so far: frames that were uninformative, frames whose exclusion
-        #: reached further back than exclude_last (a still robot), candidates the consistency
-        #: gate held back (score at the threshold, matches not yet consistent)
-        self.gate_counts = {"uninformative": 0, "still_frames": 0, "still_exclusion": 0, "held_by_consistency": 0}
+        self._gated = {"uninformative": 0, "still_frames": 0, "held_by_consistency": 0}
+
+    @property
+    def gate_counts(self) -> dict:
+        """What the gates did so far: frames that were uninformative, frames taken while still,
+        frames whose exclusion reached further back than exclude_last (a still robot),
+        candidates the consistency gate held back (score at the threshold, matches not yet
+        consistent)."""
+        return {"uninformative": self._gated["uninformative"], "still_frames": self._gated["still_frames"],
+                "still_exclusion": self.candidates.still_exclusions,
+                "held_by_consistency": self._gated["held_by_consistency"]}
+
+    @property
+    def excluded_back(self) -> list[int]:
+        """Per frame of this traverse: how many frames back its exclusion went."""
+        return self.candidates.excluded_back
 
     # ------------------------------------------------------------------ setting up
     def _database(self, database, method_options):
@@ -205,7 +212,7 @@ class LoopClosureDetector:
     @property
     def frames(self) -> int:
         """Frames of this traverse processed so far."""
-        return len(self._before)
+        return len(self.candidates.before)
 
     # ------------------------------------------------------------------ one frame
     def load(self, image) -> np.ndarray:
@@ -252,20 +259,8 @@ class LoopClosureDetector:
         cannot see the frame and let it through. ``new_segment``: the frame starts a new
         recording (a new pass of the route, after a break): no sequence spans the seam
         (:mod:`fdnet.decisions.loop_recency`); a gap in the timestamps starts one too."""
-        v = np.asarray(vector, dtype=np.float32).reshape(-1)
-        if v.shape[0] != self.database.dim:
-            raise DataError(f"frame vector has {v.shape[0]} values, the {self.descriptor.name} places have "
-                            f"{self.database.dim}")
         t = self.frames
-        name = f"loop-closure-{self._session}/frame_{t:06d}" if name is None else str(name)
-        if not np.isfinite(v).all():
-            raise DataError(f"{name}: its {self.descriptor.name} vector is not finite (NaN or inf)")
-        if name in self.map and not self.allow_duplicates:
-            raise DataError(f"{self.database.path}: already holds a place named {name!r} (added in an earlier run?); "
-                            "give each frame a new name, or allow duplicates")
-        if timestamp is not None and (isinstance(timestamp, bool) or not isinstance(timestamp, (int, float))
-                                      or not math.isfinite(timestamp)):
-            raise DataError(f"{name}: timestamp must be a finite number of seconds, got {timestamp!r}")
+        v, name = self._checked_frame(vector, name, timestamp)
         count = self.places
         gap = self._gaps.gap(None if timestamp is None else float(timestamp))
         if _replay is not None:  # resume(): what the interrupted run stored for this frame
@@ -279,59 +274,77 @@ class LoopClosureDetector:
                 self._last_thumbnail = signals.thumbnails[0]
         new_segment = bool(new_segment) or gap or t == 0
         if new_segment:
-            self._segment_first = t
-            self._rows.clear()
-        if self._indexed is None and self.search != "exact" and (self.search == "index" or count >= self.index_from):
-            from fdnet.decisions.loop_search import IndexedCandidates
-
-            self._indexed = IndexedCandidates(self.database.dim, self.sequence_length)
-        if self._indexed is not None:
-            ids, scores, searchable = self._indexed_candidates(v, t, count, informative, still, timestamp, position)
-        else:
-            ids, scores, searchable = self._exhaustive_candidates(v, t, count, informative, still, timestamp,
-                                                                  position)
-        closure = None
-        decision = FrameDecision(t, -1, float("nan"), False, int(searchable))
-        if searchable > 0:
-            gated = "" if informative else "uninformative"
-            if not gated and still and not self.gates.decide_when_still:
-                gated = "still"
-            if not gated and t - self._segment_first + 1 < self.sequence_length:
-                gated = "incomplete sequence"
-            if not gated and (not len(ids) or not self._informative.view(searchable).any()):
-                gated = "no informative place"
-            best = int(ids[0]) if len(ids) else -1
-            best_similarity = float(scores[0]) if len(ids) else self._floor
-            if gated:
-                self.gate_counts["uninformative"] += not informative
-                self.gate_counts["still_frames"] += gated == "still"
-                self._consistency.update(-1, -math.inf)
-                decision = FrameDecision(t, -1, -math.inf, False, int(searchable), best, best_similarity, gated=gated)
-            else:
-                match, rule_score, similarity = self._decide(ids, scores, name, searchable)
-                score = self._consistency.update(match, rule_score)
-                accepted = bool(score >= self.threshold)
-                if rule_score >= self.threshold and not accepted:
-                    self.gate_counts["held_by_consistency"] += 1
-                decision = FrameDecision(t, match, score, accepted, int(searchable), best, best_similarity,
-                                         rule_score=rule_score)
-                if math.isfinite(rule_score) and rule_score < self.threshold:
-                    self._drift.add(rule_score)
-                if accepted:
-                    here = (None, None) if position is None else tuple(float(c) for c in list(position)[:2])
-                    there = (None, None) if self._positions is None else tuple(self._positions[match][:2])
-                    closure = Closure(t, name, match, self.map.names[match], score, similarity, self.spec.name,
-                                      self.threshold, timestamp,
-                                      None if self._times is None else float(self._times[match]),
-                                      *here, *there, self._p_correct(score))
-        elif not informative:
-            self.gate_counts["uninformative"] += 1
+            self.candidates.new_segment(t)
+        if self.candidates.indexed is None and self.search != "exact" \
+                and (self.search == "index" or count >= self.index_from):
+            self.candidates.use_index(self.database.dim)
+        frame = FrameQuery(v, t, count, informative, still, timestamp, position)
+        ids, scores, searchable = self.candidates.candidates(frame, self.map, self._seams)
+        decision, closure = self._judge(frame, name, ids, scores, searchable)
         self._add(v, name, timestamp, position, informative, still, new_segment, store=_replay is None)
-        self._before.append(count)
+        self.candidates.frame_done(count)
         self.decisions.append(decision)
         if closure is not None:
             self.closures.append(closure)
         return closure
+
+    def _checked_frame(self, vector, name: str | None, timestamp) -> tuple[np.ndarray, str]:
+        """The frame's vector as float32 and its place name, or a DataError saying what is wrong."""
+        v = np.asarray(vector, dtype=np.float32).reshape(-1)
+        if v.shape[0] != self.database.dim:
+            raise DataError(f"frame vector has {v.shape[0]} values, the {self.descriptor.name} places have "
+                            f"{self.database.dim}")
+        name = f"loop-closure-{self._session}/frame_{self.frames:06d}" if name is None else str(name)
+        if not np.isfinite(v).all():
+            raise DataError(f"{name}: its {self.descriptor.name} vector is not finite (NaN or inf)")
+        if name in self.map and not self.allow_duplicates:
+            raise DataError(f"{self.database.path}: already holds a place named {name!r} (added in an earlier run?); "
+                            "give each frame a new name, or allow duplicates")
+        if timestamp is not None and (isinstance(timestamp, bool) or not isinstance(timestamp, (int, float))
+                                      or not math.isfinite(timestamp)):
+            raise DataError(f"{name}: timestamp must be a finite number of seconds, got {timestamp!r}")
+        return v, name
+
+    def _judge(self, frame: FrameQuery, name: str, ids: np.ndarray, scores: np.ndarray,
+               searchable: int) -> tuple[FrameDecision, Closure | None]:
+        """The gates, the rule and the consistency gate over the frame's candidates: its
+        decision, and the closure when accepted."""
+        t = frame.t
+        if searchable <= 0:
+            self._gated["uninformative"] += not frame.informative
+            return FrameDecision(t, -1, float("nan"), False, int(searchable)), None
+        gated = "" if frame.informative else "uninformative"
+        if not gated and frame.still and not self.gates.decide_when_still:
+            gated = "still"
+        if not gated and t - self.candidates.segment_first + 1 < self.sequence_length:
+            gated = "incomplete sequence"
+        if not gated and (not len(ids) or not self._informative.view(searchable).any()):
+            gated = "no informative place"
+        best = int(ids[0]) if len(ids) else -1
+        best_similarity = float(scores[0]) if len(ids) else self._floor
+        if gated:
+            self._gated["uninformative"] += not frame.informative
+            self._gated["still_frames"] += gated == "still"
+            self._consistency.update(-1, -math.inf)
+            return FrameDecision(t, -1, -math.inf, False, int(searchable), best, best_similarity, gated=gated), None
+        match, rule_score, similarity = self._decide(ids, scores, name, searchable)
+        score = self._consistency.update(match, rule_score)
+        accepted = bool(score >= self.threshold)
+        if rule_score >= self.threshold and not accepted:
+            self._gated["held_by_consistency"] += 1
+        decision = FrameDecision(t, match, score, accepted, int(searchable), best, best_similarity,
+                                 rule_score=rule_score)
+        if math.isfinite(rule_score) and rule_score < self.threshold:
+            self._drift.add(rule_score)
+        if not accepted:
+            return decision, None
+        position = frame.position
+        here = (None, None) if position is None else tuple(float(c) for c in list(position)[:2])
+        there = (None, None) if self._positions is None else tuple(self._positions[match][:2])
+        closure = Closure(t, name, match, self.map.names[match], score, similarity, self.spec.name, self.threshold,
+                          frame.timestamp, None if self._times is None else float(self._times[match]),
+                          *here, *there, self._p_correct(score))
+        return decision, closure
 
     def _p_correct(self, score: float) -> float | None:
         p = float(self.calibration.p_correct([score])[0]) if self.calibration is not None else math.nan
@@ -339,122 +352,6 @@ class LoopClosureDetector:
 
     #: best-match similarity recorded for a frame whose search found no candidate
     _floor = -1.0
-
-    def _exhaustive_candidates(self, v, t, count, informative, still, timestamp, position):
-        """(candidate places best first, their scores, searchable) by scoring every place."""
-        if count:
-            with single_blas_thread():
-                row = np.asarray(self.descriptor.similarity(v[None], self.map.vectors.view()), dtype=np.float32)[0]
-        else:
-            row = np.zeros(0, np.float32)
-        previous = float(row[count - 1]) if t > 0 and count > 0 else None
-        row, neutral = self._mask_uninformative(row, informative)
-        back = self._similar_back(t, informative, row)
-        searchable = self._searchable(t, count, previous, still, timestamp, position, back)
-        if self.sequence_length > 1:
-            from fdnet.matching.sequence import online_sequence_scores
-
-            # Each segment of the map starts with _first_full neutral columns (the row's median):
-            # a sequence that would run off the start of its segment is scored over all L frames,
-            # the missing ones neutral, instead of over the few it has (a mean of one or two
-            # similarities is noisy and would win by chance) or over another recording's frames.
-            # The whole row is kept for the next frames' sequences; only the searchable places
-            # are scored.
-            if neutral is None:  # nothing was masked: the row's own median, computed only here
-                neutral = float(np.median(row)) if len(row) else 0.0
-            padded = self._seams.padded(row, neutral)
-            scores = online_sequence_scores([*self._rows, padded], self._seams.width(searchable))
-            scores = scores[self._seams.columns(searchable)]
-            self._rows.append(padded)
-        else:
-            scores = row[:searchable]
-        if not searchable:
-            return np.zeros(0, np.int64), np.zeros(0, np.float32), 0
-        from fdnet.matching.similarity import top_k_of_matrix
-
-        scores = self._never_best(scores)
-        idx, top = top_k_of_matrix(scores[None], min(self.spec.depth, len(scores)))
-        return idx[0], top[0], searchable
-
-    def _similar_back(self, t: int, informative: bool, row: np.ndarray | None = None, v=None) -> int:
-        """How many of its segment's earlier frames the frame still resembles more than unrelated
-        places (:func:`fdnet.decisions.loop_recency.similar_past` over its ``row``; without one,
-        on the indexed path, over a sample of the map); an uninformative frame's row says nothing,
-        so it keeps its predecessor's reach, one frame further."""
-        if t <= self._segment_first or not self.gates.similar_past:
-            return 0
-        if not informative:
-            return (t - self._own_first[-1]) if self._own_first else 0
-        if row is None:
-            recent = np.asarray(self._before[max(self._segment_first, t - RECENT_WINDOW):t], np.int64)[::-1]
-            return sampled_similar_past(self.descriptor.similarity, v, self.map.vectors.view(), recent)
-        return similar_past(row, np.asarray(self._before[self._segment_first:t], np.int64)[::-1])
-
-    def _indexed_candidates(self, v, t, count, informative, still, timestamp, position):
-        """(candidate places best first, their scores, searchable) from the index (large maps,
-        :mod:`fdnet.decisions.loop_search`)."""
-        vectors = self.map.vectors.view()
-        previous = float(self.descriptor.similarity(v[None], vectors[count - 1:count])[0, 0]) \
-            if t > 0 and count > 0 else None
-        back = self._similar_back(t, informative, v=v)
-        searchable = self._searchable(t, count, previous, still, timestamp, position, back)
-        mask = self._informative.view(count)
-        neutral = self._indexed.neutral(v, vectors, mask)
-        if t == self._segment_first:
-            self._indexed.new_segment()
-        ids, scores = self._indexed.search(v, vectors, searchable, mask, neutral, informative, self._seams)
-        return ids[:max(self.spec.depth, 1)], scores[:max(self.spec.depth, 1)], searchable
-
-    def _searchable(self, t: int, count: int, previous: float | None, still: bool, timestamp, position,
-                    back: int = 0) -> int:
-        """How many places frame ``t`` may match (a prefix of the map): places from earlier
-        sessions and this traverse's frames before its recent past (:class:`RecentPast`:
-        exclude_last, the current still segment, the last seconds or metres; and the ``back``
-        frames it still resembles, :meth:`_similar_back`), for sequences the recent past of
-        every frame of the query's sequence, moved back by sequence_length - 1 frames more, so
-        that no candidate's sequence shares a frame with the query's own."""
-        first = self._recent.first_excluded(t, previous, still, timestamp, position)
-        by_count = max(t - self.exclude_last, 0) if self.exclude_last else t
-        if first < by_count:  # the still segment, seconds or metres reached further back
-            self.gate_counts["still_exclusion"] += 1
-        first = min(first, t - back)
-        self._own_first.append(first)
-        length = self.sequence_length
-        if length > 1:
-            first = min(self._own_first[max(self._segment_first, t - length + 1):])
-            moved = first - (length - 1)
-            first = max(moved, self._segment_first) if first >= self._segment_first else moved
-        first = max(first, 0)
-        self.excluded_back.append(t - first)
-        return count if first >= t else self._before[first]
-
-    def _mask_uninformative(self, row: np.ndarray, informative: bool) -> tuple[np.ndarray, float | None]:
-        """(the frame's similarity row with uninformative places, and for an uninformative frame
-        every place, set to the median of its informative values, that value): neutral in a
-        sequence (a sequence through a tunnel is scored by its other frames), and below the best
-        candidate. :meth:`_never_best` then keeps uninformative places from being matched at all.
-        The median is the row's median too (copies of a median keep it), so the sequence padding
-        reuses it; None when nothing needed masking (the common case: no median is computed)."""
-        if not len(row):
-            return row, 0.0
-        mask = self._informative.view(len(row))
-        if informative and mask.all():
-            return row, None
-        neutral = float(np.median(row[mask])) if mask.any() else 0.0
-        if not informative:
-            return np.full_like(row, neutral), neutral
-        row = row.copy()
-        row[~mask] = neutral
-        return row, neutral
-
-    def _never_best(self, scores: np.ndarray) -> np.ndarray:
-        """``scores`` with uninformative places at the lowest informative score."""
-        mask = self._informative.view(len(scores))
-        if mask.all() or not mask.any():
-            return scores
-        scores = np.array(scores, dtype=np.float32)
-        scores[~mask] = scores[mask].min()
-        return scores
 
     def _decide(self, ids: np.ndarray, scores: np.ndarray, name: str, searchable: int) -> tuple[int, float, float]:
         """The rule over the frame's candidates (place ids best first, their scores): (the place

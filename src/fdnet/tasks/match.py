@@ -83,40 +83,14 @@ def match_images(request: MatchRequest, make_descriptor: Callable[[], object],
     file (:func:`retrieval_pairs`); the CSV and the pairs file are renamed into place together,
     once both are written (a full disk leaves both as they were). ``log`` gets the index cache's
     messages (default: this module's logger)."""
-    r = request
-    reference, query, out, top_k, calibration, accept = r.reference, r.query, r.out, r.top_k, r.calibration, r.accept
-    pairs_out, pairs_accepted_only, index_file = r.pairs_out, r.pairs_accepted_only, r.index_file
-    import contextlib
-
     from fdnet.data.images import list_images
-    from fdnet.io import atomic_path, ensure_writable
 
-    if top_k < 1:
-        raise ConfigError("--top-k must be at least 1")
-    sequence_length = check_sequence_length(r.sequence_length)
-    check_outputs(out, pairs_out, pairs_accepted_only, calibration is not None or accept is not None,
-                  index_file=index_file, inputs=[*r.inputs, ("--reference", reference), ("--query", query),
-                                                 *([("--calibration", calibration)] if calibration else [])])
-    settings = index_settings(r.index, r.index_set, index_file, sequence_length)
-    if out is not None:
-        ensure_writable(out, what="matches CSV")  # before describing every image, not after
-    if pairs_out is not None:
-        ensure_writable(pairs_out, what="pairs file")
-    if index_file:
-        ensure_writable(index_file, what="index file")
-    ref_paths, query_paths = list_images(reference), list_images(query)
-    names = pair_names(reference, query, ref_paths, query_paths, pairs_out) if pairs_out is not None else None
+    r = request
+    sequence_length, settings = _check_request(r)
+    ref_paths, query_paths = list_images(r.reference), list_images(r.query)
+    names = pair_names(r.reference, r.query, ref_paths, query_paths, r.pairs_out) if r.pairs_out is not None else None
     descriptor = make_descriptor()
-    depth = top_k if accept is None else max(top_k, accept.depth)
-    if calibration is not None:
-        from fdnet.decisions.calibration import load_calibration
-
-        source, calibration = calibration, load_calibration(calibration)
-        calibration.check(descriptor, sequence_length=sequence_length, source=source)
-        depth = max(top_k, calibration.spec.depth)  # the rule may need more candidates than are written
-    if names is not None and not pairs_accepted_only and set(names[0]) & set(names[1]):
-        depth = max(depth, top_k + 1)  # a query that is also a reference: its pairs skip itself
-    rule = accept if accept is not None else (calibration.spec if calibration is not None else None)
+    calibration, rule, depth = _decision_rule(r, descriptor, sequence_length, names)
     neighbourhood = reference_times_and_positions(ref_paths)
     if rule is not None:  # e.g. radius_m: image folders have no positions; refused before describing
         rule.check_available({"images", *neighbourhood}, "fdnet match (references without "
@@ -128,7 +102,7 @@ def match_images(request: MatchRequest, make_descriptor: Callable[[], object],
         logger.info(f"{descriptor.name}: learning from the {len(ref_paths)} reference images (none supplied)")
         descriptor.fit(ref_paths)
     indices, scores = rank_references(descriptor, ref_paths, query_paths, depth,
-                                      SearchSettings(settings, sequence_length, index_file), r.pipeline, log=log)
+                                      SearchSettings(settings, sequence_length, r.index_file), r.pipeline, log=log)
     decision = accepted = None
     if rule is not None:
         from fdnet.decisions.acceptance import Candidates, decide
@@ -138,25 +112,85 @@ def match_images(request: MatchRequest, make_descriptor: Callable[[], object],
         if calibration is not None:
             decision, accepted = calibration.decide(candidates)
         else:
-            decision = decide(accept, candidates)
+            decision = decide(r.accept, candidates)
+    ranked = RankedMatches(indices, scores, query_paths, ref_paths, decision, accepted)
+    num_pairs = _write_outputs(r, ranked, names)
+    return MatchSummary(out=None if r.out is None else str(r.out), method=descriptor.name,
+                        num_references=len(ref_paths), num_queries=len(query_paths), top_k=r.top_k,
+                        calibration=calibration, accepted=None if accepted is None else int(accepted.sum()),
+                        pairs_out=None if r.pairs_out is None else str(r.pairs_out), num_pairs=num_pairs,
+                        pairs_root=None if names is None else str(names[2]))
+
+
+@dataclass(frozen=True)
+class RankedMatches:
+    """Each query's ranked references (indices, scores; (Q, depth)) and, with a rule, its
+    decision (acceptance scores) and which queries it accepted."""
+
+    indices: np.ndarray
+    scores: np.ndarray
+    query_paths: list
+    reference_paths: list
+    decision: object = None
+    accepted: np.ndarray | None = None
+
+
+def _check_request(r: MatchRequest):
+    """Refuse what cannot work before any image is read: (sequence length, faiss settings or None)."""
+    from fdnet.io import ensure_writable
+
+    if r.top_k < 1:
+        raise ConfigError("--top-k must be at least 1")
+    sequence_length = check_sequence_length(r.sequence_length)
+    check_outputs(r.out, r.pairs_out, r.pairs_accepted_only, r.calibration is not None or r.accept is not None,
+                  index_file=r.index_file, inputs=[*r.inputs, ("--reference", r.reference), ("--query", r.query),
+                                                   *([("--calibration", r.calibration)] if r.calibration else [])])
+    settings = index_settings(r.index, r.index_set, r.index_file, sequence_length)
+    for path, what in ((r.out, "matches CSV"), (r.pairs_out, "pairs file"), (r.index_file, "index file")):
+        if path is not None:
+            ensure_writable(path, what=what)  # before describing every image, not after
+    return sequence_length, settings
+
+
+def _decision_rule(r: MatchRequest, descriptor, sequence_length: int, names):
+    """(the loaded calibration or None, the rule deciding or None, how many candidates to rank)."""
+    depth = r.top_k if r.accept is None else max(r.top_k, r.accept.depth)
+    calibration = None
+    if r.calibration is not None:
+        from fdnet.decisions.calibration import load_calibration
+
+        calibration = load_calibration(r.calibration)
+        calibration.check(descriptor, sequence_length=sequence_length, source=r.calibration)
+        depth = max(r.top_k, calibration.spec.depth)  # the rule may need more candidates than are written
+    if names is not None and not r.pairs_accepted_only and set(names[0]) & set(names[1]):
+        depth = max(depth, r.top_k + 1)  # a query that is also a reference: its pairs skip itself
+    rule = r.accept if r.accept is not None else (calibration.spec if calibration is not None else None)
+    return calibration, rule, depth
+
+
+def _write_outputs(r: MatchRequest, ranked: RankedMatches, names) -> int | None:
+    """Write the CSV and the pairs file, both or neither (renamed over their targets at the end);
+    the number of pairs written (None without a pairs file)."""
+    import contextlib
+
+    from fdnet.io import atomic_path
+
     num_pairs = None
-    with contextlib.ExitStack() as outputs:  # both outputs or neither: renamed over their targets at the end
-        if pairs_out is not None:
+    with contextlib.ExitStack() as outputs:
+        if r.pairs_out is not None:
             from fdnet.descriptors.hloc_formats import write_pairs_to
 
-            tmp = outputs.enter_context(atomic_path(pairs_out))
+            tmp = outputs.enter_context(atomic_path(r.pairs_out))
             with open(tmp, "w", encoding="utf-8", newline="\n") as handle:
-                pairs = retrieval_pairs(indices, names[1], names[0], top_k, decision, accepted, pairs_accepted_only)
-                num_pairs = write_pairs_to(handle, pairs, pairs_out)
-        if out is not None:
-            tmp = outputs.enter_context(atomic_path(out))
-            tmp.write_text(matches_text(indices, scores, query_paths, ref_paths, top_k, decision, accepted),
+                pairs = retrieval_pairs(ranked.indices, names[1], names[0], r.top_k, ranked.decision, ranked.accepted,
+                                        r.pairs_accepted_only)
+                num_pairs = write_pairs_to(handle, pairs, r.pairs_out)
+        if r.out is not None:
+            tmp = outputs.enter_context(atomic_path(r.out))
+            tmp.write_text(matches_text(ranked.indices, ranked.scores, ranked.query_paths, ranked.reference_paths,
+                                        r.top_k, ranked.decision, ranked.accepted),
                            encoding="utf-8", errors="surrogateescape")
-    return MatchSummary(out=None if out is None else str(out), method=descriptor.name, num_references=len(ref_paths),
-                        num_queries=len(query_paths), top_k=top_k, calibration=calibration,
-                        accepted=None if accepted is None else int(accepted.sum()),
-                        pairs_out=None if pairs_out is None else str(pairs_out), num_pairs=num_pairs,
-                        pairs_root=None if names is None else str(names[2]))
+    return num_pairs
 
 
 def _same_path(a, b) -> bool:
