@@ -204,10 +204,9 @@ def test_long_function_finder_finds_a_planted_one():
 
 #: the most parameters a function outside the command line takes: settings travel as objects
 MAX_PARAMETERS = 8
-#: the constructors still taking their settings one by one; each is to become a settings dataclass
-#: of its method (the list may only shrink)
-WIDE_CONSTRUCTORS = {"fdnet.descriptors.dbow", "fdnet.descriptors.landmarks", "fdnet.descriptors.onnx_model",
-                     "fdnet.descriptors.conv3", "fdnet.methods.fdnet.trunk_alone"}
+#: constructors still taking their settings one by one (none: every method takes its settings
+#: dataclass; the list may only shrink)
+WIDE_CONSTRUCTORS: set[str] = set()
 
 
 def wide_functions(source: str, limit: int = MAX_PARAMETERS) -> list[tuple[str, int, int]]:

@@ -14,7 +14,6 @@ equivalent command line, and the results (the commands' standard output).
 from __future__ import annotations
 
 import dataclasses
-import inspect
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -128,7 +127,7 @@ def _evaluate(route: Path, run_dir: Path, query: str, methods: list[str], settin
               say) -> list:
     from fdnet.decisions.acceptance import DEFAULT_ACCEPTANCE, parse_acceptance_list
     from fdnet.descriptors.pipeline import PipelineSettings
-    from fdnet.descriptors.registry import create, descriptor_class
+    from fdnet.descriptors.registry import create, setting_names
     from fdnet.evaluation.experiment import ScoringSettings, evaluate_method
     from fdnet.evaluation.plots import write_result_plots
     from fdnet.evaluation.report import format_table, write_json
@@ -140,8 +139,8 @@ def _evaluate(route: Path, run_dir: Path, query: str, methods: list[str], settin
     split = build_split(SplitSpec(route, "summer", query, frames=test, tolerance=1))
     given = {"checkpoint": str(run_dir), "fit": str(route), "fit_frames": f"0:{train_end}"}
     descriptors = []
-    for name in methods:  # each method gets the options its constructor takes, as --checkpoint/--fit give them
-        takes = inspect.signature(descriptor_class(name).__init__).parameters
+    for name in methods:  # each method gets the settings it declares, as --checkpoint/--fit give them
+        takes = setting_names(name)
         descriptors.append(create(name, **{k: v for k, v in given.items() if k in takes}))
     acceptance = parse_acceptance_list(DEFAULT_ACCEPTANCE, [])
     results = [evaluate_method(d, split, ScoringSettings((RECALL_OVER_QUERIES,), acceptance=acceptance),

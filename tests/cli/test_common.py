@@ -63,7 +63,7 @@ def test_bad_fit_input_is_a_command_error(route, tmp_path, capsys):
     assert "fdnet evaluate: error: trunk-whitened: L = 6 dimensions, but 4 fitting vectors" in err
     err = _error(capsys, ["evaluate", "--data", str(route), "--reference", "day", "--query", "night",
                           "--method", "trunk", "--fit", str(route)])
-    assert "fdnet evaluate: error: --fit" in err and "none of the methods trunk takes a fit" in err
+    assert "fdnet evaluate: error: --fit" in err and "none of the methods trunk has a setting fit" in err
     err = _error(capsys, [*base, "--fit-frames", "0:2"])
     assert "fdnet evaluate: error: trunk-whitened: fit_frames (0:2) needs fit=DIR" in err
 
@@ -97,13 +97,13 @@ def test_match_takes_fit(route, tmp_path, capsys):
 
 def test_fit_options_go_to_the_methods_that_take_them():
     """As `fdnet reproduce` passes them: a bare --fit to every method that learns from images,
-    METHOD=DIR to that one only; --fit-frames likewise; methods without fit get neither."""
+    METHOD:DIR to that one only; --fit-frames likewise; methods without fit get neither."""
     import argparse
 
     from fdnet.cli.common import method_options
 
     args = argparse.Namespace(method="trunk,trunk-whitened,dbow", weights=[], vocabulary=[], checkpoint=[],
-                              fit=["/data/a", "dbow=/data/b"], fit_frames=["0:100"], method_set=[])
+                              fit=["/data/a", "dbow:/data/b"], fit_frames=["0:100"], method_set=[])
     assert method_options(args, "trunk") == {}
     assert method_options(args, "trunk-whitened") == {"fit": "/data/a", "fit_frames": "0:100"}
     assert method_options(args, "dbow") == {"fit": "/data/b", "fit_frames": "0:100"}

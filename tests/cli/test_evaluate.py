@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import pickle
+from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 import pytest
@@ -12,6 +14,7 @@ from PIL import Image
 from fdnet.cli import main
 from fdnet.descriptors import registry
 from fdnet.descriptors.base import Descriptor, l2_normalize
+from fdnet.descriptors.settings import MethodSettings
 
 from conftest import require_shared, write_day_dusk_route
 
@@ -19,13 +22,26 @@ REQUIRED = {"recall_at_100_precision", "precision_at_max_recall", "auc_pr", "rec
             "method", "num_queries"}
 
 
+@dataclass(frozen=True)
+class TinyPixelsSettings(MethodSettings):
+    method: ClassVar[str] = "tiny-pixels"
+    #: side of the square grey thumbnail
+    size: int = 8
+
+    def check(self) -> None:
+        self.need_whole("size", minimum=1)
+
+
 class TinyPixels(Descriptor):
     """Mean-centred 8x8 grey pixels compared by cosine (a stand-in method for CLI tests)."""
 
     name = "tiny-pixels"
 
-    def __init__(self, size: int = 8):
-        self.input_size = (size, size)
+    Settings: ClassVar[type] = TinyPixelsSettings
+
+    def __init__(self, settings: TinyPixelsSettings | None = None, **options):
+        self.conf = TinyPixelsSettings.build(settings, options)
+        self.input_size = (int(self.conf.size), int(self.conf.size))
 
     @property
     def dim(self) -> int:
@@ -224,11 +240,11 @@ def test_methods_that_cannot_be_told_apart_are_refused(tiny_method, route, tmp_p
     assert "give each its own label" in err and not out.exists()
     (tmp_path / "a.onnx").write_bytes(b"a")
     (tmp_path / "b.onnx").write_bytes(b"b")
-    err = _error(capsys, [*base, "--method", "onnx", "--weights", f"onnx={tmp_path / 'a.onnx'}",
-                          "--weights", f"onnx={tmp_path / 'b.onnx'}"])
+    err = _error(capsys, [*base, "--method", "onnx", "--weights", f"onnx:{tmp_path / 'a.onnx'}",
+                          "--weights", f"onnx:{tmp_path / 'b.onnx'}"])
     assert err.startswith("fdnet evaluate: error: --weights gives onnx 2 values") and not out.exists()
-    err = _error(capsys, [*base, "--method", "onnx,onnx", "--weights", f"onnx={tmp_path / 'a.onnx'}",
-                          "--weights", f"onnx={tmp_path / 'b.onnx'}"])
+    err = _error(capsys, [*base, "--method", "onnx,onnx", "--weights", f"onnx:{tmp_path / 'a.onnx'}",
+                          "--weights", f"onnx:{tmp_path / 'b.onnx'}"])
     assert "--method names onnx more than once" in err and not out.exists()
 
 
@@ -286,7 +302,7 @@ def test_gardens_point_slice(tiny_method, tmp_path):
     from fdnet.descriptors.base import describe_paths
     from fdnet.metrics import evaluate_similarity
 
-    d = TinyPixels(16)
+    d = TinyPixels(size=16)
     q = describe_paths(d, list_images(gardens / "night_right")[100:140])
     r = describe_paths(d, list_images(gardens / "day_right")[100:140])
     direct = evaluate_similarity(q @ r.T, GroundTruth.aligned(40, 40, 2))

@@ -75,20 +75,36 @@ def test_database_build_add_query(tmp_path):
     assert all("first" in r["place"] for r in read_csv_rows(out))
 
 
-def test_file_options_go_to_the_methods_that_take_them(tmp_path, capsys):
+def test_method_options_go_to_the_methods_that_declare_them(tmp_path, capsys):
+    """One rule for every method option flag: METHOD:VALUE goes to that method, a bare value to
+    every method of the command whose settings declare it, refused when none does."""
     import argparse
 
     from fdnet.cli.common import method_options
+    from fdnet.errors import ConfigError
 
     args = argparse.Namespace(method="fdnet,sad,dbow", checkpoint=["runs/a"], weights=[],
-                              vocabulary=["dbow=voc.npz"], method_set=["dbow:branching=4", "batch=2"])
-    assert method_options(args, "fdnet") == {"checkpoint": "runs/a", "batch": 2}
-    assert method_options(args, "sad") == {"batch": 2}
-    assert method_options(args, "dbow") == {"vocabulary": "voc.npz", "branching": 4, "batch": 2}
+                              vocabulary=["dbow:voc.npz"], method_set=["dbow:branching=4", "patch_size=4", "bf16=true"])
+    assert method_options(args, "fdnet") == {"checkpoint": "runs/a", "bf16": True}
+    assert method_options(args, "sad") == {"patch_size": 4}
+    assert method_options(args, "dbow") == {"vocabulary": "voc.npz", "branching": 4, "patch_size": 4}
+    # a scoped value wins over a bare one, whatever their order
+    args.method_set = ["sad:patch_size=2", "patch_size=4"]
+    assert method_options(args, "sad") == {"patch_size": 2} and method_options(args, "dbow")["patch_size"] == 4
+    refusals = {"dim=3": "--method-set dim=3: none of the methods fdnet, sad, dbow has a setting dim "
+                         "(trunk-whitened, conv3, hybridnet have)",
+                "sad:dim=3": "--method-set sad:dim=3: method 'sad' has no setting dim; its settings: size, patch_size",
+                "hog:grey=true": "--method-set hog:grey=true: hog is not one of the methods of --method (fdnet, sad, "
+                                 "dbow)"}
+    for method_set, message in refusals.items():
+        args.method_set = [method_set]
+        with pytest.raises(ConfigError) as refused:
+            method_options(args, "sad")
+        assert str(refused.value) == message
     ref = make_route(tmp_path / "ref", n=3)
     assert main(["match", "--reference", str(ref), "--query", str(ref), "--method", "sad",
                  "--checkpoint", "runs/x", "--out", str(tmp_path / "x.csv")]) == 2
-    assert "none of the methods sad takes a checkpoint" in capsys.readouterr().err
+    assert "--checkpoint runs/x: none of the methods sad has a setting checkpoint" in capsys.readouterr().err
 
 
 def test_match_lists_unpadded_names_in_natural_order_with_indices_and_names(tmp_path):

@@ -75,12 +75,3 @@ def test_recognises_gardens_point_across_viewpoint():
     idx, _ = top_k(queries, refs, 1, similarity=d.similarity)
     recall = GroundTruth.aligned(40, 40, 2).correct_mask(idx)[:, 0].mean()
     assert recall > 3 * 5 / 40  # chance is at most 5/40 with +-2 frames; measured 0.62
-
-
-@pytest.mark.parametrize("method, setting", [("gist", {"image_size": "big"}), ("conv3", {"dim": "x"}),
-                                             ("dbow", {"depth": "x"}), ("landmarks", {"max_regions": "x"})])
-def test_mistyped_settings_are_config_errors_naming_the_method(method, setting):
-    from fdnet.descriptors.registry import create
-
-    with pytest.raises(ConfigError, match=f"{method}: invalid setting"):
-        create(method, **setting)

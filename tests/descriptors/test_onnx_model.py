@@ -185,7 +185,7 @@ def test_a_database_and_a_calibration_of_one_model_refuse_another(tmp_path, caps
 
 def test_benchmark_times_an_onnx_model_beside_the_others(tmp_path, capsys):
     path = export(MeanConv(), tmp_path / "m.onnx")
-    assert main(["benchmark", "--parts", "methods", "--method", "sad", "--weights", f"onnx={path}",
+    assert main(["benchmark", "--parts", "methods", "--method", "sad", "--weights", f"onnx:{path}",
                  "--num-images", "4", "--quick", "--json", str(tmp_path / "b.json")]) == 0
     report = json.loads((tmp_path / "b.json").read_text())
     assert report["method_extraction_ms"]["onnx"] > 0 and report["ratio_vs_sad"]["onnx"] > 0
@@ -400,7 +400,7 @@ def test_an_all_zero_vector_is_an_error_not_a_silent_score_of_zero(tmp_path):
 def test_a_model_the_user_named_that_cannot_load_fails_the_benchmark(tmp_path, capsys):
     bad = tmp_path / "bad.onnx"
     bad.write_text("not a model")
-    assert main(["benchmark", "--parts", "methods", "--method", "sad", "--weights", f"onnx={bad}", "--quick",
+    assert main(["benchmark", "--parts", "methods", "--method", "sad", "--weights", f"onnx:{bad}", "--quick",
                  "--num-images", "2"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("fdnet benchmark: error: ") and str(bad) in err

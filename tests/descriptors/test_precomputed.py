@@ -116,7 +116,7 @@ def test_vectors_is_refused_for_a_method_that_computes_its_own(route, tmp_path, 
     day = extract(route / "day", tmp_path / "day.npz")
     assert main(["match", "--reference", str(route / "day"), "--query", str(route / "day"), "--method", "hog",
                  "--vectors", str(day), "--out", str(tmp_path / "m.csv")]) == 2
-    assert "--vectors is for --method precomputed" in capsys.readouterr().err
+    assert "none of the methods hog has a setting vectors (precomputed has)" in capsys.readouterr().err
 
 
 def test_loop_closure_and_the_database_take_precomputed_vectors(tmp_path, capsys):

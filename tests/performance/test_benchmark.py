@@ -9,7 +9,7 @@ from fdnet.performance.benchmark import BenchmarkRequest, plan_benchmark, run_be
 
 def test_plan_parses_the_command_spellings():
     plan = plan_benchmark(BenchmarkRequest(
-        parts="scale, methods", checkpoints=("fdnet=run",), map_size="100,2000", indexes="flat,hnsw",
+        parts="scale, methods", checkpoints=("fdnet:run",), map_size="100,2000", indexes="flat,hnsw",
         index_set=("hnsw:hnsw_neighbors=8",), sweep=("hnsw_ef_search=8,16",), lengths="256,512", quick=True, threads=1,
         device="CPU"))
     assert plan.parts == ["scale", "methods"] and plan.checkpoints == {"fdnet": "run"}
@@ -22,7 +22,7 @@ def test_plan_parses_the_command_spellings():
     ({"parts": "scale,nothing"}, "--parts"),
     ({"map_size": "1"}, "at least 2 places"),
     ({"lengths": "big"}, "--lengths"),
-    ({"checkpoints": ("run",)}, "METHOD=RUN_DIR"),
+    ({"checkpoints": ("run",)}, "METHOD:RUN_DIR"),
     ({"query_vectors": None, "noise": -1.0}, "--noise"),
 ])
 def test_plan_refuses_bad_settings(kwargs, message):

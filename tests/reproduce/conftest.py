@@ -7,6 +7,8 @@ described and fitted; ``factory`` builds them by name as ``fdnet.descriptors.cre
 from __future__ import annotations
 
 from collections import Counter
+from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 import pytest
@@ -14,10 +16,21 @@ from PIL import Image
 
 from fdnet.descriptors import registry
 from fdnet.descriptors.base import Descriptor, l2_normalize
+from fdnet.descriptors.settings import MethodSettings
 from fdnet.errors import NotAvailableError
 from fdnet.reproduce import ReproduceSettings
 
 CALLS: Counter = Counter()
+
+
+@dataclass(frozen=True)
+class PixelsSettings(MethodSettings):
+    method: ClassVar[str] = "pixels"
+    #: side of the square grey thumbnail
+    size: int = 8
+
+    def check(self) -> None:
+        self.need_whole("size", minimum=1)
 
 
 class Pixels(Descriptor):
@@ -27,8 +40,11 @@ class Pixels(Descriptor):
     name = "pixels"
     interrupt_after: int | None = None
 
-    def __init__(self, size: int = 8):
-        self.input_size = (size, size)
+    Settings: ClassVar[type] = PixelsSettings
+
+    def __init__(self, settings: PixelsSettings | None = None, **options):
+        self.conf = PixelsSettings.build(settings, options)
+        self.input_size = (int(self.conf.size), int(self.conf.size))
 
     @property
     def dim(self) -> int:
@@ -49,8 +65,8 @@ class FittedPixels(Pixels):
     #: what ``min_fit_images`` says (a test raises it above the route's frame count)
     fewest: int = 1
 
-    def __init__(self, size: int = 8):
-        super().__init__(size)
+    def __init__(self, settings: PixelsSettings | None = None, **options):
+        super().__init__(settings, **options)
         self.mean = None
 
     @property

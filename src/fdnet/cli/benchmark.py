@@ -32,11 +32,11 @@ def register(sub) -> None:
                         "references are always measured)")
     p.add_argument("--method", default=DEFAULT_METHODS,
                    help="comma-separated methods to time through the descriptor interface "
-                        f"(default {DEFAULT_METHODS}); add e.g. fdnet with --checkpoint fdnet=RUN_DIR")
-    p.add_argument("--checkpoint", action="append", default=[], metavar="METHOD=RUN_DIR",
+                        f"(default {DEFAULT_METHODS}); add e.g. fdnet with --checkpoint fdnet:RUN_DIR")
+    p.add_argument("--checkpoint", action="append", default=[], metavar="METHOD:RUN_DIR",
                    help="checkpoint for a trained method (repeatable)")
-    p.add_argument("--weights", action="append", default=[], metavar="METHOD=FILE",
-                   help="weights file of a method (e.g. onnx=MODEL.onnx to time any ONNX model; repeatable)")
+    p.add_argument("--weights", action="append", default=[], metavar="METHOD:FILE",
+                   help="weights file of a method (e.g. onnx:MODEL.onnx to time any ONNX model; repeatable)")
     p.add_argument("--images", help="folder of images to time methods on (default: a synthetic route)")
     p.add_argument("--num-images", type=int, default=32, help="images per method timing (default 32)")
     p.add_argument("--map-size", default="1000",
@@ -57,7 +57,7 @@ def register(sub) -> None:
                    help="norm of the noise added to a map vector to make a query (default 0.5: cosine ~0.9 to "
                         "its place)")
     p.add_argument("--scale-dim", type=int,
-                   help="vector length of the random maps (default: FDNet's, 512, or that of --checkpoint fdnet=RUN)")
+                   help="vector length of the random maps (default: FDNet's, 512, or that of --checkpoint fdnet:RUN)")
     p.add_argument("--map-vectors", metavar="FILE",
                    help="a real descriptor's vectors for the scale benchmark too: .npy (N, D) or an .npz from "
                         "`fdnet extract` (its content array)")

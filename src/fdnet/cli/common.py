@@ -15,71 +15,55 @@ def dataset_format_list(auto: bool = True) -> str:
 
 
 def add_method_arguments(parser: argparse.ArgumentParser, multiple: bool = False, required: bool = True) -> None:
-    """--method plus the options any method may take (passed to ``fdnet.descriptors.create``).
-    ``required=False`` for commands where --method is one of several input modes."""
+    """--method plus the flags that set a method's settings (passed to ``fdnet.descriptors.create``).
+    ``required=False`` for commands where --method is one of several input modes. Every flag here
+    takes ``[LABEL:]VALUE`` (:func:`method_options` says where a value goes)."""
     from fdnet.descriptors.registry import fitting_methods, trained_methods
 
     parser.add_argument("--method", required=required,
                         help="descriptor method" + (" (comma-separated for several; LABEL=METHOD names a row, so "
                                                     "two models of one method compare: a=onnx,b=onnx with "
-                                                    "--weights a=A.onnx --weights b=B.onnx)" if multiple else "")
+                                                    "--weights a:A.onnx --weights b:B.onnx)" if multiple else "")
                         + "; `fdnet methods` lists them")
-    per_method = " (with several methods: METHOD=PATH, repeatable; a bare PATH goes to every method that takes one)"
-    parser.add_argument("--checkpoint", action="append", default=[],
-                        help=f"run directory of a trained method ({', '.join(trained_methods())})" + per_method)
-    parser.add_argument("--weights", action="append", default=[],
-                        help="weights file a method accepts (conv3 AlexNet, hybridnet, the onnx model)" + per_method)
-    parser.add_argument("--vocabulary", action="append", default=[],
-                        help="DBoW vocabulary file (from `fdnet vocabulary build`)" + per_method)
-    parser.add_argument("--vectors", action="append", default=[], metavar="FILE",
+    scoped = (" ([METHOD:]VALUE: METHOD: names one method (or label) of --method; a bare value goes to every "
+              "method that has this setting)")
+    parser.add_argument("--checkpoint", action="append", default=[], metavar="[METHOD:]RUN_DIR",
+                        help=f"run directory of a trained method ({', '.join(trained_methods())})" + scoped)
+    parser.add_argument("--weights", action="append", default=[], metavar="[METHOD:]FILE",
+                        help="weights file a method accepts (conv3 AlexNet, hybridnet, the onnx model)" + scoped)
+    parser.add_argument("--vocabulary", action="append", default=[], metavar="[METHOD:]FILE",
+                        help="DBoW vocabulary file (from `fdnet vocabulary build`)" + scoped)
+    parser.add_argument("--vectors", action="append", default=[], metavar="[METHOD:]FILE",
                         help="precomputed: vectors computed elsewhere, keyed by image (fdnet extract's .npz, "
                              ".npy with a names list, hloc's .h5); repeatable, the files merge")
-    parser.add_argument("--fit", action="append", default=[], metavar="[METHOD=]DIR",
+    parser.add_argument("--fit", action="append", default=[], metavar="[METHOD:]DIR",
                         help="dataset folder a method that learns from images "
                              f"({', '.join(fitting_methods())}) learns from: every condition sub-folder, no labels "
                              "(default: the reference images; the output's settings say which as fitted_on)"
-                             + per_method)
-    parser.add_argument("--fit-frames", action="append", default=[], metavar="[METHOD=]START:END",
+                             + scoped)
+    parser.add_argument("--fit-frames", action="append", default=[], metavar="[METHOD:]START:END",
                         help="with --fit: only these frames of every condition (e.g. the training frames)")
     parser.add_argument("--method-set", action="append", default=[], metavar="[METHOD:]KEY=VALUE",
-                        help="a method setting, e.g. --method-set dim=1024 or --method-set conv3:dim=1024 "
-                             "(repeatable)")
+                        help="a method setting (`fdnet methods` and docs/methods.md list them), e.g. --method-set "
+                             "dim=1024 (every method with a dim) or --method-set conv3:dim=1024 (repeatable)")
 
 
+#: flags that set one method setting each, flag's dest -> setting; every one takes [METHOD:]VALUE
+METHOD_FLAGS = {"checkpoint": "checkpoint", "weights": "weights", "vocabulary": "vocabulary", "fit": "fit",
+                "fit_frames": "fit_frames", "vectors": "vectors"}
+#: settings that name a file or folder (made absolute where a database records them)
 FILE_OPTIONS = ("checkpoint", "weights", "vocabulary", "fit")
-#: options whose every value goes to the method (a list): several files merge
+#: flags whose every value goes to the method (a list): several files merge
 LIST_OPTIONS = ("vectors",)
-#: options given as [METHOD=]VALUE that go to the methods taking them: the files plus --fit-frames
-PER_METHOD_OPTIONS = (*FILE_OPTIONS, "fit_frames")
 
 
-def _for_method(values, method: str, known_methods) -> str | None:
-    """Pick the value meant for ``method`` from repeated ``[METHOD=]PATH`` arguments."""
-    if values is None or isinstance(values, str):
-        values = [values] if values else []
-    chosen = None
-    for value in values:
-        prefix, sep, rest = value.partition("=")
-        if sep and prefix in known_methods:
-            if prefix == method:
-                chosen = rest
-        elif chosen is None:
-            chosen = value
-    return chosen
-
-
-def _check_one_value(values, key: str, method: str | None, known_methods) -> None:
-    """Refuse two different ``--KEY METHOD=...`` for one method: only one could be used, and the
-    results would not say which."""
-    from fdnet.errors import ConfigError
-
-    if method is None or values is None or isinstance(values, str):
-        return
-    given = list(dict.fromkeys(v.partition("=")[2] for v in map(str, values) if v.startswith(f"{method}=")))
-    if len(given) > 1:
-        raise ConfigError(f"--{key.replace('_', '-')} gives {method} {len(given)} values ({', '.join(given)}); one "
-                          "method takes one: give each model its own label, e.g. --method a=onnx,b=onnx "
-                          "--weights a=A.onnx --weights b=B.onnx")
+def split_scope(text, scopes) -> tuple[str | None, str]:
+    """The one parser of method-scoped values: ``LABEL:VALUE`` -> ``(LABEL, VALUE)`` when the text
+    before the first ``:`` is one of ``scopes`` (the method names and the command's labels), else
+    ``(None, text)``: an unscoped value (so ``START:END`` and ``BAG:TOPIC`` stay whole)."""
+    text = str(text)
+    label, sep, rest = text.partition(":")
+    return (label, rest) if sep and label in scopes else (None, text)
 
 
 def method_labels(args: argparse.Namespace) -> dict[str, str]:
@@ -92,67 +76,107 @@ def method_labels(args: argparse.Namespace) -> dict[str, str]:
     return {label: method for label, method in entries if label}
 
 
+def _scoped_values(args: argparse.Namespace, scopes) -> list[tuple[str, str, str | None, object, str]]:
+    """``(flag, setting, label or None, value, text as given)`` of every method option given:
+    the flags of :data:`METHOD_FLAGS` and ``--method-set [LABEL:]KEY=VALUE`` (values read as YAML)."""
+    from fdnet.config import parse_value
+    from fdnet.errors import ConfigError
+
+    out = []
+    for dest, setting in METHOD_FLAGS.items():
+        for text in getattr(args, dest, None) or []:
+            label, value = split_scope(text, scopes)
+            out.append((f"--{dest.replace('_', '-')}", setting, label, value, str(text)))
+    for text in getattr(args, "method_set", None) or []:
+        label, entry = split_scope(text, scopes)
+        key, sep, value = entry.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"--method-set {text!r}: expected [METHOD:]KEY=VALUE")
+        where = f"--method-set {text.partition('=')[0].strip()}"
+        out.append(("--method-set", key.strip(), label, parse_value(value.strip(), where), str(text)))
+    return out
+
+
+def _check_routes(values, labels: dict[str, str]) -> None:
+    """Each value goes somewhere: a scoped one to a method of --method that has the setting, an
+    unscoped one to at least one such method (the rule :func:`method_options` applies)."""
+    from fdnet.descriptors.registry import available_methods, setting_names
+    from fdnet.errors import ConfigError
+
+    methods = ", ".join(labels)
+    for flag, setting, label, _, text in values:
+        if label is not None and label not in labels:
+            raise ConfigError(f"{flag} {text}: {label} is not one of the methods of --method ({methods})")
+        if label is not None and setting not in setting_names(labels[label]):
+            raise ConfigError(f"{flag} {text}: method {labels[label]!r} has no setting {setting}; its settings: "
+                              f"{', '.join(setting_names(labels[label]))}")
+        if label is None and not any(setting in setting_names(m) for m in labels.values()):
+            owners = [name for name in available_methods() if setting in setting_names(name)]
+            raise ConfigError(f"{flag} {text}: none of the methods {methods} has a setting {setting}"
+                              + (f" ({', '.join(owners)} {'has' if len(owners) == 1 else 'have'})" if owners else ""))
+
+
 def method_options(args: argparse.Namespace, method: str | None = None) -> dict:
-    """Keyword options for ``create(method, ...)`` from parsed arguments (YAML-typed values).
-    ``method`` is a method's name or its label in ``--method LABEL=METHOD``.
-
-    File options given as ``LABEL=PATH`` go to that method only; bare paths go to every method
-    whose constructor takes that option (so ``--method fdnet,sad --checkpoint RUN`` works).
-    """
-    import inspect
-
-    from fdnet.config import parse_overrides, parse_value
-    from fdnet.descriptors.registry import available_methods, descriptor_class
+    """Keyword settings for ``create(method, ...)`` from the method option flags, all read by one
+    rule: a value ``LABEL:VALUE`` (:func:`split_scope`) goes to that method of ``--method`` only
+    (refused when it has no such setting); a bare value goes to every method of the command whose
+    settings declare it, and is refused when none does. A scoped ``--method-set`` value wins over
+    a bare one; two different values of one file flag for one method are refused. ``method`` is a
+    method's name, its label in ``--method LABEL=METHOD``, or a ``LABEL=METHOD`` entry; None: every
+    value, unchecked (for commands without --method)."""
+    from fdnet.descriptors.registry import available_methods, parse_method_entry, setting_names
     from fdnet.errors import ConfigError
 
     labels = method_labels(args)
-    known = {**{name: name for name in available_methods()}, **labels}
+    known = available_methods()
+    commanded = {label: kind for label, kind in labels.items() if kind in known}
+    values = _scoped_values(args, set(known) | set(labels))
+    if commanded:
+        _check_routes(values, commanded)
+    label = kind = None
+    if method is not None:
+        label, kind = parse_method_entry(method)
+        kind = labels.get(label, kind) if "=" not in method else kind
+    declared = set(setting_names(kind)) if kind in known else None
 
-    def takes(name: str) -> set:
-        return set(inspect.signature(descriptor_class(known.get(name, name)).__init__).parameters)
+    def mine(setting, scope) -> bool:
+        if method is None or declared is None:
+            return scope is None or scope == label
+        return setting in declared and scope in (None, label)
 
-    accepted = takes(method) if method is not None else None
-    requested = [label for label, kind in labels.items() if kind in available_methods()]
-    for key in PER_METHOD_OPTIONS:
-        for value in getattr(args, key, None) or []:
-            prefix, sep, _ = str(value).partition("=")
-            if not (sep and prefix in known) and requested and not any(key in takes(m) for m in requested):
-                raise ConfigError(f"--{key.replace('_', '-')} {value}: none of the methods {', '.join(requested)} "
-                                  f"takes a {key}")
-    options = {}
-    for key in PER_METHOD_OPTIONS:
-        _check_one_value(getattr(args, key, None), key, method, known)
-        value = _for_method(getattr(args, key, None), method, known)
-        explicit = any(str(v).startswith(f"{method}=") for v in (getattr(args, key, None) or []))
-        if value is not None and (accepted is None or key in accepted or explicit):
-            options[key] = value
-    for key in LIST_OPTIONS:
-        values = getattr(args, key, None) or []
-        if values and (accepted is None or key in accepted):
-            options[key] = list(values)
-        elif values and requested and not any(key in takes(m) for m in requested):
-            raise ConfigError(f"--{key} is for --method precomputed; none of the methods {', '.join(requested)} "
-                              f"takes {key}")
-    for key, value in parse_overrides(getattr(args, "method_set", [])).items():
-        target, sep, setting = key.partition(":")
-        if sep:
-            if target == method:
-                options[setting] = parse_value(value, f"--method-set {key}")
-        else:
-            options[key] = parse_value(value, f"--method-set {key}")
+    options: dict = {}
+    for dest, setting in METHOD_FLAGS.items():
+        flag = f"--{dest.replace('_', '-')}"
+        given = [(scope, value) for f, s, scope, value, _ in values if f == flag and mine(s, scope)]
+        if dest in LIST_OPTIONS:
+            if given:
+                options[setting] = [value for _, value in given]
+            continue
+        chosen = [value for scope, value in given if scope is not None] or [value for _, value in given]
+        chosen = list(dict.fromkeys(chosen))
+        if len(chosen) > 1:
+            raise ConfigError(f"{flag} gives {label or 'a method'} {len(chosen)} values ({', '.join(chosen)}); one "
+                              "method takes one: give each model its own label, e.g. --method a=onnx,b=onnx "
+                              "--weights a:A.onnx --weights b:B.onnx")
+        if chosen:
+            options[setting] = chosen[0]
+    method_set = [(setting, scope, value) for f, setting, scope, value, _ in values if f == "--method-set"]
+    for setting, scope, value in sorted(method_set, key=lambda item: item[1] is not None):  # scoped last: it wins
+        if mine(setting, scope):
+            options[setting] = value
     return options
 
 
-def create_descriptor(name: str, args: argparse.Namespace):
-    """Method ``name`` (or ``LABEL=METHOD``, or a label of ``--method``) with its options from
-    ``args`` and the command's ``--device`` (which goes to the torch methods only; see
-    :func:`fdnet.descriptors.create`)."""
+def create_descriptor(name: str, args: argparse.Namespace, options: dict | None = None):
+    """Method ``name`` (or ``LABEL=METHOD``, or a label of ``--method``) with its settings from
+    ``args`` (or ``options``, what :func:`method_options` gave) and the command's ``--device``
+    (which goes to the torch methods only; see :func:`fdnet.descriptors.create`)."""
     from fdnet.descriptors import create
     from fdnet.descriptors.registry import parse_method_entry
 
     label, kind = parse_method_entry(name)
     kind = method_labels(args).get(label, kind) if "=" not in name else kind
-    options = method_options(args, label)
+    options = dict(method_options(args, name) if options is None else options)
     if getattr(args, "device", None) is not None:
         options.setdefault("device", args.device)
     return create(kind, **options)
@@ -385,12 +409,13 @@ def thread_count(minimum: int = 1):
     return parse
 
 
-def file_options(args, method: str) -> dict:
-    """The method's options from the flags, with file paths made absolute (a database records
-    them, and later `add`/`query` calls may run from another directory)."""
+def file_options(args, method: str | None, options: dict | None = None) -> dict:
+    """The method's settings from the flags (or ``options``, what :func:`method_options` gave),
+    with file paths made absolute (a database records them, and later `add`/`query` calls may run
+    from another directory)."""
     from pathlib import Path
 
-    options = method_options(args, method)
+    options = dict(method_options(args, method) if options is None else options)
     options.update({k: str(Path(v).resolve()) for k, v in options.items() if k in FILE_OPTIONS})
     # --method-set device=...: where it runs is the command's business, not the database's
     options.pop("device", None)

@@ -105,9 +105,9 @@ def register(sub) -> None:
 
 def _options_given(args) -> bool:
     """Whether ``add`` was given method options (else it describes with the database's own)."""
-    from fdnet.cli.common import FILE_OPTIONS
+    from fdnet.cli.common import METHOD_FLAGS
 
-    return bool(args.method or args.method_set or any(getattr(args, k) for k in FILE_OPTIONS))
+    return bool(args.method or args.method_set or any(getattr(args, k, None) for k in METHOD_FLAGS))
 
 
 def _print_to_stderr(message: str) -> None:

@@ -74,11 +74,9 @@ def descriptor_options(args, method: str, count: int) -> dict:
     """Precision, compiling and batch size for the methods whose descriptor takes them. float32
     unless --bf16: one default for every command (a database or calibration made with vectors of
     `extract` then matches what `evaluate`, `match` and `loop-closure` compute)."""
-    import inspect
+    from fdnet.descriptors.registry import setting_names
 
-    from fdnet.descriptors.registry import descriptor_class
-
-    params = inspect.signature(descriptor_class(method).__init__).parameters
+    params = setting_names(method)
     bf16 = bool(args.bf16)
     wanted = {"compile": args.compile == "on" or (args.compile == "auto" and count >= COMPILE_FROM),
               "batch_size": args.batch_size}
@@ -102,11 +100,14 @@ def _refuse_writing_an_input(args, out) -> None:
     vocabulary) would replace it with the new vectors: refused before any work."""
     import os
 
+    from fdnet.cli.common import method_labels, split_scope
+    from fdnet.descriptors.registry import available_methods
     from fdnet.errors import ConfigError
 
+    scopes = set(available_methods()) | set(method_labels(args))
     for option in ("vectors", "weights", "vocabulary", "checkpoint"):
         for value in getattr(args, option, None) or []:
-            path = str(value).partition("=")[2] if "=" in str(value) and not os.path.exists(str(value)) else value
+            path = value if os.path.exists(str(value)) else split_scope(value, scopes)[1]
             try:
                 same = os.path.samefile(out, path)
             except OSError:  # one of them does not exist
@@ -120,14 +121,16 @@ def _prepare(args, shards):
     """``(out_format, out, paths, root, descriptor)``: every check that can refuse the command, in
     the order that refuses before the slow work (loading the model and every image); the output
     is checked by rank 0 alone, which writes it."""
-    from fdnet.cli.common import check_pipeline_arguments, method_options, set_threads
+    from fdnet.cli.common import check_pipeline_arguments, method_options, set_threads, split_scope
     from fdnet.data.images import list_images
     from fdnet.descriptors import create
+    from fdnet.descriptors.registry import available_methods
     from fdnet.errors import ConfigError
     from fdnet.io import ensure_writable
 
     check_pipeline_arguments(args)
-    if not args.method and len(args.checkpoint) == 1 and "=" not in args.checkpoint[0]:
+    bare_run = len(args.checkpoint) == 1 and split_scope(args.checkpoint[0], available_methods())[0] is None
+    if not args.method and bare_run:
         from fdnet.runs import recorded_method
 
         args.method = recorded_method(args.checkpoint[0])  # the run says which method trained it

@@ -125,11 +125,12 @@ def run(args) -> int:
     from fdnet.tasks.loop_closure import LoopClosureRequest, loop_closure
 
     check_pipeline_arguments(args)
+    options = method_options(args, args.method)  # once: the descriptor, the run it reads and the record
     request = LoopClosureRequest(
         events_csv=args.out, images=args.images, data=args.data,
         conditions=tuple(args.conditions.split(",")) if args.conditions else None, frames=args.frames,
         tolerance=args.tolerance, db=args.db,
-        checkpoint=method_options(args, args.method).get("checkpoint") if args.method else None,
+        checkpoint=options.get("checkpoint") if args.method else None,
         calibration=args.calibration, threshold=args.threshold, accept=args.accept,
         accept_set=tuple(args.accept_set), sequence_length=args.sequence_length, exclude_last=args.exclude_last,
         gate=tuple(args.gate), search=args.search, commit_every=args.commit_every, events_jsonl=args.jsonl,
@@ -137,7 +138,8 @@ def run(args) -> int:
         target_precision=args.target_precision, resume=args.resume, allow_training_frames=args.allow_training_frames,
         pipeline=PipelineSettings(batch_size=args.batch_size, workers=args.workers, progress=not args.no_progress),
         command_line=getattr(args, "command_line", None), device=args.device)
-    report = loop_closure(request, lambda: create_descriptor(args.method, args), file_options(args, args.method))
+    report = loop_closure(request, lambda: create_descriptor(args.method, args, options),
+                          file_options(args, args.method, options))
     _print_report(args, report)
     if args.report:
         print(f"wrote {args.report}")

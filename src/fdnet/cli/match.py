@@ -83,16 +83,13 @@ def register(sub) -> None:
 
 def input_files(args) -> list[tuple[str, str]]:
     """(option, path) of every file the method reads (``--vectors``, ``--weights``, ``--vocabulary``;
-    a ``METHOD=PATH`` value's path), which no output may overwrite."""
+    a ``METHOD:PATH`` value's path), which no output may overwrite."""
+    from fdnet.cli.common import method_labels, split_scope
     from fdnet.descriptors.registry import available_methods
 
-    known = set(available_methods())
-    files = []
-    for option in ("vectors", "weights", "vocabulary"):
-        for value in getattr(args, option, None) or []:
-            prefix, sep, rest = str(value).partition("=")
-            files.append((f"--{option}", rest if sep and prefix in known else value))
-    return files
+    scopes = set(available_methods()) | set(method_labels(args))
+    return [(f"--{option}", split_scope(value, scopes)[1])
+            for option in ("vectors", "weights", "vocabulary") for value in getattr(args, option, None) or []]
 
 
 def run(args) -> int:

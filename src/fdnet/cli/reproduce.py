@@ -32,25 +32,25 @@ ARGUMENTS = (
                                                 "formats: the paper's)")),
     ("data", "--format-set", dict(action="append", default=[], metavar="KEY=VALUE",
                                   help="with --dataset-format: a protocol setting of the format (repeatable)")),
-    ("methods", "--checkpoint", dict(action="append", default=[], metavar="RUN_DIR",
+    ("methods", "--checkpoint", dict(action="append", default=[], metavar="[METHOD:]RUN_DIR",
                                      help="the FDNet run (from `fdnet train`), also read by the trunk baseline; "
                                           "without it FDNet is listed as not run and the baselines still are; "
-                                          "other trained methods as METHOD=RUN_DIR (netvlad=..., calc=...), "
+                                          "other trained methods as METHOD:RUN_DIR (netvlad:..., calc:...), "
                                           "repeatable")),
     ("methods", "--method", dict(metavar="LIST",
                                   help="comma-separated methods (default: fdnet, trunk and every baseline; those "
                                        "that cannot run here are listed in the report with the reason)")),
-    ("methods", "--weights", dict(action="append", default=[], metavar="[METHOD=]PATH",
+    ("methods", "--weights", dict(action="append", default=[], metavar="[METHOD:]PATH",
                                   help="weights file a method accepts (conv3 AlexNet, hybridnet, the onnx model), "
                                        "repeatable")),
     ("methods", "--vectors", dict(action="append", default=[], metavar="FILE",
                                   help="precomputed: vectors computed elsewhere, keyed by image (repeatable)")),
-    ("methods", "--vocabulary", dict(action="append", default=[], metavar="[dbow=]FILE",
+    ("methods", "--vocabulary", dict(action="append", default=[], metavar="[dbow:]FILE",
                                      help="DBoW vocabulary (default: learnt from each pair's references)")),
-    ("methods", "--fit", dict(action="append", default=[], metavar="[METHOD=]DIR",
+    ("methods", "--fit", dict(action="append", default=[], metavar="[METHOD:]DIR",
                               help="dataset folder the methods that learn from images (dbow, trunk-whitened) learn "
                                    "from, every condition sub-folder (default: each pair's reference images)")),
-    ("methods", "--fit-frames", dict(action="append", default=[], metavar="[METHOD=]START:END",
+    ("methods", "--fit-frames", dict(action="append", default=[], metavar="[METHOD:]START:END",
                                      help="with --fit: only these frames of every condition (training frames)")),
     ("methods", "--method-set", dict(action="append", default=[], metavar="[METHOD:]KEY=VALUE",
                                      help="a method setting, e.g. conv3:dim=512 (repeatable)")),
@@ -236,7 +236,7 @@ def run(args) -> int:
     from pathlib import Path
 
     from fdnet.backbones import check_device_spec
-    from fdnet.cli.common import method_options, set_threads
+    from fdnet.cli.common import method_options, set_threads, split_scope
     from fdnet.config import parse_overrides
     from fdnet.descriptors.registry import available_methods
     from fdnet.errors import ConfigError
@@ -244,12 +244,12 @@ def run(args) -> int:
 
     check_device_spec(args.device, where="--device")  # before any work
     known = available_methods()
-    prefixed = [c for c in args.checkpoint if c.partition("=")[0] in known and c.partition("=")[1]]
-    fdnet_runs = [c for c in args.checkpoint if c not in prefixed] + \
-        [c.partition("=")[2] for c in prefixed if c.startswith("fdnet=")]
+    scoped = [(split_scope(c, known), c) for c in args.checkpoint]
+    fdnet_runs = [run for (label, run), _ in scoped if label in (None, "fdnet")]
+    other_runs = [c for (label, _), c in scoped if label not in (None, "fdnet")]
     if len(fdnet_runs) > 1:
-        raise ConfigError("--checkpoint: give the FDNet run directory exactly once (RUN_DIR or fdnet=RUN_DIR); "
-                          "other trained methods as METHOD=RUN_DIR")
+        raise ConfigError("--checkpoint: give the FDNet run directory exactly once (RUN_DIR or fdnet:RUN_DIR); "
+                          "other trained methods as METHOD:RUN_DIR")
     from fdnet.runs import is_run
 
     if fdnet_runs and not is_run(fdnet_runs[0]):  # refused before any work, not written into the report
@@ -265,7 +265,7 @@ def run(args) -> int:
     others = argparse.Namespace(method=",".join(considered), weights=args.weights, vocabulary=args.vocabulary,
                                 vectors=args.vectors,
                                 fit=args.fit, fit_frames=args.fit_frames, method_set=args.method_set,
-                                checkpoint=[c for c in prefixed if not c.startswith("fdnet=")])
+                                checkpoint=other_runs)
     options = {name: {**method_options(others, name), "device": args.device} for name in considered if name in known}
     viewpoint = _names(args.viewpoint_pair)
     if viewpoint is not None and len(viewpoint) != 2:

@@ -18,6 +18,8 @@ from typing import ClassVar, Sequence
 
 import numpy as np
 
+from fdnet.descriptors.settings import MethodSettings
+
 
 def l2_normalize(x: np.ndarray, eps: float = 1e-12) -> np.ndarray:
     x = np.asarray(x, dtype=np.float32)
@@ -96,6 +98,13 @@ class Descriptor(ABC):
 
     #: (height, width) images are resized to before ``describe``
     input_size: tuple[int, int]
+
+    #: the method's settings dataclass (:mod:`fdnet.descriptors.settings`): its fields are the
+    #: settings ``create`` and the command line accept; the constructor takes an instance of it
+    #: and keyword overrides of its fields
+    Settings: ClassVar[type[MethodSettings]] = MethodSettings
+    #: the settings this descriptor was built with (an instance of :attr:`Settings`)
+    conf: MethodSettings | None = None
 
     @property
     @abstractmethod

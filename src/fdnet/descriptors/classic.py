@@ -16,30 +16,15 @@ with, and the ones the tests and the synthetic-route demo can always run.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
 
 from fdnet.data.images import to_grey
 from fdnet.descriptors.base import Descriptor, l2_normalize
+from fdnet.descriptors.settings import MethodSettings
 from fdnet.errors import ConfigError, DataError
-
-
-def _size_pair(size, what: str) -> tuple[int, int]:
-    """Accept (H, W), [H, W] or "HxW" and check it is positive."""
-    if isinstance(size, str):
-        try:
-            h, w = (int(v) for v in size.lower().split("x"))
-        except ValueError as exc:
-            raise ConfigError(f"{what}: size {size!r} must look like HxW, e.g. 32x64") from exc
-        size = (h, w)
-    try:
-        h, w = (int(v) for v in size)
-    except (TypeError, ValueError) as exc:
-        raise ConfigError(f"{what}: size {size!r} must be (height, width)") from exc
-    from fdnet.data.images import check_image_size
-
-    return check_image_size((h, w), what)
 
 
 def _at_size(images: np.ndarray, size: tuple[int, int], what: str) -> np.ndarray:
@@ -57,6 +42,56 @@ def _at_size(images: np.ndarray, size: tuple[int, int], what: str) -> np.ndarray
         if len(images) else np.zeros((0, h, w, 3), np.float32)
 
 
+@dataclass(frozen=True)
+class RawSettings(MethodSettings):
+    method: ClassVar[str] = "raw"
+    #: (height, width) of the thumbnail, [H, W] or HxW (32x64: SeqSLAM's, so raw and sad differ only
+    #: by patch normalisation and the distance)
+    size: tuple[int, int] | str = (32, 64)
+
+    def check(self) -> None:
+        self.need_size("size")
+
+
+@dataclass(frozen=True)
+class SADSettings(MethodSettings):
+    method: ClassVar[str] = "sad"
+    #: (height, width) of the thumbnail, [H, W] or HxW; multiples of patch_size
+    size: tuple[int, int] | str = (32, 64)
+    #: side of the square patches normalised to zero mean and unit variance
+    patch_size: int = 8
+
+    def check(self) -> None:
+        h, w = self.need_size("size")
+        patch = self.need_whole("patch_size", minimum=1)
+        if h % patch or w % patch:
+            raise ConfigError(f"sad: size {h}x{w} must be a multiple of patch_size {patch}")
+
+
+@dataclass(frozen=True)
+class HOGSettings(MethodSettings):
+    method: ClassVar[str] = "hog"
+    #: (height, width) images are resized to (the HOG window), [H, W] or HxW
+    size: tuple[int, int] | str = (512, 512)
+    #: cell side in pixels
+    cell_size: int = 16
+    #: block side in pixels (a multiple of the cell)
+    block_size: int = 16
+    #: step of the blocks in pixels
+    block_stride: int = 8
+    #: orientation bins (unsigned)
+    orientations: int = 9
+    #: the luminance instead of the colour image (OpenCV takes each pixel's strongest channel)
+    grey: bool = False
+
+    def check(self) -> None:
+        h, w = self.need_size("size")
+        cell, block, stride, bins = (self.need_whole(n) for n in ("cell_size", "block_size", "block_stride",
+                                                                  "orientations"))
+        self.need_flag("grey")
+        check_opencv_hog((w, h), (block, block), (stride, stride), (cell, cell), bins, "hog")
+
+
 class RawThumbnail(Descriptor):
     """Downsampled grey thumbnail, flattened, mean-centred and L2-normalised.
 
@@ -69,9 +104,11 @@ class RawThumbnail(Descriptor):
     """
 
     name: ClassVar[str] = "raw"
+    Settings: ClassVar[type] = RawSettings
 
-    def __init__(self, size=(32, 64)):
-        self.input_size = _size_pair(size, "raw")
+    def __init__(self, settings: RawSettings | None = None, **options):
+        self.conf = RawSettings.build(settings, options)
+        self.input_size = self.conf.need_size("size")
 
     @property
     def dim(self) -> int:
@@ -131,12 +168,12 @@ class SeqSLAMFrontEnd(Descriptor):
     similarity_ceiling: ClassVar[float] = 0.0
     dot_product_similarity: ClassVar[bool] = False
 
-    def __init__(self, size=(32, 64), patch_size: int = 8):
-        self.input_size = _size_pair(size, "sad")
-        self.patch_size = int(patch_size)
-        h, w = self.input_size
-        if self.patch_size < 1 or h % self.patch_size or w % self.patch_size:
-            raise ConfigError(f"sad: size {h}x{w} must be a multiple of patch_size {self.patch_size}")
+    Settings: ClassVar[type] = SADSettings
+
+    def __init__(self, settings: SADSettings | None = None, **options):
+        self.conf = SADSettings.build(settings, options)
+        self.input_size = self.conf.need_size("size")
+        self.patch_size = self.conf.need_whole("patch_size")
 
     @property
     def dim(self) -> int:
@@ -222,17 +259,16 @@ class HOGDescriptor(Descriptor):
 
     name: ClassVar[str] = "hog"
 
-    def __init__(self, size=(512, 512), cell_size: int = 16, block_size: int = 16,
-                 block_stride: int = 8, orientations: int = 9, grey: bool = False):
-        self.input_size = _size_pair(size, "hog")
-        h, w = self.input_size
-        check_opencv_hog((w, h), (block_size, block_size), (block_stride, block_stride), (cell_size, cell_size),
-                         orientations, "hog")
-        self.cell_size = int(cell_size)
-        self.block_size = int(block_size)
-        self.block_stride = int(block_stride)
-        self.orientations = int(orientations)
-        self.grey = bool(grey)
+    Settings: ClassVar[type] = HOGSettings
+
+    def __init__(self, settings: HOGSettings | None = None, **options):
+        conf = self.conf = HOGSettings.build(settings, options)
+        self.input_size = conf.need_size("size")
+        self.cell_size = int(conf.cell_size)
+        self.block_size = int(conf.block_size)
+        self.block_stride = int(conf.block_stride)
+        self.orientations = int(conf.orientations)
+        self.grey = conf.grey
         self._hog = None
 
     def _cv_hog(self):

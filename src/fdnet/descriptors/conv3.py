@@ -22,12 +22,14 @@ Differences from the original:
 
 from __future__ import annotations
 
-from pathlib import Path
+from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
 from fdnet.descriptors.base import Descriptor, l2_normalize
-from fdnet.errors import ConfigError, invalid_settings_are_config_errors
+from fdnet.descriptors.settings import MethodSettings
+from fdnet.errors import ConfigError
 
 
 def gaussian_random_projection(in_dim: int, out_dim: int, seed: int) -> np.ndarray:
@@ -42,35 +44,63 @@ def gaussian_random_projection(in_dim: int, out_dim: int, seed: int) -> np.ndarr
     return matrix
 
 
-class Conv3Descriptor(Descriptor):
-    """Conv3 + GRP (Sünderhauf et al. IROS 2015).
+@dataclass(frozen=True)
+class Conv3Settings(MethodSettings):
+    method: ClassVar[str] = "conv3"
+    #: projected length (0 = keep the raw flattened map)
+    dim: int = 512
+    #: block of ``backbone`` whose map is read
+    block: int = 7
+    #: (height, width) images are resized to (default 224x224; 227x227 with AlexNet weights)
+    input_size: tuple[int, int] | str | None = None
+    #: torchvision AlexNet state dict: its conv3 instead of the backbone (--weights)
+    weights: str | None = None
+    #: seed of the Gaussian random projection
+    seed: int = 0
+    #: bfloat16 autocast of the backbone (none = where the device runs it natively)
+    bf16: bool | None = None
+    #: torch threads while describing (none = the process's setting)
+    threads: int | None = None
+    #: auto, cpu, cuda or cuda:N (the projection runs there too)
+    device: str | None = None
+    #: efficientnet-lite0, -lite1 or -lite2
+    backbone: str = "efficientnet-lite0"
 
-    Settings: ``dim`` (projected length, default 512 = FDNet's; 0 = keep the raw flattened map),
-    ``block`` (block of ``backbone``, default 7), ``backbone`` (efficientnet-lite0, the default,
-    lite1 or lite2), ``input_size`` (default 224x224; 227x227 with
-    AlexNet weights), ``weights`` (torchvision AlexNet state dict: use its conv3 instead),
-    ``seed`` (projection), ``bf16`` (None = auto, backbone only), ``threads``, ``device``
-    (``auto``/``cpu``/``cuda``/``cuda:N``; the projection runs there too). Takes uint8 images.
-    """
+    def check(self) -> None:
+        self.need_whole("dim", minimum=0)
+        self.need_size("input_size", optional=True)
+        weights = self.need_path("weights")
+        self.need_whole("seed", minimum=0)
+        self.need_flag("bf16", optional=True)
+        self.need_whole("threads", minimum=1, optional=True)
+        self.need_device()
+        self.need_backbone()
+        if weights:
+            self.need_whole("block", minimum=0)
+        else:
+            self.need_block(self.backbone)
+
+
+class Conv3Descriptor(Descriptor):
+    """Conv3 + GRP (Sünderhauf et al. IROS 2015). Settings: :class:`Conv3Settings`. Takes uint8
+    images."""
 
     name = "conv3"
     dot_product_similarity = True
     accepts_uint8 = True
+    Settings: ClassVar[type] = Conv3Settings
 
-    @invalid_settings_are_config_errors
-    def __init__(self, dim: int = 512, block: int = 7, input_size: tuple[int, int] | None = None,
-                 weights: str | Path | None = None, seed: int = 0, bf16: bool | None = None,
-                 threads: int | None = None, device: str | None = None, backbone: str = "efficientnet-lite0"):
+    def __init__(self, settings: Conv3Settings | None = None, **options):
         from fdnet.backbones import DeviceCopies, resolve_device
 
-        self.out_dim = int(dim)
-        if self.out_dim < 0:
-            raise ConfigError(f"conv3: dim must be >= 0 (0 = no projection), got {dim}")
-        self.seed = int(seed)
+        conf = self.conf = Conv3Settings.build(settings, options)
+        input_size, bf16, threads = conf.need_size("input_size", optional=True), conf.bf16, conf.threads
+        self.out_dim = int(conf.dim)
+        self.seed = int(conf.seed)
         self.threads = threads
-        self.device = resolve_device("auto" if device is None else device, where=f"{self.name}: device")
+        self.device = resolve_device("auto" if conf.device is None else conf.device, where=f"{self.name}: device")
         self._on_device = DeviceCopies()
-        self.weights = str(weights) if weights else None
+        self.weights = str(conf.weights) if conf.weights else None
         if self.weights:
             from fdnet.descriptors.alexnet import AlexNetTrunk
 
@@ -82,8 +112,8 @@ class Conv3Descriptor(Descriptor):
             from fdnet.backbones import FeatureExtractor
 
             self._alexnet = None
-            self._extractor = FeatureExtractor(block=block, bf16=bf16, threads=threads, device=self.device,
-                                               backbone=backbone)
+            self._extractor = FeatureExtractor(block=int(conf.block), bf16=bf16, threads=threads, device=self.device,
+                                               backbone=conf.backbone)
             self.input_size = tuple(input_size) if input_size else (224, 224)
             self._map_shape = (self._extractor.channels, *self._extractor.map_size(self.input_size))
         self.input_size = (int(self.input_size[0]), int(self.input_size[1]))

@@ -37,14 +37,15 @@ import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import ClassVar, Sequence
 
 import numpy as np
 import yaml
 
 from fdnet.data.images import load_images, to_grey
 from fdnet.descriptors.base import Descriptor
-from fdnet.errors import ConfigError, DataError, NotAvailableError, invalid_settings_are_config_errors
+from fdnet.descriptors.settings import MethodSettings
+from fdnet.errors import ConfigError, DataError, NotAvailableError
 from fdnet.io import atomic_path
 
 log = logging.getLogger(__name__)
@@ -287,44 +288,89 @@ def learn_vocabulary(paths: Sequence[str | Path], input_size=(288, 512), orb: OR
     return Vocabulary.learn(features, branching=branching, depth=depth, seed=seed, info=info)
 
 
+@dataclass(frozen=True)
+class DBoWSettings(MethodSettings):
+    method: ClassVar[str] = "dbow"
+    #: vocabulary file from ``fdnet vocabulary build`` (--vocabulary); without one, one is learnt
+    vocabulary: str | None = None
+    #: children per node of a learnt vocabulary tree
+    branching: int = 10
+    #: levels of a learnt vocabulary tree
+    depth: int = 4
+    #: (height, width) images are resized to, [H, W] or HxW
+    input_size: tuple[int, int] | str = (288, 512)
+    #: ORB features per image
+    nfeatures: int = 500
+    #: ORB pyramid scale between levels
+    scale_factor: float = 1.2
+    #: ORB pyramid levels
+    nlevels: int = 8
+    #: ORB border where no features are detected, in pixels
+    edge_threshold: int = 19
+    #: ORB patch side, in pixels
+    patch_size: int = 19
+    #: FAST corner threshold
+    fast_threshold: int = 10
+    #: seed of the vocabulary's k-means
+    seed: int = 0
+    #: dataset folder to learn the vocabulary from (--fit; default the reference images)
+    fit: str | None = None
+    #: START:END frames of each of fit's conditions (--fit-frames)
+    fit_frames: str | None = None
+
+    def check(self) -> None:
+        from fdnet.descriptors.fitting import check_fit_frames
+
+        vocabulary, fit = self.need_path("vocabulary"), self.need_path("fit")
+        self.need_whole("branching", minimum=2, maximum=1000)
+        self.need_whole("depth", minimum=1, maximum=10)
+        self.need_size("input_size")
+        self.need_whole("nfeatures", minimum=1)
+        self.need_number("scale_factor", above=1.0)
+        self.need_whole("nlevels", minimum=1, maximum=32)
+        self.need_whole("edge_threshold", minimum=0)
+        self.need_whole("patch_size", minimum=2)
+        self.need_whole("fast_threshold", minimum=0, maximum=255)
+        self.need_whole("seed", minimum=0)
+        fit_frames = check_fit_frames(self.fit_frames, "dbow")
+        if (fit or fit_frames) and vocabulary:
+            raise ConfigError("dbow: give either a vocabulary file or a folder to learn one from (--fit), not both")
+        if fit_frames and not fit:
+            raise ConfigError(f"dbow: fit_frames ({fit_frames}) needs fit=DIR (--fit DIR) to take the frames of")
+
+
 class DBoWDescriptor(Descriptor):
     """DBoW2-style ORB bag of words (Gálvez-López & Tardós 2012); see the module docstring.
 
-    Settings: ``vocabulary`` (file from ``fdnet vocabulary build``; when absent ``fit`` learns one
-    from the reference images), ``branching``/``depth`` (for a learned vocabulary), ``nfeatures``
-    and the other ORB settings, ``input_size`` (default 288x512), ``seed``, ``fit`` (a dataset
-    folder to learn the vocabulary from instead of the reference images: every condition
+    Settings (:class:`DBoWSettings`): ``vocabulary`` (file from ``fdnet vocabulary build``; when
+    absent ``fit`` learns one from the reference images), ``branching``/``depth`` (for a learned
+    vocabulary), ``nfeatures`` and the other ORB settings, ``input_size``, ``seed``, ``fit`` (a
+    dataset folder to learn the vocabulary from instead of the reference images: every condition
     sub-folder, ``fit_frames=START:END`` of each; :mod:`fdnet.descriptors.fitting`).
     ``settings()["fitted_on"]`` says what the vocabulary was learnt from.
     """
 
     name = "dbow"
     dot_product_similarity = False
+    Settings: ClassVar[type] = DBoWSettings
 
-    @invalid_settings_are_config_errors
-    def __init__(self, vocabulary: str | Path | None = None, branching: int = 10, depth: int = 4,
-                 input_size: tuple[int, int] = (288, 512), nfeatures: int = 500,
-                 scale_factor: float = 1.2, nlevels: int = 8, edge_threshold: int = 19,
-                 patch_size: int = 19, fast_threshold: int = 10, seed: int = 0,
-                 fit: str | Path | None = None, fit_frames: str | None = None):
+    def __init__(self, settings: DBoWSettings | None = None, **options):
         from fdnet.descriptors.fitting import check_fit_frames, fit_image_paths
 
-        self.input_size = (int(input_size[0]), int(input_size[1]))
-        self.orb = ORBSettings(int(nfeatures), float(scale_factor), int(nlevels), int(edge_threshold),
-                               int(patch_size), int(fast_threshold))
-        self.branching = int(branching)
-        self.depth = int(depth)
-        self.seed = int(seed)
-        self.fit_folder = str(fit) if fit else None
-        self.fit_frames = check_fit_frames(fit_frames, "dbow")
-        if (self.fit_folder or self.fit_frames) and vocabulary:
-            raise ConfigError("dbow: give either a vocabulary file or a folder to learn one from (--fit), not both")
+        conf = self.conf = DBoWSettings.build(settings, options)
+        vocabulary = conf.vocabulary
+        self.input_size = conf.need_size("input_size")
+        self.orb = ORBSettings(int(conf.nfeatures), float(conf.scale_factor), int(conf.nlevels),
+                               int(conf.edge_threshold), int(conf.patch_size), int(conf.fast_threshold))
+        self.branching = int(conf.branching)
+        self.depth = int(conf.depth)
+        self.seed = int(conf.seed)
+        self.fit_folder = str(conf.fit) if conf.fit else None
+        self.fit_frames = check_fit_frames(conf.fit_frames, "dbow")
         self.vocabulary_path = str(vocabulary) if vocabulary else None
         self.vocabulary: Vocabulary | None = Vocabulary.load(vocabulary) if vocabulary else None
         if self.vocabulary is not None:
             self.branching, self.depth = self.vocabulary.branching, self.vocabulary.depth
-        if self.fit_frames and not self.fit_folder:
-            raise ConfigError(f"dbow: fit_frames ({self.fit_frames}) needs fit=DIR (--fit DIR) to take the frames of")
         self.fitted_on = ("vocabulary file" if self.vocabulary is not None else None)
         if self.fit_folder:
             paths, self.fitted_on = fit_image_paths(self.fit_folder, self.fit_frames, where="dbow: --fit")

@@ -22,12 +22,16 @@ The filter bank is a few lines of FFT arithmetic, vectorised here over the batch
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import ClassVar
+
 import numpy as np
 import scipy.fft
 
 from fdnet.data.images import to_grey
 from fdnet.descriptors.base import Descriptor, l2_normalize
-from fdnet.errors import ConfigError, invalid_settings_are_config_errors
+from fdnet.descriptors.settings import MethodSettings, whole_number
+from fdnet.errors import ConfigError
 
 
 def gabor_bank(size: int, orientations_per_scale: tuple[int, ...]) -> np.ndarray:
@@ -73,33 +77,54 @@ def prefilter(images: np.ndarray, fc: float = 4.0) -> np.ndarray:
     return out[:, w:sh - w, w:sw - w]
 
 
+@dataclass(frozen=True)
+class GistSettings(MethodSettings):
+    method: ClassVar[str] = "gist"
+    #: side of the square grey image, >= 16 and divisible by grid
+    image_size: int = 128
+    #: orientations per scale (one entry per scale)
+    orientations: tuple[int, ...] = (8, 8, 8, 8)
+    #: blocks per side of the grid the energies are averaged over
+    grid: int = 4
+    #: cut-off frequency of the pre-filter
+    fc_prefilt: float = 4.0
+    #: symmetric extension before filtering, in pixels
+    boundary: int = 32
+    #: images per vectorised FFT chunk (memory about batch x filters x (size+2b)^2 x 8 bytes)
+    batch: int = 8
+
+    def check(self) -> None:
+        size = self.need_whole("image_size", minimum=16, maximum=4096)
+        grid = self.need_whole("grid", minimum=1)
+        if size % grid:
+            raise ConfigError(f"gist: image_size {size} must be divisible by grid {grid}")
+        orientations = self.orientations
+        if (not isinstance(orientations, (list, tuple)) or not orientations
+                or any(whole_number(o) is None or whole_number(o) < 1 for o in orientations)):
+            self.refuse("orientations", "must be a list of whole numbers >= 1 (orientations per scale)")
+        self.need_number("fc_prefilt", above=0)
+        self.need_whole("boundary", minimum=0, maximum=4096)
+        self.need_whole("batch", minimum=1)
+
+
 class GistDescriptor(Descriptor):
     """Gist (Oliva & Torralba 2001, LMgist settings): 4 scales x 8 orientations x 4x4 grid = 512-d.
-
-    Settings: ``image_size`` (square side the grey image is resized to, default 128),
-    ``orientations`` (per scale, default (8, 8, 8, 8)), ``grid`` (blocks per side, default 4),
-    ``fc_prefilt`` (default 4), ``boundary`` (symmetric extension before filtering, default 32),
-    ``batch`` (images per vectorised FFT chunk; memory is about batch x filters x (size+2b)^2 x 8 B).
-    """
+    Settings: :class:`GistSettings`."""
 
     name = "gist"
     dot_product_similarity = True
+    Settings: ClassVar[type] = GistSettings
 
-    @invalid_settings_are_config_errors
-    def __init__(self, image_size: int = 128, orientations: tuple[int, ...] = (8, 8, 8, 8),
-                 grid: int = 4, fc_prefilt: float = 4.0, boundary: int = 32, batch: int = 8):
-        image_size = int(image_size)
-        orientations = tuple(int(o) for o in orientations)
-        if image_size < 16 or int(grid) < 1 or image_size % int(grid):
-            raise ConfigError(f"gist: image_size {image_size} must be >= 16 and divisible by grid {grid}")
-        if not orientations or min(orientations) < 1:
-            raise ConfigError(f"gist: orientations per scale must be positive, got {orientations}")
+    def __init__(self, settings: GistSettings | None = None, **options):
+        conf = self.conf = GistSettings.build(settings, options)
+        image_size = int(conf.image_size)
+        orientations = tuple(int(o) for o in conf.orientations)
         self.image_size = image_size
         self.orientations = orientations
-        self.grid = int(grid)
-        self.fc_prefilt = float(fc_prefilt)
-        self.boundary = int(boundary)
-        self.batch = max(1, int(batch))
+        self.grid = int(conf.grid)
+        self.fc_prefilt = float(conf.fc_prefilt)
+        self.boundary = int(conf.boundary)
+        self.batch = int(conf.batch)
         self.input_size = (image_size, image_size)
         self._filters = gabor_bank(image_size + 2 * self.boundary, orientations)
 

@@ -19,12 +19,15 @@ Gaussian random projection as Conv3 (default 0 = the raw 64896-d conv4 map, as t
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
 from fdnet.descriptors.base import Descriptor, l2_normalize
-from fdnet.errors import ConfigError, NotAvailableError, invalid_settings_are_config_errors
+from fdnet.descriptors.settings import MethodSettings
+from fdnet.errors import NotAvailableError
 
 HOW_TO_SUPPLY_WEIGHTS = (
     "HybridNet's weights are distributed only as Caffe files and are not bundled with fdnet. "
@@ -36,24 +39,49 @@ HOW_TO_SUPPLY_WEIGHTS = (
 )
 
 
+@dataclass(frozen=True)
+class HybridNetSettings(MethodSettings):
+    method: ClassVar[str] = "hybridnet"
+    #: the converted HybridNet weights file (--weights; required)
+    weights: str | None = None
+    #: the layer whose map is read
+    layer: str = "conv4"
+    #: 0 = the raw map; > 0 = a seeded Gaussian random projection to that length
+    dim: int = 0
+    #: seed of the projection
+    seed: int = 0
+    #: Caffe pixel mean, 0..255, blue green red (the ImageNet mean; HybridNet's own may differ slightly)
+    mean_bgr: tuple[float, float, float] = (104.0, 117.0, 123.0)
+    #: (height, width) images are resized to, [H, W] or HxW
+    input_size: tuple[int, int] | str = (227, 227)
+    #: torch threads while describing (none = the process's setting)
+    threads: int | None = None
+    #: auto, cpu, cuda or cuda:N
+    device: str | None = None
+
+    def check(self) -> None:
+        self.need_path("weights")
+        self.need_text("layer", choices=("conv1", "conv2", "conv3", "conv4", "conv5"))
+        self.need_whole("dim", minimum=0)
+        self.need_whole("seed", minimum=0)
+        self.need_numbers("mean_bgr", length=3)
+        self.need_size("input_size")
+        self.need_whole("threads", minimum=1, optional=True)
+        self.need_device()
+
+
 class HybridNetDescriptor(Descriptor):
     """HybridNet conv4 (Chen et al. ICRA 2017); needs ``weights=FILE`` (see module docstring).
-
-    Settings: ``weights`` (required), ``layer`` (default "conv4"), ``dim`` (0 = raw map; > 0 =
-    seeded GRP to that length), ``seed``, ``mean_bgr`` (Caffe pixel mean, 0..255; default the
-    ImageNet mean 104, 117, 123; HybridNet's own mean file may differ slightly), ``input_size``
-    (227x227), ``threads``, ``device`` (``auto``/``cpu``/``cuda``/``cuda:N``). Takes uint8 images.
-    """
+    Settings: :class:`HybridNetSettings`. Takes uint8 images."""
 
     name = "hybridnet"
     dot_product_similarity = True
     accepts_uint8 = True
+    Settings: ClassVar[type] = HybridNetSettings
 
-    @invalid_settings_are_config_errors
-    def __init__(self, weights: str | Path | None = None, layer: str = "conv4", dim: int = 0,
-                 seed: int = 0, mean_bgr: tuple[float, float, float] = (104.0, 117.0, 123.0),
-                 input_size: tuple[int, int] = (227, 227), threads: int | None = None,
-                 device: str | None = None):
+    def __init__(self, settings: HybridNetSettings | None = None, **options):
+        conf = self.conf = HybridNetSettings.build(settings, options)
+        weights, layer, device = conf.weights, conf.layer, conf.device
         if not weights:
             raise NotAvailableError("hybridnet: no weights given. " + HOW_TO_SUPPLY_WEIGHTS)
         if not Path(weights).is_file():
@@ -66,13 +94,11 @@ class HybridNetDescriptor(Descriptor):
         self.weights = str(weights)
         self.trunk = CaffeNetTrunk(self.weights, layer=layer, what="HybridNet", device=self.device)
         self.layer = layer
-        self.mean_bgr = tuple(float(m) for m in mean_bgr)
-        if len(self.mean_bgr) != 3:
-            raise ConfigError(f"hybridnet: mean_bgr needs 3 values, got {mean_bgr}")
-        self.input_size = (int(input_size[0]), int(input_size[1]))
-        self.seed = int(seed)
-        self.out_dim = int(dim)
-        self.threads = threads
+        self.mean_bgr = tuple(float(m) for m in conf.mean_bgr)
+        self.input_size = conf.need_size("input_size")
+        self.seed = int(conf.seed)
+        self.out_dim = int(conf.dim)
+        self.threads = conf.threads
         import torch
 
         with torch.inference_mode():

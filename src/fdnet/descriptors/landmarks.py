@@ -40,13 +40,16 @@ does the matching, so ``dot_product_similarity`` is False (no faiss index for th
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
 from fdnet.data.images import to_grey
 from fdnet.descriptors.base import Descriptor
-from fdnet.errors import ConfigError, NotAvailableError, invalid_settings_are_config_errors
+from fdnet.descriptors.settings import MethodSettings
+from fdnet.errors import ConfigError, NotAvailableError
 
 
 def _dollar_orientation(edges: np.ndarray) -> np.ndarray:
@@ -159,42 +162,72 @@ def roi_pool(maps, boxes: np.ndarray, valid: np.ndarray, image_size: tuple[int, 
     return pooled * torch.from_numpy(valid.astype(np.float32))[..., None]
 
 
+@dataclass(frozen=True)
+class LandmarksSettings(MethodSettings):
+    method: ClassVar[str] = "landmarks"
+    #: region proposals per image
+    max_regions: int = 50
+    #: Gaussian random projection length per region
+    region_dim: int = 512
+    #: RoI pooling cells per side
+    pool_grid: int = 4
+    #: backbone block whose map is pooled
+    block: int = 7
+    #: (height, width) images are resized to, [H, W] or HxW
+    input_size: tuple[int, int] | str = (240, 320)
+    #: structured-edge ``model.yml.gz`` (default: a gradient-edge substitute)
+    edge_model: str | None = None
+    #: smallest proposal, in pixels of the described image
+    min_box_area: int = 500
+    #: proposals are searched on the image resized by this, in [0.05, 1]
+    proposal_scale: float = 0.5
+    #: seed of the projection
+    seed: int = 0
+    #: bfloat16 autocast (none = where the device runs it natively)
+    bf16: bool | None = None
+    #: torch threads while describing (none = the process's setting)
+    threads: int | None = None
+    #: queries matched at once
+    block_queries: int = 8
+
+    def check(self) -> None:
+        for name in ("max_regions", "region_dim", "pool_grid", "block_queries"):
+            self.need_whole(name, minimum=1)
+        self.need_block(None)
+        self.need_size("input_size")
+        self.need_path("edge_model")
+        self.need_whole("min_box_area", minimum=0)
+        self.need_number("proposal_scale", minimum=0.05, maximum=1.0)
+        self.need_whole("seed", minimum=0)
+        self.need_flag("bf16", optional=True)
+        self.need_whole("threads", minimum=1, optional=True)
+
+
 class LandmarksDescriptor(Descriptor):
     """ConvNet landmarks (Sünderhauf et al. RSS 2015); see the module docstring for the method,
-    the differences from the paper and the packing of regions into one vector.
-
-    Settings: ``max_regions`` (proposals per image, default 50), ``region_dim`` (GRP length per
-    region, default 512), ``pool_grid`` (RoI cells per side, default 4), ``block`` (backbone
-    block, default 7), ``input_size`` (default 240x320), ``edge_model`` (structured-edge
-    ``model.yml.gz``; default: gradient-edge substitute), ``min_box_area`` (pixels, default 500),
-    ``proposal_scale`` (proposals are searched on the image resized by this, default 0.5),
-    ``seed`` (projection), ``bf16``, ``threads``, ``block_queries`` (queries matched at once).
-    """
+    the differences from the paper and the packing of regions into one vector. Settings:
+    :class:`LandmarksSettings`."""
 
     name = "landmarks"
     dot_product_similarity = False
+    Settings: ClassVar[type] = LandmarksSettings
 
-    @invalid_settings_are_config_errors
-    def __init__(self, max_regions: int = 50, region_dim: int = 512, pool_grid: int = 4, block: int = 7,
-                 input_size: tuple[int, int] = (240, 320), edge_model: str | Path | None = None,
-                 min_box_area: int = 500, proposal_scale: float = 0.5, seed: int = 0, bf16: bool | None = None,
-                 threads: int | None = None, block_queries: int = 8):
+    def __init__(self, settings: LandmarksSettings | None = None, **options):
         from fdnet.backbones import FeatureExtractor
         from fdnet.descriptors.conv3 import gaussian_random_projection
 
-        self.max_regions = int(max_regions)
-        self.region_dim = int(region_dim)
-        self.pool_grid = int(pool_grid)
-        if self.max_regions < 1 or self.region_dim < 1 or self.pool_grid < 1:
-            raise ConfigError("landmarks: max_regions, region_dim and pool_grid must be >= 1")
-        self.input_size = (int(input_size[0]), int(input_size[1]))
-        self.seed = int(seed)
-        self.threads = threads
-        self.block_queries = max(1, int(block_queries))
-        self.min_box_area = int(min_box_area)
-        self.proposal_scale = float(proposal_scale)
-        self.proposals = ProposalGenerator(self.max_regions, edge_model, self.min_box_area, self.proposal_scale)
-        self.extractor = FeatureExtractor(block=block, bf16=bf16, threads=threads)
+        conf = self.conf = LandmarksSettings.build(settings, options)
+        self.max_regions = int(conf.max_regions)
+        self.region_dim = int(conf.region_dim)
+        self.pool_grid = int(conf.pool_grid)
+        self.input_size = conf.need_size("input_size")
+        self.seed = int(conf.seed)
+        self.threads = conf.threads
+        self.block_queries = int(conf.block_queries)
+        self.min_box_area = int(conf.min_box_area)
+        self.proposal_scale = float(conf.proposal_scale)
+        self.proposals = ProposalGenerator(self.max_regions, conf.edge_model, self.min_box_area, self.proposal_scale)
+        self.extractor = FeatureExtractor(block=int(conf.block), bf16=conf.bf16, threads=conf.threads)
         self.pooled_dim = self.extractor.channels * self.pool_grid ** 2
         self._projection = gaussian_random_projection(self.pooled_dim, self.region_dim, self.seed)
 

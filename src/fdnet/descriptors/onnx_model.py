@@ -31,12 +31,14 @@ import hashlib
 import json
 import logging
 import os
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import ClassVar, Sequence
 
 import numpy as np
 
 from fdnet.descriptors.base import Descriptor, check_vectors, l2_normalize
+from fdnet.descriptors.settings import MethodSettings
 from fdnet.errors import ConfigError, DataError, NotAvailableError
 
 logger = logging.getLogger(__name__)
@@ -210,14 +212,56 @@ def _check_scale(mean: np.ndarray, std: np.ndarray, path: Path) -> None:
                           "values on the 0..255 scale are divided by 255 (123.675 -> 0.485)")
 
 
+@dataclass(frozen=True)
+class ONNXSettings(MethodSettings):
+    """Preprocessing left unset comes from the model's metadata (``fdnet.KEY`` or ``KEY``)."""
+
+    method: ClassVar[str] = "onnx"
+    #: the ONNX model file (--weights MODEL.onnx; required)
+    weights: str | None = None
+    #: (height, width) the model takes, HxW or [H, W] (default: the graph's or the metadata's)
+    input_size: tuple[int, int] | str | None = None
+    #: subtracted from the [0, 1] images: a number or one per channel (default 0)
+    mean: float | tuple[float, float, float] | str | None = None
+    #: the images are divided by it after the mean: a number or one per channel, > 0 (default 1)
+    std: float | tuple[float, float, float] | str | None = None
+    #: rgb or bgr (default rgb)
+    channels: str | None = None
+    #: l2 (unit vectors) or none (as the model returns them; default l2)
+    normalise: str | None = None
+    #: the output holding the vectors (default the first)
+    output: str | None = None
+    #: nchw or nhwc, for a graph that does not fix where the channels are (default nchw)
+    layout: str | None = None
+    #: auto, cpu or cuda (onnxruntime's CUDA provider)
+    device: str | None = "auto"
+
+    def check(self) -> None:
+        self.need_path("weights")
+        if self.input_size is not None:
+            _parse_size(self.input_size, "onnx: input_size")
+        for name in ("mean", "std"):
+            if getattr(self, name) is not None:
+                _parse_triple(getattr(self, name), f"onnx: {name}")
+        if self.std is not None and (_parse_triple(self.std, "onnx: std") <= 0).any():
+            raise ConfigError("onnx: std must not be 0 or below")
+        self.need_text("channels", CHANNEL_CHOICES, optional=True)
+        self.need_text("normalise", NORMALISE_CHOICES, optional=True)
+        self.need_text("layout", LAYOUT_CHOICES, optional=True)
+        self.need_text("output", optional=True)
+        self.need_device()
+
+
 class ONNXDescriptor(Descriptor):
-    """An ONNX model's output vectors (module docstring)."""
+    """An ONNX model's output vectors (module docstring). Settings: :class:`ONNXSettings`."""
 
     name = "onnx"
+    Settings: ClassVar[type] = ONNXSettings
 
-    def __init__(self, weights: str | os.PathLike | None = None, input_size=None, mean=None, std=None,
-                 channels: str | None = None, normalise: str | None = None, output: str | None = None,
-                 layout: str | None = None, device: str | None = "auto"):
+    def __init__(self, settings: ONNXSettings | None = None, **options):
+        conf = self.conf = ONNXSettings.build(settings, options)
+        weights, input_size, mean, std, channels = conf.weights, conf.input_size, conf.mean, conf.std, conf.channels
+        normalise, output, layout, device = conf.normalise, conf.output, conf.layout, conf.device
         if not weights:
             raise ConfigError("onnx: give the model with --weights MODEL.onnx")
         try:

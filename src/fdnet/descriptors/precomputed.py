@@ -38,13 +38,15 @@ import json
 import logging
 import os
 from collections import defaultdict
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import ClassVar, Sequence
 
 import numpy as np
 
 from fdnet.data.arrays import load_npz_member
 from fdnet.descriptors.base import Descriptor, check_vectors, row_norms
+from fdnet.descriptors.settings import MethodSettings
 from fdnet.errors import ConfigError, DataError
 
 logger = logging.getLogger(__name__)
@@ -195,23 +197,50 @@ def _same_file(a: str, b: str) -> bool:
         return os.path.abspath(a) == os.path.abspath(b)
 
 
+@dataclass(frozen=True)
+class PrecomputedSettings(MethodSettings):
+    method: ClassVar[str] = "precomputed"
+    #: the vectors files (--vectors, repeatable: the files merge): fdnet extract's .npz, .npy
+    #: with a names list, hloc's .h5
+    vectors: str | tuple[str, ...] | None = None
+    #: a .npy's row names: a text file, one image a line
+    names: str | None = None
+    #: the array of a .npz or .h5 holding the vectors (default: the file's own)
+    array: str | None = None
+    #: l2 (rows brought to unit length) or none (as stored)
+    normalise: str = "l2"
+    #: (height, width) pixels are read at where a command needs them (default: the recorded size, else 120x160)
+    input_size: tuple[int, int] | str | None = None
+
+    def check(self) -> None:
+        vectors = self.vectors
+        files = [vectors] if isinstance(vectors, (str, os.PathLike)) else vectors
+        if files is not None and (not isinstance(files, (list, tuple))
+                                  or not all(isinstance(f, (str, os.PathLike)) for f in files)):
+            self.refuse("vectors", "must be a file name or a list of them")
+        if self.need_path("names") is not None and files is not None and len(files) > 1:
+            raise ConfigError("precomputed: names=FILE lists the rows of one .npy; give one --vectors with it")
+        self.need_text("array", optional=True)
+        if self.normalise not in NORMALISE_CHOICES:
+            self.refuse("normalise", f"choose {' or '.join(NORMALISE_CHOICES)}")
+        self.need_size("input_size", optional=True)
+
+
 class PrecomputedDescriptor(Descriptor):
-    """Vectors from files, looked up by image (module docstring)."""
+    """Vectors from files, looked up by image (module docstring). Settings: :class:`PrecomputedSettings`."""
 
     name = "precomputed"
     keyed_by_image = True
+    Settings: ClassVar[type] = PrecomputedSettings
 
-    def __init__(self, vectors: str | os.PathLike | Sequence[str | os.PathLike] | None = None,
-                 names: str | None = None, array: str | None = None, normalise: str = "l2",
-                 input_size: Sequence[int] | None = None):
+    def __init__(self, settings: PrecomputedSettings | None = None, **options):
+        conf = self.conf = PrecomputedSettings.build(settings, options)
+        vectors, names, array, normalise = conf.vectors, conf.names, conf.array, conf.normalise
+        input_size = conf.input_size
         if not vectors:
             raise ConfigError("precomputed: give the vectors with --vectors FILE (repeatable: .npz from fdnet "
                               "extract, .npy with a names list, hloc's .h5)")
         files = [vectors] if isinstance(vectors, (str, os.PathLike)) else list(vectors)
-        if names is not None and len(files) > 1:
-            raise ConfigError("precomputed: names=FILE lists the rows of one .npy; give one --vectors with it")
-        if normalise not in NORMALISE_CHOICES:
-            raise ConfigError(f"precomputed: normalise={normalise!r}; choose {' or '.join(NORMALISE_CHOICES)}")
         self.files = [str(f) for f in files]
         self.normalise = normalise
         rows: list[np.ndarray] = []

@@ -16,7 +16,6 @@ never imports torch. Adding a method is its own package plus one line here (docs
 from __future__ import annotations
 
 import importlib
-import inspect
 from dataclasses import dataclass
 
 from fdnet.errors import ConfigError
@@ -162,9 +161,9 @@ def parse_method_entry(item: str) -> tuple[str, str]:
 def method_entries(text: str | None) -> list[tuple[str, str]]:
     """``(label, method)`` of each entry of a comma-separated ``--method`` list: ``METHOD`` (its
     label is its name) or ``LABEL=METHOD``, a name of one's own for a row, so that two models of one
-    method compare side by side (``--method a=onnx,b=onnx --weights a=A.onnx --weights b=B.onnx``,
-    ``--method old=fdnet,new=fdnet --checkpoint old=RUN1 --checkpoint new=RUN2``). A label is a
-    method's key for its options (``--weights LABEL=...``, ``--method-set LABEL:KEY=VALUE``).
+    method compare side by side (``--method a=onnx,b=onnx --weights a:A.onnx --weights b:B.onnx``,
+    ``--method old=fdnet,new=fdnet --checkpoint old:RUN1 --checkpoint new:RUN2``). A label is a
+    method's key for its options (``--weights LABEL:FILE``, ``--method-set LABEL:KEY=VALUE``).
     Unknown methods, bad labels and a label given twice are refused."""
     import re
 
@@ -184,7 +183,7 @@ def method_entries(text: str | None) -> list[tuple[str, str]]:
         if label in seen:
             raise ConfigError(f"--method names {label} more than once: its rows would be one method under one name "
                               "with one set of options, not told apart; give each its own label "
-                              "(--method a=onnx,b=onnx --weights a=A.onnx --weights b=B.onnx)")
+                              "(--method a=onnx,b=onnx --weights a:A.onnx --weights b:B.onnx)")
         seen.add(label)
         entries.append((label, method))
     return entries
@@ -219,10 +218,21 @@ def descriptor_class(name: str):
     return spec(name).descriptor_class()
 
 
+def settings_class(name: str):
+    """Method ``name``'s settings dataclass (its descriptor's ``Settings``)."""
+    return descriptor_class(name).Settings
+
+
+def setting_names(name: str) -> tuple[str, ...]:
+    """The settings method ``name`` takes: its settings dataclass's fields (what ``create`` and
+    the command line's method options accept)."""
+    return settings_class(name).declared()
+
+
 def takes_device(name: str) -> bool:
-    """Whether method ``name``'s descriptor has a ``device`` setting (what ``torch=`` declares;
-    a test holds the two together)."""
-    return "device" in inspect.signature(descriptor_class(name).__init__).parameters
+    """Whether method ``name`` has a ``device`` setting (what ``torch=`` declares; a test holds
+    the two together)."""
+    return "device" in setting_names(name)
 
 
 def methods_markdown() -> str:
@@ -242,7 +252,7 @@ def _check_run_method(name: str, checkpoint) -> None:
     """A trained method given another method's run (``--method fdnet --checkpoint CALC_RUN``) is
     refused naming the method the run records, instead of failing on its config's keys: the one
     place every command's descriptor goes through."""
-    if not checkpoint or "checkpoint" not in inspect.signature(descriptor_class(name).__init__).parameters:
+    if not checkpoint or "checkpoint" not in setting_names(name):
         return
     from fdnet.runs import recorded_method
 
@@ -257,9 +267,10 @@ def _check_run_method(name: str, checkpoint) -> None:
 
 
 def create(name: str, **options):
-    """Build descriptor ``name``; ``options`` are its constructor's keyword settings
-    (e.g. ``checkpoint=``, ``weights=``, ``vocabulary=``, ``dim=``, ``device=``). ``None`` values
-    are dropped so command-line defaults do not override a method's own.
+    """Build descriptor ``name``; ``options`` are fields of its settings dataclass
+    (:func:`setting_names`: e.g. ``checkpoint=``, ``weights=``, ``vocabulary=``, ``dim=``,
+    ``device=``). ``None`` values are dropped so command-line defaults do not override a
+    method's own.
 
     ``device`` (``auto``, ``cpu``, ``cuda``, ``cuda:N``) goes to the methods that run on torch
     (:func:`torch_methods`); the others (numpy/OpenCV) run on the CPU whatever it says, so
@@ -268,17 +279,14 @@ def create(name: str, **options):
     cls = descriptor_class(name)
     options = {k: v for k, v in options.items() if v is not None}
     _check_run_method(name, options.get("checkpoint"))
-    params = inspect.signature(cls.__init__).parameters
-    if "device" in options and not takes_device(name):
+    valid = setting_names(name)
+    if "device" in options and "device" not in valid:
         from fdnet.backbones import check_device_spec
 
         check_device_spec(options.pop("device"), where=f"{name}: device")
-    accepts_any = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
-    if not accepts_any:
-        valid = [p for p in params if p != "self"]
-        unknown = sorted(set(options) - set(valid))
-        if unknown:
-            raise ConfigError(
-                f"method {name!r} has no setting(s) {', '.join(unknown)}; its settings: {', '.join(valid) or 'none'}"
-            )
+    unknown = sorted(set(options) - set(valid))
+    if unknown:
+        raise ConfigError(
+            f"method {name!r} has no setting(s) {', '.join(unknown)}; its settings: {', '.join(valid) or 'none'}"
+        )
     return cls(**options)

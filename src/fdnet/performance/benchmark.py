@@ -54,7 +54,7 @@ class BenchmarkPlan:
     device: str = "auto"
     command: str | None = None
 
-    #: weights files by method (``--weights onnx=MODEL.onnx``)
+    #: weights files by method (``--weights onnx:MODEL.onnx``)
     weights: dict[str, str] = field(default_factory=dict)
 
     @property
@@ -69,8 +69,8 @@ def _comma_list(text: str) -> list[str]:
 @dataclass(frozen=True)
 class BenchmarkRequest:
     """``fdnet benchmark``'s settings as the command spells them: comma lists (``parts``,
-    ``methods``, ``map_size``, ``indexes``, ``lengths``, ``loop_map_size``), ``METHOD=RUN_DIR``
-    (``checkpoints``) and ``METHOD=FILE`` (``weights``), ``KIND:KEY=VALUE`` (``index_set``),
+    ``methods``, ``map_size``, ``indexes``, ``lengths``, ``loop_map_size``), ``METHOD:RUN_DIR``
+    (``checkpoints``) and ``METHOD:FILE`` (``weights``), ``KIND:KEY=VALUE`` (``index_set``),
     ``KEY=V1,V2`` (``sweep``); :func:`plan_benchmark` checks and parses them."""
 
     parts: str = ",".join(PARTS)
@@ -142,9 +142,9 @@ def plan_benchmark(request: BenchmarkRequest) -> BenchmarkPlan:
     for flag, items, parsed, what in (("--checkpoint", r.checkpoints, parsed_checkpoints, "RUN_DIR"),
                                       ("--weights", r.weights, parsed_weights, "FILE")):
         for item in items:
-            if "=" not in item:
-                raise ConfigError(f"{flag} {item!r}: expected METHOD={what}")
-            method, path = item.split("=", 1)
+            if ":" not in item:
+                raise ConfigError(f"{flag} {item!r}: expected METHOD:{what}")
+            method, path = item.split(":", 1)
             parsed[method.strip()] = path
     try:
         length_list = [int(v) for v in _comma_list(lengths)]

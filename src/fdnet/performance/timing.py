@@ -157,15 +157,15 @@ def descriptor_paths(run_dir, images_u8: np.ndarray, repeats: int = 3, device="c
     from fdnet.methods.fdnet.descriptor import FDNetDescriptor
 
     out = {}
-    fp32 = FDNetDescriptor(run_dir, device=device, bf16=False)
+    fp32 = FDNetDescriptor(checkpoint=run_dir, device=device, bf16=False)
     as_float = images_u8.astype(np.float32) / np.float32(255.0)
     out["fp32_eager"] = median_seconds(lambda: fp32.describe(as_float), repeats=repeats) / len(images_u8) * 1e3
-    fast = FDNetDescriptor(run_dir, device=device, bf16=None)
+    fast = FDNetDescriptor(checkpoint=run_dir, device=device, bf16=None)
     out["extract"] = median_seconds(lambda: fast.describe(images_u8), repeats=repeats) / len(images_u8) * 1e3
     out["extract_bf16"] = bool(fast.bf16)
     if compiled:
         t0 = time.perf_counter()
-        comp = FDNetDescriptor(run_dir, device=device, bf16=None, compile=True, batch_size=len(images_u8))
+        comp = FDNetDescriptor(checkpoint=run_dir, device=device, bf16=None, compile=True, batch_size=len(images_u8))
         comp.describe(images_u8)
         out["compile_seconds"] = time.perf_counter() - t0
         compiled_seconds = median_seconds(lambda: comp.describe(images_u8), repeats=repeats)
@@ -185,7 +185,7 @@ def gpu_figures(device, run_dir, batch_sizes=(64, 256), seconds: float = 3.0) ->
     device = resolve_device(device)
     out: dict = {"device": str(device), "name": torch.cuda.get_device_name(device)}
     for bf16 in (False, True):
-        d = FDNetDescriptor(run_dir, device=device, bf16=bf16, batch_size=max(batch_sizes))
+        d = FDNetDescriptor(checkpoint=run_dir, device=device, bf16=bf16, batch_size=max(batch_sizes))
         h, w = d.input_size
         for b in batch_sizes:
             host = np.random.default_rng(0).integers(0, 256, size=(b, h, w, 3), dtype=np.uint8)

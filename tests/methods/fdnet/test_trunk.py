@@ -115,7 +115,7 @@ def test_training_the_residual_head_moves_only_its_low_rank_part_and_keeps_the_m
     assert float(head.mean.abs().sum()) > 0, "start() sets the mean of the training maps"
     trainer.fit(progress=False)
     assert float(head.u.abs().sum()) > 0, "the adversarial/reconstruction gradient reached U"
-    descriptor = FDNetDescriptor(tmp_path / "run")
+    descriptor = FDNetDescriptor(checkpoint=tmp_path / "run")
     assert descriptor.dim == head.vector_length
     torch.testing.assert_close(descriptor.model.content_encoder.mean, head.mean)
 

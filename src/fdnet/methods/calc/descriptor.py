@@ -2,14 +2,35 @@
 
 from __future__ import annotations
 
-from pathlib import Path
+from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
 from fdnet.descriptors.base import Descriptor, l2_normalize
+from fdnet.descriptors.settings import MethodSettings
 from fdnet.errors import ConfigError
 from fdnet.methods.calc.config import load_run_config
 from fdnet.methods.calc.model import build_network, to_grey_u8
+
+
+@dataclass(frozen=True)
+class CALCSettings(MethodSettings):
+    method: ClassVar[str] = "calc"
+    #: a run directory of ``fdnet train calc`` (--checkpoint; its best/ weights when it kept them)
+    checkpoint: str | None = None
+    #: bfloat16 autocast (none = where the device runs it natively)
+    bf16: bool | None = None
+    #: torch threads while describing (none = the process's setting)
+    threads: int | None = None
+    #: auto, cpu, cuda or cuda:N
+    device: str | None = None
+
+    def check(self) -> None:
+        self.need_path("checkpoint")
+        self.need_flag("bf16", optional=True)
+        self.need_whole("threads", minimum=1, optional=True)
+        self.need_device()
 
 
 class CALCDescriptor(Descriptor):
@@ -24,8 +45,11 @@ class CALCDescriptor(Descriptor):
     name = "calc"
     accepts_uint8 = True
 
-    def __init__(self, checkpoint: str | Path | None = None, bf16: bool | None = None,
-                 threads: int | None = None, device: str | None = None):
+    Settings: ClassVar[type] = CALCSettings
+
+    def __init__(self, settings: CALCSettings | None = None, **options):
+        conf = self.conf = CALCSettings.build(settings, options)
+        checkpoint, bf16, threads, device = conf.checkpoint, conf.bf16, conf.threads, conf.device
         import torch
 
         from fdnet.backbones import bf16_supported, resolve_device

@@ -14,12 +14,14 @@ what ``fdnet extract`` uses).
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar
 
 import numpy as np
 
 from fdnet.descriptors.base import Descriptor
+from fdnet.descriptors.settings import MethodSettings
 from fdnet.errors import DataError, NotAvailableError
 
 
@@ -31,13 +33,39 @@ def _say_weights(given, folder, step) -> None:
         logging.getLogger(__name__).info(note)
 
 
+@dataclass(frozen=True)
+class FDNetSettings(MethodSettings):
+    method: ClassVar[str] = "fdnet"
+    #: the run directory of ``fdnet train`` (--checkpoint; its best/ weights when it kept them)
+    checkpoint: str | None = None
+    #: auto, cpu, cuda or cuda:N
+    device: str | None = "auto"
+    #: bfloat16 autocast with channels_last tensors (none = where the device runs it natively)
+    bf16: bool | None = False
+    #: images per forward pass (a compiled graph's fixed batch)
+    batch_size: int = 256
+    #: torch.compile the content encoder (about a minute on 2 CPU cores: for large folders)
+    compile: bool = False
+
+    def check(self) -> None:
+        self.need_path("checkpoint")
+        self.need_device()
+        self.need_flag("bf16", optional=True)
+        self.need_whole("batch_size", minimum=1)
+        self.need_flag("compile")
+
+
 class FDNetDescriptor(Descriptor):
+    """The content vector of a trained FDNet run. Settings: :class:`FDNetSettings`."""
+
     name: ClassVar[str] = "fdnet"
     dot_product_similarity: ClassVar[bool] = True
     accepts_uint8: ClassVar[bool] = True
+    Settings: ClassVar[type] = FDNetSettings
 
-    def __init__(self, checkpoint: str | Path | None = None, device: str | None = "auto", bf16: bool | None = False,
-                 batch_size: int = 256, compile: bool = False) -> None:
+    def __init__(self, settings: FDNetSettings | None = None, **options) -> None:
+        conf = self.conf = FDNetSettings.build(settings, options)
+        checkpoint, device, bf16 = conf.checkpoint, conf.device, conf.bf16
         if checkpoint is None:
             raise NotAvailableError("method 'fdnet' needs a trained run: --checkpoint RUN_DIR "
                                     "(make one with `fdnet train`)")
@@ -53,7 +81,7 @@ class FDNetDescriptor(Descriptor):
         self.config = load_config(self.run_dir, FDNetRunConfig)
         self.device = resolve_device("auto" if device is None else device, where="fdnet: device")
         self.bf16 = bf16_native(self.device) if bf16 is None else bool(bf16)
-        self.batch_size = int(batch_size)
+        self.batch_size = int(conf.batch_size)
         model = FDNet(self.config.model)
         metadata = load_weights(self.run_dir, model.named_parts(), device="cpu")
         self.model = model.to(self.device).eval()
@@ -67,7 +95,7 @@ class FDNetDescriptor(Descriptor):
         # torch.compile of FDNet.content (what it computes is unchanged: guards and graph breaks
         # keep its semantics); one graph for batches of exactly batch_size, so a shorter batch
         # is padded. Compiling takes about a minute on 2 CPU cores: for large folders.
-        self.compiled = bool(compile)
+        self.compiled = conf.compile
         self._content = torch.compile(self.model.content, dynamic=False) if self.compiled else self.model.content
 
     @classmethod

@@ -20,12 +20,15 @@ Without one, the ``cpu`` preset's map (EfficientNet-Lite0 block 7 at 128x256).
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
-from fdnet.descriptors.conv3 import Conv3Descriptor
-from fdnet.errors import ConfigError, invalid_settings_are_config_errors
+from fdnet.descriptors.conv3 import Conv3Descriptor, Conv3Settings
+from fdnet.descriptors.settings import MethodSettings
+from fdnet.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
@@ -36,25 +39,51 @@ DEFAULT_INPUT_SIZE = (128, 256)
 DEFAULT_WHITENED_DIM = 512
 
 
+@dataclass(frozen=True)
+class TrunkSettings(MethodSettings):
+    method: ClassVar[str] = "trunk"
+    #: an FDNet run (--checkpoint): its backbone, block and input size are the defaults
+    checkpoint: str | None = None
+    #: block of the backbone (default: the run's or choice's, else 7)
+    block: int | None = None
+    #: (height, width) images are resized to (default: the run's or choice's, else 128x256)
+    input_size: tuple[int, int] | str | None = None
+    #: bfloat16 autocast (none = where the device runs it natively)
+    bf16: bool | None = None
+    #: torch threads while describing (none = the process's setting)
+    threads: int | None = None
+    #: auto, cpu, cuda or cuda:N
+    device: str | None = None
+    #: efficientnet-lite0, -lite1 or -lite2 (default: the run's or choice's, else lite0)
+    backbone: str | None = None
+    #: a file from ``fdnet choose-trunk``: its backbone, block and input size are the defaults
+    choice: str | None = None
+
+    def check(self) -> None:
+        checkpoint, choice = self.need_path("checkpoint"), self.need_path("choice")
+        if checkpoint is not None and choice:
+            raise ConfigError(f"{self.method}: give an FDNet run (checkpoint) or a trunk choice file (choice), "
+                              "not both")
+        self.need_backbone(optional=True)
+        self.need_block(self.backbone, optional=True)
+        self.need_size("input_size", optional=True)
+        self.need_flag("bf16", optional=True)
+        self.need_whole("threads", minimum=1, optional=True)
+        self.need_device()
+
+
 class TrunkDescriptor(Conv3Descriptor):
-    """Settings: ``backbone`` (efficientnet-lite0/1/2), ``block``, ``input_size``, ``checkpoint``
-    (an FDNet run: its backbone, block and input size are the defaults), ``choice`` (a file from
-    ``fdnet choose-trunk``: the backbone, block and input size chosen on a validation pair are
-    the defaults), ``bf16``, ``threads``, ``device``."""
+    """The frozen trunk's map alone. Settings: :class:`TrunkSettings`."""
 
     name = "trunk"
+    Settings: ClassVar[type] = TrunkSettings
 
-    @invalid_settings_are_config_errors
-    def __init__(self, checkpoint: str | Path | None = None, block: int | None = None,
-                 input_size: tuple[int, int] | None = None, bf16: bool | None = None,
-                 threads: int | None = None, device: str | None = None, backbone: str | None = None,
-                 choice: str | Path | None = None):
-        from fdnet.backbones import check_backbone
-
+    def __init__(self, settings: TrunkSettings | None = None, **options):
+        conf = self.Settings.build(settings, options)
+        checkpoint, choice = conf.checkpoint, conf.choice
+        backbone, block, input_size = conf.backbone, conf.block, conf.input_size
         self.run_dir = str(checkpoint) if checkpoint else None
         self.choice = str(Path(choice).resolve()) if choice else None
-        if checkpoint is not None and choice:
-            raise ConfigError(f"{self.name}: give an FDNet run (checkpoint) or a trunk choice file (choice), not both")
         if choice:
             from fdnet.methods.fdnet.trunk_choice import read_choice
 
@@ -73,13 +102,12 @@ class TrunkDescriptor(Conv3Descriptor):
             backbone = model.backbone if backbone is None else backbone
             block = model.backbone_block if block is None else block
             input_size = tuple(model.input_size) if input_size is None else input_size
-        backbone = check_backbone(DEFAULT_BACKBONE if backbone is None else backbone, where=f"{self.name}: backbone")
-        from fdnet.data.images import check_image_size
-
-        input_size = check_image_size(input_size or DEFAULT_INPUT_SIZE, f"{self.name}: input_size")
-        super().__init__(dim=0, block=DEFAULT_BLOCK if block is None else int(block),
-                         input_size=input_size, bf16=bf16, threads=threads,
-                         device=device, backbone=backbone)
+        # the run's or choice's values are checked as the user's are
+        trunk = Conv3Settings(dim=0, block=DEFAULT_BLOCK if block is None else block,
+                              input_size=input_size or DEFAULT_INPUT_SIZE, bf16=conf.bf16, threads=conf.threads,
+                              device=conf.device, backbone=DEFAULT_BACKBONE if backbone is None else backbone)
+        super().__init__(trunk)
+        self.conf = conf
 
     def settings(self) -> dict:
         out = super().settings()
@@ -88,6 +116,31 @@ class TrunkDescriptor(Conv3Descriptor):
         if self.choice:
             out["choice"] = self.choice
         return out
+
+
+@dataclass(frozen=True)
+class TrunkWhitenedSettings(TrunkSettings):
+    method: ClassVar[str] = "trunk-whitened"
+    #: L, the whitened length (at most the map's length and one fewer than the fitting images)
+    dim: int = DEFAULT_WHITENED_DIM
+    #: 1 = full whitening, 0 = PCA only (0.5: the best or within 0.01 of it on Nordland's validation pair)
+    power: float = 0.5
+    #: dataset folder to learn the whitening from (--fit; default the reference images)
+    fit: str | None = None
+    #: START:END frames of each of fit's conditions (--fit-frames)
+    fit_frames: str | None = None
+
+    def check(self) -> None:
+        from fdnet.descriptors.fitting import check_fit_frames
+
+        super().check()
+        self.need_whole("dim", minimum=1)
+        self.need_number("power", minimum=0)
+        fit = self.need_path("fit")
+        fit_frames = check_fit_frames(self.fit_frames, self.method)
+        if fit_frames and not fit:
+            raise ConfigError(f"{self.method}: fit_frames ({fit_frames}) needs fit=DIR (--fit DIR) to take "
+                              "the frames of")
 
 
 class TrunkWhitenedDescriptor(TrunkDescriptor):
@@ -105,31 +158,22 @@ class TrunkWhitenedDescriptor(TrunkDescriptor):
 
     name = "trunk-whitened"
 
-    @invalid_settings_are_config_errors
-    def __init__(self, dim: int = DEFAULT_WHITENED_DIM, power: float = 0.5, fit: str | Path | None = None,
-                 fit_frames: str | None = None, checkpoint: str | Path | None = None, block: int | None = None,
-                 input_size: tuple[int, int] | None = None, bf16: bool | None = None,
-                 threads: int | None = None, device: str | None = None, backbone: str | None = None,
-                 choice: str | Path | None = None):
+    Settings: ClassVar[type] = TrunkWhitenedSettings
+
+    def __init__(self, settings: TrunkWhitenedSettings | None = None, **options):
         from fdnet.descriptors.fitting import check_fit_frames, fit_image_paths
         from fdnet.descriptors.whitening import max_whitening_dim
 
-        super().__init__(checkpoint=checkpoint, block=block, input_size=input_size, bf16=bf16, threads=threads,
-                         device=device, backbone=backbone, choice=choice)
-        if isinstance(dim, bool) or int(dim) != dim or int(dim) < 1:
-            raise ConfigError(f"{self.name}: dim (L) must be a whole number >= 1, got {dim!r}")
-        self.whitened_dim = int(dim)
-        self.power = float(power)
-        if not np.isfinite(self.power) or self.power < 0:
-            raise ConfigError(f"{self.name}: power must be >= 0 (1 = full whitening, 0 = PCA only), got {power!r}")
+        super().__init__(settings, **options)
+        conf = self.conf
+        self.whitened_dim = int(conf.dim)
+        self.power = float(conf.power)
         if self.whitened_dim > self.feature_dim:
             raise ConfigError(f"{self.name}: L = dim {self.whitened_dim} is larger than the map it whitens allows "
                               f"({self.feature_map_text()} = {self.feature_dim} values); lower dim or choose "
                               "a larger block or input size")
-        self.fit_frames = check_fit_frames(fit_frames, f"{self.name}")
-        if self.fit_frames and not fit:
-            raise ConfigError(f"{self.name}: fit_frames ({self.fit_frames}) needs fit=DIR (--fit DIR) to take "
-                              "the frames of")
+        self.fit_frames = check_fit_frames(conf.fit_frames, f"{self.name}")
+        fit = conf.fit
         self.fit_folder = str(fit) if fit else None
         self.fitted_on: str | None = None
         self._fit_paths: list[Path] | None = None

@@ -2,14 +2,35 @@
 
 from __future__ import annotations
 
-from pathlib import Path
+from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
 from fdnet.descriptors.base import Descriptor, l2_normalize
+from fdnet.descriptors.settings import MethodSettings
 from fdnet.errors import ConfigError
 from fdnet.methods.netvlad.config import load_run_config
 from fdnet.methods.netvlad.model import build_network
+
+
+@dataclass(frozen=True)
+class NetVLADSettings(MethodSettings):
+    method: ClassVar[str] = "netvlad"
+    #: a run directory of ``fdnet train netvlad`` (--checkpoint; its best/ weights when it kept them)
+    checkpoint: str | None = None
+    #: bfloat16 autocast (none = where the device runs it natively)
+    bf16: bool | None = None
+    #: torch threads while describing (none = the process's setting)
+    threads: int | None = None
+    #: auto, cpu, cuda or cuda:N
+    device: str | None = None
+
+    def check(self) -> None:
+        self.need_path("checkpoint")
+        self.need_flag("bf16", optional=True)
+        self.need_whole("threads", minimum=1, optional=True)
+        self.need_device()
 
 
 class NetVLADDescriptor(Descriptor):
@@ -25,8 +46,11 @@ class NetVLADDescriptor(Descriptor):
     name = "netvlad"
     accepts_uint8 = True
 
-    def __init__(self, checkpoint: str | Path | None = None, bf16: bool | None = None,
-                 threads: int | None = None, device: str | None = None):
+    Settings: ClassVar[type] = NetVLADSettings
+
+    def __init__(self, settings: NetVLADSettings | None = None, **options):
+        conf = self.conf = NetVLADSettings.build(settings, options)
+        checkpoint, bf16, threads, device = conf.checkpoint, conf.bf16, conf.threads, conf.device
         from fdnet.backbones import FeatureExtractor, resolve_device
         from fdnet.runs import load_weights
 
