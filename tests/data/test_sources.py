@@ -17,6 +17,7 @@ from fdnet.cli import main
 from fdnet.data import sources
 from fdnet.data.dataset import RouteDataset
 from fdnet.data.formats.positions import source_positions
+from fdnet.data.frame_records import frame_records, positions_in_metres
 from fdnet.data.images import list_images, load_image, load_image_uint8
 from fdnet.errors import ConfigError, DataError
 from tests.data.source_files import (
@@ -66,7 +67,7 @@ def test_video_sampling_by_rate_step_and_window(video, options, expected):
     with sources.using_options(options):
         paths = list_images(path)
     assert [frame_index(p) for p in paths] == expected
-    records = sources.frame_records(paths)
+    records = frame_records(paths)
     assert [r.timestamp for r in records] == pytest.approx([i / 25.0 for i in expected])
     assert all(r.source == str(path) and r.position is None for r in records)
     for p in paths[::3]:
@@ -176,7 +177,7 @@ def test_bag_raw_and_compressed_images_times_and_positions(bag):
     for i in (0, 5, 11, 2):
         assert np.array_equal(load_image_uint8(raw[i]), frames[i])
         assert np.array_equal(load_image_uint8(packed[i]), frames[i])  # PNG: lossless
-    records = sources.frame_records(raw)
+    records = frame_records(raw)
     assert [r.timestamp for r in records] == pytest.approx([T0_NS / 1e9 + 0.1 * i for i in range(12)])
     assert {r.topic for r in records} == {"/camera/image_raw"}
     # fixes every 50 ms moving 1e-5 degrees north each: frame i (at 100 ms * i) is fix 2i
@@ -184,8 +185,8 @@ def test_bag_raw_and_compressed_images_times_and_positions(bag):
     assert lats == pytest.approx([51.5 + 2e-5 * i for i in range(12)], abs=1e-12)
     assert all(r.position_kind == "degrees" and r.position[1] == pytest.approx(-0.1) for r in records)
     # the compressed images are recorded 1 ns later: interpolated between fixes
-    assert sources.frame_records(packed)[4].position[0] == pytest.approx(51.5 + 8e-5 + 1e-5 * 1 / 50e6, abs=1e-12)
-    metres = sources.positions_in_metres(records)
+    assert frame_records(packed)[4].position[0] == pytest.approx(51.5 + 8e-5 + 1e-5 * 1 / 50e6, abs=1e-12)
+    metres = positions_in_metres(records)
     steps = np.diff(np.asarray(metres)[:, 1])
     assert steps == pytest.approx(np.full(11, 2e-5 * np.pi / 180 * 6_371_008.8), rel=1e-6)
 
@@ -221,7 +222,7 @@ def test_positions_from_odometry_interpolated_and_none_outside(tmp_path, caplog)
     with caplog.at_level("WARNING", logger="fdnet.data.sources"):
         paths = list_images(path)
     assert "2 of 5 frames lie outside the time span of /odom's positions" in caplog.text
-    records = sources.frame_records(paths)
+    records = frame_records(paths)
     assert [r.position for r in records] == [None, (10.0, 1.0), (20.0, 1.0), (30.0, 1.0), None]
     assert records[1].position_kind == "metres"
     with pytest.raises(DataError, match="2 of 5 frames .*outside the time span of the positions on /odom"):

@@ -65,12 +65,13 @@ class Traverse:
         """A folder of images, or a video or ROS bag (:mod:`fdnet.data.sources`, whose frames
         bring their timestamps and, from a bag's position topic, positions)."""
         from fdnet.data import sources
+        from fdnet.data.frame_records import frame_records
 
         paths = list_images(folder)
         folder = Path(folder)
         if not sources.is_source(folder):
             return cls(name=name or folder.name, paths=paths)
-        records = sources.frame_records(paths)
+        records = frame_records(paths)
         return cls(name=name or folder.name, paths=paths,
                    timestamps=np.array([r.timestamp for r in records], dtype=np.float64))
 

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fdnet.data.frame_records import locate
 from fdnet.data.sources import (
     BAG_FRAME_NAME,
     RAW_ENCODINGS,
@@ -24,7 +25,6 @@ from fdnet.data.sources import (
     VIDEO_FRAME_NAME,
     bag_errors,
     bag_reader,
-    locate,
     open_capture,
 )
 from fdnet.errors import DataError

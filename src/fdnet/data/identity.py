@@ -18,7 +18,7 @@ from typing import Sequence
 def image_facts(path: str | os.PathLike) -> tuple[str, int, int] | None:
     """(absolute path as listed, size, modification time in ns) of an image, of the video or bag
     file behind a frame; None when it cannot be read."""
-    from fdnet.data.sources import locate
+    from fdnet.data.frame_records import locate
 
     path = Path(path)
     found = None if path.is_file() else locate(path)

@@ -20,12 +20,13 @@ forward, so a traverse is decoded in one pass). So no command needs a special ca
 every k-th frame or the first frame of each 1/N-second slot. Frame names keep the source's own
 index, so a sampled frame is named as it would be unsampled.
 
-**Timestamps and positions** (:func:`frame_records`): a video frame's time is its index divided by
-the container's frame rate (seconds from the first frame); a bag frame's time is the time the bag
-recorded the message (seconds since the epoch; header stamps are not read, so the images and the
-positions use one clock). Positions come from a ``sensor_msgs/NavSatFix`` (latitude, longitude;
-messages without a fix are skipped) or ``nav_msgs/Odometry`` topic (x, y in metres), linearly
-interpolated to the image times; frames outside the position messages' time span have none.
+**Timestamps and positions** (:func:`fdnet.data.frame_records.frame_records`): a video frame's time
+is its index divided by the container's frame rate (seconds from the first frame); a bag frame's
+time is the time the bag recorded the message (seconds since the epoch; header stamps are not read,
+so the images and the positions use one clock). Positions come from a ``sensor_msgs/NavSatFix``
+(latitude, longitude; messages without a fix are skipped) or ``nav_msgs/Odometry`` topic (x, y in
+metres), linearly interpolated to the image times; frames outside the position messages' time span
+have none.
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ import os
 import re
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Iterator, Sequence
+from typing import Iterator
 
 import numpy as np
 
@@ -202,10 +203,11 @@ class SourceListing:
     notes: list[str] = field(default_factory=list)
 
 
-# Listings made in this process, by each frame path's text: frame_records() finds a frame's time
+# Listings made in this process, by each frame path's text: frame_records.frame_records() finds a frame's time
 # and position here without opening its source again.
 _LISTINGS: dict[tuple, SourceListing] = {}
-_FRAME_OWNER: dict[str, SourceListing] = {}
+#: the listing each listed frame path belongs to (read by :mod:`fdnet.data.frame_records`)
+FRAME_OWNER: dict[str, SourceListing] = {}
 
 
 def list_frames(path: str | os.PathLike, options: SourceOptions | None = None) -> list[Path]:
@@ -231,7 +233,7 @@ def open_source(path: str | os.PathLike, options: SourceOptions | None = None) -
         listing = _list_video(source, options) if kind == "video" else _list_bag(source, options)
         _LISTINGS[key] = listing
         for p in listing.paths:
-            _FRAME_OWNER[str(p)] = listing
+            FRAME_OWNER[str(p)] = listing
     return listing
 
 
@@ -474,93 +476,3 @@ def _add_positions(reader, listing: SourceListing, topic: str) -> None:
     listing.positions = positions
     for note in listing.notes:
         log.warning("%s, topic %s: %s", listing.source, listing.topic, note)
-
-
-# ----------------------------------------------------------------------------- frame records
-
-@dataclass(frozen=True)
-class FrameRecord:
-    """Where a frame came from: its source (video or bag; the folder for an image file), its time in
-    seconds (None for image files) and its position (None where unknown)."""
-
-    source: str
-    timestamp: float | None = None
-    position: tuple[float, float] | None = None
-    position_kind: str | None = None
-    topic: str | None = None
-
-
-def locate(path: str | os.PathLike) -> tuple[Path, str | None, str] | None:
-    """(source, topic, frame name) of a frame path, or None when ``path`` is no frame of a source."""
-    path = Path(path)
-    name = path.name
-    video = VIDEO_FRAME_NAME.match(name)
-    bag = BAG_FRAME_NAME.match(name)
-    if not (video or bag):
-        return None
-    if video and path.parent.is_file() and kind_of(path.parent) == "video":
-        return path.parent, None, name
-    if bag:
-        parent = path.parent
-        topic_parts: list[str] = []
-        while parent != parent.parent and not parent.exists():
-            topic_parts.insert(0, parent.name)
-            parent = parent.parent
-        if topic_parts and kind_of(parent) == "bag":
-            return parent, "/" + "/".join(topic_parts), name
-    return None
-
-
-def frame_records(paths: Sequence[str | os.PathLike]) -> list[FrameRecord]:
-    """A :class:`FrameRecord` per path: a frame of a listed source gets its time and position; an
-    image file gets its folder as source and no time."""
-    out = []
-    for p in paths:
-        listing = _FRAME_OWNER.get(str(p))
-        if listing is None:
-            found = locate(p)
-            if found is not None:  # a frame path listed in another process: its name has its time
-                source, topic, name = found
-                match = (VIDEO_FRAME_NAME if topic is None else BAG_FRAME_NAME).match(name)
-                scale = 1e3 if topic is None else 1e9
-                out.append(FrameRecord(str(source), int(match.group(2)) / scale, topic=topic))
-            else:
-                out.append(FrameRecord(str(Path(p).parent)))
-            continue
-        i = listing.paths.index(Path(p)) if len(listing.paths) < 64 else _position_in(listing, p)
-        position = None
-        if listing.positions is not None and np.isfinite(listing.positions[i]).all():
-            position = (float(listing.positions[i, 0]), float(listing.positions[i, 1]))
-        out.append(FrameRecord(str(listing.source), float(listing.times[i]), position, listing.position_kind,
-                               listing.topic))
-    return out
-
-
-def _position_in(listing: SourceListing, path) -> int:
-    index = getattr(listing, "_index", None)
-    if index is None:
-        index = {str(q): k for k, q in enumerate(listing.paths)}
-        listing._index = index  # type: ignore[attr-defined]
-    return index[str(path)]
-
-
-def positions_in_metres(records: Sequence[FrameRecord]) -> list[tuple[float, float] | None]:
-    """Each record's position in planar metres, or None. Degrees are projected equirectangularly
-    about the centre of the 1-degree cell of the first fix (so every traverse of one area gets the
-    same origin without one being stored; the scale error stays under 1 % of a distance within
-    the cell); metres (odometry) are kept."""
-    from fdnet.data.groundtruth import latlon_to_metres
-
-    origin = None
-    out: list[tuple[float, float] | None] = []
-    for record in records:
-        if record.position is None:
-            out.append(None)
-        elif record.position_kind == "degrees":
-            if origin is None:
-                origin = (math.floor(record.position[0]) + 0.5, math.floor(record.position[1]) + 0.5)
-            xy = latlon_to_metres(np.array([record.position[0]]), np.array([record.position[1]]), origin)[0]
-            out.append((float(xy[0]), float(xy[1])))
-        else:
-            out.append(record.position)
-    return out

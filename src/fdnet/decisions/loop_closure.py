@@ -17,8 +17,8 @@ before it, and nothing is revised later: the events up to frame t do not depend 
 The detector keeps the database's vectors in memory (read once, then appended); which places a
 frame may match and how each scores (every place, or through an index on large maps) is its
 search, :mod:`fdnet.decisions.loop_candidates`; the detector itself is gates, rule and
-consistency over those candidates, and the storage of each frame. :func:`fdnet.decisions.loop_traverse.run_traverse` is what
-``fdnet loop-closure`` runs.
+consistency over those candidates, and the storage of each frame.
+:func:`fdnet.decisions.loop_traverse.run_traverse` is what ``fdnet loop-closure`` runs.
 """
 
 from __future__ import annotations

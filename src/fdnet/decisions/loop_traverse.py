@@ -271,8 +271,8 @@ def _check_searchable_revisit(truth, places_before: int, exclude_last: int, leng
 def _traverse_frames(images, route: RouteTraverse | None):
     """(paths, description, place names, timestamps, positions) of the traverse's frames, the
     names checked before any frame is described."""
+    from fdnet.data.frame_records import frame_records, positions_in_metres
     from fdnet.data.images import list_images
-    from fdnet.data.sources import frame_records, positions_in_metres
     from fdnet.matching.database import check_place_names
 
     paths = list(route.paths) if route is not None else list_images(images)

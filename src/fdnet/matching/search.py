@@ -62,7 +62,7 @@ def reference_times_and_positions(paths) -> dict:
     """``reference_times`` (seconds) when every reference is a frame of a video or bag, and
     ``reference_positions`` (metres) when every one has a position (a bag's GPS/odometry): what
     the acceptance settings radius_s / radius_m need. Image files have neither."""
-    from fdnet.data.sources import frame_records, positions_in_metres
+    from fdnet.data.frame_records import frame_records, positions_in_metres
 
     records = frame_records(paths)
     out = {}

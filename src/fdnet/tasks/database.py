@@ -419,7 +419,7 @@ def _spooled_batches(spool, names, paths=None):
     ``timestamp`` loop closure's ``radius_s`` reads) and a bag's interpolated position in metres."""
     positions = metadata = None
     if paths is not None:
-        from fdnet.data.sources import frame_records, positions_in_metres
+        from fdnet.data.frame_records import frame_records, positions_in_metres
 
         records = frame_records(paths)
         if any(r.timestamp is not None for r in records):

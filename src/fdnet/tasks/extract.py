@@ -44,8 +44,8 @@ def frame_arrays(paths) -> dict:
     ``sizes`` and ``mtimes_ns`` (N,): the size and modification time of each image's file (a
     frame's video or bag), so ``--method precomputed`` can tell these images from others of the
     same names (:mod:`fdnet.data.identity`)."""
+    from fdnet.data.frame_records import frame_records
     from fdnet.data.identity import image_facts
-    from fdnet.data.sources import frame_records
 
     records = frame_records(paths)
     facts = [image_facts(p) for p in paths]
