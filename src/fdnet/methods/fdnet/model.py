@@ -137,6 +137,24 @@ def largest_layer_weights(config: FDNetConfig) -> int:
 
 def validate_architecture(config: FDNetConfig) -> None:
     """Raise ConfigError for settings the architecture cannot take (before building anything)."""
+    height, width = _check_sizes(config)
+    if config.input_norm not in INPUT_NORMS:
+        raise ConfigError(f"model.input_norm: {config.input_norm!r}; choose one of {', '.join(INPUT_NORMS)}")
+    if config.input_norm == "per_patch" and (config.patch_size <= 0 or height % config.patch_size
+                                             or width % config.patch_size):
+        raise ConfigError(f"model.patch_size: {config.patch_size} must divide the input size {height}x{width}")
+    _check_block_candidates(config)
+    _check_content_head(config, height, width)
+    if config.critic_input not in CRITIC_INPUTS:
+        raise ConfigError(f"model.critic_input: {config.critic_input!r}; choose one of {', '.join(CRITIC_INPUTS)}")
+    for name in ("encoder_dropout", "critic_dropout"):
+        if not 0.0 <= getattr(config, name) < 1.0:
+            raise ConfigError(f"model.{name}: must be in [0, 1), got {getattr(config, name)}")
+
+
+def _check_sizes(config: FDNetConfig) -> tuple[int, int]:
+    """The input size, blocks and backbone must fit together (strides, the largest layer's
+    weights); returns (height, width)."""
     if len(config.input_size) != 2:
         raise ConfigError(f"model.input_size: expected (height, width), got {config.input_size!r}")
     if not config.widths and config.backbone == "none":
@@ -173,31 +191,36 @@ def validate_architecture(config: FDNetConfig) -> None:
             + (f"trunk map of block {config.backbone_block} " if config.backbone != "none" else "input ")
             + f"at {height}x{width} is too long; use a deeper model.backbone_block, a smaller model.input_size "
             "or more model.widths")
-    if config.input_norm not in INPUT_NORMS:
-        raise ConfigError(f"model.input_norm: {config.input_norm!r}; choose one of {', '.join(INPUT_NORMS)}")
-    if config.input_norm == "per_patch" and (config.patch_size <= 0 or height % config.patch_size
-                                             or width % config.patch_size):
-        raise ConfigError(f"model.patch_size: {config.patch_size} must divide the input size {height}x{width}")
-    if config.backbone_block_candidates:
-        candidates = [int(b) for b in config.backbone_block_candidates]
-        if config.backbone == "none" or config.content_head not in TRUNK_HEADS:
-            raise ConfigError("model.backbone_block_candidates: choosing a trunk block needs model.backbone and "
-                              "model.content_head=trunk_residual or trunk_projection (it scores the head's "
-                              "closed-form start); "
-                              "set model.backbone_block_candidates=[] to use model.backbone_block alone")
-        if config.backbone_block not in candidates:
-            raise ConfigError(f"model.backbone_block={config.backbone_block} is not among "
-                              f"model.backbone_block_candidates={candidates} (it is the block used without a "
-                              "validation pair); add it, or set model.backbone_block_candidates=[] to use it alone")
-        if len(set(candidates)) != len(candidates):
-            raise ConfigError(f"model.backbone_block_candidates: {candidates} names a block twice")
-        for block in candidates:
-            if block != config.backbone_block:
-                try:
-                    validate_architecture(dataclasses.replace(config, backbone_block=block,
-                                                              backbone_block_candidates=()))
-                except ConfigError as exc:
-                    raise ConfigError(f"model.backbone_block_candidates: block {block}: {exc}") from exc
+    return height, width
+
+
+def _check_block_candidates(config: FDNetConfig) -> None:
+    """The trunk blocks a run may choose among: each one a valid architecture."""
+    if not config.backbone_block_candidates:
+        return
+    candidates = [int(b) for b in config.backbone_block_candidates]
+    if config.backbone == "none" or config.content_head not in TRUNK_HEADS:
+        raise ConfigError("model.backbone_block_candidates: choosing a trunk block needs model.backbone and "
+                          "model.content_head=trunk_residual or trunk_projection (it scores the head's "
+                          "closed-form start); "
+                          "set model.backbone_block_candidates=[] to use model.backbone_block alone")
+    if config.backbone_block not in candidates:
+        raise ConfigError(f"model.backbone_block={config.backbone_block} is not among "
+                          f"model.backbone_block_candidates={candidates} (it is the block used without a "
+                          "validation pair); add it, or set model.backbone_block_candidates=[] to use it alone")
+    if len(set(candidates)) != len(candidates):
+        raise ConfigError(f"model.backbone_block_candidates: {candidates} names a block twice")
+    for block in candidates:
+        if block != config.backbone_block:
+            try:
+                validate_architecture(dataclasses.replace(config, backbone_block=block,
+                                                          backbone_block_candidates=()))
+            except ConfigError as exc:
+                raise ConfigError(f"model.backbone_block_candidates: block {block}: {exc}") from exc
+
+
+def _check_content_head(config: FDNetConfig, height: int, width: int) -> None:
+    """The content head and its own settings."""
     if config.content_head not in CONTENT_HEADS:
         raise ConfigError(f"model.content_head: {config.content_head!r}; choose one of {', '.join(CONTENT_HEADS)}")
     if config.content_head == "trunk_residual":
@@ -225,11 +248,6 @@ def validate_architecture(config: FDNetConfig) -> None:
         if not (0 <= config.projection_pca_power <= 1) or not (config.pair_shrinkage >= 0):
             raise ConfigError(f"model.projection_pca_power must lie in [0, 1] and model.pair_shrinkage be >= 0, "
                               f"got {config.projection_pca_power}, {config.pair_shrinkage}")
-    if config.critic_input not in CRITIC_INPUTS:
-        raise ConfigError(f"model.critic_input: {config.critic_input!r}; choose one of {', '.join(CRITIC_INPUTS)}")
-    for name in ("encoder_dropout", "critic_dropout"):
-        if not 0.0 <= getattr(config, name) < 1.0:
-            raise ConfigError(f"model.{name}: must be in [0, 1), got {getattr(config, name)}")
 
 
 def init_weights(module: nn.Module) -> None:

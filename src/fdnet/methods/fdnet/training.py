@@ -45,13 +45,19 @@ from fdnet.data.appearance import SEPARATOR, with_synthetic_conditions
 from fdnet.errors import ConfigError
 from fdnet.methods.fdnet import losses
 from fdnet.methods.fdnet.config import (
-    ABLATION_SWITCHES,
     FDNetRunConfig,
-    synthetic_option,
     synthetic_option_text,
     validate,
 )
 from fdnet.methods.fdnet.model import TRUNK_HEADS, FDNet
+from fdnet.methods.fdnet.run_start import (
+    ablation_text,
+    check_same_ablation,
+    chosen_when_started,
+    removed_columns,
+    start_candidates,
+    start_label,
+)
 from fdnet.methods.fdnet.sampler import DomainBalancedSampler
 from fdnet.training.data import TrainingImages, route_images, training_route
 from fdnet.training.distributed import loss_text
@@ -348,30 +354,6 @@ class FDNetTraining(TrainingMethod):
         return out
 
 
-#: log.csv's columns that belong to each ablation switch's part
-ABLATED_COLUMNS = {"adversarial": ("encoder_adversarial", "structure", "critic", "wasserstein"),
-                   "appearance_triplet": ("appearance",), "reconstruction": ("reconstruction",)}
-
-
-def removed_columns(config: FDNetRunConfig) -> set[str]:
-    """The loss columns a run with ``config``'s ablation switches never logs."""
-    return {column for name in config.ablated() for column in ABLATED_COLUMNS[name]}
-
-
-def ablation_text(config: FDNetRunConfig) -> str:
-    """What the ablation switches remove from this run, in words (empty for the full method)."""
-    trunk_head = config.model.content_head in TRUNK_HEADS
-    parts = {
-        "adversarial": "no critic D_a and no L_e^adv (D_a stays as initialised, the critic stage is skipped"
-                       + ("; the content head, which only L_e^adv moves, stays at its start)" if trunk_head else ")"),
-        "appearance_triplet": "no L_a (" + ("E_a learns only through the decoder's L_r)" if config.loss.reconstruction
-                                            else "E_a is never updated)"),
-        "reconstruction": "no L_r (the decoder is never updated"
-                          + (")" if trunk_head else "; E_c learns from L_e^adv alone)"),
-    }
-    return "; ".join(f"loss.{name}=false: {parts[name]}" for name in config.ablated())
-
-
 def content_vectors(model: FDNet, images: torch.Tensor, device: torch.device, bf16: bool = False,
                     channels_last: bool = False, batch: int = 256, appearance: bool = False) -> torch.Tensor:
     """uint8 (N, 3, H, W) -> float32 (N, L) content (or appearance) vectors, eval mode."""
@@ -388,23 +370,6 @@ def content_vectors(model: FDNet, images: torch.Tensor, device: torch.device, bf
             out.append(v.float().cpu())
     model.train(was_training)
     return torch.cat(out) if out else torch.zeros((0, model.content_length))
-
-
-def start_candidates(config: FDNetRunConfig) -> list[tuple[tuple[str, ...], int]]:
-    """The (synthetic conditions, trunk block) starts a run with a validation pair chooses from,
-    synthetic settings outer: ``data.synthetic_conditions_candidates`` (or the one
-    ``data.synthetic_conditions``) x ``model.backbone_block_candidates`` (or the one block)."""
-    options = [synthetic_option(t) for t in config.data.synthetic_conditions_candidates] or \
-        [tuple(config.data.synthetic_conditions)]
-    blocks = [int(b) for b in config.model.backbone_block_candidates] or [int(config.model.backbone_block)]
-    return [(option, block) for option in options for block in blocks]
-
-
-def _start_label(config: FDNetRunConfig, option: tuple[str, ...], block: int) -> str:
-    """``block_selection``'s key: the block, plus the synthetic setting when that is chosen too."""
-    if not config.data.synthetic_conditions_candidates:
-        return str(block)
-    return f"{block}, synthetic {synthetic_option_text(option)}"
 
 
 def choose_start(config: FDNetRunConfig, real: TrainingImages, validation,
@@ -446,7 +411,7 @@ def choose_start(config: FDNetRunConfig, real: TrainingImages, validation,
         method.log = lambda message: None  # start() says what it removed; once, when training starts
         method.start()
         metrics = validation_metrics(method, validation)
-        label = _start_label(config, option, block)
+        label = start_label(config, option, block)
         scores[label] = {k: float(v) for k, v in metrics.items()}
         log.info(f"trunk block {label}: validation R@1 {metrics['recall@1']:.3f}, "
                  f"AUC {metrics['auc']:.3f} at the start")
@@ -462,46 +427,13 @@ def choose_start(config: FDNetRunConfig, real: TrainingImages, validation,
     method.block_selection = scores
     del method.log  # back to the class's
     chosen_block = method.config.model.backbone_block
-    chosen = _start_label(config, tuple(method.config.data.synthetic_conditions), chosen_block)
+    chosen = start_label(config, tuple(method.config.data.synthetic_conditions), chosen_block)
     note = "" if chosen_block == config.model.backbone_block else (
         f"; model.backbone_block = {config.model.backbone_block} is the block for runs without a validation pair, "
         "set model.backbone_block_candidates=[] to train it regardless")
     log.info(f"training on trunk block {chosen} "
-             f"(of {', '.join(_start_label(config, o, b) for o, b in candidates)}){note}")
+             f"(of {', '.join(start_label(config, o, b) for o, b in candidates)}){note}")
     return method
-
-
-def _chosen_when_started(config: FDNetRunConfig, run_dir) -> FDNetRunConfig:
-    """``config`` with the trunk block and synthetic conditions the run chose when it started
-    (a resumed run does not choose again: its weights are for that choice)."""
-    from fdnet import runs
-
-    saved = runs.load_config(run_dir, FDNetRunConfig)
-    block, option = saved.model.backbone_block, tuple(saved.data.synthetic_conditions)
-    if (option, block) not in start_candidates(config):
-        return config
-    if block != config.model.backbone_block or option != tuple(config.data.synthetic_conditions):
-        log.info(f"continuing on trunk block {_start_label(config, option, block)}, chosen when the run "
-                 f"started (its weights are for that choice; model.backbone_block = {config.model.backbone_block} "
-                 "applies to new runs)")
-    return replace_dotted(config, {"model.backbone_block": block, "data.synthetic_conditions": list(option)})
-
-
-def _same_ablation(config: FDNetRunConfig, run_dir) -> None:
-    """A resumed run keeps the ablation switches it started with (even with ``--override``): a
-    switch changes the stages and the losses logged, so the run would be neither variant."""
-    from fdnet import runs
-    from fdnet.training import distributed
-
-    if not distributed.current().is_main or not runs.is_run(run_dir):
-        return  # rank 0 alone reads the run directory; the loop says what is wrong with resuming it
-    saved = runs.load_config(run_dir, FDNetRunConfig)
-    changed = [f"loss.{name}: saved {str(getattr(saved.loss, name)).lower()}, requested "
-               f"{str(getattr(config.loss, name)).lower()}"
-               for name in ABLATION_SWITCHES if getattr(saved.loss, name) != getattr(config.loss, name)]
-    if changed:
-        raise ConfigError(f"{run_dir}: a run keeps the ablation switches it started with ({'; '.join(changed)}); "
-                          "train the other variant into a new run directory")
 
 
 def train(config: FDNetRunConfig, run_dir, resume: bool = False, override: bool = False,
@@ -518,12 +450,12 @@ def train(config: FDNetRunConfig, run_dir, resume: bool = False, override: bool 
 
     def build():
         if resume:
-            _same_ablation(config, run_dir)
+            check_same_ablation(config, run_dir)
         if config.ablated():
             autoencoder, critic, joint = config.stage_steps
             log.info(f"ablation: {ablation_text(config)}; stages of {autoencoder} + {critic} + {joint} steps")
         candidates = start_candidates(config)
-        run_config = _chosen_when_started(config, run_dir) if resume and len(candidates) > 1 else config
+        run_config = chosen_when_started(config, run_dir) if resume and len(candidates) > 1 else config
         real = load_training_images(replace_dotted(config, {"data.synthetic_conditions": []}))
         validation = load_validation_images(config.data.root, config.validation, config.model.input_size)
         log.info(f"preset {config.preset}, conditions {', '.join(real.names)} "
@@ -533,7 +465,7 @@ def train(config: FDNetRunConfig, run_dir, resume: bool = False, override: bool 
             if validation is not None:
                 return choose_start(config, real, validation, deadline, progress), validation
             log.info(f"no validation pair to choose a start from "
-                     f"({', '.join(_start_label(config, o, b) for o, b in candidates)}); training on "
+                     f"({', '.join(start_label(config, o, b) for o, b in candidates)}); training on "
                      f"model.backbone_block = {config.model.backbone_block}, data.synthetic_conditions = "
                      f"{synthetic_option_text(config.data.synthetic_conditions)}")
         data = with_synthetic_conditions(real, run_config.data.synthetic_conditions, run_config.runtime.seed)
