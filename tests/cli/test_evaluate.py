@@ -230,7 +230,7 @@ def test_two_models_of_one_method_compare_side_by_side_under_labels(tiny_method,
 
 
 def test_methods_that_cannot_be_told_apart_are_refused(tiny_method, route, tmp_path, capsys):
-    """A method named twice gave two identical rows under one name (the last --weights METHOD= for
+    """A method named twice gave two identical rows under one name (the last --weights METHOD: for
     both); two values of one option for one method kept only one of them. Both are refused
     before any image is described, and nothing is written."""
     out = tmp_path / "r.json"

@@ -93,3 +93,33 @@ def test_fingerprints_are_those_of_the_constructor_keywords_they_replace():
     assert HOGDescriptor().settings() == {
         "input_size": [512, 512], "cell_size": 16, "block_size": 16, "block_stride": 8, "orientations": 9,
         "grey": False, "implementation": "opencv", "similarity": "cosine"}
+
+
+def test_an_error_loading_weights_keeps_its_own_type_and_cause(monkeypatch, tmp_path):
+    """Settings are checked before anything is loaded; what goes wrong while loading is not
+    relabelled as an invalid setting."""
+    from fdnet.descriptors import alexnet
+
+    def broken(*args, **kwargs):
+        raise ValueError("a bug in the loader")
+
+    monkeypatch.setattr(alexnet, "AlexNetTrunk", broken)
+    weights = tmp_path / "alexnet.safetensors"
+    weights.write_bytes(b"x")
+    with pytest.raises(ValueError, match="a bug in the loader"):
+        registry.create("conv3", weights=str(weights), device="cpu")
+    with pytest.raises(ConfigError, match="^conv3: seed=-1: must be a whole number >= 0"):
+        registry.create("conv3", weights=str(weights), seed=-1)
+
+
+def test_two_bare_values_of_one_file_flag_are_refused():
+    import argparse
+
+    from fdnet.cli.common import method_options
+
+    args = argparse.Namespace(method="fdnet,trunk", checkpoint=["runs/a", "runs/b"], method_set=[])
+    with pytest.raises(ConfigError, match="--checkpoint gives fdnet 2 values .runs/a, runs/b."):
+        method_options(args, "fdnet")
+    args.checkpoint = ["trunk:runs/b", "runs/a"]  # the scoped value wins for trunk; fdnet takes the bare one
+    assert method_options(args, "trunk") == {"checkpoint": "runs/b"}
+    assert method_options(args, "fdnet") == {"checkpoint": "runs/a"}

@@ -75,6 +75,7 @@ def run(args) -> int:
     from fdnet.tasks.calibrate import CalibrateRequest, calibrate_command
 
     check_pipeline_arguments(args)
+    options = method_options(args, args.method)  # once: the descriptor and the run it is stored in
     request = CalibrateRequest(
         split=SplitSpec(args.data, args.reference, args.query, dataset_format=args.dataset_format, split=args.split,
                         format_set=tuple(args.format_set), frames=args.frames, tolerance=args.tolerance,
@@ -82,10 +83,10 @@ def run(args) -> int:
         target_precision=args.target_precision, accept=args.accept, accept_set=tuple(args.accept_set),
         choose=tuple(args.choose), sequence_length=args.sequence_length, out=args.out,
         store_in_run=args.store_in_run,
-        run_dir=method_options(args, args.method).get("checkpoint") if args.store_in_run else None, db=args.db,
+        run_dir=options.get("checkpoint") if args.store_in_run else None, db=args.db,
         allow_training_frames=args.allow_training_frames,
         pipeline=PipelineSettings(args.batch_size, args.workers, progress=True))
-    result = calibrate_command(request, lambda: create_descriptor(args.method, args))
+    result = calibrate_command(request, lambda: create_descriptor(args.method, args, options))
     calibration = result.calibration
     print(f"{calibration.method}, rule {calibration.rule}: threshold {calibration.threshold:.6g} reaches precision "
           f"{calibration.precision:.3f} at recall {calibration.recall:.3f} ({calibration.accepted} of "

@@ -95,19 +95,19 @@ def input_files(args) -> list[tuple[str, str]]:
 def run(args) -> int:
     import sys
 
-    from fdnet.cli.common import check_pipeline_arguments, create_descriptor
+    from fdnet.cli.common import check_pipeline_arguments, create_descriptor, method_options
     from fdnet.descriptors.pipeline import PipelineSettings
     from fdnet.tasks.match import MatchRequest, match_images
 
     check_pipeline_arguments(args)
+    options = method_options(args, args.method)  # once: the descriptor and the run its calibration is in
     spec = acceptance_from_arguments(args)
     calibration = args.calibration
     if calibration is None and spec is None:
         # the one rule for stored calibrations: the run's (`fdnet calibrate --store-in-run`)
-        from fdnet.cli.common import method_options
         from fdnet.decisions.calibration import stored_in_run
 
-        stored = stored_in_run(method_options(args, args.method).get("checkpoint"))
+        stored = stored_in_run(options.get("checkpoint"))
         if stored is not None:
             calibration = str(stored)
             print(f"fdnet match: using the calibration stored in the run, {stored}", file=sys.stderr)
@@ -117,7 +117,7 @@ def run(args) -> int:
                            pairs_out=args.pairs_out, pairs_accepted_only=args.pairs_accepted_only,
                            inputs=tuple(input_files(args)),
                            pipeline=PipelineSettings(batch_size=args.batch_size, workers=args.workers, progress=True))
-    summary = match_images(request, lambda: create_descriptor(args.method, args), log=print)
+    summary = match_images(request, lambda: create_descriptor(args.method, args, options), log=print)
     if summary.out is not None:
         print(f"wrote {summary.out}: top-{summary.top_k} of {summary.num_references} references for "
               f"{summary.num_queries} queries ({summary.method})")
