@@ -163,30 +163,13 @@ def run_traverse(images, descriptor, database=None, settings: TraverseSettings |
     described.
     """
     from fdnet.data.groundtruth import GroundTruth
-    from fdnet.io import ensure_writable
 
     if not isinstance(settings, TraverseSettings):
         raise ConfigError(f"run_traverse needs TraverseSettings (at least events_csv), got {type(settings).__name__}")
     say = log or (lambda message: None)
     route = images if isinstance(images, RouteTraverse) else None
-    detector_settings = settings.detector
     ground_truth, calibrate_to = settings.ground_truth, settings.calibrate_to
-    if calibrate_to is not None:
-        from fdnet.decisions.calibration import check_target
-
-        if ground_truth is None and route is None:
-            raise ConfigError("calibrating on a traverse needs its ground truth (--ground-truth CSV, or a route "
-                              "given as --data DIR --conditions A,B)")
-        check_target(settings.target_precision)
-        ensure_writable(calibrate_to, what="calibration file")
-        if detector_settings.threshold is None and detector_settings.calibration is None:
-            detector_settings = replace(detector_settings, threshold=math.inf)
-    for path, what in ((settings.events_csv, "events CSV"), (settings.events_jsonl, "events JSON lines")):
-        if path is not None:
-            ensure_writable(path, what=what)
-    if settings.resume and database is None:
-        raise ConfigError("resuming needs the place database the interrupted run wrote (--db FILE): an in-memory "
-                          "run keeps nothing to resume from")
+    detector_settings = _checked_settings(settings, route, database)
     paths, where, names, times, positions = _traverse_frames(images, route)
     with LoopClosureDetector(descriptor, database, detector_settings) as detector:
         db = detector.database
@@ -228,6 +211,31 @@ def run_traverse(images, descriptor, database=None, settings: TraverseSettings |
             report.calibrated = _calibrate_on_traverse(detector, truth, settings.target_precision, source,
                                                        calibrate_to)
     return report
+
+
+def _checked_settings(settings: TraverseSettings, route, database):
+    """Refuse what cannot work before any frame is read (outputs, calibration target, resuming
+    without a file); the detector's settings (threshold +inf when calibrating without one)."""
+    from fdnet.io import ensure_writable
+
+    detector_settings = settings.detector
+    if settings.calibrate_to is not None:
+        from fdnet.decisions.calibration import check_target
+
+        if settings.ground_truth is None and route is None:
+            raise ConfigError("calibrating on a traverse needs its ground truth (--ground-truth CSV, or a route "
+                              "given as --data DIR --conditions A,B)")
+        check_target(settings.target_precision)
+        ensure_writable(settings.calibrate_to, what="calibration file")
+        if detector_settings.threshold is None and detector_settings.calibration is None:
+            detector_settings = replace(detector_settings, threshold=math.inf)
+    for path, what in ((settings.events_csv, "events CSV"), (settings.events_jsonl, "events JSON lines")):
+        if path is not None:
+            ensure_writable(path, what=what)
+    if settings.resume and database is None:
+        raise ConfigError("resuming needs the place database the interrupted run wrote (--db FILE): an in-memory "
+                          "run keeps nothing to resume from")
+    return detector_settings
 
 
 def _report(detector: LoopClosureDetector, seconds: float, places_before: int, events: EventLog, resumed: int,
