@@ -1,6 +1,7 @@
 """Descriptor.fingerprint: what makes the vectors, not where the weights were read from."""
 
 import numpy as np
+import pytest
 
 from fdnet.descriptors.base import Descriptor
 
@@ -54,3 +55,20 @@ def test_a_vocabulary_fitted_from_the_same_folder_spelled_two_ways_has_one_finge
     absolute = create("dbow", fit=str(folder), depth=2, branching=4)
     assert relative.fingerprint() == absolute.fingerprint()
 
+
+
+def test_describing_appearance_is_declared_on_the_base_class():
+    """Whether a method describes appearance is a declared capability: the methods that override
+    describe_appearance say so, and the others refuse to, naming themselves."""
+    from fdnet.descriptors.base import Descriptor
+    from fdnet.descriptors.registry import all_specs
+
+    for spec in all_specs():
+        cls = spec.descriptor_class()
+        overrides = cls.describe_appearance is not Descriptor.describe_appearance
+        assert cls.describes_appearance == overrides, spec.name
+    assert [s.name for s in all_specs() if s.descriptor_class().describes_appearance] == ["fdnet"]
+    from fdnet.descriptors import create
+
+    with pytest.raises(NotImplementedError, match="raw describes no appearance"):
+        create("raw").describe_both(np.zeros((1, 32, 64, 3), np.float32))

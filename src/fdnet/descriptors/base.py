@@ -90,6 +90,9 @@ class Descriptor(ABC):
     #: True when ``describe`` reads vectors computed elsewhere, by each image's path: callers
     #: describe a batch inside :meth:`images_of` its paths (the pixels are not needed)
     keyed_by_image: ClassVar[bool] = False
+    #: True when the method also describes each image's appearance (FDNet's appearance encoder):
+    #: :meth:`describe_appearance` and :meth:`describe_both` work
+    describes_appearance: ClassVar[bool] = False
     #: the torch device a method runs on (None: numpy and OpenCV methods, on the CPU)
     device = None
     #: the run directory a trained method's weights (or a trunk's block) come from; None for
@@ -118,6 +121,15 @@ class Descriptor(ABC):
     def settings(self) -> dict:
         """The settings that define this descriptor (reported next to results)."""
         return {"input_size": list(self.input_size)}
+
+    def describe_appearance(self, images: np.ndarray) -> np.ndarray:
+        """(N, H, W, 3) -> (N, L) appearance vectors, for a method that :attr:`describes_appearance`."""
+        raise NotImplementedError(f"{self.name} describes no appearance")
+
+    def describe_both(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(place vectors, appearance vectors) of the same images, for a method that
+        :attr:`describes_appearance`."""
+        raise NotImplementedError(f"{self.name} describes no appearance")
 
     def fit(self, images_or_paths: Sequence[Path] | np.ndarray) -> None:  # noqa: B027 - optional hook
         """Learn from training/reference images, for methods that need to (e.g. a DBoW

@@ -8,7 +8,7 @@ to temporary ``.npy`` parts, packed into the ``.npz`` at the end and renamed ove
 batches of memory, and a crash never leaves half a file.
 
 Arrays: ``descriptors`` (N, D), what the method compares (``--method``'s vectors); a descriptor
-that also describes appearance (``describe_both``: FDNet) writes ``content`` (its place
+that also describes appearance (``describes_appearance``: FDNet) writes ``content`` (its place
 descriptor) and ``appearance`` instead. Always: ``names``, ``sources``, ``timestamps`` (see
 :func:`frame_arrays`), ``method`` and ``settings`` (JSON of the descriptor's settings).
 
@@ -58,9 +58,8 @@ def frame_arrays(paths) -> dict:
 
 def described_arrays(descriptor):
     """The array names a descriptor's extraction writes, and the function giving them per batch."""
-    both = getattr(descriptor, "describe_both", None)
-    if both is not None:
-        return ("content", "appearance"), both
+    if descriptor.describes_appearance:
+        return ("content", "appearance"), descriptor.describe_both
     return ("descriptors",), lambda images: (descriptor.describe(images),)
 
 

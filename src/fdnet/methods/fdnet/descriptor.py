@@ -61,6 +61,7 @@ class FDNetDescriptor(Descriptor):
     name: ClassVar[str] = "fdnet"
     dot_product_similarity: ClassVar[bool] = True
     accepts_uint8: ClassVar[bool] = True
+    describes_appearance: ClassVar[bool] = True
     Settings: ClassVar[type] = FDNetSettings
 
     def __init__(self, settings: FDNetSettings | None = None, **options) -> None:
