@@ -4,7 +4,8 @@ tables go to the ``out`` callable (library code never prints)."""
 import pytest
 
 from fdnet.errors import ConfigError
-from fdnet.performance.benchmark import BenchmarkRequest, plan_benchmark, run_benchmark
+from fdnet.performance.benchmark import run_benchmark
+from fdnet.performance.benchmark_plan import BenchmarkRequest, plan_benchmark
 
 
 def test_plan_parses_the_command_spellings():

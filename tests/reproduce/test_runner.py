@@ -9,7 +9,8 @@ import pytest
 
 from fdnet.errors import ConfigError, NotAvailableError
 from fdnet.reproduce import runner
-from fdnet.reproduce.runner import build_pairs, reproduce
+from fdnet.reproduce.context import Context, build_pairs
+from fdnet.reproduce.runner import reproduce
 
 from .conftest import CALLS, FittedPixels, Pixels, factory, settings
 
@@ -57,7 +58,7 @@ def test_a_method_that_learns_from_the_map_is_fitted_on_each_reference_set(route
     chosen = settings(route, tmp_path / "out", methods=["fitted"])
 
     def compare_every_pair() -> None:
-        ctx = runner.Context(chosen, build_pairs(chosen), factory, quiet)
+        ctx = Context(chosen, build_pairs(chosen), factory, quiet)
         handle = ctx.add_method("fitted", "fitted", {}, required=True)
         for pair in ctx.pairs:
             ctx.similarity(handle, pair.split, pair.slug)

@@ -13,7 +13,8 @@ import pytest
 
 from fdnet.errors import ConfigError
 from fdnet.reproduce import reproduce
-from fdnet.reproduce.ablation import METRICS, VARIANTS
+from fdnet.reproduce.ablation import VARIANTS
+from fdnet.reproduce.ablation_report import METRICS
 from fdnet.reproduce.seeds import seed_folder, spread, spread_text
 from tests.reproduce.test_ablation import ablation, factory
 

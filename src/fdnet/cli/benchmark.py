@@ -7,7 +7,7 @@ noisy, so the command prints ratios measured side by side."""
 
 from __future__ import annotations
 
-from fdnet.performance.benchmark import DEFAULT_INDEXES, DEFAULT_METHODS, PARTS
+from fdnet.performance.benchmark_plan import DEFAULT_INDEXES, DEFAULT_METHODS, PARTS
 
 
 def register(sub) -> None:
@@ -79,7 +79,8 @@ def run(args) -> int:
     import sys
 
     from fdnet.cli.extract import COMPILE_FROM
-    from fdnet.performance.benchmark import BenchmarkRequest, plan_benchmark, run_benchmark
+    from fdnet.performance.benchmark import run_benchmark
+    from fdnet.performance.benchmark_plan import BenchmarkRequest, plan_benchmark
 
     command = "fdnet " + " ".join(sys.argv[1:]) if sys.argv and "benchmark" in sys.argv else None
     plan = plan_benchmark(BenchmarkRequest(

@@ -8,7 +8,8 @@ each) on a dataset and writes ``OUT/report.html`` (:mod:`fdnet.reproduce.report`
 only that method, and an interrupted run resumes. docs/reproduce.md describes each experiment.
 """
 
-from fdnet.reproduce.runner import DEFAULT_METHODS, ReproduceSettings, reproduce
+from fdnet.reproduce.context import ReproduceSettings
+from fdnet.reproduce.runner import DEFAULT_METHODS, reproduce
 from fdnet.reproduce.sections import EXPERIMENTS
 
 __all__ = ["DEFAULT_METHODS", "EXPERIMENTS", "ReproduceSettings", "reproduce"]

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fdnet.reproduce.runner import condition_traverses, matched_reference
+from fdnet.reproduce.context import condition_traverses, matched_reference
 from fdnet.reproduce.sections import Figure, Heading, Paragraph, Table, finite_or_none, number
 
 NAME = "disentanglement"
@@ -246,6 +246,12 @@ def run(ctx) -> dict:
 
 
 def render(document: dict) -> list:
+    return _differences_blocks(document) + _places_blocks(document) + _embedding_blocks(document)
+
+
+def _differences_blocks(document: dict) -> list:
+    """Fig. 11: element-wise content differences per pair, their histograms, and the distances
+    between whole content and appearance vectors."""
     blocks: list = [Heading("Content differences, same place vs different places (Fig. 11)")]
     rows = []
     for d in document["content_differences"]:
@@ -277,7 +283,12 @@ def render(document: dict) -> list:
                          "ratio"], rows,
                         "Mean Euclidean distance between whole vectors: content should keep the place (ratio below 1), "
                         "appearance the condition (ratio above 1)"))
-    blocks.append(Heading("Appearance vectors of a few places (Fig. 12)"))
+    return blocks
+
+
+def _places_blocks(document: dict) -> list:
+    """Fig. 12: the appearance vectors of the places drawn, with their distances."""
+    blocks: list = [Heading("Appearance vectors of a few places (Fig. 12)")]
     if document.get("places_figure"):
         blocks.append(Table(["place", "condition", "image", "|v_a - v_a of the first condition|"],
                             [[p["place"], p["condition"], p["image"], number(p["distance_to_first"])]
@@ -285,7 +296,13 @@ def render(document: dict) -> list:
                             "The places drawn below: within a place, a distance is the change of condition"))
         blocks.append(Figure(document["places_figure"],
                              "Appearance vectors v_a of the same places under each condition"))
-    blocks.append(Heading("2-D embeddings coloured by condition (Fig. 13)"))
+    return blocks
+
+
+def _embedding_blocks(document: dict) -> list:
+    """Fig. 13: the silhouettes by condition of each embedding, and whether appearance separates
+    the conditions more than content, as the paper expects."""
+    blocks: list = [Heading("2-D embeddings coloured by condition (Fig. 13)")]
     rows = [[s["vector"], "PCA" if s["embedding"] == "pca" else "t-SNE", str(s["points"]), number(s["silhouette_2d"]),
              number(s["silhouette_full"])] for s in document["embeddings"]]
     blocks.append(Table(["vectors", "embedding", "points", "silhouette (2-D)", "silhouette (full vectors)"], rows,

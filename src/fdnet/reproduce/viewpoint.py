@@ -94,7 +94,7 @@ def run(ctx) -> dict:
     from fdnet.data.images import load_image
     from fdnet.data.split import EvaluationSplit
     from fdnet.evaluation import plots
-    from fdnet.reproduce.runner import matched_reference
+    from fdnet.reproduce.context import matched_reference
 
     pair = _pair(ctx)
     reference, query = pair.split.reference, pair.split.query

@@ -23,7 +23,8 @@ so a reader can prove the three belong together. Readers take the newest generat
 complete (:func:`latest_checkpoint`); folders starting with "." are never read. Every load
 function accepts a run directory or a generation folder.
 
-The package, by concern: :mod:`~fdnet.runs.checkpoints` (the generations: save, find, load),
+The package, by concern: :mod:`~fdnet.runs.checkpoints` (the generations: save, find),
+:mod:`~fdnet.runs.loading` (read the current one back: config, weights, training state),
 :mod:`~fdnet.runs.lock` (:class:`RunLock`) and :mod:`~fdnet.runs.changes` (``changes.yaml``).
 Its modules must not import :mod:`fdnet.training`: inference code loads trained models with them.
 """
@@ -39,18 +40,15 @@ from fdnet.runs.checkpoints import (
     STATE_FILE,
     WEIGHTS_FILE,
     check_run_state,
-    config_differences,
     is_run,
     latest_checkpoint,
-    load_config,
-    load_training_state,
-    load_weights,
     recorded_method,
     save_checkpoint,
     save_weights,
     weights_folder,
     weights_note,
 )
+from fdnet.runs.loading import config_differences, load_config, load_training_state, load_weights
 from fdnet.runs.lock import LOCK_FILE, RunLock
 
 __all__ = [

@@ -34,7 +34,7 @@ def read_changes(run_dir: str | Path) -> list[dict]:
 
 def record_changes(run_dir: str | Path, step: int, differences: list[str], command: str = "") -> None:
     """Append to ``run_dir/changes.yaml`` (rewritten atomically) that the settings in
-    ``differences`` (as from :func:`fdnet.runs.checkpoints.config_differences`) changed at ``step``, when a run is
+    ``differences`` (as from :func:`fdnet.runs.loading.config_differences`) changed at ``step``, when a run is
     resumed with ``--override``; the run's history stays true. Nothing is written for no change."""
     if not differences:
         return

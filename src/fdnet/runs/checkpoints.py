@@ -1,6 +1,7 @@
 """Checkpoint generations of a run directory: how one is written (into a ``.tmp-*`` folder,
-every file fsynced and read back, published by one rename), found (the newest complete one) and
-read back (weights, training state, config). See :mod:`fdnet.runs` for the layout on disk.
+every file fsynced and read back, published by one rename) and found (the newest complete one);
+:mod:`fdnet.runs.loading` reads one back (weights, training state, config). See :mod:`fdnet.runs`
+for the layout on disk.
 
 This module must not import :mod:`fdnet.training`: inference code loads trained models with it.
 """
@@ -23,13 +24,12 @@ from typing import Any, Iterator, Mapping, TypeVar
 import torch
 import yaml
 from safetensors import SafetensorError, safe_open
-from safetensors.torch import load_file
 from safetensors.torch import save as safetensors_bytes
 
-from fdnet.config import flatten_dotted, load_yaml, read_yaml_file, to_dict
+from fdnet.config import read_yaml_file, to_dict
 from fdnet.errors import ConfigError, output_error
 from fdnet.io import fsync_directory
-from fdnet.runs.checksums import STATE_KEY, TENSORS_KEY, bytes_sha256, tensors_sha256, verify_state, verify_tensors
+from fdnet.runs.checksums import STATE_KEY, TENSORS_KEY, bytes_sha256, tensors_sha256
 
 try:
     import fcntl
@@ -84,7 +84,8 @@ def _generations(checkpoints_dir: Path) -> list[_Generation]:
     return sorted(found, key=lambda g: g.order, reverse=True)
 
 
-def _weights_metadata(path: Path) -> dict[str, str]:
+def read_weights_metadata(path: Path) -> dict[str, str]:
+    """The metadata of a generation's weights file (step, save_id, modules, kind, checksums)."""
     # safe_open reads only the header, and refuses a file shorter than the header says (a torn
     # write), so this is a cheap completeness test as well as the metadata reader.
     with safe_open(str(path), framework="pt") as handle:
@@ -109,7 +110,7 @@ def _config_stamp(path: Path) -> tuple[str, int] | None:
 def _incomplete_reason(folder: Path) -> str | None:
     """Why ``folder`` is not a complete generation, or None when it is one."""
     try:
-        metadata = _weights_metadata(folder / WEIGHTS_FILE)
+        metadata = read_weights_metadata(folder / WEIGHTS_FILE)
     except FileNotFoundError:
         return f"no {WEIGHTS_FILE}"
     except (SafetensorError, OSError) as exc:
@@ -238,21 +239,6 @@ def check_run_state(run_dir: str | Path, resume: bool) -> None:
         raise ConfigError(f"{run_dir}: already holds a run; use --resume to continue it or choose another --out")
 
 
-def _with_latest(run_dir: str | Path, read):
-    """``read(latest_checkpoint(run_dir))``, resolved again if a concurrent save pruned the folder
-    between choosing it and reading it (a reader never blocks a training)."""
-    for attempt in range(3):
-        folder = latest_checkpoint(run_dir)
-        try:
-            return read(folder)
-        except OSError as exc:
-            if folder.is_dir() or attempt == 2:
-                raise ConfigError(f"{folder}: cannot read the checkpoint ({exc.strerror or exc})") from exc
-        except ConfigError:
-            if folder.is_dir() or attempt == 2:
-                raise
-
-
 # ---------------------------------------------------------------------------- saving
 
 def _flatten_weights(modules: Mapping[str, torch.nn.Module]) -> dict[str, torch.Tensor]:
@@ -353,6 +339,19 @@ def _publish(run_dir: str | Path, modules: Mapping[str, torch.nn.Module], config
     if isinstance(keep, bool) or not isinstance(keep, int) or keep < 1:
         raise ValueError(f"keep must be a positive integer, got {keep!r}")
     # Everything that can fail for a programming reason happens before anything is written.
+    save_id, files = _serialise(modules, config, optimizers, state, step, kind)
+    checkpoints_dir = _make_checkpoints_dir(Path(run_dir))
+    with _save_lock(checkpoints_dir):
+        _remove_leftovers(checkpoints_dir)
+        final = _write_generation(checkpoints_dir, files, step, save_id)
+        _prune(checkpoints_dir, final, step, keep)
+    return final
+
+
+def _serialise(modules: Mapping[str, torch.nn.Module], config: Any,
+               optimizers: Mapping[str, torch.optim.Optimizer] | None, state: Mapping[str, Any] | None,
+               step: int, kind: str) -> tuple[str, dict[str, bytes | memoryview]]:
+    """(save_id, file name -> its bytes) of one generation, every file in memory."""
     tensors = _flatten_weights(modules)
     save_id = uuid.uuid4().hex
     metadata = {
@@ -379,8 +378,11 @@ def _publish(run_dir: str | Path, modules: Mapping[str, torch.nn.Module], config
     files = {WEIGHTS_FILE: safetensors_bytes(tensors, metadata=metadata), **files}
     del tensors
     files[CONFIG_FILE] = _config_text(config, save_id, step).encode("utf-8")
+    return save_id, files
 
-    run_dir = Path(run_dir)
+
+def _make_checkpoints_dir(run_dir: Path) -> Path:
+    """``run_dir/checkpoints/``, created (with ``run_dir``) when missing."""
     checkpoints_dir = run_dir / CHECKPOINTS_DIR
     try:
         run_dir.mkdir(parents=True, exist_ok=True)
@@ -390,59 +392,65 @@ def _publish(run_dir: str | Path, modules: Mapping[str, torch.nn.Module], config
     except OSError as exc:
         raise output_error(f"{checkpoints_dir}: cannot create the checkpoint folder ({exc.strerror or exc})",
                            exc) from exc
+    return checkpoints_dir
 
-    with _save_lock(checkpoints_dir):
-        _remove_leftovers(checkpoints_dir)
-        tmp = checkpoints_dir / f"{_TMP_PREFIX}{step}-{save_id}"
-        try:
-            tmp.mkdir()
-            for name, data in files.items():
-                _write_synced(tmp / name, data)
-            fsync_directory(tmp)
-            # Read the unit back before it may become current: a state that weights_only=True
-            # cannot load (e.g. a numpy array) would otherwise only show up at --resume.
-            reason = _incomplete_reason(tmp)
-            if reason is not None:
-                raise ValueError(
-                    f"{tmp}: the checkpoint for step {step} cannot be read back ({reason}); a training "
-                    "state may hold only tensors, numbers, strings, lists and dicts")
 
-            existing = _generations(checkpoints_dir)
-            # Generations of a later step belong to a history the caller has abandoned (it resumed
-            # from an earlier checkpoint, or best/ is being re-chosen after such a resume). They
-            # would shadow the new one as "newest", so they go before the publishing rename; a
-            # crash in between leaves the earlier generation the caller resumed from as current.
-            for generation in existing:
-                if generation.step > step:
-                    _remove_folder(generation.path, checkpoints_dir, strict=True)
-            final = checkpoints_dir / _unique_name(checkpoints_dir, step, existing)
-            os.rename(tmp, final)  # the one step that makes the new generation current
-            fsync_directory(checkpoints_dir)
-        except OSError as exc:
-            shutil.rmtree(tmp, ignore_errors=True)
-            current = next((g.path.name for g in _generations(checkpoints_dir)
-                            if _incomplete_reason(g.path) is None), None)
-            reason = "no space left on the device" if exc.errno == errno.ENOSPC else (exc.strerror or str(exc))
-            still = f"{current} is still the current checkpoint" if current else "no earlier checkpoint exists"
-            raise output_error(
-                f"{checkpoints_dir}: cannot save the checkpoint for step {step} ({reason}); {still}", exc
-            ) from exc
-        except BaseException:  # incl. Ctrl-C: never leave our partial folder behind
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
+def _write_generation(checkpoints_dir: Path, files: Mapping[str, bytes | memoryview], step: int,
+                      save_id: str) -> Path:
+    """Write ``files`` into a ``.tmp-*`` folder, read them back and publish the folder by one
+    rename; returns the published folder. Called under the save lock."""
+    tmp = checkpoints_dir / f"{_TMP_PREFIX}{step}-{save_id}"
+    try:
+        tmp.mkdir()
+        for name, data in files.items():
+            _write_synced(tmp / name, data)
+        fsync_directory(tmp)
+        # Read the unit back before it may become current: a state that weights_only=True
+        # cannot load (e.g. a numpy array) would otherwise only show up at --resume.
+        reason = _incomplete_reason(tmp)
+        if reason is not None:
+            raise ValueError(
+                f"{tmp}: the checkpoint for step {step} cannot be read back ({reason}); a training "
+                "state may hold only tensors, numbers, strings, lists and dicts")
 
-        # Pruning only now that the new generation is published: keep it plus the keep-1 newest
-        # complete older ones (an incomplete one is never worth keeping, and never counts).
-        # Older folders of the same step are replaced, not kept.
-        kept = 1
-        for generation in _generations(checkpoints_dir):
-            if generation.path == final:
-                continue
-            if generation.step != step and kept < keep and _incomplete_reason(generation.path) is None:
-                kept += 1
-                continue
-            _remove_folder(generation.path, checkpoints_dir)
+        existing = _generations(checkpoints_dir)
+        # Generations of a later step belong to a history the caller has abandoned (it resumed
+        # from an earlier checkpoint, or best/ is being re-chosen after such a resume). They
+        # would shadow the new one as "newest", so they go before the publishing rename; a
+        # crash in between leaves the earlier generation the caller resumed from as current.
+        for generation in existing:
+            if generation.step > step:
+                _remove_folder(generation.path, checkpoints_dir, strict=True)
+        final = checkpoints_dir / _unique_name(checkpoints_dir, step, existing)
+        os.rename(tmp, final)  # the one step that makes the new generation current
+        fsync_directory(checkpoints_dir)
+    except OSError as exc:
+        shutil.rmtree(tmp, ignore_errors=True)
+        current = next((g.path.name for g in _generations(checkpoints_dir)
+                        if _incomplete_reason(g.path) is None), None)
+        reason = "no space left on the device" if exc.errno == errno.ENOSPC else (exc.strerror or str(exc))
+        still = f"{current} is still the current checkpoint" if current else "no earlier checkpoint exists"
+        raise output_error(
+            f"{checkpoints_dir}: cannot save the checkpoint for step {step} ({reason}); {still}", exc
+        ) from exc
+    except BaseException:  # incl. Ctrl-C: never leave our partial folder behind
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
     return final
+
+
+def _prune(checkpoints_dir: Path, final: Path, step: int, keep: int) -> None:
+    """Keep the new generation ``final`` plus the keep-1 newest complete older ones (an incomplete
+    one is never worth keeping, and never counts); older folders of the same step are replaced,
+    not kept. Called only once ``final`` is published, so a crash never leaves fewer."""
+    kept = 1
+    for generation in _generations(checkpoints_dir):
+        if generation.path == final:
+            continue
+        if generation.step != step and kept < keep and _incomplete_reason(generation.path) is None:
+            kept += 1
+            continue
+        _remove_folder(generation.path, checkpoints_dir)
 
 
 def save_checkpoint(run_dir: str | Path, modules: Mapping[str, torch.nn.Module], config: Any,
@@ -474,117 +482,4 @@ def save_weights(run_dir: str | Path, modules: Mapping[str, torch.nn.Module], co
     the same way as :func:`save_checkpoint`; for ``best/`` and exports. ``step`` is recorded in
     the weights' metadata (which step the weights are from)."""
     return _publish(run_dir, modules, config, None, None, _as_step(step), KIND_WEIGHTS, keep)
-
-
-# ---------------------------------------------------------------------------- loading
-
-def load_config(run_dir: str | Path, cls: type[T]) -> T:
-    """Read the current checkpoint's config.yaml into dataclass ``cls`` (unknown keys are a
-    ConfigError naming the file)."""
-    return _with_latest(run_dir, lambda folder: load_yaml(cls, folder / CONFIG_FILE))
-
-
-def config_differences(saved: Any, requested: Any, keys: list[str] | None = None) -> list[str]:
-    """``"a.b: saved X, requested Y"`` for every differing setting (only dotted ``keys`` if given)."""
-    a, b = (flatten_dotted(to_dict(d) if dataclasses.is_dataclass(d) else dict(d)) for d in (saved, requested))
-    names = keys if keys is not None else sorted(set(a) | set(b))
-    return [f"{k}: saved {a.get(k)!r}, requested {b.get(k)!r}" for k in names if a.get(k) != b.get(k)]
-
-
-def _load_weights_from(folder: Path, modules: Mapping[str, torch.nn.Module],
-                       device: str | torch.device) -> dict[str, str]:
-    path = folder / WEIGHTS_FILE
-    try:
-        tensors = load_file(str(path), device=str(device))
-        metadata = _weights_metadata(path)
-    except FileNotFoundError:
-        raise
-    except (SafetensorError, OSError) as exc:
-        raise ConfigError(f"{path}: cannot read weights ({exc})") from exc
-    verify_tensors(path, tensors, metadata)
-    for name, module in modules.items():
-        prefix = f"{name}."
-        own = {k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)}
-        if not own:
-            saved = metadata.get("modules", "?")
-            raise ConfigError(f"{path}: has no weights for module {name!r} (it holds: {saved})")
-        expected = module.state_dict()
-        missing = sorted(set(expected) - set(own))
-        extra = sorted(set(own) - set(expected))
-        if missing or extra:
-            raise ConfigError(
-                f"{path}: module {name!r} does not match the checkpoint "
-                f"(missing {missing[:3]}{'...' if len(missing) > 3 else ''}, "
-                f"unexpected {extra[:3]}{'...' if len(extra) > 3 else ''}); "
-                "the run was trained with other architecture settings"
-            )
-        for key, value in expected.items():
-            if tuple(value.shape) != tuple(own[key].shape):
-                raise ConfigError(
-                    f"{path}: {name}.{key} has shape {tuple(own[key].shape)} in the checkpoint but "
-                    f"{tuple(value.shape)} in the model; the run was trained with other settings "
-                    "(input size, widths, vector length or trunk block: the model settings in its config.yaml)"
-                )
-    # Only after every module matched, so a mismatch leaves all modules as they were.
-    for name, module in modules.items():
-        prefix = f"{name}."
-        module.load_state_dict({k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)},
-                               strict=True)
-    metadata["checkpoint"] = str(folder)
-    return metadata
-
-
-def load_weights(run_dir: str | Path, modules: Mapping[str, torch.nn.Module],
-                 device: str | torch.device = "cpu") -> dict[str, str]:
-    """Load the current checkpoint's weights into ``modules`` (all must be present, with the same
-    tensor names and shapes). Returns the weights' metadata: ``step``, ``save_id``, ``modules``,
-    ``kind`` and ``checkpoint`` (the folder read)."""
-    return _with_latest(run_dir, lambda folder: _load_weights_from(folder, modules, device))
-
-
-def _load_training_state_from(folder: Path, optimizers: Mapping[str, torch.optim.Optimizer] | None
-                              ) -> dict[str, Any]:
-    path = folder / STATE_FILE
-    if not path.is_file():
-        try:
-            kind = _weights_metadata(folder / WEIGHTS_FILE).get("kind")
-        except (SafetensorError, OSError):
-            kind = None
-        what = "a weights-only checkpoint" if kind == KIND_WEIGHTS else f"no {STATE_FILE}"
-        raise ConfigError(f"{folder}: {what}; this run cannot be resumed (final, best or exported weights)")
-    try:
-        weights_metadata = _weights_metadata(folder / WEIGHTS_FILE)
-    except (SafetensorError, OSError) as exc:
-        raise ConfigError(f"{folder / WEIGHTS_FILE}: cannot read weights ({exc})") from exc
-    weights_id = weights_metadata.get("save_id")
-    try:
-        data = path.read_bytes()
-        verify_state(path, data, weights_metadata)
-        payload = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
-    except (FileNotFoundError, ConfigError):
-        raise
-    except Exception as exc:  # torch raises several types for a corrupt or foreign file
-        raise ConfigError(f"{path}: cannot read training state ({exc.__class__.__name__}: {exc})") from exc
-    if weights_id != payload.get("save_id"):
-        raise ConfigError(
-            f"{path}: training state and {WEIGHTS_FILE} come from different saves "
-            "(interrupted while checkpointing?); cannot resume exactly"
-        )
-    saved_optimizers = payload.get("optimizers", {})
-    for name, opt in (optimizers or {}).items():
-        if name not in saved_optimizers:
-            raise ConfigError(f"{path}: no optimiser state for {name!r} (has: {', '.join(saved_optimizers) or 'none'})")
-        try:
-            opt.load_state_dict(saved_optimizers[name])
-        except (ValueError, KeyError) as exc:
-            raise ConfigError(f"{path}: optimiser state for {name!r} does not fit this optimiser ({exc})") from exc
-    return payload["state"]
-
-
-def load_training_state(run_dir: str | Path,
-                        optimizers: Mapping[str, torch.optim.Optimizer] | None = None) -> dict[str, Any]:
-    """Return the current checkpoint's resume ``state`` dict and load the saved optimiser states
-    into ``optimizers``. ConfigError when the checkpoint is weights-only, or when its training
-    state belongs to a different save than its weights."""
-    return _with_latest(run_dir, lambda folder: _load_training_state_from(folder, optimizers))
 
