@@ -442,7 +442,8 @@ def test_the_index_closes_the_same_loops_as_every_place(length):
 def test_auto_search_switches_to_the_index_at_its_size():
     frames = places(seed=4, n=30)
     detector, _ = run(frames, search="auto", index_from=20, rule="raw", threshold=2.0)
-    assert detector.candidates.indexed is not None and len(detector.candidates.indexed) == 29   # every place but the newest
+    indexed = detector.candidates.indexed
+    assert indexed is not None and len(indexed) == 29   # every place but the newest
     small, _ = run(frames, search="auto", rule="raw", threshold=2.0)
     assert small.candidates.indexed is None
 
