@@ -30,6 +30,16 @@ def register(sub) -> None:
     p.add_argument("--parts", default=",".join(PARTS),
                    help=f"what to measure, comma-separated from {','.join(PARTS)} (default all; the GEMM "
                         "references are always measured)")
+    _add_method_arguments(p)
+    _add_scale_arguments(p)
+    p.add_argument("--quick", action="store_true", help="fewer repeats and only L=512 (for smoke tests)")
+    p.add_argument("--json", help="write all figures as JSON")
+    add_device_argument(p)
+    p.set_defaults(func=run)
+
+
+def _add_method_arguments(p) -> None:
+    """Which methods are timed, on what images and at which FDNet lengths."""
     p.add_argument("--method", default=DEFAULT_METHODS,
                    help="comma-separated methods to time through the descriptor interface "
                         f"(default {DEFAULT_METHODS}); add e.g. fdnet with --checkpoint fdnet:RUN_DIR")
@@ -39,6 +49,15 @@ def register(sub) -> None:
                    help="weights file of a method (e.g. onnx:MODEL.onnx to time any ONNX model; repeatable)")
     p.add_argument("--images", help="folder of images to time methods on (default: a synthetic route)")
     p.add_argument("--num-images", type=int, default=32, help="images per method timing (default 32)")
+    p.add_argument("--lengths", default="256,512,1024,2048", help="FDNet vector lengths to time")
+    p.add_argument("--compile", nargs="?", const="on", choices=("auto", "on", "off"), default="auto",
+                   help="also time `fdnet extract --compile` (torch.compile; compiling takes about a minute): on, "
+                        "off, or auto (default: as `fdnet extract` decides, on from its folder size, so here on "
+                        "only when --num-images reaches it); a bare --compile means on")
+
+
+def _add_scale_arguments(p) -> None:
+    """The maps of the matching, scale and loop parts: sizes, indexes, queries, vectors."""
     p.add_argument("--map-size", default="1000",
                    help="map sizes, comma-separated (e.g. 1000,100000,1000000): the first is the matching table's "
                         "map; each is a random map of the scale benchmark (default 1000)")
@@ -63,15 +82,6 @@ def register(sub) -> None:
                         "`fdnet extract` (its content array)")
     p.add_argument("--query-vectors", metavar="FILE",
                    help="queries for --map-vectors (.npy/.npz); default: its vectors plus --noise")
-    p.add_argument("--lengths", default="256,512,1024,2048", help="FDNet vector lengths to time")
-    p.add_argument("--compile", nargs="?", const="on", choices=("auto", "on", "off"), default="auto",
-                   help="also time `fdnet extract --compile` (torch.compile; compiling takes about a minute): on, "
-                        "off, or auto (default: as `fdnet extract` decides, on from its folder size, so here on "
-                        "only when --num-images reaches it); a bare --compile means on")
-    p.add_argument("--quick", action="store_true", help="fewer repeats and only L=512 (for smoke tests)")
-    p.add_argument("--json", help="write all figures as JSON")
-    add_device_argument(p)
-    p.set_defaults(func=run)
 
 
 def run(args) -> int:

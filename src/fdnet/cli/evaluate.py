@@ -32,14 +32,24 @@ from fdnet.cli.common import add_device_argument, add_method_arguments, dataset_
 
 
 def register(sub) -> None:
-    from fdnet.cli.common import thread_count
-
     p = sub.add_parser(
         "evaluate",
         help="evaluate methods or a similarity matrix: R@N, R@100P, P@maxR, AUC-PR, timings",
         description="Evaluate place-recognition methods on a reference/query split (or a precomputed "
                     "query x reference similarity matrix) under a named protocol.",
     )
+    _add_data_arguments(p)
+    _add_methods_arguments(p)
+    _add_similarity_arguments(p)
+    _add_output_arguments(p)
+    p.add_argument("--allow-training-frames", action="store_true",
+                   help="evaluate a trained method on frames it was trained on (refused by default: the numbers "
+                        "would measure memory, not recognition)")
+    p.set_defaults(func=run)
+
+
+def _add_data_arguments(p) -> None:
+    """The dataset: its conditions, frames, format and ground truth."""
     data = p.add_argument_group("data")
     data.add_argument("--data", help="dataset folder with one sub-folder per condition")
     data.add_argument("--reference", help="condition (sub-folder of --data) used as the map")
@@ -64,6 +74,12 @@ def register(sub) -> None:
                            "list; indices in natural file-name order) instead of frame alignment; with "
                            "--dataset-format it replaces the format's ground truth for the chosen split. "
                            "Names in the CSV (fdnet groundtruth writes them) must match the images")
+
+
+def _add_methods_arguments(p) -> None:
+    """The methods to evaluate and how images are described."""
+    from fdnet.cli.common import thread_count
+
     methods = p.add_argument_group("methods")
     add_method_arguments(methods, multiple=True, required=False)
     methods.add_argument("--batch-size", type=int, default=64, help="images described per batch (default 64)")
@@ -75,12 +91,20 @@ def register(sub) -> None:
                          help="rank by SeqSLAM sequence similarity over this many consecutive queries "
                               "(1 = single images)")
     methods.add_argument("--threads", type=thread_count(), help="torch CPU threads (default: all cores)")
+
+
+def _add_similarity_arguments(p) -> None:
+    """A similarity matrix computed elsewhere, evaluated instead of methods."""
     matrix = p.add_argument_group("precomputed similarity")
     matrix.add_argument("--similarity", metavar="FILE.npy",
                         help="a (queries x references) score matrix, higher = more similar")
     matrix.add_argument("--distance", action="store_true",
                         help="the --similarity file holds distances (lower = more similar)")
     matrix.add_argument("--name", help="method name reported for --similarity (default: file name)")
+
+
+def _add_output_arguments(p) -> None:
+    """The metrics' protocol, decisions, and what is written."""
     out = p.add_argument_group("metrics and output")
     out.add_argument("--protocol", choices=["recall-over-queries", "vprbench"], default="recall-over-queries",
                      help="PR definition: recall over queries with a true match (paper, VPR_Tutorial) or "
@@ -108,10 +132,6 @@ def register(sub) -> None:
     out.add_argument("--plots", metavar="DIR", help="write PR curves, similarity matrices and example matches")
     out.add_argument("--examples", type=int, default=None,
                      help="with --plots: queries shown in the example-matches figure (default 6)")
-    p.add_argument("--allow-training-frames", action="store_true",
-                   help="evaluate a trained method on frames it was trained on (refused by default: the numbers "
-                        "would measure memory, not recognition)")
-    p.set_defaults(func=run)
 
 
 def run(args) -> int:

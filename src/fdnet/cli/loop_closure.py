@@ -43,6 +43,31 @@ def register(sub) -> None:
                     "place when the acceptance rule's score reaches the threshold, add the frame to the database, "
                     "and write one event per accepted closure. A frame's decision uses only frames before it. "
                     "See docs/loop-closure.md.")
+    _add_traverse_arguments(p)
+    add_method_arguments(p)
+    p.add_argument("--db", help="place database file: one from earlier sessions (`fdnet database build`, or an "
+                                "earlier loop-closure run), which must hold this method's vectors, or a new file to "
+                                "create; the traverse's frames are added to it. Default: an in-memory database")
+    p.add_argument("--commit-every", type=_whole_number(1), default=1, metavar="N",
+                   help="frames stored in --db per transaction (default 1: every frame is on disk before the next "
+                        "is read, one fsync each; N > 1 is faster and changes no decision, but a crash loses up to "
+                        "N - 1 frames of the database)")
+    _add_decision_arguments(p)
+    _add_output_arguments(p)
+    p.add_argument("--resume", action="store_true",
+                   help="continue a run that was interrupted: --db holds its first frames; their decisions are "
+                        "replayed from the database, the events files rewritten with them, and the rest processed")
+    p.add_argument("--allow-training-frames", action="store_true",
+                   help="with --data: run a trained method on frames it was trained on (refused by default)")
+    p.add_argument("--report", metavar="JSON", help="write the run's summary (and evaluation) as JSON")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_pipeline_arguments(p, batch_size=16)
+    add_device_argument(p)
+    p.set_defaults(func=run)
+
+
+def _add_traverse_arguments(p) -> None:
+    """The traverse: a folder, video or bag, or a route's conditions driven one after another."""
     source = p.add_mutually_exclusive_group(required=True)
     source.add_argument("--images", help="the traverse: a folder of images (natural file-name order), a video or "
                                          "a ROS bag")
@@ -54,10 +79,10 @@ def register(sub) -> None:
     p.add_argument("--frames", metavar="START:END", help="with --data: the frames of each condition (END exclusive)")
     p.add_argument("--tolerance", type=_whole_number(0), default=None, metavar="N",
                    help="with --data: frames within N of the same frame count as a revisit (default 0)")
-    add_method_arguments(p)
-    p.add_argument("--db", help="place database file: one from earlier sessions (`fdnet database build`, or an "
-                                "earlier loop-closure run), which must hold this method's vectors, or a new file to "
-                                "create; the traverse's frames are added to it. Default: an in-memory database")
+
+
+def _add_decision_arguments(p) -> None:
+    """How a frame is decided: the rule, its threshold or calibration, sequences, gates and search."""
     p.add_argument("--exclude-last", type=_whole_number(0), default=0, metavar="N",
                    help="also never match this traverse's last N frames, whatever they look like (an extra floor; "
                         "by default the robot's recent past is found from the traverse itself, "
@@ -78,6 +103,18 @@ def register(sub) -> None:
     p.add_argument("--sequence-length", type=_whole_number(1), default=None, metavar="N",
                    help="score sequences of the robot's last N frames (SeqSLAM, causal; 1 = single images); "
                         "default: the calibration's, else 10")
+    p.add_argument("--gate", action="append", default=[], metavar="KEY=VALUE",
+                   help="a loop gate setting (repeatable; none/off switches one off): min_brightness, "
+                        "min_contrast (uninformative frames), still_difference, segment_similarity, "
+                        "exclude_seconds, exclude_metres (the robot's recent past), consistency, "
+                        "consistency_window (k consecutive agreeing frames); see docs/loop-closure.md")
+    p.add_argument("--search", choices=("auto", "exact", "index"), default="auto",
+                   help="how candidates are found: every place (exact), a faiss IVF index that proposes them "
+                        "(index), or every place up to 20,000 and the index beyond (auto, the default)")
+
+
+def _add_output_arguments(p) -> None:
+    """What the run writes: the events, the evaluation against ground truth, a calibration."""
     p.add_argument("--out", required=True, metavar="EVENTS_CSV",
                    help="CSV of accepted closures, one line each, written as they are accepted")
     p.add_argument("--jsonl", metavar="EVENTS_JSONL", help="the same events as JSON lines")
@@ -95,28 +132,6 @@ def register(sub) -> None:
                         "--checkpoint RUN_DIR then use by default); without --threshold this run accepts nothing")
     p.add_argument("--target-precision", type=float, default=None,
                    help="with --calibrate-out: the precision to reach, in (0, 1] (default 1.0)")
-    p.add_argument("--commit-every", type=_whole_number(1), default=1, metavar="N",
-                   help="frames stored in --db per transaction (default 1: every frame is on disk before the next "
-                        "is read, one fsync each; N > 1 is faster and changes no decision, but a crash loses up to "
-                        "N - 1 frames of the database)")
-    p.add_argument("--gate", action="append", default=[], metavar="KEY=VALUE",
-                   help="a loop gate setting (repeatable; none/off switches one off): min_brightness, "
-                        "min_contrast (uninformative frames), still_difference, segment_similarity, "
-                        "exclude_seconds, exclude_metres (the robot's recent past), consistency, "
-                        "consistency_window (k consecutive agreeing frames); see docs/loop-closure.md")
-    p.add_argument("--search", choices=("auto", "exact", "index"), default="auto",
-                   help="how candidates are found: every place (exact), a faiss IVF index that proposes them "
-                        "(index), or every place up to 20,000 and the index beyond (auto, the default)")
-    p.add_argument("--resume", action="store_true",
-                   help="continue a run that was interrupted: --db holds its first frames; their decisions are "
-                        "replayed from the database, the events files rewritten with them, and the rest processed")
-    p.add_argument("--allow-training-frames", action="store_true",
-                   help="with --data: run a trained method on frames it was trained on (refused by default)")
-    p.add_argument("--report", metavar="JSON", help="write the run's summary (and evaluation) as JSON")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    add_pipeline_arguments(p, batch_size=16)
-    add_device_argument(p)
-    p.set_defaults(func=run)
 
 
 def run(args) -> int:
