@@ -252,6 +252,17 @@ class ONNXSettings(MethodSettings):
         self.need_device()
 
 
+def _setting(metadata: dict, key: str, given):
+    """(value, where it came from): the given setting, else the model's metadata (``fdnet.KEY``
+    or ``KEY``), else (None, None)."""
+    if given is not None:
+        return given, "given"
+    for k in (f"fdnet.{key}", key):
+        if k in metadata:
+            return metadata[k], f"model metadata {k}"
+    return None, None
+
+
 class ONNXDescriptor(Descriptor):
     """An ONNX model's output vectors (module docstring). Settings: :class:`ONNXSettings`."""
 
@@ -260,29 +271,30 @@ class ONNXDescriptor(Descriptor):
 
     def __init__(self, settings: ONNXSettings | None = None, **options):
         conf = self.conf = ONNXSettings.build(settings, options)
-        weights, input_size, mean, std, channels = conf.weights, conf.input_size, conf.mean, conf.std, conf.channels
-        normalise, output, layout, device = conf.normalise, conf.output, conf.layout, conf.device
-        if not weights:
+        if not conf.weights:
             raise ConfigError("onnx: give the model with --weights MODEL.onnx")
         try:
             import onnxruntime
         except ImportError as exc:
             raise NotAvailableError("--method onnx needs the optional extra: pip install 'fdnet[onnx]' "
                                     "(onnxruntime)") from exc
-        path = Path(weights)
+        path = Path(conf.weights)
         self.weights = str(path)
-        self.session, self.model_sha256 = _open_session(onnxruntime, path, device)
+        self.session, self.model_sha256 = _open_session(onnxruntime, path, conf.device)
         self.device = "cuda" if self.session.get_providers()[0] == "CUDAExecutionProvider" else "cpu"
         metadata = self.session.get_modelmeta().custom_metadata_map or {}
+        shape, guessed = self._read_input(path, conf, metadata)
+        self._read_preprocessing(path, conf, metadata)
+        self._read_output(path, conf, metadata)
+        logger.debug("onnx model %s: input %s %s, %s, output %s (%d-d), providers %s", path, self.input_name,
+                     self.layout, self.input_size, self.output_name, self._dim, self.session.get_providers())
+        if guessed:  # said once the model is accepted: a refused one gets its one error line only
+            logger.warning(f"{path}: the graph's input {shape} does not say which axis holds the channels; fdnet "
+                           "feeds it (N, 3, H, W): give --method-set layout=nhwc if it takes (N, H, W, 3)")
 
-        def setting(key, given):
-            if given is not None:
-                return given, "given"
-            for k in (f"fdnet.{key}", key):
-                if k in metadata:
-                    return metadata[k], f"model metadata {k}"
-            return None, None
-
+    def _read_input(self, path: Path, conf: ONNXSettings, metadata: dict) -> tuple[list, bool]:
+        """The graph's one image input: its name, layout, batch limit, type and size (given, else
+        the model's metadata, else the graph's fixed size); (its shape, whether the layout was guessed)."""
         inputs = self.session.get_inputs()
         if len(inputs) != 1:
             raise DataError(f"{path}: the model takes {len(inputs)} inputs ({', '.join(i.name for i in inputs)}); "
@@ -292,7 +304,7 @@ class ONNXDescriptor(Descriptor):
         if len(shape) != 4:
             raise DataError(f"{path}: input {self.input_name} has shape {shape}; expected an image batch "
                             "(N, 3, H, W)")
-        given_layout, where = setting("layout", layout)
+        given_layout, where = _setting(metadata, "layout", conf.layout)
         self.layout, fixed, self._graph_layout = _input_layout(path, shape, given_layout, where)
         guessed, self.layout = self.layout is None, self.layout or "nchw"
         self.batch_limit = shape[0] if isinstance(shape[0], int) and shape[0] > 0 else None
@@ -301,7 +313,7 @@ class ONNXDescriptor(Descriptor):
             raise DataError(f"{path}: input {self.input_name} is {self.input_type}; fdnet gives a model float "
                             "images (float32 or float16)")
         fixed = [d if isinstance(d, int) and d > 0 else None for d in fixed]
-        given_size, where = setting("input_size", input_size)
+        given_size, where = _setting(metadata, "input_size", conf.input_size)
         if given_size is not None:
             size = _parse_size(given_size, f"{path}: input_size ({where})")
             if all(fixed) and tuple(fixed) != size:
@@ -313,23 +325,32 @@ class ONNXDescriptor(Descriptor):
             raise ConfigError(f"{path}: the model's input size is not fixed ({shape}) and neither "
                               "--method-set input_size=HxW nor its metadata gives one")
         self.input_size = size
-        value, where = setting("mean", mean)
+        return shape, guessed
+
+    def _read_preprocessing(self, path: Path, conf: ONNXSettings, metadata: dict) -> None:
+        """How images are prepared for the model (mean, std, channel order) and how its vectors
+        are normalised: given, else the model's metadata, else the defaults."""
+        value, where = _setting(metadata, "mean", conf.mean)
         self.mean = _parse_triple(0.0 if value is None else value, f"{path}: mean ({where or 'default'})")
-        value, where = setting("std", std)
+        value, where = _setting(metadata, "std", conf.std)
         self.std = _parse_triple(1.0 if value is None else value, f"{path}: std ({where or 'default'})")
         if (self.std <= 0).any():
             raise ConfigError(f"{path}: std must not be 0 or below ({where or 'default'})")
         _check_scale(self.mean, self.std, path)
-        value, where = setting("channels", channels)
+        value, where = _setting(metadata, "channels", conf.channels)
         self.channels = str(value or "rgb").lower()
         if self.channels not in CHANNEL_CHOICES:
             raise ConfigError(f"{path}: channels={value!r} ({where}); choose {' or '.join(CHANNEL_CHOICES)}")
-        value, where = setting("normalise", normalise)
+        value, where = _setting(metadata, "normalise", conf.normalise)
         self.normalise = str(value or "l2").lower()
         if self.normalise not in NORMALISE_CHOICES:
             raise ConfigError(f"{path}: normalise={value!r} ({where}); choose {' or '.join(NORMALISE_CHOICES)}")
+
+    def _read_output(self, path: Path, conf: ONNXSettings, metadata: dict) -> None:
+        """The output holding the vectors (given, else the metadata's, else the first) and their
+        length (from the graph, else from describing one grey image)."""
         outputs = self.session.get_outputs()
-        value, where = setting("output", output)
+        value, where = _setting(metadata, "output", conf.output)
         names = [o.name for o in outputs]
         if value is not None and value not in names:
             raise ConfigError(f"{path}: output {value!r} ({where}) is not one of the model's outputs: "
@@ -346,11 +367,6 @@ class ONNXDescriptor(Descriptor):
                 self._dim = int(self.describe(np.full((1, *self.input_size, 3), 0.5, np.float32)).shape[1])
             finally:
                 self.normalise = normalise
-        logger.debug("onnx model %s: input %s %s, %s, output %s (%d-d), providers %s", path, self.input_name,
-                     self.layout, self.input_size, self.output_name, self._dim, self.session.get_providers())
-        if guessed:  # said once the model is accepted: a refused one gets its one error line only
-            logger.warning(f"{path}: the graph's input {shape} does not say which axis holds the channels; fdnet "
-                           "feeds it (N, 3, H, W): give --method-set layout=nhwc if it takes (N, H, W, 3)")
 
     @property
     def dim(self) -> int:
