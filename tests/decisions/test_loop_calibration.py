@@ -10,11 +10,13 @@ import pytest
 
 from fdnet.decisions.calibration import (
     Calibration,
+    expected_wrong,
     fit_probability,
     load_calibration,
     save_calibration,
     score_distribution,
     tail_departure,
+    tail_threshold,
 )
 from fdnet.decisions.loop_closure import LOOP_CALIBRATION_FILE, LoopClosureDetector
 from fdnet.decisions.loop_evaluation import calibrate_decisions
@@ -37,6 +39,29 @@ def test_p_correct_is_non_decreasing_and_a_lower_bound_of_each_block():
     small = fit_probability(np.r_[np.zeros(5), np.ones(20)], np.r_[np.zeros(5, bool), np.ones(20, bool)])
     assert 0.85 < max(small["p_correct"]) < 0.87
     assert fit_probability(np.ones(3), np.ones(3, bool)) == {}
+
+
+def test_p_correct_counts_the_wrong_frames_the_wrong_score_tail_expects_in_a_block():
+    # 900 wrong frames' scores with an exponential tail (its quantiles), 300 right ones above all
+    # of them: by their count alone the top block is 300 right in a row (0.9901); the tail of the
+    # wrong scores expects half a wrong frame up there, so the block may not claim 0.99
+    wrong = -np.log((np.arange(900) + 0.5) / 900)
+    right = wrong.max() + np.linspace(0.01, 1.0, 300)
+    scores = np.r_[wrong, right]
+    correct = np.r_[np.zeros(900, bool), np.ones(300, bool)]
+    tail = tail_threshold(wrong)
+    expected = expected_wrong(tail, float(right.min()))
+    assert 0.3 < expected < 0.7
+    assert expected_wrong(tail, float(right.min()), float(right.max())) < expected
+    assert expected_wrong(None, 0.0) == 0.0 and expected_wrong(tail, tail["u"] - 1.0, tail["u"]) == 0.0
+    plain, with_tail = fit_probability(scores, correct), fit_probability(scores, correct, tail)
+    assert max(plain["p_correct"]) > 0.99 > max(with_tail["p_correct"])
+    assert with_tail["wrong_score_tail"]["k"] == tail["k"]
+    assert with_tail["scores"] == plain["scores"]
+    # the tail never makes p_correct higher, and a calibration stores and reads it back
+    assert all(a >= b for a, b in zip(plain["p_correct"], with_tail["p_correct"]))
+    calibration = Calibration("margin", {}, 0.5, 1.0, 1.0, 1.0, 1, 1, "m", "f", probability=with_tail)
+    assert Calibration.from_dict(calibration.to_dict()).probability["wrong_score_tail"] == with_tail["wrong_score_tail"]
 
 
 def test_score_distribution_and_a_departure_into_its_tail():

@@ -333,7 +333,18 @@ def tail_departure(distribution: dict, scores: np.ndarray) -> dict | None:
 P_CORRECT_CONFIDENCE = 0.95
 
 
-def fit_probability(scores: np.ndarray, correct: np.ndarray) -> dict:
+def expected_wrong(tail: dict | None, low: float, high: float = math.inf) -> float:
+    """How many wrong frames the exponential tail of a loop's wrong scores (:func:`tail_threshold`:
+    u, beta, k) expects between scores ``low`` and ``high`` on that loop (0 without a tail; only
+    the part above u, where the tail starts, counts)."""
+    if not tail:
+        return 0.0
+    u, scale, k = float(tail["u"]), float(tail["beta"]), float(tail["k"])
+    upper = 0.0 if math.isinf(high) else math.exp(-max(high - u, 0.0) / scale)
+    return max(k * (math.exp(-max(low - u, 0.0) / scale) - upper), 0.0)
+
+
+def fit_probability(scores: np.ndarray, correct: np.ndarray, wrong_tail: dict | None = None) -> dict:
     """The probability that a match is right as a non-decreasing function of its score: isotonic
     regression (scikit-learn) of ``correct`` on the finite ``scores``; each of its constant
     blocks (n frames, k right) then gets the Clopper-Pearson lower bound of its share right at
@@ -341,7 +352,13 @@ def fit_probability(scores: np.ndarray, correct: np.ndarray) -> dict:
     answers proves little: 20 of 20 gives 0.86, 68 of 68 gives 0.957, and 0.99 needs about 300
     right in a row. So p_correct errs low: on loops it was not fitted on, the frames it gives
     0.99 were right at least as often (docs/loop-closure.md). Stored as the block ends (scores,
-    p_correct), read by linear interpolation (:meth:`Calibration.p_correct`)."""
+    p_correct), read by linear interpolation (:meth:`Calibration.p_correct`).
+
+    ``wrong_tail`` (:func:`tail_threshold` of the loop's wrong scores): a block counts at least
+    as many wrong frames as that tail expects within its scores (:func:`expected_wrong`; the top
+    block's reach to any higher score). A loop's few hundred wrong frames rarely reach its top
+    scores, so the top blocks would count none by the luck of the draw; the tail that sets the
+    threshold says how many the loop should be expected to hold there."""
     from scipy.stats import beta
     from sklearn.isotonic import IsotonicRegression
 
@@ -355,15 +372,20 @@ def fit_probability(scores: np.ndarray, correct: np.ndarray) -> dict:
     order = np.argsort(scores, kind="stable")
     scores, correct, fitted = scores[order], correct[order], fitted[order]
     xs, ps = [], []
-    for value in np.unique(fitted):
+    values = np.unique(fitted)
+    for i, value in enumerate(values):
         block = fitted == value
         n, right = int(block.sum()), int(correct[block].sum())
-        p = float(beta.ppf(1.0 - P_CORRECT_CONFIDENCE, right, n - right + 1)) if right else 0.0
         lo, hi = float(scores[block].min()), float(scores[block].max())
+        wrong = max(float(n - right), expected_wrong(wrong_tail, lo, hi if i < len(values) - 1 else math.inf))
+        p = float(beta.ppf(1.0 - P_CORRECT_CONFIDENCE, right, wrong + 1)) if right else 0.0
         xs += [lo, hi] if hi > lo else [lo]
         ps += [p, p] if hi > lo else [p]
     ps = list(np.maximum.accumulate(ps))  # a bound of a larger block may pass a smaller one's
-    return {"scores": xs, "p_correct": [float(p) for p in ps], "frames": int(len(scores))}
+    fit = {"scores": xs, "p_correct": [float(p) for p in ps], "frames": int(len(scores))}
+    if wrong_tail:
+        fit["wrong_score_tail"] = {key: float(wrong_tail[key]) for key in ("u", "beta", "k")}
+    return fit
 
 
 def yaml_text(value) -> str:

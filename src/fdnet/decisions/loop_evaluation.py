@@ -130,7 +130,10 @@ def calibrate_decisions(decisions: Sequence[FrameDecision], ground_truth, detect
     score, correct, truth = frame_outcomes(decisions, ground_truth)
     chosen = choose_threshold(score, correct, truth.has_match, target)
     notes = []
-    tail = tail_threshold(score[~correct]) if target == 1.0 else None
+    # the exponential tail of the wrong scores: it raises a threshold for precision 1.0, and it
+    # gives p_correct's top blocks the wrong frames the loop is expected to hold there
+    wrong_tail = tail_threshold(score[~correct])
+    tail = wrong_tail if target == 1.0 else None
     if tail is not None and math.isfinite(chosen.threshold) and tail["threshold"] > chosen.threshold:
         at = score >= tail["threshold"]
         right = int((at & correct).sum())
@@ -154,4 +157,5 @@ def calibrate_decisions(decisions: Sequence[FrameDecision], ground_truth, detect
         num_queries=len(score), method=detector.descriptor.name, fingerprint=detector.descriptor.fingerprint(),
         sequence_length=length, measured_on=where,
         created=datetime.now(timezone.utc).isoformat(timespec="seconds"), fdnet_version=__version__, notes=notes,
-        probability=fit_probability(score, correct), score_distribution=score_distribution(score, chosen.threshold))
+        probability=fit_probability(score, correct, wrong_tail),
+        score_distribution=score_distribution(score, chosen.threshold))
