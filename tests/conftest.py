@@ -120,13 +120,15 @@ def write_day_night_set(root: Path, n: int = 8, prefix: str = "") -> Path:
         (root / name).mkdir(parents=True)
         for i in range(n):
             Image.fromarray((rng.random((20, 40)) * (255 - 120 * k)).astype(np.uint8)).save(
-                root / name / f"{prefix}{i:03d}.png")
+                root / name / f"{prefix}{i:03d}.png"
+            )
     return root
 
 
 # ------------------------------------------------------------------ full disks and read-only media
 # Real file systems where the test can mount one (root, or a container allowing mount), skipped
 # with the reason otherwise; file_size_limit makes the kernel refuse writes on any machine.
+
 
 def _mount(*arguments: str) -> None:
     import subprocess
@@ -136,8 +138,10 @@ def _mount(*arguments: str) -> None:
     except (OSError, subprocess.TimeoutExpired) as exc:
         pytest.skip(f"cannot mount a test file system here ({exc})")
     if done.returncode != 0:
-        pytest.skip(f"cannot mount a test file system here (mount {' '.join(arguments)}: "
-                    f"{done.stderr.strip() or done.returncode})")
+        pytest.skip(
+            f"cannot mount a test file system here (mount {' '.join(arguments)}: "
+            f"{done.stderr.strip() or done.returncode})"
+        )
 
 
 def _unmount(folder: Path) -> None:
@@ -228,12 +232,21 @@ def file_size_limit():
 
 #: test modules that train models or run whole pipelines (demo, reproduce, torchrun trainings)
 SLOW_MODULES = (
-    "tests/training/test_crash_resume.py", "tests/training/test_distributed.py", "tests/training/test_loop.py",
-    "tests/methods/calc/", "tests/methods/netvlad/", "tests/methods/fdnet/test_ablation.py",
-    "tests/methods/fdnet/test_beats_trunk.py", "tests/methods/fdnet/test_paper_native.py",
-    "tests/methods/fdnet/test_training.py", "tests/methods/fdnet/test_trunk_alone.py",
-    "tests/cli/test_reproduce.py", "tests/cli/test_demo.py", "tests/cli/test_train_baselines.py",
-    "tests/reproduce/test_ablation.py", "tests/data/test_appearance.py",
+    "tests/training/test_crash_resume.py",
+    "tests/training/test_distributed.py",
+    "tests/training/test_loop.py",
+    "tests/methods/calc/",
+    "tests/methods/netvlad/",
+    "tests/methods/fdnet/test_ablation.py",
+    "tests/methods/fdnet/test_beats_trunk.py",
+    "tests/methods/fdnet/test_paper_native.py",
+    "tests/methods/fdnet/test_training.py",
+    "tests/methods/fdnet/test_trunk_alone.py",
+    "tests/cli/test_reproduce.py",
+    "tests/cli/test_demo.py",
+    "tests/cli/test_train_baselines.py",
+    "tests/reproduce/test_ablation.py",
+    "tests/data/test_appearance.py",
 )
 #: single tests measured over 2 s (torchrun groups, benchmarks, kill-at-any-moment loops, real data)
 SLOW_TESTS = (

@@ -66,7 +66,7 @@ def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
         stack.append(node)
         for nxt in sorted(graph.get(node, ())):
             if state.get(nxt) == 1:
-                return stack[stack.index(nxt):] + [nxt]
+                return stack[stack.index(nxt) :] + [nxt]
             if nxt not in state:
                 cycle = visit(nxt)
                 if cycle:
@@ -117,9 +117,14 @@ def console_writes(source: str) -> list[int]:
         func = node.func
         if isinstance(func, ast.Name) and func.id == "print":
             found.append(node.lineno)
-        elif (isinstance(func, ast.Attribute) and func.attr == "write" and isinstance(func.value, ast.Attribute)
-              and func.value.attr in ("stdout", "stderr") and isinstance(func.value.value, ast.Name)
-              and func.value.value.id == "sys"):
+        elif (
+            isinstance(func, ast.Attribute)
+            and func.attr == "write"
+            and isinstance(func.value, ast.Attribute)
+            and func.value.attr in ("stdout", "stderr")
+            and isinstance(func.value.value, ast.Name)
+            and func.value.value.id == "sys"
+        ):
             found.append(node.lineno)
     return found
 
@@ -127,9 +132,12 @@ def console_writes(source: str) -> list[int]:
 def test_library_code_logs_and_never_prints():
     """Library modules log through ``logging`` (the CLI shows it, see fdnet.logs) or take a
     ``log`` callable; only the command line writes to the console itself."""
-    offenders = [f"{name}:{line}" for name, path in sorted(all_modules().items())
-                 if not any(name == w or name.startswith(w + ".") for w in CONSOLE_WRITERS)
-                 for line in console_writes(path.read_text())]
+    offenders = [
+        f"{name}:{line}"
+        for name, path in sorted(all_modules().items())
+        if not any(name == w or name.startswith(w + ".") for w in CONSOLE_WRITERS)
+        for line in console_writes(path.read_text())
+    ]
     assert not offenders, f"print() or sys.stdout/stderr.write() in library code: {offenders}"
 
 
@@ -158,8 +166,9 @@ def test_inference_never_imports_training_code(entry):
     graph = import_graph()
     assert entry in graph, f"{entry} is not a module of the package"
     reached = reachable(graph, entry) | {entry}
-    training = sorted(m for m in reached if m == "fdnet.training" or m.startswith("fdnet.training.")
-                      or m.endswith(".training"))
+    training = sorted(
+        m for m in reached if m == "fdnet.training" or m.startswith("fdnet.training.") or m.endswith(".training")
+    )
     assert not training, f"{entry} reaches training code: {training}"
 
 
@@ -182,16 +191,19 @@ MAX_FUNCTION_LINES = 100
 
 def long_functions(source: str, limit: int = MAX_FUNCTION_LINES) -> list[tuple[str, int, int]]:
     """(name, first line, length) of each function or method in ``source`` longer than ``limit``."""
-    return [(node.name, node.lineno, node.end_lineno - node.lineno + 1)
-            for node in ast.walk(ast.parse(source))
-            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))
-            and node.end_lineno - node.lineno + 1 > limit]
+    return [
+        (node.name, node.lineno, node.end_lineno - node.lineno + 1)
+        for node in ast.walk(ast.parse(source))
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.end_lineno - node.lineno + 1 > limit
+    ]
 
 
 def test_no_function_is_longer_than_100_lines():
-    offenders = [f"{name}:{fn} (line {line}, {length} lines)"
-                 for name, path in sorted(all_modules().items())
-                 for fn, line, length in long_functions(path.read_text())]
+    offenders = [
+        f"{name}:{fn} (line {line}, {length} lines)"
+        for name, path in sorted(all_modules().items())
+        for fn, line, length in long_functions(path.read_text())
+    ]
     assert not offenders, f"functions longer than {MAX_FUNCTION_LINES} lines: {offenders}"
 
 
@@ -223,10 +235,17 @@ def wide_functions(source: str, limit: int = MAX_PARAMETERS) -> list[tuple[str, 
 
 
 def test_no_function_outside_the_command_line_takes_more_than_8_parameters():
-    wide = [(name, fn, line, count) for name, path in sorted(all_modules().items()) if not name.startswith("fdnet.cli")
-            for fn, line, count in wide_functions(path.read_text())]
-    offenders = [f"{name}:{fn} (line {line}, {count} parameters)" for name, fn, line, count in wide
-                 if not (fn == "__init__" and name in WIDE_CONSTRUCTORS)]
+    wide = [
+        (name, fn, line, count)
+        for name, path in sorted(all_modules().items())
+        if not name.startswith("fdnet.cli")
+        for fn, line, count in wide_functions(path.read_text())
+    ]
+    offenders = [
+        f"{name}:{fn} (line {line}, {count} parameters)"
+        for name, fn, line, count in wide
+        if not (fn == "__init__" and name in WIDE_CONSTRUCTORS)
+    ]
     assert not offenders, f"functions taking more than {MAX_PARAMETERS} parameters (use a settings object): {offenders}"
     # a constructor that no longer needs its exemption leaves the list
     assert WIDE_CONSTRUCTORS == {name for name, fn, _, _ in wide if fn == "__init__"}
@@ -243,8 +262,21 @@ def test_wide_function_finder_finds_a_planted_one():
 #: them, the methods that train on it all, performance, the paper's experiments, the command line).
 #: A module imports only modules of its own floor or below, at module level or inside a function.
 FLOORS = (
-    ("ground", ("fdnet.errors", "fdnet.version", "fdnet.io", "fdnet.logs", "fdnet.config", "fdnet.progress",
-                "fdnet.backbones", "fdnet.paper", "fdnet.torchrun", "fdnet.provenance")),
+    (
+        "ground",
+        (
+            "fdnet.errors",
+            "fdnet.version",
+            "fdnet.io",
+            "fdnet.logs",
+            "fdnet.config",
+            "fdnet.progress",
+            "fdnet.backbones",
+            "fdnet.paper",
+            "fdnet.torchrun",
+            "fdnet.provenance",
+        ),
+    ),
     ("data", ("fdnet.data",)),
     ("runs", ("fdnet.runs",)),
     ("descriptors", ("fdnet.descriptors",)),
@@ -275,8 +307,12 @@ def floor_of(module: str) -> int:
 
 
 def upward_imports(graph: dict[str, set[str]]) -> list[str]:
-    return [f"{a} ({FLOORS[floor_of(a)][0]}) imports {b} ({FLOORS[floor_of(b)][0]})"
-            for a in sorted(graph) for b in sorted(graph[a]) if floor_of(b) > floor_of(a)]
+    return [
+        f"{a} ({FLOORS[floor_of(a)][0]}) imports {b} ({FLOORS[floor_of(b)][0]})"
+        for a in sorted(graph)
+        for b in sorted(graph[a])
+        if floor_of(b) > floor_of(a)
+    ]
 
 
 def test_no_module_imports_from_a_floor_above_its_own():
@@ -286,7 +322,8 @@ def test_no_module_imports_from_a_floor_above_its_own():
 
 def test_upward_import_finder_sees_function_local_imports():
     assert upward_imports({"fdnet.data.planted": {"fdnet.cli"}}) == [
-        "fdnet.data.planted (data) imports fdnet.cli (cli)"]
+        "fdnet.data.planted (data) imports fdnet.cli (cli)"
+    ]
     assert upward_imports({"fdnet.cli.match": {"fdnet.data.images"}}) == []
     # the command line imports its task inside run(): the graph has that import all the same
     modules = all_modules()
@@ -298,6 +335,9 @@ MAX_FILE_LINES = 600
 
 
 def test_no_source_file_is_longer_than_600_lines():
-    offenders = [f"{name} ({n} lines)" for name, path in sorted(all_modules().items())
-                 if (n := len(path.read_text().splitlines())) > MAX_FILE_LINES]
+    offenders = [
+        f"{name} ({n} lines)"
+        for name, path in sorted(all_modules().items())
+        if (n := len(path.read_text().splitlines())) > MAX_FILE_LINES
+    ]
     assert not offenders, f"files longer than {MAX_FILE_LINES} lines (split them by responsibility): {offenders}"

@@ -29,8 +29,9 @@ def test_yaml_round_trip(tmp_path):
 
 
 def test_overrides_are_typed_and_text_stays_text():
-    config = replace_dotted(Outer(), parse_overrides(["steps=7", "inner.size=[8, 16]", "flag=true",
-                                                      "frames=0:37", "inner.rate=3e-4"]))
+    config = replace_dotted(
+        Outer(), parse_overrides(["steps=7", "inner.size=[8, 16]", "flag=true", "frames=0:37", "inner.rate=3e-4"])
+    )
     assert config.steps == 7 and config.inner.size == (8, 16) and config.flag is True
     assert config.frames == "0:37"  # not YAML's base-60 reading (2265)
     assert config.inner.rate == pytest.approx(3e-4)
@@ -46,12 +47,15 @@ def test_bad_settings_are_named():
     assert to_dict(Outer())["inner"]["size"] == [32, 64]
 
 
-@pytest.mark.parametrize("setting, value, match", [
-    ("steps", [7], r"config.steps: expected a number, got \[7\]"),
-    ("inner.size", [[8], [16]], r"size: expected a number, got \[8\]"),
-    ("inner.rate", {"a": 1}, "rate: expected a number"),
-    ("name", ["a"], r"name: expected text, got \['a'\]"),
-])
+@pytest.mark.parametrize(
+    "setting, value, match",
+    [
+        ("steps", [7], r"config.steps: expected a number, got \[7\]"),
+        ("inner.size", [[8], [16]], r"size: expected a number, got \[8\]"),
+        ("inner.rate", {"a": 1}, "rate: expected a number"),
+        ("name", ["a"], r"name: expected text, got \['a'\]"),
+    ],
+)
 def test_nested_values_where_numbers_or_text_belong_are_named_errors(setting, value, match):
     with pytest.raises(ConfigError, match=match):
         replace_dotted(Outer(), {setting: value})
@@ -72,8 +76,22 @@ def test_a_yaml_alias_bomb_in_a_config_is_refused_in_one_short_line(tmp_path, ca
     bomb = tmp_path / "bomb.yaml"
     bomb.write_text(_alias_bomb())
     assert len(bomb.read_bytes()) < 400
-    assert main(["train", "--data", str(tmp_path), "--preset", "tiny", "--out", str(tmp_path / "run"),
-                 "--config", str(bomb)]) == 2
+    assert (
+        main(
+            [
+                "train",
+                "--data",
+                str(tmp_path),
+                "--preset",
+                "tiny",
+                "--out",
+                str(tmp_path / "run"),
+                "--config",
+                str(bomb),
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert err.startswith(f"fdnet train: error: {bomb}: not valid YAML (line 2, column ")
     assert "aliases are not allowed" in err and len(err) < 400 and err.count("\n") == 1
@@ -114,8 +132,10 @@ def test_a_settings_file_over_a_mebibyte_is_refused_before_parsing(tmp_path):
         load_yaml(Outer, big)
 
 
-@pytest.mark.parametrize("value, message", [("[1,", "override steps: '\\[1,' is not a valid YAML value"),
-                                            ("&a [*a]", "found an alias \\(\\*a\\)")])
+@pytest.mark.parametrize(
+    "value, message",
+    [("[1,", "override steps: '\\[1,' is not a valid YAML value"), ("&a [*a]", "found an alias \\(\\*a\\)")],
+)
 def test_an_override_that_is_not_yaml_or_holds_an_alias_is_a_config_error(value, message):
     with pytest.raises(ConfigError, match=message):
         replace_dotted(Outer(), {"steps": value})

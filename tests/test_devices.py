@@ -55,11 +55,12 @@ def test_bf16_native_and_autocast_follow_the_device():
 
 def test_uint8_images_convert_on_the_device_to_the_float_path_exactly(rng):
     u8 = rng.integers(0, 256, size=(3, 5, 7, 3), dtype=np.uint8)
-    as_float = u8.astype(np.float32) / 255.0          # what load_image returns for 8-bit files
+    as_float = u8.astype(np.float32) / 255.0  # what load_image returns for 8-bit files
     for channels_last in (False, True):
         a = images_to_device(u8, torch.device("cpu"), channels_last=channels_last, mean=(0.5,) * 3, std=(0.5,) * 3)
-        b = images_to_device(as_float, torch.device("cpu"), channels_last=channels_last, mean=(0.5,) * 3,
-                             std=(0.5,) * 3)
+        b = images_to_device(
+            as_float, torch.device("cpu"), channels_last=channels_last, mean=(0.5,) * 3, std=(0.5,) * 3
+        )
         assert a.dtype == torch.float32 and a.shape == (3, 3, 5, 7)
         assert torch.equal(a, b)
         assert a.is_contiguous(memory_format=torch.channels_last if channels_last else torch.contiguous_format)
@@ -87,7 +88,7 @@ def test_uint8_loader_matches_the_float_loader(tmp_path, rng):
 
 
 def test_create_passes_device_to_torch_methods_only():
-    assert create("sad", device="cuda").name == "sad"      # numpy methods run on the CPU
+    assert create("sad", device="cuda").name == "sad"  # numpy methods run on the CPU
     with pytest.raises(ConfigError, match="sad: device 'tpu'"):
         create("sad", device="tpu")
     d = create("conv3", dim=16, input_size=(32, 32), device="cpu", bf16=False)
@@ -97,8 +98,9 @@ def test_create_passes_device_to_torch_methods_only():
             create("conv3", device="cuda")
 
 
-@pytest.mark.parametrize("name,options", [("conv3", {"dim": 32, "input_size": (32, 48)}),
-                                          ("trunk", {"input_size": (32, 48)})])
+@pytest.mark.parametrize(
+    "name,options", [("conv3", {"dim": 32, "input_size": (32, 48)}), ("trunk", {"input_size": (32, 48)})]
+)
 @pytest.mark.parametrize("bf16", [False, True])
 def test_torch_descriptors_take_uint8_images(rng, name, options, bf16):
     d = create(name, bf16=bf16, device="auto", **options)
@@ -109,8 +111,8 @@ def test_torch_descriptors_take_uint8_images(rng, name, options, bf16):
 def test_device_does_not_change_the_fingerprint():
     a = create("conv3", dim=16, input_size=(32, 32), bf16=False, device="cpu")
     b = create("conv3", dim=16, input_size=(32, 32), bf16=False)
-    a.describe(np.zeros((1, 32, 32, 3), np.uint8))     # device copies made while describing ...
-    assert a.fingerprint() == b.fingerprint()           # ... are not weights of their own
+    a.describe(np.zeros((1, 32, 32, 3), np.uint8))  # device copies made while describing ...
+    assert a.fingerprint() == b.fingerprint()  # ... are not weights of their own
 
 
 @pytest.fixture
@@ -143,12 +145,42 @@ def test_commands_refuse_a_missing_gpu_before_any_work(tmp_path, capsys):
     images = tmp_path / "images"
     images.mkdir()
     Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(images / "a.png")
-    assert main(["match", "--reference", str(images), "--query", str(images), "--method", "conv3",
-                 "--device", "cuda:1", "--out", str(tmp_path / "m.csv")]) == 2
+    assert (
+        main(
+            [
+                "match",
+                "--reference",
+                str(images),
+                "--query",
+                str(images),
+                "--method",
+                "conv3",
+                "--device",
+                "cuda:1",
+                "--out",
+                str(tmp_path / "m.csv"),
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert err.startswith("fdnet match: error: ") and "cuda:1" in err and "no CUDA GPU" in err
-    assert main(["extract", "--checkpoint", "x", "--images", str(images), "--out", str(tmp_path / "v.npz"),
-                 "--device", "gpu"]) == 2
+    assert (
+        main(
+            [
+                "extract",
+                "--checkpoint",
+                "x",
+                "--images",
+                str(images),
+                "--out",
+                str(tmp_path / "v.npz"),
+                "--device",
+                "gpu",
+            ]
+        )
+        == 2
+    )
     assert "--device 'gpu': choose auto, cpu, cuda or cuda:N" in capsys.readouterr().err
 
 
@@ -196,7 +228,7 @@ def test_bf16_is_as_accurate_as_fp32_for_retrieval():
 def test_compiled_content_pads_short_batches_and_matches_eager(fdnet_run, rng):
     eager = create("fdnet", checkpoint=fdnet_run, device="cpu", batch_size=4)
     compiled = create("fdnet", checkpoint=fdnet_run, device="cpu", batch_size=4, compile=True)
-    u8 = rng.integers(0, 256, size=(6, 16, 32, 3), dtype=np.uint8)   # a full batch and a short one
+    u8 = rng.integers(0, 256, size=(6, 16, 32, 3), dtype=np.uint8)  # a full batch and a short one
     np.testing.assert_allclose(compiled.describe(u8), eager.describe(u8), atol=1e-5)
     assert compiled.fingerprint() == eager.fingerprint()
 

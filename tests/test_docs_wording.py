@@ -40,8 +40,7 @@ def checked_files(root: Path = REPO_ROOT) -> list[Path]:
     files += sorted((root / "src").rglob("*.py"))
     files += sorted((root / "tests").rglob("*.py"))
     files += sorted(p for p in (root / "benchmarks").rglob("*") if p.is_file())
-    return [p for p in files
-            if p.is_file() and not SKIPPED_DIRS.intersection(p.relative_to(root).parts)]
+    return [p for p in files if p.is_file() and not SKIPPED_DIRS.intersection(p.relative_to(root).parts)]
 
 
 def read_text(path: Path) -> str | None:
@@ -73,25 +72,31 @@ def test_the_checked_files_are_the_projects():
     assert any(f.startswith("src/fdnet/") for f in files)
 
 
-@pytest.mark.parametrize("line", [
-    "## " + _SESSION.capitalize() + " 8: the start chosen over trunk blocks",
-    "repeats " + _SESSION + " 4's `nres` to the last digit",
-    "as in " + _SESSION + "s 4-6",
-    "the targets of " + _ISSUE + " 18",
-    _ISSUE.capitalize() + " #11's Gardens Point target",
-    "data in " + _WORK_DIR + "shared/data",
-    "scripts in " + _HOME_DIR + "someone/scripts",
-])
+@pytest.mark.parametrize(
+    "line",
+    [
+        "## " + _SESSION.capitalize() + " 8: the start chosen over trunk blocks",
+        "repeats " + _SESSION + " 4's `nres` to the last digit",
+        "as in " + _SESSION + "s 4-6",
+        "the targets of " + _ISSUE + " 18",
+        _ISSUE.capitalize() + " #11's Gardens Point target",
+        "data in " + _WORK_DIR + "shared/data",
+        "scripts in " + _HOME_DIR + "someone/scripts",
+    ],
+)
 def test_the_check_finds_work_log_wording(line):
     assert offenders_in_text("first line\n" + line + "\n"), line
 
 
-@pytest.mark.parametrize("line", [
-    "the residual-head run `nres` (section 'A content head that starts at the trunk')",
-    "every wall time of this section",
-    "fdnet demo --out demo-out",
-    "--data ../shared/data/nordland_trimmed",
-])
+@pytest.mark.parametrize(
+    "line",
+    [
+        "the residual-head run `nres` (section 'A content head that starts at the trunk')",
+        "every wall time of this section",
+        "fdnet demo --out demo-out",
+        "--data ../shared/data/nordland_trimmed",
+    ],
+)
 def test_the_check_lets_descriptive_wording_through(line):
     assert offenders_in_text(line) == []
 
@@ -106,4 +111,5 @@ def test_no_work_log_numbering_or_developer_paths():
             offenders.append(f"{path.relative_to(REPO_ROOT).as_posix()}:{number}: {found!r} ({why})")
     assert not offenders, (
         "user-facing files must describe past runs, not number them, and must not name a "
-        "developer's folders:\n" + "\n".join(offenders))
+        "developer's folders:\n" + "\n".join(offenders)
+    )

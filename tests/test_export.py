@@ -12,8 +12,10 @@ onnxruntime = pytest.importorskip("onnxruntime", reason="optional extra fdnet[on
 def tiny_run(tmp_path_factory):
     root = tmp_path_factory.mktemp("export")
     assert main(["synth", "--out", str(root / "route"), "--num-frames", "12", "--conditions", "summer,night"]) == 0
-    assert main(["train", "--data", str(root / "route"), "--preset", "tiny", "--out", str(root / "run"),
-                 "--no-progress"]) == 0
+    assert (
+        main(["train", "--data", str(root / "route"), "--preset", "tiny", "--out", str(root / "run"), "--no-progress"])
+        == 0
+    )
     return root / "run"
 
 
@@ -56,9 +58,29 @@ def test_export_includes_the_backbone_trunk(tiny_run, tmp_path):
     import fdnet
 
     run = tmp_path / "run"
-    assert main(["train", "--data", str(tiny_run.parent / "route"), "--preset", "tiny", "--out", str(run),
-                 "--no-progress", "--set", "model.backbone=efficientnet-lite0", "--set", "model.backbone_block=4",
-                 "--set", "model.input_size=[32,64]", "--set", "model.widths=[16]"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                "--data",
+                str(tiny_run.parent / "route"),
+                "--preset",
+                "tiny",
+                "--out",
+                str(run),
+                "--no-progress",
+                "--set",
+                "model.backbone=efficientnet-lite0",
+                "--set",
+                "model.backbone_block=4",
+                "--set",
+                "model.input_size=[32,64]",
+                "--set",
+                "model.widths=[16]",
+            ]
+        )
+        == 0
+    )
     out = tmp_path / "trunk.onnx"
     assert main(["export", "--checkpoint", str(run), "--out", str(out)]) == 0
     images = np.random.default_rng(2).random((2, 32, 64, 3), dtype=np.float32)
@@ -76,11 +98,35 @@ def test_projection_head_gives_its_length_to_extract_export_and_the_database(tin
 
     route = tiny_run.parent / "route"
     run = tmp_path / "run"
-    assert main(["train", "--data", str(route), "--preset", "tiny", "--out", str(run), "--no-progress",
-                 "--set", "model.backbone=efficientnet-lite0", "--set", "model.backbone_block=4",
-                 "--set", "model.input_size=[32,64]", "--set", "model.widths=[16]",
-                 "--set", "model.content_head=trunk_projection", "--set", "model.vector_length=24",
-                 "--set", "model.projection_init=pca"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                "--data",
+                str(route),
+                "--preset",
+                "tiny",
+                "--out",
+                str(run),
+                "--no-progress",
+                "--set",
+                "model.backbone=efficientnet-lite0",
+                "--set",
+                "model.backbone_block=4",
+                "--set",
+                "model.input_size=[32,64]",
+                "--set",
+                "model.widths=[16]",
+                "--set",
+                "model.content_head=trunk_projection",
+                "--set",
+                "model.vector_length=24",
+                "--set",
+                "model.projection_init=pca",
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
     images = route / "summer"
     vectors = tmp_path / "v.npz"
@@ -95,8 +141,23 @@ def test_projection_head_gives_its_length_to_extract_export_and_the_database(tin
     assert onnx_vectors.shape == (2, 24)
     np.testing.assert_allclose(onnx_vectors, fdnet.load(run).describe(sample), atol=1e-4)
     db = tmp_path / "map.db"
-    assert main(["database", "build", "--images", str(images), "--method", "fdnet", "--checkpoint", str(run),
-                 "--db", str(db)]) == 0
+    assert (
+        main(
+            [
+                "database",
+                "build",
+                "--images",
+                str(images),
+                "--method",
+                "fdnet",
+                "--checkpoint",
+                str(run),
+                "--db",
+                str(db),
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
     assert main(["database", "info", "--db", str(db)]) == 0
     assert json.loads(capsys.readouterr().out)["dim"] == 24

@@ -36,11 +36,14 @@ def test_ensure_writable_accepts_new_file_in_new_folder(tmp_path):
     assert list((tmp_path / "a" / "b").iterdir()) == []  # the probe file is gone
 
 
-@pytest.mark.parametrize("make_path", [
-    lambda tmp: tmp / "file.txt" / "out.json",          # parent is a file
-    lambda tmp: tmp,                                    # a directory where a file is expected
-    lambda tmp: __import__("pathlib").Path("/proc/fdnet-cannot-write-here.json"),  # read-only fs
-])
+@pytest.mark.parametrize(
+    "make_path",
+    [
+        lambda tmp: tmp / "file.txt" / "out.json",  # parent is a file
+        lambda tmp: tmp,  # a directory where a file is expected
+        lambda tmp: __import__("pathlib").Path("/proc/fdnet-cannot-write-here.json"),  # read-only fs
+    ],
+)
 def test_ensure_writable_refuses_paths_that_cannot_be_written(tmp_path, make_path):
     from fdnet.errors import ConfigError
     from fdnet.io import ensure_writable
@@ -115,11 +118,21 @@ def test_text_naming_a_non_utf8_file_is_written_with_the_files_own_bytes(tmp_pat
     assert target.read_bytes() == b"query\ncaf\xe9 =odd.png\n"
 
 
-@pytest.mark.parametrize("name, cell", [
-    ("=1+2.png", "'=1+2.png"), ("+a.png", "'+a.png"), ("-a.png", "'-a.png"), ("@a.png", "'@a.png"),
-    ("\ta.png", "'\ta.png"), ("\ra.png", "'\ra.png"), ("'a.png", "''a.png"),
-    ("a=b.png", "a=b.png"), ("frame_0001.png", "frame_0001.png"), ("", ""),
-])
+@pytest.mark.parametrize(
+    "name, cell",
+    [
+        ("=1+2.png", "'=1+2.png"),
+        ("+a.png", "'+a.png"),
+        ("-a.png", "'-a.png"),
+        ("@a.png", "'@a.png"),
+        ("\ta.png", "'\ta.png"),
+        ("\ra.png", "'\ra.png"),
+        ("'a.png", "''a.png"),
+        ("a=b.png", "a=b.png"),
+        ("frame_0001.png", "frame_0001.png"),
+        ("", ""),
+    ],
+)
 def test_spreadsheet_text_quotes_formula_starts_and_reads_back(name, cell):
     from fdnet.io import from_spreadsheet_text, spreadsheet_text
 

@@ -32,8 +32,9 @@ def test_messages_go_to_standard_error_with_the_commands_name(monkeypatch):
         logging.getLogger("fdnet.reproduce.runner").info("[comparison] done in %.1f s", 2.04)
         logging.getLogger("fdnet.reproduce.runner").debug("not shown at INFO")
         logging.getLogger("elsewhere").warning("another package's logger is not ours to format")
-    assert err.getvalue() == ("fdnet evaluate: warning: dbow: no vocabulary given\n"
-                              "fdnet evaluate: [comparison] done in 2.0 s\n")
+    assert err.getvalue() == (
+        "fdnet evaluate: warning: dbow: no vocabulary given\n" "fdnet evaluate: [comparison] done in 2.0 s\n"
+    )
 
 
 def test_levels_and_the_handler_last_as_long_as_the_command(monkeypatch):

@@ -39,8 +39,8 @@ def test_recall_over_queries_by_hand():
     s, gt = _case_a()
     m = evaluate_similarity(s, gt, RECALL_OVER_QUERIES)
     # thresholds 0.9, 0.8, 0.7, 0.6 -> (R, P) = (.25, 1), (.25, .5), (.5, 2/3), (.75, .75)
-    np.testing.assert_allclose(m.curve.recall, [0, .25, .25, .5, .75])
-    np.testing.assert_allclose(m.curve.precision, [1, 1, .5, 2 / 3, .75])
+    np.testing.assert_allclose(m.curve.recall, [0, 0.25, 0.25, 0.5, 0.75])
+    np.testing.assert_allclose(m.curve.precision, [1, 1, 0.5, 2 / 3, 0.75])
     assert m.recall_at_100_precision == pytest.approx(0.25)
     assert m.precision_at_max_recall == pytest.approx(0.75)
     # trapezoids: .25*1 + 0 + .25*(.5+2/3)/2 + .25*(2/3+.75)/2
@@ -56,7 +56,7 @@ def test_vprbench_by_hand():
     # labels [1,0,1,1]; recall divides by the 3 correct top-1 matches:
     # thresholds .9, .8, .7, .6 -> (R, P) = (1/3, 1), (1/3, 1/2), (2/3, 2/3), (1, 3/4)
     np.testing.assert_allclose(m.curve.recall, [0, 1 / 3, 1 / 3, 2 / 3, 1])
-    np.testing.assert_allclose(m.curve.precision, [1, 1, .5, 2 / 3, .75])
+    np.testing.assert_allclose(m.curve.precision, [1, 1, 0.5, 2 / 3, 0.75])
     assert m.auc_pr == pytest.approx(1 / 3 * 1 + 1 / 3 * (0.5 + 2 / 3) / 2 + 1 / 3 * (2 / 3 + 0.75) / 2)
     assert m.recall_at_100_precision == pytest.approx(1 / 3)
     assert m.precision_at_max_recall == pytest.approx(0.75)
@@ -77,8 +77,7 @@ def test_tied_scores_form_one_threshold():
 
 
 def test_top_k_ties_keep_lower_index_first():
-    s = np.array([[0.5, 0.9, 0.5, 0.5, 0.1],
-                  [0.2, 0.2, 0.2, 0.2, 0.2]])
+    s = np.array([[0.5, 0.9, 0.5, 0.5, 0.1], [0.2, 0.2, 0.2, 0.2, 0.2]])
     idx, sc = top_k_of_matrix(s, 2)
     np.testing.assert_array_equal(idx, [[1, 0], [0, 1]])
     np.testing.assert_allclose(sc, [[0.9, 0.5], [0.2, 0.2]])
@@ -133,7 +132,7 @@ def test_uniform_thresholds_option():
     s, gt = _case_a()
     # 2 thresholds = the max and min best-match scores: points (.25, 1) and (.75, .75)
     m = evaluate_similarity(s, gt, RECALL_OVER_QUERIES, thresholds=2)
-    np.testing.assert_allclose(m.curve.recall, [0, .25, .75])
+    np.testing.assert_allclose(m.curve.recall, [0, 0.25, 0.75])
     assert m.auc_pr == pytest.approx(0.25 + 0.5 * (1 + 0.75) / 2)
     assert m.thresholds == "2 uniform"
     # 500 thresholds visit every distinct score here, so they match the exact curve's numbers

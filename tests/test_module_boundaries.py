@@ -15,18 +15,26 @@ def private_imports(source: str) -> list[str]:
     found = []
     for node in ast.walk(ast.parse(source)):
         if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("fdnet"):
-            found += [f"{node.module}:{alias.name}" for alias in node.names
-                      if alias.name.startswith("_") and not alias.name.startswith("__")]
+            found += [
+                f"{node.module}:{alias.name}"
+                for alias in node.names
+                if alias.name.startswith("_") and not alias.name.startswith("__")
+            ]
     return found
 
 
 def test_no_module_imports_another_modules_private_names():
-    offenders = {str(path.relative_to(PACKAGE_ROOT)): names for path in sorted(PACKAGE_ROOT.rglob("*.py"))
-                 if (names := private_imports(path.read_text()))}
+    offenders = {
+        str(path.relative_to(PACKAGE_ROOT)): names
+        for path in sorted(PACKAGE_ROOT.rglob("*.py"))
+        if (names := private_imports(path.read_text()))
+    }
     assert not offenders, f"underscore names imported across modules (make them public): {offenders}"
 
 
 def test_private_import_finder_finds_planted_ones():
-    source = ("from fdnet.a import _hidden, shown\nfrom fdnet.version import __version__\n"
-              "def f():\n    from fdnet.b import _late\n")
+    source = (
+        "from fdnet.a import _hidden, shown\nfrom fdnet.version import __version__\n"
+        "def f():\n    from fdnet.b import _late\n"
+    )
     assert private_imports(source) == ["fdnet.a:_hidden", "fdnet.b:_late"]

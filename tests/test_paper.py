@@ -16,8 +16,11 @@ PAPER_TEXT = REPO_ROOT.parent / "shared" / "paper" / "fdnet-paper.txt"
 
 def rows_of(text: str, name: str) -> list[list[float]]:
     """Every line of the paper that starts with ``name``, as its numbers (percent signs dropped)."""
-    return [[float(v) for v in re.findall(r"(\d+(?:\.\d+)?)\\?%?", line.split("\t", 1)[1])]
-            for line in text.splitlines() if line.split("\t", 1)[0] == name and "\t" in line]
+    return [
+        [float(v) for v in re.findall(r"(\d+(?:\.\d+)?)\\?%?", line.split("\t", 1)[1])]
+        for line in text.splitlines()
+        if line.split("\t", 1)[0] == name and "\t" in line
+    ]
 
 
 def test_tables_3_4_and_5_match_the_paper_text():
@@ -39,8 +42,11 @@ def test_tables_3_4_and_5_match_the_paper_text():
 def test_nordland_pairs_get_table_3_in_both_directions():
     source, numbers = paper.paper_pair("nordland", "summer", "winter")
     assert source == "paper Table 3, Nordland summer-winter"
-    assert numbers["fdnet"] == {"paper_name": "FDNet_512", "recall_at_100_precision": 0.3374,
-                                "precision_at_max_recall": 0.0382}
+    assert numbers["fdnet"] == {
+        "paper_name": "FDNet_512",
+        "recall_at_100_precision": 0.3374,
+        "precision_at_max_recall": 0.0382,
+    }
     assert paper.paper_pair("nordland", "winter", "summer") == (source, numbers)
     assert numbers["hybridnet"]["paper_name"] == "Conv4_fine-tuned"
 
@@ -49,8 +55,9 @@ def test_table_4_pairs_and_datasets_the_paper_does_not_have():
     source, numbers = paper.paper_pair("alderley", "day", "night")
     assert source == "paper Table 4, alderley day-night"
     assert numbers["netvlad"]["recall_at_100_precision"] == pytest.approx(0.1154)
-    assert paper.paper_pair("fas", "Mapping", "Localization-2")[1]["calc"]["precision_at_max_recall"] == \
-        pytest.approx(0.1569)
+    assert paper.paper_pair("fas", "Mapping", "Localization-2")[1]["calc"]["precision_at_max_recall"] == pytest.approx(
+        0.1569
+    )
     assert paper.paper_pair(None, "day_right", "night_right") is None
     assert paper.paper_pair("nordland", "spring", "spring") is None
 

@@ -92,8 +92,10 @@ def test_a_task_shorter_than_the_interval_logs_nothing_and_close_adds_the_last_c
     bar = progress_bar(range(30), desc="ORB features", unit="batch", file=io.StringIO(), interval=10.0)
     for _ in bar:
         clock.now += 0.5
-    assert [line.split(" (")[0] for line in _lines(caplog)] == ["ORB features: 20/30 batch",
-                                                                "ORB features: 30/30 batch"]
+    assert [line.split(" (")[0] for line in _lines(caplog)] == [
+        "ORB features: 20/30 batch",
+        "ORB features: 30/30 batch",
+    ]
 
 
 def test_on_a_terminal_it_is_tqdms_bar_redrawn_in_place():

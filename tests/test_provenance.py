@@ -13,8 +13,19 @@ from fdnet.cli import main
 from fdnet.provenance import provenance
 
 REPO = Path(__file__).resolve().parents[1]
-KEYS = {"fdnet_version", "git", "python", "libraries", "device", "cpu", "cpu_count", "platform", "seeds", "command",
-        "created"}
+KEYS = {
+    "fdnet_version",
+    "git",
+    "python",
+    "libraries",
+    "device",
+    "cpu",
+    "cpu_count",
+    "platform",
+    "seeds",
+    "command",
+    "created",
+}
 
 
 def _in_checkout() -> bool:
@@ -27,8 +38,9 @@ def _in_checkout() -> bool:
 
 def _is_in_history(commit: str) -> bool:
     """Whether ``commit`` is HEAD or before it (commits made while the tests run move HEAD on)."""
-    found = subprocess.run(["git", "-C", str(REPO), "merge-base", "--is-ancestor", commit, "HEAD"],
-                           capture_output=True, text=True)
+    found = subprocess.run(
+        ["git", "-C", str(REPO), "merge-base", "--is-ancestor", commit, "HEAD"], capture_output=True, text=True
+    )
     return found.returncode == 0
 
 
@@ -57,8 +69,15 @@ def test_evaluate_json_records_it(tmp_path):
     s = np.eye(3) + 0.1
     np.save(tmp_path / "s.npy", s)
     (tmp_path / "gt.csv").write_text("query_index,reference_indices\n0,0\n1,1\n2,2\n")
-    argv = ["evaluate", "--similarity", str(tmp_path / "s.npy"), "--ground-truth", str(tmp_path / "gt.csv"),
-            "--json", str(tmp_path / "e.json")]
+    argv = [
+        "evaluate",
+        "--similarity",
+        str(tmp_path / "s.npy"),
+        "--ground-truth",
+        str(tmp_path / "gt.csv"),
+        "--json",
+        str(tmp_path / "e.json"),
+    ]
     assert main(argv) == 0
     _check(json.loads((tmp_path / "e.json").read_text())["provenance"], "fdnet " + " ".join(argv))
 
@@ -70,16 +89,47 @@ def test_loop_closure_report_records_it(tmp_path):
     (tmp_path / "traverse").mkdir()
     for i in range(6):
         Image.fromarray(rng.integers(0, 256, (32, 64, 3), dtype=np.uint8)).save(tmp_path / "traverse" / f"{i}.png")
-    argv = ["loop-closure", "--images", str(tmp_path / "traverse"), "--method", "raw", "--sequence-length", "1",
-            "--threshold", "0.5", "--accept", "margin", "--out", str(tmp_path / "e.csv"), "--report",
-            str(tmp_path / "r.json"), "--workers", "0"]
+    argv = [
+        "loop-closure",
+        "--images",
+        str(tmp_path / "traverse"),
+        "--method",
+        "raw",
+        "--sequence-length",
+        "1",
+        "--threshold",
+        "0.5",
+        "--accept",
+        "margin",
+        "--out",
+        str(tmp_path / "e.csv"),
+        "--report",
+        str(tmp_path / "r.json"),
+        "--workers",
+        "0",
+    ]
     assert main(argv) == 0
     _check(json.loads((tmp_path / "r.json").read_text())["provenance"], "fdnet " + " ".join(argv))
 
 
 def test_benchmark_json_records_it(tmp_path):
-    argv = ["benchmark", "--parts", "scale", "--threads", "1", "--map-size", "50", "--scale-dim", "8",
-            "--indexes", "flat", "--queries", "5", "--json", str(tmp_path / "b.json")]
+    argv = [
+        "benchmark",
+        "--parts",
+        "scale",
+        "--threads",
+        "1",
+        "--map-size",
+        "50",
+        "--scale-dim",
+        "8",
+        "--indexes",
+        "flat",
+        "--queries",
+        "5",
+        "--json",
+        str(tmp_path / "b.json"),
+    ]
     assert main(argv) == 0
     record = json.loads((tmp_path / "b.json").read_text())["provenance"]
     _check(record)

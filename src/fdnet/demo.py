@@ -29,8 +29,9 @@ def demo_frames(num_frames: int) -> tuple[int, int, str]:
     """(training end, validation end, test START:END): 0:250 trains, 250:300 validates and
     300:400 tests of 400 frames (the test frames are never seen in training)."""
     if num_frames < MIN_FRAMES:
-        raise ConfigError(f"--num-frames must be at least {MIN_FRAMES} for a train/validation/test split, "
-                          f"got {num_frames}")
+        raise ConfigError(
+            f"--num-frames must be at least {MIN_FRAMES} for a train/validation/test split, " f"got {num_frames}"
+        )
     train_end, val_end = int(num_frames * 0.625), int(num_frames * 0.75)
     return train_end, val_end, f"{val_end}:{num_frames}"
 
@@ -54,21 +55,30 @@ def run_demo(out, settings: DemoSettings | None = None, say: Callable[[str], Non
     from fdnet.io import ensure_writable
 
     settings = settings or DemoSettings()
-    num_frames, max_minutes, preset, seed, resume = (settings.num_frames, settings.max_minutes, settings.preset,
-                                                     settings.seed, settings.resume)
+    num_frames, max_minutes, preset, seed, resume = (
+        settings.num_frames,
+        settings.max_minutes,
+        settings.preset,
+        settings.seed,
+        settings.resume,
+    )
     train_end, val_end, test = demo_frames(num_frames)
     out = Path(out)
     ensure_writable(out, what="demo output", directory=True)  # a file or read-only path: refused first
     route, run_dir = out / "route", out / "fdnet-run"
     started = time.perf_counter()
-    say("\n=== 1/3 synthetic route (SYNTHETIC images, a demo and test route, not a benchmark)\n"
-        f"$ fdnet synth --out {route} --num-frames {num_frames} --seed {seed}")
+    say(
+        "\n=== 1/3 synthetic route (SYNTHETIC images, a demo and test route, not a benchmark)\n"
+        f"$ fdnet synth --out {route} --num-frames {num_frames} --seed {seed}"
+    )
     _synthesise(route, num_frames, seed, say)
-    say(f"\n=== 2/3 train FDNet on frames 0:{train_end} of every condition (no place labels)\n"
+    say(
+        f"\n=== 2/3 train FDNet on frames 0:{train_end} of every condition (no place labels)\n"
         f"$ fdnet train --data {route}" + ("" if resume else f" --preset {preset}") + f" --out {run_dir} "
         f"--frames 0:{train_end} --max-minutes {max_minutes:g} --validate-reference summer --validate-query night "
         f"--validate-frames {train_end}:{val_end} --validate-tolerance 1 --set runtime.seed={seed}"
-        + (" --resume" if resume else ""))
+        + (" --resume" if resume else "")
+    )
     config = _train(route, run_dir, settings, say)
     chosen = [m.strip() for m in settings.methods.split(",") if m.strip()]
     if config.model.backbone == "none":  # a preset whose encoders read pixels has no trunk to compare with
@@ -76,13 +86,17 @@ def run_demo(out, settings: DemoSettings | None = None, say: Callable[[str], Non
     results = {}
     for query in ("night", "winter"):
         fit = f" --fit {route} --fit-frames 0:{train_end}" if "trunk-whitened" in chosen else ""
-        say(f"\n=== 3/3 evaluate {query} -> summer on frames {test} (tolerance 1 frame)\n"
+        say(
+            f"\n=== 3/3 evaluate {query} -> summer on frames {test} (tolerance 1 frame)\n"
             f"$ fdnet evaluate --data {route} --reference summer --query {query} --frames {test} --tolerance 1 "
             f"--method {','.join(chosen)} --checkpoint {run_dir}{fit} --json {out / f'results-{query}-summer.json'} "
-            f"--plots {out / f'plots-{query}-summer'}")
+            f"--plots {out / f'plots-{query}-summer'}"
+        )
         results[query] = _evaluate(route, run_dir, query, chosen, settings, out, say)
-    say(f"\ndemo finished in {(time.perf_counter() - started) / 60:.1f} min; results, plots and the trained run "
-        f"are in {out}/")
+    say(
+        f"\ndemo finished in {(time.perf_counter() - started) / 60:.1f} min; results, plots and the trained run "
+        f"are in {out}/"
+    )
     return results
 
 
@@ -109,22 +123,29 @@ def _train(route: Path, run_dir: Path, settings: DemoSettings, say):
     else:
         config = method.preset(preset)
     config = dataclasses.replace(
-        config, data=dataclasses.replace(config.data, root=str(route), frames=f"0:{train_end}"),
-        validation=dataclasses.replace(config.validation, reference="summer", query="night",
-                                       frames=f"{train_end}:{val_end}", tolerance=1))
+        config,
+        data=dataclasses.replace(config.data, root=str(route), frames=f"0:{train_end}"),
+        validation=dataclasses.replace(
+            config.validation, reference="summer", query="night", frames=f"{train_end}:{val_end}", tolerance=1
+        ),
+    )
     config = replace_dotted(config, {"runtime.seed": str(seed)})
-    summary = method.train_function()(config, run_dir, resume=resume, override=False, max_minutes=max_minutes,
-                                      progress=True, command="fdnet demo")
-    line = (f"fdnet train: fdnet {summary['status']} at step {summary['step']}/{summary['total_steps']} after "
-            f"{summary['elapsed_seconds'] / 60:.1f} min; run in {summary['run_dir']}")
+    summary = method.train_function()(
+        config, run_dir, resume=resume, override=False, max_minutes=max_minutes, progress=True, command="fdnet demo"
+    )
+    line = (
+        f"fdnet train: fdnet {summary['status']} at step {summary['step']}/{summary['total_steps']} after "
+        f"{summary['elapsed_seconds'] / 60:.1f} min; run in {summary['run_dir']}"
+    )
     if summary["best_step"] >= 0:
         line += f"; best validation R@1 {summary['best_recall@1']:.3f} at step {summary['best_step']} (in best/)"
     say(line)
     return config
 
 
-def _evaluate(route: Path, run_dir: Path, query: str, methods: list[str], settings: DemoSettings, out: Path,
-              say) -> list:
+def _evaluate(
+    route: Path, run_dir: Path, query: str, methods: list[str], settings: DemoSettings, out: Path, say
+) -> list:
     from fdnet.decisions.acceptance import DEFAULT_ACCEPTANCE, parse_acceptance_list
     from fdnet.descriptors.pipeline import PipelineSettings
     from fdnet.descriptors.registry import create, setting_names
@@ -143,8 +164,16 @@ def _evaluate(route: Path, run_dir: Path, query: str, methods: list[str], settin
         takes = setting_names(name)
         descriptors.append(create(name, **{k: v for k, v in given.items() if k in takes}))
     acceptance = parse_acceptance_list(DEFAULT_ACCEPTANCE, [])
-    results = [evaluate_method(d, split, ScoringSettings((RECALL_OVER_QUERIES,), acceptance=acceptance),
-                               PipelineSettings(progress=True), keep_similarity=True) for d in descriptors]
+    results = [
+        evaluate_method(
+            d,
+            split,
+            ScoringSettings((RECALL_OVER_QUERIES,), acceptance=acceptance),
+            PipelineSettings(progress=True),
+            keep_similarity=True,
+        )
+        for d in descriptors
+    ]
     say(format_table(results, RECALL_OVER_QUERIES))
     json_path, plots = out / f"results-{query}-summer.json", out / f"plots-{query}-summer"
     write_json(json_path, results, seeds={"synthetic_route": seed, "runtime": seed})  # the route's and training's

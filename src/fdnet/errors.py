@@ -64,9 +64,8 @@ def os_error_message(exc: BaseException, outputs: tuple = ()) -> str | None:
     if isinstance(exc, UnicodeEncodeError) and exc.reason == "surrogates not allowed":
         # Python keeps a file name's undecodable bytes as surrogates; text that must be UTF-8
         # (a database, JSON, a terminal) cannot hold them.
-        where = exc.object[max(0, exc.start - 60):exc.end + 60] if isinstance(exc.object, str) else ""
-        return (f"a file name that is not valid UTF-8 ({ascii(where)}) cannot be written here; "
-                "rename the file")
+        where = exc.object[max(0, exc.start - 60) : exc.end + 60] if isinstance(exc.object, str) else ""
+        return f"a file name that is not valid UTF-8 ({ascii(where)}) cannot be written here; " "rename the file"
     if isinstance(exc, OSError) and exc.errno is not None:
         name = errno_names.errorcode.get(exc.errno)
         if name not in _ENVIRONMENT_ERRNOS:
@@ -104,4 +103,3 @@ def _path_text(path) -> str:
 
 class NotAvailableError(FdnetError):
     """A method that cannot run here without something the user must supply (e.g. weights)."""
-

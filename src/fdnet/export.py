@@ -33,8 +33,9 @@ def _content_module(descriptor):
     return ContentDescriptor(descriptor.model).eval()
 
 
-def export_onnx(run_dir: str | os.PathLike, out: str | os.PathLike, opset: int = 17,
-                check: bool = True, seed: int = 0) -> dict:
+def export_onnx(
+    run_dir: str | os.PathLike, out: str | os.PathLike, opset: int = 17, check: bool = True, seed: int = 0
+) -> dict:
     """Write ``out`` (atomically) and return ``{"path", "input_size", "dim", "max_abs_diff"}``;
     ``max_abs_diff`` compares onnxruntime with PyTorch on 4 random images (None without check)."""
     import torch
@@ -47,8 +48,9 @@ def export_onnx(run_dir: str | os.PathLike, out: str | os.PathLike, opset: int =
     try:
         import onnx
     except ImportError as exc:
-        raise NotAvailableError("ONNX export needs the optional extra: pip install 'fdnet[onnx]' "
-                                "(onnx and onnxruntime)") from exc
+        raise NotAvailableError(
+            "ONNX export needs the optional extra: pip install 'fdnet[onnx]' " "(onnx and onnxruntime)"
+        ) from exc
     descriptor = FDNetDescriptor.from_run(run_dir)
     module = _content_module(descriptor)
     height, width = descriptor.input_size
@@ -61,15 +63,28 @@ def export_onnx(run_dir: str | os.PathLike, out: str | os.PathLike, opset: int =
         # The backbone's "same" padding is computed from the input size in Python; the graph is
         # traced at the run's fixed input size, so the tracer's warnings about it do not apply.
         warnings.simplefilter("ignore", torch.jit.TracerWarning)
-        torch.onnx.export(module, (example,), str(tmp), input_names=["images"], output_names=["content"],
-                          dynamic_axes={"images": {0: "batch"}, "content": {0: "batch"}},
-                          opset_version=opset, dynamo=False)
+        torch.onnx.export(
+            module,
+            (example,),
+            str(tmp),
+            input_names=["images"],
+            output_names=["content"],
+            dynamic_axes={"images": {0: "batch"}, "content": {0: "batch"}},
+            opset_version=opset,
+            dynamo=False,
+        )
         # What `--method onnx` reads so the file needs no settings: the input size, RGB in [0, 1].
         from fdnet.descriptors.onnx_model import model_metadata
 
         graph = onnx.load(str(tmp))
-        onnx.helper.set_model_props(graph, {**model_metadata((height, width)), "fdnet.method": "fdnet",
-                                            "fdnet.run": str(Path(run_dir).resolve().name)})
+        onnx.helper.set_model_props(
+            graph,
+            {
+                **model_metadata((height, width)),
+                "fdnet.method": "fdnet",
+                "fdnet.run": str(Path(run_dir).resolve().name),
+            },
+        )
         onnx.save(graph, str(tmp))
     result = {"path": str(out), "input_size": [height, width], "dim": descriptor.dim, "max_abs_diff": None}
     if check:

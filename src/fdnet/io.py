@@ -79,8 +79,10 @@ def refuse_writing_an_input(target: str | os.PathLike, what: str = "output") -> 
             except OSError:
                 continue
             if (theirs.st_dev, theirs.st_ino) == (own.st_dev, own.st_ino):
-                raise ConfigError(f"{target}: this {what} is the {kind} {name} the command reads; writing it "
-                                  "would destroy it: give another name")
+                raise ConfigError(
+                    f"{target}: this {what} is the {kind} {name} the command reads; writing it "
+                    "would destroy it: give another name"
+                )
 
 
 def _backing_file(name: str) -> str:
@@ -218,16 +220,22 @@ def private_folder(path: str | os.PathLike, what: str = "temporary folder") -> P
         raise output_error(f"{folder}: cannot create the {what} ({exc.strerror or exc})", exc) from exc
     info = os.lstat(folder)
     if stat.S_ISLNK(info.st_mode):
-        raise ConfigError(f"{folder}: the {what} is a symbolic link (to {os.readlink(folder)}); refused, since "
-                          "its files would go wherever it points: remove it")
+        raise ConfigError(
+            f"{folder}: the {what} is a symbolic link (to {os.readlink(folder)}); refused, since "
+            "its files would go wherever it points: remove it"
+        )
     if not stat.S_ISDIR(info.st_mode):
         raise ConfigError(f"{folder}: the {what} exists and is not a folder; remove it")
     if hasattr(os, "getuid") and info.st_uid != os.getuid():
-        raise ConfigError(f"{folder}: the {what} belongs to another user (uid {info.st_uid}); refused: remove it "
-                          "or set TMPDIR to a folder of your own")
+        raise ConfigError(
+            f"{folder}: the {what} belongs to another user (uid {info.st_uid}); refused: remove it "
+            "or set TMPDIR to a folder of your own"
+        )
     if info.st_mode & 0o022:
-        raise ConfigError(f"{folder}: the {what} is writable by other users (mode {stat.S_IMODE(info.st_mode):o}); "
-                          "refused: remove it or set TMPDIR to a folder of your own")
+        raise ConfigError(
+            f"{folder}: the {what} is writable by other users (mode {stat.S_IMODE(info.st_mode):o}); "
+            "refused: remove it or set TMPDIR to a folder of your own"
+        )
     if info.st_mode & 0o077:
         os.chmod(folder, 0o700)
     return folder

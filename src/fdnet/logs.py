@@ -81,8 +81,9 @@ def line_interval() -> float:
     except ValueError:
         value = math.nan
     if not (math.isfinite(value) and value > 0):
-        raise ConfigError(f"{INTERVAL_VARIABLE}={text!r}: give the seconds between two progress lines, "
-                          "a positive number (e.g. 30)")
+        raise ConfigError(
+            f"{INTERVAL_VARIABLE}={text!r}: give the seconds between two progress lines, " "a positive number (e.g. 30)"
+        )
     return value
 
 

@@ -95,8 +95,11 @@ class PRCurve:
         def rounded(a: np.ndarray) -> list:
             return [None if not np.isfinite(v) else round(float(v), decimals) for v in a]
 
-        return {"precision": rounded(self.precision), "recall": rounded(self.recall),
-                "thresholds": rounded(self.thresholds)}
+        return {
+            "precision": rounded(self.precision),
+            "recall": rounded(self.recall),
+            "thresholds": rounded(self.thresholds),
+        }
 
 
 @dataclass
@@ -171,8 +174,9 @@ def pr_curve_vprbench(scores: np.ndarray, correct: np.ndarray) -> tuple[PRCurve,
     return PRCurve(precision[::-1].copy(), recall[::-1].copy(), thresholds[::-1].copy()), auc_pr
 
 
-def pr_curve_over_queries(scores: np.ndarray, correct: np.ndarray, has_match: np.ndarray,
-                          thresholds: int | None = None) -> tuple[PRCurve, float]:
+def pr_curve_over_queries(
+    scores: np.ndarray, correct: np.ndarray, has_match: np.ndarray, thresholds: int | None = None
+) -> tuple[PRCurve, float]:
     """Recall-over-queries PR curve and its trapezoidal AUC (see the module docstring).
 
     ``thresholds=None``: every distinct best-match score (exact); ``thresholds=N``: N values
@@ -263,9 +267,15 @@ class Accepted:
     rule: str = "raw"
 
 
-def evaluate_retrieval(retrieved: np.ndarray, scores: np.ndarray, ground_truth: GroundTruth,
-                       protocol: str = RECALL_OVER_QUERIES, thresholds: int | None = None,
-                       ns=DEFAULT_NS, accepted: Accepted | None = None) -> Metrics:
+def evaluate_retrieval(
+    retrieved: np.ndarray,
+    scores: np.ndarray,
+    ground_truth: GroundTruth,
+    protocol: str = RECALL_OVER_QUERIES,
+    thresholds: int | None = None,
+    ns=DEFAULT_NS,
+    accepted: Accepted | None = None,
+) -> Metrics:
     """All metrics from ranked candidates: ``retrieved``/``scores`` (Q, k) best first, k >= max(ns)
     (or all references). ``thresholds`` applies to ``recall-over-queries`` only.
 
@@ -282,24 +292,27 @@ def evaluate_retrieval(retrieved: np.ndarray, scores: np.ndarray, ground_truth: 
     if retrieved.shape != scores.shape:
         raise DataError(f"retrieved indices {retrieved.shape} and scores {scores.shape} differ in shape")
     if retrieved.shape[0] != ground_truth.num_queries:
-        raise DataError(f"ground truth has {ground_truth.num_queries} queries but {retrieved.shape[0]} "
-                        f"were matched")
+        raise DataError(
+            f"ground truth has {ground_truth.num_queries} queries but {retrieved.shape[0]} " f"were matched"
+        )
     if not np.isfinite(scores[:, 0]).all():
         raise DataError("best-match scores contain NaN or infinite values")
     has_match = ground_truth.has_match
     if not has_match.any():
-        raise DataError(f"no query has a true match in the ground truth ({ground_truth.description}): "
-                        f"nothing to evaluate")
+        raise DataError(
+            f"no query has a true match in the ground truth ({ground_truth.description}): " f"nothing to evaluate"
+        )
     correct = ground_truth.correct_mask(retrieved)
     top1_scores, top1_correct = scores[:, 0], correct[:, 0]
-    pr_scores, pr_correct = _acceptance(top1_scores, top1_correct, ground_truth, acceptance_scores,
-                                        accepted_matches)
+    pr_scores, pr_correct = _acceptance(top1_scores, top1_correct, ground_truth, acceptance_scores, accepted_matches)
     notes = []
     n_without = int((~has_match).sum())
     if protocol == VPRBENCH:
         if thresholds is not None:
-            raise DataError("--thresholds applies to the recall-over-queries protocol only; "
-                            "vprbench uses every top-1 score, as VPR-Bench does")
+            raise DataError(
+                "--thresholds applies to the recall-over-queries protocol only; "
+                "vprbench uses every top-1 score, as VPR-Bench does"
+            )
         rejected = ~np.isfinite(pr_scores)
         if rejected.any():
             # every query is on VPR-Bench's curve: a rejected one sorts below all others
@@ -315,8 +328,10 @@ def evaluate_retrieval(retrieved: np.ndarray, scores: np.ndarray, ground_truth: 
         curve, auc_pr = pr_curve_over_queries(pr_scores, pr_correct, has_match, thresholds)
         recalls = recall_at_n(correct, ns, over=has_match)
         if n_without:
-            notes.append(f"{n_without} queries have no true match; excluded from recall's denominator, "
-                         f"their best matches count as false positives")
+            notes.append(
+                f"{n_without} queries have no true match; excluded from recall's denominator, "
+                f"their best matches count as false positives"
+            )
     return Metrics(
         protocol=protocol,
         num_queries=int(ground_truth.num_queries),
@@ -345,22 +360,30 @@ def _acceptance(top1_scores, top1_correct, ground_truth, acceptance_scores, acce
     pr_scores = np.asarray(acceptance_scores, dtype=np.float64)
     matches = np.asarray(accepted_matches)
     if pr_scores.shape != top1_scores.shape or matches.shape != top1_scores.shape:
-        raise DataError(f"acceptance scores {pr_scores.shape} and matches {matches.shape} must hold one value per "
-                        f"query ({top1_scores.shape[0]})")
+        raise DataError(
+            f"acceptance scores {pr_scores.shape} and matches {matches.shape} must hold one value per "
+            f"query ({top1_scores.shape[0]})"
+        )
     if np.isnan(pr_scores).any() or np.isposinf(pr_scores).any():
         raise DataError("acceptance scores contain NaN or +inf (only -inf, a rejection, is allowed)")
     return pr_scores, ground_truth.correct_mask(matches[:, None])[:, 0]
 
 
-def evaluate_similarity(similarity: np.ndarray, ground_truth: GroundTruth,
-                        protocol: str = RECALL_OVER_QUERIES, thresholds: int | None = None,
-                        ns=DEFAULT_NS) -> Metrics:
+def evaluate_similarity(
+    similarity: np.ndarray,
+    ground_truth: GroundTruth,
+    protocol: str = RECALL_OVER_QUERIES,
+    thresholds: int | None = None,
+    ns=DEFAULT_NS,
+) -> Metrics:
     """All metrics from a full (Q, R) similarity matrix (higher = more similar)."""
     s = np.asarray(similarity)
     if s.ndim != 2:
         raise DataError(f"similarity must be a 2-D (queries x references) matrix, got shape {s.shape}")
     if s.shape != (ground_truth.num_queries, ground_truth.num_references):
-        raise DataError(f"similarity matrix is {s.shape[0]} x {s.shape[1]} but the ground truth is for "
-                        f"{ground_truth.num_queries} queries x {ground_truth.num_references} references")
+        raise DataError(
+            f"similarity matrix is {s.shape[0]} x {s.shape[1]} but the ground truth is for "
+            f"{ground_truth.num_queries} queries x {ground_truth.num_references} references"
+        )
     retrieved, scores = top_k_of_matrix(s, max(ns))
     return evaluate_retrieval(retrieved, scores, ground_truth, protocol, thresholds, ns)

@@ -71,8 +71,10 @@ _TABLE4 = {
     "CALC": ((6.40, 19.30), (6.97, 20.30), (4.83, 16.97), (10.46, 15.69)),
 }
 
-PAPER_HARDWARE = ("feature extraction on an NVIDIA TITAN X (12 GB), matching on an Intel Xeon CPU at 2.10 GHz, "
-                  "averaged over 2000 Nordland images (paper section 5.4)")
+PAPER_HARDWARE = (
+    "feature extraction on an NVIDIA TITAN X (12 GB), matching on an Intel Xeon CPU at 2.10 GHz, "
+    "averaged over 2000 Nordland images (paper section 5.4)"
+)
 
 
 def _norm(name: str) -> str:
@@ -104,10 +106,14 @@ def paper_pair(dataset: str | None, reference: str, query: str) -> tuple[str, di
 
 
 def _numbers(table: dict, column: int) -> dict[str, dict[str, float]]:
-    return {PAPER_METHODS[row]: {"paper_name": row,
-                                 "recall_at_100_precision": round(values[column][0] / 100.0, 6),
-                                 "precision_at_max_recall": round(values[column][1] / 100.0, 6)}
-            for row, values in table.items()}
+    return {
+        PAPER_METHODS[row]: {
+            "paper_name": row,
+            "recall_at_100_precision": round(values[column][0] / 100.0, 6),
+            "precision_at_max_recall": round(values[column][1] / 100.0, 6),
+        }
+        for row, values in table.items()
+    }
 
 
 def paper_runtime(method: str) -> dict | None:

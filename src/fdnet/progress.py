@@ -37,9 +37,18 @@ def quiet() -> bool:
     return level != logging.NOTSET and level > logging.INFO
 
 
-def progress_bar(iterable: Iterable | None = None, *, total: float | None = None, desc: str = "",
-                 unit: str = "it", initial: float = 0, leave: bool = True, file=None,
-                 interval: float | None = None, **tqdm_options: Any):
+def progress_bar(
+    iterable: Iterable | None = None,
+    *,
+    total: float | None = None,
+    desc: str = "",
+    unit: str = "it",
+    initial: float = 0,
+    leave: bool = True,
+    file=None,
+    interval: float | None = None,
+    **tqdm_options: Any,
+):
     """A tqdm progress bar over ``iterable`` (or counting to ``total`` by ``update``) on ``file``
     (default: standard error). On a terminal: tqdm's bar (``dynamic_ncols``), with
     ``tqdm_options`` passed on. Elsewhere: a :class:`LineProgress` logging a line at most every
@@ -51,11 +60,20 @@ def progress_bar(iterable: Iterable | None = None, *, total: float | None = None
         return tqdm(iterable, total=total, desc=desc, unit=unit, initial=initial, disable=True)
     if is_terminal(stream):
         tqdm_options.setdefault("dynamic_ncols", True)
-        return tqdm(iterable, total=total, desc=desc, unit=unit, initial=initial, leave=leave, file=stream,
-                    **tqdm_options)
+        return tqdm(
+            iterable, total=total, desc=desc, unit=unit, initial=initial, leave=leave, file=stream, **tqdm_options
+        )
     smoothing = tqdm_options.get("smoothing", 0.3)
-    return LineProgress(iterable, total=total, desc=desc, unit=unit, initial=initial, file=stream,
-                        smoothing=smoothing, interval=line_interval() if interval is None else interval)
+    return LineProgress(
+        iterable,
+        total=total,
+        desc=desc,
+        unit=unit,
+        initial=initial,
+        file=stream,
+        smoothing=smoothing,
+        interval=line_interval() if interval is None else interval,
+    )
 
 
 class LineProgress(tqdm):
@@ -74,8 +92,9 @@ class LineProgress(tqdm):
         self._last_line_n = None
         # miniters=1: check the clock on every update (never skip a due line after a slow
         # stretch); delay: no line at the start; leave=False: close() itself adds nothing.
-        super().__init__(*args, mininterval=self.interval, miniters=1, delay=self.interval, leave=False,
-                         ascii=True, **kwargs)
+        super().__init__(
+            *args, mininterval=self.interval, miniters=1, delay=self.interval, leave=False, ascii=True, **kwargs
+        )
 
     def _line(self) -> str:
         fmt = dict(self.format_dict)
@@ -109,4 +128,3 @@ class LineProgress(tqdm):
         if not self.disable and self.lines and self.n != self._last_line_n:
             self._emit(self._time())
         super().close()
-

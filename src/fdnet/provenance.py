@@ -40,14 +40,20 @@ def git_commit() -> dict | None:
     when it is not in one (an installed wheel) or git is not there."""
     source = Path(__file__).resolve().parent
     try:
-        top = subprocess.run(["git", "-C", str(source), "rev-parse", "--show-toplevel"], capture_output=True,
-                             text=True, timeout=10)
+        top = subprocess.run(
+            ["git", "-C", str(source), "rev-parse", "--show-toplevel"], capture_output=True, text=True, timeout=10
+        )
         if top.returncode != 0 or not (source.is_relative_to(Path(top.stdout.strip()).resolve())):
             return None
-        commit = subprocess.run(["git", "-C", str(source), "rev-parse", "HEAD"], capture_output=True, text=True,
-                                timeout=10)
-        status = subprocess.run(["git", "-C", str(source), "status", "--porcelain", "--untracked-files=no"],
-                                capture_output=True, text=True, timeout=30)
+        commit = subprocess.run(
+            ["git", "-C", str(source), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10
+        )
+        status = subprocess.run(
+            ["git", "-C", str(source), "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True,
+            text=True,
+            timeout=30,
+        )
     except (OSError, subprocess.SubprocessError):
         return None
     if commit.returncode != 0:
@@ -85,8 +91,7 @@ def device_description(device: str | None = None) -> str:
     return spec or "cpu"
 
 
-def provenance(command: str | None = None, seeds: Mapping[str, Any] | Any = None,
-               device: str | None = None) -> dict:
+def provenance(command: str | None = None, seeds: Mapping[str, Any] | Any = None, device: str | None = None) -> dict:
     """The record: ``fdnet_version``, ``git`` (commit and dirty, or None), ``python``,
     ``libraries`` (torch, numpy, faiss versions), ``device``, ``cpu`` (model), ``cpu_count``,
     ``platform``, ``seeds`` (as given; None when the work draws no random numbers), ``command``

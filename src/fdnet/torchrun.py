@@ -40,15 +40,18 @@ class OtherProcessFailed(FdnetError):
     """Raised on the processes that did not fail themselves when another one failed."""
 
 
-def environment_int(environ: Mapping[str, str], name: str, default: int | None = None,
-                    start: str = "start several processes") -> int:
+def environment_int(
+    environ: Mapping[str, str], name: str, default: int | None = None, start: str = "start several processes"
+) -> int:
     """The integer torchrun put in ``name``; ``default`` when it is absent (None: absent is an
     error saying how to ``start`` the processes)."""
     text = environ.get(name)
     if text is None:
         if default is None:
-            raise ConfigError(f"WORLD_SIZE is set but {name} is not: {start} with torchrun "
-                              "(it sets WORLD_SIZE, RANK, LOCAL_RANK, MASTER_ADDR and MASTER_PORT)")
+            raise ConfigError(
+                f"WORLD_SIZE is set but {name} is not: {start} with torchrun "
+                "(it sets WORLD_SIZE, RANK, LOCAL_RANK, MASTER_ADDR and MASTER_PORT)"
+            )
         return default
     try:
         return int(text)
@@ -56,8 +59,7 @@ def environment_int(environ: Mapping[str, str], name: str, default: int | None =
         raise ConfigError(f"environment variable {name}={text!r} is not an integer") from exc
 
 
-def require_rendezvous(environ: Mapping[str, str], world_size: int,
-                       start: str = "start several processes") -> None:
+def require_rendezvous(environ: Mapping[str, str], world_size: int, start: str = "start several processes") -> None:
     """ConfigError unless torchrun's rendezvous address is set (``env://`` needs both)."""
     missing = [name for name in ("MASTER_ADDR", "MASTER_PORT") if name not in environ]
     if missing:
@@ -143,12 +145,15 @@ class ProcessGroup:
     #: a CPU process uses the machine's cores divided among its processes
     DIVIDES_CORES = False
 
-    def __init__(self, world_size: int = 1, rank: int = 0, local_rank: int = 0, local_world_size: int = 1,
-                 launched: bool = False):
+    def __init__(
+        self, world_size: int = 1, rank: int = 0, local_rank: int = 0, local_world_size: int = 1, launched: bool = False
+    ):
         if world_size < 1 or not 0 <= rank < world_size or local_rank < 0 or local_world_size < 1:
-            raise ConfigError(f"invalid torchrun setup: RANK={rank}, LOCAL_RANK={local_rank}, "
-                              f"WORLD_SIZE={world_size}, LOCAL_WORLD_SIZE={local_world_size} "
-                              "(need 0 <= RANK < WORLD_SIZE)")
+            raise ConfigError(
+                f"invalid torchrun setup: RANK={rank}, LOCAL_RANK={local_rank}, "
+                f"WORLD_SIZE={world_size}, LOCAL_WORLD_SIZE={local_world_size} "
+                "(need 0 <= RANK < WORLD_SIZE)"
+            )
         self.world_size = int(world_size)
         self.rank = int(rank)
         self.local_rank = int(local_rank)
@@ -159,8 +164,10 @@ class ProcessGroup:
         self._owns_group = False
 
     def __repr__(self) -> str:
-        return (f"{type(self).__name__}(world_size={self.world_size}, rank={self.rank}, "
-                f"local_rank={self.local_rank}, backend={self.backend})")
+        return (
+            f"{type(self).__name__}(world_size={self.world_size}, rank={self.rank}, "
+            f"local_rank={self.local_rank}, backend={self.backend})"
+        )
 
     @classmethod
     def from_env(cls, environ: Mapping[str, str] | None = None):
@@ -169,9 +176,13 @@ class ProcessGroup:
         environ = os.environ if environ is None else environ
         if "WORLD_SIZE" not in environ:
             return cls()
-        return cls(environment_int(environ, "WORLD_SIZE", start=cls.START),
-                   environment_int(environ, "RANK", start=cls.START), environment_int(environ, "LOCAL_RANK", 0),
-                   environment_int(environ, "LOCAL_WORLD_SIZE", 1), launched=True)
+        return cls(
+            environment_int(environ, "WORLD_SIZE", start=cls.START),
+            environment_int(environ, "RANK", start=cls.START),
+            environment_int(environ, "LOCAL_RANK", 0),
+            environment_int(environ, "LOCAL_WORLD_SIZE", 1),
+            launched=True,
+        )
 
     @property
     def is_main(self) -> bool:
@@ -207,16 +218,24 @@ class ProcessGroup:
             raise ConfigError("this torch build has no torch.distributed with gloo; several processes need it")
         if dist.is_initialized():
             if dist.get_world_size() != self.world_size:
-                raise ConfigError(f"WORLD_SIZE={self.world_size} but the running process group has "
-                                  f"{dist.get_world_size()} processes")
+                raise ConfigError(
+                    f"WORLD_SIZE={self.world_size} but the running process group has "
+                    f"{dist.get_world_size()} processes"
+                )
             self.rank, self.backend, self.enabled = dist.get_rank(), str(dist.get_backend()), True
             return self
         require_rendezvous(os.environ, self.world_size, start=self.START)
-        backend = "cpu:gloo,cuda:nccl" if self.USES_NCCL and torch.cuda.is_available() \
-            and dist.is_nccl_available() else "gloo"
-        self._call("joining the other processes",
-                   lambda: dist.init_process_group(backend, init_method="env://", world_size=self.world_size,
-                                                   rank=self.rank, timeout=TIMEOUT))
+        backend = (
+            "cpu:gloo,cuda:nccl"
+            if self.USES_NCCL and torch.cuda.is_available() and dist.is_nccl_available()
+            else "gloo"
+        )
+        self._call(
+            "joining the other processes",
+            lambda: dist.init_process_group(
+                backend, init_method="env://", world_size=self.world_size, rank=self.rank, timeout=TIMEOUT
+            ),
+        )
         global _joined_a_group
         _joined_a_group = True
         self.backend, self.enabled, self._owns_group = backend, True, True
@@ -245,14 +264,18 @@ class ProcessGroup:
             return
         count = torch.cuda.device_count()
         if self.local_rank >= count:
-            raise ConfigError(f"process {self.rank} (LOCAL_RANK {self.local_rank}) has no GPU of its own: this "
-                              f"machine has {count} GPU(s) and each process {self.WORK} on cuda:LOCAL_RANK; start "
-                              f"at most {count} processes per machine (torchrun --nproc-per-node {count}) or use "
-                              f"{self.CPU_HINT}")
+            raise ConfigError(
+                f"process {self.rank} (LOCAL_RANK {self.local_rank}) has no GPU of its own: this "
+                f"machine has {count} GPU(s) and each process {self.WORK} on cuda:LOCAL_RANK; start "
+                f"at most {count} processes per machine (torchrun --nproc-per-node {count}) or use "
+                f"{self.CPU_HINT}"
+            )
         if device.index is not None and device.index != self.local_rank:
-            raise ConfigError(f"device {device} for process {self.rank}: under torchrun each process {self.WORK} on "
-                              f"its own GPU, cuda:LOCAL_RANK (here cuda:{self.local_rank}); give cuda or auto, "
-                              "not cuda:N")
+            raise ConfigError(
+                f"device {device} for process {self.rank}: under torchrun each process {self.WORK} on "
+                f"its own GPU, cuda:LOCAL_RANK (here cuda:{self.local_rank}); give cuda or auto, "
+                "not cuda:N"
+            )
 
     # ------------------------------------------------------------------ collectives
     def _call(self, what: str, fn: Callable[[], T]) -> T:
@@ -260,9 +283,11 @@ class ProcessGroup:
         try:
             return fn()
         except RuntimeError as exc:  # gloo: connection closed or reset by a peer, a timeout
-            raise LostContact(f"process {self.rank} of {self.world_size} lost contact with the others while "
-                              f"{what} (another process stopped or was killed; its error, if any, is above): "
-                              f"{_backend_message(exc)}") from exc
+            raise LostContact(
+                f"process {self.rank} of {self.world_size} lost contact with the others while "
+                f"{what} (another process stopped or was killed; its error, if any, is above): "
+                f"{_backend_message(exc)}"
+            ) from exc
 
     def agree(self, *flags: bool) -> tuple[bool, ...]:
         """Each flag true in any process, in every process (one small all-reduce): decisions that

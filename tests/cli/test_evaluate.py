@@ -18,8 +18,15 @@ from fdnet.descriptors.settings import MethodSettings
 
 from conftest import require_shared, write_day_dusk_route
 
-REQUIRED = {"recall_at_100_precision", "precision_at_max_recall", "auc_pr", "recall_at_n", "protocol",
-            "method", "num_queries"}
+REQUIRED = {
+    "recall_at_100_precision",
+    "precision_at_max_recall",
+    "auc_pr",
+    "recall_at_n",
+    "protocol",
+    "method",
+    "num_queries",
+}
 
 
 @dataclass(frozen=True)
@@ -58,8 +65,9 @@ class TinyPixels(Descriptor):
 @pytest.fixture
 def tiny_method(monkeypatch):
     # registered under this module's import name so `--method tiny-pixels` resolves through the registry
-    monkeypatch.setitem(registry._METHODS, "tiny-pixels",
-                        registry.MethodSpec("tiny-pixels", "test stand-in", f"{__name__}:TinyPixels"))
+    monkeypatch.setitem(
+        registry._METHODS, "tiny-pixels", registry.MethodSpec("tiny-pixels", "test stand-in", f"{__name__}:TinyPixels")
+    )
     return "tiny-pixels"
 
 
@@ -83,8 +91,22 @@ def matrix_files(tmp_path):
 def test_similarity_mode_json(matrix_files, tmp_path, capsys):
     npy, csv = matrix_files
     out = tmp_path / "r.json"
-    assert main(["evaluate", "--similarity", str(npy), "--ground-truth", str(csv), "--protocol", "vprbench",
-                 "--json", str(out)]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "--similarity",
+                str(npy),
+                "--ground-truth",
+                str(csv),
+                "--protocol",
+                "vprbench",
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
     printed = capsys.readouterr().out
     assert "protocol: vprbench" in printed and "toy" in printed
     result = json.loads(out.read_text())["results"][0]
@@ -100,16 +122,49 @@ def test_similarity_mode_json(matrix_files, tmp_path, capsys):
 def test_similarity_mode_thresholds_and_distance(matrix_files, tmp_path):
     npy, csv = matrix_files
     out = tmp_path / "r.json"
-    assert main(["evaluate", "--similarity", str(npy), "--ground-truth", str(csv), "--thresholds", "2",
-                 "--accept", "raw", "--json", str(out)]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "--similarity",
+                str(npy),
+                "--ground-truth",
+                str(csv),
+                "--thresholds",
+                "2",
+                "--accept",
+                "raw",
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
     result = json.loads(out.read_text())["results"][0]
     assert result["protocol"] == "recall-over-queries" and result["thresholds"] == "2 uniform"
     assert result["auc_pr"] == pytest.approx(0.25 + 0.5 * (1 + 0.75) / 2)
     dist = tmp_path / "dist.npy"
     np.save(dist, -np.load(npy))
     out2 = tmp_path / "d.json"
-    assert main(["evaluate", "--similarity", str(dist), "--distance", "--ground-truth", str(csv),
-                 "--thresholds", "2", "--accept", "raw", "--json", str(out2)]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "--similarity",
+                str(dist),
+                "--distance",
+                "--ground-truth",
+                str(csv),
+                "--thresholds",
+                "2",
+                "--accept",
+                "raw",
+                "--json",
+                str(out2),
+            ]
+        )
+        == 0
+    )
     assert json.loads(out2.read_text())["results"][0]["auc_pr"] == result["auc_pr"]
 
 
@@ -176,27 +231,71 @@ def test_bad_combinations(matrix_files, route, capsys):
     assert "either --similarity" in _error(capsys, ["evaluate", "--similarity", str(npy), "--method", "raw"])
     assert "needs ground truth" in _error(capsys, ["evaluate", "--similarity", str(npy)])
     assert "recall-over-queries only" in _error(
-        capsys, ["evaluate", "--similarity", str(npy), "--ground-truth", str(csv), "--protocol", "vprbench",
-                 "--thresholds", "500"])
+        capsys,
+        [
+            "evaluate",
+            "--similarity",
+            str(npy),
+            "--ground-truth",
+            str(csv),
+            "--protocol",
+            "vprbench",
+            "--thresholds",
+            "500",
+        ],
+    )
     assert "unknown method 'nope'" in _error(
-        capsys, ["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk", "--method", "nope"])
-    err = _error(capsys, ["evaluate", "--data", str(route), "--reference", "day", "--query", "night",
-                          "--method", "raw"])
+        capsys, ["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk", "--method", "nope"]
+    )
+    err = _error(
+        capsys, ["evaluate", "--data", str(route), "--reference", "day", "--query", "night", "--method", "raw"]
+    )
     assert "night" in err and "condition folder not found" in err
     # a sequence length was silently ignored with a precomputed matrix
     assert "--sequence-length applies to --method" in _error(
-        capsys, ["evaluate", "--similarity", str(npy), "--ground-truth", str(csv), "--sequence-length", "3"])
+        capsys, ["evaluate", "--similarity", str(npy), "--ground-truth", str(csv), "--sequence-length", "3"]
+    )
     assert "--sequence-length must be a whole number of frames, at least 1" in _error(
-        capsys, ["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk", "--method", "raw",
-                 "--sequence-length=-3"])
+        capsys,
+        [
+            "evaluate",
+            "--data",
+            str(route),
+            "--reference",
+            "day",
+            "--query",
+            "dusk",
+            "--method",
+            "raw",
+            "--sequence-length=-3",
+        ],
+    )
 
 
 def test_method_mode_several_methods_json_and_plots(tiny_method, route, tmp_path, capsys):
     out = tmp_path / "several.json"
     plots = tmp_path / "plots"
-    argv = ["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk",
-            "--method", f"{tiny_method},raw", "--method-set", f"{tiny_method}:size=4", "--tolerance", "0",
-            "--threads", "1", "--json", str(out), "--plots", str(plots)]
+    argv = [
+        "evaluate",
+        "--data",
+        str(route),
+        "--reference",
+        "day",
+        "--query",
+        "dusk",
+        "--method",
+        f"{tiny_method},raw",
+        "--method-set",
+        f"{tiny_method}:size=4",
+        "--tolerance",
+        "0",
+        "--threads",
+        "1",
+        "--json",
+        str(out),
+        "--plots",
+        str(plots),
+    ]
     assert main(argv) == 0
     table = capsys.readouterr().out
     assert "protocol: recall-over-queries" in table and "ms/image" in table
@@ -212,9 +311,27 @@ def test_two_models_of_one_method_compare_side_by_side_under_labels(tiny_method,
     """--method LABEL=METHOD names each row; each label takes its own options (here two sizes of
     one stand-in method: two ONNX models or two runs are given the same way)."""
     out = tmp_path / "labelled.json"
-    argv = ["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk", "--tolerance", "0",
-            "--method", f"small={tiny_method},large={tiny_method},raw", "--method-set", "small:size=4",
-            "--method-set", "large:size=8", "--threads", "1", "--json", str(out)]
+    argv = [
+        "evaluate",
+        "--data",
+        str(route),
+        "--reference",
+        "day",
+        "--query",
+        "dusk",
+        "--tolerance",
+        "0",
+        "--method",
+        f"small={tiny_method},large={tiny_method},raw",
+        "--method-set",
+        "small:size=4",
+        "--method-set",
+        "large:size=8",
+        "--threads",
+        "1",
+        "--json",
+        str(out),
+    ]
     assert main(argv) == 0
     table = capsys.readouterr().out
     assert "small" in table and "large" in table
@@ -222,10 +339,14 @@ def test_two_models_of_one_method_compare_side_by_side_under_labels(tiny_method,
     assert [r["method"] for r in results] == ["small", "large", "raw"]
     assert [r["settings"].get("method") for r in results] == [tiny_method, tiny_method, None]
     assert [r["settings"]["input_size"] for r in results[:2]] == [[4, 4], [8, 8]]
-    for bad, message in ((f"raw={tiny_method}", "the label 'raw' is another method's name"),
-                         ("a b=raw", "a label is letters, digits"), ("x=nosuch", "unknown method 'nosuch'")):
-        err = _error(capsys, ["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk",
-                              "--method", bad])
+    for bad, message in (
+        (f"raw={tiny_method}", "the label 'raw' is another method's name"),
+        ("a b=raw", "a label is letters, digits"),
+        ("x=nosuch", "unknown method 'nosuch'"),
+    ):
+        err = _error(
+            capsys, ["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk", "--method", bad]
+        )
         assert err.startswith("fdnet evaluate: error: ") and message in err
 
 
@@ -240,25 +361,50 @@ def test_methods_that_cannot_be_told_apart_are_refused(tiny_method, route, tmp_p
     assert "give each its own label" in err and not out.exists()
     (tmp_path / "a.onnx").write_bytes(b"a")
     (tmp_path / "b.onnx").write_bytes(b"b")
-    err = _error(capsys, [*base, "--method", "onnx", "--weights", f"onnx:{tmp_path / 'a.onnx'}",
-                          "--weights", f"onnx:{tmp_path / 'b.onnx'}"])
+    err = _error(
+        capsys,
+        [
+            *base,
+            "--method",
+            "onnx",
+            "--weights",
+            f"onnx:{tmp_path / 'a.onnx'}",
+            "--weights",
+            f"onnx:{tmp_path / 'b.onnx'}",
+        ],
+    )
     assert err.startswith("fdnet evaluate: error: --weights gives onnx 2 values") and not out.exists()
-    err = _error(capsys, [*base, "--method", "onnx,onnx", "--weights", f"onnx:{tmp_path / 'a.onnx'}",
-                          "--weights", f"onnx:{tmp_path / 'b.onnx'}"])
+    err = _error(
+        capsys,
+        [
+            *base,
+            "--method",
+            "onnx,onnx",
+            "--weights",
+            f"onnx:{tmp_path / 'a.onnx'}",
+            "--weights",
+            f"onnx:{tmp_path / 'b.onnx'}",
+        ],
+    )
     assert "--method names onnx more than once" in err and not out.exists()
 
 
-@pytest.mark.parametrize("extra, message", [
-    (["--predictions", "2"], "--predictions K needs --json FILE"),
-    (["--no-curve"], "--no-curve needs --json FILE"),
-    (["--examples", "3"], "--examples N needs --plots DIR"),
-    (["--name", "mine"], "--name needs --similarity FILE.npy"),
-    (["--distance"], "--distance needs --similarity FILE.npy"),
-])
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--predictions", "2"], "--predictions K needs --json FILE"),
+        (["--no-curve"], "--no-curve needs --json FILE"),
+        (["--examples", "3"], "--examples N needs --plots DIR"),
+        (["--name", "mine"], "--name needs --similarity FILE.npy"),
+        (["--distance"], "--distance needs --similarity FILE.npy"),
+    ],
+)
 def test_a_flag_whose_output_has_nowhere_to_go_is_refused(tiny_method, route, capsys, extra, message):
     """--predictions without --json (and the like) was ignored without a word."""
-    err = _error(capsys, ["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk",
-                          "--method", tiny_method, *extra])
+    err = _error(
+        capsys,
+        ["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk", "--method", tiny_method, *extra],
+    )
     assert err.startswith(f"fdnet evaluate: error: {message}") and "would do nothing" in err
 
 
@@ -267,8 +413,28 @@ def test_method_mode_frames_and_explicit_ground_truth(tiny_method, route, tmp_pa
     csv = tmp_path / "gt.csv"
     csv.write_text("query_index,reference_indices\n" + "".join(f"{i},{i}\n" for i in range(10)))
     out = tmp_path / "r.json"
-    assert main(["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk", "--method",
-                 tiny_method, "--ground-truth", str(csv), "--frames", "2:8", "--json", str(out)]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "--data",
+                str(route),
+                "--reference",
+                "day",
+                "--query",
+                "dusk",
+                "--method",
+                tiny_method,
+                "--ground-truth",
+                str(csv),
+                "--frames",
+                "2:8",
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
     result = json.loads(out.read_text())["results"][0]
     assert result["num_queries"] == 6 and result["num_references"] == 6
     assert result["recall_at_n"]["1"] == 1.0 and result["recall_at_100_precision"] == 1.0
@@ -278,9 +444,22 @@ def test_method_mode_frames_and_explicit_ground_truth(tiny_method, route, tmp_pa
 def test_corridor_vprbench_hog_through_the_cli(tmp_path):
     corridor = require_shared("corridor")
     out = tmp_path / "hog.json"
-    assert main(["evaluate", "--similarity", str(corridor / "vprbench_precomputed" / "HOG_similarity.npy"),
-                 "--ground-truth", str(corridor / "ground_truth.csv"), "--protocol", "vprbench",
-                 "--json", str(out)]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "--similarity",
+                str(corridor / "vprbench_precomputed" / "HOG_similarity.npy"),
+                "--ground-truth",
+                str(corridor / "ground_truth.csv"),
+                "--protocol",
+                "vprbench",
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
     result = json.loads(out.read_text())["results"][0]
     assert round(result["auc_pr"], 3) == 0.697 and round(result["top1_accuracy"], 3) == 0.477
 
@@ -289,9 +468,34 @@ def test_corridor_vprbench_hog_through_the_cli(tmp_path):
 def test_gardens_point_slice(tiny_method, tmp_path):
     gardens = require_shared("gardens_point")
     out = tmp_path / "gp.json"
-    assert main(["evaluate", "--data", str(gardens), "--reference", "day_right", "--query", "night_right",
-                 "--method", tiny_method, "--method-set", "size=16", "--frames", "100:140",
-                 "--tolerance", "2", "--threads", "1", "--accept", "raw", "--json", str(out)]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "--data",
+                str(gardens),
+                "--reference",
+                "day_right",
+                "--query",
+                "night_right",
+                "--method",
+                tiny_method,
+                "--method-set",
+                "size=16",
+                "--frames",
+                "100:140",
+                "--tolerance",
+                "2",
+                "--threads",
+                "1",
+                "--accept",
+                "raw",
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
     result = json.loads(out.read_text())["results"][0]
     assert result["num_queries"] == 40 and result["num_references"] == 40
     assert "tolerance 2" in result["ground_truth"]
@@ -315,15 +519,47 @@ def test_evaluate_with_dataset_format_vprbench_corridor(tmp_path):
 
     corridor = require_shared("corridor")
     out = tmp_path / "r.json"
-    assert main(["evaluate", "--data", str(corridor), "--dataset-format", "vprbench", "--method", "raw",
-                 "--protocol", "vprbench", "--json", str(out)]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "--data",
+                str(corridor),
+                "--dataset-format",
+                "vprbench",
+                "--method",
+                "raw",
+                "--protocol",
+                "vprbench",
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
     result = json.loads(out.read_text())["results"][0]
     assert result["num_queries"] == 111 and result["protocol"] == "vprbench"
 
 
 def test_split_without_dataset_format_is_an_error(tmp_path, capsys):
-    assert main(["evaluate", "--data", str(tmp_path), "--reference", "a", "--query", "b", "--method", "raw",
-                 "--split", "test"]) == 2
+    assert (
+        main(
+            [
+                "evaluate",
+                "--data",
+                str(tmp_path),
+                "--reference",
+                "a",
+                "--query",
+                "b",
+                "--method",
+                "raw",
+                "--split",
+                "test",
+            ]
+        )
+        == 2
+    )
     assert "--dataset-format" in capsys.readouterr().err
 
 
@@ -337,14 +573,32 @@ def test_filter_frames_drops_dark_frames_from_both_conditions(tmp_path, capsys, 
             img = (rng.integers(0, 256, (16, 32, 3)) * level).astype(np.uint8)
             Image.fromarray(img).save(tmp_path / cond / f"f{i:02d}.png")
     out = tmp_path / "r.json"
-    assert main(["evaluate", "--data", str(tmp_path), "--reference", "a", "--query", "b", "--method", "raw",
-                 "--filter-frames", "--json", str(out)]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "--data",
+                str(tmp_path),
+                "--reference",
+                "a",
+                "--query",
+                "b",
+                "--method",
+                "raw",
+                "--filter-frames",
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
     assert json.loads(out.read_text())["results"][0]["num_queries"] == 10
     assert "dropped 2 dark" in capsys.readouterr().err
     assert len(list((tmp_path / "cache" / "filters").iterdir())) == 1
 
 
 # ----------------------------------------------------------------------------- image order and ground truth
+
 
 def _write_grey(path, pixels):
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -366,9 +620,9 @@ def test_unpadded_names_ground_truth_from_positions_end_to_end(tmp_path, referen
     rng = np.random.default_rng(3)
     places = [rng.integers(0, 256, (32, 64), dtype=np.uint8) for _ in range(n)]  # distinct views
     names = [f"frame_{k}.png" for k in range(1, n + 1)]
-    true_place = {k: n - k for k in range(1, n + 1)}          # 0-based place of query frame_k
+    true_place = {k: n - k for k in range(1, n + 1)}  # 0-based place of query frame_k
     shown_place = dict(true_place)
-    for k in (2, 5, 11):                                      # look-alikes: top-1 will be wrong
+    for k in (2, 5, 11):  # look-alikes: top-1 will be wrong
         shown_place[k] = (true_place[k] + 6) % n
     route = tmp_path / "route"
     for k in range(1, n + 1):
@@ -377,8 +631,10 @@ def test_unpadded_names_ground_truth_from_positions_end_to_end(tmp_path, referen
 
     def position_file(path, row_order, easting_of):
         listed = names if row_order == "natural" else _text_order(names)
-        path.write_text("image,easting,northing\n" + "".join(
-            f"{name},{500000 + easting_of(int(name[6:-4]))},6000000\n" for name in listed))
+        path.write_text(
+            "image,easting,northing\n"
+            + "".join(f"{name},{500000 + easting_of(int(name[6:-4]))},6000000\n" for name in listed)
+        )
         return str(path)
 
     ref_csv = position_file(tmp_path / "ref.csv", reference_rows, lambda k: 10 * (k - 1))
@@ -386,8 +642,26 @@ def test_unpadded_names_ground_truth_from_positions_end_to_end(tmp_path, referen
     gt = tmp_path / "gt.csv"
     assert main(["groundtruth", "--positions", ref_csv, qry_csv, "--tolerance-m", "4", "--out", str(gt)]) == 0
     out = tmp_path / "r.json"
-    assert main(["evaluate", "--data", str(route), "--reference", "ref", "--query", "qry", "--method", "raw",
-                 "--ground-truth", str(gt), "--json", str(out)]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "--data",
+                str(route),
+                "--reference",
+                "ref",
+                "--query",
+                "qry",
+                "--method",
+                "raw",
+                "--ground-truth",
+                str(gt),
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
     expected = np.mean([shown_place[k] == true_place[k] for k in range(1, n + 1)])
     assert expected == 0.75
     assert json.loads(out.read_text())["results"][0]["recall_at_n"]["1"] == pytest.approx(expected)
@@ -395,20 +669,55 @@ def test_unpadded_names_ground_truth_from_positions_end_to_end(tmp_path, referen
 
 def test_dataset_format_with_missing_ground_truth_file_is_an_error(route, capsys):
     missing = route.parent / "missing.csv"
-    err = _error(capsys, ["evaluate", "--data", str(route), "--dataset-format", "folders", "--reference", "day",
-                          "--query", "dusk", "--method", "raw", "--ground-truth", str(missing)])
+    err = _error(
+        capsys,
+        [
+            "evaluate",
+            "--data",
+            str(route),
+            "--dataset-format",
+            "folders",
+            "--reference",
+            "day",
+            "--query",
+            "dusk",
+            "--method",
+            "raw",
+            "--ground-truth",
+            str(missing),
+        ],
+    )
     assert f"{missing}: ground-truth file not found" in err
 
 
 def test_dataset_format_uses_the_given_ground_truth(tiny_method, route, tmp_path):
     def r_at_1(*extra):
         out = tmp_path / "r.json"
-        assert main(["evaluate", "--data", str(route), "--dataset-format", "folders", "--reference", "day",
-                     "--query", "dusk", "--method", tiny_method, "--json", str(out), *extra]) == 0
+        assert (
+            main(
+                [
+                    "evaluate",
+                    "--data",
+                    str(route),
+                    "--dataset-format",
+                    "folders",
+                    "--reference",
+                    "day",
+                    "--query",
+                    "dusk",
+                    "--method",
+                    tiny_method,
+                    "--json",
+                    str(out),
+                    *extra,
+                ]
+            )
+            == 0
+        )
         return json.loads(out.read_text())["results"][0]
 
-    assert r_at_1()["recall_at_n"]["1"] == 1.0                   # frame-aligned: every top-1 is right
-    shifted = tmp_path / "shifted.csv"                            # query i is place i+1: none is
+    assert r_at_1()["recall_at_n"]["1"] == 1.0  # frame-aligned: every top-1 is right
+    shifted = tmp_path / "shifted.csv"  # query i is place i+1: none is
     shifted.write_text("query_index,reference_indices\n" + "".join(f"{i},{(i + 1) % 10}\n" for i in range(10)))
     result = r_at_1("--ground-truth", str(shifted))
     assert result["recall_at_n"]["1"] == 0.0 and "shifted.csv" in result["ground_truth"]
@@ -423,8 +732,26 @@ def test_dataset_format_uses_the_given_ground_truth(tiny_method, route, tmp_path
 def test_dataset_format_ground_truth_sized_for_another_split_is_an_error(route, tmp_path, capsys):
     full = tmp_path / "full.csv"
     full.write_text("query_index,reference_indices\n" + "".join(f"{i},{i}\n" for i in range(10)))
-    err = _error(capsys, ["evaluate", "--data", str(route), "--dataset-format", "folders", "--reference", "day",
-                          "--query", "dusk", "--split", "0:5", "--method", "raw", "--ground-truth", str(full)])
+    err = _error(
+        capsys,
+        [
+            "evaluate",
+            "--data",
+            str(route),
+            "--dataset-format",
+            "folders",
+            "--reference",
+            "day",
+            "--query",
+            "dusk",
+            "--split",
+            "0:5",
+            "--method",
+            "raw",
+            "--ground-truth",
+            str(full),
+        ],
+    )
     assert f"{full}, line 7: query index 5 out of range (0..4)" in err
 
 
@@ -434,26 +761,73 @@ def test_ground_truth_names_that_do_not_match_the_folders_are_an_error(route, tm
     names = [f"{i:03d}.png" for i in range(10)]
     gt = tmp_path / "gt.csv"
     # what `fdnet groundtruth` writes for a query folder listed in the opposite order
-    gt.write_text("query_index,reference_indices,query_name,reference_names\n" + "".join(
-        f"{i},{i},{names[::-1][i]},{names[i]}\n" for i in range(10)))
-    err = _error(capsys, ["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk",
-                          "--method", "raw", "--ground-truth", str(gt)])
+    gt.write_text(
+        "query_index,reference_indices,query_name,reference_names\n"
+        + "".join(f"{i},{i},{names[::-1][i]},{names[i]}\n" for i in range(10))
+    )
+    err = _error(
+        capsys,
+        [
+            "evaluate",
+            "--data",
+            str(route),
+            "--reference",
+            "day",
+            "--query",
+            "dusk",
+            "--method",
+            "raw",
+            "--ground-truth",
+            str(gt),
+        ],
+    )
     assert f"{gt}, line 2: query 0 is '009.png' in the ground truth but '000.png' in {route / 'dusk'}" in err
-    err = _error(capsys, ["evaluate", "--data", str(route), "--dataset-format", "folders", "--reference", "day",
-                          "--query", "dusk", "--method", "raw", "--ground-truth", str(gt)])
+    err = _error(
+        capsys,
+        [
+            "evaluate",
+            "--data",
+            str(route),
+            "--dataset-format",
+            "folders",
+            "--reference",
+            "day",
+            "--query",
+            "dusk",
+            "--method",
+            "raw",
+            "--ground-truth",
+            str(gt),
+        ],
+    )
     assert f"{gt}, line 2: query 0 is '009.png'" in err
     # the same names in the right order are accepted
     GroundTruth.aligned(10, 10, 0).to_csv(gt, query_names=names, reference_names=names)
-    assert main(["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk", "--method", "raw",
-                 "--ground-truth", str(gt)]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "--data",
+                str(route),
+                "--reference",
+                "day",
+                "--query",
+                "dusk",
+                "--method",
+                "raw",
+                "--ground-truth",
+                str(gt),
+            ]
+        )
+        == 0
+    )
 
 
 def test_similarity_with_a_forged_header_is_refused(matrix_files, tmp_path, capsys):
     _, csv = matrix_files
     forged = tmp_path / "forged.npy"
     with open(forged, "wb") as handle:
-        np.lib.format.write_array_header_1_0(handle, {"descr": "<f4", "fortran_order": False,
-                                                      "shape": (10**6, 10**6)})
+        np.lib.format.write_array_header_1_0(handle, {"descr": "<f4", "fortran_order": False, "shape": (10**6, 10**6)})
         handle.write(b"\0" * 16)
     err = _error(capsys, ["evaluate", "--similarity", str(forged), "--ground-truth", str(csv)])
     assert str(forged) in err and "(1000000, 1000000)" in err and "3.6 TiB" in err
@@ -469,16 +843,45 @@ def test_unwritable_outputs_fail_before_any_work(route, tmp_path, capsys, monkey
     monkeypatch.setattr(experiment, "evaluate_method", no_work)
     blocker = tmp_path / "a-file"
     blocker.write_text("")
-    target = blocker / "results"     # its parent is a regular file: nothing can be created there
-    err = _error(capsys, ["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk",
-                          "--method", "raw", option, str(target)])
+    target = blocker / "results"  # its parent is a regular file: nothing can be created there
+    err = _error(
+        capsys,
+        [
+            "evaluate",
+            "--data",
+            str(route),
+            "--reference",
+            "day",
+            "--query",
+            "dusk",
+            "--method",
+            "raw",
+            option,
+            str(target),
+        ],
+    )
     assert str(target.parent) in err and "cannot create" in err
 
 
 def test_filter_frames_with_a_format_that_has_no_filter_is_an_error(route, capsys):
     # ignored silently, the numbers would be for unfiltered frames
-    err = _error(capsys, ["evaluate", "--data", str(route), "--dataset-format", "folders", "--reference", "day",
-                          "--query", "dusk", "--method", "raw", "--filter-frames"])
+    err = _error(
+        capsys,
+        [
+            "evaluate",
+            "--data",
+            str(route),
+            "--dataset-format",
+            "folders",
+            "--reference",
+            "day",
+            "--query",
+            "dusk",
+            "--method",
+            "raw",
+            "--filter-frames",
+        ],
+    )
     assert "--filter-frames: the folders format has no frame filter" in err
 
 
@@ -488,8 +891,22 @@ def test_accept_rules_json_and_table(matrix_files, tmp_path, capsys):
     # by default the field's protocol (raw: the best-match score) is the headline, fdnet's margin rule beside
     # it. margin: best minus the best outside radius 1 -> q0 .8 (right), q1 .3 (wrong: 4 vs its true 1 at
     # .5), q2 .6, q3 .5 -> the wrong one is the least confident: R@100P 3/4 (raw: 1/4)
-    assert main(["evaluate", "--similarity", str(npy), "--ground-truth", str(csv), "--accept-set", "radius=1",
-                 "--json", str(out)]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "--similarity",
+                str(npy),
+                "--ground-truth",
+                str(csv),
+                "--accept-set",
+                "radius=1",
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
     printed = capsys.readouterr().out
     assert "raw is the field's protocol" in printed and "margin is an fdnet acceptance rule" in printed
     one = json.loads(out.read_text())["results"][0]
@@ -498,15 +915,47 @@ def test_accept_rules_json_and_table(matrix_files, tmp_path, capsys):
     assert margin["settings"]["margin"]["radius"] == 1
     assert margin["recall_at_100_precision"] == pytest.approx(0.75)
     assert margin["recall_at_99_precision"] == pytest.approx(0.75)
-    assert main(["evaluate", "--similarity", str(npy), "--ground-truth", str(csv), "--accept", "margin",
-                 "--accept-set", "radius=1", "--json", str(out)]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "--similarity",
+                str(npy),
+                "--ground-truth",
+                str(csv),
+                "--accept",
+                "margin",
+                "--accept-set",
+                "radius=1",
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
     alone = json.loads(out.read_text())["results"][0]
     assert alone["acceptance"] == "margin" and alone["recall_at_100_precision"] == pytest.approx(0.75)
     assert "per_acceptance" not in alone
     capsys.readouterr()
     several = tmp_path / "several.json"
-    assert main(["evaluate", "--similarity", str(npy), "--ground-truth", str(csv), "--accept", "raw,margin,ratio",
-                 "--accept-set", "radius=0", "--json", str(several)]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "--similarity",
+                str(npy),
+                "--ground-truth",
+                str(csv),
+                "--accept",
+                "raw,margin,ratio",
+                "--accept-set",
+                "radius=0",
+                "--json",
+                str(several),
+            ]
+        )
+        == 0
+    )
     table = capsys.readouterr().out
     rows = {line.split()[1]: line.split() for line in table.splitlines() if line.startswith("toy ")}
     assert set(rows) == {"raw", "margin", "ratio"} and rows["raw"][6] == "0.250" and rows["margin"][6] == "0.750"
@@ -523,20 +972,44 @@ def test_accept_rules_json_and_table(matrix_files, tmp_path, capsys):
 
 def test_sequence_matching_with_the_margin_rule(tiny_method, route, tmp_path):
     out = tmp_path / "seq.json"
-    assert main(["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk", "--method", tiny_method,
-                 "--sequence-length", "3", "--accept", "margin,raw", "--accept-set", "radius=1",
-                 "--json", str(out)]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "--data",
+                str(route),
+                "--reference",
+                "day",
+                "--query",
+                "dusk",
+                "--method",
+                tiny_method,
+                "--sequence-length",
+                "3",
+                "--accept",
+                "margin,raw",
+                "--accept-set",
+                "radius=1",
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
     result = json.loads(out.read_text())["results"][0]
     assert result["acceptance"] == "margin" and result["settings"]["sequence_length"] == 3
     assert set(result["per_acceptance"]) == {"margin", "raw"}
 
 
-@pytest.mark.parametrize("extra, message", [
-    (["--accept", "best"], "unknown acceptance rule 'best'"),
-    (["--accept", "margin", "--accept-set", "radius=-2"], "radius=-2: must be an integer >= 0"),
-    (["--accept", "raw", "--accept-set", "radius=2"], "no setting 'radius' in rule raw"),
-    (["--accept", "floor"], "is a gate"),
-])
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--accept", "best"], "unknown acceptance rule 'best'"),
+        (["--accept", "margin", "--accept-set", "radius=-2"], "radius=-2: must be an integer >= 0"),
+        (["--accept", "raw", "--accept-set", "radius=2"], "no setting 'radius' in rule raw"),
+        (["--accept", "floor"], "is a gate"),
+    ],
+)
 def test_bad_acceptance_rules_are_errors(matrix_files, capsys, extra, message):
     npy, csv = matrix_files
     err = _error(capsys, ["evaluate", "--similarity", str(npy), "--ground-truth", str(csv), *extra])
@@ -545,15 +1018,47 @@ def test_bad_acceptance_rules_are_errors(matrix_files, capsys, extra, message):
 
 @pytest.mark.parametrize("frames", ["5:50", "10:", "12:20"])
 def test_a_frame_range_past_the_folders_end_is_refused(route, tiny_method, capsys, frames):
-    err = _error(capsys, ["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk",
-                          "--method", tiny_method, "--frames", frames])
+    err = _error(
+        capsys,
+        [
+            "evaluate",
+            "--data",
+            str(route),
+            "--reference",
+            "day",
+            "--query",
+            "dusk",
+            "--method",
+            tiny_method,
+            "--frames",
+            frames,
+        ],
+    )
     assert f"--frames {frames}: past the end of the folders (day 10, dusk 10 images)" in err
 
 
 def test_a_frame_range_inside_the_folders_is_evaluated(route, tiny_method, tmp_path):
     out = tmp_path / "r.json"
-    assert main(["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk", "--method", tiny_method,
-                 "--frames", "5:10", "--json", str(out)]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "--data",
+                str(route),
+                "--reference",
+                "day",
+                "--query",
+                "dusk",
+                "--method",
+                tiny_method,
+                "--frames",
+                "5:10",
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
     assert json.loads(out.read_text())["results"][0]["num_queries"] == 5
 
 
@@ -562,8 +1067,24 @@ def test_one_json_schema_with_predictions_and_a_paper_table(matrix_files, tmp_pa
     of results); --predictions adds each query's best references; --table prints a table to paste."""
     npy, csv = matrix_files
     out = tmp_path / "r.json"
-    assert main(["evaluate", "--similarity", str(npy), "--ground-truth", str(csv), "--json", str(out),
-                 "--predictions", "2", "--table", "markdown"]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "--similarity",
+                str(npy),
+                "--ground-truth",
+                str(csv),
+                "--json",
+                str(out),
+                "--predictions",
+                "2",
+                "--table",
+                "markdown",
+            ]
+        )
+        == 0
+    )
     printed = capsys.readouterr().out
     assert "| method | accept | data | R@1 | R@100P | AUC-PR |" in printed and "| toy | raw |" in printed
     doc = json.loads(out.read_text())

@@ -8,17 +8,28 @@ def test_unwritable_out_fails_before_loading_the_model(tmp_path, capsys):
     images.mkdir()
     blocker = tmp_path / "a-file"
     blocker.write_text("")
-    out = blocker / "vectors.npz"   # its parent is a regular file: nothing can be written there
+    out = blocker / "vectors.npz"  # its parent is a regular file: nothing can be written there
     # the checkpoint does not exist either: the output is refused first, before any loading
-    assert main(["extract", "--checkpoint", str(tmp_path / "no-run"), "--images", str(images),
-                 "--out", str(out)]) == 2
+    assert main(["extract", "--checkpoint", str(tmp_path / "no-run"), "--images", str(images), "--out", str(out)]) == 2
     err = capsys.readouterr().err
     assert err.startswith("fdnet extract: error: ") and str(out) in err and "cannot create the vectors file" in err
 
 
 def test_out_under_proc_is_refused(tmp_path, capsys):
-    assert main(["extract", "--checkpoint", str(tmp_path / "no-run"), "--images", str(tmp_path),
-                 "--out", "/proc/fdnet-extract-test/vectors.npz"]) == 2
+    assert (
+        main(
+            [
+                "extract",
+                "--checkpoint",
+                str(tmp_path / "no-run"),
+                "--images",
+                str(tmp_path),
+                "--out",
+                "/proc/fdnet-extract-test/vectors.npz",
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert "/proc/fdnet-extract-test/vectors.npz" in err and "cannot create the vectors file" in err
 
@@ -56,8 +67,27 @@ def test_extract_streams_batches_into_the_npz(tmp_path, capsys):
     run = _tiny_run(tmp_path / "run")
     images = _images(tmp_path / "images", 37)
     out = tmp_path / "v.npz"
-    assert main(["extract", "--checkpoint", str(run), "--images", str(images), "--out", str(out), "--fp32",
-                 "--batch-size", "8", "--workers", "1", "--device", "cpu"]) == 0
+    assert (
+        main(
+            [
+                "extract",
+                "--checkpoint",
+                str(run),
+                "--images",
+                str(images),
+                "--out",
+                str(out),
+                "--fp32",
+                "--batch-size",
+                "8",
+                "--workers",
+                "1",
+                "--device",
+                "cpu",
+            ]
+        )
+        == 0
+    )
     assert "37 images" in capsys.readouterr().out
     d = create("fdnet", checkpoint=run, device="cpu")
     paths = list_images(images)
@@ -74,8 +104,24 @@ def test_extract_stops_at_an_unreadable_image_and_leaves_nothing(tmp_path, capsy
     images = _images(tmp_path / "images", 20)
     (images / "frame_13.png").write_bytes(b"broken")
     out = tmp_path / "v.npz"
-    assert main(["extract", "--checkpoint", str(run), "--images", str(images), "--out", str(out),
-                 "--batch-size", "4", "--workers", "1"]) == 2
+    assert (
+        main(
+            [
+                "extract",
+                "--checkpoint",
+                str(run),
+                "--images",
+                str(images),
+                "--out",
+                str(out),
+                "--batch-size",
+                "4",
+                "--workers",
+                "1",
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert err.startswith("fdnet extract: error: ") and "frame_13.png" in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["images", "run"]
@@ -100,30 +146,79 @@ def test_extract_works_for_every_kind_of_method(tmp_path, capsys):
     torch.manual_seed(0)
     save_checkpoint(calc_run, {"calc": calc.build_network(tiny_config().model)}, tiny_config(), state={"step": 1})
     paths = list_images(images)
-    for method, extra, fitted in (("sad", [], False), ("trunk-whitened", ["--method-set", "dim=4"], True),
-                                  ("calc", ["--checkpoint", str(calc_run)], False)):
+    for method, extra, fitted in (
+        ("sad", [], False),
+        ("trunk-whitened", ["--method-set", "dim=4"], True),
+        ("calc", ["--checkpoint", str(calc_run)], False),
+    ):
         out = tmp_path / f"{method}.npz"
-        assert main(["extract", "--method", method, *extra, "--images", str(images), "--out", str(out),
-                     "--fp32", "--workers", "0", "--device", "cpu", "--no-progress"]) == 0
+        assert (
+            main(
+                [
+                    "extract",
+                    "--method",
+                    method,
+                    *extra,
+                    "--images",
+                    str(images),
+                    "--out",
+                    str(out),
+                    "--fp32",
+                    "--workers",
+                    "0",
+                    "--device",
+                    "cpu",
+                    "--no-progress",
+                ]
+            )
+            == 0
+        )
         printed = capsys.readouterr().out
         assert f"12 images -> {out} ({method}: descriptors" in printed
         assert ("learnt from the 12 extracted images" in printed) == fitted
-        options = {"checkpoint": str(calc_run), "bf16": False} if method == "calc" else \
-            {"dim": 4, "bf16": False} if fitted else {}
+        options = (
+            {"checkpoint": str(calc_run), "bf16": False}
+            if method == "calc"
+            else {"dim": 4, "bf16": False}
+            if fitted
+            else {}
+        )
         d = create(method, device="cpu", **options)
         if fitted:
             d.fit(paths)
         with np.load(out, allow_pickle=False) as z:
-            assert set(z.files) == {"descriptors", "names", "sources", "timestamps", "sizes", "mtimes_ns", "method",
-                                    "fingerprint", "settings"}
+            assert set(z.files) == {
+                "descriptors",
+                "names",
+                "sources",
+                "timestamps",
+                "sizes",
+                "mtimes_ns",
+                "method",
+                "fingerprint",
+                "settings",
+            }
             assert str(z["method"]) == method and isinstance(json.loads(str(z["settings"])), dict)
-            np.testing.assert_allclose(z["descriptors"], d.describe(load_images(paths, d.input_size)),
-                                       rtol=1e-4, atol=1e-5)
+            np.testing.assert_allclose(
+                z["descriptors"], d.describe(load_images(paths, d.input_size)), rtol=1e-4, atol=1e-5
+            )
 
 
 def test_extract_names_one_method(tmp_path, capsys):
-    assert main(["extract", "--method", "sad,hog", "--images", str(_images(tmp_path / "i", 2)),
-                 "--out", str(tmp_path / "v.npz")]) == 2
+    assert (
+        main(
+            [
+                "extract",
+                "--method",
+                "sad,hog",
+                "--images",
+                str(_images(tmp_path / "i", 2)),
+                "--out",
+                str(tmp_path / "v.npz"),
+            ]
+        )
+        == 2
+    )
     assert "name one" in capsys.readouterr().err
 
 
@@ -136,19 +231,53 @@ def test_a_runs_recorded_method_is_used_or_named(tmp_path, capsys):
     run = tmp_path / "calc"
     assert main(["train", "calc", "--data", str(data), "--preset", "tiny", "--steps", "2", "--out", str(run)]) == 0
     capsys.readouterr()
-    assert main(["extract", "--checkpoint", str(run), "--images", str(data / "day"), "--out",
-                 str(tmp_path / "v.npz")]) == 0
+    assert (
+        main(["extract", "--checkpoint", str(run), "--images", str(data / "day"), "--out", str(tmp_path / "v.npz")])
+        == 0
+    )
     printed = capsys.readouterr().out
     # float32 by default, as every other command describes (bf16 only with --bf16)
     assert "(calc: descriptors" in printed and ", fp32," in printed
-    assert main(["evaluate", "--data", str(data), "--reference", "day", "--query", "night", "--method", "fdnet",
-                 "--checkpoint", str(run)]) == 2
+    assert (
+        main(
+            [
+                "evaluate",
+                "--data",
+                str(data),
+                "--reference",
+                "day",
+                "--query",
+                "night",
+                "--method",
+                "fdnet",
+                "--checkpoint",
+                str(run),
+            ]
+        )
+        == 2
+    )
     assert f"{run}: a run of `fdnet train calc`, not of fdnet: give --method calc" in capsys.readouterr().err
     # a method that reads an FDNet run's trunk names the run's method too, not the run config's keys
-    assert main(["extract", "--method", "trunk", "--checkpoint", str(run), "--images", str(data / "day"), "--out",
-                 str(tmp_path / "t.npz")]) == 2
-    assert (f"{run}: a run of `fdnet train calc`, but --method trunk takes a run of `fdnet train fdnet`: give "
-            "--method calc for this run") in capsys.readouterr().err
+    assert (
+        main(
+            [
+                "extract",
+                "--method",
+                "trunk",
+                "--checkpoint",
+                str(run),
+                "--images",
+                str(data / "day"),
+                "--out",
+                str(tmp_path / "t.npz"),
+            ]
+        )
+        == 2
+    )
+    assert (
+        f"{run}: a run of `fdnet train calc`, but --method trunk takes a run of `fdnet train fdnet`: give "
+        "--method calc for this run"
+    ) in capsys.readouterr().err
 
 
 def test_extract_h5_holds_the_npz_vectors_as_hlocs_global_features(tmp_path, capsys):
@@ -160,8 +289,20 @@ def test_extract_h5_holds_the_npz_vectors_as_hlocs_global_features(tmp_path, cap
 
     run = _tiny_run(tmp_path / "run")
     images = _images(tmp_path / "images", 13)
-    common = ["--checkpoint", str(run), "--images", str(images), "--fp32", "--batch-size", "4", "--workers", "1",
-              "--device", "cpu", "--no-progress"]
+    common = [
+        "--checkpoint",
+        str(run),
+        "--images",
+        str(images),
+        "--fp32",
+        "--batch-size",
+        "4",
+        "--workers",
+        "1",
+        "--device",
+        "cpu",
+        "--no-progress",
+    ]
     assert main(["extract", *common, "--out", str(tmp_path / "v.npz")]) == 0
     assert main(["extract", *common, "--format", "h5", "--out", str(tmp_path / "v.h5")]) == 0
     printed = capsys.readouterr().out
@@ -200,8 +341,27 @@ def test_extract_h5_stops_at_an_unreadable_image_and_leaves_nothing(tmp_path, ca
     (images / "frame_6.png").write_bytes(b"broken")
     out = tmp_path / "v.h5"
     out.write_bytes(b"the old file")
-    assert main(["extract", "--method", "sad", "--images", str(images), "--format", "h5", "--out", str(out),
-                 "--batch-size", "2", "--workers", "1", "--no-progress"]) == 2
+    assert (
+        main(
+            [
+                "extract",
+                "--method",
+                "sad",
+                "--images",
+                str(images),
+                "--format",
+                "h5",
+                "--out",
+                str(out),
+                "--batch-size",
+                "2",
+                "--workers",
+                "1",
+                "--no-progress",
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert err.startswith("fdnet extract: error: ") and "frame_6.png" in err and err.count("\n") == 1
     assert out.read_bytes() == b"the old file"  # untouched, and no temporary beside it
@@ -218,8 +378,12 @@ def test_extract_h5_names_a_videos_frames_relative_to_its_folder(tmp_path, capsy
     (tmp_path / "route").mkdir()
     video = write_video(tmp_path / "route" / "summer.avi", frames)
     out = tmp_path / "v.h5"
-    assert main(["extract", "--method", "sad", "--images", str(video), "--out", str(out), "--workers", "0",
-                 "--no-progress"]) == 0
+    assert (
+        main(
+            ["extract", "--method", "sad", "--images", str(video), "--out", str(out), "--workers", "0", "--no-progress"]
+        )
+        == 0
+    )
     names, _ = read_global_features(out)
     assert len(names) == 3 and all(n.startswith("summer.avi/frame_") for n in names)
     assert f"relative to {tmp_path / 'route'}" in capsys.readouterr().out
@@ -239,8 +403,24 @@ def test_extract_recursive_h5_names_images_as_hlocs_image_dir_does(tmp_path):
     (root / "query" / ".hidden").mkdir()
     (root / "query" / ".hidden" / "x.png").write_bytes((root / "query" / "frame_0.png").read_bytes())
     out = tmp_path / "global-feats.h5"
-    assert main(["extract", "--method", "sad", "--images", str(root), "--recursive", "--out", str(out),
-                 "--workers", "0", "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "extract",
+                "--method",
+                "sad",
+                "--images",
+                str(root),
+                "--recursive",
+                "--out",
+                str(out),
+                "--workers",
+                "0",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     names, vectors = read_global_features(out)
     assert names == ["db/frame_0.png", "db/frame_1.png", "db/frame_2.png", "query/frame_0.png", "query/frame_1.png"]
     with h5py.File(out, "r") as f:  # what hloc's get_descriptors reads
@@ -259,8 +439,21 @@ def test_torchrun_two_processes_write_the_npz_one_process_writes(tmp_path):
 
     run = _tiny_run(tmp_path / "run")
     images = _images(tmp_path / "images", 23)
-    common = ["extract", "--checkpoint", str(run), "--images", str(images), "--fp32", "--batch-size", "4",
-              "--workers", "0", "--device", "cpu", "--no-progress"]
+    common = [
+        "extract",
+        "--checkpoint",
+        str(run),
+        "--images",
+        str(images),
+        "--fp32",
+        "--batch-size",
+        "4",
+        "--workers",
+        "0",
+        "--device",
+        "cpu",
+        "--no-progress",
+    ]
     assert main([*common, "--out", str(tmp_path / "one.npz")]) == 0
     result = torchrun(*common, "--out", tmp_path / "two.npz", tmpdir=tmp_path / "tmp")
     assert result.returncode == 0, result.stderr
@@ -290,8 +483,20 @@ def test_torchrun_a_killed_process_stops_the_other_and_a_rerun_writes_the_whole_
 
     images = _images(tmp_path / "images", 30)
     out = tmp_path / "v.npz"
-    common = ["extract", "--method", "sad", "--images", str(images), "--out", str(out), "--batch-size", "4",
-              "--workers", "0", "--no-progress"]
+    common = [
+        "extract",
+        "--method",
+        "sad",
+        "--images",
+        str(images),
+        "--out",
+        str(out),
+        "--batch-size",
+        "4",
+        "--workers",
+        "0",
+        "--no-progress",
+    ]
     killed = torchrun(*common, tmpdir=tmp_path / "tmp", env={KILL_VARIABLE: "1:2"})
     assert killed.returncode != 0
     errors = error_lines(killed)
@@ -313,11 +518,24 @@ def test_a_checkpoint_rotted_on_disk_is_refused_naming_the_file(tmp_path, capsys
     run = _tiny_run(tmp_path / "run")
     weights = next(run.rglob("model.safetensors"))
     data = bytearray(weights.read_bytes())
-    data[-4096 - 64:-64] = b"\xff" * 4096  # inside the tensor data: safetensors itself reads it without a word
+    data[-4096 - 64 : -64] = b"\xff" * 4096  # inside the tensor data: safetensors itself reads it without a word
     weights.write_bytes(bytes(data))
     out = tmp_path / "v.npz"
-    code = main(["extract", "--checkpoint", str(run), "--images", str(_images(tmp_path / "images", 3)),
-                 "--out", str(out), "--workers", "0", "--device", "cpu"])
+    code = main(
+        [
+            "extract",
+            "--checkpoint",
+            str(run),
+            "--images",
+            str(_images(tmp_path / "images", 3)),
+            "--out",
+            str(out),
+            "--workers",
+            "0",
+            "--device",
+            "cpu",
+        ]
+    )
     err = capsys.readouterr().err
     assert code == 2 and f"{weights}: the weights do not match the checksum" in err, err
     assert len(err.strip().splitlines()) == 1 and not out.exists()
@@ -338,8 +556,22 @@ def test_extract_refuses_vectors_that_are_not_finite_naming_the_first_image(tmp_
     save_checkpoint(tmp_path / "run", model.named_parts(), config, state={"step": 1})
     images = _images(tmp_path / "images", 3)
     out = tmp_path / "v.npz"
-    code = main(["extract", "--checkpoint", str(tmp_path / "run"), "--images", str(images), "--out", str(out),
-                 "--workers", "0", "--device", "cpu", "--fp32"])
+    code = main(
+        [
+            "extract",
+            "--checkpoint",
+            str(tmp_path / "run"),
+            "--images",
+            str(images),
+            "--out",
+            str(out),
+            "--workers",
+            "0",
+            "--device",
+            "cpu",
+            "--fp32",
+        ]
+    )
     err = capsys.readouterr().err
     assert code == 2 and f"the vector of {images / 'frame_0.png'} holds NaN" in err, err
     assert len(err.strip().splitlines()) == 1 and not out.exists()
@@ -354,6 +586,21 @@ def test_replacing_a_private_vectors_file_keeps_it_private(tmp_path):
         out = tmp_path / name
         out.write_bytes(b"old")
         os.chmod(out, 0o600)
-        assert main(["extract", "--method", "sad", "--images", str(images), "--out", str(out), "--workers", "0",
-                     "--no-progress"]) == 0
+        assert (
+            main(
+                [
+                    "extract",
+                    "--method",
+                    "sad",
+                    "--images",
+                    str(images),
+                    "--out",
+                    str(out),
+                    "--workers",
+                    "0",
+                    "--no-progress",
+                ]
+            )
+            == 0
+        )
         assert out.stat().st_size > 3 and stat.S_IMODE(out.stat().st_mode) == 0o600, name

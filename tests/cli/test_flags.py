@@ -8,13 +8,16 @@ import pytest
 from fdnet.cli import build_parser, main
 
 
-@pytest.mark.parametrize("argv", [
-    ["synth", "--out", "route", "--frames", "3"],
-    ["demo", "--train-minutes", "1"],
-    ["groundtruth", "--aligned", "--out", "gt.csv", "--tolerance-frames", "2"],
-    ["database", "build", "--images", "map", "--db", "map.db", "--method", "sad", "--out", "other.db"],
-    ["evaluate", "--methods", "sad"],
-])
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["synth", "--out", "route", "--frames", "3"],
+        ["demo", "--train-minutes", "1"],
+        ["groundtruth", "--aligned", "--out", "gt.csv", "--tolerance-frames", "2"],
+        ["database", "build", "--images", "map", "--db", "map.db", "--method", "sad", "--out", "other.db"],
+        ["evaluate", "--methods", "sad"],
+    ],
+)
 def test_a_spelling_that_is_not_a_flag_is_refused(argv, tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     with pytest.raises(SystemExit) as exit_:

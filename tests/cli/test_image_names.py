@@ -34,32 +34,101 @@ def test_every_output_names_an_image_the_same_way(tmp_path, monkeypatch, capsys)
     expected = {i: str(link / f"frame_{i:03d}.png") for i in range(2 * PLACES)}  # as listed, not resolved
     assert all(image_name(f"linked/frame_{i:03d}.png") == name for i, name in expected.items())
 
-    assert main(["match", "--reference", "linked", "--query", "linked", "--method", "raw", "--top-k", "1",
-                 "--out", str(tmp_path / "m.csv")]) == 0
+    assert (
+        main(
+            [
+                "match",
+                "--reference",
+                "linked",
+                "--query",
+                "linked",
+                "--method",
+                "raw",
+                "--top-k",
+                "1",
+                "--out",
+                str(tmp_path / "m.csv"),
+            ]
+        )
+        == 0
+    )
     rows = read_csv_rows(tmp_path / "m.csv")
     assert {int(r["query_index"]): r["query"] for r in rows} == expected
     assert {int(r["reference_index"]): r["reference"] for r in rows} == expected
 
     db = tmp_path / "map.db"
     assert main(["database", "build", "--images", "linked", "--method", "raw", "--db", str(db)]) == 0
-    assert main(["database", "query", "--db", str(db), "--images", "linked", "--top-k", "1",
-                 "--out", str(tmp_path / "q.csv")]) == 0
+    assert (
+        main(
+            [
+                "database",
+                "query",
+                "--db",
+                str(db),
+                "--images",
+                "linked",
+                "--top-k",
+                "1",
+                "--out",
+                str(tmp_path / "q.csv"),
+            ]
+        )
+        == 0
+    )
     rows = read_csv_rows(tmp_path / "q.csv")
     assert {int(r["query_index"]): r["query"] for r in rows} == expected
     assert {int(r["place_index"]): r["place"] for r in rows} == expected
 
-    assert main(["loop-closure", "--images", "linked", "--method", "raw", "--sequence-length", "1",
-                 "--exclude-last", "2", "--accept", "margin", "--threshold", "0", "--out",
-                 str(tmp_path / "events.csv")]) == 0
+    assert (
+        main(
+            [
+                "loop-closure",
+                "--images",
+                "linked",
+                "--method",
+                "raw",
+                "--sequence-length",
+                "1",
+                "--exclude-last",
+                "2",
+                "--accept",
+                "margin",
+                "--threshold",
+                "0",
+                "--out",
+                str(tmp_path / "events.csv"),
+            ]
+        )
+        == 0
+    )
     events = read_csv_rows(tmp_path / "events.csv")
     assert events and all(r["query"] == expected[int(r["query_index"])] for r in events)
     assert all(r["match"] == expected[int(r["match_index"])] for r in events)
 
     truth = tmp_path / "gt.csv"
     truth.write_text("".join(f"{i},{i}\n" for i in range(2 * PLACES)))
-    assert main(["evaluate", "--data", ".", "--reference", "linked", "--query", "linked", "--method", "raw",
-                 "--ground-truth",
-                 str(truth), "--predictions", "1", "--json", str(tmp_path / "e.json")]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "--data",
+                ".",
+                "--reference",
+                "linked",
+                "--query",
+                "linked",
+                "--method",
+                "raw",
+                "--ground-truth",
+                str(truth),
+                "--predictions",
+                "1",
+                "--json",
+                str(tmp_path / "e.json"),
+            ]
+        )
+        == 0
+    )
     predictions = json.loads((tmp_path / "e.json").read_text())["results"][0]["predictions"]
     assert {p["query_index"]: p["query"] for p in predictions} == expected
     assert all(p["top_names"] == [expected[i] for i in p["top"]] for p in predictions)

@@ -45,19 +45,88 @@ def _commands(route, vocabulary_images, tiny_run, out):
     """command name -> argv writing into folder ``out``: each output is larger than 4 KiB."""
     summer, winter = str(route / "summer"), str(route / "winter")
     return {
-        "database build": ["database", "build", "--images", summer, "--method", "sad", "--db", f"{out}/map.db",
-                           "--workers", "0"],
-        "match": ["match", "--reference", summer, "--query", winter, "--method", "sad", "--out", f"{out}/m.csv",
-                  "--workers", "0"],
-        "evaluate": ["evaluate", "--data", str(route), "--reference", "summer", "--query", "winter",
-                     "--method", "sad,hog", "--json", f"{out}/results.json", "--workers", "0"],
-        "groundtruth": ["groundtruth", "--aligned", "--num-queries", "500", "--num-references", "500",
-                        "--tolerance", "2", "--out", f"{out}/gt.csv"],
-        "vocabulary": ["vocabulary", "build", "--images", str(vocabulary_images), "--out", f"{out}/v.safetensors",
-                       "--size", "128", "256", "--branching", "8", "--depth", "3"],
+        "database build": [
+            "database",
+            "build",
+            "--images",
+            summer,
+            "--method",
+            "sad",
+            "--db",
+            f"{out}/map.db",
+            "--workers",
+            "0",
+        ],
+        "match": [
+            "match",
+            "--reference",
+            summer,
+            "--query",
+            winter,
+            "--method",
+            "sad",
+            "--out",
+            f"{out}/m.csv",
+            "--workers",
+            "0",
+        ],
+        "evaluate": [
+            "evaluate",
+            "--data",
+            str(route),
+            "--reference",
+            "summer",
+            "--query",
+            "winter",
+            "--method",
+            "sad,hog",
+            "--json",
+            f"{out}/results.json",
+            "--workers",
+            "0",
+        ],
+        "groundtruth": [
+            "groundtruth",
+            "--aligned",
+            "--num-queries",
+            "500",
+            "--num-references",
+            "500",
+            "--tolerance",
+            "2",
+            "--out",
+            f"{out}/gt.csv",
+        ],
+        "vocabulary": [
+            "vocabulary",
+            "build",
+            "--images",
+            str(vocabulary_images),
+            "--out",
+            f"{out}/v.safetensors",
+            "--size",
+            "128",
+            "256",
+            "--branching",
+            "8",
+            "--depth",
+            "3",
+        ],
         "synth": ["synth", "--out", f"{out}/synthetic", "--num-frames", "10", "--size", "32x64"],
-        "extract": ["extract", "--checkpoint", str(tiny_run), "--images", summer, "--out", f"{out}/v.npz",
-                    "--device", "cpu", "--workers", "0", "--fp32"],
+        "extract": [
+            "extract",
+            "--checkpoint",
+            str(tiny_run),
+            "--images",
+            summer,
+            "--out",
+            f"{out}/v.npz",
+            "--device",
+            "cpu",
+            "--workers",
+            "0",
+            "--fp32",
+        ],
         "train": ["train", "--data", str(route), "--preset", "tiny", "--out", f"{out}/run", "--no-progress"],
     }
 
@@ -66,9 +135,19 @@ def _commands(route, vocabulary_images, tiny_run, out):
 #: and an empty log; no checkpoint, no configuration
 #: what a training stopped by a failed write leaves: the run's lock, an empty log, and the save
 #: locks of the checkpoints and of a stage's weights (no half generation)
-RUN_LOCKS = {"run", "run/.lock", "run/log.csv", "run/checkpoints", "run/checkpoints/.save.lock", "run/stages",
-             *(f"run/stages/{stage}{tail}" for stage in ("autoencoder", "critic", "joint")
-               for tail in ("", "/checkpoints", "/checkpoints/.save.lock"))}
+RUN_LOCKS = {
+    "run",
+    "run/.lock",
+    "run/log.csv",
+    "run/checkpoints",
+    "run/checkpoints/.save.lock",
+    "run/stages",
+    *(
+        f"run/stages/{stage}{tail}"
+        for stage in ("autoencoder", "critic", "joint")
+        for tail in ("", "/checkpoints", "/checkpoints/.save.lock")
+    ),
+}
 COMMANDS = ["database build", "match", "evaluate", "groundtruth", "vocabulary", "synth", "extract", "train"]
 
 
@@ -80,8 +159,9 @@ def _check_one_line(err: str, command: str, where: str, reasons: tuple[str, ...]
 
 
 @pytest.mark.parametrize("command", COMMANDS)
-def test_a_full_disk_is_one_line_naming_the_file_and_leaves_nothing(command, small_disk, route, vocabulary_images,
-                                                                     tiny_run, capsys):
+def test_a_full_disk_is_one_line_naming_the_file_and_leaves_nothing(
+    command, small_disk, route, vocabulary_images, tiny_run, capsys
+):
     argv = _commands(route, vocabulary_images, tiny_run, small_disk.path)[command]
     small_disk.fill(4096)
     assert main(argv) == 2
@@ -94,8 +174,9 @@ def test_a_full_disk_is_one_line_naming_the_file_and_leaves_nothing(command, sma
 
 
 @pytest.mark.parametrize("command", COMMANDS)
-def test_a_write_the_kernel_refuses_is_one_line_on_any_machine(command, tmp_path, route, vocabulary_images, tiny_run,
-                                                               file_size_limit, capsys):
+def test_a_write_the_kernel_refuses_is_one_line_on_any_machine(
+    command, tmp_path, route, vocabulary_images, tiny_run, file_size_limit, capsys
+):
     argv = _commands(route, vocabulary_images, tiny_run, tmp_path / "out")[command]
     with file_size_limit(2048):
         code = main(argv)
@@ -108,16 +189,23 @@ def test_a_write_the_kernel_refuses_is_one_line_on_any_machine(command, tmp_path
         assert left == [], left
 
 
-@pytest.mark.parametrize("error, expected", [
-    (OSError(errno.ENOSPC, "No space left on device"), "writing OUT: no space left on the device"),
-    (OSError(errno.ENOSPC, "No space left on device", "OUT/.part"), "OUT/.part: no space left on the device"),
-    (PermissionError(errno.EACCES, "Permission denied", "/some/input.png"), "/some/input.png: permission denied"),
-    (OSError(errno.EROFS, "Read-only file system", "/media/x"), "/media/x (writing OUT): read-only file system"),
-    (UnicodeEncodeError("utf-8", "/maps/caf\udce9.png", 9, 10, "surrogates not allowed"),
-     "a file name that is not valid UTF-8 ('/maps/caf\\udce9.png') cannot be written here; rename the file"),
-    (MemoryError("Unable to allocate 291. GiB"),
-     "out of memory (Unable to allocate 291. GiB); use smaller inputs or settings"),
-])
+@pytest.mark.parametrize(
+    "error, expected",
+    [
+        (OSError(errno.ENOSPC, "No space left on device"), "writing OUT: no space left on the device"),
+        (OSError(errno.ENOSPC, "No space left on device", "OUT/.part"), "OUT/.part: no space left on the device"),
+        (PermissionError(errno.EACCES, "Permission denied", "/some/input.png"), "/some/input.png: permission denied"),
+        (OSError(errno.EROFS, "Read-only file system", "/media/x"), "/media/x (writing OUT): read-only file system"),
+        (
+            UnicodeEncodeError("utf-8", "/maps/caf\udce9.png", 9, 10, "surrogates not allowed"),
+            "a file name that is not valid UTF-8 ('/maps/caf\\udce9.png') cannot be written here; rename the file",
+        ),
+        (
+            MemoryError("Unable to allocate 291. GiB"),
+            "out of memory (Unable to allocate 291. GiB); use smaller inputs or settings",
+        ),
+    ],
+)
 def test_every_command_reports_an_os_error_as_one_line(error, expected, monkeypatch, capsys):
     import fdnet.cli.synth
 
@@ -129,8 +217,14 @@ def test_every_command_reports_an_os_error_as_one_line(error, expected, monkeypa
     assert capsys.readouterr().err == f"fdnet synth: error: {expected}\n"
 
 
-@pytest.mark.parametrize("error", [ValueError("a bug"), OSError(errno.EINVAL, "Invalid argument"),
-                                   FileNotFoundError(errno.ENOENT, "No such file or directory")])
+@pytest.mark.parametrize(
+    "error",
+    [
+        ValueError("a bug"),
+        OSError(errno.EINVAL, "Invalid argument"),
+        FileNotFoundError(errno.ENOENT, "No such file or directory"),
+    ],
+)
 def test_a_bug_keeps_its_traceback(error, monkeypatch):
     import fdnet.cli.synth
 
@@ -144,8 +238,23 @@ def test_a_bug_keeps_its_traceback(error, monkeypatch):
 
 def test_database_add_on_a_full_disk_is_one_line_and_keeps_the_database(small_disk, route, capsys):
     db = small_disk.path / "map.db"
-    assert main(["database", "build", "--images", str(route / "summer"), "--method", "sad", "--db", str(db),
-                 "--workers", "0"]) == 0
+    assert (
+        main(
+            [
+                "database",
+                "build",
+                "--images",
+                str(route / "summer"),
+                "--method",
+                "sad",
+                "--db",
+                str(db),
+                "--workers",
+                "0",
+            ]
+        )
+        == 0
+    )
     before = sorted(small_disk.files())
     small_disk.fill(4096)
     assert main(["database", "add", "--db", str(db), "--images", str(route / "winter"), "--workers", "0"]) == 2
@@ -159,8 +268,23 @@ def test_database_add_on_a_full_disk_is_one_line_and_keeps_the_database(small_di
 
 def test_database_add_under_a_file_size_limit_is_one_line(tmp_path, route, file_size_limit, capsys):
     db = tmp_path / "out" / "map.db"
-    assert main(["database", "build", "--images", str(route / "summer"), "--method", "sad", "--db", str(db),
-                 "--workers", "0"]) == 0
+    assert (
+        main(
+            [
+                "database",
+                "build",
+                "--images",
+                str(route / "summer"),
+                "--method",
+                "sad",
+                "--db",
+                str(db),
+                "--workers",
+                "0",
+            ]
+        )
+        == 0
+    )
     before = sorted(p.name for p in db.parent.iterdir())
     with file_size_limit(2048):
         assert main(["database", "add", "--db", str(db), "--images", str(route / "winter"), "--workers", "0"]) == 2
@@ -229,8 +353,9 @@ def test_a_value_that_starts_with_a_dash_is_explained(tmp_path, capsys):
     assert err.startswith("fdnet match: error: argument --out: expected one argument") and "--out=-x.csv" in err
 
 
-@pytest.mark.parametrize("case", ["match --out", "evaluate --json", "loop-closure --out", "match hard link",
-                                  "match symlink"])
+@pytest.mark.parametrize(
+    "case", ["match --out", "evaluate --json", "loop-closure --out", "match hard link", "match symlink"]
+)
 def test_an_output_that_is_one_of_the_commands_input_images_is_refused_and_the_image_kept(case, tmp_path, capsys):
     """Every image and video a command reads is protected from its outputs, under any name (a
     symbolic or a hard link too): one line naming both, the image byte for byte as it was."""
@@ -251,16 +376,47 @@ def test_an_output_that_is_one_of_the_commands_input_images_is_refused_and_the_i
         target.symlink_to(image)
     command = case.split()[0]
     if command == "match":
-        argv = ["match", "--reference", str(route / "day"), "--query", str(route / "night"), "--method", "raw",
-                "--out", str(target)]
+        argv = [
+            "match",
+            "--reference",
+            str(route / "day"),
+            "--query",
+            str(route / "night"),
+            "--method",
+            "raw",
+            "--out",
+            str(target),
+        ]
     elif command == "evaluate":
-        argv = ["evaluate", "--data", str(route), "--reference", "day", "--query", "night", "--method", "raw",
-                "--json", str(target)]
+        argv = [
+            "evaluate",
+            "--data",
+            str(route),
+            "--reference",
+            "day",
+            "--query",
+            "night",
+            "--method",
+            "raw",
+            "--json",
+            str(target),
+        ]
     else:
         shutil.copytree(route / "night", tmp_path / "loop")
         image = target = tmp_path / "loop" / "003.png"
-        argv = ["loop-closure", "--images", str(tmp_path / "loop"), "--method", "raw", "--exclude-last", "2",
-                "--threshold", "0.5", "--out", str(image)]
+        argv = [
+            "loop-closure",
+            "--images",
+            str(tmp_path / "loop"),
+            "--method",
+            "raw",
+            "--exclude-last",
+            "2",
+            "--threshold",
+            "0.5",
+            "--out",
+            str(image),
+        ]
     code = main([*argv, "--workers", "0"])
     err = capsys.readouterr().err
     errors = [line for line in err.splitlines() if ": error: " in line]
@@ -281,8 +437,9 @@ def test_output_to_a_reader_that_left_ends_quietly(tmp_path):
     read_end, write_end = os.pipe()
     os.close(read_end)
     try:
-        result = subprocess.run([sys.executable, "-m", "fdnet", "methods"], stdout=write_end,
-                                stderr=subprocess.PIPE, text=True, timeout=120)
+        result = subprocess.run(
+            [sys.executable, "-m", "fdnet", "methods"], stdout=write_end, stderr=subprocess.PIPE, text=True, timeout=120
+        )
     finally:
         os.close(write_end)
     assert result.returncode == 141 and result.stderr == "", result.stderr

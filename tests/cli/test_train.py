@@ -17,18 +17,62 @@ def _dataset(root, n=8):
 def test_train_resume_extract(tmp_path, capsys):
     data = _dataset(tmp_path / "data")
     out = tmp_path / "run"
-    assert main(["train", "--data", str(data), "--preset", "tiny", "--out", str(out), "--no-progress",
-                 "--set", "schedule.joint_steps=1", "--validate-reference", "day", "--validate-query", "night",
-                 "--validate-tolerance", "1"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                "--data",
+                str(data),
+                "--preset",
+                "tiny",
+                "--out",
+                str(out),
+                "--no-progress",
+                "--set",
+                "schedule.joint_steps=1",
+                "--validate-reference",
+                "day",
+                "--validate-query",
+                "night",
+                "--validate-tolerance",
+                "1",
+            ]
+        )
+        == 0
+    )
     assert "finished at step 6/6" in capsys.readouterr().out
     # a changed setting on --resume is refused with the list of differences ...
-    assert main(["train", "--data", str(data), "--out", str(out), "--resume", "--no-progress",
-                 "--set", "schedule.joint_steps=2"]) == 2
+    assert (
+        main(
+            [
+                "train",
+                "--data",
+                str(data),
+                "--out",
+                str(out),
+                "--resume",
+                "--no-progress",
+                "--set",
+                "schedule.joint_steps=2",
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert "fdnet train: error:" in err and "schedule.joint_steps: saved 1, requested 2" in err and "--override" in err
     # ... and applied with --override, recorded with the step it took effect
-    resumed = ["train", "--data", str(data), "--out", str(out), "--resume", "--override", "--no-progress",
-               "--set", "schedule.joint_steps=2"]
+    resumed = [
+        "train",
+        "--data",
+        str(data),
+        "--out",
+        str(out),
+        "--resume",
+        "--override",
+        "--no-progress",
+        "--set",
+        "schedule.joint_steps=2",
+    ]
     assert main(resumed) == 0
     assert "finished at step 7/7" in capsys.readouterr().out
     import shlex
@@ -38,8 +82,22 @@ def test_train_resume_extract(tmp_path, capsys):
     # the record names the command line that made the change (as docs/runs.md shows), not just "fdnet train"
     assert runs.read_changes(out)[0]["step"] == 6
     assert runs.read_changes(out)[0]["command"] == shlex.join(["fdnet", *resumed])
-    assert main(["extract", "--checkpoint", str(out), "--images", str(data / "night"),
-                 "--out", str(tmp_path / "v.npz"), "--threads", "1"]) == 0
+    assert (
+        main(
+            [
+                "extract",
+                "--checkpoint",
+                str(out),
+                "--images",
+                str(data / "night"),
+                "--out",
+                str(tmp_path / "v.npz"),
+                "--threads",
+                "1",
+            ]
+        )
+        == 0
+    )
     z = np.load(tmp_path / "v.npz")
     assert z["content"].shape == (8, 16) and z["appearance"].shape == (8, 16)
     assert list(z["names"]) == [f"im{i:03d}.png" for i in range(8)]
@@ -50,17 +108,32 @@ def test_clear_errors_exit_2(tmp_path, capsys):
     data = _dataset(tmp_path / "data")
     assert main(["train", "--data", str(data), "--preset", "nope", "--out", str(tmp_path / "r")]) == 2
     assert "unknown preset 'nope'" in capsys.readouterr().err
-    assert main(["train", "--data", str(data), "--preset", "tiny", "--out", str(tmp_path / "r"),
-                 "--set", "model.input_size=[18,40]"]) == 2
+    assert (
+        main(
+            [
+                "train",
+                "--data",
+                str(data),
+                "--preset",
+                "tiny",
+                "--out",
+                str(tmp_path / "r"),
+                "--set",
+                "model.input_size=[18,40]",
+            ]
+        )
+        == 2
+    )
     assert "height 18" in capsys.readouterr().err
-    assert main(["train", "--data", str(data), "--preset", "tiny", "--out", str(tmp_path / "r"),
-                 "--conditions", "day"]) == 2
+    assert (
+        main(["train", "--data", str(data), "--preset", "tiny", "--out", str(tmp_path / "r"), "--conditions", "day"])
+        == 2
+    )
     assert "at least 2 conditions" in capsys.readouterr().err
     assert main(["train", "--data", str(data), "--out", str(tmp_path / "none"), "--resume"]) == 2
     assert "no run to resume" in capsys.readouterr().err
     for bad in ("optim.lr=nan", "optim.lr=-1e-4"):
-        assert main(["train", "--data", str(data), "--preset", "tiny", "--out", str(tmp_path / "r"),
-                     "--set", bad]) == 2
+        assert main(["train", "--data", str(data), "--preset", "tiny", "--out", str(tmp_path / "r"), "--set", bad]) == 2
         assert "optim.lr" in capsys.readouterr().err
     assert main(["train", "--data", str(data), "--preset", "tiny", "--out", "/proc/fdnet-run"]) == 2
     assert "/proc/fdnet-run" in capsys.readouterr().err
@@ -76,8 +149,10 @@ def test_a_run_directory_in_use_is_refused_with_the_holders_pid(tmp_path, capsys
 
     data = _dataset(tmp_path / "data")
     with runs.RunLock(tmp_path / "run", command="fdnet train"):
-        assert main(["train", "--data", str(data), "--preset", "tiny", "--out", str(tmp_path / "run"),
-                     "--no-progress"]) == 2
+        assert (
+            main(["train", "--data", str(data), "--preset", "tiny", "--out", str(tmp_path / "run"), "--no-progress"])
+            == 2
+        )
     assert f"in use by process {os.getpid()}" in capsys.readouterr().err
 
 
@@ -87,15 +162,48 @@ def test_train_with_dataset_format_and_named_split(tmp_path, capsys):
 
     root = _dataset(tmp_path / "data", n=10)
     out = tmp_path / "run"
-    assert main(["train", "--data", str(root), "--dataset-format", "folders", "--split", "0:6",
-                 "--preset", "tiny", "--out", str(out), "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                "--data",
+                str(root),
+                "--dataset-format",
+                "folders",
+                "--split",
+                "0:6",
+                "--preset",
+                "tiny",
+                "--out",
+                str(out),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     assert "fdnet train: preset tiny, conditions day, night (6, 6 images)" in capsys.readouterr().err
     config = load_config(out, FDNetRunConfig)
     assert (config.data.dataset_format, config.data.split) == ("folders", "0:6")
     # --resume reads the same split from the run's own config
     assert main(["train", "--data", str(root), "--out", str(out), "--resume", "--no-progress"]) == 0
-    assert main(["train", "--data", str(root), "--dataset-format", "folders", "--frames", "0:6",
-                 "--preset", "tiny", "--out", str(tmp_path / "r2")]) == 2
+    assert (
+        main(
+            [
+                "train",
+                "--data",
+                str(root),
+                "--dataset-format",
+                "folders",
+                "--frames",
+                "0:6",
+                "--preset",
+                "tiny",
+                "--out",
+                str(tmp_path / "r2"),
+            ]
+        )
+        == 2
+    )
     assert "--split" in capsys.readouterr().err
 
 
@@ -177,8 +285,9 @@ class DummyRunConfig:
 PRESETS = {"tiny": lambda: DummyRunConfig(preset="tiny", train=DummyTrain(steps=3))}
 
 
-def train_dummy(config, run_dir, resume=False, override=False, max_minutes=None, progress=True,
-                command="fdnet train dummy"):
+def train_dummy(
+    config, run_dir, resume=False, override=False, max_minutes=None, progress=True, command="fdnet train dummy"
+):
     import torch
 
     from fdnet.training.data import route_images, training_route
@@ -213,8 +322,16 @@ def train_dummy(config, run_dir, resume=False, override=False, max_minutes=None,
             self.optimizer.step()
             return {"loss": float(loss.detach())}
 
-    return run_training(lambda: (DummyTraining(), None), run_dir, resume=resume, override=override,
-                        max_minutes=max_minutes, progress=progress, command=command, runtime=config.runtime)
+    return run_training(
+        lambda: (DummyTraining(), None),
+        run_dir,
+        resume=resume,
+        override=override,
+        max_minutes=max_minutes,
+        progress=progress,
+        command=command,
+        runtime=config.runtime,
+    )
 
 
 @pytest.fixture
@@ -222,9 +339,19 @@ def dummy_method(monkeypatch):
     """Adding a trained method: its own package (here this module) and one registry line."""
     from fdnet.descriptors import registry
 
-    monkeypatch.setitem(registry._METHODS, "dummy", registry.MethodSpec(
-        "dummy", "test stand-in", "fdnet.descriptors.classic:RawThumbnail", config=f"{__name__}:DummyRunConfig",
-        trainer=f"{__name__}:train_dummy", presets=("tiny",), default_preset="tiny"))
+    monkeypatch.setitem(
+        registry._METHODS,
+        "dummy",
+        registry.MethodSpec(
+            "dummy",
+            "test stand-in",
+            "fdnet.descriptors.classic:RawThumbnail",
+            config=f"{__name__}:DummyRunConfig",
+            trainer=f"{__name__}:train_dummy",
+            presets=("tiny",),
+            default_preset="tiny",
+        ),
+    )
     return "dummy"
 
 
@@ -232,14 +359,40 @@ def test_a_trained_method_added_by_one_registry_line_trains_with_every_shared_fl
     from fdnet import runs
 
     data, out = _dataset(tmp_path / "data"), tmp_path / "run"
-    assert main(["train", "dummy", "--data", str(data), "--preset", "tiny", "--out", str(out), "--no-progress",
-                 "--threads", "1", "--device", "cpu", "--steps", "4", "--set", "runtime.log_every=2"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                "dummy",
+                "--data",
+                str(data),
+                "--preset",
+                "tiny",
+                "--out",
+                str(out),
+                "--no-progress",
+                "--threads",
+                "1",
+                "--device",
+                "cpu",
+                "--steps",
+                "4",
+                "--set",
+                "runtime.log_every=2",
+            ]
+        )
+        == 0
+    )
     printed = capsys.readouterr().out
     assert "finished at step 4/4" in printed and f"use it with --method dummy --checkpoint {out}" in printed
     assert "min of training (" in printed and "min in all)" in printed
     config = runs.load_config(out, DummyRunConfig)
-    assert (config.preset, config.runtime.threads, config.runtime.device, config.runtime.log_every) == \
-        ("tiny", 1, "cpu", 2)
+    assert (config.preset, config.runtime.threads, config.runtime.device, config.runtime.log_every) == (
+        "tiny",
+        1,
+        "cpu",
+        2,
+    )
     assert main(["train", "dummy", "--out", str(out), "--resume", "--steps", "5", "--no-progress"]) == 2
     assert "train.steps: saved 4, requested 5" in capsys.readouterr().err
     assert main(["train", "dummy", "--out", str(out), "--resume", "--override", "--steps", "5", "--no-progress"]) == 0
@@ -250,8 +403,28 @@ def test_a_trained_method_added_by_one_registry_line_trains_with_every_shared_fl
 
 def test_a_baseline_run_resumed_as_another_method_says_which_it_is(tmp_path, capsys):
     data = _dataset(tmp_path / "data")
-    assert main(["train", "calc", "--data", str(data), "--preset", "tiny", "--out", str(tmp_path / "b"),
-                 "--steps", "1", "--set", "train.batch_size=2", "--set", "optim.lr=5e-4", "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                "calc",
+                "--data",
+                str(data),
+                "--preset",
+                "tiny",
+                "--out",
+                str(tmp_path / "b"),
+                "--steps",
+                "1",
+                "--set",
+                "train.batch_size=2",
+                "--set",
+                "optim.lr=5e-4",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     assert "finished at step 1/1" in capsys.readouterr().out
     # a run resumed with the wrong method says which it is
     assert main(["train", "--out", str(tmp_path / "b"), "--resume"]) == 2
@@ -272,8 +445,12 @@ def test_fdnet_steps_leave_the_joint_stage_the_rest(tmp_path, capsys):
 @pytest.mark.parametrize("method", ["fdnet", "calc", "netvlad"])
 def test_a_gpu_that_is_not_there_is_one_line_naming_runtime_device(tmp_path, capsys, method):
     data = _dataset(tmp_path / "data")
-    assert main(["train", method, "--data", str(data), "--preset", "tiny", "--out", str(tmp_path / "r"),
-                 "--device", "cuda"]) == 2
+    assert (
+        main(
+            ["train", method, "--data", str(data), "--preset", "tiny", "--out", str(tmp_path / "r"), "--device", "cuda"]
+        )
+        == 2
+    )
     assert "runtime.device cuda: no CUDA GPU is available here" in capsys.readouterr().err
     from fdnet import runs
 
@@ -286,8 +463,28 @@ def test_baselines_train_on_a_gpu(tmp_path, capsys, method):
     from fdnet import runs
 
     data = _dataset(tmp_path / "data")
-    assert main(["train", method, "--data", str(data), "--preset", "tiny", "--out", str(tmp_path / "r"),
-                 "--device", "cuda", "--steps", "2", "--set", "train.batch_size=2", "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                method,
+                "--data",
+                str(data),
+                "--preset",
+                "tiny",
+                "--out",
+                str(tmp_path / "r"),
+                "--device",
+                "cuda",
+                "--steps",
+                "2",
+                "--set",
+                "train.batch_size=2",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     assert "on cuda" in capsys.readouterr().err
     assert runs.load_training_state(tmp_path / "r")["step"] == 2
 
@@ -297,10 +494,48 @@ def test_a_baselines_shared_settings_have_one_path(tmp_path, capsys):
     from fdnet.runs import load_config
 
     data = _dataset(tmp_path / "data")
-    assert main(["train", "calc", "--data", str(data), "--preset", "tiny", "--out", str(tmp_path / "bad"),
-                 "--steps", "1", "--set", "train.lr=5e-4", "--no-progress"]) == 2
+    assert (
+        main(
+            [
+                "train",
+                "calc",
+                "--data",
+                str(data),
+                "--preset",
+                "tiny",
+                "--out",
+                str(tmp_path / "bad"),
+                "--steps",
+                "1",
+                "--set",
+                "train.lr=5e-4",
+                "--no-progress",
+            ]
+        )
+        == 2
+    )
     assert "override train.lr: unknown setting 'lr'" in capsys.readouterr().err
     assert not (tmp_path / "bad").exists()
-    assert main(["train", "calc", "--data", str(data), "--preset", "tiny", "--out", str(tmp_path / "r"),
-                 "--steps", "1", "--set", "train.batch_size=2", "--set", "optim.lr=5e-4", "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                "calc",
+                "--data",
+                str(data),
+                "--preset",
+                "tiny",
+                "--out",
+                str(tmp_path / "r"),
+                "--steps",
+                "1",
+                "--set",
+                "train.batch_size=2",
+                "--set",
+                "optim.lr=5e-4",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     assert load_config(tmp_path / "r", CALCRunConfig).optim.lr == 5e-4

@@ -31,9 +31,29 @@ def route(tmp_path):
 def test_calc_train_and_resume(route, tmp_path, capsys):
     out = tmp_path / "run"
     # "1:10" is a base-60 integer to YAML; the frame range must reach the config as text
-    rc = main(["train", "calc", "--data", str(route), "--out", str(out), "--preset", "tiny", "--no-progress",
-               "--frames", "1:10", "--conditions", "summer,winter", "--steps", "2", "--threads", "1",
-               "--set", "train.batch_size=4"])
+    rc = main(
+        [
+            "train",
+            "calc",
+            "--data",
+            str(route),
+            "--out",
+            str(out),
+            "--preset",
+            "tiny",
+            "--no-progress",
+            "--frames",
+            "1:10",
+            "--conditions",
+            "summer,winter",
+            "--steps",
+            "2",
+            "--threads",
+            "1",
+            "--set",
+            "train.batch_size=4",
+        ]
+    )
     assert rc == 0
     config = saved_config(out)
     assert config["method"] == "calc" and config["data"]["frames"] == "1:10"
@@ -42,8 +62,24 @@ def test_calc_train_and_resume(route, tmp_path, capsys):
 
     assert main(["train", "calc", "--out", str(out), "--resume", "--steps", "3", "--threads", "1"]) == 2
     assert "train.steps: saved 2, requested 3" in capsys.readouterr().err
-    assert main(["train", "calc", "--out", str(out), "--resume", "--override", "--steps", "3",
-                 "--threads", "1", "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                "calc",
+                "--out",
+                str(out),
+                "--resume",
+                "--override",
+                "--steps",
+                "3",
+                "--threads",
+                "1",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     log = (out / "log.csv").read_text().splitlines()
     assert log[-1].startswith("3,")
     # resuming with other model settings is refused, naming the setting
@@ -53,8 +89,25 @@ def test_calc_train_and_resume(route, tmp_path, capsys):
 
 def test_netvlad_train(route, tmp_path):
     out = tmp_path / "nv"
-    rc = main(["train", "netvlad", "--data", str(route), "--out", str(out), "--preset", "tiny",
-               "--tolerance", "1", "--steps", "2", "--threads", "1", "--no-progress"])
+    rc = main(
+        [
+            "train",
+            "netvlad",
+            "--data",
+            str(route),
+            "--out",
+            str(out),
+            "--preset",
+            "tiny",
+            "--tolerance",
+            "1",
+            "--steps",
+            "2",
+            "--threads",
+            "1",
+            "--no-progress",
+        ]
+    )
     assert rc == 0
     config = saved_config(out)
     assert config["method"] == "netvlad" and config["data"]["tolerance"] == 1
@@ -64,10 +117,40 @@ def test_netvlad_train(route, tmp_path):
 def test_baselines_train_on_a_dataset_format_split_with_validation(route, tmp_path, capsys):
     """What FDNet had and the baselines lacked: --dataset-format/--split, validation with best/."""
     out = tmp_path / "calc"
-    assert main(["train", "calc", "--data", str(route), "--dataset-format", "folders", "--split", "0:8",
-                 "--out", str(out), "--preset", "tiny", "--steps", "4", "--threads", "1", "--no-progress",
-                 "--set", "train.batch_size=4", "--validate-reference", "summer", "--validate-query", "winter",
-                 "--validate-frames", "8:12", "--validate-every", "2"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                "calc",
+                "--data",
+                str(route),
+                "--dataset-format",
+                "folders",
+                "--split",
+                "0:8",
+                "--out",
+                str(out),
+                "--preset",
+                "tiny",
+                "--steps",
+                "4",
+                "--threads",
+                "1",
+                "--no-progress",
+                "--set",
+                "train.batch_size=4",
+                "--validate-reference",
+                "summer",
+                "--validate-query",
+                "winter",
+                "--validate-frames",
+                "8:12",
+                "--validate-every",
+                "2",
+            ]
+        )
+        == 0
+    )
     config = saved_config(out)
     assert (config["data"]["dataset_format"], config["data"]["split"]) == ("folders", "0:8")
     assert runs.is_run(out / "best")
@@ -77,11 +160,25 @@ def test_baselines_train_on_a_dataset_format_split_with_validation(route, tmp_pa
 
 
 def test_errors_are_one_line(route, tmp_path, capsys):
-    assert main(["train", "netvlad", "--data", str(route), "--conditions", "summer",
-                 "--out", str(tmp_path / "a"), "--preset", "tiny"]) == 2
+    assert (
+        main(
+            [
+                "train",
+                "netvlad",
+                "--data",
+                str(route),
+                "--conditions",
+                "summer",
+                "--out",
+                str(tmp_path / "a"),
+                "--preset",
+                "tiny",
+            ]
+        )
+        == 2
+    )
     assert "at least 2 conditions" in capsys.readouterr().err
-    assert main(["train", "calc", "--data", str(route), "--out", str(tmp_path / "b"),
-                 "--set", "train.no_such=1"]) == 2
+    assert main(["train", "calc", "--data", str(route), "--out", str(tmp_path / "b"), "--set", "train.no_such=1"]) == 2
     assert "no_such" in capsys.readouterr().err
     assert main(["train", "calc", "--data", str(tmp_path / "missing"), "--out", str(tmp_path / "c")]) == 2
     assert "not found" in capsys.readouterr().err

@@ -11,8 +11,24 @@ from conftest import require_shared
 def test_build_writes_a_loadable_vocabulary(tmp_path, capsys):
     root = require_shared("gardens_point")
     out = tmp_path / "voc.safetensors"
-    code = main(["vocabulary", "build", "--images", str(root / "day_left"), str(root / "night_right"),
-                 "--out", str(out), "--max-images", "6", "--depth", "2", "--size", "144", "256"])
+    code = main(
+        [
+            "vocabulary",
+            "build",
+            "--images",
+            str(root / "day_left"),
+            str(root / "night_right"),
+            "--out",
+            str(out),
+            "--max-images",
+            "6",
+            "--depth",
+            "2",
+            "--size",
+            "144",
+            "256",
+        ]
+    )
     assert code == 0
     assert "words" in capsys.readouterr().out
     d = DBoWDescriptor(vocabulary=out, input_size=(144, 256))

@@ -24,8 +24,7 @@ def write_video(path, frames, fps: float = 25.0, fourcc: str = "FFV1") -> Path:
 
     path = Path(path)
     frames = np.asarray(frames, dtype=np.uint8)
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*fourcc), float(fps),
-                             (frames.shape[2], frames.shape[1]))
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*fourcc), float(fps), (frames.shape[2], frames.shape[1]))
     assert writer.isOpened(), f"OpenCV cannot write {fourcc} to {path}"
     for frame in frames:
         writer.write(np.ascontiguousarray(frame[..., ::-1]))
@@ -55,8 +54,15 @@ def image_message(store, ros1: bool, nanos: int, pixels: np.ndarray, encoding: s
     pixels = np.ascontiguousarray(pixels)
     height, width = pixels.shape[:2]
     data = pixels.reshape(-1).view(np.uint8)
-    return Image(header=_header(store, ros1, nanos), height=height, width=width, encoding=encoding, is_bigendian=0,
-                 step=len(data) // height, data=data)
+    return Image(
+        header=_header(store, ros1, nanos),
+        height=height,
+        width=width,
+        encoding=encoding,
+        is_bigendian=0,
+        step=len(data) // height,
+        data=data,
+    )
 
 
 def compressed_message(store, ros1: bool, nanos: int, pixels: np.ndarray, fmt: str = "png"):
@@ -65,16 +71,23 @@ def compressed_message(store, ros1: bool, nanos: int, pixels: np.ndarray, fmt: s
     CompressedImage = store.types["sensor_msgs/msg/CompressedImage"]
     buffer = io.BytesIO()
     PILImage.fromarray(pixels).save(buffer, format="PNG" if fmt == "png" else "JPEG")
-    return CompressedImage(header=_header(store, ros1, nanos), format=fmt,
-                           data=np.frombuffer(buffer.getvalue(), dtype=np.uint8))
+    return CompressedImage(
+        header=_header(store, ros1, nanos), format=fmt, data=np.frombuffer(buffer.getvalue(), dtype=np.uint8)
+    )
 
 
 def navsatfix_message(store, ros1: bool, nanos: int, lat: float, lon: float, status: int = 0):
     NavSatFix = store.types["sensor_msgs/msg/NavSatFix"]
     NavSatStatus = store.types["sensor_msgs/msg/NavSatStatus"]
-    return NavSatFix(header=_header(store, ros1, nanos), status=NavSatStatus(status=status, service=1),
-                     latitude=lat, longitude=lon, altitude=10.0, position_covariance=np.zeros(9),
-                     position_covariance_type=0)
+    return NavSatFix(
+        header=_header(store, ros1, nanos),
+        status=NavSatStatus(status=status, service=1),
+        latitude=lat,
+        longitude=lon,
+        altitude=10.0,
+        position_covariance=np.zeros(9),
+        position_covariance_type=0,
+    )
 
 
 def write_bag(path, topics: dict, ros1: bool | None = None) -> Path:
@@ -94,10 +107,13 @@ def write_bag(path, topics: dict, ros1: bool | None = None) -> Path:
         writer = Writer(path, version=9, storage_plugin=plugin)
     serialize = store.serialize_ros1 if ros1 else store.serialize_cdr
     with writer:
-        connections = {topic: writer.add_connection(topic, msgtype, typestore=store)
-                       for topic, (msgtype, _) in topics.items()}
-        records = sorted(((nanos, topic, message) for topic, (_, messages) in topics.items()
-                          for nanos, message in messages), key=lambda r: r[0])
+        connections = {
+            topic: writer.add_connection(topic, msgtype, typestore=store) for topic, (msgtype, _) in topics.items()
+        }
+        records = sorted(
+            ((nanos, topic, message) for topic, (_, messages) in topics.items() for nanos, message in messages),
+            key=lambda r: r[0],
+        )
         for nanos, topic, message in records:
             writer.write(connections[topic], nanos, serialize(message, topics[topic][0]))
     return path
@@ -114,22 +130,40 @@ def route_frames(count: int, seed: int = 0, size: tuple[int, int] = (32, 48)) ->
     return np.rint(smooth * 255).astype(np.uint8)
 
 
-def camera_bag(path, frames: np.ndarray, period_ns: int = 100_000_000, fixes: int | None = None,
-               start_lat: float = 51.5, step_deg: float = 1e-5) -> Path:
+def camera_bag(
+    path,
+    frames: np.ndarray,
+    period_ns: int = 100_000_000,
+    fixes: int | None = None,
+    start_lat: float = 51.5,
+    step_deg: float = 1e-5,
+) -> Path:
     """A bag with ``/camera/image_raw`` (rgb8), ``/camera/image/compressed`` (PNG, the same images),
     and ``/gps/fix`` (NavSatFix) at half the image period from T0, moving north ``step_deg`` per fix."""
     path = Path(path)
     ros1 = path.suffix == ".bag"
     store = _store(ros1)
     raw = [(T0_NS + i * period_ns, image_message(store, ros1, T0_NS + i * period_ns, f)) for i, f in enumerate(frames)]
-    packed = [(T0_NS + i * period_ns + 1, compressed_message(store, ros1, T0_NS + i * period_ns + 1, f))
-              for i, f in enumerate(frames)]
+    packed = [
+        (T0_NS + i * period_ns + 1, compressed_message(store, ros1, T0_NS + i * period_ns + 1, f))
+        for i, f in enumerate(frames)
+    ]
     fixes = 2 * len(frames) if fixes is None else fixes
-    gps = [(T0_NS + k * period_ns // 2, navsatfix_message(store, ros1, T0_NS + k * period_ns // 2,
-                                                         start_lat + k * step_deg, -0.1)) for k in range(fixes)]
-    return write_bag(path, {"/camera/image_raw": ("sensor_msgs/msg/Image", raw),
-                            "/camera/image/compressed": ("sensor_msgs/msg/CompressedImage", packed),
-                            "/gps/fix": ("sensor_msgs/msg/NavSatFix", gps)})
+    gps = [
+        (
+            T0_NS + k * period_ns // 2,
+            navsatfix_message(store, ros1, T0_NS + k * period_ns // 2, start_lat + k * step_deg, -0.1),
+        )
+        for k in range(fixes)
+    ]
+    return write_bag(
+        path,
+        {
+            "/camera/image_raw": ("sensor_msgs/msg/Image", raw),
+            "/camera/image/compressed": ("sensor_msgs/msg/CompressedImage", packed),
+            "/gps/fix": ("sensor_msgs/msg/NavSatFix", gps),
+        },
+    )
 
 
 def write_example(out) -> None:
@@ -138,9 +172,10 @@ def write_example(out) -> None:
 
     out = Path(out)
     (out / "route").mkdir(parents=True, exist_ok=True)
-    route = {name: np.rint(images * 255).astype(np.uint8)
-             for name, images in render_route(frames=60, conditions=("summer", "winter"), seed=0,
-                                              size=(64, 128)).items()}
+    route = {
+        name: np.rint(images * 255).astype(np.uint8)
+        for name, images in render_route(frames=60, conditions=("summer", "winter"), seed=0, size=(64, 128)).items()
+    }
     for condition, images in route.items():
         write_video(out / "route" / f"{condition}.avi", images, fps=10.0)
     camera_bag(out / "traverse.bag", route["summer"])

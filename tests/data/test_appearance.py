@@ -75,8 +75,18 @@ def test_fdnet_trains_on_the_added_conditions_and_resumes(tmp_path, capsys):
     config = replace_dotted(preset("tiny"), {"data.root": str(data), "data.synthetic_conditions": ["night"]})
     assert load_training_images(config).names == ["summer", "winter", "summer~night", "winter~night"]
     out = tmp_path / "run"
-    common = ["train", "--data", str(data), "--preset", "tiny", "--no-progress", "--out", str(out),
-              "--set", "data.synthetic_conditions=night"]
+    common = [
+        "train",
+        "--data",
+        str(data),
+        "--preset",
+        "tiny",
+        "--no-progress",
+        "--out",
+        str(out),
+        "--set",
+        "data.synthetic_conditions=night",
+    ]
     assert main([*common, "--max-minutes", "0"]) == 0  # stops after its first step
     assert "summer~night, winter~night" in capsys.readouterr().err
     assert main(["train", "--data", str(data), "--out", str(out), "--resume", "--no-progress"]) == 0
@@ -85,7 +95,21 @@ def test_fdnet_trains_on_the_added_conditions_and_resumes(tmp_path, capsys):
 
 def test_an_unknown_change_on_the_command_line_is_a_clear_error(tmp_path, capsys):
     data = make_dataset(tmp_path / "data")
-    assert main(["train", "--data", str(data), "--preset", "tiny", "--out", str(tmp_path / "run"),
-                 "--set", "data.synthetic_conditions=fog"]) == 2
+    assert (
+        main(
+            [
+                "train",
+                "--data",
+                str(data),
+                "--preset",
+                "tiny",
+                "--out",
+                str(tmp_path / "run"),
+                "--set",
+                "data.synthetic_conditions=fog",
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert "fdnet train: error:" in err and "'fog'" in err

@@ -69,14 +69,23 @@ def test_dataset_frames_slices_every_condition(tmp_path):
     assert all(list(t.frame_ids) == [1, 2, 3, 4] for t in ds.traverses.values())
 
 
-@pytest.mark.parametrize("text, expected", [("0:10", (0, 10)), (":5", (None, 5)), ("3:", (3, None)),
-                                            ("", (None, None)), (None, (None, None))])
+@pytest.mark.parametrize(
+    "text, expected",
+    [("0:10", (0, 10)), (":5", (None, 5)), ("3:", (3, None)), ("", (None, None)), (None, (None, None))],
+)
 def test_parse_frame_range(text, expected):
     assert parse_frame_range(text) == expected
 
 
-@pytest.mark.parametrize("text, message", [("10", "expected START:END"), ("a:b", "must be integers"),
-                                           ("5:5", "greater than START"), ("9:2", "greater than START")])
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("10", "expected START:END"),
+        ("a:b", "must be integers"),
+        ("5:5", "greater than START"),
+        ("9:2", "greater than START"),
+    ],
+)
 def test_parse_frame_range_errors(text, message):
     with pytest.raises(DataError, match=message):
         parse_frame_range(text)

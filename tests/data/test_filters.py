@@ -29,8 +29,8 @@ def _scene(rng, n):
 
 def test_dark_in_one_condition_drops_the_position_everywhere(tmp_path, rng):
     a, b = _scene(rng, 8), _scene(rng, 8)
-    a[2] = np.full((32, 64, 3), 0.02)           # tunnel in condition a only
-    b[5] = np.full((32, 64, 3), 0.05)           # tunnel in condition b only
+    a[2] = np.full((32, 64, 3), 0.02)  # tunnel in condition a only
+    b[5] = np.full((32, 64, 3), 0.05)  # tunnel in condition b only
     ds, report = filter_route(_route(tmp_path, {"a": a, "b": b}))
     assert list(report.kept) == [0, 1, 3, 4, 6, 7]
     assert list(report.dark["a"]) == [2] and list(report.dark["b"]) == [5]
@@ -44,7 +44,7 @@ def test_dark_in_one_condition_drops_the_position_everywhere(tmp_path, rng):
 
 def test_stationary_frames_are_dropped_against_last_kept(tmp_path, rng):
     a, b = _scene(rng, 7), _scene(rng, 7)
-    a[3] = a[2] + 0.004                          # train stopped in a: 3 and 4 repeat 2
+    a[3] = a[2] + 0.004  # train stopped in a: 3 and 4 repeat 2
     a[4] = a[2] - 0.004
     ds, report = filter_route(_route(tmp_path, {"a": a, "b": b}), dark_threshold=None)
     assert list(report.kept) == [0, 1, 2, 5, 6]

@@ -26,7 +26,7 @@ def test_from_frames_tolerance():
 
 def test_from_frames_compares_frame_ids_not_positions():
     """After filtering, reference frame ids have gaps; positives are list positions."""
-    refs = np.array([0, 1, 2, 6, 7, 10])        # frames 3-5, 8-9 were dropped (tunnel, stop)
+    refs = np.array([0, 1, 2, 6, 7, 10])  # frames 3-5, 8-9 were dropped (tunnel, stop)
     gt = GroundTruth.from_frames([2, 4, 8, 10], refs, tolerance=1)
     assert _lists(gt) == [[1, 2], [], [4], [5]]
     assert list(gt.has_match) == [True, False, True, True]
@@ -51,7 +51,7 @@ def test_from_positions_metres():
 def test_latlon_to_metres_scale():
     xy = latlon_to_metres(np.array([52.0, 52.001]), np.array([13.0, 13.0]), origin=(52.0, 13.0))
     assert xy[0] == pytest.approx([0.0, 0.0])
-    assert xy[1][1] == pytest.approx(111.2, abs=0.2)    # 0.001 degree of latitude ~ 111 m
+    assert xy[1][1] == pytest.approx(111.2, abs=0.2)  # 0.001 degree of latitude ~ 111 m
     east = latlon_to_metres(np.array([52.0]), np.array([13.001]), origin=(52.0, 13.0))
     assert east[0][0] == pytest.approx(111.2 * np.cos(np.radians(52.0)), abs=0.2)
 
@@ -80,16 +80,19 @@ def test_csv_with_byte_order_mark(tmp_path):
     assert _lists(GroundTruth.from_csv(path)) == [[0, 1]]
 
 
-@pytest.mark.parametrize("body, message", [
-    ("0,1\n1,7\n", r"line 3: reference index 7 out of range \(0..4\)"),
-    ("0,1\n5,1\n", r"line 3: query index 5 out of range \(0..2\)"),
-    ("0,1\n-1,1\n", "line 3: query index -1 out of range"),
-    ("0,1\n1,2 x\n", "line 3: non-integer value"),
-    ("0,1\nabc,2\n", "line 3: non-integer value"),
-    ("0,1.5\n", "line 2: non-integer value"),
-    ("0,1\n0,2\n", "line 3: query 0 listed twice"),
-    ("0,1,2\n", "line 2: expected 'query_index,reference_indices'"),
-])
+@pytest.mark.parametrize(
+    "body, message",
+    [
+        ("0,1\n1,7\n", r"line 3: reference index 7 out of range \(0..4\)"),
+        ("0,1\n5,1\n", r"line 3: query index 5 out of range \(0..2\)"),
+        ("0,1\n-1,1\n", "line 3: query index -1 out of range"),
+        ("0,1\n1,2 x\n", "line 3: non-integer value"),
+        ("0,1\nabc,2\n", "line 3: non-integer value"),
+        ("0,1.5\n", "line 2: non-integer value"),
+        ("0,1\n0,2\n", "line 3: query 0 listed twice"),
+        ("0,1,2\n", "line 2: expected 'query_index,reference_indices'"),
+    ],
+)
 def test_csv_errors_name_file_and_line(tmp_path, body, message):
     path = tmp_path / "bad_gt.csv"
     path.write_text("query_index,reference_indices\n" + body)
@@ -118,8 +121,9 @@ def test_csv_with_names_round_trip_and_two_column_files_still_read(tmp_path):
     gt.to_csv(path, query_names=["q 1.png", "q,2.png"], reference_names=["r1.png", "r2.png", "r10.png"])
     assert path.read_text().splitlines() == [
         "query_index,reference_indices,query_name,reference_names",
-        "0,0 2,q 1.png,r1.png/r10.png",      # names in the order of the indices
-        '1,,"q,2.png",']                     # a comma in a name is quoted, as CSV does
+        "0,0 2,q 1.png,r1.png/r10.png",  # names in the order of the indices
+        '1,,"q,2.png",',
+    ]  # a comma in a name is quoted, as CSV does
     back = GroundTruth.from_csv(path, num_references=3, num_queries=2)
     assert _lists(back) == [[0, 2], []]
     back.check_names(["/x/q 1.png", "/x/q,2.png"], ["/y/r1.png", "/y/r2.png", "/y/r10.png"])
@@ -137,20 +141,27 @@ def test_names_that_do_not_match_the_images_name_row_file_and_both_names(tmp_pat
     gt.to_csv(path, query_names=names, reference_names=names)
     back = GroundTruth.from_csv(path, num_references=3, num_queries=3)
     text_order = ["frame_1.png", "frame_10.png", "frame_2.png"]  # the same files, sorted as text
-    with pytest.raises(DataError, match=r"gt.csv, line 3: query 1 is 'frame_2.png' in the ground truth but "
-                                        r"'frame_10.png' in /q; .*other images, or in another order"):
+    with pytest.raises(
+        DataError,
+        match=r"gt.csv, line 3: query 1 is 'frame_2.png' in the ground truth but "
+        r"'frame_10.png' in /q; .*other images, or in another order",
+    ):
         back.check_names([f"/q/{n}" for n in text_order], [f"/r/{n}" for n in names])
-    with pytest.raises(DataError, match=r"line 3: reference 1 is 'frame_2.png' in the ground truth but "
-                                        r"'frame_10.png' in /r"):
+    with pytest.raises(
+        DataError, match=r"line 3: reference 1 is 'frame_2.png' in the ground truth but " r"'frame_10.png' in /r"
+    ):
         back.check_names([f"/q/{n}" for n in names], [f"/r/{n}" for n in text_order])
     with pytest.raises(DataError, match="has rows for 3 queries but /q has 4 query images"):
         back.check_names([f"/q/{n}" for n in [*names, "frame_11.png"]], [f"/r/{n}" for n in names])
 
 
-@pytest.mark.parametrize("body, message", [
-    ("0,1,a.png\n", "line 2: expected 4 columns"),
-    ("0,1 2,a.png,r1.png\n", "line 2: 2 reference indices but 1 reference names"),
-])
+@pytest.mark.parametrize(
+    "body, message",
+    [
+        ("0,1,a.png\n", "line 2: expected 4 columns"),
+        ("0,1 2,a.png,r1.png\n", "line 2: 2 reference indices but 1 reference names"),
+    ],
+)
 def test_named_csv_errors(tmp_path, body, message):
     path = tmp_path / "gt.csv"
     path.write_text("query_index,reference_indices,query_name,reference_names\n" + body)

@@ -49,8 +49,8 @@ def test_grey_becomes_three_equal_channels(tmp_path, rgb8):
 def test_rgba_is_composited_on_black(tmp_path):
     rgba = np.zeros((4, 4, 4), np.uint8)
     rgba[..., :3] = 200
-    rgba[:2, :, 3] = 255           # top half opaque
-    rgba[2:, :, 3] = 0             # bottom half transparent
+    rgba[:2, :, 3] = 255  # top half opaque
+    rgba[2:, :, 3] = 0  # bottom half transparent
     out = load_image(_save(tmp_path / "a.png", rgba))
     np.testing.assert_allclose(out[:2], 200 / 255.0, atol=1e-6)
     np.testing.assert_allclose(out[2:], 0.0, atol=1e-6)
@@ -70,7 +70,7 @@ def test_palette_and_la_images(tmp_path, rgb8):
 @pytest.mark.parametrize("size", [None, (8, 16)])
 def test_16bit_png_scaled_by_65535_even_when_dark(tmp_path, size):
     bright = (np.linspace(0, 65535, 16 * 32).reshape(16, 32)).astype(np.uint16)
-    dark = np.full((16, 32), 200, np.uint16)   # no value above 255: still 16-bit, so very dark
+    dark = np.full((16, 32), 200, np.uint16)  # no value above 255: still 16-bit, so very dark
     b = load_image(_save(tmp_path / "b.png", bright), size)
     d = load_image(_save(tmp_path / "d.png", dark), size)
     assert b.dtype == np.float32 and 0.0 <= b.min() and b.max() <= 1.0
@@ -80,8 +80,8 @@ def test_16bit_png_scaled_by_65535_even_when_dark(tmp_path, size):
 
 def test_resize_to_requested_height_width(tmp_path, rgb8):
     path = _save(tmp_path / "a.png", rgb8)
-    assert load_image(path, (12, 20)).shape == (12, 20, 3)      # shrink
-    assert load_image(path, (48, 80)).shape == (48, 80, 3)      # enlarge
+    assert load_image(path, (12, 20)).shape == (12, 20, 3)  # shrink
+    assert load_image(path, (48, 80)).shape == (48, 80, 3)  # enlarge
     flat = np.full((24, 40, 3), 77, np.uint8)
     np.testing.assert_allclose(load_image(_save(tmp_path / "f.png", flat), (6, 10)), 77 / 255.0, atol=1e-6)
     with pytest.raises(DataError, match="not positive"):
@@ -132,7 +132,7 @@ def test_list_images_natural_order_of_unpadded_frame_numbers(tmp_path):
     names = [f"frame_{i}.png" for i in range(1, 13)]
     for name in reversed(names):
         (tmp_path / name).write_bytes(b"x")
-    assert [p.name for p in list_images(tmp_path)] == names   # frame_2 before frame_10
+    assert [p.name for p in list_images(tmp_path)] == names  # frame_2 before frame_10
 
 
 def test_natural_key_is_total_case_sensitive_and_numeric():
@@ -148,15 +148,20 @@ def test_list_images_recursive_and_hidden_files(tmp_path):
     for rel in ["b/1.png", "a/10.png", "a/2.png", "a/._2.png", ".cache/0.png", "3.png"]:
         (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
         (tmp_path / rel).write_bytes(b"x")
-    assert [p.relative_to(tmp_path).as_posix() for p in list_images(tmp_path, recursive=True)] == \
-        ["3.png", "a/2.png", "a/10.png", "b/1.png"]
+    assert [p.relative_to(tmp_path).as_posix() for p in list_images(tmp_path, recursive=True)] == [
+        "3.png",
+        "a/2.png",
+        "a/10.png",
+        "b/1.png",
+    ]
     assert [p.name for p in list_images(tmp_path)] == ["3.png"]
 
 
 @pytest.mark.parametrize("warnings_as_errors", [False, True])
 @pytest.mark.parametrize("side, pillow_reaction", [(12, "warns"), (20, "raises")])
-def test_images_over_the_pixel_limit_are_data_errors_naming_the_file(tmp_path, monkeypatch, side,
-                                                                     pillow_reaction, warnings_as_errors):
+def test_images_over_the_pixel_limit_are_data_errors_naming_the_file(
+    tmp_path, monkeypatch, side, pillow_reaction, warnings_as_errors
+):
     """Pillow warns above MAX_IMAGE_PIXELS and raises above twice that; fdnet refuses both, with the
     file and its pixel count, whether or not warnings are errors (python -W error)."""
     import warnings
@@ -186,7 +191,7 @@ def test_real_images_of_each_shared_dataset():
     assert load_image(gp / "night_right" / "Image000.jpg", (60, 80)).shape == (60, 80, 3)
     nordland = require_shared("nordland_trimmed")
     im = load_image(nordland / "summer" / "images-00500.png")
-    assert im.shape == (32, 64, 3) and np.array_equal(im[..., 0], im[..., 1])   # grey stored as RGB
+    assert im.shape == (32, 64, 3) and np.array_equal(im[..., 0], im[..., 1])  # grey stored as RGB
 
 
 def test_a_symbolic_link_to_nothing_among_the_images_is_refused(tmp_path, rgb8):

@@ -37,6 +37,7 @@ def frame_index(path) -> int:
 
 # ----------------------------------------------------------------------------- videos
 
+
 @pytest.fixture
 def video(tmp_path):
     frames = route_frames(50, seed=1)
@@ -55,13 +56,19 @@ def test_video_frames_come_back_in_order_exactly(video):
     assert np.allclose(load_image(paths[10]), frames[10] / 255.0)
 
 
-@pytest.mark.parametrize("options, expected", [
-    (sources.SourceOptions(fps=5), list(range(0, 50, 5))),  # 25 fps video at 5 fps: every 5th frame
-    (sources.SourceOptions(fps=2), [0, 13, 25, 38]),  # the first frame of each 0.5 s slot
-    (sources.SourceOptions(every=7), list(range(0, 50, 7))),
-    (sources.SourceOptions(window=(1.0, 1.5)), list(range(25, 38))),  # [1.0 s, 1.5 s)
-    (sources.SourceOptions(fps=10, window=(0.5, None)), [13, 15, 18, 20, 23, 25, 28, 30, 33, 35, 38, 40, 43, 45, 48]),
-])
+@pytest.mark.parametrize(
+    "options, expected",
+    [
+        (sources.SourceOptions(fps=5), list(range(0, 50, 5))),  # 25 fps video at 5 fps: every 5th frame
+        (sources.SourceOptions(fps=2), [0, 13, 25, 38]),  # the first frame of each 0.5 s slot
+        (sources.SourceOptions(every=7), list(range(0, 50, 7))),
+        (sources.SourceOptions(window=(1.0, 1.5)), list(range(25, 38))),  # [1.0 s, 1.5 s)
+        (
+            sources.SourceOptions(fps=10, window=(0.5, None)),
+            [13, 15, 18, 20, 23, 25, 28, 30, 33, 35, 38, 40, 43, 45, 48],
+        ),
+    ],
+)
 def test_video_sampling_by_rate_step_and_window(video, options, expected):
     path, frames = video
     with sources.using_options(options):
@@ -125,12 +132,33 @@ def test_evaluate_on_videos_matches_evaluate_on_the_frames_as_folders(tmp_path):
     results = {}
     for name, root in (("videos", videos), ("folders", folders)):
         out = tmp_path / f"{name}.json"
-        assert main(["evaluate", "--data", str(root), "--reference", "day", "--query", "night", "--method",
-                     "sad,hog", "--tolerance", "1", "--json", str(out), "--workers", "0"]) == 0
+        assert (
+            main(
+                [
+                    "evaluate",
+                    "--data",
+                    str(root),
+                    "--reference",
+                    "day",
+                    "--query",
+                    "night",
+                    "--method",
+                    "sad,hog",
+                    "--tolerance",
+                    "1",
+                    "--json",
+                    str(out),
+                    "--workers",
+                    "0",
+                ]
+            )
+            == 0
+        )
         results[name] = json.loads(out.read_text())
     # every metric of every method is the same; only the timings differ
-    assert [_without_timings(r) for r in results["videos"]["results"]] == \
-        [_without_timings(r) for r in results["folders"]["results"]]
+    assert [_without_timings(r) for r in results["videos"]["results"]] == [
+        _without_timings(r) for r in results["folders"]["results"]
+    ]
     assert [r["method"] for r in results["videos"]["results"]] == ["sad", "hog"]
 
 
@@ -145,8 +173,28 @@ def test_evaluate_samples_videos_with_fps(tmp_path):
     write_video(route / "a.avi", frames, fps=20)
     write_video(route / "b.avi", frames, fps=20)
     out = tmp_path / "r.json"
-    assert main(["evaluate", "--data", str(route), "--reference", "a", "--query", "b", "--method", "sad",
-                 "--fps", "4", "--json", str(out), "--workers", "0"]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "--data",
+                str(route),
+                "--reference",
+                "a",
+                "--query",
+                "b",
+                "--method",
+                "sad",
+                "--fps",
+                "4",
+                "--json",
+                str(out),
+                "--workers",
+                "0",
+            ]
+        )
+        == 0
+    )
     result = json.loads(out.read_text())["results"][0]  # one schema: a list of results, one per method
     assert result["num_queries"] == result["num_references"] == 8  # 40 frames at 20 fps, taken at 4 fps
     assert result["recall_at_n"]["1"] == 1.0  # the same frames: each query finds itself
@@ -203,22 +251,34 @@ def test_positions_from_odometry_interpolated_and_none_outside(tmp_path, caplog)
     Odometry = store.types["nav_msgs/msg/Odometry"]
     msgs = store.types
     pose = lambda x, y: msgs["geometry_msgs/msg/PoseWithCovariance"](  # noqa: E731
-        pose=msgs["geometry_msgs/msg/Pose"](position=msgs["geometry_msgs/msg/Point"](x=x, y=y, z=0.0),
-                                            orientation=msgs["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0,
-                                                                                               w=1.0)),
-        covariance=np.zeros(36))
+        pose=msgs["geometry_msgs/msg/Pose"](
+            position=msgs["geometry_msgs/msg/Point"](x=x, y=y, z=0.0),
+            orientation=msgs["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+        ),
+        covariance=np.zeros(36),
+    )
     twist = msgs["geometry_msgs/msg/TwistWithCovariance"](
-        twist=msgs["geometry_msgs/msg/Twist"](linear=msgs["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
-                                              angular=msgs["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)),
-        covariance=np.zeros(36))
+        twist=msgs["geometry_msgs/msg/Twist"](
+            linear=msgs["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+            angular=msgs["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+        ),
+        covariance=np.zeros(36),
+    )
     frames = route_frames(5, seed=8)
     images = [(T0_NS + i * 10**9, image_message(store, False, T0_NS + i * 10**9, f)) for i, f in enumerate(frames)]
     # odometry from 0.5 s to 3.5 s, x = 10 m/s
     from tests.data.source_files import _header
-    odometry = [(T0_NS + k * 500_000_000, Odometry(header=_header(store, False, 0), child_frame_id="base",
-                                                    pose=pose(5.0 * k, 1.0), twist=twist)) for k in range(1, 8)]
-    path = write_bag(tmp_path / "odo", {"/cam": ("sensor_msgs/msg/Image", images),
-                                        "/odom": ("nav_msgs/msg/Odometry", odometry)})
+
+    odometry = [
+        (
+            T0_NS + k * 500_000_000,
+            Odometry(header=_header(store, False, 0), child_frame_id="base", pose=pose(5.0 * k, 1.0), twist=twist),
+        )
+        for k in range(1, 8)
+    ]
+    path = write_bag(
+        tmp_path / "odo", {"/cam": ("sensor_msgs/msg/Image", images), "/odom": ("nav_msgs/msg/Odometry", odometry)}
+    )
     with caplog.at_level("WARNING", logger="fdnet.data.sources"):
         paths = list_images(path)
     assert "2 of 5 frames lie outside the time span of /odom's positions" in caplog.text
@@ -234,19 +294,52 @@ def test_groundtruth_from_two_bags_and_database_stores_times_and_positions(tmp_p
     first = camera_bag(tmp_path / "first.bag", frames)
     second = camera_bag(tmp_path / "second_ros2", frames[::-1].copy(), start_lat=51.5 + 18e-5, step_deg=-1e-5)
     gt = tmp_path / "gt.csv"
-    assert main(["groundtruth", "--positions", str(first), str(second), "--topic", "/camera/image_raw",
-                 "--tolerance-m", "0.5", "--out", str(gt)]) == 0
+    assert (
+        main(
+            [
+                "groundtruth",
+                "--positions",
+                str(first),
+                str(second),
+                "--topic",
+                "/camera/image_raw",
+                "--tolerance-m",
+                "0.5",
+                "--out",
+                str(gt),
+            ]
+        )
+        == 0
+    )
     rows = list(csv.DictReader(gt.open()))
     # the second traverse drives the route backwards: its frame i is the first's frame 9 - i
     assert [(int(r["query_index"]), int(r["reference_indices"])) for r in rows] == [(i, 9 - i) for i in range(10)]
     assert rows[0]["query_name"] == f"frame_000000_{T0_NS}ns"
     db = tmp_path / "map.db"
-    assert main(["database", "build", "--images", f"{first}:/camera/image_raw", "--method", "sad", "--every", "3",
-                 "--db", str(db), "--workers", "0"]) == 0
+    assert (
+        main(
+            [
+                "database",
+                "build",
+                "--images",
+                f"{first}:/camera/image_raw",
+                "--method",
+                "sad",
+                "--every",
+                "3",
+                "--db",
+                str(db),
+                "--workers",
+                "0",
+            ]
+        )
+        == 0
+    )
     with sqlite3.connect(db) as conn:
         rows = conn.execute("SELECT name, x, y, metadata FROM places ORDER BY id").fetchall()
-    assert [r[0].rsplit("/", 1)[1] for r in rows] == [f"frame_{i:06d}_{T0_NS + i * 100_000_000}ns"
-                                                     for i in (0, 3, 6, 9)]
+    assert [r[0].rsplit("/", 1)[1] for r in rows] == [
+        f"frame_{i:06d}_{T0_NS + i * 100_000_000}ns" for i in (0, 3, 6, 9)
+    ]
     meta = [json.loads(r[3]) for r in rows]
     assert [m["timestamp"] for m in meta] == pytest.approx([T0_NS / 1e9 + 0.1 * i for i in (0, 3, 6, 9)])
     assert {m["source"] for m in meta} == {str(first.resolve())} and meta[0]["topic"] == "/camera/image_raw"
@@ -260,15 +353,38 @@ def test_loop_closure_over_a_bag_uses_its_times(tmp_path):
     images = [(T0_NS + i * 10**9, image_message(store, True, T0_NS + i * 10**9, frames[i % 8])) for i in range(16)]
     path = write_bag(tmp_path / "loop.bag", {"/cam": ("sensor_msgs/msg/Image", images)})
     events = tmp_path / "events.csv"
-    assert main(["loop-closure", "--images", str(path), "--method", "sad", "--exclude-last", "4", "--accept", "raw",
-                 "--sequence-length", "1", "--threshold", "-0.000001", "--out", str(events), "--workers", "0",
-                 "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "loop-closure",
+                "--images",
+                str(path),
+                "--method",
+                "sad",
+                "--exclude-last",
+                "4",
+                "--accept",
+                "raw",
+                "--sequence-length",
+                "1",
+                "--threshold",
+                "-0.000001",
+                "--out",
+                str(events),
+                "--workers",
+                "0",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     rows = list(csv.DictReader(events.open()))
     assert len(rows) == 8  # sad of identical frames is 0, the highest: each second pass closes the loop
     assert [float(r["timestamp"]) - float(r["match_timestamp"]) for r in rows] == pytest.approx([8.0] * 8)
 
 
 # ----------------------------------------------------------------------------- bad input
+
 
 def run_cli(argv, capsys):
     code = main(argv)
@@ -278,8 +394,10 @@ def run_cli(argv, capsys):
 def test_a_file_that_is_not_a_video(tmp_path, capsys):
     fake = tmp_path / "notes.mp4"
     fake.write_text("not a video\n")
-    code, err = run_cli(["groundtruth", "--aligned", "--reference", str(fake), "--query", str(fake),
-                         "--out", str(tmp_path / "gt.csv")], capsys)
+    code, err = run_cli(
+        ["groundtruth", "--aligned", "--reference", str(fake), "--query", str(fake), "--out", str(tmp_path / "gt.csv")],
+        capsys,
+    )
     assert code == 2
     assert err.startswith("fdnet groundtruth: error: ") and f"{fake}: cannot be opened as a video" in err
     assert err.count("\n") == 1  # FFmpeg's own complaints are kept quiet
@@ -289,8 +407,22 @@ def test_a_video_cut_short_stops_at_the_missing_frame(tmp_path, video, capsys):
     path, _ = video
     cut = tmp_path / "cut.avi"
     cut.write_bytes(path.read_bytes()[: path.stat().st_size // 2])  # the header still announces 50 frames
-    code, err = run_cli(["match", "--reference", str(cut), "--query", str(cut), "--method", "sad", "--workers", "0",
-                         "--out", str(tmp_path / "m.csv")], capsys)
+    code, err = run_cli(
+        [
+            "match",
+            "--reference",
+            str(cut),
+            "--query",
+            str(cut),
+            "--method",
+            "sad",
+            "--workers",
+            "0",
+            "--out",
+            str(tmp_path / "m.csv"),
+        ],
+        capsys,
+    )
     assert code == 2
     assert re.match(rf"fdnet match: error: {re.escape(str(cut))}: frame [0-9]+ cannot be decoded", err), err
 
@@ -299,17 +431,26 @@ def test_bag_errors_name_the_file_and_topic(tmp_path, capsys):
     store = _store(False)
     frames = route_frames(2, seed=11)
     depth = np.arange(2 * 32 * 48, dtype=np.uint16).reshape(2, 32, 48)
-    bag = write_bag(tmp_path / "depth", {
-        "/depth": ("sensor_msgs/msg/Image", [(T0_NS + i, image_message(store, False, T0_NS + i, d, "16UC1"))
-                                             for i, d in enumerate(depth)]),
-        "/cam": ("sensor_msgs/msg/Image", [(T0_NS + i, image_message(store, False, T0_NS + i, f))
-                                           for i, f in enumerate(frames)])})
+    bag = write_bag(
+        tmp_path / "depth",
+        {
+            "/depth": (
+                "sensor_msgs/msg/Image",
+                [(T0_NS + i, image_message(store, False, T0_NS + i, d, "16UC1")) for i, d in enumerate(depth)],
+            ),
+            "/cam": (
+                "sensor_msgs/msg/Image",
+                [(T0_NS + i, image_message(store, False, T0_NS + i, f)) for i, f in enumerate(frames)],
+            ),
+        },
+    )
     navsat_only = write_bag(tmp_path / "gps.bag", {"/gps/fix": ("sensor_msgs/msg/NavSatFix", [])})
     out = str(tmp_path / "gt.csv")
 
     def error(images, *extra):
-        code, err = run_cli(["groundtruth", "--aligned", "--reference", images, "--query", images, "--out", out,
-                             *extra], capsys)
+        code, err = run_cli(
+            ["groundtruth", "--aligned", "--reference", images, "--query", images, "--out", out, *extra], capsys
+        )
         assert code == 2 and err.startswith("fdnet groundtruth: error: "), err
         return err
 
@@ -343,8 +484,21 @@ def test_bad_sampling_options(tmp_path, video, capsys):
         sources.SourceOptions(window=(3.0, 1.0)).check()
     with pytest.raises(DataError, match="keeps none of its 50 frames"):
         sources.list_frames(path, sources.SourceOptions(window=(10.0, None)))
-    code, err = run_cli(["groundtruth", "--aligned", "--reference", str(path), "--query", str(path), "--out",
-                         str(tmp_path / "gt.csv"), "--fps", "-1"], capsys)
+    code, err = run_cli(
+        [
+            "groundtruth",
+            "--aligned",
+            "--reference",
+            str(path),
+            "--query",
+            str(path),
+            "--out",
+            str(tmp_path / "gt.csv"),
+            "--fps",
+            "-1",
+        ],
+        capsys,
+    )
     assert code == 2 and "fdnet groundtruth: error: --fps must be a positive number" in err
 
 
@@ -353,8 +507,28 @@ def test_match_takes_radius_s_from_video_times_and_radius_m_from_bag_positions(t
     bag = camera_bag(tmp_path / "gps.bag", route_frames(6, seed=13))
     for references, setting in ((str(path), "radius_s=0.2"), (f"{bag}:/camera/image_raw", "radius_m=3")):
         out = tmp_path / "m.csv"
-        assert main(["match", "--reference", references, "--query", references, "--method", "sad", "--accept",
-                     "margin", "--accept-set", setting, "--out", str(out), "--workers", "0"]) == 0
+        assert (
+            main(
+                [
+                    "match",
+                    "--reference",
+                    references,
+                    "--query",
+                    references,
+                    "--method",
+                    "sad",
+                    "--accept",
+                    "margin",
+                    "--accept-set",
+                    setting,
+                    "--out",
+                    str(out),
+                    "--workers",
+                    "0",
+                ]
+            )
+            == 0
+        )
         rows = list(csv.DictReader(out.open()))
         assert rows and all(r["acceptance_score"] not in ("", None) for r in rows)
 
@@ -366,8 +540,30 @@ def test_extract_stores_each_frames_source_and_timestamp(tmp_path, video):
     path, frames = video
     run = _tiny_run(tmp_path / "run")
     out = tmp_path / "v.npz"
-    assert main(["extract", "--checkpoint", str(run), "--images", str(path), "--every", "4", "--out", str(out),
-                 "--fp32", "--batch-size", "4", "--workers", "1", "--device", "cpu", "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "extract",
+                "--checkpoint",
+                str(run),
+                "--images",
+                str(path),
+                "--every",
+                "4",
+                "--out",
+                str(out),
+                "--fp32",
+                "--batch-size",
+                "4",
+                "--workers",
+                "1",
+                "--device",
+                "cpu",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     kept = list(range(0, 50, 4))
     folder = tmp_path / "frames"
     save_folder(folder, frames[kept])

@@ -35,8 +35,8 @@ def test_condition_alone_renders_as_in_the_full_set():
 
 def test_places_do_not_depend_on_route_length():
     short, long = make_scene(10.0, seed=5), make_scene(40.0, seed=5)
-    assert [b.x0 for b in short.buildings] == [b.x0 for b in long.buildings[:len(short.buildings)]]
-    assert short.dashes == long.dashes[:len(short.dashes)]
+    assert [b.x0 for b in short.buildings] == [b.x0 for b in long.buildings[: len(short.buildings)]]
+    assert short.dashes == long.dashes[: len(short.dashes)]
 
 
 def test_conditions_differ_a_lot_in_pixels_but_night_is_dark():
@@ -44,7 +44,7 @@ def test_conditions_differ_a_lot_in_pixels_but_night_is_dark():
     summer, night, winter = r["summer"], r["night"], r["winter"]
     assert np.abs(summer - winter).mean() > 0.1
     assert night.mean() < 0.5 * summer.mean()
-    assert winter.mean() > summer.mean()   # snow
+    assert winter.mean() > summer.mean()  # snow
 
 
 def test_same_place_is_more_alike_than_another_place_across_mild_conditions():
@@ -52,7 +52,7 @@ def test_same_place_is_more_alike_than_another_place_across_mild_conditions():
     d = SeqSLAMFrontEnd(size=(32, 64))
     idx, _ = top_k(d.describe(r["autumn"]), d.describe(r["summer"]), 1, similarity=d.similarity)
     recall = GroundTruth.aligned(60, 60, 1).correct_mask(idx).mean()
-    assert recall > 0.4   # chance is 3/60 = 0.05; measured 0.79 on 300 frames at 64x128
+    assert recall > 0.4  # chance is 3/60 = 0.05; measured 0.79 on 300 frames at 64x128
 
 
 def test_hard_pair_is_imperfect_for_raw_pixels():
@@ -86,8 +86,16 @@ def test_generate_refuses_a_foreign_non_empty_folder(tmp_path):
         generate_route(tmp_path, frames=2, size=(32, 32))
 
 
-@pytest.mark.parametrize("kwargs", [{"frames": 0}, {"conditions": ("summer", "spring")},
-                                    {"conditions": ()}, {"size": (8, 8)}, {"conditions": ("night", "night")}])
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        {"frames": 0},
+        {"conditions": ("summer", "spring")},
+        {"conditions": ()},
+        {"size": (8, 8)},
+        {"conditions": ("night", "night")},
+    ],
+)
 def test_bad_settings_are_config_errors(kwargs):
     with pytest.raises(ConfigError):
         render_route(**{"frames": 2, "size": (32, 32), **kwargs})
@@ -95,8 +103,24 @@ def test_bad_settings_are_config_errors(kwargs):
 
 def test_cli_synth(tmp_path, capsys):
     out = tmp_path / "s"
-    assert main(["synth", "--out", str(out), "--num-frames", "4", "--conditions", "winter,night",
-                 "--size", "32x64", "--seed", "2"]) == 0
+    assert (
+        main(
+            [
+                "synth",
+                "--out",
+                str(out),
+                "--num-frames",
+                "4",
+                "--conditions",
+                "winter,night",
+                "--size",
+                "32x64",
+                "--seed",
+                "2",
+            ]
+        )
+        == 0
+    )
     assert "SYNTHETIC" in capsys.readouterr().out
     assert len(list((out / "winter").glob("frame_*.png"))) == 4
     assert main(["synth", "--out", str(out), "--size", "32"]) == 2

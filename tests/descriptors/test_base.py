@@ -56,7 +56,6 @@ def test_a_vocabulary_fitted_from_the_same_folder_spelled_two_ways_has_one_finge
     assert relative.fingerprint() == absolute.fingerprint()
 
 
-
 def test_describing_appearance_is_declared_on_the_base_class():
     """Whether a method describes appearance is a declared capability: the methods that override
     describe_appearance say so, and the others refuse to, naming themselves."""

@@ -51,9 +51,9 @@ def test_patch_normalize_matches_per_patch_reference(rng):
     for n in range(2):
         for i in range(0, 16, 8):
             for j in range(0, 24, 8):
-                p = grey[n, i:i + 8, j:j + 8].astype(np.float64)
+                p = grey[n, i : i + 8, j : j + 8].astype(np.float64)
                 expected = (p - p.mean()) / p.std(ddof=1)
-                np.testing.assert_allclose(out[n, i:i + 8, j:j + 8], expected, atol=1e-4)
+                np.testing.assert_allclose(out[n, i : i + 8, j : j + 8], expected, atol=1e-4)
 
 
 def test_patch_normalize_constant_patch_is_zero():
@@ -78,8 +78,9 @@ def test_sad_similarity_equals_brute_force_numpy(rng):
     assert got.shape == (7, 11) and got.dtype == np.float32
     np.testing.assert_allclose(got, expected, rtol=1e-4, atol=1e-5)
     # Through the blocked matcher as well: identical image scores 0, the best possible.
-    np.testing.assert_allclose(similarity_matrix(q, r, similarity=d.similarity, block=4), expected,
-                               rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(
+        similarity_matrix(q, r, similarity=d.similarity, block=4), expected, rtol=1e-4, atol=1e-5
+    )
     idx, scores = top_k(q, q, 1, similarity=d.similarity)
     assert np.array_equal(idx[:, 0], np.arange(7)) and np.allclose(scores, 0.0, atol=1e-5)
 
@@ -116,8 +117,9 @@ def _recall_at_1(method, split):
 @pytest.mark.parametrize("method", ["raw", "sad", "hog"])
 def test_real_gardens_point_day_left_vs_right_well_above_chance(method):
     root = require_shared("gardens_point")
-    split = aligned_split(RouteDataset.from_folder(root, ["day_left", "day_right"]), "day_left", "day_right",
-                          tolerance=2, start=0, end=50)
+    split = aligned_split(
+        RouteDataset.from_folder(root, ["day_left", "day_right"]), "day_left", "day_right", tolerance=2, start=0, end=50
+    )
     chance = split.ground_truth.summary()["mean_matches_per_query"] / 50  # about 0.1
     # Measured: raw 0.48, sad 0.62, hog 0.58.
     assert _recall_at_1(method, split) > 3 * chance

@@ -27,8 +27,9 @@ def test_shape_norm_determinism_and_same_projection_across_instances(rng):
     assert v.shape == (2, 512) and v.dtype == np.float32 and d.dim == 512
     np.testing.assert_allclose(np.linalg.norm(v, axis=1), 1.0, rtol=1e-5)
     # a second instance (e.g. another process describing the queries) projects identically
-    np.testing.assert_allclose(Conv3Descriptor(input_size=(96, 128), bf16=False).describe(images), v,
-                               rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(
+        Conv3Descriptor(input_size=(96, 128), bf16=False).describe(images), v, rtol=1e-5, atol=1e-6
+    )
     assert d.settings()["feature_map"] == [80, 6, 8]
     raw = Conv3Descriptor(input_size=(96, 128), dim=0, bf16=False)
     assert raw.dim == 80 * 6 * 8

@@ -117,7 +117,8 @@ def test_fit_folder_learns_the_vocabulary_and_says_so(tmp_path, rng):
         (tmp_path / "data" / condition).mkdir(parents=True)
         for i in range(4):
             Image.fromarray((rng.random((96, 128, 3)) * 255).astype(np.uint8)).save(
-                tmp_path / "data" / condition / f"{i}.png")
+                tmp_path / "data" / condition / f"{i}.png"
+            )
     d = DBoWDescriptor(input_size=(96, 128), depth=2, fit=str(tmp_path / "data"), fit_frames="0:3")
     assert not d.needs_fit and d.vocabulary.info["training_images"] == 6
     settings = d.settings()

@@ -23,7 +23,8 @@ def test_every_condition_and_the_frames_of_each(tmp_path):
     assert len(paths) == 12
     paths, description = fit_image_paths(tmp_path / "data", "1:4")
     assert [p.parent.name + "/" + p.name for p in paths] == [
-        f"{c}/{i:03d}.png" for c in ("summer", "winter") for i in (1, 2, 3)]
+        f"{c}/{i:03d}.png" for c in ("summer", "winter") for i in (1, 2, 3)
+    ]
     assert "frames 1:4: 6 images of summer (3), winter (3)" in description
     assert str((tmp_path / "data").resolve()) in description
 

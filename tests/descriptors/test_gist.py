@@ -33,7 +33,7 @@ def test_filter_bank_peaks_at_lmgist_frequencies_and_angles():
         scale, orientation = divmod(index, 8)
         peak = np.unravel_index(np.argmax(bank[index]), bank[index].shape)
         radius = np.hypot(fx[peak], fy[peak]) / n
-        assert radius == pytest.approx(0.3 / 1.85 ** scale, abs=1.5 / n)
+        assert radius == pytest.approx(0.3 / 1.85**scale, abs=1.5 / n)
         # the filter is centred where angle + pi*j/8 == 0 (mod pi)
         angle = np.angle(fx[peak] + 1j * fy[peak]) + np.pi * orientation / 8
         assert min(abs(np.sin(angle)), 1.0) < 0.25

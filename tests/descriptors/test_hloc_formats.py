@@ -122,7 +122,7 @@ def test_the_writer_streams_batches_and_discards_on_error(tmp_path):
     vectors = _vectors(10)
     with GlobalFeaturesWriter(path, attrs={"method": "fdnet"}) as writer:
         for start in range(0, 10, 3):
-            writer.write([f"f/{i}.png" for i in range(start, min(start + 3, 10))], vectors[start:start + 3])
+            writer.write([f"f/{i}.png" for i in range(start, min(start + 3, 10))], vectors[start : start + 3])
         assert not path.exists()  # only renamed into place at the end
     names, read = read_global_features(path)
     assert len(names) == 10 and read[names.index("f/9.png")].tobytes() == vectors[9].tobytes()
@@ -139,11 +139,13 @@ def test_the_writer_streams_batches_and_discards_on_error(tmp_path):
 
 def test_a_killed_writers_folder_is_removed_by_the_next_writer(tmp_path):
     path = tmp_path / "g.h5"
-    code = ("import os, numpy as np\n"
-            "from fdnet.descriptors.hloc_formats import GlobalFeaturesWriter\n"
-            f"w = GlobalFeaturesWriter({str(path)!r})\n"
-            "w.write(['a.png'], np.ones((1, 3)))\n"
-            "os._exit(9)\n")
+    code = (
+        "import os, numpy as np\n"
+        "from fdnet.descriptors.hloc_formats import GlobalFeaturesWriter\n"
+        f"w = GlobalFeaturesWriter({str(path)!r})\n"
+        "w.write(['a.png'], np.ones((1, 3)))\n"
+        "os._exit(9)\n"
+    )
     subprocess.run([sys.executable, "-c", code], check=False)
     left = [p.name for p in tmp_path.iterdir()]
     assert len(left) == 1 and left[0].startswith(".g.h5.parts.")  # the target was never written
@@ -151,13 +153,16 @@ def test_a_killed_writers_folder_is_removed_by_the_next_writer(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["g.h5"]
 
 
-@pytest.mark.parametrize("names, expected", [
-    (["a.png", "a.png"], "given twice"),
-    (["/abs.png"], "absolute"),
-    (["db/../x.png"], "'..'"),
-    (["db//x.png"], "empty"),
-    ([""], "empty image name"),
-])
+@pytest.mark.parametrize(
+    "names, expected",
+    [
+        (["a.png", "a.png"], "given twice"),
+        (["/abs.png"], "absolute"),
+        (["db/../x.png"], "'..'"),
+        (["db//x.png"], "empty"),
+        ([""], "empty image name"),
+    ],
+)
 def test_bad_image_names_are_refused_and_nothing_is_written(tmp_path, names, expected):
     path = tmp_path / "g.h5"
     with pytest.raises(DataError, match=expected) as caught:
@@ -170,7 +175,7 @@ def test_a_truncated_file_is_a_data_error_naming_it(tmp_path):
     path = tmp_path / "g.h5"
     write_global_features(path, [f"db/{i}.jpg" for i in range(50)], _vectors(50, dim=64))
     data = path.read_bytes()
-    path.write_bytes(data[:len(data) // 2])
+    path.write_bytes(data[: len(data) // 2])
     with pytest.raises(DataError, match="truncated") as caught:
         read_global_features(path)
     _one_line_naming(caught, path)
@@ -219,8 +224,10 @@ def test_pairs_round_trip_in_hlocs_exact_format(tmp_path):
     # what pairs_from_retrieval writes: one space, "\n" between lines, none after the last
     assert path.read_bytes() == b"query/0001.jpg db/0001.jpg\nquery/0001.jpg db/0002.jpg\nquery/0002.jpg db/0007.jpg"
     assert read_pairs(path) == pairs
-    assert hloc_parse_retrieval(path) == {"query/0001.jpg": ["db/0001.jpg", "db/0002.jpg"],
-                                          "query/0002.jpg": ["db/0007.jpg"]}
+    assert hloc_parse_retrieval(path) == {
+        "query/0001.jpg": ["db/0001.jpg", "db/0002.jpg"],
+        "query/0002.jpg": ["db/0007.jpg"],
+    }
     write_pairs(path, [])
     assert path.read_bytes() == b"" and read_pairs(path) == [] and hloc_parse_retrieval(path) == {}
 
@@ -282,11 +289,14 @@ def test_the_attributes_fdnet_records_read_back_and_hlocs_files_have_none(tmp_pa
     assert read_global_attributes(tmp_path / "odd.h5") == {}
 
 
-@pytest.mark.parametrize("case, message", [
-    ("directory", "not a file"),
-    ("empty", "not an HDF5 file"),
-    ("lengths", "vectors of different lengths"),
-])
+@pytest.mark.parametrize(
+    "case, message",
+    [
+        ("directory", "not a file"),
+        ("empty", "not an HDF5 file"),
+        ("lengths", "vectors of different lengths"),
+    ],
+)
 def test_a_global_features_file_that_is_a_folder_empty_or_of_mixed_lengths_is_one_line(case, message, tmp_path):
     path = tmp_path / f"{case}.h5"
     if case == "directory":
@@ -325,8 +335,12 @@ def test_a_full_disk_is_one_error_naming_the_file_and_leaves_nothing(small_disk,
     data fails; (300, 4): the metadata while writing; (50, 4): only the final flush."""
     target = small_disk.path / "global-feats.h5"
     small_disk.fill(4096)
-    done = subprocess.run([sys.executable, "-c", FULL_DISK_WRITER, str(target), str(count), str(dim)],
-                          capture_output=True, text=True, timeout=120)
+    done = subprocess.run(
+        [sys.executable, "-c", FULL_DISK_WRITER, str(target), str(count), str(dim)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.strip() == f"{target}: cannot write it (no space left on the device); nothing was written there"
     assert done.stderr == "" and small_disk.files() == []
@@ -366,8 +380,9 @@ def test_a_file_declaring_vectors_it_does_not_hold_is_refused_before_allocating(
         for i in range(3):  # a few KB declaring 3 vectors of a million floats, never written
             f.create_dataset(f"{i}.jpg/global_descriptor", shape=(1_000_000,), dtype="f4", chunks=(100_000,))
     assert path.stat().st_size < 20_000
-    with pytest.raises(DataError, match=r"claims\.h5: image '0\.jpg': declares a vector of shape \(1000000,\) but "
-                                        r"holds no data"):
+    with pytest.raises(
+        DataError, match=r"claims\.h5: image '0\.jpg': declares a vector of shape \(1000000,\) but " r"holds no data"
+    ):
         read_global_features(path)
     written = tmp_path / "written.h5"
     with h5py.File(written, "w") as f:

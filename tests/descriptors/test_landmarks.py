@@ -19,7 +19,7 @@ def small():
 def _scene(rng, shift=0):
     img = np.full((96, 128, 3), 0.2, np.float32)
     for k, (y, x, h, w) in enumerate([(10, 10, 30, 40), (50, 70, 35, 45), (15, 80, 25, 30)]):
-        img[y:y + h, x + shift:x + shift + w] = 0.3 + 0.2 * k
+        img[y : y + h, x + shift : x + shift + w] = 0.3 + 0.2 * k
     return np.clip(img + 0.02 * rng.standard_normal(img.shape).astype(np.float32), 0, 1)
 
 
@@ -54,6 +54,7 @@ def test_describe_shape_determinism_and_self_similarity(small, rng):
 
 def test_score_formula_by_hand(small):
     """Two landmarks each; hand-computed mutual matches, cosine distances and shape penalty."""
+
     def unit(*xs):
         x = np.zeros(8, np.float32)
         x[: len(xs)] = xs
@@ -75,7 +76,7 @@ def test_score_formula_by_hand(small):
     r = small.pack(r_regions, r_boxes, r_valid)
     d0 = 1 - q_regions[0, 0] @ r_regions[0, 0]
     d1 = 1 - q_regions[0, 1] @ r_regions[0, 1]
-    s0 = np.exp(0.5 * (0 / 0.2 + 0.2 / 0.4))      # widths equal, heights 0.4 vs 0.2
+    s0 = np.exp(0.5 * (0 / 0.2 + 0.2 / 0.4))  # widths equal, heights 0.4 vs 0.2
     s1 = 1.0
     expected = ((1 - d0 * s0) + (1 - d1 * s1)) / np.sqrt(2 * 3)
     assert small.similarity(q, r)[0, 0] == pytest.approx(expected, abs=1e-5)

@@ -32,8 +32,16 @@ def export(module, path, size=(16, 32), dynamic_size=False, output="vectors"):
     axes = {"images": {0: "n", **({2: "h", 3: "w"} if dynamic_size else {})}, output: {0: "n"}}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        torch.onnx.export(module.eval(), (torch.rand(1, 3, *size),), str(path), input_names=["images"],
-                          output_names=[output], dynamic_axes=axes, opset_version=17, dynamo=False)
+        torch.onnx.export(
+            module.eval(),
+            (torch.rand(1, 3, *size),),
+            str(path),
+            input_names=["images"],
+            output_names=[output],
+            dynamic_axes=axes,
+            opset_version=17,
+            dynamo=False,
+        )
     return path
 
 
@@ -41,8 +49,10 @@ def export(module, path, size=(16, 32), dynamic_size=False, output="vectors"):
 def tiny_run(tmp_path_factory):
     root = tmp_path_factory.mktemp("onnx")
     assert main(["synth", "--out", str(root / "route"), "--num-frames", "12", "--conditions", "summer,night"]) == 0
-    assert main(["train", "--data", str(root / "route"), "--preset", "tiny", "--out", str(root / "run"),
-                 "--no-progress"]) == 0
+    assert (
+        main(["train", "--data", str(root / "route"), "--preset", "tiny", "--out", str(root / "run"), "--no-progress"])
+        == 0
+    )
     assert main(["export", "--checkpoint", str(root / "run"), "--out", str(root / "fdnet.onnx")]) == 0
     return root / "run", root / "fdnet.onnx"
 
@@ -55,8 +65,23 @@ def test_an_exported_fdnet_reads_back_with_no_settings_and_gives_its_vectors_on_
     assert onnx.input_size == tuple(fdnet.input_size) and onnx.dim == fdnet.dim  # from the model's metadata
     out = {}
     for name, options in (("onnx", ["--weights", str(model)]), ("fdnet", ["--checkpoint", str(run), "--fp32"])):
-        assert main(["extract", "--method", name, *options, "--images", str(images), "--out",
-                     str(tmp_path / f"{name}.npz"), "--workers", "0"]) == 0
+        assert (
+            main(
+                [
+                    "extract",
+                    "--method",
+                    name,
+                    *options,
+                    "--images",
+                    str(images),
+                    "--out",
+                    str(tmp_path / f"{name}.npz"),
+                    "--workers",
+                    "0",
+                ]
+            )
+            == 0
+        )
         with np.load(tmp_path / f"{name}.npz") as data:
             out[name] = data["descriptors" if name == "onnx" else "content"]
     assert out["onnx"].shape == out["fdnet"].shape == (200, fdnet.dim)
@@ -66,8 +91,17 @@ def test_an_exported_fdnet_reads_back_with_no_settings_and_gives_its_vectors_on_
 def test_evaluate_gives_the_same_numbers_through_onnx_as_through_pytorch(tiny_run, tmp_path, capsys):
     run, model = tiny_run
     data = require_shared("gardens_point")
-    common = ["evaluate", "--data", str(data), "--reference", "day_left", "--query", "night_right", "--frames",
-              "100:140"]
+    common = [
+        "evaluate",
+        "--data",
+        str(data),
+        "--reference",
+        "day_left",
+        "--query",
+        "night_right",
+        "--frames",
+        "100:140",
+    ]
     assert main([*common, "--method", "onnx", "--weights", str(model), "--json", str(tmp_path / "o.json")]) == 0
     assert main([*common, "--method", "fdnet", "--checkpoint", str(run), "--json", str(tmp_path / "f.json")]) == 0
     o, f = (json.loads((tmp_path / n).read_text())["results"][0] for n in ("o.json", "f.json"))
@@ -95,20 +129,30 @@ def test_a_graph_fixed_at_batch_one_describes_any_batch(tmp_path):
     path = tmp_path / "one.onnx"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        torch.onnx.export(MeanConv().eval(), (torch.rand(1, 3, 16, 32),), str(path), input_names=["images"],
-                          output_names=["v"], opset_version=17, dynamo=False)
+        torch.onnx.export(
+            MeanConv().eval(),
+            (torch.rand(1, 3, 16, 32),),
+            str(path),
+            input_names=["images"],
+            output_names=["v"],
+            opset_version=17,
+            dynamo=False,
+        )
     d = create("onnx", weights=str(path))
     images = np.random.default_rng(1).random((5, 16, 32, 3), dtype=np.float32)
-    one_by_one = np.concatenate([d.describe(images[i:i + 1]) for i in range(5)])
+    one_by_one = np.concatenate([d.describe(images[i : i + 1]) for i in range(5)])
     np.testing.assert_allclose(d.describe(images), one_by_one, atol=1e-6)
 
 
-@pytest.mark.parametrize("case, message", [
-    ("not_onnx", "not an ONNX model onnxruntime can load"),
-    ("four_d", "a descriptor model returns (N, D) vectors"),
-    ("dynamic", "input size is not fixed"),
-    ("missing", "ONNX model not found"),
-])
+@pytest.mark.parametrize(
+    "case, message",
+    [
+        ("not_onnx", "not an ONNX model onnxruntime can load"),
+        ("four_d", "a descriptor model returns (N, D) vectors"),
+        ("dynamic", "input size is not fixed"),
+        ("missing", "ONNX model not found"),
+    ],
+)
 def test_bad_models_are_one_line_errors(case, message, tmp_path, capsys):
     path = tmp_path / f"{case}.onnx"
     if case == "not_onnx":
@@ -116,13 +160,36 @@ def test_bad_models_are_one_line_errors(case, message, tmp_path, capsys):
     elif case == "four_d":
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            torch.onnx.export(torch.nn.Conv2d(3, 4, 3).eval(), (torch.rand(1, 3, 16, 32),), str(path),
-                              input_names=["images"], output_names=["maps"], opset_version=17, dynamo=False)
+            torch.onnx.export(
+                torch.nn.Conv2d(3, 4, 3).eval(),
+                (torch.rand(1, 3, 16, 32),),
+                str(path),
+                input_names=["images"],
+                output_names=["maps"],
+                opset_version=17,
+                dynamo=False,
+            )
     elif case == "dynamic":
         export(MeanConv(), path, dynamic_size=True)
     images = write_random_places(tmp_path / "images", 3)
-    assert main(["match", "--reference", str(images), "--query", str(images), "--method", "onnx", "--weights",
-                 str(path), "--out", str(tmp_path / "m.csv")]) == 2
+    assert (
+        main(
+            [
+                "match",
+                "--reference",
+                str(images),
+                "--query",
+                str(images),
+                "--method",
+                "onnx",
+                "--weights",
+                str(path),
+                "--out",
+                str(tmp_path / "m.csv"),
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert err.startswith("fdnet match: error: ") and message in err and str(path) in err
     assert "Traceback" not in err and len(err.strip().splitlines()) == 1
@@ -160,10 +227,14 @@ def test_a_database_and_a_calibration_of_one_model_refuse_another(tmp_path, caps
     b = export(MeanConv(seed=1), tmp_path / "b.onnx")
     images = write_random_places(tmp_path / "map", 6)
     db = tmp_path / "map.db"
-    assert main(["database", "build", "--images", str(images), "--method", "onnx", "--weights", str(a), "--db",
-                 str(db)]) == 0
-    assert main(["database", "add", "--db", str(db), "--images", str(images), "--method", "onnx", "--weights",
-                 str(b)]) == 2
+    assert (
+        main(["database", "build", "--images", str(images), "--method", "onnx", "--weights", str(a), "--db", str(db)])
+        == 0
+    )
+    assert (
+        main(["database", "add", "--db", str(db), "--images", str(images), "--method", "onnx", "--weights", str(b)])
+        == 2
+    )
     err = capsys.readouterr().err
     assert err.startswith("fdnet database: error: ") and "Traceback" not in err
 
@@ -171,22 +242,93 @@ def test_a_database_and_a_calibration_of_one_model_refuse_another(tmp_path, caps
     for condition, brightness in (("day", 1.0), ("dusk", 0.8)):
         write_random_places(route / condition, 12, seed=3, brightness=brightness)
     calibration = tmp_path / "cal.yaml"
-    assert main(["calibrate", "--data", str(route), "--reference", "day", "--query", "dusk", "--method", "onnx",
-                 "--weights", str(a), "--out", str(calibration)]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                "--data",
+                str(route),
+                "--reference",
+                "day",
+                "--query",
+                "dusk",
+                "--method",
+                "onnx",
+                "--weights",
+                str(a),
+                "--out",
+                str(calibration),
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
-    assert main(["match", "--reference", str(route / "day"), "--query", str(route / "dusk"), "--method", "onnx",
-                 "--weights", str(b), "--calibration", str(calibration), "--out", str(tmp_path / "m.csv")]) == 2
+    assert (
+        main(
+            [
+                "match",
+                "--reference",
+                str(route / "day"),
+                "--query",
+                str(route / "dusk"),
+                "--method",
+                "onnx",
+                "--weights",
+                str(b),
+                "--calibration",
+                str(calibration),
+                "--out",
+                str(tmp_path / "m.csv"),
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert err.startswith("fdnet match: error: ") and str(calibration) in err and "Traceback" not in err
-    assert main(["match", "--reference", str(route / "day"), "--query", str(route / "dusk"), "--method", "onnx",
-                 "--weights", str(a), "--calibration", str(calibration), "--out", str(tmp_path / "m.csv")]) == 0
+    assert (
+        main(
+            [
+                "match",
+                "--reference",
+                str(route / "day"),
+                "--query",
+                str(route / "dusk"),
+                "--method",
+                "onnx",
+                "--weights",
+                str(a),
+                "--calibration",
+                str(calibration),
+                "--out",
+                str(tmp_path / "m.csv"),
+            ]
+        )
+        == 0
+    )
     assert "accepted" in read_csv_rows(tmp_path / "m.csv")[0]
 
 
 def test_benchmark_times_an_onnx_model_beside_the_others(tmp_path, capsys):
     path = export(MeanConv(), tmp_path / "m.onnx")
-    assert main(["benchmark", "--parts", "methods", "--method", "sad", "--weights", f"onnx:{path}",
-                 "--num-images", "4", "--quick", "--json", str(tmp_path / "b.json")]) == 0
+    assert (
+        main(
+            [
+                "benchmark",
+                "--parts",
+                "methods",
+                "--method",
+                "sad",
+                "--weights",
+                f"onnx:{path}",
+                "--num-images",
+                "4",
+                "--quick",
+                "--json",
+                str(tmp_path / "b.json"),
+            ]
+        )
+        == 0
+    )
     report = json.loads((tmp_path / "b.json").read_text())
     assert report["method_extraction_ms"]["onnx"] > 0 and report["ratio_vs_sad"]["onnx"] > 0
     assert "onnx" in capsys.readouterr().out
@@ -204,14 +346,20 @@ def graph_model(path, input_shape, metadata=None, dtype="float", output_shape=("
     axes = axes or ([1, 2] if input_shape[-1] == 3 and input_shape[1] != 3 else [2, 3])
     channels = input_shape[-1] if axes == [1, 2] else input_shape[1]
     channels = channels if isinstance(channels, int) else 3
-    nodes = ([helper.make_node("Cast", ["images"], ["xf"], to=TensorProto.FLOAT)] if dtype != "float" else [])
-    nodes += [helper.make_node("ReduceMean", ["xf" if nodes else "images"], ["p"], axes=axes, keepdims=0),
-              helper.make_node("MatMul", ["p", "W"], ["v"]), *tail]
+    nodes = [helper.make_node("Cast", ["images"], ["xf"], to=TensorProto.FLOAT)] if dtype != "float" else []
+    nodes += [
+        helper.make_node("ReduceMean", ["xf" if nodes else "images"], ["p"], axes=axes, keepdims=0),
+        helper.make_node("MatMul", ["p", "W"], ["v"]),
+        *tail,
+    ]
     weights = np.arange(channels * 4, dtype=np.float32).reshape(channels, 4) / 10 + 0.1
-    graph = helper.make_graph(nodes, "g", [helper.make_tensor_value_info("images", types[dtype], list(input_shape))],
-                              [helper.make_tensor_value_info(nodes[-1].output[0], TensorProto.FLOAT,
-                                                             list(output_shape))],
-                              initializer=[numpy_helper.from_array(weights, "W")])
+    graph = helper.make_graph(
+        nodes,
+        "g",
+        [helper.make_tensor_value_info("images", types[dtype], list(input_shape))],
+        [helper.make_tensor_value_info(nodes[-1].output[0], TensorProto.FLOAT, list(output_shape))],
+        initializer=[numpy_helper.from_array(weights, "W")],
+    )
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
     model.ir_version = 8
     for key, value in (metadata or {}).items():
@@ -226,21 +374,39 @@ def match_error(tmp_path, capsys, model, *settings):
     if not images.exists():
         write_random_places(images, 3)
     capsys.readouterr()
-    code = main(["match", "--reference", str(images), "--query", str(images), "--method", "onnx", "--weights",
-                 str(model), *[a for s in settings for a in ("--method-set", s)], "--out", str(tmp_path / "m.csv"),
-                 "--workers", "0"])
+    code = main(
+        [
+            "match",
+            "--reference",
+            str(images),
+            "--query",
+            str(images),
+            "--method",
+            "onnx",
+            "--weights",
+            str(model),
+            *[a for s in settings for a in ("--method-set", s)],
+            "--out",
+            str(tmp_path / "m.csv"),
+            "--workers",
+            "0",
+        ]
+    )
     err = capsys.readouterr().err
     return code, err
 
 
-@pytest.mark.parametrize("metadata, message", [
-    ({"fdnet.input_size": "abc"}, "'abc' is not HxW"),
-    ({"fdnet.mean": "[1,2]"}, "is not a number or a list of 3 numbers"),
-    ({"std": "0"}, "std must not be 0"),
-    ({"channels": "BGRA"}, "channels='BGRA'"),
-    ({"output": "nope"}, "'nope' (model metadata output) is not one of the model's outputs"),
-    ({"fdnet.mean": "[123.675,116.28,103.53]", "fdnet.std": "[58.395,57.12,57.375]"}, "not on the [0, 1] scale"),
-])
+@pytest.mark.parametrize(
+    "metadata, message",
+    [
+        ({"fdnet.input_size": "abc"}, "'abc' is not HxW"),
+        ({"fdnet.mean": "[1,2]"}, "is not a number or a list of 3 numbers"),
+        ({"std": "0"}, "std must not be 0"),
+        ({"channels": "BGRA"}, "channels='BGRA'"),
+        ({"output": "nope"}, "'nope' (model metadata output) is not one of the model's outputs"),
+        ({"fdnet.mean": "[123.675,116.28,103.53]", "fdnet.std": "[58.395,57.12,57.375]"}, "not on the [0, 1] scale"),
+    ],
+)
 def test_garbage_in_the_models_metadata_is_one_line_naming_the_model(metadata, message, tmp_path, capsys):
     model = graph_model(tmp_path / "meta model.onnx", ["n", 3, "h", "w"], {"fdnet.input_size": "16x32", **metadata})
     code, err = match_error(tmp_path, capsys, model)
@@ -298,16 +464,19 @@ def test_a_dynamic_channel_axis_warns_only_when_the_model_is_accepted(tmp_path, 
     assert code == 0 and "warning: " in err and "layout=nhwc" in err
 
 
-@pytest.mark.parametrize("case, message", [
-    ("uint8", "is tensor(uint8); fdnet gives a model float images"),
-    ("two_inputs", "the model takes 2 inputs"),
-    ("output_n_d_1", "a descriptor model returns (N, D) vectors"),
-    ("output_d", "a descriptor model returns (N, D) vectors"),
-    ("nan", "the model's output: the vector of image 0 of a batch of 3 holds NaN, infinity"),
-    ("empty", "not an ONNX model onnxruntime can load"),
-    ("truncated", "not an ONNX model onnxruntime can load"),
-    ("directory", "ONNX model not found"),
-])
+@pytest.mark.parametrize(
+    "case, message",
+    [
+        ("uint8", "is tensor(uint8); fdnet gives a model float images"),
+        ("two_inputs", "the model takes 2 inputs"),
+        ("output_n_d_1", "a descriptor model returns (N, D) vectors"),
+        ("output_d", "a descriptor model returns (N, D) vectors"),
+        ("nan", "the model's output: the vector of image 0 of a batch of 3 holds NaN, infinity"),
+        ("empty", "not an ONNX model onnxruntime can load"),
+        ("truncated", "not an ONNX model onnxruntime can load"),
+        ("directory", "ONNX model not found"),
+    ],
+)
 def test_odd_models_are_one_line_naming_the_file(case, message, tmp_path, capsys):
     from onnx import TensorProto, helper, numpy_helper
 
@@ -333,13 +502,15 @@ def test_odd_models_are_one_line_naming_the_file(case, message, tmp_path, capsys
         model.graph.output.append(helper.make_tensor_value_info("v3", TensorProto.FLOAT, ["n", 4, 1]))
         onnx.save(model, str(path))
     elif case == "output_d":
-        graph_model(path, shape, output_shape=[4],
-                    tail=[helper.make_node("ReduceMean", ["v"], ["v1"], axes=[0], keepdims=0)])
+        graph_model(
+            path, shape, output_shape=[4], tail=[helper.make_node("ReduceMean", ["v"], ["v1"], axes=[0], keepdims=0)]
+        )
     elif case == "nan":
         import onnx
 
-        graph_model(path, shape, tail=[helper.make_node("Sub", ["v", "c"], ["vs"]),
-                                       helper.make_node("Log", ["vs"], ["vn"])])
+        graph_model(
+            path, shape, tail=[helper.make_node("Sub", ["v", "c"], ["vs"]), helper.make_node("Log", ["vs"], ["vn"])]
+        )
         model = onnx.load(str(path))
         model.graph.initializer.append(numpy_helper.from_array(np.array(100, np.float32), "c"))
         onnx.save(model, str(path))
@@ -371,8 +542,26 @@ def test_an_unreadable_model_and_cuda_without_its_provider_are_one_line(tmp_path
     model = graph_model(tmp_path / "m.onnx", ["n", 3, 16, 32])
     if "CUDAExecutionProvider" not in onnxruntime.get_available_providers():
         images = write_random_places(tmp_path / "images", 3)
-        assert main(["match", "--reference", str(images), "--query", str(images), "--method", "onnx", "--weights",
-                     str(model), "--device", "cuda", "--out", str(tmp_path / "m.csv")]) == 2
+        assert (
+            main(
+                [
+                    "match",
+                    "--reference",
+                    str(images),
+                    "--query",
+                    str(images),
+                    "--method",
+                    "onnx",
+                    "--weights",
+                    str(model),
+                    "--device",
+                    "cuda",
+                    "--out",
+                    str(tmp_path / "m.csv"),
+                ]
+            )
+            == 2
+        )
         err = capsys.readouterr().err
         assert "no CUDA provider" in err and len(err.strip().splitlines()) == 1
 
@@ -394,14 +583,30 @@ def test_an_all_zero_vector_is_an_error_not_a_silent_score_of_zero(tmp_path):
     with pytest.raises(DataError, match="is all zero"):
         d.describe(np.random.default_rng(0).random((2, 16, 32, 3), dtype=np.float32))
     assert create("onnx", weights=str(tmp_path / "zero.onnx"), normalise="none").describe(
-        np.ones((1, 16, 32, 3), np.float32)).tolist() == [[0.0, 0.0, 0.0]]
+        np.ones((1, 16, 32, 3), np.float32)
+    ).tolist() == [[0.0, 0.0, 0.0]]
 
 
 def test_a_model_the_user_named_that_cannot_load_fails_the_benchmark(tmp_path, capsys):
     bad = tmp_path / "bad.onnx"
     bad.write_text("not a model")
-    assert main(["benchmark", "--parts", "methods", "--method", "sad", "--weights", f"onnx:{bad}", "--quick",
-                 "--num-images", "2"]) == 2
+    assert (
+        main(
+            [
+                "benchmark",
+                "--parts",
+                "methods",
+                "--method",
+                "sad",
+                "--weights",
+                f"onnx:{bad}",
+                "--quick",
+                "--num-images",
+                "2",
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert err.startswith("fdnet benchmark: error: ") and str(bad) in err
 
@@ -413,8 +618,14 @@ def external_data_model(folder, seed):
     folder.mkdir(parents=True, exist_ok=True)
     export(MeanConv(seed=seed), folder / "whole.onnx")
     model = onnx.load(str(folder / "whole.onnx"))
-    onnx.save_model(model, str(folder / "m.onnx"), save_as_external_data=True, all_tensors_to_one_file=True,
-                    location="w.data", size_threshold=0)
+    onnx.save_model(
+        model,
+        str(folder / "m.onnx"),
+        save_as_external_data=True,
+        all_tensors_to_one_file=True,
+        location="w.data",
+        size_threshold=0,
+    )
     return folder / "m.onnx"
 
 
@@ -450,6 +661,7 @@ def test_external_data_outside_the_models_folder_is_refused_naming_the_model(tmp
 def test_outputs_of_huge_or_tiny_values_keep_their_direction(scale, tmp_path):
     """Float32's sum of squares overflows at 1e25 (every vector became zero) and underflows at
     1e-29 (called all-zero): norms are taken in float64."""
+
     class Scaled(torch.nn.Module):
         def __init__(self, factor):
             super().__init__()
@@ -473,11 +685,21 @@ def test_an_output_whose_length_varies_with_the_batch_is_one_line_naming_the_mod
     path = tmp_path / "tiled.onnx"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        torch.onnx.export(BatchTiled(), (torch.rand(2, 3, 16, 32),), str(path), input_names=["images"],
-                          output_names=["vectors"], dynamic_axes={"images": {0: "n"}, "vectors": {0: "n", 1: "d"}},
-                          opset_version=17, dynamo=False)
+        torch.onnx.export(
+            BatchTiled(),
+            (torch.rand(2, 3, 16, 32),),
+            str(path),
+            input_names=["images"],
+            output_names=["vectors"],
+            dynamic_axes={"images": {0: "n"}, "vectors": {0: "n", 1: "d"}},
+            opset_version=17,
+            dynamo=False,
+        )
     d = create("onnx", weights=str(path))
     assert d.dim == 3
-    with pytest.raises(DataError, match=r"tiled\.onnx: output vectors has shape \[4, 12\] for a batch of 4 images "
-                                        r"but \(3,\) per image for one"):
+    with pytest.raises(
+        DataError,
+        match=r"tiled\.onnx: output vectors has shape \[4, 12\] for a batch of 4 images "
+        r"but \(3,\) per image for one",
+    ):
         d.describe(np.random.default_rng(0).random((4, 16, 32, 3), dtype=np.float32))

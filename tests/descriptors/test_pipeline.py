@@ -97,8 +97,8 @@ def test_npz_chunk_writer_is_an_ordinary_npz_and_atomic(tmp_path):
     rows = np.arange(30, dtype=np.float32).reshape(10, 3)
     with NpzChunkWriter(out, {"a": ((10, 3), np.float32), "b": ((10, 3), np.float32)}) as writer:
         for start in range(0, 10, 4):
-            writer.write("a", rows[start:start + 4])
-            writer.write("b", -rows[start:start + 4])
+            writer.write("a", rows[start : start + 4])
+            writer.write("b", -rows[start : start + 4])
         writer.close({"names": np.array([f"n{i}" for i in range(10)])})
     with np.load(out, allow_pickle=False) as z:
         np.testing.assert_array_equal(z["a"], rows)
@@ -111,7 +111,7 @@ def test_npz_chunk_writer_is_an_ordinary_npz_and_atomic(tmp_path):
     with pytest.raises(ValueError, match="4 rows written of 10"):
         writer.close()
     assert out.read_bytes() == before
-    assert [p.name for p in tmp_path.iterdir()] == ["v.npz"]   # no parts left behind
+    assert [p.name for p in tmp_path.iterdir()] == ["v.npz"]  # no parts left behind
 
 
 def test_vector_spool_round_trip(tmp_path):
@@ -127,7 +127,7 @@ def test_vector_spool_round_trip(tmp_path):
 
 
 # ------------------------------------------------------------------ bounded memory
-MEMORY_SCRIPT = textwrap.dedent('''
+MEMORY_SCRIPT = textwrap.dedent("""
     import json, resource, sys
     import numpy as np
     sys.path.insert(0, sys.argv[3])
@@ -145,7 +145,7 @@ MEMORY_SCRIPT = textwrap.dedent('''
     children = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024
     print(json.dumps({"base": base, "peak": peak, "children": children, "rows": len(vectors),
                       "decoded": len(paths) * 512 * 512 * 3 * 4}))
-''')
+""")
 
 
 @pytest.mark.parametrize("workers", [0, 1])
@@ -157,8 +157,13 @@ def test_a_folder_streams_in_memory_far_below_its_decoded_size(tmp_path, workers
     make_folder(folder, 700, size=(16, 16))
     script = tmp_path / "measure.py"
     script.write_text(MEMORY_SCRIPT)
-    done = subprocess.run([sys.executable, str(script), str(folder), str(workers), str(Path(__file__).parent)],
-                          capture_output=True, text=True, timeout=600, cwd=REPO)
+    done = subprocess.run(
+        [sys.executable, str(script), str(folder), str(workers), str(Path(__file__).parent)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=REPO,
+    )
     assert done.returncode == 0, done.stderr[-2000:]
     m = json.loads(done.stdout.strip().splitlines()[-1])
     cap = 300 * 2**20
@@ -197,7 +202,7 @@ def test_spools_of_killed_writers_are_removed_by_the_next_and_live_ones_kept(tmp
         assert stale.exists() and live.exists()
         with VectorSpool(tmp_path, 4) as spool:
             assert not stale.exists()  # no process held it: removed
-            assert live.exists()       # its writer is still describing: kept
+            assert live.exists()  # its writer is still describing: kept
             assert spool.path.exists()
         assert sorted(p.name for p in tmp_path.iterdir()) == [live.name]
     finally:
@@ -221,8 +226,10 @@ def test_parts_of_a_killed_npz_writer_are_removed_by_the_next_writer_of_that_fil
     from fdnet.descriptors.pipeline import NpzChunkWriter
 
     target = tmp_path / "vectors.npz"
-    started = [subprocess.Popen([sys.executable, "-c", _NPZ_WRITER, str(target)], stdout=subprocess.PIPE, text=True)
-               for _ in range(2)]
+    started = [
+        subprocess.Popen([sys.executable, "-c", _NPZ_WRITER, str(target)], stdout=subprocess.PIPE, text=True)
+        for _ in range(2)
+    ]
     killed, alive = started
     parts = [Path(p.stdout.readline().strip()) for p in started]
     try:
@@ -239,8 +246,10 @@ def test_parts_of_a_killed_npz_writer_are_removed_by_the_next_writer_of_that_fil
         alive.wait()
 
 
-@pytest.mark.parametrize("batch_size, workers, message", [
-    (0, None, "--batch-size must be >= 1, got 0"), (64, -1, "--workers must be >= 0, got -1")])
+@pytest.mark.parametrize(
+    "batch_size, workers, message",
+    [(0, None, "--batch-size must be >= 1, got 0"), (64, -1, "--workers must be >= 0, got -1")],
+)
 def test_pipeline_settings_out_of_range_are_refused(batch_size, workers, message):
     from fdnet.descriptors.pipeline import check_pipeline_settings
     from fdnet.errors import ConfigError
@@ -269,9 +278,28 @@ def test_a_worker_that_cannot_hand_its_batch_over_is_one_line_not_a_hang(tmp_pat
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
         resource.setrlimit(resource.RLIMIT_FSIZE, (60_000, resource.RLIM_INFINITY))
 
-    done = subprocess.run([sys.executable, "-m", "fdnet", "extract", "--method", "raw", "--images", str(images),
-                           "--out", str(tmp_path / "v.npz"), "--workers", "1", "--batch-size", "8"],
-                          capture_output=True, text=True, timeout=300, preexec_fn=limit)
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "fdnet",
+            "extract",
+            "--method",
+            "raw",
+            "--images",
+            str(images),
+            "--out",
+            str(tmp_path / "v.npz"),
+            "--workers",
+            "1",
+            "--batch-size",
+            "8",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        preexec_fn=limit,
+    )
     assert done.returncode == 2, done.stderr
     assert "Traceback" not in done.stderr
     assert done.stderr.strip().splitlines()[-1].startswith("fdnet extract: error: ")

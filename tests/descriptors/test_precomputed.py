@@ -30,18 +30,30 @@ def extract(folder, out, method="hog"):
 
 def evaluate(route, tmp_path, name, *method):
     out = tmp_path / f"{name}.json"
-    assert main(["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk", *method,
-                 "--json", str(out)]) == 0
+    assert (
+        main(["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk", *method, "--json", str(out)])
+        == 0
+    )
     result = json.loads(out.read_text())["results"][0]
-    return {k: result[k] for k in ("recall_at_n", "recall_at_100_precision", "auc_pr", "precision_at_max_recall",
-                                   "pr_curve", "per_acceptance")}
+    return {
+        k: result[k]
+        for k in (
+            "recall_at_n",
+            "recall_at_100_precision",
+            "auc_pr",
+            "precision_at_max_recall",
+            "pr_curve",
+            "per_acceptance",
+        )
+    }
 
 
 def test_extracts_vectors_give_the_methods_own_numbers_exactly(route, tmp_path):
     day, dusk = extract(route / "day", tmp_path / "day.npz"), extract(route / "dusk", tmp_path / "dusk.npz")
     own = evaluate(route, tmp_path, "own", "--method", "hog")
-    looked_up = evaluate(route, tmp_path, "pre", "--method", "precomputed", "--vectors", str(day), "--vectors",
-                         str(dusk))
+    looked_up = evaluate(
+        route, tmp_path, "pre", "--method", "precomputed", "--vectors", str(day), "--vectors", str(dusk)
+    )
     assert looked_up == own
 
 
@@ -68,8 +80,10 @@ def test_an_npy_with_its_names_list(route, tmp_path):
     (tmp_path / "v.txt").rename(tmp_path / "names.list")
     with pytest.raises(DataError, match="no names list"):
         create("precomputed", vectors=str(tmp_path / "v.npy"))
-    assert create("precomputed", vectors=str(tmp_path / "v.npy"), names=str(tmp_path / "names.list")).dim == 2 * 0 + \
-        vectors.shape[1]
+    assert (
+        create("precomputed", vectors=str(tmp_path / "v.npy"), names=str(tmp_path / "names.list")).dim
+        == 2 * 0 + vectors.shape[1]
+    )
 
 
 def test_equal_candidates_are_an_error_not_a_guess(tmp_path):
@@ -84,22 +98,38 @@ def test_equal_candidates_are_an_error_not_a_guess(tmp_path):
         d.row_of(tmp_path / "night" / "frame.png")
 
 
-@pytest.mark.parametrize("case, message", [
-    ("missing_image", "no vector for this image"),
-    ("not_vectors", "not a readable .npz"),
-    ("missing_file", "vectors file not found"),
-    ("no_vectors", "give the vectors with --vectors"),
-    ("wrong_suffix", "not a vectors file fdnet reads"),
-])
+@pytest.mark.parametrize(
+    "case, message",
+    [
+        ("missing_image", "no vector for this image"),
+        ("not_vectors", "not a readable .npz"),
+        ("missing_file", "vectors file not found"),
+        ("no_vectors", "give the vectors with --vectors"),
+        ("wrong_suffix", "not a vectors file fdnet reads"),
+    ],
+)
 def test_bad_vectors_are_one_line_errors(case, message, route, tmp_path, capsys):
     day = extract(route / "day", tmp_path / "day.npz")
-    vectors = {"missing_image": [str(day)], "not_vectors": [str(tmp_path / "bad.npz")],
-               "missing_file": [str(tmp_path / "none.npz")], "no_vectors": [],
-               "wrong_suffix": [str(tmp_path / "v.csv")]}[case]
+    vectors = {
+        "missing_image": [str(day)],
+        "not_vectors": [str(tmp_path / "bad.npz")],
+        "missing_file": [str(tmp_path / "none.npz")],
+        "no_vectors": [],
+        "wrong_suffix": [str(tmp_path / "v.csv")],
+    }[case]
     (tmp_path / "bad.npz").write_text("not a zip")
     (tmp_path / "v.csv").write_text("1,2\n")
-    args = ["match", "--reference", str(route / "day"), "--query", str(route / "dusk"), "--method", "precomputed",
-            "--out", str(tmp_path / "m.csv")]
+    args = [
+        "match",
+        "--reference",
+        str(route / "day"),
+        "--query",
+        str(route / "dusk"),
+        "--method",
+        "precomputed",
+        "--out",
+        str(tmp_path / "m.csv"),
+    ]
     for v in vectors:
         args += ["--vectors", v]
     capsys.readouterr()
@@ -114,8 +144,24 @@ def test_bad_vectors_are_one_line_errors(case, message, route, tmp_path, capsys)
 
 def test_vectors_is_refused_for_a_method_that_computes_its_own(route, tmp_path, capsys):
     day = extract(route / "day", tmp_path / "day.npz")
-    assert main(["match", "--reference", str(route / "day"), "--query", str(route / "day"), "--method", "hog",
-                 "--vectors", str(day), "--out", str(tmp_path / "m.csv")]) == 2
+    assert (
+        main(
+            [
+                "match",
+                "--reference",
+                str(route / "day"),
+                "--query",
+                str(route / "day"),
+                "--method",
+                "hog",
+                "--vectors",
+                str(day),
+                "--out",
+                str(tmp_path / "m.csv"),
+            ]
+        )
+        == 2
+    )
     assert "none of the methods hog has a setting vectors (precomputed has)" in capsys.readouterr().err
 
 
@@ -125,22 +171,75 @@ def test_loop_closure_and_the_database_take_precomputed_vectors(tmp_path, capsys
     for i in range(8):  # the route again: frame 8 + i revisits frame i
         (route / f"frame_{8 + i:03d}.png").write_bytes((route / f"frame_{i:03d}.png").read_bytes())
     vectors = extract(route, tmp_path / "loop.npz")
-    common = ["--images", str(route), "--sequence-length", "1", "--exclude-last", "3", "--accept", "margin",
-              "--threshold", "0.01"]
+    common = [
+        "--images",
+        str(route),
+        "--sequence-length",
+        "1",
+        "--exclude-last",
+        "3",
+        "--accept",
+        "margin",
+        "--threshold",
+        "0.01",
+    ]
     assert main(["loop-closure", *common, "--method", "hog", "--out", str(tmp_path / "own.csv")]) == 0
-    assert main(["loop-closure", *common, "--method", "precomputed", "--vectors", str(vectors), "--out",
-                 str(tmp_path / "pre.csv")]) == 0
+    assert (
+        main(
+            [
+                "loop-closure",
+                *common,
+                "--method",
+                "precomputed",
+                "--vectors",
+                str(vectors),
+                "--out",
+                str(tmp_path / "pre.csv"),
+            ]
+        )
+        == 0
+    )
     own, pre = read_csv_rows(tmp_path / "own.csv"), read_csv_rows(tmp_path / "pre.csv")
     assert len(own) >= 8 and [(r["query"], r["match"]) for r in pre] == [(r["query"], r["match"]) for r in own]
 
     db = tmp_path / "map.db"
-    assert main(["database", "build", "--images", str(route), "--method", "precomputed", "--vectors", str(vectors),
-                 "--db", str(db)]) == 0
+    assert (
+        main(
+            [
+                "database",
+                "build",
+                "--images",
+                str(route),
+                "--method",
+                "precomputed",
+                "--vectors",
+                str(vectors),
+                "--db",
+                str(db),
+            ]
+        )
+        == 0
+    )
     other = tmp_path / "other.npz"
     extract(route, other, method="gist")
     capsys.readouterr()
-    assert main(["database", "add", "--db", str(db), "--images", str(route), "--method", "precomputed",
-                 "--vectors", str(other)]) == 2  # other vectors: another model's, refused
+    assert (
+        main(
+            [
+                "database",
+                "add",
+                "--db",
+                str(db),
+                "--images",
+                str(route),
+                "--method",
+                "precomputed",
+                "--vectors",
+                str(other),
+            ]
+        )
+        == 2
+    )  # other vectors: another model's, refused
     assert "Traceback" not in capsys.readouterr().err
 
 
@@ -148,8 +247,9 @@ def test_pixel_arrays_cannot_be_looked_up(route, tmp_path):
     from fdnet.decisions.loop_closure import LoopClosureDetector
 
     day = extract(route / "day", tmp_path / "day.npz")
-    detector = LoopClosureDetector(create("precomputed", vectors=str(day)), exclude_last=3, rule="margin",
-                                   threshold=0.5)
+    detector = LoopClosureDetector(
+        create("precomputed", vectors=str(day)), exclude_last=3, rule="margin", threshold=0.5
+    )
     assert detector.process(route / "day" / "frame_000.png") is None  # a path: looked up
     with pytest.raises(DataError, match="not pixel arrays"):
         detector.process(np.zeros((24, 32, 3), np.uint8))
@@ -157,9 +257,29 @@ def test_pixel_arrays_cannot_be_looked_up(route, tmp_path):
 
 def test_reproduce_compares_precomputed_vectors_with_the_method_that_made_them(route, tmp_path):
     day, dusk = extract(route / "day", tmp_path / "day.npz"), extract(route / "dusk", tmp_path / "dusk.npz")
-    assert main(["reproduce", "--data", str(route), "--method", "precomputed,hog", "--vectors", str(day),
-                 "--vectors", str(dusk), "--experiments", "comparison", "--out", str(tmp_path / "report"),
-                 "--cache", str(tmp_path / "cache"), "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "reproduce",
+                "--data",
+                str(route),
+                "--method",
+                "precomputed,hog",
+                "--vectors",
+                str(day),
+                "--vectors",
+                str(dusk),
+                "--experiments",
+                "comparison",
+                "--out",
+                str(tmp_path / "report"),
+                "--cache",
+                str(tmp_path / "cache"),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     comparison = json.loads((tmp_path / "report" / "comparison.json").read_text())
     for pair in comparison["pairs"]:
         by_method = {r["method"]: r for r in pair["results"]}
@@ -176,14 +296,31 @@ def test_hlocs_global_features_are_looked_up_by_their_relative_names(route, tmp_
     vectors = describe_paths(create("hog"), paths, workers=0)
     h5 = tmp_path / "global-feats-hog.h5"
     write_global_features(h5, [f"{p.parent.name}/{p.name}" for p in paths], vectors)  # relative to route/
-    assert evaluate(route, tmp_path, "h5", "--method", "precomputed", "--vectors", str(h5)) == \
-        evaluate(route, tmp_path, "own", "--method", "hog")
+    assert evaluate(route, tmp_path, "h5", "--method", "precomputed", "--vectors", str(h5)) == evaluate(
+        route, tmp_path, "own", "--method", "hog"
+    )
 
     truncated = tmp_path / "truncated.h5"
     truncated.write_bytes(h5.read_bytes()[: h5.stat().st_size // 2])
     capsys.readouterr()
-    assert main(["match", "--reference", str(route / "day"), "--query", str(route / "dusk"), "--method",
-                 "precomputed", "--vectors", str(truncated), "--out", str(tmp_path / "m.csv")]) == 2
+    assert (
+        main(
+            [
+                "match",
+                "--reference",
+                str(route / "day"),
+                "--query",
+                str(route / "dusk"),
+                "--method",
+                "precomputed",
+                "--vectors",
+                str(truncated),
+                "--out",
+                str(tmp_path / "m.csv"),
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert err.startswith("fdnet match: error: ") and str(truncated) in err
     assert "Traceback" not in err and len(err.strip().splitlines()) == 1
@@ -202,16 +339,52 @@ def test_names_without_folders_never_give_one_folders_vector_to_another(route, t
     write_global_features(day, [p.name for p in paths], describe_paths(create("hog"), paths, workers=0))
     capsys.readouterr()
     out = tmp_path / "m.csv"
-    assert main(["match", "--reference", str(route / "day"), "--query", str(route / "dusk"), "--method",
-                 "precomputed", "--vectors", str(day), "--out", str(out), "--workers", "0"]) == 2
+    assert (
+        main(
+            [
+                "match",
+                "--reference",
+                str(route / "day"),
+                "--query",
+                str(route / "dusk"),
+                "--method",
+                "precomputed",
+                "--vectors",
+                str(day),
+                "--out",
+                str(out),
+                "--workers",
+                "0",
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert "one vector cannot be two images'" in err and str(route / "dusk" / "frame_000.png") in err
     assert "warning: " in err and "without a folder" in err  # said when the file is loaded
     assert [line for line in err.splitlines() if "error" in line][0].startswith("fdnet match: error: ")
     assert "Traceback" not in err and not out.exists()
     # the folder it was made from: its own vectors, with the warning
-    assert main(["match", "--reference", str(route / "day"), "--query", str(route / "day"), "--method",
-                 "precomputed", "--vectors", str(day), "--out", str(out), "--workers", "0"]) == 0
+    assert (
+        main(
+            [
+                "match",
+                "--reference",
+                str(route / "day"),
+                "--query",
+                str(route / "day"),
+                "--method",
+                "precomputed",
+                "--vectors",
+                str(day),
+                "--out",
+                str(out),
+                "--workers",
+                "0",
+            ]
+        )
+        == 0
+    )
 
 
 def test_a_folder_name_shared_by_two_routes_is_not_one_routes_vectors_for_both(tmp_path, capsys):
@@ -240,12 +413,47 @@ def test_a_symlinked_image_folder_finds_the_vectors_of_its_target(route, tmp_pat
     day, dusk = extract(route / "day", tmp_path / "day.npz"), extract(route / "dusk", tmp_path / "dusk.npz")
     (tmp_path / "linked").symlink_to(route / "day", target_is_directory=True)
     out = tmp_path / "m.csv"
-    assert main(["match", "--reference", str(tmp_path / "linked"), "--query", str(route / "dusk"), "--method",
-                 "precomputed", "--vectors", str(day), "--vectors", str(dusk), "--out", str(out),
-                 "--workers", "0"]) == 0
+    assert (
+        main(
+            [
+                "match",
+                "--reference",
+                str(tmp_path / "linked"),
+                "--query",
+                str(route / "dusk"),
+                "--method",
+                "precomputed",
+                "--vectors",
+                str(day),
+                "--vectors",
+                str(dusk),
+                "--out",
+                str(out),
+                "--workers",
+                "0",
+            ]
+        )
+        == 0
+    )
     own = tmp_path / "own.csv"
-    assert main(["match", "--reference", str(tmp_path / "linked"), "--query", str(route / "dusk"), "--method",
-                 "hog", "--out", str(own), "--workers", "0"]) == 0
+    assert (
+        main(
+            [
+                "match",
+                "--reference",
+                str(tmp_path / "linked"),
+                "--query",
+                str(route / "dusk"),
+                "--method",
+                "hog",
+                "--out",
+                str(own),
+                "--workers",
+                "0",
+            ]
+        )
+        == 0
+    )
     assert read_csv_rows(out) == read_csv_rows(own)
 
 
@@ -268,21 +476,24 @@ def _write_npz(path, **arrays):
     return path
 
 
-@pytest.mark.parametrize("case, message", [
-    ("object_vectors", "holds Python objects (dtype object), which are never unpickled"),
-    ("object_names", "holds Python objects (dtype object), which are never unpickled"),
-    ("no_names", "no names array"),
-    ("one_dimensional", "vectors of shape (4,)"),
-    ("nan_row", "the vector of day/frame_001.png holds NaN"),
-    ("integer_names", "names is an array of int64"),
-    ("names_2d", "expected one text per image"),
-    ("complex", "holds complex64, not real numbers"),
-    ("empty_name", "row 0 has an empty image name"),
-    ("sources_short", "2 sources for 3 names"),
-    ("directory", "not a file"),
-    ("beyond_float32", "beyond float32's range"),
-    ("zero_row", "the vector of day/frame_001.png is all zero"),
-])
+@pytest.mark.parametrize(
+    "case, message",
+    [
+        ("object_vectors", "holds Python objects (dtype object), which are never unpickled"),
+        ("object_names", "holds Python objects (dtype object), which are never unpickled"),
+        ("no_names", "no names array"),
+        ("one_dimensional", "vectors of shape (4,)"),
+        ("nan_row", "the vector of day/frame_001.png holds NaN"),
+        ("integer_names", "names is an array of int64"),
+        ("names_2d", "expected one text per image"),
+        ("complex", "holds complex64, not real numbers"),
+        ("empty_name", "row 0 has an empty image name"),
+        ("sources_short", "2 sources for 3 names"),
+        ("directory", "not a file"),
+        ("beyond_float32", "beyond float32's range"),
+        ("zero_row", "the vector of day/frame_001.png is all zero"),
+    ],
+)
 def test_a_vectors_file_holding_the_wrong_things_is_one_error_naming_it(case, message, tmp_path):
     path = tmp_path / f"{case}.npz"
     if case == "object_vectors":
@@ -355,23 +566,85 @@ def test_fdnets_own_h5_records_its_method_so_another_methods_vectors_are_refused
 def test_fdnets_own_h5_keeps_its_folder_so_one_folders_vectors_never_serve_another(route, tmp_path, capsys):
     pytest.importorskip("h5py", reason="optional extra fdnet[hloc] not installed")
     day = tmp_path / "day.h5"
-    assert main(["extract", "--method", "hog", "--format", "h5", "--images", str(route / "day"), "--out",
-                 str(day), "--workers", "0"]) == 0
+    assert (
+        main(
+            [
+                "extract",
+                "--method",
+                "hog",
+                "--format",
+                "h5",
+                "--images",
+                str(route / "day"),
+                "--out",
+                str(day),
+                "--workers",
+                "0",
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
-    assert main(["match", "--reference", str(route / "day"), "--query", str(route / "dusk"), "--method",
-                 "precomputed", "--vectors", str(day), "--out", str(tmp_path / "m.csv")]) == 2
+    assert (
+        main(
+            [
+                "match",
+                "--reference",
+                str(route / "day"),
+                "--query",
+                str(route / "dusk"),
+                "--method",
+                "precomputed",
+                "--vectors",
+                str(day),
+                "--out",
+                str(tmp_path / "m.csv"),
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert "no vector for this image" in err and "dusk" in err and not (tmp_path / "m.csv").exists()
-    assert main(["match", "--reference", str(route / "day"), "--query", str(route / "day"), "--method",
-                 "precomputed", "--vectors", str(day), "--out", str(tmp_path / "m.csv")]) == 0
+    assert (
+        main(
+            [
+                "match",
+                "--reference",
+                str(route / "day"),
+                "--query",
+                str(route / "day"),
+                "--method",
+                "precomputed",
+                "--vectors",
+                str(day),
+                "--out",
+                str(tmp_path / "m.csv"),
+            ]
+        )
+        == 0
+    )
 
 
 def test_extract_never_writes_over_the_vectors_it_reads(route, tmp_path, capsys):
     vectors = extract(route / "day", tmp_path / "day.npz")
     before = vectors.read_bytes()
     capsys.readouterr()
-    assert main(["extract", "--method", "precomputed", "--vectors", str(vectors), "--images", str(route / "day"),
-                 "--out", str(vectors)]) == 2
+    assert (
+        main(
+            [
+                "extract",
+                "--method",
+                "precomputed",
+                "--vectors",
+                str(vectors),
+                "--images",
+                str(route / "day"),
+                "--out",
+                str(vectors),
+            ]
+        )
+        == 2
+    )
     assert "is the --vectors file the command reads" in capsys.readouterr().err
     assert vectors.read_bytes() == before
 
@@ -393,11 +666,27 @@ def test_vectors_of_another_route_with_the_same_layout_are_refused_naming_the_im
             assert data["sizes"].tolist() == sizes
     d = create("precomputed", vectors=str(vectors))
     d.lookup([r / "summer" / "frame_000.png"])  # its own image: fine
-    with pytest.raises(DataError, match=rf"r2/summer/frame_000\.png: not the image that .*r\.{suffix}'s vector for "
-                                        r".*/r/summer/frame_000\.png was computed from \(\d+ bytes here"):
+    with pytest.raises(
+        DataError,
+        match=rf"r2/summer/frame_000\.png: not the image that .*r\.{suffix}'s vector for "
+        r".*/r/summer/frame_000\.png was computed from \(\d+ bytes here",
+    ):
         create("precomputed", vectors=str(vectors)).lookup([r2 / "summer" / "frame_000.png"])
-    code = main(["extract", "--method", "precomputed", "--vectors", str(vectors), "--images", str(r2 / "summer"),
-                 "--out", str(tmp_path / f"again.{suffix}"), "--workers", "0"])
+    code = main(
+        [
+            "extract",
+            "--method",
+            "precomputed",
+            "--vectors",
+            str(vectors),
+            "--images",
+            str(r2 / "summer"),
+            "--out",
+            str(tmp_path / f"again.{suffix}"),
+            "--workers",
+            "0",
+        ]
+    )
     err = capsys.readouterr().err
     assert code == 2 and "r2/summer/frame_000.png: not the image" in err and len(err.strip().splitlines()) == 1
 
@@ -413,8 +702,9 @@ def test_a_compressed_npz_claiming_more_memory_than_allowed_is_refused_before_it
         raise AssertionError("the array was read")
 
     monkeypatch.setattr(np.lib.format, "read_array", never)
-    with pytest.raises(DataError,
-                       match=r"bomb\.npz \(array 'descriptors'\): shape \(2000, 400\) float32 needs 3\.1 MiB"):
+    with pytest.raises(
+        DataError, match=r"bomb\.npz \(array 'descriptors'\): shape \(2000, 400\) float32 needs 3\.1 MiB"
+    ):
         create("precomputed", vectors=str(path))
 
 
@@ -424,10 +714,40 @@ def test_a_precomputed_database_grows_with_later_vectors_of_the_same_model(tmp_p
     by their bytes, and the refusal says so."""
     first, second = write_random_places(tmp_path / "a", 4, seed=1), write_random_places(tmp_path / "b", 3, seed=2)
     db = tmp_path / "map.db"
-    assert main(["database", "build", "--images", str(first), "--method", "precomputed", "--vectors",
-                 str(extract(first, tmp_path / "a.npz")), "--db", str(db)]) == 0
-    assert main(["database", "add", "--db", str(db), "--images", str(second), "--method", "precomputed",
-                 "--vectors", str(extract(second, tmp_path / "b.npz"))]) == 0
+    assert (
+        main(
+            [
+                "database",
+                "build",
+                "--images",
+                str(first),
+                "--method",
+                "precomputed",
+                "--vectors",
+                str(extract(first, tmp_path / "a.npz")),
+                "--db",
+                str(db),
+            ]
+        )
+        == 0
+    )
+    assert (
+        main(
+            [
+                "database",
+                "add",
+                "--db",
+                str(db),
+                "--images",
+                str(second),
+                "--method",
+                "precomputed",
+                "--vectors",
+                str(extract(second, tmp_path / "b.npz")),
+            ]
+        )
+        == 0
+    )
     from fdnet.matching.database import PlaceDatabase
 
     with PlaceDatabase.open(db) as opened:
@@ -436,6 +756,21 @@ def test_a_precomputed_database_grows_with_later_vectors_of_the_same_model(tmp_p
         np.save(tmp_path / "b.npy", data["descriptors"])
     (tmp_path / "b.txt").write_text("".join(f"b/frame_{i:03d}.png\n" for i in range(3)))
     capsys.readouterr()
-    assert main(["database", "add", "--db", str(db), "--images", str(second), "--method", "precomputed",
-                 "--vectors", str(tmp_path / "b.npy")]) == 2
+    assert (
+        main(
+            [
+                "database",
+                "add",
+                "--db",
+                str(db),
+                "--images",
+                str(second),
+                "--method",
+                "precomputed",
+                "--vectors",
+                str(tmp_path / "b.npy"),
+            ]
+        )
+        == 2
+    )
     assert "a precomputed database grows only with vectors files that record the model" in capsys.readouterr().err

@@ -53,8 +53,9 @@ def test_cli_choices_and_help_come_from_the_registry(capsys):
 
 
 def test_docs_table_is_the_generated_one():
-    assert registry.methods_markdown() in DOCS.read_text(), \
-        "docs/methods.md's table is out of date: paste `fdnet methods --markdown`"
+    assert (
+        registry.methods_markdown() in DOCS.read_text()
+    ), "docs/methods.md's table is out of date: paste `fdnet methods --markdown`"
 
 
 def test_unknown_names_and_untrained_methods_are_config_errors():

@@ -54,8 +54,26 @@ def test_a_bad_value_is_a_config_error_naming_the_method_and_the_setting(method,
 @pytest.mark.parametrize("method, setting, text, value", BAD_VALUES)
 def test_a_bad_value_is_the_commands_one_line_error(method, setting, text, value, tmp_path, rng, capsys):
     route = write_day_dusk_route(tmp_path / "route", rng, places=3)
-    assert main(["evaluate", "--data", str(route), "--reference", "day", "--query", "dusk", "--method", method,
-                 "--method-set", f"{setting}={text}", "--workers", "0"]) == 2
+    assert (
+        main(
+            [
+                "evaluate",
+                "--data",
+                str(route),
+                "--reference",
+                "day",
+                "--query",
+                "dusk",
+                "--method",
+                method,
+                "--method-set",
+                f"{setting}={text}",
+                "--workers",
+                "0",
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert err.startswith(f"fdnet evaluate: error: {method}: {setting}="), err
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
@@ -89,10 +107,21 @@ def test_fingerprints_are_those_of_the_constructor_keywords_they_replace():
 
     assert RawThumbnail().fingerprint() == RawThumbnail(size="32x64").fingerprint()
     assert SeqSLAMFrontEnd(patch_size=8).settings() == {
-        "input_size": [32, 64], "patch_size": 8, "grey": True, "similarity": "negative mean absolute difference"}
+        "input_size": [32, 64],
+        "patch_size": 8,
+        "grey": True,
+        "similarity": "negative mean absolute difference",
+    }
     assert HOGDescriptor().settings() == {
-        "input_size": [512, 512], "cell_size": 16, "block_size": 16, "block_stride": 8, "orientations": 9,
-        "grey": False, "implementation": "opencv", "similarity": "cosine"}
+        "input_size": [512, 512],
+        "cell_size": 16,
+        "block_size": 16,
+        "block_stride": 8,
+        "orientations": 9,
+        "grey": False,
+        "implementation": "opencv",
+        "similarity": "cosine",
+    }
 
 
 def test_an_error_loading_weights_keeps_its_own_type_and_cause(monkeypatch, tmp_path):

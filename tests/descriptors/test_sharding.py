@@ -26,8 +26,17 @@ from fdnet.errors import ConfigError, DataError
 
 PACKAGE = os.path.dirname(fdnet.__file__)
 #: variables of an outer launch that must not reach the one a test starts
-LAUNCH_VARIABLES = ("WORLD_SIZE", "RANK", "LOCAL_RANK", "LOCAL_WORLD_SIZE", "GROUP_RANK", "MASTER_ADDR",
-                    "MASTER_PORT", "TORCHELASTIC_RUN_ID", KILL_VARIABLE)
+LAUNCH_VARIABLES = (
+    "WORLD_SIZE",
+    "RANK",
+    "LOCAL_RANK",
+    "LOCAL_WORLD_SIZE",
+    "GROUP_RANK",
+    "MASTER_ADDR",
+    "MASTER_PORT",
+    "TORCHELASTIC_RUN_ID",
+    KILL_VARIABLE,
+)
 
 
 def torchrun(*args, tmpdir=None, env=None, nproc: int = 2) -> subprocess.CompletedProcess:
@@ -38,8 +47,16 @@ def torchrun(*args, tmpdir=None, env=None, nproc: int = 2) -> subprocess.Complet
     if tmpdir is not None:
         tmpdir.mkdir(parents=True, exist_ok=True)
         environ["TMPDIR"] = str(tmpdir)
-    command = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={nproc}",
-               "-m", "fdnet", *map(str, args)]
+    command = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--standalone",
+        f"--nproc-per-node={nproc}",
+        "-m",
+        "fdnet",
+        *map(str, args),
+    ]
     # the timeout only guards against a hang (a process left waiting in a collective)
     return subprocess.run(command, env=environ, capture_output=True, text=True, timeout=300)
 
@@ -111,15 +128,19 @@ def test_one_process_describes_every_batch_in_order(tmp_path):
     paths = list_images(images(tmp_path / "images", 11))
     descriptor = create("sad")
     got = []
-    sharding.describe_blocks(Shards(), descriptor, paths,
-                             sharding.BlockOutput([descriptor.dim],
-                                                  lambda start, arrays: got.append((start, arrays[0]))),
-                             PipelineSettings(batch_size=4, workers=0))
+    sharding.describe_blocks(
+        Shards(),
+        descriptor,
+        paths,
+        sharding.BlockOutput([descriptor.dim], lambda start, arrays: got.append((start, arrays[0]))),
+        PipelineSettings(batch_size=4, workers=0),
+    )
     assert [start for start, _ in got] == [0, 4, 8]
     from fdnet.data.images import load_images
 
-    np.testing.assert_array_equal(np.concatenate([a for _, a in got]),
-                                  descriptor.describe(load_images(paths, descriptor.input_size)))
+    np.testing.assert_array_equal(
+        np.concatenate([a for _, a in got]), descriptor.describe(load_images(paths, descriptor.input_size))
+    )
 
 
 def test_the_kill_hook_names_a_rank_and_a_batch_count():
@@ -139,9 +160,12 @@ def test_commands_that_run_in_one_process_are_refused_under_torchrun():
 def test_a_lost_process_is_one_line_without_glooss_source_location():
     from fdnet.torchrun import _backend_message
 
-    message = _backend_message(RuntimeError(
-        "[/pytorch/third_party/gloo/gloo/transport/tcp/pair.cc:553] Connection closed by peer [127.0.0.1]:61105. "
-        "This is typically caused by a remote worker crashing.\nGLHF!"))
+    message = _backend_message(
+        RuntimeError(
+            "[/pytorch/third_party/gloo/gloo/transport/tcp/pair.cc:553] Connection closed by peer [127.0.0.1]:61105. "
+            "This is typically caused by a remote worker crashing.\nGLHF!"
+        )
+    )
     assert message == "Connection closed by peer [127.0.0.1]:61105"
 
 
@@ -162,8 +186,23 @@ def test_torchrun_h5_and_a_method_learning_on_rank_0_match_one_process(tmp_path)
     from fdnet.descriptors.hloc_formats import read_global_features
 
     folder = images(tmp_path / "images", 13)
-    common = ["extract", "--method", "trunk-whitened", "--method-set", "dim=4", "--images", folder, "--fp32",
-              "--batch-size", "3", "--workers", "0", "--device", "cpu", "--no-progress"]
+    common = [
+        "extract",
+        "--method",
+        "trunk-whitened",
+        "--method-set",
+        "dim=4",
+        "--images",
+        folder,
+        "--fp32",
+        "--batch-size",
+        "3",
+        "--workers",
+        "0",
+        "--device",
+        "cpu",
+        "--no-progress",
+    ]
     assert main([str(a) for a in common] + ["--out", str(tmp_path / "one.h5")]) == 0
     result = torchrun(*common, "--out", tmp_path / "two.h5", tmpdir=tmp_path / "tmp")
     assert result.returncode == 0, result.stderr
@@ -185,8 +224,21 @@ def test_torchrun_an_unreadable_image_in_one_block_stops_both_with_one_line_each
     folder = images(tmp_path / "images", 12)
     (folder / "frame_9.png").write_bytes(b"broken")  # in process 1's block (images 6..11)
     out = tmp_path / "v.npz"
-    result = torchrun("extract", "--method", "sad", "--images", folder, "--out", out, "--batch-size", "2",
-                      "--workers", "1", "--no-progress", tmpdir=tmp_path / "tmp")
+    result = torchrun(
+        "extract",
+        "--method",
+        "sad",
+        "--images",
+        folder,
+        "--out",
+        out,
+        "--batch-size",
+        "2",
+        "--workers",
+        "1",
+        "--no-progress",
+        tmpdir=tmp_path / "tmp",
+    )
     assert result.returncode != 0
     errors = error_lines(result)
     assert len(errors) == 2 and all("frame_9.png" in e for e in errors), result.stderr
@@ -220,8 +272,10 @@ def test_processes_given_other_folders_with_the_same_file_names_are_refused(tmp_
     assert [p.name for p in a] == [p.name for p in b]
     descriptor = sharding_descriptor()
     theirs = [(len(b), images_digest(b), descriptor.fingerprint(), descriptor.dim), [image_facts(p) for p in b]]
-    with pytest.raises(ConfigError, match=rf"process 1 of 2 lists other images than process 0: image 0 is "
-                                          rf"{tmp_path / 'B' / 'frame_0.png'}"):
+    with pytest.raises(
+        ConfigError,
+        match=rf"process 1 of 2 lists other images than process 0: image 0 is " rf"{tmp_path / 'B' / 'frame_0.png'}",
+    ):
         sharding.check_same_inputs(_TwoProcesses(theirs), a, descriptor)
     same = [(len(a), images_digest(a), descriptor.fingerprint(), descriptor.dim)]
     sharding.check_same_inputs(_TwoProcesses(same), a, descriptor)  # the same images: accepted

@@ -53,7 +53,7 @@ def test_power_zero_is_a_plain_pca_projection_and_power_half_between(rng):
     got = plain.transform(x)
     np.testing.assert_allclose(got @ got.T, expected @ expected.T, atol=1e-4)
     half = PCAWhitening.fit(train, 8, power=0.5)
-    np.testing.assert_allclose(half._projection, half.components.T / half.eigenvalues ** 0.25, rtol=1e-5)
+    np.testing.assert_allclose(half._projection, half.components.T / half.eigenvalues**0.25, rtol=1e-5)
 
 
 def test_deterministic_signs(rng):

@@ -65,8 +65,9 @@ def split(tmp_path):
 
 
 def test_evaluate_method_end_to_end(split):
-    result = evaluate_method(TinyPixels(), split, ScoringSettings(protocols=(RECALL_OVER_QUERIES, VPRBENCH)),
-                             keep_similarity=True)
+    result = evaluate_method(
+        TinyPixels(), split, ScoringSettings(protocols=(RECALL_OVER_QUERIES, VPRBENCH)), keep_similarity=True
+    )
     roq = result.metrics[RECALL_OVER_QUERIES]
     assert roq.recall_at_n[1] == 1.0 and roq.recall_at_100_precision == 1.0
     assert result.metrics[VPRBENCH].top1_accuracy == 1.0
@@ -132,13 +133,16 @@ def test_large_splits_are_ranked_without_the_full_matrix(split):
     np.testing.assert_allclose(blocked.scores, full.scores, rtol=1e-6)
     assert blocked.similarity is None and any("too large" in n for n in blocked.notes)
     plain = evaluate_method(TinyPixels(), split, pipeline=PipelineSettings(workers=0))
-    assert plain.similarity is None   # never made unless asked for
+    assert plain.similarity is None  # never made unless asked for
 
 
-@pytest.mark.parametrize("setting, message", [
-    ("radius_m=5", "radius_m: evaluation on image folders has no positions"),
-    ("radius_s=2", "radius_s: evaluation on image folders has no timestamps"),
-])
+@pytest.mark.parametrize(
+    "setting, message",
+    [
+        ("radius_m=5", "radius_m: evaluation on image folders has no positions"),
+        ("radius_s=2", "radius_s: evaluation on image folders has no timestamps"),
+    ],
+)
 def test_a_neighbourhood_the_split_cannot_give_is_refused_before_describing(split, setting, message):
     from fdnet.decisions.acceptance import parse_acceptance
     from fdnet.errors import ConfigError
@@ -148,8 +152,12 @@ def test_a_neighbourhood_the_split_cannot_give_is_refused_before_describing(spli
             raise AssertionError("described before the rule was checked")
 
     with pytest.raises(ConfigError, match=message):
-        evaluate_method(Untouchable(), split, ScoringSettings(acceptance=[parse_acceptance("margin", [setting])]),
-                        PipelineSettings(workers=0))
+        evaluate_method(
+            Untouchable(),
+            split,
+            ScoringSettings(acceptance=[parse_acceptance("margin", [setting])]),
+            PipelineSettings(workers=0),
+        )
 
 
 def test_a_rule_that_looks_at_images_is_refused_on_a_bare_matrix(rng):

@@ -25,7 +25,8 @@ def test_all_plots(tmp_path, rng):
     for i in range(4):
         paths.append(tmp_path / f"{i}.png")
         Image.fromarray((rng.random((12, 16, 3)) * 255).astype(np.uint8)).save(paths[-1])
-    ex = plots.plot_example_matches(paths, paths, np.array([1, 0, 2, 3]), np.array([0, 0, 1, 1]),
-                                    tmp_path / "ex.png", count=4)
+    ex = plots.plot_example_matches(
+        paths, paths, np.array([1, 0, 2, 3]), np.array([0, 0, 1, 1]), tmp_path / "ex.png", count=4
+    )
     assert all(_is_png(p) for p in (pr, sim, ex))
     assert not list(tmp_path.glob(".*.tmp"))

@@ -12,15 +12,24 @@ from fdnet.evaluation.experiment import ScoringSettings, evaluate_matrix
 from fdnet.evaluation.report import format_table, results_json, write_json
 from fdnet.metrics import VPRBENCH
 
-REQUIRED = {"recall_at_100_precision", "precision_at_max_recall", "auc_pr", "recall_at_n", "protocol",
-            "method", "num_queries"}
+REQUIRED = {
+    "recall_at_100_precision",
+    "precision_at_max_recall",
+    "auc_pr",
+    "recall_at_n",
+    "protocol",
+    "method",
+    "num_queries",
+}
 
 
 def _results():
     s = np.eye(5) + 0.01 * np.arange(5)
     gt = GroundTruth.aligned(5, 5, 0)
-    return [evaluate_matrix(s, gt, "perfect", ScoringSettings((VPRBENCH,))),
-            evaluate_matrix(np.roll(s, 1, axis=1), gt, "shifted", ScoringSettings((VPRBENCH,)))]
+    return [
+        evaluate_matrix(s, gt, "perfect", ScoringSettings((VPRBENCH,))),
+        evaluate_matrix(np.roll(s, 1, axis=1), gt, "shifted", ScoringSettings((VPRBENCH,))),
+    ]
 
 
 def test_table_names_protocol_and_methods():

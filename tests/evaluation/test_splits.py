@@ -22,16 +22,20 @@ def test_frame_aligned_split_sliced_by_frames(tmp_path):
     assert split.ground_truth.num_queries == 4
 
 
-@pytest.mark.parametrize("kwargs,message", [
-    ({"frames": "2:60"}, "past the end of the folders"),
-    ({"split": "test"}, "need --dataset-format"),
-    ({"query": None}, "--reference COND and --query COND"),
-])
+@pytest.mark.parametrize(
+    "kwargs,message",
+    [
+        ({"frames": "2:60"}, "past the end of the folders"),
+        ({"split": "test"}, "need --dataset-format"),
+        ({"query": None}, "--reference COND and --query COND"),
+    ],
+)
 def test_bad_split_settings_name_the_flag(tmp_path, kwargs, message):
     settings = {"reference": "day", "query": "night", **kwargs}
     with pytest.raises(ConfigError, match=message):
-        build_split(SplitSpec(make_folders(tmp_path / "d"), settings.pop("reference"), settings.pop("query"),
-                              **settings))
+        build_split(
+            SplitSpec(make_folders(tmp_path / "d"), settings.pop("reference"), settings.pop("query"), **settings)
+        )
 
 
 def test_similarity_files(tmp_path):
@@ -84,8 +88,10 @@ def test_the_tolerance_in_use_is_said_and_gardens_point_gets_its_protocol(tmp_pa
     split = build_split(SplitSpec(root, "day_right", "night_right"))
     assert split.ground_truth.positives[4].tolist() == [2, 3, 4, 5, 6]
     # the description every command prints names the tolerance and where it came from
-    assert split.description == ("gardens_point: night_right -> day_right, frame-aligned, tolerance 2 frames "
-                                 "(Gardens Point's protocol, as VPR-Bench; --tolerance changes it)")
+    assert split.description == (
+        "gardens_point: night_right -> day_right, frame-aligned, tolerance 2 frames "
+        "(Gardens Point's protocol, as VPR-Bench; --tolerance changes it)"
+    )
     exact = build_split(SplitSpec(root, "day_right", "night_right", tolerance=0))
     assert exact.ground_truth.positives[4].tolist() == [4] and "protocol" not in exact.description
     own = build_split(SplitSpec(make_folders(tmp_path / "own"), "day", "night"))

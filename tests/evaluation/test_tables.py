@@ -27,9 +27,26 @@ def _evaluate(tmp_path, name: str, scores: dict, protocol: str = "recall-over-qu
     documents = []
     for method, npy in paths:
         out = tmp_path / f"{name}_{method}.json"
-        assert main(["evaluate", "--similarity", str(npy), "--ground-truth", str(csv), "--name", method,
-                     "--protocol", protocol, "--accept", accept if protocol != "vprbench" else "raw",
-                     "--json", str(out)]) == 0
+        assert (
+            main(
+                [
+                    "evaluate",
+                    "--similarity",
+                    str(npy),
+                    "--ground-truth",
+                    str(csv),
+                    "--name",
+                    method,
+                    "--protocol",
+                    protocol,
+                    "--accept",
+                    accept if protocol != "vprbench" else "raw",
+                    "--json",
+                    str(out),
+                ]
+            )
+            == 0
+        )
         documents.append(json.loads(out.read_text()))
     merged = dict(documents[0], results=[d["results"][0] for d in documents])
     path = tmp_path / f"{name}.json"
@@ -52,8 +69,22 @@ def test_methods_by_datasets_with_the_best_of_each_column_marked(two_datasets, t
     assert lines[0] == "| method (R@1) | Nordland | Gardens Point |"
     assert lines[2:] == ["| fdnet | **0.750** | 0.500 |", "| trunk | 0.500 | **1.000** |", "| hog | - | 0.250 |"]
     out = tmp_path / "t.csv"
-    assert main(["table", f"Nordland={a}", f"Gardens Point={b}", "--metrics", "R@1,R@5", "--format", "csv",
-                 "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "table",
+                f"Nordland={a}",
+                f"Gardens Point={b}",
+                "--metrics",
+                "R@1,R@5",
+                "--format",
+                "csv",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     rows = out.read_text().splitlines()
     assert rows[0] == "method,Nordland R@1,Nordland R@5,Gardens Point R@1,Gardens Point R@5"
     assert rows[1].startswith("fdnet,0.750*,1.000*,0.500,1.000*") and rows[3] == "hog,-,-,0.250,1.000*"
@@ -91,31 +122,48 @@ def test_a_reproduce_comparison_gives_a_column_per_pair(two_datasets, tmp_path, 
     a, _ = two_datasets
     doc = json.loads(a.read_text())
     comparison = tmp_path / "comparison.json"
-    comparison.write_text(json.dumps({"experiment": "comparison", "protocol": doc["protocol"], "pairs": [
-        {"reference": "summer", "query": "winter", "results": doc["results"]},
-        {"reference": "summer", "query": "night", "results": doc["results"][:1]}]}))
+    comparison.write_text(
+        json.dumps(
+            {
+                "experiment": "comparison",
+                "protocol": doc["protocol"],
+                "pairs": [
+                    {"reference": "summer", "query": "winter", "results": doc["results"]},
+                    {"reference": "summer", "query": "night", "results": doc["results"][:1]},
+                ],
+            }
+        )
+    )
     assert main(["table", f"NL={comparison}", "--metrics", "R@1", "--format", "csv"]) == 0
     rows = capsys.readouterr().out.splitlines()
     assert rows == ["method (R@1),NL winter->summer,NL night->summer", "fdnet,0.750*,0.750*", "trunk,0.500,-"]
 
 
-@pytest.mark.parametrize("case, message", [
-    ("same", "two results of fdnet on 'X'"),
-    ("protocols", "results under different protocols"),
-    ("metric", "--metrics R@2: choose from"),
-    ("rule", "has no R@100P under --accept ratio (its rules: raw, margin)"),
-    ("other", "reproduce's 'ablation' experiment holds no per-method results"),
-    ("missing", "no such file"),
-])
+@pytest.mark.parametrize(
+    "case, message",
+    [
+        ("same", "two results of fdnet on 'X'"),
+        ("protocols", "results under different protocols"),
+        ("metric", "--metrics R@2: choose from"),
+        ("rule", "has no R@100P under --accept ratio (its rules: raw, margin)"),
+        ("other", "reproduce's 'ablation' experiment holds no per-method results"),
+        ("missing", "no such file"),
+    ],
+)
 def test_what_cannot_share_a_table_is_refused(two_datasets, tmp_path, capsys, case, message):
     a, b = two_datasets
     other = tmp_path / "ablation.json"
     other.write_text(json.dumps({"experiment": "ablation", "rows": []}))
     vprbench = _evaluate(tmp_path, "vpr", {"fdnet": 1}, protocol="vprbench")
     capsys.readouterr()
-    argv = {"same": [f"X={a}", f"X={b}"], "protocols": [str(a), str(vprbench)],
-            "metric": [str(a), "--metrics", "R@1,R@2"], "rule": [str(a), "--accept", "ratio"],
-            "other": [str(other)], "missing": [str(tmp_path / "nope.json")]}[case]
+    argv = {
+        "same": [f"X={a}", f"X={b}"],
+        "protocols": [str(a), str(vprbench)],
+        "metric": [str(a), "--metrics", "R@1,R@2"],
+        "rule": [str(a), "--accept", "ratio"],
+        "other": [str(other)],
+        "missing": [str(tmp_path / "nope.json")],
+    }[case]
     out = tmp_path / "t.md"
     assert main(["table", *argv, "--out", str(out)]) == 2
     err = capsys.readouterr().err

@@ -100,10 +100,14 @@ def factory(name: str, **options):
 @pytest.fixture(autouse=True)
 def _stand_ins(monkeypatch):
     # registered so the runner's check of method names knows them; built by ``factory``
-    monkeypatch.setitem(registry._METHODS, "pixels",
-                        registry.MethodSpec("pixels", "test stand-in", f"{__name__}:Pixels"))
-    monkeypatch.setitem(registry._METHODS, "fitted",
-                        registry.MethodSpec("fitted", "test stand-in", f"{__name__}:FittedPixels", fit=True))
+    monkeypatch.setitem(
+        registry._METHODS, "pixels", registry.MethodSpec("pixels", "test stand-in", f"{__name__}:Pixels")
+    )
+    monkeypatch.setitem(
+        registry._METHODS,
+        "fitted",
+        registry.MethodSpec("fitted", "test stand-in", f"{__name__}:FittedPixels", fit=True),
+    )
     CALLS.clear()
     Pixels.interrupt_after = None
     yield
@@ -124,7 +128,13 @@ def route(tmp_path):
 
 
 def settings(route, out, **changes) -> ReproduceSettings:
-    base = dict(data=route, out=out, methods=["pixels"], experiments=["comparison"], batch_size=64,
-                command="fdnet reproduce (test)")
+    base = dict(
+        data=route,
+        out=out,
+        methods=["pixels"],
+        experiments=["comparison"],
+        batch_size=64,
+        command="fdnet reproduce (test)",
+    )
     base.update(changes)
     return ReproduceSettings(**base)

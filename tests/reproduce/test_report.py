@@ -16,26 +16,58 @@ from fdnet.reproduce.sections import EXPERIMENTS, MANIFEST
 
 
 def result(method: str, r100p: float, r1: float) -> dict:
-    return {"method": method, "recall_at_100_precision": r100p, "precision_at_max_recall": 0.5,
-            "auc_pr": 0.4, "recall_at_n": {"1": r1, "5": 0.9, "10": 1.0, "20": 1.0}}
+    return {
+        "method": method,
+        "recall_at_100_precision": r100p,
+        "precision_at_max_recall": 0.5,
+        "auc_pr": 0.4,
+        "recall_at_n": {"1": r1, "5": 0.9, "10": 1.0, "20": 1.0},
+    }
 
 
 def write_run(out, figure: bool = True) -> None:
     out.mkdir(parents=True, exist_ok=True)
-    (out / MANIFEST).write_text(json.dumps({
-        "fdnet_version": "0.1.0", "command": "fdnet reproduce --data d --out o", "dataset": "d<&>",
-        "dataset_format": "folders", "protocol": "recall-over-queries", "protocol_definition": "definition",
-        "thresholds": "500 uniform", "checkpoint": "runs/x",
-        "pairs": [{"query": "night<b>", "reference": "day", "num_queries": 3, "num_references": 3}]}))
+    (out / MANIFEST).write_text(
+        json.dumps(
+            {
+                "fdnet_version": "0.1.0",
+                "command": "fdnet reproduce --data d --out o",
+                "dataset": "d<&>",
+                "dataset_format": "folders",
+                "protocol": "recall-over-queries",
+                "protocol_definition": "definition",
+                "thresholds": "500 uniform",
+                "checkpoint": "runs/x",
+                "pairs": [{"query": "night<b>", "reference": "day", "num_queries": 3, "num_references": 3}],
+            }
+        )
+    )
     if figure:
         (out / "figures" / "comparison").mkdir(parents=True)
         Image.fromarray(np.full((20, 30, 3), 200, np.uint8)).save(out / "figures" / "comparison" / "pr.png")
-    (out / "comparison.json").write_text(json.dumps({
-        "command": "fdnet reproduce --data d --out o", "paper_dataset": None, "skipped": [],
-        "pairs": [{"reference": "day", "query": "night<b>", "ground_truth": "frame-aligned", "num_queries": 3,
-                   "num_queries_with_match": 3, "num_references": 3, "paper": None, "paper_source": None,
-                   "figure": "figures/comparison/pr.png",
-                   "results": [result("fdnet", 0.25, 0.75), result("sad", 0.5, 0.5)]}]}))
+    (out / "comparison.json").write_text(
+        json.dumps(
+            {
+                "command": "fdnet reproduce --data d --out o",
+                "paper_dataset": None,
+                "skipped": [],
+                "pairs": [
+                    {
+                        "reference": "day",
+                        "query": "night<b>",
+                        "ground_truth": "frame-aligned",
+                        "num_queries": 3,
+                        "num_queries_with_match": 3,
+                        "num_references": 3,
+                        "paper": None,
+                        "paper_source": None,
+                        "figure": "figures/comparison/pr.png",
+                        "results": [result("fdnet", 0.25, 0.75), result("sad", 0.5, 0.5)],
+                    }
+                ],
+            }
+        )
+    )
     (out / "lengths.json").write_text(json.dumps({"not_run": "needs four FDNet runs"}))
 
 
@@ -52,12 +84,14 @@ def test_every_section_and_embedded_figures(tmp_path):
     # best of each column marked; the tables read without the figure
     assert '<td class="best">0.500&nbsp;&#9733;</td>' in html and '<td class="best">0.750&nbsp;&#9733;</td>' in html
     assert "Not run: needs four FDNet runs" in html
-    assert 'Not run yet: rerun the command with <code>--experiments similarity</code>' in html
+    assert "Not run yet: rerun the command with <code>--experiments similarity</code>" in html
     # the lengths study alone needs its runs: the hint says how, so the command it gives works
     (tmp_path / "lengths.json").unlink()
     html = write_report(tmp_path).read_text()
-    assert ("rerun the command with <code>--experiments lengths --length-preset cpu --length-train-frames "
-            "START:END (or --length-runs") in html
+    assert (
+        "rerun the command with <code>--experiments lengths --length-preset cpu --length-train-frames "
+        "START:END (or --length-runs"
+    ) in html
     assert "night&lt;b&gt;" in html and "night<b>" not in html and "d&lt;&amp;&gt;" in html
     assert "fdnet reproduce --data d --out o" in html
 
@@ -80,7 +114,7 @@ def test_the_papers_numbers_stand_beside_ours_labelled_as_the_papers(tmp_path):
     (tmp_path / "comparison.json").write_text(json.dumps(document))
     html = write_report(tmp_path).read_text()
     start = html.index('<section id="comparison">')
-    table = html[start:html.index("</table>", start)]
+    table = html[start : html.index("</table>", start)]
     assert "<th>paper R@100P</th><th>paper P@maxR</th>" in table
     assert "<td>fdnet</td>" in table and "<td>0.337</td><td>0.038</td>" in table  # FDNet_512, summer-winter
     assert "netvlad (NetVLAD, paper only)" in table

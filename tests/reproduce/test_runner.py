@@ -22,7 +22,13 @@ def quiet(message: str) -> None:
 def test_every_ordered_pair_of_the_chosen_conditions(route, tmp_path):
     pairs = build_pairs(settings(route, tmp_path / "out", tolerance=1, frames="2:8"))
     assert [(p.reference, p.query) for p in pairs] == [
-        ("day", "dusk"), ("day", "night"), ("dusk", "day"), ("dusk", "night"), ("night", "day"), ("night", "dusk")]
+        ("day", "dusk"),
+        ("day", "night"),
+        ("dusk", "day"),
+        ("dusk", "night"),
+        ("night", "day"),
+        ("night", "dusk"),
+    ]
     split = pairs[0].split
     assert len(split.query) == len(split.reference) == 6
     assert list(split.ground_truth.positives[0]) == [0, 1]  # tolerance 1 at the start of the slice
@@ -83,8 +89,7 @@ def test_default_methods_that_cannot_run_are_reported_with_the_reason(route, tmp
         reproduce(settings(route, out, methods=["pixels", "hybridnet"]), factory, quiet)
 
 
-def test_a_method_needing_more_reference_images_than_the_pairs_have_is_skipped_or_refused(
-        route, tmp_path, monkeypatch):
+def test_a_method_needing_more_reference_images_than_the_pairs_have_is_skipped_or_refused(route, tmp_path, monkeypatch):
     # trunk-whitened learns an L-dimensional whitening from each comparison's references: L + 1 images
     monkeypatch.setattr(runner, "DEFAULT_METHODS", ("pixels", "fitted"))
     monkeypatch.setattr(FittedPixels, "fewest", 10_000)
@@ -101,13 +106,22 @@ def test_rerunning_one_experiment_keeps_the_other_sections(route, tmp_path):
     out = tmp_path / "out"
     reproduce(settings(route, out, conditions=["day", "night"], experiments=["comparison", "examples"]), factory, quiet)
     comparison = (out / "comparison.json").read_text()
-    reproduce(settings(route, out, conditions=["day", "night"], experiments=["examples"],
-                       command="fdnet reproduce --experiments examples"), factory, quiet)
+    reproduce(
+        settings(
+            route,
+            out,
+            conditions=["day", "night"],
+            experiments=["examples"],
+            command="fdnet reproduce --experiments examples",
+        ),
+        factory,
+        quiet,
+    )
     assert (out / "comparison.json").read_text() == comparison
     html = (out / "report.html").read_text()
-    section = html[html.index('<section id="comparison">'):html.index('<section id="lengths">')]
+    section = html[html.index('<section id="comparison">') : html.index('<section id="lengths">')]
     assert "<table>" in section and "made by another command" in section
-    assert "fdnet reproduce --experiments examples" in html[:html.index("<section")]
+    assert "fdnet reproduce --experiments examples" in html[: html.index("<section")]
     # figures an earlier run drew for pairs or methods no longer run are removed
     stale = out / "figures" / "examples" / "examples_old_pair.jpg"
     stale.write_bytes(b"from an earlier run")
@@ -115,25 +129,31 @@ def test_rerunning_one_experiment_keeps_the_other_sections(route, tmp_path):
     assert not stale.exists() and len(list((out / "figures" / "examples").iterdir())) == 2
 
 
-@pytest.mark.parametrize("changes, message", [
-    (dict(experiments=["tables"]), "unknown experiment(s) tables"),
-    (dict(methods=["nope"]), "unknown method(s) nope"),
-    (dict(overlaps=(1.0, 1.5)), "overlap 1.5"),
-    (dict(examples=0), "--examples must be >= 1"),
-    (dict(experiments=["lengths"]), "experiment lengths: needs four FDNet runs"),
-    (dict(experiments=["disentanglement"]), "experiment disentanglement: needs FDNet"),
-])
+@pytest.mark.parametrize(
+    "changes, message",
+    [
+        (dict(experiments=["tables"]), "unknown experiment(s) tables"),
+        (dict(methods=["nope"]), "unknown method(s) nope"),
+        (dict(overlaps=(1.0, 1.5)), "overlap 1.5"),
+        (dict(examples=0), "--examples must be >= 1"),
+        (dict(experiments=["lengths"]), "experiment lengths: needs four FDNet runs"),
+        (dict(experiments=["disentanglement"]), "experiment disentanglement: needs FDNet"),
+    ],
+)
 def test_settings_that_cannot_work_are_refused(route, tmp_path, changes, message):
     with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(")", r"\)")):
         reproduce(settings(route, tmp_path / "out", **changes), factory, quiet)
 
 
-@pytest.mark.parametrize("changes, message", [
-    (dict(length_preset="tiny", length_train_frames="0:6", frames="4:10"), "overlaps the evaluated frames"),
-    (dict(length_preset="tiny"), "needs --length-train-frames"),
-    (dict(length_runs={512: "no/such/run"}), "512=no/such/run: run directory not found"),
-    (dict(viewpoint_pair=("day", "fog")), "--viewpoint-pair day,fog: no such pair"),
-])
+@pytest.mark.parametrize(
+    "changes, message",
+    [
+        (dict(length_preset="tiny", length_train_frames="0:6", frames="4:10"), "overlaps the evaluated frames"),
+        (dict(length_preset="tiny"), "needs --length-train-frames"),
+        (dict(length_runs={512: "no/such/run"}), "512=no/such/run: run directory not found"),
+        (dict(viewpoint_pair=("day", "fog")), "--viewpoint-pair day,fog: no such pair"),
+    ],
+)
 def test_experiment_settings_are_checked_before_any_work(route, tmp_path, changes, message):
     with pytest.raises(ConfigError, match=message):
         reproduce(settings(route, tmp_path / "out", experiments=None, **changes), factory, quiet)
@@ -161,7 +181,7 @@ def test_comparison_shows_r100p_under_the_default_acceptance_rule_beside_raw(rou
     assert per["raw"]["recall_at_100_precision"] == result["recall_at_100_precision"]
     html = (out / "report.html").read_text()
     start = html.index('<section id="comparison">')
-    section = html[start:html.index("</table>", start)]
+    section = html[start : html.index("</table>", start)]
     assert f"<th>R@100P</th><th>R@100P {DEFAULT_ACCEPTANCE}</th>" in section
     assert f"{per[DEFAULT_ACCEPTANCE]['recall_at_100_precision']:.3f}" in section
 

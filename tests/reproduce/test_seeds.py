@@ -19,8 +19,24 @@ from fdnet.reproduce.seeds import seed_folder, spread, spread_text
 from tests.reproduce.test_ablation import ablation, factory
 
 #: the keys of a one-seed ablation.json, at each level (no seed keys: one run's numbers)
-DOCUMENT_KEYS = {"experiment", "title", "paper", "fdnet_version", "command", "created", "dataset", "checkpoint",
-                 "protocol", "smoke_test", "variants", "removes", "acceptance", "groups", "train_frames", "provenance"}
+DOCUMENT_KEYS = {
+    "experiment",
+    "title",
+    "paper",
+    "fdnet_version",
+    "command",
+    "created",
+    "dataset",
+    "checkpoint",
+    "protocol",
+    "smoke_test",
+    "variants",
+    "removes",
+    "acceptance",
+    "groups",
+    "train_frames",
+    "provenance",
+}
 GROUP_KEYS = {"preset", "trained_here", "settings", "runs", "pairs", "figure", "missing"}
 RUN_KEYS = {"variant", "removes", "run", "step", "seed", "schedule", "weights_stage", "differences_from_full"}
 FULL_ROW_KEYS = {"variant", *METRICS, "pr_curve"}
@@ -60,7 +76,7 @@ def test_two_seeds_train_each_variant_twice_and_report_mean_and_spread(route, tm
                 assert all(0.0 <= r["against_full"]["p_value"] <= 1.0 for r in row["per_seed"])
 
     html = (out / "report.html").read_text()
-    section = html[html.index('<section id="ablation">'):]
+    section = html[html.index('<section id="ablation">') :]
     assert "over 2 seeds" in section and "each seed&#x27;s run" in section
     assert "does not measure" not in section
     # a table cell with a spread: mean ± std (min–max)
@@ -73,8 +89,11 @@ def test_two_seeds_train_each_variant_twice_and_report_mean_and_spread(route, tm
     assert any("full (seed 1): finished run in" in line for line in said)
 
     # --seeds 1 on the same folder: the first seed's runs, reused, and exactly the keys of a one-seed document
-    first = {(p["query"], v["variant"]): {k: v["per_seed"][0][k] for k in METRICS}
-             for p in group["pairs"] for v in p["variants"]}
+    first = {
+        (p["query"], v["variant"]): {k: v["per_seed"][0][k] for k in METRICS}
+        for p in group["pairs"]
+        for v in p["variants"]
+    }
     said.clear()
     reproduce(ablation(route, out, seeds=1), factory=factory, log=said.append)
     assert sum("finished run in" in line for line in said) == len(VARIANTS)
@@ -94,15 +113,22 @@ def test_two_seeds_train_each_variant_twice_and_report_mean_and_spread(route, tm
 
 @pytest.mark.parametrize("seeds", [0, -1])
 def test_seeds_below_one_are_refused_before_any_work(route, tmp_path, seeds):
-    with pytest.raises(ConfigError, match=re.escape(f"--seeds must be a whole number >= 1 "
-                                                    f"(runs per trained variant), got {seeds}")):
+    with pytest.raises(
+        ConfigError, match=re.escape(f"--seeds must be a whole number >= 1 " f"(runs per trained variant), got {seeds}")
+    ):
         reproduce(ablation(route, tmp_path / "out", seeds=seeds), factory=factory, log=lambda m: None)
     assert not (tmp_path / "out" / "ablation-runs").exists()
 
 
 def test_the_spread_of_a_number_and_the_folders_of_the_seeds(tmp_path):
-    assert spread([0.5, 0.7]) == {"n": 2, "mean": pytest.approx(0.6), "std": pytest.approx(0.1414213562),
-                                  "min": 0.5, "max": 0.7, "missing": 0}
+    assert spread([0.5, 0.7]) == {
+        "n": 2,
+        "mean": pytest.approx(0.6),
+        "std": pytest.approx(0.1414213562),
+        "min": 0.5,
+        "max": 0.7,
+        "missing": 0,
+    }
     assert spread([0.5, None]) == {"n": 1, "mean": 0.5, "std": None, "min": 0.5, "max": 0.5, "missing": 1}
     assert spread([None, float("nan")])["mean"] is None
     assert spread_text(spread([0.5, 0.7])) == "0.600 \u00b1 0.141 (0.500\u20130.700)"
@@ -115,9 +141,18 @@ def test_two_seeds_train_each_length_twice_and_report_mean_and_spread(route, tmp
     from tests.reproduce.conftest import settings
 
     out = tmp_path / "out"
-    lengths = settings(route, out, experiments=["lengths"], conditions=["day", "night"], frames="6:10",
-                       length_preset="tiny", length_train_frames="0:6", runtime_images=2, cache=out / "cache",
-                       seeds=2)
+    lengths = settings(
+        route,
+        out,
+        experiments=["lengths"],
+        conditions=["day", "night"],
+        frames="6:10",
+        length_preset="tiny",
+        length_train_frames="0:6",
+        runtime_images=2,
+        cache=out / "cache",
+        seeds=2,
+    )
     said = []
     reproduce(lengths, factory=factory, log=said.append)
     document = json.loads((out / "lengths.json").read_text())
@@ -133,7 +168,7 @@ def test_two_seeds_train_each_length_twice_and_report_mean_and_spread(route, tmp
             assert entry[key] == entry["spread"][key]["mean"] == pytest.approx(sum(values) / 2)
             assert entry["spread"][key]["std"] == pytest.approx(statistics.stdev(values))
     section = (out / "report.html").read_text()
-    section = section[section.index('<section id="lengths">'):]
+    section = section[section.index('<section id="lengths">') :]
     assert "over 2 seeds" in section and "each seed&#x27;s run per vector length and pair" in section
 
     said.clear()
@@ -142,5 +177,16 @@ def test_two_seeds_train_each_length_twice_and_report_mean_and_spread(route, tmp
     single = json.loads((out / "lengths.json").read_text())
     assert "seeds" not in single and "run_seeds" not in single
     assert set(single["provenance"]["seeds"]) == {"checkpoint"}
-    assert all(set(a) == {"length", "reference", "query", "recall_at_100_precision", "precision_at_max_recall",
-                          "recall_at_1", "auc_pr"} for a in single["accuracy"])
+    assert all(
+        set(a)
+        == {
+            "length",
+            "reference",
+            "query",
+            "recall_at_100_precision",
+            "precision_at_max_recall",
+            "recall_at_1",
+            "auc_pr",
+        }
+        for a in single["accuracy"]
+    )

@@ -22,9 +22,26 @@ STEPS = ["--set", "schedule.joint_steps=150", "--set", "runtime.checkpoint_every
 
 def _train(data, out, *extra):
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    return subprocess.Popen([sys.executable, "-m", "fdnet", "train", "--data", str(data), "--preset", "tiny",
-                             "--out", str(out), "--no-progress", *STEPS, *extra],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
+    return subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "fdnet",
+            "train",
+            "--data",
+            str(data),
+            "--preset",
+            "tiny",
+            "--out",
+            str(out),
+            "--no-progress",
+            *STEPS,
+            *extra,
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        env=env,
+    )
 
 
 def _weights(run_dir):

@@ -18,6 +18,7 @@ def test_validation_frames_give_the_pair_and_its_ground_truth(tmp_path):
 
 def test_validation_frames_outside_the_folders_name_the_range_not_a_missing_match(tmp_path):
     root = make_dataset(tmp_path / "data", n=10)
-    with pytest.raises(DataError, match=r"validation winter->summer: frame range 50:60 selects no images of "
-                                        r".*summer \(10 images\)"):
+    with pytest.raises(
+        DataError, match=r"validation winter->summer: frame range 50:60 selects no images of " r".*summer \(10 images\)"
+    ):
         load_validation_images(root, ValidationConfig("summer", "winter", "50:60", 0), (16, 32))

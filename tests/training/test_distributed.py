@@ -56,8 +56,15 @@ def _torchrun(tmp_path, *args, dump=None, nproc=2):
         wrapper.write_text(WRAPPER)
         env["DUMP_DIR"] = str(dump)
         target = [str(wrapper)]
-    command = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={nproc}",
-               *target, *map(str, args)]
+    command = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--standalone",
+        f"--nproc-per-node={nproc}",
+        *target,
+        *map(str, args),
+    ]
     # the timeout only guards against a hang (a rank left waiting in a collective)
     return subprocess.run(command, env=env, capture_output=True, text=True, timeout=300)
 
@@ -69,8 +76,11 @@ def _dumped(folder):
 def _saved_fdnet_weights(run_dir):
     model = FDNet(runs.load_config(run_dir, FDNetRunConfig).model)
     runs.load_weights(run_dir, model.named_parts())
-    return {f"{name}.{key}": value for name, module in model.named_parts().items()
-            for key, value in module.state_dict().items()}
+    return {
+        f"{name}.{key}": value
+        for name, module in model.named_parts().items()
+        for key, value in module.state_dict().items()
+    }
 
 
 def _assert_same(a, b, what):
@@ -158,8 +168,23 @@ def test_resume_with_another_world_size_is_refused_naming_both(tmp_path, data, s
 
 
 def test_calc_trains_on_two_processes(tmp_path, data):
-    result = _torchrun(tmp_path, "train", "calc", "--data", data, "--preset", "tiny", "--steps", "4",
-                       "--threads", "1", "--no-progress", "--out", tmp_path / "calc", dump=tmp_path / "ranks")
+    result = _torchrun(
+        tmp_path,
+        "train",
+        "calc",
+        "--data",
+        data,
+        "--preset",
+        "tiny",
+        "--steps",
+        "4",
+        "--threads",
+        "1",
+        "--no-progress",
+        "--out",
+        tmp_path / "calc",
+        dump=tmp_path / "ranks",
+    )
     assert result.returncode == 0, result.stderr
     assert "finished at step 4/4" in result.stdout and "on 2 processes" in result.stdout
     rank0, rank1 = _dumped(tmp_path / "ranks")
@@ -170,6 +195,7 @@ def test_calc_trains_on_two_processes(tmp_path, data):
 
 
 # ---------------------------------------------------------------------- single process, no launcher
+
 
 def test_context_from_the_environment():
     from fdnet.errors import ConfigError
@@ -204,8 +230,10 @@ def test_a_single_process_context_changes_nothing():
     assert context.collectively(lambda: 5, main_only=True) == 5
     # a resumed rank: the shared state with its own entries
     shared = {"generator": 0, "cache": "rank 0's"}
-    assert merge_rank_state(shared, {"generator": 1, "cache": "mine"}, ("generator",)) == {"generator": 1,
-                                                                                           "cache": "rank 0's"}
+    assert merge_rank_state(shared, {"generator": 1, "cache": "mine"}, ("generator",)) == {
+        "generator": 1,
+        "cache": "rank 0's",
+    }
     assert merge_rank_state(shared, {"generator": 1}, None) == {"generator": 1}
 
 
@@ -221,8 +249,11 @@ def test_a_non_finite_loss_stops_before_the_optimiser_step(tmp_path, data, monke
     monkeypatch.setattr(losses, "reconstruction_loss", lambda target, output, reduction: output.sum() * float("nan"))
     with pytest.raises(FloatingPointError, match="loss became nan at step 0"):
         method.train_step(0)
-    assert all(torch.equal(before[k], v) for k, v in method.model.state_dict().items()
-               if not k.endswith(("running_mean", "running_var", "num_batches_tracked")))
+    assert all(
+        torch.equal(before[k], v)
+        for k, v in method.model.state_dict().items()
+        if not k.endswith(("running_mean", "running_var", "num_batches_tracked"))
+    )
 
 
 def test_exit_process_after_a_process_group_runs_exit_handlers_flushes_and_keeps_the_code(tmp_path):
@@ -240,6 +271,10 @@ print("not reached")
     assert result.returncode == 3 and result.stdout == "unflushed output", (result.stdout, result.stderr)
     assert marker.read_text() == "yes"
     # a process that never joined a group exits the ordinary way
-    plain = subprocess.run([sys.executable, "-c", "from fdnet import torchrun; torchrun.exit_process(4)"],
-                           capture_output=True, text=True, timeout=120)
+    plain = subprocess.run(
+        [sys.executable, "-c", "from fdnet import torchrun; torchrun.exit_process(4)"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert plain.returncode == 4

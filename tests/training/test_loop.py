@@ -51,8 +51,9 @@ def _trainer(tmp_path, run="run", resume=False, override=False, **overrides):
     config = _config(data_root, **overrides)
     method = FDNetTraining(config, load_training_images(config))
     validation = load_validation_images(data_root, config.validation, config.model.input_size)
-    trainer = Trainer(method, tmp_path / run, validation=validation, resume=resume, override=override,
-                      tensorboard=False)
+    trainer = Trainer(
+        method, tmp_path / run, validation=validation, resume=resume, override=override, tensorboard=False
+    )
     trainer.config, trainer.model = config, method.model  # shorthand for the tests below
     return trainer
 
@@ -74,9 +75,11 @@ def test_tiny_trains_with_finite_losses_and_round_trips(tmp_path):
     assert load_training_state(tmp_path / "run")["step"] == trainer.config.total_steps
     # the weights at the end of each stage are kept, each loadable on its own, at its last step
     schedule = trainer.config.schedule
-    ends = {"autoencoder": schedule.pretrain_autoencoder_steps,
-            "critic": schedule.pretrain_autoencoder_steps + schedule.pretrain_critic_steps,
-            "joint": trainer.config.total_steps}
+    ends = {
+        "autoencoder": schedule.pretrain_autoencoder_steps,
+        "critic": schedule.pretrain_autoencoder_steps + schedule.pretrain_critic_steps,
+        "joint": trainer.config.total_steps,
+    }
     for stage, step in ends.items():
         folder = tmp_path / "run" / "stages" / stage
         assert runs.is_run(folder), stage
@@ -87,8 +90,12 @@ def test_tiny_trains_with_finite_losses_and_round_trips(tmp_path):
 
 
 # the tiny preset as is, and with a frozen trunk (whose maps the trainer caches)
-TRUNK = {"model.backbone": "efficientnet-lite0", "model.backbone_block": 4, "model.input_size": (32, 64),
-         "model.widths": (16,)}
+TRUNK = {
+    "model.backbone": "efficientnet-lite0",
+    "model.backbone_block": 4,
+    "model.input_size": (32, 64),
+    "model.widths": (16,),
+}
 
 
 @pytest.mark.parametrize("model", [{}, TRUNK], ids=["pixels", "trunk"])
@@ -184,8 +191,9 @@ def test_a_checkpoint_write_that_fails_keeps_the_previous_one_and_the_run_resume
 
 
 def test_best_checkpoint_from_validation(tmp_path):
-    trainer = _trainer(tmp_path, **{"validation.reference": "summer", "validation.query": "winter",
-                                    "validation.every": 2})
+    trainer = _trainer(
+        tmp_path, **{"validation.reference": "summer", "validation.query": "winter", "validation.every": 2}
+    )
     summary = trainer.fit(progress=False)
     assert summary["best_step"] > 0
     assert runs.is_run(tmp_path / "run" / "best")
@@ -230,8 +238,15 @@ def test_best_checkpoint_breaks_recall_ties_by_auc(tmp_path, monkeypatch):
 
 
 def test_algorithm1_batch_use_samples_one_batch_per_joint_step(tmp_path):
-    trainer = _trainer(tmp_path, **{"schedule.one_batch_per_step": True, "loss.reconstruction_reduction": "sum",
-                                    "loss.triplet_vectors": "l2", "model.critic_input": "raw"})
+    trainer = _trainer(
+        tmp_path,
+        **{
+            "schedule.one_batch_per_step": True,
+            "loss.reconstruction_reduction": "sum",
+            "loss.triplet_vectors": "l2",
+            "model.critic_input": "raw",
+        },
+    )
     method = trainer.method
     drawn = []
     real = method.sampler.sample

@@ -75,8 +75,12 @@ def _add_logging_arguments(subparsers) -> None:
             _add_logging_arguments(action)
         if not nested:
             group = parser.add_mutually_exclusive_group()
-            group.add_argument("-q", "--quiet", action="store_true",
-                               help="only warnings and errors on standard error (no progress bars)")
+            group.add_argument(
+                "-q",
+                "--quiet",
+                action="store_true",
+                help="only warnings and errors on standard error (no progress bars)",
+            )
             group.add_argument("-v", "--verbose", action="store_true", help="debug messages too")
             # so that an argument no command takes is refused by the command's parser, whose
             # message names it ("fdnet database build: error: unrecognized arguments: ...")

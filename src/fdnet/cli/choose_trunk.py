@@ -8,25 +8,39 @@ def register(sub) -> None:
     from fdnet.methods.fdnet.trunk_choice import RULE
 
     p = sub.add_parser(
-        "choose-trunk", help="choose the untrained trunk's backbone and block on a validation pair",
+        "choose-trunk",
+        help="choose the untrained trunk's backbone and block on a validation pair",
         description="Evaluate `trunk` (or, with --whitened, `trunk-whitened`) at every candidate backbone "
-                    f"and block on a validation pair and choose by the rule FDNet's block is chosen: {RULE}. "
-                    "Prints every candidate's scores; --out writes the choice as YAML, which both trunk methods "
-                    "take: --method-set trunk:choice=FILE. Use validation frames, never the test frames.")
+        f"and block on a validation pair and choose by the rule FDNet's block is chosen: {RULE}. "
+        "Prints every candidate's scores; --out writes the choice as YAML, which both trunk methods "
+        "take: --method-set trunk:choice=FILE. Use validation frames, never the test frames.",
+    )
     p.add_argument("--data", required=True, help="dataset folder with one sub-folder per condition")
     p.add_argument("--reference", required=True, metavar="COND", help="reference condition of the validation pair")
     p.add_argument("--query", required=True, metavar="COND", help="query condition of the validation pair")
     p.add_argument("--frames", metavar="START:END", help="validation frames of both conditions (END exclusive)")
     p.add_argument("--tolerance", type=int, default=0, help="frame tolerance of a correct match (default 0)")
-    p.add_argument("--candidates", metavar="BACKBONE:BLOCK,...",
-                   help="candidates in order (ties go to the earlier); lite0/lite1/lite2 abbreviate "
-                        "efficientnet-lite0..2 (default: blocks 7, 8, 10, 11, 14 of lite0; 10, 12, 14, 17 of "
-                        "lite1 and lite2)")
-    p.add_argument("--input-size", type=int, nargs=2, default=(128, 256), metavar=("H", "W"),
-                   help="image size every candidate reads (default 128 256, FDNet's cpu preset)")
-    p.add_argument("--whitened", action="store_true",
-                   help="choose for trunk-whitened (PCA-whitened to --dim); it learns from --fit DIR, else from the "
-                        "validation pair's reference images")
+    p.add_argument(
+        "--candidates",
+        metavar="BACKBONE:BLOCK,...",
+        help="candidates in order (ties go to the earlier); lite0/lite1/lite2 abbreviate "
+        "efficientnet-lite0..2 (default: blocks 7, 8, 10, 11, 14 of lite0; 10, 12, 14, 17 of "
+        "lite1 and lite2)",
+    )
+    p.add_argument(
+        "--input-size",
+        type=int,
+        nargs=2,
+        default=(128, 256),
+        metavar=("H", "W"),
+        help="image size every candidate reads (default 128 256, FDNet's cpu preset)",
+    )
+    p.add_argument(
+        "--whitened",
+        action="store_true",
+        help="choose for trunk-whitened (PCA-whitened to --dim); it learns from --fit DIR, else from the "
+        "validation pair's reference images",
+    )
     p.add_argument("--dim", type=int, default=None, help="with --whitened: L (default 512)")
     p.add_argument("--power", type=float, default=None, help="with --whitened: whitening power (default 1)")
     p.add_argument("--fit", metavar="DIR", help="with --whitened: dataset folder to learn the whitening from")
@@ -64,22 +78,32 @@ def run(args) -> int:
         ensure_writable(args.out, what="trunk choice file")
     start, end = parse_frame_range(args.frames)
     conditions = [args.reference, args.query] if args.reference != args.query else [args.reference]
-    split = aligned_split(RouteDataset.from_folder(args.data, conditions), args.reference, args.query,
-                          args.tolerance, start, end)
+    split = aligned_split(
+        RouteDataset.from_folder(args.data, conditions), args.reference, args.query, args.tolerance, start, end
+    )
     set_threads(args.threads)
     options = {"device": args.device}
     if args.whitened:
         options.update({"dim": args.dim, "power": args.power, "fit": args.fit, "fit_frames": args.fit_frames})
     log = logging.getLogger(__name__).info  # standard error, as the library's messages (fdnet.logs)
     log(f"{len(candidates)} candidates on {split.description}")
-    choice = choose_trunk(split, candidates, tuple(args.input_size), whitened=args.whitened, options=options,
-                          pipeline=PipelineSettings(args.batch_size, args.workers), log=log)
+    choice = choose_trunk(
+        split,
+        candidates,
+        tuple(args.input_size),
+        whitened=args.whitened,
+        options=options,
+        pipeline=PipelineSettings(args.batch_size, args.workers),
+        log=log,
+    )
     if args.frames:
         choice.validation = f"{choice.validation}, frames {args.frames}"
     print(f"{'candidate':<22} {'dim':>6} {'R@1':>6} {'R@5':>6} {'R@100P':>7} {'AUC-PR':>7}")
     for score in choice.scores:
-        print(f"{score['backbone'] + ':' + str(score['block']):<22} {score['dim']:>6} {score['recall_at_1']:>6.3f} "
-              f"{score['recall_at_5']:>6.3f} {score['recall_at_100_precision']:>7.3f} {score['auc_pr']:>7.3f}")
+        print(
+            f"{score['backbone'] + ':' + str(score['block']):<22} {score['dim']:>6} {score['recall_at_1']:>6.3f} "
+            f"{score['recall_at_5']:>6.3f} {score['recall_at_100_precision']:>7.3f} {score['auc_pr']:>7.3f}"
+        )
     print(f"chosen: {choice.method} {choice.chosen} at {choice.input_size[0]}x{choice.input_size[1]}")
     if args.out:
         write_choice(args.out, choice)

@@ -20,37 +20,87 @@ def add_method_arguments(parser: argparse.ArgumentParser, multiple: bool = False
     takes ``[LABEL:]VALUE`` (:func:`method_options` says where a value goes)."""
     from fdnet.descriptors.registry import fitting_methods, trained_methods
 
-    parser.add_argument("--method", required=required,
-                        help="descriptor method" + (" (comma-separated for several; LABEL=METHOD names a row, so "
-                                                    "two models of one method compare: a=onnx,b=onnx with "
-                                                    "--weights a:A.onnx --weights b:B.onnx)" if multiple else "")
-                        + "; `fdnet methods` lists them")
-    scoped = (" ([METHOD:]VALUE: METHOD: names one method (or label) of --method; a bare value goes to every "
-              "method that has this setting)")
-    parser.add_argument("--checkpoint", action="append", default=[], metavar="[METHOD:]RUN_DIR",
-                        help=f"run directory of a trained method ({', '.join(trained_methods())})" + scoped)
-    parser.add_argument("--weights", action="append", default=[], metavar="[METHOD:]FILE",
-                        help="weights file a method accepts (conv3 AlexNet, hybridnet, the onnx model)" + scoped)
-    parser.add_argument("--vocabulary", action="append", default=[], metavar="[METHOD:]FILE",
-                        help="DBoW vocabulary file (from `fdnet vocabulary build`)" + scoped)
-    parser.add_argument("--vectors", action="append", default=[], metavar="[METHOD:]FILE",
-                        help="precomputed: vectors computed elsewhere, keyed by image (fdnet extract's .npz, "
-                             ".npy with a names list, hloc's .h5); repeatable, the files merge")
-    parser.add_argument("--fit", action="append", default=[], metavar="[METHOD:]DIR",
-                        help="dataset folder a method that learns from images "
-                             f"({', '.join(fitting_methods())}) learns from: every condition sub-folder, no labels "
-                             "(default: the reference images; the output's settings say which as fitted_on)"
-                             + scoped)
-    parser.add_argument("--fit-frames", action="append", default=[], metavar="[METHOD:]START:END",
-                        help="with --fit: only these frames of every condition (e.g. the training frames)")
-    parser.add_argument("--method-set", action="append", default=[], metavar="[METHOD:]KEY=VALUE",
-                        help="a method setting (`fdnet methods` and docs/methods.md list them), e.g. --method-set "
-                             "dim=1024 (every method with a dim) or --method-set conv3:dim=1024 (repeatable)")
+    parser.add_argument(
+        "--method",
+        required=required,
+        help="descriptor method"
+        + (
+            " (comma-separated for several; LABEL=METHOD names a row, so "
+            "two models of one method compare: a=onnx,b=onnx with "
+            "--weights a:A.onnx --weights b:B.onnx)"
+            if multiple
+            else ""
+        )
+        + "; `fdnet methods` lists them",
+    )
+    scoped = (
+        " ([METHOD:]VALUE: METHOD: names one method (or label) of --method; a bare value goes to every "
+        "method that has this setting)"
+    )
+    parser.add_argument(
+        "--checkpoint",
+        action="append",
+        default=[],
+        metavar="[METHOD:]RUN_DIR",
+        help=f"run directory of a trained method ({', '.join(trained_methods())})" + scoped,
+    )
+    parser.add_argument(
+        "--weights",
+        action="append",
+        default=[],
+        metavar="[METHOD:]FILE",
+        help="weights file a method accepts (conv3 AlexNet, hybridnet, the onnx model)" + scoped,
+    )
+    parser.add_argument(
+        "--vocabulary",
+        action="append",
+        default=[],
+        metavar="[METHOD:]FILE",
+        help="DBoW vocabulary file (from `fdnet vocabulary build`)" + scoped,
+    )
+    parser.add_argument(
+        "--vectors",
+        action="append",
+        default=[],
+        metavar="[METHOD:]FILE",
+        help="precomputed: vectors computed elsewhere, keyed by image (fdnet extract's .npz, "
+        ".npy with a names list, hloc's .h5); repeatable, the files merge",
+    )
+    parser.add_argument(
+        "--fit",
+        action="append",
+        default=[],
+        metavar="[METHOD:]DIR",
+        help="dataset folder a method that learns from images "
+        f"({', '.join(fitting_methods())}) learns from: every condition sub-folder, no labels "
+        "(default: the reference images; the output's settings say which as fitted_on)" + scoped,
+    )
+    parser.add_argument(
+        "--fit-frames",
+        action="append",
+        default=[],
+        metavar="[METHOD:]START:END",
+        help="with --fit: only these frames of every condition (e.g. the training frames)",
+    )
+    parser.add_argument(
+        "--method-set",
+        action="append",
+        default=[],
+        metavar="[METHOD:]KEY=VALUE",
+        help="a method setting (`fdnet methods` and docs/methods.md list them), e.g. --method-set "
+        "dim=1024 (every method with a dim) or --method-set conv3:dim=1024 (repeatable)",
+    )
 
 
 #: flags that set one method setting each, flag's dest -> setting; every one takes [METHOD:]VALUE
-METHOD_FLAGS = {"checkpoint": "checkpoint", "weights": "weights", "vocabulary": "vocabulary", "fit": "fit",
-                "fit_frames": "fit_frames", "vectors": "vectors"}
+METHOD_FLAGS = {
+    "checkpoint": "checkpoint",
+    "weights": "weights",
+    "vocabulary": "vocabulary",
+    "fit": "fit",
+    "fit_frames": "fit_frames",
+    "vectors": "vectors",
+}
 #: settings that name a file or folder (made absolute where a database records them)
 FILE_OPTIONS = ("checkpoint", "weights", "vocabulary", "fit")
 #: flags whose every value goes to the method (a list): several files merge
@@ -108,12 +158,16 @@ def _check_routes(values, labels: dict[str, str]) -> None:
         if label is not None and label not in labels:
             raise ConfigError(f"{flag} {text}: {label} is not one of the methods of --method ({methods})")
         if label is not None and setting not in setting_names(labels[label]):
-            raise ConfigError(f"{flag} {text}: method {labels[label]!r} has no setting {setting}; its settings: "
-                              f"{', '.join(setting_names(labels[label]))}")
+            raise ConfigError(
+                f"{flag} {text}: method {labels[label]!r} has no setting {setting}; its settings: "
+                f"{', '.join(setting_names(labels[label]))}"
+            )
         if label is None and not any(setting in setting_names(m) for m in labels.values()):
             owners = [name for name in available_methods() if setting in setting_names(name)]
-            raise ConfigError(f"{flag} {text}: none of the methods {methods} has a setting {setting}"
-                              + (f" ({', '.join(owners)} {'has' if len(owners) == 1 else 'have'})" if owners else ""))
+            raise ConfigError(
+                f"{flag} {text}: none of the methods {methods} has a setting {setting}"
+                + (f" ({', '.join(owners)} {'has' if len(owners) == 1 else 'have'})" if owners else "")
+            )
 
 
 def method_options(args: argparse.Namespace, method: str | None = None) -> dict:
@@ -155,9 +209,11 @@ def method_options(args: argparse.Namespace, method: str | None = None) -> dict:
         chosen = [value for scope, value in given if scope is not None] or [value for _, value in given]
         chosen = list(dict.fromkeys(chosen))
         if len(chosen) > 1:
-            raise ConfigError(f"{flag} gives {label or 'a method'} {len(chosen)} values ({', '.join(chosen)}); one "
-                              "method takes one: give each model its own label, e.g. --method a=onnx,b=onnx "
-                              "--weights a:A.onnx --weights b:B.onnx")
+            raise ConfigError(
+                f"{flag} gives {label or 'a method'} {len(chosen)} values ({', '.join(chosen)}); one "
+                "method takes one: give each model its own label, e.g. --method a=onnx,b=onnx "
+                "--weights a:A.onnx --weights b:B.onnx"
+            )
         if chosen:
             options[setting] = chosen[0]
     method_set = [(setting, scope, value) for f, setting, scope, value, _ in values if f == "--method-set"]
@@ -186,11 +242,19 @@ def add_decision_arguments(parser, calibration_help: str) -> None:
     """--calibration, --accept and --accept-set of the commands that write ranked candidates
     (match, database query): a calibrated decision, or a rule's score without a threshold."""
     parser.add_argument("--calibration", metavar="FILE|RUN_DIR", help=calibration_help)
-    parser.add_argument("--accept", metavar="RULE",
-                        help="instead of a calibration: add this acceptance rule's acceptance_score column (margin, "
-                             "ratio, raw, ...; docs/decisions.md), with no threshold")
-    parser.add_argument("--accept-set", action="append", default=[], metavar="[RULE:]KEY=VALUE",
-                        help="a setting of the --accept rule (repeatable), e.g. radius=3")
+    parser.add_argument(
+        "--accept",
+        metavar="RULE",
+        help="instead of a calibration: add this acceptance rule's acceptance_score column (margin, "
+        "ratio, raw, ...; docs/decisions.md), with no threshold",
+    )
+    parser.add_argument(
+        "--accept-set",
+        action="append",
+        default=[],
+        metavar="[RULE:]KEY=VALUE",
+        help="a setting of the --accept rule (repeatable), e.g. radius=3",
+    )
 
 
 def acceptance_from_arguments(args: argparse.Namespace):
@@ -199,8 +263,10 @@ def acceptance_from_arguments(args: argparse.Namespace):
     from fdnet.errors import ConfigError
 
     if args.calibration and (args.accept or args.accept_set):
-        raise ConfigError("--accept/--accept-set and --calibration: the calibration holds its rule and settings; "
-                          "give one or the other")
+        raise ConfigError(
+            "--accept/--accept-set and --calibration: the calibration holds its rule and settings; "
+            "give one or the other"
+        )
     if args.accept_set and not args.accept:
         raise ConfigError("--accept-set needs --accept RULE")
     if not args.accept:
@@ -215,9 +281,13 @@ def add_device_argument(parser: argparse.ArgumentParser) -> None:
     from fdnet.backbones import DEVICE_HELP
     from fdnet.descriptors.registry import torch_methods
 
-    parser.add_argument("--device", default="auto", metavar="auto|cpu|cuda|cuda:N",
-                        help=DEVICE_HELP + f". Methods that run on a device ({', '.join(torch_methods())}) run "
-                             "there (the torch ones get images as uint8); the numpy/OpenCV methods run on the CPU")
+    parser.add_argument(
+        "--device",
+        default="auto",
+        metavar="auto|cpu|cuda|cuda:N",
+        help=DEVICE_HELP + f". Methods that run on a device ({', '.join(torch_methods())}) run "
+        "there (the torch ones get images as uint8); the numpy/OpenCV methods run on the CPU",
+    )
 
 
 #: options whose value may be a folder of images, so also a video or ROS bag (fdnet.data.sources)
@@ -231,38 +301,59 @@ def add_source_arguments(parser: argparse.ArgumentParser) -> None:
     if not any(option in parser._option_string_actions for option in IMAGE_OPTIONS):
         return
     group = parser.add_argument_group(
-        "videos and ROS bags", "a video file (.mp4, .avi, .mkv, ...) or a ROS bag (.bag, .db3, .mcap, a ROS 2 bag "
-        "folder, or BAG:TOPIC) is accepted wherever a folder of images is; docs/sources.md")
-    group.add_argument("--fps", type=float, metavar="N",
-                       help="take at most N frames per second (the first frame of each 1/N-second slot; default: "
-                            "every frame)")
+        "videos and ROS bags",
+        "a video file (.mp4, .avi, .mkv, ...) or a ROS bag (.bag, .db3, .mcap, a ROS 2 bag "
+        "folder, or BAG:TOPIC) is accepted wherever a folder of images is; docs/sources.md",
+    )
+    group.add_argument(
+        "--fps",
+        type=float,
+        metavar="N",
+        help="take at most N frames per second (the first frame of each 1/N-second slot; default: " "every frame)",
+    )
     group.add_argument("--every", type=int, metavar="K", help="take every K-th frame")
-    group.add_argument("--window", metavar="START:END",
-                       help="only frames from START to END seconds after a source's first frame (either may be empty)")
-    group.add_argument("--topic", help="a bag's image topic (sensor_msgs/Image or CompressedImage); needed when the "
-                                       "bag has several")
-    group.add_argument("--position-topic", metavar="TOPIC",
-                       help="a bag's sensor_msgs/NavSatFix or nav_msgs/Odometry topic whose positions are "
-                            "interpolated to the image times (default: the bag's only NavSatFix topic, else its "
-                            "only Odometry topic)")
+    group.add_argument(
+        "--window",
+        metavar="START:END",
+        help="only frames from START to END seconds after a source's first frame (either may be empty)",
+    )
+    group.add_argument(
+        "--topic", help="a bag's image topic (sensor_msgs/Image or CompressedImage); needed when the " "bag has several"
+    )
+    group.add_argument(
+        "--position-topic",
+        metavar="TOPIC",
+        help="a bag's sensor_msgs/NavSatFix or nav_msgs/Odometry topic whose positions are "
+        "interpolated to the image times (default: the bag's only NavSatFix topic, else its "
+        "only Odometry topic)",
+    )
 
 
 def source_options(args: argparse.Namespace):
     """The :class:`fdnet.data.sources.SourceOptions` the flags of :func:`add_source_arguments` give."""
     from fdnet.data.sources import SourceOptions, parse_window
 
-    return SourceOptions(fps=getattr(args, "fps", None), every=getattr(args, "every", None),
-                         window=parse_window(getattr(args, "window", None)), topic=getattr(args, "topic", None),
-                         position_topic=getattr(args, "position_topic", None)).check()
+    return SourceOptions(
+        fps=getattr(args, "fps", None),
+        every=getattr(args, "every", None),
+        window=parse_window(getattr(args, "window", None)),
+        topic=getattr(args, "topic", None),
+        position_topic=getattr(args, "position_topic", None),
+    ).check()
 
 
 def add_pipeline_arguments(parser: argparse.ArgumentParser, batch_size: int = 64) -> None:
     """``--batch-size`` and ``--workers`` of the streaming image pipeline."""
-    parser.add_argument("--batch-size", type=int, default=batch_size,
-                        help=f"images described per batch (default {batch_size})")
-    parser.add_argument("--workers", type=int, default=None,
-                        help="image decoding processes running alongside the model (default: one per spare "
-                             "core, at least 1; 0 = decode in the main process)")
+    parser.add_argument(
+        "--batch-size", type=int, default=batch_size, help=f"images described per batch (default {batch_size})"
+    )
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help="image decoding processes running alongside the model (default: one per spare "
+        "core, at least 1; 0 = decode in the main process)",
+    )
 
 
 def check_pipeline_arguments(args: argparse.Namespace) -> None:
@@ -284,44 +375,74 @@ def set_threads(threads: int | None) -> None:
 def add_training_arguments(parser: argparse.ArgumentParser, data_required: bool = True) -> None:
     """The flags of ``fdnet train [METHOD]``, the same for every trained method; each sets a
     setting of the run config (docs/runs.md)."""
-    parser.add_argument("--data", required=data_required,
-                        help="dataset folder with one sub-folder per condition (or a published layout, "
-                             "with --dataset-format)" + ("" if data_required else "; optional with --resume"))
+    parser.add_argument(
+        "--data",
+        required=data_required,
+        help="dataset folder with one sub-folder per condition (or a published layout, "
+        "with --dataset-format)" + ("" if data_required else "; optional with --resume"),
+    )
     parser.add_argument("--out", required=True, help="run directory to write (or to continue with --resume)")
     parser.add_argument("--conditions", help="comma-separated conditions to train on (default: all sub-folders)")
-    parser.add_argument("--frames", help="START:END slice of every condition to train on (END exclusive); "
-                                         "keep the test frames out")
-    parser.add_argument("--dataset-format", help=f"read --data in a published layout ({dataset_format_list()}); "
-                        "see docs/datasets.md")
-    parser.add_argument("--split", help="with --dataset-format: a named split (default: the format's train split) "
-                                        "or START:END")
+    parser.add_argument(
+        "--frames", help="START:END slice of every condition to train on (END exclusive); " "keep the test frames out"
+    )
+    parser.add_argument(
+        "--dataset-format", help=f"read --data in a published layout ({dataset_format_list()}); " "see docs/datasets.md"
+    )
+    parser.add_argument(
+        "--split", help="with --dataset-format: a named split (default: the format's train split) " "or START:END"
+    )
     parser.add_argument("--config", help="YAML file of settings applied on top of the preset")
-    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                        help="override one setting, e.g. --set optim.lr=1e-4 (repeatable)")
-    parser.add_argument("--max-minutes", type=float,
-                        help="stop cleanly (with a checkpoint) after M minutes of the whole command, choosing the "
-                             "start included")
-    parser.add_argument("--resume", action="store_true",
-                        help="continue the run in --out from its newest complete checkpoint")
-    parser.add_argument("--override", action="store_true",
-                        help="with --resume: accept settings that differ from the run's (recorded in "
-                             "RUN_DIR/changes.yaml with the step they took effect)")
-    parser.add_argument("--validate-reference",
-                        help="condition used as reference for periodic validation (which picks best/; FDNet's "
-                             "cpu preset also picks its trunk block on this pair before training)")
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override one setting, e.g. --set optim.lr=1e-4 (repeatable)",
+    )
+    parser.add_argument(
+        "--max-minutes",
+        type=float,
+        help="stop cleanly (with a checkpoint) after M minutes of the whole command, choosing the " "start included",
+    )
+    parser.add_argument(
+        "--resume", action="store_true", help="continue the run in --out from its newest complete checkpoint"
+    )
+    parser.add_argument(
+        "--override",
+        action="store_true",
+        help="with --resume: accept settings that differ from the run's (recorded in "
+        "RUN_DIR/changes.yaml with the step they took effect)",
+    )
+    parser.add_argument(
+        "--validate-reference",
+        help="condition used as reference for periodic validation (which picks best/; FDNet's "
+        "cpu preset also picks its trunk block on this pair before training)",
+    )
     parser.add_argument("--validate-query", help="condition used as query for periodic validation")
     parser.add_argument("--validate-frames", help="START:END frames for validation (keep them out of your test split)")
     parser.add_argument("--validate-tolerance", type=int, help="frame tolerance of a correct validation match")
     parser.add_argument("--validate-every", type=int, help="validate every N steps")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    parser.add_argument("--device", default=None, metavar="auto|cpu|cuda|cuda:N",
-                        help="where training runs (runtime.device, for every method; default auto: a GPU when "
-                             "there is one)")
-    parser.add_argument("--threads", type=thread_count(0), default=None,
-                        help="torch CPU threads (runtime.threads; default: the preset's, 0 = torch's own choice)")
-    parser.add_argument("--steps", type=int, default=None,
-                        help="training steps in all (default: the preset's; FDNet: the joint stage takes what "
-                             "the pretraining stages leave)")
+    parser.add_argument(
+        "--device",
+        default=None,
+        metavar="auto|cpu|cuda|cuda:N",
+        help="where training runs (runtime.device, for every method; default auto: a GPU when " "there is one)",
+    )
+    parser.add_argument(
+        "--threads",
+        type=thread_count(0),
+        default=None,
+        help="torch CPU threads (runtime.threads; default: the preset's, 0 = torch's own choice)",
+    )
+    parser.add_argument(
+        "--steps",
+        type=int,
+        default=None,
+        help="training steps in all (default: the preset's; FDNet: the joint stage takes what "
+        "the pretraining stages leave)",
+    )
 
 
 def apply_training_arguments(config, args: argparse.Namespace):
@@ -346,9 +467,13 @@ def apply_training_arguments(config, args: argparse.Namespace):
         if getattr(args, flag, None) is not None:
             data = dataclasses.replace(data, **{flag: str(getattr(args, flag))})
     validation = config.validation
-    for flag, field_name in (("validate_reference", "reference"), ("validate_query", "query"),
-                             ("validate_frames", "frames"), ("validate_tolerance", "tolerance"),
-                             ("validate_every", "every")):
+    for flag, field_name in (
+        ("validate_reference", "reference"),
+        ("validate_query", "query"),
+        ("validate_frames", "frames"),
+        ("validate_tolerance", "tolerance"),
+        ("validate_every", "every"),
+    ):
         if getattr(args, flag, None) is not None:
             validation = dataclasses.replace(validation, **{field_name: getattr(args, flag)})
     config = dataclasses.replace(config, data=data, validation=validation)
@@ -369,8 +494,10 @@ def apply_training_arguments(config, args: argparse.Namespace):
         from fdnet.errors import ConfigError
 
         if not hasattr(config.data, "tolerance"):
-            raise ConfigError(f"--tolerance: {config.method if hasattr(config, 'method') else 'this method'} learns "
-                              "without place labels and takes no tolerance")
+            raise ConfigError(
+                f"--tolerance: {config.method if hasattr(config, 'method') else 'this method'} learns "
+                "without place labels and takes no tolerance"
+            )
         config = dataclasses.replace(config, data=dataclasses.replace(config.data, tolerance=int(args.tolerance)))
     if getattr(args, "steps", None) is not None:
         config = config.with_total_steps(int(args.steps))
@@ -395,6 +522,7 @@ MAX_THREADS = 1024
 def thread_count(minimum: int = 1):
     """The argparse type of every ``--threads``: a whole number in [minimum, MAX_THREADS]; other
     values are the command's one-line error, before any work (one check for every command)."""
+
     def parse(text: str) -> int:
         import argparse
 

@@ -4,10 +4,13 @@ from __future__ import annotations
 
 
 def register(sub) -> None:
-    p = sub.add_parser("export", help="export a trained FDNet run's descriptor to ONNX",
-                       description="Write an ONNX graph: images (N,3,H,W) float32 RGB in [0,1] -> L2-normalised "
-                                   "content vectors (N,L), preprocessing included; checked against PyTorch "
-                                   "with onnxruntime.")
+    p = sub.add_parser(
+        "export",
+        help="export a trained FDNet run's descriptor to ONNX",
+        description="Write an ONNX graph: images (N,3,H,W) float32 RGB in [0,1] -> L2-normalised "
+        "content vectors (N,L), preprocessing included; checked against PyTorch "
+        "with onnxruntime.",
+    )
     p.add_argument("--checkpoint", required=True, help="FDNet run directory (from fdnet train), or its best/")
     p.add_argument("--out", required=True, help="ONNX file to write")
     p.add_argument("--opset", type=int, default=17)

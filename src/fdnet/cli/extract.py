@@ -23,48 +23,66 @@ FORMAT_SUFFIXES = {"npz": (".npz",), "h5": (".h5", ".hdf5")}
 def register(sub) -> None:
     from fdnet.cli.common import thread_count
 
-    p = sub.add_parser("extract", help="write a method's vectors of a folder of images to .npz (default: FDNet's "
-                                       "content and appearance vectors)",
-                       description="Writes FILE.npz with arrays: descriptors (N, D) the method's vectors (what it "
-                       "compares; for FDNet instead content (N, L) L2-normalised content vectors, the place "
-                       "descriptor, and appearance (N, L) raw appearance vectors), names (N,) image file names, "
-                       "sources (N,) the folder, video or bag of each image, timestamps (N,) seconds of video and "
-                       "bag frames (NaN for image files), method and settings (JSON); row i is image i in natural "
-                       "file-name order (frame_2 before frame_10), the order every fdnet command uses. A method "
-                       "that learns from images (--fit) and is given none learns from the images it describes. "
-                       "Images stream through the model in batches (decoded in worker processes) and the vectors "
-                       "are written in chunks: memory stays a few batches whatever the folder's size. The .npz is "
-                       "uncompressed and replaces --out atomically at the end. --format h5 writes hloc's "
-                       "global-features file instead (docs/guide.md, \"hloc\").")
+    p = sub.add_parser(
+        "extract",
+        help="write a method's vectors of a folder of images to .npz (default: FDNet's "
+        "content and appearance vectors)",
+        description="Writes FILE.npz with arrays: descriptors (N, D) the method's vectors (what it "
+        "compares; for FDNet instead content (N, L) L2-normalised content vectors, the place "
+        "descriptor, and appearance (N, L) raw appearance vectors), names (N,) image file names, "
+        "sources (N,) the folder, video or bag of each image, timestamps (N,) seconds of video and "
+        "bag frames (NaN for image files), method and settings (JSON); row i is image i in natural "
+        "file-name order (frame_2 before frame_10), the order every fdnet command uses. A method "
+        "that learns from images (--fit) and is given none learns from the images it describes. "
+        "Images stream through the model in batches (decoded in worker processes) and the vectors "
+        "are written in chunks: memory stays a few batches whatever the folder's size. The .npz is "
+        "uncompressed and replaces --out atomically at the end. --format h5 writes hloc's "
+        'global-features file instead (docs/guide.md, "hloc").',
+    )
     add_method_arguments(p, required=False)
     p.add_argument("--images", required=True, help="folder of images, video file or ROS bag")
-    p.add_argument("--recursive", action="store_true",
-                   help="the images of --images' whole tree (sub-folders too, hidden ones left out), in natural "
-                        "order of their paths below it; with --format h5 they are named by that path "
-                        "(db/0001.jpg), as hloc names the images of an image_dir holding db/ and query/ (the "
-                        ".npz keeps file names in names and each image's folder in sources)")
+    p.add_argument(
+        "--recursive",
+        action="store_true",
+        help="the images of --images' whole tree (sub-folders too, hidden ones left out), in natural "
+        "order of their paths below it; with --format h5 they are named by that path "
+        "(db/0001.jpg), as hloc names the images of an image_dir holding db/ and query/ (the "
+        ".npz keeps file names in names and each image's folder in sources)",
+    )
     p.add_argument("--out", required=True, help="output file, .npz or .h5 (written atomically)")
-    p.add_argument("--format", choices=tuple(FORMAT_SUFFIXES), default=None,
-                   help="npz (default): fdnet's arrays above. h5: hloc's global-features file "
-                        "(cvg/Hierarchical-Localization): one group per image holding its place descriptor "
-                        "(descriptors, or FDNet's content) as global_descriptor, float32, the image named by its "
-                        "path relative to the --images folder (a video's or bag's: relative to the folder holding "
-                        "it), so hloc's image_dir is that folder. Default: from --out's suffix (.h5 or .hdf5: h5)")
+    p.add_argument(
+        "--format",
+        choices=tuple(FORMAT_SUFFIXES),
+        default=None,
+        help="npz (default): fdnet's arrays above. h5: hloc's global-features file "
+        "(cvg/Hierarchical-Localization): one group per image holding its place descriptor "
+        "(descriptors, or FDNet's content) as global_descriptor, float32, the image named by its "
+        "path relative to the --images folder (a video's or bag's: relative to the folder holding "
+        "it), so hloc's image_dir is that folder. Default: from --out's suffix (.h5 or .hdf5: h5)",
+    )
     add_pipeline_arguments(p, batch_size=256)
     add_device_argument(p)
     precision = p.add_mutually_exclusive_group()
-    precision.add_argument("--bf16", action="store_true",
-                           help="bfloat16 autocast (methods with a bf16 setting: fdnet, calc, ...): about 3x faster "
-                                "where the device runs bf16 natively (CPUs with AVX512-BF16/AMX, Ampere and newer "
-                                "GPUs); vectors within cosine 0.999 of fp32, R@1 within 0.5 points "
-                                "(docs/performance.md)")
-    precision.add_argument("--fp32", action="store_true",
-                           help="float32 throughout: the default, as every other command computes")
-    p.add_argument("--compile", choices=("auto", "on", "off"), default="auto",
-                   help="torch.compile FDNet's content encoder first: compiling takes up to a minute on 2 CPU "
-                        "cores, then the cpu preset ran 1.7x faster than bf16 eager (docs/performance.md). "
-                        f"auto (default): on for folders of at least {COMPILE_FROM:,} images; falls back to eager "
-                        "if compiling fails")
+    precision.add_argument(
+        "--bf16",
+        action="store_true",
+        help="bfloat16 autocast (methods with a bf16 setting: fdnet, calc, ...): about 3x faster "
+        "where the device runs bf16 natively (CPUs with AVX512-BF16/AMX, Ampere and newer "
+        "GPUs); vectors within cosine 0.999 of fp32, R@1 within 0.5 points "
+        "(docs/performance.md)",
+    )
+    precision.add_argument(
+        "--fp32", action="store_true", help="float32 throughout: the default, as every other command computes"
+    )
+    p.add_argument(
+        "--compile",
+        choices=("auto", "on", "off"),
+        default="auto",
+        help="torch.compile FDNet's content encoder first: compiling takes up to a minute on 2 CPU "
+        "cores, then the cpu preset ran 1.7x faster than bf16 eager (docs/performance.md). "
+        f"auto (default): on for folders of at least {COMPILE_FROM:,} images; falls back to eager "
+        "if compiling fails",
+    )
     p.add_argument("--threads", type=thread_count(), help="torch CPU threads (default: all cores)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -78,8 +96,10 @@ def descriptor_options(args, method: str, count: int) -> dict:
 
     params = setting_names(method)
     bf16 = bool(args.bf16)
-    wanted = {"compile": args.compile == "on" or (args.compile == "auto" and count >= COMPILE_FROM),
-              "batch_size": args.batch_size}
+    wanted = {
+        "compile": args.compile == "on" or (args.compile == "auto" and count >= COMPILE_FROM),
+        "batch_size": args.batch_size,
+    }
     if "bf16" in params:
         wanted["bf16"] = bf16
     return {k: v for k, v in wanted.items() if k in params}
@@ -113,8 +133,10 @@ def _refuse_writing_an_input(args, out) -> None:
             except OSError:  # one of them does not exist
                 same = False
             if same:
-                raise ConfigError(f"--out {out} is the --{option} file the command reads; writing it would "
-                                  "destroy it: give another name")
+                raise ConfigError(
+                    f"--out {out} is the --{option} file the command reads; writing it would "
+                    "destroy it: give another name"
+                )
 
 
 def _prepare(args, shards):
@@ -167,21 +189,32 @@ def _run(args, shards) -> int:
     if out_format == "h5":
         from fdnet.tasks.extract import extract_h5
 
-        summary = extract_h5(descriptor, paths, out, root, batch_size=args.batch_size,
-                             workers=args.workers, progress=not args.no_progress)
+        summary = extract_h5(
+            descriptor,
+            paths,
+            out,
+            root,
+            batch_size=args.batch_size,
+            workers=args.workers,
+            progress=not args.no_progress,
+        )
         written = f"{summary['array']} as hloc's global_descriptor"
     else:
-        summary = extract(descriptor, paths, out, batch_size=args.batch_size, workers=args.workers,
-                          progress=not args.no_progress)
+        summary = extract(
+            descriptor, paths, out, batch_size=args.batch_size, workers=args.workers, progress=not args.no_progress
+        )
         written = " and ".join(summary["arrays"])
     device = descriptor.device or "cpu"
     precision = "bf16" if getattr(descriptor, "bf16", False) else "fp32"
     processes = f"{shards.world_size} processes, " if shards.world_size > 1 else ""
-    print(f"fdnet extract: {summary['images']} images -> {out} ({args.method}: {written}, "
-          f"length {summary['dim']}; {processes}{device}, {precision}"
-          f"{', compiled' if getattr(descriptor, 'compiled', False) else ''}, "
-          f"{summary['images_per_second']:.1f} images/s"
-          + (f"; learnt from {summary['fitted_on']}" if summary["fitted_on"] else "") + ")")
+    print(
+        f"fdnet extract: {summary['images']} images -> {out} ({args.method}: {written}, "
+        f"length {summary['dim']}; {processes}{device}, {precision}"
+        f"{', compiled' if getattr(descriptor, 'compiled', False) else ''}, "
+        f"{summary['images_per_second']:.1f} images/s"
+        + (f"; learnt from {summary['fitted_on']}" if summary["fitted_on"] else "")
+        + ")"
+    )
     if out_format == "h5":
         print(f"fdnet extract: image names are relative to {summary['root']} (hloc's image_dir)")
     return 0
@@ -197,7 +230,9 @@ def output_format(given: str | None, out: str) -> tuple[str, str]:
     out = str(out)
     said = next((name for name, suffixes in FORMAT_SUFFIXES.items() if out.lower().endswith(suffixes)), None)
     if given is not None and said is not None and said != given:
-        raise ConfigError(f"--format {given} --out {out}: the file name says {said}; give --out with "
-                          f"{' or '.join(FORMAT_SUFFIXES[given])}, or --format {said}")
+        raise ConfigError(
+            f"--format {given} --out {out}: the file name says {said}; give --out with "
+            f"{' or '.join(FORMAT_SUFFIXES[given])}, or --format {said}"
+        )
     chosen = given or said or "npz"
     return chosen, out if said == chosen else f"{out}{FORMAT_SUFFIXES[chosen][0]}"

@@ -36,31 +36,57 @@ def register(sub) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     source = p.add_mutually_exclusive_group(required=True)
-    source.add_argument("--positions", nargs=2, metavar=("REFERENCE_CSV", "QUERY_CSV"),
-                        help="position files of the reference and the query traverse, or ROS bags (their image "
-                             "frames, positions interpolated from a NavSatFix/Odometry topic; docs/sources.md)")
-    source.add_argument("--aligned", action="store_true",
-                        help="frame-aligned traverses: query frame i is reference frame i")
+    source.add_argument(
+        "--positions",
+        nargs=2,
+        metavar=("REFERENCE_CSV", "QUERY_CSV"),
+        help="position files of the reference and the query traverse, or ROS bags (their image "
+        "frames, positions interpolated from a NavSatFix/Odometry topic; docs/sources.md)",
+    )
+    source.add_argument(
+        "--aligned", action="store_true", help="frame-aligned traverses: query frame i is reference frame i"
+    )
     source.add_argument("--data", metavar="ROOT", help="a dataset folder read by a dataset adapter")
-    p.add_argument("--tolerance-m", type=float, default=None,
-                   help="--positions: references within this many metres count as correct (default 25)")
+    p.add_argument(
+        "--tolerance-m",
+        type=float,
+        default=None,
+        help="--positions: references within this many metres count as correct (default 25)",
+    )
     p.add_argument("--image-column", default=None, help="--positions: name of the image column")
-    p.add_argument("--tolerance", type=int, default=None,
-                   help="--aligned: references within this many frames count as correct (default 0)")
+    p.add_argument(
+        "--tolerance",
+        type=int,
+        default=None,
+        help="--aligned: references within this many frames count as correct (default 0)",
+    )
     p.add_argument("--num-queries", type=int, default=None, help="--aligned: number of query images")
     p.add_argument("--num-references", type=int, default=None, help="--aligned: number of reference images")
-    p.add_argument("--reference", default=None,
-                   help="--aligned, --positions: reference image folder; --data: reference condition")
-    p.add_argument("--query", default=None,
-                   help="--aligned, --positions: query image folder; --data: query condition")
-    p.add_argument("--dataset-format", default=None,
-                   help=f"--data: layout name (default: detected): {dataset_format_list(auto=False)}")
+    p.add_argument(
+        "--reference", default=None, help="--aligned, --positions: reference image folder; --data: reference condition"
+    )
+    p.add_argument("--query", default=None, help="--aligned, --positions: query image folder; --data: query condition")
+    p.add_argument(
+        "--dataset-format",
+        default=None,
+        help=f"--data: layout name (default: detected): {dataset_format_list(auto=False)}",
+    )
     p.add_argument("--split", default=None, help="--data: named split (train/test/all) or START:END")
-    p.add_argument("--format-set", action="append", default=[], metavar="KEY=VALUE",
-                   help="--data: a protocol setting of the format, e.g. tolerance=3 (repeatable)")
+    p.add_argument(
+        "--format-set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="--data: a protocol setting of the format, e.g. tolerance=3 (repeatable)",
+    )
     p.add_argument("--out", required=True, help="ground-truth CSV to write")
-    p.add_argument("--warn-unmatched", type=float, default=0.2, metavar="FRACTION",
-                   help="warn when more than this fraction of queries has no true match (default 0.2)")
+    p.add_argument(
+        "--warn-unmatched",
+        type=float,
+        default=0.2,
+        metavar="FRACTION",
+        help="warn when more than this fraction of queries has no true match (default 0.2)",
+    )
     p.set_defaults(func=run)
 
 
@@ -87,15 +113,18 @@ def _positions_in_image_order(table, folder):
         seen: dict[str, int] = {}
         for k, name in enumerate(names):
             if name in seen:
-                raise DataError(f"{table.path}, line {table.lines[k]}: image {name} is listed twice "
-                                f"(first on line {table.lines[seen[name]]})")
+                raise DataError(
+                    f"{table.path}, line {table.lines[k]}: image {name} is listed twice "
+                    f"(first on line {table.lines[seen[name]]})"
+                )
             seen[name] = k
         rows = np.asarray(sorted(range(len(names)), key=lambda k: natural_key(names[k])), dtype=np.int64)
         names = [names[k] for k in rows]
     else:
         return table, None
-    ordered = PositionTable(table.path, table.kind, table.values[rows],
-                            None if table.images is None else [table.images[k] for k in rows])
+    ordered = PositionTable(
+        table.path, table.kind, table.values[rows], None if table.images is None else [table.images[k] for k in rows]
+    )
     return ordered, names
 
 
@@ -112,8 +141,10 @@ def _from_positions(args):
 
         if sources.is_source(path):  # a bag: its frames with positions interpolated from its GPS/odometry
             if args.reference or args.query:
-                raise ConfigError(f"--positions {path}: a bag's positions are its own frames'; "
-                                  "--reference/--query folders are for position CSVs")
+                raise ConfigError(
+                    f"--positions {path}: a bag's positions are its own frames'; "
+                    "--reference/--query folders are for position CSVs"
+                )
             return source_positions(path)
         return read_positions(path, image_column=args.image_column)
 
@@ -121,8 +152,10 @@ def _from_positions(args):
     query, query_names = _positions_in_image_order(read(query_csv), args.query)
     if (ref_names is None) != (query_names is None):
         without = ref_csv if ref_names is None else query_csv
-        raise ConfigError(f"{without}: has no image column but the other position file has one; give both "
-                          f"an image column, or give the image folders with --reference DIR --query DIR")
+        raise ConfigError(
+            f"{without}: has no image column but the other position file has one; give both "
+            f"an image column, or give the image folders with --reference DIR --query DIR"
+        )
     tolerance = 25.0 if args.tolerance_m is None else args.tolerance_m
     return positions_ground_truth(reference, query, tolerance), query_names, ref_names
 
@@ -159,18 +192,28 @@ def _from_dataset(args):
     overrides = parse_overrides(args.format_set)
     # --tolerance / --tolerance-m are the format's protocol settings here: given, they are used (not
     # silently dropped); --format-set tolerance=... says the same
-    for flag, key, value in (("--tolerance", "tolerance", args.tolerance),
-                             ("--tolerance-m", "tolerance_m", args.tolerance_m)):
+    for flag, key, value in (
+        ("--tolerance", "tolerance", args.tolerance),
+        ("--tolerance-m", "tolerance_m", args.tolerance_m),
+    ):
         if value is not None:
             if key in overrides and overrides[key] != value:
                 raise ConfigError(f"{flag} {value} and --format-set {key}={overrides[key]} disagree; give one")
             overrides[key] = value
-    split = open_split(args.data, reference=args.reference, query=args.query,
-                       dataset_format=args.dataset_format, split=args.split, check_sizes=False, **overrides)
-    print(f"{split.description}: {len(split.query)} queries ({split.query.name}), "
-          f"{len(split.reference)} references ({split.reference.name})")
-    return (split.ground_truth, [p.name for p in split.query.paths],
-            [p.name for p in split.reference.paths])
+    split = open_split(
+        args.data,
+        reference=args.reference,
+        query=args.query,
+        dataset_format=args.dataset_format,
+        split=args.split,
+        check_sizes=False,
+        **overrides,
+    )
+    print(
+        f"{split.description}: {len(split.query)} queries ({split.query.name}), "
+        f"{len(split.reference)} references ({split.reference.name})"
+    )
+    return (split.ground_truth, [p.name for p in split.query.paths], [p.name for p in split.reference.paths])
 
 
 def run(args) -> int:
@@ -190,8 +233,11 @@ def run(args) -> int:
         gt, query_names, reference_names = _from_dataset(args)
     gt.to_csv(args.out, query_names, reference_names)
     if query_names is None:
-        print("note: no image names to write (no image column and no image folders), so readers cannot "
-              "check that the indices mean the images they evaluate", file=sys.stderr)
+        print(
+            "note: no image names to write (no image column and no image folders), so readers cannot "
+            "check that the indices mean the images they evaluate",
+            file=sys.stderr,
+        )
     summary = gt.summary()
     n = summary["num_queries"]
     with_match = summary["queries_with_match"]
@@ -200,7 +246,10 @@ def run(args) -> int:
     print(f"mean true matches per query: {summary['mean_matches_per_query']:.2f}")
     unmatched = n - with_match
     if n and unmatched / n > args.warn_unmatched:
-        print(f"warning: {unmatched} of {n} queries ({100.0 * unmatched / n:.1f} %) have no true match; "
-              f"check the tolerance, the units (degrees vs metres) and that both traverses cover the "
-              f"same route", file=sys.stderr)
+        print(
+            f"warning: {unmatched} of {n} queries ({100.0 * unmatched / n:.1f} %) have no true match; "
+            f"check the tolerance, the units (degrees vs metres) and that both traverses cover the "
+            f"same route",
+            file=sys.stderr,
+        )
     return 0

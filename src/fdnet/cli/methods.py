@@ -4,9 +4,12 @@ from __future__ import annotations
 
 
 def register(sub) -> None:
-    p = sub.add_parser("methods", help="list the place-recognition methods (--method names) and what each supports",
-                       description="One line per method: its name, what it supports (trained with `fdnet train "
-                                   "METHOD` and its presets, torch device, --fit, ONNX export) and a summary.")
+    p = sub.add_parser(
+        "methods",
+        help="list the place-recognition methods (--method names) and what each supports",
+        description="One line per method: its name, what it supports (trained with `fdnet train "
+        "METHOD` and its presets, torch device, --fit, ONNX export) and a summary.",
+    )
     p.add_argument("--markdown", action="store_true", help="print the table of docs/methods.md instead")
     p.set_defaults(func=run)
 

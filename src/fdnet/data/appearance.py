@@ -67,15 +67,20 @@ def contrast(x: torch.Tensor, g: torch.Generator) -> torch.Tensor:
 
 
 CHANGES: dict[str, Callable[[torch.Tensor, torch.Generator], torch.Tensor]] = {
-    "night": night, "snow": snow, "cast": cast, "contrast": contrast,
+    "night": night,
+    "snow": snow,
+    "cast": cast,
+    "contrast": contrast,
 }
 
 
 def check_changes(names) -> None:
     unknown = [n for n in names if n not in CHANGES]
     if unknown:
-        raise ConfigError(f"data.synthetic_conditions: unknown change(s) {', '.join(map(repr, unknown))}; "
-                          f"choose from {', '.join(CHANGES)}")
+        raise ConfigError(
+            f"data.synthetic_conditions: unknown change(s) {', '.join(map(repr, unknown))}; "
+            f"choose from {', '.join(CHANGES)}"
+        )
     if len(set(names)) != len(names):
         raise ConfigError(f"data.synthetic_conditions: {list(names)} names a change twice")
 
@@ -84,9 +89,9 @@ def changed(images: torch.Tensor, change: str, generator: torch.Generator, chunk
     """uint8 (N, 3, H, W) images with ``change`` applied, each image at its own drawn strength."""
     out = torch.empty_like(images)
     for start in range(0, len(images), chunk):
-        x = images[start:start + chunk].float().div_(255.0)
+        x = images[start : start + chunk].float().div_(255.0)
         y = CHANGES[change](x, generator)
-        out[start:start + chunk] = y.clamp_(0, 1).mul_(255.0).round_().to(torch.uint8)
+        out[start : start + chunk] = y.clamp_(0, 1).mul_(255.0).round_().to(torch.uint8)
     return out
 
 

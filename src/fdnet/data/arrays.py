@@ -70,8 +70,15 @@ def read_npy_header(handle: BinaryIO, where: str) -> tuple[tuple[int, ...], bool
         raise DataError(f"{where}: not a readable .npy file ({exc})") from exc
 
 
-def check_npy_claim(shape: tuple[int, ...], dtype: np.dtype, where: str, data_bytes: int,
-                    max_bytes: int | None, ndim: int | None = None, what: str = "array") -> None:
+def check_npy_claim(
+    shape: tuple[int, ...],
+    dtype: np.dtype,
+    where: str,
+    data_bytes: int,
+    max_bytes: int | None,
+    ndim: int | None = None,
+    what: str = "array",
+) -> None:
     """Refuse a header whose array is not in the file or would not fit in ``max_bytes``."""
     if ndim is not None and len(shape) != ndim:
         raise DataError(f"{where}: expected a {ndim}-D {what}, but its header says shape {shape}")
@@ -82,19 +89,23 @@ def check_npy_claim(shape: tuple[int, ...], dtype: np.dtype, where: str, data_by
     if claimed > data_bytes:
         raise DataError(
             f"{where}: header claims {described} ({format_bytes(count * dtype.itemsize)}) but the file holds "
-            f"only {format_bytes(data_bytes)} of data; the file is truncated or its header is damaged")
+            f"only {format_bytes(data_bytes)} of data; the file is truncated or its header is damaged"
+        )
     in_memory = count * dtype.itemsize
     if max_bytes is not None and in_memory > max_bytes:
-        raise DataError(f"{where}: {described} needs {format_bytes(in_memory)} of memory, more than the "
-                        f"{format_bytes(max_bytes)} allowed")
+        raise DataError(
+            f"{where}: {described} needs {format_bytes(in_memory)} of memory, more than the "
+            f"{format_bytes(max_bytes)} allowed"
+        )
 
 
 def _default_limit(max_bytes: int | None | str) -> int | None:
     return physical_memory_bytes() if max_bytes == "memory" else max_bytes
 
 
-def load_npy(path: str | os.PathLike, *, max_bytes: int | None | str = "memory", ndim: int | None = None,
-             what: str = "array") -> np.ndarray:
+def load_npy(
+    path: str | os.PathLike, *, max_bytes: int | None | str = "memory", ndim: int | None = None, what: str = "array"
+) -> np.ndarray:
     """A plain (non-object) array from a ``.npy`` file, its header checked before any allocation.
 
     ``max_bytes``: the most memory the array may take (default ``"memory"``: this machine's RAM;
@@ -121,8 +132,10 @@ def load_npy(path: str | os.PathLike, *, max_bytes: int | None | str = "memory",
         handle.seek(0)
         shape, _, dtype = read_npy_header(handle, where)
         if dtype.hasobject:
-            raise DataError(f"{path}: holds Python objects (dtype object), which are never unpickled; "
-                            f"save a plain numeric array")
+            raise DataError(
+                f"{path}: holds Python objects (dtype object), which are never unpickled; "
+                f"save a plain numeric array"
+            )
         data_bytes = os.fstat(handle.fileno()).st_size - handle.tell()
         check_npy_claim(shape, dtype, where, data_bytes, _default_limit(max_bytes), ndim, what)
         handle.seek(0)
@@ -132,8 +145,14 @@ def load_npy(path: str | os.PathLike, *, max_bytes: int | None | str = "memory",
             raise DataError(f"{path}: not a readable .npy file ({exc.__class__.__name__}: {exc})") from exc
 
 
-def load_npz_member(path: str | os.PathLike, key: str, *, max_bytes: int | None | str = "memory",
-                    ndim: int | None = None, what: str = "array") -> np.ndarray:
+def load_npz_member(
+    path: str | os.PathLike,
+    key: str,
+    *,
+    max_bytes: int | None | str = "memory",
+    ndim: int | None = None,
+    what: str = "array",
+) -> np.ndarray:
     """Array ``key`` of an ``.npz`` archive, its header checked against the member's size first."""
     path = Path(path)
     where = f"{path} (array {key!r})"
@@ -152,10 +171,13 @@ def load_npz_member(path: str | os.PathLike, key: str, *, max_bytes: int | None 
             with archive.open(info) as member:
                 shape, _, dtype = read_npy_header(member, where)
                 if dtype.hasobject:
-                    raise DataError(f"{where}: holds Python objects (dtype object), which are never "
-                                    f"unpickled; save a plain numeric array")
-                check_npy_claim(shape, dtype, where, info.file_size - member.tell(),
-                                _default_limit(max_bytes), ndim, what)
+                    raise DataError(
+                        f"{where}: holds Python objects (dtype object), which are never "
+                        f"unpickled; save a plain numeric array"
+                    )
+                check_npy_claim(
+                    shape, dtype, where, info.file_size - member.tell(), _default_limit(max_bytes), ndim, what
+                )
             with archive.open(info) as member:
                 return np.lib.format.read_array(member, allow_pickle=False)
         except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:

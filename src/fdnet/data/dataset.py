@@ -72,8 +72,9 @@ class Traverse:
         if not sources.is_source(folder):
             return cls(name=name or folder.name, paths=paths)
         records = frame_records(paths)
-        return cls(name=name or folder.name, paths=paths,
-                   timestamps=np.array([r.timestamp for r in records], dtype=np.float64))
+        return cls(
+            name=name or folder.name, paths=paths, timestamps=np.array([r.timestamp for r in records], dtype=np.float64)
+        )
 
 
 @dataclass
@@ -106,20 +107,22 @@ class RouteDataset:
 
         if conditions is None:
             conditions = sorted(
-                p.name
-                for p in root.iterdir()
-                if not p.name.startswith(".") and (is_source(p) or has_images(p))
+                p.name for p in root.iterdir() if not p.name.startswith(".") and (is_source(p) or has_images(p))
             )
             if not conditions:
-                raise DataError(f"{root}: no condition sub-folders with images, videos or bags (expected "
-                                f"root/<condition>/*.png or root/<condition>.mp4)")
+                raise DataError(
+                    f"{root}: no condition sub-folders with images, videos or bags (expected "
+                    f"root/<condition>/*.png or root/<condition>.mp4)"
+                )
         traverses = {}
         for name in conditions:
             folder = condition_path(root, name)
             if folder is None:
                 available = sorted(p.name for p in root.iterdir() if p.is_dir() or is_source(p))
-                raise DataError(f"{root / name}: condition folder not found; available: "
-                                f"{', '.join(available) or 'none'} (a condition may be a folder, video or ROS bag)")
+                raise DataError(
+                    f"{root / name}: condition folder not found; available: "
+                    f"{', '.join(available) or 'none'} (a condition may be a folder, video or ROS bag)"
+                )
             traverses[name] = Traverse.from_folder(folder, name)
         return cls(root=root, traverses=traverses)
 
@@ -162,6 +165,7 @@ def check_training_frames(train_frames: str | None, evaluated: str | None, train
     if not train_frames:
         raise ConfigError(f"{by} needs {train_flag} START:END (frames to train on, outside the evaluated --frames)")
     if frame_ranges_overlap(train_frames, evaluated):
-        raise ConfigError(f"{train_flag} {train_frames} overlaps the evaluated frames --frames {evaluated or 'all'}: "
-                          "train and test on different frames")
-
+        raise ConfigError(
+            f"{train_flag} {train_frames} overlaps the evaluated frames --frames {evaluated or 'all'}: "
+            "train and test on different frames"
+        )

@@ -42,8 +42,8 @@ from fdnet.errors import ConfigError, DataError
 
 @dataclass
 class FilterSettings:
-    dark_threshold: float | None = 0.1          # None: keep dark frames
-    duplicate_threshold: float | None = 0.01    # None: keep near-duplicates
+    dark_threshold: float | None = 0.1  # None: keep dark frames
+    duplicate_threshold: float | None = 0.01  # None: keep near-duplicates
     thumbnail_size: tuple[int, int] = (16, 32)  # (height, width) the detectors look at
 
     def __post_init__(self) -> None:
@@ -62,9 +62,9 @@ class FilterReport:
     """What was dropped and why (positions are indices into the unfiltered traverses)."""
 
     num_frames: int
-    kept: np.ndarray                                   # positions kept, ascending
-    dark: dict[str, np.ndarray] = field(default_factory=dict)        # per condition
-    duplicate: dict[str, np.ndarray] = field(default_factory=dict)   # per condition
+    kept: np.ndarray  # positions kept, ascending
+    dark: dict[str, np.ndarray] = field(default_factory=dict)  # per condition
+    duplicate: dict[str, np.ndarray] = field(default_factory=dict)  # per condition
     settings: FilterSettings = field(default_factory=FilterSettings)
 
     @property
@@ -89,19 +89,23 @@ class FilterReport:
             "num_dropped_duplicate": int(len(self.dropped_duplicate)),
             "dark_per_condition": {c: int(len(v)) for c, v in self.dark.items()},
             "duplicate_per_condition": {c: int(len(v)) for c, v in self.duplicate.items()},
-            "settings": {"dark_threshold": self.settings.dark_threshold,
-                         "duplicate_threshold": self.settings.duplicate_threshold,
-                         "thumbnail_size": list(self.settings.thumbnail_size),
-                         "rule": "drop a frame position from every condition if dark or "
-                                 "near-duplicate in any condition"},
+            "settings": {
+                "dark_threshold": self.settings.dark_threshold,
+                "duplicate_threshold": self.settings.duplicate_threshold,
+                "thumbnail_size": list(self.settings.thumbnail_size),
+                "rule": "drop a frame position from every condition if dark or " "near-duplicate in any condition",
+            },
         }
 
     def summary(self) -> str:
         d = self.to_dict()
-        per = ", ".join(f"{c} {n} dark / {d['duplicate_per_condition'].get(c, 0)} still"
-                        for c, n in d["dark_per_condition"].items())
-        return (f"kept {d['num_kept']} of {d['num_frames']} frames: dropped {d['num_dropped_dark']} dark, "
-                f"{d['num_dropped_duplicate']} near-duplicate" + (f" ({per})" if per else ""))
+        per = ", ".join(
+            f"{c} {n} dark / {d['duplicate_per_condition'].get(c, 0)} still" for c, n in d["dark_per_condition"].items()
+        )
+        return (
+            f"kept {d['num_kept']} of {d['num_frames']} frames: dropped {d['num_dropped_dark']} dark, "
+            f"{d['num_dropped_duplicate']} near-duplicate" + (f" ({per})" if per else "")
+        )
 
 
 def dark_frames(grey: np.ndarray, threshold: float) -> np.ndarray:
@@ -139,9 +143,12 @@ def route_thumbnails(dataset: RouteDataset, size: tuple[int, int]) -> dict[str, 
     return {name: to_grey(load_images(t.paths, size)) for name, t in dataset.traverses.items()}
 
 
-def filter_route(dataset: RouteDataset, dark_threshold: float | None = 0.1,
-                 duplicate_threshold: float | None = 0.01,
-                 thumbnail_size: tuple[int, int] = (16, 32)) -> tuple[RouteDataset, FilterReport]:
+def filter_route(
+    dataset: RouteDataset,
+    dark_threshold: float | None = 0.1,
+    duplicate_threshold: float | None = 0.01,
+    thumbnail_size: tuple[int, int] = (16, 32),
+) -> tuple[RouteDataset, FilterReport]:
     """Drop dark and near-duplicate frame positions from every condition of a frame-aligned route.
 
     Returns the filtered dataset (same conditions; ``frame_ids`` of the kept frames preserved)
@@ -153,8 +160,10 @@ def filter_route(dataset: RouteDataset, dark_threshold: float | None = 0.1,
         raise DataError(f"{dataset.root}: no conditions to filter")
     if len(set(lengths.values())) != 1:
         listing = ", ".join(f"{dataset.root / k}: {v}" for k, v in lengths.items())
-        raise DataError(f"frame filters keep conditions aligned, so every condition needs the same number of "
-                        f"frames, but the counts differ ({listing})")
+        raise DataError(
+            f"frame filters keep conditions aligned, so every condition needs the same number of "
+            f"frames, but the counts differ ({listing})"
+        )
     n = next(iter(lengths.values()))
     thumbs = route_thumbnails(dataset, settings.thumbnail_size)
     names = list(thumbs)
@@ -169,17 +178,18 @@ def filter_route(dataset: RouteDataset, dark_threshold: float | None = 0.1,
             raise ConfigError(
                 f"{dataset.root / name}: {int(dark[name].sum())} of {n} frames are darker than dark_threshold "
                 f"{settings.dark_threshold:g} (mean grey level); this looks like a night-time traverse, not "
-                f"tunnels. Lower the dark threshold or switch the dark filter off for it")
+                f"tunnels. Lower the dark threshold or switch the dark filter off for it"
+            )
     any_dark = np.logical_or.reduce([dark[name] for name in names])
 
     dup = np.zeros((len(names), n), dtype=bool)
     if settings.duplicate_threshold is not None:
-        dup = near_duplicates(np.stack([thumbs[name] for name in names]), settings.duplicate_threshold,
-                              skip=any_dark)
+        dup = near_duplicates(np.stack([thumbs[name] for name in names]), settings.duplicate_threshold, skip=any_dark)
     keep = ~any_dark & ~dup.any(axis=0)
     kept = np.flatnonzero(keep)
     report = FilterReport(
-        num_frames=n, kept=kept,
+        num_frames=n,
+        kept=kept,
         dark={name: np.flatnonzero(dark[name]) for name in names},
         duplicate={name: np.flatnonzero(dup[i]) for i, name in enumerate(names)},
         settings=settings,
@@ -199,9 +209,17 @@ def _cache_file(dataset: RouteDataset, settings: FilterSettings, cache_dir: str 
     """Cache entry named by the settings and every file (path, size, modification time), so an
     edited, added or removed image means a new entry."""
     fingerprint = hashlib.sha1()
-    fingerprint.update(json.dumps({"rule": FILTER_RULE, "dark_threshold": settings.dark_threshold,
-                                   "duplicate_threshold": settings.duplicate_threshold,
-                                   "thumbnail_size": list(settings.thumbnail_size)}, sort_keys=True).encode())
+    fingerprint.update(
+        json.dumps(
+            {
+                "rule": FILTER_RULE,
+                "dark_threshold": settings.dark_threshold,
+                "duplicate_threshold": settings.duplicate_threshold,
+                "thumbnail_size": list(settings.thumbnail_size),
+            },
+            sort_keys=True,
+        ).encode()
+    )
     for name, traverse in sorted(dataset.traverses.items()):
         fingerprint.update(name.encode())
         for path in traverse.paths:
@@ -223,9 +241,14 @@ def _read_cache(cache_file: Path, num_frames: int) -> tuple[np.ndarray, str] | N
     return kept, summary
 
 
-def filter_frames(dataset: RouteDataset, dark_threshold: float | None = 0.1,
-                  duplicate_threshold: float | None = 0.01, thumbnail_size: tuple[int, int] = (16, 32),
-                  cache_dir: str | os.PathLike | None = None, use_cache: bool = True) -> tuple[RouteDataset, str]:
+def filter_frames(
+    dataset: RouteDataset,
+    dark_threshold: float | None = 0.1,
+    duplicate_threshold: float | None = 0.01,
+    thumbnail_size: tuple[int, int] = (16, 32),
+    cache_dir: str | os.PathLike | None = None,
+    use_cache: bool = True,
+) -> tuple[RouteDataset, str]:
     """The paper's removal of tunnel (dark) and near-duplicate (stationary) frames from a
     frame-aligned route, as every command and adapter applies it: a position dropped in any
     condition is dropped from all (:func:`filter_route`).
@@ -242,15 +265,18 @@ def filter_frames(dataset: RouteDataset, dark_threshold: float | None = 0.1,
     if cached is not None and all(len(t) == num_frames for t in dataset.traverses.values()):
         kept, summary = cached
     else:
-        _, report = filter_route(dataset, settings.dark_threshold, settings.duplicate_threshold,
-                                 settings.thumbnail_size)
+        _, report = filter_route(
+            dataset, settings.dark_threshold, settings.duplicate_threshold, settings.thumbnail_size
+        )
         kept, summary = np.asarray(report.kept, dtype=np.int64), report.summary()
         if cache_file is not None:
             from fdnet.io import atomic_write_text
 
             try:
-                atomic_write_text(cache_file, json.dumps({"kept_positions": kept.tolist(), "summary": summary,
-                                                          "report": report.to_dict()}))
+                atomic_write_text(
+                    cache_file,
+                    json.dumps({"kept_positions": kept.tolist(), "summary": summary, "report": report.to_dict()}),
+                )
             except OSError:
                 pass  # a read-only home or cache folder only costs the next run the detector pass
     filtered = RouteDataset(dataset.root, {name: t.select(kept) for name, t in dataset.traverses.items()})

@@ -69,8 +69,9 @@ def frame_records(paths: Sequence[str | os.PathLike]) -> list[FrameRecord]:
         position = None
         if listing.positions is not None and np.isfinite(listing.positions[i]).all():
             position = (float(listing.positions[i, 0]), float(listing.positions[i, 1]))
-        out.append(FrameRecord(str(listing.source), float(listing.times[i]), position, listing.position_kind,
-                               listing.topic))
+        out.append(
+            FrameRecord(str(listing.source), float(listing.times[i]), position, listing.position_kind, listing.topic)
+        )
     return out
 
 

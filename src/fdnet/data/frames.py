@@ -82,11 +82,15 @@ class _BagReader:
                 self.ordinal += 1
                 if self.ordinal == ordinal:
                     if int(timestamp) != nanos:
-                        raise DataError(f"{self.source}, topic {self.topic}: message {ordinal} was recorded at "
-                                        f"{timestamp} ns, not {nanos} ns as when it was listed; has the bag changed?")
-                    return decode_image_message(self.reader.deserialize(raw, connection.msgtype),
-                                                connection.msgtype, f"{self.source}, topic {self.topic}, "
-                                                f"message {ordinal}")
+                        raise DataError(
+                            f"{self.source}, topic {self.topic}: message {ordinal} was recorded at "
+                            f"{timestamp} ns, not {nanos} ns as when it was listed; has the bag changed?"
+                        )
+                    return decode_image_message(
+                        self.reader.deserialize(raw, connection.msgtype),
+                        connection.msgtype,
+                        f"{self.source}, topic {self.topic}, " f"message {ordinal}",
+                    )
         raise DataError(f"{self.source}, topic {self.topic}: message {ordinal} not found; has the bag changed?")
 
     def close(self) -> None:
@@ -108,8 +112,9 @@ def decode_image_message(message, msgtype: str, where: str):
         return image
     encoding = message.encoding
     if encoding not in RAW_ENCODINGS:
-        raise DataError(f"{where}: image encoding {encoding!r} cannot be decoded; fdnet reads "
-                        f"{', '.join(RAW_ENCODINGS)}")
+        raise DataError(
+            f"{where}: image encoding {encoding!r} cannot be decoded; fdnet reads " f"{', '.join(RAW_ENCODINGS)}"
+        )
     height, width, step = int(message.height), int(message.width), int(message.step)
     sixteen = encoding == "mono16"
     channels = {"rgb8": 3, "bgr8": 3, "8UC3": 3, "rgba8": 4, "bgra8": 4}.get(encoding, 1)
@@ -117,7 +122,7 @@ def decode_image_message(message, msgtype: str, where: str):
     data = np.frombuffer(bytes(message.data), dtype=np.uint8)
     if height <= 0 or width <= 0 or step < width * channels * item or len(data) < height * step:
         raise DataError(f"{where}: {encoding} image of {width}x{height} (step {step}) but {len(data)} bytes of data")
-    rows = data[:height * step].reshape(height, step)[:, :width * channels * item]
+    rows = data[: height * step].reshape(height, step)[:, : width * channels * item]
     if sixteen:
         grey = rows.copy().view(">u2" if message.is_bigendian else "<u2").reshape(height, width)
         return Image.fromarray(grey.astype(np.uint16))
@@ -125,8 +130,12 @@ def decode_image_message(message, msgtype: str, where: str):
     if encoding.startswith("bayer_"):
         import cv2
 
-        code = {"bayer_rggb8": cv2.COLOR_BayerRGGB2RGB, "bayer_bggr8": cv2.COLOR_BayerBGGR2RGB,
-                "bayer_gbrg8": cv2.COLOR_BayerGBRG2RGB, "bayer_grbg8": cv2.COLOR_BayerGRBG2RGB}[encoding]
+        code = {
+            "bayer_rggb8": cv2.COLOR_BayerRGGB2RGB,
+            "bayer_bggr8": cv2.COLOR_BayerBGGR2RGB,
+            "bayer_gbrg8": cv2.COLOR_BayerGBRG2RGB,
+            "bayer_grbg8": cv2.COLOR_BayerGRBG2RGB,
+        }[encoding]
         # OpenCV names Bayer patterns by the second row's pair; cv_bridge uses the same table
         return Image.fromarray(cv2.cvtColor(pixels, code))
     if encoding in ("bgr8", "8UC3"):

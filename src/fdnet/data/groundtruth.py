@@ -87,9 +87,7 @@ class GroundTruth:
         if retrieved.ndim == 1:
             retrieved = retrieved[:, None]
         if retrieved.shape[0] != self.num_queries:
-            raise DataError(
-                f"ground truth has {self.num_queries} queries but {retrieved.shape[0]} were matched"
-            )
+            raise DataError(f"ground truth has {self.num_queries} queries but {retrieved.shape[0]} were matched")
         out = np.zeros(retrieved.shape, dtype=bool)
         for q, p in enumerate(self.positives):
             if len(p):
@@ -103,8 +101,9 @@ class GroundTruth:
             m[q, p] = True
         return m
 
-    def subset(self, query_indices: Sequence[int] | None = None,
-               reference_indices: Sequence[int] | None = None) -> "GroundTruth":
+    def subset(
+        self, query_indices: Sequence[int] | None = None, reference_indices: Sequence[int] | None = None
+    ) -> "GroundTruth":
         """Restrict to some queries and references, re-indexing the references. (The result
         carries no file names: check them with :meth:`check_names` before taking a subset.)"""
         q_idx = np.arange(self.num_queries) if query_indices is None else np.asarray(query_indices)
@@ -121,8 +120,9 @@ class GroundTruth:
 
     # ------------------------------------------------------------------ builders
     @classmethod
-    def from_frames(cls, query_frames: Sequence[int] | np.ndarray, reference_frames: Sequence[int] | np.ndarray,
-                    tolerance: int) -> "GroundTruth":
+    def from_frames(
+        cls, query_frames: Sequence[int] | np.ndarray, reference_frames: Sequence[int] | np.ndarray, tolerance: int
+    ) -> "GroundTruth":
         """Frame-aligned: query with frame id f matches references with |frame id - f| <= tolerance.
 
         Frame ids (not list positions) are compared, so filtered or sliced traverses stay aligned.
@@ -148,8 +148,12 @@ class GroundTruth:
         """References within ``tolerance_m`` metres (Euclidean, planar metres) of each query."""
         from scipy.spatial import cKDTree
 
-        if isinstance(tolerance_m, bool) or not isinstance(tolerance_m, (int, float, np.integer, np.floating)) \
-                or not np.isfinite(tolerance_m) or tolerance_m < 0:
+        if (
+            isinstance(tolerance_m, bool)
+            or not isinstance(tolerance_m, (int, float, np.integer, np.floating))
+            or not np.isfinite(tolerance_m)
+            or tolerance_m < 0
+        ):
             # one place for every caller (fdnet groundtruth, the formats with GPS): NaN would match nothing
             raise DataError(f"a position tolerance must be a finite number of metres >= 0, got {tolerance_m!r}")
         q = np.asarray(query_xy, dtype=np.float64)
@@ -162,8 +166,9 @@ class GroundTruth:
 
     # ------------------------------------------------------------------ CSV
     @classmethod
-    def from_csv(cls, path: str | os.PathLike, num_references: int | None = None,
-                 num_queries: int | None = None) -> "GroundTruth":
+    def from_csv(
+        cls, path: str | os.PathLike, num_references: int | None = None, num_queries: int | None = None
+    ) -> "GroundTruth":
         """Read ``query_index,reference_indices`` (space-separated list; empty = no match), with
         or without a header; or, with a header naming them, also ``query_name,reference_names``
         (the reference names separated by ``/``, in the order of the indices).
@@ -196,8 +201,10 @@ class GroundTruth:
             if not row or all(not c.strip() for c in row):
                 continue
             if named and len(row) != 4:
-                raise DataError(f"{path}, line {line_no}: expected 4 columns ({','.join(NAMED_HEADER)}), "
-                                f"got {len(row)}: {row!r}")
+                raise DataError(
+                    f"{path}, line {line_no}: expected 4 columns ({','.join(NAMED_HEADER)}), "
+                    f"got {len(row)}: {row!r}"
+                )
             if not named and len(row) > 2:
                 raise DataError(f"{path}, line {line_no}: expected 'query_index,reference_indices', got {row!r}")
             try:
@@ -206,12 +213,16 @@ class GroundTruth:
             except ValueError as exc:
                 raise DataError(f"{path}, line {line_no}: non-integer value in {','.join(row)!r}") from exc
             if q < 0 or (num_queries is not None and q >= num_queries):
-                raise DataError(f"{path}, line {line_no}: query index {q} out of range"
-                                + (f" (0..{num_queries - 1})" if num_queries is not None else ""))
+                raise DataError(
+                    f"{path}, line {line_no}: query index {q} out of range"
+                    + (f" (0..{num_queries - 1})" if num_queries is not None else "")
+                )
             bad = [r for r in refs if r < 0 or (num_references is not None and r >= num_references)]
             if bad:
-                raise DataError(f"{path}, line {line_no}: reference index {bad[0]} out of range"
-                                + (f" (0..{num_references - 1})" if num_references is not None else ""))
+                raise DataError(
+                    f"{path}, line {line_no}: reference index {bad[0]} out of range"
+                    + (f" (0..{num_references - 1})" if num_references is not None else "")
+                )
             if q in entries:
                 raise DataError(f"{path}, line {line_no}: query {q} listed twice")
             entries[q] = np.asarray(refs, dtype=np.int64)
@@ -219,8 +230,10 @@ class GroundTruth:
                 # names as written by to_csv, quoted against spreadsheet formulas
                 ref_names = from_spreadsheet_text(row[3]).split(NAME_SEPARATOR) if row[3] else []
                 if len(ref_names) != len(refs):
-                    raise DataError(f"{path}, line {line_no}: {len(refs)} reference indices but "
-                                    f"{len(ref_names)} reference names; the two lists go together")
+                    raise DataError(
+                        f"{path}, line {line_no}: {len(refs)} reference indices but "
+                        f"{len(ref_names)} reference names; the two lists go together"
+                    )
                 named_rows.append(NamedRow(line_no, q, from_spreadsheet_text(row[2]), refs, ref_names))
         if not entries:
             raise DataError(f"{path}: no ground-truth rows")
@@ -229,11 +242,11 @@ class GroundTruth:
         if n_r is None:
             n_r = 1 + max((int(p.max()) for p in entries.values() if len(p)), default=-1)
         positives = [entries.get(q, np.zeros(0, dtype=np.int64)) for q in range(n_q)]
-        return cls(positives, n_r, f"explicit list from {path.name}",
-                   ListedNames(path, named_rows) if named else None)
+        return cls(positives, n_r, f"explicit list from {path.name}", ListedNames(path, named_rows) if named else None)
 
-    def check_names(self, query_paths: Sequence[str | os.PathLike],
-                    reference_paths: Sequence[str | os.PathLike]) -> None:
+    def check_names(
+        self, query_paths: Sequence[str | os.PathLike], reference_paths: Sequence[str | os.PathLike]
+    ) -> None:
         """When the CSV this was read from names its images, check that they are the images
         being evaluated, in the same order; a mismatch is a DataError naming the file, the first
         mismatching row and both names. Nothing to check for a file without names."""
@@ -244,24 +257,36 @@ class GroundTruth:
         reference_names = [Path(p).name for p in reference_paths]
         query_folder = _folder_of(query_paths)
         reference_folder = _folder_of(reference_paths)
-        hint = ("the ground truth was written for other images, or in another order; write it again "
-                "with `fdnet groundtruth` for these folders")
+        hint = (
+            "the ground truth was written for other images, or in another order; write it again "
+            "with `fdnet groundtruth` for these folders"
+        )
         for row in named.rows:
             if row.query >= len(query_names) or row.query_name != query_names[row.query]:
                 actual = query_names[row.query] if row.query < len(query_names) else "no image"
-                raise DataError(f"{named.path}, line {row.line}: query {row.query} is {row.query_name!r} in the "
-                                f"ground truth but {actual!r} in {query_folder}; {hint}")
+                raise DataError(
+                    f"{named.path}, line {row.line}: query {row.query} is {row.query_name!r} in the "
+                    f"ground truth but {actual!r} in {query_folder}; {hint}"
+                )
             for index, name in zip(row.references, row.reference_names):
                 actual = reference_names[index] if index < len(reference_names) else "no image"
                 if name != actual:
-                    raise DataError(f"{named.path}, line {row.line}: reference {index} is {name!r} in the "
-                                    f"ground truth but {actual!r} in {reference_folder}; {hint}")
+                    raise DataError(
+                        f"{named.path}, line {row.line}: reference {index} is {name!r} in the "
+                        f"ground truth but {actual!r} in {reference_folder}; {hint}"
+                    )
         if len(named.rows) != len(query_names):
-            raise DataError(f"{named.path}: has rows for {len(named.rows)} queries but {query_folder} has "
-                            f"{len(query_names)} query images; {hint}")
+            raise DataError(
+                f"{named.path}: has rows for {len(named.rows)} queries but {query_folder} has "
+                f"{len(query_names)} query images; {hint}"
+            )
 
-    def to_csv(self, path: str | os.PathLike, query_names: Sequence[str] | None = None,
-               reference_names: Sequence[str] | None = None) -> None:
+    def to_csv(
+        self,
+        path: str | os.PathLike,
+        query_names: Sequence[str] | None = None,
+        reference_names: Sequence[str] | None = None,
+    ) -> None:
         """Write ``query_index,reference_indices`` (one row per query); with ``query_names`` and
         ``reference_names`` (file names, one per query and per reference, in index order) also
         ``query_name,reference_names``, so a reader can check the indices still mean those
@@ -278,17 +303,27 @@ class GroundTruth:
             query_names = [str(n) for n in query_names]
             reference_names = [str(n) for n in reference_names]
             if len(query_names) != self.num_queries or len(reference_names) != self.num_references:
-                raise DataError(f"{path}: ground truth is for {self.num_queries} queries x {self.num_references} "
-                                f"references but {len(query_names)} query and {len(reference_names)} "
-                                f"reference names were given")
+                raise DataError(
+                    f"{path}: ground truth is for {self.num_queries} queries x {self.num_references} "
+                    f"references but {len(query_names)} query and {len(reference_names)} "
+                    f"reference names were given"
+                )
             slashed = next((n for n in [*query_names, *reference_names] if NAME_SEPARATOR in n), None)
             if slashed is not None:
-                raise DataError(f"{path}: image name {slashed!r} contains {NAME_SEPARATOR!r}; names are "
-                                f"file names, without their folder")
+                raise DataError(
+                    f"{path}: image name {slashed!r} contains {NAME_SEPARATOR!r}; names are "
+                    f"file names, without their folder"
+                )
             writer.writerow(NAMED_HEADER)
             for q, p in enumerate(self.positives):
-                writer.writerow([q, " ".join(str(int(r)) for r in p), spreadsheet_text(query_names[q]),
-                                 spreadsheet_text(NAME_SEPARATOR.join(reference_names[int(r)] for r in p))])
+                writer.writerow(
+                    [
+                        q,
+                        " ".join(str(int(r)) for r in p),
+                        spreadsheet_text(query_names[q]),
+                        spreadsheet_text(NAME_SEPARATOR.join(reference_names[int(r)] for r in p)),
+                    ]
+                )
         atomic_write_text(path, buffer.getvalue())
 
     def summary(self) -> dict:

@@ -86,13 +86,16 @@ def list_images(folder: str | os.PathLike, recursive: bool = False) -> list[Path
         return frames
     folder = Path(folder)
     if not folder.is_dir():
-        reason = ("it is a file, and not a video or ROS bag by its extension" if folder.exists()
-                  else "folder not found")
+        reason = "it is a file, and not a video or ROS bag by its extension" if folder.exists() else "folder not found"
         raise DataError(f"{folder}: not a folder of images ({reason})")
     candidates = folder.rglob("*") if recursive else folder.iterdir()
-    paths = [p for p in candidates
-             if p.suffix.lower() in IMAGE_EXTENSIONS and not _is_hidden(p.relative_to(folder))
-             and (p.is_file() or _dangling_link(p))]
+    paths = [
+        p
+        for p in candidates
+        if p.suffix.lower() in IMAGE_EXTENSIONS
+        and not _is_hidden(p.relative_to(folder))
+        and (p.is_file() or _dangling_link(p))
+    ]
     if not paths:
         raise DataError(f"{folder}: contains no images (looked for {', '.join(IMAGE_EXTENSIONS)})")
     paths = sorted(paths, key=lambda p: natural_key(p.relative_to(folder).as_posix()))
@@ -104,8 +107,9 @@ def _dangling_link(path: Path) -> bool:
     """Refuse an image name that is a symbolic link to nothing: skipping it would shift every
     later image's index, and a corrupt image stops the command too."""
     if path.is_symlink() and not path.exists():
-        raise DataError(f"{path}: a symbolic link to {os.readlink(path)}, which does not exist; fix or remove the "
-                        "link")
+        raise DataError(
+            f"{path}: a symbolic link to {os.readlink(path)}, which does not exist; fix or remove the " "link"
+        )
     return False
 
 
@@ -115,7 +119,8 @@ def has_images(folder: str | os.PathLike) -> bool:
     try:
         return folder.is_dir() and any(
             p.suffix.lower() in IMAGE_EXTENSIONS and not p.name.startswith(".") and p.is_file()
-            for p in folder.iterdir())
+            for p in folder.iterdir()
+        )
     except OSError:
         return False
 
@@ -128,7 +133,8 @@ def _too_many_pixels(path: Path, pixels: int | None, detail: str = "") -> DataEr
     count = f"{pixels:,} pixels" if pixels is not None else "more pixels than allowed"
     return DataError(
         f"{path}: image has {count}{detail}, over the limit of {limit:,} pixels "
-        f"(PIL.Image.MAX_IMAGE_PIXELS); refusing to decode it, as it may be a decompression bomb")
+        f"(PIL.Image.MAX_IMAGE_PIXELS); refusing to decode it, as it may be a decompression bomb"
+    )
 
 
 def _open(path: Path) -> Image.Image:
@@ -241,8 +247,9 @@ def check_image_size(size, what: str) -> tuple[int, int]:
     if h < 1 or w < 1:
         raise ConfigError(f"{what}: size {h}x{w} must be positive")
     if h > MAX_IMAGE_SIDE or w > MAX_IMAGE_SIDE:
-        raise ConfigError(f"{what}: size {h}x{w} is larger than any model here uses (at most {MAX_IMAGE_SIDE} "
-                          "pixels a side)")
+        raise ConfigError(
+            f"{what}: size {h}x{w} is larger than any model here uses (at most {MAX_IMAGE_SIDE} " "pixels a side)"
+        )
     return h, w
 
 
@@ -303,9 +310,7 @@ def resize_array(array: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return np.clip(np.stack(channels, axis=-1), 0.0, 1.0).astype(np.float32)
 
 
-def load_images(
-    paths: Sequence[str | os.PathLike], size: tuple[int, int], workers: int = 2
-) -> np.ndarray:
+def load_images(paths: Sequence[str | os.PathLike], size: tuple[int, int], workers: int = 2) -> np.ndarray:
     """Read many images at one size into (N, H, W, 3) float32. Decoding runs in threads
     (Pillow releases the GIL while decoding)."""
     size = check_image_size(size, "images")

@@ -46,8 +46,24 @@ from fdnet.errors import ConfigError, DataError
 
 log = logging.getLogger(__name__)
 
-VIDEO_EXTENSIONS = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm", ".mpg", ".mpeg", ".wmv", ".flv", ".ts",
-                    ".mts", ".m2ts", ".ogv", ".3gp", ".y4m")
+VIDEO_EXTENSIONS = (
+    ".mp4",
+    ".avi",
+    ".mkv",
+    ".mov",
+    ".m4v",
+    ".webm",
+    ".mpg",
+    ".mpeg",
+    ".wmv",
+    ".flv",
+    ".ts",
+    ".mts",
+    ".m2ts",
+    ".ogv",
+    ".3gp",
+    ".y4m",
+)
 BAG_EXTENSIONS = (".bag", ".db3", ".mcap")
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
@@ -55,8 +71,20 @@ NAVSATFIX = "sensor_msgs/msg/NavSatFix"
 ODOMETRY = "nav_msgs/msg/Odometry"
 
 #: raw sensor_msgs/Image encodings fdnet decodes; others (16UC1 depth, 32FC1, ...) are refused
-RAW_ENCODINGS = ("rgb8", "bgr8", "rgba8", "bgra8", "mono8", "8UC1", "8UC3", "mono16",
-                 "bayer_rggb8", "bayer_bggr8", "bayer_gbrg8", "bayer_grbg8")
+RAW_ENCODINGS = (
+    "rgb8",
+    "bgr8",
+    "rgba8",
+    "bgra8",
+    "mono8",
+    "8UC1",
+    "8UC3",
+    "mono16",
+    "bayer_rggb8",
+    "bayer_bggr8",
+    "bayer_gbrg8",
+    "bayer_grbg8",
+)
 
 VIDEO_FRAME_NAME = re.compile(r"^frame_([0-9]+)_([0-9]+)ms$")
 BAG_FRAME_NAME = re.compile(r"^frame_([0-9]+)_([0-9]+)ns(?:_([0-9]+))?$")
@@ -135,6 +163,7 @@ def using_options(options: SourceOptions) -> Iterator[None]:
 
 # ----------------------------------------------------------------------------- what a path is
 
+
 def _bag_folder(path: Path) -> bool:
     return path.is_dir() and (path / "metadata.yaml").is_file()
 
@@ -181,12 +210,14 @@ def condition_path(root: str | os.PathLike, name: str) -> Path | None:
         return None
     found = sorted(p for p in root.iterdir() if p.stem == name and kind_of(p) is not None)
     if len(found) > 1:
-        raise DataError(f"{root}: condition {name!r} could be {' or '.join(p.name for p in found)}; name it with "
-                        f"its extension")
+        raise DataError(
+            f"{root}: condition {name!r} could be {' or '.join(p.name for p in found)}; name it with " f"its extension"
+        )
     return found[0] if found else None
 
 
 # ----------------------------------------------------------------------------- listing
+
 
 @dataclass
 class SourceListing:
@@ -221,8 +252,10 @@ def open_source(path: str | os.PathLike, options: SourceOptions | None = None) -
     source, topic = split_topic(path)
     kind = kind_of(source)
     if kind is None:
-        raise DataError(f"{source}: not a video ({', '.join(VIDEO_EXTENSIONS[:4])}, ...) or a ROS bag "
-                        f"({', '.join(BAG_EXTENSIONS)}, or a ROS 2 bag folder with metadata.yaml)")
+        raise DataError(
+            f"{source}: not a video ({', '.join(VIDEO_EXTENSIONS[:4])}, ...) or a ROS bag "
+            f"({', '.join(BAG_EXTENSIONS)}, or a ROS 2 bag folder with metadata.yaml)"
+        )
     if topic is not None:
         if options.topic is not None and options.topic.strip("/") != topic.strip("/"):
             raise ConfigError(f"{path}: names topic {topic} but --topic is {options.topic}; give one")
@@ -253,7 +286,7 @@ def sample(times: np.ndarray, options: SourceOptions) -> np.ndarray:
         keep &= relative < end - 1e-6
     chosen = np.flatnonzero(keep)
     if options.every is not None:
-        chosen = chosen[::options.every]
+        chosen = chosen[:: options.every]
     elif options.fps is not None and len(chosen):
         origin = relative[chosen[0]] if start is None else start
         slots = np.floor((relative[chosen] - origin) * options.fps + 1e-6).astype(np.int64)
@@ -264,8 +297,9 @@ def sample(times: np.ndarray, options: SourceOptions) -> np.ndarray:
 
 
 def _no_frames(source: Path, options: SourceOptions, total: int, what: str = "frames") -> DataError:
-    return DataError(f"{source}: the sampling (--window {_window_text(options.window) or ':'}) keeps none of its "
-                     f"{total} {what}")
+    return DataError(
+        f"{source}: the sampling (--window {_window_text(options.window) or ':'}) keeps none of its " f"{total} {what}"
+    )
 
 
 def open_capture(source: Path):
@@ -277,8 +311,9 @@ def open_capture(source: Path):
     capture = cv2.VideoCapture(str(source))
     if not capture.isOpened():
         capture.release()
-        raise DataError(f"{source}: cannot be opened as a video (OpenCV's VideoCapture cannot read it; "
-                        f"is it a video file?)")
+        raise DataError(
+            f"{source}: cannot be opened as a video (OpenCV's VideoCapture cannot read it; " f"is it a video file?)"
+        )
     return capture
 
 
@@ -314,6 +349,7 @@ def _list_video(source: Path, options: SourceOptions) -> SourceListing:
 
 # ----------------------------------------------------------------------------- bags
 
+
 def bag_errors(source: Path, topic: str | None = None):
     """rosbags raises many kinds of exception for a damaged or truncated bag (its own reader
     errors, sqlite/apsw errors, struct and EOF errors from the ROS 1 parser, KeyError for a
@@ -327,8 +363,10 @@ def bag_errors(source: Path, topic: str | None = None):
             raise
         except Exception as exc:  # noqa: BLE001 (see the docstring)
             where = f"{source}" + (f", topic {topic}" if topic else "")
-            raise DataError(f"{where}: cannot read the bag ({exc.__class__.__name__}: {exc}); is it truncated or "
-                            f"damaged? (ROS 1: `rosbag reindex`; ROS 2: `ros2 bag reindex`)") from exc
+            raise DataError(
+                f"{where}: cannot read the bag ({exc.__class__.__name__}: {exc}); is it truncated or "
+                f"damaged? (ROS 1: `rosbag reindex`; ROS 2: `ros2 bag reindex`)"
+            ) from exc
 
     return guard()
 
@@ -353,18 +391,26 @@ def _image_topic(source: Path, topics: dict, wanted: str | None) -> str:
     if wanted is not None:
         wanted = wanted if wanted.startswith("/") else "/" + wanted
         if wanted not in topics:
-            raise DataError(f"{source}: has no topic {wanted}; its image topics: {', '.join(images) or 'none'} "
-                            f"(all topics: {_describe_topics(topics)})")
+            raise DataError(
+                f"{source}: has no topic {wanted}; its image topics: {', '.join(images) or 'none'} "
+                f"(all topics: {_describe_topics(topics)})"
+            )
         if topics[wanted].msgtype not in IMAGE_TYPES:
-            raise DataError(f"{source}, topic {wanted}: is {topics[wanted].msgtype}, not an image topic "
-                            f"(sensor_msgs/Image or CompressedImage); its image topics: {', '.join(images) or 'none'}")
+            raise DataError(
+                f"{source}, topic {wanted}: is {topics[wanted].msgtype}, not an image topic "
+                f"(sensor_msgs/Image or CompressedImage); its image topics: {', '.join(images) or 'none'}"
+            )
         return wanted
     if not images:
-        raise DataError(f"{source}: has no image topics (sensor_msgs/Image or sensor_msgs/CompressedImage); "
-                        f"its topics: {_describe_topics(topics)}")
+        raise DataError(
+            f"{source}: has no image topics (sensor_msgs/Image or sensor_msgs/CompressedImage); "
+            f"its topics: {_describe_topics(topics)}"
+        )
     if len(images) > 1:
-        raise ConfigError(f"{source}: has {len(images)} image topics ({', '.join(images)}); choose one with "
-                          f"--topic TOPIC or {source}:TOPIC")
+        raise ConfigError(
+            f"{source}: has {len(images)} image topics ({', '.join(images)}); choose one with "
+            f"--topic TOPIC or {source}:TOPIC"
+        )
     return images[0]
 
 
@@ -374,16 +420,23 @@ def _position_topic(source: Path, topics: dict, wanted: str | None) -> str | Non
         wanted = wanted if wanted.startswith("/") else "/" + wanted
         if wanted not in topics or topics[wanted].msgtype not in kinds:
             found = sorted(n for n, i in topics.items() if i.msgtype in kinds)
-            raise DataError(f"{source}: has no NavSatFix or Odometry topic {wanted}; its position topics: "
-                            f"{', '.join(found) or 'none'}")
+            raise DataError(
+                f"{source}: has no NavSatFix or Odometry topic {wanted}; its position topics: "
+                f"{', '.join(found) or 'none'}"
+            )
         return wanted
     for kind in kinds:  # GPS first, then odometry; only when it is the one topic of its kind
         found = sorted(n for n, i in topics.items() if i.msgtype == kind)
         if len(found) == 1:
             return found[0]
         if len(found) > 1:
-            log.warning("%s: has %d %s topics (%s); its frames get no positions unless --position-topic "
-                        "names one", source, len(found), kind, ", ".join(found))
+            log.warning(
+                "%s: has %d %s topics (%s); its frames get no positions unless --position-topic " "names one",
+                source,
+                len(found),
+                kind,
+                ", ".join(found),
+            )
             return None
     return None
 
@@ -392,12 +445,16 @@ def _check_image_message(source: Path, topic: str, message, msgtype: str) -> Non
     """Refuse a topic whose images fdnet cannot decode before anything is described."""
     if msgtype.endswith("CompressedImage"):
         if "compresseddepth" in message.format.lower().replace(" ", ""):
-            raise DataError(f"{source}, topic {topic}: compressed depth images ({message.format!r}) are not "
-                            f"camera images; fdnet reads colour or grey images")
+            raise DataError(
+                f"{source}, topic {topic}: compressed depth images ({message.format!r}) are not "
+                f"camera images; fdnet reads colour or grey images"
+            )
         return
     if message.encoding not in RAW_ENCODINGS:
-        raise DataError(f"{source}, topic {topic}: image encoding {message.encoding!r} cannot be decoded "
-                        f"(a depth or other non-camera image?); fdnet reads {', '.join(RAW_ENCODINGS)}")
+        raise DataError(
+            f"{source}, topic {topic}: image encoding {message.encoding!r} cannot be decoded "
+            f"(a depth or other non-camera image?); fdnet reads {', '.join(RAW_ENCODINGS)}"
+        )
 
 
 def _list_bag(source: Path, options: SourceOptions) -> SourceListing:
@@ -413,8 +470,7 @@ def _list_bag(source: Path, options: SourceOptions) -> SourceListing:
         with bag_errors(source, topic):
             for connection, timestamp, raw in reader.messages(connections=connections):
                 if not stamps:
-                    _check_image_message(source, topic, reader.deserialize(raw, connection.msgtype),
-                                         connection.msgtype)
+                    _check_image_message(source, topic, reader.deserialize(raw, connection.msgtype), connection.msgtype)
                 stamps.append(int(timestamp))
         if not stamps:
             raise DataError(f"{source}, topic {topic}: holds no messages")
@@ -469,8 +525,9 @@ def _add_positions(reader, listing: SourceListing, topic: str) -> None:
             positions[inside, axis] = np.interp(listing.times[inside], t, v[:, axis])
         outside = int((~inside).sum())
         if outside:
-            listing.notes.append(f"{outside} of {len(inside)} frames lie outside the time span of {topic}'s "
-                                 f"positions and have none")
+            listing.notes.append(
+                f"{outside} of {len(inside)} frames lie outside the time span of {topic}'s " f"positions and have none"
+            )
     else:
         listing.notes.append(f"{topic} holds no usable positions (no message with a fix)")
     listing.positions = positions

@@ -33,8 +33,9 @@ class EvaluationSplit:
             )
 
 
-def aligned_split(dataset: RouteDataset, reference: str, query: str, tolerance: int,
-                  start: int | None = None, end: int | None = None) -> EvaluationSplit:
+def aligned_split(
+    dataset: RouteDataset, reference: str, query: str, tolerance: int, start: int | None = None, end: int | None = None
+) -> EvaluationSplit:
     """Frame-aligned conditions of one route: frame i of ``query`` is frame i of ``reference``
     (frames compared by ``frame_ids``, so filtered traverses stay paired), within ``tolerance``.
 
@@ -51,8 +52,10 @@ def aligned_split(dataset: RouteDataset, reference: str, query: str, tolerance: 
         )
     ref, qry = ref_full.frames(start, end), query_full.frames(start, end)
     if len(ref) == 0:
-        raise DataError(f"frame range {_range(start, end)} selects no images of {dataset.root / reference} "
-                        f"({len(ref_full)} images)")
+        raise DataError(
+            f"frame range {_range(start, end)} selects no images of {dataset.root / reference} "
+            f"({len(ref_full)} images)"
+        )
     gt = GroundTruth.from_frames(qry.frame_ids, ref.frame_ids, tolerance)
     return EvaluationSplit(ref, qry, gt, f"{dataset.root.name}: {query} -> {reference}, {gt.description}")
 
@@ -65,8 +68,14 @@ def read_listed_ground_truth(path: str | os.PathLike, reference: Traverse, query
     return gt
 
 
-def listed_split(dataset: RouteDataset, reference: str, query: str, ground_truth: str | os.PathLike,
-                 start: int | None = None, end: int | None = None) -> EvaluationSplit:
+def listed_split(
+    dataset: RouteDataset,
+    reference: str,
+    query: str,
+    ground_truth: str | os.PathLike,
+    start: int | None = None,
+    end: int | None = None,
+) -> EvaluationSplit:
     """Two conditions of one route with an explicit ground-truth CSV over all their images
     (``query_index,reference_indices``, indices in :func:`fdnet.data.images.list_images` order),
     then the same ``start:end`` slice of both. Used by ``fdnet evaluate --data ... --ground-truth``
@@ -75,8 +84,10 @@ def listed_split(dataset: RouteDataset, reference: str, query: str, ground_truth
     gt = read_listed_ground_truth(ground_truth, ref_full, query_full)
     ref, qry = ref_full.frames(start, end), query_full.frames(start, end)
     if len(ref) == 0 or len(qry) == 0:
-        raise DataError(f"frame range {_range(start, end)} selects no images of {dataset.root} "
-                        f"({len(ref_full)} reference, {len(query_full)} query images)")
+        raise DataError(
+            f"frame range {_range(start, end)} selects no images of {dataset.root} "
+            f"({len(ref_full)} reference, {len(query_full)} query images)"
+        )
     gt = gt.subset(np.arange(len(query_full))[slice(start, end)], np.arange(len(ref_full))[slice(start, end)])
     return EvaluationSplit(ref, qry, gt, f"{dataset.root.name}: {query} -> {reference}, {gt.description}")
 
@@ -86,8 +97,9 @@ def with_listed_ground_truth(split: EvaluationSplit, ground_truth: str | os.Path
     the split's own query and reference images (what ``fdnet groundtruth --data ROOT --split S``
     writes); its size (and names, when it has them) are checked against the split."""
     gt = read_listed_ground_truth(ground_truth, split.reference, split.query)
-    return EvaluationSplit(split.reference, split.query, gt,
-                           f"{split.description}; ground truth replaced by the {gt.description}")
+    return EvaluationSplit(
+        split.reference, split.query, gt, f"{split.description}; ground truth replaced by the {gt.description}"
+    )
 
 
 def _range(start: int | None, end: int | None) -> str:

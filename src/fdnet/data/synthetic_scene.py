@@ -14,10 +14,10 @@ from fdnet.data.images import GREY_WEIGHTS
 CONDITIONS = ("summer", "autumn", "winter", "night")
 
 # Vertical layout, in units of the frame height (0 = top).
-_GROUND_Y = 0.64       # where buildings, trees and lamps stand
-_ROAD_TOP = 0.74       # grass verge above this, road below
+_GROUND_Y = 0.64  # where buildings, trees and lamps stand
+_ROAD_TOP = 0.74  # grass verge above this, road below
 _DASH_Y = (0.86, 0.885)
-HILL_SPEED = 0.3      # parallax: hills move at 30 % of the street's speed
+HILL_SPEED = 0.3  # parallax: hills move at 30 % of the street's speed
 CLOUD_SPEED = 0.08
 
 
@@ -27,13 +27,13 @@ class Building:
     x0: float
     width: float
     height: float
-    facade: np.ndarray          # RGB
-    roof: str                   # "flat" or "pitched"
+    facade: np.ndarray  # RGB
+    roof: str  # "flat" or "pitched"
     roof_colour: np.ndarray
     window_cols: int
     window_rows: int
-    window_fill: float          # fraction of each grid cell that is glass
-    lit: np.ndarray             # (rows, cols) bool: lit at night
+    window_fill: float  # fraction of each grid cell that is glass
+    lit: np.ndarray  # (rows, cols) bool: lit at night
 
 
 @dataclass
@@ -56,22 +56,31 @@ class Lamp:
 class Scene:
     """Everything that makes a place a place; the same in every condition."""
 
-    length: float                               # in units of the frame height
+    length: float  # in units of the frame height
     buildings: list[Building] = field(default_factory=list)
     trees: list[Tree] = field(default_factory=list)
     lamps: list[Lamp] = field(default_factory=list)
-    hill_profile: np.ndarray | None = None      # skyline height (units) per hill-panorama column
+    hill_profile: np.ndarray | None = None  # skyline height (units) per hill-panorama column
     dashes: list[tuple[float, float]] = field(default_factory=list)
 
 
-_FACADES = np.array([
-    [0.80, 0.72, 0.60], [0.70, 0.35, 0.28], [0.85, 0.85, 0.80], [0.55, 0.60, 0.65],
-    [0.90, 0.80, 0.45], [0.45, 0.50, 0.40], [0.75, 0.55, 0.45], [0.60, 0.45, 0.55],
-], dtype=np.float32)
-_ROOFS = np.array([[0.35, 0.15, 0.12], [0.25, 0.25, 0.28], [0.45, 0.30, 0.20], [0.20, 0.30, 0.25]],
-                  dtype=np.float32)
-_AUTUMN_LEAVES = np.array([[0.85, 0.45, 0.10], [0.75, 0.20, 0.10], [0.90, 0.75, 0.20], [0.60, 0.35, 0.15]],
-                          dtype=np.float32)
+_FACADES = np.array(
+    [
+        [0.80, 0.72, 0.60],
+        [0.70, 0.35, 0.28],
+        [0.85, 0.85, 0.80],
+        [0.55, 0.60, 0.65],
+        [0.90, 0.80, 0.45],
+        [0.45, 0.50, 0.40],
+        [0.75, 0.55, 0.45],
+        [0.60, 0.45, 0.55],
+    ],
+    dtype=np.float32,
+)
+_ROOFS = np.array([[0.35, 0.15, 0.12], [0.25, 0.25, 0.28], [0.45, 0.30, 0.20], [0.20, 0.30, 0.25]], dtype=np.float32)
+_AUTUMN_LEAVES = np.array(
+    [[0.85, 0.45, 0.10], [0.75, 0.20, 0.10], [0.90, 0.75, 0.20], [0.60, 0.35, 0.15]], dtype=np.float32
+)
 
 
 def make_scene(length: float, seed: int) -> Scene:
@@ -84,22 +93,33 @@ def make_scene(length: float, seed: int) -> Scene:
         if kind == "building":
             w = float(rng.uniform(0.3, 1.1))
             rows, cols = int(rng.integers(1, 6)), int(rng.integers(1, 7))
-            scene.buildings.append(Building(
-                x0=x, width=w, height=float(rng.uniform(0.15, 0.5)),
-                facade=_FACADES[rng.integers(len(_FACADES))] * float(rng.uniform(0.85, 1.1)),
-                roof=str(rng.choice(["flat", "pitched"], p=[0.55, 0.45])),
-                roof_colour=_ROOFS[rng.integers(len(_ROOFS))],
-                window_cols=cols, window_rows=rows, window_fill=float(rng.uniform(0.35, 0.7)),
-                lit=rng.random((rows, cols)) < rng.uniform(0.3, 0.9),
-            ))
+            scene.buildings.append(
+                Building(
+                    x0=x,
+                    width=w,
+                    height=float(rng.uniform(0.15, 0.5)),
+                    facade=_FACADES[rng.integers(len(_FACADES))] * float(rng.uniform(0.85, 1.1)),
+                    roof=str(rng.choice(["flat", "pitched"], p=[0.55, 0.45])),
+                    roof_colour=_ROOFS[rng.integers(len(_ROOFS))],
+                    window_cols=cols,
+                    window_rows=rows,
+                    window_fill=float(rng.uniform(0.35, 0.7)),
+                    lit=rng.random((rows, cols)) < rng.uniform(0.3, 0.9),
+                )
+            )
             x += w + float(rng.uniform(0.02, 0.2))
         elif kind == "tree":
             cw = float(rng.uniform(0.12, 0.35))
-            scene.trees.append(Tree(
-                x=x + cw / 2, trunk_height=float(rng.uniform(0.05, 0.15)), crown_w=cw,
-                crown_h=float(rng.uniform(0.12, 0.35)), evergreen=bool(rng.random() < 0.35),
-                autumn_colour=_AUTUMN_LEAVES[rng.integers(len(_AUTUMN_LEAVES))],
-            ))
+            scene.trees.append(
+                Tree(
+                    x=x + cw / 2,
+                    trunk_height=float(rng.uniform(0.05, 0.15)),
+                    crown_w=cw,
+                    crown_h=float(rng.uniform(0.12, 0.35)),
+                    evergreen=bool(rng.random() < 0.35),
+                    autumn_colour=_AUTUMN_LEAVES[rng.integers(len(_AUTUMN_LEAVES))],
+                )
+            )
             x += cw + float(rng.uniform(0.02, 0.15))
         elif kind == "lamp":
             scene.lamps.append(Lamp(x=x + 0.02, height=float(rng.uniform(0.28, 0.4))))
@@ -142,38 +162,106 @@ class _Look:
     grass: tuple
     road: tuple
     dash: tuple
-    facade_gain: float          # multiplies facade colours
-    saturation: float           # 1 keeps colour, 0 makes it grey
-    glass: tuple                # unlit window colour
-    leaves: str                 # "green", "autumn", "bare"
+    facade_gain: float  # multiplies facade colours
+    saturation: float  # 1 keeps colour, 0 makes it grey
+    glass: tuple  # unlit window colour
+    leaves: str  # "green", "autumn", "bare"
     snow: bool
     night: bool
-    clouds: int                 # clouds per 10 units
+    clouds: int  # clouds per 10 units
     cloud_colour: tuple
-    haze: float                 # blend toward the horizon colour
-    noise: float                # sensor noise sigma
-    lateral_offset: float       # camera offset along the street (units), per condition
+    haze: float  # blend toward the horizon colour
+    noise: float  # sensor noise sigma
+    lateral_offset: float  # camera offset along the street (units), per condition
     exposure_sigma: float
 
 
 LOOKS = {
-    "summer": _Look((0.30, 0.55, 0.95), (0.70, 0.85, 1.00), (0.25, 0.48, 0.20), (0.30, 0.62, 0.20),
-                    (0.36, 0.36, 0.38), (0.95, 0.95, 0.90), 1.0, 1.0, (0.20, 0.28, 0.40), "green",
-                    False, False, 4, (1.0, 1.0, 1.0), 0.0, 0.012, 0.0, 0.05),
-    "autumn": _Look((0.50, 0.58, 0.72), (0.85, 0.80, 0.70), (0.50, 0.38, 0.18), (0.50, 0.38, 0.16),
-                    (0.30, 0.30, 0.31), (0.85, 0.85, 0.80), 0.9, 0.9, (0.18, 0.22, 0.28), "autumn",
-                    False, False, 9, (0.80, 0.80, 0.82), 0.12, 0.015, 0.08, 0.08),
-    "winter": _Look((0.68, 0.70, 0.74), (0.80, 0.81, 0.83), (0.92, 0.93, 0.96), (0.94, 0.95, 0.97),
-                    (0.58, 0.58, 0.62), (0.80, 0.80, 0.82), 0.8, 0.45, (0.25, 0.27, 0.30), "bare",
-                    True, False, 0, (0.75, 0.76, 0.78), 0.18, 0.02, -0.1, 0.08),
+    "summer": _Look(
+        (0.30, 0.55, 0.95),
+        (0.70, 0.85, 1.00),
+        (0.25, 0.48, 0.20),
+        (0.30, 0.62, 0.20),
+        (0.36, 0.36, 0.38),
+        (0.95, 0.95, 0.90),
+        1.0,
+        1.0,
+        (0.20, 0.28, 0.40),
+        "green",
+        False,
+        False,
+        4,
+        (1.0, 1.0, 1.0),
+        0.0,
+        0.012,
+        0.0,
+        0.05,
+    ),
+    "autumn": _Look(
+        (0.50, 0.58, 0.72),
+        (0.85, 0.80, 0.70),
+        (0.50, 0.38, 0.18),
+        (0.50, 0.38, 0.16),
+        (0.30, 0.30, 0.31),
+        (0.85, 0.85, 0.80),
+        0.9,
+        0.9,
+        (0.18, 0.22, 0.28),
+        "autumn",
+        False,
+        False,
+        9,
+        (0.80, 0.80, 0.82),
+        0.12,
+        0.015,
+        0.08,
+        0.08,
+    ),
+    "winter": _Look(
+        (0.68, 0.70, 0.74),
+        (0.80, 0.81, 0.83),
+        (0.92, 0.93, 0.96),
+        (0.94, 0.95, 0.97),
+        (0.58, 0.58, 0.62),
+        (0.80, 0.80, 0.82),
+        0.8,
+        0.45,
+        (0.25, 0.27, 0.30),
+        "bare",
+        True,
+        False,
+        0,
+        (0.75, 0.76, 0.78),
+        0.18,
+        0.02,
+        -0.1,
+        0.08,
+    ),
     # Night: lit by street lighting, so outlines stay (shared with day) but are brighter than the
     # near-black sky, the reverse of daytime, and lit windows invert the day's dark glass; with
     # the condition's lateral offset this defeats patch-normalised pixel comparison (SAD R@1
     # night->summer, frames 200:300, tolerance 1: 0.22 with a dark 0.1 ambient, lighter sky and
     # 0.05 offset; 0.05 with these settings, chance 0.03).
-    "night": _Look((0.005, 0.005, 0.02), (0.02, 0.02, 0.05), (0.14, 0.155, 0.17), (0.125, 0.155, 0.125),
-                   (0.155, 0.155, 0.17), (0.23, 0.23, 0.22), 0.7, 0.3, (0.02, 0.02, 0.03), "green",
-                   False, True, 0, (0.0, 0.0, 0.0), 0.0, 0.03, 0.12, 0.15),
+    "night": _Look(
+        (0.005, 0.005, 0.02),
+        (0.02, 0.02, 0.05),
+        (0.14, 0.155, 0.17),
+        (0.125, 0.155, 0.125),
+        (0.155, 0.155, 0.17),
+        (0.23, 0.23, 0.22),
+        0.7,
+        0.3,
+        (0.02, 0.02, 0.03),
+        "green",
+        False,
+        True,
+        0,
+        (0.0, 0.0, 0.0),
+        0.0,
+        0.03,
+        0.12,
+        0.15,
+    ),
 }
 _LIT_WINDOW = np.array([1.0, 0.82, 0.45], dtype=np.float32)
 _LAMP_LIGHT = np.array([1.0, 0.9, 0.6], dtype=np.float32)
@@ -193,7 +281,7 @@ class _Canvas:
     def __init__(self, height: int, width: int, px: int):
         self.rgb = np.zeros((height, width, 3), dtype=np.float32)
         self.alpha = np.zeros((height, width), dtype=np.float32)
-        self.light = np.zeros((height, width, 3), dtype=np.float32)   # emitted light (night)
+        self.light = np.zeros((height, width, 3), dtype=np.float32)  # emitted light (night)
         self.px = px
 
     def _span(self, a: float, b: float, limit: int) -> tuple[int, int]:
@@ -230,7 +318,7 @@ class _Canvas:
         if c1 <= c0 or r1 <= r0:
             return
         v, u = np.mgrid[r0:r1, c0:c1].astype(np.float32) / self.px
-        g = np.exp(-((u - x) ** 2 + (v - y) ** 2) / (2 * radius ** 2)) * strength
+        g = np.exp(-((u - x) ** 2 + (v - y) ** 2) / (2 * radius**2)) * strength
         self.light[r0:r1, c0:c1] += g[..., None] * colour
 
 
@@ -248,7 +336,7 @@ def draw_street(scene: Scene, look: _Look, height: int, width: int, px: int, rng
     g0 = int(_GROUND_Y * px)
     scale = 0.02 if not look.night else 0.005
     cv.rgb[g0:] += scale * texture[g0:, :, None]
-    if look.leaves == "autumn":   # fallen leaves on the verge: a condition-specific nuisance
+    if look.leaves == "autumn":  # fallen leaves on the verge: a condition-specific nuisance
         r0, r1 = int(_GROUND_Y * px), int(_ROAD_TOP * px)
         spots = rng.random((r1 - r0, width)) < 0.08
         cv.rgb[r0:r1][spots] = _AUTUMN_LEAVES[rng.integers(len(_AUTUMN_LEAVES), size=int(spots.sum()))]
@@ -273,8 +361,16 @@ def _draw_buildings(cv: _Canvas, scene: Scene, look: _Look, width: int, height: 
 
             def windows(u, v, cols=cols, rows=rows, fill=fill):
                 fu, fv = (u * cols) % 1.0, (v * rows) % 1.0
-                return ((fu > (1 - fill) / 2) & (fu < (1 + fill) / 2) & (fv > (1 - fill) / 2)
-                        & (fv < (1 + fill) / 2) & (u >= 0) & (u < 1) & (v >= 0) & (v < 1))
+                return (
+                    (fu > (1 - fill) / 2)
+                    & (fu < (1 + fill) / 2)
+                    & (fv > (1 - fill) / 2)
+                    & (fv < (1 + fill) / 2)
+                    & (u >= 0)
+                    & (u < 1)
+                    & (v >= 0)
+                    & (v < 1)
+                )
 
             glass = np.asarray(look.glass, dtype=np.float32)
             if look.night:
@@ -285,6 +381,7 @@ def _draw_buildings(cv: _Canvas, scene: Scene, look: _Look, width: int, height: 
                     on = b.lit[row, col]
                     out = np.where(on[..., None], _LIT_WINDOW, glass)
                     return out.astype(np.float32)
+
                 c0, c1 = cv._span(wx0, wx1, width)
                 r0, r1 = cv._span(wy0, wy1, height)
                 if c1 > c0 and r1 > r0:
@@ -298,11 +395,16 @@ def _draw_buildings(cv: _Canvas, scene: Scene, look: _Look, width: int, height: 
         snow = np.array([0.95, 0.96, 0.98], dtype=np.float32)
         if b.roof == "pitched":
             rh = min(0.12, b.width * 0.35)
-            cv.mask(b.x0 - 0.02, b.x0 + b.width + 0.02, top - rh, top,
-                    lambda u, v: v >= np.abs(2 * u - 1), roof)
+            cv.mask(b.x0 - 0.02, b.x0 + b.width + 0.02, top - rh, top, lambda u, v: v >= np.abs(2 * u - 1), roof)
             if look.snow:
-                cv.mask(b.x0 - 0.02, b.x0 + b.width + 0.02, top - rh, top,
-                        lambda u, v: (v >= np.abs(2 * u - 1)) & (v < np.abs(2 * u - 1) + 0.35), snow)
+                cv.mask(
+                    b.x0 - 0.02,
+                    b.x0 + b.width + 0.02,
+                    top - rh,
+                    top,
+                    lambda u, v: (v >= np.abs(2 * u - 1)) & (v < np.abs(2 * u - 1) + 0.35),
+                    snow,
+                )
         else:
             cv.rect(b.x0 - 0.01, b.x0 + b.width + 0.01, top - 0.025, top, roof)
             if look.snow:
@@ -321,10 +423,15 @@ def _draw_trees(cv: _Canvas, scene: Scene, look: _Look) -> None:
             shape = lambda u, v: v >= np.abs(2 * u - 1) * 0.9  # noqa: E731 - a cone
             colour = _desaturate((0.10, 0.30, 0.15), sat) * (look.facade_gain if look.night else 1.0)
             cv.mask(x0, x1, y0, crown_bottom, shape, colour)
-            if look.snow:   # snow lies on the upper side of the cone's branches
-                cv.mask(x0, x1, y0, crown_bottom,
-                        lambda u, v: (v >= np.abs(2 * u - 1) * 0.9) & ((v * 4) % 1.0 < 0.35),
-                        np.array([0.93, 0.94, 0.97], dtype=np.float32))
+            if look.snow:  # snow lies on the upper side of the cone's branches
+                cv.mask(
+                    x0,
+                    x1,
+                    y0,
+                    crown_bottom,
+                    lambda u, v: (v >= np.abs(2 * u - 1) * 0.9) & ((v * 4) % 1.0 < 0.35),
+                    np.array([0.93, 0.94, 0.97], dtype=np.float32),
+                )
         elif look.leaves == "bare":
             # Bare branches: a few thin rays from the trunk top, fixed by the tree's position.
             def branches(u, v, seed=int(t.x * 1000)):
@@ -334,6 +441,7 @@ def _draw_trees(cv: _Canvas, scene: Scene, look: _Look) -> None:
                 for a in angles:
                     m |= (np.abs(du * np.cos(a) - dv * np.sin(a)) < 0.05) & (du * np.sin(a) + dv * np.cos(a) > 0)
                 return m & (((u - 0.5) / 0.5) ** 2 + ((v - 0.5) / 0.5) ** 2 <= 1)
+
             cv.mask(x0, x1, y0, crown_bottom, branches, trunk)
         else:
             base = t.autumn_colour if look.leaves == "autumn" and not look.night else (0.22, 0.50, 0.18)
@@ -358,12 +466,18 @@ def _draw_lamps(cv: _Canvas, scene: Scene, look: _Look) -> None:
         # Lit windows spill a little light around them.
         for b in scene.buildings:
             if b.lit.any():
-                cv.glow(b.x0 + b.width / 2, _GROUND_Y - b.height / 2, max(b.width, b.height) / 2.5,
-                        _LIT_WINDOW, 0.08 * float(b.lit.mean()))
+                cv.glow(
+                    b.x0 + b.width / 2,
+                    _GROUND_Y - b.height / 2,
+                    max(b.width, b.height) / 2.5,
+                    _LIT_WINDOW,
+                    0.08 * float(b.lit.mean()),
+                )
 
 
-def sky_and_hills(scene: Scene, look: _Look, height: int, hill_width: int, px: int,
-                   profile: np.ndarray, rng) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def sky_and_hills(
+    scene: Scene, look: _Look, height: int, hill_width: int, px: int, profile: np.ndarray, rng
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Sky gradient (H, 3), cloud/star layer (H, Wc, 4) and hills panorama (H, Wh, 4)."""
     y = np.arange(height, dtype=np.float32)[:, None] / height
     t = np.clip(y / _GROUND_Y, 0, 1)
@@ -373,7 +487,7 @@ def sky_and_hills(scene: Scene, look: _Look, height: int, hill_width: int, px: i
     clouds = np.zeros((height, cloud_w, 4), dtype=np.float32)
     if look.night:
         stars = rng.random((height, cloud_w)) < 0.004
-        stars[int(_GROUND_Y * height * 0.8):] = False
+        stars[int(_GROUND_Y * height * 0.8) :] = False
         clouds[stars] = (0.7, 0.7, 0.8, 1.0)
     n_clouds = int(look.clouds * cloud_w / px / 10) + (1 if look.clouds else 0)
     v, u = np.mgrid[0:height, 0:cloud_w].astype(np.float32) / px
@@ -389,7 +503,7 @@ def sky_and_hills(scene: Scene, look: _Look, height: int, hill_width: int, px: i
     rows = np.arange(height, dtype=np.float32)[:, None] / px
     skyline = _GROUND_Y - profile[None, :]
     inside = rows >= skyline
-    shade = np.clip((rows - skyline) / 0.25, 0, 1)[..., None]       # lighter near the ridge
+    shade = np.clip((rows - skyline) / 0.25, 0, 1)[..., None]  # lighter near the ridge
     colour = _desaturate(look.hills, look.saturation)
     hill_rgb = colour * (1.0 - 0.25 * shade) if not look.night else colour * np.ones_like(shade)
     hills[..., :3] = np.where(inside[..., None], hill_rgb, 0)

@@ -42,17 +42,17 @@ def build_alexnet_features():
     """torchvision's ``AlexNet.features`` as an ``nn.Sequential`` with the same indices."""
     nn = _nn()
     return nn.Sequential(
-        nn.Conv2d(3, 64, kernel_size=11, stride=4, padding=2),   # 0 conv1
+        nn.Conv2d(3, 64, kernel_size=11, stride=4, padding=2),  # 0 conv1
         nn.ReLU(inplace=True),
         nn.MaxPool2d(kernel_size=3, stride=2),
-        nn.Conv2d(64, 192, kernel_size=5, padding=2),            # 3 conv2
+        nn.Conv2d(64, 192, kernel_size=5, padding=2),  # 3 conv2
         nn.ReLU(inplace=True),
         nn.MaxPool2d(kernel_size=3, stride=2),
-        nn.Conv2d(192, 384, kernel_size=3, padding=1),           # 6 conv3
+        nn.Conv2d(192, 384, kernel_size=3, padding=1),  # 6 conv3
         nn.ReLU(inplace=True),
-        nn.Conv2d(384, 256, kernel_size=3, padding=1),           # 8 conv4
+        nn.Conv2d(384, 256, kernel_size=3, padding=1),  # 8 conv4
         nn.ReLU(inplace=True),
-        nn.Conv2d(256, 256, kernel_size=3, padding=1),           # 10 conv5
+        nn.Conv2d(256, 256, kernel_size=3, padding=1),  # 10 conv5
         nn.ReLU(inplace=True),
         nn.MaxPool2d(kernel_size=3, stride=2),
     )
@@ -79,7 +79,7 @@ def load_state_dict_file(path: str | Path, what: str) -> dict:
     if not isinstance(state, dict):
         raise ConfigError(f"{path}: expected a state dict (name -> tensor), got {type(state).__name__}")
     # Checkpoints saved from DataParallel prefix every key with "module."
-    return {k[len("module."):] if k.startswith("module.") else k: v for k, v in state.items()}
+    return {k[len("module.") :] if k.startswith("module.") else k: v for k, v in state.items()}
 
 
 def _load_into(module, state: dict, prefix: str, path: Path, what: str) -> None:
@@ -99,8 +99,10 @@ def _load_into(module, state: dict, prefix: str, path: Path, what: str) -> None:
         picked[key] = value.float()
     if missing:
         found = ", ".join(sorted(state)[:8])
-        raise ConfigError(f"{path}: not {what} weights: missing {', '.join(missing[:6])}"
-                          f"{' ...' if len(missing) > 6 else ''} (file has: {found}{' ...' if len(state) > 8 else ''})")
+        raise ConfigError(
+            f"{path}: not {what} weights: missing {', '.join(missing[:6])}"
+            f"{' ...' if len(missing) > 6 else ''} (file has: {found}{' ...' if len(state) > 8 else ''})"
+        )
     module.load_state_dict(picked, strict=True)
 
 
@@ -119,7 +121,7 @@ class AlexNetTrunk:
         _load_into(full, state, "features.", path, "AlexNet (torchvision layout)")
         self.layer = layer
         self.device = resolve_device("cpu" if device is None else device)
-        self.model = full[:ALEXNET_CONV_INDEX[layer] + 2].eval().to(self.device)
+        self.model = full[: ALEXNET_CONV_INDEX[layer] + 2].eval().to(self.device)
         for p in self.model.parameters():
             p.requires_grad_(False)
 
@@ -133,13 +135,15 @@ class AlexNetTrunk:
 def build_caffenet_features():
     """BVLC CaffeNet / HybridNet conv layers as an ``nn.ModuleDict`` keyed by Caffe layer name."""
     nn = _nn()
-    return nn.ModuleDict({
-        "conv1": nn.Conv2d(3, 96, kernel_size=11, stride=4),
-        "conv2": nn.Conv2d(96, 256, kernel_size=5, padding=2, groups=2),
-        "conv3": nn.Conv2d(256, 384, kernel_size=3, padding=1),
-        "conv4": nn.Conv2d(384, 384, kernel_size=3, padding=1, groups=2),
-        "conv5": nn.Conv2d(384, 256, kernel_size=3, padding=1, groups=2),
-    })
+    return nn.ModuleDict(
+        {
+            "conv1": nn.Conv2d(3, 96, kernel_size=11, stride=4),
+            "conv2": nn.Conv2d(96, 256, kernel_size=5, padding=2, groups=2),
+            "conv3": nn.Conv2d(256, 384, kernel_size=3, padding=1),
+            "conv4": nn.Conv2d(384, 384, kernel_size=3, padding=1, groups=2),
+            "conv5": nn.Conv2d(384, 256, kernel_size=3, padding=1, groups=2),
+        }
+    )
 
 
 class CaffeNetTrunk:

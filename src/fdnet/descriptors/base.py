@@ -40,8 +40,11 @@ def row_norms(v: np.ndarray, block_bytes: int = 64 << 20) -> np.ndarray:
     at a time, so a large matrix never gets a float64 copy of itself."""
     v = np.asarray(v)
     rows = max(1, block_bytes // max(1, 8 * v.shape[1]))
-    return np.concatenate([np.linalg.norm(v[i:i + rows].astype(np.float64), axis=1)
-                           for i in range(0, len(v), rows)]) if len(v) else np.zeros(0)
+    return (
+        np.concatenate([np.linalg.norm(v[i : i + rows].astype(np.float64), axis=1) for i in range(0, len(v), rows)])
+        if len(v)
+        else np.zeros(0)
+    )
 
 
 def check_vectors(vectors, source, label=None, *, directions: bool = True) -> np.ndarray:
@@ -60,13 +63,17 @@ def check_vectors(vectors, source, label=None, *, directions: bool = True) -> np
         raise DataError(f"{source}: vectors of shape {tuple(v.shape)}; expected (images, length)")
     bad = np.flatnonzero(~np.isfinite(v).all(axis=1))
     if len(bad):
-        raise DataError(f"{source}: the vector of {label(int(bad[0]))} holds NaN, infinity or a number beyond "
-                        f"float32's range ({len(bad)} of {len(v)} vectors); refused")
+        raise DataError(
+            f"{source}: the vector of {label(int(bad[0]))} holds NaN, infinity or a number beyond "
+            f"float32's range ({len(bad)} of {len(v)} vectors); refused"
+        )
     if directions and v.size:
         zero = np.flatnonzero(row_norms(v) == 0)
         if len(zero):
-            raise DataError(f"{source}: the vector of {label(int(zero[0]))} is all zero ({len(zero)} of {len(v)} "
-                            "vectors): it has no direction and could never be matched; refused")
+            raise DataError(
+                f"{source}: the vector of {label(int(zero[0]))} is all zero ({len(zero)} of {len(v)} "
+                "vectors): it has no direction and could never be matched; refused"
+            )
     return v
 
 
@@ -244,12 +251,13 @@ def describe_paths(
 
     paths = list(paths)
     out = None
-    for start, vectors in describe_stream(descriptor, paths, PipelineSettings(batch_size, workers, progress),
-                                          timing=timing):
+    for start, vectors in describe_stream(
+        descriptor, paths, PipelineSettings(batch_size, workers, progress), timing=timing
+    ):
         vectors = np.asarray(vectors, dtype=np.float32)
         if out is None:
             out = np.empty((len(paths), vectors.shape[1]), dtype=np.float32)
-        out[start:start + len(vectors)] = vectors
+        out[start : start + len(vectors)] = vectors
     if out is None:
         if timing is not None:
             timing.setdefault("seconds_describe", 0.0)

@@ -38,8 +38,11 @@ def _at_size(images: np.ndarray, size: tuple[int, int], what: str) -> np.ndarray
     import cv2
 
     h, w = size
-    return np.stack([cv2.resize(im, (w, h), interpolation=cv2.INTER_AREA) for im in images]) \
-        if len(images) else np.zeros((0, h, w, 3), np.float32)
+    return (
+        np.stack([cv2.resize(im, (w, h), interpolation=cv2.INTER_AREA) for im in images])
+        if len(images)
+        else np.zeros((0, h, w, 3), np.float32)
+    )
 
 
 @dataclass(frozen=True)
@@ -86,8 +89,9 @@ class HOGSettings(MethodSettings):
 
     def check(self) -> None:
         h, w = self.need_size("size")
-        cell, block, stride, bins = (self.need_whole(n) for n in ("cell_size", "block_size", "block_stride",
-                                                                  "orientations"))
+        cell, block, stride, bins = (
+            self.need_whole(n) for n in ("cell_size", "block_size", "block_stride", "orientations")
+        )
         self.need_flag("grey")
         check_opencv_hog((w, h), (block, block), (stride, stride), (cell, cell), bins, "hog")
 
@@ -120,8 +124,7 @@ class RawThumbnail(Descriptor):
         return l2_normalize(grey)
 
     def settings(self) -> dict:
-        return {"input_size": list(self.input_size), "grey": True, "mean_centred": True,
-                "similarity": "cosine"}
+        return {"input_size": list(self.input_size), "grey": True, "mean_centred": True, "similarity": "cosine"}
 
 
 def patch_normalize(grey: np.ndarray, patch_size: int, eps: float = 1e-4) -> np.ndarray:
@@ -195,20 +198,26 @@ class SeqSLAMFrontEnd(Descriptor):
         q = torch.from_numpy(np.ascontiguousarray(queries, dtype=np.float32))
         r = torch.from_numpy(np.ascontiguousarray(references, dtype=np.float32))
         if q.ndim != 2 or r.ndim != 2 or q.shape[1] != r.shape[1]:
-            raise DataError(f"sad: descriptors must be (Q, D) and (R, D) with equal D, got "
-                            f"{tuple(q.shape)} and {tuple(r.shape)}")
+            raise DataError(
+                f"sad: descriptors must be (Q, D) and (R, D) with equal D, got "
+                f"{tuple(q.shape)} and {tuple(r.shape)}"
+            )
         out = np.empty((q.shape[0], r.shape[0]), dtype=np.float32)
         scale = 1.0 / max(q.shape[1], 1)
         with torch.no_grad():
             for i in range(0, q.shape[0], block):
                 for j in range(0, r.shape[0], block):
-                    d = torch.cdist(q[i:i + block], r[j:j + block], p=1.0)
-                    out[i:i + block, j:j + block] = (-scale * d).numpy()
+                    d = torch.cdist(q[i : i + block], r[j : j + block], p=1.0)
+                    out[i : i + block, j : j + block] = (-scale * d).numpy()
         return out
 
     def settings(self) -> dict:
-        return {"input_size": list(self.input_size), "patch_size": self.patch_size, "grey": True,
-                "similarity": "negative mean absolute difference"}
+        return {
+            "input_size": list(self.input_size),
+            "patch_size": self.patch_size,
+            "grey": True,
+            "similarity": "negative mean absolute difference",
+        }
 
 
 def check_opencv_hog(window_wh, block_wh, stride_wh, cell_wh, bins, where: str) -> None:
@@ -236,8 +245,10 @@ def check_opencv_hog(window_wh, block_wh, stride_wh, cell_wh, bins, where: str) 
     if bw % cw or bh % ch:
         raise ConfigError(f"{where}: HOG block {bw}x{bh} must be a multiple of the cell {cw}x{ch}")
     if bw > ww or bh > wh or (ww - bw) % sw or (wh - bh) % sh:
-        raise ConfigError(f"{where}: HOG block {bw}x{bh} must fit the window {ww}x{wh} and step along it by the "
-                          f"stride {sw}x{sh} (window - block a multiple of the stride)")
+        raise ConfigError(
+            f"{where}: HOG block {bw}x{bh} must fit the window {ww}x{wh} and step along it by the "
+            f"stride {sw}x{sh} (window - block a multiple of the stride)"
+        )
 
 
 class HOGDescriptor(Descriptor):
@@ -299,7 +310,13 @@ class HOGDescriptor(Descriptor):
         return l2_normalize(out)
 
     def settings(self) -> dict:
-        return {"input_size": list(self.input_size), "cell_size": self.cell_size,
-                "block_size": self.block_size, "block_stride": self.block_stride,
-                "orientations": self.orientations, "grey": self.grey, "implementation": "opencv",
-                "similarity": "cosine"}
+        return {
+            "input_size": list(self.input_size),
+            "cell_size": self.cell_size,
+            "block_size": self.block_size,
+            "block_stride": self.block_stride,
+            "orientations": self.orientations,
+            "grey": self.grey,
+            "implementation": "opencv",
+            "similarity": "cosine",
+        }

@@ -112,21 +112,24 @@ class Conv3Descriptor(Descriptor):
             from fdnet.backbones import FeatureExtractor
 
             self._alexnet = None
-            self._extractor = FeatureExtractor(block=int(conf.block), bf16=bf16, threads=threads, device=self.device,
-                                               backbone=conf.backbone)
+            self._extractor = FeatureExtractor(
+                block=int(conf.block), bf16=bf16, threads=threads, device=self.device, backbone=conf.backbone
+            )
             self.input_size = tuple(input_size) if input_size else (224, 224)
             self._map_shape = (self._extractor.channels, *self._extractor.map_size(self.input_size))
         self.input_size = (int(self.input_size[0]), int(self.input_size[1]))
         self.feature_dim = int(np.prod(self._map_shape))
-        self._projection = (gaussian_random_projection(self.feature_dim, self.out_dim, self.seed)
-                            if self.out_dim else None)
+        self._projection = (
+            gaussian_random_projection(self.feature_dim, self.out_dim, self.seed) if self.out_dim else None
+        )
 
     @staticmethod
     def _alexnet_map_shape(size: tuple[int, int]) -> tuple[int, int, int]:
         def side(n: int) -> int:
-            n = (n + 4 - 11) // 4 + 1      # conv1, stride 4, pad 2
-            n = (n - 3) // 2 + 1           # pool
-            return (n - 3) // 2 + 1        # conv2 keeps size; pool
+            n = (n + 4 - 11) // 4 + 1  # conv1, stride 4, pad 2
+            n = (n - 3) // 2 + 1  # pool
+            return (n - 3) // 2 + 1  # conv2 keeps size; pool
+
         h, w = side(size[0]), side(size[1])
         if h < 1 or w < 1:
             raise ConfigError(f"conv3: input size {size} too small for AlexNet")
@@ -137,8 +140,12 @@ class Conv3Descriptor(Descriptor):
         return self.out_dim or self.feature_dim
 
     def settings(self) -> dict:
-        out = {"input_size": list(self.input_size), "dim": self.dim, "seed": self.seed,
-               "feature_map": list(self._map_shape)}
+        out = {
+            "input_size": list(self.input_size),
+            "dim": self.dim,
+            "seed": self.seed,
+            "feature_map": list(self._map_shape),
+        }
         if self._alexnet is not None:
             out.update({"network": "alexnet (user weights)", "layer": "conv3", "weights": self.weights})
         else:

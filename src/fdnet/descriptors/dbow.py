@@ -68,9 +68,14 @@ class ORBSettings:
     def create(self):
         import cv2
 
-        return cv2.ORB_create(nfeatures=int(self.nfeatures), scaleFactor=float(self.scale_factor),
-                              nlevels=int(self.nlevels), edgeThreshold=int(self.edge_threshold),
-                              patchSize=int(self.patch_size), fastThreshold=int(self.fast_threshold))
+        return cv2.ORB_create(
+            nfeatures=int(self.nfeatures),
+            scaleFactor=float(self.scale_factor),
+            nlevels=int(self.nlevels),
+            edgeThreshold=int(self.edge_threshold),
+            patchSize=int(self.patch_size),
+            fastThreshold=int(self.fast_threshold),
+        )
 
 
 def orb_features(images: np.ndarray, orb: ORBSettings) -> list[np.ndarray]:
@@ -133,10 +138,10 @@ class Vocabulary:
 
     branching: int
     depth: int
-    centres: np.ndarray          # (nodes, 32) uint8
-    children: np.ndarray         # (nodes, branching) int32
-    word: np.ndarray             # (nodes,) int32
-    idf: np.ndarray              # (words,) float32
+    centres: np.ndarray  # (nodes, 32) uint8
+    children: np.ndarray  # (nodes, branching) int32
+    word: np.ndarray  # (nodes,) int32
+    idf: np.ndarray  # (words,) float32
     info: dict = field(default_factory=dict)
 
     @property
@@ -145,16 +150,25 @@ class Vocabulary:
 
     # -- learning -------------------------------------------------------------------------
     @classmethod
-    def learn(cls, features: Sequence[np.ndarray], branching: int = 10, depth: int = 4,
-              seed: int = 0, max_iterations: int = 10, info: dict | None = None) -> "Vocabulary":
+    def learn(
+        cls,
+        features: Sequence[np.ndarray],
+        branching: int = 10,
+        depth: int = 4,
+        seed: int = 0,
+        max_iterations: int = 10,
+        info: dict | None = None,
+    ) -> "Vocabulary":
         """Hierarchical k-means over all images' ORB descriptors, then IDF over the images."""
         if branching < 2 or depth < 1:
             raise ConfigError(f"dbow: branching must be >= 2 and depth >= 1 (got k={branching}, L={depth})")
         features = [np.asarray(f, dtype=np.uint8).reshape(-1, DESCRIPTOR_BITS // 8) for f in features]
         packed = np.concatenate(features) if features else np.zeros((0, 32), np.uint8)
         if len(packed) <= branching:
-            raise DataError(f"dbow: only {len(packed)} ORB features in {len(features)} training images; "
-                            "a vocabulary needs many more (are the images black, or too small?)")
+            raise DataError(
+                f"dbow: only {len(packed)} ORB features in {len(features)} training images; "
+                "a vocabulary needs many more (are the images black, or too small?)"
+            )
         bits = _bits(packed)
         rng = np.random.default_rng(seed)
         centres = [np.zeros(DESCRIPTOR_BITS, np.float32)]  # the root's centre is never used
@@ -178,15 +192,20 @@ class Vocabulary:
         nodes = len(centres)
         child_table = np.full((nodes, branching), -1, np.int32)
         for node, kids in enumerate(children):
-            child_table[node, :len(kids)] = kids
+            child_table[node, : len(kids)] = kids
         is_leaf = np.array([not kids for kids in children])
         is_leaf[0] = False if children[0] else True
         word = np.full(nodes, -1, np.int32)
         word[is_leaf] = np.arange(int(is_leaf.sum()), dtype=np.int32)
-        vocab = cls(branching=int(branching), depth=int(depth),
-                    centres=np.packbits(np.stack(centres).astype(np.uint8), axis=1),
-                    children=child_table, word=word, idf=np.zeros(int(is_leaf.sum()), np.float32),
-                    info=dict(info or {}))
+        vocab = cls(
+            branching=int(branching),
+            depth=int(depth),
+            centres=np.packbits(np.stack(centres).astype(np.uint8), axis=1),
+            children=child_table,
+            word=word,
+            idf=np.zeros(int(is_leaf.sum()), np.float32),
+            info=dict(info or {}),
+        )
         # IDF over training images: idf_w = log(N / N_w) (DBoW2 TF_IDF); unseen words get log(N).
         n_images = len(features)
         containing = np.zeros(vocab.num_words, np.float64)
@@ -194,8 +213,14 @@ class Vocabulary:
             if len(f):
                 containing[np.unique(vocab.words(f))] += 1
         vocab.idf = np.log(n_images / np.maximum(containing, 1.0)).astype(np.float32)
-        vocab.info.update({"training_images": n_images, "training_features": int(len(packed)),
-                           "seed": int(seed), "max_iterations": int(max_iterations)})
+        vocab.info.update(
+            {
+                "training_images": n_images,
+                "training_features": int(len(packed)),
+                "seed": int(seed),
+                "max_iterations": int(max_iterations),
+            }
+        )
         return vocab
 
     # -- use ------------------------------------------------------------------------------
@@ -207,13 +232,13 @@ class Vocabulary:
         centre_bits = _bits(self.centres)
         node = np.zeros(len(bits), np.int64)
         for _ in range(self.depth + 1):
-            kids = self.children[node]                       # (n, k)
+            kids = self.children[node]  # (n, k)
             active = kids[:, 0] >= 0
             if not active.any():
                 break
             idx = np.where(active)[0]
             k = kids[idx]
-            cand = centre_bits[np.maximum(k, 0)]             # (m, k, 256)
+            cand = centre_bits[np.maximum(k, 0)]  # (m, k, 256)
             dist = (bits[idx, None, :] != cand).sum(-1).astype(np.float32)
             dist[k < 0] = np.inf
             node[idx] = k[np.arange(len(idx)), np.argmin(dist, axis=1)]
@@ -233,10 +258,19 @@ class Vocabulary:
     def save(self, path: str | Path) -> None:
         from safetensors.numpy import save_file
 
-        meta = {"format": "fdnet-dbow-vocabulary-1", "branching": self.branching, "depth": self.depth,
-                "num_words": self.num_words, **self.info}
-        tensors = {"centres": np.ascontiguousarray(self.centres), "children": self.children,
-                   "word": self.word, "idf": self.idf}
+        meta = {
+            "format": "fdnet-dbow-vocabulary-1",
+            "branching": self.branching,
+            "depth": self.depth,
+            "num_words": self.num_words,
+            **self.info,
+        }
+        tensors = {
+            "centres": np.ascontiguousarray(self.centres),
+            "children": self.children,
+            "word": self.word,
+            "idf": self.idf,
+        }
         with atomic_path(path) as tmp:
             try:
                 save_file(tensors, str(tmp), metadata={"config": yaml.safe_dump(meta, sort_keys=False)})
@@ -254,8 +288,10 @@ class Vocabulary:
 
         path = Path(path)
         if not path.is_file():
-            raise NotAvailableError(f"{path}: DBoW vocabulary file not found "
-                                    "(build one with `fdnet vocabulary build --images DIR --out FILE`)")
+            raise NotAvailableError(
+                f"{path}: DBoW vocabulary file not found "
+                "(build one with `fdnet vocabulary build --images DIR --out FILE`)"
+            )
         try:
             with safe_open(str(path), framework="numpy") as f:
                 meta = yaml.safe_load((f.metadata() or {}).get("config", "")) or {}
@@ -265,14 +301,27 @@ class Vocabulary:
         if meta.get("format") != "fdnet-dbow-vocabulary-1" or not {"centres", "children", "word", "idf"} <= set(arrays):
             raise ConfigError(f"{path}: not an fdnet DBoW vocabulary (missing format tag or arrays)")
         info = {k: v for k, v in meta.items() if k not in ("format", "branching", "depth", "num_words")}
-        return cls(branching=int(meta["branching"]), depth=int(meta["depth"]),
-                   centres=arrays["centres"].astype(np.uint8), children=arrays["children"].astype(np.int32),
-                   word=arrays["word"].astype(np.int32), idf=arrays["idf"].astype(np.float32), info=info)
+        return cls(
+            branching=int(meta["branching"]),
+            depth=int(meta["depth"]),
+            centres=arrays["centres"].astype(np.uint8),
+            children=arrays["children"].astype(np.int32),
+            word=arrays["word"].astype(np.int32),
+            idf=arrays["idf"].astype(np.float32),
+            info=info,
+        )
 
 
-def learn_vocabulary(paths: Sequence[str | Path], input_size=(288, 512), orb: ORBSettings | None = None,
-                     branching: int = 10, depth: int = 4, seed: int = 0, batch: int = 32,
-                     progress: bool = False) -> Vocabulary:
+def learn_vocabulary(
+    paths: Sequence[str | Path],
+    input_size=(288, 512),
+    orb: ORBSettings | None = None,
+    branching: int = 10,
+    depth: int = 4,
+    seed: int = 0,
+    batch: int = 32,
+    progress: bool = False,
+) -> Vocabulary:
     """Load ``paths`` at ``input_size``, extract ORB features and learn a vocabulary."""
     orb = orb or ORBSettings()
     features: list[np.ndarray] = []
@@ -282,9 +331,8 @@ def learn_vocabulary(paths: Sequence[str | Path], input_size=(288, 512), orb: OR
 
         chunks = progress_bar(chunks, desc="ORB features", unit="batch", leave=False)
     for start in chunks:
-        features.extend(orb_features(load_images(paths[start:start + batch], input_size), orb))
-    info = {"input_size": [int(s) for s in input_size],
-            "orb": {k: v for k, v in orb.__dict__.items()}}
+        features.extend(orb_features(load_images(paths[start : start + batch], input_size), orb))
+    info = {"input_size": [int(s) for s in input_size], "orb": {k: v for k, v in orb.__dict__.items()}}
     return Vocabulary.learn(features, branching=branching, depth=depth, seed=seed, info=info)
 
 
@@ -360,8 +408,14 @@ class DBoWDescriptor(Descriptor):
         conf = self.conf = DBoWSettings.build(settings, options)
         vocabulary = conf.vocabulary
         self.input_size = conf.need_size("input_size")
-        self.orb = ORBSettings(int(conf.nfeatures), float(conf.scale_factor), int(conf.nlevels),
-                               int(conf.edge_threshold), int(conf.patch_size), int(conf.fast_threshold))
+        self.orb = ORBSettings(
+            int(conf.nfeatures),
+            float(conf.scale_factor),
+            int(conf.nlevels),
+            int(conf.edge_threshold),
+            int(conf.patch_size),
+            int(conf.fast_threshold),
+        )
         self.branching = int(conf.branching)
         self.depth = int(conf.depth)
         self.seed = int(conf.seed)
@@ -371,7 +425,7 @@ class DBoWDescriptor(Descriptor):
         self.vocabulary: Vocabulary | None = Vocabulary.load(vocabulary) if vocabulary else None
         if self.vocabulary is not None:
             self.branching, self.depth = self.vocabulary.branching, self.vocabulary.depth
-        self.fitted_on = ("vocabulary file" if self.vocabulary is not None else None)
+        self.fitted_on = "vocabulary file" if self.vocabulary is not None else None
         if self.fit_folder:
             paths, self.fitted_on = fit_image_paths(self.fit_folder, self.fit_frames, where="dbow: --fit")
             self.vocabulary = learn_vocabulary(paths, self.input_size, self.orb, self.branching, self.depth, self.seed)
@@ -387,11 +441,19 @@ class DBoWDescriptor(Descriptor):
         return self.vocabulary.num_words
 
     def settings(self) -> dict:
-        learnt = ("learned from " + (self.fitted_on if self.fit_folder else "the reference images")
-                  if self.vocabulary is not None else None)
-        out = {"input_size": list(self.input_size), "orb": dict(self.orb.__dict__),
-               "branching": self.branching, "depth": self.depth,
-               "vocabulary": self.vocabulary_path or learnt, "fitted_on": self.fitted_on}
+        learnt = (
+            "learned from " + (self.fitted_on if self.fit_folder else "the reference images")
+            if self.vocabulary is not None
+            else None
+        )
+        out = {
+            "input_size": list(self.input_size),
+            "orb": dict(self.orb.__dict__),
+            "branching": self.branching,
+            "depth": self.depth,
+            "vocabulary": self.vocabulary_path or learnt,
+            "fitted_on": self.fitted_on,
+        }
         if self.fit_folder:
             out.update({"fit": self.fit_folder, "fit_frames": self.fit_frames})
         if self.vocabulary is not None:
@@ -408,23 +470,29 @@ class DBoWDescriptor(Descriptor):
             info = {"input_size": list(self.input_size), "orb": dict(self.orb.__dict__)}
             self.vocabulary = Vocabulary.learn(features, self.branching, self.depth, self.seed, info=info)
         else:
-            self.vocabulary = learn_vocabulary(list(images_or_paths), self.input_size, self.orb,
-                                               self.branching, self.depth, self.seed)
+            self.vocabulary = learn_vocabulary(
+                list(images_or_paths), self.input_size, self.orb, self.branching, self.depth, self.seed
+            )
         from fdnet.descriptors.fitting import REFERENCE_IMAGES
 
         self.fitted_on = f"{REFERENCE_IMAGES} ({self.vocabulary.info.get('training_images', 0)})"
-        log.warning("dbow: no vocabulary given; learned one (k=%d, L=%d, %d words) from %d reference "
-                    "images. Use `fdnet vocabulary build` to learn one from separate training images.",
-                    self.branching, self.depth, self.vocabulary.num_words,
-                    self.vocabulary.info.get("training_images", 0))
+        log.warning(
+            "dbow: no vocabulary given; learned one (k=%d, L=%d, %d words) from %d reference "
+            "images. Use `fdnet vocabulary build` to learn one from separate training images.",
+            self.branching,
+            self.depth,
+            self.vocabulary.num_words,
+            self.vocabulary.info.get("training_images", 0),
+        )
 
     def describe(self, images: np.ndarray) -> np.ndarray:
         if self.vocabulary is None:
-            raise ConfigError("dbow: no vocabulary; pass vocabulary=FILE (fdnet vocabulary build) "
-                              "or fit() on reference images first")
+            raise ConfigError(
+                "dbow: no vocabulary; pass vocabulary=FILE (fdnet vocabulary build) "
+                "or fit() on reference images first"
+            )
         features = orb_features(images, self.orb)
-        return np.stack([self.vocabulary.bow(f) for f in features]) if features else \
-            np.zeros((0, self.dim), np.float32)
+        return np.stack([self.vocabulary.bow(f) for f in features]) if features else np.zeros((0, self.dim), np.float32)
 
     def similarity(self, queries: np.ndarray, references: np.ndarray) -> np.ndarray:
         """DBoW2 L1 score 1 - 0.5 |q - r|_1 = sum_w min(q_w, r_w) for L1-normalised vectors;

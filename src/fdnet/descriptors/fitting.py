@@ -25,8 +25,10 @@ def check_fit_frames(fit_frames, where: str) -> str | None:
     if fit_frames is None or fit_frames == "":
         return None
     if not isinstance(fit_frames, str):
-        raise ConfigError(f"{where}: fit_frames {fit_frames!r} is not START:END text; pass --fit-frames START:END "
-                          "(or quote it: fit_frames='0:1576')")
+        raise ConfigError(
+            f"{where}: fit_frames {fit_frames!r} is not START:END text; pass --fit-frames START:END "
+            "(or quote it: fit_frames='0:1576')"
+        )
     parse_frame_range(fit_frames)
     return fit_frames
 
@@ -51,14 +53,18 @@ def fit_image_paths(folder, fit_frames: str | None = None, where: str = "fit") -
         try:
             traverses = list(RouteDataset.from_folder(root).traverses.values())
         except DataError as exc:
-            raise DataError(f"{where} {folder}: no images to fit on (neither images in the folder nor condition "
-                            "sub-folders with images)") from exc
+            raise DataError(
+                f"{where} {folder}: no images to fit on (neither images in the folder nor condition "
+                "sub-folders with images)"
+            ) from exc
     chosen = [t.frames(start, end) for t in traverses]
     paths = [p for t in chosen for p in t.paths]
     frames = f"; frames {fit_frames}" if fit_frames else ""
     if not paths:
-        raise DataError(f"{where} {folder}{frames}: no images to fit on (the conditions "
-                        f"{', '.join(t.name for t in traverses)} have {', '.join(str(len(t)) for t in traverses)} "
-                        "images)")
+        raise DataError(
+            f"{where} {folder}{frames}: no images to fit on (the conditions "
+            f"{', '.join(t.name for t in traverses)} have {', '.join(str(len(t)) for t in traverses)} "
+            "images)"
+        )
     names = ", ".join(f"{t.name} ({len(c)})" for t, c in zip(traverses, chosen))
     return paths, f"{root.resolve()}{frames}: {len(paths)} images of {names}"

@@ -43,15 +43,15 @@ def gabor_bank(size: int, orientations_per_scale: tuple[int, ...]) -> np.ndarray
     """
     n = size
     fx, fy = np.meshgrid(np.arange(-n // 2, n // 2), np.arange(-n // 2, n // 2))
-    fr = np.fft.fftshift(np.sqrt(fx ** 2 + fy ** 2))
+    fr = np.fft.fftshift(np.sqrt(fx**2 + fy**2))
     theta = np.fft.fftshift(np.angle(fx + 1j * fy))
     filters = []
     for scale, n_or in enumerate(orientations_per_scale):
         for j in range(n_or):
-            p0, p1, p2, p3 = 0.35, 0.3 / (1.85 ** scale), 16 * n_or ** 2 / 32 ** 2, np.pi / n_or * j
+            p0, p1, p2, p3 = 0.35, 0.3 / (1.85**scale), 16 * n_or**2 / 32**2, np.pi / n_or * j
             tr = theta + p3
             tr = tr + 2 * np.pi * (tr < -np.pi) - 2 * np.pi * (tr > np.pi)
-            filters.append(np.exp(-10 * p0 * (fr / n / p1 - 1) ** 2 - 2 * p2 * np.pi * tr ** 2))
+            filters.append(np.exp(-10 * p0 * (fr / n / p1 - 1) ** 2 - 2 * p2 * np.pi * tr**2))
     return np.stack(filters).astype(np.float32)
 
 
@@ -70,11 +70,11 @@ def prefilter(images: np.ndarray, fc: float = 4.0) -> np.ndarray:
     n += n % 2
     x = np.pad(x, ((0, 0), (0, n - sh), (0, n - sw)), mode="symmetric")
     fx, fy = np.meshgrid(np.arange(-n // 2, n // 2), np.arange(-n // 2, n // 2))
-    gf = np.fft.fftshift(np.exp(-(fx ** 2 + fy ** 2) / s1 ** 2))
+    gf = np.fft.fftshift(np.exp(-(fx**2 + fy**2) / s1**2))
     out = x - np.real(np.fft.ifft2(np.fft.fft2(x) * gf))
-    local_std = np.sqrt(np.abs(np.fft.ifft2(np.fft.fft2(out ** 2) * gf)))
+    local_std = np.sqrt(np.abs(np.fft.ifft2(np.fft.fft2(out**2) * gf)))
     out = out / (0.2 + local_std)
-    return out[:, w:sh - w, w:sw - w]
+    return out[:, w : sh - w, w : sw - w]
 
 
 @dataclass(frozen=True)
@@ -99,8 +99,11 @@ class GistSettings(MethodSettings):
         if size % grid:
             raise ConfigError(f"gist: image_size {size} must be divisible by grid {grid}")
         orientations = self.orientations
-        if (not isinstance(orientations, (list, tuple)) or not orientations
-                or any(whole_number(o) is None or whole_number(o) < 1 for o in orientations)):
+        if (
+            not isinstance(orientations, (list, tuple))
+            or not orientations
+            or any(whole_number(o) is None or whole_number(o) < 1 for o in orientations)
+        ):
             self.refuse("orientations", "must be a list of whole numbers >= 1 (orientations per scale)")
         self.need_number("fc_prefilt", above=0)
         self.need_whole("boundary", minimum=0, maximum=4096)
@@ -130,17 +133,22 @@ class GistDescriptor(Descriptor):
 
     @property
     def dim(self) -> int:
-        return len(self._filters) * self.grid ** 2
+        return len(self._filters) * self.grid**2
 
     def settings(self) -> dict:
-        return {"input_size": list(self.input_size), "orientations": list(self.orientations),
-                "grid": self.grid, "fc_prefilt": self.fc_prefilt, "boundary": self.boundary}
+        return {
+            "input_size": list(self.input_size),
+            "orientations": list(self.orientations),
+            "grid": self.grid,
+            "fc_prefilt": self.fc_prefilt,
+            "boundary": self.boundary,
+        }
 
     def describe(self, images: np.ndarray) -> np.ndarray:
         images = np.asarray(images, dtype=np.float32)
         out = np.empty((len(images), self.dim), dtype=np.float32)
         for start in range(0, len(images), self.batch):
-            out[start:start + self.batch] = self._describe_chunk(images[start:start + self.batch])
+            out[start : start + self.batch] = self._describe_chunk(images[start : start + self.batch])
         return l2_normalize(out)
 
     def _describe_chunk(self, images: np.ndarray) -> np.ndarray:
@@ -158,7 +166,7 @@ class GistDescriptor(Descriptor):
         # (N, 1, S, S) x (F, S, S) -> (N, F, S, S) responses; magnitude, crop the extension.
         response = np.abs(scipy.fft.ifft2(spectrum[:, None] * self._filters[None], overwrite_x=True))
         size = self.image_size
-        response = response[:, :, b:b + size, b:b + size]
+        response = response[:, :, b : b + size, b : b + size]
         # Average on a grid x grid partition (LMgist's downN with equal cells).
         cell = size // self.grid
         n, f = response.shape[:2]

@@ -86,8 +86,10 @@ def check_image_name(name, where) -> str:
     if name.startswith("/"):
         raise DataError(f"{where}: image name {name!r} is absolute; hloc names images relative to its image_dir")
     if any(part in ("", ".", "..") for part in name.split("/")) or "\0" in name:
-        raise DataError(f"{where}: image name {name!r} has an empty, '.' or '..' part; hloc names images by their "
-                        "plain relative path")
+        raise DataError(
+            f"{where}: image name {name!r} has an empty, '.' or '..' part; hloc names images by their "
+            "plain relative path"
+        )
     return _utf8(name, where)
 
 
@@ -98,8 +100,10 @@ def check_pair_name(name, where) -> str:
     if not isinstance(name, str) or not name:
         raise DataError(f"{where}: an empty image name")
     if any(c.isspace() for c in name):
-        raise DataError(f"{where}: image name {name!r} holds whitespace, which hloc's pairs file cannot hold "
-                        "(it splits each line on whitespace); rename the image")
+        raise DataError(
+            f"{where}: image name {name!r} holds whitespace, which hloc's pairs file cannot hold "
+            "(it splits each line on whitespace); rename the image"
+        )
     return _utf8(name, where)
 
 
@@ -120,8 +124,9 @@ def image_root(inputs: Sequence[str | os.PathLike]) -> Path:
     try:
         return Path(os.path.commonpath(roots))
     except ValueError as exc:  # Windows: different drives
-        raise DataError(f"{', '.join(map(str, inputs))}: no folder holds them all, so no image_dir can name "
-                        "their images") from exc
+        raise DataError(
+            f"{', '.join(map(str, inputs))}: no folder holds them all, so no image_dir can name " "their images"
+        ) from exc
 
 
 def relative_names(paths: Sequence[str | os.PathLike], root: str | os.PathLike) -> list[str]:
@@ -206,10 +211,12 @@ class GlobalFeaturesWriter:
         if code is None:
             found = re.search(r"errno = (\d+)", str(exc))
             code = int(found.group(1)) if found else None
-        reason = ("no space left on the device" if code == errnos.ENOSPC else
-                  os.strerror(code) if code else _one_line(exc))
-        return output_error(f"{self.path}: cannot write it ({reason}); nothing was written there",
-                            OSError(code, reason))
+        reason = (
+            "no space left on the device" if code == errnos.ENOSPC else os.strerror(code) if code else _one_line(exc)
+        )
+        return output_error(
+            f"{self.path}: cannot write it ({reason}); nothing was written there", OSError(code, reason)
+        )
 
     def write(self, names: Sequence[str], rows, facts: Sequence | None = None) -> None:
         """Add one group per name holding its row as ``global_descriptor`` (float32 (D,)); with
@@ -235,15 +242,18 @@ class GlobalFeaturesWriter:
                 if group.links.exists(self._key):
                     if h5py.h5o.get_info(group, self._key).type == h5py.h5o.TYPE_DATASET:
                         raise DataError(f"{self.path}: image {name!r} given twice")
-                    raise DataError(f"{self.path}: image {name!r} clashes with an image in its folder "
-                                    f"{name}/{self.key}: rename one")
+                    raise DataError(
+                        f"{self.path}: image {name!r} clashes with an image in its folder "
+                        f"{name}/{self.key}: rename one"
+                    )
                 dataset = h5py.h5d.create(group, self._key, self._type, self._space)
                 dataset.write(h5py.h5s.ALL, h5py.h5s.ALL, row)
                 fact = facts[i] if facts is not None else None
                 if fact is not None:
                     for attribute, value in zip((b"size", b"mtime_ns"), fact):
-                        handle = h5py.h5a.create(dataset, attribute, h5py.h5t.STD_I64LE,
-                                                 h5py.h5s.create(h5py.h5s.SCALAR))
+                        handle = h5py.h5a.create(
+                            dataset, attribute, h5py.h5t.STD_I64LE, h5py.h5s.create(h5py.h5s.SCALAR)
+                        )
                         handle.write(np.array(value, dtype="<i8"))
                 self.count += 1
         except (OSError, RuntimeError) as exc:  # RuntimeError: HDF5's flushes (a full disk)
@@ -259,8 +269,10 @@ class GlobalFeaturesWriter:
         try:
             return h5py.h5g.open(fid, encoded)
         except (KeyError, ValueError, TypeError) as exc:
-            raise DataError(f"{self.path}: image {name!r} clashes with another image's name (one of its folders is "
-                            f"a {self.key} dataset)") from exc
+            raise DataError(
+                f"{self.path}: image {name!r} clashes with another image's name (one of its folders is "
+                f"a {self.key} dataset)"
+            ) from exc
 
     def close(self) -> None:
         """Finish the file and rename it over the target (synced); a second call does nothing."""
@@ -306,8 +318,9 @@ class GlobalFeaturesWriter:
             self.close()
 
 
-def write_global_features(path: str | os.PathLike, names: list[str], vectors: np.ndarray,
-                          key: str = GLOBAL_KEY) -> None:
+def write_global_features(
+    path: str | os.PathLike, names: list[str], vectors: np.ndarray, key: str = GLOBAL_KEY
+) -> None:
     """hloc's global-features file: a group per image name holding ``key`` (float32 (D,)),
     written atomically (:class:`GlobalFeaturesWriter`)."""
     vectors = np.asarray(vectors)
@@ -326,8 +339,9 @@ def _open_error(path: Path, exc: BaseException) -> DataError:
     return DataError(f"{path}: cannot read it as HDF5 ({text})")
 
 
-def read_global_features(path: str | os.PathLike, key: str = GLOBAL_KEY,
-                         facts: list | None = None) -> tuple[list[str], np.ndarray]:
+def read_global_features(
+    path: str | os.PathLike, key: str = GLOBAL_KEY, facts: list | None = None
+) -> tuple[list[str], np.ndarray]:
     """Every image of hloc's global-features file and its vector: (names, (N, D) float32).
 
     An image is a group holding a ``key`` dataset; its name is the group's path without the
@@ -366,8 +380,11 @@ def read_global_attributes(path: str | os.PathLike) -> dict:
     path = Path(path)
     try:
         with h5py.File(path, "r", **_locking(h5py, "best-effort")) as handle:
-            attrs = {name: handle.attrs[name] for name in ("method", "fingerprint", "settings", "root")
-                     if name in handle.attrs}
+            attrs = {
+                name: handle.attrs[name]
+                for name in ("method", "fingerprint", "settings", "root")
+                if name in handle.attrs
+            }
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise _open_error(path, exc) from exc
     recorded = {}
@@ -402,8 +419,10 @@ def _read_vectors(h5py, handle, path: Path, key: str, facts: list | None = None)
     getattr(handle, "visit_links", handle.visit)(visit)
     if not found:
         held = ", ".join(sorted(members)[:5]) + (", ..." if len(members) > 5 else "") if members else "nothing"
-        raise DataError(f"{path}: no image group holds a {key!r} dataset, so these are not hloc's global features "
-                        f"(the file holds {held})")
+        raise DataError(
+            f"{path}: no image group holds a {key!r} dataset, so these are not hloc's global features "
+            f"(the file holds {held})"
+        )
     fid = handle.id
     vectors = None
     names = []
@@ -417,7 +436,7 @@ def _read_vectors(h5py, handle, path: Path, key: str, facts: list | None = None)
             if h5py.h5o.get_info(fid, encoded).type == h5py.h5o.TYPE_GROUP:
                 continue  # a folder that happens to have the key's name ("x/global_descriptor/y.jpg")
             raise
-        name = link[:-len(suffix)]
+        name = link[: -len(suffix)]
         _refuse_storage_elsewhere(h5py, fid, dataset, path, name)
         shape = tuple(dataset.shape)
         kind = dataset.dtype.kind
@@ -431,15 +450,16 @@ def _read_vectors(h5py, handle, path: Path, key: str, facts: list | None = None)
         if vectors is None:
             vectors, first = np.empty((len(found), shape[0]), dtype=np.float32), name
         elif shape[0] != vectors.shape[1]:
-            raise DataError(f"{path}: vectors of different lengths: {vectors.shape[1]} for {first!r}, {shape[0]} for "
-                            f"{name!r}")
+            raise DataError(
+                f"{path}: vectors of different lengths: {vectors.shape[1]} for {first!r}, {shape[0]} for " f"{name!r}"
+            )
         dataset.read(h5py.h5s.ALL, h5py.h5s.ALL, vectors[len(names)].reshape(dataset.shape))
         names.append(name)
         if facts is not None:
             facts.append(_image_facts(h5py, dataset))
     if not names:
         raise DataError(f"{path}: no image group holds a {key!r} dataset, so these are not hloc's global features")
-    return names, vectors[:len(names)]
+    return names, vectors[: len(names)]
 
 
 def _image_facts(h5py, dataset) -> tuple[int, int]:
@@ -464,8 +484,10 @@ def _refuse_links_out(h5py, fid, link: str, path: Path) -> None:
     for depth in range(1, len(parts) + 1):
         step = "/".join(parts[:depth]).encode("utf-8")
         if fid.links.get_info(step).type == h5py.h5l.TYPE_EXTERNAL:
-            raise DataError(f"{path}: {step.decode('utf-8', 'replace')!r} is an external link to another file; a "
-                            "vectors file that reads other files is refused")
+            raise DataError(
+                f"{path}: {step.decode('utf-8', 'replace')!r} is an external link to another file; a "
+                "vectors file that reads other files is refused"
+            )
 
 
 def _refuse_storage_elsewhere(h5py, fid, dataset, path: Path, name: str) -> None:
@@ -473,15 +495,21 @@ def _refuse_storage_elsewhere(h5py, fid, dataset, path: Path, name: str) -> None
     /etc/passwd; a virtual dataset mapping other files) or in another file reached by any link."""
     plist = dataset.get_create_plist()
     if plist.get_external_count() > 0:
-        raise DataError(f"{path}: image {name!r}: its vector is stored in an external file "
-                        f"({plist.get_external(0)[0].decode('utf-8', 'replace')}); a vectors file that reads other "
-                        "files is refused")
+        raise DataError(
+            f"{path}: image {name!r}: its vector is stored in an external file "
+            f"({plist.get_external(0)[0].decode('utf-8', 'replace')}); a vectors file that reads other "
+            "files is refused"
+        )
     if plist.get_layout() == h5py.h5d.VIRTUAL:
-        raise DataError(f"{path}: image {name!r}: its vector is a virtual dataset (mapped from other files); a "
-                        "vectors file that reads other files is refused")
+        raise DataError(
+            f"{path}: image {name!r}: its vector is a virtual dataset (mapped from other files); a "
+            "vectors file that reads other files is refused"
+        )
     if h5py.h5f.get_name(dataset) != h5py.h5f.get_name(fid):
-        raise DataError(f"{path}: image {name!r}: its vector lives in another file "
-                        f"({h5py.h5f.get_name(dataset).decode('utf-8', 'replace')}); refused")
+        raise DataError(
+            f"{path}: image {name!r}: its vector lives in another file "
+            f"({h5py.h5f.get_name(dataset).decode('utf-8', 'replace')}); refused"
+        )
 
 
 def _check_claim(dataset, shape: tuple[int, int], path: Path, name: str) -> None:
@@ -490,13 +518,17 @@ def _check_claim(dataset, shape: tuple[int, int], path: Path, name: str) -> None
     from fdnet.data.arrays import format_bytes, physical_memory_bytes
 
     if dataset.shape and int(np.prod(dataset.shape)) > 0 and dataset.get_storage_size() == 0:
-        raise DataError(f"{path}: image {name!r}: declares a vector of shape {tuple(dataset.shape)} but holds no "
-                        "data (never written); refused")
+        raise DataError(
+            f"{path}: image {name!r}: declares a vector of shape {tuple(dataset.shape)} but holds no "
+            "data (never written); refused"
+        )
     needed = int(shape[0]) * int(shape[1]) * 4
     allowed = physical_memory_bytes()
     if allowed is not None and needed > allowed:
-        raise DataError(f"{path}: {shape[0]} vectors of length {shape[1]} need {format_bytes(needed)} of memory, "
-                        f"more than the {format_bytes(allowed)} this process may use")
+        raise DataError(
+            f"{path}: {shape[0]} vectors of length {shape[1]} need {format_bytes(needed)} of memory, "
+            f"more than the {format_bytes(allowed)} this process may use"
+        )
 
 
 # ------------------------------------------------------------------------------------- pairs
@@ -547,7 +579,8 @@ def read_pairs(path: str | os.PathLike) -> list[tuple[str, str]]:
         parts = line.split()
         if len(parts) != 2:
             shown = line if len(line) <= 80 else line[:77] + "..."
-            raise DataError(f"{path}, line {number}: {shown!r} is not two image names (query reference) separated by "
-                            "a space")
+            raise DataError(
+                f"{path}, line {number}: {shown!r} is not two image names (query reference) separated by " "a space"
+            )
         pairs.append((parts[0], parts[1]))
     return pairs

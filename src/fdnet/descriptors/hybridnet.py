@@ -116,9 +116,15 @@ class HybridNetDescriptor(Descriptor):
         return self.out_dim or self.feature_dim
 
     def settings(self) -> dict:
-        return {"input_size": list(self.input_size), "weights": self.weights, "layer": self.layer,
-                "dim": self.dim, "seed": self.seed, "mean_bgr": list(self.mean_bgr),
-                "feature_map": list(self._map_shape)}
+        return {
+            "input_size": list(self.input_size),
+            "weights": self.weights,
+            "layer": self.layer,
+            "dim": self.dim,
+            "seed": self.seed,
+            "mean_bgr": list(self.mean_bgr),
+            "feature_map": list(self._map_shape),
+        }
 
     def describe(self, images: np.ndarray) -> np.ndarray:
         import torch

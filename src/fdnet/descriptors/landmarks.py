@@ -68,8 +68,9 @@ def _dollar_orientation(edges: np.ndarray) -> np.ndarray:
 class ProposalGenerator:
     """Edge Boxes proposals with the learned edge model when given, else on gradient edges."""
 
-    def __init__(self, max_boxes: int, edge_model: str | Path | None = None, min_box_area: int = 500,
-                 scale: float = 0.5):
+    def __init__(
+        self, max_boxes: int, edge_model: str | Path | None = None, min_box_area: int = 500, scale: float = 0.5
+    ):
         import cv2
 
         self.scale = float(scale)
@@ -83,15 +84,18 @@ class ProposalGenerator:
         self._forest = None
         if self.edge_model:
             if not Path(self.edge_model).is_file():
-                raise NotAvailableError(f"{self.edge_model}: structured-edge model file not found "
-                                        "(the model.yml.gz of OpenCV's StructuredEdgeDetection)")
+                raise NotAvailableError(
+                    f"{self.edge_model}: structured-edge model file not found "
+                    "(the model.yml.gz of OpenCV's StructuredEdgeDetection)"
+                )
             try:
                 self._forest = cv2.ximgproc.createStructuredEdgeDetection(self.edge_model)
             except cv2.error as exc:
                 raise ConfigError(f"{self.edge_model}: not a structured-edge model ({str(exc).strip()[:200]})") from exc
         # min_box_area is in pixels of the described image; proposals are searched at ``scale``
-        self._boxes = cv2.ximgproc.createEdgeBoxes(maxBoxes=self.max_boxes,
-                                                   minBoxArea=float(min_box_area) * self.scale ** 2)
+        self._boxes = cv2.ximgproc.createEdgeBoxes(
+            maxBoxes=self.max_boxes, minBoxArea=float(min_box_area) * self.scale**2
+        )
 
     def edges(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(H, W, 3) float [0, 1] -> (edge map, orientation), float32."""
@@ -114,8 +118,7 @@ class ProposalGenerator:
         high = float(np.percentile(magnitude, 90)) * 255.0
         thin = cv2.Canny(scaled, max(1.0, 0.5 * high), max(2.0, high), L2gradient=True) > 0
         peak = float(magnitude.max())
-        edges = np.where(thin, magnitude / peak, 0.0).astype(np.float32) if peak > 0 else \
-            np.zeros_like(magnitude)
+        edges = np.where(thin, magnitude / peak, 0.0).astype(np.float32) if peak > 0 else np.zeros_like(magnitude)
         return edges, _dollar_orientation(edges)
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
@@ -150,14 +153,14 @@ def roi_pool(maps, boxes: np.ndarray, valid: np.ndarray, image_size: tuple[int, 
     samples = 2 * grid
     # sample positions inside each box, at cell-sample centres, in normalised [-1, 1] coordinates
     t = (np.arange(samples, dtype=np.float32) + 0.5) / samples
-    xs = boxes[..., 0:1] + boxes[..., 2:3] * t            # (N, R, S)
+    xs = boxes[..., 0:1] + boxes[..., 2:3] * t  # (N, R, S)
     ys = boxes[..., 1:2] + boxes[..., 3:4] * t
     gx = xs / width * 2.0 - 1.0
     gy = ys / height * 2.0 - 1.0
     grid_xy = np.stack(np.broadcast_arrays(gx[:, :, None, :], gy[:, :, :, None]), axis=-1)  # (N,R,S,S,2)
     grid_xy = torch.from_numpy(np.ascontiguousarray(grid_xy.reshape(n, r * samples, samples, 2)))
     sampled = F.grid_sample(maps, grid_xy.to(maps.dtype), mode="bilinear", align_corners=False)  # (N,C,R*S,S)
-    sampled = sampled.reshape(n, c, r, grid, 2, grid, 2).mean(dim=(4, 6))            # (N,C,R,g,g)
+    sampled = sampled.reshape(n, c, r, grid, 2, grid, 2).mean(dim=(4, 6))  # (N,C,R,g,g)
     pooled = sampled.permute(0, 2, 1, 3, 4).reshape(n, r, c * grid * grid)
     return pooled * torch.from_numpy(valid.astype(np.float32))[..., None]
 
@@ -228,7 +231,7 @@ class LandmarksDescriptor(Descriptor):
         self.proposal_scale = float(conf.proposal_scale)
         self.proposals = ProposalGenerator(self.max_regions, conf.edge_model, self.min_box_area, self.proposal_scale)
         self.extractor = FeatureExtractor(block=int(conf.block), bf16=conf.bf16, threads=conf.threads)
-        self.pooled_dim = self.extractor.channels * self.pool_grid ** 2
+        self.pooled_dim = self.extractor.channels * self.pool_grid**2
         self._projection = gaussian_random_projection(self.pooled_dim, self.region_dim, self.seed)
 
     @property
@@ -236,19 +239,29 @@ class LandmarksDescriptor(Descriptor):
         return self.max_regions * (self.region_dim + 5)
 
     def settings(self) -> dict:
-        return {"input_size": list(self.input_size), "max_regions": self.max_regions,
-                "region_dim": self.region_dim, "pool_grid": self.pool_grid,
-                "proposals": ("edge boxes (structured edges: " + self.proposals.edge_model + ")"
-                              if self.proposals.edge_model else "edge boxes on gradient edges (substitute)"),
-                "min_box_area": self.min_box_area, "proposal_scale": self.proposal_scale, "seed": self.seed,
-                **self.extractor.settings()}
+        return {
+            "input_size": list(self.input_size),
+            "max_regions": self.max_regions,
+            "region_dim": self.region_dim,
+            "pool_grid": self.pool_grid,
+            "proposals": (
+                "edge boxes (structured edges: " + self.proposals.edge_model + ")"
+                if self.proposals.edge_model
+                else "edge boxes on gradient edges (substitute)"
+            ),
+            "min_box_area": self.min_box_area,
+            "proposal_scale": self.proposal_scale,
+            "seed": self.seed,
+            **self.extractor.settings(),
+        }
 
     # -- packing --------------------------------------------------------------------------
     def pack(self, regions: np.ndarray, boxes: np.ndarray, valid: np.ndarray) -> np.ndarray:
         """(N, R, D), (N, R, 4) normalised boxes, (N, R) bool -> (N, dim) float32."""
         n = len(regions)
-        return np.concatenate([regions.reshape(n, -1), boxes.reshape(n, -1),
-                               valid.reshape(n, -1).astype(np.float32)], axis=1).astype(np.float32)
+        return np.concatenate(
+            [regions.reshape(n, -1), boxes.reshape(n, -1), valid.reshape(n, -1).astype(np.float32)], axis=1
+        ).astype(np.float32)
 
     def unpack(self, vectors: np.ndarray):
         """(N, dim) -> regions (N, R, D), boxes (N, R, 4), valid (N, R) bool."""
@@ -257,8 +270,8 @@ class LandmarksDescriptor(Descriptor):
             raise ValueError(f"landmarks vectors must be (N, {self.dim}), got {v.shape}")
         r, d = self.max_regions, self.region_dim
         regions = v[:, : r * d].reshape(-1, r, d)
-        boxes = v[:, r * d: r * (d + 4)].reshape(-1, r, 4)
-        valid = v[:, r * (d + 4):] > 0.5
+        boxes = v[:, r * d : r * (d + 4)].reshape(-1, r, 4)
+        valid = v[:, r * (d + 4) :] > 0.5
         return regions, boxes, valid
 
     # -- describe -------------------------------------------------------------------------
@@ -302,10 +315,10 @@ class LandmarksDescriptor(Descriptor):
         out = np.zeros((len(q[0]), len(r[0])), np.float32)
         with torch.inference_mode():
             for j in range(0, len(r[0]), 1024):
-                rj = tuple(torch.from_numpy(np.ascontiguousarray(a[j:j + 1024])) for a in r)
+                rj = tuple(torch.from_numpy(np.ascontiguousarray(a[j : j + 1024])) for a in r)
                 for i in range(0, len(q[0]), self.block_queries):
-                    qi = tuple(torch.from_numpy(np.ascontiguousarray(a[i:i + self.block_queries])) for a in q)
-                    out[i:i + len(qi[0]), j:j + len(rj[0])] = self._score_tile(qi, rj).numpy()
+                    qi = tuple(torch.from_numpy(np.ascontiguousarray(a[i : i + self.block_queries])) for a in q)
+                    out[i : i + len(qi[0]), j : j + len(rj[0])] = self._score_tile(qi, rj).numpy()
         return out
 
     def _score_tile(self, q, r):
@@ -318,19 +331,24 @@ class LandmarksDescriptor(Descriptor):
         sim = (q_regions.reshape(b * m, -1) @ r_regions.reshape(nr * m, -1).T).reshape(b, m, nr, m)
         pair_ok = q_valid[:, :, None, None] & r_valid[None, None, :, :]
         sim = torch.where(pair_ok, sim, torch.tensor(float("-inf")))
-        best_j = sim.argmax(dim=3)                                   # (b, i, R): query region's NN
-        best_i = sim.argmax(dim=1)                                   # (b, R, j): reference region's NN
-        best_j_t = best_j.permute(0, 2, 1)                           # (b, R, i)
-        back = torch.gather(best_i, 2, best_j_t).permute(0, 2, 1)    # (b, i, R)
+        best_j = sim.argmax(dim=3)  # (b, i, R): query region's NN
+        best_i = sim.argmax(dim=1)  # (b, R, j): reference region's NN
+        best_j_t = best_j.permute(0, 2, 1)  # (b, R, i)
+        back = torch.gather(best_i, 2, best_j_t).permute(0, 2, 1)  # (b, i, R)
         best_sim = torch.gather(sim, 3, best_j.unsqueeze(3)).squeeze(3)
         mutual = (back == torch.arange(m).view(1, m, 1)) & torch.isfinite(best_sim)
-        distance = 1.0 - best_sim.clamp(-1.0, 1.0)                   # cosine distance d_ij
+        distance = 1.0 - best_sim.clamp(-1.0, 1.0)  # cosine distance d_ij
         # shape penalty s_ij from the matched boxes' widths and heights
-        qw, qh = q_boxes[..., 2].unsqueeze(2), q_boxes[..., 3].unsqueeze(2)          # (b, i, 1)
+        qw, qh = q_boxes[..., 2].unsqueeze(2), q_boxes[..., 3].unsqueeze(2)  # (b, i, 1)
         mw = torch.gather(r_boxes[..., 2].unsqueeze(0).expand(b, -1, -1), 2, best_j_t).permute(0, 2, 1)
         mh = torch.gather(r_boxes[..., 3].unsqueeze(0).expand(b, -1, -1), 2, best_j_t).permute(0, 2, 1)
-        shape = torch.exp(0.5 * ((qw - mw).abs() / torch.maximum(qw, mw).clamp_min(1e-6)
-                                 + (qh - mh).abs() / torch.maximum(qh, mh).clamp_min(1e-6)))
+        shape = torch.exp(
+            0.5
+            * (
+                (qw - mw).abs() / torch.maximum(qw, mw).clamp_min(1e-6)
+                + (qh - mh).abs() / torch.maximum(qh, mh).clamp_min(1e-6)
+            )
+        )
         terms = torch.where(mutual, 1.0 - distance * shape, torch.zeros(()))
         counts = q_valid.sum(1).float().unsqueeze(1) * r_valid.sum(1).float().unsqueeze(0)
         return terms.sum(1) / counts.sqrt().clamp_min(1.0)

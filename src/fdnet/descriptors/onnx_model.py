@@ -93,8 +93,10 @@ def _providers(device: str | None) -> list[str]:
         return (["CUDAExecutionProvider"] if "CUDAExecutionProvider" in available else []) + ["CPUExecutionProvider"]
     if spec == "cuda" or spec.startswith("cuda:"):
         if "CUDAExecutionProvider" not in available:
-            raise ConfigError(f"--device {device}: this onnxruntime has no CUDA provider (it has "
-                              f"{', '.join(available)}); install onnxruntime-gpu, or give --device cpu")
+            raise ConfigError(
+                f"--device {device}: this onnxruntime has no CUDA provider (it has "
+                f"{', '.join(available)}); install onnxruntime-gpu, or give --device cpu"
+            )
         return ["CUDAExecutionProvider", "CPUExecutionProvider"]
     from fdnet.backbones import check_device_spec
 
@@ -139,8 +141,9 @@ def _external_data_files(path: Path, data: bytes) -> list[tuple[str, Path]]:
         import onnx
         from onnx.external_data_helper import ExternalDataInfo, uses_external_data
     except ImportError as exc:
-        raise NotAvailableError("--method onnx needs the optional extra: pip install 'fdnet[onnx]' "
-                                "(onnx, onnxruntime)") from exc
+        raise NotAvailableError(
+            "--method onnx needs the optional extra: pip install 'fdnet[onnx]' " "(onnx, onnxruntime)"
+        ) from exc
     try:
         model = onnx.load_from_string(data)
     except Exception as exc:  # onnx raises DecodeError and others for what is not a model
@@ -154,8 +157,10 @@ def _external_data_files(path: Path, data: bytes) -> list[tuple[str, Path]]:
         location = ExternalDataInfo(tensor).location
         file = (folder / location).resolve()
         if not location or os.path.isabs(location) or not file.is_relative_to(folder):
-            raise DataError(f"{path}: a tensor's external data {location!r} is not a file inside the model's "
-                            f"folder {folder}; such a model is refused")
+            raise DataError(
+                f"{path}: a tensor's external data {location!r} is not a file inside the model's "
+                f"folder {folder}; such a model is refused"
+            )
         if not file.is_file():
             raise DataError(f"{path}: its external data file {file} is missing")
         found[location] = file
@@ -193,12 +198,15 @@ def _input_layout(path: Path, shape: list, layout, where) -> tuple[str | None, l
     if first != last:  # the graph says
         own = "nchw" if first else "nhwc"
         if layout is not None and layout != own:
-            raise ConfigError(f"{path}: the graph's input {shape} is {own.upper()}, but layout ({where}) says "
-                              f"{layout}")
+            raise ConfigError(
+                f"{path}: the graph's input {shape} is {own.upper()}, but layout ({where}) says " f"{layout}"
+            )
         return own, (shape[2:4] if first else shape[1:3]), True
     if not first and fixed[1] is not None and fixed[3] is not None:
-        raise DataError(f"{path}: input of shape {shape} takes neither 3 channels first (N, 3, H, W) nor last "
-                        "(N, H, W, 3); fdnet gives a model RGB (or BGR) images")
+        raise DataError(
+            f"{path}: input of shape {shape} takes neither 3 channels first (N, 3, H, W) nor last "
+            "(N, H, W, 3); fdnet gives a model RGB (or BGR) images"
+        )
     return layout, (shape[2:4] if layout != "nhwc" else shape[1:3]), False
 
 
@@ -206,10 +214,12 @@ def _check_scale(mean: np.ndarray, std: np.ndarray, path: Path) -> None:
     """Refuse mean/std on the 0..255 scale: applied to images in [0, 1] they give the model
     values far from any it was trained on, and every vector would be silently wrong."""
     if ((mean < 0) | (mean > 1)).any() or (std > 1).any():
-        raise ConfigError(f"{path}: mean [{', '.join(f'{v:.6g}' for v in mean)}] and std "
-                          f"[{', '.join(f'{v:.6g}' for v in std)}] "
-                          "are not on the [0, 1] scale fdnet's images have (mean within [0, 1], std at most 1); "
-                          "values on the 0..255 scale are divided by 255 (123.675 -> 0.485)")
+        raise ConfigError(
+            f"{path}: mean [{', '.join(f'{v:.6g}' for v in mean)}] and std "
+            f"[{', '.join(f'{v:.6g}' for v in std)}] "
+            "are not on the [0, 1] scale fdnet's images have (mean within [0, 1], std at most 1); "
+            "values on the 0..255 scale are divided by 255 (123.675 -> 0.485)"
+        )
 
 
 @dataclass(frozen=True)
@@ -276,8 +286,9 @@ class ONNXDescriptor(Descriptor):
         try:
             import onnxruntime
         except ImportError as exc:
-            raise NotAvailableError("--method onnx needs the optional extra: pip install 'fdnet[onnx]' "
-                                    "(onnxruntime)") from exc
+            raise NotAvailableError(
+                "--method onnx needs the optional extra: pip install 'fdnet[onnx]' " "(onnxruntime)"
+            ) from exc
         path = Path(conf.weights)
         self.weights = str(path)
         self.session, self.model_sha256 = _open_session(onnxruntime, path, conf.device)
@@ -286,44 +297,63 @@ class ONNXDescriptor(Descriptor):
         shape, guessed = self._read_input(path, conf, metadata)
         self._read_preprocessing(path, conf, metadata)
         self._read_output(path, conf, metadata)
-        logger.debug("onnx model %s: input %s %s, %s, output %s (%d-d), providers %s", path, self.input_name,
-                     self.layout, self.input_size, self.output_name, self._dim, self.session.get_providers())
+        logger.debug(
+            "onnx model %s: input %s %s, %s, output %s (%d-d), providers %s",
+            path,
+            self.input_name,
+            self.layout,
+            self.input_size,
+            self.output_name,
+            self._dim,
+            self.session.get_providers(),
+        )
         if guessed:  # said once the model is accepted: a refused one gets its one error line only
-            logger.warning(f"{path}: the graph's input {shape} does not say which axis holds the channels; fdnet "
-                           "feeds it (N, 3, H, W): give --method-set layout=nhwc if it takes (N, H, W, 3)")
+            logger.warning(
+                f"{path}: the graph's input {shape} does not say which axis holds the channels; fdnet "
+                "feeds it (N, 3, H, W): give --method-set layout=nhwc if it takes (N, H, W, 3)"
+            )
 
     def _read_input(self, path: Path, conf: ONNXSettings, metadata: dict) -> tuple[list, bool]:
         """The graph's one image input: its name, layout, batch limit, type and size (given, else
         the model's metadata, else the graph's fixed size); (its shape, whether the layout was guessed)."""
         inputs = self.session.get_inputs()
         if len(inputs) != 1:
-            raise DataError(f"{path}: the model takes {len(inputs)} inputs ({', '.join(i.name for i in inputs)}); "
-                            "a descriptor model takes one image batch")
+            raise DataError(
+                f"{path}: the model takes {len(inputs)} inputs ({', '.join(i.name for i in inputs)}); "
+                "a descriptor model takes one image batch"
+            )
         self.input_name = inputs[0].name
         shape = list(inputs[0].shape)
         if len(shape) != 4:
-            raise DataError(f"{path}: input {self.input_name} has shape {shape}; expected an image batch "
-                            "(N, 3, H, W)")
+            raise DataError(
+                f"{path}: input {self.input_name} has shape {shape}; expected an image batch " "(N, 3, H, W)"
+            )
         given_layout, where = _setting(metadata, "layout", conf.layout)
         self.layout, fixed, self._graph_layout = _input_layout(path, shape, given_layout, where)
         guessed, self.layout = self.layout is None, self.layout or "nchw"
         self.batch_limit = shape[0] if isinstance(shape[0], int) and shape[0] > 0 else None
         self.input_type = inputs[0].type
         if self.input_type not in ("tensor(float)", "tensor(float16)"):
-            raise DataError(f"{path}: input {self.input_name} is {self.input_type}; fdnet gives a model float "
-                            "images (float32 or float16)")
+            raise DataError(
+                f"{path}: input {self.input_name} is {self.input_type}; fdnet gives a model float "
+                "images (float32 or float16)"
+            )
         fixed = [d if isinstance(d, int) and d > 0 else None for d in fixed]
         given_size, where = _setting(metadata, "input_size", conf.input_size)
         if given_size is not None:
             size = _parse_size(given_size, f"{path}: input_size ({where})")
             if all(fixed) and tuple(fixed) != size:
-                raise ConfigError(f"{path}: the graph's input is {fixed[0]}x{fixed[1]}, but input_size ({where}) "
-                                  f"says {size[0]}x{size[1]}")
+                raise ConfigError(
+                    f"{path}: the graph's input is {fixed[0]}x{fixed[1]}, but input_size ({where}) "
+                    f"says {size[0]}x{size[1]}"
+                )
         elif all(fixed):
             size = (int(fixed[0]), int(fixed[1]))
         else:
-            raise ConfigError(f"{path}: the model's input size is not fixed ({shape}) and neither "
-                              "--method-set input_size=HxW nor its metadata gives one")
+            raise ConfigError(
+                f"{path}: the model's input size is not fixed ({shape}) and neither "
+                "--method-set input_size=HxW nor its metadata gives one"
+            )
         self.input_size = size
         return shape, guessed
 
@@ -353,13 +383,15 @@ class ONNXDescriptor(Descriptor):
         value, where = _setting(metadata, "output", conf.output)
         names = [o.name for o in outputs]
         if value is not None and value not in names:
-            raise ConfigError(f"{path}: output {value!r} ({where}) is not one of the model's outputs: "
-                              f"{', '.join(names)}")
+            raise ConfigError(
+                f"{path}: output {value!r} ({where}) is not one of the model's outputs: " f"{', '.join(names)}"
+            )
         self.output_name = value or names[0]
         out_shape = next(o.shape for o in outputs if o.name == self.output_name)
         if out_shape is not None and len(out_shape) != 2:
-            raise DataError(f"{path}: output {self.output_name} has shape {out_shape}; a descriptor model returns "
-                            "(N, D) vectors")
+            raise DataError(
+                f"{path}: output {self.output_name} has shape {out_shape}; a descriptor model returns " "(N, D) vectors"
+            )
         self._dim = out_shape[1] if isinstance(out_shape[1], int) and out_shape[1] > 0 else None
         if self._dim is None:  # not fixed in the graph: one grey image says (as returned, unnormalised)
             normalise, self.normalise = self.normalise, "none"
@@ -373,10 +405,17 @@ class ONNXDescriptor(Descriptor):
         return int(self._dim)
 
     def settings(self) -> dict:
-        return {"input_size": list(self.input_size), "weights": self.weights, "model_sha256": self.model_sha256,
-                "mean": [float(v) for v in self.mean], "std": [float(v) for v in self.std],
-                "channels": self.channels, "normalise": self.normalise, "output": self.output_name,
-                **({} if self._graph_layout else {"layout": self.layout})}
+        return {
+            "input_size": list(self.input_size),
+            "weights": self.weights,
+            "model_sha256": self.model_sha256,
+            "mean": [float(v) for v in self.mean],
+            "std": [float(v) for v in self.std],
+            "channels": self.channels,
+            "normalise": self.normalise,
+            "output": self.output_name,
+            **({} if self._graph_layout else {"layout": self.layout}),
+        }
 
     def fingerprint(self) -> str:
         # The model's bytes are in model_sha256; the session holds no array the base class could hash.
@@ -398,7 +437,7 @@ class ONNXDescriptor(Descriptor):
         step = self.batch_limit or max(1, len(images))
         parts = []
         for start in range(0, len(images), step):
-            chunk = self._prepare(images[start:start + step])
+            chunk = self._prepare(images[start : start + step])
             if self.batch_limit and len(chunk) < self.batch_limit:  # a graph fixed at batch B: pad the last chunk
                 padding = np.zeros((self.batch_limit - len(chunk), *chunk.shape[1:]), chunk.dtype)
                 chunk = np.concatenate([chunk, padding])
@@ -406,31 +445,43 @@ class ONNXDescriptor(Descriptor):
                 out = self.session.run([self.output_name], {self.input_name: chunk})[0]
             except Exception as exc:  # onnxruntime's own error classes
                 detail = " ".join(str(exc).split())[:200]
-                raise DataError(f"{self.weights}: the model failed on a batch of shape {list(chunk.shape)} "
-                                f"({detail})") from exc
+                raise DataError(
+                    f"{self.weights}: the model failed on a batch of shape {list(chunk.shape)} " f"({detail})"
+                ) from exc
             out = np.asarray(out)
             if out.ndim != 2 or out.shape[0] != len(chunk):
-                raise DataError(f"{self.weights}: output {self.output_name} has shape {list(out.shape)} for "
-                                f"{len(chunk)} images; a descriptor model returns (N, D) vectors")
+                raise DataError(
+                    f"{self.weights}: output {self.output_name} has shape {list(out.shape)} for "
+                    f"{len(chunk)} images; a descriptor model returns (N, D) vectors"
+                )
             dim = getattr(self, "_dim", None)
             if dim is not None and out.shape[1] != dim:
-                raise DataError(f"{self.weights}: output {self.output_name} has shape {list(out.shape)} for a batch "
-                                f"of {len(chunk)} images but ({dim},) per image for one; a descriptor model's "
-                                "vector length must not depend on the batch")
-            parts.append(out[:min(step, len(images) - start)].astype(np.float32))
+                raise DataError(
+                    f"{self.weights}: output {self.output_name} has shape {list(out.shape)} for a batch "
+                    f"of {len(chunk)} images but ({dim},) per image for one; a descriptor model's "
+                    "vector length must not depend on the batch"
+                )
+            parts.append(out[: min(step, len(images) - start)].astype(np.float32))
         vectors = np.concatenate(parts) if parts else np.zeros((0, getattr(self, "_dim", 0) or 0), np.float32)
         # no direction: every score against an all-zero vector would be 0, never a match, without a word
-        vectors = check_vectors(vectors, f"{self.weights}: the model's output",
-                                lambda i: f"image {i} of a batch of {len(vectors)}",
-                                directions=self.normalise == "l2")
+        vectors = check_vectors(
+            vectors,
+            f"{self.weights}: the model's output",
+            lambda i: f"image {i} of a batch of {len(vectors)}",
+            directions=self.normalise == "l2",
+        )
         return l2_normalize(vectors) if self.normalise == "l2" else vectors
 
 
-def model_metadata(input_size: Sequence[int], mean=None, std=None, channels: str = "rgb",
-                   normalise: str = "l2") -> dict[str, str]:
+def model_metadata(
+    input_size: Sequence[int], mean=None, std=None, channels: str = "rgb", normalise: str = "l2"
+) -> dict[str, str]:
     """The metadata ``fdnet export`` writes into a model so ``--method onnx`` needs no settings."""
-    out = {"fdnet.input_size": f"{int(input_size[0])}x{int(input_size[1])}", "fdnet.channels": channels,
-           "fdnet.normalise": normalise}
+    out = {
+        "fdnet.input_size": f"{int(input_size[0])}x{int(input_size[1])}",
+        "fdnet.channels": channels,
+        "fdnet.normalise": normalise,
+    }
     if mean is not None:
         out["fdnet.mean"] = json.dumps([float(v) for v in mean])
     if std is not None:

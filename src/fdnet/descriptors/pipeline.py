@@ -165,9 +165,14 @@ def _collate_arrays(items):
     return _collate(items, as_tensor=False)
 
 
-def iter_image_batches(paths: Sequence[str | os.PathLike], size: tuple[int, int], batch_size: int = 64,
-                       uint8: bool = False, workers: int | None = None,
-                       pin_memory: bool = False) -> Iterator[tuple[int, np.ndarray]]:
+def iter_image_batches(
+    paths: Sequence[str | os.PathLike],
+    size: tuple[int, int],
+    batch_size: int = 64,
+    uint8: bool = False,
+    workers: int | None = None,
+    pin_memory: bool = False,
+) -> Iterator[tuple[int, np.ndarray]]:
     """Yield ``(start, images)`` for consecutive batches of ``paths`` in order: images (n, H, W, 3)
     at ``size`` (height, width), uint8 or float32 in [0, 1]. ``workers``: decoding processes
     (None = :func:`default_workers`; 0 = decode in this process, no overlap). At most
@@ -190,8 +195,9 @@ def iter_image_batches(paths: Sequence[str | os.PathLike], size: tuple[int, int]
     if workers == 0:
         dataset = _Images(paths, size, uint8)
         for start in range(0, len(paths), batch_size):
-            _, batch, error = _collate([dataset[i] for i in range(start, min(start + batch_size, len(paths)))],
-                                       as_tensor=False)
+            _, batch, error = _collate(
+                [dataset[i] for i in range(start, min(start + batch_size, len(paths)))], as_tensor=False
+            )
             if error is not None:
                 raise DataError(error)
             yield start, batch
@@ -199,10 +205,17 @@ def iter_image_batches(paths: Sequence[str | os.PathLike], size: tuple[int, int]
     from torch.utils.data import DataLoader
 
     # pinned memory (a GPU) needs tensors; otherwise batches travel as arrays (see _collate_arrays)
-    loader = DataLoader(_Images(paths, size, uint8), batch_size=batch_size, shuffle=False,
-                        num_workers=workers, collate_fn=_collate if pin_memory else _collate_arrays,
-                        prefetch_factor=PREFETCH, pin_memory=pin_memory, persistent_workers=False,
-                        worker_init_fn=_DieWithParent())
+    loader = DataLoader(
+        _Images(paths, size, uint8),
+        batch_size=batch_size,
+        shuffle=False,
+        num_workers=workers,
+        collate_fn=_collate if pin_memory else _collate_arrays,
+        prefetch_factor=PREFETCH,
+        pin_memory=pin_memory,
+        persistent_workers=False,
+        worker_init_fn=_DieWithParent(),
+    )
     iterator = iter(loader)
     try:
         while True:
@@ -213,8 +226,10 @@ def iter_image_batches(paths: Sequence[str | os.PathLike], size: tuple[int, int]
             except RuntimeError as exc:  # a worker killed (out of memory, a signal): one line, not a hang
                 if "DataLoader worker" not in str(exc):
                     raise
-                raise DataError(f"an image-decoding worker process failed ({' '.join(str(exc).split())}); "
-                                "with little memory, give --workers 0 to decode in this process") from exc
+                raise DataError(
+                    f"an image-decoding worker process failed ({' '.join(str(exc).split())}); "
+                    "with little memory, give --workers 0 to decode in this process"
+                ) from exc
             if error is not None:
                 raise DataError(error)
             # .numpy() shares the (possibly pinned) memory: no copy
@@ -238,8 +253,13 @@ class DescribeJob:
     reads_pixels: bool | None = None
 
 
-def describe_stream(descriptor, paths: Sequence[str | os.PathLike], pipeline: PipelineSettings | None = None,
-                    job: DescribeJob | None = None, timing: dict | None = None) -> Iterator[tuple[int, object]]:
+def describe_stream(
+    descriptor,
+    paths: Sequence[str | os.PathLike],
+    pipeline: PipelineSettings | None = None,
+    job: DescribeJob | None = None,
+    timing: dict | None = None,
+) -> Iterator[tuple[int, object]]:
     """Yield ``(start, vectors)`` per batch of ``paths``: ``descriptor.describe`` of the images
     (or ``job.describe(images)``), in order, decoded and described as ``pipeline`` says (default:
     batches of 64, no progress bar).
@@ -268,20 +288,24 @@ def describe_stream(descriptor, paths: Sequence[str | os.PathLike], pipeline: Pi
     if progress:
         from fdnet.progress import progress_bar
 
-        bar = progress_bar(total=len(paths), desc=what or f"describe [{descriptor.name}]", unit="img", leave=False,
-                           smoothing=0.1)
+        bar = progress_bar(
+            total=len(paths), desc=what or f"describe [{descriptor.name}]", unit="img", leave=False, smoothing=0.1
+        )
     if keyed and not reads_pixels:
-        batches = ((start, np.empty((len(paths[start:start + batch_size]), 0, 0, 3), np.float32))
-                   for start in range(0, len(paths), batch_size))
+        batches = (
+            (start, np.empty((len(paths[start : start + batch_size]), 0, 0, 3), np.float32))
+            for start in range(0, len(paths), batch_size)
+        )
     else:
-        batches = iter_image_batches(paths, descriptor.input_size, batch_size, uint8=uint8, workers=workers,
-                                     pin_memory=pin)
+        batches = iter_image_batches(
+            paths, descriptor.input_size, batch_size, uint8=uint8, workers=workers, pin_memory=pin
+        )
     spent = 0.0
     t_start = time.perf_counter()
     try:
         for start, images in batches:
             t0 = time.perf_counter()
-            with descriptor.images_of(paths[start:start + len(images)]):
+            with descriptor.images_of(paths[start : start + len(images)]):
                 out = describe(images)
             spent += time.perf_counter() - t0
             if bar is not None:

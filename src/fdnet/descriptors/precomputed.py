@@ -73,8 +73,10 @@ def _read_npz(path: Path, array: str | None) -> tuple[list[str], np.ndarray, dic
             keys = set(data.files)
             chosen = array or next((k for k in ("descriptors", "content") if k in keys), None)
             if chosen is None or chosen not in keys:
-                raise DataError(f"{path}: no {array or 'descriptors or content'} array "
-                                f"(holds {', '.join(sorted(keys))}); give the array with --method-set array=NAME")
+                raise DataError(
+                    f"{path}: no {array or 'descriptors or content'} array "
+                    f"(holds {', '.join(sorted(keys))}); give the array with --method-set array=NAME"
+                )
             if "names" not in keys:
                 raise DataError(f"{path}: no names array: an image's vector cannot be found without its name")
 
@@ -104,12 +106,16 @@ def _read_npz(path: Path, array: str | None) -> tuple[list[str], np.ndarray, dic
         raise DataError(f"{path}: not a readable .npz of vectors ({' '.join(str(exc).split())})") from exc
     facts = recorded.get("facts")
     if facts is not None and not len(facts[0]) == len(facts[1]) == len(names):
-        raise DataError(f"{path}: {len(facts[0])} sizes and {len(facts[1])} modification times for {len(names)} "
-                        "names; the file is damaged")
+        raise DataError(
+            f"{path}: {len(facts[0])} sizes and {len(facts[1])} modification times for {len(names)} "
+            "names; the file is damaged"
+        )
     if sources is not None:
         if len(sources) != len(names):  # without them the names lose their folders: refused, not guessed
-            raise DataError(f"{path}: {len(sources)} sources for {len(names)} names; each image's source (its "
-                            "folder) is needed to find its vector")
+            raise DataError(
+                f"{path}: {len(sources)} sources for {len(names)} names; each image's source (its "
+                "folder) is needed to find its vector"
+            )
         names = [os.path.join(s, n) for s, n in zip(sources, names)]
     return names, vectors, recorded
 
@@ -117,8 +123,9 @@ def _read_npz(path: Path, array: str | None) -> tuple[list[str], np.ndarray, dic
 def _texts(path: Path, array: np.ndarray, what: str) -> list[str]:
     """A 1-D array of text (``str``, or UTF-8 ``bytes`` as some writers store it) as a list."""
     if array.ndim != 1 or array.dtype.kind not in "US":
-        raise DataError(f"{path}: {what} is an array of {array.dtype} of shape {array.shape}; expected one text "
-                        "per image")
+        raise DataError(
+            f"{path}: {what} is an array of {array.dtype} of shape {array.shape}; expected one text " "per image"
+        )
     if array.dtype.kind == "S":
         return [bytes(n).decode("utf-8", "surrogateescape") for n in array]
     return [str(n) for n in array]
@@ -139,8 +146,10 @@ def _read_npy(path: Path, names_file: str | None) -> tuple[list[str], np.ndarray
     except (OSError, ValueError, EOFError) as exc:
         raise DataError(f"{path}: not a readable .npy array ({' '.join(str(exc).split())})") from exc
     if not listing.is_file():
-        raise DataError(f"{path}: no names list {listing} (one image name per line, in the rows' order); give "
-                        "it with --method-set names=FILE")
+        raise DataError(
+            f"{path}: no names list {listing} (one image name per line, in the rows' order); give "
+            "it with --method-set names=FILE"
+        )
     try:
         names = [line.strip() for line in listing.read_text(encoding="utf-8").splitlines() if line.strip()]
     except (OSError, UnicodeDecodeError) as exc:
@@ -162,8 +171,9 @@ def _read_h5(path: Path) -> tuple[list[str], np.ndarray, dict]:
     return names, np.asarray(vectors, dtype=np.float32), recorded
 
 
-def read_vectors(path: str | os.PathLike, names_file: str | None = None,
-                 array: str | None = None) -> tuple[list[str], np.ndarray, dict]:
+def read_vectors(
+    path: str | os.PathLike, names_file: str | None = None, array: str | None = None
+) -> tuple[list[str], np.ndarray, dict]:
     """(image names, (N, D) float32 vectors, what the file records about how they were made)
     from one vectors file, by its suffix (``.npz``, ``.npy``, ``.h5``/``.hdf5``)."""
     path = Path(path)
@@ -177,8 +187,9 @@ def read_vectors(path: str | os.PathLike, names_file: str | None = None,
     elif suffix in (".h5", ".hdf5"):
         names, vectors, recorded = _read_h5(path)
     else:
-        raise DataError(f"{path}: not a vectors file fdnet reads (.npz from fdnet extract, .npy with a names list, "
-                        "hloc's .h5)")
+        raise DataError(
+            f"{path}: not a vectors file fdnet reads (.npz from fdnet extract, .npy with a names list, " "hloc's .h5)"
+        )
     if vectors.ndim != 2 or vectors.shape[0] == 0 or vectors.shape[1] == 0:
         raise DataError(f"{path}: vectors of shape {tuple(vectors.shape)}; expected (images, length)")
     if len(names) != len(vectors):
@@ -215,8 +226,9 @@ class PrecomputedSettings(MethodSettings):
     def check(self) -> None:
         vectors = self.vectors
         files = [vectors] if isinstance(vectors, (str, os.PathLike)) else vectors
-        if files is not None and (not isinstance(files, (list, tuple))
-                                  or not all(isinstance(f, (str, os.PathLike)) for f in files)):
+        if files is not None and (
+            not isinstance(files, (list, tuple)) or not all(isinstance(f, (str, os.PathLike)) for f in files)
+        ):
             self.refuse("vectors", "must be a file name or a list of them")
         if self.need_path("names") is not None and files is not None and len(files) > 1:
             raise ConfigError("precomputed: names=FILE lists the rows of one .npy; give one --vectors with it")
@@ -238,8 +250,10 @@ class PrecomputedDescriptor(Descriptor):
         vectors, names, array, normalise = conf.vectors, conf.names, conf.array, conf.normalise
         input_size = conf.input_size
         if not vectors:
-            raise ConfigError("precomputed: give the vectors with --vectors FILE (repeatable: .npz from fdnet "
-                              "extract, .npy with a names list, hloc's .h5)")
+            raise ConfigError(
+                "precomputed: give the vectors with --vectors FILE (repeatable: .npz from fdnet "
+                "extract, .npy with a names list, hloc's .h5)"
+            )
         files = [vectors] if isinstance(vectors, (str, os.PathLike)) else list(vectors)
         self.files = [str(f) for f in files]
         self.normalise = normalise
@@ -262,25 +276,35 @@ class PrecomputedDescriptor(Descriptor):
             sizes.append(facts[0] if facts is not None else unknown)
             mtimes.append(facts[1] if facts is not None else unknown)
             if rows and file_vectors.shape[1] != rows[0].shape[1]:
-                raise DataError(f"{file}: vectors of length {file_vectors.shape[1]}, but {self.files[0]}'s are "
-                                f"{rows[0].shape[1]} long: one descriptor's vectors only")
+                raise DataError(
+                    f"{file}: vectors of length {file_vectors.shape[1]}, but {self.files[0]}'s are "
+                    f"{rows[0].shape[1]} long: one descriptor's vectors only"
+                )
             if recorded and self.recorded and recorded.get("method") != self.recorded.get("method"):
-                raise DataError(f"{file}: vectors of {recorded.get('method')}, but {self.files[0]}'s are of "
-                                f"{self.recorded.get('method')}: one descriptor's vectors only")
+                raise DataError(
+                    f"{file}: vectors of {recorded.get('method')}, but {self.files[0]}'s are of "
+                    f"{self.recorded.get('method')}: one descriptor's vectors only"
+                )
             made_by.append(recorded.get("fingerprint"))
             if len({f for f in made_by if f is not None}) > 1:
-                raise DataError(f"{file}: vectors of another {recorded.get('method')} model than {self.files[0]}'s "
-                                "(the files record different models): one model's vectors only")
+                raise DataError(
+                    f"{file}: vectors of another {recorded.get('method')} model than {self.files[0]}'s "
+                    "(the files record different models): one model's vectors only"
+                )
             self.recorded = self.recorded or recorded
             bare = next((name for name in file_names if len(_parts(name)) == 1), None)
             if bare is not None:
-                logger.warning(f"{file}: images named without a folder (e.g. {bare}) are found by their file name "
-                               f"alone: this file's {bare} is the vector of any folder's {bare}")
+                logger.warning(
+                    f"{file}: images named without a folder (e.g. {bare}) are found by their file name "
+                    f"alone: this file's {bare} is the vector of any folder's {bare}"
+                )
             for name in file_names:
                 key = _parts(name)
                 if key in by_key:
-                    raise DataError(f"{file}: image {name} has a vector already (in {by_key[key]}); give each "
-                                    "image's vector once")
+                    raise DataError(
+                        f"{file}: image {name} has a vector already (in {by_key[key]}); give each "
+                        "image's vector once"
+                    )
                 by_key[key] = file
                 self._keys.append(key)
                 self._row_files.append(file)
@@ -322,10 +346,15 @@ class PrecomputedDescriptor(Descriptor):
         return int(self.vectors.shape[1])
 
     def settings(self) -> dict:
-        return {"input_size": list(self.input_size), "vectors": self.files, "normalise": self.normalise,
-                "vectors_sha256": self.vectors_sha256, "images": len(self._keys),
-                **({"source_method": self.recorded["method"]} if "method" in self.recorded else {}),
-                **({"source_fingerprint": self.recorded["fingerprint"]} if "fingerprint" in self.recorded else {})}
+        return {
+            "input_size": list(self.input_size),
+            "vectors": self.files,
+            "normalise": self.normalise,
+            "vectors_sha256": self.vectors_sha256,
+            "images": len(self._keys),
+            **({"source_method": self.recorded["method"]} if "method" in self.recorded else {}),
+            **({"source_fingerprint": self.recorded["fingerprint"]} if "fingerprint" in self.recorded else {}),
+        }
 
     def fingerprint(self) -> str:
         # Files that record the model that made them (fdnet extract's) are that model's vectors,
@@ -346,26 +375,35 @@ class PrecomputedDescriptor(Descriptor):
             key = _parts(os.path.realpath(listed))
             candidates = self._candidates(key)
         if not candidates:
-            raise DataError(f"{path}: no vector for this image in {', '.join(self.files)} (looked up by its file "
-                            f"name and folder, {'/'.join(key[-2:]) if key else path!r}); every image a command "
-                            "reads needs one")
+            raise DataError(
+                f"{path}: no vector for this image in {', '.join(self.files)} (looked up by its file "
+                f"name and folder, {'/'.join(key[-2:]) if key else path!r}); every image a command "
+                "reads needs one"
+            )
         if len(candidates) == 1:
             return candidates[0]
         # most trailing folders in common; then a name all of whose folders agree (not moved data)
-        fits = [(_common_tail(key, self._keys[row]), _common_tail(key, self._keys[row]) == len(self._keys[row]))
-                for row in candidates]
+        fits = [
+            (_common_tail(key, self._keys[row]), _common_tail(key, self._keys[row]) == len(self._keys[row]))
+            for row in candidates
+        ]
         best = max(fits)
         chosen = [row for row, fit in zip(candidates, fits) if fit == best]
         if len(chosen) > 1:
             a, b = ("/".join(self._keys[row]) for row in chosen[:2])
-            raise DataError(f"{path}: two vectors fit this image equally well ({a} and {b}); name the images by "
-                            "their folders in the vectors files")
+            raise DataError(
+                f"{path}: two vectors fit this image equally well ({a} and {b}); name the images by "
+                "their folders in the vectors files"
+            )
         return chosen[0]
 
     def _candidates(self, key: tuple[str, ...]) -> list[int]:
         # the file name and, where the stored name has one, its folder's name must agree
-        return [row for row in self._by_name.get(key[-1] if key else "", [])
-                if _common_tail(key, self._keys[row]) >= min(2, len(self._keys[row]))]
+        return [
+            row
+            for row in self._by_name.get(key[-1] if key else "", [])
+            if _common_tail(key, self._keys[row]) >= min(2, len(self._keys[row]))
+        ]
 
     def lookup(self, paths: Sequence[str | os.PathLike]) -> np.ndarray:
         """(len(paths), dim) float32: each image's vector. DataError when a vector was already
@@ -376,9 +414,11 @@ class PrecomputedDescriptor(Descriptor):
             image = os.path.realpath(os.fspath(path))
             first = self._served.setdefault(row, (image, os.fspath(path)))
             if first[0] != image:
-                raise DataError(f"{path}: its vector would be {'/'.join(self._keys[row])}'s, which {first[1]} "
-                                "already took: one vector cannot be two images'; name the images by their folders "
-                                "in the vectors files (e.g. extract the folder holding both with --recursive)")
+                raise DataError(
+                    f"{path}: its vector would be {'/'.join(self._keys[row])}'s, which {first[1]} "
+                    "already took: one vector cannot be two images'; name the images by their folders "
+                    "in the vectors files (e.g. extract the folder holding both with --recursive)"
+                )
             self._check_same_image(path, row)
             rows.append(row)
         return self.vectors[rows]
@@ -397,13 +437,17 @@ class PrecomputedDescriptor(Descriptor):
             return  # unreadable: the command's own reading says so
         file = self._file_of(row)
         if facts[1] != self._sizes[row]:
-            raise DataError(f"{path}: not the image that {file}'s vector for {Path(*self._keys[row])} was computed "
-                            f"from ({facts[1]} bytes here, {int(self._sizes[row])} then): these vectors are of "
-                            "other images with the same names (another route or copy); extract them for these")
+            raise DataError(
+                f"{path}: not the image that {file}'s vector for {Path(*self._keys[row])} was computed "
+                f"from ({facts[1]} bytes here, {int(self._sizes[row])} then): these vectors are of "
+                "other images with the same names (another route or copy); extract them for these"
+            )
         if facts[2] != self._mtimes[row] and not self._warned_mtime:
             self._warned_mtime = True
-            logger.warning(f"{path}: modified at another time than the image that {file}'s vector for "
-                           f"{Path(*self._keys[row])} was computed from (same size); using the vector")
+            logger.warning(
+                f"{path}: modified at another time than the image that {file}'s vector for "
+                f"{Path(*self._keys[row])} was computed from (same size); using the vector"
+            )
 
     def _file_of(self, row: int) -> str:
         return self._row_files[row]
@@ -420,6 +464,8 @@ class PrecomputedDescriptor(Descriptor):
     def describe(self, images: np.ndarray) -> np.ndarray:
         names = getattr(self, "_batch_paths", None)
         if names is None or len(names) != len(images):
-            raise DataError("precomputed: vectors are looked up by image name, so they describe image files "
-                            "(or video and bag frames), not pixel arrays; give the images' paths")
+            raise DataError(
+                "precomputed: vectors are looked up by image name, so they describe image files "
+                "(or video and bag frames), not pixel arrays; give the images' paths"
+            )
         return self.lookup(names)

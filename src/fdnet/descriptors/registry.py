@@ -85,8 +85,10 @@ class MethodSpec:
 
     def _need_training(self, what: str) -> None:
         if not self.trained:
-            raise ConfigError(f"{self.name} is not a trained method, so it has no {what}; trained methods: "
-                              f"{', '.join(trained_methods())}")
+            raise ConfigError(
+                f"{self.name} is not a trained method, so it has no {what}; trained methods: "
+                f"{', '.join(trained_methods())}"
+            )
 
 
 def _load(target: str):
@@ -97,43 +99,106 @@ def _load(target: str):
 _M = MethodSpec
 # Order = order in `fdnet methods`, the docs' table and `fdnet reproduce` (FDNet, the trunk alone, then
 # the baselines).
-_METHODS: dict[str, MethodSpec] = {spec.name: spec for spec in (
-    _M("fdnet", "FDNet content vector (needs --checkpoint RUN_DIR)", "fdnet.methods.fdnet.descriptor:FDNetDescriptor",
-       torch=True, export=True, config="fdnet.methods.fdnet.config:FDNetRunConfig",
-       trainer="fdnet.methods.fdnet.training:train", presets=("paper", "paper-native", "cpu", "cpu-scratch", "tiny"),
-       default_preset="cpu"),
-    _M("trunk", "the frozen trunk FDNet reads, alone (the number to beat; --checkpoint takes an FDNet run's block "
-       "and size)", "fdnet.methods.fdnet.trunk_alone:TrunkDescriptor", torch=True),
-    _M("trunk-whitened", "the trunk's map PCA-whitened to dim=L (default 512), learnt from --fit DIR or the "
-       "reference images", "fdnet.methods.fdnet.trunk_alone:TrunkWhitenedDescriptor", torch=True, fit=True),
-    _M("raw", "downsampled grey thumbnail, cosine", "fdnet.descriptors.classic:RawThumbnail", reproduce=False),
-    _M("sad", "SeqSLAM front end: patch-normalised thumbnail, sum of absolute differences",
-       "fdnet.descriptors.classic:SeqSLAMFrontEnd"),
-    _M("hog", "histogram of oriented gradients (OpenCV, VPR-Bench settings), cosine",
-       "fdnet.descriptors.classic:HOGDescriptor"),
-    _M("gist", "Gist: Gabor energies on a 4x4 grid (512-d)", "fdnet.descriptors.gist:GistDescriptor"),
-    _M("dbow", "ORB bag of words, vocabulary tree, TF-IDF, L1 score", "fdnet.descriptors.dbow:DBoWDescriptor",
-       fit=True),
-    _M("conv3", "pretrained CNN mid-level map + Gaussian random projection", "fdnet.descriptors.conv3:Conv3Descriptor",
-       torch=True),
-    _M("landmarks", "region proposals + CNN features, mutual NN matching",
-       "fdnet.descriptors.landmarks:LandmarksDescriptor"),
-    _M("netvlad", "NetVLAD on the pretrained backbone (needs --checkpoint)",
-       "fdnet.methods.netvlad.descriptor:NetVLADDescriptor", torch=True,
-       config="fdnet.methods.netvlad.config:NetVLADRunConfig", trainer="fdnet.methods.netvlad.training:train",
-       presets=("default", "tiny"), default_preset="default"),
-    _M("calc", "CALC: auto-encoder reconstructing HOG (needs --checkpoint)",
-       "fdnet.methods.calc.descriptor:CALCDescriptor", torch=True, config="fdnet.methods.calc.config:CALCRunConfig",
-       trainer="fdnet.methods.calc.training:train",
-       presets=("default", "small", "tiny"), default_preset="default"),
-    _M("hybridnet", "HybridNet conv4 (needs converted --weights)", "fdnet.descriptors.hybridnet:HybridNetDescriptor",
-       torch=True),
-    _M("onnx", "any ONNX model mapping images (N, 3, H, W) to vectors (N, D), through onnxruntime (needs --weights "
-       "MODEL.onnx; preprocessing from --method-set or the model's metadata)",
-       "fdnet.descriptors.onnx_model:ONNXDescriptor", torch=True, reproduce=False),
-    _M("precomputed", "vectors computed elsewhere, looked up by image (needs --vectors FILE: fdnet extract's .npz, "
-       ".npy + names, hloc's .h5)", "fdnet.descriptors.precomputed:PrecomputedDescriptor", reproduce=False),
-)}
+_METHODS: dict[str, MethodSpec] = {
+    spec.name: spec
+    for spec in (
+        _M(
+            "fdnet",
+            "FDNet content vector (needs --checkpoint RUN_DIR)",
+            "fdnet.methods.fdnet.descriptor:FDNetDescriptor",
+            torch=True,
+            export=True,
+            config="fdnet.methods.fdnet.config:FDNetRunConfig",
+            trainer="fdnet.methods.fdnet.training:train",
+            presets=("paper", "paper-native", "cpu", "cpu-scratch", "tiny"),
+            default_preset="cpu",
+        ),
+        _M(
+            "trunk",
+            "the frozen trunk FDNet reads, alone (the number to beat; --checkpoint takes an FDNet run's block "
+            "and size)",
+            "fdnet.methods.fdnet.trunk_alone:TrunkDescriptor",
+            torch=True,
+        ),
+        _M(
+            "trunk-whitened",
+            "the trunk's map PCA-whitened to dim=L (default 512), learnt from --fit DIR or the " "reference images",
+            "fdnet.methods.fdnet.trunk_alone:TrunkWhitenedDescriptor",
+            torch=True,
+            fit=True,
+        ),
+        _M("raw", "downsampled grey thumbnail, cosine", "fdnet.descriptors.classic:RawThumbnail", reproduce=False),
+        _M(
+            "sad",
+            "SeqSLAM front end: patch-normalised thumbnail, sum of absolute differences",
+            "fdnet.descriptors.classic:SeqSLAMFrontEnd",
+        ),
+        _M(
+            "hog",
+            "histogram of oriented gradients (OpenCV, VPR-Bench settings), cosine",
+            "fdnet.descriptors.classic:HOGDescriptor",
+        ),
+        _M("gist", "Gist: Gabor energies on a 4x4 grid (512-d)", "fdnet.descriptors.gist:GistDescriptor"),
+        _M(
+            "dbow",
+            "ORB bag of words, vocabulary tree, TF-IDF, L1 score",
+            "fdnet.descriptors.dbow:DBoWDescriptor",
+            fit=True,
+        ),
+        _M(
+            "conv3",
+            "pretrained CNN mid-level map + Gaussian random projection",
+            "fdnet.descriptors.conv3:Conv3Descriptor",
+            torch=True,
+        ),
+        _M(
+            "landmarks",
+            "region proposals + CNN features, mutual NN matching",
+            "fdnet.descriptors.landmarks:LandmarksDescriptor",
+        ),
+        _M(
+            "netvlad",
+            "NetVLAD on the pretrained backbone (needs --checkpoint)",
+            "fdnet.methods.netvlad.descriptor:NetVLADDescriptor",
+            torch=True,
+            config="fdnet.methods.netvlad.config:NetVLADRunConfig",
+            trainer="fdnet.methods.netvlad.training:train",
+            presets=("default", "tiny"),
+            default_preset="default",
+        ),
+        _M(
+            "calc",
+            "CALC: auto-encoder reconstructing HOG (needs --checkpoint)",
+            "fdnet.methods.calc.descriptor:CALCDescriptor",
+            torch=True,
+            config="fdnet.methods.calc.config:CALCRunConfig",
+            trainer="fdnet.methods.calc.training:train",
+            presets=("default", "small", "tiny"),
+            default_preset="default",
+        ),
+        _M(
+            "hybridnet",
+            "HybridNet conv4 (needs converted --weights)",
+            "fdnet.descriptors.hybridnet:HybridNetDescriptor",
+            torch=True,
+        ),
+        _M(
+            "onnx",
+            "any ONNX model mapping images (N, 3, H, W) to vectors (N, D), through onnxruntime (needs --weights "
+            "MODEL.onnx; preprocessing from --method-set or the model's metadata)",
+            "fdnet.descriptors.onnx_model:ONNXDescriptor",
+            torch=True,
+            reproduce=False,
+        ),
+        _M(
+            "precomputed",
+            "vectors computed elsewhere, looked up by image (needs --vectors FILE: fdnet extract's .npz, "
+            ".npy + names, hloc's .h5)",
+            "fdnet.descriptors.precomputed:PrecomputedDescriptor",
+            reproduce=False,
+        ),
+    )
+}
 
 
 def spec(name: str) -> MethodSpec:
@@ -181,9 +246,11 @@ def method_entries(text: str | None) -> list[tuple[str, str]]:
         if named and label in _METHODS and label != method:
             raise ConfigError(f"--method {item!r}: the label {label!r} is another method's name; choose another")
         if label in seen:
-            raise ConfigError(f"--method names {label} more than once: its rows would be one method under one name "
-                              "with one set of options, not told apart; give each its own label "
-                              "(--method a=onnx,b=onnx --weights a:A.onnx --weights b:B.onnx)")
+            raise ConfigError(
+                f"--method names {label} more than once: its rows would be one method under one name "
+                "with one set of options, not told apart; give each its own label "
+                "(--method a=onnx,b=onnx --weights a:A.onnx --weights b:B.onnx)"
+            )
         seen.add(label)
         entries.append((label, method))
     return entries
@@ -237,14 +304,18 @@ def takes_device(name: str) -> bool:
 
 def methods_markdown() -> str:
     """The method table of docs/methods.md (a test checks that the file holds this text)."""
-    rows = ["| method | what it is | trained (`fdnet train METHOD`; presets, default first) | devices | learns from "
-            "`--fit` | ONNX export | in `fdnet reproduce` |",
-            "|---|---|---|---|---|---|---|"]
+    rows = [
+        "| method | what it is | trained (`fdnet train METHOD`; presets, default first) | devices | learns from "
+        "`--fit` | ONNX export | in `fdnet reproduce` |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for s in _METHODS.values():
         presets = ", ".join([s.default_preset, *(p for p in s.presets if p != s.default_preset)])
-        rows.append(f"| `{s.name}` | {s.summary.replace('|', '/')} | {f'yes ({presets})' if s.trained else 'no'} "
-                    f"| {s.devices} | {'yes' if s.fit else 'no'} | {'yes' if s.export else 'no'} "
-                    f"| {'yes' if s.reproduce else 'no'} |")
+        rows.append(
+            f"| `{s.name}` | {s.summary.replace('|', '/')} | {f'yes ({presets})' if s.trained else 'no'} "
+            f"| {s.devices} | {'yes' if s.fit else 'no'} | {'yes' if s.export else 'no'} "
+            f"| {'yes' if s.reproduce else 'no'} |"
+        )
     return "\n".join(rows) + "\n"
 
 
@@ -260,10 +331,13 @@ def _check_run_method(name: str, checkpoint) -> None:
     recorded = recorded_method(checkpoint)
     if recorded and recorded != reads:
         if reads == name:
-            raise ConfigError(f"{checkpoint}: a run of `fdnet train {recorded}`, not of {name}: give --method "
-                              f"{recorded}")
-        raise ConfigError(f"{checkpoint}: a run of `fdnet train {recorded}`, but --method {name} takes a run of "
-                          f"`fdnet train {reads}`: give --method {recorded} for this run, or a {reads} run")
+            raise ConfigError(
+                f"{checkpoint}: a run of `fdnet train {recorded}`, not of {name}: give --method " f"{recorded}"
+            )
+        raise ConfigError(
+            f"{checkpoint}: a run of `fdnet train {recorded}`, but --method {name} takes a run of "
+            f"`fdnet train {reads}`: give --method {recorded} for this run, or a {reads} run"
+        )
 
 
 def create(name: str, **options):

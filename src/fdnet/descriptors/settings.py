@@ -51,8 +51,10 @@ class MethodSettings:
         options = dict(options or {})
         unknown = sorted(set(options) - set(cls.declared()))
         if unknown:
-            raise ConfigError(f"method {cls.method!r} has no setting(s) {', '.join(unknown)}; its settings: "
-                              f"{', '.join(cls.declared()) or 'none'}")
+            raise ConfigError(
+                f"method {cls.method!r} has no setting(s) {', '.join(unknown)}; its settings: "
+                f"{', '.join(cls.declared()) or 'none'}"
+            )
         if settings is None:
             return cls(**options)
         if not isinstance(settings, cls):
@@ -63,8 +65,9 @@ class MethodSettings:
     def refuse(self, name: str, allowed: str):
         raise ConfigError(f"{self.method}: {name}={getattr(self, name)!r}: {allowed}")
 
-    def need_whole(self, name: str, minimum: int | None = None, maximum: int | None = None,
-              optional: bool = False) -> int | None:
+    def need_whole(
+        self, name: str, minimum: int | None = None, maximum: int | None = None, optional: bool = False
+    ) -> int | None:
         """A whole number (an int, or a float without a fraction; not a bool) in [minimum, maximum]."""
         value = getattr(self, name)
         if value is None and optional:
@@ -75,8 +78,9 @@ class MethodSettings:
             self.refuse(name, f"must be {allowed}")
         return number
 
-    def need_number(self, name: str, minimum: float | None = None, maximum: float | None = None,
-               above: float | None = None) -> float:
+    def need_number(
+        self, name: str, minimum: float | None = None, maximum: float | None = None, above: float | None = None
+    ) -> float:
         """A finite number in [minimum, maximum] (and > ``above``)."""
         value = getattr(self, name)
         number = None if isinstance(value, bool) or not isinstance(value, (int, float)) else float(value)
@@ -86,8 +90,13 @@ class MethodSettings:
             except ValueError:
                 number = None
         allowed = _range_text("a number", minimum, maximum) + (f" above {above:g}" if above is not None else "")
-        if (number is None or not math.isfinite(number) or (minimum is not None and number < minimum)
-                or (maximum is not None and number > maximum) or (above is not None and number <= above)):
+        if (
+            number is None
+            or not math.isfinite(number)
+            or (minimum is not None and number < minimum)
+            or (maximum is not None and number > maximum)
+            or (above is not None and number <= above)
+        ):
             self.refuse(name, f"must be {allowed}")
         return number
 
@@ -171,9 +180,18 @@ class MethodSettings:
         """A list of numbers (``length`` of them, each >= ``minimum``)."""
         value = getattr(self, name)
         items = list(value) if isinstance(value, (list, tuple)) else None
-        ok = items is not None and (length is None or len(items) == length) and len(items) > 0 and all(
-            not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v)
-            and (minimum is None or v >= minimum) for v in items)
+        ok = (
+            items is not None
+            and (length is None or len(items) == length)
+            and len(items) > 0
+            and all(
+                not isinstance(v, bool)
+                and isinstance(v, (int, float))
+                and math.isfinite(v)
+                and (minimum is None or v >= minimum)
+                for v in items
+            )
+        )
         if not ok:
             count = f"{length} numbers" if length else "a list of numbers"
             self.refuse(name, f"must be {count}" + (f", each >= {minimum:g}" if minimum is not None else ""))

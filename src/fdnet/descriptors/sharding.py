@@ -128,8 +128,10 @@ def _stop_on_sigterm() -> Callable[[], None]:
             signal.signal(signum, signal.SIG_DFL)
             os.kill(os.getpid(), signum)
             return
-        raise LostContact("stopped by SIGTERM: torchrun stops every process when one of them fails or is "
-                            "killed (its error, if any, is above)")
+        raise LostContact(
+            "stopped by SIGTERM: torchrun stops every process when one of them fails or is "
+            "killed (its error, if any, is above)"
+        )
 
     previous = signal.signal(signal.SIGTERM, stop)
     return lambda: signal.signal(signal.SIGTERM, previous)
@@ -145,30 +147,37 @@ def check_same_inputs(shards: Shards, paths: Sequence, descriptor) -> None:
         return
     from fdnet.data.identity import describe_facts, image_facts, images_digest
 
-    mine = shards.collectively(lambda: (len(paths), images_digest(paths), descriptor.fingerprint(),
-                                        int(descriptor.dim)))
+    mine = shards.collectively(
+        lambda: (len(paths), images_digest(paths), descriptor.fingerprint(), int(descriptor.dim))
+    )
     everyone = shards.gather(mine)
     first = everyone[0]
     for rank, theirs in enumerate(everyone[1:], start=1):
         if theirs[0] != first[0]:
-            raise ConfigError(f"process {rank} of {shards.world_size} lists {theirs[0]} images, process 0 "
-                              f"{first[0]}: every process must see the same images (the same folder, readable on "
-                              "every machine)")
+            raise ConfigError(
+                f"process {rank} of {shards.world_size} lists {theirs[0]} images, process 0 "
+                f"{first[0]}: every process must see the same images (the same folder, readable on "
+                "every machine)"
+            )
     if any(theirs[1] != first[1] for theirs in everyone[1:]):
         # every process sees the mismatch: all take part in this second exchange, of each image's facts
         lists = shards.gather([image_facts(p) for p in paths])
         for rank, theirs in enumerate(lists[1:], start=1):
             at = next((i for i, (a, b) in enumerate(zip(lists[0], theirs)) if a != b), None)
             if at is not None:
-                raise ConfigError(f"process {rank} of {shards.world_size} lists other images than process 0: image "
-                                  f"{at} is {describe_facts(theirs[at])} there, {describe_facts(lists[0][at])} in "
-                                  "process 0; every process must see the same files (the same absolute paths, "
-                                  "sizes and modification times)")
+                raise ConfigError(
+                    f"process {rank} of {shards.world_size} lists other images than process 0: image "
+                    f"{at} is {describe_facts(theirs[at])} there, {describe_facts(lists[0][at])} in "
+                    "process 0; every process must see the same files (the same absolute paths, "
+                    "sizes and modification times)"
+                )
     for rank, theirs in enumerate(everyone[1:], start=1):
         if theirs[2:] != first[2:]:
-            raise ConfigError(f"process {rank} of {shards.world_size} holds another {descriptor.name} model than "
-                              f"process 0 (fingerprint {theirs[2][:12]} vs {first[2][:12]}): every machine must "
-                              "load the same weights and files")
+            raise ConfigError(
+                f"process {rank} of {shards.world_size} holds another {descriptor.name} model than "
+                f"process 0 (fingerprint {theirs[2][:12]} vs {first[2][:12]}): every machine must "
+                "load the same weights and files"
+            )
 
 
 def share_fitted(shards: Shards, descriptor, paths: Sequence, fit: Callable) -> T:
@@ -182,8 +191,11 @@ def share_fitted(shards: Shards, descriptor, paths: Sequence, fit: Callable) -> 
     if fitted is not None:
         learnt = None
         if shards.is_main:
-            learnt = {k: v for k, v in vars(descriptor).items()
-                      if (k not in before or before[k] is not v) and not _holds_torch(v)}
+            learnt = {
+                k: v
+                for k, v in vars(descriptor).items()
+                if (k not in before or before[k] is not v) and not _holds_torch(v)
+            }
         learnt = shards.broadcast(learnt)
         if not shards.is_main:
             vars(descriptor).update(learnt)
@@ -244,8 +256,15 @@ class BlockOutput:
     check: Callable[[int, tuple], None] | None = None
 
 
-def describe_blocks(shards: Shards, descriptor, paths: Sequence, output: BlockOutput, pipeline=None,
-                    job=None, timing: dict | None = None) -> None:
+def describe_blocks(
+    shards: Shards,
+    descriptor,
+    paths: Sequence,
+    output: BlockOutput,
+    pipeline=None,
+    job=None,
+    timing: dict | None = None,
+) -> None:
     """Describe ``paths`` (:func:`fdnet.descriptors.pipeline.describe_stream` with ``pipeline``,
     default batches of 64 with a progress bar, and ``job``), this process its
     :meth:`Shards.block`, and hand every batch of the whole list to ``output`` on rank 0, in
@@ -256,9 +275,13 @@ def describe_blocks(shards: Shards, descriptor, paths: Sequence, output: BlockOu
     batch_size, write, check = pipeline.batch_size, output.write, output.check
     paths = list(paths)
     start, end = shards.block(len(paths))
-    stream = describe_stream(descriptor, paths[start:end],
-                             PipelineSettings(batch_size, pipeline.workers, pipeline.progress and shards.is_main),
-                             job, timing)
+    stream = describe_stream(
+        descriptor,
+        paths[start:end],
+        PipelineSettings(batch_size, pipeline.workers, pipeline.progress and shards.is_main),
+        job,
+        timing,
+    )
     kill = kill_after(shards.rank)
     if not shards.enabled:
         for done, (first, out) in enumerate(stream, start=1):
@@ -338,8 +361,11 @@ def _send_to_main(shards, spools, dims, count: int, write) -> None:
             chunk = None
             if shards.rank == sender and error is None:
                 try:
-                    chunk = torch.from_numpy(np.ascontiguousarray(
-                        np.concatenate([next(reader)[1] for reader in readers], axis=1), dtype=np.float32))
+                    chunk = torch.from_numpy(
+                        np.ascontiguousarray(
+                            np.concatenate([next(reader)[1] for reader in readers], axis=1), dtype=np.float32
+                        )
+                    )
                 except Exception as exc:  # noqa: BLE001 - agreed on below
                     error = exc
             shards.stop_if_failed(error)

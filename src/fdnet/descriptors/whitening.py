@@ -66,8 +66,7 @@ class PCAWhitening:
     decreasing eigenvalue), ``eigenvalues`` (L,), and ``power``.
     """
 
-    def __init__(self, mean: np.ndarray, components: np.ndarray, eigenvalues: np.ndarray,
-                 power: float = 1.0) -> None:
+    def __init__(self, mean: np.ndarray, components: np.ndarray, eigenvalues: np.ndarray, power: float = 1.0) -> None:
         self.mean = np.asarray(mean, dtype=np.float32)
         self.components = np.asarray(components, dtype=np.float32)
         self.eigenvalues = np.asarray(eigenvalues, dtype=np.float32)
@@ -98,13 +97,16 @@ class PCAWhitening:
         dim = int(dim)
         power = float(power)
         if not np.isfinite(power) or power < 0:
-            raise ConfigError(f"{where}: power must be a number >= 0 (1 = full whitening, 0 = PCA only), "
-                              f"got {power}")
+            raise ConfigError(
+                f"{where}: power must be a number >= 0 (1 = full whitening, 0 = PCA only), " f"got {power}"
+            )
         limit = max_whitening_dim(n, d)
         if dim < 1 or dim > limit:
-            raise ConfigError(f"{where}: L = {dim} dimensions, but {n} fitting vectors of length {d} allow "
-                              f"1..{limit} (at most one fewer than the fitting images, at most the map's "
-                              f"length); lower L or fit on more images")
+            raise ConfigError(
+                f"{where}: L = {dim} dimensions, but {n} fitting vectors of length {d} allow "
+                f"1..{limit} (at most one fewer than the fitting images, at most the map's "
+                f"length); lower L or fit on more images"
+            )
         if not np.isfinite(x).all():
             raise DataError(f"{where}: the fitting vectors contain NaN or infinite values")
         x = _l2(x)
@@ -114,8 +116,10 @@ class PCAWhitening:
         top = float(eigenvalues[0]) if len(eigenvalues) else 0.0
         spanned = int(np.sum(eigenvalues > RELATIVE_EIGENVALUE_FLOOR * max(top, 1e-300))) if top > 0 else 0
         if spanned < dim:
-            raise DataError(f"{where}: the {n} fitting vectors span only {spanned} directions (duplicate or "
-                            f"constant images?), fewer than L = {dim}; lower L or fit on more varied images")
+            raise DataError(
+                f"{where}: the {n} fitting vectors span only {spanned} directions (duplicate or "
+                f"constant images?), fewer than L = {dim}; lower L or fit on more varied images"
+            )
         # A fixed sign per direction (largest-magnitude coordinate positive): the decomposition's
         # sign is arbitrary, and a deterministic one keeps fingerprints stable across machines.
         signs = np.sign(components[np.arange(dim), np.argmax(np.abs(components), axis=1)])

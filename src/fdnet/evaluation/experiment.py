@@ -98,12 +98,15 @@ class MethodResult:
         """
         protocol = protocol or self.protocols[0]
         m = self.metrics[protocol].to_dict(include_curve=False)
-        out = {"method": self.method, **m,
-               "num_references": int(self.ground_truth.num_references),
-               "dataset": self.dataset,
-               "ground_truth": self.ground_truth.description,
-               "settings": self.settings,
-               "timing": self.timing}
+        out = {
+            "method": self.method,
+            **m,
+            "num_references": int(self.ground_truth.num_references),
+            "dataset": self.dataset,
+            "ground_truth": self.ground_truth.description,
+            "settings": self.settings,
+            "timing": self.timing,
+        }
         notes = self.notes + m.pop("notes", [])
         out.pop("notes", None)
         if notes:
@@ -114,15 +117,21 @@ class MethodResult:
         if rule in self.decisions:
             out["acceptance_settings"] = self.decisions[rule].settings
         if len(self.by_acceptance) > 1:
-            out["per_acceptance"] = {name: _pr_summary(per[protocol], self.decisions.get(name), include_curve)
-                                     for name, per in self.by_acceptance.items()}
+            out["per_acceptance"] = {
+                name: _pr_summary(per[protocol], self.decisions.get(name), include_curve)
+                for name, per in self.by_acceptance.items()
+            }
         return out
 
 
 def _pr_summary(m: Metrics, decision: Decision | None, include_curve: bool) -> dict:
-    out = {"recall_at_100_precision": m.recall_at_100_precision, "recall_at_99_precision": m.recall_at_99_precision,
-           "recall_at_95_precision": m.recall_at_95_precision, "precision_at_max_recall": m.precision_at_max_recall,
-           "auc_pr": m.auc_pr}
+    out = {
+        "recall_at_100_precision": m.recall_at_100_precision,
+        "recall_at_99_precision": m.recall_at_99_precision,
+        "recall_at_95_precision": m.recall_at_95_precision,
+        "precision_at_max_recall": m.precision_at_max_recall,
+        "auc_pr": m.auc_pr,
+    }
     if decision is not None:
         out["settings"] = decision.settings
     if include_curve:
@@ -163,23 +172,33 @@ def _decide_and_score(retrieved, scores, gt, scoring: ScoringSettings, candidate
         t0 = time.perf_counter()
         decision = decide(spec, candidates)
         if timing is not None:
-            timing.setdefault("acceptance_ms_per_query", {})[spec.name] = \
+            timing.setdefault("acceptance_ms_per_query", {})[spec.name] = (
                 1000.0 * (time.perf_counter() - t0) / max(candidates.num_queries, 1)
+            )
         decisions[spec.name] = decision
         by_acceptance[spec.name] = _metrics(retrieved, scores, gt, scoring, decision)
     return by_acceptance[specs[0].name], by_acceptance, decisions
 
 
-def _metrics(retrieved, scores, gt, scoring: ScoringSettings, decision: Decision | None = None
-             ) -> dict[str, Metrics]:
+def _metrics(retrieved, scores, gt, scoring: ScoringSettings, decision: Decision | None = None) -> dict[str, Metrics]:
     accepted = None if decision is None else Accepted(decision.score, decision.match, decision.rule)
-    return {p: evaluate_retrieval(retrieved, scores, gt, p, thresholds=scoring.thresholds
-                                  if p == RECALL_OVER_QUERIES else None, ns=scoring.ns, accepted=accepted)
-            for p in scoring.protocols}
+    return {
+        p: evaluate_retrieval(
+            retrieved,
+            scores,
+            gt,
+            p,
+            thresholds=scoring.thresholds if p == RECALL_OVER_QUERIES else None,
+            ns=scoring.ns,
+            accepted=accepted,
+        )
+        for p in scoring.protocols
+    }
 
 
-def _rank(descriptor: Descriptor, queries, refs, k: int, sequence_length: int, keep_similarity: bool,
-          max_matrix_entries: int):
+def _rank(
+    descriptor: Descriptor, queries, refs, k: int, sequence_length: int, keep_similarity: bool, max_matrix_entries: int
+):
     """(the top ``k`` references of each query, their scores, the (Q, R) similarity matrix or
     None, the matching timing, notes): by sequence similarity when ``sequence_length`` > 1; the
     matrix when it fits in ``max_matrix_entries`` and is wanted."""
@@ -254,15 +273,17 @@ def evaluate_method(
     ref_timing: dict = {}
     query_timing: dict = {}
     refs = describe_paths(descriptor, ref_paths, batch_size, progress=progress, timing=ref_timing, workers=workers)
-    queries = describe_paths(descriptor, query_paths, batch_size, progress=progress, timing=query_timing,
-                             workers=workers)
+    queries = describe_paths(
+        descriptor, query_paths, batch_size, progress=progress, timing=query_timing, workers=workers
+    )
     num_images = ref_timing["num_images"] + query_timing["num_images"]
     seconds_describe = ref_timing["seconds_describe"] + query_timing["seconds_describe"]
     timing["ms_per_image"] = 1000.0 * seconds_describe / max(num_images, 1)
 
     k = max(max(scoring.ns), *(spec.depth for spec in specs))
-    retrieved, scores, similarity, rank_timing, rank_notes = _rank(descriptor, queries, refs, k, sequence_length,
-                                                                   keep_similarity, max_matrix_entries)
+    retrieved, scores, similarity, rank_timing, rank_notes = _rank(
+        descriptor, queries, refs, k, sequence_length, keep_similarity, max_matrix_entries
+    )
     timing.update(rank_timing)
     notes.extend(rank_notes)
 
@@ -270,10 +291,14 @@ def evaluate_method(
     settings.setdefault("dim", int(descriptor.dim))
     if sequence_length > 1:
         settings["sequence_length"] = int(sequence_length)
-    context = {"similarity_ceiling": float(descriptor.similarity_ceiling), "query_paths": query_paths,
-               "reference_paths": ref_paths}
-    metrics, by_acceptance, decisions = _decide_and_score(retrieved, scores, split.ground_truth, scoring, context,
-                                                          timing)
+    context = {
+        "similarity_ceiling": float(descriptor.similarity_ceiling),
+        "query_paths": query_paths,
+        "reference_paths": ref_paths,
+    }
+    metrics, by_acceptance, decisions = _decide_and_score(
+        retrieved, scores, split.ground_truth, scoring, context, timing
+    )
     return MethodResult(
         method=descriptor.name,
         metrics=metrics,
@@ -308,16 +333,21 @@ def evaluate_matrix(
     scoring = scoring or ScoringSettings()
     s = np.asarray(similarity)
     if s.shape != (ground_truth.num_queries, ground_truth.num_references):
-        raise DataError(f"similarity matrix is {s.shape[0]} x {s.shape[1]} but the ground truth is for "
-                        f"{ground_truth.num_queries} queries x {ground_truth.num_references} references")
+        raise DataError(
+            f"similarity matrix is {s.shape[0]} x {s.shape[1]} but the ground truth is for "
+            f"{ground_truth.num_queries} queries x {ground_truth.num_references} references"
+        )
     specs = _acceptance_specs(scoring.acceptance)
     for spec in specs:
-        spec.check_available({"images"} if query_paths is not None and reference_paths is not None else set(),
-                             "a similarity matrix")
+        spec.check_available(
+            {"images"} if query_paths is not None and reference_paths is not None else set(), "a similarity matrix"
+        )
     retrieved, scores = top_k_of_matrix(s, max(max(scoring.ns), *(spec.depth for spec in specs)))
-    context = {"similarity_ceiling": float(similarity_ceiling),
-               "query_paths": None if query_paths is None else [Path(p) for p in query_paths],
-               "reference_paths": None if reference_paths is None else [Path(p) for p in reference_paths]}
+    context = {
+        "similarity_ceiling": float(similarity_ceiling),
+        "query_paths": None if query_paths is None else [Path(p) for p in query_paths],
+        "reference_paths": None if reference_paths is None else [Path(p) for p in reference_paths],
+    }
     metrics, by_acceptance, decisions = _decide_and_score(retrieved, scores, ground_truth, scoring, context)
     return MethodResult(
         method=method,

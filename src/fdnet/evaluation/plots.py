@@ -37,8 +37,13 @@ def save_figure(fig, path: str | os.PathLike) -> Path:
     path = Path(path)
     jpeg = path.suffix.lower() in (".jpg", ".jpeg")
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="jpeg" if jpeg else "png", dpi=110, bbox_inches="tight",
-                    **({"pil_kwargs": {"quality": 85}} if jpeg else {}))
+        fig.savefig(
+            tmp,
+            format="jpeg" if jpeg else "png",
+            dpi=110,
+            bbox_inches="tight",
+            **({"pil_kwargs": {"quality": 85}} if jpeg else {}),
+        )
     plt.close(fig)
     return path
 
@@ -74,8 +79,9 @@ def plot_pr_curves(curves: dict, path: str | os.PathLike, title: str = "") -> Pa
     return save_figure(fig, path)
 
 
-def draw_similarity_matrix(ax, similarity: np.ndarray, ground_truth: GroundTruth | None = None,
-                           best: np.ndarray | None = None):
+def draw_similarity_matrix(
+    ax, similarity: np.ndarray, ground_truth: GroundTruth | None = None, best: np.ndarray | None = None
+):
     """The (Q, R) matrix on one matplotlib axis (see :func:`plot_similarity_matrix`); returns the
     image, for a colour bar. Beyond ~300 rows or columns a cell is smaller than a screen pixel, so
     the ground-truth cells are widened until the true-match band stays visible."""
@@ -107,9 +113,13 @@ def draw_similarity_matrix(ax, similarity: np.ndarray, ground_truth: GroundTruth
     return image
 
 
-def plot_similarity_matrix(similarity: np.ndarray, path: str | os.PathLike,
-                           ground_truth: GroundTruth | None = None,
-                           best: np.ndarray | None = None, title: str = "") -> Path:
+def plot_similarity_matrix(
+    similarity: np.ndarray,
+    path: str | os.PathLike,
+    ground_truth: GroundTruth | None = None,
+    best: np.ndarray | None = None,
+    title: str = "",
+) -> Path:
     """The (Q, R) matrix as an image (rows = queries), ground-truth cells outlined in translucent
     white and each query's best match marked: green dot if correct, red cross if not."""
     plt = pyplot()
@@ -129,9 +139,15 @@ def evenly_spaced(total: int, count: int) -> np.ndarray:
     return np.unique(np.linspace(0, total - 1, count).round().astype(int))
 
 
-def plot_match_grid(query_paths: Sequence[str | os.PathLike], reference_paths: Sequence[str | os.PathLike],
-                    matches: dict[str, tuple[np.ndarray, np.ndarray]], path: str | os.PathLike,
-                    count: int = 6, title: str = "", image_size: tuple[int, int] = (120, 160)) -> Path:
+def plot_match_grid(
+    query_paths: Sequence[str | os.PathLike],
+    reference_paths: Sequence[str | os.PathLike],
+    matches: dict[str, tuple[np.ndarray, np.ndarray]],
+    path: str | os.PathLike,
+    count: int = 6,
+    title: str = "",
+    image_size: tuple[int, int] = (120, 160),
+) -> Path:
     """``count`` queries (evenly spaced over the traverse) in columns: the query on top, then one
     row per method (``matches``: method -> (best reference per query, correct per query)) with
     that method's best match, framed green if correct and red if not (the paper's Fig. 9)."""
@@ -139,10 +155,13 @@ def plot_match_grid(query_paths: Sequence[str | os.PathLike], reference_paths: S
 
     plt = pyplot()
     chosen = evenly_spaced(len(query_paths), count)
-    rows = [(method, np.asarray(best).reshape(-1), np.asarray(correct, dtype=bool).reshape(-1))
-            for method, (best, correct) in matches.items()]
-    fig, axes = plt.subplots(1 + len(rows), len(chosen), figsize=(2.2 * len(chosen), 2.1 * (1 + len(rows))),
-                             squeeze=False)
+    rows = [
+        (method, np.asarray(best).reshape(-1), np.asarray(correct, dtype=bool).reshape(-1))
+        for method, (best, correct) in matches.items()
+    ]
+    fig, axes = plt.subplots(
+        1 + len(rows), len(chosen), figsize=(2.2 * len(chosen), 2.1 * (1 + len(rows))), squeeze=False
+    )
     for col, q in enumerate(chosen):
         cells = [(query_paths[q], f"query {q}", None)]
         for _, best, correct in rows:
@@ -167,9 +186,16 @@ def plot_match_grid(query_paths: Sequence[str | os.PathLike], reference_paths: S
     return save_figure(fig, path)
 
 
-def plot_example_matches(query_paths: Sequence[str | os.PathLike], reference_paths: Sequence[str | os.PathLike],
-                         best: np.ndarray, correct: np.ndarray, path: str | os.PathLike,
-                         count: int = 6, title: str = "", image_size: tuple[int, int] = (120, 160)) -> Path:
+def plot_example_matches(
+    query_paths: Sequence[str | os.PathLike],
+    reference_paths: Sequence[str | os.PathLike],
+    best: np.ndarray,
+    correct: np.ndarray,
+    path: str | os.PathLike,
+    count: int = 6,
+    title: str = "",
+    image_size: tuple[int, int] = (120, 160),
+) -> Path:
     """A grid of ``count`` queries (evenly spaced over the traverse): query on top, its best match
     below, framed green if the match is correct and red if not."""
     return plot_match_grid(query_paths, reference_paths, {"": (best, correct)}, path, count, title, image_size)
@@ -185,15 +211,35 @@ def write_result_plots(results, protocol: str, folder: str | os.PathLike, exampl
     """The figures of ``fdnet evaluate --plots``: every result's PR curve in one plot, and per
     result its similarity matrix (when kept) and example matches (when its images are known)."""
     folder = Path(folder)
-    written = [plot_pr_curves({r.method: (r.metrics[protocol].curve, r.metrics[protocol].auc_pr) for r in results},
-                              folder / "pr_curves.png", title=f"{results[0].dataset or 'PR curves'} [{protocol}]")]
+    written = [
+        plot_pr_curves(
+            {r.method: (r.metrics[protocol].curve, r.metrics[protocol].auc_pr) for r in results},
+            folder / "pr_curves.png",
+            title=f"{results[0].dataset or 'PR curves'} [{protocol}]",
+        )
+    ]
     for r in results:
         if r.similarity is not None:
-            written.append(plot_similarity_matrix(r.similarity, folder / f"similarity_{_file_safe(r.method)}.png",
-                                                  r.ground_truth, best=r.retrieved[:, 0], title=r.method))
+            written.append(
+                plot_similarity_matrix(
+                    r.similarity,
+                    folder / f"similarity_{_file_safe(r.method)}.png",
+                    r.ground_truth,
+                    best=r.retrieved[:, 0],
+                    title=r.method,
+                )
+            )
         if r.query_paths is not None and r.reference_paths is not None:
             correct = r.ground_truth.correct_mask(r.retrieved[:, :1])[:, 0]
-            written.append(plot_example_matches(r.query_paths, r.reference_paths, r.retrieved[:, 0], correct,
-                                                folder / f"matches_{_file_safe(r.method)}.png", count=examples,
-                                                title=f"{r.method}: query (top) and best match"))
+            written.append(
+                plot_example_matches(
+                    r.query_paths,
+                    r.reference_paths,
+                    r.retrieved[:, 0],
+                    correct,
+                    folder / f"matches_{_file_safe(r.method)}.png",
+                    count=examples,
+                    title=f"{r.method}: query (top) and best match",
+                )
+            )
     return written

@@ -29,8 +29,9 @@ def _number(value, digits: int = 3) -> str:
 
 def _per_rule(result: MethodResult, protocol: str) -> dict:
     """rule expression -> that rule's Metrics under ``protocol`` (one entry without several rules)."""
-    return {rule: per[protocol] for rule, per in result.by_acceptance.items()} or \
-        {result.metrics[protocol].acceptance: result.metrics[protocol]}
+    return {rule: per[protocol] for rule, per in result.by_acceptance.items()} or {
+        result.metrics[protocol].acceptance: result.metrics[protocol]
+    }
 
 
 def format_table(results: Sequence[MethodResult], protocol: str | None = None) -> str:
@@ -45,9 +46,11 @@ def format_table(results: Sequence[MethodResult], protocol: str | None = None) -
         lines.append(f"thresholds: {first.thresholds} over min-max-normalised best-match scores")
     if results[0].dataset:
         lines.append(f"data: {results[0].dataset}")
-    lines.append(f"ground truth: {results[0].ground_truth.description}; {first.num_queries} queries "
-                 f"({first.num_queries_with_match} with a true match) x {results[0].ground_truth.num_references} "
-                 f"references")
+    lines.append(
+        f"ground truth: {results[0].ground_truth.description}; {first.num_queries} queries "
+        f"({first.num_queries_with_match} with a true match) x {results[0].ground_truth.num_references} "
+        f"references"
+    )
     width = max(8, *(len(r.method) for r in results))
     rule_width = max(6, *(len(rule) for r in results for rule in r.acceptance_rules))
     header = f"{'method':<{width}}  {'accept':<{rule_width}}  " + "  ".join(f"{c:>8}" for c in _COLUMNS)
@@ -55,18 +58,32 @@ def format_table(results: Sequence[MethodResult], protocol: str | None = None) -
     for r in results:
         for rule, m in _per_rule(r, protocol).items():
             cells = [_number(m.recall_at_n.get(n)) for n in (1, 5, 10, 20)]
-            cells += [_number(m.recall_at_100_precision), _number(m.recall_at_99_precision),
-                      _number(m.recall_at_95_precision), _number(m.precision_at_max_recall), _number(m.auc_pr)]
+            cells += [
+                _number(m.recall_at_100_precision),
+                _number(m.recall_at_99_precision),
+                _number(m.recall_at_95_precision),
+                _number(m.precision_at_max_recall),
+                _number(m.auc_pr),
+            ]
             cells += [_number(r.timing.get("ms_per_image"), 2), _number(r.timing.get("ms_per_query"), 3)]
             lines.append(f"{r.method:<{width}}  {rule:<{rule_width}}  " + "  ".join(f"{c:>8}" for c in cells))
     notes = [f"{r.method}: {n}" for r in results for n in r.notes + r.metrics[protocol].notes]
-    settings = sorted({f"{name}: {', '.join(f'{k}={v}' for k, v in values.items() if v is not None)}"
-                       for r in results for d in r.decisions.values() for name, values in d.settings.items()
-                       if any(v is not None for v in values.values())})
+    settings = sorted(
+        {
+            f"{name}: {', '.join(f'{k}={v}' for k, v in values.items() if v is not None)}"
+            for r in results
+            for d in r.decisions.values()
+            for name, values in d.settings.items()
+            if any(v is not None for v in values.values())
+        }
+    )
     rules = list(dict.fromkeys(rule for r in results for rule in (r.acceptance_rules or [first.acceptance])))
     if rules != ["raw"]:
-        said = ["raw is the field's protocol (the best match's similarity, as papers and VPR-Bench report)"] \
-            if "raw" in rules else []
+        said = (
+            ["raw is the field's protocol (the best match's similarity, as papers and VPR-Bench report)"]
+            if "raw" in rules
+            else []
+        )
         others = [rule for rule in rules if rule != "raw"]
         if others:
             verb = "is an fdnet acceptance rule" if len(others) == 1 else "are fdnet acceptance rules"
@@ -83,9 +100,15 @@ JSON_FORMAT = "fdnet-evaluation"
 JSON_FORMAT_VERSION = 2
 
 
-def results_json(results: Sequence[MethodResult], protocol: str | None = None,
-                 include_curve: bool = True, command: str | None = None, settings: dict | None = None,
-                 predictions: int = 0, seeds=None) -> dict:
+def results_json(
+    results: Sequence[MethodResult],
+    protocol: str | None = None,
+    include_curve: bool = True,
+    command: str | None = None,
+    settings: dict | None = None,
+    predictions: int = 0,
+    seeds=None,
+) -> dict:
     """The JSON document, one schema whatever the number of methods: ``format``,
     ``format_version``, ``fdnet_version``, ``command``, ``protocol``, ``settings`` (what was
     asked) and ``results``, a list with one object per method. ``predictions`` > 0 adds to each
@@ -101,10 +124,16 @@ def results_json(results: Sequence[MethodResult], protocol: str | None = None,
         if predictions:
             item["predictions"] = _predictions(r, predictions)
         objects.append(item)
-    return {"format": JSON_FORMAT, "format_version": JSON_FORMAT_VERSION, "fdnet_version": __version__,
-            "command": command, "protocol": protocol or (results[0].protocols[0] if results else None),
-            "settings": settings or {}, "results": objects,
-            "provenance": provenance(command, seeds=seeds, device=(settings or {}).get("device"))}
+    return {
+        "format": JSON_FORMAT,
+        "format_version": JSON_FORMAT_VERSION,
+        "fdnet_version": __version__,
+        "command": command,
+        "protocol": protocol or (results[0].protocols[0] if results else None),
+        "settings": settings or {},
+        "results": objects,
+        "provenance": provenance(command, seeds=seeds, device=(settings or {}).get("device")),
+    }
 
 
 def _predictions(result: MethodResult, k: int) -> list[dict]:
@@ -115,8 +144,12 @@ def _predictions(result: MethodResult, k: int) -> list[dict]:
     references = result.reference_paths
     out = []
     for q in range(len(top)):
-        row = {"query_index": q, "top": [int(i) for i in top[q]], "scores": [float(v) for v in scores[q]],
-               "correct": [bool(c) for c in correct[q]]}
+        row = {
+            "query_index": q,
+            "top": [int(i) for i in top[q]],
+            "scores": [float(v) for v in scores[q]],
+            "correct": [bool(c) for c in correct[q]],
+        }
         if queries is not None:
             row["query"] = image_name(queries[q])
         if references is not None:
@@ -141,8 +174,16 @@ def format_results_table(results: Sequence[MethodResult], style: str, protocol: 
     rows = []
     for r in results:
         for rule, m in _per_rule(r, protocol).items():
-            rows.append([r.method, rule, r.dataset, f"{m.recall_at_n.get(1, float('nan')):.3f}",
-                         f"{m.recall_at_100_precision:.3f}", f"{m.auc_pr:.3f}"])
+            rows.append(
+                [
+                    r.method,
+                    rule,
+                    r.dataset,
+                    f"{m.recall_at_n.get(1, float('nan')):.3f}",
+                    f"{m.recall_at_100_precision:.3f}",
+                    f"{m.auc_pr:.3f}",
+                ]
+            )
     if style == "csv":  # names (a folder's, a method's) that a spreadsheet would run are quoted
         buffer = io.StringIO()
         writer = csv.writer(buffer, lineterminator="\n")
@@ -177,9 +218,16 @@ def json_fallback(value):
     return str(value)
 
 
-def write_json(path: str | os.PathLike, results: Sequence[MethodResult], protocol: str | None = None,
-               include_curve: bool = True, command: str | None = None, settings: dict | None = None,
-               predictions: int = 0, seeds=None) -> None:
+def write_json(
+    path: str | os.PathLike,
+    results: Sequence[MethodResult],
+    protocol: str | None = None,
+    include_curve: bool = True,
+    command: str | None = None,
+    settings: dict | None = None,
+    predictions: int = 0,
+    seeds=None,
+) -> None:
     """Write :func:`results_json` to ``path`` atomically (a crash never leaves half a file)."""
     document = results_json(results, protocol, include_curve, command, settings, predictions, seeds)
     atomic_write_text(path, json.dumps(document, indent=2, allow_nan=False, default=json_fallback) + "\n")

@@ -26,8 +26,11 @@ def ground_truth_path(ground_truth) -> Path | None:
         return None
     path = Path(ground_truth)
     if not path.is_file():
-        raise DataError(f"{path}: ground-truth file not found" if not path.exists()
-                        else f"{path}: is not a file; expected a ground-truth CSV")
+        raise DataError(
+            f"{path}: ground-truth file not found"
+            if not path.exists()
+            else f"{path}: is not a file; expected a ground-truth CSV"
+        )
     return path  # as typed, so errors name the file the way the user wrote it
 
 
@@ -67,14 +70,25 @@ def _format_split(spec: SplitSpec, ground_truth):
         options["tolerance"] = tolerance
     if filter_frames:
         if "filter_frames" not in fields:
-            raise ConfigError(f"--filter-frames: the {name} format has no frame filter (formats with one: "
-                              f"nordland); without --dataset-format it applies to plain condition folders")
+            raise ConfigError(
+                f"--filter-frames: the {name} format has no frame filter (formats with one: "
+                f"nordland); without --dataset-format it applies to plain condition folders"
+            )
         options["filter_frames"] = "true"
     if ground_truth is not None and options.get("ground_truth"):
-        raise ConfigError(f"two explicit ground truths: --ground-truth {ground_truth} and "
-                          f"--format-set ground_truth={options['ground_truth']}; give one")
-    return open_split(data, spec.reference, spec.query, dataset_format=name, split=spec.split or spec.frames,
-                      listed_ground_truth=ground_truth, **options)
+        raise ConfigError(
+            f"two explicit ground truths: --ground-truth {ground_truth} and "
+            f"--format-set ground_truth={options['ground_truth']}; give one"
+        )
+    return open_split(
+        data,
+        spec.reference,
+        spec.query,
+        dataset_format=name,
+        split=spec.split or spec.frames,
+        listed_ground_truth=ground_truth,
+        **options,
+    )
 
 
 def build_split(spec: SplitSpec):
@@ -109,8 +123,10 @@ def _build_split(spec: SplitSpec):
     _check_frames_inside(frames, start, end, dataset)
     if ground_truth is not None:
         if filter_frames:
-            raise ConfigError("--filter-frames applies to frame-aligned folders; with --ground-truth CSV, filter "
-                              "the images before writing the ground truth")
+            raise ConfigError(
+                "--filter-frames applies to frame-aligned folders; with --ground-truth CSV, filter "
+                "the images before writing the ground truth"
+            )
         return listed_split(dataset, reference, query, ground_truth, start, end)
     protocol_tolerance = False
     if tolerance is None:  # the layout is looked at once (it may refuse a published format)
@@ -124,8 +140,10 @@ def _build_split(spec: SplitSpec):
         start = end = None
     split = aligned_split(dataset, reference, query, tolerance, start, end)
     if protocol_tolerance:  # say where the tolerance came from
-        split = dataclasses.replace(split, description=f"{split.description} (Gardens Point's protocol, as VPR-Bench; "
-                                                       "--tolerance changes it)")
+        split = dataclasses.replace(
+            split,
+            description=f"{split.description} (Gardens Point's protocol, as VPR-Bench; " "--tolerance changes it)",
+        )
     return split
 
 
@@ -146,10 +164,12 @@ def default_folder_tolerance(data, conditions) -> int:
     except DataError:
         layout = None
     if layout is not None and layout not in _FRAME_ALIGNED_FORMATS:
-        raise ConfigError(f"{data}: is laid out as the {layout!r} dataset format, which carries its own ground truth; "
-                          "read as plain folders, query i would match only reference i. Give --dataset-format "
-                          f"{layout} (or auto) to use its ground truth, --ground-truth FILE, or --tolerance N to align "
-                          "the folders frame by frame on purpose")
+        raise ConfigError(
+            f"{data}: is laid out as the {layout!r} dataset format, which carries its own ground truth; "
+            "read as plain folders, query i would match only reference i. Give --dataset-format "
+            f"{layout} (or auto) to use its ground truth, --ground-truth FILE, or --tolerance N to align "
+            "the folders frame by frame on purpose"
+        )
     return 2 if is_gardens_point(list(conditions)) else 0
 
 
@@ -160,8 +180,10 @@ def _check_frames_inside(text, start, end, dataset) -> None:
     frames = min(counts.values())
     listed = ", ".join(f"{name} {count}" for name, count in counts.items())
     if (end is not None and end > frames) or (start is not None and start >= frames):
-        raise ConfigError(f"--frames {text}: past the end of the folders ({listed} images); give a range within "
-                          f"0:{frames}, or leave END out ({start or 0}:) for the rest")
+        raise ConfigError(
+            f"--frames {text}: past the end of the folders ({listed} images); give a range within "
+            f"0:{frames}, or leave END out ({start or 0}:) for the rest"
+        )
 
 
 def load_similarity(path, distance: bool = False):
@@ -182,14 +204,25 @@ def load_similarity(path, distance: bool = False):
     bad = ~np.isfinite(matrix) if np.issubdtype(matrix.dtype, np.floating) else None
     if bad is not None and bad.any():
         q, r = np.argwhere(bad)[0]
-        raise DataError(f"{path}: {int(bad.sum())} NaN or infinite entries (first at query {q}, "
-                        f"reference {r}); every query-reference pair needs a score")
+        raise DataError(
+            f"{path}: {int(bad.sum())} NaN or infinite entries (first at query {q}, "
+            f"reference {r}); every query-reference pair needs a score"
+        )
     matrix = matrix.astype(np.float64)
     return -matrix if distance else matrix
 
 
-def evaluate_similarity_file(path, *, split=None, ground_truth=None, distance: bool = False, name: str | None = None,
-                             protocols=("recall-over-queries",), thresholds: int | None = None, acceptance=None):
+def evaluate_similarity_file(
+    path,
+    *,
+    split=None,
+    ground_truth=None,
+    distance: bool = False,
+    name: str | None = None,
+    protocols=("recall-over-queries",),
+    thresholds: int | None = None,
+    acceptance=None,
+):
     """A precomputed (queries x references) matrix in the .npy file ``path`` scored against the
     ground truth of ``split`` (which also gives the images, for plots) or of the CSV
     ``ground_truth`` (whose indices are the matrix's: no images to check its names against).
@@ -206,23 +239,31 @@ def evaluate_similarity_file(path, *, split=None, ground_truth=None, distance: b
     elif ground_truth:
         gt = GroundTruth.from_csv(ground_truth, num_references=matrix.shape[1], num_queries=matrix.shape[0])
     else:
-        raise ConfigError("--similarity needs ground truth: --ground-truth CSV, or --data with "
-                          "--reference/--query (frame-aligned, --tolerance)")
+        raise ConfigError(
+            "--similarity needs ground truth: --ground-truth CSV, or --data with "
+            "--reference/--query (frame-aligned, --tolerance)"
+        )
     if matrix.shape != (gt.num_queries, gt.num_references):
-        raise DataError(f"{path}: matrix is {matrix.shape[0]} x {matrix.shape[1]} but the ground "
-                        f"truth is for {gt.num_queries} queries x {gt.num_references} references")
+        raise DataError(
+            f"{path}: matrix is {matrix.shape[0]} x {matrix.shape[1]} but the ground "
+            f"truth is for {gt.num_queries} queries x {gt.num_references} references"
+        )
     return evaluate_matrix(
-        matrix, gt, name or re.sub(r"_similarity$", "", Path(path).stem),
+        matrix,
+        gt,
+        name or re.sub(r"_similarity$", "", Path(path).stem),
         ScoringSettings(protocols=protocols, thresholds=thresholds, acceptance=acceptance),
         dataset=split.description if split else f"{Path(path).name} vs {gt.description}",
         query_paths=split.query.paths if split else None,
         reference_paths=split.reference.paths if split else None,
         # a distance matrix was negated: its largest possible similarity is 0
-        similarity_ceiling=0.0 if distance else 1.0)
+        similarity_ceiling=0.0 if distance else 1.0,
+    )
 
 
-def check_descriptors_held_out(descriptors, data, conditions, frames=None, dataset_format=None, split=None,
-                               allow: bool = False) -> None:
+def check_descriptors_held_out(
+    descriptors, data, conditions, frames=None, dataset_format=None, split=None, allow: bool = False
+) -> None:
     """:func:`fdnet.runs.held_out.check_held_out` for every trained method among ``descriptors``
     (those that carry their run directory): one check for evaluate, calibrate and loop-closure."""
     from fdnet.descriptors.registry import trained_methods
@@ -233,4 +274,3 @@ def check_descriptors_held_out(descriptors, data, conditions, frames=None, datas
         run_dir = descriptor.run_dir
         if descriptor.name in trained and run_dir is not None:
             check_held_out(descriptor.name, run_dir, data, conditions, frames, dataset_format, split, allow)
-

@@ -27,11 +27,17 @@ from fdnet.errors import ConfigError
 FORMATS = ("latex", "markdown", "csv")
 #: metrics a column can show: name -> (where in a result, higher is better)
 METRICS = {
-    "R@1": ("recall_at_n", "1", True), "R@5": ("recall_at_n", "5", True), "R@10": ("recall_at_n", "10", True),
-    "R@20": ("recall_at_n", "20", True), "R@100P": ("pr", "recall_at_100_precision", True),
-    "R@99P": ("pr", "recall_at_99_precision", True), "R@95P": ("pr", "recall_at_95_precision", True),
-    "P@maxR": ("pr", "precision_at_max_recall", True), "AUC-PR": ("pr", "auc_pr", True),
-    "ms/image": ("timing", "ms_per_image", False), "ms/query": ("timing", "ms_per_query", False),
+    "R@1": ("recall_at_n", "1", True),
+    "R@5": ("recall_at_n", "5", True),
+    "R@10": ("recall_at_n", "10", True),
+    "R@20": ("recall_at_n", "20", True),
+    "R@100P": ("pr", "recall_at_100_precision", True),
+    "R@99P": ("pr", "recall_at_99_precision", True),
+    "R@95P": ("pr", "recall_at_95_precision", True),
+    "P@maxR": ("pr", "precision_at_max_recall", True),
+    "AUC-PR": ("pr", "auc_pr", True),
+    "ms/image": ("timing", "ms_per_image", False),
+    "ms/query": ("timing", "ms_per_query", False),
 }
 DEFAULT_METRICS = ("R@1", "R@100P", "AUC-PR")
 #: how a CSV cell marks the best value of its column (the other styles use bold)
@@ -71,8 +77,7 @@ class ResultsTable:
 
 def parse_metrics(text: str | Sequence[str] | None) -> list[str]:
     """``R@1,AUC-PR`` -> the metric names; an unknown name is refused with the list."""
-    names = [n.strip() for n in (text.split(",") if isinstance(text, str) else text or DEFAULT_METRICS)
-             if n.strip()]
+    names = [n.strip() for n in (text.split(",") if isinstance(text, str) else text or DEFAULT_METRICS) if n.strip()]
     unknown = [n for n in names if n not in METRICS]
     if unknown or not names:
         raise ConfigError(f"--metrics {','.join(unknown) or '(none)'}: choose from {', '.join(METRICS)}")
@@ -111,11 +116,15 @@ def read_entries(item: str) -> list[Entry]:
     if document.get("format") == "fdnet-evaluation" or "results" in document and "experiment" not in document:
         groups = [(None, document.get("results"), document.get("protocol"))]
     elif document.get("experiment") == "comparison":
-        groups = [(f"{p.get('query')}->{p.get('reference')}", p.get("results"), document.get("protocol"))
-                  for p in document.get("pairs") or []]
+        groups = [
+            (f"{p.get('query')}->{p.get('reference')}", p.get("results"), document.get("protocol"))
+            for p in document.get("pairs") or []
+        ]
     elif "experiment" in document:
-        raise ConfigError(f"{path}: reproduce's {document['experiment']!r} experiment holds no per-method results on "
-                          "a dataset; give its comparison.json or an fdnet evaluate --json file")
+        raise ConfigError(
+            f"{path}: reproduce's {document['experiment']!r} experiment holds no per-method results on "
+            "a dataset; give its comparison.json or an fdnet evaluate --json file"
+        )
     elif "method" in document and "recall_at_n" in document:  # one result object
         groups = [(None, [document], document.get("protocol"))]
     else:
@@ -148,16 +157,19 @@ def _value(entry: Entry, metric: str, acceptance: str | None) -> float | None:
         per = (r.get("per_acceptance") or {}).get(acceptance)
         if per is None:
             rules = ", ".join(dict.fromkeys([r.get("acceptance") or "?", *(r.get("per_acceptance") or {})]))
-            raise ConfigError(f"{entry.source}: {entry.method} on {entry.dataset} has no {metric} under --accept "
-                              f"{acceptance} (its rules: {rules}); evaluate with --accept {acceptance}")
+            raise ConfigError(
+                f"{entry.source}: {entry.method} on {entry.dataset} has no {metric} under --accept "
+                f"{acceptance} (its rules: {rules}); evaluate with --accept {acceptance}"
+            )
         value = per.get(key)
     if value is None or isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
         return None
     return float(value)
 
 
-def build_table(items: Sequence[str], metrics: str | Sequence[str] | None = None,
-                acceptance: str | None = None) -> ResultsTable:
+def build_table(
+    items: Sequence[str], metrics: str | Sequence[str] | None = None, acceptance: str | None = None
+) -> ResultsTable:
     """Read every ``[LABEL=]FILE`` of ``items`` and merge their results: rows are methods,
     columns datasets x ``metrics``. PR metrics are those of ``acceptance`` (default: each result's
     own first rule, ``raw`` unless evaluate was told otherwise)."""
@@ -174,8 +186,10 @@ def build_table(items: Sequence[str], metrics: str | Sequence[str] | None = None
     for e in entries:
         key = (e.method, e.dataset)
         if key in seen:
-            raise ConfigError(f"two results of {e.method} on {e.dataset!r} ({seen[key]} and {e.source}): one cell "
-                              "cannot hold both; label the files (LABEL=FILE.json) or leave one out")
+            raise ConfigError(
+                f"two results of {e.method} on {e.dataset!r} ({seen[key]} and {e.source}): one cell "
+                "cannot hold both; label the files (LABEL=FILE.json) or leave one out"
+            )
         seen[key] = e.source
         for metric in chosen:
             value = _value(e, metric, acceptance)
@@ -232,32 +246,45 @@ def format_table(table: ResultsTable, style: str, digits: int = 3) -> str:
     if style == "markdown":
         from fdnet.io import markdown_cell
 
-        lines = [f"| {markdown_cell(first)} | " + " | ".join(markdown_cell(h) for h in headers) + " |",
-                 "|---|" + "---:|" * len(headers)]
+        lines = [
+            f"| {markdown_cell(first)} | " + " | ".join(markdown_cell(h) for h in headers) + " |",
+            "|---|" + "---:|" * len(headers),
+        ]
         for method, row in zip(table.methods, cells):
-            lines.append(f"| {markdown_cell(method)} | "
-                         + " | ".join(f"**{t}**" if b else t for t, b in row) + " |")
+            lines.append(f"| {markdown_cell(method)} | " + " | ".join(f"**{t}**" if b else t for t, b in row) + " |")
         return "\n".join(lines)
     width = len(table.datasets) * len(table.metrics)
     lines = ["\\begin{tabular}{l" + "r" * width + "}", "\\hline"]
     if multi:
         span = len(table.metrics)
-        lines.append(" & " + " & ".join(f"\\multicolumn{{{span}}}{{c}}{{{_latex_escape(d)}}}"
-                                        for d in table.datasets) + " \\\\")
-        lines.append("method & " + " & ".join(_latex_escape(m) for _ in table.datasets for m in table.metrics)
-                     + " \\\\")
+        lines.append(
+            " & " + " & ".join(f"\\multicolumn{{{span}}}{{c}}{{{_latex_escape(d)}}}" for d in table.datasets) + " \\\\"
+        )
+        lines.append(
+            "method & " + " & ".join(_latex_escape(m) for _ in table.datasets for m in table.metrics) + " \\\\"
+        )
     else:
-        lines.append(f"method ({_latex_escape(table.metrics[0])}) & "
-                     + " & ".join(_latex_escape(d) for d in table.datasets) + " \\\\")
+        lines.append(
+            f"method ({_latex_escape(table.metrics[0])}) & "
+            + " & ".join(_latex_escape(d) for d in table.datasets)
+            + " \\\\"
+        )
     lines.append("\\hline")
     for method, row in zip(table.methods, cells):
-        lines.append(_latex_escape(method) + " & " + " & ".join(f"\\textbf{{{t}}}" if b else t for t, b in row)
-                     + " \\\\")
+        lines.append(
+            _latex_escape(method) + " & " + " & ".join(f"\\textbf{{{t}}}" if b else t for t, b in row) + " \\\\"
+        )
     return "\n".join(lines + ["\\hline", "\\end{tabular}"])
 
 
-def table_command(items: Sequence[str], style: str = "markdown", metrics: str | Sequence[str] | None = None,
-                  acceptance: str | None = None, out: str | os.PathLike | None = None, digits: int = 3) -> str:
+def table_command(
+    items: Sequence[str],
+    style: str = "markdown",
+    metrics: str | Sequence[str] | None = None,
+    acceptance: str | None = None,
+    out: str | os.PathLike | None = None,
+    digits: int = 3,
+) -> str:
     """The work of ``fdnet table``: merge ``items``' results, format them as ``style`` and, with
     ``out``, write the text there atomically. Returns the text."""
     from fdnet.io import atomic_write_text, ensure_writable

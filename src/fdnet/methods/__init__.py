@@ -33,6 +33,8 @@ def load_method_config(run_dir, cls, method: str):
         if saved_method != method:
             path = runs.latest_checkpoint(run_dir) / runs.CONFIG_FILE
             what = f"a {saved_method!r} run" if saved_method else "not a readable run"
-            raise ConfigError(f"{path}: is {what}, not a {method} run; give --checkpoint the --out folder "
-                              f"of `fdnet train {method}`")
+            raise ConfigError(
+                f"{path}: is {what}, not a {method} run; give --checkpoint the --out folder "
+                f"of `fdnet train {method}`"
+            )
     return runs.load_config(run_dir, cls)

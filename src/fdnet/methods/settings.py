@@ -111,6 +111,8 @@ def check_validation_pair(validation: ValidationConfig) -> None:
     if bool(validation.reference) != bool(validation.query):
         raise ConfigError("validation: give both a reference and a query condition (or neither)")
     if validation.reference and validation.reference == validation.query:
-        raise ConfigError(f"validation: the reference and the query are the same condition "
-                          f"({validation.reference!r}); every image would match itself, so the scores would "
-                          "say nothing: choose two conditions")
+        raise ConfigError(
+            f"validation: the reference and the query are the same condition "
+            f"({validation.reference!r}); every image would match itself, so the scores would "
+            "say nothing: choose two conditions"
+        )

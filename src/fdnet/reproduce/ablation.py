@@ -55,13 +55,18 @@ DEFAULT_PRESETS = ("cpu",)
 #: the preset's own: paper-native's whole schedule (73,000 steps, over two hours per run on 2
 #: cores) is a tenth here, each stage in the paper's proportion: about 15 minutes per variant
 SCHEDULES = {
-    "paper-native": {"schedule.pretrain_autoencoder_steps": 500, "schedule.pretrain_critic_steps": 800,
-                     "schedule.joint_steps": 6000},
+    "paper-native": {
+        "schedule.pretrain_autoencoder_steps": 500,
+        "schedule.pretrain_critic_steps": 800,
+        "schedule.joint_steps": 6000,
+    },
 }
 
 #: what a rerun of this experiment alone needs besides the command's flags (the report's hint)
-RERUN_FLAGS = ("--ablation-train-frames START:END [--ablation-preset cpu,paper-native] "
-               "(or --ablation-runs full=DIR,no-critic=DIR,no-triplet=DIR,no-reconstruction=DIR)")
+RERUN_FLAGS = (
+    "--ablation-train-frames START:END [--ablation-preset cpu,paper-native] "
+    "(or --ablation-runs full=DIR,no-critic=DIR,no-triplet=DIR,no-reconstruction=DIR)"
+)
 
 
 def _trains(settings) -> bool:
@@ -78,9 +83,11 @@ def presets(settings) -> list[str]:
 def unavailable(ctx) -> str | None:
     s = ctx.settings
     if not s.ablation_runs and not _trains(s):
-        return ("needs FDNet runs of each variant: --ablation-runs full=DIR,no-critic=DIR,no-triplet=DIR,"
-                "no-reconstruction=DIR, or --ablation-train-frames START:END (with --ablation-preset, default cpu) "
-                "to train them here")
+        return (
+            "needs FDNet runs of each variant: --ablation-runs full=DIR,no-critic=DIR,no-triplet=DIR,"
+            "no-reconstruction=DIR, or --ablation-train-frames START:END (with --ablation-preset, default cpu) "
+            "to train them here"
+        )
     for variant, folder in s.ablation_runs:
         if variant not in VARIANTS:
             raise ConfigError(f"--ablation-runs {variant}={folder}: unknown variant; choose from {', '.join(VARIANTS)}")
@@ -94,8 +101,10 @@ def unavailable(ctx) -> str | None:
                 raise ConfigError(f"--ablation-preset {name}: unknown FDNet preset; choose from {', '.join(PRESETS)}")
         for scope in s.ablation_overrides:
             if scope and scope not in presets(s):
-                raise ConfigError(f"--ablation-set {scope}:...: {scope} is not among the trained presets "
-                                  f"({', '.join(presets(s))})")
+                raise ConfigError(
+                    f"--ablation-set {scope}:...: {scope} is not among the trained presets "
+                    f"({', '.join(presets(s))})"
+                )
         check_training(s)
         for name in presets(s):
             for variant in VARIANTS:
@@ -109,20 +118,26 @@ def check_training(settings) -> None:
         return  # the format's train split (or --ablation-train-frames as its split) is the paper's
     from fdnet.data.dataset import check_training_frames, frame_ranges_overlap
 
-    check_training_frames(settings.ablation_train_frames, settings.frames, "--ablation-train-frames",
-                          "--ablation-preset")
+    check_training_frames(
+        settings.ablation_train_frames, settings.frames, "--ablation-train-frames", "--ablation-preset"
+    )
     for scope, overrides in settings.ablation_overrides.items():
         frames = overrides.get("validation.frames")
         if frames and frame_ranges_overlap(str(frames), settings.frames):
-            raise ConfigError(f"--ablation-set {scope + ':' if scope else ''}validation.frames={frames} overlaps the "
-                              f"evaluated frames --frames {settings.frames or 'all'}: validate on other frames")
+            raise ConfigError(
+                f"--ablation-set {scope + ':' if scope else ''}validation.frames={frames} overlaps the "
+                f"evaluated frames --frames {settings.frames or 'all'}: validate on other frames"
+            )
 
 
 def overrides_for(settings, preset_name: str) -> dict:
     """The settings the experiment trains ``preset_name``'s variants with, beside the switches:
     :data:`SCHEDULES`, then ``--ablation-set`` for every preset, then for this one."""
-    return {**SCHEDULES.get(preset_name, {}), **settings.ablation_overrides.get("", {}),
-            **settings.ablation_overrides.get(preset_name, {})}
+    return {
+        **SCHEDULES.get(preset_name, {}),
+        **settings.ablation_overrides.get("", {}),
+        **settings.ablation_overrides.get(preset_name, {}),
+    }
 
 
 def training_config(settings, preset_name: str, variant: str, seed: int | None = None):
@@ -132,9 +147,12 @@ def training_config(settings, preset_name: str, variant: str, seed: int | None =
     from fdnet.methods.fdnet.config import preset, validate
 
     config = preset(preset_name)
-    data = dataclasses.replace(config.data, root=str(settings.data),
-                               conditions=tuple(settings.conditions or ()),
-                               dataset_format=settings.dataset_format or "")
+    data = dataclasses.replace(
+        config.data,
+        root=str(settings.data),
+        conditions=tuple(settings.conditions or ()),
+        dataset_format=settings.dataset_format or "",
+    )
     if settings.dataset_format:
         data = dataclasses.replace(data, split=settings.ablation_train_frames or "")
     else:
@@ -184,8 +202,13 @@ def _train(ctx, preset_name: str, variant: str, folder: Path, seed: int | None =
     ctx.log(f"[{NAME}] {preset_name}/{variant}: training {config.total_steps} steps into {folder}")
     threads = torch.get_num_threads()
     try:
-        train(config, folder, resume=runs.is_run(folder), progress=ctx.settings.progress,
-              command=ctx.settings.command or "fdnet reproduce")
+        train(
+            config,
+            folder,
+            resume=runs.is_run(folder),
+            progress=ctx.settings.progress,
+            command=ctx.settings.command or "fdnet reproduce",
+        )
     finally:
         torch.set_num_threads(threads)  # the preset sets its own; the experiments after keep --threads
 
@@ -196,8 +219,10 @@ def variant_of(config) -> str:
     for variant, switches in VARIANTS.items():
         if sorted(key.partition(".")[2] for key in switches) == sorted(off):
             return variant
-    raise ConfigError(f"a run without {' and '.join(off)} is none of this experiment's variants "
-                      f"({', '.join(VARIANTS)}: one part removed at a time)")
+    raise ConfigError(
+        f"a run without {' and '.join(off)} is none of this experiment's variants "
+        f"({', '.join(VARIANTS)}: one part removed at a time)"
+    )
 
 
 def ablation_runs(ctx) -> dict[str, dict[str, list[Path]]]:
@@ -213,12 +238,15 @@ def ablation_runs(ctx) -> dict[str, dict[str, list[Path]]]:
         config = load_config(weights_folder(folder), FDNetRunConfig)
         actual = variant_of(config)
         if actual != variant:
-            raise ConfigError(f"--ablation-runs {variant}={folder}: that run was trained as {actual} "
-                              f"({', '.join(f'loss.{n}=false' for n in config.ablated()) or 'every switch on'})")
+            raise ConfigError(
+                f"--ablation-runs {variant}={folder}: that run was trained as {actual} "
+                f"({', '.join(f'loss.{n}=false' for n in config.ablated()) or 'every switch on'})"
+            )
         group = groups.setdefault(config.preset, {})
         if variant in group:
-            raise ConfigError(f"--ablation-runs: two {config.preset} runs for {variant} ({group[variant][0]}, "
-                              f"{folder})")
+            raise ConfigError(
+                f"--ablation-runs: two {config.preset} runs for {variant} ({group[variant][0]}, " f"{folder})"
+            )
         group[variant] = [Path(folder)]
     for name in presets(s):
         group = groups.setdefault(name, {})
@@ -230,8 +258,13 @@ def ablation_runs(ctx) -> dict[str, dict[str, list[Path]]]:
 
 def _schedule(config) -> dict:
     autoencoder, critic, joint = config.stage_steps
-    return {"autoencoder": autoencoder, "critic": critic, "joint": joint, "total": config.total_steps,
-            "critic_updates_per_step": config.schedule.critic_updates_per_step if config.loss.adversarial else 0}
+    return {
+        "autoencoder": autoencoder,
+        "critic": critic,
+        "joint": joint,
+        "total": config.total_steps,
+        "critic_updates_per_step": config.schedule.critic_updates_per_step if config.loss.adversarial else 0,
+    }
 
 
 def weights_stage(schedule: dict, step: int) -> str:
@@ -278,12 +311,17 @@ def _compare(ctx, pair, handles: dict) -> tuple[dict, list[dict]]:
     for variant, result in results.items():
         metrics = result.metrics[ctx.protocol]
         margin = result.by_acceptance.get(DEFAULT_ACCEPTANCE, {}).get(ctx.protocol)
-        row = {"variant": variant, "recall_at_1": finite_or_none(metrics.recall_at_n[1]),
-               "recall_at_100_precision": finite_or_none(metrics.recall_at_100_precision),
-               "recall_at_100_precision_margin": finite_or_none(margin.recall_at_100_precision)
-               if margin is not None else None,
-               "precision_at_max_recall": finite_or_none(metrics.precision_at_max_recall),
-               "auc_pr": finite_or_none(metrics.auc_pr), "pr_curve": metrics.curve.to_dict()}
+        row = {
+            "variant": variant,
+            "recall_at_1": finite_or_none(metrics.recall_at_n[1]),
+            "recall_at_100_precision": finite_or_none(metrics.recall_at_100_precision),
+            "recall_at_100_precision_margin": finite_or_none(margin.recall_at_100_precision)
+            if margin is not None
+            else None,
+            "precision_at_max_recall": finite_or_none(metrics.precision_at_max_recall),
+            "auc_pr": finite_or_none(metrics.auc_pr),
+            "pr_curve": metrics.curve.to_dict(),
+        }
         if variant != "full" and "full" in results:
             row["against_full"] = _mcnemar(right["full"], right[variant])
             mine, _ = ctx.pair_vectors(handles[variant], pair.split)
@@ -312,9 +350,14 @@ def _over_seeds(ctx, pair, seeded: dict, seeds: dict, first_rows: list[dict]) ->
         if len(seeded[variant]) < 2:
             continue
         runs = [(seeds[variant][k], by_seed[k][variant]) for k in range(len(seeded[variant]))]
-        row["per_seed"] = [{"seed": seed, **{key: r[key] for key in METRICS},
-                            **{key: r[key] for key in ("against_full", "same_content_vectors_as_full") if key in r}}
-                           for seed, r in runs]
+        row["per_seed"] = [
+            {
+                "seed": seed,
+                **{key: r[key] for key in METRICS},
+                **{key: r[key] for key in ("against_full", "same_content_vectors_as_full") if key in r},
+            }
+            for seed, r in runs
+        ]
         row["spread"] = {key: spread([r[key] for _, r in runs]) for key in METRICS}
         row.update({key: row["spread"][key]["mean"] for key in METRICS})
         if "same_content_vectors_as_full" in row:
@@ -325,10 +368,16 @@ def run(ctx) -> dict:
     from fdnet.decisions.acceptance import DEFAULT_ACCEPTANCE
 
     options = {k: v for k, v in ctx.settings.method_options.get("fdnet", {}).items() if k != "checkpoint"}
-    groups = [_preset_group(ctx, preset_name, variants, options)
-              for preset_name, variants in ablation_runs(ctx).items()]
-    document = {"variants": list(VARIANTS), "removes": REMOVES, "acceptance": DEFAULT_ACCEPTANCE, "groups": groups,
-                "train_frames": ctx.settings.ablation_train_frames}
+    groups = [
+        _preset_group(ctx, preset_name, variants, options) for preset_name, variants in ablation_runs(ctx).items()
+    ]
+    document = {
+        "variants": list(VARIANTS),
+        "removes": REMOVES,
+        "acceptance": DEFAULT_ACCEPTANCE,
+        "groups": groups,
+        "train_frames": ctx.settings.ablation_train_frames,
+    }
     if ctx.settings.seeds > 1:
         document["seeds"] = ctx.settings.seeds  # runs per variant trained here (--seeds N)
     return document
@@ -340,10 +389,19 @@ def _preset_group(ctx, preset_name: str, variants: dict[str, list[Path]], option
     from fdnet.evaluation import plots
 
     # variant -> one handle per run (per seed); the first seed's has a single run's label
-    seeded = {variant: [ctx.add_method(f"fdnet[{preset_name}/{variant if k == 0 else folder.name}]", "fdnet",
-                                       {**options, "checkpoint": str(folder)}, required=True, compared=False)
-                        for k, folder in enumerate(folders)]
-              for variant, folders in variants.items()}
+    seeded = {
+        variant: [
+            ctx.add_method(
+                f"fdnet[{preset_name}/{variant if k == 0 else folder.name}]",
+                "fdnet",
+                {**options, "checkpoint": str(folder)},
+                required=True,
+                compared=False,
+            )
+            for k, folder in enumerate(folders)
+        ]
+        for variant, folders in variants.items()
+    }
     handles = {v: hs[0] for v, hs in seeded.items()}
     seeds = {v: [h.descriptor.config.runtime.seed for h in hs] for v, hs in seeded.items()}
     runs_info = _runs_info(variants, seeded)
@@ -356,20 +414,32 @@ def _preset_group(ctx, preset_name: str, variants: dict[str, list[Path]], option
         results, rows_out = _compare(ctx, pair, handles)
         if any(len(hs) > 1 for hs in seeded.values()):
             _over_seeds(ctx, pair, seeded, seeds, rows_out)
-        plots.draw_pr_curves(ax, {v: (r.metrics[ctx.protocol].curve, r.metrics[ctx.protocol].auc_pr)
-                                  for v, r in results.items()})
+        plots.draw_pr_curves(
+            ax, {v: (r.metrics[ctx.protocol].curve, r.metrics[ctx.protocol].auc_pr) for v, r in results.items()}
+        )
         ax.set_title(pair.label, fontsize="medium")
-        pairs.append({"reference": pair.reference, "query": pair.query,
-                      "num_queries": int(pair.split.ground_truth.num_queries), "variants": rows_out})
-    for ax in list(axes.flat)[len(ctx.pairs):]:
+        pairs.append(
+            {
+                "reference": pair.reference,
+                "query": pair.query,
+                "num_queries": int(pair.split.ground_truth.num_queries),
+                "variants": rows_out,
+            }
+        )
+    for ax in list(axes.flat)[len(ctx.pairs) :]:
         ax.axis("off")
     fig.suptitle(f"{preset_name}: PR curves per variant ({ctx.protocol_label})", fontsize="medium")
     fig.tight_layout()
     figure = plots.save_figure(fig, ctx.figure_path(f"pr_{preset_name}.png"))
-    group = {"preset": preset_name, "trained_here": preset_name in presets(ctx.settings),
-             "settings": overrides_for(ctx.settings, preset_name) if preset_name in presets(ctx.settings)
-             else {}, "runs": runs_info, "pairs": pairs, "figure": ctx.relative(figure),
-             "missing": [v for v in VARIANTS if v not in handles]}
+    group = {
+        "preset": preset_name,
+        "trained_here": preset_name in presets(ctx.settings),
+        "settings": overrides_for(ctx.settings, preset_name) if preset_name in presets(ctx.settings) else {},
+        "runs": runs_info,
+        "pairs": pairs,
+        "figure": ctx.relative(figure),
+        "missing": [v for v in VARIANTS if v not in handles],
+    }
     if any(len(s) > 1 for s in seeds.values()):
         group["seeds"] = seeds  # variant -> the seeds of its runs, in run order
     return group
@@ -386,9 +456,18 @@ def _runs_info(variants: dict[str, list[Path]], seeded: dict) -> list[dict]:
             config = h.descriptor.config
             against = full[min(k, len(full) - 1)].descriptor.config if full else None
             schedule = _schedule(config)
-            runs_info.append({"variant": v, "removes": REMOVES[v], "run": str(variants[v][k]),
-                              "step": h.descriptor.step, "seed": config.runtime.seed,
-                              "schedule": schedule, "weights_stage": weights_stage(schedule, h.descriptor.step),
-                              "differences_from_full": _differences(against, config)
-                              if against is not None and v != "full" else []})
+            runs_info.append(
+                {
+                    "variant": v,
+                    "removes": REMOVES[v],
+                    "run": str(variants[v][k]),
+                    "step": h.descriptor.step,
+                    "seed": config.runtime.seed,
+                    "schedule": schedule,
+                    "weights_stage": weights_stage(schedule, h.descriptor.step),
+                    "differences_from_full": _differences(against, config)
+                    if against is not None and v != "full"
+                    else [],
+                }
+            )
     return runs_info

@@ -77,8 +77,9 @@ class DescriptorCache:
         if not np.issubdtype(cached.dtype, np.number) or not np.isfinite(cached).all():
             # a damaged or hand-edited cache file would surface later as "scores contain NaN" with no
             # file named: say which one, and describe again
-            logging.getLogger(__name__).warning(f"{path}: cached vectors hold NaN or infinite values; describing "
-                                                "the images again")
+            logging.getLogger(__name__).warning(
+                f"{path}: cached vectors hold NaN or infinite values; describing " "the images again"
+            )
             return None
         return cached
 
@@ -92,8 +93,11 @@ class DescriptorCache:
         path = self.path(parts)
         with atomic_path(path) as tmp, open(tmp, "wb") as handle:
             np.save(handle, vectors, allow_pickle=False)
-        atomic_write_text(path.with_suffix(".json"), json.dumps(
-            {"label": label, "shape": list(vectors.shape), **parts}, indent=1, sort_keys=True, default=str) + "\n")
+        atomic_write_text(
+            path.with_suffix(".json"),
+            json.dumps({"label": label, "shape": list(vectors.shape), **parts}, indent=1, sort_keys=True, default=str)
+            + "\n",
+        )
         self.computed.append(label)
         self._mark_used(path)
         self._keep_under_cap()
@@ -127,8 +131,9 @@ class DescriptorCache:
                 with contextlib.suppress(OSError):
                     file.unlink()
             total -= size
-            logging.getLogger(__name__).debug("%s: removed from the descriptor cache to keep it under %d bytes",
-                                              path, self.max_bytes)
+            logging.getLogger(__name__).debug(
+                "%s: removed from the descriptor cache to keep it under %d bytes", path, self.max_bytes
+            )
 
 
 #: the descriptor cache's default size cap (bytes); ``$FDNET_CACHE_MAX_MB`` sets another

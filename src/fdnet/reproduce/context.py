@@ -117,17 +117,23 @@ def build_pairs(settings: ReproduceSettings) -> list[Pair]:
         if not settings.conditions:
             one = open_split(settings.data, dataset_format=name, split=split, **options)
             return [Pair(one.reference.name, one.query.name, one)]
-        return [Pair(r, q, open_split(settings.data, r, q, dataset_format=name, split=split, **options))
-                for r, q in itertools.permutations(settings.conditions, 2)]
+        return [
+            Pair(r, q, open_split(settings.data, r, q, dataset_format=name, split=split, **options))
+            for r, q in itertools.permutations(settings.conditions, 2)
+        ]
     if settings.split or settings.format_options:
         raise ConfigError("--split and --format-set need --dataset-format")
     dataset = RouteDataset.from_folder(settings.data, settings.conditions)
     if len(dataset.conditions) < 2:
-        raise ConfigError(f"{settings.data}: needs at least two conditions to compare, found "
-                          f"{', '.join(dataset.conditions) or 'none'}")
+        raise ConfigError(
+            f"{settings.data}: needs at least two conditions to compare, found "
+            f"{', '.join(dataset.conditions) or 'none'}"
+        )
     start, end = parse_frame_range(settings.frames)
-    return [Pair(r, q, aligned_split(dataset, r, q, settings.tolerance or 0, start, end))
-            for r, q in itertools.permutations(dataset.conditions, 2)]
+    return [
+        Pair(r, q, aligned_split(dataset, r, q, settings.tolerance or 0, start, end))
+        for r, q in itertools.permutations(dataset.conditions, 2)
+    ]
 
 
 class MethodHandle:
@@ -201,15 +207,17 @@ class _AppearanceView(Descriptor):
 class Context:
     """What the experiments share in one run: settings, pairs, methods, the cache, the log."""
 
-    def __init__(self, settings: ReproduceSettings, pairs: list[Pair], factory: Callable,
-                 log: Callable[[str], None]) -> None:
+    def __init__(
+        self, settings: ReproduceSettings, pairs: list[Pair], factory: Callable, log: Callable[[str], None]
+    ) -> None:
         self.settings = settings
         self.pairs = pairs
         #: the protocol every experiment measures with (``--protocol``); the paper's by default
         self.protocol = settings.protocol
         self.thresholds = THRESHOLDS if self.protocol == RECALL_OVER_QUERIES else None
-        self.protocol_label = (f"{self.protocol}, {THRESHOLDS} thresholds" if self.thresholds
-                               else f"{self.protocol}, every top-1 score")
+        self.protocol_label = (
+            f"{self.protocol}, {THRESHOLDS} thresholds" if self.thresholds else f"{self.protocol}, every top-1 score"
+        )
         self.factory = factory
         self.log = log
         self.out = Path(settings.out)
@@ -246,20 +254,32 @@ class Context:
         return [{"method": h.label, "reason": h.reason} for h in self.methods() if not h.available]
 
     # --------------------------------------------------------------------- vectors
-    def vectors(self, handle: MethodHandle, paths: Sequence[Path], fit_paths: Sequence[Path] | None = None,
-                kind: str = "content", what: str = "") -> np.ndarray:
+    def vectors(
+        self,
+        handle: MethodHandle,
+        paths: Sequence[Path],
+        fit_paths: Sequence[Path] | None = None,
+        kind: str = "content",
+        what: str = "",
+    ) -> np.ndarray:
         """``handle``'s vectors of ``paths`` (``kind`` "content", or "appearance" for FDNet's
         v_a), from the cache or described now."""
         from fdnet.descriptors.base import describe_paths
 
         paths = list(paths)
         d = handle.descriptor
-        parts = {**handle.identity, "kind": kind, "images": image_list_key(paths),
-                 "fitted_on": image_list_key(fit_paths) if d.needs_fit else None}
+        parts = {
+            **handle.identity,
+            "kind": kind,
+            "images": image_list_key(paths),
+            "fitted_on": image_list_key(fit_paths) if d.needs_fit else None,
+        }
 
         def compute() -> np.ndarray:
-            self.log(f"[{self.experiment}] {handle.label}: describing {what or 'images'} ({len(paths)} images"
-                     f"{', ' + kind if kind != 'content' else ''})")
+            self.log(
+                f"[{self.experiment}] {handle.label}: describing {what or 'images'} ({len(paths)} images"
+                f"{', ' + kind if kind != 'content' else ''})"
+            )
             describer = handle.fitted(fit_paths)
             if kind == "appearance":
                 describer = _AppearanceView(describer)
@@ -281,8 +301,11 @@ class Context:
         memo = (handle.label, key)
         if memo not in self._similarities:
             q, r = self.pair_vectors(handle, split)
-            compare = handle.fitted(split.reference.paths).similarity if handle.descriptor.needs_fit \
+            compare = (
+                handle.fitted(split.reference.paths).similarity
+                if handle.descriptor.needs_fit
                 else handle.descriptor.similarity
+            )
             self._similarities[memo] = similarity_matrix(q, r, compare)
         return self._similarities[memo]
 
@@ -296,12 +319,19 @@ class Context:
 
         memo = (handle.label, key)
         if memo not in self._results:
-            scoring = ScoringSettings((self.protocol,), self.thresholds,
-                                      acceptance=list(dict.fromkeys(["raw", DEFAULT_ACCEPTANCE])))
-            result = evaluate_matrix(self.similarity(handle, split, key), split.ground_truth, handle.label, scoring,
-                                     dataset=split.description, query_paths=split.query.paths,
-                                     reference_paths=split.reference.paths,
-                                     similarity_ceiling=float(handle.descriptor.similarity_ceiling))
+            scoring = ScoringSettings(
+                (self.protocol,), self.thresholds, acceptance=list(dict.fromkeys(["raw", DEFAULT_ACCEPTANCE]))
+            )
+            result = evaluate_matrix(
+                self.similarity(handle, split, key),
+                split.ground_truth,
+                handle.label,
+                scoring,
+                dataset=split.description,
+                query_paths=split.query.paths,
+                reference_paths=split.reference.paths,
+                similarity_ceiling=float(handle.descriptor.similarity_ceiling),
+            )
             result.settings = dict(handle.descriptor.settings())
             self._results[memo] = result
         return self._results[memo]

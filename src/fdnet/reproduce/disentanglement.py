@@ -20,8 +20,10 @@ from fdnet.reproduce.sections import Figure, Heading, Paragraph, Table, finite_o
 
 NAME = "disentanglement"
 TITLE = "Content vs appearance (disentanglement)"
-PAPER = ("Fig. 11 (|content difference| histograms, same vs different place), Fig. 12 (appearance vectors per "
-         "place and season), Fig. 13 (2-D embedding of appearance vectors by condition)")
+PAPER = (
+    "Fig. 11 (|content difference| histograms, same vs different place), Fig. 12 (appearance vectors per "
+    "place and season), Fig. 13 (2-D embedding of appearance vectors by condition)"
+)
 
 #: the paper's reading of Fig. 11: same-place differences stay below 0.05
 PAPER_THRESHOLD = 0.05
@@ -87,15 +89,20 @@ def _content_differences(ctx, handle, pair, rng) -> dict:
     # Distances between whole vectors: a place under another condition vs another place under
     # the same condition. Content should keep the place (first smaller), appearance the condition.
     shuffled = rng.permutation(len(queries))
+
     def distances(query_vectors, reference_vectors) -> dict:
         across = np.linalg.norm(query_vectors[queries] - reference_vectors[same], axis=1)
         within = np.linalg.norm(query_vectors[queries] - query_vectors[queries[shuffled]], axis=1)
         distinct = queries != queries[shuffled]
-        return {"same_place_other_condition": finite_or_none(across.mean()),
-                "other_place_same_condition": finite_or_none(within[distinct].mean()) if distinct.any() else None}
+        return {
+            "same_place_other_condition": finite_or_none(across.mean()),
+            "other_place_same_condition": finite_or_none(within[distinct].mean()) if distinct.any() else None,
+        }
 
     return {
-        "reference": pair.reference, "query": pair.query, "num_places": int(len(queries)),
+        "reference": pair.reference,
+        "query": pair.query,
+        "num_places": int(len(queries)),
         "mean_abs_difference_same_place": float(same_diff.mean()),
         "mean_abs_difference_other_place": float(other_diff.mean()),
         "share_below_threshold_same_place": float((same_diff < PAPER_THRESHOLD).mean()),
@@ -126,9 +133,20 @@ def _embeddings(vectors: dict[str, np.ndarray], max_points: int, metric: str) ->
     # for 120 points, 16 vs 35 s for 600), and no approximation.
     tsne_method = "exact" if len(x) <= 1000 else "barnes_hut"
     out = {"labels": labels, "full_silhouette": finite_or_none(silhouette_score(x, labels, metric=metric))}
-    for method, reducer in (("pca", PCA(n_components=2, random_state=0)),
-                            ("tsne", TSNE(n_components=2, perplexity=perplexity, init="pca", random_state=0,
-                                          learning_rate="auto", method=tsne_method))):
+    for method, reducer in (
+        ("pca", PCA(n_components=2, random_state=0)),
+        (
+            "tsne",
+            TSNE(
+                n_components=2,
+                perplexity=perplexity,
+                init="pca",
+                random_state=0,
+                learning_rate="auto",
+                method=tsne_method,
+            ),
+        ),
+    ):
         points = reducer.fit_transform(x)
         out[method] = points
         out[f"{method}_silhouette"] = finite_or_none(silhouette_score(points, labels))
@@ -170,8 +188,14 @@ def _places_figure(ctx, handle, path) -> tuple[list, object]:
                 lines.append((condition, split.query.paths[found[r]].name, vectors[found[r]]))
         for condition, name, vector in lines:
             ax.plot(vector[:components], label=f"{condition}: {name}", linewidth=1)
-            places.append({"place": f"T{row + 1}", "condition": condition, "image": name,
-                           "distance_to_first": float(np.linalg.norm(vector - anchor_vectors[r]))})
+            places.append(
+                {
+                    "place": f"T{row + 1}",
+                    "condition": condition,
+                    "image": name,
+                    "distance_to_first": float(np.linalg.norm(vector - anchor_vectors[r])),
+                }
+            )
         ax.set_ylabel(f"T{row + 1}")
         ax.legend(loc="upper right", fontsize="x-small")
     axes[-1, 0].set_xlabel(f"appearance vector component (first {components} of {anchor_vectors.shape[1]})")
@@ -212,8 +236,10 @@ def run(ctx) -> dict:
     content = {c: ctx.vectors(handle, t.paths, what=c) for c, t in traverses.items()}
     appearance = {c: ctx.vectors(handle, t.paths, kind="appearance", what=c) for c, t in traverses.items()}
     ctx.log(f"[{NAME}] PCA and t-SNE of {sum(len(v) for v in content.values())} images' vectors")
-    embedded = {"appearance": _embeddings(appearance, ctx.settings.embedding_points, "euclidean"),
-                "content": _embeddings(content, ctx.settings.embedding_points, "cosine")}
+    embedded = {
+        "appearance": _embeddings(appearance, ctx.settings.embedding_points, "euclidean"),
+        "content": _embeddings(content, ctx.settings.embedding_points, "cosine"),
+    }
     fig, axes = plt.subplots(2, 2, figsize=(10, 9))
     scores = []
     for row, vector in enumerate(("appearance", "content")):
@@ -224,13 +250,22 @@ def run(ctx) -> dict:
                 mask = e["labels"] == condition
                 ax.scatter(e[method][mask, 0], e[method][mask, 1], s=8, alpha=0.7, label=condition)
             score = e[f"{method}_silhouette"]
-            ax.set_title(f"{vector} vectors, {'PCA' if method == 'pca' else 't-SNE'}: silhouette {number(score)}",
-                         fontsize="medium")
+            ax.set_title(
+                f"{vector} vectors, {'PCA' if method == 'pca' else 't-SNE'}: silhouette {number(score)}",
+                fontsize="medium",
+            )
             ax.set_xticks([])
             ax.set_yticks([])
             ax.legend(fontsize="x-small", markerscale=2)
-            scores.append({"vector": vector, "embedding": method, "silhouette_2d": score,
-                           "silhouette_full": e["full_silhouette"], "points": int(len(e["labels"]))})
+            scores.append(
+                {
+                    "vector": vector,
+                    "embedding": method,
+                    "silhouette_2d": score,
+                    "silhouette_full": e["full_silhouette"],
+                    "points": int(len(e["labels"])),
+                }
+            )
     fig.tight_layout()
     embedding_figure = plots.save_figure(fig, ctx.figure_path("embeddings.png"))
     return {
@@ -258,18 +293,41 @@ def _differences_blocks(document: dict) -> list:
         if "mean_abs_difference_same_place" not in d:
             rows.append([f"{d['query']} vs {d['reference']}", str(d["num_places"])] + ["-"] * 5)
             continue
-        rows.append([f"{d['query']} vs {d['reference']}", str(d["num_places"]),
-                     number(d["mean_abs_difference_same_place"], 4), number(d["mean_abs_difference_other_place"], 4),
-                     number(d["share_below_threshold_same_place"]), number(d["share_below_threshold_other_place"]),
-                     number(d["same_place_closer_auc"])])
-    blocks.append(Table(["conditions", "places", "mean |dv_c| same place", "mean |dv_c| other place",
-                         f"share < {PAPER_THRESHOLD} same", f"share < {PAPER_THRESHOLD} other",
-                         "P(same place closer)"], rows,
-                        "Element-wise differences of unit content vectors (FDNet's descriptor); P(same place closer) "
-                        "= how often a same-place pair's mean difference is below a different-place pair's (ROC AUC)"))
+        rows.append(
+            [
+                f"{d['query']} vs {d['reference']}",
+                str(d["num_places"]),
+                number(d["mean_abs_difference_same_place"], 4),
+                number(d["mean_abs_difference_other_place"], 4),
+                number(d["share_below_threshold_same_place"]),
+                number(d["share_below_threshold_other_place"]),
+                number(d["same_place_closer_auc"]),
+            ]
+        )
+    blocks.append(
+        Table(
+            [
+                "conditions",
+                "places",
+                "mean |dv_c| same place",
+                "mean |dv_c| other place",
+                f"share < {PAPER_THRESHOLD} same",
+                f"share < {PAPER_THRESHOLD} other",
+                "P(same place closer)",
+            ],
+            rows,
+            "Element-wise differences of unit content vectors (FDNet's descriptor); P(same place closer) "
+            "= how often a same-place pair's mean difference is below a different-place pair's (ROC AUC)",
+        )
+    )
     if document.get("histogram_figure"):
-        blocks.append(Figure(document["histogram_figure"], "Histograms of |v_c(x) - v_c(y)|: same place under two "
-                                                           "conditions vs different places (dotted: the paper's 0.05)"))
+        blocks.append(
+            Figure(
+                document["histogram_figure"],
+                "Histograms of |v_c(x) - v_c(y)|: same place under two "
+                "conditions vs different places (dotted: the paper's 0.05)",
+            )
+        )
     rows = []
     for d in document["content_differences"]:
         for vector in ("content", "appearance"):
@@ -277,12 +335,23 @@ def _differences_blocks(document: dict) -> list:
             if not distances:
                 continue
             across, within = distances["same_place_other_condition"], distances["other_place_same_condition"]
-            rows.append([f"{d['query']} vs {d['reference']}", vector, number(across), number(within),
-                         number(across / within if across is not None and within else None)])
-    blocks.append(Table(["conditions", "vector", "same place, other condition", "other place, same condition",
-                         "ratio"], rows,
-                        "Mean Euclidean distance between whole vectors: content should keep the place (ratio below 1), "
-                        "appearance the condition (ratio above 1)"))
+            rows.append(
+                [
+                    f"{d['query']} vs {d['reference']}",
+                    vector,
+                    number(across),
+                    number(within),
+                    number(across / within if across is not None and within else None),
+                ]
+            )
+    blocks.append(
+        Table(
+            ["conditions", "vector", "same place, other condition", "other place, same condition", "ratio"],
+            rows,
+            "Mean Euclidean distance between whole vectors: content should keep the place (ratio below 1), "
+            "appearance the condition (ratio above 1)",
+        )
+    )
     return blocks
 
 
@@ -290,12 +359,16 @@ def _places_blocks(document: dict) -> list:
     """Fig. 12: the appearance vectors of the places drawn, with their distances."""
     blocks: list = [Heading("Appearance vectors of a few places (Fig. 12)")]
     if document.get("places_figure"):
-        blocks.append(Table(["place", "condition", "image", "|v_a - v_a of the first condition|"],
-                            [[p["place"], p["condition"], p["image"], number(p["distance_to_first"])]
-                             for p in document["places"]],
-                            "The places drawn below: within a place, a distance is the change of condition"))
-        blocks.append(Figure(document["places_figure"],
-                             "Appearance vectors v_a of the same places under each condition"))
+        blocks.append(
+            Table(
+                ["place", "condition", "image", "|v_a - v_a of the first condition|"],
+                [[p["place"], p["condition"], p["image"], number(p["distance_to_first"])] for p in document["places"]],
+                "The places drawn below: within a place, a distance is the change of condition",
+            )
+        )
+        blocks.append(
+            Figure(document["places_figure"], "Appearance vectors v_a of the same places under each condition")
+        )
     return blocks
 
 
@@ -303,17 +376,38 @@ def _embedding_blocks(document: dict) -> list:
     """Fig. 13: the silhouettes by condition of each embedding, and whether appearance separates
     the conditions more than content, as the paper expects."""
     blocks: list = [Heading("2-D embeddings coloured by condition (Fig. 13)")]
-    rows = [[s["vector"], "PCA" if s["embedding"] == "pca" else "t-SNE", str(s["points"]), number(s["silhouette_2d"]),
-             number(s["silhouette_full"])] for s in document["embeddings"]]
-    blocks.append(Table(["vectors", "embedding", "points", "silhouette (2-D)", "silhouette (full vectors)"], rows,
-                        "Silhouette by condition: near 1 = conditions form separate clusters, near 0 or below = mixed"))
+    rows = [
+        [
+            s["vector"],
+            "PCA" if s["embedding"] == "pca" else "t-SNE",
+            str(s["points"]),
+            number(s["silhouette_2d"]),
+            number(s["silhouette_full"]),
+        ]
+        for s in document["embeddings"]
+    ]
+    blocks.append(
+        Table(
+            ["vectors", "embedding", "points", "silhouette (2-D)", "silhouette (full vectors)"],
+            rows,
+            "Silhouette by condition: near 1 = conditions form separate clusters, near 0 or below = mixed",
+        )
+    )
     full = {s["vector"]: s["silhouette_full"] for s in document["embeddings"]}
     if full.get("appearance") is not None and full.get("content") is not None:
         expected = full["appearance"] > full["content"]
-        blocks.append(Paragraph(
-            f"Appearance vectors separate the conditions {'more' if expected else 'less'} than content vectors "
-            f"(silhouette {number(full['appearance'])} vs {number(full['content'])} on the full vectors): "
-            + ("as the paper expects." if expected else "not what the paper expects."), note=not expected))
-    blocks.append(Figure(document["embedding_figure"], "PCA and t-SNE of appearance (top) and content (bottom) "
-                                                       "vectors, coloured by condition"))
+        blocks.append(
+            Paragraph(
+                f"Appearance vectors separate the conditions {'more' if expected else 'less'} than content vectors "
+                f"(silhouette {number(full['appearance'])} vs {number(full['content'])} on the full vectors): "
+                + ("as the paper expects." if expected else "not what the paper expects."),
+                note=not expected,
+            )
+        )
+    blocks.append(
+        Figure(
+            document["embedding_figure"],
+            "PCA and t-SNE of appearance (top) and content (bottom) " "vectors, coloured by condition",
+        )
+    )
     return blocks

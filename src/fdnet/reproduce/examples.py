@@ -28,31 +28,57 @@ def run(ctx) -> dict:
             best = result.retrieved[:, 0]
             correct = split.ground_truth.correct_mask(best[:, None])[:, 0]
             matches[handle.label] = (best, correct)
-            rows.append({"method": handle.label,
-                         "best": [int(best[q]) for q in chosen],
-                         "best_names": [split.reference.paths[best[q]].name for q in chosen],
-                         "correct": [bool(correct[q]) for q in chosen]})
-        figure = plots.plot_match_grid(split.query.paths, split.reference.paths, matches,
-                                       ctx.figure_path(f"examples_{pair.slug}.jpg"), count=ctx.settings.examples,
-                                       title=f"{pair.label}: query (top row), then each method's best match")
-        pairs.append({"reference": pair.reference, "query": pair.query,
-                      "queries": [int(q) for q in chosen],
-                      "query_names": [split.query.paths[q].name for q in chosen],
-                      "methods": rows, "figure": ctx.relative(figure)})
+            rows.append(
+                {
+                    "method": handle.label,
+                    "best": [int(best[q]) for q in chosen],
+                    "best_names": [split.reference.paths[best[q]].name for q in chosen],
+                    "correct": [bool(correct[q]) for q in chosen],
+                }
+            )
+        figure = plots.plot_match_grid(
+            split.query.paths,
+            split.reference.paths,
+            matches,
+            ctx.figure_path(f"examples_{pair.slug}.jpg"),
+            count=ctx.settings.examples,
+            title=f"{pair.label}: query (top row), then each method's best match",
+        )
+        pairs.append(
+            {
+                "reference": pair.reference,
+                "query": pair.query,
+                "queries": [int(q) for q in chosen],
+                "query_names": [split.query.paths[q].name for q in chosen],
+                "methods": rows,
+                "figure": ctx.relative(figure),
+            }
+        )
     return {"pairs": pairs}
 
 
 def render(document: dict) -> list:
-    blocks: list = [Paragraph("Each column is a query; each row below it a method's best match, framed green "
-                              "when it is a true match and red when not.")]
+    blocks: list = [
+        Paragraph(
+            "Each column is a query; each row below it a method's best match, framed green "
+            "when it is a true match and red when not."
+        )
+    ]
     for pair in document["pairs"]:
         blocks.append(Heading(f"{pair_name(pair['query'], pair['reference'])}"))
         header = ["method"] + [f"query {q} ({name})" for q, name in zip(pair["queries"], pair["query_names"])]
-        rows = [[m["method"]] + [f"{name} ({'correct' if ok else 'wrong'})"
-                                 for name, ok in zip(m["best_names"], m["correct"])] for m in pair["methods"]]
-        rows.append(["correct, of these queries"] + [
-            f"{sum(m['correct'][i] for m in pair['methods'])} of {len(pair['methods'])} methods"
-            for i in range(len(pair["queries"]))])
+        rows = [
+            [m["method"]]
+            + [f"{name} ({'correct' if ok else 'wrong'})" for name, ok in zip(m["best_names"], m["correct"])]
+            for m in pair["methods"]
+        ]
+        rows.append(
+            ["correct, of these queries"]
+            + [
+                f"{sum(m['correct'][i] for m in pair['methods'])} of {len(pair['methods'])} methods"
+                for i in range(len(pair["queries"]))
+            ]
+        )
         name = pair_name(pair["query"], pair["reference"])
         blocks.append(Table(header, rows, f"Best match per query and method, {name}"))
         blocks.append(Figure(pair["figure"], f"Example matches, {pair_name(pair['query'], pair['reference'])}"))

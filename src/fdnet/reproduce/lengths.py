@@ -33,8 +33,10 @@ RERUN_FLAGS = "--length-preset cpu --length-train-frames START:END (or --length-
 def unavailable(ctx) -> str | None:
     s = ctx.settings
     if not s.length_runs and not s.length_preset:
-        return ("needs four FDNet runs: --length-runs 256=DIR,512=DIR,1024=DIR,2048=DIR, or --length-preset PRESET "
-                "(with --length-train-frames START:END) to train them here")
+        return (
+            "needs four FDNet runs: --length-runs 256=DIR,512=DIR,1024=DIR,2048=DIR, or --length-preset PRESET "
+            "(with --length-train-frames START:END) to train them here"
+        )
     if s.length_preset:
         check_training(s)  # training on the evaluated frames is an error before any work
     for length, folder in s.length_runs.items():
@@ -50,9 +52,12 @@ def training_config(settings, length: int, seed: int | None = None):
     from fdnet.methods.fdnet.config import preset
 
     config = preset(settings.length_preset)
-    data = dataclasses.replace(config.data, root=str(settings.data),
-                               conditions=tuple(settings.conditions or ()),
-                               dataset_format=settings.dataset_format or "")
+    data = dataclasses.replace(
+        config.data,
+        root=str(settings.data),
+        conditions=tuple(settings.conditions or ()),
+        dataset_format=settings.dataset_format or "",
+    )
     if settings.dataset_format:
         data = dataclasses.replace(data, split=settings.length_train_frames or "")
     else:
@@ -89,8 +94,13 @@ def _train(ctx, length: int, folder: Path, seed: int | None = None) -> None:
     ctx.log(f"[{NAME}] {which}: training with preset {ctx.settings.length_preset} into {folder}")
     threads = torch.get_num_threads()
     try:
-        train(training_config(ctx.settings, length, seed), folder, resume=runs.is_run(folder),
-              progress=ctx.settings.progress, command=ctx.settings.command or "fdnet reproduce")
+        train(
+            training_config(ctx.settings, length, seed),
+            folder,
+            resume=runs.is_run(folder),
+            progress=ctx.settings.progress,
+            command=ctx.settings.command or "fdnet reproduce",
+        )
     finally:
         torch.set_num_threads(threads)  # the preset sets its own; the experiments after keep --threads
 
@@ -129,10 +139,15 @@ def _over_seeds(ctx, pair, handles: list, entry: dict) -> None:
     per_seed = []
     for handle in handles:
         metrics = ctx.result(handle, pair.split, pair.slug).metrics[ctx.protocol]
-        per_seed.append({"seed": handle.descriptor.config.runtime.seed,
-                         "recall_at_100_precision": metrics.recall_at_100_precision,
-                         "precision_at_max_recall": metrics.precision_at_max_recall,
-                         "recall_at_1": metrics.recall_at_n[1], "auc_pr": metrics.auc_pr})
+        per_seed.append(
+            {
+                "seed": handle.descriptor.config.runtime.seed,
+                "recall_at_100_precision": metrics.recall_at_100_precision,
+                "precision_at_max_recall": metrics.precision_at_max_recall,
+                "recall_at_1": metrics.recall_at_n[1],
+                "auc_pr": metrics.auc_pr,
+            }
+        )
     entry["per_seed"] = per_seed
     entry["spread"] = {key: spread([r[key] for r in per_seed]) for key in METRICS}
     entry.update({key: entry["spread"][key]["mean"] for key in METRICS})
@@ -150,11 +165,18 @@ def run(ctx) -> dict:
     for length, folders in length_runs(ctx).items():
         seeded[length] = []
         for k, folder in enumerate(folders):
-            handle = ctx.add_method(f"fdnet_L{length}" if k == 0 else f"fdnet_{folder.name}", "fdnet",
-                                    {**options, "checkpoint": str(folder)}, required=True, compared=False)
+            handle = ctx.add_method(
+                f"fdnet_L{length}" if k == 0 else f"fdnet_{folder.name}",
+                "fdnet",
+                {**options, "checkpoint": str(folder)},
+                required=True,
+                compared=False,
+            )
             if handle.descriptor.dim != length:
-                raise ConfigError(f"{folder}: was given as the L = {length} run but its content vector has "
-                                  f"length {handle.descriptor.dim}")
+                raise ConfigError(
+                    f"{folder}: was given as the L = {length} run but its content vector has "
+                    f"length {handle.descriptor.dim}"
+                )
             seeded[length].append(handle)
     handles = {length: hs[0] for length, hs in seeded.items()}
 
@@ -168,21 +190,28 @@ def run(ctx) -> dict:
         for length, handle in handles.items():
             metrics = ctx.result(handle, pair.split, pair.slug).metrics[ctx.protocol]
             curves[f"L = {length}"] = (metrics.curve, metrics.auc_pr)
-            accuracy.append({"length": length, "reference": pair.reference, "query": pair.query,
-                             "recall_at_100_precision": metrics.recall_at_100_precision,
-                             "precision_at_max_recall": metrics.precision_at_max_recall,
-                             "recall_at_1": metrics.recall_at_n[1], "auc_pr": metrics.auc_pr})
+            accuracy.append(
+                {
+                    "length": length,
+                    "reference": pair.reference,
+                    "query": pair.query,
+                    "recall_at_100_precision": metrics.recall_at_100_precision,
+                    "precision_at_max_recall": metrics.precision_at_max_recall,
+                    "recall_at_1": metrics.recall_at_n[1],
+                    "auc_pr": metrics.auc_pr,
+                }
+            )
             if len(seeded[length]) > 1:
                 _over_seeds(ctx, pair, seeded[length], accuracy[-1])
         plots.draw_pr_curves(ax, curves)
         ax.set_title(pair.label, fontsize="medium")
-    for ax in list(axes.flat)[len(ctx.pairs):]:
+    for ax in list(axes.flat)[len(ctx.pairs) :]:
         ax.axis("off")
     fig.tight_layout()
     figure = plots.save_figure(fig, ctx.figure_path("pr_lengths.png"))
 
     first = ctx.pairs[0].split
-    paths = first.query.paths[:ctx.settings.runtime_images]
+    paths = first.query.paths[: ctx.settings.runtime_images]
     timing = []
     for length, handle in handles.items():
         descriptor = handle.descriptor
@@ -190,20 +219,34 @@ def run(ctx) -> dict:
         queries, references = ctx.pair_vectors(handle, first)
         ctx.limit_threads()
         paper = PAPER_TABLE2.get(length, (None, None))
-        timing.append({"length": length, "run": str(handle.options["checkpoint"]), "step": descriptor.step,
-                       "preset": descriptor.config.preset,
-                       "ms_per_image": descriptor_extraction(descriptor, images, repeats=3),
-                       "ms_per_query": ranking_ms_per_query(descriptor, queries, references),
-                       "paper_ms_per_image": paper[0], "paper_ms_per_query": paper[1]})
-    document = {"lengths": list(handles), "accuracy": accuracy, "timing": timing, "figure": ctx.relative(figure),
-                "pairs": [{"reference": p.reference, "query": p.query} for p in ctx.pairs],
-                "num_images_timed": len(paths), "map_size": len(first.reference),
-                "missing": [length for length in LENGTHS if length not in handles]}
+        timing.append(
+            {
+                "length": length,
+                "run": str(handle.options["checkpoint"]),
+                "step": descriptor.step,
+                "preset": descriptor.config.preset,
+                "ms_per_image": descriptor_extraction(descriptor, images, repeats=3),
+                "ms_per_query": ranking_ms_per_query(descriptor, queries, references),
+                "paper_ms_per_image": paper[0],
+                "paper_ms_per_query": paper[1],
+            }
+        )
+    document = {
+        "lengths": list(handles),
+        "accuracy": accuracy,
+        "timing": timing,
+        "figure": ctx.relative(figure),
+        "pairs": [{"reference": p.reference, "query": p.query} for p in ctx.pairs],
+        "num_images_timed": len(paths),
+        "map_size": len(first.reference),
+        "missing": [length for length in LENGTHS if length not in handles],
+    }
     if any(len(hs) > 1 for hs in seeded.values()):
         document["seeds"] = ctx.settings.seeds  # runs per length trained here (--seeds N)
         #: L (as text: a JSON key) -> the seeds of its runs, in run order
-        document["run_seeds"] = {str(length): [h.descriptor.config.runtime.seed for h in hs]
-                                 for length, hs in seeded.items()}
+        document["run_seeds"] = {
+            str(length): [h.descriptor.config.runtime.seed for h in hs] for length, hs in seeded.items()
+        }
     return document
 
 
@@ -217,39 +260,87 @@ def render(document: dict) -> list:
     by_key = {(a["length"], a["reference"], a["query"]): a for a in document["accuracy"]}
     seeds = document.get("seeds")
     if seeds:
-        blocks.append(Paragraph(
-            f"Each length trained here is trained {seeds} times (--seeds {seeds}), with seeds S, S+1, ... from its "
-            "run's own S: each accuracy number is the mean over its runs, shown as mean \u00b1 sample standard "
-            "deviation (min\u2013max over the runs), each run's own numbers follow; a length given by --length-runs "
-            "is one run. The PR curves and the timings are the first seed's runs (the seed does not change the "
-            "network's size)."))
+        blocks.append(
+            Paragraph(
+                f"Each length trained here is trained {seeds} times (--seeds {seeds}), with seeds S, S+1, ... from "
+                "its run's own S: each accuracy number is the mean over its runs, shown as mean \u00b1 sample "
+                "standard deviation (min\u2013max over the runs), each run's own numbers follow; a length given by "
+                "--length-runs is one run. The PR curves and the timings are the first seed's runs (the seed does "
+                "not change the network's size)."
+            )
+        )
     for key, title in (("recall_at_100_precision", "R@100P"), ("recall_at_1", "R@1")):
         entries = [[by_key[(length, p["reference"], p["query"])] for p in pairs] for length in document["lengths"]]
         rows = [[f"FDNet_{length}"] + [e[key] for e in row] for length, row in zip(document["lengths"], entries)]
         marked = best_cells(rows, list(range(1, len(pairs) + 1)))
-        blocks.append(Table(["vector length"] + [f"{pair_name(p['query'], p['reference'])}" for p in pairs],
-                            [[r[0]] + [spread_text(e["spread"][key]) if e.get("spread") else number(e[key])
-                                       for e in row] for r, row in zip(rows, entries)],
-                            f"{title} per vector length and pair (paper protocol)"
-                            + (f"; mean \u00b1 sample standard deviation (min\u2013max) over {seeds} seeds"
-                               if seeds else ""), marked))
-    per_seed = [[f"FDNet_{a['length']}", pair_name(a["query"], a["reference"]), str(r["seed"]),
-                 number(r["recall_at_100_precision"]), number(r["recall_at_1"]), number(r["auc_pr"])]
-                for a in document["accuracy"] for r in a.get("per_seed") or []]
+        blocks.append(
+            Table(
+                ["vector length"] + [f"{pair_name(p['query'], p['reference'])}" for p in pairs],
+                [
+                    [r[0]] + [spread_text(e["spread"][key]) if e.get("spread") else number(e[key]) for e in row]
+                    for r, row in zip(rows, entries)
+                ],
+                f"{title} per vector length and pair (paper protocol)"
+                + (f"; mean \u00b1 sample standard deviation (min\u2013max) over {seeds} seeds" if seeds else ""),
+                marked,
+            )
+        )
+    per_seed = [
+        [
+            f"FDNet_{a['length']}",
+            pair_name(a["query"], a["reference"]),
+            str(r["seed"]),
+            number(r["recall_at_100_precision"]),
+            number(r["recall_at_1"]),
+            number(r["auc_pr"]),
+        ]
+        for a in document["accuracy"]
+        for r in a.get("per_seed") or []
+    ]
     if per_seed:
-        blocks.append(Table(["vector length", "pair", "seed", "R@100P", "R@1", "AUC-PR"], per_seed,
-                            "each seed's run per vector length and pair"))
-    rows = [[f"FDNet_{t['length']}", f"{t['preset']} (step {t['step']})", number(t["ms_per_image"], 2),
-             number(t["paper_ms_per_image"], 1),
-             number(t["paper_ms_per_image"] / t["ms_per_image"] if t["paper_ms_per_image"] else None, 2),
-             number(t["ms_per_query"], 4), number(t["paper_ms_per_query"], 2),
-             number(t["paper_ms_per_query"] / t["ms_per_query"] if t["paper_ms_per_query"] else None, 2)]
-            for t in document["timing"]]
-    blocks.append(Table(["vector length", "run", "ms/image", "paper ms/image (TITAN X)", "paper / ours",
-                         "ms/query", "paper ms/query", "paper / ours"], rows,
-                        f"Extraction over {document['num_images_timed']} decoded images and matching against "
-                        f"{document['map_size']} references on this machine (see the runtime section for the "
-                        f"hardware); the paper's Table 2 beside, ratio above 1 = faster here"))
-    blocks.append(Figure(document["figure"], "PR curves per vector length, one panel per pair (Fig. 6)"
-                         + ("; the first seed's run of each length" if seeds else "")))
+        blocks.append(
+            Table(
+                ["vector length", "pair", "seed", "R@100P", "R@1", "AUC-PR"],
+                per_seed,
+                "each seed's run per vector length and pair",
+            )
+        )
+    rows = [
+        [
+            f"FDNet_{t['length']}",
+            f"{t['preset']} (step {t['step']})",
+            number(t["ms_per_image"], 2),
+            number(t["paper_ms_per_image"], 1),
+            number(t["paper_ms_per_image"] / t["ms_per_image"] if t["paper_ms_per_image"] else None, 2),
+            number(t["ms_per_query"], 4),
+            number(t["paper_ms_per_query"], 2),
+            number(t["paper_ms_per_query"] / t["ms_per_query"] if t["paper_ms_per_query"] else None, 2),
+        ]
+        for t in document["timing"]
+    ]
+    blocks.append(
+        Table(
+            [
+                "vector length",
+                "run",
+                "ms/image",
+                "paper ms/image (TITAN X)",
+                "paper / ours",
+                "ms/query",
+                "paper ms/query",
+                "paper / ours",
+            ],
+            rows,
+            f"Extraction over {document['num_images_timed']} decoded images and matching against "
+            f"{document['map_size']} references on this machine (see the runtime section for the "
+            f"hardware); the paper's Table 2 beside, ratio above 1 = faster here",
+        )
+    )
+    blocks.append(
+        Figure(
+            document["figure"],
+            "PR curves per vector length, one panel per pair (Fig. 6)"
+            + ("; the first seed's run of each length" if seeds else ""),
+        )
+    )
     return blocks

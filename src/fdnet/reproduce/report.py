@@ -103,8 +103,10 @@ def _block(block, out: Path) -> str:
         uri = _image_uri(out, block.path)
         if uri is None:
             return f'<p class="note">Figure {_escape(block.path)} is missing; rerun this experiment to draw it.</p>'
-        return (f'<figure><img src="{uri}" alt="{_escape(block.caption)}">'
-                f"<figcaption>{_escape(block.caption)}</figcaption></figure>")
+        return (
+            f'<figure><img src="{uri}" alt="{_escape(block.caption)}">'
+            f"<figcaption>{_escape(block.caption)}</figcaption></figure>"
+        )
     raise TypeError(f"unknown report block {block!r}")
 
 
@@ -114,21 +116,28 @@ def _read_json(path: Path) -> dict | None:
     try:
         return json.loads(path.read_text())
     except (OSError, ValueError) as exc:
-        raise DataError(f"{path}: cannot read this experiment's results ({exc}); rerun it with "
-                        f"--experiments {path.stem}") from exc
+        raise DataError(
+            f"{path}: cannot read this experiment's results ({exc}); rerun it with " f"--experiments {path.stem}"
+        ) from exc
 
 
 def _header(manifest: dict | None, shown: list[str]) -> str:
     if manifest is None:
-        return "<header><h1>fdnet reproduce</h1><p class=\"note\">No run manifest (reproduce.json) found.</p></header>"
-    pairs = "; ".join(f"{_escape(p['query'])} &rarr; {_escape(p['reference'])} ({p['num_queries']} queries x "
-                      f"{p['num_references']} references)" for p in manifest.get("pairs", []))
+        return '<header><h1>fdnet reproduce</h1><p class="note">No run manifest (reproduce.json) found.</p></header>'
+    pairs = "; ".join(
+        f"{_escape(p['query'])} &rarr; {_escape(p['reference'])} ({p['num_queries']} queries x "
+        f"{p['num_references']} references)"
+        for p in manifest.get("pairs", [])
+    )
     rows = [
         ("dataset", _escape(manifest.get("dataset", "")) + " &mdash; " + _escape(manifest.get("dataset_format", ""))),
         ("condition pairs (query &rarr; reference)", pairs),
-        ("protocol", f"<b>{_escape(manifest.get('protocol', ''))}</b>: "
-                     f"{_escape(manifest.get('protocol_definition', ''))}; "
-                     f"thresholds: {_escape(manifest.get('thresholds', ''))}"),
+        (
+            "protocol",
+            f"<b>{_escape(manifest.get('protocol', ''))}</b>: "
+            f"{_escape(manifest.get('protocol_definition', ''))}; "
+            f"thresholds: {_escape(manifest.get('thresholds', ''))}",
+        ),
         ("checkpoint (FDNet run)", _escape(manifest.get("checkpoint") or "none")),
         ("fdnet version", _escape(manifest.get("fdnet_version", ""))),
         ("command", f"<code>{_escape(manifest.get('command', ''))}</code>"),
@@ -138,31 +147,44 @@ def _header(manifest: dict | None, shown: list[str]) -> str:
         rows.insert(0, ("smoke test", f"<b>{_escape(manifest['smoke_test'])}</b>"))
     body = "".join(f"<tr><th>{k}</th><td>{v}</td></tr>" for k, v in rows)
     nav = "".join(f'<a href="#{name}">{name}</a>' for name in shown)
-    return (f"<header><h1>fdnet reproduce: the paper's experiments</h1>"
-            f'<table class="header"><tbody>{body}</tbody></table><nav>{nav}</nav></header>')
+    return (
+        f"<header><h1>fdnet reproduce: the paper's experiments</h1>"
+        f'<table class="header"><tbody>{body}</tbody></table><nav>{nav}</nav></header>'
+    )
 
 
 def _section(name: str, number: int, document: dict | None, manifest: dict | None, out: Path) -> str:
     module = experiment_module(name)
-    parts = [f'<section id="{name}"><h2>{number}. {_escape(module.TITLE)}</h2>',
-             f'<p class="paper">Paper: {_escape(module.PAPER)}</p>']
+    parts = [
+        f'<section id="{name}"><h2>{number}. {_escape(module.TITLE)}</h2>',
+        f'<p class="paper">Paper: {_escape(module.PAPER)}</p>',
+    ]
     if document is None:
         # what it needs besides the command's own flags (the lengths study: its four runs)
         extra = getattr(module, "RERUN_FLAGS", "")
-        parts.append(f'<p class="note">Not run yet: rerun the command with <code>--experiments {name}'
-                     f'{" " + _escape(extra) if extra else ""}</code>.</p>')
+        parts.append(
+            f'<p class="note">Not run yet: rerun the command with <code>--experiments {name}'
+            f'{" " + _escape(extra) if extra else ""}</code>.</p>'
+        )
     elif document.get("not_run"):
         parts.append(f'<p class="note">Not run: {_escape(document["not_run"])}</p>')
     else:
         if manifest and document.get("command") and document.get("command") != manifest.get("command"):
-            parts.append(f'<p class="note">This section was made by another command, at '
-                         f'{_escape(document.get("created", ""))}: <code>{_escape(document["command"])}</code></p>')
+            parts.append(
+                f'<p class="note">This section was made by another command, at '
+                f'{_escape(document.get("created", ""))}: <code>{_escape(document["command"])}</code></p>'
+            )
         try:
             blocks = module.render(document)
         except (KeyError, TypeError, ValueError, IndexError):
             # written by another version of fdnet, or edited: say so rather than lose the report
-            blocks = [Paragraph(f"{name}.json does not hold what this version of fdnet writes; rerun the "
-                                f"command with --experiments {name} to remake this section.", note=True)]
+            blocks = [
+                Paragraph(
+                    f"{name}.json does not hold what this version of fdnet writes; rerun the "
+                    f"command with --experiments {name} to remake this section.",
+                    note=True,
+                )
+            ]
         parts.extend(_block(block, out) for block in blocks)
     parts.append("</section>")
     return "\n".join(parts)
@@ -174,14 +196,20 @@ def render_report(out: str | os.PathLike) -> str:
     manifest = _read_json(out / MANIFEST)
     documents = {name: _read_json(out / f"{name}.json") for name in ALL_EXPERIMENTS}
     # the paper's experiments always (a placeholder for one not run yet); an optional one once it ran
-    shown = [name for name in ALL_EXPERIMENTS if name in EXPERIMENTS or documents[name] is not None
-             or name in (manifest or {}).get("experiments_run", [])]
+    shown = [
+        name
+        for name in ALL_EXPERIMENTS
+        if name in EXPERIMENTS or documents[name] is not None or name in (manifest or {}).get("experiments_run", [])
+    ]
     sections = [_section(name, i, documents[name], manifest, out) for i, name in enumerate(shown, start=1)]
-    return ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
-            "<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">"
-            "<title>fdnet reproduce report</title>"
-            f"<style>{STYLE}</style></head><body>\n{_header(manifest, shown)}\n" + "\n".join(sections)
-            + "\n</body></html>\n")
+    return (
+        '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
+        '<meta name="viewport" content="width=device-width, initial-scale=1">'
+        "<title>fdnet reproduce report</title>"
+        f"<style>{STYLE}</style></head><body>\n{_header(manifest, shown)}\n"
+        + "\n".join(sections)
+        + "\n</body></html>\n"
+    )
 
 
 def write_report(out: str | os.PathLike) -> Path:

@@ -47,15 +47,15 @@ def _check_fit_size(handle: MethodHandle, pairs: list[Pair], required: bool, dat
     fewest = min(len(p.split.reference.paths) for p in pairs)
     if fewest >= d.min_fit_images:
         return
-    reason = (f"learns from each comparison's reference images, which needs at least {d.min_fit_images} and "
-              f"{data} gives {fewest}; give it a folder to learn from (--fit {handle.name}=DIR) or fewer "
-              "dimensions (--method-set)")
+    reason = (
+        f"learns from each comparison's reference images, which needs at least {d.min_fit_images} and "
+        f"{data} gives {fewest}; give it a folder to learn from (--fit {handle.name}=DIR) or fewer "
+        "dimensions (--method-set)"
+    )
     if required:
         raise ConfigError(f"{handle.label}: {reason}")
     handle.descriptor, handle.reason = None, reason
     log(f"{handle.label}: not run ({reason})")
-
-
 
 
 def _check(settings: ReproduceSettings) -> list[str]:
@@ -81,8 +81,12 @@ def _check(settings: ReproduceSettings) -> list[str]:
         raise ConfigError(f"--seeds must be a whole number >= 1 (runs per trained variant), got {settings.seeds}")
     if settings.threads is not None and settings.threads < 1:
         raise ConfigError(f"--threads must be >= 1, got {settings.threads}")
-    for name, value in (("--examples", settings.examples), ("--runtime-images", settings.runtime_images),
-                        ("--batch-size", settings.batch_size), ("--embedding-points", settings.embedding_points)):
+    for name, value in (
+        ("--examples", settings.examples),
+        ("--runtime-images", settings.runtime_images),
+        ("--batch-size", settings.batch_size),
+        ("--embedding-points", settings.embedding_points),
+    ):
         if value < 1:
             raise ConfigError(f"{name} must be >= 1, got {value}")
     if settings.tolerance is not None and settings.tolerance < 0:
@@ -98,8 +102,9 @@ def _default_factory(name: str, **options):
     return create(name, **options)
 
 
-def reproduce(settings: ReproduceSettings, factory: Callable | None = None,
-              log: Callable[[str], None] | None = None) -> Path:
+def reproduce(
+    settings: ReproduceSettings, factory: Callable | None = None, log: Callable[[str], None] | None = None
+) -> Path:
     """Run the chosen experiments (default all) and write ``OUT/report.html``; returns its path.
 
     ``factory(name, **options)`` builds a descriptor (default :func:`fdnet.descriptors.create`);
@@ -124,8 +129,9 @@ def reproduce(settings: ReproduceSettings, factory: Callable | None = None,
         _check_fit_size(handle, pairs, required, settings.data, log)
     # an experiment that reads only runs of its own (COMPARES_METHODS = False) needs none of them
     if not ctx.available() and any(getattr(experiment_module(n), "COMPARES_METHODS", True) for n in chosen):
-        raise ConfigError("none of the methods can run here: " + "; ".join(
-            f"{s['method']}: {s['reason']}" for s in ctx.skipped()))
+        raise ConfigError(
+            "none of the methods can run here: " + "; ".join(f"{s['method']}: {s['reason']}" for s in ctx.skipped())
+        )
     # what cannot run is known before anything runs: an experiment asked for by name is an error
     reasons = {name: experiment_module(name).unavailable(ctx) for name in chosen}
     for name, reason in reasons.items():
@@ -161,20 +167,34 @@ def _run_experiments(ctx: Context, chosen: list[str], reasons: dict, write_repor
         "created": local_time_stamp(),
         "dataset": str(settings.data),
         "dataset_format": settings.dataset_format or "folders (one sub-folder per condition)",
-        "pairs": [{"reference": p.reference, "query": p.query, "description": p.split.description,
-                   "num_queries": len(p.split.query), "num_references": len(p.split.reference)}
-                  for p in ctx.pairs],
+        "pairs": [
+            {
+                "reference": p.reference,
+                "query": p.query,
+                "description": p.split.description,
+                "num_queries": len(p.split.query),
+                "num_references": len(p.split.reference),
+            }
+            for p in ctx.pairs
+        ],
         "protocol": ctx.protocol,
         "protocol_definition": PROTOCOLS[ctx.protocol],
-        "thresholds": (f"{THRESHOLDS} uniform over min-max-normalised best-match scores (paper 5.1.2)"
-                       if ctx.thresholds else "every top-1 score (VPR-Bench)"),
+        "thresholds": (
+            f"{THRESHOLDS} uniform over min-max-normalised best-match scores (paper 5.1.2)"
+            if ctx.thresholds
+            else "every top-1 score (VPR-Bench)"
+        ),
         "checkpoint": str(settings.checkpoint) if settings.checkpoint else None,
         "experiments_run": chosen,
     }
     run = _checkpoint_run(settings.checkpoint)
-    manifest.update(checkpoint_run=run, smoke_test=_smoke_test(run),
-                    provenance=provenance(settings.command, seeds={"checkpoint": run and run["seed"]},
-                                          device=getattr(settings, "device", None)))
+    manifest.update(
+        checkpoint_run=run,
+        smoke_test=_smoke_test(run),
+        provenance=provenance(
+            settings.command, seeds={"checkpoint": run and run["seed"]}, device=getattr(settings, "device", None)
+        ),
+    )
     atomic_write_text(out / MANIFEST, json.dumps(manifest, indent=2) + "\n")
     for name in chosen:
         module = experiment_module(name)
@@ -183,14 +203,25 @@ def _run_experiments(ctx: Context, chosen: list[str], reasons: dict, write_repor
         log(f"[{name}] {module.TITLE}" + (f": not run ({reason})" if reason else ""))
         started = time.monotonic()
         document = {"not_run": reason} if reason else module.run(ctx)
-        document = {"experiment": name, "title": module.TITLE, "paper": module.PAPER,
-                    "fdnet_version": __version__, "command": settings.command, "created": local_time_stamp(),
-                    "dataset": str(settings.data), "checkpoint": manifest["checkpoint"],
-                    "protocol": ctx.protocol, "smoke_test": manifest["smoke_test"], **document,
-                    "provenance": provenance(settings.command, seeds=_seeds(run, document),
-                                             device=getattr(settings, "device", None))}
-        atomic_write_text(out / f"{name}.json", json.dumps(document, indent=1, allow_nan=False,
-                                                            default=json_fallback) + "\n")
+        document = {
+            "experiment": name,
+            "title": module.TITLE,
+            "paper": module.PAPER,
+            "fdnet_version": __version__,
+            "command": settings.command,
+            "created": local_time_stamp(),
+            "dataset": str(settings.data),
+            "checkpoint": manifest["checkpoint"],
+            "protocol": ctx.protocol,
+            "smoke_test": manifest["smoke_test"],
+            **document,
+            "provenance": provenance(
+                settings.command, seeds=_seeds(run, document), device=getattr(settings, "device", None)
+            ),
+        }
+        atomic_write_text(
+            out / f"{name}.json", json.dumps(document, indent=1, allow_nan=False, default=json_fallback) + "\n"
+        )
         ctx.remove_stale_figures()
         write_report(out)
         log(f"[{name}] done in {time.monotonic() - started:.1f} s")
@@ -230,9 +261,11 @@ def _smoke_test(run: dict | None) -> str | None:
     steps = run["step"] if isinstance(run.get("step"), int) else run["total_steps"]
     if run["preset"] != "tiny" and steps > SMOKE_TEST_STEPS:
         return None
-    return (f"the FDNet run ({run['preset']} preset, {steps} training steps) is a smoke test of the pipeline, not a "
-            "result: its FDNet numbers say that training, evaluation and the report run, not what FDNet does "
-            "(train with --preset cpu for that)")
+    return (
+        f"the FDNet run ({run['preset']} preset, {steps} training steps) is a smoke test of the pipeline, not a "
+        "result: its FDNet numbers say that training, evaluation and the report run, not what FDNet does "
+        "(train with --preset cpu for that)"
+    )
 
 
 def _seeds(run: dict | None, document: dict) -> dict:
@@ -250,5 +283,3 @@ def _seeds(run: dict | None, document: dict) -> dict:
     for length, values in (document.get("run_seeds") or {}).items():  # the lengths' runs, with --seeds N
         seeds[f"L{length}"] = values
     return seeds
-
-

@@ -79,8 +79,11 @@ def best_cells(rows: list[list], columns: list[int], higher_is_better: bool = Tr
     has the same value, or none, marks nothing."""
     marked = set()
     for col in columns:
-        values = [(r, row[col]) for r, row in enumerate(rows)
-                  if isinstance(row[col], (int, float)) and math.isfinite(row[col])]
+        values = [
+            (r, row[col])
+            for r, row in enumerate(rows)
+            if isinstance(row[col], (int, float)) and math.isfinite(row[col])
+        ]
         if len({v for _, v in values}) < 2:
             continue
         best = max(v for _, v in values) if higher_is_better else min(v for _, v in values)

@@ -30,10 +30,14 @@ def spread(values: Sequence[float | None]) -> dict:
     ``std`` (the sample standard deviation, None with fewer than two numbers), ``min``, ``max``.
     A run without the number (None, or not finite) is left out and counted in ``missing``."""
     finite = [float(v) for v in values if v is not None and math.isfinite(float(v))]
-    return {"n": len(finite), "mean": statistics.fmean(finite) if finite else None,
-            "std": statistics.stdev(finite) if len(finite) > 1 else None,
-            "min": min(finite) if finite else None, "max": max(finite) if finite else None,
-            "missing": len(values) - len(finite)}
+    return {
+        "n": len(finite),
+        "mean": statistics.fmean(finite) if finite else None,
+        "std": statistics.stdev(finite) if len(finite) > 1 else None,
+        "min": min(finite) if finite else None,
+        "max": max(finite) if finite else None,
+        "missing": len(values) - len(finite),
+    }
 
 
 def spread_text(summary: dict, digits: int = 3) -> str:

@@ -25,8 +25,10 @@ from fdnet.reproduce.sections import Figure, Heading, Paragraph, Table, best_cel
 
 NAME = "viewpoint"
 TITLE = "Viewpoint shift: half-width crops at 100/90/75/65% overlap"
-PAPER = ("Fig. 18 (PR curves per overlap, Nordland summer vs winter), Fig. 19 (response of content and appearance "
-         "vectors to the shift), section 5.3")
+PAPER = (
+    "Fig. 18 (PR curves per overlap, Nordland summer vs winter), Fig. 19 (response of content and appearance "
+    "vectors to the shift), section 5.3"
+)
 
 MAX_CROP_WIDTH = 640
 #: components of v_c and v_a drawn for the example place (all of them when shorter)
@@ -64,8 +66,9 @@ def write_crops(traverse, overlap: float, folder: Path) -> list[Path]:
         left, right = crop_columns(image.shape[1], overlap)
         crop = Image.fromarray(np.round(image[:, left:right] * 255).astype(np.uint8))
         if crop.width > MAX_CROP_WIDTH:
-            crop = crop.resize((MAX_CROP_WIDTH, max(1, round(crop.height * MAX_CROP_WIDTH / crop.width))),
-                               Image.Resampling.BOX)
+            crop = crop.resize(
+                (MAX_CROP_WIDTH, max(1, round(crop.height * MAX_CROP_WIDTH / crop.width))), Image.Resampling.BOX
+            )
         with atomic_path(target) as tmp:
             crop.save(tmp, format="PNG")
     atomic_write_text(stamp, json.dumps(source) + "\n")
@@ -79,8 +82,10 @@ def _pair(ctx):
     for pair in ctx.pairs:
         if (pair.reference, pair.query) == tuple(wanted):
             return pair
-    raise ConfigError(f"--viewpoint-pair {wanted[0]},{wanted[1]}: no such pair among "
-                      f"{'; '.join(f'{p.reference},{p.query}' for p in ctx.pairs)} (REFERENCE,QUERY)")
+    raise ConfigError(
+        f"--viewpoint-pair {wanted[0]},{wanted[1]}: no such pair among "
+        f"{'; '.join(f'{p.reference},{p.query}' for p in ctx.pairs)} (REFERENCE,QUERY)"
+    )
 
 
 def _cosine_distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -102,16 +107,25 @@ def run(ctx) -> dict:
 
     def cropped(traverse, overlap):
         folder = crops / pair.slug / f"{traverse.name}_{round(overlap * 100):03d}"
-        return Traverse(f"{traverse.name} crops at {overlap:.0%}", write_crops(traverse, overlap, folder),
-                        frame_ids=traverse.frame_ids)
+        return Traverse(
+            f"{traverse.name} crops at {overlap:.0%}",
+            write_crops(traverse, overlap, folder),
+            frame_ids=traverse.frame_ids,
+        )
 
     ctx.log(f"[{NAME}] writing half-width crops of {pair.label}")
     reference_crops = cropped(reference, 1.0)
     query_crops = {overlap: cropped(query, overlap) for overlap in sorted({1.0, *ctx.settings.overlaps}, reverse=True)}
     overlaps = list(ctx.settings.overlaps)
-    splits = {o: EvaluationSplit(reference_crops, query_crops[o], pair.split.ground_truth,
-                                 f"{pair.split.description}; half-width crops, query at {o:.0%} overlap")
-              for o in overlaps}
+    splits = {
+        o: EvaluationSplit(
+            reference_crops,
+            query_crops[o],
+            pair.split.ground_truth,
+            f"{pair.split.description}; half-width crops, query at {o:.0%} overlap",
+        )
+        for o in overlaps
+    }
 
     methods, curves = [], {o: {} for o in overlaps}
     for handle in ctx.available():
@@ -120,9 +134,14 @@ def run(ctx) -> dict:
             result = ctx.result(handle, splits[o], f"viewpoint_{round(o * 100)}_{pair.slug}")
             metrics = result.metrics[ctx.protocol]
             curves[o][handle.label] = (metrics.curve, metrics.auc_pr)
-            row["overlaps"].append({"overlap": o, "recall_at_1": metrics.recall_at_n[1],
-                                    "recall_at_100_precision": metrics.recall_at_100_precision,
-                                    "auc_pr": metrics.auc_pr})
+            row["overlaps"].append(
+                {
+                    "overlap": o,
+                    "recall_at_1": metrics.recall_at_n[1],
+                    "recall_at_100_precision": metrics.recall_at_100_precision,
+                    "auc_pr": metrics.auc_pr,
+                }
+            )
         methods.append(row)
 
     plt = plots.pyplot()
@@ -141,8 +160,12 @@ def run(ctx) -> dict:
     with_match = [q for q in range(len(query)) if matched_reference(pair.split, q) is not None]
     example = with_match[len(with_match) // 2] if with_match else len(query) // 2
     example_reference = matched_reference(pair.split, example)
-    shown = [(f"reference {reference.name}",
-              reference_crops.paths[example if example_reference is None else example_reference])]
+    shown = [
+        (
+            f"reference {reference.name}",
+            reference_crops.paths[example if example_reference is None else example_reference],
+        )
+    ]
     shown += [(f"query {query.name}, {o:.0%}", query_crops[o].paths[example]) for o in overlaps]
     fig, axes = plt.subplots(1, len(shown), figsize=(2.4 * len(shown), 2.8), squeeze=False)
     for ax, (label, path) in zip(axes[0], shown):
@@ -154,10 +177,19 @@ def run(ctx) -> dict:
     crops_figure = plots.save_figure(fig, ctx.figure_path(f"crops_{pair.slug}.png"))
 
     response = _response(ctx, query_crops, overlaps, example, plt, plots, pair)
-    return {"reference": pair.reference, "query": pair.query, "ground_truth": pair.split.ground_truth.description,
-            "num_queries": len(query), "overlaps": overlaps, "methods": methods,
-            "example_query": query.paths[example].name, "pr_figure": ctx.relative(pr_figure),
-            "crops_figure": ctx.relative(crops_figure), "response": response, "skipped": ctx.skipped()}
+    return {
+        "reference": pair.reference,
+        "query": pair.query,
+        "ground_truth": pair.split.ground_truth.description,
+        "num_queries": len(query),
+        "overlaps": overlaps,
+        "methods": methods,
+        "example_query": query.paths[example].name,
+        "pr_figure": ctx.relative(pr_figure),
+        "crops_figure": ctx.relative(crops_figure),
+        "response": response,
+        "skipped": ctx.skipped(),
+    }
 
 
 def _response(ctx, query_crops: dict, overlaps: list, example: int, plt, plots, pair) -> dict | None:
@@ -167,25 +199,32 @@ def _response(ctx, query_crops: dict, overlaps: list, example: int, plt, plots, 
         return None
     vectors = {}
     for o, crops in query_crops.items():
-        vectors[o] = (ctx.vectors(handle, crops.paths, what=crops.name),
-                      ctx.vectors(handle, crops.paths, kind="appearance", what=crops.name))
+        vectors[o] = (
+            ctx.vectors(handle, crops.paths, what=crops.name),
+            ctx.vectors(handle, crops.paths, kind="appearance", what=crops.name),
+        )
     rows = []
     for o in overlaps:
         content, appearance = vectors[o]
         content0, appearance0 = vectors[1.0]
         relative = np.linalg.norm(appearance - appearance0, axis=1) / np.maximum(
-            np.linalg.norm(appearance0, axis=1), 1e-12)
-        rows.append({"overlap": o,
-                     "content_cosine_distance": float(_cosine_distance(content, content0).mean()),
-                     "appearance_cosine_distance": float(_cosine_distance(appearance, appearance0).mean()),
-                     "appearance_relative_change": float(relative.mean()),
-                     "content_relative_change": float(np.linalg.norm(content - content0, axis=1).mean())})
+            np.linalg.norm(appearance0, axis=1), 1e-12
+        )
+        rows.append(
+            {
+                "overlap": o,
+                "content_cosine_distance": float(_cosine_distance(content, content0).mean()),
+                "appearance_cosine_distance": float(_cosine_distance(appearance, appearance0).mean()),
+                "appearance_relative_change": float(relative.mean()),
+                "content_relative_change": float(np.linalg.norm(content - content0, axis=1).mean()),
+            }
+        )
     fig, axes = plt.subplots(2, 1, figsize=(9, 5.4))
     for o in overlaps:
         content, appearance = vectors[o]
         components = min(PLOTTED_COMPONENTS, content.shape[1])
         axes[0].plot(content[example, :components], linewidth=1, label=f"{o:.0%}")
-        axes[1].plot(appearance[example, :min(PLOTTED_COMPONENTS, appearance.shape[1])], linewidth=1, label=f"{o:.0%}")
+        axes[1].plot(appearance[example, : min(PLOTTED_COMPONENTS, appearance.shape[1])], linewidth=1, label=f"{o:.0%}")
     axes[0].set_title(f"content vector v_c of query {example} ({pair.query}) at each overlap", fontsize="medium")
     axes[1].set_title("appearance vector v_a at each overlap", fontsize="medium")
     for ax in axes:
@@ -198,33 +237,65 @@ def _response(ctx, query_crops: dict, overlaps: list, example: int, plt, plots, 
 
 def render(document: dict) -> list:
     overlaps = document["overlaps"]
-    blocks: list = [Paragraph(
-        f"{document['query']} queries against {document['reference']} references ({document['num_queries']} "
-        f"queries, {document['ground_truth']}). Both cropped to half width; the query crop is shifted right to "
-        f"overlap the reference crop by {', '.join(f'{o:.0%}' for o in overlaps)}.")]
+    blocks: list = [
+        Paragraph(
+            f"{document['query']} queries against {document['reference']} references ({document['num_queries']} "
+            f"queries, {document['ground_truth']}). Both cropped to half width; the query crop is shifted right to "
+            f"overlap the reference crop by {', '.join(f'{o:.0%}' for o in overlaps)}."
+        )
+    ]
     header = ["method"] + [f"R@1 {o:.0%}" for o in overlaps] + [f"R@100P {o:.0%}" for o in overlaps]
-    rows = [[m["method"]] + [e["recall_at_1"] for e in m["overlaps"]] + [e["recall_at_100_precision"]
-                                                                         for e in m["overlaps"]]
-            for m in document["methods"]]
+    rows = [
+        [m["method"]]
+        + [e["recall_at_1"] for e in m["overlaps"]]
+        + [e["recall_at_100_precision"] for e in m["overlaps"]]
+        for m in document["methods"]
+    ]
     marked = best_cells(rows, list(range(1, len(header))))
-    blocks.append(Table(header, [[r[0]] + [number(v) for v in r[1:]] for r in rows],
-                        "R@1 and R@100P per overlap (paper protocol)", marked))
-    blocks.append(Figure(document["crops_figure"], f"Reference crop and the query crops of {document['example_query']} "
-                                                   f"at each overlap"))
+    blocks.append(
+        Table(
+            header,
+            [[r[0]] + [number(v) for v in r[1:]] for r in rows],
+            "R@1 and R@100P per overlap (paper protocol)",
+            marked,
+        )
+    )
+    blocks.append(
+        Figure(
+            document["crops_figure"],
+            f"Reference crop and the query crops of {document['example_query']} " f"at each overlap",
+        )
+    )
     blocks.append(Figure(document["pr_figure"], "PR curves per overlap, every method"))
     response = document.get("response")
     blocks.append(Heading("How FDNet's content and appearance vectors respond to the shift (Fig. 19)"))
     if response is None:
         blocks.append(Paragraph("FDNet did not run, so its vectors' response is not shown.", note=True))
         return blocks
-    blocks.append(Table(["overlap", "v_c cosine distance to 100%", "|dv_c| (unit vectors)",
-                         "v_a cosine distance to 100%",
-                         "|dv_a| / |v_a|"],
-                        [[f"{r['overlap']:.0%}", number(r["content_cosine_distance"], 4),
-                          number(r["content_relative_change"], 4), number(r["appearance_cosine_distance"], 4),
-                          number(r["appearance_relative_change"], 4)] for r in response["rows"]],
-                        "Mean change of each query crop's vectors against its unshifted crop: the paper finds that "
-                        "the content vector changes and the appearance vector does not"))
-    blocks.append(Figure(response["figure"], "Content (top) and appearance (bottom) vector of one query crop at "
-                                             "each overlap"))
+    blocks.append(
+        Table(
+            [
+                "overlap",
+                "v_c cosine distance to 100%",
+                "|dv_c| (unit vectors)",
+                "v_a cosine distance to 100%",
+                "|dv_a| / |v_a|",
+            ],
+            [
+                [
+                    f"{r['overlap']:.0%}",
+                    number(r["content_cosine_distance"], 4),
+                    number(r["content_relative_change"], 4),
+                    number(r["appearance_cosine_distance"], 4),
+                    number(r["appearance_relative_change"], 4),
+                ]
+                for r in response["rows"]
+            ],
+            "Mean change of each query crop's vectors against its unshifted crop: the paper finds that "
+            "the content vector changes and the appearance vector does not",
+        )
+    )
+    blocks.append(
+        Figure(response["figure"], "Content (top) and appearance (bottom) vector of one query crop at " "each overlap")
+    )
     return blocks

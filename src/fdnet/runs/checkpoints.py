@@ -59,6 +59,7 @@ _CONFIG_STAMP = re.compile(r"^# fdnet-run/\S+ save_id=([0-9a-f]+) step=(\d+)")
 
 # ---------------------------------------------------------------------------- generations on disk
 
+
 @dataclasses.dataclass(frozen=True)
 class _Generation:
     path: Path
@@ -164,7 +165,8 @@ def latest_checkpoint(run_dir: str | Path) -> Path:
             if rejected:  # an older checkpoint stands in for a damaged newer one: say so
                 logging.getLogger(__name__).warning(
                     f"{run_dir}: skipped the newest checkpoint(s), damaged ({'; '.join(rejected[:3])}); using "
-                    f"{generation.path.name}")
+                    f"{generation.path.name}"
+                )
             return generation.path
         rejected.append(f"{generation.path.name}: {reason}")
     if (run_dir / WEIGHTS_FILE).is_file():
@@ -226,8 +228,10 @@ def weights_note(given: str | Path, folder: Path, step) -> str | None:
     (:func:`weights_folder`), else None."""
     if Path(folder) == Path(given):
         return None
-    return (f"{given}: using its best-validating weights, {BEST_DIR}/ (step {step}); give "
-            f"{Path(given) / CHECKPOINTS_DIR}/step-... for another checkpoint")
+    return (
+        f"{given}: using its best-validating weights, {BEST_DIR}/ (step {step}); give "
+        f"{Path(given) / CHECKPOINTS_DIR}/step-... for another checkpoint"
+    )
 
 
 def check_run_state(run_dir: str | Path, resume: bool) -> None:
@@ -240,6 +244,7 @@ def check_run_state(run_dir: str | Path, resume: bool) -> None:
 
 
 # ---------------------------------------------------------------------------- saving
+
 
 def _flatten_weights(modules: Mapping[str, torch.nn.Module]) -> dict[str, torch.Tensor]:
     tensors: dict[str, torch.Tensor] = {}
@@ -255,8 +260,7 @@ def _flatten_weights(modules: Mapping[str, torch.nn.Module]) -> dict[str, torch.
 def _config_text(config: Any, save_id: str, step: int) -> str:
     data = to_dict(config) if dataclasses.is_dataclass(config) else to_dict(dict(config))
     # The stamp is a YAML comment, so load_yaml (which rejects unknown keys) still reads the file.
-    return (f"# fdnet-run/{FORMAT_VERSION} save_id={save_id} step={step}\n"
-            + yaml.safe_dump(data, sort_keys=False))
+    return f"# fdnet-run/{FORMAT_VERSION} save_id={save_id} step={step}\n" + yaml.safe_dump(data, sort_keys=False)
 
 
 def _write_synced(path: Path, data: bytes | memoryview) -> None:
@@ -333,9 +337,16 @@ def _as_step(value: Any) -> int:
     return step
 
 
-def _publish(run_dir: str | Path, modules: Mapping[str, torch.nn.Module], config: Any,
-             optimizers: Mapping[str, torch.optim.Optimizer] | None, state: Mapping[str, Any] | None,
-             step: int, kind: str, keep: int) -> Path:
+def _publish(
+    run_dir: str | Path,
+    modules: Mapping[str, torch.nn.Module],
+    config: Any,
+    optimizers: Mapping[str, torch.optim.Optimizer] | None,
+    state: Mapping[str, Any] | None,
+    step: int,
+    kind: str,
+    keep: int,
+) -> Path:
     if isinstance(keep, bool) or not isinstance(keep, int) or keep < 1:
         raise ValueError(f"keep must be a positive integer, got {keep!r}")
     # Everything that can fail for a programming reason happens before anything is written.
@@ -348,9 +359,14 @@ def _publish(run_dir: str | Path, modules: Mapping[str, torch.nn.Module], config
     return final
 
 
-def _serialise(modules: Mapping[str, torch.nn.Module], config: Any,
-               optimizers: Mapping[str, torch.optim.Optimizer] | None, state: Mapping[str, Any] | None,
-               step: int, kind: str) -> tuple[str, dict[str, bytes | memoryview]]:
+def _serialise(
+    modules: Mapping[str, torch.nn.Module],
+    config: Any,
+    optimizers: Mapping[str, torch.optim.Optimizer] | None,
+    state: Mapping[str, Any] | None,
+    step: int,
+    kind: str,
+) -> tuple[str, dict[str, bytes | memoryview]]:
     """(save_id, file name -> its bytes) of one generation, every file in memory."""
     tensors = _flatten_weights(modules)
     save_id = uuid.uuid4().hex
@@ -366,13 +382,16 @@ def _serialise(modules: Mapping[str, torch.nn.Module], config: Any,
     files = {}
     if kind == KIND_TRAINING:
         buffer = io.BytesIO()
-        torch.save({
-            "format": FORMAT_VERSION,
-            "save_id": save_id,
-            "step": step,
-            "optimizers": {name: opt.state_dict() for name, opt in (optimizers or {}).items()},
-            "state": dict(state or {}),
-        }, buffer)
+        torch.save(
+            {
+                "format": FORMAT_VERSION,
+                "save_id": save_id,
+                "step": step,
+                "optimizers": {name: opt.state_dict() for name, opt in (optimizers or {}).items()},
+                "state": dict(state or {}),
+            },
+            buffer,
+        )
         files[STATE_FILE] = buffer.getbuffer()
         metadata[STATE_KEY] = bytes_sha256(files[STATE_FILE])
     files = {WEIGHTS_FILE: safetensors_bytes(tensors, metadata=metadata), **files}
@@ -390,13 +409,13 @@ def _make_checkpoints_dir(run_dir: Path) -> Path:
             checkpoints_dir.mkdir()
             fsync_directory(run_dir)
     except OSError as exc:
-        raise output_error(f"{checkpoints_dir}: cannot create the checkpoint folder ({exc.strerror or exc})",
-                           exc) from exc
+        raise output_error(
+            f"{checkpoints_dir}: cannot create the checkpoint folder ({exc.strerror or exc})", exc
+        ) from exc
     return checkpoints_dir
 
 
-def _write_generation(checkpoints_dir: Path, files: Mapping[str, bytes | memoryview], step: int,
-                      save_id: str) -> Path:
+def _write_generation(checkpoints_dir: Path, files: Mapping[str, bytes | memoryview], step: int, save_id: str) -> Path:
     """Write ``files`` into a ``.tmp-*`` folder, read them back and publish the folder by one
     rename; returns the published folder. Called under the save lock."""
     tmp = checkpoints_dir / f"{_TMP_PREFIX}{step}-{save_id}"
@@ -411,7 +430,8 @@ def _write_generation(checkpoints_dir: Path, files: Mapping[str, bytes | memoryv
         if reason is not None:
             raise ValueError(
                 f"{tmp}: the checkpoint for step {step} cannot be read back ({reason}); a training "
-                "state may hold only tensors, numbers, strings, lists and dicts")
+                "state may hold only tensors, numbers, strings, lists and dicts"
+            )
 
         existing = _generations(checkpoints_dir)
         # Generations of a later step belong to a history the caller has abandoned (it resumed
@@ -426,8 +446,7 @@ def _write_generation(checkpoints_dir: Path, files: Mapping[str, bytes | memoryv
         fsync_directory(checkpoints_dir)
     except OSError as exc:
         shutil.rmtree(tmp, ignore_errors=True)
-        current = next((g.path.name for g in _generations(checkpoints_dir)
-                        if _incomplete_reason(g.path) is None), None)
+        current = next((g.path.name for g in _generations(checkpoints_dir) if _incomplete_reason(g.path) is None), None)
         reason = "no space left on the device" if exc.errno == errno.ENOSPC else (exc.strerror or str(exc))
         still = f"{current} is still the current checkpoint" if current else "no earlier checkpoint exists"
         raise output_error(
@@ -453,9 +472,14 @@ def _prune(checkpoints_dir: Path, final: Path, step: int, keep: int) -> None:
         _remove_folder(generation.path, checkpoints_dir)
 
 
-def save_checkpoint(run_dir: str | Path, modules: Mapping[str, torch.nn.Module], config: Any,
-                    optimizers: Mapping[str, torch.optim.Optimizer] | None = None,
-                    state: Mapping[str, Any] | None = None, keep: int = 2) -> Path:
+def save_checkpoint(
+    run_dir: str | Path,
+    modules: Mapping[str, torch.nn.Module],
+    config: Any,
+    optimizers: Mapping[str, torch.optim.Optimizer] | None = None,
+    state: Mapping[str, Any] | None = None,
+    keep: int = 2,
+) -> Path:
     """Publish one resumable checkpoint (weights + training state + config) as one unit.
 
     Written completely into ``run_dir/checkpoints/.tmp-<step>-<id>/``, every file fsynced and read
@@ -476,10 +500,10 @@ def save_checkpoint(run_dir: str | Path, modules: Mapping[str, torch.nn.Module],
     return _publish(run_dir, modules, config, optimizers, state, step, KIND_TRAINING, keep)
 
 
-def save_weights(run_dir: str | Path, modules: Mapping[str, torch.nn.Module], config: Any,
-                 step: int = 0, keep: int = 1) -> Path:
+def save_weights(
+    run_dir: str | Path, modules: Mapping[str, torch.nn.Module], config: Any, step: int = 0, keep: int = 1
+) -> Path:
     """Publish an inference-only checkpoint (weights + config, no optimiser state) as one unit,
     the same way as :func:`save_checkpoint`; for ``best/`` and exports. ``step`` is recorded in
     the weights' metadata (which step the weights are from)."""
     return _publish(run_dir, modules, config, None, None, _as_step(step), KIND_WEIGHTS, keep)
-

@@ -39,13 +39,17 @@ def verify_tensors(path: Path, tensors: Mapping[str, torch.Tensor], metadata: Ma
     """ConfigError naming ``path`` when its tensors are not the ones it was saved with."""
     expected = metadata.get(TENSORS_KEY)
     if expected is not None and tensors_sha256(tensors) != expected:
-        raise ConfigError(f"{path}: the weights do not match the checksum saved with them: the file is damaged "
-                          "(bit rot or a bad copy); restore it from a backup or train again")
+        raise ConfigError(
+            f"{path}: the weights do not match the checksum saved with them: the file is damaged "
+            "(bit rot or a bad copy); restore it from a backup or train again"
+        )
 
 
 def verify_state(path: Path, data: bytes, metadata: Mapping[str, str]) -> None:
     """ConfigError naming ``path`` when the training state file is not the one saved."""
     expected = metadata.get(STATE_KEY)
     if expected is not None and bytes_sha256(data) != expected:
-        raise ConfigError(f"{path}: the training state does not match the checksum saved with it: the file is "
-                          "damaged (bit rot or a bad copy); resume from an earlier run or train again")
+        raise ConfigError(
+            f"{path}: the training state does not match the checksum saved with it: the file is "
+            "damaged (bit rot or a bad copy); resume from an earlier run or train again"
+        )

@@ -36,9 +36,16 @@ def _same_folder(a, b) -> bool:
         return False
 
 
-def check_held_out(method: str, run_dir: str | Path, data: str | Path, conditions: Sequence[str],
-                   frames: str | None = None, dataset_format: str | None = None, split: str | None = None,
-                   allow: bool = False) -> None:
+def check_held_out(
+    method: str,
+    run_dir: str | Path,
+    data: str | Path,
+    conditions: Sequence[str],
+    frames: str | None = None,
+    dataset_format: str | None = None,
+    split: str | None = None,
+    allow: bool = False,
+) -> None:
     """Refuse (ConfigError) to evaluate ``method`` from ``run_dir`` on frames of ``data`` it was
     trained on: the same folder, a shared condition, overlapping frame ranges (with a dataset
     format: the same format and split). ``allow`` lets it through."""
@@ -60,7 +67,9 @@ def check_held_out(method: str, run_dir: str | Path, data: str | Path, condition
         if not frame_ranges_overlap(trained.get("frames"), frames):
             return
         what = f"frames {frames or 'all'}"
-    raise ConfigError(f"{method} ({run_dir}) was trained on frames {trained.get('frames') or 'all'} of {data} "
-                      f"({', '.join(shared)}); {what} overlap them: the numbers would measure what the model has "
-                      "seen, not recognition of new places. Give held-out --frames, or --allow-training-frames to "
-                      "measure it anyway")
+    raise ConfigError(
+        f"{method} ({run_dir}) was trained on frames {trained.get('frames') or 'all'} of {data} "
+        f"({', '.join(shared)}); {what} overlap them: the numbers would measure what the model has "
+        "seen, not recognition of new places. Give held-out --frames, or --allow-training-frames to "
+        "measure it anyway"
+    )

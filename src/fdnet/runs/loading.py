@@ -47,7 +47,6 @@ def _with_latest(run_dir: str | Path, read):
                 raise
 
 
-
 def load_config(run_dir: str | Path, cls: type[T]) -> T:
     """Read the current checkpoint's config.yaml into dataclass ``cls`` (unknown keys are a
     ConfigError naming the file)."""
@@ -61,8 +60,9 @@ def config_differences(saved: Any, requested: Any, keys: list[str] | None = None
     return [f"{k}: saved {a.get(k)!r}, requested {b.get(k)!r}" for k in names if a.get(k) != b.get(k)]
 
 
-def _load_weights_from(folder: Path, modules: Mapping[str, torch.nn.Module],
-                       device: str | torch.device) -> dict[str, str]:
+def _load_weights_from(
+    folder: Path, modules: Mapping[str, torch.nn.Module], device: str | torch.device
+) -> dict[str, str]:
     path = folder / WEIGHTS_FILE
     try:
         tensors = load_file(str(path), device=str(device))
@@ -74,7 +74,7 @@ def _load_weights_from(folder: Path, modules: Mapping[str, torch.nn.Module],
     verify_tensors(path, tensors, metadata)
     for name, module in modules.items():
         prefix = f"{name}."
-        own = {k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)}
+        own = {k[len(prefix) :]: v for k, v in tensors.items() if k.startswith(prefix)}
         if not own:
             saved = metadata.get("modules", "?")
             raise ConfigError(f"{path}: has no weights for module {name!r} (it holds: {saved})")
@@ -98,22 +98,21 @@ def _load_weights_from(folder: Path, modules: Mapping[str, torch.nn.Module],
     # Only after every module matched, so a mismatch leaves all modules as they were.
     for name, module in modules.items():
         prefix = f"{name}."
-        module.load_state_dict({k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)},
-                               strict=True)
+        module.load_state_dict({k[len(prefix) :]: v for k, v in tensors.items() if k.startswith(prefix)}, strict=True)
     metadata["checkpoint"] = str(folder)
     return metadata
 
 
-def load_weights(run_dir: str | Path, modules: Mapping[str, torch.nn.Module],
-                 device: str | torch.device = "cpu") -> dict[str, str]:
+def load_weights(
+    run_dir: str | Path, modules: Mapping[str, torch.nn.Module], device: str | torch.device = "cpu"
+) -> dict[str, str]:
     """Load the current checkpoint's weights into ``modules`` (all must be present, with the same
     tensor names and shapes). Returns the weights' metadata: ``step``, ``save_id``, ``modules``,
     ``kind`` and ``checkpoint`` (the folder read)."""
     return _with_latest(run_dir, lambda folder: _load_weights_from(folder, modules, device))
 
 
-def _load_training_state_from(folder: Path, optimizers: Mapping[str, torch.optim.Optimizer] | None
-                              ) -> dict[str, Any]:
+def _load_training_state_from(folder: Path, optimizers: Mapping[str, torch.optim.Optimizer] | None) -> dict[str, Any]:
     path = folder / STATE_FILE
     if not path.is_file():
         try:
@@ -151,8 +150,9 @@ def _load_training_state_from(folder: Path, optimizers: Mapping[str, torch.optim
     return payload["state"]
 
 
-def load_training_state(run_dir: str | Path,
-                        optimizers: Mapping[str, torch.optim.Optimizer] | None = None) -> dict[str, Any]:
+def load_training_state(
+    run_dir: str | Path, optimizers: Mapping[str, torch.optim.Optimizer] | None = None
+) -> dict[str, Any]:
     """Return the current checkpoint's resume ``state`` dict and load the saved optimiser states
     into ``optimizers``. ConfigError when the checkpoint is weights-only, or when its training
     state belongs to a different save than its weights."""

@@ -36,8 +36,9 @@ class RunLock:
     while the lock is held (DataLoader workers) share it until they exit too.
     """
 
-    def __init__(self, run_dir: str | Path, command: str = "fdnet train", lock_file: str = LOCK_FILE,
-                 subject: str | None = None):
+    def __init__(
+        self, run_dir: str | Path, command: str = "fdnet train", lock_file: str = LOCK_FILE, subject: str | None = None
+    ):
         self.run_dir = Path(run_dir)
         self.path = self.run_dir / lock_file
         self.command = command
@@ -68,22 +69,26 @@ class RunLock:
         if self._fd is not None:
             raise RuntimeError(f"{self.path}: this RunLock is already held")
         if fcntl is None:
-            raise ConfigError(f"{self.run_dir}: cannot lock the run directory on this platform "
-                              "(needs fcntl: Linux, macOS)")
+            raise ConfigError(
+                f"{self.run_dir}: cannot lock the run directory on this platform " "(needs fcntl: Linux, macOS)"
+            )
         try:
             self.run_dir.mkdir(parents=True, exist_ok=True)
             fd = os.open(str(self.path), os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
         except OSError as exc:
-            raise output_error(f"{self.path}: cannot create the run directory's lock file "
-                               f"({exc.strerror or exc})", exc) from exc
+            raise output_error(
+                f"{self.path}: cannot create the run directory's lock file " f"({exc.strerror or exc})", exc
+            ) from exc
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError as exc:
             os.close(fd)
             holder = self._holder()
             if not holder:
-                raise ConfigError(f"{self.subject} is in use by another process (see {self.path}); "
-                                  "wait for it to finish or stop it") from exc
+                raise ConfigError(
+                    f"{self.subject} is in use by another process (see {self.path}); "
+                    "wait for it to finish or stop it"
+                ) from exc
             where = "" if holder.get("host") in (None, socket.gethostname()) else f" on {holder['host']}"
             raise ConfigError(
                 f"{self.subject} is in use by process {holder.get('pid')}{where} "
@@ -92,10 +97,14 @@ class RunLock:
             ) from exc
         except OSError as exc:
             os.close(fd)
-            raise ConfigError(f"{self.path}: cannot lock the run directory ({exc.strerror or exc}); "
-                              "its filesystem may not support file locks") from exc
-        info = yaml.safe_dump({"pid": os.getpid(), "host": socket.gethostname(),
-                               "command": self.command, "started": local_time_stamp()}, sort_keys=False)
+            raise ConfigError(
+                f"{self.path}: cannot lock the run directory ({exc.strerror or exc}); "
+                "its filesystem may not support file locks"
+            ) from exc
+        info = yaml.safe_dump(
+            {"pid": os.getpid(), "host": socket.gethostname(), "command": self.command, "started": local_time_stamp()},
+            sort_keys=False,
+        )
         try:
             os.ftruncate(fd, 0)
             os.pwrite(fd, info.encode("utf-8"), 0)
@@ -123,4 +132,3 @@ class RunLock:
 
     def __exit__(self, *exc_info) -> None:
         self.release()
-

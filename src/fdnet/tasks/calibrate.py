@@ -31,9 +31,16 @@ from fdnet.matching.sequence import check_sequence_length
 from fdnet.version import __version__
 
 
-def calibrate(descriptor, split, spec: AcceptanceSpec | str, target_precision: float, sequence_length: int = 1,
-              pipeline: PipelineSettings | None = None, log: Callable[[str], None] | None = None,
-              choose: dict[str, Sequence] | None = None) -> Calibration:
+def calibrate(
+    descriptor,
+    split,
+    spec: AcceptanceSpec | str,
+    target_precision: float,
+    sequence_length: int = 1,
+    pipeline: PipelineSettings | None = None,
+    log: Callable[[str], None] | None = None,
+    choose: dict[str, Sequence] | None = None,
+) -> Calibration:
     """Run ``descriptor`` on ``split`` (an :class:`~fdnet.data.split.EvaluationSplit`), score every
     query with ``spec`` and choose the threshold reaching ``target_precision``. ``pipeline``: how
     images are decoded and described (default: batches of 64, no progress bar).
@@ -53,40 +60,76 @@ def calibrate(descriptor, split, spec: AcceptanceSpec | str, target_precision: f
         candidate.check_available({"images"}, "calibration on image folders")
     say = log or (lambda message: None)
     deepest = max(specs, key=lambda s: s.depth)
-    result = evaluate_method(descriptor, split, ScoringSettings(acceptance=[deepest]),
-                             pipeline, sequence_length=sequence_length, log=log)
+    result = evaluate_method(
+        descriptor, split, ScoringSettings(acceptance=[deepest]), pipeline, sequence_length=sequence_length, log=log
+    )
     gt = split.ground_truth
-    candidates = Candidates(result.retrieved, result.scores, similarity_ceiling=float(descriptor.similarity_ceiling),
-                            query_paths=result.query_paths, reference_paths=result.reference_paths)
+    candidates = Candidates(
+        result.retrieved,
+        result.scores,
+        similarity_ceiling=float(descriptor.similarity_ceiling),
+        query_paths=result.query_paths,
+        reference_paths=result.reference_paths,
+    )
     tried = []
     best = None
     for candidate in specs:
         decision = decide(candidate, candidates)
         correct = gt.correct_mask(decision.match[:, None])[:, 0]
         threshold = choose_threshold(decision.score, correct, gt.has_match, target)
-        tried.append(({k: candidate.settings[n][k] for n, _ in candidate.parts for k in (choose or {})
-                       if k in candidate.settings[n]}, threshold))
+        tried.append(
+            (
+                {
+                    k: candidate.settings[n][k]
+                    for n, _ in candidate.parts
+                    for k in (choose or {})
+                    if k in candidate.settings[n]
+                },
+                threshold,
+            )
+        )
         if best is None or threshold.recall > best[1].recall:
             best = (candidate, threshold)
     spec, chosen = best
     notes = []
     if choose:
-        say("; ".join(f"{', '.join(f'{k}={v}' for k, v in values.items())}: recall {t.recall:.3f}"
-                      for values, t in tried) + f" -> chosen {tried[specs.index(spec)][0]}")
+        say(
+            "; ".join(
+                f"{', '.join(f'{k}={v}' for k, v in values.items())}: recall {t.recall:.3f}" for values, t in tried
+            )
+            + f" -> chosen {tried[specs.index(spec)][0]}"
+        )
     if not math.isfinite(chosen.threshold):
-        notes.append(f"no threshold reaches precision {target:g} on this split (the most confident query is "
-                     f"already wrong): nothing will be accepted")
+        notes.append(
+            f"no threshold reaches precision {target:g} on this split (the most confident query is "
+            f"already wrong): nothing will be accepted"
+        )
         say(notes[-1])
-    where = {"data": split.description, "ground_truth": gt.description, "num_references": int(gt.num_references),
-             "sequence_length": int(sequence_length)}
+    where = {
+        "data": split.description,
+        "ground_truth": gt.description,
+        "num_references": int(gt.num_references),
+        "sequence_length": int(sequence_length),
+    }
     if choose:
         where["chosen_from"] = [{**values, "recall": t.recall, "precision": t.precision} for values, t in tried]
     return Calibration(
-        rule=spec.name, settings=spec.settings, threshold=chosen.threshold, target_precision=target,
-        precision=chosen.precision, recall=chosen.recall, accepted=chosen.accepted,
-        num_queries=int(gt.num_queries), method=descriptor.name, fingerprint=descriptor.fingerprint(),
-        sequence_length=int(sequence_length), measured_on=where,
-        created=datetime.now(timezone.utc).isoformat(timespec="seconds"), fdnet_version=__version__, notes=notes)
+        rule=spec.name,
+        settings=spec.settings,
+        threshold=chosen.threshold,
+        target_precision=target,
+        precision=chosen.precision,
+        recall=chosen.recall,
+        accepted=chosen.accepted,
+        num_queries=int(gt.num_queries),
+        method=descriptor.name,
+        fingerprint=descriptor.fingerprint(),
+        sequence_length=int(sequence_length),
+        measured_on=where,
+        created=datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        fdnet_version=__version__,
+        notes=notes,
+    )
 
 
 def _choices(items, accept_set=()) -> dict:
@@ -156,11 +199,16 @@ def _store(calibration, out, run_dir, db, db_path) -> tuple[list[str], list[str]
     if out:
         writes.append((str(out), lambda: save_calibration(calibration, out)))
     if run_dir is not None:
-        writes.append((str(run_dir / CALIBRATION_FILE),
-                       lambda: save_calibration(calibration, run_dir / CALIBRATION_FILE)))
+        writes.append(
+            (str(run_dir / CALIBRATION_FILE), lambda: save_calibration(calibration, run_dir / CALIBRATION_FILE))
+        )
     if db is not None:
-        writes.append((f"{db_path} (database metadata)",
-                       lambda: db.set_metadata(DATABASE_KEY, calibration.to_dict(json_safe=True))))
+        writes.append(
+            (
+                f"{db_path} (database metadata)",
+                lambda: db.set_metadata(DATABASE_KEY, calibration.to_dict(json_safe=True)),
+            )
+        )
     written, failed = [], []
     for where, write in writes:
         try:
@@ -169,6 +217,7 @@ def _store(calibration, out, run_dir, db, db_path) -> tuple[list[str], list[str]
         except FdnetError as exc:
             failed.append(str(exc))
     return written, failed
+
 
 # ---------------------------------------------------------------------- the command
 @dataclass(frozen=True)
@@ -221,13 +270,15 @@ def calibrate_command(request: CalibrateRequest, make_descriptor: Callable[[], o
     if spec_of.tolerance is not None and spec_of.tolerance < 0:
         raise ConfigError(f"--tolerance must be >= 0, got {spec_of.tolerance}")
     if not (r.out or r.store_in_run or r.db):
-        raise ConfigError("nothing to store the calibration in: give --out FILE.yaml, --store-in-run and/or "
-                          "--db MAP.db")
+        raise ConfigError(
+            "nothing to store the calibration in: give --out FILE.yaml, --store-in-run and/or " "--db MAP.db"
+        )
     run_dir = None
     if r.store_in_run:
         if not r.run_dir:
-            raise ConfigError("--store-in-run needs the run directory: --checkpoint RUN_DIR (the method was given "
-                              "none)")
+            raise ConfigError(
+                "--store-in-run needs the run directory: --checkpoint RUN_DIR (the method was given " "none)"
+            )
         run_dir = Path(r.run_dir)
         if not run_dir.is_dir():
             raise ConfigError(f"--store-in-run: {run_dir} is not a run directory")
@@ -242,20 +293,39 @@ def calibrate_command(request: CalibrateRequest, make_descriptor: Callable[[], o
         db = PlaceDatabase.open(r.db, descriptor=descriptor)  # another model's database: refused now
     try:
         split = build_split(spec_of)
-        check_descriptors_held_out([descriptor], spec_of.data, [split.reference.name, split.query.name],
-                                   spec_of.frames, spec_of.dataset_format, spec_of.split, r.allow_training_frames)
-        tolerance = (spec_of.tolerance if spec_of.tolerance is not None or spec_of.dataset_format
-                     or spec_of.ground_truth else default_folder_tolerance(spec_of.data,
-                                                                           [spec_of.reference, spec_of.query]))
-        measured_on = {"data_root": str(spec_of.data), "reference": spec_of.reference, "query": spec_of.query,
-                       "frames": spec_of.frames, "split": spec_of.split, "dataset_format": spec_of.dataset_format,
-                       "tolerance": tolerance, "ground_truth": split.description,
-                       "ground_truth_file": spec_of.ground_truth}
+        check_descriptors_held_out(
+            [descriptor],
+            spec_of.data,
+            [split.reference.name, split.query.name],
+            spec_of.frames,
+            spec_of.dataset_format,
+            spec_of.split,
+            r.allow_training_frames,
+        )
+        tolerance = (
+            spec_of.tolerance
+            if spec_of.tolerance is not None or spec_of.dataset_format or spec_of.ground_truth
+            else default_folder_tolerance(spec_of.data, [spec_of.reference, spec_of.query])
+        )
+        measured_on = {
+            "data_root": str(spec_of.data),
+            "reference": spec_of.reference,
+            "query": spec_of.query,
+            "frames": spec_of.frames,
+            "split": spec_of.split,
+            "dataset_format": spec_of.dataset_format,
+            "tolerance": tolerance,
+            "ground_truth": split.description,
+            "ground_truth_file": spec_of.ground_truth,
+        }
         log = logging.getLogger(__name__).info  # standard error, as the library's messages (fdnet.logs)
-        log(f"calibrating {descriptor.name} with rule {spec.name} for precision {r.target_precision:g} on "
-            f"{split.description}: {len(split.query)} queries x {len(split.reference)} references")
-        calibration = calibrate(descriptor, split, spec, r.target_precision, r.sequence_length, pipeline=r.pipeline,
-                                log=log, choose=choose)
+        log(
+            f"calibrating {descriptor.name} with rule {spec.name} for precision {r.target_precision:g} on "
+            f"{split.description}: {len(split.query)} queries x {len(split.reference)} references"
+        )
+        calibration = calibrate(
+            descriptor, split, spec, r.target_precision, r.sequence_length, pipeline=r.pipeline, log=log, choose=choose
+        )
         # where the data came from, beside what was measured
         calibration.measured_on.update({k: v for k, v in measured_on.items() if v is not None})
         written, failed = _store(calibration, r.out, run_dir, db, r.db)

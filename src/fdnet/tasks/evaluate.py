@@ -71,8 +71,9 @@ class EvaluationOutcome:
     table: str
 
 
-def evaluate_command(settings: EvaluateSettings, log: Callable[[str], None] | None = None,
-                     show: Callable[[str], None] | None = None) -> EvaluationOutcome:
+def evaluate_command(
+    settings: EvaluateSettings, log: Callable[[str], None] | None = None, show: Callable[[str], None] | None = None
+) -> EvaluationOutcome:
     """Evaluate as ``settings`` say; progress and the files written go to ``log`` (default: this
     module's logger). ``show`` gets the results table as soon as it is made, before the JSON and
     plots are written (the command prints it there). Every setting and output path is checked
@@ -106,8 +107,15 @@ def evaluate_command(settings: EvaluateSettings, log: Callable[[str], None] | No
     if show is not None:
         show(table)
     if settings.json:
-        write_json(settings.json, results, settings.protocol, include_curve=settings.include_curve,
-                   command=settings.command, settings=_recorded(settings), predictions=settings.predictions)
+        write_json(
+            settings.json,
+            results,
+            settings.protocol,
+            include_curve=settings.include_curve,
+            command=settings.command,
+            settings=_recorded(settings),
+            predictions=settings.predictions,
+        )
         log(f"wrote {settings.json}")
     if settings.plots:
         from fdnet.evaluation.plots import write_result_plots
@@ -128,14 +136,31 @@ def _check_nowhere_to_go(settings: EvaluateSettings) -> None:
     without ``similarity``."""
     from fdnet.errors import ConfigError
 
-    needs = [("--predictions K", bool(settings.predictions), settings.json, "--json FILE", "the JSON holds them"),
-             ("--no-curve", not settings.include_curve, settings.json, "--json FILE", "the curve is left out of "
-              "the JSON"),
-             ("--examples N", settings.examples is not None, settings.plots, "--plots DIR", "the figure is a plot"),
-             ("--distance", settings.distance, settings.similarity, "--similarity FILE.npy", "it says what the "
-              "matrix holds"),
-             ("--name", settings.name is not None, settings.similarity, "--similarity FILE.npy", "methods are "
-              "named by --method")]
+    needs = [
+        ("--predictions K", bool(settings.predictions), settings.json, "--json FILE", "the JSON holds them"),
+        (
+            "--no-curve",
+            not settings.include_curve,
+            settings.json,
+            "--json FILE",
+            "the curve is left out of " "the JSON",
+        ),
+        ("--examples N", settings.examples is not None, settings.plots, "--plots DIR", "the figure is a plot"),
+        (
+            "--distance",
+            settings.distance,
+            settings.similarity,
+            "--similarity FILE.npy",
+            "it says what the " "matrix holds",
+        ),
+        (
+            "--name",
+            settings.name is not None,
+            settings.similarity,
+            "--similarity FILE.npy",
+            "methods are " "named by --method",
+        ),
+    ]
     for flag, given, target, needed, why in needs:
         if given and not target:
             raise ConfigError(f"{flag} needs {needed} ({why}); without it the flag would do nothing")
@@ -154,8 +179,10 @@ def _check_settings(settings: EvaluateSettings) -> None:
     if not settings.similarity and not settings.method:
         raise ConfigError("nothing to evaluate: give --method NAME with --data, or --similarity FILE.npy")
     if settings.thresholds is not None and settings.protocol != "recall-over-queries":
-        raise ConfigError("--thresholds applies to --protocol recall-over-queries only (vprbench uses "
-                          "every top-1 score, as VPR-Bench does)")
+        raise ConfigError(
+            "--thresholds applies to --protocol recall-over-queries only (vprbench uses "
+            "every top-1 score, as VPR-Bench does)"
+        )
     if settings.thresholds is not None and settings.thresholds < 2:
         raise ConfigError(f"--thresholds must be at least 2, got {settings.thresholds}")
     if settings.tolerance is not None and settings.tolerance < 0:
@@ -165,8 +192,10 @@ def _check_settings(settings: EvaluateSettings) -> None:
     check_sequence_length(settings.sequence_length)
     if settings.similarity and settings.sequence_length > 1:
         # it was silently ignored: single-image numbers reported as if sequence-matched
-        raise ConfigError("--sequence-length applies to --method; a --similarity matrix is evaluated as given "
-                          "(apply fdnet.matching.sequence.sequence_similarity to it first)")
+        raise ConfigError(
+            "--sequence-length applies to --method; a --similarity matrix is evaluated as given "
+            "(apply fdnet.matching.sequence.sequence_similarity to it first)"
+        )
     # Outputs are checked before minutes of describing images, not after.
     if settings.json:
         ensure_writable(settings.json, what="JSON results")
@@ -177,20 +206,36 @@ def _check_settings(settings: EvaluateSettings) -> None:
 def _split(settings: EvaluateSettings):
     from fdnet.evaluation.splits import SplitSpec, build_split
 
-    return build_split(SplitSpec(settings.data, settings.reference, settings.query,
-                                 dataset_format=settings.dataset_format, split=settings.split,
-                                 format_set=tuple(settings.format_set), frames=settings.frames,
-                                 tolerance=settings.tolerance, filter_frames=settings.filter_frames,
-                                 ground_truth=settings.ground_truth))
+    return build_split(
+        SplitSpec(
+            settings.data,
+            settings.reference,
+            settings.query,
+            dataset_format=settings.dataset_format,
+            split=settings.split,
+            format_set=tuple(settings.format_set),
+            frames=settings.frames,
+            tolerance=settings.tolerance,
+            filter_frames=settings.filter_frames,
+            ground_truth=settings.ground_truth,
+        )
+    )
 
 
 def _evaluate_matrix(settings: EvaluateSettings, acceptance):
     from fdnet.evaluation.splits import evaluate_similarity_file
 
     split = _split(settings) if settings.data else None
-    return evaluate_similarity_file(settings.similarity, split=split, ground_truth=settings.ground_truth,
-                                    distance=settings.distance, name=settings.name, protocols=(settings.protocol,),
-                                    thresholds=settings.thresholds, acceptance=acceptance)
+    return evaluate_similarity_file(
+        settings.similarity,
+        split=split,
+        ground_truth=settings.ground_truth,
+        distance=settings.distance,
+        name=settings.name,
+        protocols=(settings.protocol,),
+        thresholds=settings.thresholds,
+        acceptance=acceptance,
+    )
 
 
 def _evaluate_methods(settings: EvaluateSettings, acceptance, log) -> list:
@@ -210,16 +255,29 @@ def _evaluate_methods(settings: EvaluateSettings, acceptance, log) -> list:
     results = []
     with torch_threads(settings.threads or os.cpu_count() or 1):
         descriptors = [_create_descriptor(entry, settings.method_options, device) for entry in entries]  # fail fast
-        check_descriptors_held_out(descriptors, settings.data, [split.reference.name, split.query.name],
-                                   settings.frames, settings.dataset_format, settings.split,
-                                   settings.allow_training_frames)
-        log(f"evaluating {', '.join(names)} on {split.description}: {len(split.query)} queries x "
-            f"{len(split.reference)} references")
+        check_descriptors_held_out(
+            descriptors,
+            settings.data,
+            [split.reference.name, split.query.name],
+            settings.frames,
+            settings.dataset_format,
+            settings.split,
+            settings.allow_training_frames,
+        )
+        log(
+            f"evaluating {', '.join(names)} on {split.description}: {len(split.query)} queries x "
+            f"{len(split.reference)} references"
+        )
         for (label, method), descriptor in zip(entries, descriptors):
             result = evaluate_method(
-                descriptor, split, ScoringSettings((settings.protocol,), settings.thresholds, acceptance=acceptance),
+                descriptor,
+                split,
+                ScoringSettings((settings.protocol,), settings.thresholds, acceptance=acceptance),
                 PipelineSettings(settings.batch_size, settings.workers, progress=True),
-                sequence_length=settings.sequence_length, keep_similarity=bool(settings.plots), log=log)
+                sequence_length=settings.sequence_length,
+                keep_similarity=bool(settings.plots),
+                log=log,
+            )
             if label != method:  # a row of its own name; the settings say which method made it
                 result.method = label
                 result.settings = {"method": method, **result.settings}
@@ -250,6 +308,8 @@ def _create_descriptor(entry: tuple[str, str], method_options: MethodOptions, de
 
 def _recorded(settings: EvaluateSettings) -> dict:
     """The settings as the JSON records them (what was asked; callables left out)."""
-    return {f.name: getattr(settings, f.name) for f in dataclasses.fields(settings)
-            if f.name not in ("method_options", "command") and not callable(getattr(settings, f.name))}
-
+    return {
+        f.name: getattr(settings, f.name)
+        for f in dataclasses.fields(settings)
+        if f.name not in ("method_options", "command") and not callable(getattr(settings, f.name))
+    }

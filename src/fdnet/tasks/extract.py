@@ -49,11 +49,12 @@ def frame_arrays(paths) -> dict:
 
     records = frame_records(paths)
     facts = [image_facts(p) for p in paths]
-    return {"sources": np.array([r.source for r in records]),
-            "timestamps": np.array([np.nan if r.timestamp is None else r.timestamp for r in records],
-                                   dtype=np.float64),
-            "sizes": np.array([-1 if f is None else f[1] for f in facts], dtype=np.int64),
-            "mtimes_ns": np.array([-1 if f is None else f[2] for f in facts], dtype=np.int64)}
+    return {
+        "sources": np.array([r.source for r in records]),
+        "timestamps": np.array([np.nan if r.timestamp is None else r.timestamp for r in records], dtype=np.float64),
+        "sizes": np.array([-1 if f is None else f[1] for f in facts], dtype=np.int64),
+        "mtimes_ns": np.array([-1 if f is None else f[2] for f in facts], dtype=np.int64),
+    }
 
 
 def described_arrays(descriptor):
@@ -96,12 +97,17 @@ def _checked(descriptor, paths, start: int, array) -> np.ndarray:
 
 
 def _summary(paths, arrays, descriptor, seconds: float, fitted) -> dict:
-    return {"images": len(paths), "arrays": arrays, "dim": descriptor.dim, "seconds": seconds,
-            "images_per_second": len(paths) / max(seconds, 1e-9), "fitted_on": fitted}
+    return {
+        "images": len(paths),
+        "arrays": arrays,
+        "dim": descriptor.dim,
+        "seconds": seconds,
+        "images_per_second": len(paths) / max(seconds, 1e-9),
+        "fitted_on": fitted,
+    }
 
 
-def extract(descriptor, paths, out, batch_size: int = 64, workers: int | None = None,
-            progress: bool = True) -> dict:
+def extract(descriptor, paths, out, batch_size: int = 64, workers: int | None = None, progress: bool = True) -> dict:
     """Describe ``paths`` with ``descriptor`` into the ``.npz`` file ``out`` (written atomically).
 
     A descriptor that learns from images and was given none (``needs_fit``: dbow without a
@@ -121,26 +127,40 @@ def extract(descriptor, paths, out, batch_size: int = 64, workers: int | None = 
     timing: dict = {}
     started = time.perf_counter()
     writer = shards.collectively(
-        lambda: NpzChunkWriter(out, {name: (shape, np.float32) for name in names}) if shards.is_main else None)
+        lambda: NpzChunkWriter(out, {name: (shape, np.float32) for name in names}) if shards.is_main else None
+    )
 
     def write(start, arrays):
         for name, array in zip(names, arrays):
             writer.write(name, _checked(descriptor, paths, start, array))
 
     with writer if writer is not None else contextlib.nullcontext():
-        describe_blocks(shards, descriptor, paths, BlockOutput([descriptor.dim] * len(names), write),
-                        PipelineSettings(batch_size, workers, progress),
-                        DescribeJob(describe, what=f"extract [{descriptor.name}]", reads_pixels=False), timing)
+        describe_blocks(
+            shards,
+            descriptor,
+            paths,
+            BlockOutput([descriptor.dim] * len(names), write),
+            PipelineSettings(batch_size, workers, progress),
+            DescribeJob(describe, what=f"extract [{descriptor.name}]", reads_pixels=False),
+            timing,
+        )
         if writer is not None:
-            writer.close({"names": np.array([p.name for p in paths]), **frame_arrays(paths),
-                          "method": np.array(descriptor.name), "fingerprint": np.array(descriptor.fingerprint()),
-                          "settings": np.array(_settings(descriptor, shards.world_size))})
+            writer.close(
+                {
+                    "names": np.array([p.name for p in paths]),
+                    **frame_arrays(paths),
+                    "method": np.array(descriptor.name),
+                    "fingerprint": np.array(descriptor.fingerprint()),
+                    "settings": np.array(_settings(descriptor, shards.world_size)),
+                }
+            )
     seconds = _seconds(shards, timing, started)
     return _summary(paths, names, descriptor, seconds, fitted)
 
 
-def extract_h5(descriptor, paths, out, root, batch_size: int = 64, workers: int | None = None,
-               progress: bool = True) -> dict:
+def extract_h5(
+    descriptor, paths, out, root, batch_size: int = 64, workers: int | None = None, progress: bool = True
+) -> dict:
     """Describe ``paths`` into hloc's global-features file ``out`` (written atomically): each
     image's place descriptor (what :func:`described_arrays` calls ``descriptors``, FDNet's
     ``content``) as the ``global_descriptor`` of the group named by its path relative to
@@ -161,22 +181,34 @@ def extract_h5(descriptor, paths, out, root, batch_size: int = 64, workers: int 
     started = time.perf_counter()
     # "root": the folder the names are relative to (hloc ignores it; --method precomputed reads the
     # names below it, so day/0001.png's vector never serves dusk/0001.png)
-    attrs = {"method": descriptor.name, "fingerprint": descriptor.fingerprint(), "array": array,
-             "settings": _settings(descriptor, shards.world_size),
-             "root": os.path.abspath(os.fspath(root))}
+    attrs = {
+        "method": descriptor.name,
+        "fingerprint": descriptor.fingerprint(),
+        "array": array,
+        "settings": _settings(descriptor, shards.world_size),
+        "root": os.path.abspath(os.fspath(root)),
+    }
     writer = shards.collectively(lambda: GlobalFeaturesWriter(out, attrs=attrs) if shards.is_main else None)
 
     def write(start, arrays):
         end = start + len(arrays[0])
-        writer.write(names[start:end], _checked(descriptor, paths, start, arrays[0]),
-                     facts=[None if f is None else f[1:] for f in map(image_facts, paths[start:end])])
+        writer.write(
+            names[start:end],
+            _checked(descriptor, paths, start, arrays[0]),
+            facts=[None if f is None else f[1:] for f in map(image_facts, paths[start:end])],
+        )
 
     with writer if writer is not None else contextlib.nullcontext():
-        describe_blocks(shards, descriptor, paths, BlockOutput([descriptor.dim], write),
-                        PipelineSettings(batch_size, workers, progress),
-                        DescribeJob(what=f"extract [{descriptor.name}]"), timing)
+        describe_blocks(
+            shards,
+            descriptor,
+            paths,
+            BlockOutput([descriptor.dim], write),
+            PipelineSettings(batch_size, workers, progress),
+            DescribeJob(what=f"extract [{descriptor.name}]"),
+            timing,
+        )
         if writer is not None and writer.count != len(paths):
             raise RuntimeError(f"{out}: {writer.count} vectors for {len(paths)} images")
     seconds = _seconds(shards, timing, started)
-    return {**_summary(paths, ("global_descriptor",), descriptor, seconds, fitted), "array": array,
-            "root": str(root)}
+    return {**_summary(paths, ("global_descriptor",), descriptor, seconds, fitted), "array": array, "root": str(root)}

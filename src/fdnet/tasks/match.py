@@ -74,8 +74,9 @@ class MatchRequest:
     pipeline: PipelineSettings = field(default_factory=lambda: PipelineSettings(batch_size=64, progress=True))
 
 
-def match_images(request: MatchRequest, make_descriptor: Callable[[], object],
-                 log: Callable[[str], None] | None = None) -> MatchSummary:
+def match_images(
+    request: MatchRequest, make_descriptor: Callable[[], object], log: Callable[[str], None] | None = None
+) -> MatchSummary:
     """Describe the reference folder (the map) and the query folder with the method
     ``make_descriptor()`` returns (called after the settings and output paths are checked, so a
     refusal comes before any model is loaded), rank the references of every query
@@ -93,33 +94,58 @@ def match_images(request: MatchRequest, make_descriptor: Callable[[], object],
     calibration, rule, depth = _decision_rule(r, descriptor, sequence_length, names)
     neighbourhood = reference_times_and_positions(ref_paths)
     if rule is not None:  # e.g. radius_m: image folders have no positions; refused before describing
-        rule.check_available({"images", *neighbourhood}, "fdnet match (references without "
-                             + ("positions)" if "reference_times" in neighbourhood else "timestamps or positions)"))
+        rule.check_available(
+            {"images", *neighbourhood},
+            "fdnet match (references without "
+            + ("positions)" if "reference_times" in neighbourhood else "timestamps or positions)"),
+        )
     if settings is not None and not descriptor.dot_product_similarity:
-        raise ConfigError(f"method {descriptor.name!r} does not compare vectors by dot product, so a "
-                          "faiss index would rank by the wrong measure; use --index exact")
+        raise ConfigError(
+            f"method {descriptor.name!r} does not compare vectors by dot product, so a "
+            "faiss index would rank by the wrong measure; use --index exact"
+        )
     if descriptor.needs_fit:
         logger.info(f"{descriptor.name}: learning from the {len(ref_paths)} reference images (none supplied)")
         descriptor.fit(ref_paths)
-    indices, scores = rank_references(descriptor, ref_paths, query_paths, depth,
-                                      SearchSettings(settings, sequence_length, r.index_file), r.pipeline, log=log)
+    indices, scores = rank_references(
+        descriptor,
+        ref_paths,
+        query_paths,
+        depth,
+        SearchSettings(settings, sequence_length, r.index_file),
+        r.pipeline,
+        log=log,
+    )
     decision = accepted = None
     if rule is not None:
         from fdnet.decisions.acceptance import Candidates, decide
 
-        candidates = Candidates(indices, scores, similarity_ceiling=float(descriptor.similarity_ceiling),
-                                query_paths=query_paths, reference_paths=ref_paths, **neighbourhood)
+        candidates = Candidates(
+            indices,
+            scores,
+            similarity_ceiling=float(descriptor.similarity_ceiling),
+            query_paths=query_paths,
+            reference_paths=ref_paths,
+            **neighbourhood,
+        )
         if calibration is not None:
             decision, accepted = calibration.decide(candidates)
         else:
             decision = decide(r.accept, candidates)
     ranked = RankedMatches(indices, scores, query_paths, ref_paths, decision, accepted)
     num_pairs = _write_outputs(r, ranked, names)
-    return MatchSummary(out=None if r.out is None else str(r.out), method=descriptor.name,
-                        num_references=len(ref_paths), num_queries=len(query_paths), top_k=r.top_k,
-                        calibration=calibration, accepted=None if accepted is None else int(accepted.sum()),
-                        pairs_out=None if r.pairs_out is None else str(r.pairs_out), num_pairs=num_pairs,
-                        pairs_root=None if names is None else str(names[2]))
+    return MatchSummary(
+        out=None if r.out is None else str(r.out),
+        method=descriptor.name,
+        num_references=len(ref_paths),
+        num_queries=len(query_paths),
+        top_k=r.top_k,
+        calibration=calibration,
+        accepted=None if accepted is None else int(accepted.sum()),
+        pairs_out=None if r.pairs_out is None else str(r.pairs_out),
+        num_pairs=num_pairs,
+        pairs_root=None if names is None else str(names[2]),
+    )
 
 
 @dataclass(frozen=True)
@@ -142,9 +168,19 @@ def _check_request(r: MatchRequest):
     if r.top_k < 1:
         raise ConfigError("--top-k must be at least 1")
     sequence_length = check_sequence_length(r.sequence_length)
-    check_outputs(r.out, r.pairs_out, r.pairs_accepted_only, r.calibration is not None or r.accept is not None,
-                  index_file=r.index_file, inputs=[*r.inputs, ("--reference", r.reference), ("--query", r.query),
-                                                   *([("--calibration", r.calibration)] if r.calibration else [])])
+    check_outputs(
+        r.out,
+        r.pairs_out,
+        r.pairs_accepted_only,
+        r.calibration is not None or r.accept is not None,
+        index_file=r.index_file,
+        inputs=[
+            *r.inputs,
+            ("--reference", r.reference),
+            ("--query", r.query),
+            *([("--calibration", r.calibration)] if r.calibration else []),
+        ],
+    )
     settings = index_settings(r.index, r.index_set, r.index_file, sequence_length)
     for path, what in ((r.out, "matches CSV"), (r.pairs_out, "pairs file"), (r.index_file, "index file")):
         if path is not None:
@@ -182,14 +218,25 @@ def _write_outputs(r: MatchRequest, ranked: RankedMatches, names) -> int | None:
 
             tmp = outputs.enter_context(atomic_path(r.pairs_out))
             with open(tmp, "w", encoding="utf-8", newline="\n") as handle:
-                pairs = retrieval_pairs(ranked.indices, names[1], names[0], r.top_k, ranked.decision, ranked.accepted,
-                                        r.pairs_accepted_only)
+                pairs = retrieval_pairs(
+                    ranked.indices, names[1], names[0], r.top_k, ranked.decision, ranked.accepted, r.pairs_accepted_only
+                )
                 num_pairs = write_pairs_to(handle, pairs, r.pairs_out)
         if r.out is not None:
             tmp = outputs.enter_context(atomic_path(r.out))
-            tmp.write_text(matches_text(ranked.indices, ranked.scores, ranked.query_paths, ranked.reference_paths,
-                                        r.top_k, ranked.decision, ranked.accepted),
-                           encoding="utf-8", errors="surrogateescape")
+            tmp.write_text(
+                matches_text(
+                    ranked.indices,
+                    ranked.scores,
+                    ranked.query_paths,
+                    ranked.reference_paths,
+                    r.top_k,
+                    ranked.decision,
+                    ranked.accepted,
+                ),
+                encoding="utf-8",
+                errors="surrogateescape",
+            )
     return num_pairs
 
 
@@ -208,21 +255,28 @@ def check_outputs(out, pairs_out, pairs_accepted_only: bool, has_rule: bool, ind
     without a rule to accept them or without a pairs file."""
     if out is None and pairs_out is None:
         raise ConfigError("give --out matches.csv, --pairs-out pairs.txt, or both")
-    written = [(option, path) for option, path in (("--out", out), ("--pairs-out", pairs_out),
-                                                   ("--index-file", index_file)) if path is not None]
+    written = [
+        (option, path)
+        for option, path in (("--out", out), ("--pairs-out", pairs_out), ("--index-file", index_file))
+        if path is not None
+    ]
     for i, (option, path) in enumerate(written):
         for other, other_path in written[:i]:
             if _same_path(path, other_path):
                 raise ConfigError(f"{other} and {option} are the same file {path}; give two names")
         for given, source in inputs:
             if source is not None and _same_path(path, source):
-                raise ConfigError(f"{option} {path} is the {given} file {source}: writing it would destroy what the "
-                                  "command reads; give another name")
+                raise ConfigError(
+                    f"{option} {path} is the {given} file {source}: writing it would destroy what the "
+                    "command reads; give another name"
+                )
     if pairs_accepted_only and pairs_out is None:
         raise ConfigError("--pairs-accepted-only needs --pairs-out FILE")
     if pairs_accepted_only and not has_rule:
-        raise ConfigError("--pairs-accepted-only needs a decision: --calibration FILE|RUN_DIR (or one stored in the "
-                          "run) or --accept RULE")
+        raise ConfigError(
+            "--pairs-accepted-only needs a decision: --calibration FILE|RUN_DIR (or one stored in the "
+            "run) or --accept RULE"
+        )
 
 
 def pair_names(reference, query, ref_paths, query_paths, where) -> tuple[list[str], list[str], Path]:
@@ -238,8 +292,9 @@ def pair_names(reference, query, ref_paths, query_paths, where) -> tuple[list[st
     return ref_names, query_names, root
 
 
-def retrieval_pairs(indices, query_names, ref_names, top_k: int, decision=None, accepted=None,
-                    accepted_only: bool = False):
+def retrieval_pairs(
+    indices, query_names, ref_names, top_k: int, decision=None, accepted=None, accepted_only: bool = False
+):
     """hloc's retrieval pairs ``(query name, reference name)``, query by query in order, best
     reference first: each query's ``top_k`` references (the rows of the matches CSV), or with
     ``accepted_only`` the one match the decision accepts (a calibrated decision: where
@@ -287,7 +342,13 @@ def matches_text(indices, scores, query_paths, ref_paths, top_k: int, decision=N
         for rank, (i, s) in enumerate(zip(row_i, row_s), start=1):
             chosen = accepted is not None and i == decision.match[q] and bool(accepted[q])
             if i >= 0 and (rank <= top_k or chosen):
-                row = [q, spreadsheet_text(image_name(query_paths[q])), rank, int(i),
-                       spreadsheet_text(image_name(ref_paths[i])), f"{float(s):.6f}"]
+                row = [
+                    q,
+                    spreadsheet_text(image_name(query_paths[q])),
+                    rank,
+                    int(i),
+                    spreadsheet_text(image_name(ref_paths[i])),
+                    f"{float(s):.6f}",
+                ]
                 writer.writerow(row + decision_cells(q, chosen, decision, accepted))
     return buffer.getvalue()

@@ -41,8 +41,9 @@ def training_route(data) -> RouteDataset:
         route = route.frames(start, end)
     for name, traverse in route.traverses.items():
         if len(traverse) == 0:
-            raise DataError(f"{Path(data.root) / name}: frame range {data.frames or data.split or 'all'!r} "
-                            "selects no images")
+            raise DataError(
+                f"{Path(data.root) / name}: frame range {data.frames or data.split or 'all'!r} " "selects no images"
+            )
     return route
 
 
@@ -60,8 +61,8 @@ def load_uint8(paths, size, chunk: int = 256) -> torch.Tensor:
     # minutes for a large route on a small machine: a bar with the time left (fdnet.progress)
     with progress_bar(total=len(paths), desc="reading training images", unit="img", leave=False) as bar:
         for i in range(0, len(paths), chunk):
-            parts.append(to_uint8_tensor(load_images(paths[i:i + chunk], size)))
-            bar.update(len(paths[i:i + chunk]))
+            parts.append(to_uint8_tensor(load_images(paths[i : i + chunk], size)))
+            bar.update(len(paths[i : i + chunk]))
     if not parts:
         return torch.zeros((0, 3, int(size[0]), int(size[1])), dtype=torch.uint8)
     return torch.cat(parts)
@@ -78,18 +79,26 @@ class TrainingImages:
     frame_ids: list[np.ndarray]
 
 
-def route_images(route: RouteDataset, size, min_per_condition: int = 1, min_conditions: int = 1,
-                 why: str = "") -> TrainingImages:
+def route_images(
+    route: RouteDataset, size, min_per_condition: int = 1, min_conditions: int = 1, why: str = ""
+) -> TrainingImages:
     """Every condition of ``route`` at ``size`` (counts checked before anything is decoded)."""
     if len(route.conditions) < min_conditions:
-        raise DataError(f"{route.root}: {why or 'this method'} needs at least {min_conditions} conditions "
-                        f"(sub-folders) to train on; found {', '.join(route.conditions) or 'none'}")
+        raise DataError(
+            f"{route.root}: {why or 'this method'} needs at least {min_conditions} conditions "
+            f"(sub-folders) to train on; found {', '.join(route.conditions) or 'none'}"
+        )
     for name in route.conditions:
         if len(route[name]) < min_per_condition:
-            raise DataError(f"{Path(route.root) / name}: {len(route[name])} training images, fewer than "
-                            f"the {min_per_condition} one mini-batch needs ({why})")
-    return TrainingImages(list(route.conditions), [load_uint8(route[c].paths, size) for c in route.conditions],
-                          [np.asarray(route[c].frame_ids) for c in route.conditions])
+            raise DataError(
+                f"{Path(route.root) / name}: {len(route[name])} training images, fewer than "
+                f"the {min_per_condition} one mini-batch needs ({why})"
+            )
+    return TrainingImages(
+        list(route.conditions),
+        [load_uint8(route[c].paths, size) for c in route.conditions],
+        [np.asarray(route[c].frame_ids) for c in route.conditions],
+    )
 
 
 @dataclass
@@ -110,12 +119,17 @@ def load_validation_images(root: str | Path, validation, size) -> ValidationImag
     # a frame range that selects images, ground truth from frame ids
     start, end = parse_frame_range(v.frames)
     try:
-        split = aligned_split(RouteDataset.from_folder(root, [v.reference, v.query]), v.reference, v.query,
-                              v.tolerance, start, end)
+        split = aligned_split(
+            RouteDataset.from_folder(root, [v.reference, v.query]), v.reference, v.query, v.tolerance, start, end
+        )
     except DataError as exc:
         raise DataError(f"validation {v.query}->{v.reference}: {exc}") from exc
     ref, query, gt = split.reference, split.query, split.ground_truth
     if not gt.has_match.any():
         raise DataError(f"validation {v.query}->{v.reference} frames {v.frames or 'all'}: no query has a match")
-    return ValidationImages(load_uint8(ref.paths, size), load_uint8(query.paths, size), gt,
-                            f"{v.query}->{v.reference} frames {v.frames or 'all'} tolerance {v.tolerance}")
+    return ValidationImages(
+        load_uint8(ref.paths, size),
+        load_uint8(query.paths, size),
+        gt,
+        f"{v.query}->{v.reference} frames {v.frames or 'all'} tolerance {v.tolerance}",
+    )

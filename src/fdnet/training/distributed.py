@@ -127,8 +127,13 @@ class DistributedContext(ProcessGroup):
             return
         from torch.nn.modules.batchnorm import _NormBase
 
-        buffers = [b for module in modules for m in module.modules()
-                   if isinstance(m, _NormBase) and m.track_running_stats for b in m.buffers(recurse=False)]
+        buffers = [
+            b
+            for module in modules
+            for m in module.modules()
+            if isinstance(m, _NormBase) and m.track_running_stats
+            for b in m.buffers(recurse=False)
+        ]
         if buffers:
             self._broadcast(buffers)
 
@@ -145,7 +150,6 @@ class DistributedContext(ProcessGroup):
                 dist.broadcast(flat, src=0)
                 for tensor, value in zip(group, _unflatten_dense_tensors(flat, group)):
                     tensor.copy_(value)
-
 
 
 _SINGLE = DistributedContext()

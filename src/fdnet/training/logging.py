@@ -49,8 +49,9 @@ class TrainingLog:
                 writer = csv.DictWriter(handle, fieldnames=self.columns)
                 if new:
                     writer.writeheader()
-                writer.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()
-                                 if k in self.columns})
+                writer.writerow(
+                    {k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items() if k in self.columns}
+                )
         except OSError as exc:  # a full disk: a write() error names no file, so name it here
             if exc.filename is not None:
                 raise

@@ -167,8 +167,12 @@ def validation_metrics(method: TrainingMethod, data: ValidationImages) -> dict[s
     reference = method.validation_vectors(data.reference)
     query = method.validation_vectors(data.query)
     metrics = evaluate_similarity(query @ reference.T, data.ground_truth, ns=(1, 5))
-    return {"recall@1": metrics.recall_at_n[1], "recall@5": metrics.recall_at_n[5],
-            "recall@100p": metrics.recall_at_100_precision, "auc": metrics.auc_pr}
+    return {
+        "recall@1": metrics.recall_at_n[1],
+        "recall@5": metrics.recall_at_n[5],
+        "recall@100p": metrics.recall_at_100_precision,
+        "auc": metrics.auc_pr,
+    }
 
 
 def numpy_rng_state(rng: np.random.Generator) -> str:
@@ -234,9 +238,16 @@ class Trainer:
     and writes the run directory, the others get what they need from it by broadcast.
     """
 
-    def __init__(self, method: TrainingMethod, run_dir: str | Path, validation: ValidationImages | None = None,
-                 resume: bool = False, override: bool = False, tensorboard: bool = True,
-                 command: str = "") -> None:
+    def __init__(
+        self,
+        method: TrainingMethod,
+        run_dir: str | Path,
+        validation: ValidationImages | None = None,
+        resume: bool = False,
+        override: bool = False,
+        tensorboard: bool = True,
+        command: str = "",
+    ) -> None:
         self.method = method
         self.run_dir = Path(run_dir)
         self.dist = method.distributed
@@ -284,8 +295,10 @@ class Trainer:
     # ------------------------------------------------------------------ checkpoints
     def _own_random_state(self) -> dict:
         """This rank's random streams: torch's RNG and the per-rank part of the method's state."""
-        return {"torch_rng": torch.get_rng_state(),
-                "method_state": dist_module.rank_part(self.method.state(), self.method.rank_state_keys)}
+        return {
+            "torch_rng": torch.get_rng_state(),
+            "method_state": dist_module.rank_part(self.method.state(), self.method.rank_state_keys),
+        }
 
     def _state(self, rank_states: list | None = None) -> dict:
         state = {
@@ -317,8 +330,13 @@ class Trainer:
 
     def _write(self, rank_states: list | None) -> Path:
         try:
-            return runs.save_checkpoint(self.run_dir, self.method.modules(), self.method.config,
-                                        optimizers=self.method.optimizers(), state=self._state(rank_states))
+            return runs.save_checkpoint(
+                self.run_dir,
+                self.method.modules(),
+                self.method.config,
+                optimizers=self.method.optimizers(),
+                state=self._state(rank_states),
+            )
         except (OSError, ConfigError) as exc:
             reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
             try:
@@ -326,13 +344,17 @@ class Trainer:
             except ConfigError:
                 previous = None
             if previous is None:  # nothing to resume from: --resume would only say so
-                message = (f"{self.run_dir}: could not write the checkpoint of step {self.step} ({reason}); no "
-                           "checkpoint was written before it, so there is nothing to resume: fix the cause "
-                           "(e.g. free disk space) and run the same command again")
+                message = (
+                    f"{self.run_dir}: could not write the checkpoint of step {self.step} ({reason}); no "
+                    "checkpoint was written before it, so there is nothing to resume: fix the cause "
+                    "(e.g. free disk space) and run the same command again"
+                )
             else:
-                message = (f"{self.run_dir}: could not write the checkpoint of step {self.step} ({reason}); "
-                           f"the previous complete checkpoint (step {previous}) is intact: fix the cause "
-                           "(e.g. free disk space) and continue with --resume")
+                message = (
+                    f"{self.run_dir}: could not write the checkpoint of step {self.step} ({reason}); "
+                    f"the previous complete checkpoint (step {previous}) is intact: fix the cause "
+                    "(e.g. free disk space) and continue with --resume"
+                )
             # a full disk or a lost mount stays an operating-system error (OutputError is both)
             raise (output_error(message, exc) if isinstance(exc, OSError) else ConfigError(message)) from exc
 
@@ -347,7 +369,8 @@ class Trainer:
                 f"{self.run_dir}: --resume asks for other settings than the run was trained with: "
                 + "; ".join(differences)
                 + ". Repeat the run's own settings, or add --override to continue with the new ones "
-                "(the change is recorded in changes.yaml)")
+                "(the change is recorded in changes.yaml)"
+            )
         runs.load_weights(self.run_dir, self.method.modules())
         state = runs.load_training_state(self.run_dir, self.method.optimizers())
         saved_world, world = int(state.get("world_size", 1)), self.dist.world_size
@@ -359,7 +382,8 @@ class Trainer:
                     f"effective batch and every process's random streams. Resume it with {saved_world} "
                     f"process{'es' if saved_world > 1 else ''} (torchrun --nproc-per-node/--nnodes"
                     f"{'' if saved_world > 1 else ', or plain fdnet'}), or add --override to continue with world size "
-                    f"{world} (recorded in changes.yaml)")
+                    f"{world} (recorded in changes.yaml)"
+                )
             differences = [*differences, f"world_size: saved {saved_world}, requested {world}"]
         if differences:
             runs.record_changes(self.run_dir, int(state["step"]), differences, command)
@@ -382,13 +406,17 @@ class Trainer:
         self._saved_step = self.step
         self.changes = list(payload["changes"])
         self.elapsed = float(state["elapsed_seconds"])
-        self.best = {"step": int(state["best_step"]), "recall@1": float(state["best_recall@1"]),
-                     "auc": float(state.get("best_auc", -1.0))}
+        self.best = {
+            "step": int(state["best_step"]),
+            "recall@1": float(state["best_recall@1"]),
+            "auc": float(state.get("best_auc", -1.0)),
+        }
         keys = method.rank_state_keys
         shared = state.get("method_state", {})
         # A single-process save has no rank_states: its top-level streams are rank 0's.
-        saved_ranks = state.get("rank_states") or [{"torch_rng": state["torch_rng"],
-                                                    "method_state": dist_module.rank_part(shared, keys)}]
+        saved_ranks = state.get("rank_states") or [
+            {"torch_rng": state["torch_rng"], "method_state": dist_module.rank_part(shared, keys)}
+        ]
         if dist.rank < len(saved_ranks):
             own = saved_ranks[dist.rank]
             torch.set_rng_state(own["torch_rng"])
@@ -402,8 +430,12 @@ class Trainer:
         loadable as ``--checkpoint RUN/stages/STAGE``), so what each stage did can be measured on
         any frames afterwards; rolling checkpoints keep only the newest."""
         self.method.before_save()
-        self.dist.collectively(lambda: runs.save_weights(self.run_dir / STAGES_DIR / stage, self.method.modules(),
-                                                         self.method.config, step=self.step), main_only=True)
+        self.dist.collectively(
+            lambda: runs.save_weights(
+                self.run_dir / STAGES_DIR / stage, self.method.modules(), self.method.config, step=self.step
+            ),
+            main_only=True,
+        )
 
     # ------------------------------------------------------------------ validation
     def validate_now(self) -> dict[str, float]:
@@ -460,8 +492,15 @@ class Trainer:
                     metrics = self.validate_now()
                     row = {"val_recall@1": metrics["recall@1"], "val_recall@100p": metrics["recall@100p"]}
                 if self.step % settings.log_every == 0 or row is not None or self.step == total:
-                    self.log.write({"step": self.step, "stage": stage, "elapsed_s": round(self.elapsed, 2),
-                                    **numbers, **(row or {})})
+                    self.log.write(
+                        {
+                            "step": self.step,
+                            "stage": stage,
+                            "elapsed_s": round(self.elapsed, 2),
+                            **numbers,
+                            **(row or {}),
+                        }
+                    )
                 if self.step % settings.checkpoint_every == 0:
                     self.save()
                 if self.step == total or method.stage(self.step) != stage:
@@ -486,10 +525,17 @@ class Trainer:
         if self._saved_step != self.step:
             self.save()
         self.log.close()
-        summary = {"status": status, "step": self.step, "total_steps": total,
-                   "elapsed_seconds": self.elapsed, "run_dir": str(self.run_dir),
-                   "best_step": self.best["step"], "best_recall@1": self.best["recall@1"],
-                   "changes": list(self.changes), "world_size": dist.world_size}
+        summary = {
+            "status": status,
+            "step": self.step,
+            "total_steps": total,
+            "elapsed_seconds": self.elapsed,
+            "run_dir": str(self.run_dir),
+            "best_step": self.best["step"],
+            "best_recall@1": self.best["recall@1"],
+            "changes": list(self.changes),
+            "world_size": dist.world_size,
+        }
         if interrupted:
             raise KeyboardInterrupt(summary)
         return summary
@@ -505,9 +551,16 @@ def _to_cpu(value):
     return value
 
 
-def run_training(build: Callable[[], tuple[TrainingMethod, ValidationImages | None]], run_dir: str | Path,
-                 resume: bool = False, override: bool = False, max_minutes: float | None = None,
-                 progress: bool = True, command: str = "fdnet train", runtime=None) -> dict:
+def run_training(
+    build: Callable[[], tuple[TrainingMethod, ValidationImages | None]],
+    run_dir: str | Path,
+    resume: bool = False,
+    override: bool = False,
+    max_minutes: float | None = None,
+    progress: bool = True,
+    command: str = "fdnet train",
+    runtime=None,
+) -> dict:
     """Train the method ``build()`` returns (with its validation images, or None) into ``run_dir``.
 
     ``runtime``: the run config's ``runtime`` section; its threads are set and its device checked
@@ -527,6 +580,7 @@ def run_training(build: Callable[[], tuple[TrainingMethod, ValidationImages | No
     if runtime is not None:  # settings errors (a GPU that is not there) before the lock and any image
         training_device(runtime)
     with dist_module.launch() as dist, contextlib.ExitStack() as held:
+
         def take_lock() -> None:
             ensure_writable(run_dir, what="run directory", directory=True)
             held.enter_context(runs.RunLock(run_dir, command=command))
@@ -540,6 +594,5 @@ def run_training(build: Callable[[], tuple[TrainingMethod, ValidationImages | No
             return method, validation
 
         method, validation = dist.collectively(build_here)
-        trainer = Trainer(method, run_dir, validation=validation, resume=resume, override=override,
-                          command=command)
+        trainer = Trainer(method, run_dir, validation=validation, resume=resume, override=override, command=command)
         return trainer.fit(max_minutes=max_minutes, progress=progress, since=since)

@@ -42,11 +42,14 @@ def test_read_correspondences_whitespace_and_names(tmp_path):
     assert corr.by_name and corr.query == ["q_001", "q_002"] and corr.reference == ["m_004", "m_006"]
 
 
-@pytest.mark.parametrize("text, message", [
-    ("", "empty correspondence file"),
-    ("1\n2\n", "line 1: expected at least 2 columns"),
-    ("1,2\n3,4.5\n", "line 2: frame numbers must be integers"),
-])
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("", "empty correspondence file"),
+        ("1\n2\n", "line 1: expected at least 2 columns"),
+        ("1,2\n3,4.5\n", "line 2: frame numbers must be integers"),
+    ],
+)
 def test_read_correspondences_errors(tmp_path, text, message):
     path = tmp_path / "fm.csv"
     path.write_text(text)

@@ -20,8 +20,14 @@ def test_two_conditions_frame_aligned(tmp_path):
     assert detect_format(root) == "folders"
     split = open_split(root, tolerance=1)
     assert (split.reference.name, split.query.name) == ("day", "night")
-    assert [p.tolist() for p in split.ground_truth.positives] == [[0, 1], [0, 1, 2], [1, 2, 3], [2, 3, 4],
-                                                                  [3, 4, 5], [4, 5]]
+    assert [p.tolist() for p in split.ground_truth.positives] == [
+        [0, 1],
+        [0, 1, 2],
+        [1, 2, 3],
+        [2, 3, 4],
+        [3, 4, 5],
+        [4, 5],
+    ]
     part = open_split(root, reference="night", query="day", split="2:5")
     assert len(part.query) == 3 and part.query.frame_ids.tolist() == [2, 3, 4]
     assert [p.tolist() for p in part.ground_truth.positives] == [[0], [1], [2]]

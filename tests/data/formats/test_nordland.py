@@ -58,8 +58,10 @@ def test_decorated_season_folder_names(tmp_path):
 
 
 def make_partitioned(root):
-    for part, sections in (("train", {"section1": range(1, 6)}), ("test", {"section1": range(100, 103),
-                                                                          "section2": range(200, 202)})):
+    for part, sections in (
+        ("train", {"section1": range(1, 6)}),
+        ("test", {"section1": range(100, 103), "section2": range(200, 202)}),
+    ):
         for season in ("summer", "winter"):
             for section, numbers in sections.items():
                 write_frames(root / part / f"{season}_images_{part}" / section, [f"{n}.png" for n in numbers])

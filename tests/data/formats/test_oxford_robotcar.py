@@ -9,8 +9,10 @@ from fdnet.data.formats.oxford_robotcar import subsample
 from fdnet.data.images import load_image
 from fdnet.errors import DataError
 
-INS_HEADER = ("timestamp,ins_status,latitude,longitude,altitude,northing,easting,down,utm_zone,"
-              "velocity_north,velocity_east,velocity_down,roll,pitch,yaw")
+INS_HEADER = (
+    "timestamp,ins_status,latitude,longitude,altitude,northing,easting,down,utm_zone,"
+    "velocity_north,velocity_east,velocity_down,roll,pitch,yaw"
+)
 T0 = 1418721000000000  # microseconds
 RGB = (200, 100, 30)
 
@@ -38,8 +40,7 @@ def make_run(root, name, n=16, hz=16.0, speed=10.0, gps_start=T0, gps_end=None, 
     rows = [INS_HEADER]
     for t in range(gps_start, gps_end + 1, 20000):
         north = north0 + speed * (t - T0) / 1e6
-        rows.append(f"{t},INS_SOLUTION_GOOD,51.76,-1.26,110.0,{north:.3f},620000.000,-110.0,30U,"
-                    f"{speed},0,0,0,0,0")
+        rows.append(f"{t},INS_SOLUTION_GOOD,51.76,-1.26,110.0,{north:.3f},620000.000,-110.0,30U," f"{speed},0,0,0,0,0")
     (run / "gps" / "ins.csv").write_text("\n".join(rows) + "\n")
     return stamps
 
@@ -64,8 +65,9 @@ def test_day_night_pair_demosaiced_and_positioned(tmp_path):
     # every image (fps=0) is 0.625 m apart; night image 0 is 5 m north = day image 8
     near = open_split(root, split="all", demosaic_cache=str(cache), tolerance_m=0.3, fps=0)
     assert len(near.query) == 16 and near.ground_truth.positives[0].tolist() == [8]
-    assert open_split(root, split="all", demosaic_cache=str(cache), tolerance_m=2.0,
-                      fps=0).ground_truth.positives[0].tolist() == [5, 6, 7, 8, 9, 10, 11]
+    assert open_split(root, split="all", demosaic_cache=str(cache), tolerance_m=2.0, fps=0).ground_truth.positives[
+        0
+    ].tolist() == [5, 6, 7, 8, 9, 10, 11]
 
 
 def test_distance_subsampling(tmp_path):

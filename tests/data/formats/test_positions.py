@@ -28,16 +28,19 @@ def test_headerless_with_column_meanings(tmp_path):
     assert table.kind == "degrees" and table.images is None and table.values[1].tolist() == [-27.6, 153.1]
 
 
-@pytest.mark.parametrize("text, message", [
-    ("", "empty position file"),
-    ("image,lat\na,1\n", "missing position columns; need lat,lon .* found: image, lat"),
-    ("image,lat,lon\n", "has a header but no position rows"),
-    ("image,lat,lon\na,1,2\nb,1,east\n", "line 3: lon is not a number: 'east'"),
-    ("image,lat,lon\na,1,nan\n", "line 2: lon is not a finite number"),
-    ("image,lat,lon\na,95,2\n", "line 2: latitude 95, longitude 2 out of range"),
-    ("1,2,3\n4,5,6\n", "line 1: no header"),
-    ("image,lat,lon\na,1\n", "line 2: expected 3 columns"),
-])
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("", "empty position file"),
+        ("image,lat\na,1\n", "missing position columns; need lat,lon .* found: image, lat"),
+        ("image,lat,lon\n", "has a header but no position rows"),
+        ("image,lat,lon\na,1,2\nb,1,east\n", "line 3: lon is not a number: 'east'"),
+        ("image,lat,lon\na,1,nan\n", "line 2: lon is not a finite number"),
+        ("image,lat,lon\na,95,2\n", "line 2: latitude 95, longitude 2 out of range"),
+        ("1,2,3\n4,5,6\n", "line 1: no header"),
+        ("image,lat,lon\na,1\n", "line 2: expected 3 columns"),
+    ],
+)
 def test_bad_position_files(tmp_path, text, message):
     with pytest.raises(DataError, match=message):
         read_positions(write(tmp_path, "p.csv", text))

@@ -10,9 +10,21 @@ from .conftest import write_frames
 
 def test_every_format_is_described():
     described = describe_formats()
-    assert set(described) == set(format_names()) == {
-        "vprbench", "vpr_tutorial", "vg_benchmark", "oxford_robotcar", "alderley", "fas", "st_lucia", "nordland",
-        "folders"}
+    assert (
+        set(described)
+        == set(format_names())
+        == {
+            "vprbench",
+            "vpr_tutorial",
+            "vg_benchmark",
+            "oxford_robotcar",
+            "alderley",
+            "fas",
+            "st_lucia",
+            "nordland",
+            "folders",
+        }
+    )
     assert described["nordland"]["defaults"]["tolerance"] == 5
     assert described["alderley"]["defaults"]["tolerance"] == 2
     assert described["fas"]["defaults"]["tolerance"] == 3

@@ -1,6 +1,5 @@
 """VPR-Bench layout: query/, ref/, ground_truth_new.npy (pickled object rows) or ground_truth.csv."""
 
-
 import numpy as np
 import pytest
 

@@ -20,9 +20,15 @@ from fdnet.runs import load_config, load_weights
 from tests.training.test_loop import make_dataset
 
 # a projection content head on a frozen trunk, as the cpu preset's (block 4: a 4x8 map at 32x64)
-PROJECTION_HEAD = {"model.backbone": "efficientnet-lite0", "model.backbone_block": 4, "model.input_size": [32, 64],
-                   "model.widths": [16], "model.content_head": "trunk_projection", "model.projection_init": "pca",
-                   "model.critic_input": "l2"}
+PROJECTION_HEAD = {
+    "model.backbone": "efficientnet-lite0",
+    "model.backbone_block": 4,
+    "model.input_size": [32, 64],
+    "model.widths": [16],
+    "model.content_head": "trunk_projection",
+    "model.projection_init": "pca",
+    "model.critic_input": "l2",
+}
 
 
 def _config(tmp_path, **overrides) -> FDNetRunConfig:
@@ -58,8 +64,10 @@ def _log(run) -> tuple[list[str], list[dict]]:
 def _forbid(monkeypatch, *names):
     """Make ``losses.<name>`` fail if training ever calls it."""
     for name in names:
+
         def called(*args, _name=name, **kwargs):
             raise AssertionError(f"losses.{_name} was computed")
+
         monkeypatch.setattr(losses, name, called)
 
 
@@ -69,8 +77,25 @@ def test_the_switches_are_settings_written_to_config_yaml(tmp_path):
     assert config.ablated() == []
     data = make_dataset(tmp_path / "data", size=(16, 32))
     run = tmp_path / "run"
-    assert main(["train", "--data", str(data), "--preset", "tiny", "--out", str(run), "--no-progress",
-                 "--set", "loss.adversarial=false", "--set", "loss.reconstruction=false"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                "--data",
+                str(data),
+                "--preset",
+                "tiny",
+                "--out",
+                str(run),
+                "--no-progress",
+                "--set",
+                "loss.adversarial=false",
+                "--set",
+                "loss.reconstruction=false",
+            ]
+        )
+        == 0
+    )
     saved = load_config(run, FDNetRunConfig)
     assert saved.ablated() == ["adversarial", "reconstruction"]
     text = (run / "checkpoints").glob("step-*/config.yaml").__next__().read_text()
@@ -83,14 +108,15 @@ def test_without_the_critic_it_is_never_stepped_and_its_terms_never_logged(tmp_p
     # the critic stage is skipped; the encoders/decoder get as many updates as in the full run
     assert config.stage_steps == (s.pretrain_autoencoder_steps, 0, s.joint_steps)
     assert config.total_steps == s.pretrain_autoencoder_steps + s.joint_steps
-    assert [config.stage_at(i) for i in range(config.total_steps)] == \
-        ["autoencoder"] * s.pretrain_autoencoder_steps + ["joint"] * s.joint_steps
+    assert [config.stage_at(i) for i in range(config.total_steps)] == ["autoencoder"] * s.pretrain_autoencoder_steps + [
+        "joint"
+    ] * s.joint_steps
     _forbid(monkeypatch, "critic_loss", "encoder_adversarial_loss", "gradient_penalty", "wasserstein_estimate")
     run = tmp_path / "run"
     summary = train(config, run, progress=False)
     assert summary["status"] == "finished" and summary["step"] == config.total_steps
     initial, trained = _initial(config), _trained(config, run)
-    assert _same(trained["discriminator"], initial["discriminator"])   # bit-identical to its initialisation
+    assert _same(trained["discriminator"], initial["discriminator"])  # bit-identical to its initialisation
     assert not _same(trained["content_encoder"], initial["content_encoder"])  # the rest did train
     columns, rows = _log(run)
     assert not {"encoder_adversarial", "critic", "wasserstein", "structure"} & set(columns)
@@ -126,8 +152,9 @@ def _appearance_gradient_of_reconstruction_alone(method: FDNetTraining, batch: t
     model, cfg = copy.deepcopy(method.model), method.config
     model.train()
     reconstruction = model.decoder(model.content_encoder(batch), model.appearance_encoder(batch))
-    rec = cfg.loss.reconstruction_weight * losses.reconstruction_loss(batch, reconstruction,
-                                                                      cfg.loss.reconstruction_reduction)
+    rec = cfg.loss.reconstruction_weight * losses.reconstruction_loss(
+        batch, reconstruction, cfg.loss.reconstruction_reduction
+    )
     return list(torch.autograd.grad(rec, list(model.appearance_encoder.parameters())))
 
 
@@ -150,8 +177,9 @@ def test_without_the_triplet_loss_the_appearance_encoder_gets_the_reconstruction
         assert ("appearance" in out) == triplet
         got = [p.grad for p in method.model.appearance_encoder.parameters()]
         same = all(torch.allclose(g, e, rtol=1e-5, atol=1e-8) for g, e in zip(got, expected))
-        assert same != triplet, (f"triplet {'on' if triplet else 'off'}: E_a's gradient "
-                                 f"{'is' if same else 'is not'} L_r's alone")
+        assert same != triplet, (
+            f"triplet {'on' if triplet else 'off'}: E_a's gradient " f"{'is' if same else 'is not'} L_r's alone"
+        )
 
 
 def test_without_the_triplet_loss_and_reconstruction_the_appearance_encoder_never_changes(tmp_path, monkeypatch):
@@ -174,8 +202,9 @@ def test_without_reconstruction_there_is_no_decoder_loss_and_the_decoder_never_c
     _forbid(monkeypatch, "reconstruction_loss")
     decoded = []
     original = type(FDNet(config.model).decoder).forward
-    monkeypatch.setattr(type(FDNet(config.model).decoder), "forward",
-                        lambda self, *a, **k: decoded.append(1) or original(self, *a, **k))
+    monkeypatch.setattr(
+        type(FDNet(config.model).decoder), "forward", lambda self, *a, **k: decoded.append(1) or original(self, *a, **k)
+    )
     run = tmp_path / "run"
     train(config, run, progress=False)
     assert decoded == []  # not even a forward pass
@@ -189,8 +218,12 @@ def test_without_reconstruction_there_is_no_decoder_loss_and_the_decoder_never_c
 
 def test_impossible_combinations_are_config_errors():
     with pytest.raises(ConfigError, match="nothing would be trained"):
-        validate(replace_dotted(preset("tiny"), {"loss.adversarial": False, "loss.appearance_triplet": False,
-                                                 "loss.reconstruction": False}))
+        validate(
+            replace_dotted(
+                preset("tiny"),
+                {"loss.adversarial": False, "loss.appearance_triplet": False, "loss.reconstruction": False},
+            )
+        )
     with pytest.raises(ConfigError, match="loss.structure_weight > 0 needs loss.adversarial=true"):
         validate(replace_dotted(preset("tiny"), {"loss.adversarial": False, "loss.structure_weight": 1.0}))
 
@@ -199,8 +232,10 @@ def test_a_resumed_run_keeps_its_switches(tmp_path):
     config = _config(tmp_path, **{"loss.adversarial": False})
     run = tmp_path / "run"
     assert train(config, run, max_minutes=0.0, progress=False)["status"] == "time limit"
-    with pytest.raises(ConfigError, match="keeps the ablation switches it started with.*loss.adversarial: saved "
-                                          "false, requested true"):
+    with pytest.raises(
+        ConfigError,
+        match="keeps the ablation switches it started with.*loss.adversarial: saved " "false, requested true",
+    ):
         train(_config(tmp_path), run, resume=True, override=True, progress=False)
     summary = train(config, run, resume=True, progress=False)
     assert summary["status"] == "finished" and summary["step"] == config.total_steps
@@ -213,8 +248,11 @@ def test_with_a_projection_head_neither_l_a_nor_l_r_reaches_the_content_vector(t
     (the decoder reads a detached v_c), so without either the content encoder trains exactly as in
     the full run, weight for weight; without the critic it does not train at all."""
     trained = {}
-    for name, switches in (("full", {}), ("no-triplet", {"loss.appearance_triplet": False}),
-                           ("no-reconstruction", {"loss.reconstruction": False})):
+    for name, switches in (
+        ("full", {}),
+        ("no-triplet", {"loss.appearance_triplet": False}),
+        ("no-reconstruction", {"loss.reconstruction": False}),
+    ):
         config = _config(tmp_path, **PROJECTION_HEAD, **switches)
         train(config, tmp_path / name, progress=False)
         trained[name] = _trained(config, tmp_path / name)

@@ -18,15 +18,64 @@ def test_fdnet_beats_the_trunk_and_its_whitening_on_held_out_nordland_frames(tmp
 
     root = require_shared("nordland_trimmed")
     run = tmp_path / "run"
-    assert main(["train", "--data", str(root), "--preset", "cpu", "--out", str(run), "--conditions", "summer,winter",
-                 "--frames", "0:800", "--no-progress",
-                 "--set", "schedule.pretrain_autoencoder_steps=5", "--set", "schedule.pretrain_critic_steps=5",
-                 "--set", "schedule.joint_steps=20", "--set", "runtime.checkpoint_every=1000"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                "--data",
+                str(root),
+                "--preset",
+                "cpu",
+                "--out",
+                str(run),
+                "--conditions",
+                "summer,winter",
+                "--frames",
+                "0:800",
+                "--no-progress",
+                "--set",
+                "schedule.pretrain_autoencoder_steps=5",
+                "--set",
+                "schedule.pretrain_critic_steps=5",
+                "--set",
+                "schedule.joint_steps=20",
+                "--set",
+                "runtime.checkpoint_every=1000",
+            ]
+        )
+        == 0
+    )
     out = tmp_path / "results.json"
-    assert main(["evaluate", "--data", str(root), "--reference", "summer", "--query", "winter",
-                 "--frames", "1576:1876", "--tolerance", "0", "--method", "fdnet,trunk,trunk-whitened",
-                 "--checkpoint", str(run), "--fit", str(root), "--fit-frames", "0:800",
-                 "--json", str(out), "--threads", "2"]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "--data",
+                str(root),
+                "--reference",
+                "summer",
+                "--query",
+                "winter",
+                "--frames",
+                "1576:1876",
+                "--tolerance",
+                "0",
+                "--method",
+                "fdnet,trunk,trunk-whitened",
+                "--checkpoint",
+                str(run),
+                "--fit",
+                str(root),
+                "--fit-frames",
+                "0:800",
+                "--json",
+                str(out),
+                "--threads",
+                "2",
+            ]
+        )
+        == 0
+    )
     results = {r["method"]: r for r in json.loads(out.read_text())["results"]}
     assert results["fdnet"]["settings"]["vector_length"] == 512
     assert results["trunk-whitened"]["settings"]["dim"] == 512

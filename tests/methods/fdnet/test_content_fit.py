@@ -15,7 +15,7 @@ def made_route(frames=160, dim=240, noise_dims=24, seed=0):
     basis, _ = np.linalg.qr(rng.normal(size=(dim, 60 + noise_dims)))
     place_basis, noise_basis = basis[:, :60], basis[:, 60:]
     walk = np.cumsum(rng.normal(size=(frames, 60)), axis=0)
-    walk += rng.normal(scale=4.0, size=walk.shape)             # neighbouring frames differ
+    walk += rng.normal(scale=4.0, size=walk.shape)  # neighbouring frames differ
     places = walk @ place_basis.T
     conditions = []
     for scale, offset in ((3.0, 0.0), (9.0, 5.0)):
@@ -58,7 +58,7 @@ def test_mined_pairs_are_the_route_correspondences_and_improve_matching():
 
 def test_traverses_of_different_places_are_refused():
     a, _ = made_route(seed=0)
-    _, b = made_route(seed=5)         # another route: its places are not a's
+    _, b = made_route(seed=5)  # another route: its places are not a's
     with pytest.raises(DataError, match="do not look like traverses of one route"):
         fit_projection([a, b], 32, init="mined_pairs", pca_dims=80)
     same = fit_projection(list(made_route(seed=0)), 32, init="mined_pairs", pca_dims=80)
@@ -82,7 +82,7 @@ def test_conditions_without_common_places_are_refused():
 
 def test_a_condition_pair_of_another_route_is_named_in_the_warning(caplog):
     a, b = made_route(seed=0)
-    _, other = made_route(seed=5)      # a third condition of other places: its two pairs are low
+    _, other = made_route(seed=5)  # a third condition of other places: its two pairs are low
     fit_projection([a, b, other], 32, init="mined_pairs", pca_dims=80, names=["summer", "winter", "elsewhere"])
     warned = [r.getMessage() for r in caplog.records if "few route-consistent" in r.getMessage()]
     assert len(warned) == 2 and all("elsewhere" in m for m in warned), warned

@@ -35,8 +35,9 @@ def test_describe_gives_unit_content_vectors(run_dir, rng):
 
 def test_fdnet_load_is_the_same_descriptor(run_dir, rng):
     images = rng.random((2, 16, 32, 3)).astype(np.float32)
-    np.testing.assert_allclose(fdnet.load(run_dir).describe(images),
-                               create("fdnet", checkpoint=run_dir).describe(images))
+    np.testing.assert_allclose(
+        fdnet.load(run_dir).describe(images), create("fdnet", checkpoint=run_dir).describe(images)
+    )
 
 
 def test_fdnet_load_refuses_another_methods_run_naming_it(run_dir, monkeypatch):

@@ -59,13 +59,13 @@ class _Linear(torch.nn.Module):
 
 
 def test_wgan_gp_critic_and_encoder_losses():
-    same = torch.tensor([[1.0, 0.0], [3.0, 0.0]])       # D = 2 * x: scores 2, 6 (mean 4)
+    same = torch.tensor([[1.0, 0.0], [3.0, 0.0]])  # D = 2 * x: scores 2, 6 (mean 4)
     different = torch.tensor([[0.0, 0.0], [1.0, 5.0]])  # scores 0, 2 (mean 1)
-    critic = _Linear([2.0, 0.0])                         # |w| = 2 -> penalty (2 - 1)^2 = 1
+    critic = _Linear([2.0, 0.0])  # |w| = 2 -> penalty (2 - 1)^2 = 1
     loss, distance = losses.critic_loss(critic, same, different, gp_weight=10.0)
     assert distance.item() == pytest.approx(3.0)
     assert loss.item() == pytest.approx(-3.0 + 10.0 * 1.0)
-    unit = _Linear([0.6, 0.8])                           # |w| = 1 -> no penalty
+    unit = _Linear([0.6, 0.8])  # |w| = 1 -> no penalty
     loss, distance = losses.critic_loss(unit, same, different, gp_weight=10.0)
     expected = (0.6 + 1.8) / 2 - (0.0 + 0.6 + 4.0) / 2
     assert loss.item() == pytest.approx(-expected, abs=1e-6)
@@ -114,8 +114,13 @@ def test_structure_loss_sees_within_domain_changes_only():
 
 
 # the learnt encoder (batch-centred reference) and the residual head on a frozen trunk (the head's centring)
-RESIDUAL_HEAD = {"model.backbone": "efficientnet-lite0", "model.backbone_block": 4, "model.input_size": [32, 64],
-                 "model.widths": [16], "model.content_head": "trunk_residual"}
+RESIDUAL_HEAD = {
+    "model.backbone": "efficientnet-lite0",
+    "model.backbone_block": 4,
+    "model.input_size": [32, 64],
+    "model.widths": [16],
+    "model.content_head": "trunk_residual",
+}
 
 
 @pytest.mark.parametrize("model", [{}, RESIDUAL_HEAD], ids=["learnt-encoder", "residual-head"])

@@ -50,11 +50,14 @@ def test_outputs_tanh_or_linear():
     assert torch.allclose(z.mean(dim=(1, 2, 3)), torch.zeros(2), atol=1e-5)
 
 
-@pytest.mark.parametrize("size, widths, match", [
-    ((30, 64), (8, 8), "height 30"),
-    ((32, 60), (8, 8, 8), "width 60"),
-    ((8, 8), (4, 4, 4, 4), "multiple of 2\\^4 = 16"),
-])
+@pytest.mark.parametrize(
+    "size, widths, match",
+    [
+        ((30, 64), (8, 8), "height 30"),
+        ((32, 60), (8, 8, 8), "width 60"),
+        ((8, 8), (4, 4, 4, 4), "multiple of 2\\^4 = 16"),
+    ],
+)
 def test_impossible_input_size_is_a_config_error(size, widths, match):
     with pytest.raises(ConfigError, match=match):
         validate_architecture(FDNetConfig(input_size=size, widths=widths))
@@ -69,19 +72,23 @@ def test_unknown_options_are_config_errors():
         validate_architecture(FDNetConfig(input_size=(16, 16), widths=(4,), critic_input="cosine"))
 
 
-TRUNK_HEAD = dict(input_size=(128, 256), widths=(16,), backbone="efficientnet-lite0", backbone_block=7,
-                  content_head="trunk_residual")
+TRUNK_HEAD = dict(
+    input_size=(128, 256), widths=(16,), backbone="efficientnet-lite0", backbone_block=7, content_head="trunk_residual"
+)
 
 
-@pytest.mark.parametrize("settings, match", [
-    (dict(backbone="none", content_head="encoder", backbone_block_candidates=(7, 14)), "needs model.backbone"),
-    (dict(content_head="encoder", backbone_block_candidates=(7, 14)), "trunk_residual"),
-    (dict(backbone_block_candidates=(10, 14)), r"backbone_block=7 is not among .*\[10, 14\]"),
-    (dict(backbone_block_candidates=(7, 7)), "names a block twice"),
-    (dict(backbone_block_candidates=(7, 16)), "block 16: backbone block 16 does not exist"),
-    (dict(input_size=(96, 192), backbone_block_candidates=(7, 14)), "block 14: model.input_size: height 96"),
-    (dict(backbone_block_candidates=(0, 7)), "block 0: model: this architecture's largest layer would have"),
-])
+@pytest.mark.parametrize(
+    "settings, match",
+    [
+        (dict(backbone="none", content_head="encoder", backbone_block_candidates=(7, 14)), "needs model.backbone"),
+        (dict(content_head="encoder", backbone_block_candidates=(7, 14)), "trunk_residual"),
+        (dict(backbone_block_candidates=(10, 14)), r"backbone_block=7 is not among .*\[10, 14\]"),
+        (dict(backbone_block_candidates=(7, 7)), "names a block twice"),
+        (dict(backbone_block_candidates=(7, 16)), "block 16: backbone block 16 does not exist"),
+        (dict(input_size=(96, 192), backbone_block_candidates=(7, 14)), "block 14: model.input_size: height 96"),
+        (dict(backbone_block_candidates=(0, 7)), "block 0: model: this architecture's largest layer would have"),
+    ],
+)
 def test_bad_trunk_block_candidates_are_config_errors(settings, match):
     with pytest.raises(ConfigError, match=match):
         validate_architecture(FDNetConfig(**{**TRUNK_HEAD, **settings}))
@@ -109,13 +116,16 @@ def test_the_largest_layer_estimate_is_the_built_models(name):
     assert built < MAX_LAYER_WEIGHTS / 4  # the presets fit with room to spare
 
 
-@pytest.mark.parametrize("change, message", [
-    (dict(vector_length=10241), r"L = 10241 is longer than the trunk map it projects \(10240 values at block 7"),
-    (dict(projection_init="whiten"), "model.projection_init: 'whiten'"),
-    (dict(projection_pca_power=2.0), "projection_pca_power must lie in"),
-    (dict(pair_sequence_length=0), "pair_sequence_length must be >= 1"),
-    (dict(backbone="none", backbone_block_candidates=()), "trunk_projection needs a model.backbone"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (dict(vector_length=10241), r"L = 10241 is longer than the trunk map it projects \(10240 values at block 7"),
+        (dict(projection_init="whiten"), "model.projection_init: 'whiten'"),
+        (dict(projection_pca_power=2.0), "projection_pca_power must lie in"),
+        (dict(pair_sequence_length=0), "pair_sequence_length must be >= 1"),
+        (dict(backbone="none", backbone_block_candidates=()), "trunk_projection needs a model.backbone"),
+    ],
+)
 def test_projection_head_settings_it_cannot_take_are_refused(change, message):
     config = FDNetConfig(**{**TRUNK_HEAD, "content_head": "trunk_projection", **change})
     with pytest.raises(ConfigError, match=message):

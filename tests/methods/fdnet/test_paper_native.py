@@ -35,10 +35,20 @@ def test_paper_native_trains_every_stage_and_resumes_exactly(tmp_path):
     data = make_dataset(tmp_path / "data", size=(32, 64))
     # the preset's input size, precision, memory format and losses; a few steps of each stage, and
     # a quarter of its widths (its 20M weights and Adam moments make each checkpoint ~240 MB)
-    config = replace_dotted(preset("paper-native"), {
-        "data.root": str(data), "schedule.pretrain_autoencoder_steps": 2, "schedule.pretrain_critic_steps": 2,
-        "schedule.joint_steps": 2, "model.widths": [16, 32, 64, 128], "runtime.log_every": 1,
-        "validation.reference": "summer", "validation.query": "winter", "validation.every": 3})
+    config = replace_dotted(
+        preset("paper-native"),
+        {
+            "data.root": str(data),
+            "schedule.pretrain_autoencoder_steps": 2,
+            "schedule.pretrain_critic_steps": 2,
+            "schedule.joint_steps": 2,
+            "model.widths": [16, 32, 64, 128],
+            "runtime.log_every": 1,
+            "validation.reference": "summer",
+            "validation.query": "winter",
+            "validation.every": 3,
+        },
+    )
     whole = tmp_path / "whole"
     summary = train(config, whole, progress=False)
     assert summary["status"] == "finished" and summary["step"] == 6

@@ -21,11 +21,20 @@ from fdnet.runs import load_config, load_training_state, load_weights
 from conftest import require_shared
 
 # the tiny preset on a frozen trunk with the residual head; blocks 2 (stride 4) and 4 (stride 8)
-RESIDUAL_HEAD = {"model.backbone": "efficientnet-lite0", "model.backbone_block": 2, "model.input_size": [32, 64],
-                 "model.widths": [16], "model.content_head": "trunk_residual",
-                 "model.residual_init": "condition_means"}
-VALIDATION = {"validation.reference": "summer", "validation.query": "winter", "validation.tolerance": 0,
-              "validation.every": 4}
+RESIDUAL_HEAD = {
+    "model.backbone": "efficientnet-lite0",
+    "model.backbone_block": 2,
+    "model.input_size": [32, 64],
+    "model.widths": [16],
+    "model.content_head": "trunk_residual",
+    "model.residual_init": "condition_means",
+}
+VALIDATION = {
+    "validation.reference": "summer",
+    "validation.query": "winter",
+    "validation.tolerance": 0,
+    "validation.every": 4,
+}
 
 
 def make_shifted_dataset(root, n=16, size=(32, 64)):
@@ -37,7 +46,7 @@ def make_shifted_dataset(root, n=16, size=(32, 64)):
     for k, name in enumerate(("summer", "winter")):
         (root / name).mkdir(parents=True)
         for i in range(n):
-            scene = np.kron(coarse[i], np.ones((4, 4)))[:, 4 * k: 4 * k + size[1]]
+            scene = np.kron(coarse[i], np.ones((4, 4)))[:, 4 * k : 4 * k + size[1]]
             image = scene if k == 0 else np.clip(0.6 * scene + 0.35 * rng.random(size), 0, 1)
             Image.fromarray((image * 255).astype(np.uint8)).convert("RGB").save(root / name / f"{i:04d}.png")
     return root
@@ -104,8 +113,11 @@ def every_start_scored(monkeypatch):
     from fdnet.methods.fdnet import training
 
     choose = training.choose_start
-    monkeypatch.setattr(training, "choose_start", lambda config, real, validation, deadline=None, progress=True:
-                        choose(config, real, validation, None, progress))
+    monkeypatch.setattr(
+        training,
+        "choose_start",
+        lambda config, real, validation, deadline=None, progress=True: choose(config, real, validation, None, progress),
+    )
 
 
 def test_resume_keeps_the_chosen_block_without_choosing_again(tmp_path, caplog, every_start_scored):
@@ -116,8 +128,10 @@ def test_resume_keeps_the_chosen_block_without_choosing_again(tmp_path, caplog, 
     assert summary["status"] == "time limit"
     chosen = load_config(run, FDNetRunConfig).model.backbone_block
     assert chosen == 4  # these images: block 2's start matches no winter image, block 4's all
-    assert ("training on trunk block 4 (of 2, 4); model.backbone_block = 2 is the block for runs without a "
-            "validation pair") in _said(caplog)
+    assert (
+        "training on trunk block 4 (of 2, 4); model.backbone_block = 2 is the block for runs without a "
+        "validation pair"
+    ) in _said(caplog)
     selection = load_training_state(run)["method_state"]["block_selection"]
     summary = train(config, run, resume=True, progress=False)  # block 2 requested, as at the start: no refusal
     assert summary["status"] == "finished"
@@ -151,27 +165,45 @@ def test_reading_the_images_and_choosing_the_start_show_progress_with_the_time_l
     caplog.set_level(logging.INFO, logger="fdnet")
     train(_config(tmp_path, **{"model.backbone_block_candidates": [2, 4]}), tmp_path / "run", progress=True)
     lines = [r.getMessage() for r in caplog.records if r.name == "fdnet.progress"]
-    for desc in ("reading training images: ", "trunk maps [block 2, summer]: ", "trunk maps [block 4, winter]: ",
-                 "choosing the start: 2/2 start (100 %) ["):
+    for desc in (
+        "reading training images: ",
+        "trunk maps [block 2, summer]: ",
+        "trunk maps [block 4, winter]: ",
+        "choosing the start: 2/2 start (100 %) [",
+    ):
         assert any(line.startswith(desc) for line in lines), (desc, lines)
     assert all("<" in line for line in lines if line.startswith("choosing the start"))  # elapsed<left
 
 
 def test_without_a_validation_pair_the_set_block_is_trained_and_that_is_said(tmp_path, caplog):
     caplog.set_level(logging.INFO, logger="fdnet")
-    config = _config(tmp_path, **{"model.backbone_block": 4, "model.backbone_block_candidates": [2, 4],
-                                  "validation.reference": "", "validation.query": ""})
+    config = _config(
+        tmp_path,
+        **{
+            "model.backbone_block": 4,
+            "model.backbone_block_candidates": [2, 4],
+            "validation.reference": "",
+            "validation.query": "",
+        },
+    )
     train(config, tmp_path / "run", progress=False)
     assert load_config(tmp_path / "run", FDNetRunConfig).model.backbone_block == 4
-    assert ("no validation pair to choose a start from (2, 4); training on model.backbone_block = 4, "
-            "data.synthetic_conditions = none") in _said(caplog)
+    assert (
+        "no validation pair to choose a start from (2, 4); training on model.backbone_block = 4, "
+        "data.synthetic_conditions = none"
+    ) in _said(caplog)
     assert load_training_state(tmp_path / "run")["method_state"]["block_selection"] == {}
 
 
 def test_synthetic_conditions_are_chosen_with_the_block_and_kept_on_resume(tmp_path, caplog, every_start_scored):
     caplog.set_level(logging.INFO, logger="fdnet")
-    config = _config(tmp_path, **{"model.backbone_block_candidates": [2, 4],
-                                  "data.synthetic_conditions_candidates": ["none", "night+contrast"]})
+    config = _config(
+        tmp_path,
+        **{
+            "model.backbone_block_candidates": [2, 4],
+            "data.synthetic_conditions_candidates": ["none", "night+contrast"],
+        },
+    )
     run = tmp_path / "run"
     assert train(config, run, max_minutes=0.0, progress=False)["status"] == "time limit"
     selection = load_training_state(run)["method_state"]["block_selection"]
@@ -188,20 +220,40 @@ def test_synthetic_conditions_are_chosen_with_the_block_and_kept_on_resume(tmp_p
     assert train(config, run, resume=True, progress=False)["status"] == "finished"
     assert "at the start" not in _said(caplog)
     alone = tmp_path / "alone"
-    train(_config(tmp_path, **{"model.backbone_block": saved.model.backbone_block,
-                               "data.synthetic_conditions": list(saved.data.synthetic_conditions)}),
-          alone, progress=False)
+    train(
+        _config(
+            tmp_path,
+            **{
+                "model.backbone_block": saved.model.backbone_block,
+                "data.synthetic_conditions": list(saved.data.synthetic_conditions),
+            },
+        ),
+        alone,
+        progress=False,
+    )
     for (name, x), y in zip(_weights(run).items(), _weights(alone).values()):
         assert torch.equal(x, y), name
 
 
-@pytest.mark.parametrize("overrides, message", [
-    ({"data.synthetic_conditions_candidates": ["none", "fog"]}, "candidates: fog: data.synthetic_conditions: unknown"),
-    ({"data.synthetic_conditions_candidates": ["night", "night"]}, "names a setting twice"),
-    ({"data.synthetic_conditions_candidates": ["night"]}, r"synthetic_conditions=\[\] is not among"),
-    ({"data.synthetic_conditions_candidates": ["none", "night"], "model.content_head": "encoder",
-      "model.backbone": "none"}, "choosing needs model.content_head"),
-])
+@pytest.mark.parametrize(
+    "overrides, message",
+    [
+        (
+            {"data.synthetic_conditions_candidates": ["none", "fog"]},
+            "candidates: fog: data.synthetic_conditions: unknown",
+        ),
+        ({"data.synthetic_conditions_candidates": ["night", "night"]}, "names a setting twice"),
+        ({"data.synthetic_conditions_candidates": ["night"]}, r"synthetic_conditions=\[\] is not among"),
+        (
+            {
+                "data.synthetic_conditions_candidates": ["none", "night"],
+                "model.content_head": "encoder",
+                "model.backbone": "none",
+            },
+            "choosing needs model.content_head",
+        ),
+    ],
+)
 def test_bad_synthetic_candidates_are_refused_before_any_image_is_read(tmp_path, overrides, message):
     from fdnet.errors import ConfigError
 
@@ -220,18 +272,42 @@ def _best_by_block(selection: dict) -> dict[int, float]:
 
 
 @pytest.mark.shared_data
-def test_gardens_point_validation_chooses_the_deeper_block_and_nordland_the_shallower_one(tmp_path,
-                                                                                         every_start_scored):
+def test_gardens_point_validation_chooses_the_deeper_block_and_nordland_the_shallower_one(tmp_path, every_start_scored):
     """On the training range only: day_left -> night_right 0:100 (tolerance 2) prefers block 11,
     Nordland summer/winter 200:300 (tolerance 0, training 0:300) block 7 (docs/results.md); on
     Gardens Point each with and without the synthetic night copy."""
     from fdnet.cli import main
 
     gardens = require_shared("gardens_point")
-    assert main(["train", "--data", str(gardens), "--preset", "cpu", "--out", str(tmp_path / "g"),
-                 "--conditions", "day_right,night_right,day_left", "--frames", "0:100",
-                 "--validate-reference", "day_left", "--validate-query", "night_right", "--validate-frames", "0:100",
-                 "--validate-tolerance", "2", "--max-minutes", "0", "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                "--data",
+                str(gardens),
+                "--preset",
+                "cpu",
+                "--out",
+                str(tmp_path / "g"),
+                "--conditions",
+                "day_right,night_right,day_left",
+                "--frames",
+                "0:100",
+                "--validate-reference",
+                "day_left",
+                "--validate-query",
+                "night_right",
+                "--validate-frames",
+                "0:100",
+                "--validate-tolerance",
+                "2",
+                "--max-minutes",
+                "0",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     selection = load_training_state(tmp_path / "g")["method_state"]["block_selection"]
     assert sorted(selection) == ["11, synthetic night", "11, synthetic none", "7, synthetic night", "7, synthetic none"]
     best = _best_by_block(selection)
@@ -239,11 +315,35 @@ def test_gardens_point_validation_chooses_the_deeper_block_and_nordland_the_shal
     assert load_config(tmp_path / "g", FDNetRunConfig).model.backbone_block == 11
 
     nordland = require_shared("nordland_trimmed")
-    assert main(["train", "--data", str(nordland), "--preset", "cpu", "--out", str(tmp_path / "n"),
-                 "--conditions", "summer,winter", "--frames", "0:300",
-                 "--validate-reference", "summer", "--validate-query", "winter", "--validate-frames", "200:300",
-                 "--set", "data.synthetic_conditions_candidates=[]",  # the blocks alone: half the images
-                 "--max-minutes", "0", "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                "--data",
+                str(nordland),
+                "--preset",
+                "cpu",
+                "--out",
+                str(tmp_path / "n"),
+                "--conditions",
+                "summer,winter",
+                "--frames",
+                "0:300",
+                "--validate-reference",
+                "summer",
+                "--validate-query",
+                "winter",
+                "--validate-frames",
+                "200:300",
+                "--set",
+                "data.synthetic_conditions_candidates=[]",  # the blocks alone: half the images
+                "--max-minutes",
+                "0",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     selection = load_training_state(tmp_path / "n")["method_state"]["block_selection"]
     best = _best_by_block(selection)
     assert best[7] > best[11], selection

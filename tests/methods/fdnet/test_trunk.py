@@ -17,8 +17,14 @@ from fdnet.training.loop import Trainer
 from tests.training.test_loop import make_dataset
 
 # block 4: stride 8, 40 channels; a 32x64 image gives a 4x8 map, one FDNet block makes it 2x4
-SMALL = dict(input_size=(32, 64), widths=(16,), vector_length=16, critic_hidden=16,
-             backbone="efficientnet-lite0", backbone_block=4)
+SMALL = dict(
+    input_size=(32, 64),
+    widths=(16,),
+    vector_length=16,
+    critic_hidden=16,
+    backbone="efficientnet-lite0",
+    backbone_block=4,
+)
 
 
 def test_map_size_and_channels():
@@ -47,12 +53,15 @@ def test_trunk_matches_the_pretrained_feature_extractor():
     np.testing.assert_allclose(ours.numpy(), reference, rtol=1e-4, atol=1e-4)
 
 
-@pytest.mark.parametrize("overrides, message", [
-    (dict(input_size=(40, 64)), "multiple of 8 x 2^1 = 16"),
-    (dict(input_norm="per_patch"), "per_patch cannot be used"),
-    (dict(backbone="resnet50"), "model.backbone"),
-    (dict(backbone_block=16), "block 16 does not exist"),
-])
+@pytest.mark.parametrize(
+    "overrides, message",
+    [
+        (dict(input_size=(40, 64)), "multiple of 8 x 2^1 = 16"),
+        (dict(input_norm="per_patch"), "per_patch cannot be used"),
+        (dict(backbone="resnet50"), "model.backbone"),
+        (dict(backbone_block=16), "block 16 does not exist"),
+    ],
+)
 def test_bad_backbone_settings_are_config_errors(overrides, message):
     with pytest.raises(ConfigError, match=re.escape(message)):
         FDNet(FDNetConfig(**{**SMALL, **overrides}))
@@ -60,8 +69,9 @@ def test_bad_backbone_settings_are_config_errors(overrides, message):
 
 def test_training_with_a_trunk_changes_the_encoders_but_not_the_trunk(tmp_path):
     make_dataset(tmp_path / "data", size=(32, 64))
-    config = replace_dotted(preset("tiny"), {"data.root": str(tmp_path / "data"),
-                                             **{f"model.{k}": v for k, v in SMALL.items()}})
+    config = replace_dotted(
+        preset("tiny"), {"data.root": str(tmp_path / "data"), **{f"model.{k}": v for k, v in SMALL.items()}}
+    )
     method = FDNetTraining(config, load_training_images(config))
     trainer = Trainer(method, tmp_path / "run", tensorboard=False)
     trainer.model = method.model
@@ -107,8 +117,9 @@ def test_training_the_residual_head_moves_only_its_low_rank_part_and_keeps_the_m
     from fdnet.methods.fdnet.descriptor import FDNetDescriptor
 
     make_dataset(tmp_path / "data", size=(32, 64))
-    config = replace_dotted(preset("tiny"), {"data.root": str(tmp_path / "data"),
-                                             **{f"model.{k}": v for k, v in RESIDUAL.items()}})
+    config = replace_dotted(
+        preset("tiny"), {"data.root": str(tmp_path / "data"), **{f"model.{k}": v for k, v in RESIDUAL.items()}}
+    )
     method = FDNetTraining(config, load_training_images(config))
     trainer = Trainer(method, tmp_path / "run", tensorboard=False)
     head = method.model.content_encoder

@@ -61,8 +61,12 @@ def _made_images(n, seed=0):
     rng = np.random.default_rng(seed)
     base = rng.random((4, 32, 64, 3), dtype=np.float32)
     mix = rng.random((n, 4)).astype(np.float32)
-    return np.clip(np.einsum("nk,khwc->nhwc", mix / mix.sum(1, keepdims=True), base)
-                   + 0.05 * rng.random((n, 32, 64, 3), dtype=np.float32), 0, 1)
+    return np.clip(
+        np.einsum("nk,khwc->nhwc", mix / mix.sum(1, keepdims=True), base)
+        + 0.05 * rng.random((n, 32, 64, 3), dtype=np.float32),
+        0,
+        1,
+    )
 
 
 def test_whitening_learnt_from_made_images_equals_an_independent_pca():

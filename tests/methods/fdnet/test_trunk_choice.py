@@ -33,9 +33,16 @@ def test_rule_r1_then_auc_then_earlier():
 
 def test_candidates_parse_and_are_checked():
     assert parse_candidates("efficientnet-lite0:7, lite2:12,lite0:7") == [
-        Candidate("efficientnet-lite0", 7), Candidate("efficientnet-lite2", 12)]
-    for bad, message in (("lite0", "expected BACKBONE:BLOCK"), ("lite3:4", "not a shipped backbone"),
-                         ("lite0:16", "blocks 0..15"), ("", "no candidates"), ("lite1:x", "expected")):
+        Candidate("efficientnet-lite0", 7),
+        Candidate("efficientnet-lite2", 12),
+    ]
+    for bad, message in (
+        ("lite0", "expected BACKBONE:BLOCK"),
+        ("lite3:4", "not a shipped backbone"),
+        ("lite0:16", "blocks 0..15"),
+        ("", "no candidates"),
+        ("lite1:x", "expected"),
+    ):
         with pytest.raises(ConfigError, match=message):
             parse_candidates(bad)
 
@@ -48,15 +55,19 @@ def route(tmp_path):
 def test_choice_is_the_best_candidate_and_trunk_methods_read_it(route, tmp_path):
     split = aligned_split(RouteDataset.from_folder(route), "day", "night", 0, None, None)
     candidates = parse_candidates("lite0:4,lite0:7,lite1:8")
-    choice = choose_trunk(split, candidates, input_size=(32, 64), options={"bf16": False},
-                          pipeline=PipelineSettings(workers=0))
+    choice = choose_trunk(
+        split, candidates, input_size=(32, 64), options={"bf16": False}, pipeline=PipelineSettings(workers=0)
+    )
     assert [(s["backbone"], s["block"]) for s in choice.scores] == [(c.backbone, c.block) for c in candidates]
     assert choice.chosen == candidates[pick_best(choice.scores)]
     # each score is what evaluating that trunk alone gives
     from fdnet.evaluation.experiment import evaluate_method
 
-    alone = evaluate_method(create("trunk", backbone="efficientnet-lite1", block=8, input_size=[32, 64], bf16=False),
-                            split, pipeline=PipelineSettings(workers=0)).to_dict(include_curve=False)
+    alone = evaluate_method(
+        create("trunk", backbone="efficientnet-lite1", block=8, input_size=[32, 64], bf16=False),
+        split,
+        pipeline=PipelineSettings(workers=0),
+    ).to_dict(include_curve=False)
     assert choice.scores[2]["recall_at_1"] == alone["recall_at_n"]["1"]
     assert choice.scores[2]["auc_pr"] == pytest.approx(alone["auc_pr"])
     path = tmp_path / "choice.yaml"
@@ -64,14 +75,23 @@ def test_choice_is_the_best_candidate_and_trunk_methods_read_it(route, tmp_path)
     assert yaml.safe_load(path.read_text())["rule"].startswith("highest validation R@1")
     trunk = create("trunk", choice=str(path), bf16=False)
     assert (trunk.settings()["backbone"], trunk.settings()["block"], trunk.input_size) == (
-        f"{choice.chosen.backbone} (ImageNet)", choice.chosen.block, (32, 64))
+        f"{choice.chosen.backbone} (ImageNet)",
+        choice.chosen.block,
+        (32, 64),
+    )
     assert create("trunk", choice=str(path), block=5, bf16=False).settings()["block"] == 5  # explicit wins
 
 
 def test_whitened_candidates_learn_from_the_pairs_references(route):
     split = aligned_split(RouteDataset.from_folder(route), "day", "night", 0, None, None)
-    choice = choose_trunk(split, parse_candidates("lite0:7"), input_size=(32, 64), whitened=True,
-                          options={"dim": 3, "bf16": False}, pipeline=PipelineSettings(workers=0))
+    choice = choose_trunk(
+        split,
+        parse_candidates("lite0:7"),
+        input_size=(32, 64),
+        whitened=True,
+        options={"dim": 3, "bf16": False},
+        pipeline=PipelineSettings(workers=0),
+    )
     assert choice.method == "trunk-whitened" and choice.scores[0]["dim"] == 3
     assert choice.scores[0]["fitted_on"] == "reference images (6)"
     with pytest.raises(ConfigError, match="block is what is being chosen"):

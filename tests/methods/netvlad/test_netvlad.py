@@ -52,8 +52,6 @@ def _path(config, key: str) -> str:
     return f"{section}.{key}"
 
 
-
-
 def test_vlad_layer_matches_reference_formula():
     """The batched layer equals the original's per-cluster loop: soft-assign, residual sums,
     intra-normalisation, final L2."""
@@ -63,12 +61,12 @@ def test_vlad_layer_matches_reference_formula():
     layer = net.vlad
     x = torch.randn(3, 112, 4, 6)
     got = layer(x)
-    xn = torch.nn.functional.normalize(x, dim=1).flatten(2)                  # (N, C, P)
+    xn = torch.nn.functional.normalize(x, dim=1).flatten(2)  # (N, C, P)
     soft = torch.softmax(torch.einsum("kc,ncp->nkp", layer.assign.weight[:, :, 0, 0], xn), dim=1)
     expected = torch.zeros(3, 5, 112)
     for k in range(5):
         residual = xn - layer.centroids[k][None, :, None]
-        expected[:, k] = (residual * soft[:, k:k + 1]).sum(-1)
+        expected[:, k] = (residual * soft[:, k : k + 1]).sum(-1)
     expected = torch.nn.functional.normalize(expected, dim=2).flatten(1)
     expected = torch.nn.functional.normalize(expected, dim=1)
     torch.testing.assert_close(got, expected, atol=1e-5, rtol=1e-4)
@@ -76,8 +74,9 @@ def test_vlad_layer_matches_reference_formula():
 
 
 def test_alpha_initialisation(rng):
-    net = netvlad.build_network(netvlad_config.NetVLADModelConfig(clusters=4, frozen_block=7, last_block=8),
-                                pretrained=False)
+    net = netvlad.build_network(
+        netvlad_config.NetVLADModelConfig(clusters=4, frozen_block=7, last_block=8), pretrained=False
+    )
     centroids = rng.normal(size=(4, 112)).astype(np.float32)
     local = rng.normal(size=(200, 112)).astype(np.float32)
     local /= np.linalg.norm(local, axis=1, keepdims=True)

@@ -38,10 +38,19 @@ FORMAT_MODULES = {
     "nordland": "fdnet.data.formats.nordland",
     "folders": "fdnet.data.formats.folders",
 }
-ALIASES = {"robotcar": "oxford_robotcar", "oxford": "oxford_robotcar", "stlucia": "st_lucia",
-           "vpr-bench": "vprbench", "vpr_bench": "vprbench", "vpr-tutorial": "vpr_tutorial",
-           "freiburg": "fas", "folder": "folders", "plain": "folders", "gsv": "vg_benchmark",
-           "vg-benchmark": "vg_benchmark"}
+ALIASES = {
+    "robotcar": "oxford_robotcar",
+    "oxford": "oxford_robotcar",
+    "stlucia": "st_lucia",
+    "vpr-bench": "vprbench",
+    "vpr_bench": "vprbench",
+    "vpr-tutorial": "vpr_tutorial",
+    "freiburg": "fas",
+    "folder": "folders",
+    "plain": "folders",
+    "gsv": "vg_benchmark",
+    "vg-benchmark": "vg_benchmark",
+}
 
 
 def format_names() -> list[str]:
@@ -66,7 +75,8 @@ def detect_format(root: str | os.PathLike) -> str:
     raise DataError(
         f"{root}: not a dataset layout fdnet recognises (looked for {', '.join(FORMAT_MODULES)}); "
         f"expected e.g. one sub-folder of images per condition, or query/ and ref/ with a ground truth; "
-        f"name the layout with --dataset-format")
+        f"name the layout with --dataset-format"
+    )
 
 
 def describe_formats() -> dict[str, dict]:
@@ -74,8 +84,7 @@ def describe_formats() -> dict[str, dict]:
     out = {}
     for name in FORMAT_MODULES:
         fmt = get_format(name)
-        out[name] = {"summary": fmt.summary, "splits": dict(fmt.splits),
-                     "defaults": to_dict(fmt.Options())}
+        out[name] = {"summary": fmt.summary, "splits": dict(fmt.splits), "defaults": to_dict(fmt.Options())}
     return out
 
 
@@ -91,9 +100,16 @@ def _resolve(root, dataset_format) -> tuple[Path, DatasetFormat]:
     return root, get_format(dataset_format or detect_format(root))
 
 
-def open_split(root: str | os.PathLike, reference: str | None = None, query: str | None = None,
-               dataset_format: str | None = None, split: str | None = None, check_sizes: bool = True,
-               listed_ground_truth: str | os.PathLike | None = None, **protocol_options) -> EvaluationSplit:
+def open_split(
+    root: str | os.PathLike,
+    reference: str | None = None,
+    query: str | None = None,
+    dataset_format: str | None = None,
+    split: str | None = None,
+    check_sizes: bool = True,
+    listed_ground_truth: str | os.PathLike | None = None,
+    **protocol_options,
+) -> EvaluationSplit:
     """Reference map, queries and ground truth of a dataset folder under its paper protocol.
 
     ``split``: a named split (``test`` is the default where the paper has one) or ``START:END``.
@@ -117,9 +133,14 @@ def open_split(root: str | os.PathLike, reference: str | None = None, query: str
     return result
 
 
-def open_training(root: str | os.PathLike, dataset_format: str | None = None, split: str | None = None,
-                  conditions: Sequence[str] | None = None, check_sizes: bool = True,
-                  **protocol_options) -> RouteDataset:
+def open_training(
+    root: str | os.PathLike,
+    dataset_format: str | None = None,
+    split: str | None = None,
+    conditions: Sequence[str] | None = None,
+    check_sizes: bool = True,
+    **protocol_options,
+) -> RouteDataset:
     """The conditions to train on (default: all of the layout's), cut to ``split`` (default
     ``train`` where the paper has one)."""
     root, fmt = _resolve(root, dataset_format)
@@ -131,5 +152,12 @@ def open_training(root: str | os.PathLike, dataset_format: str | None = None, sp
     return route
 
 
-__all__ = ["open_split", "open_training", "detect_format", "get_format", "format_names",
-           "describe_formats", "DatasetFormat"]
+__all__ = [
+    "open_split",
+    "open_training",
+    "detect_format",
+    "get_format",
+    "format_names",
+    "describe_formats",
+    "DatasetFormat",
+]

@@ -40,8 +40,10 @@ def frame_numbers(paths: Sequence[Path], where: Path) -> np.ndarray:
     numbers = [frame_number(p) for p in paths]
     missing = [p.name for p, n in zip(paths, numbers) if n is None]
     if missing:
-        raise DataError(f"{where}: file name {missing[0]!r} carries no frame number; this layout "
-                        f"names frames by number (e.g. Image00001.jpg)")
+        raise DataError(
+            f"{where}: file name {missing[0]!r} carries no frame number; this layout "
+            f"names frames by number (e.g. Image00001.jpg)"
+        )
     arr = np.asarray(numbers, dtype=np.int64)
     if len(np.unique(arr)) != len(arr):
         values, counts = np.unique(arr, return_counts=True)
@@ -54,6 +56,7 @@ def frame_numbers(paths: Sequence[Path], where: Path) -> np.ndarray:
 def find_child(root: Path, names: Iterable[str], kind: str = "folder") -> Path | None:
     """The first child of ``root`` whose name matches one of ``names`` ignoring case and the
     ``-``/``_``/space spelling (``Localization-2`` = ``localization_2``)."""
+
     def norm(s: str) -> str:
         return re.sub(r"[-_ ]", "", s.lower())
 
@@ -81,6 +84,7 @@ def image_folder(folder: Path, subfolders: Sequence[str] = ("images", "frames", 
 
 # ----------------------------------------------------------------------------- image sizes
 
+
 def check_image_sizes(traverse: Traverse, where: Path | None = None) -> tuple[int, int]:
     """All images of one condition must share one size; returns (width, height).
 
@@ -96,7 +100,8 @@ def check_image_sizes(traverse: Traverse, where: Path | None = None) -> tuple[in
             raise DataError(
                 f"{where or path.parent}: mixed image sizes in condition {traverse.name!r}: "
                 f"{first_path.name} is {first_size[0]}x{first_size[1]} but {path.name} is "
-                f"{size[0]}x{size[1]}; every image of a condition must have the same size")
+                f"{size[0]}x{size[1]}; every image of a condition must have the same size"
+            )
     return first_size or (0, 0)
 
 
@@ -110,8 +115,9 @@ def fixed(start: int | None, end: int | None) -> SplitRule:
     return lambda n: (start, end)
 
 
-def resolve_split(split: str | None, rules: Mapping[str, SplitRule], length: int,
-                  where: str) -> tuple[int | None, int | None]:
+def resolve_split(
+    split: str | None, rules: Mapping[str, SplitRule], length: int, where: str
+) -> tuple[int | None, int | None]:
     """A split name (``train``, ``test``, ``all``) or ``START:END`` -> (start, end) over ``length``
     frames. A named split that would select nothing is an error naming the frame count."""
     if split is None or split == "" or split == "all":
@@ -126,11 +132,13 @@ def resolve_split(split: str | None, rules: Mapping[str, SplitRule], length: int
     if selected == 0:
         raise DataError(
             f"{where}: split {split!r} is frames {start or 0}:{'' if end is None else end} but this "
-            f"copy has only {length} frames; give --split START:END instead")
+            f"copy has only {length} frames; give --split START:END instead"
+        )
     return start, end
 
 
 # ----------------------------------------------------------------------------- correspondences
+
 
 @dataclass
 class Correspondences:
@@ -146,8 +154,7 @@ class Correspondences:
     by_name: bool
 
 
-def read_text_lines(path: Path, what: str, not_text: str,
-                    comments: tuple[str, ...] = ("#",)) -> list[tuple[int, str]]:
+def read_text_lines(path: Path, what: str, not_text: str, comments: tuple[str, ...] = ("#",)) -> list[tuple[int, str]]:
     """(line number, line) of the non-blank, non-comment lines of a text file; a missing or
     binary file is a DataError naming it (``what`` / ``not_text`` say what was expected)."""
     try:
@@ -158,16 +165,23 @@ def read_text_lines(path: Path, what: str, not_text: str,
         raise DataError(f"{path}: {what} not found") from exc
     except UnicodeDecodeError as exc:
         raise DataError(f"{path}: {not_text}") from exc
-    return [(i + 1, line) for i, line in enumerate(text.splitlines())
-            if line.strip() and not line.lstrip().startswith(comments)]
+    return [
+        (i + 1, line)
+        for i, line in enumerate(text.splitlines())
+        if line.strip() and not line.lstrip().startswith(comments)
+    ]
 
 
 def read_correspondences(path: Path, query_column: int = 0, reference_column: int = 1) -> Correspondences:
     """Read a two-(or more-)column correspondence file: CSV, TSV or whitespace separated, with or
     without a header line. Integer values are frame numbers; anything else is taken as file names.
     Errors name the file and line."""
-    lines = read_text_lines(path, "correspondence (ground-truth) file",
-                            "not a text file; expected rows 'query_frame,reference_frame'", ("#", "%"))
+    lines = read_text_lines(
+        path,
+        "correspondence (ground-truth) file",
+        "not a text file; expected rows 'query_frame,reference_frame'",
+        ("#", "%"),
+    )
     if not lines:
         raise DataError(f"{path}: empty correspondence file")
     sample = lines[0][1]
@@ -189,16 +203,22 @@ def read_correspondences(path: Path, query_column: int = 0, reference_column: in
             return False
 
     # A first row that is not numeric while the next one is = header.
-    if len(rows) > 1 and len(rows[0][1]) >= need and not numeric(rows[0][1][query_column]) \
-            and len(rows[1][1]) >= need and numeric(rows[1][1][query_column]):
+    if (
+        len(rows) > 1
+        and len(rows[0][1]) >= need
+        and not numeric(rows[0][1][query_column])
+        and len(rows[1][1]) >= need
+        and numeric(rows[1][1][query_column])
+    ):
         rows = rows[1:]
-    by_name = not all(numeric(r[query_column]) and numeric(r[reference_column])
-                      for _, r in rows if len(r) >= need)
+    by_name = not all(numeric(r[query_column]) and numeric(r[reference_column]) for _, r in rows if len(r) >= need)
     query, reference = [], []
     for no, cells in rows:
         if len(cells) < need:
-            raise DataError(f"{path}, line {no}: expected at least {need} columns "
-                            f"(query frame, reference frame), got {len(cells)}: {cells!r}")
+            raise DataError(
+                f"{path}, line {no}: expected at least {need} columns "
+                f"(query frame, reference frame), got {len(cells)}: {cells!r}"
+            )
         q, r = cells[query_column], cells[reference_column]
         if by_name:
             query.append(Path(q).stem)
@@ -217,8 +237,9 @@ def read_correspondences(path: Path, query_column: int = 0, reference_column: in
     return Correspondences(query, reference, path, by_name)
 
 
-def ground_truth_from_correspondences(corr: Correspondences, query: Traverse, reference: Traverse,
-                                      tolerance: int) -> GroundTruth:
+def ground_truth_from_correspondences(
+    corr: Correspondences, query: Traverse, reference: Traverse, tolerance: int
+) -> GroundTruth:
     """Each query with a correspondence row matches the references whose frame number is within
     ``tolerance`` of its corresponding reference frame (union over rows; queries without a row have
     no match). Frame numbers are the traverses' ``frame_ids``; with file-name correspondences the
@@ -247,8 +268,9 @@ def ground_truth_from_correspondences(corr: Correspondences, query: Traverse, re
             hi = np.searchsorted(sorted_ids, r + tolerance, side="right")
             hits.append(order[lo:hi])
         positives.append(np.concatenate(hits) if hits else np.zeros(0, dtype=np.int64))
-    return GroundTruth(positives, len(reference),
-                       f"correspondences from {corr.path.name}, tolerance {tolerance} frames")
+    return GroundTruth(
+        positives, len(reference), f"correspondences from {corr.path.name}, tolerance {tolerance} frames"
+    )
 
 
 def check_correspondences_cover(corr: Correspondences, query: Traverse, reference: Traverse) -> None:
@@ -267,10 +289,12 @@ def check_correspondences_cover(corr: Correspondences, query: Traverse, referenc
         folder = query.paths[0].parent if q_hit == 0 else reference.paths[0].parent
         raise DataError(
             f"{corr.path}: none of its {side} frames (e.g. {sample!r}) is an image in {folder}; "
-            f"check the file and the column order (query_column/reference_column settings)")
+            f"check the file and the column order (query_column/reference_column settings)"
+        )
 
 
 # ----------------------------------------------------------------------------- frame alignment
+
 
 def common_frames(route: RouteDataset) -> RouteDataset:
     """Keep, in every condition, only the frame numbers all conditions have (order preserved)."""
@@ -293,6 +317,7 @@ def describe(root: Path, query: Traverse, reference: Traverse, gt: GroundTruth, 
 
 # ----------------------------------------------------------------------------- adapter base
 
+
 class DatasetFormat:
     """One published dataset layout. Subclasses set the class attributes and implement
     :meth:`detect`, :meth:`evaluation_split` and :meth:`training_dataset`.
@@ -311,23 +336,25 @@ class DatasetFormat:
     def detect(self, root: Path) -> bool:  # pragma: no cover - interface
         raise NotImplementedError
 
-    def evaluation_split(self, root: Path, reference: str | None, query: str | None,
-                         split: str | None, options) -> "EvaluationSplit":  # noqa: F821
+    def evaluation_split(
+        self, root: Path, reference: str | None, query: str | None, split: str | None, options
+    ) -> "EvaluationSplit":  # noqa: F821
         raise NotImplementedError  # pragma: no cover - interface
 
-    def training_dataset(self, root: Path, split: str | None, conditions: Sequence[str] | None,
-                         options) -> RouteDataset:
+    def training_dataset(
+        self, root: Path, split: str | None, conditions: Sequence[str] | None, options
+    ) -> RouteDataset:
         raise NotImplementedError  # pragma: no cover - interface
 
-    def listed_evaluation_split(self, root: Path, reference: str | None, query: str | None,
-                                split: str | None, options, ground_truth: Path) -> "EvaluationSplit":  # noqa: F821
+    def listed_evaluation_split(
+        self, root: Path, reference: str | None, query: str | None, split: str | None, options, ground_truth: Path
+    ) -> "EvaluationSplit":  # noqa: F821
         """The split's images with an explicit ground-truth CSV in place of the format's own
         (indices over the split's images). Formats whose own ground truth can fail where an
         explicit list would not (e.g. frame alignment of unequal folders) override this."""
         from fdnet.data.split import with_listed_ground_truth
 
-        return with_listed_ground_truth(self.evaluation_split(root, reference, query, split, options),
-                                        ground_truth)
+        return with_listed_ground_truth(self.evaluation_split(root, reference, query, split, options), ground_truth)
 
 
 def pick_conditions(available: Sequence[str], wanted: Sequence[str] | None, root: Path) -> list[str]:

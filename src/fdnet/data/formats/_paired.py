@@ -73,8 +73,10 @@ class PairedFormat(DatasetFormat):
         for condition, folders in self.conditions.items():
             if name.lower() == condition or name.lower() in (f.lower() for f in folders):
                 return condition
-        raise DataError(f"{root}: no condition {name!r} in the {self.name} layout; conditions: "
-                        + ", ".join(f"{c} ({'/'.join(f[:1])})" for c, f in self.conditions.items()))
+        raise DataError(
+            f"{root}: no condition {name!r} in the {self.name} layout; conditions: "
+            + ", ".join(f"{c} ({'/'.join(f[:1])})" for c, f in self.conditions.items())
+        )
 
     def correspondence_file(self, root: Path, given: str | None) -> Path:
         if given:
@@ -93,13 +95,15 @@ class PairedFormat(DatasetFormat):
         raise DataError(
             f"{root}: missing the frame-correspondence file (looked for {', '.join(self.correspondence_names)}"
             f"{', ' + ', '.join(self.correspondence_globs) if self.correspondence_globs else ''}); "
-            f"give its path with correspondences=FILE")
+            f"give its path with correspondences=FILE"
+        )
 
     def read_condition(self, root: Path, condition: str) -> Traverse:
         folder = self.folder(root, condition)
         if folder is None:
-            raise DataError(f"{root}: missing the {condition} image folder "
-                            f"(expected {' or '.join(self.conditions[condition])})")
+            raise DataError(
+                f"{root}: missing the {condition} image folder " f"(expected {' or '.join(self.conditions[condition])})"
+            )
         return read_numbered(folder, condition)
 
     def detect(self, root: Path) -> bool:
@@ -118,17 +122,19 @@ class PairedFormat(DatasetFormat):
             for t in (ref, qry):
                 t.frame_ids = np.arange(first, first + len(t))
         elif numbering != "names":
-            raise ConfigError(f"numbering {numbering!r}: expected names (the numbers in the image "
-                              f"names), positions (0-based) or positions1 (1-based)")
-        corr = read_correspondences(self.correspondence_file(root, options.correspondences),
-                                    options.first_column, options.second_column)
+            raise ConfigError(
+                f"numbering {numbering!r}: expected names (the numbers in the image "
+                f"names), positions (0-based) or positions1 (1-based)"
+            )
+        corr = read_correspondences(
+            self.correspondence_file(root, options.correspondences), options.first_column, options.second_column
+        )
         if query == self.second:
             corr = swap(corr)  # rows are (first, second); make them (query, reference)
         check_correspondences_cover(corr, qry, ref)
         return ref, qry, corr
 
-    def _reference_span(self, corr: Correspondences, qry: Traverse, ref: Traverse,
-                        tolerance: int) -> tuple[int, int]:
+    def _reference_span(self, corr: Correspondences, qry: Traverse, ref: Traverse, tolerance: int) -> tuple[int, int]:
         """Positions [lo, hi) of the reference frames that ``qry``'s frames correspond to."""
         if corr.by_name:
             q_keys = {p.stem for p in qry.paths}
@@ -138,8 +144,10 @@ class PairedFormat(DatasetFormat):
             ref_pos = {int(f): i for i, f in enumerate(ref.frame_ids)}
         hits = [ref_pos[r] for q, r in zip(corr.query, corr.reference) if q in q_keys and r in ref_pos]
         if not hits:
-            raise DataError(f"{corr.path}: none of the selected {len(qry)} {qry.name} frames "
-                            f"({qry.paths[0].name}..{qry.paths[-1].name}) has a correspondence")
+            raise DataError(
+                f"{corr.path}: none of the selected {len(qry)} {qry.name} frames "
+                f"({qry.paths[0].name}..{qry.paths[-1].name}) has a correspondence"
+            )
         return max(min(hits) - tolerance, 0), min(max(hits) + tolerance + 1, len(ref))
 
     def evaluation_split(self, root, reference, query, split, options) -> EvaluationSplit:
@@ -157,8 +165,11 @@ class PairedFormat(DatasetFormat):
     def training_dataset(self, root, split, conditions, options) -> RouteDataset:
         """``train``: the train rule's query frames and every reference frame outside the test
         stretch; other splits cut the query traverse as in evaluation."""
-        names = [self.condition_name(root, c) for c in conditions] if conditions else \
-            [self.default_reference, self.default_query]
+        names = (
+            [self.condition_name(root, c) for c in conditions]
+            if conditions
+            else [self.default_reference, self.default_query]
+        )
         if len(names) != 2:
             raise DataError(f"{root}: the {self.name} layout has exactly two traverses")
         ref_full, qry_full, corr = self._setup(root, names[0], names[1], options)

@@ -49,12 +49,20 @@ class AlderleyFormat(PairedFormat):
     conditions = {"night": ("FRAMESA",), "day": ("FRAMESB",)}
     first, second = "night", "day"
     default_reference, default_query = "day", "night"
-    correspondence_names = ("framematches.csv", "frame_matches.csv", "fm.csv", "ground_truth.csv",
-                            "groundtruth.csv", "framematches.txt")
+    correspondence_names = (
+        "framematches.csv",
+        "frame_matches.csv",
+        "fm.csv",
+        "ground_truth.csv",
+        "groundtruth.csv",
+        "framematches.txt",
+    )
     correspondence_globs = ("*match*.csv", "*match*.txt", "*.csv")
     split_rules = {"test": fixed(0, TEST_FRAMES), "train": fixed(TEST_FRAMES, None)}
-    splits = {"test": f"first {TEST_FRAMES} query frames and the reference stretch they match",
-              "train": "every frame outside the test stretch, in both drives"}
+    splits = {
+        "test": f"first {TEST_FRAMES} query frames and the reference stretch they match",
+        "train": "every frame outside the test stretch, in both drives",
+    }
     default_eval_split = "test"
     default_train_split = "train"
 

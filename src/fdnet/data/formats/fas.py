@@ -49,8 +49,14 @@ class FASFormat(PairedFormat):
     conditions = {"localization-2": ("Localization-2", "Localization2", "Loc2"), "mapping": ("Mapping",)}
     first, second = "localization-2", "mapping"
     default_reference, default_query = "mapping", "localization-2"
-    correspondence_names = ("groundtruth.txt", "ground_truth.txt", "gt.txt", "ground_truth.csv",
-                            "groundtruth.csv", "gt.csv")
+    correspondence_names = (
+        "groundtruth.txt",
+        "ground_truth.txt",
+        "gt.txt",
+        "ground_truth.csv",
+        "groundtruth.csv",
+        "gt.csv",
+    )
     correspondence_globs = ("*ocalization*2*.txt", "*ocalization*2*.csv", "*gt*.txt", "*gt*.csv")
     split_rules = {"train": fixed(0, TRAIN_PAIRS), "test": fixed(TRAIN_PAIRS, TRAIN_PAIRS + TEST_PAIRS)}
     splits = {"train": f"first {TRAIN_PAIRS} query frames", "test": f"next {TEST_PAIRS} query frames"}

@@ -39,8 +39,11 @@ def condition_folders(root: Path) -> list[str]:
         raise DataError(f"{root}: dataset folder not found")
     from fdnet.data.sources import is_source
 
-    return sorted(p.name for p in root.iterdir()
-                  if not p.name.startswith(".") and (is_source(p) or (p.is_dir() and has_images(p))))
+    return sorted(
+        p.name
+        for p in root.iterdir()
+        if not p.name.startswith(".") and (is_source(p) or (p.is_dir() and has_images(p)))
+    )
 
 
 def read_traverse(folder: Path, name: str | None = None) -> Traverse:
@@ -56,8 +59,7 @@ def is_gardens_point(conditions: Sequence[str]) -> bool:
     return len(conditions) >= 2 and set(conditions) <= GARDENS_POINT
 
 
-def default_pair(root: Path, conditions: list[str], reference: str | None,
-                 query: str | None) -> tuple[str, str]:
+def default_pair(root: Path, conditions: list[str], reference: str | None, query: str | None) -> tuple[str, str]:
     if reference and query:
         return reference, query
     if is_gardens_point(conditions) and {"day_right", "night_right"} <= set(conditions):
@@ -67,8 +69,10 @@ def default_pair(root: Path, conditions: list[str], reference: str | None,
         reference = reference or next(c for c in conditions if c != query)
         query = query or next(c for c in conditions if c != reference)
         return reference, query
-    raise ConfigError(f"{root}: has {len(conditions)} conditions ({', '.join(conditions)}); name the "
-                      f"pair with --reference and --query" + (f" (e.g. {others[0]})" if others else ""))
+    raise ConfigError(
+        f"{root}: has {len(conditions)} conditions ({', '.join(conditions)}); name the "
+        f"pair with --reference and --query" + (f" (e.g. {others[0]})" if others else "")
+    )
 
 
 class FoldersFormat(DatasetFormat):
@@ -91,20 +95,25 @@ class FoldersFormat(DatasetFormat):
     def _route(self, root: Path, reference, query) -> tuple[list[str], RouteDataset, str, str]:
         conditions = condition_folders(root)
         if len(conditions) < 2 and not (reference and query):
-            raise DataError(f"{root}: needs at least two condition sub-folders with images, found "
-                            f"{len(conditions)} ({', '.join(conditions) or 'none'})")
+            raise DataError(
+                f"{root}: needs at least two condition sub-folders with images, found "
+                f"{len(conditions)} ({', '.join(conditions) or 'none'})"
+            )
         reference, query = default_pair(root, conditions, reference, query)
         pick_conditions(conditions, [reference, query], root)
         route = RouteDataset(root, {name: read_traverse(root / name) for name in (reference, query)})
         return conditions, route, reference, query
 
-    def listed_evaluation_split(self, root, reference, query, split, options: FoldersOptions,
-                                ground_truth: Path) -> EvaluationSplit:
+    def listed_evaluation_split(
+        self, root, reference, query, split, options: FoldersOptions, ground_truth: Path
+    ) -> EvaluationSplit:
         """Both folders cut to ``split``, with an explicit list over the cut images (no frame
         alignment is computed, so the folders may hold different numbers of images)."""
         if options.ground_truth:
-            raise ConfigError(f"two explicit ground truths: the ground_truth={options.ground_truth} setting "
-                              f"and {ground_truth}; give one")
+            raise ConfigError(
+                f"two explicit ground truths: the ground_truth={options.ground_truth} setting "
+                f"and {ground_truth}; give one"
+            )
         _, route, reference, query = self._route(root, reference, query)
         start, end = resolve_split(split, {}, len(route[query]), str(root))
         ref, qry = route[reference].frames(start, end), route[query].frames(start, end)

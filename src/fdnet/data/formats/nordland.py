@@ -97,8 +97,11 @@ def _partition_folders(root: Path, partition: str) -> dict[str, Path]:
     if not base.is_dir():
         return out
     for child in sorted(base.iterdir()):
-        if child.is_dir() and f"_images_{partition}" in child.name.lower() and not child.name.endswith(
-                ("_illumination", "_viewpoint")):
+        if (
+            child.is_dir()
+            and f"_images_{partition}" in child.name.lower()
+            and not child.name.endswith(("_illumination", "_viewpoint"))
+        ):
             season = season_of(child.name.lower().split("_images_")[0])
             if season and season not in out:
                 out[season] = child
@@ -132,8 +135,10 @@ class NordlandFormat(DatasetFormat):
     name = "nordland"
     summary = "Nordland four seasons: per-season folders (1 fps, trimmed) or the Olid et al. partition"
     Options = NordlandOptions
-    splits = {"test": f"last {TEST_FRAMES} frames after filtering (partitioned: test/)",
-              "train": "all frames before the test ones (partitioned: train/)"}
+    splits = {
+        "test": f"last {TEST_FRAMES} frames after filtering (partitioned: test/)",
+        "train": "all frames before the test ones (partitioned: train/)",
+    }
     default_eval_split = "test"
     default_train_split = "train"
 
@@ -141,8 +146,9 @@ class NordlandFormat(DatasetFormat):
         return len(season_folders(root)) >= 2 or is_partitioned(root)
 
     # -- reading -----------------------------------------------------------------------------
-    def _route(self, root: Path, conditions, split: str | None, options: NordlandOptions,
-               partition_for_ranges: str) -> tuple[RouteDataset, str]:
+    def _route(
+        self, root: Path, conditions, split: str | None, options: NordlandOptions, partition_for_ranges: str
+    ) -> tuple[RouteDataset, str]:
         """The chosen seasons, filtered, then cut to ``split``; plus a note on the filtering.
 
         The filter looks at every season present (a frame dark in any season is dropped from all),
@@ -152,8 +158,9 @@ class NordlandFormat(DatasetFormat):
             partition = split if split in ("train", "test") else partition_for_ranges
             folders = _partition_folders(root, partition)
             if not folders:
-                raise DataError(f"{root / partition}: no <season>_images_{partition} folders "
-                                f"(partitioned Nordland layout)")
+                raise DataError(
+                    f"{root / partition}: no <season>_images_{partition} folders " f"(partitioned Nordland layout)"
+                )
             available = [s for s in SEASONS if s in folders]
             chosen = pick_conditions(available, conditions, root / partition)
             route = RouteDataset(root, {s: read_partition_season(folders[s], s) for s in available})
@@ -162,8 +169,10 @@ class NordlandFormat(DatasetFormat):
         else:
             folders = season_folders(root)
             if not folders:
-                raise DataError(f"{root}: no season folders (expected spring/, summer/, fall/, winter/ "
-                                f"or {root}/train|test/<season>_images_*)")
+                raise DataError(
+                    f"{root}: no season folders (expected spring/, summer/, fall/, winter/ "
+                    f"or {root}/train|test/<season>_images_*)"
+                )
             available = [s for s in SEASONS if s in folders]
             chosen = pick_conditions(available, conditions, root)
             route = RouteDataset(root, {s: read_season(folders[s], s) for s in available})
@@ -196,8 +205,10 @@ class NordlandFormat(DatasetFormat):
         gt = GroundTruth.from_frames(qry.frame_ids, ref.frame_ids, options.tolerance)
         step = int(np.median(np.diff(np.sort(ref.frame_ids)))) if len(ref) > 1 else 1
         if step > 1:  # a trimmed copy (every 10th frame): say what the 1 fps tolerance means here
-            gt.description = (f"frame-aligned, tolerance {options.tolerance} frames of the 1 fps sequence = "
-                              f"{options.tolerance // step} of these files ({step} frames apart)")
+            gt.description = (
+                f"frame-aligned, tolerance {options.tolerance} frames of the 1 fps sequence = "
+                f"{options.tolerance // step} of these files ({step} frames apart)"
+            )
         extra = f"split {split or 'all'}" + (f", frame filter: {note}" if note else "")
         return EvaluationSplit(ref, qry, gt, describe(root, qry, ref, gt, extra))
 

@@ -63,8 +63,7 @@ class OxfordOptions:
 def run_folders(root: Path, camera: str) -> list[str]:
     if not root.is_dir():
         return []
-    return sorted(p.name for p in root.iterdir()
-                  if p.is_dir() and RUN_NAME.match(p.name) and (p / camera).is_dir())
+    return sorted(p.name for p in root.iterdir() if p.is_dir() and RUN_NAME.match(p.name) and (p / camera).is_dir())
 
 
 def bayer_code(pattern: str) -> int:
@@ -120,8 +119,9 @@ def read_track(path: Path) -> tuple[np.ndarray, np.ndarray]:
             stamps.append(int(row[it]))
             xy.append((float(row[ie]), float(row[inn])))
         except (ValueError, IndexError) as exc:
-            raise DataError(f"{path}, line {line_no}: expected numeric timestamp, northing, easting; "
-                            f"got {','.join(row)!r}") from exc
+            raise DataError(
+                f"{path}, line {line_no}: expected numeric timestamp, northing, easting; " f"got {','.join(row)!r}"
+            ) from exc
     if not stamps:
         raise DataError(f"{path}: no GPS/INS rows")
     stamps_arr, xy_arr = np.asarray(stamps, dtype=np.int64), np.asarray(xy, dtype=np.float64)
@@ -162,8 +162,10 @@ class OxfordRobotCarFormat(DatasetFormat):
     name = "oxford_robotcar"
     summary = "Oxford RobotCar: raw Bayer stereo/centre images + gps/ins.csv, demosaiced and subsampled"
     Options = OxfordOptions
-    splits = {"train": f"subsampled frames 0:{TRAIN_FRAMES}",
-              "test": f"subsampled frames {TRAIN_FRAMES}:{TRAIN_FRAMES + TEST_FRAMES}"}
+    splits = {
+        "train": f"subsampled frames 0:{TRAIN_FRAMES}",
+        "test": f"subsampled frames {TRAIN_FRAMES}:{TRAIN_FRAMES + TEST_FRAMES}",
+    }
     split_rules = {"train": fixed(0, TRAIN_FRAMES), "test": fixed(TRAIN_FRAMES, TRAIN_FRAMES + TEST_FRAMES)}
     default_eval_split = "test"
     default_train_split = "train"
@@ -183,11 +185,14 @@ class OxfordRobotCarFormat(DatasetFormat):
         run = root / name
         image_dir = run / options.camera
         if not image_dir.is_dir():
-            raise DataError(f"{image_dir}: folder not found; traversals here: "
-                            f"{', '.join(run_folders(root, options.camera)) or 'none'}")
+            raise DataError(
+                f"{image_dir}: folder not found; traversals here: "
+                f"{', '.join(run_folders(root, options.camera)) or 'none'}"
+            )
         # Digit-only names are microsecond timestamps: their natural order is time order.
-        raw = [p for p in list_images(image_dir) if p.suffix.lower() == ".png"
-               and p.stem.isascii() and p.stem.isdigit()]
+        raw = [
+            p for p in list_images(image_dir) if p.suffix.lower() == ".png" and p.stem.isascii() and p.stem.isdigit()
+        ]
         if not raw:
             raise DataError(f"{image_dir}: no <timestamp>.png images")
         stamps = np.array([int(p.stem) for p in raw], dtype=np.int64)
@@ -196,8 +201,10 @@ class OxfordRobotCarFormat(DatasetFormat):
         else:
             track_path = next((run / f for f in ("gps/ins.csv", "gps/gps.csv") if (run / f).is_file()), None)
             if track_path is None:
-                raise DataError(f"{run}: missing gps/ins.csv (and gps/gps.csv); download the traversal's GPS "
-                                f"archive into the same folder")
+                raise DataError(
+                    f"{run}: missing gps/ins.csv (and gps/gps.csv); download the traversal's GPS "
+                    f"archive into the same folder"
+                )
         track_t, track_xy = read_track(track_path)
         outside = (stamps < track_t[0]) | (stamps > track_t[-1])
         if outside.any():
@@ -206,7 +213,8 @@ class OxfordRobotCarFormat(DatasetFormat):
                     f"{track_path}: GPS/INS rows cover timestamps {track_t[0]}..{track_t[-1]} but "
                     f"{int(outside.sum())} of the {len(stamps)} images in {image_dir} lie outside "
                     f"(e.g. {raw[int(np.flatnonzero(outside)[0])].name}); the GPS file is partial or of "
-                    f"another traversal (drop_uncovered=true skips those images)")
+                    f"another traversal (drop_uncovered=true skips those images)"
+                )
             keep = np.flatnonzero(~outside)
             if len(keep) == 0:
                 raise DataError(f"{track_path}: covers none of the images in {image_dir}")
@@ -216,8 +224,13 @@ class OxfordRobotCarFormat(DatasetFormat):
             frame_ids = np.arange(len(raw))
         xy = np.stack([np.interp(stamps, track_t, track_xy[:, 0]), np.interp(stamps, track_t, track_xy[:, 1])], 1)
         kept = subsample(stamps, xy, options.fps, options.spacing_m)
-        return Traverse(name, [raw[i] for i in kept], frame_ids=np.asarray(frame_ids)[kept],
-                        positions=xy[kept], timestamps=stamps[kept])
+        return Traverse(
+            name,
+            [raw[i] for i in kept],
+            frame_ids=np.asarray(frame_ids)[kept],
+            positions=xy[kept],
+            timestamps=stamps[kept],
+        )
 
     def demosaiced(self, traverse: Traverse, options: OxfordOptions) -> Traverse:
         """The same frames with paths to cached RGB versions (made once, atomically)."""
@@ -227,8 +240,13 @@ class OxfordRobotCarFormat(DatasetFormat):
         if todo:
             with ThreadPoolExecutor(max_workers=2) as pool:  # OpenCV releases the GIL
                 list(pool.map(lambda pair: demosaic(pair[0], pair[1], options.bayer_pattern), todo))
-        return Traverse(traverse.name, targets, frame_ids=traverse.frame_ids,
-                        positions=traverse.positions, timestamps=traverse.timestamps)
+        return Traverse(
+            traverse.name,
+            targets,
+            frame_ids=traverse.frame_ids,
+            positions=traverse.positions,
+            timestamps=traverse.timestamps,
+        )
 
     def _pair(self, root: Path, reference, query, options) -> tuple[str, str]:
         runs = run_folders(root, options.camera)
@@ -238,8 +256,9 @@ class OxfordRobotCarFormat(DatasetFormat):
             return reference or DAY, query or NIGHT
         if len(runs) == 2:
             return reference or runs[0], query or runs[1]
-        raise ConfigError(f"{root}: traversals {', '.join(runs) or 'none'}; name the pair with "
-                          f"--reference and --query")
+        raise ConfigError(
+            f"{root}: traversals {', '.join(runs) or 'none'}; name the pair with " f"--reference and --query"
+        )
 
     def evaluation_split(self, root, reference, query, split, options: OxfordOptions) -> EvaluationSplit:
         reference, query = self._pair(root, reference, query, options)

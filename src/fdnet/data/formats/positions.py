@@ -66,8 +66,9 @@ def _sniff_delimiter(line: str) -> str | None:
     return None  # whitespace
 
 
-def read_positions(path: str | os.PathLike, image_column: str | None = None,
-                   columns: Sequence[str] | str | None = None) -> PositionTable:
+def read_positions(
+    path: str | os.PathLike, image_column: str | None = None, columns: Sequence[str] | str | None = None
+) -> PositionTable:
     """Read a position file (see the module docstring for the accepted columns)."""
     path = Path(path)
     lines = read_text_lines(path, "position file", "not a text (CSV) file")
@@ -92,7 +93,8 @@ def read_positions(path: str | os.PathLike, image_column: str | None = None,
         if header and all(_is_number(c) for c in header):
             raise DataError(
                 f"{path}, line {lines[0][0]}: no header; the first line must name the columns "
-                f"(an image column and lat,lon or easting,northing), or give the column meanings")
+                f"(an image column and lat,lon or easting,northing), or give the column meanings"
+            )
     if image_column is not None:
         img_idx = _find(header, [image_column.lower()])
         if img_idx is None:
@@ -109,7 +111,8 @@ def read_positions(path: str | os.PathLike, image_column: str | None = None,
     else:
         raise DataError(
             f"{path}: missing position columns; need lat,lon (degrees) or easting,northing (metres), "
-            f"found: {', '.join(h for h in header if h) or 'none'}")
+            f"found: {', '.join(h for h in header if h) or 'none'}"
+        )
     if not rows:
         raise DataError(f"{path}: has a header but no position rows")
 
@@ -120,8 +123,9 @@ def read_positions(path: str | os.PathLike, image_column: str | None = None,
     for k, (line_no, line) in enumerate(rows):
         row = cells(line)
         if len(row) < needed:
-            raise DataError(f"{path}, line {line_no}: expected {len(header)} columns "
-                            f"({', '.join(header)}), got {len(row)}")
+            raise DataError(
+                f"{path}, line {line_no}: expected {len(header)} columns " f"({', '.join(header)}), got {len(row)}"
+            )
         for j, idx in enumerate((a_idx, b_idx)):
             try:
                 v = float(row[idx])
@@ -134,15 +138,17 @@ def read_positions(path: str | os.PathLike, image_column: str | None = None,
             try:
                 stamps[k] = float(row[time_idx])
             except ValueError as exc:
-                raise DataError(f"{path}, line {line_no}: {header[time_idx]} is not a number: "
-                                f"{row[time_idx]!r}") from exc
+                raise DataError(
+                    f"{path}, line {line_no}: {header[time_idx]} is not a number: " f"{row[time_idx]!r}"
+                ) from exc
         if img_idx is not None:
             images.append(row[img_idx])
         if kind == "degrees" and not (-90 <= values[k, 0] <= 90 and -180 <= values[k, 1] <= 180):
-            raise DataError(f"{path}, line {line_no}: latitude {values[k, 0]:g}, longitude {values[k, 1]:g} "
-                            f"out of range (degrees expected)")
-    return PositionTable(path, kind, values, images if img_idx is not None else None, stamps,
-                         [no for no, _ in rows])
+            raise DataError(
+                f"{path}, line {line_no}: latitude {values[k, 0]:g}, longitude {values[k, 1]:g} "
+                f"out of range (degrees expected)"
+            )
+    return PositionTable(path, kind, values, images if img_idx is not None else None, stamps, [no for no, _ in rows])
 
 
 def _is_number(text: str) -> bool:
@@ -160,7 +166,8 @@ def to_metres(reference: PositionTable, *others: PositionTable) -> list[np.ndarr
     if len(kinds) > 1:
         raise DataError(
             f"{reference.path} and {others[0].path}: one has lat,lon degrees and the other "
-            f"easting,northing metres; give both in the same units")
+            f"easting,northing metres; give both in the same units"
+        )
     if kinds == {"metres"}:
         return [t.values.copy() for t in tables]
     origin = (float(reference.values[:, 0].mean()), float(reference.values[:, 1].mean()))
@@ -180,9 +187,11 @@ def align_to_images(table: PositionTable, image_paths: Sequence[Path], where: Pa
     row i = image i (then the counts must agree). Returns (N,) row indices."""
     if table.images is None:
         if len(table) != len(image_paths):
-            raise DataError(f"{table.path}: has {len(table)} position rows but {where} has "
-                            f"{len(image_paths)} images; rows must be one per image in order "
-                            f"(or add an image column)")
+            raise DataError(
+                f"{table.path}: has {len(table)} position rows but {where} has "
+                f"{len(image_paths)} images; rows must be one per image in order "
+                f"(or add an image column)"
+            )
         return np.arange(len(image_paths))
     index: dict[str, int] = {}
     for k, name in enumerate(table.images):
@@ -206,14 +215,26 @@ def source_positions(path: str | os.PathLike, options=None) -> PositionTable:
     listing = open_source(path, options)
     where = f"{listing.source}" + (f", topic {listing.topic}" if listing.topic else "")
     if listing.positions is None:
-        raise DataError(f"{where}: no positions for its frames: "
-                        + ("a video has none" if listing.kind == "video" else
-                           "the bag has no single NavSatFix or Odometry topic; name one with --position-topic"))
+        raise DataError(
+            f"{where}: no positions for its frames: "
+            + (
+                "a video has none"
+                if listing.kind == "video"
+                else "the bag has no single NavSatFix or Odometry topic; name one with --position-topic"
+            )
+        )
     missing = np.flatnonzero(~np.isfinite(listing.positions).all(axis=1))
     if len(missing):
         first = listing.paths[missing[0]].name
-        raise DataError(f"{where}: {len(missing)} of {len(listing.paths)} frames (e.g. {first}) lie outside the "
-                        f"time span of the positions on {listing.position_topic}; narrow the frames with --window")
-    return PositionTable(Path(os.fspath(path)), listing.position_kind, listing.positions.copy(),
-                         images=[p.name for p in listing.paths], timestamps=listing.times.copy(),
-                         lines=[i + 1 for i in range(len(listing.paths))])
+        raise DataError(
+            f"{where}: {len(missing)} of {len(listing.paths)} frames (e.g. {first}) lie outside the "
+            f"time span of the positions on {listing.position_topic}; narrow the frames with --window"
+        )
+    return PositionTable(
+        Path(os.fspath(path)),
+        listing.position_kind,
+        listing.positions.copy(),
+        images=[p.name for p in listing.paths],
+        timestamps=listing.times.copy(),
+        lines=[i + 1 for i in range(len(listing.paths))],
+    )

@@ -76,8 +76,9 @@ def gps_file(run: Path, given: str | None) -> Path:
         matches = sorted(run.glob(pattern))
         if matches:
             return matches[0]
-    raise DataError(f"{run}: missing the GPS file (looked for {', '.join(GPS_NAMES)}); "
-                    f"give its name with gps_file=NAME")
+    raise DataError(
+        f"{run}: missing the GPS file (looked for {', '.join(GPS_NAMES)}); " f"give its name with gps_file=NAME"
+    )
 
 
 class StLuciaFormat(DatasetFormat):
@@ -122,8 +123,9 @@ class StLuciaFormat(DatasetFormat):
 
     def evaluation_split(self, root, reference, query, split, options: StLuciaOptions) -> EvaluationSplit:
         reference, query = self._pair(root, reference, query)
-        ref_full, qry_full = self._planar([self.read_run(root, reference, options),
-                                           self.read_run(root, query, options)])
+        ref_full, qry_full = self._planar(
+            [self.read_run(root, reference, options), self.read_run(root, query, options)]
+        )
         start, end = resolve_split(split, self.split_rules, min(len(ref_full), len(qry_full)), str(root))
         ref, qry = ref_full.frames(start, end), qry_full.frames(start, end)
         gt = GroundTruth.from_positions(qry.positions, ref.positions, options.tolerance_m)

@@ -62,8 +62,9 @@ def read_utm_folder(folder: Path, name: str) -> Traverse:
         try:
             xy[i] = float(fields[1]), float(fields[2])
         except (IndexError, ValueError) as exc:
-            raise DataError(f"{p}: file name does not carry its position; expected "
-                            f"@utm_easting@utm_northing@...@{p.suffix}") from exc
+            raise DataError(
+                f"{p}: file name does not carry its position; expected " f"@utm_easting@utm_northing@...@{p.suffix}"
+            ) from exc
     return Traverse(name, paths, positions=xy)
 
 

@@ -65,8 +65,10 @@ def load_gt_matrix(path: Path, key: str, num_references: int, num_queries: int) 
         return matrix.astype(bool)
     if matrix.shape == (num_queries, num_references):
         return matrix.T.astype(bool)  # someone saved it queries-first
-    raise DataError(f"{path}: {key} has shape {matrix.shape} but there are {num_references} database "
-                    f"and {num_queries} query images (expected ({num_references}, {num_queries}))")
+    raise DataError(
+        f"{path}: {key} has shape {matrix.shape} but there are {num_references} database "
+        f"and {num_queries} query images (expected ({num_references}, {num_queries}))"
+    )
 
 
 class VPRTutorialFormat(DatasetFormat):
@@ -88,8 +90,10 @@ class VPRTutorialFormat(DatasetFormat):
             return reference or known[0], query or known[1]
         if len(folders) == 2:
             return reference or folders[0], query or folders[1]
-        raise ConfigError(f"{root}: image folders {', '.join(folders) or 'none'}; name the database "
-                          f"and query folders with --reference and --query")
+        raise ConfigError(
+            f"{root}: image folders {', '.join(folders) or 'none'}; name the database "
+            f"and query folders with --reference and --query"
+        )
 
     def listed_evaluation_split(self, root, reference, query, split, options, ground_truth) -> EvaluationSplit:
         """The split's queries and the whole database with an explicit list over them; GT.npz is

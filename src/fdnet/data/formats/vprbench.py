@@ -43,9 +43,12 @@ class _NumpyOnlyUnpickler(pickle.Unpickler):
     """Rebuilds numpy object arrays and nothing else (no arbitrary callables)."""
 
     ALLOWED = {
-        ("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multiarray", "_reconstruct"),
-        ("numpy.core.multiarray", "scalar"), ("numpy._core.multiarray", "scalar"),
-        ("numpy", "ndarray"), ("numpy", "dtype"),
+        ("numpy.core.multiarray", "_reconstruct"),
+        ("numpy._core.multiarray", "_reconstruct"),
+        ("numpy.core.multiarray", "scalar"),
+        ("numpy._core.multiarray", "scalar"),
+        ("numpy", "ndarray"),
+        ("numpy", "dtype"),
     }
 
     def find_class(self, module, name):
@@ -64,8 +67,14 @@ def load_object_npy(path: Path) -> np.ndarray:
             shape, _, dtype = read_npy_header(f, str(path))
             if not dtype.hasobject:
                 return load_npy(path, what="ground-truth")
-            check_npy_claim(shape, dtype, str(path), os.fstat(f.fileno()).st_size - f.tell(),
-                            physical_memory_bytes(), what="ground-truth array")
+            check_npy_claim(
+                shape,
+                dtype,
+                str(path),
+                os.fstat(f.fileno()).st_size - f.tell(),
+                physical_memory_bytes(),
+                what="ground-truth array",
+            )
             array = _NumpyOnlyUnpickler(f, encoding="latin1").load()
     except FileNotFoundError as exc:
         raise DataError(f"{path}: ground-truth file not found") from exc
@@ -93,8 +102,9 @@ def ground_truth_from_npy(path: Path, num_queries: int, num_references: int) -> 
             raise DataError(f"{path}: row {i}: query index {q} out of range (0..{num_queries - 1})")
         bad = refs[(refs < 0) | (refs >= num_references)]
         if len(bad):
-            raise DataError(f"{path}: row {i}: reference index {int(bad[0])} out of range "
-                            f"(0..{num_references - 1})")
+            raise DataError(
+                f"{path}: row {i}: reference index {int(bad[0])} out of range " f"(0..{num_references - 1})"
+            )
         entries[q] = np.union1d(entries.get(q, np.zeros(0, np.int64)), refs)
     positives = [entries.get(q, np.zeros(0, np.int64)) for q in range(num_queries)]
     return GroundTruth(positives, num_references, f"explicit list from {path.name}")
@@ -107,8 +117,7 @@ class VPRBenchFormat(DatasetFormat):
     splits = {}
 
     def detect(self, root: Path) -> bool:
-        return has_images(root / "query") and has_images(root / "ref") and any(
-            (root / f).is_file() for f in GT_FILES)
+        return has_images(root / "query") and has_images(root / "ref") and any((root / f).is_file() for f in GT_FILES)
 
     def _gt_path(self, root: Path, options: VPRBenchOptions) -> Path:
         if options.ground_truth:
@@ -117,8 +126,10 @@ class VPRBenchFormat(DatasetFormat):
         for name in GT_FILES:
             if (root / name).is_file():
                 return root / name
-        raise DataError(f"{root}: no ground-truth file; VPR-Bench datasets ship ground_truth_new.npy "
-                        f"(or give ground_truth.csv: query_index,reference_indices)")
+        raise DataError(
+            f"{root}: no ground-truth file; VPR-Bench datasets ship ground_truth_new.npy "
+            f"(or give ground_truth.csv: query_index,reference_indices)"
+        )
 
     def _traverses(self, root: Path) -> tuple[Traverse, Traverse]:
         for sub in ("ref", "query"):

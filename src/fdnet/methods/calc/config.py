@@ -85,8 +85,7 @@ def default_config() -> CALCRunConfig:
 def tiny_config() -> CALCRunConfig:
     """A few-second setting for tests: 60x80 input, narrow layers, small decoder."""
     config = CALCRunConfig(preset="tiny")
-    config.model = dataclasses.replace(config.model, input_size=(60, 80), channels=(8, 16, 4),
-                                       decoder_hidden=[128])
+    config.model = dataclasses.replace(config.model, input_size=(60, 80), channels=(8, 16, 4), decoder_hidden=[128])
     config.train = dataclasses.replace(config.train, batch_size=8, steps=20)
     config.runtime = dataclasses.replace(config.runtime, checkpoint_every=10, log_every=5)
     return config

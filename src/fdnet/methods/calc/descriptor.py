@@ -56,8 +56,10 @@ class CALCDescriptor(Descriptor):
         from fdnet.runs import load_weights
 
         if checkpoint is None:
-            raise ConfigError("method 'calc' needs a trained model: --checkpoint RUN_DIR "
-                              "(train one with `fdnet train calc --data DIR --out RUN_DIR`)")
+            raise ConfigError(
+                "method 'calc' needs a trained model: --checkpoint RUN_DIR "
+                "(train one with `fdnet train calc --data DIR --out RUN_DIR`)"
+            )
         from fdnet.runs import weights_folder, weights_note
 
         # a run directory means its best-validating weights when it kept them (best/)
@@ -101,5 +103,10 @@ class CALCDescriptor(Descriptor):
             return l2_normalize(out.float().cpu().numpy())
 
     def settings(self) -> dict:
-        return {"input_size": list(self.input_size), "checkpoint": str(self.run_dir), "step": self.step,
-                "dim": self.dim, "bf16": self.bf16}
+        return {
+            "input_size": list(self.input_size),
+            "checkpoint": str(self.run_dir),
+            "step": self.step,
+            "dim": self.dim,
+            "bf16": self.bf16,
+        }

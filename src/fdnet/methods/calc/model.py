@@ -60,10 +60,16 @@ def hog_descriptor(config: HOGTargetConfig):
 
     from fdnet.descriptors.classic import check_opencv_hog
 
-    check_opencv_hog(config.win_size, config.block_size, config.block_stride, config.cell_size, config.nbins,
-                     "calc: model.hog")
-    return cv2.HOGDescriptor(tuple(config.win_size), tuple(config.block_size), tuple(config.block_stride),
-                             tuple(config.cell_size), int(config.nbins))
+    check_opencv_hog(
+        config.win_size, config.block_size, config.block_stride, config.cell_size, config.nbins, "calc: model.hog"
+    )
+    return cv2.HOGDescriptor(
+        tuple(config.win_size),
+        tuple(config.block_size),
+        tuple(config.block_stride),
+        tuple(config.cell_size),
+        int(config.nbins),
+    )
 
 
 def hog_length(model: CALCModelConfig) -> int:
@@ -80,8 +86,10 @@ def compute_hog(images_u8: np.ndarray, config: HOGTargetConfig, hog=None) -> np.
     win_w, win_h = config.win_size
     if width < win_w or height < win_h:
         raise ConfigError(f"CALC HOG window {win_w}x{win_h} (WxH) does not fit the {width}x{height} input")
-    out = [np.asarray(hog.compute(np.ascontiguousarray(im), tuple(config.win_stride)), np.float32).ravel()
-           for im in images_u8]
+    out = [
+        np.asarray(hog.compute(np.ascontiguousarray(im), tuple(config.win_stride)), np.float32).ravel()
+        for im in images_u8
+    ]
     return np.stack(out) if out else np.zeros((0, 0), np.float32)
 
 
@@ -120,11 +128,16 @@ def build_network(config: CALCModelConfig):
             super().__init__()
             c1, c2, c3 = (int(c) for c in model.channels)
             self.encoder = nn.Sequential(
-                nn.Conv2d(1, c1, 5, stride=2, padding=4), nn.ReLU(inplace=True),
-                nn.MaxPool2d(3, stride=2, ceil_mode=True), nn.LocalResponseNorm(5, alpha=1e-4, beta=0.75),
-                nn.Conv2d(c1, c2, 4, padding=2), nn.ReLU(inplace=True),
-                nn.MaxPool2d(3, stride=2, ceil_mode=True), nn.LocalResponseNorm(5, alpha=1e-4, beta=0.75),
-                nn.Conv2d(c2, c3, 3), nn.ReLU(inplace=True),
+                nn.Conv2d(1, c1, 5, stride=2, padding=4),
+                nn.ReLU(inplace=True),
+                nn.MaxPool2d(3, stride=2, ceil_mode=True),
+                nn.LocalResponseNorm(5, alpha=1e-4, beta=0.75),
+                nn.Conv2d(c1, c2, 4, padding=2),
+                nn.ReLU(inplace=True),
+                nn.MaxPool2d(3, stride=2, ceil_mode=True),
+                nn.LocalResponseNorm(5, alpha=1e-4, beta=0.75),
+                nn.Conv2d(c2, c3, 3),
+                nn.ReLU(inplace=True),
             )
             hog_size = hog_length(model)  # checks the input size and the HOG settings first
             height, width = model.input_size

@@ -66,8 +66,10 @@ class CALCTraining(TrainingMethod):
         rgb = torch.cat(data.images).permute(0, 2, 3, 1).numpy()
         self.images = calc.to_grey_u8(rgb.astype(np.float32) / 255.0)
         if len(self.images) < train.batch_size:
-            raise DataError(f"{config.data.root}: {len(self.images)} training images, fewer than one batch "
-                            f"({train.batch_size}); add images or lower train.batch_size")
+            raise DataError(
+                f"{config.data.root}: {len(self.images)} training images, fewer than one batch "
+                f"({train.batch_size}); add images or lower train.batch_size"
+            )
         self.hog = calc.hog_descriptor(model_cfg.hog)
         self.targets = calc.compute_hog(self.images, model_cfg.hog, self.hog)
         self.use_bf16 = training_precision(rt, self.device, native_only=True)
@@ -131,8 +133,10 @@ class CALCTraining(TrainingMethod):
         # share of bottleneck values above zero: 0 means every ReLU died and descriptors are all-zero
         active = float((code.detach() > 0).float().mean())
         if active == 0.0 and (step + 1) % self.config.runtime.log_every == 0:
-            self.log("warning: every CALC bottleneck unit is zero (dead ReLUs); descriptors carry no "
-                     "information. Lower optim.lr or restart with model.init=he")
+            self.log(
+                "warning: every CALC bottleneck unit is zero (dead ReLUs); descriptors carry no "
+                "information. Lower optim.lr or restart with model.init=he"
+            )
         return {"loss": float(loss.item()), "active_units": active}
 
     def validation_vectors(self, images: torch.Tensor) -> np.ndarray:
@@ -146,9 +150,15 @@ class CALCTraining(TrainingMethod):
         return torch.nn.functional.normalize(out, dim=1).cpu().numpy()
 
 
-def train(config: CALCRunConfig, run_dir, resume: bool = False, override: bool = False,
-          max_minutes: float | None = None, progress: bool = True,
-          command: str = "fdnet train calc") -> dict:
+def train(
+    config: CALCRunConfig,
+    run_dir,
+    resume: bool = False,
+    override: bool = False,
+    max_minutes: float | None = None,
+    progress: bool = True,
+    command: str = "fdnet train calc",
+) -> dict:
     """Train CALC as ``config`` says into ``run_dir`` (what ``fdnet train calc`` calls)."""
     from fdnet.training.data import load_validation_images
     from fdnet.training.loop import run_training
@@ -159,11 +169,21 @@ def train(config: CALCRunConfig, run_dir, resume: bool = False, override: bool =
         data = route_images(training_route(config.data), config.model.input_size, why="CALC")
         validation = load_validation_images(config.data.root, config.validation, config.model.input_size)
         method = CALCTraining(config, data)
-        method.log(f"CALC: {sum(len(x) for x in data.images)} training images from {', '.join(data.names)} at "
-                   f"{config.model.input_size[0]}x{config.model.input_size[1]}, HOG targets "
-                   f"{method.targets.shape[1]}-d, descriptor {method.network.descriptor_dim}-d, on {method.device} "
-                   f"-> {run_dir}")
+        method.log(
+            f"CALC: {sum(len(x) for x in data.images)} training images from {', '.join(data.names)} at "
+            f"{config.model.input_size[0]}x{config.model.input_size[1]}, HOG targets "
+            f"{method.targets.shape[1]}-d, descriptor {method.network.descriptor_dim}-d, on {method.device} "
+            f"-> {run_dir}"
+        )
         return method, validation
 
-    return run_training(build, run_dir, resume=resume, override=override, max_minutes=max_minutes,
-                        progress=progress, command=command, runtime=config.runtime)
+    return run_training(
+        build,
+        run_dir,
+        resume=resume,
+        override=override,
+        max_minutes=max_minutes,
+        progress=progress,
+        command=command,
+        runtime=config.runtime,
+    )

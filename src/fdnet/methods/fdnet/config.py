@@ -172,8 +172,11 @@ class FDNetRunConfig:
         stage the ablation switches leave with nothing to train (the critic stage without
         ``loss.adversarial``; the auto-encoder stage without L_r and without L_a there)."""
         s, loss = self.schedule, self.loss
-        autoencoder = s.pretrain_autoencoder_steps if (
-            loss.reconstruction or (loss.appearance_triplet and loss.appearance_in_pretraining)) else 0
+        autoencoder = (
+            s.pretrain_autoencoder_steps
+            if (loss.reconstruction or (loss.appearance_triplet and loss.appearance_in_pretraining))
+            else 0
+        )
         critic = s.pretrain_critic_steps if loss.adversarial else 0
         return autoencoder, critic, s.joint_steps
 
@@ -188,10 +191,12 @@ class FDNetRunConfig:
         autoencoder, critic, _ = self.stage_steps
         pretraining = autoencoder + critic
         if steps < pretraining:
-            raise ConfigError(f"--steps {steps}: FDNet's pretraining stages alone take {pretraining} steps "
-                              f"(schedule.pretrain_autoencoder_steps {s.pretrain_autoencoder_steps} + "
-                              f"schedule.pretrain_critic_steps {s.pretrain_critic_steps}); give more, or lower them "
-                              "with --set")
+            raise ConfigError(
+                f"--steps {steps}: FDNet's pretraining stages alone take {pretraining} steps "
+                f"(schedule.pretrain_autoencoder_steps {s.pretrain_autoencoder_steps} + "
+                f"schedule.pretrain_critic_steps {s.pretrain_critic_steps}); give more, or lower them "
+                "with --set"
+            )
         return dataclasses.replace(self, schedule=dataclasses.replace(s, joint_steps=int(steps) - pretraining))
 
     def stage_at(self, step: int) -> str:
@@ -216,8 +221,9 @@ def _paper() -> FDNetRunConfig:
         # 224 / 2^5 = 7: five blocks leave a 7x7 map, as DCGAN-style encoders at 224 do (the
         # block count is not legible in the paper's Fig. 3). The critic reads v_c as the encoder
         # outputs it (section 3.3), not a normalised copy.
-        model=FDNetConfig(input_size=(224, 224), widths=(64, 128, 256, 512, 512), vector_length=512,
-                          critic_input="raw"),
+        model=FDNetConfig(
+            input_size=(224, 224), widths=(64, 128, 256, 512, 512), vector_length=512, critic_input="raw"
+        ),
         data=FDNetDataConfig(batch_per_domain=4),
         # 5000 auto-encoder + 8000 D_a pretraining steps, 60000 joint steps at 2 D_a updates per
         # encoder/decoder update, each joint step on one mini-batch (Algorithm 1).
@@ -236,20 +242,23 @@ def _paper_native() -> FDNetRunConfig:
     bf16 autocast and channels_last, 2 torch threads. docs/runs.md has the measurements."""
     config = _paper()
     config.preset = "paper-native"
-    config.model = FDNetConfig(input_size=(32, 64), widths=(64, 128, 256, 512), vector_length=512,
-                               critic_input="raw")
+    config.model = FDNetConfig(input_size=(32, 64), widths=(64, 128, 256, 512), vector_length=512, critic_input="raw")
     config.runtime = RuntimeConfig(threads=2, bf16=True, channels_last=True, checkpoint_every=2000, log_every=50)
     config.validation = ValidationConfig(every=1000)
     return config
 
 
-def _two_cores(name: str, model: FDNetConfig, schedule: ScheduleConfig,
-               adversarial_weight: float = 0.1) -> FDNetRunConfig:
+def _two_cores(
+    name: str, model: FDNetConfig, schedule: ScheduleConfig, adversarial_weight: float = 0.1
+) -> FDNetRunConfig:
     """What the CPU presets share: B = 8 per condition, a critic fed L2-normalised content vectors
     (docs/results.md, learnt 1), one torch thread (OpenMP spin-waiting against other processes on
     2 shared cores made steps ~6x slower), bf16 autocast and channels_last."""
     return FDNetRunConfig(
-        preset=name, model=model, data=FDNetDataConfig(batch_per_domain=8), schedule=schedule,
+        preset=name,
+        model=model,
+        data=FDNetDataConfig(batch_per_domain=8),
+        schedule=schedule,
         loss=LossConfig(adversarial_weight=adversarial_weight),
         runtime=RuntimeConfig(threads=1, bf16=True, channels_last=True, checkpoint_every=250, log_every=10),
     )
@@ -272,16 +281,26 @@ def _cpu() -> FDNetRunConfig:
     # refinement of it, so its weight only scales the head's step (Adam): 1, as in eq. 10.
     config = _two_cores(
         "cpu",
-        FDNetConfig(input_size=(128, 256), widths=(128, 256), vector_length=512, critic_hidden=512,
-                    input_norm="per_image", critic_input="l2", backbone="efficientnet-lite0", backbone_block=7,
-                    backbone_block_candidates=(7, 11),
-                    content_head="trunk_projection", projection_init="mined_pairs"),
+        FDNetConfig(
+            input_size=(128, 256),
+            widths=(128, 256),
+            vector_length=512,
+            critic_hidden=512,
+            input_norm="per_image",
+            critic_input="l2",
+            backbone="efficientnet-lite0",
+            backbone_block=7,
+            backbone_block_candidates=(7, 11),
+            content_head="trunk_projection",
+            projection_init="mined_pairs",
+        ),
         # 500 auto-encoder steps shape E_a and the decoder, 200 critic steps, then 300 joint steps:
         # in the measured runs (docs/results.md) the joint stage did not raise validation
         # R@1 beyond its start (Nordland 0.91 -> 0.83 by step 1000), and step 1000 is what fits in
         # about 20 minutes on 2 cores; best/ keeps the best-validating checkpoint.
-        ScheduleConfig(pretrain_autoencoder_steps=500, pretrain_critic_steps=200, joint_steps=300,
-                       critic_updates_per_step=2),
+        ScheduleConfig(
+            pretrain_autoencoder_steps=500, pretrain_critic_steps=200, joint_steps=300, critic_updates_per_step=2
+        ),
         adversarial_weight=1.0,
     )
     # With a validation pair the run also chooses whether to add a synthetic night copy of every
@@ -300,10 +319,17 @@ def _cpu_scratch() -> FDNetRunConfig:
     # 0.269 with [-1, 1] input on Nordland's test frames).
     return _two_cores(
         "cpu-scratch",
-        FDNetConfig(input_size=(32, 64), widths=(16, 32, 64, 128), vector_length=512, critic_hidden=512,
-                    input_norm="per_image", critic_input="l2"),
-        ScheduleConfig(pretrain_autoencoder_steps=1000, pretrain_critic_steps=200, joint_steps=1000,
-                       critic_updates_per_step=2),
+        FDNetConfig(
+            input_size=(32, 64),
+            widths=(16, 32, 64, 128),
+            vector_length=512,
+            critic_hidden=512,
+            input_norm="per_image",
+            critic_input="l2",
+        ),
+        ScheduleConfig(
+            pretrain_autoencoder_steps=1000, pretrain_critic_steps=200, joint_steps=1000, critic_updates_per_step=2
+        ),
     )
 
 
@@ -312,8 +338,9 @@ def _tiny() -> FDNetRunConfig:
         preset="tiny",
         model=FDNetConfig(input_size=(16, 32), widths=(8, 16), vector_length=16, critic_hidden=16),
         data=FDNetDataConfig(batch_per_domain=2),
-        schedule=ScheduleConfig(pretrain_autoencoder_steps=3, pretrain_critic_steps=2, joint_steps=3,
-                                critic_updates_per_step=2),
+        schedule=ScheduleConfig(
+            pretrain_autoencoder_steps=3, pretrain_critic_steps=2, joint_steps=3, critic_updates_per_step=2
+        ),
         runtime=RuntimeConfig(threads=1, checkpoint_every=4, log_every=1),
         validation=ValidationConfig(every=4),
     )
@@ -349,18 +376,23 @@ def validate(config: FDNetRunConfig) -> None:
             raise ConfigError(f"data.synthetic_conditions_candidates: {synthetic_option_text(option)}: {exc}") from exc
     if options:
         if len(set(options)) != len(options):
-            raise ConfigError("data.synthetic_conditions_candidates: "
-                              f"{list(config.data.synthetic_conditions_candidates)} names a setting twice")
+            raise ConfigError(
+                "data.synthetic_conditions_candidates: "
+                f"{list(config.data.synthetic_conditions_candidates)} names a setting twice"
+            )
         if tuple(config.data.synthetic_conditions) not in options:
             raise ConfigError(
                 f"data.synthetic_conditions={list(config.data.synthetic_conditions)} is not among "
                 f"data.synthetic_conditions_candidates={list(config.data.synthetic_conditions_candidates)} "
                 "(it is what a run without a validation pair uses); add it, or set "
-                "data.synthetic_conditions_candidates=[]")
+                "data.synthetic_conditions_candidates=[]"
+            )
         if config.model.content_head not in ("trunk_residual", "trunk_projection"):
-            raise ConfigError("data.synthetic_conditions_candidates: choosing needs model.content_head=trunk_residual "
-                              "or trunk_projection (it scores the head's closed-form start); set "
-                              "data.synthetic_conditions_candidates=[] to use data.synthetic_conditions alone")
+            raise ConfigError(
+                "data.synthetic_conditions_candidates: choosing needs model.content_head=trunk_residual "
+                "or trunk_projection (it scores the head's closed-form start); set "
+                "data.synthetic_conditions_candidates=[] to use data.synthetic_conditions alone"
+            )
     if config.data.batch_per_domain < 2:
         raise ConfigError(f"data.batch_per_domain must be >= 2, got {config.data.batch_per_domain}")
     if config.runtime.critic_encoder_mode not in ("train", "eval"):
@@ -378,25 +410,51 @@ def validate(config: FDNetRunConfig) -> None:
     if config.loss.triplet_margin < 0 or config.loss.gradient_penalty_weight < 0:
         raise ConfigError("loss.triplet_margin and loss.gradient_penalty_weight must be >= 0")
     if config.loss.reconstruction_reduction not in ("mean", "sum"):
-        raise ConfigError(f"loss.reconstruction_reduction: {config.loss.reconstruction_reduction!r}; "
-                          "choose mean or sum")
+        raise ConfigError(
+            f"loss.reconstruction_reduction: {config.loss.reconstruction_reduction!r}; " "choose mean or sum"
+        )
     if config.loss.triplet_vectors not in ("raw", "l2"):
         raise ConfigError(f"loss.triplet_vectors: {config.loss.triplet_vectors!r}; choose raw or l2")
     for name in ("lr", "critic_lr", "joint_lr_scale", "beta1", "beta2"):
-        check_finite(f"optim.{name}", getattr(config.optim, name),
-                     positive=name in ("lr", "critic_lr", "joint_lr_scale"))
-    for name in ("reconstruction_weight", "appearance_weight", "adversarial_weight", "triplet_margin",
-                 "gradient_penalty_weight", "structure_weight"):
+        check_finite(
+            f"optim.{name}", getattr(config.optim, name), positive=name in ("lr", "critic_lr", "joint_lr_scale")
+        )
+    for name in (
+        "reconstruction_weight",
+        "appearance_weight",
+        "adversarial_weight",
+        "triplet_margin",
+        "gradient_penalty_weight",
+        "structure_weight",
+    ):
         check_finite(f"loss.{name}", getattr(config.loss, name))
     if not (config.loss.adversarial or config.loss.appearance_triplet or config.loss.reconstruction):
-        raise ConfigError("loss.adversarial, loss.appearance_triplet and loss.reconstruction are all false: "
-                          "nothing would be trained; keep at least one")
+        raise ConfigError(
+            "loss.adversarial, loss.appearance_triplet and loss.reconstruction are all false: "
+            "nothing would be trained; keep at least one"
+        )
     if not config.loss.adversarial and config.loss.structure_weight > 0:
-        raise ConfigError("loss.structure_weight > 0 needs loss.adversarial=true (L_s only acts beside L_e^adv); "
-                          "set loss.structure_weight=0 to train without the critic")
+        raise ConfigError(
+            "loss.structure_weight > 0 needs loss.adversarial=true (L_s only acts beside L_e^adv); "
+            "set loss.structure_weight=0 to train without the critic"
+        )
     if not (0.0 <= config.optim.beta1 < 1.0 and 0.0 <= config.optim.beta2 < 1.0):
         raise ConfigError(f"optim.beta1/beta2 must lie in [0, 1), got {config.optim.beta1}, {config.optim.beta2}")
 
 
-__all__ = ["ABLATION_SWITCHES", "FDNetRunConfig", "FDNetDataConfig", "DataConfig", "ScheduleConfig", "LossConfig",
-           "OptimConfig", "RuntimeConfig", "ValidationConfig", "PRESETS", "preset", "apply_yaml", "validate", "to_dict"]
+__all__ = [
+    "ABLATION_SWITCHES",
+    "FDNetRunConfig",
+    "FDNetDataConfig",
+    "DataConfig",
+    "ScheduleConfig",
+    "LossConfig",
+    "OptimConfig",
+    "RuntimeConfig",
+    "ValidationConfig",
+    "PRESETS",
+    "preset",
+    "apply_yaml",
+    "validate",
+    "to_dict",
+]

@@ -45,8 +45,8 @@ log = logging.getLogger(__name__)
 class ProjectionFit:
     """A fitted head: v_c = (x - mean) @ projection, x the flattened (normalised) trunk map."""
 
-    mean: np.ndarray            # (D,)
-    projection: np.ndarray      # (D, L)
+    mean: np.ndarray  # (D,)
+    projection: np.ndarray  # (D, L)
     report: dict = field(default_factory=dict)
 
 
@@ -102,12 +102,16 @@ def route_consistency(pairs: list[tuple[int, int, int, int]], lengths: list[int]
         follower = mined.get((a, i + 1, b))
         if follower is not None and abs(follower - (j + 1)) <= slack:
             counts[(a, b)] = counts.get((a, b), 0) + 1
-    return {(a, b): counts.get((a, b), 0) / max(min(lengths[a], lengths[b]), 1)
-            for a in range(len(lengths)) for b in range(a + 1, len(lengths))}
+    return {
+        (a, b): counts.get((a, b), 0) / max(min(lengths[a], lengths[b]), 1)
+        for a in range(len(lengths))
+        for b in range(a + 1, len(lengths))
+    }
 
 
-def learnt_whitening(projected: list[np.ndarray], pairs: list[tuple[int, int, int, int]],
-                     shrinkage: float) -> np.ndarray:
+def learnt_whitening(
+    projected: list[np.ndarray], pairs: list[tuple[int, int, int, int]], shrinkage: float
+) -> np.ndarray:
     """(k, k) transform: whiten the pairs' difference covariance (shrunk), then rotate to the
     principal directions of the whitened training vectors, by decreasing variance."""
     diff = np.stack([projected[a][i] - projected[b][j] for a, i, b, j in pairs])
@@ -115,14 +119,21 @@ def learnt_whitening(projected: list[np.ndarray], pairs: list[tuple[int, int, in
     k = pair_cov.shape[0]
     pair_cov += shrinkage * np.trace(pair_cov) / k * np.eye(k)
     values, vecs = np.linalg.eigh(pair_cov)
-    whiten = (vecs / np.sqrt(values)) @ vecs.T                  # pair_cov ** -1/2
+    whiten = (vecs / np.sqrt(values)) @ vecs.T  # pair_cov ** -1/2
     rot_values, rot = np.linalg.eigh(np.cov((np.concatenate(projected) @ whiten).T))
     return whiten @ rot[:, np.argsort(rot_values)[::-1]]
 
 
-def fit_projection(maps: list[np.ndarray], length: int, init: str = "mined_pairs", pca_dims: int = 1024,
-                   pca_power: float = 0.25, pair_sequence_length: int = 5,
-                   pair_shrinkage: float = 1.0, names: list[str] | None = None) -> ProjectionFit:
+def fit_projection(
+    maps: list[np.ndarray],
+    length: int,
+    init: str = "mined_pairs",
+    pca_dims: int = 1024,
+    pca_power: float = 0.25,
+    pair_sequence_length: int = 5,
+    pair_shrinkage: float = 1.0,
+    names: list[str] | None = None,
+) -> ProjectionFit:
     """The head's start from the training maps (one (N_c, D) float array per condition, frame
     order; ``names`` the conditions', for messages). ``init``: ``pca`` (step 1 of the module
     docstring) or ``mined_pairs`` (steps 1 and 2). With fewer training images than ``length``
@@ -141,30 +152,42 @@ def fit_projection(maps: list[np.ndarray], length: int, init: str = "mined_pairs
 
     removed = [remove(m) for m in maps]
     components, eigenvalues = _principal(np.concatenate(removed), pca_dims)
-    start = components / eigenvalues ** pca_power               # (D, k)
-    report = {"condition_directions_removed": int(basis.shape[1]), "pca_dims": int(start.shape[1]),
-              "training_images": int(total)}
+    start = components / eigenvalues**pca_power  # (D, k)
+    report = {
+        "condition_directions_removed": int(basis.shape[1]),
+        "pca_dims": int(start.shape[1]),
+        "training_images": int(total),
+    }
     if init == "mined_pairs":
         projected = [r @ start for r in removed]
         pairs = mine_pairs(projected, pair_sequence_length)
         report["mined_pairs"] = len(pairs)
         if len(pairs) < 2:
-            raise DataError(f"fdnet: only {len(pairs)} mutual matches were found between the training conditions; "
-                            "the mined-pair start needs conditions that are traverses of the same route "
-                            "(use model.projection_init=pca otherwise)")
+            raise DataError(
+                f"fdnet: only {len(pairs)} mutual matches were found between the training conditions; "
+                "the mined-pair start needs conditions that are traverses of the same route "
+                "(use model.projection_init=pca otherwise)"
+            )
         consistency = route_consistency(pairs, [len(m) for m in maps])
         report["route_consistency"] = round(float(np.mean(list(consistency.values()))), 3)
         if report["route_consistency"] < MIN_ROUTE_CONSISTENCY:
-            raise DataError(f"fdnet: the training conditions do not look like traverses of one route: only "
-                            f"{report['route_consistency']:.0%} of the frames' mutual matches advance together with "
-                            f"the next frame's (traverses of one route: 22-79 %, of different places: 5-11 %); the "
-                            "mined-pair start needs conditions that revisit the same places in the same order "
-                            "(use model.projection_init=pca otherwise)")
+            raise DataError(
+                f"fdnet: the training conditions do not look like traverses of one route: only "
+                f"{report['route_consistency']:.0%} of the frames' mutual matches advance together with "
+                f"the next frame's (traverses of one route: 22-79 %, of different places: 5-11 %); the "
+                "mined-pair start needs conditions that revisit the same places in the same order "
+                "(use model.projection_init=pca otherwise)"
+            )
         names = list(names) if names is not None and len(names) == len(maps) else [str(i) for i in range(len(maps))]
         for (a, b), value in consistency.items():
             if value < MIN_ROUTE_CONSISTENCY:
-                log.warning("conditions %s and %s share few route-consistent matches (%.0f%%): are they "
-                            "traverses of the same route?", names[a], names[b], 100 * value)
+                log.warning(
+                    "conditions %s and %s share few route-consistent matches (%.0f%%): are they "
+                    "traverses of the same route?",
+                    names[a],
+                    names[b],
+                    100 * value,
+                )
         head = start @ learnt_whitening(projected, pairs, pair_shrinkage)
     elif init == "pca":
         head = start

@@ -23,10 +23,10 @@ import torch
 from torch import nn
 
 
-def upsampling_block(in_channels: int, out_channels: int, last: bool = False,
-                     output: str = "tanh") -> nn.Sequential:
-    layers: list[nn.Module] = [nn.ConvTranspose2d(in_channels, out_channels, kernel_size=5, stride=2,
-                                                  padding=2, output_padding=1, bias=last)]
+def upsampling_block(in_channels: int, out_channels: int, last: bool = False, output: str = "tanh") -> nn.Sequential:
+    layers: list[nn.Module] = [
+        nn.ConvTranspose2d(in_channels, out_channels, kernel_size=5, stride=2, padding=2, output_padding=1, bias=last)
+    ]
     if not last:
         layers += [nn.BatchNorm2d(out_channels), nn.LeakyReLU(0.2, inplace=True)]
     elif output == "tanh":
@@ -39,8 +39,15 @@ def upsampling_block(in_channels: int, out_channels: int, last: bool = False,
 class Decoder(nn.Module):
     """(N, L_content + L_appearance) -> (N, C, H, W)."""
 
-    def __init__(self, input_size: Sequence[int], widths: Sequence[int], vector_length: int,
-                 out_channels: int = 3, output: str = "tanh", content_length: int | None = None) -> None:
+    def __init__(
+        self,
+        input_size: Sequence[int],
+        widths: Sequence[int],
+        vector_length: int,
+        out_channels: int = 3,
+        output: str = "tanh",
+        content_length: int | None = None,
+    ) -> None:
         super().__init__()
         scale = 2 ** len(widths)
         # v_c and v_a have the paper's one length L, unless the content head is the trunk's

@@ -68,8 +68,9 @@ class FDNetDescriptor(Descriptor):
         conf = self.conf = FDNetSettings.build(settings, options)
         checkpoint, device, bf16 = conf.checkpoint, conf.device, conf.bf16
         if checkpoint is None:
-            raise NotAvailableError("method 'fdnet' needs a trained run: --checkpoint RUN_DIR "
-                                    "(make one with `fdnet train`)")
+            raise NotAvailableError(
+                "method 'fdnet' needs a trained run: --checkpoint RUN_DIR " "(make one with `fdnet train`)"
+            )
         import torch
 
         from fdnet.backbones import bf16_native, resolve_device
@@ -114,8 +115,10 @@ class FDNetDescriptor(Descriptor):
         if images.ndim != 4 or images.shape[-1] != 3:
             raise DataError(f"fdnet: expected images of shape (N, H, W, 3), got {images.shape}")
         if tuple(images.shape[1:3]) != self.input_size:
-            raise DataError(f"fdnet: images are {images.shape[1]}x{images.shape[2]} (HxW) but this run takes "
-                            f"{self.input_size[0]}x{self.input_size[1]}; load them at descriptor.input_size")
+            raise DataError(
+                f"fdnet: images are {images.shape[1]}x{images.shape[2]} (HxW) but this run takes "
+                f"{self.input_size[0]}x{self.input_size[1]}; load them at descriptor.input_size"
+            )
         return images
 
     def _vectors(self, images: np.ndarray, parts: tuple[str, ...]) -> list[np.ndarray]:
@@ -129,7 +132,7 @@ class FDNetDescriptor(Descriptor):
         out: dict[str, list] = {part: [] for part in parts}
         with torch.inference_mode():
             for start in range(0, len(images), self.batch_size):
-                batch = images[start:start + self.batch_size]
+                batch = images[start : start + self.batch_size]
                 count = len(batch)
                 if self.compiled and count < self.batch_size:
                     # the compiled graph's batch size; rows are independent in eval mode
@@ -158,9 +161,12 @@ class FDNetDescriptor(Descriptor):
         except Exception as exc:  # torch._dynamo / inductor raise many types; all mean "not here"
             import warnings
 
-            warnings.warn(f"fdnet: torch.compile of the content encoder failed ({type(exc).__name__}: "
-                          f"{str(exc).splitlines()[0] if str(exc) else ''}); running it without compiling",
-                          RuntimeWarning, stacklevel=2)
+            warnings.warn(
+                f"fdnet: torch.compile of the content encoder failed ({type(exc).__name__}: "
+                f"{str(exc).splitlines()[0] if str(exc) else ''}); running it without compiling",
+                RuntimeWarning,
+                stacklevel=2,
+            )
             self.compiled = False
             self._content = self.model.content
             return self.model.content(x)
@@ -184,8 +190,14 @@ class FDNetDescriptor(Descriptor):
         return l2_normalize(content), appearance
 
     def settings(self) -> dict:
-        return {"input_size": list(self.input_size), "vector_length": self.dim, "checkpoint": str(self.run_dir),
-                "step": self.step, "preset": self.config.preset, "bf16": self.bf16}
+        return {
+            "input_size": list(self.input_size),
+            "vector_length": self.dim,
+            "checkpoint": str(self.run_dir),
+            "step": self.step,
+            "preset": self.config.preset,
+            "bf16": self.bf16,
+        }
 
 
 __all__ = ["FDNetDescriptor"]

@@ -30,8 +30,14 @@ class Encoder(nn.Module):
     :func:`fdnet.methods.fdnet.model.validate_architecture` before anything is built).
     """
 
-    def __init__(self, input_size: Sequence[int], widths: Sequence[int], vector_length: int,
-                 dropout: float = 0.5, in_channels: int = 3) -> None:
+    def __init__(
+        self,
+        input_size: Sequence[int],
+        widths: Sequence[int],
+        vector_length: int,
+        dropout: float = 0.5,
+        in_channels: int = 3,
+    ) -> None:
         super().__init__()
         blocks, channels = [], in_channels
         for width in widths:

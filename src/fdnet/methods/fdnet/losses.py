@@ -107,8 +107,9 @@ def pair_vectors(vectors: torch.Tensor, pairs: torch.Tensor) -> torch.Tensor:
     return torch.cat([vectors[pairs[:, 0]], vectors[pairs[:, 1]]], dim=1)
 
 
-def gradient_penalty(critic, same: torch.Tensor, different: torch.Tensor,
-                     generator: torch.Generator | None = None) -> torch.Tensor:
+def gradient_penalty(
+    critic, same: torch.Tensor, different: torch.Tensor, generator: torch.Generator | None = None
+) -> torch.Tensor:
     """E[(||grad_v D(v_hat)||_2 - 1)^2] on v_hat between same- and different-domain pairs."""
     eps = torch.rand((same.shape[0], 1), generator=generator).to(same.device)
     v_hat = (eps * same.detach() + (1 - eps) * different.detach()).requires_grad_(True)
@@ -122,8 +123,13 @@ def wasserstein_estimate(critic, same: torch.Tensor, different: torch.Tensor) ->
     return critic(same).mean() - critic(different).mean()
 
 
-def critic_loss(critic, same: torch.Tensor, different: torch.Tensor, gp_weight: float = 10.0,
-                generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+def critic_loss(
+    critic,
+    same: torch.Tensor,
+    different: torch.Tensor,
+    gp_weight: float = 10.0,
+    generator: torch.Generator | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """L_d^adv (paper eq. 9, WGAN-GP form). ``critic`` maps (P, 2L) pairs to (P,) scores.
 
     Returns ``(loss, wasserstein_estimate)``; the estimate (detached) is what the log shows.

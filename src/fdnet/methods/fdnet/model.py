@@ -140,8 +140,9 @@ def validate_architecture(config: FDNetConfig) -> None:
     height, width = _check_sizes(config)
     if config.input_norm not in INPUT_NORMS:
         raise ConfigError(f"model.input_norm: {config.input_norm!r}; choose one of {', '.join(INPUT_NORMS)}")
-    if config.input_norm == "per_patch" and (config.patch_size <= 0 or height % config.patch_size
-                                             or width % config.patch_size):
+    if config.input_norm == "per_patch" and (
+        config.patch_size <= 0 or height % config.patch_size or width % config.patch_size
+    ):
         raise ConfigError(f"model.patch_size: {config.patch_size} must divide the input size {height}x{width}")
     _check_block_candidates(config)
     _check_content_head(config, height, width)
@@ -169,9 +170,11 @@ def _check_sizes(config: FDNetConfig) -> tuple[int, int]:
     height, width = (int(v) for v in config.input_size)
     if config.backbone != "none":
         if config.input_norm == "per_patch":
-            raise ConfigError(f"model.input_norm: per_patch cannot be used with model.backbone={config.backbone} "
-                              "(it normalises pixel patches; the trunk sees the image as on ImageNet); "
-                              "use none or per_image (which standardises the trunk's map)")
+            raise ConfigError(
+                f"model.input_norm: per_patch cannot be used with model.backbone={config.backbone} "
+                "(it normalises pixel patches; the trunk sees the image as on ImageNet); "
+                "use none or per_image (which standardises the trunk's map)"
+            )
         stride = trunk_stride(config.backbone_block)
         scale *= stride
     for name, value in (("height", height), ("width", width)):
@@ -180,7 +183,8 @@ def _check_sizes(config: FDNetConfig) -> tuple[int, int]:
                 f"model.input_size: {name} {value} cannot go through {len(config.widths)} stride-2 blocks"
                 + (f" after the backbone's stride {stride}" if config.backbone != "none" else "")
                 + "; it must be a positive multiple of "
-                + (f"{stride} x " if config.backbone != "none" else "") + f"2^{len(config.widths)} = {scale} "
+                + (f"{stride} x " if config.backbone != "none" else "")
+                + f"2^{len(config.widths)} = {scale} "
                 f"(e.g. {max(scale, round(value / scale) * scale)}), or use fewer blocks (model.widths)"
             )
     weights = largest_layer_weights(config)
@@ -190,7 +194,8 @@ def _check_sizes(config: FDNetConfig) -> tuple[int, int]:
             f"with gradients and Adam's moments; at most {MAX_LAYER_WEIGHTS:.0e}): the flattened "
             + (f"trunk map of block {config.backbone_block} " if config.backbone != "none" else "input ")
             + f"at {height}x{width} is too long; use a deeper model.backbone_block, a smaller model.input_size "
-            "or more model.widths")
+            "or more model.widths"
+        )
     return height, width
 
 
@@ -200,21 +205,24 @@ def _check_block_candidates(config: FDNetConfig) -> None:
         return
     candidates = [int(b) for b in config.backbone_block_candidates]
     if config.backbone == "none" or config.content_head not in TRUNK_HEADS:
-        raise ConfigError("model.backbone_block_candidates: choosing a trunk block needs model.backbone and "
-                          "model.content_head=trunk_residual or trunk_projection (it scores the head's "
-                          "closed-form start); "
-                          "set model.backbone_block_candidates=[] to use model.backbone_block alone")
+        raise ConfigError(
+            "model.backbone_block_candidates: choosing a trunk block needs model.backbone and "
+            "model.content_head=trunk_residual or trunk_projection (it scores the head's "
+            "closed-form start); "
+            "set model.backbone_block_candidates=[] to use model.backbone_block alone"
+        )
     if config.backbone_block not in candidates:
-        raise ConfigError(f"model.backbone_block={config.backbone_block} is not among "
-                          f"model.backbone_block_candidates={candidates} (it is the block used without a "
-                          "validation pair); add it, or set model.backbone_block_candidates=[] to use it alone")
+        raise ConfigError(
+            f"model.backbone_block={config.backbone_block} is not among "
+            f"model.backbone_block_candidates={candidates} (it is the block used without a "
+            "validation pair); add it, or set model.backbone_block_candidates=[] to use it alone"
+        )
     if len(set(candidates)) != len(candidates):
         raise ConfigError(f"model.backbone_block_candidates: {candidates} names a block twice")
     for block in candidates:
         if block != config.backbone_block:
             try:
-                validate_architecture(dataclasses.replace(config, backbone_block=block,
-                                                          backbone_block_candidates=()))
+                validate_architecture(dataclasses.replace(config, backbone_block=block, backbone_block_candidates=()))
             except ConfigError as exc:
                 raise ConfigError(f"model.backbone_block_candidates: block {block}: {exc}") from exc
 
@@ -232,22 +240,28 @@ def _check_content_head(config: FDNetConfig, height: int, width: int) -> None:
             raise ConfigError(f"model.residual_init: {config.residual_init!r}; choose zero or condition_means")
     if config.content_head == "trunk_projection":
         if config.backbone == "none":
-            raise ConfigError("model.content_head=trunk_projection needs a model.backbone "
-                              "(it projects the trunk's map)")
+            raise ConfigError(
+                "model.content_head=trunk_projection needs a model.backbone " "(it projects the trunk's map)"
+            )
         if config.projection_init not in PROJECTION_INITS:
-            raise ConfigError(f"model.projection_init: {config.projection_init!r}; choose one of "
-                              f"{', '.join(PROJECTION_INITS)}")
+            raise ConfigError(
+                f"model.projection_init: {config.projection_init!r}; choose one of " f"{', '.join(PROJECTION_INITS)}"
+            )
         channels = BLOCK_CHANNELS[int(config.backbone_block)]
         map_length = channels * height * width // trunk_stride(config.backbone_block) ** 2
         if config.vector_length > map_length:
-            raise ConfigError(f"model.vector_length: L = {config.vector_length} is longer than the trunk map it "
-                              f"projects ({map_length} values at block {config.backbone_block}, {height}x{width}); "
-                              "lower L or use a larger model.input_size")
+            raise ConfigError(
+                f"model.vector_length: L = {config.vector_length} is longer than the trunk map it "
+                f"projects ({map_length} values at block {config.backbone_block}, {height}x{width}); "
+                "lower L or use a larger model.input_size"
+            )
         if config.projection_pca_dims < 1 or config.pair_sequence_length < 1:
             raise ConfigError("model.projection_pca_dims and model.pair_sequence_length must be >= 1")
         if not (0 <= config.projection_pca_power <= 1) or not (config.pair_shrinkage >= 0):
-            raise ConfigError(f"model.projection_pca_power must lie in [0, 1] and model.pair_shrinkage be >= 0, "
-                              f"got {config.projection_pca_power}, {config.pair_shrinkage}")
+            raise ConfigError(
+                f"model.projection_pca_power must lie in [0, 1] and model.pair_shrinkage be >= 0, "
+                f"got {config.projection_pca_power}, {config.pair_shrinkage}"
+            )
 
 
 def init_weights(module: nn.Module) -> None:
@@ -291,7 +305,7 @@ class TrunkResidualContent(nn.Module):
         """Start with the directions between the conditions' mean maps removed (U = V = their
         orthonormal basis in the first columns); returns how many directions that is."""
         means = torch.stack([m.float().flatten(1).mean(0) for m in maps_per_condition])
-        spread = (means - means.mean(0)).T                      # (length, conditions)
+        spread = (means - means.mean(0)).T  # (length, conditions)
         basis, singular, _ = torch.linalg.svd(spread, full_matrices=False)
         keep = int((singular > singular.max() * 1e-6).sum()) if singular.numel() else 0
         keep = min(keep, self.u.shape[1])
@@ -369,8 +383,9 @@ class FDNet(nn.Module):
         # The decoder reconstructs exactly what the encoders see: [-1, 1] pixels (tanh), or
         # standardised pixels / trunk maps (linear).
         output = "tanh" if config.input_norm == "none" and trunk is None else "none"
-        self.decoder = Decoder(size, widths, length, out_channels=channels, output=output,
-                               content_length=content_length)
+        self.decoder = Decoder(
+            size, widths, length, out_channels=channels, output=output, content_length=content_length
+        )
         self.discriminator = PairDiscriminator(content_length, config.critic_hidden, config.critic_dropout)
         # N(0, 0.02) everywhere except the residual head, whose zero U / orthogonal V make it
         # start at the trunk's descriptor.

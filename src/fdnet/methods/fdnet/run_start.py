@@ -16,8 +16,11 @@ log = logging.getLogger(__name__)
 
 
 #: log.csv's columns that belong to each ablation switch's part
-ABLATED_COLUMNS = {"adversarial": ("encoder_adversarial", "structure", "critic", "wasserstein"),
-                   "appearance_triplet": ("appearance",), "reconstruction": ("reconstruction",)}
+ABLATED_COLUMNS = {
+    "adversarial": ("encoder_adversarial", "structure", "critic", "wasserstein"),
+    "appearance_triplet": ("appearance",),
+    "reconstruction": ("reconstruction",),
+}
 
 
 def removed_columns(config: FDNetRunConfig) -> set[str]:
@@ -30,11 +33,11 @@ def ablation_text(config: FDNetRunConfig) -> str:
     trunk_head = config.model.content_head in TRUNK_HEADS
     parts = {
         "adversarial": "no critic D_a and no L_e^adv (D_a stays as initialised, the critic stage is skipped"
-                       + ("; the content head, which only L_e^adv moves, stays at its start)" if trunk_head else ")"),
-        "appearance_triplet": "no L_a (" + ("E_a learns only through the decoder's L_r)" if config.loss.reconstruction
-                                            else "E_a is never updated)"),
+        + ("; the content head, which only L_e^adv moves, stays at its start)" if trunk_head else ")"),
+        "appearance_triplet": "no L_a ("
+        + ("E_a learns only through the decoder's L_r)" if config.loss.reconstruction else "E_a is never updated)"),
         "reconstruction": "no L_r (the decoder is never updated"
-                          + (")" if trunk_head else "; E_c learns from L_e^adv alone)"),
+        + (")" if trunk_head else "; E_c learns from L_e^adv alone)"),
     }
     return "; ".join(f"loss.{name}=false: {parts[name]}" for name in config.ablated())
 
@@ -43,8 +46,9 @@ def start_candidates(config: FDNetRunConfig) -> list[tuple[tuple[str, ...], int]
     """The (synthetic conditions, trunk block) starts a run with a validation pair chooses from,
     synthetic settings outer: ``data.synthetic_conditions_candidates`` (or the one
     ``data.synthetic_conditions``) x ``model.backbone_block_candidates`` (or the one block)."""
-    options = [synthetic_option(t) for t in config.data.synthetic_conditions_candidates] or \
-        [tuple(config.data.synthetic_conditions)]
+    options = [synthetic_option(t) for t in config.data.synthetic_conditions_candidates] or [
+        tuple(config.data.synthetic_conditions)
+    ]
     blocks = [int(b) for b in config.model.backbone_block_candidates] or [int(config.model.backbone_block)]
     return [(option, block) for option in options for block in blocks]
 
@@ -66,9 +70,11 @@ def chosen_when_started(config: FDNetRunConfig, run_dir) -> FDNetRunConfig:
     if (option, block) not in start_candidates(config):
         return config
     if block != config.model.backbone_block or option != tuple(config.data.synthetic_conditions):
-        log.info(f"continuing on trunk block {start_label(config, option, block)}, chosen when the run "
-                 f"started (its weights are for that choice; model.backbone_block = {config.model.backbone_block} "
-                 "applies to new runs)")
+        log.info(
+            f"continuing on trunk block {start_label(config, option, block)}, chosen when the run "
+            f"started (its weights are for that choice; model.backbone_block = {config.model.backbone_block} "
+            "applies to new runs)"
+        )
     return replace_dotted(config, {"model.backbone_block": block, "data.synthetic_conditions": list(option)})
 
 
@@ -81,9 +87,14 @@ def check_same_ablation(config: FDNetRunConfig, run_dir) -> None:
     if not distributed.current().is_main or not runs.is_run(run_dir):
         return  # rank 0 alone reads the run directory; the loop says what is wrong with resuming it
     saved = runs.load_config(run_dir, FDNetRunConfig)
-    changed = [f"loss.{name}: saved {str(getattr(saved.loss, name)).lower()}, requested "
-               f"{str(getattr(config.loss, name)).lower()}"
-               for name in ABLATION_SWITCHES if getattr(saved.loss, name) != getattr(config.loss, name)]
+    changed = [
+        f"loss.{name}: saved {str(getattr(saved.loss, name)).lower()}, requested "
+        f"{str(getattr(config.loss, name)).lower()}"
+        for name in ABLATION_SWITCHES
+        if getattr(saved.loss, name) != getattr(config.loss, name)
+    ]
     if changed:
-        raise ConfigError(f"{run_dir}: a run keeps the ablation switches it started with ({'; '.join(changed)}); "
-                          "train the other variant into a new run directory")
+        raise ConfigError(
+            f"{run_dir}: a run keeps the ablation switches it started with ({'; '.join(changed)}); "
+            "train the other variant into a new run directory"
+        )

@@ -23,8 +23,13 @@ class DomainBalancedSampler:
     run is reproducible and resumable (its state is saved with the checkpoint).
     """
 
-    def __init__(self, sizes: Sequence[int], batch_per_domain: int, names: Sequence[str] | None = None,
-                 generator: torch.Generator | None = None) -> None:
+    def __init__(
+        self,
+        sizes: Sequence[int],
+        batch_per_domain: int,
+        names: Sequence[str] | None = None,
+        generator: torch.Generator | None = None,
+    ) -> None:
         names = list(names) if names is not None else [str(i) for i in range(len(sizes))]
         if len(sizes) < 2:
             raise ConfigError(
@@ -32,8 +37,9 @@ class DomainBalancedSampler:
                 f"({', '.join(names) or 'none'})"
             )
         if batch_per_domain < 2:
-            raise ConfigError("data.batch_per_domain must be >= 2 (batch-hard triplets need a positive), "
-                              f"got {batch_per_domain}")
+            raise ConfigError(
+                "data.batch_per_domain must be >= 2 (batch-hard triplets need a positive), " f"got {batch_per_domain}"
+            )
         for name, size in zip(names, sizes):
             if size < batch_per_domain:
                 raise ConfigError(

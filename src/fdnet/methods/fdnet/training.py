@@ -74,9 +74,13 @@ def _autocast(config: FDNetRunConfig, device: torch.device):
 def load_training_images(config: FDNetRunConfig) -> TrainingImages:
     """The run's training images (``config.data``) at the model's input size, with the synthetic
     appearance conditions ``config.data.synthetic_conditions`` added."""
-    data = route_images(training_route(config.data), config.model.input_size,
-                        min_per_condition=config.data.batch_per_domain, min_conditions=2,
-                        why=f"FDNet (data.batch_per_domain = {config.data.batch_per_domain})")
+    data = route_images(
+        training_route(config.data),
+        config.model.input_size,
+        min_per_condition=config.data.batch_per_domain,
+        min_conditions=2,
+        why=f"FDNet (data.batch_per_domain = {config.data.batch_per_domain})",
+    )
     return with_synthetic_conditions(data, config.data.synthetic_conditions, config.runtime.seed)
 
 
@@ -87,8 +91,9 @@ class FDNetTraining(TrainingMethod):
     log_columns = ("reconstruction", "appearance", "encoder_adversarial", "structure", "critic", "wasserstein")
     rank_state_keys = ("sampler_generator",)  # each rank's own stream; the conditions are shared
 
-    def __init__(self, config: FDNetRunConfig, data: TrainingImages,
-                 trunk_maps: dict[tuple, torch.Tensor] | None = None) -> None:
+    def __init__(
+        self, config: FDNetRunConfig, data: TrainingImages, trunk_maps: dict[tuple, torch.Tensor] | None = None
+    ) -> None:
         """``trunk_maps``: the encoders' inputs by (block, condition[, synthetic setting]), shared by
         the candidates a run chooses from (:func:`choose_start`), filled as they are computed."""
         validate(config)
@@ -102,23 +107,29 @@ class FDNetTraining(TrainingMethod):
         if rt.channels_last:
             self.model = self.model.to(memory_format=torch.channels_last)
         betas = (config.optim.beta1, config.optim.beta2)
-        autoencoder_params = [p for name, m in self.model.named_parts().items() if name != "discriminator"
-                              for p in m.parameters()]
+        autoencoder_params = [
+            p for name, m in self.model.named_parts().items() if name != "discriminator" for p in m.parameters()
+        ]
         # fused=True: one kernel per tensor instead of ~10 passes; 3-4x faster on a loaded 2-core CPU,
         # where the Adam update of the 7M auto-encoder weights otherwise costs as much as the convs.
         self.opt_autoencoder = torch.optim.Adam(autoencoder_params, lr=config.optim.lr, betas=betas, fused=True)
-        self.opt_critic = torch.optim.Adam(self.model.discriminator.parameters(), lr=config.optim.critic_lr,
-                                           betas=betas, fused=True)
+        self.opt_critic = torch.optim.Adam(
+            self.model.discriminator.parameters(), lr=config.optim.critic_lr, betas=betas, fused=True
+        )
         # per rank (seed + 1 + rank): each rank of a distributed run draws other batches
         self.generator = torch.Generator().manual_seed(self.distributed.rank_seed(rt.seed + 1))
-        self.sampler = DomainBalancedSampler([len(x) for x in data.images], config.data.batch_per_domain,
-                                             data.names, self.generator)
+        self.sampler = DomainBalancedSampler(
+            [len(x) for x in data.images], config.data.batch_per_domain, data.names, self.generator
+        )
         self.domains = self.sampler.domain_labels().to(self.device)
         self.images = [x.to(self.device) for x in data.images]
         # With a frozen trunk, what the encoders read never changes (no augmentation), so it is
         # computed once: the trunk costs ~10 ms/image on a CPU core, more than the FDNet step.
-        self.cached_inputs = None if self.model.trunk is None else [
-            self._trunk_map(x, name, trunk_maps) for x, name in zip(self.images, data.names)]
+        self.cached_inputs = (
+            None
+            if self.model.trunk is None
+            else [self._trunk_map(x, name, trunk_maps) for x, name in zip(self.images, data.names)]
+        )
         #: validation scores of each candidate start, by block (and synthetic setting; choose_start)
         self.block_selection: dict[str, dict[str, float]] = {}
         #: what the projection head's closed-form start found (content_fit.ProjectionFit.report)
@@ -135,8 +146,7 @@ class FDNetTraining(TrainingMethod):
 
     def loop_settings(self) -> LoopSettings:
         rt = self.config.runtime
-        return LoopSettings(self.config.total_steps, rt.checkpoint_every, rt.log_every,
-                            self.config.validation.every)
+        return LoopSettings(self.config.total_steps, rt.checkpoint_every, rt.log_every, self.config.validation.every)
 
     def stage(self, step: int) -> str:
         return self.config.stage_at(step)
@@ -152,26 +162,39 @@ class FDNetTraining(TrainingMethod):
             from fdnet.methods.fdnet.content_fit import fit_projection
 
             m = self.config.model
-            fit = fit_projection([x.flatten(1).cpu().numpy() for x in inputs], m.vector_length,
-                                 init=m.projection_init, pca_dims=m.projection_pca_dims,
-                                 pca_power=m.projection_pca_power, pair_sequence_length=m.pair_sequence_length,
-                                 pair_shrinkage=m.pair_shrinkage, names=list(self.data.names))
+            fit = fit_projection(
+                [x.flatten(1).cpu().numpy() for x in inputs],
+                m.vector_length,
+                init=m.projection_init,
+                pca_dims=m.projection_pca_dims,
+                pca_power=m.projection_pca_power,
+                pair_sequence_length=m.pair_sequence_length,
+                pair_shrinkage=m.pair_shrinkage,
+                names=list(self.data.names),
+            )
             head.set_start(fit.mean, fit.projection)
             self.projection_fit = fit.report
-            self.log(f"content head starts in closed form ({m.projection_init}): "
-                     + ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in fit.report.items()))
+            self.log(
+                f"content head starts in closed form ({m.projection_init}): "
+                + ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in fit.report.items())
+            )
         else:
             # Centre on the mean map of every training image, all conditions pooled: the centred
             # trunk descriptor is where the residual head starts.
             head.set_mean(torch.cat(inputs))
             if self.config.model.residual_init == "condition_means":
                 removed = head.remove_condition_means(inputs)
-                self.log(f"content head starts with {removed} direction(s) between the conditions' "
-                         "mean maps removed")
+                self.log(
+                    f"content head starts with {removed} direction(s) between the conditions' " "mean maps removed"
+                )
 
     def state(self) -> dict:
-        return {"sampler_generator": self.generator.get_state(), "conditions": list(self.data.names),
-                "block_selection": self.block_selection, "projection_fit": self.projection_fit}
+        return {
+            "sampler_generator": self.generator.get_state(),
+            "conditions": list(self.data.names),
+            "block_selection": self.block_selection,
+            "projection_fit": self.projection_fit,
+        }
 
     def load_state(self, state: dict) -> None:
         if list(state.get("conditions", self.data.names)) != list(self.data.names):
@@ -210,7 +233,7 @@ class FDNetTraining(TrainingMethod):
         out = []
         bar = progress_bar(total=len(images), desc=desc, unit="img", leave=False) if desc else None
         for start in range(0, len(images), chunk):
-            x = images[start:start + chunk].float().div_(255.0)
+            x = images[start : start + chunk].float().div_(255.0)
             if self.config.runtime.channels_last:
                 x = x.contiguous(memory_format=torch.channels_last)
             with torch.no_grad(), _autocast(self.config, self.device):
@@ -251,8 +274,11 @@ class FDNetTraining(TrainingMethod):
         cfg = self.config
         same, different = losses.sample_pairs(self.domains, self.generator)
         loss, distance = losses.critic_loss(
-            self.model.discriminator.forward_pairs, losses.pair_vectors(content, same),
-            losses.pair_vectors(content, different), cfg.loss.gradient_penalty_weight, self.generator,
+            self.model.discriminator.forward_pairs,
+            losses.pair_vectors(content, same),
+            losses.pair_vectors(content, different),
+            cfg.loss.gradient_penalty_weight,
+            self.generator,
         )
         self.opt_critic.zero_grad(set_to_none=True)
         loss.backward()
@@ -260,8 +286,9 @@ class FDNetTraining(TrainingMethod):
         self.opt_critic.step()
         return {"critic": float(loss.detach()), "wasserstein": float(distance)}
 
-    def _autoencoder_update(self, step: int, adversarial: bool, appearance: bool,
-                            target: torch.Tensor | None = None) -> dict[str, float]:
+    def _autoencoder_update(
+        self, step: int, adversarial: bool, appearance: bool, target: torch.Tensor | None = None
+    ) -> dict[str, float]:
         """One update of E_c, E_a and the decoder on the terms asked for (``adversarial``: L_e^adv,
         ``appearance``: L_a) that the ablation switches leave, plus L_r unless it is switched off.
         Only the passes those terms need are computed; with no term left nothing is updated."""
@@ -279,8 +306,9 @@ class FDNetTraining(TrainingMethod):
         with _autocast(cfg, self.device):
             content = model.content_encoder(target) if (rebuild or adversarial) else None
             appearance_vec = model.appearance_encoder(target) if (rebuild or appearance) else None
-            reconstruction = model.decoder(content.detach() if trunk_head else content, appearance_vec) \
-                if rebuild else None
+            reconstruction = (
+                model.decoder(content.detach() if trunk_head else content, appearance_vec) if rebuild else None
+            )
         if rebuild:
             rec = losses.reconstruction_loss(target, reconstruction, cfg.loss.reconstruction_reduction)
             total = total + cfg.loss.reconstruction_weight * rec
@@ -297,8 +325,9 @@ class FDNetTraining(TrainingMethod):
             same, different = losses.sample_pairs(self.domains, self.generator)
             critic = model.discriminator
             critic.requires_grad_(False)  # only E_c learns from L_e^adv here
-            adv = losses.encoder_adversarial_loss(critic.forward_pairs, losses.pair_vectors(features, same),
-                                                  losses.pair_vectors(features, different))
+            adv = losses.encoder_adversarial_loss(
+                critic.forward_pairs, losses.pair_vectors(features, same), losses.pair_vectors(features, different)
+            )
             critic.requires_grad_(True)
             total = total + cfg.loss.adversarial_weight * adv
             out["encoder_adversarial"] = float(adv.detach())
@@ -317,8 +346,9 @@ class FDNetTraining(TrainingMethod):
         total.backward()
         # False when the loss is not finite here or on another rank: every rank stops at this step
         if not self.distributed.average_gradients(self.opt_autoencoder, total):
-            raise FloatingPointError(f"loss became {loss_text(total)} at step {step}; lower optim.lr or the loss "
-                                     "weights")
+            raise FloatingPointError(
+                f"loss became {loss_text(total)} at step {step}; lower optim.lr or the loss " "weights"
+            )
         self.opt_autoencoder.step()
         return out
 
@@ -330,8 +360,9 @@ class FDNetTraining(TrainingMethod):
         # without the critic (loss.adversarial=false) there is no critic stage and no D_a update
         critic_updates = self.config.schedule.critic_updates_per_step if self.config.loss.adversarial else 0
         if stage == "autoencoder":
-            out.update(self._autoencoder_update(step, adversarial=False,
-                                                appearance=self.config.loss.appearance_in_pretraining))
+            out.update(
+                self._autoencoder_update(step, adversarial=False, appearance=self.config.loss.appearance_in_pretraining)
+            )
         elif stage == "critic":
             out.update(self._critic_update(self._critic_features()))
         elif self.config.schedule.one_batch_per_step:
@@ -354,15 +385,22 @@ class FDNetTraining(TrainingMethod):
         return out
 
 
-def content_vectors(model: FDNet, images: torch.Tensor, device: torch.device, bf16: bool = False,
-                    channels_last: bool = False, batch: int = 256, appearance: bool = False) -> torch.Tensor:
+def content_vectors(
+    model: FDNet,
+    images: torch.Tensor,
+    device: torch.device,
+    bf16: bool = False,
+    channels_last: bool = False,
+    batch: int = 256,
+    appearance: bool = False,
+) -> torch.Tensor:
     """uint8 (N, 3, H, W) -> float32 (N, L) content (or appearance) vectors, eval mode."""
     was_training = model.training
     model.eval()
     out = []
     with torch.inference_mode():
         for start in range(0, len(images), batch):
-            x = images[start:start + batch].to(device).float().div_(255.0)
+            x = images[start : start + batch].to(device).float().div_(255.0)
             if channels_last:
                 x = x.contiguous(memory_format=torch.channels_last)
             with autocast(device, bf16):
@@ -372,8 +410,9 @@ def content_vectors(model: FDNet, images: torch.Tensor, device: torch.device, bf
     return torch.cat(out) if out else torch.zeros((0, model.content_length))
 
 
-def choose_start(config: FDNetRunConfig, real: TrainingImages, validation,
-                 deadline: float | None = None, progress: bool = True) -> FDNetTraining:
+def choose_start(
+    config: FDNetRunConfig, real: TrainingImages, validation, deadline: float | None = None, progress: bool = True
+) -> FDNetTraining:
     """The FDNet training whose closed-form content start scores best on ``validation`` among
     :func:`start_candidates`: R@1, ties to the higher AUC, then to the earlier candidate, as
     ``best/`` is chosen. ``real`` are the training images without synthetic conditions. Each
@@ -400,9 +439,11 @@ def choose_start(config: FDNetRunConfig, real: TrainingImages, validation,
     bar = progress_bar(total=len(candidates), desc="choosing the start", unit="start") if progress else None
     for number, (option, block) in enumerate(candidates):
         if deadline is not None and number and time.monotonic() >= deadline:
-            log.warning(f"--max-minutes: the time ran out while choosing the start, after {number} of "
-                        f"{len(candidates)} candidates; training the best of those (give one start to skip the "
-                        "choice: docs/guide.md, \"One start\")")
+            log.warning(
+                f"--max-minutes: the time ran out while choosing the start, after {number} of "
+                f"{len(candidates)} candidates; training the best of those (give one start to skip the "
+                'choice: docs/guide.md, "One start")'
+            )
             break
         settings = {"model.backbone_block": int(block), "data.synthetic_conditions": list(option)}
         data = with_synthetic_conditions(real, option, config.runtime.seed)
@@ -413,8 +454,9 @@ def choose_start(config: FDNetRunConfig, real: TrainingImages, validation,
         metrics = validation_metrics(method, validation)
         label = start_label(config, option, block)
         scores[label] = {k: float(v) for k, v in metrics.items()}
-        log.info(f"trunk block {label}: validation R@1 {metrics['recall@1']:.3f}, "
-                 f"AUC {metrics['auc']:.3f} at the start")
+        log.info(
+            f"trunk block {label}: validation R@1 {metrics['recall@1']:.3f}, " f"AUC {metrics['auc']:.3f} at the start"
+        )
         key = (metrics["recall@1"], metrics["auc"])
         if best is None or key > best[0]:
             best = (key, method, rng)
@@ -428,16 +470,29 @@ def choose_start(config: FDNetRunConfig, real: TrainingImages, validation,
     del method.log  # back to the class's
     chosen_block = method.config.model.backbone_block
     chosen = start_label(config, tuple(method.config.data.synthetic_conditions), chosen_block)
-    note = "" if chosen_block == config.model.backbone_block else (
-        f"; model.backbone_block = {config.model.backbone_block} is the block for runs without a validation pair, "
-        "set model.backbone_block_candidates=[] to train it regardless")
-    log.info(f"training on trunk block {chosen} "
-             f"(of {', '.join(start_label(config, o, b) for o, b in candidates)}){note}")
+    note = (
+        ""
+        if chosen_block == config.model.backbone_block
+        else (
+            f"; model.backbone_block = {config.model.backbone_block} is the block for runs without a validation pair, "
+            "set model.backbone_block_candidates=[] to train it regardless"
+        )
+    )
+    log.info(
+        f"training on trunk block {chosen} " f"(of {', '.join(start_label(config, o, b) for o, b in candidates)}){note}"
+    )
     return method
 
 
-def train(config: FDNetRunConfig, run_dir, resume: bool = False, override: bool = False,
-          max_minutes: float | None = None, progress: bool = True, command: str = "fdnet train") -> dict:
+def train(
+    config: FDNetRunConfig,
+    run_dir,
+    resume: bool = False,
+    override: bool = False,
+    max_minutes: float | None = None,
+    progress: bool = True,
+    command: str = "fdnet train",
+) -> dict:
     """Train FDNet as ``config`` says into ``run_dir`` (what ``fdnet train`` calls)."""
     import time
 
@@ -458,23 +513,37 @@ def train(config: FDNetRunConfig, run_dir, resume: bool = False, override: bool 
         run_config = chosen_when_started(config, run_dir) if resume and len(candidates) > 1 else config
         real = load_training_images(replace_dotted(config, {"data.synthetic_conditions": []}))
         validation = load_validation_images(config.data.root, config.validation, config.model.input_size)
-        log.info(f"preset {config.preset}, conditions {', '.join(real.names)} "
-                 f"({', '.join(str(len(x)) for x in real.images)} images), input {tuple(config.model.input_size)}, "
-                 f"{config.total_steps} steps -> {run_dir}")
+        log.info(
+            f"preset {config.preset}, conditions {', '.join(real.names)} "
+            f"({', '.join(str(len(x)) for x in real.images)} images), input {tuple(config.model.input_size)}, "
+            f"{config.total_steps} steps -> {run_dir}"
+        )
         if len(candidates) > 1 and not resume:
             if validation is not None:
                 return choose_start(config, real, validation, deadline, progress), validation
-            log.info(f"no validation pair to choose a start from "
-                     f"({', '.join(start_label(config, o, b) for o, b in candidates)}); training on "
-                     f"model.backbone_block = {config.model.backbone_block}, data.synthetic_conditions = "
-                     f"{synthetic_option_text(config.data.synthetic_conditions)}")
+            log.info(
+                f"no validation pair to choose a start from "
+                f"({', '.join(start_label(config, o, b) for o, b in candidates)}); training on "
+                f"model.backbone_block = {config.model.backbone_block}, data.synthetic_conditions = "
+                f"{synthetic_option_text(config.data.synthetic_conditions)}"
+            )
         data = with_synthetic_conditions(real, run_config.data.synthetic_conditions, run_config.runtime.seed)
         if len(data.names) > len(real.names):
-            log.info(f"training also on the synthetic conditions {', '.join(data.names[len(real.names):])}, made "
-                     "from the real ones (the preset's data.synthetic_conditions, or chosen on the validation pair "
-                     "among data.synthetic_conditions_candidates; --set data.synthetic_conditions_candidates=[] "
-                     "--set data.synthetic_conditions=[] trains on the real conditions only; README)")
+            log.info(
+                f"training also on the synthetic conditions {', '.join(data.names[len(real.names):])}, made "
+                "from the real ones (the preset's data.synthetic_conditions, or chosen on the validation pair "
+                "among data.synthetic_conditions_candidates; --set data.synthetic_conditions_candidates=[] "
+                "--set data.synthetic_conditions=[] trains on the real conditions only; README)"
+            )
         return FDNetTraining(run_config, data), validation
 
-    return run_training(build, run_dir, resume=resume, override=override, max_minutes=max_minutes,
-                        progress=progress, command=command, runtime=config.runtime)
+    return run_training(
+        build,
+        run_dir,
+        resume=resume,
+        override=override,
+        max_minutes=max_minutes,
+        progress=progress,
+        command=command,
+        runtime=config.runtime,
+    )

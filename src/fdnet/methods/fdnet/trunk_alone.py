@@ -62,8 +62,9 @@ class TrunkSettings(MethodSettings):
     def check(self) -> None:
         checkpoint, choice = self.need_path("checkpoint"), self.need_path("choice")
         if checkpoint is not None and choice:
-            raise ConfigError(f"{self.method}: give an FDNet run (checkpoint) or a trunk choice file (choice), "
-                              "not both")
+            raise ConfigError(
+                f"{self.method}: give an FDNet run (checkpoint) or a trunk choice file (choice), " "not both"
+            )
         self.need_backbone(optional=True)
         self.need_block(self.backbone, optional=True)
         self.need_size("input_size", optional=True)
@@ -97,15 +98,23 @@ class TrunkDescriptor(Conv3Descriptor):
 
             model = runs.load_config(checkpoint, FDNetRunConfig).model
             if model.backbone == "none":
-                raise ConfigError(f"{checkpoint}: this FDNet run learnt its encoders from pixels (no "
-                                  "model.backbone); there is no trunk to compare with")
+                raise ConfigError(
+                    f"{checkpoint}: this FDNet run learnt its encoders from pixels (no "
+                    "model.backbone); there is no trunk to compare with"
+                )
             backbone = model.backbone if backbone is None else backbone
             block = model.backbone_block if block is None else block
             input_size = tuple(model.input_size) if input_size is None else input_size
         # the run's or choice's values are checked as the user's are
-        trunk = Conv3Settings(dim=0, block=DEFAULT_BLOCK if block is None else block,
-                              input_size=input_size or DEFAULT_INPUT_SIZE, bf16=conf.bf16, threads=conf.threads,
-                              device=conf.device, backbone=DEFAULT_BACKBONE if backbone is None else backbone)
+        trunk = Conv3Settings(
+            dim=0,
+            block=DEFAULT_BLOCK if block is None else block,
+            input_size=input_size or DEFAULT_INPUT_SIZE,
+            bf16=conf.bf16,
+            threads=conf.threads,
+            device=conf.device,
+            backbone=DEFAULT_BACKBONE if backbone is None else backbone,
+        )
         super().__init__(trunk)
         self.conf = conf
 
@@ -139,8 +148,9 @@ class TrunkWhitenedSettings(TrunkSettings):
         fit = self.need_path("fit")
         fit_frames = check_fit_frames(self.fit_frames, self.method)
         if fit_frames and not fit:
-            raise ConfigError(f"{self.method}: fit_frames ({fit_frames}) needs fit=DIR (--fit DIR) to take "
-                              "the frames of")
+            raise ConfigError(
+                f"{self.method}: fit_frames ({fit_frames}) needs fit=DIR (--fit DIR) to take " "the frames of"
+            )
 
 
 class TrunkWhitenedDescriptor(TrunkDescriptor):
@@ -169,9 +179,11 @@ class TrunkWhitenedDescriptor(TrunkDescriptor):
         self.whitened_dim = int(conf.dim)
         self.power = float(conf.power)
         if self.whitened_dim > self.feature_dim:
-            raise ConfigError(f"{self.name}: L = dim {self.whitened_dim} is larger than the map it whitens allows "
-                              f"({self.feature_map_text()} = {self.feature_dim} values); lower dim or choose "
-                              "a larger block or input size")
+            raise ConfigError(
+                f"{self.name}: L = dim {self.whitened_dim} is larger than the map it whitens allows "
+                f"({self.feature_map_text()} = {self.feature_dim} values); lower dim or choose "
+                "a larger block or input size"
+            )
         self.fit_frames = check_fit_frames(conf.fit_frames, f"{self.name}")
         fit = conf.fit
         self.fit_folder = str(fit) if fit else None
@@ -179,13 +191,16 @@ class TrunkWhitenedDescriptor(TrunkDescriptor):
         self._fit_paths: list[Path] | None = None
         self._whitening = None
         if self.fit_folder:
-            self._fit_paths, self._fit_description = fit_image_paths(self.fit_folder, self.fit_frames,
-                                                                     where=f"{self.name}: --fit")
+            self._fit_paths, self._fit_description = fit_image_paths(
+                self.fit_folder, self.fit_frames, where=f"{self.name}: --fit"
+            )
             limit = max_whitening_dim(len(self._fit_paths), self.feature_dim)
             if self.whitened_dim > limit:
-                raise ConfigError(f"{self.name}: L = dim {self.whitened_dim} is more than {len(self._fit_paths)} "
-                                  f"fitting images allow (at most {limit}: {self._fit_description}); lower dim "
-                                  "or fit on more images")
+                raise ConfigError(
+                    f"{self.name}: L = dim {self.whitened_dim} is more than {len(self._fit_paths)} "
+                    f"fitting images allow (at most {limit}: {self._fit_description}); lower dim "
+                    "or fit on more images"
+                )
 
     @property
     def min_fit_images(self) -> int:
@@ -205,11 +220,17 @@ class TrunkWhitenedDescriptor(TrunkDescriptor):
 
     def settings(self) -> dict:
         out = super().settings()
-        out.update({"dim": self.whitened_dim, "map_dim": self.feature_dim,
-                    "whitening": "PCA whitening (Jegou & Chum 2012), L2 before and after",
-                    "power": self.power,
-                    "fit": self.fit_folder, "fit_frames": self.fit_frames,
-                    "fitted_on": self.fitted_on or (self._fit_description if self.fit_folder else None)})
+        out.update(
+            {
+                "dim": self.whitened_dim,
+                "map_dim": self.feature_dim,
+                "whitening": "PCA whitening (Jegou & Chum 2012), L2 before and after",
+                "power": self.power,
+                "fit": self.fit_folder,
+                "fit_frames": self.fit_frames,
+                "fitted_on": self.fitted_on or (self._fit_description if self.fit_folder else None),
+            }
+        )
         return out
 
     def _raw(self, images: np.ndarray) -> np.ndarray:
@@ -226,8 +247,9 @@ class TrunkWhitenedDescriptor(TrunkDescriptor):
         if self._whitening is not None:
             return
         if self.fit_folder is None:
-            raise ConfigError(f"{self.name}: no whitening yet; pass fit=DIR (--fit DIR) or fit() on the reference "
-                              "images first")
+            raise ConfigError(
+                f"{self.name}: no whitening yet; pass fit=DIR (--fit DIR) or fit() on the reference " "images first"
+            )
         self._learn(self._describe_raw_paths(self._fit_paths), self._fit_description)
 
     def _describe_raw_paths(self, paths) -> np.ndarray:
@@ -235,9 +257,10 @@ class TrunkWhitenedDescriptor(TrunkDescriptor):
 
         paths = list(paths)
         out = np.empty((len(paths), self.feature_dim), dtype=np.float32)
-        for start, vectors in describe_stream(self, paths, PipelineSettings(batch_size=64),
-                                              DescribeJob(self._raw, what=f"{self.name}: fitting")):
-            out[start:start + len(vectors)] = vectors
+        for start, vectors in describe_stream(
+            self, paths, PipelineSettings(batch_size=64), DescribeJob(self._raw, what=f"{self.name}: fitting")
+        ):
+            out[start : start + len(vectors)] = vectors
         return out
 
     def fit(self, images_or_paths) -> None:
@@ -246,8 +269,11 @@ class TrunkWhitenedDescriptor(TrunkDescriptor):
         from fdnet.descriptors.fitting import REFERENCE_IMAGES
 
         if isinstance(images_or_paths, np.ndarray):
-            raw = np.concatenate([self._raw(images_or_paths[i:i + 64]) for i in range(0, len(images_or_paths), 64)]) \
-                if len(images_or_paths) else np.zeros((0, self.feature_dim), np.float32)
+            raw = (
+                np.concatenate([self._raw(images_or_paths[i : i + 64]) for i in range(0, len(images_or_paths), 64)])
+                if len(images_or_paths)
+                else np.zeros((0, self.feature_dim), np.float32)
+            )
         else:
             raw = self._describe_raw_paths(images_or_paths)
         self._learn(raw, f"{REFERENCE_IMAGES} ({len(raw)})")

@@ -85,15 +85,29 @@ class TrunkChoice:
     options: dict
 
     def to_dict(self) -> dict:
-        return {"format": CHOICE_FORMAT, "method": self.method, "rule": RULE,
-                "backbone": self.chosen.backbone, "block": self.chosen.block,
-                "input_size": [int(s) for s in self.input_size], "validation": self.validation,
-                "options": self.options, "scores": self.scores}
+        return {
+            "format": CHOICE_FORMAT,
+            "method": self.method,
+            "rule": RULE,
+            "backbone": self.chosen.backbone,
+            "block": self.chosen.block,
+            "input_size": [int(s) for s in self.input_size],
+            "validation": self.validation,
+            "options": self.options,
+            "scores": self.scores,
+        }
 
 
-def choose_trunk(split, candidates: Sequence[Candidate], input_size=(128, 256), whitened: bool = False,
-                 options: dict | None = None, pipeline=None, log: Callable[[str], None] | None = None,
-                 create: Callable | None = None) -> TrunkChoice:
+def choose_trunk(
+    split,
+    candidates: Sequence[Candidate],
+    input_size=(128, 256),
+    whitened: bool = False,
+    options: dict | None = None,
+    pipeline=None,
+    log: Callable[[str], None] | None = None,
+    create: Callable | None = None,
+) -> TrunkChoice:
     """Evaluate every candidate on ``split`` (an :class:`~fdnet.data.split.EvaluationSplit`, the
     validation pair) and choose by :data:`RULE`. ``options`` go to every candidate's method
     (``device``, and for ``trunk-whitened`` ``dim``, ``power``, ``fit``, ``fit_frames``: without
@@ -110,8 +124,10 @@ def choose_trunk(split, candidates: Sequence[Candidate], input_size=(128, 256), 
     options = {k: v for k, v in dict(options or {}).items() if v is not None}
     for reserved in ("backbone", "block", "input_size", "choice", "checkpoint"):
         if reserved in options:
-            raise ConfigError(f"choose-trunk: {reserved} is what is being chosen or fixed by the command; "
-                              "not a method setting here")
+            raise ConfigError(
+                f"choose-trunk: {reserved} is what is being chosen or fixed by the command; "
+                "not a method setting here"
+            )
     from fdnet.progress import progress_bar
 
     pipeline = pipeline or PipelineSettings()
@@ -120,19 +136,27 @@ def choose_trunk(split, candidates: Sequence[Candidate], input_size=(128, 256), 
     # every candidate describes the whole pair: bars per candidate and over them, with the time left
     bar = progress_bar(total=len(candidates), desc="choosing the trunk", unit="candidate")
     for candidate in candidates:
-        descriptor = create(method, backbone=candidate.backbone, block=candidate.block,
-                            input_size=list(input_size), **options)
+        descriptor = create(
+            method, backbone=candidate.backbone, block=candidate.block, input_size=list(input_size), **options
+        )
         result = evaluate_method(descriptor, split, pipeline=describing)
         bar.update(1)
         m = result.to_dict(include_curve=False)
-        score = {"backbone": candidate.backbone, "block": candidate.block, "dim": int(descriptor.dim),
-                 "recall_at_1": float(m["recall_at_n"]["1"]), "recall_at_5": float(m["recall_at_n"]["5"]),
-                 "recall_at_100_precision": float(m["recall_at_100_precision"]), "auc_pr": float(m["auc_pr"])}
+        score = {
+            "backbone": candidate.backbone,
+            "block": candidate.block,
+            "dim": int(descriptor.dim),
+            "recall_at_1": float(m["recall_at_n"]["1"]),
+            "recall_at_5": float(m["recall_at_n"]["5"]),
+            "recall_at_100_precision": float(m["recall_at_100_precision"]),
+            "auc_pr": float(m["auc_pr"]),
+        }
         if "fitted_on" in result.settings:
             score["fitted_on"] = result.settings["fitted_on"]
         scores.append(score)
-        say(f"{method} {candidate}: R@1 {score['recall_at_1']:.3f}, AUC-PR {score['auc_pr']:.3f} "
-            f"({score['dim']}-d)")
+        say(
+            f"{method} {candidate}: R@1 {score['recall_at_1']:.3f}, AUC-PR {score['auc_pr']:.3f} " f"({score['dim']}-d)"
+        )
     bar.close()
     chosen = candidates[pick_best(scores)]
     recorded = {k: (str(v) if isinstance(v, Path) else v) for k, v in options.items() if k not in ("device",)}
@@ -160,12 +184,16 @@ def read_choice(path) -> dict:
     except OSError as exc:
         raise ConfigError(f"{path}: not a readable trunk choice file ({exc})") from exc
     if not isinstance(data, dict) or data.get("format") != CHOICE_FORMAT:
-        raise ConfigError(f"{path}: not a trunk choice file from `fdnet choose-trunk` (format {CHOICE_FORMAT} "
-                          "missing)")
+        raise ConfigError(
+            f"{path}: not a trunk choice file from `fdnet choose-trunk` (format {CHOICE_FORMAT} " "missing)"
+        )
     try:
         size = data["input_size"]
-        chosen = {"backbone": str(data["backbone"]), "block": int(data["block"]),
-                  "input_size": (int(size[0]), int(size[1]))}
+        chosen = {
+            "backbone": str(data["backbone"]),
+            "block": int(data["block"]),
+            "input_size": (int(size[0]), int(size[1])),
+        }
     except (KeyError, TypeError, ValueError, IndexError, OverflowError) as exc:
         raise ConfigError(f"{path}: trunk choice file lacks a valid backbone, block or input_size ({exc})") from exc
     from fdnet.data.images import check_image_size

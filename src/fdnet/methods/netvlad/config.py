@@ -83,10 +83,16 @@ def default_config() -> NetVLADRunConfig:
 def tiny_config() -> NetVLADRunConfig:
     """A few-second setting for tests: small input, 8 clusters, one fine-tuned block."""
     config = NetVLADRunConfig(preset="tiny")
-    config.model = dataclasses.replace(config.model, input_size=(64, 112), frozen_block=7, last_block=8,
-                                       clusters=8)
-    config.train = dataclasses.replace(config.train, batch_size=4, steps=6, negatives_sampled=50,
-                                       cache_refresh=3, kmeans_samples=2000, negative_distance=4)
+    config.model = dataclasses.replace(config.model, input_size=(64, 112), frozen_block=7, last_block=8, clusters=8)
+    config.train = dataclasses.replace(
+        config.train,
+        batch_size=4,
+        steps=6,
+        negatives_sampled=50,
+        cache_refresh=3,
+        kmeans_samples=2000,
+        negative_distance=4,
+    )
     config.runtime = dataclasses.replace(config.runtime, checkpoint_every=3, log_every=2)
     return config
 

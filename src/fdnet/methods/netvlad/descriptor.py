@@ -55,8 +55,10 @@ class NetVLADDescriptor(Descriptor):
         from fdnet.runs import load_weights
 
         if checkpoint is None:
-            raise ConfigError("method 'netvlad' needs a trained model: --checkpoint RUN_DIR "
-                              "(train one with `fdnet train netvlad --data DIR --out RUN_DIR`)")
+            raise ConfigError(
+                "method 'netvlad' needs a trained model: --checkpoint RUN_DIR "
+                "(train one with `fdnet train netvlad --data DIR --out RUN_DIR`)"
+            )
         from fdnet.runs import weights_folder, weights_note
 
         # a run directory means its best-validating weights when it kept them (best/)
@@ -101,6 +103,14 @@ class NetVLADDescriptor(Descriptor):
 
     def settings(self) -> dict:
         model = self.config.model
-        return {"input_size": list(self.input_size), "checkpoint": str(self.run_dir), "step": self.step,
-                "dim": self.dim, "clusters": model.clusters, "frozen_block": model.frozen_block,
-                "last_block": model.last_block, "pca_dim": model.pca_dim, "bf16": self.bf16}
+        return {
+            "input_size": list(self.input_size),
+            "checkpoint": str(self.run_dir),
+            "step": self.step,
+            "dim": self.dim,
+            "clusters": model.clusters,
+            "frozen_block": model.frozen_block,
+            "last_block": model.last_block,
+            "pca_dim": model.pca_dim,
+            "bf16": self.bf16,
+        }

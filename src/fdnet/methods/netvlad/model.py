@@ -56,8 +56,10 @@ def check_model_config(model: NetVLADModelConfig) -> None:
     check_block(model.frozen_block)
     check_block(model.last_block)
     if not model.frozen_block <= model.last_block < NUM_BLOCKS:
-        raise ConfigError(f"NetVLAD needs frozen_block <= last_block (got {model.frozen_block}, "
-                          f"{model.last_block}): NetVLAD pools a block at or after the frozen trunk")
+        raise ConfigError(
+            f"NetVLAD needs frozen_block <= last_block (got {model.frozen_block}, "
+            f"{model.last_block}): NetVLAD pools a block at or after the frozen trunk"
+        )
     if model.clusters < 1 or model.pca_dim < 0:
         raise ConfigError("NetVLAD model.clusters must be >= 1 and model.pca_dim >= 0")
 
@@ -93,18 +95,18 @@ def build_network(model: NetVLADModelConfig, pretrained: bool = True):
 
         def forward(self, x):
             x = F.normalize(x, p=2, dim=1)
-            soft = F.softmax(self.assign(x).flatten(2), dim=1)          # (N, K, P)
-            local = x.flatten(2)                                         # (N, C, P)
+            soft = F.softmax(self.assign(x).flatten(2), dim=1)  # (N, K, P)
+            local = x.flatten(2)  # (N, C, P)
             # sum_p a_kp (x_p - c_k) = (A X^T)_k - (sum_p a_kp) c_k, computed in one batched matmul
             vlad = torch.bmm(soft, local.transpose(1, 2)) - soft.sum(-1).unsqueeze(-1) * self.centroids
-            vlad = F.normalize(vlad, p=2, dim=2)                          # intra-normalisation
+            vlad = F.normalize(vlad, p=2, dim=2)  # intra-normalisation
             return F.normalize(vlad.flatten(1), p=2, dim=1)
 
     class NetVLADNet(nn.Module):
         def __init__(self):
             super().__init__()
             trunk = build_efficientnet_lite0(pretrained=pretrained)
-            self.blocks = nn.ModuleList(trunk._blocks[model.frozen_block + 1: model.last_block + 1])
+            self.blocks = nn.ModuleList(trunk._blocks[model.frozen_block + 1 : model.last_block + 1])
             channels = BLOCK_CHANNELS[model.last_block]
             self.vlad = NetVLADLayer(model.clusters, channels)
             self.vlad_dim = model.clusters * channels
@@ -139,8 +141,10 @@ def build_network(model: NetVLADModelConfig, pretrained: bool = True):
             from sklearn.decomposition import PCA
 
             if len(vectors) <= model.pca_dim:
-                raise ConfigError(f"NetVLAD pca_dim {model.pca_dim} needs more than {model.pca_dim} training "
-                                  f"images, got {len(vectors)}")
+                raise ConfigError(
+                    f"NetVLAD pca_dim {model.pca_dim} needs more than {model.pca_dim} training "
+                    f"images, got {len(vectors)}"
+                )
             pca = PCA(n_components=model.pca_dim, svd_solver="randomized", random_state=0).fit(vectors)
             whitening = pca.components_ / np.sqrt(pca.explained_variance_ + 1e-9)[:, None]
             with torch.no_grad():

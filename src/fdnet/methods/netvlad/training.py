@@ -40,14 +40,18 @@ from fdnet.training.optimizers import make_optimizer
 def aligned_frame_ids(data: TrainingImages, root: str) -> np.ndarray:
     """Frame ids shared by every condition (frame-aligned ground truth needs identical ones)."""
     if len(data.names) < 2:
-        raise DataError(f"{root}: NetVLAD trains on query/reference pairs from different conditions; "
-                        f"give at least two (got {', '.join(data.names) or 'none'})")
+        raise DataError(
+            f"{root}: NetVLAD trains on query/reference pairs from different conditions; "
+            f"give at least two (got {', '.join(data.names) or 'none'})"
+        )
     frame_ids = data.frame_ids[0]
     for name, ids in zip(data.names[1:], data.frame_ids[1:]):
         if len(ids) != len(frame_ids) or not np.array_equal(ids, frame_ids):
-            raise DataError(f"{Path(root) / name} has {len(ids)} frames but {Path(root) / data.names[0]} has "
-                            f"{len(frame_ids)}: frame-aligned ground truth needs the same frames in every "
-                            "training condition")
+            raise DataError(
+                f"{Path(root) / name} has {len(ids)} frames but {Path(root) / data.names[0]} has "
+                f"{len(frame_ids)}: frame-aligned ground truth needs the same frames in every "
+                "training condition"
+            )
     return frame_ids
 
 
@@ -65,8 +69,10 @@ def validate(config: NetVLADRunConfig) -> None:
     if train.batch_size < 1 or train.steps < 0 or train.hard_negatives < 1 or train.negatives_sampled < 1:
         raise ConfigError("NetVLAD train.batch_size, hard_negatives and negatives_sampled must be >= 1, steps >= 0")
     if data.tolerance < 0 or train.negative_distance < data.tolerance:
-        raise ConfigError(f"NetVLAD negatives must lie farther than the positives: train.negative_distance "
-                          f"({train.negative_distance}) must be >= the tolerance ({data.tolerance}) >= 0")
+        raise ConfigError(
+            f"NetVLAD negatives must lie farther than the positives: train.negative_distance "
+            f"({train.negative_distance}) must be >= the tolerance ({data.tolerance}) >= 0"
+        )
     if train.cache_refresh < 1:
         raise ConfigError("NetVLAD train.cache_refresh must be >= 1")
     check_finite("optim.lr", config.optim.lr, positive=True)
@@ -89,19 +95,26 @@ class NetVLADTraining(TrainingMethod):
         model_cfg, train, rt = config.model, config.train, config.runtime
         self.input_size = tuple(int(v) for v in model_cfg.input_size)
         self.frame_ids = aligned_frame_ids(data, config.data.root)
-        self.positives, self.negatives = triplet_candidates(self.frame_ids, config.data.tolerance,
-                                                            train.negative_distance)
+        self.positives, self.negatives = triplet_candidates(
+            self.frame_ids, config.data.tolerance, train.negative_distance
+        )
         lonely = [int(self.frame_ids[i]) for i, n in enumerate(self.negatives) if len(n) == 0]
         if lonely:
-            raise DataError(f"{config.data.root}: frame {lonely[0]} has no negative (no training frame is more "
-                            f"than {train.negative_distance} frames away); train on more frames or lower "
-                            "train.negative_distance")
+            raise DataError(
+                f"{config.data.root}: frame {lonely[0]} has no negative (no training frame is more "
+                f"than {train.negative_distance} frames away); train on more frames or lower "
+                "train.negative_distance"
+            )
         if len(self.frame_ids) < train.batch_size:
-            raise DataError(f"{config.data.root}: {len(self.frame_ids)} training frames, fewer than one batch "
-                            f"({train.batch_size}); add frames or lower train.batch_size")
+            raise DataError(
+                f"{config.data.root}: {len(self.frame_ids)} training frames, fewer than one batch "
+                f"({train.batch_size}); add frames or lower train.batch_size"
+            )
         if model_cfg.pca_dim and len(self.frame_ids) * len(data.names) <= model_cfg.pca_dim:
-            raise ConfigError(f"NetVLAD model.pca_dim {model_cfg.pca_dim} needs more training images than that "
-                              f"(have {len(self.frame_ids) * len(data.names)}); lower it or set 0")
+            raise ConfigError(
+                f"NetVLAD model.pca_dim {model_cfg.pca_dim} needs more training images than that "
+                f"(have {len(self.frame_ids) * len(data.names)}); lower it or set 0"
+            )
         self.device = training_device(rt)
         self.use_bf16 = training_precision(rt, self.device, native_only=True)
         self.rng = np.random.default_rng(self.distributed.rank_seed(rt.seed))  # per rank: other triplets
@@ -112,9 +125,11 @@ class NetVLADTraining(TrainingMethod):
         self.conditions = list(data.names)
         self.maps = {c: self._trunk_maps(images) for c, images in zip(data.names, data.images)}
         self.all_maps = torch.cat([self.maps[c] for c in self.conditions])
-        self.log(f"NetVLAD: {len(self.frame_ids)} frames x {len(self.conditions)} conditions "
-                 f"({', '.join(self.conditions)}) on {self.device}, trunk maps {tuple(self.all_maps.shape[1:])} "
-                 f"cached in {time.perf_counter() - t_prep:.0f} s")
+        self.log(
+            f"NetVLAD: {len(self.frame_ids)} frames x {len(self.conditions)} conditions "
+            f"({', '.join(self.conditions)}) on {self.device}, trunk maps {tuple(self.all_maps.shape[1:])} "
+            f"cached in {time.perf_counter() - t_prep:.0f} s"
+        )
         parameters = [p for p in self.network.parameters() if p.requires_grad]
         self.optimizer = make_optimizer(parameters, config.optim)
         self.cache: dict[str, np.ndarray] = {}
@@ -122,8 +137,10 @@ class NetVLADTraining(TrainingMethod):
 
     def _trunk_maps(self, images: torch.Tensor, chunk: int = 64) -> torch.Tensor:
         # uint8 images travel to the device as they are and are scaled there (images_to_device)
-        parts = [self.extractor.features_tensor(images[i:i + chunk].permute(0, 2, 3, 1).numpy())
-                 for i in range(0, len(images), chunk)]
+        parts = [
+            self.extractor.features_tensor(images[i : i + chunk].permute(0, 2, 3, 1).numpy())
+            for i in range(0, len(images), chunk)
+        ]
         return torch.cat(parts, dim=0)
 
     def _describe_maps(self, maps: torch.Tensor, chunk: int = 128) -> np.ndarray:
@@ -131,7 +148,7 @@ class NetVLADTraining(TrainingMethod):
         out = []
         with torch.no_grad(), autocast(self.device, self.use_bf16):
             for i in range(0, len(maps), chunk):
-                out.append(self.network.vlad_vectors(maps[i:i + chunk]).float())
+                out.append(self.network.vlad_vectors(maps[i : i + chunk]).float())
         return torch.cat(out).cpu().numpy()
 
     # ------------------------------------------------------------------ loop interface
@@ -154,13 +171,16 @@ class NetVLADTraining(TrainingMethod):
         clusters = self.network.vlad.centroids.shape[0]
         order = self.rng.permutation(len(self.all_maps))[: min(len(self.all_maps), 512)]
         with torch.no_grad():
-            local = torch.cat([self.network.local_features(self.all_maps[order[i:i + 64]])
-                               for i in range(0, len(order), 64)])
+            local = torch.cat(
+                [self.network.local_features(self.all_maps[order[i : i + 64]]) for i in range(0, len(order), 64)]
+            )
         local = local.permute(0, 2, 3, 1).reshape(-1, local.shape[1]).cpu().numpy().astype(np.float32)
         local /= np.maximum(np.linalg.norm(local, axis=1, keepdims=True), 1e-12)
         if len(local) < clusters:
-            raise DataError(f"only {len(local)} local features for {clusters} NetVLAD clusters; "
-                            "use more images, a larger input_size or fewer model.clusters")
+            raise DataError(
+                f"only {len(local)} local features for {clusters} NetVLAD clusters; "
+                "use more images, a larger input_size or fewer model.clusters"
+            )
         local = local[self.rng.permutation(len(local))[: train.kmeans_samples]]
         kmeans = faiss.Kmeans(local.shape[1], clusters, niter=25, seed=int(self.config.runtime.seed), verbose=False)
         kmeans.train(local)
@@ -169,8 +189,11 @@ class NetVLADTraining(TrainingMethod):
         self.network.train()
 
     def state(self) -> dict:
-        return {"numpy_rng": numpy_rng_state(self.rng), "cache_step": self.cache_step,
-                "cache": {c: torch.from_numpy(v) for c, v in self.cache.items()}}
+        return {
+            "numpy_rng": numpy_rng_state(self.rng),
+            "cache_step": self.cache_step,
+            "cache": {c: torch.from_numpy(v) for c, v in self.cache.items()},
+        }
 
     def load_state(self, state: dict) -> None:
         set_numpy_rng_state(self.rng, state["numpy_rng"])
@@ -223,8 +246,8 @@ class NetVLADTraining(TrainingMethod):
         batch = torch.stack(q_maps + p_maps + n_maps)
         vectors = self.network.vlad_vectors(batch).float()
         b = train.batch_size
-        q, p = vectors[:b], vectors[b:2 * b]
-        n = vectors[2 * b:].view(b, train.hard_negatives, -1)
+        q, p = vectors[:b], vectors[b : 2 * b]
+        n = vectors[2 * b :].view(b, train.hard_negatives, -1)
         d_pos = ((q - p) ** 2).sum(1, keepdim=True)
         d_neg = ((q[:, None, :] - n) ** 2).sum(2)
         hinge = torch.relu(d_pos - d_neg + train.margin)
@@ -238,9 +261,15 @@ class NetVLADTraining(TrainingMethod):
         return {"loss": float(loss.item()), "active_triplets": float((hinge > 0).float().mean().item())}
 
 
-def train(config: NetVLADRunConfig, run_dir, resume: bool = False, override: bool = False,
-          max_minutes: float | None = None, progress: bool = True,
-          command: str = "fdnet train netvlad") -> dict:
+def train(
+    config: NetVLADRunConfig,
+    run_dir,
+    resume: bool = False,
+    override: bool = False,
+    max_minutes: float | None = None,
+    progress: bool = True,
+    command: str = "fdnet train netvlad",
+) -> dict:
     """Train NetVLAD as ``config`` says into ``run_dir`` (what ``fdnet train netvlad`` calls)."""
     from fdnet.training.data import load_validation_images
     from fdnet.training.loop import run_training
@@ -252,5 +281,13 @@ def train(config: NetVLADRunConfig, run_dir, resume: bool = False, override: boo
         validation = load_validation_images(config.data.root, config.validation, config.model.input_size)
         return NetVLADTraining(config, data), validation
 
-    return run_training(build, run_dir, resume=resume, override=override, max_minutes=max_minutes,
-                        progress=progress, command=command, runtime=config.runtime)
+    return run_training(
+        build,
+        run_dir,
+        resume=resume,
+        override=override,
+        max_minutes=max_minutes,
+        progress=progress,
+        command=command,
+        runtime=config.runtime,
+    )
