@@ -1,0 +1,265 @@
+"""Places compressed in memory, exact answers on top: for maps too large to hold as float32.
+
+A map of N places of D floats costs 4 * D * N bytes in memory (2 GB at 10^6 places of 512
+floats). Two pieces keep it to a few tens of bytes per place:
+
+:class:`VectorFile`
+    the float32 vectors on disk, one file of rows (row i at byte 4 * D * i, no header),
+    append-only. Whoever owns the file records how many rows are committed (a place database:
+    in the same transaction as the places); an add killed before that commit leaves the file
+    longer than the committed count, and opening it with that count cuts the rest off, so the
+    file is the old state again and a resumed run appends the same rows.
+:class:`CompressedIndex`
+    faiss IVF-PQ fast-scan codes in memory (4-bit product quantisation, ``pq_subvectors`` / 2
+    bytes per place, plus its id in its cell's list); a query scans ``probe`` cells of codes,
+    keeps a short list of ``shortlist`` places and re-ranks them by exact dot products with
+    their float vectors read from the file. The scores returned are exact; only a place outside
+    the short list can be missed. Places are added as they come (one a frame); the cells and
+    codebooks are trained on the first places and trained again (every code re-encoded, read
+    from the file in chunks) when the map has grown ``retrain_growth``-fold since, from an
+    evenly spaced sample with faiss's fixed seeds, so the same map gives the same index and a
+    resumed run replays the same answers.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from fdnet.errors import ConfigError, DataError
+
+#: rows read from the vector file per chunk while (re-)encoding the map
+CHUNK_ROWS = 65_536
+
+
+class VectorFile:
+    """Append-only float32 rows in ``path`` (see the module docstring), with
+    :class:`~fdnet.matching.place_map.GrowingArray`'s interface (``len``, ``append``,
+    ``extend``, ``truncate``, ``view``). ``committed``: the rows the owner recorded as stored;
+    longer files are cut to it (an add that was killed), shorter ones are refused (the file was
+    damaged or replaced). None: every whole row in the file counts."""
+
+    def __init__(self, path: str | os.PathLike, dim: int, committed: int | None = None):
+        self.path = Path(path)
+        self.dim = int(dim)
+        self._row = 4 * self.dim
+        try:
+            self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise DataError(f"{self.path}: cannot open the vector file ({exc.strerror or exc})") from exc
+        size = os.fstat(self._fd).st_size
+        whole = size // self._row
+        if committed is not None and whole < int(committed):
+            os.close(self._fd)
+            raise DataError(f"{self.path}: holds {whole} vectors, its database committed {committed}; the vector "
+                            "file was damaged or replaced")
+        self._count = whole if committed is None else int(committed)
+        if size != self._count * self._row:
+            os.ftruncate(self._fd, self._count * self._row)  # a killed add's rows: the old state again
+            os.fsync(self._fd)
+        self._map: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return self._count
+
+    def append(self, row) -> None:
+        self.extend(np.asarray(row, np.float32)[None])
+
+    def extend(self, rows: np.ndarray) -> None:
+        rows = np.ascontiguousarray(rows, dtype=np.float32)
+        if rows.ndim != 2 or rows.shape[1] != self.dim:
+            raise ConfigError(f"{self.path}: holds {self.dim}-d vectors, got an array of shape {rows.shape}")
+        data = rows.tobytes()
+        offset, written = self._count * self._row, 0
+        while written < len(data):  # pwrite may write less than asked (a signal, a full disk)
+            done = os.pwrite(self._fd, data[written:], offset + written)
+            if done <= 0:
+                raise DataError(f"{self.path}: cannot write vectors (disk full?)")
+            written += done
+        self._count += len(rows)
+
+    def sync(self) -> None:
+        """Make the rows written so far durable (before the owner commits their count)."""
+        os.fsync(self._fd)
+
+    def truncate(self, count: int) -> None:
+        """Forget the rows from ``count`` on (the file is cut too)."""
+        self._count = min(int(count), self._count)
+        os.ftruncate(self._fd, self._count * self._row)
+        self._map = None
+
+    def view(self, count: int | None = None) -> np.ndarray:
+        """The first ``count`` rows (default all) as a read-only memory map: reading a row reads
+        the file (through the page cache), nothing is copied into memory."""
+        count = self._count if count is None else min(int(count), self._count)
+        if self._map is None or len(self._map) < count:
+            self._map = None
+            if count == 0:
+                return np.zeros((0, self.dim), np.float32)
+            # a new map when the file grew past the old one (one mmap call, nothing read)
+            self._map = np.memmap(self.path, np.float32, "r", shape=(self._count, self.dim))
+        return self._map[:count]
+
+    def read(self, start: int, stop: int) -> np.ndarray:
+        """Rows ``start`` to ``stop`` copied into memory, read with ``pread`` (a streamed pass over
+        the file, e.g. encoding it, leaves no mapped pages behind)."""
+        stop = min(int(stop), self._count)
+        data = os.pread(self._fd, max(0, stop - start) * self._row, start * self._row)
+        return np.frombuffer(data, np.float32).reshape(-1, self.dim).copy()
+
+    def close(self) -> None:
+        self._map = None
+        if self._fd >= 0:
+            os.close(self._fd)
+            self._fd = -1
+
+    def __enter__(self) -> "VectorFile":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+@dataclass
+class CompressedSettings:
+    #: 4-bit sub-quantizers per vector (bytes per code: half this); must divide the vector length
+    pq_subvectors: int = 64
+    #: inverted lists (0: about sqrt(N), as :func:`~fdnet.matching.index.ivf_lists_for`)
+    lists: int = 0
+    #: lists scanned per query
+    probe: int = 64
+    #: places re-ranked exactly per query (at least k)
+    shortlist: int = 256
+    #: train the cells and codebooks again when the map has grown this many times since
+    retrain_growth: int = 4
+    #: vectors the training samples (0: 64 per list, at least 39 x 16 for the codebooks)
+    train_points: int = 0
+
+
+def check_compressed(settings: CompressedSettings, dim: int, where: str = "compressed index") -> CompressedSettings:
+    for name in ("pq_subvectors", "probe", "shortlist", "retrain_growth"):
+        value = getattr(settings, name)
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+            raise ConfigError(f"{where}: {name} must be a positive whole number, got {value!r}")
+    if settings.lists < 0 or settings.train_points < 0:
+        raise ConfigError(f"{where}: lists and train_points must be >= 0")
+    if dim % settings.pq_subvectors or settings.pq_subvectors % 2:
+        raise ConfigError(f"{where}: pq_subvectors={settings.pq_subvectors} must be even and divide the vector "
+                          f"length {dim}")
+    return settings
+
+
+class CompressedIndex:
+    """IVF-PQ fast-scan codes of a map's places with an exact re-rank (see the module docstring).
+    The float vectors stay with the caller (a :class:`VectorFile`, a memory map or an array)
+    and are passed to :meth:`sync` and :meth:`search`."""
+
+    def __init__(self, dim: int, settings: CompressedSettings | None = None):
+        import faiss
+
+        self.dim = int(dim)
+        self.settings = check_compressed(settings or CompressedSettings(), self.dim)
+        self._faiss = faiss
+        self._index = None
+        self.trained_on = 0
+
+    def __len__(self) -> int:
+        return 0 if self._index is None else int(self._index.ntotal)
+
+    def sync(self, vectors) -> None:
+        """Encode the places of ``vectors`` not encoded yet; train again first when the map
+        has grown ``retrain_growth``-fold since the last training (or was never trained)."""
+        count = len(vectors)
+        if count == 0:
+            return
+        if self._index is None or count >= self.settings.retrain_growth * max(self.trained_on, 1):
+            self._train(vectors, count)
+        if count < len(self):
+            raise ConfigError(f"the map holds {count} places, its compressed index {len(self)}: truncate the index "
+                              "with the map (rebuild it)")
+        for start in range(len(self), count, CHUNK_ROWS):
+            self._index.add(_rows(vectors, start, min(count, start + CHUNK_ROWS)))
+
+    def _train(self, vectors, count: int) -> None:
+        from fdnet.matching.index import IndexSettings, ivf_lists_for
+
+        faiss = self._faiss
+        s = self.settings
+        # at least 39 points per cell and per 4-bit codebook entry (16 of them): faiss's k-means floor
+        lists = s.lists or ivf_lists_for(count, IndexSettings(kind="ivf"))
+        lists = max(1, min(lists, count // 39))
+        wanted = min(count, s.train_points or max(64 * lists, 39 * 16, 4096))
+        sample = _rows(vectors, np.linspace(0, count - 1, wanted).astype(np.int64))
+        quantizer = faiss.IndexFlatIP(self.dim)
+        index = faiss.IndexIVFPQFastScan(quantizer, self.dim, lists, s.pq_subvectors, 4,
+                                         faiss.METRIC_INNER_PRODUCT)
+        index.own_fields = True
+        quantizer.this.disown()
+        index.train(sample)
+        index.nprobe = min(s.probe, lists)
+        self._index, self.trained_on = index, count
+
+    def search(self, queries: np.ndarray, k: int, vectors, searchable: int | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """The best ``k`` of the first ``searchable`` places (None: all) for each query, as
+        (place ids, exact dot products), each (Q, k), best first, ties to the lower id, -1 /
+        -inf where the short list held fewer. Codes rank the ``shortlist`` candidates; their
+        float vectors, read from ``vectors``, give the order and the scores."""
+        q = np.ascontiguousarray(queries, dtype=np.float32)
+        self.sync(vectors)
+        count = len(self)
+        searchable = count if searchable is None else max(0, min(int(searchable), count))
+        out_ids = np.full((len(q), k), -1, np.int64)
+        out_scores = np.full((len(q), k), -np.inf, np.float32)
+        if searchable == 0 or k <= 0:
+            return out_ids, out_scores
+        # the excluded places are the last ones: ask for as many more, then drop them
+        wanted = min(count, max(self.settings.shortlist, k) + count - searchable)
+        _, found = self._index.search(q, wanted)
+        for row, ids in enumerate(found):
+            ids = np.unique(ids[(ids >= 0) & (ids < searchable)])  # sorted: the file is read in order
+            if not len(ids):
+                continue
+            exact = _rows(vectors, ids) @ q[row]
+            order = np.lexsort((ids, -exact))[:k]
+            out_ids[row, :len(order)] = ids[order]
+            out_scores[row, :len(order)] = exact[order]
+        return out_ids, out_scores
+
+    def memory_bytes(self) -> int:
+        """What the index holds in memory: its codes and ids, lists' centroids and codebooks (as
+        faiss serialises them, counted without a copy)."""
+        if self._index is None:
+            return 0
+        counter = [0]
+
+        def count(data) -> int:
+            counter[0] += len(data)
+            return len(data)
+
+        writer = self._faiss.PyCallbackIOWriter(count)
+        self._faiss.write_index(self._index, writer)
+        del writer
+        return counter[0]
+
+    def describe(self) -> dict:
+        out = {"kind": "ivfpq-fastscan", "dim": self.dim, "count": len(self), "trained_on": self.trained_on,
+               "bytes_per_code": self.settings.pq_subvectors // 2}
+        if self._index is not None:
+            out["lists"] = int(self._index.nlist)
+        return out
+
+
+def _rows(vectors, where, stop: int | None = None) -> np.ndarray:
+    """Rows of ``vectors`` as a float32 array in memory: ``where`` to ``stop`` (a range), or at
+    the sorted ids ``where``; a :class:`VectorFile` is read with ``pread``."""
+    if stop is not None:
+        if isinstance(vectors, VectorFile):
+            return vectors.read(where, stop)
+        return np.ascontiguousarray(vectors[where:stop], dtype=np.float32)
+    if isinstance(vectors, VectorFile):
+        vectors = vectors.view()
+    return np.ascontiguousarray(vectors[where], dtype=np.float32)

@@ -1,0 +1,148 @@
+"""Compressed places: the float vectors' file (crash-safe appends) and the IVF-PQ fast-scan codes
+with an exact re-rank (fdnet.matching.compressed)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fdnet.errors import ConfigError, DataError
+from fdnet.matching.compressed import CompressedIndex, CompressedSettings, VectorFile
+
+
+def unit(n: int, dim: int, seed: int) -> np.ndarray:
+    v = np.random.default_rng(seed).standard_normal((n, dim)).astype(np.float32)
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def test_vector_file_appends_reads_and_truncates(tmp_path):
+    rows = unit(10, 8, 0)
+    with VectorFile(tmp_path / "v.f32", 8) as f:
+        f.extend(rows[:6])
+        f.append(rows[6])
+        assert len(f) == 7
+        np.testing.assert_array_equal(f.view(), rows[:7])
+        np.testing.assert_array_equal(f.view(3), rows[:3])
+        np.testing.assert_array_equal(f.read(2, 5), rows[2:5])
+        f.truncate(4)
+        f.extend(rows[7:])
+        np.testing.assert_array_equal(f.view(), np.concatenate([rows[:4], rows[7:]]))
+        with pytest.raises(ConfigError, match="8-d"):
+            f.extend(np.zeros((1, 3), np.float32))
+    assert (tmp_path / "v.f32").stat().st_size == 7 * 8 * 4
+
+
+def test_vector_file_opened_at_its_committed_count_forgets_an_unfinished_add(tmp_path):
+    rows = unit(5, 4, 1)
+    with VectorFile(tmp_path / "v.f32", 4) as f:
+        f.extend(rows)
+    with VectorFile(tmp_path / "v.f32", 4, committed=3) as f:  # the owner committed 3 rows
+        assert len(f) == 3
+        np.testing.assert_array_equal(f.view(), rows[:3])
+    assert (tmp_path / "v.f32").stat().st_size == 3 * 4 * 4
+    with pytest.raises(DataError, match="v.f32: holds 3 vectors, its database committed 4"):
+        VectorFile(tmp_path / "v.f32", 4, committed=4)
+
+
+_WRITER = """
+import sys, numpy as np
+from fdnet.matching.compressed import VectorFile
+path, committed_file = sys.argv[1], sys.argv[2]
+rows = np.arange(64 * 16, dtype=np.float32).reshape(64, 16)
+f = VectorFile(path, 16)
+f.extend(rows[:40]); f.sync()
+open(committed_file, "w").write("40")  # what a database records in its commit
+print("committed", flush=True)
+while True:  # an add that never commits
+    f.extend(rows[40:])
+"""
+
+
+def test_kill_9_during_an_add_leaves_the_committed_rows_and_a_resume_continues(tmp_path):
+    path, committed = tmp_path / "v.f32", tmp_path / "committed"
+    proc = subprocess.Popen([sys.executable, "-c", _WRITER, str(path), str(committed)], stdout=subprocess.PIPE,
+                            text=True)
+    try:
+        assert proc.stdout.readline().strip() == "committed"
+        deadline = time.monotonic() + 30
+        while path.stat().st_size <= 40 * 64 and time.monotonic() < deadline:
+            time.sleep(0.01)
+    finally:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+    assert path.stat().st_size > 40 * 64  # the killed add wrote past the commit
+    rows = np.arange(64 * 16, dtype=np.float32).reshape(64, 16)
+    with VectorFile(path, 16, committed=int(committed.read_text())) as f:
+        np.testing.assert_array_equal(f.view(), rows[:40])
+        f.extend(rows[40:])  # the resumed run appends the same rows
+        np.testing.assert_array_equal(f.view(), rows)
+
+
+def small_settings(**kw) -> CompressedSettings:
+    return CompressedSettings(**{"pq_subvectors": 16, "probe": 16, "shortlist": 64, **kw})
+
+
+def test_compressed_search_reranks_exactly_and_finds_revisited_places(tmp_path):
+    places = unit(6000, 32, 2)
+    queries = places[::97] + 0.05 * unit(len(places[::97]), 32, 3)
+    with VectorFile(tmp_path / "v.f32", 32) as f:
+        f.extend(places)
+        index = CompressedIndex(32, small_settings())
+        ids, scores = index.search(queries, 3, f)
+    assert len(index) == len(places) and index.memory_bytes() < len(places) * 32 * 4 / 4
+    np.testing.assert_array_equal(ids[:, 0], np.arange(0, len(places), 97))
+    # the scores are the exact dot products, best first
+    np.testing.assert_allclose(scores, np.einsum("qkd,qd->qk", places[ids], queries), rtol=1e-5)
+    assert (np.diff(scores, axis=1) <= 0).all()
+
+
+def test_compressed_search_leaves_out_the_last_places_and_pads(tmp_path):
+    places = unit(3000, 32, 4)
+    index = CompressedIndex(32, small_settings())
+    ids, scores = index.search(places[-5:], 2, places, searchable=2995)
+    assert (ids < 2995).all() and (ids >= 0).all()
+    ids, scores = index.search(places[:1], 2, places, searchable=0)
+    assert (ids == -1).all() and np.isneginf(scores).all()
+
+
+def test_compressed_index_grows_and_trains_again_the_same_way(tmp_path):
+    places = unit(20_000, 32, 5)
+    runs = []
+    for _ in range(2):
+        index = CompressedIndex(32, small_settings())
+        index.sync(places[:4000])
+        assert index.trained_on == 4000
+        for n in range(4000, 4100):  # one place a frame
+            index.sync(places[:n + 1])
+        assert index.trained_on == 4000 and len(index) == 4100
+        index.sync(places[:16_000])  # grown fourfold: cells and codebooks trained again
+        assert index.trained_on == 16_000 and len(index) == 16_000
+        runs.append(index.search(places[:50] + 0.1 * unit(50, 32, 6), 5, places[:16_000]))
+    np.testing.assert_array_equal(runs[0][0], runs[1][0])  # seeded training: a resumed run replays it
+
+
+def test_compressed_settings_are_checked():
+    with pytest.raises(ConfigError, match="pq_subvectors=10 must be even and divide the vector length 32"):
+        CompressedIndex(32, CompressedSettings(pq_subvectors=10))
+    with pytest.raises(ConfigError, match="probe must be a positive whole number"):
+        CompressedIndex(32, CompressedSettings(probe=0))
+
+
+def test_a_map_shorter_than_its_index_is_refused(tmp_path):
+    places = unit(2000, 32, 7)
+    index = CompressedIndex(32, small_settings())
+    index.sync(places)
+    with pytest.raises(ConfigError, match="holds 1000 places, its compressed index 2000"):
+        index.sync(places[:1000])
+
+
+def test_vector_file_refuses_an_unopenable_path(tmp_path):
+    with pytest.raises(DataError, match="missing.*cannot open the vector file"):
+        VectorFile(Path(tmp_path) / "missing" / "v.f32", 4)
