@@ -78,10 +78,11 @@ class LoopCandidates:
         self.segment_first = t
         self._rows.clear()
 
-    def use_index(self, dim: int) -> None:
-        from fdnet.decisions.loop_search import IndexedCandidates
+    def use_index(self, dim: int, compressed_from: int | None = None) -> None:
+        from fdnet.decisions.loop_search import COMPRESSED_FROM, IndexedCandidates
 
-        self.indexed = IndexedCandidates(dim, self.plan.sequence_length)
+        compressed_from = COMPRESSED_FROM if compressed_from is None else compressed_from
+        self.indexed = IndexedCandidates(dim, self.plan.sequence_length, compressed_from=compressed_from)
 
     def frame_done(self, count: int) -> None:
         """The frame is decided and added: ``count`` places were in the map before it."""

@@ -277,7 +277,7 @@ class LoopClosureDetector:
             self.candidates.new_segment(t)
         if self.candidates.indexed is None and self.search != "exact" \
                 and (self.search == "index" or count >= self.index_from):
-            self.candidates.use_index(self.database.dim)
+            self.candidates.use_index(self.database.dim, self.settings.compressed_from)
         frame = FrameQuery(v, t, count, informative, still, timestamp, position)
         ids, scores, searchable = self.candidates.candidates(frame, self.map, self._seams)
         decision, closure = self._judge(frame, name, ids, scores, searchable)

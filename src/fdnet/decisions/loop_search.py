@@ -20,12 +20,19 @@ detector switches to :class:`IndexedCandidates`:
    marked uninformative, take the frame's neutral value (its median similarity, estimated on an
    evenly spaced sample of the map), as in the exhaustive path.
 
+Above a larger size (:data:`COMPRESSED_FROM` places by default, the detector's
+``compressed_from``) step 1's index is :class:`fdnet.matching.compressed.CompressedIndex`
+instead: 4-bit product-quantised codes in memory (tens of bytes per place instead of 4 x dim),
+each frame's short list re-ranked by exact dot products with the stored vectors, so the
+neighbours and their similarities are exact and steps 2 and 3 are unchanged.
+
 An approximate search can miss a place the exhaustive one would rank first: the figures of
 ``fdnet benchmark --parts loop`` give the agreement with exhaustive decisions next to the speed.
 """
 
 from __future__ import annotations
 
+import contextlib
 from collections import deque
 
 import numpy as np
@@ -36,6 +43,8 @@ from fdnet.matching.sequence import DEFAULT_VELOCITIES, SequenceRow, sequence_re
 INDEX_FROM = 20_000
 #: below this many places the "index" is exact (faiss flat): k-means needs points to train on
 IVF_FROM = 4096
+#: maps of at least this many places are searched through compressed codes (``compressed_from``)
+COMPRESSED_FROM = 2_000_000
 #: neighbours fetched per frame from the index
 NEIGHBOURS = 32
 #: sequence ends scored exactly per frame (the best of a first ranking from the index's own similarities)
@@ -48,12 +57,14 @@ class IndexedCandidates:
     """The index over a detector's places and the recent frames' neighbours (see the module
     docstring). ``vectors``: a callable giving the detector's (places, dim) vectors so far."""
 
-    def __init__(self, dim: int, sequence_length: int, neighbours: int = NEIGHBOURS, probe: int = 32):
+    def __init__(self, dim: int, sequence_length: int, neighbours: int = NEIGHBOURS, probe: int = 32,
+                 compressed_from: int = COMPRESSED_FROM):
         from fdnet.matching.index import IndexSettings, VectorIndex
 
         self.dim = int(dim)
         self.sequence_length = int(sequence_length)
         self.neighbours = int(neighbours)
+        self.compressed_from = int(compressed_from)
         self._make = lambda kind: VectorIndex(self.dim, IndexSettings(kind=kind, ivf_probe=int(probe)))
         self._index = None
         self._trained_on = 0
@@ -69,6 +80,15 @@ class IndexedCandidates:
         count = len(vectors)
         if count == 0:
             return
+        if self._compressed(count):
+            from fdnet.matching.compressed import CompressedIndex
+
+            if not isinstance(self._index, CompressedIndex):
+                self._index = CompressedIndex(self.dim)
+            # a frame's add on one thread; training and the first bulk encoding keep every thread
+            with _one_faiss_thread() if len(self._index) else contextlib.nullcontext():
+                self._index.sync(vectors)  # it trains again itself as the map grows
+            return
         if self._index is None or count >= 4 * max(self._trained_on, 1):
             # below IVF_FROM places exact search is as fast and k-means would have too few points
             self._index = self._make("flat" if count < IVF_FROM else "ivf")
@@ -78,6 +98,10 @@ class IndexedCandidates:
         elif count > len(self._index):
             with _one_faiss_thread():  # a frame or a few: training and bulk adds keep every thread
                 self._index.add(vectors[len(self._index):count])
+
+    def _compressed(self, count: int) -> bool:
+        # below IVF_FROM places the index is exact anyway, and the codebooks would lack points
+        return count >= max(self.compressed_from, IVF_FROM)
 
     def neutral(self, v: np.ndarray, vectors: np.ndarray, informative: np.ndarray) -> float:
         """The frame's median similarity over an evenly spaced sample of the informative places."""
@@ -107,7 +131,10 @@ class IndexedCandidates:
         ids, sims = np.zeros(0, np.int64), np.zeros(0, np.float32)
         if count:
             with _one_faiss_thread():
-                found, scores = self._index.search(v[None], min(self.neighbours, count))
+                if self._compressed(count):  # exact similarities of the short list's best
+                    found, scores = self._index.search(v[None], min(self.neighbours, count), vectors)
+                else:
+                    found, scores = self._index.search(v[None], min(self.neighbours, count))
             keep = found[0] >= 0
             order = np.argsort(found[0][keep])
             ids, sims = found[0][keep][order], scores[0][keep][order]  # sorted by place, for look-ups
@@ -203,4 +230,3 @@ class _one_faiss_thread:
 
     def __exit__(self, *exc):
         self._faiss.omp_set_num_threads(self._threads)
-

@@ -42,7 +42,9 @@ class LoopClosureSettings:
     threshold, sequence length and gates for this model. ``sequence_length``: score by sequences
     of the robot's last N frames (1 = single images; None: the calibration's, else 1).
     ``gates``: :class:`~fdnet.decisions.loop_gates.LoopGates`. ``search``: one of
-    :data:`SEARCH_KINDS`, with ``index_from`` places for ``auto``. ``method_options``: what
+    :data:`SEARCH_KINDS`, with ``index_from`` places for ``auto``; ``compressed_from``: the map
+    size from which the index holds compressed codes re-ranked exactly (None: the default,
+    :data:`~fdnet.decisions.loop_search.COMPRESSED_FROM`). ``method_options``: what
     rebuilds the descriptor, recorded in a database created by the detector.
     ``allow_duplicates``: add a frame whose name the database already holds. ``commit_every``:
     frames stored per database transaction (1: every frame durable before ``process`` returns).
@@ -57,6 +59,7 @@ class LoopClosureSettings:
     gates: LoopGates | None = None
     search: str = "auto"
     index_from: int | None = None
+    compressed_from: int | None = None
     method_options: dict | None = None
     allow_duplicates: bool = False
     commit_every: int = 1
@@ -72,6 +75,8 @@ class LoopClosureSettings:
             raise ConfigError(f"search must be one of {', '.join(SEARCH_KINDS)}, got {self.search!r}")
         if self.index_from is not None:
             _whole(self.index_from, 0, "index-from")
+        if self.compressed_from is not None:
+            _whole(self.compressed_from, 0, "compressed-from")
         if self.gates is not None and not isinstance(self.gates, LoopGates):
             raise ConfigError(f"gates must be a LoopGates, got {type(self.gates).__name__}")
 

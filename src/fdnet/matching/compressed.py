@@ -23,6 +23,7 @@ floats). Two pieces keep it to a few tens of bytes per place:
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -125,8 +126,9 @@ class VectorFile:
 
 @dataclass
 class CompressedSettings:
-    #: 4-bit sub-quantizers per vector (bytes per code: half this); must divide the vector length
-    pq_subvectors: int = 64
+    #: 4-bit sub-quantizers per vector (bytes per code: half this), even, dividing the vector
+    #: length; 0: dim / 8 (64 for 512 floats: 32 bytes a place), or the nearest even divisor below
+    pq_subvectors: int = 0
     #: inverted lists (0: about sqrt(N), as :func:`~fdnet.matching.index.ivf_lists_for`)
     lists: int = 0
     #: lists scanned per query
@@ -139,7 +141,18 @@ class CompressedSettings:
     train_points: int = 0
 
 
+def pq_subvectors_for(dim: int) -> int:
+    """The largest even divisor of ``dim`` up to dim / 8 (at least 2; 2 for an odd ``dim`` is
+    refused by :func:`check_compressed`)."""
+    for m in range(max(2, dim // 8), 1, -1):
+        if m % 2 == 0 and dim % m == 0:
+            return m
+    return 2
+
+
 def check_compressed(settings: CompressedSettings, dim: int, where: str = "compressed index") -> CompressedSettings:
+    if settings.pq_subvectors == 0:
+        settings = dataclasses.replace(settings, pq_subvectors=pq_subvectors_for(dim))
     for name in ("pq_subvectors", "probe", "shortlist", "retrain_growth"):
         value = getattr(settings, name)
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
@@ -247,7 +260,8 @@ class CompressedIndex:
 
     def describe(self) -> dict:
         out = {"kind": "ivfpq-fastscan", "dim": self.dim, "count": len(self), "trained_on": self.trained_on,
-               "bytes_per_code": self.settings.pq_subvectors // 2}
+               "bytes_per_code": self.settings.pq_subvectors // 2, "probe": self.settings.probe,
+               "shortlist": self.settings.shortlist}
         if self._index is not None:
             out["lists"] = int(self._index.nlist)
         return out

@@ -1,0 +1,79 @@
+"""Loop closure over compressed codes (``compressed_from``): the same decisions as searching every
+place, and a resumed traverse replays them."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fdnet.decisions.loop_closure import LoopClosureDetector
+from fdnet.errors import ConfigError
+from fdnet.matching.compressed import CompressedIndex
+from fdnet.matching.database import PlaceDatabase
+from fdnet.performance.loop_benchmark import StoredVectors
+
+DIM, MAP, ROUTE = 32, 5000, 40
+SETTINGS = {"exclude_last": 5, "rule": "margin", "threshold": 0.0, "sequence_length": 5}
+
+
+def unit(v: np.ndarray) -> np.ndarray:
+    return (v / np.linalg.norm(v, axis=1, keepdims=True)).astype(np.float32)
+
+
+def earlier_and_route():
+    rng = np.random.default_rng(3)
+    earlier = unit(rng.standard_normal((MAP, DIM)))
+    route = unit(rng.standard_normal((ROUTE, DIM)))
+    frames = np.concatenate([unit(route + 0.1 * rng.standard_normal(route.shape)),
+                             unit(route + 0.1 * rng.standard_normal(route.shape))])
+    return earlier, frames
+
+
+def decide(db, frames, **settings):
+    detector = LoopClosureDetector(StoredVectors(DIM), db, **SETTINGS, **settings)
+    with detector:
+        for i, v in enumerate(frames):
+            detector.process_vector(v, name=f"traverse/{i}")
+    return detector
+
+
+def test_compressed_search_decides_as_every_place():
+    earlier, frames = earlier_and_route()
+    decided = {}
+    for search, extra in (("exact", {}), ("compressed", {"search": "index", "compressed_from": 4096})):
+        db = PlaceDatabase.for_descriptor(StoredVectors(DIM))
+        db.add(earlier, [f"earlier/{i}" for i in range(MAP)])
+        detector = decide(db, frames, **({"search": "exact"} | extra))
+        decided[search] = [(d.match, d.accepted) for d in detector.decisions]
+        if search == "compressed":
+            assert isinstance(detector.candidates.indexed._index, CompressedIndex)
+    # on the revisits whose sequence reaches the place seen before (the first pass's best places,
+    # and the sequences still made of first-pass frames, are noise): the same place, accepted alike
+    exact, compressed = decided["exact"][ROUTE:], decided["compressed"][ROUTE:]
+    found = np.abs(np.array([m for m, _ in exact]) - (MAP + np.arange(ROUTE))) <= 1
+    assert found.mean() > 0.9
+    assert [c for c, f in zip(compressed, found) if f] == [e for e, f in zip(exact, found) if f]
+
+
+def test_a_resumed_traverse_over_compressed_codes_replays_the_same_decisions(tmp_path):
+    earlier, frames = earlier_and_route()
+    whole_db = tmp_path / "whole.db"
+    with PlaceDatabase.create(whole_db, StoredVectors(DIM)) as db:
+        db.add(earlier, [f"earlier/{i}" for i in range(MAP)])
+    settings = {"search": "index", "compressed_from": 4096}
+    whole = decide(whole_db, frames, **settings)
+    cut_db = tmp_path / "cut.db"
+    with PlaceDatabase.create(cut_db, StoredVectors(DIM)) as db:
+        db.add(earlier, [f"earlier/{i}" for i in range(MAP)])
+    decide(cut_db, frames[:ROUTE + 7], **settings)  # a run stopped among the revisits
+    resumed = LoopClosureDetector(StoredVectors(DIM), cut_db, **SETTINGS, **settings)
+    with resumed:
+        resumed.resume(ROUTE + 7)
+        for i in range(ROUTE + 7, len(frames)):
+            resumed.process_vector(frames[i], name=f"traverse/{i}")
+    assert [(d.match, d.accepted) for d in resumed.decisions] == [(d.match, d.accepted) for d in whole.decisions]
+
+
+def test_compressed_from_is_checked():
+    with pytest.raises(ConfigError, match="compressed-from must be a whole number"):
+        LoopClosureDetector(StoredVectors(DIM), None, compressed_from=-1, **SETTINGS)
