@@ -64,6 +64,13 @@ def _add_scale_arguments(p) -> None:
     p.add_argument("--loop-map-size", default="10000,100000,1000000",
                    help="map sizes of the loop part: the loop-closure detector's ms/frame with exhaustive search "
                         "and with the index (default 10000,100000,1000000; --quick: the smallest)")
+    p.add_argument("--loop-compressed-size", default="",
+                   help="map sizes of compressed place search in the loop part (codes in memory, vectors in a file "
+                        "on disk, re-ranked exactly; e.g. 100000,1000000,10000000; default none); needs "
+                        "--loop-real-vectors; 2 KB of disk per place in the temporary folder")
+    p.add_argument("--loop-real-vectors", default="", metavar="NPZ[,NPZ]",
+                   help="FDNet vectors the compressed maps are made from (.npz: v, cond = 0 for the reference "
+                        "traverse and others for the same places seen again, ids = the place of each)")
     p.add_argument("--indexes", default=DEFAULT_INDEXES,
                    help=f"faiss indexes of the scale benchmark (default {DEFAULT_INDEXES})")
     p.add_argument("--index-set", action="append", default=[], metavar="KIND:KEY=VALUE",
@@ -100,6 +107,7 @@ def run(args) -> int:
         map_vectors=args.map_vectors, query_vectors=args.query_vectors, lengths=args.lengths,
         compile=args.compile == "on" or (args.compile == "auto" and args.num_images >= COMPILE_FROM),
         quick=args.quick, threads=args.threads or os.cpu_count() or 1, device=args.device, command=command,
-        loop_map_size=args.loop_map_size, weights=tuple(args.weights)))
+        loop_map_size=args.loop_map_size, weights=tuple(args.weights),
+        loop_compressed_size=args.loop_compressed_size, loop_real_vectors=args.loop_real_vectors))
     run_benchmark(plan, out=lambda line: print(line, flush=True), json_path=args.json)
     return 0

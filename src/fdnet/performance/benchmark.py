@@ -326,6 +326,12 @@ def _loop(plan: BenchmarkPlan, workdir: str, report: dict, out) -> None:
                                     f"runs it ({describe:.1f} ms)"))
     report["loop"] = loop_rows(plan.loop_map_sizes, dim=512, route=route, noise=plan.noise, describe_ms=describe,
                                log=out)
+    if plan.loop_compressed_sizes:
+        from fdnet.performance.compressed_benchmark import HEADLINE, compressed_rows
+
+        out(HEADLINE)
+        report["loop_compressed"] = compressed_rows(plan.loop_compressed_sizes, workdir, plan.loop_real_vectors,
+                                                    describe_ms=describe, log=out)
     _loop_per_frame(plan, workdir, report, out)
 
 

@@ -27,6 +27,10 @@ class BenchmarkPlan:
     kinds: list[str]
     #: map sizes of the loop-closure part (exhaustive search against the index)
     loop_map_sizes: list[int] = field(default_factory=lambda: [10_000, 100_000, 1_000_000])
+    #: map sizes of compressed place search (codes in memory, vectors on disk; none by default)
+    loop_compressed_sizes: list[int] = field(default_factory=list)
+    #: FDNet vectors (.npz: v, cond, ids) the compressed maps are made from
+    loop_real_vectors: list[str] = field(default_factory=list)
     overrides: dict = field(default_factory=dict)
     sweep: dict = field(default_factory=dict)
     images: str | None = None
@@ -84,6 +88,8 @@ class BenchmarkRequest:
     command: str | None = None
     loop_map_size: str = "10000,100000,1000000"
     weights: tuple = ()
+    loop_compressed_size: str = ""
+    loop_real_vectors: str = ""
 
 
 def plan_benchmark(request: BenchmarkRequest) -> BenchmarkPlan:
@@ -114,6 +120,7 @@ def plan_benchmark(request: BenchmarkRequest) -> BenchmarkPlan:
         raise ConfigError(f"--loop-map-size {loop_map_size!r}: every map needs at least 1 place")
     if quick:
         loop_map_sizes = [min(loop_map_sizes)]
+    compressed_sizes, real_vectors = _compressed_maps(r.loop_compressed_size, r.loop_real_vectors)
     kinds = _comma_list(indexes)
     for kind in kinds:
         if kind not in INDEX_KINDS:
@@ -146,7 +153,25 @@ def plan_benchmark(request: BenchmarkRequest) -> BenchmarkPlan:
                          overrides=index_overrides(r.index_set), sweep=sweeps(r.sweep), images=r.images,
                          num_images=num_images, queries=queries, noise=noise, scale_dim=r.scale_dim,
                          map_vectors=map_vectors, query_vectors=query_vectors, lengths=length_list, compile=r.compile,
-                         quick=quick, threads=threads, device=check_device_spec(r.device), command=r.command)
+                         quick=quick, threads=threads, device=check_device_spec(r.device), command=r.command,
+                         loop_compressed_sizes=compressed_sizes, loop_real_vectors=real_vectors)
+
+
+def _compressed_maps(sizes: str, vectors: str) -> tuple[list[int], list[str]]:
+    """``--loop-compressed-size`` and ``--loop-real-vectors``, checked."""
+    try:
+        parsed = [int(v) for v in _comma_list(sizes)]
+    except ValueError as exc:
+        raise ConfigError(f"--loop-compressed-size {sizes!r}: expected whole numbers, e.g. 100000,1000000") from exc
+    files = _comma_list(vectors)
+    if parsed and min(parsed) < 10_000:
+        raise ConfigError(f"--loop-compressed-size {sizes!r}: compressed maps start at 10000 places")
+    if parsed and not files:
+        raise ConfigError("--loop-compressed-size needs --loop-real-vectors (FDNet vectors, .npz with v, cond, ids)")
+    for path in files:
+        if not Path(path).is_file():
+            raise DataError(f"{path}: --loop-real-vectors file not found")
+    return parsed, files
 
 
 def index_overrides(items) -> dict:

@@ -1,0 +1,220 @@
+"""Place queries over maps too large for memory: compressed codes in RAM, float vectors on disk
+(:mod:`fdnet.matching.compressed`), 10^5 to 10^7 places, against exhaustive float search.
+
+The map is built streamed to a :class:`~fdnet.matching.compressed.VectorFile` (never all vectors
+in memory at once): distractors drawn from a Gaussian with the mean and covariance of real FDNet
+vectors (unit length, like the descriptor's), and in the middle of the map the real reference
+traverses (Nordland summer, Gardens Point day-left). The queries are the same places seen again
+(Nordland winter; Gardens Point day-right and night-right), one at a time, as a robot would.
+
+Per size the row gives: resident memory after the queries (the process's RSS, and its anonymous
+part: mapped pages of the vector file are page cache the kernel takes back under pressure), bytes
+per place in memory (the codes) and on disk (the vector file), the time to build (write the file,
+train, encode), ms per query (median and p99; codes scanned, short list re-ranked from the file),
+the same against one matrix-vector product over a slice of the map held in memory, scaled to the
+map (the exhaustive search's floor), measured in the same run, and the share of queries whose
+decision agrees with exhaustive float search over the whole file: the same best place, and the
+same closure decision by the margin rule (best minus second best over the median margin).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+#: rows drawn, written and searched per chunk while building and while searching exhaustively
+CHUNK = 131_072
+
+
+HEADLINE = ("\nCompressed place search: maps of distractors drawn like the real FDNet vectors given, the real "
+            "reference traverses in the middle; codes in memory, vectors in a file, short list re-ranked exactly; "
+            "queries one at a time against exhaustive float search over the file "
+            "(fdnet.performance.compressed_benchmark)")
+
+
+def real_vectors(sources) -> tuple[np.ndarray, np.ndarray, list]:
+    """(references, queries, per query the index of its place among the references) from FDNet
+    vectors in .npz files (``v``; ``cond``: 0 for the reference traverse, others for the same
+    places seen again; ``ids``: the place of each)."""
+    from fdnet.errors import DataError
+
+    refs, queries, truth = [], [], []
+    offset = 0
+    for source in sources:
+        try:
+            with np.load(source) as data:
+                vectors, cond, ids = data["v"].astype(np.float32), data["cond"], data["ids"]
+        except (OSError, ValueError, KeyError) as exc:
+            raise DataError(f"{source}: not FDNet vectors with v, cond and ids ({exc})") from exc
+        ref = cond == 0
+        where = {int(i): k for k, i in enumerate(ids[ref])}
+        refs.append(vectors[ref])
+        for c in sorted(set(cond.tolist()) - {0}):
+            queries.append(vectors[cond == c])
+            truth += [offset + where.get(int(i), -1) for i in ids[cond == c]]
+        offset += int(ref.sum())
+    return np.concatenate(refs), np.concatenate(queries), truth
+
+
+def distractors(sample: np.ndarray, count: int, seed: int):
+    """``count`` unit vectors from a Gaussian with ``sample``'s mean and covariance, in chunks."""
+    mean = sample.mean(0)
+    cov = np.cov(sample, rowvar=False) + 1e-6 * np.eye(sample.shape[1])
+    factor = np.linalg.cholesky(cov).astype(np.float32)
+    rng = np.random.default_rng(seed)
+    for start in range(0, count, CHUNK):
+        z = rng.standard_normal((min(CHUNK, count - start), sample.shape[1]), dtype=np.float32)
+        v = z @ factor.T + mean
+        v /= np.linalg.norm(v, axis=1, keepdims=True)
+        yield v
+
+
+def build_file(path: Path, size: int, refs: np.ndarray, sample: np.ndarray, seed: int = 11) -> int:
+    """Write a map of ``size`` places to ``path``: distractors with ``refs`` in the middle; returns
+    the first reference's place."""
+    from fdnet.matching.compressed import VectorFile
+
+    path.unlink(missing_ok=True)
+    at = max(0, (size - len(refs)) // 2)
+    with VectorFile(path, refs.shape[1]) as out:
+        for chunk in distractors(sample, size - len(refs), seed):
+            if len(out) <= at < len(out) + len(chunk):
+                cut = at - len(out)
+                out.extend(chunk[:cut])
+                out.extend(refs)
+                chunk = chunk[cut:]
+            out.extend(chunk)
+        if len(out) <= at:
+            out.extend(refs)
+        out.sync()
+    return at
+
+
+def exhaustive_top2(path: Path, dim: int, queries: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Exact best two places and scores of every query over the whole file, streamed in chunks."""
+    from fdnet.matching.compressed import VectorFile
+
+    ids = np.full((len(queries), 2), -1, np.int64)
+    scores = np.full((len(queries), 2), -np.inf, np.float32)
+    with VectorFile(path, dim) as file:
+        for start in range(0, len(file), CHUNK):
+            block = file.read(start, start + CHUNK) @ queries.T  # (rows, Q)
+            top = np.argpartition(-block, min(1, len(block) - 1), axis=0)[:2].T  # each query's best two rows
+            cand_ids = np.concatenate([ids, top + start], 1)
+            cand = np.concatenate([scores, np.take_along_axis(block.T, top, 1)], 1)
+            order = _best2(cand_ids, cand)
+            ids = np.take_along_axis(cand_ids, order, 1)
+            scores = np.take_along_axis(cand, order, 1)
+    return ids, scores
+
+
+def _best2(ids: np.ndarray, scores: np.ndarray) -> np.ndarray:
+    """Per row, the positions of the two best scores, ties to the lower id."""
+    return np.stack([np.lexsort((i, -s))[:2] for i, s in zip(ids, scores)])
+
+
+def _memory() -> dict:
+    fields = {}
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            key, _, value = line.partition(":")
+            if key in ("VmRSS", "RssAnon", "RssFile", "VmHWM"):
+                fields[key] = int(value.split()[0]) * 1024
+    return fields
+
+
+def compressed_rows(sizes, workdir: str | os.PathLike, sources, describe_ms: float | None = None, settings=None,
+                    log: Callable[[str], None] = lambda line: None) -> list[dict]:
+    """Measure each map size (see the module docstring) on maps made from the FDNet vectors of
+    ``sources`` (.npz files); the vector file of each is deleted after."""
+    from fdnet.matching.compressed import CompressedIndex, VectorFile
+
+    refs, queries, truth = real_vectors(sources)
+    sample = np.concatenate([refs, queries])
+    rows = []
+    for size in sizes:
+        path = Path(workdir) / f"compressed-map-{size}.f32"
+        log(f"  {size:>11,} places: writing the map ...")
+        t0 = time.perf_counter()
+        at = build_file(path, int(size), refs, sample)
+        written = time.perf_counter() - t0
+        reference_ids, reference_scores = exhaustive_top2(path, refs.shape[1], queries)
+        try:
+            with VectorFile(path, refs.shape[1]) as file:
+                index = CompressedIndex(refs.shape[1], settings)
+                t1 = time.perf_counter()
+                index.sync(file)
+                encoded = time.perf_counter() - t1
+                row = _query_rows(index, file, queries, reference_ids, reference_scores)
+                row.update(_memory())
+                row.update(map_size=int(size), build_s=written + encoded, write_s=written, encode_s=encoded,
+                           memory_bytes_per_place=index.memory_bytes() / size, disk_bytes_per_place=4 * refs.shape[1],
+                           index=index.describe(), gemv_ms=_gemv_ms_scaled(file, size))
+                found = np.array(truth) >= 0
+                row["recall_at_1"] = float(np.mean(np.abs(row.pop("ids") - (at + np.array(truth)))[found] <= 2))
+        finally:
+            path.unlink(missing_ok=True)
+        if describe_ms is not None:
+            row["describe_ms"] = describe_ms
+            row["fdnet_frames_per_s"] = 1e3 / (describe_ms + row["query_ms_median"])
+        rows.append(row)
+        log(_line(row))
+    return rows
+
+
+def _query_rows(index, file, queries, reference_ids, reference_scores) -> dict:
+    import faiss
+
+    times, ids, scores = [], [], []
+    threads = faiss.omp_get_max_threads()
+    faiss.omp_set_num_threads(1)  # one query at a time, as a robot: OpenMP's start costs more than it saves
+    try:
+        for q in queries:
+            t0 = time.perf_counter()
+            i, s = index.search(q[None], 2, file)
+            times.append(time.perf_counter() - t0)
+            ids.append(i[0])
+            scores.append(s[0])
+    finally:
+        faiss.omp_set_num_threads(threads)
+    ids, scores = np.array(ids), np.array(scores)
+    same_place = ids[:, 0] == reference_ids[:, 0]
+    margin = reference_scores[:, 0] - reference_scores[:, 1]
+    threshold = float(np.median(margin))
+    closure_ref = margin >= threshold
+    closure = (scores[:, 0] - scores[:, 1]) >= threshold
+    agree = (closure == closure_ref) & (same_place | ~closure_ref)
+    return {"queries": len(queries), "query_ms_median": 1e3 * float(np.median(times)),
+            "query_ms_p99": 1e3 * float(np.percentile(times, 99)), "same_place": float(same_place.mean()),
+            "decision_agreement": float(agree.mean()), "margin_threshold": threshold, "ids": ids[:, 0]}
+
+
+def _gemv_ms_scaled(file, size: int, rows: int = 100_000) -> float:
+    """ms of one matrix-vector product over ``rows`` places held in memory (one thread), scaled to
+    ``size`` places: what the exhaustive search costs at the least."""
+    from threadpoolctl import threadpool_limits
+
+    block = file.read(0, min(rows, size))
+    v = block[0].copy()
+    times = []
+    with threadpool_limits(1, user_api="blas"):
+        for _ in range(5):
+            t0 = time.perf_counter()
+            block @ v
+            times.append(time.perf_counter() - t0)
+    return 1e3 * float(np.median(times)) * size / len(block)
+
+
+def _line(row: dict) -> str:
+    gb = 1 << 30
+    fps = "" if "fdnet_frames_per_s" not in row else f", with FDNet {row['fdnet_frames_per_s']:.1f} frames/s"
+    return (f"  {row['map_size']:>11,} places: RSS {row['VmRSS'] / gb:.2f} GB (anonymous {row['RssAnon'] / gb:.2f}), "
+            f"{row['memory_bytes_per_place']:.1f} B/place in memory, {row['disk_bytes_per_place']} on disk, built in "
+            f"{row['build_s']:.0f} s; query {row['query_ms_median']:.2f} ms (p99 {row['query_ms_p99']:.2f}) = "
+            f"{row['query_ms_median'] / row['gemv_ms']:.4f} x exhaustive GEMV ({row['gemv_ms']:.0f} ms); same place "
+            f"{row['same_place']:.3f}, same decision {row['decision_agreement']:.3f}, "
+            f"R@1 {row['recall_at_1']:.3f}{fps}")

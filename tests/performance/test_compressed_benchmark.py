@@ -1,0 +1,45 @@
+"""The compressed-place part of ``fdnet benchmark --parts loop`` on a small map (the 10^7 row is the
+benchmark's own run, not a test's)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fdnet.errors import ConfigError, DataError
+from fdnet.performance.benchmark_plan import BenchmarkRequest, plan_benchmark
+from fdnet.performance.compressed_benchmark import compressed_rows
+
+
+def fake_fdnet_vectors(path, places=60, dim=32, seed=0):
+    rng = np.random.default_rng(seed)
+    ref = rng.standard_normal((places, dim))
+    again = ref + 0.3 * rng.standard_normal((places, dim))
+    v = np.concatenate([ref, again]).astype(np.float32)
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    np.savez(path, v=v, cond=np.repeat([0, 1], places), ids=np.tile(np.arange(places), 2))
+    return path
+
+
+def test_compressed_rows_report_memory_speed_and_agreement(tmp_path):
+    sources = [fake_fdnet_vectors(tmp_path / "a.npz"), fake_fdnet_vectors(tmp_path / "b.npz", seed=1)]
+    lines = []
+    (row,) = compressed_rows([20_000], tmp_path, sources, describe_ms=10.0, log=lines.append)
+    assert row["map_size"] == 20_000 and row["queries"] == 120
+    assert row["disk_bytes_per_place"] == 128 and row["memory_bytes_per_place"] < 64
+    assert 0.9 <= row["same_place"] <= 1 and 0.9 <= row["decision_agreement"] <= 1 and row["recall_at_1"] > 0.9
+    assert row["query_ms_median"] <= row["query_ms_p99"] and row["gemv_ms"] > 0 and row["fdnet_frames_per_s"] > 0
+    assert "same decision" in lines[-1]
+    assert not list(tmp_path.glob("*.f32"))  # each map's file is deleted after its row
+
+
+def test_compressed_sizes_need_real_vectors(tmp_path):
+    with pytest.raises(ConfigError, match="--loop-compressed-size needs --loop-real-vectors"):
+        plan_benchmark(BenchmarkRequest(loop_compressed_size="100000"))
+    with pytest.raises(DataError, match="nope.npz: --loop-real-vectors file not found"):
+        plan_benchmark(BenchmarkRequest(loop_compressed_size="100000", loop_real_vectors=str(tmp_path / "nope.npz")))
+    with pytest.raises(ConfigError, match="start at 10000 places"):
+        plan_benchmark(BenchmarkRequest(loop_compressed_size="100", loop_real_vectors="x.npz"))
+    plan = plan_benchmark(BenchmarkRequest(loop_compressed_size="100000,1000000",
+                                           loop_real_vectors=str(fake_fdnet_vectors(tmp_path / "a.npz"))))
+    assert plan.loop_compressed_sizes == [100_000, 1_000_000]
