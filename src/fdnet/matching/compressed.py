@@ -24,6 +24,7 @@ floats). Two pieces keep it to a few tens of bytes per place:
 from __future__ import annotations
 
 import dataclasses
+import mmap
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -100,8 +101,12 @@ class VectorFile:
             self._map = None
             if count == 0:
                 return np.zeros((0, self.dim), np.float32)
-            # a new map when the file grew past the old one (one mmap call, nothing read)
-            self._map = np.memmap(self.path, np.float32, "r", shape=(self._count, self.dim))
+            # a new map when the file grew past the old one (one mmap call, nothing read); no
+            # read-ahead: the rows a query reads are scattered, and pages read ahead around each
+            # would stay mapped (resident) without being used
+            mapped = mmap.mmap(self._fd, self._count * self._row, prot=mmap.PROT_READ)
+            mapped.madvise(mmap.MADV_RANDOM)
+            self._map = np.frombuffer(mapped, np.float32).reshape(self._count, self.dim)
         return self._map[:count]
 
     def read(self, start: int, stop: int) -> np.ndarray:
