@@ -146,3 +146,17 @@ def test_a_map_shorter_than_its_index_is_refused(tmp_path):
 def test_vector_file_refuses_an_unopenable_path(tmp_path):
     with pytest.raises(DataError, match="missing.*cannot open the vector file"):
         VectorFile(Path(tmp_path) / "missing" / "v.f32", 4)
+
+
+def test_many_cells_are_found_through_a_graph_built_the_same_way(monkeypatch):
+    import fdnet.matching.compressed as compressed
+
+    monkeypatch.setattr(compressed, "HNSW_LISTS", 32)  # a large map's path on a small one
+    places = unit(8000, 32, 8)
+    queries = places[:100] + 0.05 * unit(100, 32, 9)
+    runs = []
+    for _ in range(2):
+        index = CompressedIndex(32, small_settings(lists=64))
+        runs.append(index.search(queries, 3, places)[0])
+    np.testing.assert_array_equal(runs[0][:, 0], np.arange(100))
+    np.testing.assert_array_equal(runs[0], runs[1])

@@ -18,7 +18,9 @@ floats). Two pieces keep it to a few tens of bytes per place:
     codebooks are trained on the first places and trained again (every code re-encoded, read
     from the file in chunks) when the map has grown ``retrain_growth``-fold since, from an
     evenly spaced sample with faiss's fixed seeds, so the same map gives the same index and a
-    resumed run replays the same answers.
+    resumed run replays the same answers. From :data:`HNSW_LISTS` cells (about 4 x 10^6
+    places) a place's cell is found through an HNSW graph over the cells' centroids instead of
+    by comparing it with each of them, which is most of the time of encoding a large map.
 """
 
 from __future__ import annotations
@@ -35,6 +37,8 @@ from fdnet.errors import ConfigError, DataError
 
 #: rows read from the vector file per chunk while (re-)encoding the map
 CHUNK_ROWS = 65_536
+#: from this many inverted lists the cells are found through an HNSW graph over their centroids
+HNSW_LISTS = 2048
 
 
 class VectorFile:
@@ -209,14 +213,34 @@ class CompressedIndex:
         # at least 39 points per cell and per 4-bit codebook entry (16 of them): faiss's k-means floor
         lists = s.lists or ivf_lists_for(count, IndexSettings(kind="ivf"))
         lists = max(1, min(lists, count // 39))
-        wanted = min(count, s.train_points or max(64 * lists, 39 * 16, 4096))
+        # k-means costs lists x points: from HNSW_LISTS lists, 40 points a list (faiss's floor is 39)
+        per_list = 64 if lists < HNSW_LISTS else 40
+        wanted = min(count, s.train_points or max(per_list * lists, 39 * 16, 4096))
         sample = _rows(vectors, np.linspace(0, count - 1, wanted).astype(np.int64))
         quantizer = faiss.IndexFlatIP(self.dim)
+        if lists >= HNSW_LISTS:
+            # assigning each place to a cell by comparing it with every centroid is most of the
+            # encoding time of a large map (10^7 places x 3162 cells); an HNSW graph over the
+            # centroids finds the nearest one in a few hundred comparisons. It is built on one
+            # thread, so the same centroids give the same graph and a resumed run the same cells.
+            quantizer = faiss.IndexHNSWFlat(self.dim, 32, faiss.METRIC_INNER_PRODUCT)
+            quantizer.hnsw.efSearch = 64
         index = faiss.IndexIVFPQFastScan(quantizer, self.dim, lists, s.pq_subvectors, 4,
                                          faiss.METRIC_INNER_PRODUCT)
         index.own_fields = True
         quantizer.this.disown()
-        index.train(sample)
+        if lists >= HNSW_LISTS:
+            # k-means as faiss's own IVF training runs it (every thread), then the graph on one
+            clustering = faiss.Clustering(self.dim, lists)
+            clustering.train(sample, faiss.IndexFlatIP(self.dim))
+            centroids = faiss.vector_float_to_array(clustering.centroids).reshape(lists, self.dim)
+            threads = faiss.omp_get_max_threads()
+            faiss.omp_set_num_threads(1)
+            try:
+                quantizer.add(centroids)
+            finally:
+                faiss.omp_set_num_threads(threads)
+        index.train(sample)  # the codebooks (and, below HNSW_LISTS, the cells)
         index.nprobe = min(s.probe, lists)
         self._index, self.trained_on = index, count
 

@@ -102,10 +102,10 @@ def exhaustive_top2(path: Path, dim: int, queries: np.ndarray) -> tuple[np.ndarr
     scores = np.full((len(queries), 2), -np.inf, np.float32)
     with VectorFile(path, dim) as file:
         for start in range(0, len(file), CHUNK):
-            block = file.read(start, start + CHUNK) @ queries.T  # (rows, Q)
-            top = np.argpartition(-block, min(1, len(block) - 1), axis=0)[:2].T  # each query's best two rows
+            block = queries @ file.read(start, start + CHUNK).T  # (Q, rows): each query's row contiguous
+            top = np.argpartition(-block, min(1, block.shape[1] - 1), axis=1)[:, :2]  # each query's best two
             cand_ids = np.concatenate([ids, top + start], 1)
-            cand = np.concatenate([scores, np.take_along_axis(block.T, top, 1)], 1)
+            cand = np.concatenate([scores, np.take_along_axis(block, top, 1)], 1)
             order = _best2(cand_ids, cand)
             ids = np.take_along_axis(cand_ids, order, 1)
             scores = np.take_along_axis(cand, order, 1)
