@@ -31,6 +31,9 @@ def test_vector_file_appends_reads_and_truncates(tmp_path):
         np.testing.assert_array_equal(f.view(), rows[:7])
         np.testing.assert_array_equal(f.view(3), rows[:3])
         np.testing.assert_array_equal(f.read(2, 5), rows[2:5])
+        np.testing.assert_array_equal(f.rows(np.array([5, 0, 2])), rows[[5, 0, 2]])
+        with pytest.raises(ConfigError, match="row ids must be below 7"):
+            f.rows(np.array([7]))
         f.truncate(4)
         f.extend(rows[7:])
         np.testing.assert_array_equal(f.view(), np.concatenate([rows[:4], rows[7:]]))
