@@ -27,6 +27,7 @@ def info(db, capsys):
 @pytest.fixture
 def no_describing(monkeypatch):
     """Make describing an image fail the test: a refusal must come before that work."""
+
     def describe(self, images):
         raise AssertionError("images were described before the refusal")
 
@@ -36,8 +37,21 @@ def no_describing(monkeypatch):
 @pytest.fixture
 def built(tmp_path):
     db = tmp_path / "map.db"
-    assert main(["database", "build", "--images", str(make_route(tmp_path / "first", seed=1)),
-                 "--method", "raw", "--db", str(db)]) == 0
+    assert (
+        main(
+            [
+                "database",
+                "build",
+                "--images",
+                str(make_route(tmp_path / "first", seed=1)),
+                "--method",
+                "raw",
+                "--db",
+                str(db),
+            ]
+        )
+        == 0
+    )
     return db
 
 
@@ -45,16 +59,18 @@ def test_build_add_query_info(tmp_path, built, capsys):
     second = make_route(tmp_path / "second", n=4, seed=2)
     assert main(["database", "add", "--db", str(built), "--images", str(second)]) == 0
     out = tmp_path / "q.csv"
-    assert main(["database", "query", "--db", str(built), "--images", str(second), "--top-k", "2",
-                 "--out", str(out)]) == 0
+    assert (
+        main(["database", "query", "--db", str(built), "--images", str(second), "--top-k", "2", "--out", str(out)]) == 0
+    )
     rows = read_csv_rows(out)
     assert list(rows[0]) == ["query_index", "query", "rank", "place", "place_index", "score"]
     best = [r for r in rows if r["rank"] == "1"]
     assert [r["place"] == r["query"] == str(second / f"frame_{i:03d}.png") for i, r in enumerate(best)] == [True] * 4
     assert [r["place_index"] for r in best] == ["6", "7", "8", "9"]
     summary = info(built, capsys)
-    assert {"places", "method", "dim", "fingerprint", "settings", "schema_version", "data_version",
-            "index"} <= set(summary)
+    assert {"places", "method", "dim", "fingerprint", "settings", "schema_version", "data_version", "index"} <= set(
+        summary
+    )
     assert (summary["places"], summary["method"], summary["dim"], summary["data_version"]) == (10, "raw", 2048, 2)
     assert summary["fingerprint"] == create("raw").fingerprint() and summary["index"]["kind"] == "flat"
 
@@ -75,8 +91,21 @@ def test_re_adding_images_skips_and_reports_them_unless_allowed(tmp_path, built,
 
 def test_add_refuses_another_models_vectors(tmp_path, built, capsys):
     # Same method and dimension (32x64 and 64x32 thumbnails are both 2048-d), different model.
-    assert main(["database", "add", "--db", str(built), "--images", str(make_route(tmp_path / "x", n=2, seed=5)),
-                 "--method-set", "size=64x32"]) == 2
+    assert (
+        main(
+            [
+                "database",
+                "add",
+                "--db",
+                str(built),
+                "--images",
+                str(make_route(tmp_path / "x", n=2, seed=5)),
+                "--method-set",
+                "size=64x32",
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert err.startswith(f"fdnet database: error: {built}: descriptor fingerprint mismatch")
     assert create("raw").fingerprint()[:12] in err and create("raw", size="64x32").fingerprint()[:12] in err
@@ -100,17 +129,20 @@ def test_add_refuses_nan_vectors_naming_the_image(tmp_path, built, capsys, monke
 def test_build_over_an_existing_database_needs_overwrite(tmp_path, built, capsys, monkeypatch):
     with monkeypatch.context() as patch:
         patch.setattr(RawThumbnail, "describe", lambda self, images: pytest.fail("described before refusing"))
-        assert main(["database", "build", "--images", str(tmp_path / "first"), "--method", "raw",
-                     "--db", str(built)]) == 2
+        assert (
+            main(["database", "build", "--images", str(tmp_path / "first"), "--method", "raw", "--db", str(built)]) == 2
+        )
     assert f"fdnet database: error: {built}: already exists; pass --overwrite" in capsys.readouterr().err
     other = make_route(tmp_path / "other", n=3, seed=7)
-    assert main(["database", "build", "--images", str(other), "--method", "raw", "--db", str(built),
-                 "--overwrite"]) == 0
+    assert (
+        main(["database", "build", "--images", str(other), "--method", "raw", "--db", str(built), "--overwrite"]) == 0
+    )
     assert info(built, capsys)["places"] == 3
 
 
-@pytest.mark.parametrize("flag, value, message", [("--top-k", "0", "must be at least 1"),
-                                                   ("--exclude-last", "-1", "must be 0 or more")])
+@pytest.mark.parametrize(
+    "flag, value, message", [("--top-k", "0", "must be at least 1"), ("--exclude-last", "-1", "must be 0 or more")]
+)
 def test_query_rejects_impossible_counts(tmp_path, built, capsys, flag, value, message):
     with pytest.raises(SystemExit) as stopped:
         main(["database", "query", "--db", str(built), "--images", str(tmp_path / "first"), flag, value])
@@ -118,12 +150,20 @@ def test_query_rejects_impossible_counts(tmp_path, built, capsys, flag, value, m
     assert f"argument {flag}: {message}" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("make, message", [
-    (lambda p: p.write_bytes(b""), "an empty file, not an fdnet place database"),
-    (lambda p: p.write_bytes(np.random.default_rng(0).bytes(3000)), "not an fdnet place database (not a SQLite file)"),
-    (lambda p: sqlite3.connect(p).execute("CREATE TABLE photos (id INTEGER)"),
-     "a SQLite database but not an fdnet place database (it has tables: photos)"),
-])
+@pytest.mark.parametrize(
+    "make, message",
+    [
+        (lambda p: p.write_bytes(b""), "an empty file, not an fdnet place database"),
+        (
+            lambda p: p.write_bytes(np.random.default_rng(0).bytes(3000)),
+            "not an fdnet place database (not a SQLite file)",
+        ),
+        (
+            lambda p: sqlite3.connect(p).execute("CREATE TABLE photos (id INTEGER)"),
+            "a SQLite database but not an fdnet place database (it has tables: photos)",
+        ),
+    ],
+)
 def test_a_file_that_is_not_a_place_database(tmp_path, capsys, make, message):
     path = tmp_path / "thing.db"
     make(path)
@@ -138,8 +178,9 @@ def test_a_folder_is_not_a_place_database(tmp_path, capsys):
     (folder / "database.json").write_text("{}")  # whatever it holds, a folder is not a database file
     for action in (["info"], ["add", "--images", str(tmp_path)], ["query", "--images", str(tmp_path)]):
         assert main(["database", action[0], "--db", str(folder), *action[1:]]) == 2
-        assert capsys.readouterr().err == (f"fdnet database: error: {folder}: is a folder, not a place database "
-                                           f"file (e.g. {folder / 'map.db'})\n")
+        assert capsys.readouterr().err == (
+            f"fdnet database: error: {folder}: is a folder, not a place database " f"file (e.g. {folder / 'map.db'})\n"
+        )
     with pytest.raises(SystemExit):  # no command converts folders: there is one format, the file
         main(["database", "migrate", "--from", str(folder), "--db", str(tmp_path / "map.db")])
     assert "invalid choice: 'migrate'" in capsys.readouterr().err
@@ -148,11 +189,37 @@ def test_a_folder_is_not_a_place_database(tmp_path, capsys):
 def test_unwritable_outputs_fail_before_describing(tmp_path, built, capsys, no_describing):
     blocker = tmp_path / "a-file"
     blocker.write_text("not a folder")
-    assert main(["database", "build", "--images", str(tmp_path / "first"), "--method", "raw",
-                 "--db", str(blocker / "map.db")]) == 2
+    assert (
+        main(
+            [
+                "database",
+                "build",
+                "--images",
+                str(tmp_path / "first"),
+                "--method",
+                "raw",
+                "--db",
+                str(blocker / "map.db"),
+            ]
+        )
+        == 2
+    )
     assert "cannot create the place database folder" in capsys.readouterr().err
-    assert main(["database", "query", "--db", str(built), "--images", str(tmp_path / "first"),
-                 "--out", str(blocker / "q.csv")]) == 2
+    assert (
+        main(
+            [
+                "database",
+                "query",
+                "--db",
+                str(built),
+                "--images",
+                str(tmp_path / "first"),
+                "--out",
+                str(blocker / "q.csv"),
+            ]
+        )
+        == 2
+    )
     assert "cannot create the query CSV folder" in capsys.readouterr().err
 
 
@@ -160,10 +227,33 @@ def test_build_with_an_approximate_index_caches_it_and_adds_in_one_transaction(t
     route = make_route(tmp_path / "route", n=60)
     more = make_route(tmp_path / "more", n=8, seed=5)
     db = tmp_path / "map.db"
-    assert main(["database", "build", "--images", str(route), "--method", "raw", "--db", str(db),
-                 "--index", "ivfpq", "--index-set", "pq_bytes=16", "--index-set", "refine=8", "--batch-size", "7",
-                 "--workers", "1",
-                 "--device", "cpu"]) == 0
+    assert (
+        main(
+            [
+                "database",
+                "build",
+                "--images",
+                str(route),
+                "--method",
+                "raw",
+                "--db",
+                str(db),
+                "--index",
+                "ivfpq",
+                "--index-set",
+                "pq_bytes=16",
+                "--index-set",
+                "refine=8",
+                "--batch-size",
+                "7",
+                "--workers",
+                "1",
+                "--device",
+                "cpu",
+            ]
+        )
+        == 0
+    )
     printed = capsys.readouterr().out
     assert "60 places" in printed and "ivfpq index built" in printed
     cache = tmp_path / "map.db.fdnet-index"
@@ -171,7 +261,7 @@ def test_build_with_an_approximate_index_caches_it_and_adds_in_one_transaction(t
     assert info(db, capsys)["index"]["pq_bytes"] == 16
     assert main(["database", "add", "--db", str(db), "--images", str(more), "--batch-size", "3"]) == 0
     assert "added 8 places" in capsys.readouterr().out
-    assert info(db, capsys)["data_version"] == 2          # one version step for the whole add
+    assert info(db, capsys)["data_version"] == 2  # one version step for the whole add
     out = tmp_path / "q.csv"
     assert main(["database", "query", "--db", str(db), "--images", str(more), "--top-k", "1", "--out", str(out)]) == 0
     assert [r["place"].rsplit("/", 1)[-1] for r in read_csv_rows(out)] == [f"frame_{i:03d}.png" for i in range(8)]
@@ -181,8 +271,23 @@ def test_build_with_an_approximate_index_caches_it_and_adds_in_one_transaction(t
 
 def test_a_non_dot_product_method_is_refused_an_approximate_index(tmp_path, capsys, no_describing):
     route = make_route(tmp_path / "route")
-    assert main(["database", "build", "--images", str(route), "--method", "sad", "--db", str(tmp_path / "m.db"),
-                 "--index", "ivf"]) == 2
+    assert (
+        main(
+            [
+                "database",
+                "build",
+                "--images",
+                str(route),
+                "--method",
+                "sad",
+                "--db",
+                str(tmp_path / "m.db"),
+                "--index",
+                "ivf",
+            ]
+        )
+        == 2
+    )
     assert "use --index flat" in capsys.readouterr().err
 
 
@@ -225,8 +330,21 @@ def test_add_removes_the_spools_that_killed_writers_left_beside_the_database(tmp
         writer.wait()
     stale = [spool for _, spool in writers]
     assert all(p.exists() for p in stale)
-    assert main(["database", "add", "--db", str(built), "--images", str(make_route(tmp_path / "more", n=2, seed=5)),
-                 "--workers", "0"]) == 0
+    assert (
+        main(
+            [
+                "database",
+                "add",
+                "--db",
+                str(built),
+                "--images",
+                str(make_route(tmp_path / "more", n=2, seed=5)),
+                "--workers",
+                "0",
+            ]
+        )
+        == 0
+    )
     assert not any(p.exists() for p in stale)
     assert not list(built.parent.glob(".fdnet-spool.*"))
 
@@ -242,12 +360,43 @@ def test_a_database_on_read_only_storage_is_queried_read_only(tmp_path, capsys, 
     assert info(built, capsys)["places"] == 6
     out_csv = tmp_path / "q.csv"  # the query's CSV goes to a writable folder
     capsys.readouterr()
-    assert main(["database", "query", "--db", str(built), "--images", str(images), "--top-k", "1",
-                 "--workers", "0", "--out", str(out_csv)]) == 0
+    assert (
+        main(
+            [
+                "database",
+                "query",
+                "--db",
+                str(built),
+                "--images",
+                str(images),
+                "--top-k",
+                "1",
+                "--workers",
+                "0",
+                "--out",
+                str(out_csv),
+            ]
+        )
+        == 0
+    )
     assert "opened read-only" in capsys.readouterr().err
     assert [r["place_index"] for r in read_csv_rows(out_csv)] == [str(i) for i in range(6)]
-    assert main(["database", "add", "--db", str(built), "--images", str(tmp_path / "first"), "--allow-duplicates",
-                 "--workers", "0"]) == 2
+    assert (
+        main(
+            [
+                "database",
+                "add",
+                "--db",
+                str(built),
+                "--images",
+                str(tmp_path / "first"),
+                "--allow-duplicates",
+                "--workers",
+                "0",
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert "cannot be written (read-only media or mount), so nothing can be added" in err and "Traceback" not in err
 
@@ -276,8 +425,7 @@ def test_a_read_only_database_with_a_log_left_behind_is_read_through_it_or_refus
         PlaceDatabase.open(tmp_path / "log-without-shm" / "map.db")
 
 
-def test_a_database_whose_folder_is_not_writable_opens_immutable_on_any_machine(tmp_path, built, capsys,
-                                                                                monkeypatch):
+def test_a_database_whose_folder_is_not_writable_opens_immutable_on_any_machine(tmp_path, built, capsys, monkeypatch):
     """The same path as read-only media, where the test cannot mount: the folder reported
     unwritable (what os.access says there) opens the file immutable, with the note."""
     import fdnet.matching.database as database
@@ -311,8 +459,21 @@ def test_the_empty_file_an_unfinished_build_leaves_says_so_and_is_reused(tmp_pat
         conn.execute("DROP TABLE t")  # a real SQLite header, no tables: what a killed first commit leaves
     assert main(["database", "info", "--db", str(db)]) == 2
     assert "not yet an fdnet place database (a `database build` that did not finish" in capsys.readouterr().err
-    assert main(["database", "build", "--images", str(make_route(tmp_path / "images", n=2)), "--method", "raw",
-                 "--db", str(db)]) == 0
+    assert (
+        main(
+            [
+                "database",
+                "build",
+                "--images",
+                str(make_route(tmp_path / "images", n=2)),
+                "--method",
+                "raw",
+                "--db",
+                str(db),
+            ]
+        )
+        == 0
+    )
     assert info(db, capsys)["places"] == 2
 
 
@@ -340,8 +501,20 @@ def test_torchrun_database_build_writes_the_one_process_database_and_its_index(t
     from tests.descriptors.test_sharding import spools, torchrun
 
     images = make_route(tmp_path / "route", n=11)
-    common = ["database", "build", "--images", str(images), "--method", "raw", "--index", "hnsw",
-              "--batch-size", "2", "--workers", "0"]
+    common = [
+        "database",
+        "build",
+        "--images",
+        str(images),
+        "--method",
+        "raw",
+        "--index",
+        "hnsw",
+        "--batch-size",
+        "2",
+        "--workers",
+        "0",
+    ]
     assert main([*common, "--db", str(tmp_path / "one.db")]) == 0
     result = torchrun(*common, "--db", tmp_path / "two.db", tmpdir=tmp_path / "tmp")
     assert result.returncode == 0, result.stderr
@@ -350,8 +523,9 @@ def test_torchrun_database_build_writes_the_one_process_database_and_its_index(t
         assert two.names == one.names and two.fingerprint == one.fingerprint
         np.testing.assert_allclose(two.vectors, one.vectors, rtol=0, atol=1e-5)
         queries = one.vectors[:3]
-        assert [[m.name for m in q] for q in two.query(queries, k=2)] == \
-            [[m.name for m in q] for q in one.query(queries, k=2)]
+        assert [[m.name for m in q] for q in two.query(queries, k=2)] == [
+            [m.name for m in q] for q in one.query(queries, k=2)
+        ]
     assert info(tmp_path / "two.db", capsys)["build"] == {"world_size": 2}
     assert "build" not in info(tmp_path / "one.db", capsys)
     assert (tmp_path / "two.db.fdnet-index").is_file()
@@ -368,8 +542,20 @@ def test_torchrun_database_build_with_rank_0_killed_leaves_no_database_and_a_rer
 
     images = make_route(tmp_path / "route", n=12)
     db = tmp_path / "maps" / "map.db"
-    common = ["database", "build", "--images", images, "--method", "raw", "--db", db, "--batch-size", "2",
-              "--workers", "0"]
+    common = [
+        "database",
+        "build",
+        "--images",
+        images,
+        "--method",
+        "raw",
+        "--db",
+        db,
+        "--batch-size",
+        "2",
+        "--workers",
+        "0",
+    ]
     killed = torchrun(*common, tmpdir=tmp_path / "tmp", env={KILL_VARIABLE: "0:1"})
     assert killed.returncode != 0
     errors = error_lines(killed, "database")

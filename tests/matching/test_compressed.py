@@ -70,8 +70,9 @@ while True:  # an add that never commits
 
 def test_kill_9_during_an_add_leaves_the_committed_rows_and_a_resume_continues(tmp_path):
     path, committed = tmp_path / "v.f32", tmp_path / "committed"
-    proc = subprocess.Popen([sys.executable, "-c", _WRITER, str(path), str(committed)], stdout=subprocess.PIPE,
-                            text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _WRITER, str(path), str(committed)], stdout=subprocess.PIPE, text=True
+    )
     try:
         assert proc.stdout.readline().strip() == "committed"
         deadline = time.monotonic() + 30
@@ -123,7 +124,7 @@ def test_compressed_index_grows_and_trains_again_the_same_way(tmp_path):
         index.sync(places[:4000])
         assert index.trained_on == 4000
         for n in range(4000, 4100):  # one place a frame
-            index.sync(places[:n + 1])
+            index.sync(places[: n + 1])
         assert index.trained_on == 4000 and len(index) == 4100
         index.sync(places[:16_000])  # grown fourfold: cells and codebooks trained again
         assert index.trained_on == 16_000 and len(index) == 16_000

@@ -80,8 +80,12 @@ def test_add_query_reopen_round_trip(tmp_path, rng):
     path = tmp_path / "map.db"
     with PlaceDatabase.create(path, Projection()) as db:
         first = db.add(v[:20], [f"img{i}.png" for i in range(20)], positions=[(i, 0) for i in range(20)])
-        db.add(v[20:], [f"img{i}.png" for i in range(20, 50)], positions=[(i, 0) for i in range(20, 50)],
-               metadata=[{"frame": i} for i in range(20, 50)])
+        db.add(
+            v[20:],
+            [f"img{i}.png" for i in range(20, 50)],
+            positions=[(i, 0) for i in range(20, 50)],
+            metadata=[{"frame": i} for i in range(20, 50)],
+        )
         best = db.query(v[7], k=3)[0]
         assert (first.added, first.places, first.data_version) == (20, 20, 1)
         assert best[0].index == 7 and best[0].name == "img7.png" and best[0].position == (7.0, 0.0)
@@ -168,8 +172,9 @@ def test_fingerprint_follows_the_weights_not_the_object():
 
 def test_descriptor_base_does_not_import_torch():
     code = "import sys, fdnet.descriptors.base; print('torch' in sys.modules)"
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
-                         env={**os.environ, "PYTHONPATH": SRC})
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, env={**os.environ, "PYTHONPATH": SRC}
+    )
     assert out.stdout.strip() == "False"
 
 
@@ -224,8 +229,7 @@ def test_create_refuses_an_existing_file_unless_overwrite(tmp_path, rng):
     PlaceDatabase.create(path, Projection(), places=[(unit(rng, 4, 8), list("abcd"))]).close()
     with pytest.raises(ConfigError, match="already exists.*overwrite"):
         PlaceDatabase.create(path, Projection())
-    with PlaceDatabase.create(path, Projection(seed=3), overwrite=True,
-                              places=[(unit(rng, 2, 8), ["x", "y"])]) as db:
+    with PlaceDatabase.create(path, Projection(seed=3), overwrite=True, places=[(unit(rng, 2, 8), ["x", "y"])]) as db:
         assert db.names == ["x", "y"] and db.fingerprint == Projection(seed=3).fingerprint()
     foreign = tmp_path / "other.db"
     with sqlite3.connect(foreign) as conn:
@@ -243,11 +247,14 @@ def test_create_refuses_an_existing_file_unless_overwrite(tmp_path, rng):
     assert len(PlaceDatabase.create(empty, Projection(), places=[(unit(rng, 1, 8), ["a"])])) == 1
 
 
-@pytest.mark.parametrize("content, message", [
-    (b"", "empty file"),
-    (bytes(range(256)) * 4, "not a SQLite file"),
-    ("sqlite-with-other-tables", "SQLite database but not an fdnet place database.*photos"),
-])
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        (b"", "empty file"),
+        (bytes(range(256)) * 4, "not a SQLite file"),
+        ("sqlite-with-other-tables", "SQLite database but not an fdnet place database.*photos"),
+    ],
+)
 def test_a_file_that_is_not_a_place_database_is_a_clear_error(tmp_path, content, message):
     path = tmp_path / "map.db"
     if isinstance(content, bytes):
@@ -286,9 +293,13 @@ with PlaceDatabase.open(path) as db:
 
 
 def start_writer(path, tag, batches, size):
-    proc = subprocess.Popen([sys.executable, "-c", WRITER, str(path), tag, str(batches), str(size)],
-                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
-                            env={**os.environ, "PYTHONPATH": SRC})
+    proc = subprocess.Popen(
+        [sys.executable, "-c", WRITER, str(path), tag, str(batches), str(size)],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "PYTHONPATH": SRC},
+    )
     assert proc.stdout.readline().strip() == "ready"
     return proc
 

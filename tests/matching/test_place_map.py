@@ -16,8 +16,12 @@ SRC = Path(__file__).resolve().parents[2] / "src" / "fdnet"
 
 def test_a_map_grows_truncates_and_reads_loop_columns():
     m = PlaceMap(3)
-    m.extend(["a", "b"], [(0, 1), None], [json.dumps({"timestamp": 1.5, "session": "s1"}), None],
-             np.eye(3, dtype=np.float32)[:2])
+    m.extend(
+        ["a", "b"],
+        [(0, 1), None],
+        [json.dumps({"timestamp": 1.5, "session": "s1"}), None],
+        np.eye(3, dtype=np.float32)[:2],
+    )
     assert len(m) == 2 and "a" in m and "c" not in m
     assert m.loop_column("timestamp") == [1.5, None] and m.loop_column("session") == ["s1", None]
     m.append(np.ones(3, np.float32), "c", (2.0, 3.0), {"uninformative": True, "segment_start": True, "still": True})
@@ -71,10 +75,15 @@ def _definitions(name: str) -> list[str]:
     return found
 
 
-@pytest.mark.parametrize("name, module", [
-    ("PlaceMap", "matching/place_map.py"), ("GrowingArray", "matching/place_map.py"),
-    ("online_sequence_scores", "matching/sequence.py"), ("sequence_similarity", "matching/sequence.py"),
-])
+@pytest.mark.parametrize(
+    "name, module",
+    [
+        ("PlaceMap", "matching/place_map.py"),
+        ("GrowingArray", "matching/place_map.py"),
+        ("online_sequence_scores", "matching/sequence.py"),
+        ("sequence_similarity", "matching/sequence.py"),
+    ],
+)
 def test_one_map_and_one_sequence_scorer(name, module):
     assert _definitions(name) == [module]
 
@@ -82,8 +91,11 @@ def test_one_map_and_one_sequence_scorer(name, module):
 def test_every_sequence_score_goes_through_the_one_scorer():
     """The matrix version, the exhaustive loop search and the indexed one call
     online_sequence_scores; nothing else sums a sequence (no second loop over velocities)."""
-    callers = sorted(str(p.relative_to(SRC)) for p in SRC.rglob("*.py")
-                     if "online_sequence_scores(" in p.read_text() and p.name != "sequence.py")
+    callers = sorted(
+        str(p.relative_to(SRC))
+        for p in SRC.rglob("*.py")
+        if "online_sequence_scores(" in p.read_text() and p.name != "sequence.py"
+    )
     assert callers == ["decisions/loop_candidates.py", "decisions/loop_search.py"]
     # the mean along a sequence's line (the sum over its frames divided by the frames counted)
     means = sorted(str(p.relative_to(SRC)) for p in SRC.rglob("*.py") if "total / np.maximum(" in p.read_text())

@@ -36,7 +36,7 @@ def test_every_kind_finds_revisited_places_and_survives_save_and_load(tmp_path, 
     refs = unit(rng, 20000, 32)
     index = VectorIndex(32, IndexSettings(kind=kind, hnsw_neighbors=16, pq_bytes=8, refine=4 if kind == "ivfpq" else 0))
     for start in range(0, len(refs), 5000):
-        index.add(refs[start:start + 5000])
+        index.add(refs[start : start + 5000])
     index.build()
     source, queries = revisits(rng, refs, 200)
     exact = top_k(queries, refs, 1)[0][:, 0]
@@ -88,8 +88,8 @@ def test_index_settings_from_flags():
             parse_index_settings("ivf", bad)
     with pytest.raises(ConfigError, match="must divide"):
         VectorIndex(30, IndexSettings(kind="ivfpq", pq_bytes=4))
-    assert ivf_lists_for(3000, IndexSettings()) == 76            # the old rule for small maps
-    assert ivf_lists_for(1_000_000, IndexSettings()) == 1000     # sqrt(N) for large ones
+    assert ivf_lists_for(3000, IndexSettings()) == 76  # the old rule for small maps
+    assert ivf_lists_for(1_000_000, IndexSettings()) == 1000  # sqrt(N) for large ones
 
 
 class Unit(Descriptor):
@@ -117,8 +117,8 @@ def test_database_takes_chunks_in_one_transaction(tmp_path, rng):
     bad[5, 0] = np.nan
     with pytest.raises(DataError, match="the vector of p25 holds NaN"):
         db.add_batches([(v[20:25], names[20:25]), (bad, names[20:])])
-    assert len(db) == 20                       # the good first chunk was rolled back too
-    again = db.add_batches([(v[:5], names[:5]), (v[20:], names[20:] )])
+    assert len(db) == 20  # the good first chunk was rolled back too
+    again = db.add_batches([(v[:5], names[:5]), (v[20:], names[20:])])
     assert again.added == 10 and again.skipped == names[:5] and again.data_version == 2
     np.testing.assert_array_equal(db.vectors, np.concatenate([v[:20], v[20:]]))
     db.close()
@@ -129,8 +129,13 @@ def test_database_index_cache_is_derived_current_and_reused(tmp_path, rng):
     v = unit(rng, 12000, 16)
     names = [f"p{i}" for i in range(len(v))]
     path = tmp_path / "map.db"
-    db = PlaceDatabase.create(path, d, method_options={}, index=IndexSettings(kind="ivf", ivf_probe=8),
-                              places=[(v[:6000], names[:6000]), (v[6000:], names[6000:])])
+    db = PlaceDatabase.create(
+        path,
+        d,
+        method_options={},
+        index=IndexSettings(kind="ivf", ivf_probe=8),
+        places=[(v[:6000], names[:6000]), (v[6000:], names[6000:])],
+    )
     assert db.build_index() is not None
     cache = db.index_cache_path
     assert cache.is_file() and VectorIndex.read_header(cache)["metadata"]["last_id"] == 12000
@@ -139,8 +144,9 @@ def test_database_index_cache_is_derived_current_and_reused(tmp_path, rng):
     db.close()
     # a new process (here: a new handle) loads the cache; its answers are the same
     with PlaceDatabase.open(path) as again:
-        assert ([[m.index for m in row] for row in again.query(queries, k=3)]
-                == [[m.index for m in row] for row in first])
+        assert [[m.index for m in row] for row in again.query(queries, k=3)] == [
+            [m.index for m in row] for row in first
+        ]
         assert again._index_cache.places == 12000
         # places added later are added to the loaded index, never missing from answers
         more = unit(rng, 5, 16)
@@ -148,8 +154,9 @@ def test_database_index_cache_is_derived_current_and_reused(tmp_path, rng):
         hits = again.query(more, k=1)
         assert [row[0].name for row in hits] == [f"new{i}" for i in range(5)]
     # a cache from another database is ignored, not trusted
-    other = PlaceDatabase.create(tmp_path / "other.db", d, method_options={}, index=IndexSettings(kind="ivf"),
-                                 places=[(v[:100], names[:100])])
+    other = PlaceDatabase.create(
+        tmp_path / "other.db", d, method_options={}, index=IndexSettings(kind="ivf"), places=[(v[:100], names[:100])]
+    )
     cache.replace(other.index_cache_path)
     assert other.query(v[:3], k=1)[0][0].index == 0 and other._index_cache.places == 0
     other.close()
@@ -166,8 +173,13 @@ def test_a_restored_backup_never_loads_the_index_cache_of_places_it_does_not_hol
     d = Unit()
     v = unit(rng, 80, 16)
     path = tmp_path / "map.db"
-    with PlaceDatabase.create(path, d, method_options={}, index=IndexSettings(kind="hnsw", hnsw_neighbors=8),
-                              places=[(v[:60], [f"p{i}" for i in range(60)])]):
+    with PlaceDatabase.create(
+        path,
+        d,
+        method_options={},
+        index=IndexSettings(kind="hnsw", hnsw_neighbors=8),
+        places=[(v[:60], [f"p{i}" for i in range(60)])],
+    ):
         pass
     shutil.copyfile(path, tmp_path / "backup.db")
     with PlaceDatabase.open(path) as db:

@@ -22,9 +22,15 @@ def test_exact_and_indexed_search_find_the_same_places_and_the_index_is_reused(t
     qry = make_route(tmp_path / "qry", n=30, brightness=0.7)
     messages = []
     for index, out in (("exact", "e.csv"), ("ivf", "i1.csv"), ("ivf", "i2.csv")):
-        request = MatchRequest(ref, qry, tmp_path / out, top_k=2, index=index,
-                               index_file=None if index == "exact" else tmp_path / "map.index",
-                               pipeline=PipelineSettings(workers=0, progress=False))
+        request = MatchRequest(
+            ref,
+            qry,
+            tmp_path / out,
+            top_k=2,
+            index=index,
+            index_file=None if index == "exact" else tmp_path / "map.index",
+            pipeline=PipelineSettings(workers=0, progress=False),
+        )
         summary = match_images(request, lambda: create("raw"), log=messages.append)
         assert (summary.num_references, summary.num_queries, summary.method) == (30, 30, "raw")
     exact, first, second = (read_csv_rows(tmp_path / n) for n in ("e.csv", "i1.csv", "i2.csv"))
@@ -38,9 +44,12 @@ def test_settings_are_refused_before_the_method_is_made(tmp_path):
         raise AssertionError("the descriptor was made before the settings were checked")
 
     ref = make_route(tmp_path / "ref", n=3)
-    for kwargs, message in (({"top_k": 0}, "--top-k"), ({"sequence_length": -1}, "--sequence-length"),
-                            ({"index_set": ["ivf_lists=2"]}, "apply to the faiss indexes"),
-                            ({"index": "hnsw", "sequence_length": 3}, "use --index exact")):
+    for kwargs, message in (
+        ({"top_k": 0}, "--top-k"),
+        ({"sequence_length": -1}, "--sequence-length"),
+        ({"index_set": ["ivf_lists=2"]}, "apply to the faiss indexes"),
+        ({"index": "hnsw", "sequence_length": 3}, "use --index exact"),
+    ):
         with pytest.raises(ConfigError, match=message):
             match_images(MatchRequest(ref, ref, tmp_path / "m.csv", **kwargs), never)
 

@@ -53,5 +53,4 @@ def test_online_sequence_scores_ignore_places_a_shorter_earlier_row_lacks():
     # r=0: only the newest (earlier would be index -1); r=1: (10 + 1) / 2; r=2: (20 + 3) / 2;
     # r=3: earlier index 2 is past its 2 places, so the newest alone
     np.testing.assert_allclose(out, [0.0, 5.5, 11.5, 30.0])
-    np.testing.assert_allclose(online_sequence_scores([earlier, newest], searchable=2, velocities=(1.0,)),
-                               [0.0, 5.5])
+    np.testing.assert_allclose(online_sequence_scores([earlier, newest], searchable=2, velocities=(1.0,)), [0.0, 5.5])

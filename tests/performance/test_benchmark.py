@@ -9,23 +9,36 @@ from fdnet.performance.benchmark_plan import BenchmarkRequest, plan_benchmark
 
 
 def test_plan_parses_the_command_spellings():
-    plan = plan_benchmark(BenchmarkRequest(
-        parts="scale, methods", checkpoints=("fdnet:run",), map_size="100,2000", indexes="flat,hnsw",
-        index_set=("hnsw:hnsw_neighbors=8",), sweep=("hnsw_ef_search=8,16",), lengths="256,512", quick=True, threads=1,
-        device="CPU"))
+    plan = plan_benchmark(
+        BenchmarkRequest(
+            parts="scale, methods",
+            checkpoints=("fdnet:run",),
+            map_size="100,2000",
+            indexes="flat,hnsw",
+            index_set=("hnsw:hnsw_neighbors=8",),
+            sweep=("hnsw_ef_search=8,16",),
+            lengths="256,512",
+            quick=True,
+            threads=1,
+            device="CPU",
+        )
+    )
     assert plan.parts == ["scale", "methods"] and plan.checkpoints == {"fdnet": "run"}
     assert plan.map_sizes == [100, 2000] and plan.kinds == ["flat", "hnsw"] and plan.lengths == [256, 512]
     assert plan.overrides == {"hnsw": {"hnsw_neighbors": 8}} and plan.sweep == {"hnsw_ef_search": [8, 16]}
     assert plan.device == "cpu" and plan.repeats == 2
 
 
-@pytest.mark.parametrize("kwargs,message", [
-    ({"parts": "scale,nothing"}, "--parts"),
-    ({"map_size": "1"}, "at least 2 places"),
-    ({"lengths": "big"}, "--lengths"),
-    ({"checkpoints": ("run",)}, "METHOD:RUN_DIR"),
-    ({"query_vectors": None, "noise": -1.0}, "--noise"),
-])
+@pytest.mark.parametrize(
+    "kwargs,message",
+    [
+        ({"parts": "scale,nothing"}, "--parts"),
+        ({"map_size": "1"}, "at least 2 places"),
+        ({"lengths": "big"}, "--lengths"),
+        ({"checkpoints": ("run",)}, "METHOD:RUN_DIR"),
+        ({"query_vectors": None, "noise": -1.0}, "--noise"),
+    ],
+)
 def test_plan_refuses_bad_settings(kwargs, message):
     with pytest.raises(ConfigError, match=message):
         plan_benchmark(BenchmarkRequest(**kwargs))
@@ -33,8 +46,11 @@ def test_plan_refuses_bad_settings(kwargs, message):
 
 def test_scale_part_writes_its_table_to_out_and_returns_rows():
     lines = []
-    plan = plan_benchmark(BenchmarkRequest(parts="scale", map_size="300", indexes="flat", queries=20, scale_dim=8,
-                                           threads=1, quick=True, device="cpu"))
+    plan = plan_benchmark(
+        BenchmarkRequest(
+            parts="scale", map_size="300", indexes="flat", queries=20, scale_dim=8, threads=1, quick=True, device="cpu"
+        )
+    )
     report = run_benchmark(plan, out=lines.append)
     assert [(r["map_size"], r["index"], r["dim"]) for r in report["scale"]] == [(300, "flat", 8)]
     assert report["scale"][0]["recall_at_1"] == 1.0

@@ -40,6 +40,9 @@ def test_compressed_sizes_need_real_vectors(tmp_path):
         plan_benchmark(BenchmarkRequest(loop_compressed_size="100000", loop_real_vectors=str(tmp_path / "nope.npz")))
     with pytest.raises(ConfigError, match="start at 10000 places"):
         plan_benchmark(BenchmarkRequest(loop_compressed_size="100", loop_real_vectors="x.npz"))
-    plan = plan_benchmark(BenchmarkRequest(loop_compressed_size="100000,1000000",
-                                           loop_real_vectors=str(fake_fdnet_vectors(tmp_path / "a.npz"))))
+    plan = plan_benchmark(
+        BenchmarkRequest(
+            loop_compressed_size="100000,1000000", loop_real_vectors=str(fake_fdnet_vectors(tmp_path / "a.npz"))
+        )
+    )
     assert plan.loop_compressed_sizes == [100_000, 1_000_000]

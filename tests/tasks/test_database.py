@@ -86,8 +86,9 @@ def test_an_acceptance_rule_adds_its_score_column(tmp_path):
     db = tmp_path / "map.db"
     build_database(BuildRequest(route, db, "raw", pipeline=QUIET))
     messages = []
-    scored = query_database(QueryRequest(db, route, top_k=1, accept=parse_acceptance("raw", []), pipeline=QUIET),
-                            log=messages.append)
+    scored = query_database(
+        QueryRequest(db, route, top_k=1, accept=parse_acceptance("raw", []), pipeline=QUIET), log=messages.append
+    )
     table = rows(scored.csv_text)
     assert list(table[0]) == ["query_index", "query", "rank", "place", "place_index", "score", "acceptance_score"]
     # raw: the acceptance score is the best match's similarity

@@ -74,8 +74,10 @@ class VectorFile:
         whole = size // self._row
         if committed is not None and whole < int(committed):
             os.close(self._fd)
-            raise DataError(f"{self.path}: holds {whole} vectors, its database committed {committed}; the vector "
-                            "file was damaged or replaced")
+            raise DataError(
+                f"{self.path}: holds {whole} vectors, its database committed {committed}; the vector "
+                "file was damaged or replaced"
+            )
         self._count = whole if committed is None else int(committed)
         if size != self._count * self._row:
             os.ftruncate(self._fd, self._count * self._row)  # a killed add's rows: the old state again
@@ -205,8 +207,9 @@ def check_compressed(settings: CompressedSettings, dim: int, where: str = "compr
     if settings.lists < 0 or settings.train_points < 0:
         raise ConfigError(f"{where}: lists and train_points must be >= 0")
     if dim % settings.pq_subvectors or settings.pq_subvectors % 2:
-        raise ConfigError(f"{where}: pq_subvectors={settings.pq_subvectors} must be even and divide the vector "
-                          f"length {dim}")
+        raise ConfigError(
+            f"{where}: pq_subvectors={settings.pq_subvectors} must be even and divide the vector " f"length {dim}"
+        )
     return settings
 
 
@@ -236,8 +239,10 @@ class CompressedIndex:
         if self._index is None or count >= self.settings.retrain_growth * max(self.trained_on, 1):
             self._train(vectors, count)
         if count < len(self):
-            raise ConfigError(f"the map holds {count} places, its compressed index {len(self)}: truncate the index "
-                              "with the map (rebuild it)")
+            raise ConfigError(
+                f"the map holds {count} places, its compressed index {len(self)}: truncate the index "
+                "with the map (rebuild it)"
+            )
         for start in range(len(self), count, CHUNK_ROWS):
             self._index.add(_rows(vectors, start, min(count, start + CHUNK_ROWS)))
 
@@ -261,8 +266,7 @@ class CompressedIndex:
             # thread, so the same centroids give the same graph and a resumed run the same cells.
             quantizer = faiss.IndexHNSWFlat(self.dim, 32, faiss.METRIC_INNER_PRODUCT)
             quantizer.hnsw.efSearch = 64
-        index = faiss.IndexIVFPQFastScan(quantizer, self.dim, lists, s.pq_subvectors, 4,
-                                         faiss.METRIC_INNER_PRODUCT)
+        index = faiss.IndexIVFPQFastScan(quantizer, self.dim, lists, s.pq_subvectors, 4, faiss.METRIC_INNER_PRODUCT)
         index.own_fields = True
         quantizer.this.disown()
         if lists >= HNSW_LISTS:
@@ -280,8 +284,9 @@ class CompressedIndex:
         index.nprobe = min(s.probe, lists)
         self._index, self.trained_on = index, count
 
-    def search(self, queries: np.ndarray, k: int, vectors, searchable: int | None = None
-               ) -> tuple[np.ndarray, np.ndarray]:
+    def search(
+        self, queries: np.ndarray, k: int, vectors, searchable: int | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """The best ``k`` of the first ``searchable`` places (None: all) for each query, as
         (place ids, exact dot products), each (Q, k), best first, ties to the lower id, -1 /
         -inf where the short list held fewer. Codes rank the ``shortlist`` candidates; their
@@ -303,8 +308,8 @@ class CompressedIndex:
                 continue
             exact = _rows(vectors, ids) @ q[row]
             order = np.lexsort((ids, -exact))[:k]
-            out_ids[row, :len(order)] = ids[order]
-            out_scores[row, :len(order)] = exact[order]
+            out_ids[row, : len(order)] = ids[order]
+            out_scores[row, : len(order)] = exact[order]
         return out_ids, out_scores
 
     def memory_bytes(self) -> int:
@@ -324,9 +329,15 @@ class CompressedIndex:
         return counter[0]
 
     def describe(self) -> dict:
-        out = {"kind": "ivfpq-fastscan", "dim": self.dim, "count": len(self), "trained_on": self.trained_on,
-               "bytes_per_code": self.settings.pq_subvectors // 2, "probe": self.settings.probe,
-               "shortlist": self.settings.shortlist}
+        out = {
+            "kind": "ivfpq-fastscan",
+            "dim": self.dim,
+            "count": len(self),
+            "trained_on": self.trained_on,
+            "bytes_per_code": self.settings.pq_subvectors // 2,
+            "probe": self.settings.probe,
+            "shortlist": self.settings.shortlist,
+        }
         if self._index is not None:
             out["lists"] = int(self._index.nlist)
         return out

@@ -115,8 +115,9 @@ def parse_index_settings(kind: str, pairs: list[str] | None = None, where: str =
         key, sep, value = str(pair).partition("=")
         key = key.strip()
         if not sep or key not in known or key == "kind":
-            raise ConfigError(f"{where} {pair!r}: expected KEY=VALUE with KEY one of "
-                              f"{', '.join(sorted(known - {'kind'}))}")
+            raise ConfigError(
+                f"{where} {pair!r}: expected KEY=VALUE with KEY one of " f"{', '.join(sorted(known - {'kind'}))}"
+            )
         try:
             values[key] = int(value)
         except ValueError as exc:
@@ -188,8 +189,7 @@ class VectorIndex:
             if count < 2:
                 raise ConfigError(f"an ivfpq index needs at least 2 vectors to train, got {count}")
             bytes_ = self.settings.pq_bytes or max(1, self.dim // 8)
-            index = faiss.IndexIVFPQ(quantizer, self.dim, lists, bytes_, pq_bits_for(count),
-                                     faiss.METRIC_INNER_PRODUCT)
+            index = faiss.IndexIVFPQ(quantizer, self.dim, lists, bytes_, pq_bits_for(count), faiss.METRIC_INNER_PRODUCT)
         # faiss's k-means wants >= 39 points per centroid: per cell, and per PQ code (256 of them)
         wanted = self.settings.train_points or max(64 * lists, 39 * 256 if self.settings.kind == "ivfpq" else 0)
         if count:
@@ -214,7 +214,7 @@ class VectorIndex:
         offset, filled = 0, 0
         for chunk in self._pending:
             mine = wanted[(wanted >= offset) & (wanted < offset + len(chunk))] - offset
-            out[filled:filled + len(mine)] = chunk[mine]
+            out[filled : filled + len(mine)] = chunk[mine]
             filled += len(mine)
             offset += len(chunk)
         return out
@@ -237,8 +237,10 @@ class VectorIndex:
 
         for key in values:
             if key not in SEARCH_SETTINGS:
-                raise ConfigError(f"{key} is fixed when the index is built; only {', '.join(SEARCH_SETTINGS)} "
-                                  "can change on a built index")
+                raise ConfigError(
+                    f"{key} is fixed when the index is built; only {', '.join(SEARCH_SETTINGS)} "
+                    "can change on a built index"
+                )
         self.settings = check_settings(dataclasses.replace(self.settings, **values))
         if self._index is not None:
             self._apply_search_settings()
@@ -305,8 +307,14 @@ class VectorIndex:
         from fdnet.io import atomic_path
 
         self.build()
-        header = {"format": FORMAT_VERSION, "kind": self.settings.kind, "dim": self.dim, "count": len(self),
-                  "settings": asdict(self.settings), "metadata": metadata or {}}
+        header = {
+            "format": FORMAT_VERSION,
+            "kind": self.settings.kind,
+            "dim": self.dim,
+            "count": len(self),
+            "settings": asdict(self.settings),
+            "metadata": metadata or {},
+        }
         data = json.dumps(header, sort_keys=True).encode()
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as fh:
@@ -353,8 +361,10 @@ class VectorIndex:
         values = dict(header["settings"])
         for key, value in (search or {}).items():
             if key not in SEARCH_SETTINGS:
-                raise ConfigError(f"{path}: {key} is fixed when the index is built; only "
-                                  f"{', '.join(SEARCH_SETTINGS)} can change on a saved index")
+                raise ConfigError(
+                    f"{path}: {key} is fixed when the index is built; only "
+                    f"{', '.join(SEARCH_SETTINGS)} can change on a saved index"
+                )
             values[key] = value
         known = {f.name for f in fields(IndexSettings)}
         unknown = sorted(set(values) - known)
@@ -365,8 +375,10 @@ class VectorIndex:
         out.settings, out.dim, out._faiss, out._pending = settings, int(header["dim"]), faiss, []
         out._index = index
         if index.d != out.dim or index.ntotal != int(header["count"]):
-            raise DataError(f"{path}: the index holds {index.ntotal} {index.d}-d vectors, its header says "
-                            f"{header['count']} {header['dim']}-d; the file is damaged")
+            raise DataError(
+                f"{path}: the index holds {index.ntotal} {index.d}-d vectors, its header says "
+                f"{header['count']} {header['dim']}-d; the file is damaged"
+            )
         out._apply_search_settings()
         return out
 
@@ -382,8 +394,10 @@ def _read_header(fh, path: Path) -> dict:
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise DataError(f"{path}: damaged index header ({exc})") from exc
     if not isinstance(header, dict) or header.get("format") != FORMAT_VERSION:
-        raise DataError(f"{path}: index format {header.get('format') if isinstance(header, dict) else '?'} "
-                        f"is not {FORMAT_VERSION}")
+        raise DataError(
+            f"{path}: index format {header.get('format') if isinstance(header, dict) else '?'} "
+            f"is not {FORMAT_VERSION}"
+        )
     for key in ("kind", "dim", "count", "settings"):
         if key not in header:
             raise DataError(f"{path}: index header lacks {key!r}")

@@ -29,7 +29,7 @@ class GrowingArray:
         shape = () if dim is None else (dim,)
         rows = np.zeros((0, *shape), dtype) if initial is None else np.asarray(initial, dtype)
         self._data = np.empty((max(1024, 2 * len(rows)), *shape), dtype=dtype)
-        self._data[:len(rows)] = rows
+        self._data[: len(rows)] = rows
         self._count = len(rows)
 
     def __len__(self) -> int:
@@ -38,7 +38,7 @@ class GrowingArray:
     def append(self, row) -> None:
         if self._count == len(self._data):
             grown = np.empty((2 * len(self._data), *self._data.shape[1:]), dtype=self._data.dtype)
-            grown[:self._count] = self._data[:self._count]
+            grown[: self._count] = self._data[: self._count]
             self._data = grown
         self._data[self._count] = row
         self._count += 1
@@ -48,9 +48,9 @@ class GrowingArray:
         need = self._count + len(rows)
         if need > len(self._data):
             grown = np.empty((max(2 * len(self._data), need), *self._data.shape[1:]), dtype=self._data.dtype)
-            grown[:self._count] = self._data[:self._count]
+            grown[: self._count] = self._data[: self._count]
             self._data = grown
-        self._data[self._count:need] = rows
+        self._data[self._count : need] = rows
         self._count = need
 
     def truncate(self, count: int) -> None:
@@ -58,7 +58,7 @@ class GrowingArray:
         self._count = min(int(count), self._count)
 
     def view(self, count: int | None = None) -> np.ndarray:
-        return self._data[:self._count if count is None else count]
+        return self._data[: self._count if count is None else count]
 
 
 def _first_within(idx: np.ndarray, scores: np.ndarray, searchable: int, want: int) -> tuple[np.ndarray, np.ndarray]:
@@ -68,8 +68,8 @@ def _first_within(idx: np.ndarray, scores: np.ndarray, searchable: int, want: in
     for row, (ids, values) in enumerate(zip(idx, scores)):
         keep = (ids >= 0) & (ids < searchable)
         chosen = ids[keep][:want]
-        out_idx[row, :len(chosen)] = chosen
-        out_scores[row, :len(chosen)] = values[keep][:want]
+        out_idx[row, : len(chosen)] = chosen
+        out_scores[row, : len(chosen)] = values[keep][:want]
     return out_idx, out_scores
 
 
@@ -98,8 +98,14 @@ class PlaceMap:
         return len(self.names)
 
     # ------------------------------------------------------------------ growing
-    def extend(self, names: Sequence[str], positions: Sequence, metadata_text: Sequence[str | None],
-               vectors: np.ndarray | None = None, metadata: Sequence[dict | None] | None = None) -> None:
+    def extend(
+        self,
+        names: Sequence[str],
+        positions: Sequence,
+        metadata_text: Sequence[str | None],
+        vectors: np.ndarray | None = None,
+        metadata: Sequence[dict | None] | None = None,
+    ) -> None:
         """Append places: names, positions ((x, y) or None), metadata as stored JSON text (or None;
         with ``metadata``, the same already parsed), and their vectors when the map keeps them."""
         start = len(self.names)
@@ -140,8 +146,9 @@ class PlaceMap:
         return out
 
     # ------------------------------------------------------------------ searching
-    def search(self, queries: np.ndarray, k: int, searchable: int | None = None, similarity=None,
-               sequence_length: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    def search(
+        self, queries: np.ndarray, k: int, searchable: int | None = None, similarity=None, sequence_length: int = 1
+    ) -> tuple[np.ndarray, np.ndarray]:
         """The one batch search over a map (``fdnet match``, ``fdnet database query``): the best
         ``k`` of the first ``searchable`` places (None: all) for each query, as (place ids, scores),
         each (Q, min(k, searchable)), best first, ties to the lower id; -1 (score -inf) pads a row
@@ -192,8 +199,13 @@ class PlaceMap:
         ``segment_start`` (bool list: the place starts a recording), ``session`` (the run that
         added it, or None)."""
         if self._loop is None:
-            self._loop = {"timestamp": [], "informative": GrowingArray(None), "still": GrowingArray(None),
-                          "segment_start": [], "session": []}
+            self._loop = {
+                "timestamp": [],
+                "informative": GrowingArray(None),
+                "still": GrowingArray(None),
+                "segment_start": [],
+                "session": [],
+            }
             self._read_loop_columns(0)
         return self._loop[key]
 

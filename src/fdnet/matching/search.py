@@ -99,8 +99,15 @@ class SearchSettings:
     index_file: str | None = None
 
 
-def rank_references(descriptor, ref_paths, query_paths, depth: int, search: SearchSettings | None = None,
-                    pipeline=None, log: Callable[[str], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
+def rank_references(
+    descriptor,
+    ref_paths,
+    query_paths,
+    depth: int,
+    search: SearchSettings | None = None,
+    pipeline=None,
+    log: Callable[[str], None] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """The ``depth`` best references of each query (indices, scores; (Q, depth) each): exact
     search (by SeqSLAM sequence similarity when ``search.sequence_length`` > 1) when
     ``search.index`` is None, else through a faiss index built chunk by chunk from the map (or
@@ -117,8 +124,9 @@ def rank_references(descriptor, ref_paths, query_paths, depth: int, search: Sear
     settings, sequence_length = search.index, search.sequence_length
 
     def describe(paths):
-        return describe_paths(descriptor, paths, pipeline.batch_size, progress=pipeline.progress,
-                              workers=pipeline.workers)
+        return describe_paths(
+            descriptor, paths, pipeline.batch_size, progress=pipeline.progress, workers=pipeline.workers
+        )
 
     from fdnet.matching.place_map import PlaceMap
 
@@ -127,12 +135,16 @@ def rank_references(descriptor, ref_paths, query_paths, depth: int, search: Sear
         references = PlaceMap.of_vectors(names, describe(ref_paths))
     else:
         if not descriptor.dot_product_similarity:
-            raise ConfigError(f"method {descriptor.name!r} does not compare vectors by dot product, so a "
-                              "faiss index would rank by the wrong measure; use --index exact")
-        references = PlaceMap.of_vectors(names, index=_build_or_load(descriptor, ref_paths, search, pipeline,
-                                                                     log or logger.info))
-    return references.search(describe(query_paths), depth, similarity=descriptor.similarity,
-                             sequence_length=sequence_length)
+            raise ConfigError(
+                f"method {descriptor.name!r} does not compare vectors by dot product, so a "
+                "faiss index would rank by the wrong measure; use --index exact"
+            )
+        references = PlaceMap.of_vectors(
+            names, index=_build_or_load(descriptor, ref_paths, search, pipeline, log or logger.info)
+        )
+    return references.search(
+        describe(query_paths), depth, similarity=descriptor.similarity, sequence_length=sequence_length
+    )
 
 
 def _build_or_load(descriptor, ref_paths, search: SearchSettings, pipeline, say):
@@ -153,7 +165,13 @@ def _build_or_load(descriptor, ref_paths, search: SearchSettings, pipeline, say)
     index.build()
     built = time.perf_counter() - t0
     if index_file:
-        index.save(index_file, metadata={"fingerprint": descriptor.fingerprint(),
-                                         "references": map_digest(ref_paths), "method": descriptor.name})
+        index.save(
+            index_file,
+            metadata={
+                "fingerprint": descriptor.fingerprint(),
+                "references": map_digest(ref_paths),
+                "method": descriptor.name,
+            },
+        )
         say(f"built the {settings.kind} index of {len(ref_paths)} references ({built:.1f} s), saved to {index_file}")
     return index

@@ -58,9 +58,12 @@ def enhance_contrast(similarity: np.ndarray, window: int = 10) -> np.ndarray:
     return ((s - mean) / (np.sqrt(var) + 1e-6)).astype(np.float32)
 
 
-def sequence_similarity(similarity: np.ndarray, length: int = 10,
-                        velocities: tuple[float, ...] | np.ndarray = DEFAULT_VELOCITIES,
-                        contrast_window: int = 0) -> np.ndarray:
+def sequence_similarity(
+    similarity: np.ndarray,
+    length: int = 10,
+    velocities: tuple[float, ...] | np.ndarray = DEFAULT_VELOCITIES,
+    contrast_window: int = 0,
+) -> np.ndarray:
     """(Q, R) single-image similarity -> (Q, R) sequence similarity (higher = better).
 
     Entry (q, r) is the best, over velocities v, of the mean of
@@ -76,13 +79,20 @@ def sequence_similarity(similarity: np.ndarray, length: int = 10,
         return s.copy()
     best = np.empty(s.shape, dtype=np.float32)
     for q in range(len(s)):
-        best[q] = online_sequence_scores(s[max(0, q - length + 1):q + 1], velocities=velocities)
+        best[q] = online_sequence_scores(s[max(0, q - length + 1) : q + 1], velocities=velocities)
     return best
 
 
-def sequence_top_k(queries: np.ndarray, references: np.ndarray, k: int, length: int = 10,
-                   similarity=None, velocities: tuple[float, ...] | np.ndarray = DEFAULT_VELOCITIES,
-                   contrast_window: int = 0, max_entries: int = 16_000_000) -> tuple[np.ndarray, np.ndarray]:
+def sequence_top_k(
+    queries: np.ndarray,
+    references: np.ndarray,
+    k: int,
+    length: int = 10,
+    similarity=None,
+    velocities: tuple[float, ...] | np.ndarray = DEFAULT_VELOCITIES,
+    contrast_window: int = 0,
+    max_entries: int = 16_000_000,
+) -> tuple[np.ndarray, np.ndarray]:
     """Best ``k`` references per query by sequence similarity, without the (Q, R) matrix.
 
     The same numbers as ``top_k_of_matrix(sequence_similarity(similarity_matrix(...)), k)``:
@@ -103,11 +113,11 @@ def sequence_top_k(queries: np.ndarray, references: np.ndarray, k: int, length: 
     best_score = np.zeros((num_q, k), dtype=np.float32)
     for start in range(0, num_q, block):
         first = max(0, start - overlap)
-        rows = np.asarray(fn(q[first:start + block], r), dtype=np.float32)
-        seq = sequence_similarity(rows, length, velocities, contrast_window)[start - first:]
+        rows = np.asarray(fn(q[first : start + block], r), dtype=np.float32)
+        seq = sequence_similarity(rows, length, velocities, contrast_window)[start - first :]
         idx, scores = top_k_of_matrix(seq, k)
-        best_idx[start:start + len(seq)] = idx
-        best_score[start:start + len(seq)] = scores
+        best_idx[start : start + len(seq)] = idx
+        best_score[start : start + len(seq)] = scores
     return best_idx, best_score
 
 
@@ -122,9 +132,13 @@ class SequenceRow:
         raise NotImplementedError
 
 
-def online_sequence_scores(rows: Sequence[np.ndarray | SequenceRow], searchable: int | None = None,
-                           velocities: tuple[float, ...] | np.ndarray = DEFAULT_VELOCITIES,
-                           ends: np.ndarray | None = None, exact_sums: bool = False) -> np.ndarray:
+def online_sequence_scores(
+    rows: Sequence[np.ndarray | SequenceRow],
+    searchable: int | None = None,
+    velocities: tuple[float, ...] | np.ndarray = DEFAULT_VELOCITIES,
+    ends: np.ndarray | None = None,
+    exact_sums: bool = False,
+) -> np.ndarray:
     """Sequence similarity of the newest frame of a robot's traverse, from the frames seen so
     far: the one sequence scorer (the matrix version, loop closure and its indexed search all
     call it).
@@ -175,7 +189,7 @@ def online_sequence_scores(rows: Sequence[np.ndarray | SequenceRow], searchable:
                 shift = int(np.rint(step))
                 lo, hi = max(shift, 0), min(count, len(row) + shift)
                 if lo < hi:
-                    total[i, lo:hi] += row[lo - shift:hi - shift]
+                    total[i, lo:hi] += row[lo - shift : hi - shift]
                     valid_count[i, lo:hi] += 1
                 continue
             # half-way: np.rint rounds r - step to even, which depends on r, so gather

@@ -17,8 +17,9 @@ def dot_similarity(q: np.ndarray, r: np.ndarray) -> np.ndarray:
     return q @ r.T
 
 
-def similarity_matrix(queries: np.ndarray, references: np.ndarray,
-                      similarity: SimilarityFn | None = None, block: int = 4096) -> np.ndarray:
+def similarity_matrix(
+    queries: np.ndarray, references: np.ndarray, similarity: SimilarityFn | None = None, block: int = 4096
+) -> np.ndarray:
     """Full (Q, R) float32 similarity; ``similarity`` defaults to the dot product
     (cosine for L2-normalised vectors). Pass ``descriptor.similarity`` for other methods."""
     fn = similarity or dot_similarity
@@ -27,13 +28,18 @@ def similarity_matrix(queries: np.ndarray, references: np.ndarray,
     out = np.empty((len(q), len(r)), dtype=np.float32)
     for i in range(0, len(q), block):
         for j in range(0, len(r), block):
-            out[i:i + block, j:j + block] = fn(q[i:i + block], r[j:j + block])
+            out[i : i + block, j : j + block] = fn(q[i : i + block], r[j : j + block])
     return out
 
 
-def top_k(queries: np.ndarray, references: np.ndarray, k: int = 1,
-          similarity: SimilarityFn | None = None, block_queries: int = 1024,
-          block_references: int = 16384) -> tuple[np.ndarray, np.ndarray]:
+def top_k(
+    queries: np.ndarray,
+    references: np.ndarray,
+    k: int = 1,
+    similarity: SimilarityFn | None = None,
+    block_queries: int = 1024,
+    block_references: int = 16384,
+) -> tuple[np.ndarray, np.ndarray]:
     """Best ``k`` references per query without materialising the (Q, R) matrix.
 
     Returns ``(indices, scores)``, both (Q, k), best first. Ties keep the lower index first.
@@ -47,14 +53,13 @@ def top_k(queries: np.ndarray, references: np.ndarray, k: int = 1,
     best_idx = np.zeros((len(q), k), dtype=np.int64)
     best_score = np.zeros((len(q), k), dtype=np.float32)
     for i in range(0, len(q), block_queries):
-        qb = q[i:i + block_queries]
+        qb = q[i : i + block_queries]
         run_idx = np.zeros((len(qb), 0), dtype=np.int64)
         run_score = np.zeros((len(qb), 0), dtype=np.float32)
         for j in range(0, len(r), block_references):
-            tile = np.asarray(fn(qb, r[j:j + block_references]), dtype=np.float32)
+            tile = np.asarray(fn(qb, r[j : j + block_references]), dtype=np.float32)
             cand_score = np.concatenate([run_score, tile], axis=1)
-            cand_idx = np.concatenate(
-                [run_idx, np.broadcast_to(np.arange(j, j + tile.shape[1]), tile.shape)], axis=1)
+            cand_idx = np.concatenate([run_idx, np.broadcast_to(np.arange(j, j + tile.shape[1]), tile.shape)], axis=1)
             if cand_score.shape[1] > k:
                 part = np.argpartition(-cand_score, k - 1, axis=1)[:, :k]
                 cand_score = np.take_along_axis(cand_score, part, axis=1)
@@ -62,8 +67,8 @@ def top_k(queries: np.ndarray, references: np.ndarray, k: int = 1,
             run_idx, run_score = cand_idx, cand_score
         # Sort best first; lexsort with index as the secondary key makes ties deterministic.
         order = np.lexsort((run_idx, -run_score), axis=1)
-        best_idx[i:i + block_queries] = np.take_along_axis(run_idx, order, axis=1)
-        best_score[i:i + block_queries] = np.take_along_axis(run_score, order, axis=1)
+        best_idx[i : i + block_queries] = np.take_along_axis(run_idx, order, axis=1)
+        best_score[i : i + block_queries] = np.take_along_axis(run_score, order, axis=1)
     return best_idx, best_score
 
 

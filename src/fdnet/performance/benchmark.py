@@ -92,15 +92,27 @@ def run_benchmark(plan: BenchmarkPlan, out: Callable[[str], None], json_path: st
     except ImportError:  # pragma: no cover - faiss is a dependency
         pass
     cpu = timing.cpu_model()
-    report: dict = {"threads": plan.threads, "machine": platform.processor() or platform.machine(), "cpu": cpu,
-                    "torch": torch.__version__, "fdnet": __version__, "device": str(device), "command": plan.command}
+    report: dict = {
+        "threads": plan.threads,
+        "machine": platform.processor() or platform.machine(),
+        "cpu": cpu,
+        "torch": torch.__version__,
+        "fdnet": __version__,
+        "device": str(device),
+        "command": plan.command,
+    }
     from fdnet.provenance import provenance
 
     # the synthetic inputs' seeds (the route, the random FDNet weights, the random maps and their revisits)
-    report["provenance"] = provenance(plan.command, seeds={"synthetic_route": 0, "fdnet_weights": 0, "random_map": 0,
-                                                           "revisit_queries": 1}, device=str(device))
-    out(f"fdnet benchmark: {plan.threads} threads, {cpu} ({platform.machine()}), torch {torch.__version__}, "
-        f"device {device}")
+    report["provenance"] = provenance(
+        plan.command,
+        seeds={"synthetic_route": 0, "fdnet_weights": 0, "random_map": 0, "revisit_queries": 1},
+        device=str(device),
+    )
+    out(
+        f"fdnet benchmark: {plan.threads} threads, {cpu} ({platform.machine()}), torch {torch.__version__}, "
+        f"device {device}"
+    )
     _gemm_references(plan, report, out)
     lengths = [512] if plan.quick else plan.lengths
     if "fdnet" in plan.parts:
@@ -137,8 +149,10 @@ def _gemm_references(plan: BenchmarkPlan, report: dict, out) -> None:
     bf16_gflops = timing.gemm_gflops(size=size, repeats=plan.repeats, dtype="bf16")
     native = bf16_native("cpu")
     report.update(gemm_gflops_fp32=gflops, gemm_gflops_bf16=bf16_gflops, gemm_size=size, bf16_native_cpu=native)
-    out(f"\nmachine references, measured now: fp32 GEMM {size}^3 = {gflops:.1f} GFLOP/s, bf16 GEMM = "
-        f"{bf16_gflops:.1f} GFLOP/s ({'native' if native else 'no native'} bf16 on this CPU)")
+    out(
+        f"\nmachine references, measured now: fp32 GEMM {size}^3 = {gflops:.1f} GFLOP/s, bf16 GEMM = "
+        f"{bf16_gflops:.1f} GFLOP/s ({'native' if native else 'no native'} bf16 on this CPU)"
+    )
 
 
 def _fdnet_extraction(plan: BenchmarkPlan, lengths, report: dict, out) -> None:
@@ -148,10 +162,14 @@ def _fdnet_extraction(plan: BenchmarkPlan, lengths, report: dict, out) -> None:
 
     gflops, bf16_gflops = report["gemm_gflops_fp32"], report["gemm_gflops_bf16"]
     paper_model = preset("paper").model
-    out("\nFDNet extraction, `paper` preset architecture (224x224, 5 blocks 64..512), ms/image; "
-        "%GEMM = achieved GFLOP/s over the GEMM rate of the same precision")
-    out(f"{'L':>5} {'GFLOP':>6} {'fp32 b32':>9} {'bf16 b32':>9} {'bf16/fp32':>9} {'fp32 b1':>8} {'bf16 b1':>8} "
-        f"{'%fp32GEMM':>9} {'%bf16GEMM':>9} {'paper GPU':>9} {'paper/ours':>10}")
+    out(
+        "\nFDNet extraction, `paper` preset architecture (224x224, 5 blocks 64..512), ms/image; "
+        "%GEMM = achieved GFLOP/s over the GEMM rate of the same precision"
+    )
+    out(
+        f"{'L':>5} {'GFLOP':>6} {'fp32 b32':>9} {'bf16 b32':>9} {'bf16/fp32':>9} {'fp32 b1':>8} {'bf16 b1':>8} "
+        f"{'%fp32GEMM':>9} {'%bf16GEMM':>9} {'paper GPU':>9} {'paper/ours':>10}"
+    )
     report["fdnet_extraction_ms"] = {}
     for length in lengths:
         t = timing.fdnet_extraction(vector_length=length, repeats=plan.repeats)
@@ -160,12 +178,18 @@ def _fdnet_extraction(plan: BenchmarkPlan, lengths, report: dict, out) -> None:
         best = min(t["bf16_batch32"], t["fp32_batch32"])
         share_fp32 = flops / (t["fp32_batch32"] * 1e-3) / 1e9 / gflops
         share_bf16 = flops / (t["bf16_batch32"] * 1e-3) / 1e9 / bf16_gflops
-        report["fdnet_extraction_ms"][length] = dict(t, paper_gpu=paper, gflop_per_image=flops / 1e9,
-                                                     fraction_of_fp32_gemm=share_fp32,
-                                                     fraction_of_bf16_gemm=share_bf16)
-        out(f"{length:>5} {flops / 1e9:>6.2f} {t['fp32_batch32']:>9.2f} {t['bf16_batch32']:>9.2f} "
+        report["fdnet_extraction_ms"][length] = dict(
+            t,
+            paper_gpu=paper,
+            gflop_per_image=flops / 1e9,
+            fraction_of_fp32_gemm=share_fp32,
+            fraction_of_bf16_gemm=share_bf16,
+        )
+        out(
+            f"{length:>5} {flops / 1e9:>6.2f} {t['fp32_batch32']:>9.2f} {t['bf16_batch32']:>9.2f} "
             f"{t['fp32_batch32'] / t['bf16_batch32']:>8.2f}x {t['fp32_batch1']:>8.2f} {t['bf16_batch1']:>8.2f} "
-            f"{100 * share_fp32:>8.0f}% {100 * share_bf16:>8.0f}% {paper:>9.1f} {paper / best:>9.2f}x")
+            f"{100 * share_fp32:>8.0f}% {100 * share_bf16:>8.0f}% {paper:>9.1f} {paper / best:>9.2f}x"
+        )
 
 
 def _public_api(plan: BenchmarkPlan, workdir: str, report: dict, out) -> None:
@@ -174,29 +198,38 @@ def _public_api(plan: BenchmarkPlan, workdir: str, report: dict, out) -> None:
     run_dir, config = timing.temporary_fdnet_run(workdir, "cpu")
     flops = timing.content_flops(config.model)
     images = _images(plan, tuple(config.model.input_size), uint8=True)
-    t = timing.descriptor_paths(run_dir, images, repeats=max(1, plan.repeats - 2), device="cpu",
-                                 compiled=plan.compile)
+    t = timing.descriptor_paths(run_dir, images, repeats=max(1, plan.repeats - 2), device="cpu", compiled=plan.compile)
     speedup = t["fp32_eager"] / t["extract"]
     rate = flops / (t["extract"] * 1e-3) / 1e9
     reference = report["gemm_gflops_bf16"] if t["extract_bf16"] else report["gemm_gflops_fp32"]
-    report["cpu_preset_descriptor_ms"] = dict(t, gflop_per_image=flops / 1e9, speedup=speedup,
-                                              fraction_of_gemm=rate / reference,
-                                              input_size=list(config.model.input_size),
-                                              vector_length=config.model.vector_length,
-                                              images=len(images))
-    out(f"\nFDNet `cpu` preset descriptor through the public API (trunk + encoders, "
+    report["cpu_preset_descriptor_ms"] = dict(
+        t,
+        gflop_per_image=flops / 1e9,
+        speedup=speedup,
+        fraction_of_gemm=rate / reference,
+        input_size=list(config.model.input_size),
+        vector_length=config.model.vector_length,
+        images=len(images),
+    )
+    out(
+        f"\nFDNet `cpu` preset descriptor through the public API (trunk + encoders, "
         f"{config.model.input_size[0]}x{config.model.input_size[1]}, L = {config.model.vector_length}, "
-        f"{flops / 1e9:.2f} GFLOP/image), {len(images)} images, CPU, ms/image:")
+        f"{flops / 1e9:.2f} GFLOP/image), {len(images)} images, CPU, ms/image:"
+    )
     out(f"  fp32 eager (float32 images, no autocast)   {t['fp32_eager']:8.2f}")
-    out(f"  fdnet extract's path (uint8, {'bf16' if t['extract_bf16'] else 'fp32'})        "
+    out(
+        f"  fdnet extract's path (uint8, {'bf16' if t['extract_bf16'] else 'fp32'})        "
         f"{t['extract']:8.2f}   {speedup:.2f}x the fp32 eager path, {rate:.1f} GFLOP/s = "
         f"{100 * rate / reference:.0f}% of the {'bf16' if t['extract_bf16'] else 'fp32'} GEMM rate; "
-        f"paper FDNet_512 on a TITAN X 21.2 ms: {21.2 / t['extract']:.1f}x")
+        f"paper FDNet_512 on a TITAN X 21.2 ms: {21.2 / t['extract']:.1f}x"
+    )
     if "extract_compiled" in t:
         report["cpu_preset_descriptor_ms"]["speedup_compiled"] = t["fp32_eager"] / t["extract_compiled"]
-        out(f"  fdnet extract --compile                     {t['extract_compiled']:8.2f}   "
+        out(
+            f"  fdnet extract --compile                     {t['extract_compiled']:8.2f}   "
             f"{t['fp32_eager'] / t['extract_compiled']:.2f}x the fp32 eager path (compiling took "
-            f"{t['compile_seconds']:.0f} s)")
+            f"{t['compile_seconds']:.0f} s)"
+        )
 
 
 def _gpu(plan: BenchmarkPlan, device, workdir: str, report: dict, out) -> None:
@@ -211,9 +244,11 @@ def _gpu(plan: BenchmarkPlan, device, workdir: str, report: dict, out) -> None:
     g["gemm_gflops_fp32"] = timing.gemm_gflops(size=8192, repeats=plan.repeats, device=device)
     g["gemm_gflops_bf16"] = timing.gemm_gflops(size=8192, repeats=plan.repeats, dtype="bf16", device=device)
     report["gpu"] = g
-    out(f"\nGPU {g['name']} ({device}): GEMM 8192^3 fp32 {g['gemm_gflops_fp32'] / 1e3:.1f} TFLOP/s, "
+    out(
+        f"\nGPU {g['name']} ({device}): GEMM 8192^3 fp32 {g['gemm_gflops_fp32'] / 1e3:.1f} TFLOP/s, "
         f"bf16 {g['gemm_gflops_bf16'] / 1e3:.1f} TFLOP/s; FDNet_512 at 224x224, images/s "
-        "(paper: 1000 / 21.2 ms = 47 images/s on a TITAN X):")
+        "(paper: 1000 / 21.2 ms = 47 images/s on a TITAN X):"
+    )
     for key, value in g.items():
         if key.endswith("_images_per_s"):
             out(f"  {key[:-len('_images_per_s')]:24s} {value:10.0f}   {value / (1000 / 21.2):8.0f}x the paper")
@@ -225,15 +260,19 @@ def _matching(plan: BenchmarkPlan, lengths, report: dict, out) -> None:
 
     map_size = plan.map_sizes[0]
     out(f"\nMatching: best of {map_size} references per query, ms/query")
-    out(f"{'L':>5} {'numpy 1q':>9} {'numpy batch':>11} {'faiss flat':>10} {'faiss hnsw':>10} {'paper':>9} "
-        f"{'paper/ours':>10}")
+    out(
+        f"{'L':>5} {'numpy 1q':>9} {'numpy batch':>11} {'faiss flat':>10} {'faiss hnsw':>10} {'paper':>9} "
+        f"{'paper/ours':>10}"
+    )
     report["matching_ms"] = {}
     for length in lengths:
         m = timing.matching_per_query(map_size, length)
         paper = PAPER_TABLE2.get(length, (float("nan"), float("nan")))[1]
         report["matching_ms"][length] = dict(m, paper_gpu=paper, map_size=map_size)
-        out(f"{length:>5} {m['numpy_single']:>9.4f} {m['numpy_batched']:>11.4f} {m['faiss_flat']:>10.4f} "
-            f"{m['faiss_hnsw']:>10.4f} {paper:>9.2f} {paper / m['numpy_single']:>9.1f}x")
+        out(
+            f"{length:>5} {m['numpy_single']:>9.4f} {m['numpy_batched']:>11.4f} {m['faiss_flat']:>10.4f} "
+            f"{m['faiss_hnsw']:>10.4f} {paper:>9.2f} {paper / m['numpy_single']:>9.1f}x"
+        )
 
 
 def _methods(plan: BenchmarkPlan, report: dict, out) -> None:
@@ -244,14 +283,17 @@ def _methods(plan: BenchmarkPlan, report: dict, out) -> None:
 
     methods = list(plan.methods) + [m for m in [*plan.checkpoints, *plan.weights] if m not in plan.methods]
     methods = list(dict.fromkeys(methods))
-    out(f"\nExtraction through the descriptor interface, {plan.num_images} images, ms/image "
-        f"(decoding excluded); vs SAD = SAD's time / method's; vs paper = the paper's Table 5 time / ours")
+    out(
+        f"\nExtraction through the descriptor interface, {plan.num_images} images, ms/image "
+        f"(decoding excluded); vs SAD = SAD's time / method's; vs paper = the paper's Table 5 time / ours"
+    )
     timings = report["method_extraction_ms"] = {}
     cache = {}
     for method in methods:
         try:
-            descriptor = create(method, checkpoint=plan.checkpoints.get(method), weights=plan.weights.get(method),
-                                device="cpu")
+            descriptor = create(
+                method, checkpoint=plan.checkpoints.get(method), weights=plan.weights.get(method), device="cpu"
+            )
             size = tuple(descriptor.input_size)
             if size not in cache:
                 cache[size] = _images(plan, size)
@@ -276,8 +318,7 @@ def _methods(plan: BenchmarkPlan, report: dict, out) -> None:
                 report.setdefault("ratio_vs_sad", {})[method] = sad / ms
             if method in PAPER_TABLE5:
                 report.setdefault("ratio_vs_paper_table5", {})[method] = PAPER_TABLE5[method][0] / ms
-    report["paper_table5"] = {k: {"extraction_ms": v[0], "matching_ms": v[1]}
-                              for k, v in PAPER_TABLE5.items()}
+    report["paper_table5"] = {k: {"extraction_ms": v[0], "matching_ms": v[1]} for k, v in PAPER_TABLE5.items()}
 
 
 def _scale(plan: BenchmarkPlan, report: dict, out) -> None:
@@ -293,24 +334,32 @@ def _scale(plan: BenchmarkPlan, report: dict, out) -> None:
             dim = int(load_config(plan.checkpoints["fdnet"], FDNetRunConfig).model.vector_length)
     report["scale"] = []
     for n in plan.map_sizes:
-        out(f"\nScale: a map of {n:,} random unit {dim}-d vectors, {min(plan.queries, n)} queries = map "
-            f"vectors + noise {plan.noise}; recall@1 against exact search")
+        out(
+            f"\nScale: a map of {n:,} random unit {dim}-d vectors, {min(plan.queries, n)} queries = map "
+            f"vectors + noise {plan.noise}; recall@1 against exact search"
+        )
         vectors = timing.random_map(n, dim)
         queries = timing.revisit_queries(vectors, plan.queries, plan.noise)
-        report["scale"] += timing.scale_rows(vectors, queries, plan.kinds, plan.overrides, source="random", log=out,
-                                              sweep=plan.sweep)
+        report["scale"] += timing.scale_rows(
+            vectors, queries, plan.kinds, plan.overrides, source="random", log=out, sweep=plan.sweep
+        )
         del vectors
     if plan.map_vectors:
         vectors = _read_vectors(plan.map_vectors, "map vectors")
-        queries = (_read_vectors(plan.query_vectors, "query vectors") if plan.query_vectors
-                   else timing.revisit_queries(vectors, plan.queries, plan.noise))
+        queries = (
+            _read_vectors(plan.query_vectors, "query vectors")
+            if plan.query_vectors
+            else timing.revisit_queries(vectors, plan.queries, plan.noise)
+        )
         if queries.shape[1] != vectors.shape[1]:
-            raise ConfigError(f"--query-vectors are {queries.shape[1]}-d but --map-vectors "
-                              f"{vectors.shape[1]}-d")
-        out(f"\nScale: {plan.map_vectors}, {len(vectors):,} real {vectors.shape[1]}-d vectors, "
-            f"{len(queries)} queries")
-        report["scale"] += timing.scale_rows(vectors, queries, plan.kinds, plan.overrides,
-                                              source=str(plan.map_vectors), log=out, sweep=plan.sweep)
+            raise ConfigError(f"--query-vectors are {queries.shape[1]}-d but --map-vectors " f"{vectors.shape[1]}-d")
+        out(
+            f"\nScale: {plan.map_vectors}, {len(vectors):,} real {vectors.shape[1]}-d vectors, "
+            f"{len(queries)} queries"
+        )
+        report["scale"] += timing.scale_rows(
+            vectors, queries, plan.kinds, plan.overrides, source=str(plan.map_vectors), log=out, sweep=plan.sweep
+        )
 
 
 def _loop(plan: BenchmarkPlan, workdir: str, report: dict, out) -> None:
@@ -319,19 +368,27 @@ def _loop(plan: BenchmarkPlan, workdir: str, report: dict, out) -> None:
     # loop-closure describes frame batches in fp32 (the descriptor's default), not extract's bf16 path
     describe = (report.get("cpu_preset_descriptor_ms") or {}).get("fp32_eager")
     route = 100 if plan.quick else 300
-    out(f"\nLoop closure: a route of {route} places driven twice after an earlier session's map of random unit "
+    out(
+        f"\nLoop closure: a route of {route} places driven twice after an earlier session's map of random unit "
         f"512-d vectors; margin, sequences of 10, the default gates; ms per frame of the decision (median over the "
         f"revisits), exhaustive search against the index (fdnet.decisions.loop_search)"
-        + ("" if describe is None else f"; frames/s with the FDNet descriptor measured above, fp32 as loop-closure "
-                                    f"runs it ({describe:.1f} ms)"))
-    report["loop"] = loop_rows(plan.loop_map_sizes, dim=512, route=route, noise=plan.noise, describe_ms=describe,
-                               log=out)
+        + (
+            ""
+            if describe is None
+            else f"; frames/s with the FDNet descriptor measured above, fp32 as loop-closure "
+            f"runs it ({describe:.1f} ms)"
+        )
+    )
+    report["loop"] = loop_rows(
+        plan.loop_map_sizes, dim=512, route=route, noise=plan.noise, describe_ms=describe, log=out
+    )
     if plan.loop_compressed_sizes:
         from fdnet.performance.compressed_benchmark import HEADLINE, compressed_rows
 
         out(HEADLINE)
-        report["loop_compressed"] = compressed_rows(plan.loop_compressed_sizes, workdir, plan.loop_real_vectors,
-                                                    describe_ms=describe, log=out)
+        report["loop_compressed"] = compressed_rows(
+            plan.loop_compressed_sizes, workdir, plan.loop_real_vectors, describe_ms=describe, log=out
+        )
     _loop_per_frame(plan, workdir, report, out)
 
 
@@ -355,7 +412,8 @@ def _loop_per_frame(plan: BenchmarkPlan, workdir: str, report: dict, out) -> Non
         rendered = render_route(frames=frames, conditions=("summer",), seed=0)["summer"]
         for i, image in enumerate(rendered):
             Image.fromarray((np.clip(image, 0, 1) * 255).round().astype(np.uint8)).save(folder / f"frame_{i:04d}.png")
-    out(f"\nLoop closure, the robot's path: {folder}, FDNet ({run_dir}), frames/s of the command against "
-        "LoopClosureDetector.process one frame at a time:")
+    out(
+        f"\nLoop closure, the robot's path: {folder}, FDNet ({run_dir}), frames/s of the command against "
+        "LoopClosureDetector.process one frame at a time:"
+    )
     report["loop_per_frame"] = per_frame_rows(run_dir, folder, frames=frames, repeats=2 if plan.quick else 3, log=out)
-

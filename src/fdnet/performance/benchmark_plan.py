@@ -135,8 +135,10 @@ def plan_benchmark(request: BenchmarkRequest) -> BenchmarkPlan:
     if query_vectors and not map_vectors:
         raise ConfigError("--query-vectors needs --map-vectors")
     parsed_checkpoints, parsed_weights = {}, {}
-    for flag, items, parsed, what in (("--checkpoint", r.checkpoints, parsed_checkpoints, "RUN_DIR"),
-                                      ("--weights", r.weights, parsed_weights, "FILE")):
+    for flag, items, parsed, what in (
+        ("--checkpoint", r.checkpoints, parsed_checkpoints, "RUN_DIR"),
+        ("--weights", r.weights, parsed_weights, "FILE"),
+    ):
         for item in items:
             if ":" not in item:
                 raise ConfigError(f"{flag} {item!r}: expected METHOD:{what}")
@@ -148,13 +150,32 @@ def plan_benchmark(request: BenchmarkRequest) -> BenchmarkPlan:
         raise ConfigError(f"--lengths {lengths!r}: expected whole numbers, e.g. 256,512") from exc
     from fdnet.backbones import check_device_spec
 
-    return BenchmarkPlan(parts=chosen, methods=_comma_list(r.methods), checkpoints=parsed_checkpoints,
-                         weights=parsed_weights, map_sizes=map_sizes, loop_map_sizes=loop_map_sizes, kinds=kinds,
-                         overrides=index_overrides(r.index_set), sweep=sweeps(r.sweep), images=r.images,
-                         num_images=num_images, queries=queries, noise=noise, scale_dim=r.scale_dim,
-                         map_vectors=map_vectors, query_vectors=query_vectors, lengths=length_list, compile=r.compile,
-                         quick=quick, threads=threads, device=check_device_spec(r.device), command=r.command,
-                         loop_compressed_sizes=compressed_sizes, loop_real_vectors=real_vectors)
+    return BenchmarkPlan(
+        parts=chosen,
+        methods=_comma_list(r.methods),
+        checkpoints=parsed_checkpoints,
+        weights=parsed_weights,
+        map_sizes=map_sizes,
+        loop_map_sizes=loop_map_sizes,
+        kinds=kinds,
+        overrides=index_overrides(r.index_set),
+        sweep=sweeps(r.sweep),
+        images=r.images,
+        num_images=num_images,
+        queries=queries,
+        noise=noise,
+        scale_dim=r.scale_dim,
+        map_vectors=map_vectors,
+        query_vectors=query_vectors,
+        lengths=length_list,
+        compile=r.compile,
+        quick=quick,
+        threads=threads,
+        device=check_device_spec(r.device),
+        command=r.command,
+        loop_compressed_sizes=compressed_sizes,
+        loop_real_vectors=real_vectors,
+    )
 
 
 def _compressed_maps(sizes: str, vectors: str) -> tuple[list[int], list[str]]:
@@ -182,8 +203,9 @@ def index_overrides(items) -> dict:
     for item in items:
         kind, sep, pair = item.partition(":")
         if not sep or kind not in INDEX_KINDS:
-            raise ConfigError(f"--index-set {item!r}: expected KIND:KEY=VALUE with KIND one of "
-                              f"{', '.join(INDEX_KINDS)}")
+            raise ConfigError(
+                f"--index-set {item!r}: expected KIND:KEY=VALUE with KIND one of " f"{', '.join(INDEX_KINDS)}"
+            )
         settings = parse_index_settings(kind, [pair], where="--index-set")
         key = pair.split("=", 1)[0].strip()
         out.setdefault(kind, {})[key] = getattr(settings, key)
@@ -203,7 +225,9 @@ def sweeps(items) -> dict:
         except ValueError:
             numbers = []
         if not sep or key not in SWEEPABLE or not numbers or min(numbers) < 1:
-            raise ConfigError(f"--sweep {item!r}: expected KEY=V1,V2,... with KEY one of {', '.join(SWEEPABLE)} "
-                              "and whole numbers >= 1")
+            raise ConfigError(
+                f"--sweep {item!r}: expected KEY=V1,V2,... with KEY one of {', '.join(SWEEPABLE)} "
+                "and whole numbers >= 1"
+            )
         out[key] = numbers
     return out

@@ -30,10 +30,12 @@ import numpy as np
 CHUNK = 131_072
 
 
-HEADLINE = ("\nCompressed place search: maps of distractors drawn like the real FDNet vectors given, the real "
-            "reference traverses in the middle; codes in memory, vectors in a file, short list re-ranked exactly; "
-            "queries one at a time against exhaustive float search over the file "
-            "(fdnet.performance.compressed_benchmark)")
+HEADLINE = (
+    "\nCompressed place search: maps of distractors drawn like the real FDNet vectors given, the real "
+    "reference traverses in the middle; codes in memory, vectors in a file, short list re-ranked exactly; "
+    "queries one at a time against exhaustive float search over the file "
+    "(fdnet.performance.compressed_benchmark)"
+)
 
 
 def real_vectors(sources) -> tuple[np.ndarray, np.ndarray, list]:
@@ -127,8 +129,14 @@ def _memory() -> dict:
     return fields
 
 
-def compressed_rows(sizes, workdir: str | os.PathLike, sources, describe_ms: float | None = None, settings=None,
-                    log: Callable[[str], None] = lambda line: None) -> list[dict]:
+def compressed_rows(
+    sizes,
+    workdir: str | os.PathLike,
+    sources,
+    describe_ms: float | None = None,
+    settings=None,
+    log: Callable[[str], None] = lambda line: None,
+) -> list[dict]:
     """Measure each map size (see the module docstring) on maps made from the FDNet vectors of
     ``sources`` (.npz files); the vector file of each is deleted after."""
     from fdnet.matching.compressed import CompressedIndex, VectorFile
@@ -151,9 +159,16 @@ def compressed_rows(sizes, workdir: str | os.PathLike, sources, describe_ms: flo
                 encoded = time.perf_counter() - t1
                 row = _query_rows(index, file, queries, reference_ids, reference_scores)
                 row.update(_memory())
-                row.update(map_size=int(size), build_s=written + encoded, write_s=written, encode_s=encoded,
-                           memory_bytes_per_place=index.memory_bytes() / size, disk_bytes_per_place=4 * refs.shape[1],
-                           index=index.describe(), gemv_ms=_gemv_ms_scaled(file, size))
+                row.update(
+                    map_size=int(size),
+                    build_s=written + encoded,
+                    write_s=written,
+                    encode_s=encoded,
+                    memory_bytes_per_place=index.memory_bytes() / size,
+                    disk_bytes_per_place=4 * refs.shape[1],
+                    index=index.describe(),
+                    gemv_ms=_gemv_ms_scaled(file, size),
+                )
                 found = np.array(truth) >= 0
                 places = at + np.array(truth)
                 row["recall_at_1"] = float(np.mean(np.abs(row.pop("ids") - places)[found] <= 2))
@@ -190,9 +205,15 @@ def _query_rows(index, file, queries, reference_ids, reference_scores) -> dict:
     closure_ref = margin >= threshold
     closure = (scores[:, 0] - scores[:, 1]) >= threshold
     agree = (closure == closure_ref) & (same_place | ~closure_ref)
-    return {"queries": len(queries), "query_ms_median": 1e3 * float(np.median(times)),
-            "query_ms_p99": 1e3 * float(np.percentile(times, 99)), "same_place": float(same_place.mean()),
-            "decision_agreement": float(agree.mean()), "margin_threshold": threshold, "ids": ids[:, 0]}
+    return {
+        "queries": len(queries),
+        "query_ms_median": 1e3 * float(np.median(times)),
+        "query_ms_p99": 1e3 * float(np.percentile(times, 99)),
+        "same_place": float(same_place.mean()),
+        "decision_agreement": float(agree.mean()),
+        "margin_threshold": threshold,
+        "ids": ids[:, 0],
+    }
 
 
 def _gemv_ms_scaled(file, size: int, rows: int = 100_000) -> float:
@@ -214,9 +235,11 @@ def _gemv_ms_scaled(file, size: int, rows: int = 100_000) -> float:
 def _line(row: dict) -> str:
     gb = 1 << 30
     fps = "" if "fdnet_frames_per_s" not in row else f", with FDNet {row['fdnet_frames_per_s']:.1f} frames/s"
-    return (f"  {row['map_size']:>11,} places: RSS {row['VmRSS'] / gb:.2f} GB (anonymous {row['RssAnon'] / gb:.2f}), "
-            f"{row['memory_bytes_per_place']:.1f} B/place in memory, {row['disk_bytes_per_place']} on disk, built in "
-            f"{row['build_s']:.0f} s; query {row['query_ms_median']:.2f} ms (p99 {row['query_ms_p99']:.2f}) = "
-            f"{row['query_ms_median'] / row['gemv_ms']:.4f} x exhaustive GEMV ({row['gemv_ms']:.0f} ms); same place "
-            f"{row['same_place']:.3f}, same decision {row['decision_agreement']:.3f}, "
-            f"R@1 (+-2 places) {row['recall_at_1']:.3f}, exhaustive {row['exhaustive_recall_at_1']:.3f}{fps}")
+    return (
+        f"  {row['map_size']:>11,} places: RSS {row['VmRSS'] / gb:.2f} GB (anonymous {row['RssAnon'] / gb:.2f}), "
+        f"{row['memory_bytes_per_place']:.1f} B/place in memory, {row['disk_bytes_per_place']} on disk, built in "
+        f"{row['build_s']:.0f} s; query {row['query_ms_median']:.2f} ms (p99 {row['query_ms_p99']:.2f}) = "
+        f"{row['query_ms_median'] / row['gemv_ms']:.4f} x exhaustive GEMV ({row['gemv_ms']:.0f} ms); same place "
+        f"{row['same_place']:.3f}, same decision {row['decision_agreement']:.3f}, "
+        f"R@1 (+-2 places) {row['recall_at_1']:.3f}, exhaustive {row['exhaustive_recall_at_1']:.3f}{fps}"
+    )

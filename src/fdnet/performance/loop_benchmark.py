@@ -48,8 +48,14 @@ class StoredVectors(Descriptor):
         return {"dim": self._dim}
 
 
-def loop_rows(sizes, dim: int = 512, route: int = 300, noise: float = 0.5, describe_ms: float | None = None,
-              log: Callable[[str], None] = lambda line: None) -> list[dict]:
+def loop_rows(
+    sizes,
+    dim: int = 512,
+    route: int = 300,
+    noise: float = 0.5,
+    describe_ms: float | None = None,
+    log: Callable[[str], None] = lambda line: None,
+) -> list[dict]:
     """Measure the detector on each map size (see the module docstring); one row per size."""
     from fdnet.decisions.loop_closure import LoopClosureDetector
     from fdnet.matching.database import PlaceDatabase
@@ -73,10 +79,18 @@ def loop_rows(sizes, dim: int = 512, route: int = 300, noise: float = 0.5, descr
         for search in ("exact", "index"):
             db = PlaceDatabase.for_descriptor(descriptor)
             for start in range(0, len(earlier), 100_000):
-                chunk = earlier[start:start + 100_000]
+                chunk = earlier[start : start + 100_000]
                 db.add(chunk, [f"earlier/{start + i}" for i in range(len(chunk))])
-            detector = LoopClosureDetector(descriptor, db, exclude_last=5, rule="margin", threshold=0.0,
-                                           sequence_length=10, commit_every=100, search=search)
+            detector = LoopClosureDetector(
+                descriptor,
+                db,
+                exclude_last=5,
+                rule="margin",
+                threshold=0.0,
+                sequence_length=10,
+                commit_every=100,
+                search=search,
+            )
             times = []
             with detector:
                 for i, vector in enumerate(frames):
@@ -93,20 +107,35 @@ def loop_rows(sizes, dim: int = 512, route: int = 300, noise: float = 0.5, descr
         gemv = _gemv_ms(earlier)
         # on the revisits, where a decision can be right (the first pass's best places are noise)
         agree = float(np.mean(np.array(decided["exact"])[route:] == np.array(decided["index"])[route:]))
-        row = {"map_size": int(size), "dim": dim, "frames": len(frames), "exact_ms": decided["exact_ms"],
-               "index_ms": decided["index_ms"], "gemv_ms": gemv, "agreement": agree,
-               "exact_recall_at_1": decided["exact_recall"], "index_recall_at_1": decided["index_recall"]}
+        row = {
+            "map_size": int(size),
+            "dim": dim,
+            "frames": len(frames),
+            "exact_ms": decided["exact_ms"],
+            "index_ms": decided["index_ms"],
+            "gemv_ms": gemv,
+            "agreement": agree,
+            "exact_recall_at_1": decided["exact_recall"],
+            "index_recall_at_1": decided["index_recall"],
+        }
         if describe_ms is not None:
             row["describe_ms"] = describe_ms
             row["fdnet_frames_per_s_exact"] = 1e3 / (describe_ms + row["exact_ms"])
             row["fdnet_frames_per_s_index"] = 1e3 / (describe_ms + row["index_ms"])
         rows.append(row)
-        with_fdnet = "" if describe_ms is None else (
-            f" | with FDNet ({describe_ms:.1f} ms/frame): {row['fdnet_frames_per_s_exact']:.1f} -> "
-            f"{row['fdnet_frames_per_s_index']:.1f} frames/s")
-        log(f"  {size:>9,} places: exact {row['exact_ms']:7.2f} ms/frame ({row['exact_ms'] / gemv:5.1f} x one "
+        with_fdnet = (
+            ""
+            if describe_ms is None
+            else (
+                f" | with FDNet ({describe_ms:.1f} ms/frame): {row['fdnet_frames_per_s_exact']:.1f} -> "
+                f"{row['fdnet_frames_per_s_index']:.1f} frames/s"
+            )
+        )
+        log(
+            f"  {size:>9,} places: exact {row['exact_ms']:7.2f} ms/frame ({row['exact_ms'] / gemv:5.1f} x one "
             f"{gemv:.2f} ms GEMV), index {row['index_ms']:6.2f} ms/frame, same place on the revisits {agree:.3f}, "
-            f"R@1 (+-1 place) exact {row['exact_recall_at_1']:.3f} index {row['index_recall_at_1']:.3f}{with_fdnet}")
+            f"R@1 (+-1 place) exact {row['exact_recall_at_1']:.3f} index {row['index_recall_at_1']:.3f}{with_fdnet}"
+        )
         del earlier
     return rows
 
@@ -126,8 +155,9 @@ def _gemv_ms(vectors: np.ndarray, repeats: int = 5) -> float:
     return 1e3 * float(np.median(times)) if times else math.nan
 
 
-def per_frame_rows(run_dir, images_folder, frames: int = 120, repeats: int = 3,
-                   log: Callable[[str], None] = lambda line: None) -> dict:
+def per_frame_rows(
+    run_dir, images_folder, frames: int = 120, repeats: int = 3, log: Callable[[str], None] = lambda line: None
+) -> dict:
     """A robot's path against the command's: the same frames through ``fdnet loop-closure``'s
     :func:`~fdnet.decisions.loop_traverse.run_traverse` (frames described ``batch_size`` at a
     time, decoded by worker processes) and through :meth:`LoopClosureDetector.process` one frame
@@ -153,8 +183,9 @@ def per_frame_rows(run_dir, images_folder, frames: int = 120, repeats: int = 3,
         for path in paths:  # exactly these frames for both paths
             (folder / Path(path).name).symlink_to(Path(path).resolve())
         for _ in range(repeats):
-            settings = TraverseSettings(Path(scratch) / "events.csv", LoopClosureSettings(
-                rule="margin", threshold=math.inf, sequence_length=10))
+            settings = TraverseSettings(
+                Path(scratch) / "events.csv", LoopClosureSettings(rule="margin", threshold=math.inf, sequence_length=10)
+            )
             report = run_traverse(folder, descriptor, None, settings)
             batched.append(report.frames_per_second)
             detector = LoopClosureDetector(descriptor, None, rule="margin", threshold=math.inf, sequence_length=10)
@@ -165,14 +196,21 @@ def per_frame_rows(run_dir, images_folder, frames: int = 120, repeats: int = 3,
                     detector.process(path)
                     latency.append(time.perf_counter() - t1)
                 single.append(len(paths) / (time.perf_counter() - t0))
-    row = {"frames": len(paths), "command_frames_per_s": max(batched), "process_frames_per_s": max(single),
-           "process_latency_ms_median": 1e3 * float(np.median(latency)),
-           "process_latency_ms_p99": 1e3 * float(np.percentile(latency, 99)),
-           "command_runs": batched, "process_runs": single}
+    row = {
+        "frames": len(paths),
+        "command_frames_per_s": max(batched),
+        "process_frames_per_s": max(single),
+        "process_latency_ms_median": 1e3 * float(np.median(latency)),
+        "process_latency_ms_p99": 1e3 * float(np.percentile(latency, 99)),
+        "command_runs": batched,
+        "process_runs": single,
+    }
     row["ratio"] = row["process_frames_per_s"] / row["command_frames_per_s"]
-    log(f"  {len(paths)} frames, FDNet {descriptor.input_size[0]}x{descriptor.input_size[1]}: fdnet loop-closure "
+    log(
+        f"  {len(paths)} frames, FDNet {descriptor.input_size[0]}x{descriptor.input_size[1]}: fdnet loop-closure "
         f"{row['command_frames_per_s']:.1f} frames/s (batched); LoopClosureDetector.process one frame at a time "
         f"{row['process_frames_per_s']:.1f} frames/s = {row['ratio']:.2f} x the command, latency per frame median "
         f"{row['process_latency_ms_median']:.1f} ms, p99 {row['process_latency_ms_p99']:.1f} ms (best of {repeats} "
-        "alternated runs each)")
+        "alternated runs each)"
+    )
     return row

@@ -147,8 +147,9 @@ def temporary_fdnet_run(folder, preset_name: str = "cpu", vector_length: int | N
     return run, config
 
 
-def descriptor_paths(run_dir, images_u8: np.ndarray, repeats: int = 3, device="cpu",
-                     compiled: bool = False) -> dict[str, float]:
+def descriptor_paths(
+    run_dir, images_u8: np.ndarray, repeats: int = 3, device="cpu", compiled: bool = False
+) -> dict[str, float]:
     """ms/image of FDNet's descriptor (the public API) on preloaded images: ``fp32_eager`` is
     the float32 path (float32 images, no autocast: what ``describe`` did before devices), and
     ``extract`` what ``fdnet extract`` runs (uint8 images, bf16 autocast and channels_last where
@@ -212,8 +213,7 @@ def gpu_figures(device, run_dir, batch_sizes=(64, 256), seconds: float = 3.0) ->
     return out
 
 
-def matching_per_query(num_references: int, dim: int, num_queries: int = 200,
-                       seed: int = 0) -> dict[str, float]:
+def matching_per_query(num_references: int, dim: int, num_queries: int = 200, seed: int = 0) -> dict[str, float]:
     """ms/query to find the best reference among ``num_references`` unit vectors: numpy exact
     one query at a time (latency), numpy exact batched, faiss flat (exact), faiss HNSW."""
     from fdnet.matching.index import IndexSettings, VectorIndex
@@ -222,15 +222,18 @@ def matching_per_query(num_references: int, dim: int, num_queries: int = 200,
     rng = np.random.default_rng(seed)
     refs = rng.normal(size=(num_references, dim)).astype(np.float32)
     refs /= np.linalg.norm(refs, axis=1, keepdims=True)
-    queries = refs[rng.integers(0, num_references, num_queries)] + 0.05 * rng.normal(
-        size=(num_queries, dim)).astype(np.float32)
+    queries = refs[rng.integers(0, num_references, num_queries)] + 0.05 * rng.normal(size=(num_queries, dim)).astype(
+        np.float32
+    )
 
     def one_at_a_time():
         for q in queries[:50]:
             int(np.argmax(refs @ q))
 
-    out = {"numpy_single": median_seconds(one_at_a_time, repeats=3) / 50 * 1e3,
-           "numpy_batched": median_seconds(lambda: top_k(queries, refs, 1), repeats=3) / num_queries * 1e3}
+    out = {
+        "numpy_single": median_seconds(one_at_a_time, repeats=3) / 50 * 1e3,
+        "numpy_batched": median_seconds(lambda: top_k(queries, refs, 1), repeats=3) / num_queries * 1e3,
+    }
     for kind in ("flat", "hnsw"):
         index = VectorIndex(dim, IndexSettings(kind=kind))
         index.add(refs)
@@ -251,7 +254,7 @@ def random_map(size: int, dim: int, seed: int = 0, chunk: int = 100_000) -> np.n
     for start in range(0, size, chunk):
         block = rng.standard_normal((min(chunk, size - start), dim), dtype=np.float32)
         block /= np.linalg.norm(block, axis=1, keepdims=True)
-        out[start:start + len(block)] = block
+        out[start : start + len(block)] = block
     return out
 
 
@@ -270,8 +273,16 @@ def revisit_queries(map_vectors: np.ndarray, count: int, noise: float = 0.5, see
 SWEEPABLE = {"ivf_probe": ("ivf", "ivfpq"), "hnsw_ef_search": ("hnsw",)}
 
 
-def scale_rows(map_vectors: np.ndarray, queries: np.ndarray, kinds, settings: dict | None = None,
-               source: str = "random", single: int = 100, log=None, sweep: dict | None = None) -> list[dict]:
+def scale_rows(
+    map_vectors: np.ndarray,
+    queries: np.ndarray,
+    kinds,
+    settings: dict | None = None,
+    source: str = "random",
+    single: int = 100,
+    log=None,
+    sweep: dict | None = None,
+) -> list[dict]:
     """Per index kind: build time, memory, ms/query (all queries in one batch: ``ms_per_query``;
     and one at a time over up to ``single`` of them: ``ms_per_query_single``) and recall@1
     against exact search (faiss flat, computed first). ``settings``: kind -> IndexSettings
@@ -296,7 +307,7 @@ def scale_rows(map_vectors: np.ndarray, queries: np.ndarray, kinds, settings: di
         index = VectorIndex(dim, IndexSettings(kind=kind, **options))
         t0 = time.perf_counter()
         for start in range(0, size, 100_000):
-            index.add(map_vectors[start:start + 100_000])
+            index.add(map_vectors[start : start + 100_000])
         index.build()
         build_s = time.perf_counter() - t0
         memory_mb = index.memory_bytes() / 2**20
@@ -319,13 +330,25 @@ def scale_rows(map_vectors: np.ndarray, queries: np.ndarray, kinds, settings: di
                 if done >= 5 and time.perf_counter() - t0 > 5.0:
                     break
             one = (time.perf_counter() - t0) / max(done, 1) * 1e3
-            row = {"map_size": int(size), "index": kind, "dim": int(dim), "build_s": build_s,
-                   "memory_mb": memory_mb, "ms_per_query": batched, "ms_per_query_single": one,
-                   "recall_at_1": float((found == truth).mean()), "queries": int(len(queries)), "source": source,
-                   "search": variant, "settings": index.describe()}
+            row = {
+                "map_size": int(size),
+                "index": kind,
+                "dim": int(dim),
+                "build_s": build_s,
+                "memory_mb": memory_mb,
+                "ms_per_query": batched,
+                "ms_per_query_single": one,
+                "recall_at_1": float((found == truth).mean()),
+                "queries": int(len(queries)),
+                "source": source,
+                "search": variant,
+                "settings": index.describe(),
+            }
             label = " ".join(f"{k}={v}" for k, v in variant.items())
-            say(f"  {kind:6s} {label:17s} build {build_s:7.1f} s  memory {memory_mb:9.1f} MB  "
-                f"{batched:8.4f} ms/query batched  {one:8.3f} single  recall@1 {row['recall_at_1']:.3f}")
+            say(
+                f"  {kind:6s} {label:17s} build {build_s:7.1f} s  memory {memory_mb:9.1f} MB  "
+                f"{batched:8.4f} ms/query batched  {one:8.3f} single  recall@1 {row['recall_at_1']:.3f}"
+            )
             rows.append(row)
         del index
     return rows

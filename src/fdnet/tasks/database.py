@@ -44,10 +44,13 @@ class BuildSummary:
 
         note = ""
         if self.index_seconds is not None:
-            note = (f"; {self.index_kind} index built in {self.index_seconds:.1f} s"
-                    + (f", cached in {self.index_cache}" if self.index_cache is not None else ""))
-        return [f"wrote {self.path}: {self.places} places, {self.method} ({self.dim}-d), "
-                f"fingerprint {short_fingerprint(self.fingerprint)}{note}"]
+            note = f"; {self.index_kind} index built in {self.index_seconds:.1f} s" + (
+                f", cached in {self.index_cache}" if self.index_cache is not None else ""
+            )
+        return [
+            f"wrote {self.path}: {self.places} places, {self.method} ({self.dim}-d), "
+            f"fingerprint {short_fingerprint(self.fingerprint)}{note}"
+        ]
 
 
 @dataclass(frozen=True)
@@ -61,8 +64,9 @@ class AddSummary:
     data_version: int
 
     def lines(self) -> list[str]:
-        note = (f" (skipped {self.skipped} already in the database; --allow-duplicates adds them)"
-                if self.skipped else "")
+        note = (
+            f" (skipped {self.skipped} already in the database; --allow-duplicates adds them)" if self.skipped else ""
+        )
         return [f"{self.path}: added {self.added} places{note}, {self.places} in all, data version {self.data_version}"]
 
 
@@ -168,16 +172,22 @@ def build_database(request: BuildRequest) -> BuildSummary:
     shards = current()
     db = request.db
     settings, descriptor, paths, names = shards.collectively(
-        lambda: _build_inputs(request, check_output=shards.is_main))
+        lambda: _build_inputs(request, check_output=shards.is_main)
+    )
     check_same_inputs(shards, paths, descriptor)
     with _spool(descriptor, paths, request.pipeline, Path(db).resolve().parent, shards) as spool:
         if not shards.is_main:
-            return BuildSummary(str(db), len(paths), descriptor.name, descriptor.dim, descriptor.fingerprint(),
-                                settings.kind)
-        database = PlaceDatabase.create(db, descriptor, index=settings,
-                                        method_options=_options_for(request.method_options, request.method),
-                                        overwrite=request.overwrite,
-                                        places=_spooled_batches(spool, names, paths))
+            return BuildSummary(
+                str(db), len(paths), descriptor.name, descriptor.dim, descriptor.fingerprint(), settings.kind
+            )
+        database = PlaceDatabase.create(
+            db,
+            descriptor,
+            index=settings,
+            method_options=_options_for(request.method_options, request.method),
+            overwrite=request.overwrite,
+            places=_spooled_batches(spool, names, paths),
+        )
     return _finish_build(db, database, descriptor, settings, shards.world_size)
 
 
@@ -197,11 +207,15 @@ def _build_inputs(request: BuildRequest, check_output=True):
         ensure_writable(request.db, what="place database")
     descriptor = _create_descriptor(request.method, request.method_options, request.device)
     if descriptor.needs_fit:
-        raise ConfigError(f"method {descriptor.name!r} must be given what it learns from (--fit DIR, or dbow's "
-                          "--vocabulary) to build a database that later queries can reuse")
+        raise ConfigError(
+            f"method {descriptor.name!r} must be given what it learns from (--fit DIR, or dbow's "
+            "--vocabulary) to build a database that later queries can reuse"
+        )
     if settings.kind != "flat" and not descriptor.dot_product_similarity:
-        raise ConfigError(f"--index {settings.kind}: method {descriptor.name!r} does not compare vectors by dot "
-                          "product, so it is searched exhaustively with its own similarity; use --index flat")
+        raise ConfigError(
+            f"--index {settings.kind}: method {descriptor.name!r} does not compare vectors by dot "
+            "product, so it is searched exhaustively with its own similarity; use --index flat"
+        )
     current().check_device(descriptor.device)  # under torchrun: this process's own GPU
     paths = list_images(request.images)
     return settings, descriptor, paths, _place_names(paths)
@@ -223,8 +237,9 @@ def _finish_build(db, database, descriptor, settings, world_size: int) -> BuildS
             if built is not None:
                 seconds = time.perf_counter() - t0
                 cache = str(database.index_cache_path) if database.index_cache_path.exists() else None
-    return BuildSummary(str(db), places, descriptor.name, descriptor.dim, database.fingerprint,
-                        settings.kind, seconds, cache)
+    return BuildSummary(
+        str(db), places, descriptor.name, descriptor.dim, database.fingerprint, settings.kind, seconds, cache
+    )
 
 
 def add_to_database(request: AddRequest) -> AddSummary:
@@ -236,12 +251,19 @@ def add_to_database(request: AddRequest) -> AddSummary:
 
     db, images, method, method_options = request.db, request.images, request.method, request.method_options
     allow_duplicates = request.allow_duplicates
-    database, descriptor = open_with_descriptor(db, method=method, method_options=method_options, device=request.device,
-                                                given=method is not None or method_options is not None)
+    database, descriptor = open_with_descriptor(
+        db,
+        method=method,
+        method_options=method_options,
+        device=request.device,
+        given=method is not None or method_options is not None,
+    )
     with database:
         if database.read_only:
-            raise DataError(f"{db}: its folder cannot be written (read-only media or mount), so nothing can be "
-                            "added; copy it to a writable folder")
+            raise DataError(
+                f"{db}: its folder cannot be written (read-only media or mount), so nothing can be "
+                "added; copy it to a writable folder"
+            )
         paths = list_images(images)
         names = _place_names(paths)
         known = set() if allow_duplicates else database.existing_names(names)
@@ -250,7 +272,9 @@ def add_to_database(request: AddRequest) -> AddSummary:
         with _spool(descriptor, [paths[i] for i in todo], request.pipeline, Path(db).resolve().parent) as spool:
             result = database.add_batches(
                 _spooled_batches(spool, [names[i] for i in todo], [paths[i] for i in todo]),
-                fingerprint=descriptor.fingerprint(), allow_duplicates=allow_duplicates)
+                fingerprint=descriptor.fingerprint(),
+                allow_duplicates=allow_duplicates,
+            )
     return AddSummary(str(db), result.added, len(known) + len(result.skipped), result.places, result.data_version)
 
 
@@ -276,8 +300,9 @@ def query_database(request: QueryRequest, log: Log | None = None) -> QueryResult
     database, descriptor = open_with_descriptor(db, device=request.device)
     _note_read_only(database, log)
     with database:
-        calibrated = (None if accept is not None else
-                      _query_calibration(database, descriptor, request.calibration, db, log))
+        calibrated = (
+            None if accept is not None else _query_calibration(database, descriptor, request.calibration, db, log)
+        )
         rule = accept if accept is not None else (calibrated.spec if calibrated is not None else None)
         depth = top_k if rule is None else max(top_k, rule.depth)
         paths = list_images(images)
@@ -302,11 +327,19 @@ def query_database(request: QueryRequest, log: Log | None = None) -> QueryResult
     for q, matches in enumerate(results):
         for rank, m in enumerate(matches[:top_k]):
             indices[q, rank], scores[q, rank] = m.index, m.score
-    return QueryResult(text, len(paths), places, str(out) if out else None, indices=indices, scores=scores,
-                       query_names=[image_name(p) for p in paths], place_names=place_names,
-                       acceptance_scores=None if decision is None else np.asarray(decision.score, np.float64),
-                       matches=None if decision is None else np.asarray(decision.match, np.int64),
-                       accepted=None if accepted is None else np.asarray(accepted, bool))
+    return QueryResult(
+        text,
+        len(paths),
+        places,
+        str(out) if out else None,
+        indices=indices,
+        scores=scores,
+        query_names=[image_name(p) for p in paths],
+        place_names=place_names,
+        acceptance_scores=None if decision is None else np.asarray(decision.score, np.float64),
+        matches=None if decision is None else np.asarray(decision.match, np.int64),
+        accepted=None if accepted is None else np.asarray(accepted, bool),
+    )
 
 
 def database_info(db, log: Log | None = None) -> dict:
@@ -322,8 +355,14 @@ def database_info(db, log: Log | None = None) -> dict:
     return info
 
 
-def open_with_descriptor(db, *, method: str | None = None, method_options: MethodOptions = None,
-                         device: str | None = None, given: bool = False):
+def open_with_descriptor(
+    db,
+    *,
+    method: str | None = None,
+    method_options: MethodOptions = None,
+    device: str | None = None,
+    given: bool = False,
+):
     """``(database, descriptor)``: ``db`` opened with the descriptor it records (rebuilt from its
     method_options), or with ``given``, ``method`` (default: the recorded one) made with
     ``method_options``; either way checked against the database's fingerprint on opening."""
@@ -346,8 +385,10 @@ def recorded_descriptor(database, device: str | None = None):
     try:
         return create(database.method, **database.method_options, **_device(device))
     except FdnetError as exc:
-        raise ConfigError(f"{database.path}: cannot rebuild its {database.method!r} descriptor from the recorded "
-                          f"options {database.method_options} ({exc})") from exc
+        raise ConfigError(
+            f"{database.path}: cannot rebuild its {database.method!r} descriptor from the recorded "
+            f"options {database.method_options} ({exc})"
+        ) from exc
 
 
 def _options_for(method_options: MethodOptions, method: str) -> dict:
@@ -369,15 +410,16 @@ def _device(device: str | None) -> dict:
 
 def _note_read_only(database, log: Log) -> None:
     if database.read_only:
-        log(f"note: {database.path} is in a folder that cannot be written (read-only media or mount): opened "
-            "read-only; query and info work, add does not")
+        log(
+            f"note: {database.path} is in a folder that cannot be written (read-only media or mount): opened "
+            "read-only; query and info work, add does not"
+        )
 
 
 def _describe(descriptor, paths, pipeline: PipelineSettings):
     from fdnet.descriptors.base import describe_paths
 
-    return describe_paths(descriptor, paths, pipeline.batch_size, progress=pipeline.progress,
-                          workers=pipeline.workers)
+    return describe_paths(descriptor, paths, pipeline.batch_size, progress=pipeline.progress, workers=pipeline.workers)
 
 
 def _spool(descriptor, paths, pipeline: PipelineSettings, folder, shards=None):
@@ -394,8 +436,11 @@ def _spool(descriptor, paths, pipeline: PipelineSettings, folder, shards=None):
     shards = shards or current()
     spool = shards.collectively(lambda: VectorSpool(folder, descriptor.dim) if shards.is_main else None)
     try:
-        output = BlockOutput([descriptor.dim], lambda start, arrays: spool.write(arrays[0]),
-                             check=lambda start, arrays: _refuse_non_finite(paths, start, arrays[0], descriptor))
+        output = BlockOutput(
+            [descriptor.dim],
+            lambda start, arrays: spool.write(arrays[0]),
+            check=lambda start, arrays: _refuse_non_finite(paths, start, arrays[0], descriptor),
+        )
         describe_blocks(shards, descriptor, paths, output, pipeline)
     except BaseException:
         if spool is not None:
@@ -409,8 +454,12 @@ def _refuse_non_finite(paths, start: int, vectors, descriptor) -> None:
     dot-product methods an all-zero vector, which no query could ever match), naming the image."""
     from fdnet.descriptors.base import check_vectors
 
-    check_vectors(vectors, f"nothing was added ({descriptor.name} vectors)", lambda i: str(paths[start + i]),
-                  directions=descriptor.dot_product_similarity)
+    check_vectors(
+        vectors,
+        f"nothing was added ({descriptor.name} vectors)",
+        lambda i: str(paths[start + i]),
+        directions=descriptor.dot_product_similarity,
+    )
 
 
 def _spooled_batches(spool, names, paths=None):
@@ -424,10 +473,16 @@ def _spooled_batches(spool, names, paths=None):
         records = frame_records(paths)
         if any(r.timestamp is not None for r in records):
             positions = positions_in_metres(records)
-            metadata = [None if r.timestamp is None else
-                        {"source": str(Path(r.source).resolve()), "timestamp": r.timestamp,
-                         **({"topic": r.topic} if r.topic else {})}
-                        for r in records]
+            metadata = [
+                None
+                if r.timestamp is None
+                else {
+                    "source": str(Path(r.source).resolve()),
+                    "timestamp": r.timestamp,
+                    **({"topic": r.topic} if r.topic else {}),
+                }
+                for r in records
+            ]
     for start, vectors in spool.chunks():
         end = start + len(vectors)
         if metadata is None:
@@ -458,19 +513,23 @@ def _query_calibration(database, descriptor, calibration, db, log: Log):
         calibrated, source = load_calibration(calibration), calibration
     elif stored is None and run_file is not None:  # the one rule: the database's, else the run's
         calibrated, source = load_calibration(run_file), str(run_file)
-        log(f"using the calibration stored in the run, {run_file}: rule {calibrated.rule}, threshold "
+        log(
+            f"using the calibration stored in the run, {run_file}: rule {calibrated.rule}, threshold "
             f"{calibrated.threshold:.6g} (it reached precision {calibrated.precision:.3f} on {calibrated.accepted} "
             f"accepted of {calibrated.num_queries} queries where it was measured; target "
-            f"{calibrated.target_precision:g})")
+            f"{calibrated.target_precision:g})"
+        )
     else:
         if stored is None:
             return None
         source = f"{db} (stored calibration)"
         calibrated = Calibration.from_dict(stored, source=source)
-        log(f"using the calibration stored in {db}: rule {calibrated.rule}, threshold "
+        log(
+            f"using the calibration stored in {db}: rule {calibrated.rule}, threshold "
             f"{calibrated.threshold:.6g} (it reached precision {calibrated.precision:.3f} on {calibrated.accepted} "
             f"accepted of {calibrated.num_queries} queries where it was measured; target "
-            f"{calibrated.target_precision:g})")
+            f"{calibrated.target_precision:g})"
+        )
     calibrated.check(descriptor, sequence_length=1, source=source)
     return calibrated
 
@@ -493,13 +552,18 @@ def _candidates(database, descriptor, paths, results):
     metadata = database.metadata
     times = [None if not isinstance(m, dict) else m.get("timestamp") for m in metadata]
     return Candidates(
-        idx, scores, similarity_ceiling=float(descriptor.similarity_ceiling),
-        reference_positions=np.asarray(positions, dtype=float) if positions and all(p is not None for p in positions)
+        idx,
+        scores,
+        similarity_ceiling=float(descriptor.similarity_ceiling),
+        reference_positions=np.asarray(positions, dtype=float)
+        if positions and all(p is not None for p in positions)
         else None,
-        reference_times=np.asarray(times, dtype=float) if times and all(isinstance(t, (int, float)) and
-                                                                        not isinstance(t, bool) for t in times)
+        reference_times=np.asarray(times, dtype=float)
+        if times and all(isinstance(t, (int, float)) and not isinstance(t, bool) for t in times)
         else None,
-        query_paths=list(paths), reference_paths=None)
+        query_paths=list(paths),
+        reference_paths=None,
+    )
 
 
 def _query_csv(paths, results, top_k, min_score, decision, accepted) -> str:
@@ -513,13 +577,13 @@ def _query_csv(paths, results, top_k, min_score, decision, accepted) -> str:
 
     buffer = io.StringIO()
     writer = csv.writer(buffer)
-    writer.writerow(["query_index", "query", "rank", "place", "place_index", "score"]
-                    + decision_columns(decision, accepted))
+    writer.writerow(
+        ["query_index", "query", "rank", "place", "place_index", "score"] + decision_columns(decision, accepted)
+    )
     for q, (path, matches) in enumerate(zip(paths, results)):
         for rank, m in enumerate(matches, start=1):
             chosen = accepted is not None and m.index == decision.match[q] and bool(accepted[q])
             if (min_score is None or m.score >= min_score) and (rank <= top_k or chosen):
-                row = [q, spreadsheet_text(image_name(path)), rank, spreadsheet_text(m.name), m.index,
-                       f"{m.score:.6f}"]
+                row = [q, spreadsheet_text(image_name(path)), rank, spreadsheet_text(m.name), m.index, f"{m.score:.6f}"]
                 writer.writerow(row + decision_cells(q, chosen, decision, accepted))
     return buffer.getvalue()

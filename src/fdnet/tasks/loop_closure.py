@@ -78,8 +78,10 @@ class LoopClosureRequest:
         if self.data and self.ground_truth and self.tolerance is not None:
             raise ConfigError("give --tolerance (frame-aligned ground truth) or --ground-truth CSV, not both")
         if self.target_precision is not None and not self.calibrate_out:
-            raise ConfigError("--target-precision needs --calibrate-out (the threshold it chooses is written there); "
-                              "without it the flag would do nothing")
+            raise ConfigError(
+                "--target-precision needs --calibrate-out (the threshold it chooses is written there); "
+                "without it the flag would do nothing"
+            )
         if self.calibration is not None and self.threshold is not None:
             raise ConfigError("give --calibration or --threshold, not both")
 
@@ -106,15 +108,17 @@ def default_calibration(request: LoopClosureRequest):
         calibrated, _ = stored_calibration(request.db)
         if calibrated is not None:
             return None, calibrated  # the detector reads it from the database
-    candidate = (stored_in_run(request.checkpoint, (LOOP_CALIBRATION_FILE, CALIBRATION_FILE))
-                 if request.checkpoint else None)
+    candidate = (
+        stored_in_run(request.checkpoint, (LOOP_CALIBRATION_FILE, CALIBRATION_FILE)) if request.checkpoint else None
+    )
     if candidate is not None:
         return str(candidate), load_calibration(candidate)
     return None, None
 
 
-def loop_closure(request: LoopClosureRequest, make_descriptor: Callable[[], object],
-                 method_options: dict | None = None):
+def loop_closure(
+    request: LoopClosureRequest, make_descriptor: Callable[[], object], method_options: dict | None = None
+):
     """Run ``fdnet loop-closure``: check and lock every output (the events files and the
     database) for the whole run, choose the calibration, rule and sequence length, describe the
     traverse with the descriptor ``make_descriptor()`` makes, and write the events (and the
@@ -123,8 +127,11 @@ def loop_closure(request: LoopClosureRequest, make_descriptor: Callable[[], obje
     from fdnet.io import ensure_writable
     from fdnet.runs.lock import RunLock
 
-    outputs = [(request.events_csv, "events CSV"), (request.events_jsonl, "events JSON lines"),
-               (request.db, "place database")]
+    outputs = [
+        (request.events_csv, "events CSV"),
+        (request.events_jsonl, "events JSON lines"),
+        (request.db, "place database"),
+    ]
     with contextlib.ExitStack() as locks:
         for path, what in outputs:
             if path:
@@ -157,8 +164,10 @@ def _loop_closure(request: LoopClosureRequest, make_descriptor, method_options):
         # created there
         if holds_a_database(request.db):
             if not os.access(request.db, os.W_OK):
-                raise ConfigError(f"{request.db}: the place database is read-only; loop closure adds every frame to "
-                                  "it (copy it somewhere writable, or leave --db out for an in-memory map)")
+                raise ConfigError(
+                    f"{request.db}: the place database is read-only; loop closure adds every frame to "
+                    "it (copy it somewhere writable, or leave --db out for an in-memory map)"
+                )
         else:
             check_can_create(request.db)
     calibrate_out = request.calibrate_out
@@ -166,8 +175,12 @@ def _loop_closure(request: LoopClosureRequest, make_descriptor, method_options):
         calibrate_out = str(Path(calibrate_out) / LOOP_CALIBRATION_FILE)
     images = request.images
     if request.data:
-        images = route_traverse(request.data, list(request.conditions), request.frames,
-                                0 if request.tolerance is None else request.tolerance)
+        images = route_traverse(
+            request.data,
+            list(request.conditions),
+            request.frames,
+            0 if request.tolerance is None else request.tolerance,
+        )
     else:
         list_images(images)  # its frames are noted as inputs (fdnet.io), checked against every output now
     for path in (request.events_csv, request.events_jsonl, request.report, request.db, calibrate_out):
@@ -177,17 +190,31 @@ def _loop_closure(request: LoopClosureRequest, make_descriptor, method_options):
     if request.data:
         from fdnet.evaluation.splits import check_descriptors_held_out
 
-        check_descriptors_held_out([descriptor], request.data, images.conditions, request.frames,
-                                   allow=request.allow_training_frames)
+        check_descriptors_held_out(
+            [descriptor], request.data, images.conditions, request.frames, allow=request.allow_training_frames
+        )
     detector = LoopClosureSettings(
-        exclude_last=request.exclude_last, rule=rule, rule_settings=list(request.accept_set) or None,
-        threshold=request.threshold, calibration=calibration, sequence_length=sequence_length, gates=gates,
-        search=request.search, method_options=method_options, commit_every=request.commit_every)
+        exclude_last=request.exclude_last,
+        rule=rule,
+        rule_settings=list(request.accept_set) or None,
+        threshold=request.threshold,
+        calibration=calibration,
+        sequence_length=sequence_length,
+        gates=gates,
+        search=request.search,
+        method_options=method_options,
+        commit_every=request.commit_every,
+    )
     settings = TraverseSettings(
-        events_csv=request.events_csv, events_jsonl=request.events_jsonl, detector=detector,
-        pipeline=request.pipeline, ground_truth=request.ground_truth, calibrate_to=calibrate_out,
+        events_csv=request.events_csv,
+        events_jsonl=request.events_jsonl,
+        detector=detector,
+        pipeline=request.pipeline,
+        ground_truth=request.ground_truth,
+        calibrate_to=calibrate_out,
         target_precision=1.0 if request.target_precision is None else request.target_precision,
-        resume=request.resume)
+        resume=request.resume,
+    )
     report = run_traverse(images, descriptor, request.db, settings, log=logger.info)
     if request.report:
         from fdnet.provenance import provenance
@@ -195,4 +222,3 @@ def _loop_closure(request: LoopClosureRequest, make_descriptor, method_options):
         document = {**report.to_dict(), "provenance": provenance(request.command_line, device=request.device)}
         atomic_write_text(request.report, json.dumps(document, indent=2, sort_keys=True, default=str) + "\n")
     return report
-

@@ -36,6 +36,17 @@ from fdnet.matching.database.storage import (
 from fdnet.matching.database.store import AddResult, Match, PlaceDatabase
 
 __all__ = [
-    "APPLICATION_ID", "BUSY_TIMEOUT_S", "INDEX_CACHE_SUFFIX", "MEMORY", "SCHEMA_VERSION", "AddResult", "Match",
-    "PlaceDatabase", "check_can_create", "check_place_names", "holds_a_database", "place_name", "short_fingerprint",
+    "APPLICATION_ID",
+    "BUSY_TIMEOUT_S",
+    "INDEX_CACHE_SUFFIX",
+    "MEMORY",
+    "SCHEMA_VERSION",
+    "AddResult",
+    "Match",
+    "PlaceDatabase",
+    "check_can_create",
+    "check_place_names",
+    "holds_a_database",
+    "place_name",
+    "short_fingerprint",
 ]

@@ -45,8 +45,18 @@ def read_index_settings(value, where: str, error: type = DataError) -> IndexSett
 
 
 def read_identity(path, conn: sqlite3.Connection) -> Identity:
-    columns = ("database_id", "method", "settings", "method_options", "dim", "dot_product", "index_settings",
-               "fingerprint", "created", "fdnet_version")
+    columns = (
+        "database_id",
+        "method",
+        "settings",
+        "method_options",
+        "dim",
+        "dot_product",
+        "index_settings",
+        "fingerprint",
+        "created",
+        "fdnet_version",
+    )
     row = conn.execute(f"SELECT {', '.join(columns)} FROM fdnet_database").fetchone()
     if row is None:
         raise DataError(f"{path}: the fdnet_database table is empty; the file is damaged")
@@ -69,12 +79,17 @@ def read_identity(path, conn: sqlite3.Connection) -> Identity:
         return value
 
     return Identity(
-        database_id=column("database_id", str), method=column("method", str),
-        settings=json_column("settings"), method_options=json_column("method_options"),
-        dim=column("dim", int), dot_product=bool(column("dot_product", int)),
+        database_id=column("database_id", str),
+        method=column("method", str),
+        settings=json_column("settings"),
+        method_options=json_column("method_options"),
+        dim=column("dim", int),
+        dot_product=bool(column("dot_product", int)),
         index_settings=read_index_settings(json_column("index_settings"), f"{path}: column index_settings"),
-        fingerprint=column("fingerprint", str), created=column("created", str),
-        fdnet_version=column("fdnet_version", str))
+        fingerprint=column("fingerprint", str),
+        created=column("created", str),
+        fdnet_version=column("fdnet_version", str),
+    )
 
 
 def check_descriptor(path, identity: Identity, descriptor) -> None:
@@ -90,7 +105,10 @@ def check_fingerprint(path, identity: Identity, fingerprint: str, method: str | 
             f"fingerprint {short_fingerprint(identity.fingerprint)}, {made_by} {short_fingerprint(fingerprint)}; "
             "a different model (weights or settings changed since the database was built). Describe with "
             "the database's model, or build a new database (--overwrite)"
-            + ("; a precomputed database grows only with vectors files that record the model that made them "
-               "(fdnet extract's do), others are identified by their vectors alone" if identity.method == "precomputed"
-               else ""))
-
+            + (
+                "; a precomputed database grows only with vectors files that record the model that made them "
+                "(fdnet extract's do), others are identified by their vectors alone"
+                if identity.method == "precomputed"
+                else ""
+            )
+        )

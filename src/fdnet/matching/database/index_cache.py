@@ -61,8 +61,12 @@ class IndexCache:
             build = {k: v for k, v in vars(ident.index_settings).items() if k not in _SEARCH_SETTINGS}
             cached = {k: v for k, v in header["settings"].items() if k in build}
             last_id, count = int(meta.get("last_id", -1)), int(header["count"])
-            if (meta.get("database_id") != ident.database_id or cached != build
-                    or meta.get("fingerprint") != ident.fingerprint or header["dim"] != ident.dim):
+            if (
+                meta.get("database_id") != ident.database_id
+                or cached != build
+                or meta.get("fingerprint") != ident.fingerprint
+                or header["dim"] != ident.dim
+            ):
                 return None, 0
             if conn.execute("SELECT count(*) FROM places WHERE id <= ?", (last_id,)).fetchone()[0] != count:
                 return None, 0
@@ -75,8 +79,9 @@ class IndexCache:
         self.places = count
         return index, last_id
 
-    def save(self, index: VectorIndex | None, conn: sqlite3.Connection, data_version: int, last_id: int,
-             force: bool = False) -> bool:
+    def save(
+        self, index: VectorIndex | None, conn: sqlite3.Connection, data_version: int, last_id: int, force: bool = False
+    ) -> bool:
         """Write ``index`` (holding the places up to ``last_id``) to the cache file when it was
         built here or grew by 5 % (at least 1000 places) since the cache was read; a cache that
         cannot be written is skipped."""
@@ -92,9 +97,17 @@ class IndexCache:
                 content = places_digest(conn, last_id)
             finally:
                 conn.execute("COMMIT")
-            index.save(cache, metadata={"database_id": self._identity.database_id, "data_version": data_version,
-                                        "last_id": last_id, "fingerprint": self._identity.fingerprint,
-                                        "database": self._database_name, "content": content})
+            index.save(
+                cache,
+                metadata={
+                    "database_id": self._identity.database_id,
+                    "data_version": data_version,
+                    "last_id": last_id,
+                    "fingerprint": self._identity.fingerprint,
+                    "database": self._database_name,
+                    "content": content,
+                },
+            )
         except (OSError, sqlite3.Error):
             return False
         self.places = len(index)

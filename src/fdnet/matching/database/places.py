@@ -17,8 +17,9 @@ from fdnet.matching.database.storage import canonical_json, check_place_names
 _NAMES_PER_QUERY = 500
 
 
-def prepare_batch(path: str, dim: int, method: str, vectors, names, positions, metadata,
-                  dot_product: bool = True) -> dict:
+def prepare_batch(
+    path: str, dim: int, method: str, vectors, names, positions, metadata, dot_product: bool = True
+) -> dict:
     """The batch as rows to insert (names, x, y, metadata JSON, vector blobs), or the
     ConfigError/DataError naming the database ``path`` and what is wrong with it."""
     try:
@@ -55,8 +56,7 @@ def prepare_batch(path: str, dim: int, method: str, vectors, names, positions, m
         for i, meta in enumerate(metadata):
             if meta is not None:
                 if not isinstance(meta, dict):
-                    raise ConfigError(f"{path}: metadata of {names[i]} must be a dict, got "
-                                      f"{type(meta).__name__}")
+                    raise ConfigError(f"{path}: metadata of {names[i]} must be a dict, got " f"{type(meta).__name__}")
                 texts[i] = canonical_json(meta, f"{path}: metadata of {names[i]}")
     blobs = [row.tobytes() for row in v.astype("<f4", copy=False)]
     return {"names": names, "x": xs, "y": ys, "metadata": texts, "blobs": blobs}
@@ -76,9 +76,10 @@ def insert_rows(conn: sqlite3.Connection, batch: dict, allow_duplicates: bool) -
             else:
                 keep.append(i)
                 present.add(name)  # a name twice in one batch is a duplicate too
-    conn.executemany("INSERT INTO places (name, x, y, metadata, vector) VALUES (?, ?, ?, ?, ?)",
-                     [(names[i], batch["x"][i], batch["y"][i], batch["metadata"][i], batch["blobs"][i])
-                      for i in keep])
+    conn.executemany(
+        "INSERT INTO places (name, x, y, metadata, vector) VALUES (?, ?, ?, ?, ?)",
+        [(names[i], batch["x"][i], batch["y"][i], batch["metadata"][i], batch["blobs"][i]) for i in keep],
+    )
     return len(keep), skipped
 
 
@@ -86,8 +87,7 @@ def names_present(conn: sqlite3.Connection, names: Sequence[str]) -> set[str]:
     unique = list(dict.fromkeys(names))
     found: set[str] = set()
     for start in range(0, len(unique), _NAMES_PER_QUERY):
-        chunk = unique[start:start + _NAMES_PER_QUERY]
+        chunk = unique[start : start + _NAMES_PER_QUERY]
         marks = ", ".join("?" * len(chunk))
         found.update(r[0] for r in conn.execute(f"SELECT DISTINCT name FROM places WHERE name IN ({marks})", chunk))
     return found
-

@@ -104,8 +104,11 @@ def _sqlite_message(exc: sqlite3.Error, path=None) -> str:
     text = str(exc)
     if "locked" in text or "busy" in text:
         return f"another process held the database's write lock for more than {BUSY_TIMEOUT_S:.0f} s ({text})"
-    if path is not None and path != MEMORY and any(
-            words in text for words in ("unable to open", "disk I/O error", "readonly", "disk is full")):
+    if (
+        path is not None
+        and path != MEMORY
+        and any(words in text for words in ("unable to open", "disk I/O error", "readonly", "disk is full"))
+    ):
         why = _storage_problem(path)
         if why:
             return f"{text}: {why}"
@@ -201,9 +204,11 @@ def connect_read_only(path: Path) -> sqlite3.Connection:
         conn.execute("SELECT count(*) FROM sqlite_master").fetchone()
         return conn
     except sqlite3.Error as exc:
-        raise DataError(f"{path}: its folder cannot be written and its write-ahead log {wal} holds adds not yet "
-                        f"copied into the file, which SQLite can only read with {path}-shm beside it; copy the "
-                        "database and its -wal file to a writable folder and open it there") from exc
+        raise DataError(
+            f"{path}: its folder cannot be written and its write-ahead log {wal} holds adds not yet "
+            f"copied into the file, which SQLite can only read with {path}-shm beside it; copy the "
+            "database and its -wal file to a writable folder and open it there"
+        ) from exc
 
 
 def place_name(path: str | os.PathLike) -> str:
@@ -219,8 +224,10 @@ def check_place_names(names: Sequence[str]) -> None:
         try:
             str(name).encode("utf-8")
         except UnicodeEncodeError as exc:
-            raise DataError(f"{os.fsencode(str(name))!r}: the file name is not valid UTF-8, which a place database "
-                            "cannot store as a place name; rename the file") from exc
+            raise DataError(
+                f"{os.fsencode(str(name))!r}: the file name is not valid UTF-8, which a place database "
+                "cannot store as a place name; rename the file"
+            ) from exc
 
 
 def is_fdnet_database(conn: sqlite3.Connection) -> bool:
@@ -261,24 +268,29 @@ def check_can_create(path: str | os.PathLike, overwrite: bool = False) -> None:
             return
         with open(path, "rb") as fh:
             if fh.read(len(SQLITE_MAGIC)) != SQLITE_MAGIC:
-                raise DataError(f"{path}: exists and is not an fdnet place database (not a SQLite file); "
-                                "refusing to overwrite it")
+                raise DataError(
+                    f"{path}: exists and is not an fdnet place database (not a SQLite file); "
+                    "refusing to overwrite it"
+                )
         conn = connect_database(path.resolve().as_uri() + "?mode=rw", uri=True)
         try:
             with sqlite_errors(path, "checking the existing file"):
                 tables = conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'").fetchall()
                 if tables and not is_fdnet_database(conn):
-                    raise DataError(f"{path}: is a SQLite database but not an fdnet place database "
-                                    f"({describe_foreign(conn)}); refusing to overwrite it")
+                    raise DataError(
+                        f"{path}: is a SQLite database but not an fdnet place database "
+                        f"({describe_foreign(conn)}); refusing to overwrite it"
+                    )
         finally:
             conn.close()
         if tables and not overwrite:
             raise ConfigError(f"{path}: already exists; pass --overwrite (overwrite=True) to replace it")
     elif Path(f"{path}-wal").exists():
         # SQLite would replay a stray log into the new file: a corrupt database from the start.
-        raise DataError(f"{path}-wal: a write-ahead log left without its database; remove it "
-                        f"(and {path}-shm) before creating {path}")
-
+        raise DataError(
+            f"{path}-wal: a write-ahead log left without its database; remove it "
+            f"(and {path}-shm) before creating {path}"
+        )
 
 
 def use_write_ahead_log(conn: sqlite3.Connection, target: str) -> None:
@@ -288,8 +300,10 @@ def use_write_ahead_log(conn: sqlite3.Connection, target: str) -> None:
         return
     mode = conn.execute("PRAGMA journal_mode = WAL").fetchone()[0]
     if str(mode).lower() != "wal":
-        raise DataError(f"{target}: the file system does not support SQLite's write-ahead log "
-                        f"(journal mode stays {mode!r}); put the database on a local disk")
+        raise DataError(
+            f"{target}: the file system does not support SQLite's write-ahead log "
+            f"(journal mode stays {mode!r}); put the database on a local disk"
+        )
 
 
 def write_schema(conn: sqlite3.Connection, target: str, overwrite: bool, identity: dict) -> None:
@@ -300,8 +314,10 @@ def write_schema(conn: sqlite3.Connection, target: str, overwrite: bool, identit
     if existing:
         # Checked again under the write lock: another build may have won the race.
         if not is_fdnet_database(conn):
-            raise DataError(f"{target}: is a SQLite database but not an fdnet place database "
-                            f"({describe_foreign(conn)}); refusing to overwrite it")
+            raise DataError(
+                f"{target}: is a SQLite database but not an fdnet place database "
+                f"({describe_foreign(conn)}); refusing to overwrite it"
+            )
         if not overwrite:
             raise ConfigError(f"{target}: already exists; pass --overwrite (overwrite=True) to replace it")
         for table in TABLES:
@@ -312,8 +328,10 @@ def write_schema(conn: sqlite3.Connection, target: str, overwrite: bool, identit
     conn.execute(f"PRAGMA application_id = {APPLICATION_ID}")
     conn.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
     columns = ", ".join(identity)
-    conn.execute(f"INSERT INTO fdnet_database (singleton, {columns}) VALUES (1, {', '.join('?' * len(identity))})",
-                 tuple(identity.values()))
+    conn.execute(
+        f"INSERT INTO fdnet_database (singleton, {columns}) VALUES (1, {', '.join('?' * len(identity))})",
+        tuple(identity.values()),
+    )
 
 
 def check_schema(conn: sqlite3.Connection, target: str, read_only: bool) -> None:
@@ -322,14 +340,18 @@ def check_schema(conn: sqlite3.Connection, target: str, read_only: bool) -> None
     if not is_fdnet_database(conn):
         foreign = describe_foreign(conn)
         if foreign == "it has no tables":  # what a create stopped before its first commit leaves
-            raise DataError(f"{target}: an empty SQLite file, not yet an fdnet place database (a "
-                            "`database build` that did not finish, e.g. on a full disk or killed, "
-                            "leaves this); build it again with --db there (the file is reused)")
+            raise DataError(
+                f"{target}: an empty SQLite file, not yet an fdnet place database (a "
+                "`database build` that did not finish, e.g. on a full disk or killed, "
+                "leaves this); build it again with --db there (the file is reused)"
+            )
         raise DataError(f"{target}: a SQLite database but not an fdnet place database ({foreign})")
     schema = conn.execute("PRAGMA user_version").fetchone()[0]
     if schema > SCHEMA_VERSION:
-        raise DataError(f"{target}: written by a newer fdnet (schema version {schema}; this one "
-                        f"reads up to {SCHEMA_VERSION}); upgrade fdnet")
+        raise DataError(
+            f"{target}: written by a newer fdnet (schema version {schema}; this one "
+            f"reads up to {SCHEMA_VERSION}); upgrade fdnet"
+        )
     if schema < 1:
         raise DataError(f"{target}: has no fdnet schema version; the file is damaged")
     if not read_only:

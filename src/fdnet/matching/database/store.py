@@ -70,8 +70,13 @@ class PlaceDatabase:
     :meth:`for_descriptor`, open it with :meth:`open`; :meth:`add` and :meth:`query` may be
     called by several processes on the same file at once."""
 
-    def __init__(self, path: str, conn: sqlite3.Connection | None, identity: Identity,
-                 similarity: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None):
+    def __init__(
+        self,
+        path: str,
+        conn: sqlite3.Connection | None,
+        identity: Identity,
+        similarity: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+    ):
         self.path = path
         self._conn = conn
         self._identity = identity
@@ -121,16 +126,30 @@ class PlaceDatabase:
 
     # ------------------------------------------------------------------ making and opening
     @classmethod
-    def for_descriptor(cls, descriptor, index: IndexSettings | None = None, method_options: dict | None = None,
-                       path: str | os.PathLike = MEMORY, overwrite: bool = False) -> "PlaceDatabase":
+    def for_descriptor(
+        cls,
+        descriptor,
+        index: IndexSettings | None = None,
+        method_options: dict | None = None,
+        path: str | os.PathLike = MEMORY,
+        overwrite: bool = False,
+    ) -> "PlaceDatabase":
         """An empty database for ``descriptor``'s vectors: in memory by default (a scratch map
         for one process), or the file ``path`` (see :meth:`create`)."""
         return cls.create(path, descriptor, index=index, method_options=method_options, overwrite=overwrite)
 
     @classmethod
-    def create(cls, path: str | os.PathLike, descriptor, *, index: IndexSettings | None = None,
-               method_options: dict | None = None, overwrite: bool = False, places: Iterable | None = None,
-               allow_duplicates: bool = False) -> "PlaceDatabase":
+    def create(
+        cls,
+        path: str | os.PathLike,
+        descriptor,
+        *,
+        index: IndexSettings | None = None,
+        method_options: dict | None = None,
+        overwrite: bool = False,
+        places: Iterable | None = None,
+        allow_duplicates: bool = False,
+    ) -> "PlaceDatabase":
         """Write a new database for ``descriptor``'s vectors, with optional first places, in one
         transaction: a crash leaves no half-made database behind.
 
@@ -153,16 +172,25 @@ class PlaceDatabase:
         from fdnet.version import __version__
 
         identity = Identity(
-            database_id=uuid.uuid4().hex, method=descriptor.name, settings=json.loads(settings_json),
-            method_options=json.loads(options_json), dim=int(descriptor.dim),
-            dot_product=bool(descriptor.dot_product_similarity), index_settings=index,
+            database_id=uuid.uuid4().hex,
+            method=descriptor.name,
+            settings=json.loads(settings_json),
+            method_options=json.loads(options_json),
+            dim=int(descriptor.dim),
+            dot_product=bool(descriptor.dot_product_similarity),
+            index_settings=index,
             fingerprint=descriptor.fingerprint(),
-            created=datetime.now(timezone.utc).isoformat(timespec="seconds"), fdnet_version=__version__)
+            created=datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            fdnet_version=__version__,
+        )
         similarity = None if identity.dot_product else descriptor.similarity
         db = cls(target, None, identity, similarity)
         # Before the file is touched: refused places given whole must not leave a file behind.
-        prepared = ([db._prepare(*_chunk_parts(db.path, chunk), None) for chunk in places]
-                    if isinstance(places, (list, tuple)) else None)
+        prepared = (
+            [db._prepare(*_chunk_parts(db.path, chunk), None) for chunk in places]
+            if isinstance(places, (list, tuple))
+            else None
+        )
         if target != MEMORY:
             Path(target).parent.mkdir(parents=True, exist_ok=True)
         with sqlite_errors(target, "creating the place database"):
@@ -171,11 +199,24 @@ class PlaceDatabase:
             with sqlite_errors(target, "creating the place database"):
                 use_write_ahead_log(conn, target)
                 with transaction(conn, "IMMEDIATE"):
-                    write_schema(conn, target, overwrite, {
-                        "database_id": identity.database_id, "method": identity.method, "settings": settings_json,
-                        "method_options": options_json, "dim": identity.dim, "dot_product": int(identity.dot_product),
-                        "index_settings": index_json, "fingerprint": identity.fingerprint, "data_version": 0,
-                        "created": identity.created, "fdnet_version": identity.fdnet_version})
+                    write_schema(
+                        conn,
+                        target,
+                        overwrite,
+                        {
+                            "database_id": identity.database_id,
+                            "method": identity.method,
+                            "settings": settings_json,
+                            "method_options": options_json,
+                            "dim": identity.dim,
+                            "dot_product": int(identity.dot_product),
+                            "index_settings": index_json,
+                            "fingerprint": identity.fingerprint,
+                            "data_version": 0,
+                            "created": identity.created,
+                            "fdnet_version": identity.fdnet_version,
+                        },
+                    )
                     if prepared is not None:
                         for batch in prepared:
                             db._insert(conn, batch, allow_duplicates)
@@ -197,8 +238,11 @@ class PlaceDatabase:
         read_only = read_only_storage(path)
         with sqlite_errors(target, "opening the place database"):
             # mode=rw: a path that vanished since the check must not become a new empty file.
-            conn = (connect_read_only(path) if read_only
-                    else connect_database(path.resolve().as_uri() + "?mode=rw", uri=True))
+            conn = (
+                connect_read_only(path)
+                if read_only
+                else connect_database(path.resolve().as_uri() + "?mode=rw", uri=True)
+            )
         try:
             with sqlite_errors(target, "reading the place database"):
                 check_schema(conn, target, read_only)
@@ -238,10 +282,16 @@ class PlaceDatabase:
         with sqlite_errors(self.path, "looking up place names"):
             return names_present(self._conn, [str(n) for n in names])
 
-    def add(self, vectors: np.ndarray, names: Sequence[str],
-            positions: Sequence[tuple[float, float] | None] | np.ndarray | None = None, *,
-            metadata: Sequence[dict | None] | None = None, fingerprint: str | None = None,
-            allow_duplicates: bool = False) -> AddResult:
+    def add(
+        self,
+        vectors: np.ndarray,
+        names: Sequence[str],
+        positions: Sequence[tuple[float, float] | None] | np.ndarray | None = None,
+        *,
+        metadata: Sequence[dict | None] | None = None,
+        fingerprint: str | None = None,
+        allow_duplicates: bool = False,
+    ) -> AddResult:
         """Store a batch of places in one transaction: all of it is added or none (:meth:`add_batches`
         of one chunk).
 
@@ -250,11 +300,13 @@ class PlaceDatabase:
         skipped and reported in the result unless ``allow_duplicates``. Non-finite vectors are
         refused (a NaN would be stored and never found).
         """
-        return self.add_batches([(vectors, names, positions, metadata)], fingerprint=fingerprint,
-                                allow_duplicates=allow_duplicates)
+        return self.add_batches(
+            [(vectors, names, positions, metadata)], fingerprint=fingerprint, allow_duplicates=allow_duplicates
+        )
 
-    def add_batches(self, batches: Iterable, *, fingerprint: str | None = None,
-                    allow_duplicates: bool = False) -> AddResult:
+    def add_batches(
+        self, batches: Iterable, *, fingerprint: str | None = None, allow_duplicates: bool = False
+    ) -> AddResult:
         """Store many chunks of places in ONE transaction: all of them are added or none (an
         ``add`` of a million images, a chunk in memory at a time). Each chunk is
         ``(vectors, names)`` or ``(vectors, names, positions, metadata)``, checked as :meth:`add`
@@ -293,8 +345,9 @@ class PlaceDatabase:
     def _check_same_database(self, conn: sqlite3.Connection) -> None:
         row = conn.execute("SELECT database_id FROM fdnet_database").fetchone()
         if row is None or row[0] != self._identity.database_id:
-            raise DataError(f"{self.path}: was rebuilt (build --overwrite) by another process while open here; "
-                            "open it again")
+            raise DataError(
+                f"{self.path}: was rebuilt (build --overwrite) by another process while open here; " "open it again"
+            )
 
     def _insert(self, conn: sqlite3.Connection, batch: dict, allow_duplicates: bool) -> AddResult:
         added, skipped = self._insert_rows(conn, batch, allow_duplicates)
@@ -347,12 +400,16 @@ class PlaceDatabase:
                     if self._map.index is None:
                         self._map.index = VectorIndex(self.dim, self.index_settings)
                         built_here = True
-                rows = conn.execute("SELECT id, name, x, y, metadata FROM places WHERE id > ? ORDER BY id",
-                                    (self._last_id,))
+                rows = conn.execute(
+                    "SELECT id, name, x, y, metadata FROM places WHERE id > ? ORDER BY id", (self._last_id,)
+                )
                 last = self._last_id
                 while chunk := rows.fetchmany(_ROWS_PER_FETCH):
-                    self._map.extend([r[1] for r in chunk], [None if r[2] is None else (r[2], r[3]) for r in chunk],
-                                     [r[4] for r in chunk])
+                    self._map.extend(
+                        [r[1] for r in chunk],
+                        [None if r[2] is None else (r[2], r[3]) for r in chunk],
+                        [r[4] for r in chunk],
+                    )
                     last = chunk[-1][0]
                 for vectors in self._read_vectors(conn, vectors_after, last):
                     if self.dot_product:
@@ -369,17 +426,23 @@ class PlaceDatabase:
 
     def _read_vectors(self, conn: sqlite3.Connection, after_id: int, up_to_id: int) -> Iterator[np.ndarray]:
         """Stored vectors of the places with after_id < id <= up_to_id, in id order, in chunks."""
-        rows = conn.execute("SELECT id, name, vector FROM places WHERE id > ? AND id <= ? ORDER BY id",
-                            (after_id, up_to_id))
+        rows = conn.execute(
+            "SELECT id, name, vector FROM places WHERE id > ? AND id <= ? ORDER BY id", (after_id, up_to_id)
+        )
         width = 4 * self.dim
         while chunk := rows.fetchmany(_ROWS_PER_FETCH):
             for row in chunk:
                 if not isinstance(row[2], bytes) or len(row[2]) != width:
-                    raise DataError(f"{self.path}: place {row[1]!r} (id {row[0]}) has a vector of "
-                                    f"{len(row[2]) if isinstance(row[2], bytes) else type(row[2]).__name__} bytes, "
-                                    f"expected {width} ({self.dim} float32); the file is damaged")
-            yield np.frombuffer(b"".join(r[2] for r in chunk), dtype="<f4").reshape(len(chunk), self.dim).astype(
-                np.float32)
+                    raise DataError(
+                        f"{self.path}: place {row[1]!r} (id {row[0]}) has a vector of "
+                        f"{len(row[2]) if isinstance(row[2], bytes) else type(row[2]).__name__} bytes, "
+                        f"expected {width} ({self.dim} float32); the file is damaged"
+                    )
+            yield (
+                np.frombuffer(b"".join(r[2] for r in chunk), dtype="<f4")
+                .reshape(len(chunk), self.dim)
+                .astype(np.float32)
+            )
 
     @property
     def names(self) -> list[str]:
@@ -425,8 +488,9 @@ class PlaceDatabase:
         call are included."""
         if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
             raise ConfigError(f"{self.path}: top-k must be a whole number of at least 1, got {k!r}")
-        if searchable is not None and (isinstance(searchable, bool) or not isinstance(searchable, (int, np.integer))
-                                       or searchable < 0):
+        if searchable is not None and (
+            isinstance(searchable, bool) or not isinstance(searchable, (int, np.integer)) or searchable < 0
+        ):
             raise ConfigError(f"{self.path}: searchable must be a whole number of places, got {searchable!r}")
         self._refresh()
         count = len(self._map)
@@ -436,17 +500,26 @@ class PlaceDatabase:
         if q.ndim == 1:
             q = q[None]
         if q.ndim != 2 or q.shape[1] != self.dim:
-            raise ConfigError(f"{self.path}: holds {self.dim}-d vectors ({self.method}), "
-                              f"got queries of shape {q.shape}")
+            raise ConfigError(
+                f"{self.path}: holds {self.dim}-d vectors ({self.method}), " f"got queries of shape {q.shape}"
+            )
         bad = np.flatnonzero(~np.isfinite(q).all(axis=1))
         if len(bad):
             raise DataError(f"{self.path}: query vector(s) {', '.join(map(str, bad[:5]))} are not finite (NaN or inf)")
         if self._map.index is None and self.similarity is None:
-            raise ConfigError(f"{self.path}: method {self.method!r} compares vectors with its own similarity; "
-                              "open the database with its descriptor: PlaceDatabase.open(path, descriptor)")
+            raise ConfigError(
+                f"{self.path}: method {self.method!r} compares vectors with its own similarity; "
+                "open the database with its descriptor: PlaceDatabase.open(path, descriptor)"
+            )
         idx, scores = self._map.search(q, int(k), searchable, similarity=self.similarity)
-        return [[Match(int(i), self._map.names[i], float(s), self._map.positions[i], self._map.metadata(i))
-                 for i, s in zip(row_i, row_s) if i >= 0] for row_i, row_s in zip(idx, scores)]
+        return [
+            [
+                Match(int(i), self._map.names[i], float(s), self._map.positions[i], self._map.metadata(i))
+                for i, s in zip(row_i, row_s)
+                if i >= 0
+            ]
+            for row_i, row_s in zip(idx, scores)
+        ]
 
     # ------------------------------------------------------------------ database metadata
     def set_metadata(self, key: str, value: dict) -> None:
@@ -463,10 +536,14 @@ class PlaceDatabase:
     def get_metadata(self, key: str) -> dict | None:
         """The value stored under ``key`` by :meth:`set_metadata`, or None."""
         with sqlite_errors(self.path, f"reading metadata {key!r}"):
-            exists = self._conn.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'fdnet_metadata'"
-                                        ).fetchone()
-            row = self._conn.execute("SELECT value FROM fdnet_metadata WHERE key = ?", (key,)).fetchone() \
-                if exists else None
+            exists = self._conn.execute(
+                "SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'fdnet_metadata'"
+            ).fetchone()
+            row = (
+                self._conn.execute("SELECT value FROM fdnet_metadata WHERE key = ?", (key,)).fetchone()
+                if exists
+                else None
+            )
         if row is None:
             return None
         try:
@@ -484,11 +561,20 @@ class PlaceDatabase:
                 journal = conn.execute("PRAGMA journal_mode").fetchone()[0]
         ident = self._identity
         return {
-            "path": self.path, "places": int(places), "method": ident.method, "dim": ident.dim,
-            "dot_product": ident.dot_product, "fingerprint": ident.fingerprint, "settings": ident.settings,
-            "method_options": ident.method_options, "index": vars(ident.index_settings),
-            "schema_version": int(schema), "data_version": int(version), "journal_mode": journal,
-            "created": ident.created, "fdnet_version": ident.fdnet_version,
+            "path": self.path,
+            "places": int(places),
+            "method": ident.method,
+            "dim": ident.dim,
+            "dot_product": ident.dot_product,
+            "fingerprint": ident.fingerprint,
+            "settings": ident.settings,
+            "method_options": ident.method_options,
+            "index": vars(ident.index_settings),
+            "schema_version": int(schema),
+            "data_version": int(version),
+            "journal_mode": journal,
+            "created": ident.created,
+            "fdnet_version": ident.fdnet_version,
         }
 
 
