@@ -2,7 +2,8 @@
 #   make demo  -- set up .venv, generate the synthetic route, train FDNet (cpu preset), evaluate vs baselines
 #   make test  -- set up .venv and run the test suite
 #   make test-fast -- the unit tests only (no training, no whole pipelines; tests/conftest.py marks the rest slow)
-#   make lint  -- ruff's checks (pyproject.toml), which CI runs before make test
+#   make lint  -- ruff's checks and its layout check (pyproject.toml), which CI runs before make test
+#   make format -- lay the code out as make lint expects (ruff format)
 # torch is pinned in the same pip command as everything that depends on it, so pip takes the
 # CPU wheel and never pulls a multi-GB CUDA build.
 PYTHON ?= python3
@@ -11,7 +12,7 @@ BIN := $(VENV)/bin
 TORCH_PIN := torch==2.13.0
 STAMP := $(VENV)/.fdnet-installed
 
-.PHONY: setup demo test test-fast lint clean
+.PHONY: setup demo test test-fast lint format clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -30,6 +31,10 @@ test: $(STAMP)
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+
+format: $(STAMP)
+	$(BIN)/ruff format .
 
 test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -m "not slow" tests

@@ -50,16 +50,20 @@ def describe(descriptor, paths, batch_size: int = 32):
     """{path: (vector, signals)} for every path, in one pass."""
     out = {}
     for start, (vectors, signals) in describe_stream(
-            descriptor, paths, PipelineSettings(batch_size),
-            DescribeJob(lambda images: (descriptor.describe(images), frame_signals(images)))):
+        descriptor,
+        paths,
+        PipelineSettings(batch_size),
+        DescribeJob(lambda images: (descriptor.describe(images), frame_signals(images))),
+    ):
         for i, vector in enumerate(np.asarray(vectors, np.float32)):
             out[paths[start + i]] = (vector, signals[i])
     return out
 
 
 def run(descriptor, cache, traverse, exclude_last, rule, length, gates, threshold=math.inf):
-    detector = LoopClosureDetector(descriptor, None, exclude_last=exclude_last, rule=rule, threshold=threshold,
-                                   sequence_length=length, gates=gates)
+    detector = LoopClosureDetector(
+        descriptor, None, exclude_last=exclude_last, rule=rule, threshold=threshold, sequence_length=length, gates=gates
+    )
     starts = set(np.flatnonzero(np.diff(traverse.condition_of)) + 1)  # each condition is a new recording
     with detector:
         for i, path in enumerate(traverse.paths):
@@ -99,36 +103,67 @@ def main(argv=None) -> int:
         t0 = time.perf_counter()
         cache = describe(descriptor, paths)
         print(f"# {method}: described {len(paths)} frames in {time.perf_counter() - t0:.1f} s", flush=True)
-        for rule, length, gate_name in itertools.product(args.rules.split(","),
-                                                         [int(v) for v in args.lengths.split(",")],
-                                                         args.gates.split(",")):
+        for rule, length, gate_name in itertools.product(
+            args.rules.split(","), [int(v) for v in args.lengths.split(",")], args.gates.split(",")
+        ):
             gates = GATES[gate_name]
             detector, decisions, counts = run(descriptor, cache, whole, args.exclude_last, rule, length, gates)
             ev = evaluate_decisions(decisions, whole.ground_truth(), math.inf, detector.spec.name)
             m = ev["metrics"]
-            row = {"method": method, "rule": rule, "sequence_length": length, "gates": gate_name,
-                   "R@100P": m["recall_at_100_precision"], "R@99P": m["recall_at_99_precision"],
-                   "AUC-PR": m["auc_pr"], "R@1": m["recall_at_n"]["1"], "gate_counts": counts}
+            row = {
+                "method": method,
+                "rule": rule,
+                "sequence_length": length,
+                "gates": gate_name,
+                "R@100P": m["recall_at_100_precision"],
+                "R@99P": m["recall_at_99_precision"],
+                "AUC-PR": m["auc_pr"],
+                "R@1": m["recall_at_n"]["1"],
+                "gate_counts": counts,
+            }
             if "calibrate" in loops:
-                cal_detector, cal_decisions, _ = run(descriptor, cache, loops["calibrate"], args.exclude_last, rule,
-                                                     length, gates)
-                calibration = calibrate_decisions(cal_decisions, loops["calibrate"].ground_truth(), cal_detector,
-                                                  args.target_precision)
-                _, test_decisions, _ = run(descriptor, cache, loops["test"], args.exclude_last, rule, length, gates,
-                                           threshold=calibration.threshold)
-                at = evaluate_decisions(test_decisions, loops["test"].ground_truth(), calibration.threshold,
-                                        rule)["at_threshold"]
-                row.update({"threshold": calibration.threshold, "calibration_recall": calibration.recall,
-                            "test_precision": at["precision"], "test_recall": at["recall"],
-                            "test_accepted": at["accepted"], "test_false": at["false"]})
+                cal_detector, cal_decisions, _ = run(
+                    descriptor, cache, loops["calibrate"], args.exclude_last, rule, length, gates
+                )
+                calibration = calibrate_decisions(
+                    cal_decisions, loops["calibrate"].ground_truth(), cal_detector, args.target_precision
+                )
+                _, test_decisions, _ = run(
+                    descriptor,
+                    cache,
+                    loops["test"],
+                    args.exclude_last,
+                    rule,
+                    length,
+                    gates,
+                    threshold=calibration.threshold,
+                )
+                at = evaluate_decisions(test_decisions, loops["test"].ground_truth(), calibration.threshold, rule)[
+                    "at_threshold"
+                ]
+                row.update(
+                    {
+                        "threshold": calibration.threshold,
+                        "calibration_recall": calibration.recall,
+                        "test_precision": at["precision"],
+                        "test_recall": at["recall"],
+                        "test_accepted": at["accepted"],
+                        "test_false": at["false"],
+                    }
+                )
             results.append(row)
             transfer = ""
             if "threshold" in row:
-                transfer = (f" | calibrated {row['threshold']:.4g} (recall {row['calibration_recall']:.3f}) -> test "
-                            f"precision {row['test_precision']:.3f} recall {row['test_recall']:.3f} "
-                            f"({row['test_accepted']} accepted, {row['test_false']} false)")
-            print(f"{method:15s} {rule:7s} L={length:<3d} {gate_name:24s} R@100P {row['R@100P']:.3f} "
-                  f"R@99P {row['R@99P']:.3f} AUC {row['AUC-PR']:.3f} R@1 {row['R@1']:.3f}{transfer}", flush=True)
+                transfer = (
+                    f" | calibrated {row['threshold']:.4g} (recall {row['calibration_recall']:.3f}) -> test "
+                    f"precision {row['test_precision']:.3f} recall {row['test_recall']:.3f} "
+                    f"({row['test_accepted']} accepted, {row['test_false']} false)"
+                )
+            print(
+                f"{method:15s} {rule:7s} L={length:<3d} {gate_name:24s} R@100P {row['R@100P']:.3f} "
+                f"R@99P {row['R@99P']:.3f} AUC {row['AUC-PR']:.3f} R@1 {row['R@1']:.3f}{transfer}",
+                flush=True,
+            )
     if args.out:
         with open(args.out, "w") as handle:
             json.dump({"argv": sys.argv[1:], "results": results}, handle, indent=1)

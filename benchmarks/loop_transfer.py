@@ -59,8 +59,12 @@ class Loop:
     tolerance: int
 
     def overlaps(self, other: "Loop") -> bool:
-        return (self.data == other.data and self.conditions == other.conditions
-                and self.start < other.end and other.start < self.end)
+        return (
+            self.data == other.data
+            and self.conditions == other.conditions
+            and self.start < other.end
+            and other.start < self.end
+        )
 
 
 def parse_loop(text: str) -> Loop:
@@ -86,8 +90,9 @@ def parse_descriptor(text: str) -> tuple[str, str, dict]:
 
 def decide_loop(descriptor, cache, traverse) -> LoopClosureDetector:
     """The command's defaults over one loop, every frame's decision kept (threshold +inf)."""
-    detector = LoopClosureDetector(descriptor, None, rule=DEFAULT_RULE, threshold=math.inf,
-                                   sequence_length=DEFAULT_SEQUENCE_LENGTH)
+    detector = LoopClosureDetector(
+        descriptor, None, rule=DEFAULT_RULE, threshold=math.inf, sequence_length=DEFAULT_SEQUENCE_LENGTH
+    )
     starts = set(np.flatnonzero(np.diff(traverse.condition_of)) + 1)
     with detector:
         for i, path in enumerate(traverse.paths):
@@ -107,8 +112,10 @@ def main(argv=None) -> int:
     parser.add_argument("--plot", help="PNG of the reliability diagram of p_correct on loops not used to fit it")
     args = parser.parse_args(argv)
 
-    traverses = {loop.name: route_traverse(loop.data, loop.conditions, f"{loop.start}:{loop.end}", loop.tolerance)
-                 for loop in args.loop}
+    traverses = {
+        loop.name: route_traverse(loop.data, loop.conditions, f"{loop.start}:{loop.end}", loop.tolerance)
+        for loop in args.loop
+    }
     loops = {loop.name: loop for loop in args.loop}
     results = {"argv": sys.argv[1:], "loops": {}, "transfer": [], "reliability": {}}
     reliability = {}
@@ -126,17 +133,28 @@ def main(argv=None) -> int:
             back = np.asarray(detector.excluded_back)
             calibrations[loop_name] = calibrate_decisions(detector.decisions, truth, detector, args.target_precision)
             c = calibrations[loop_name]
-            row = {"R@100P": m["recall_at_100_precision"], "R@99P": m["recall_at_99_precision"],
-                   "AUC-PR": m["auc_pr"], "R@1": m["recall_at_n"]["1"], "revisits": ev["frames_with_revisit"],
-                   "threshold": c.threshold, "calibration_recall": c.recall, "calibration_accepted": c.accepted,
-                   "excluded_back_median": float(np.median(back)), "excluded_back_p90": float(np.percentile(back, 90)),
-                   "excluded_back_max": int(back.max())}
+            row = {
+                "R@100P": m["recall_at_100_precision"],
+                "R@99P": m["recall_at_99_precision"],
+                "AUC-PR": m["auc_pr"],
+                "R@1": m["recall_at_n"]["1"],
+                "revisits": ev["frames_with_revisit"],
+                "threshold": c.threshold,
+                "calibration_recall": c.recall,
+                "calibration_accepted": c.accepted,
+                "excluded_back_median": float(np.median(back)),
+                "excluded_back_p90": float(np.percentile(back, 90)),
+                "excluded_back_max": int(back.max()),
+            }
             results["loops"].setdefault(name, {})[loop_name] = row
-            print(f"{name:16s} {loop_name:8s} R@100P {row['R@100P']:.3f} R@99P {row['R@99P']:.3f} AUC-PR "
-                  f"{row['AUC-PR']:.3f} R@1 {row['R@1']:.3f} ({row['revisits']} revisits); recent past excluded: "
-                  f"median {row['excluded_back_median']:.0f}, p90 {row['excluded_back_p90']:.0f}, max "
-                  f"{row['excluded_back_max']} frames; threshold for precision {args.target_precision:g}: "
-                  f"{c.threshold:.4g} ({time.perf_counter() - t0:.0f} s)", flush=True)
+            print(
+                f"{name:16s} {loop_name:8s} R@100P {row['R@100P']:.3f} R@99P {row['R@99P']:.3f} AUC-PR "
+                f"{row['AUC-PR']:.3f} R@1 {row['R@1']:.3f} ({row['revisits']} revisits); recent past excluded: "
+                f"median {row['excluded_back_median']:.0f}, p90 {row['excluded_back_p90']:.0f}, max "
+                f"{row['excluded_back_max']} frames; threshold for precision {args.target_precision:g}: "
+                f"{c.threshold:.4g} ({time.perf_counter() - t0:.0f} s)",
+                flush=True,
+            )
         for source, calibration in calibrations.items():
             for target, (target_decisions, truth) in decisions.items():
                 if target == source or loops[source].overlaps(loops[target]):
@@ -147,18 +165,31 @@ def main(argv=None) -> int:
                 finite = np.isfinite(scores) & np.isfinite(p)
                 sure = finite & (p >= 0.99)
                 reliability.setdefault(name, []).append((p[finite], right[finite]))
-                row = {"descriptor": name, "calibrated_on": source, "applied_to": target,
-                       "threshold": calibration.threshold, "precision": at["precision"], "recall": at["recall"],
-                       "accepted": at["accepted"], "false": at["false"],
-                       "p_correct_at_least_0.99": int(sure.sum()),
-                       "right_among_them": float(right[sure].mean()) if sure.any() else None}
+                row = {
+                    "descriptor": name,
+                    "calibrated_on": source,
+                    "applied_to": target,
+                    "threshold": calibration.threshold,
+                    "precision": at["precision"],
+                    "recall": at["recall"],
+                    "accepted": at["accepted"],
+                    "false": at["false"],
+                    "p_correct_at_least_0.99": int(sure.sum()),
+                    "right_among_them": float(right[sure].mean()) if sure.any() else None,
+                }
                 results["transfer"].append(row)
-                sure_text = (f"; p_correct >= 0.99: {row['p_correct_at_least_0.99']} frames, "
-                             f"{100 * row['right_among_them']:.1f} % right" if sure.any() else
-                             "; no frame with p_correct >= 0.99")
-                print(f"  {name:16s} calibrated on {source:8s} -> {target:8s}: threshold {calibration.threshold:.4g}, "
-                      f"precision {at['precision']:.3f}, recall {at['recall']:.3f} ({at['accepted']} accepted, "
-                      f"{at['false']} false){sure_text}", flush=True)
+                sure_text = (
+                    f"; p_correct >= 0.99: {row['p_correct_at_least_0.99']} frames, "
+                    f"{100 * row['right_among_them']:.1f} % right"
+                    if sure.any()
+                    else "; no frame with p_correct >= 0.99"
+                )
+                print(
+                    f"  {name:16s} calibrated on {source:8s} -> {target:8s}: threshold {calibration.threshold:.4g}, "
+                    f"precision {at['precision']:.3f}, recall {at['recall']:.3f} ({at['accepted']} accepted, "
+                    f"{at['false']} false){sure_text}",
+                    flush=True,
+                )
     print("\np_correct on loops not used to fit it (every frame that searched a place):")
     for name, pairs in reliability.items():
         p = np.concatenate([a for a, _ in pairs])
@@ -166,13 +197,25 @@ def main(argv=None) -> int:
         table = []
         for lo, hi in zip(BINS[:-1], BINS[1:]):
             inside = (p >= lo) & ((p < hi) if hi < 1.0 else (p <= hi))
-            table.append({"from": lo, "to": hi, "frames": int(inside.sum()),
-                          "mean_p_correct": float(p[inside].mean()) if inside.any() else None,
-                          "right": float(right[inside].mean()) if inside.any() else None})
+            table.append(
+                {
+                    "from": lo,
+                    "to": hi,
+                    "frames": int(inside.sum()),
+                    "mean_p_correct": float(p[inside].mean()) if inside.any() else None,
+                    "right": float(right[inside].mean()) if inside.any() else None,
+                }
+            )
         results["reliability"][name] = table
-        print(f"  {name}: " + "; ".join(
-            f"[{b['from']:g}, {b['to']:g}): {b['frames']} frames, p {b['mean_p_correct']:.3f}, right {b['right']:.3f}"
-            for b in table if b["frames"]))
+        print(
+            f"  {name}: "
+            + "; ".join(
+                f"[{b['from']:g}, {b['to']:g}): {b['frames']} frames, p {b['mean_p_correct']:.3f}, "
+                f"right {b['right']:.3f}"
+                for b in table
+                if b["frames"]
+            )
+        )
     if args.plot:
         plot_reliability(results["reliability"], args.plot)
         print(f"wrote {args.plot}")
@@ -195,8 +238,13 @@ def plot_reliability(reliability: dict, path: str) -> None:
         used = [b for b in table if b["frames"]]
         axis.plot([b["mean_p_correct"] for b in used], [b["right"] for b in used], marker="o", label=name)
         for b in used:
-            axis.annotate(str(b["frames"]), (b["mean_p_correct"], b["right"]), fontsize=6,
-                          textcoords="offset points", xytext=(3, -8))
+            axis.annotate(
+                str(b["frames"]),
+                (b["mean_p_correct"], b["right"]),
+                fontsize=6,
+                textcoords="offset points",
+                xytext=(3, -8),
+            )
     axis.set_xlabel("p_correct (fitted on another loop)")
     axis.set_ylabel("share of those frames whose match is right")
     axis.set_title("loop closure: p_correct on loops it was not fitted on", fontsize=9)

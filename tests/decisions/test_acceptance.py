@@ -48,8 +48,13 @@ def test_ratio_is_one_minus_lowe_ratio_of_distances_below_the_ceiling():
 
 def test_ratio_with_a_similarity_whose_ceiling_is_zero():
     # SAD-like: similarity = -distance, ceiling 0; distances 1 (best) and 4 (outside) -> 1 - 1/4
-    d = scores_of("ratio", ["radius=1"], retrieved=np.array([[3, 4, 9]]), scores=np.array([[-1.0, -2.0, -4.0]]),
-                  similarity_ceiling=0.0)
+    d = scores_of(
+        "ratio",
+        ["radius=1"],
+        retrieved=np.array([[3, 4, 9]]),
+        scores=np.array([[-1.0, -2.0, -4.0]]),
+        similarity_ceiling=0.0,
+    )
     np.testing.assert_allclose(d.score, [0.75])
 
 
@@ -57,8 +62,9 @@ def test_ratio_refuses_a_similarity_above_its_ceiling():
     with pytest.raises(DataError, match="above the declared ceiling"):
         scores_of("ratio", retrieved=np.array([[3, 9]]), scores=np.array([[2.0, 1.0]]))
     # the ceiling can be declared for the data
-    np.testing.assert_allclose(scores_of("ratio", ["ceiling=3"], retrieved=np.array([[3, 9]]),
-                                         scores=np.array([[2.0, 1.0]])).score, [0.5])
+    np.testing.assert_allclose(
+        scores_of("ratio", ["ceiling=3"], retrieved=np.array([[3, 9]]), scores=np.array([[2.0, 1.0]])).score, [0.5]
+    )
 
 
 def test_margin_by_time_and_by_position():
@@ -69,8 +75,7 @@ def test_margin_by_time_and_by_position():
     positions[20] = positions[5]  # reference 20 is a revisit of 5's place: same position
     positions[:, 0] += np.where(np.arange(30) == 20, 5.0, np.arange(30))  # 20 sits at x=5 like reference 5
     # within 1.5 m of reference 5 (x=5): 4, 6 and 20 -> best outside for query 0 is 3 (0.4)
-    np.testing.assert_allclose(scores_of("margin", ["radius_m=1.5"], reference_positions=positions).score,
-                               [0.5, 0.01])
+    np.testing.assert_allclose(scores_of("margin", ["radius_m=1.5"], reference_positions=positions).score, [0.5, 0.01])
 
 
 def test_neighbourhood_in_time_or_space_needs_the_arrays():
@@ -117,18 +122,21 @@ def test_settings_go_to_the_named_rule_only():
     assert margin.depth == 16
 
 
-@pytest.mark.parametrize("text, settings, message", [
-    ("nonsense", [], "unknown acceptance rule 'nonsense'"),
-    ("floor", ["floor:min=1"], "is a gate and gives no score"),
-    ("margin+ratio", [], "gives a score, not a gate"),
-    ("margin", ["radius=-1"], "must be an integer >= 0"),
-    ("margin", ["radius=2.5"], "must be an integer >= 0"),
-    ("margin", ["radious=2"], "no setting 'radious'"),
-    ("margin", ["ratio:radius=2"], "rule 'ratio' is not among"),
-    ("margin+floor", [], "floor needs its threshold"),
-    ("margin", ["radius"], "expected \\[RULE:\\]KEY=VALUE"),
-    ("", [], "no acceptance rule"),
-])
+@pytest.mark.parametrize(
+    "text, settings, message",
+    [
+        ("nonsense", [], "unknown acceptance rule 'nonsense'"),
+        ("floor", ["floor:min=1"], "is a gate and gives no score"),
+        ("margin+ratio", [], "gives a score, not a gate"),
+        ("margin", ["radius=-1"], "must be an integer >= 0"),
+        ("margin", ["radius=2.5"], "must be an integer >= 0"),
+        ("margin", ["radious=2"], "no setting 'radious'"),
+        ("margin", ["ratio:radius=2"], "rule 'ratio' is not among"),
+        ("margin+floor", [], "floor needs its threshold"),
+        ("margin", ["radius"], "expected \\[RULE:\\]KEY=VALUE"),
+        ("", [], "no acceptance rule"),
+    ],
+)
 def test_bad_rules_and_settings_are_config_errors(text, settings, message):
     with pytest.raises(ConfigError, match=message):
         parse_acceptance_list(text, settings)
@@ -136,9 +144,13 @@ def test_bad_rules_and_settings_are_config_errors(text, settings, message):
 
 def test_registered_rules_score_and_gate_and_may_choose_another_candidate():
     # a rule that vouches for the second candidate with score 1, and a gate passing even references
-    rule = Rule(name="second_for_test", description="test", defaults={"bonus": 0.0},
-                score=lambda c, bonus, **_: (np.ones(c.num_queries) + bonus, c.retrieved[:, 1]),
-                gate=lambda c, match, **_: match % 2 == 0)
+    rule = Rule(
+        name="second_for_test",
+        description="test",
+        defaults={"bonus": 0.0},
+        score=lambda c, bonus, **_: (np.ones(c.num_queries) + bonus, c.retrieved[:, 1]),
+        gate=lambda c, match, **_: match % 2 == 0,
+    )
     register_rule(rule)
     try:
         d = decide(parse_acceptance("second_for_test", ["bonus=1"]), Candidates(RETRIEVED, SCORES))
@@ -153,8 +165,11 @@ def test_registered_rules_score_and_gate_and_may_choose_another_candidate():
 
 
 def test_a_rule_that_needs_images_refuses_candidates_without_paths():
-    register_rule(Rule(name="looks_for_test", description="test", score=lambda c, **_: c.scores[:, 0],
-                       needs=frozenset({"images"})))
+    register_rule(
+        Rule(
+            name="looks_for_test", description="test", score=lambda c, **_: c.scores[:, 0], needs=frozenset({"images"})
+        )
+    )
     try:
         with pytest.raises(ConfigError, match="looks at the images"):
             decide("looks_for_test", Candidates(RETRIEVED, SCORES))

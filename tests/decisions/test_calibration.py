@@ -69,8 +69,11 @@ def make_split(tmp_path, n=24, unrelated=(3, 8, 15, 20)):
         (tmp_path / condition).mkdir()
     for i in range(n):
         place = rng.integers(0, 256, size=(24, 32, 3))
-        query = rng.integers(0, 256, size=(24, 32, 3)) if i in unrelated else \
-            np.clip(place * 0.25 + rng.normal(0, 90, place.shape), 0, 255)
+        query = (
+            rng.integers(0, 256, size=(24, 32, 3))
+            if i in unrelated
+            else np.clip(place * 0.25 + rng.normal(0, 90, place.shape), 0, 255)
+        )
         Image.fromarray(place.astype(np.uint8)).save(tmp_path / "map" / f"{i:03d}.png")
         Image.fromarray(query.astype(np.uint8)).save(tmp_path / "now" / f"{i:03d}.png")
     return aligned_split(RouteDataset.from_folder(tmp_path, ["map", "now"]), "map", "now", 0)
@@ -81,8 +84,13 @@ def make_split(tmp_path, n=24, unrelated=(3, 8, 15, 20)):
 def test_calibration_reaches_its_target_on_its_split(tmp_path, rule, target):
     split = make_split(tmp_path)
     descriptor = create("raw")
-    cal = calibrate(descriptor, split, parse_acceptance(rule, ["radius=1"] if rule != "raw" else []), target,
-                    pipeline=PipelineSettings(workers=0))
+    cal = calibrate(
+        descriptor,
+        split,
+        parse_acceptance(rule, ["radius=1"] if rule != "raw" else []),
+        target,
+        pipeline=PipelineSettings(workers=0),
+    )
     assert cal.precision >= target and cal.accepted > 0
     assert cal.rule == rule and cal.method == "raw" and cal.fingerprint == descriptor.fingerprint()
     assert cal.measured_on["ground_truth"].startswith("frame-aligned")
@@ -91,8 +99,12 @@ def test_calibration_reaches_its_target_on_its_split(tmp_path, rule, target):
 
     result = evaluate_method(descriptor, split, ScoringSettings(acceptance=[cal.spec]), PipelineSettings(workers=0))
     decision = result.decisions[rule]
-    reached = apply_threshold(cal, decision.score, split.ground_truth.correct_mask(decision.match[:, None])[:, 0],
-                              split.ground_truth.has_match)
+    reached = apply_threshold(
+        cal,
+        decision.score,
+        split.ground_truth.correct_mask(decision.match[:, None])[:, 0],
+        split.ground_truth.has_match,
+    )
     assert reached["precision"] == pytest.approx(cal.precision) and reached["recall"] == pytest.approx(cal.recall)
     # the calibration's own decide() agrees
     _, accepted = cal.decide(Candidates(result.retrieved, result.scores))
@@ -102,8 +114,14 @@ def test_calibration_reaches_its_target_on_its_split(tmp_path, rule, target):
 def test_yaml_round_trip_and_checks(tmp_path):
     split = make_split(tmp_path)
     raw, hog = create("raw"), create("hog")
-    cal = calibrate(raw, split, parse_acceptance("margin", ["radius=2"]), 1.0, sequence_length=3,
-                    pipeline=PipelineSettings(workers=0))
+    cal = calibrate(
+        raw,
+        split,
+        parse_acceptance("margin", ["radius=2"]),
+        1.0,
+        sequence_length=3,
+        pipeline=PipelineSettings(workers=0),
+    )
     path = save_calibration(cal, tmp_path / "cal.yaml")
     back = load_calibration(path)
     assert back == cal and back.spec.settings["margin"]["radius"] == 2
@@ -120,16 +138,25 @@ def test_yaml_round_trip_and_checks(tmp_path):
     assert Calibration.from_dict(never.to_dict(json_safe=True)).threshold == math.inf
 
 
-@pytest.mark.parametrize("text, message", [
-    ("just text", "not an fdnet calibration"),
-    ("format: fdnet-calibration\nversion: 1\nrule: margin\n", "lacks settings, threshold"),
-    ("format: fdnet-calibration\nversion: 7\n", "format version 7"),
-    ("format: fdnet-calibration\nversion: 1\nrule: nope\nsettings: {}\nthreshold: 1\ntarget_precision: 1\n"
-     "method: raw\nfingerprint: x\n", "unknown acceptance rule 'nope'"),
-    ("format: fdnet-calibration\nversion: 1\nrule: raw\nsettings: {raw: {}}\nthreshold: 1\ntarget_precision: 2\n"
-     "method: raw\nfingerprint: x\n", r"must be in \(0, 1\]"),
-    ("{{{", "not valid YAML"),
-])
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("just text", "not an fdnet calibration"),
+        ("format: fdnet-calibration\nversion: 1\nrule: margin\n", "lacks settings, threshold"),
+        ("format: fdnet-calibration\nversion: 7\n", "format version 7"),
+        (
+            "format: fdnet-calibration\nversion: 1\nrule: nope\nsettings: {}\nthreshold: 1\ntarget_precision: 1\n"
+            "method: raw\nfingerprint: x\n",
+            "unknown acceptance rule 'nope'",
+        ),
+        (
+            "format: fdnet-calibration\nversion: 1\nrule: raw\nsettings: {raw: {}}\nthreshold: 1\ntarget_precision: 2\n"
+            "method: raw\nfingerprint: x\n",
+            r"must be in \(0, 1\]",
+        ),
+        ("{{{", "not valid YAML"),
+    ],
+)
 def test_bad_calibration_files_name_the_file(tmp_path, text, message):
     path = tmp_path / "bad.yaml"
     path.write_text(text)
@@ -140,20 +167,25 @@ def test_bad_calibration_files_name_the_file(tmp_path, text, message):
         load_calibration(tmp_path / "missing.yaml")
 
 
-GOOD = ("format: fdnet-calibration\nversion: 1\nrule: margin\nsettings: {margin: {radius: 3}}\nthreshold: 0.2\n"
-        "target_precision: 1.0\nmethod: raw\nfingerprint: abc\n")
+GOOD = (
+    "format: fdnet-calibration\nversion: 1\nrule: margin\nsettings: {margin: {radius: 3}}\nthreshold: 0.2\n"
+    "target_precision: 1.0\nmethod: raw\nfingerprint: abc\n"
+)
 
 
-@pytest.mark.parametrize("edit, message", [
-    ("sequence_length: ten", "sequence_length must be a whole number"),
-    ("sequence_length: -4", "sequence_length must be a whole number"),
-    ("accepted: many", "accepted must be a whole number"),
-    ("fingerprint: 123", "fingerprint must be text"),
-    ("rule: [margin]", "rule must be text"),
-    ("threshold: -.inf", "threshold is -inf"),
-    ("notes: [[a, b]]", "notes must be a list of text lines"),
-    ("measured_on: somewhere", "measured_on must map"),
-])
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        ("sequence_length: ten", "sequence_length must be a whole number"),
+        ("sequence_length: -4", "sequence_length must be a whole number"),
+        ("accepted: many", "accepted must be a whole number"),
+        ("fingerprint: 123", "fingerprint must be text"),
+        ("rule: [margin]", "rule must be text"),
+        ("threshold: -.inf", "threshold is -inf"),
+        ("notes: [[a, b]]", "notes must be a list of text lines"),
+        ("measured_on: somewhere", "measured_on must map"),
+    ],
+)
 def test_hand_edited_calibration_values_are_refused_on_loading(tmp_path, edit, message):
     key = edit.split(":")[0]
     lines = [line for line in GOOD.splitlines() if not line.startswith(key + ":")]
@@ -169,20 +201,37 @@ def test_hand_edited_calibration_values_are_refused_on_loading(tmp_path, edit, m
 def test_calibration_can_choose_the_radius_on_its_split(tmp_path):
     split = make_split(tmp_path)
     descriptor = create("raw")
-    chosen = calibrate(descriptor, split, parse_acceptance("margin"), 1.0, pipeline=PipelineSettings(workers=0),
-                       choose={"radius": [0, 1, 4]})
+    chosen = calibrate(
+        descriptor,
+        split,
+        parse_acceptance("margin"),
+        1.0,
+        pipeline=PipelineSettings(workers=0),
+        choose={"radius": [0, 1, 4]},
+    )
     tried = chosen.measured_on["chosen_from"]
     assert [t["radius"] for t in tried] == [0, 1, 4]
     best = max(tried, key=lambda t: t["recall"])
     assert chosen.recall == best["recall"] and chosen.settings["margin"]["radius"] == best["radius"]
     # each value tried is what calibrating with that radius alone gives
     for t in tried:
-        alone = calibrate(descriptor, split, parse_acceptance("margin", [f"radius={t['radius']}"]), 1.0,
-                          pipeline=PipelineSettings(workers=0))
+        alone = calibrate(
+            descriptor,
+            split,
+            parse_acceptance("margin", [f"radius={t['radius']}"]),
+            1.0,
+            pipeline=PipelineSettings(workers=0),
+        )
         assert alone.recall == t["recall"]
     with pytest.raises(ConfigError, match="has no setting 'radius'"):
-        calibrate(descriptor, split, parse_acceptance("raw"), 1.0, pipeline=PipelineSettings(workers=0),
-                  choose={"radius": [1]})
+        calibrate(
+            descriptor,
+            split,
+            parse_acceptance("raw"),
+            1.0,
+            pipeline=PipelineSettings(workers=0),
+            choose={"radius": [1]},
+        )
 
 
 def test_a_neighbourhood_in_metres_is_refused_before_describing(tmp_path):
@@ -193,5 +242,11 @@ def test_a_neighbourhood_in_metres_is_refused_before_describing(tmp_path):
             raise AssertionError("described before the rule was checked")
 
     with pytest.raises(ConfigError, match="radius_m: calibration on image folders has no positions"):
-        calibrate(Untouchable(), split, parse_acceptance("margin"), 1.0, pipeline=PipelineSettings(workers=0),
-                  choose={"radius_m": [1.0, 2.0]})
+        calibrate(
+            Untouchable(),
+            split,
+            parse_acceptance("margin"),
+            1.0,
+            pipeline=PipelineSettings(workers=0),
+            choose={"radius_m": [1.0, 2.0]},
+        )

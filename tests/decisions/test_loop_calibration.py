@@ -69,7 +69,7 @@ def test_score_distribution_and_a_departure_into_its_tail():
     stored = score_distribution(np.r_[rng.normal(0, 1, 1000), -math.inf, 5.0], below=4.0)
     assert stored["frames"] == 1000 and len(stored["quantiles"]) == len(stored["levels"]) == 19
     assert tail_departure(stored, rng.normal(0, 1, 500)) is None
-    assert tail_departure(stored, rng.normal(-1, 0.5, 500)) is None        # one-sided: lighter costs recall only
+    assert tail_departure(stored, rng.normal(-1, 0.5, 500)) is None  # one-sided: lighter costs recall only
     heavier = tail_departure(stored, rng.normal(0, 1.6, 500))
     assert heavier is not None and heavier["share"] > 2 * heavier["expected"]
 
@@ -91,7 +91,7 @@ def test_a_loop_calibration_stores_p_correct_and_its_scores_and_closures_carry_p
     # another loop of the same kind: every closure carries the fitted probability
     other_first, other_second = slow_route(n=80, seed=3)
     detector = LoopClosureDetector(StoredVectors(64), calibration=str(path))
-    assert detector.sequence_length == 10           # the calibration's, not the API's single images
+    assert detector.sequence_length == 10  # the calibration's, not the API's single images
     for i, vector in enumerate(np.concatenate([other_first, other_second])):
         detector.process_vector(vector, name=f"f{i}", new_segment=i == 80)
     assert detector.closures

@@ -23,8 +23,13 @@ def traverse_settings(events_csv, events_jsonl=None, resume=False, batch_size=16
     from fdnet.decisions.loop_settings import LoopClosureSettings, TraverseSettings
     from fdnet.descriptors.pipeline import PipelineSettings
 
-    return TraverseSettings(events_csv, LoopClosureSettings(**detector), PipelineSettings(batch_size, workers),
-                            events_jsonl=events_jsonl, resume=resume)
+    return TraverseSettings(
+        events_csv,
+        LoopClosureSettings(**detector),
+        PipelineSettings(batch_size, workers),
+        events_jsonl=events_jsonl,
+        resume=resume,
+    )
 
 
 def places(seed=0, n=PLACES):
@@ -68,7 +73,7 @@ def test_sequence_scores_close_the_same_loops():
     assert [e.match_index for e in events[PLACES:]] == list(range(PLACES))
     # a sequence running off the start of the map counts its missing frames as neutral: the
     # first revisits' scores grow as the revisit's sequence fills (0.23, 0.48, 0.73, then ~0.98)
-    scores = [d.score for d in detector.decisions[PLACES:PLACES + 4]]
+    scores = [d.score for d in detector.decisions[PLACES : PLACES + 4]]
     assert scores == sorted(scores) and scores[0] < 0.4 and scores[3] > 0.9
 
 
@@ -79,12 +84,12 @@ def test_the_detector_never_looks_at_a_future_frame():
         reference, ref_events = run(route, **kw)
         for cut in (PLACES + 2, PLACES + 7):
             # the same frames up to `cut`, then an entirely different future
-            changed = route[:cut + 1] + places(seed=99, n=len(route) - cut - 1)
+            changed = route[: cut + 1] + places(seed=99, n=len(route) - cut - 1)
             other, other_events = run(changed, **kw)
-            assert other_events[:cut + 1] == ref_events[:cut + 1]
+            assert other_events[: cut + 1] == ref_events[: cut + 1]
             # repr: exact for floats, and NaN (no candidate yet) equals NaN
-            assert list(map(repr, other.decisions[:cut + 1])) == list(map(repr, reference.decisions[:cut + 1]))
-            assert other.decisions[cut + 1:] != reference.decisions[cut + 1:]
+            assert list(map(repr, other.decisions[: cut + 1])) == list(map(repr, reference.decisions[: cut + 1]))
+            assert other.decisions[cut + 1 :] != reference.decisions[cut + 1 :]
         assert any(e is not None for e in ref_events)
 
 
@@ -114,8 +119,9 @@ def test_a_database_from_an_earlier_session_is_searched_from_the_first_frame(tmp
 
 def test_time_neighbourhoods_use_the_frames_timestamps():
     route = revisit_route()
-    detector = LoopClosureDetector(RawThumbnail(), exclude_last=3, rule="margin", rule_settings={"radius_s": 0.5},
-                                   threshold=0.2)
+    detector = LoopClosureDetector(
+        RawThumbnail(), exclude_last=3, rule="margin", rule_settings={"radius_s": 0.5}, threshold=0.2
+    )
     events = [detector.process(im, timestamp=0.25 * i) for i, im in enumerate(route)]
     assert [e.match_index for e in events[PLACES:]] == list(range(PLACES))
     assert events[-1].match_timestamp == 0.25 * (PLACES - 1)
@@ -127,8 +133,12 @@ def test_events_carry_the_positions_of_frame_and_place(tmp_path):
     # the second pass drives the same line 1 m to the side
     events = [detector.process(im, position=(10.0 * (i % PLACES), float(i >= PLACES))) for i, im in enumerate(route)]
     closure = events[-1]
-    assert (closure.x, closure.y, closure.match_x, closure.match_y) == (10.0 * (PLACES - 1), 1.0,
-                                                                        10.0 * (PLACES - 1), 0.0)
+    assert (closure.x, closure.y, closure.match_x, closure.match_y) == (
+        10.0 * (PLACES - 1),
+        1.0,
+        10.0 * (PLACES - 1),
+        0.0,
+    )
     with EventLog(tmp_path / "e.csv") as log:
         log.write(closure)
     row = next(csv.DictReader(open(tmp_path / "e.csv", newline="")))
@@ -157,8 +167,9 @@ def test_bad_input_is_refused_with_a_message():
 
 def test_a_rule_that_verifies_images_needs_frames_given_as_files():
     # without the recent-past exclusion the second frame searches the first
-    detector = LoopClosureDetector(RawThumbnail(), rule="margin+verified", threshold=0.1,
-                                   gates=LoopGates(similar_past=False))
+    detector = LoopClosureDetector(
+        RawThumbnail(), rule="margin+verified", threshold=0.1, gates=LoopGates(similar_past=False)
+    )
     detector.process(places()[0])
     with pytest.raises(ConfigError, match="no image file"):
         detector.process(places()[1])
@@ -172,10 +183,25 @@ def test_events_are_on_disk_when_written(tmp_path):
         rows = list(csv.DictReader(open(tmp_path / "e.csv", newline="")))
         lines = (tmp_path / "e.jsonl").read_text().splitlines()
     assert tuple(rows[0]) == EVENT_COLUMNS
-    assert rows == [{"query_index": "5", "query": "b.png", "match_index": "1", "match": "a.png",
-                     "score": "0.250000", "similarity": "0.900000", "rule": "margin", "threshold": "0.200000",
-                     "timestamp": "2.500000", "match_timestamp": "", "x": "", "y": "", "match_x": "",
-                     "match_y": "", "p_correct": ""}]
+    assert rows == [
+        {
+            "query_index": "5",
+            "query": "b.png",
+            "match_index": "1",
+            "match": "a.png",
+            "score": "0.250000",
+            "similarity": "0.900000",
+            "rule": "margin",
+            "threshold": "0.200000",
+            "timestamp": "2.500000",
+            "match_timestamp": "",
+            "x": "",
+            "y": "",
+            "match_x": "",
+            "match_y": "",
+            "p_correct": "",
+        }
+    ]
     assert [json.loads(line) for line in lines] == [event.to_dict()]
     with pytest.raises(ConfigError, match="two different files"):
         EventLog(tmp_path / "x.csv", tmp_path / "x.csv")
@@ -185,10 +211,10 @@ def test_evaluation_by_hand():
     # frames 0..4; frame 3 revisits place 0, frame 4 revisits place 1; exclude-last cut applies
     decisions = [
         FrameDecision(0, -1, float("nan"), False, 0),
-        FrameDecision(1, 0, 0.05, False, 1, 0, 0.5),   # no revisit: a false positive if accepted
-        FrameDecision(2, 0, 0.30, True, 1, 0, 0.6),    # no revisit (its true match 1 is not searchable)
-        FrameDecision(3, 0, 0.40, True, 2, 0, 0.9),    # correct
-        FrameDecision(4, 2, 0.10, False, 3, 1, 0.8),   # rule vouches for 2, the truth is 1
+        FrameDecision(1, 0, 0.05, False, 1, 0, 0.5),  # no revisit: a false positive if accepted
+        FrameDecision(2, 0, 0.30, True, 1, 0, 0.6),  # no revisit (its true match 1 is not searchable)
+        FrameDecision(3, 0, 0.40, True, 2, 0, 0.9),  # correct
+        FrameDecision(4, 2, 0.10, False, 3, 1, 0.8),  # rule vouches for 2, the truth is 1
     ]
     truth = GroundTruth([[], [], [1], [0], [1]], 5)
     out = evaluate_decisions(decisions, truth, threshold=0.2, rule="margin")
@@ -196,11 +222,17 @@ def test_evaluation_by_hand():
     # sorted by score: 0.40 correct, 0.30 wrong -> R@100P = 1/2
     assert out["metrics"]["recall_at_100_precision"] == 0.5
     assert out["metrics"]["recall_at_n"]["1"] == 1.0  # best by similarity is right for frames 3 and 4
-    assert out["at_threshold"] == {"threshold": 0.2, "accepted": 2, "true": 1, "false": 1, "precision": 0.5,
-                                   "recall": 0.5,
-                                   # frames 1 and 2 revisit nothing searchable: frame 2's closure is false
-                                   "first_pass": {"frames": 2, "accepted": 1},
-                                   "revisits": {"frames": 2, "true": 1, "wrong_place": 0, "missed": 1}}
+    assert out["at_threshold"] == {
+        "threshold": 0.2,
+        "accepted": 2,
+        "true": 1,
+        "false": 1,
+        "precision": 0.5,
+        "recall": 0.5,
+        # frames 1 and 2 revisit nothing searchable: frame 2's closure is false
+        "first_pass": {"frames": 2, "accepted": 1},
+        "revisits": {"frames": 2, "true": 1, "wrong_place": 0, "missed": 1},
+    }
     with pytest.raises(DataError, match="3 queries but the traverse has 5"):
         evaluate_decisions(decisions, GroundTruth([[], [], []], 5), 0.2, "margin")
     with pytest.raises(DataError, match="no frame revisits"):
@@ -211,10 +243,19 @@ def calibration_for(descriptor, threshold=0.2, rule="margin", sequence_length=1)
     from fdnet.decisions.acceptance import parse_acceptance
     from fdnet.decisions.calibration import Calibration
 
-    return Calibration(rule=rule, settings=parse_acceptance(rule).settings, threshold=threshold,
-                       target_precision=1.0, precision=1.0, recall=0.5, accepted=3, num_queries=10,
-                       method=descriptor.name, fingerprint=descriptor.fingerprint(),
-                       sequence_length=sequence_length)
+    return Calibration(
+        rule=rule,
+        settings=parse_acceptance(rule).settings,
+        threshold=threshold,
+        target_precision=1.0,
+        precision=1.0,
+        recall=0.5,
+        accepted=3,
+        num_queries=10,
+        method=descriptor.name,
+        fingerprint=descriptor.fingerprint(),
+        sequence_length=sequence_length,
+    )
 
 
 def test_a_calibration_gives_rule_and_threshold(tmp_path):
@@ -249,8 +290,9 @@ def test_a_calibration_of_another_model_sequence_length_or_rule_is_refused(tmp_p
 def test_storing_frames_in_batches_changes_no_decision(tmp_path):
     route = revisit_route()
     _, expected = run(route)
-    detector = LoopClosureDetector(RawThumbnail(), tmp_path / "map.db", exclude_last=3, rule="margin",
-                                   threshold=0.2, commit_every=5)
+    detector = LoopClosureDetector(
+        RawThumbnail(), tmp_path / "map.db", exclude_last=3, rule="margin", threshold=0.2, commit_every=5
+    )
     events = [detector.process(im, name=f"frame_{i}") for i, im in enumerate(route[:7])]
     assert len(detector.database) == 5 and detector.places == 7  # two frames wait for the next batch
     events += [detector.process(im, name=f"frame_{i}") for i, im in enumerate(route[7:], start=7)]
@@ -266,9 +308,9 @@ def test_calibrating_on_a_traverse_picks_the_threshold_of_the_target_precision()
     decisions = [
         FrameDecision(0, -1, float("nan"), False, 0),
         FrameDecision(1, 0, 0.05, False, 1, 0, 0.5),
-        FrameDecision(2, 0, 0.30, False, 1, 0, 0.6),   # wrong: frame 2 revisits nothing it could search
-        FrameDecision(3, 0, 0.40, False, 2, 0, 0.9),   # right
-        FrameDecision(4, 1, 0.10, False, 3, 1, 0.8),   # right
+        FrameDecision(2, 0, 0.30, False, 1, 0, 0.6),  # wrong: frame 2 revisits nothing it could search
+        FrameDecision(3, 0, 0.40, False, 2, 0, 0.9),  # right
+        FrameDecision(4, 1, 0.10, False, 3, 1, 0.8),  # right
     ]
     truth = GroundTruth([[], [], [1], [0], [1]], 5)
     detector = LoopClosureDetector(RawThumbnail(), exclude_last=1, rule="margin", threshold=float("inf"))
@@ -301,8 +343,9 @@ def tunnel(n, seed):
 def stop(image, n, seed):
     """n frames of a robot standing still: the same view, a little sensor noise."""
     rng = np.random.default_rng(seed)
-    return [np.clip(image.astype(int) + rng.integers(-2, 3, size=image.shape), 0, 255).astype(np.uint8)
-            for _ in range(n)]
+    return [
+        np.clip(image.astype(int) + rng.integers(-2, 3, size=image.shape), 0, 255).astype(np.uint8) for _ in range(n)
+    ]
 
 
 def route_with_a_tunnel_a_stop_and_a_revisit():
@@ -335,7 +378,7 @@ def test_no_closure_from_a_tunnel_or_a_stop_and_the_revisit_closed(length):
     closures = [e for e in events if e is not None]
     assert {c.query_index for c in closures} <= set(range(revisit, len(frames)))
     assert all(c.match_index == c.query_index - revisit for c in closures)
-    assert len(closures) >= len(frames) - revisit - length   # every revisit once its sequence is in it
+    assert len(closures) >= len(frames) - revisit - length  # every revisit once its sequence is in it
     assert gated.gate_counts["uninformative"] == 10 and gated.gate_counts["still_frames"] == 9
     # the same run with every gate off closes the second tunnel with the first and the stop with itself
     off = LoopGates(min_brightness=None, min_contrast=None, still_difference=None, similar_past=False)
@@ -374,10 +417,13 @@ def test_resume_replays_to_the_events_of_an_uninterrupted_run(tmp_path):
     from fdnet.decisions.loop_traverse import run_traverse
 
     frames, revisit, folder = route_with_a_tunnel_a_stop_and_a_revisit_as_files(tmp_path / "route")
-    settings = {"exclude_last": 2, "rule": "raw", "threshold": 0.8, "sequence_length": 3, "batch_size": 4,
-                "workers": 0}
-    whole = run_traverse(folder, RawThumbnail(), tmp_path / "whole.db", traverse_settings(
-        events_csv=tmp_path / "whole.csv", events_jsonl=tmp_path / "whole.jsonl", **settings))
+    settings = {"exclude_last": 2, "rule": "raw", "threshold": 0.8, "sequence_length": 3, "batch_size": 4, "workers": 0}
+    whole = run_traverse(
+        folder,
+        RawThumbnail(),
+        tmp_path / "whole.db",
+        traverse_settings(events_csv=tmp_path / "whole.csv", events_jsonl=tmp_path / "whole.jsonl", **settings),
+    )
     assert whole.closures >= 9 and revisit < 40
 
     class Killed(Exception):
@@ -399,8 +445,9 @@ def test_resume_replays_to_the_events_of_an_uninterrupted_run(tmp_path):
     for cut in (20, 40):  # batches of 4: in the first pass, and among the revisits
         db, csv_path, jsonl = tmp_path / f"cut{cut}.db", tmp_path / f"cut{cut}.csv", tmp_path / f"cut{cut}.jsonl"
         with pytest.raises(Killed):
-            run_traverse(folder, DiesAfter(cut), db, traverse_settings(events_csv=csv_path, events_jsonl=jsonl,
-                                                                        **settings))
+            run_traverse(
+                folder, DiesAfter(cut), db, traverse_settings(events_csv=csv_path, events_jsonl=jsonl, **settings)
+            )
         with PlaceDatabase.open(db) as stored:
             assert len(stored) == cut
         # a kill between storing a frame and writing its event: the last event line is lost, and
@@ -411,8 +458,12 @@ def test_resume_replays_to_the_events_of_an_uninterrupted_run(tmp_path):
         # without --resume the traverse is refused; with it, the events are those of one whole run
         with pytest.raises(DataError, match="give --resume"):
             run_traverse(folder, RawThumbnail(), db, traverse_settings(events_csv=csv_path, **settings))
-        report = run_traverse(folder, RawThumbnail(), db, traverse_settings(events_csv=csv_path, events_jsonl=jsonl,
-                                                                             resume=True, **settings))
+        report = run_traverse(
+            folder,
+            RawThumbnail(),
+            db,
+            traverse_settings(events_csv=csv_path, events_jsonl=jsonl, resume=True, **settings),
+        )
         assert report.resumed_frames == cut and report.frames == len(frames)
         assert csv_path.read_text() == (tmp_path / "whole.csv").read_text()
         assert jsonl.read_text() == (tmp_path / "whole.jsonl").read_text()
@@ -420,8 +471,9 @@ def test_resume_replays_to_the_events_of_an_uninterrupted_run(tmp_path):
             assert stored.names == reference.names
             np.testing.assert_array_equal(stored.vectors, reference.vectors)
     with pytest.raises(ConfigError, match="needs the place database"):
-        run_traverse(folder, RawThumbnail(), None, traverse_settings(events_csv=tmp_path / "x.csv", resume=True,
-                                                                     **settings))
+        run_traverse(
+            folder, RawThumbnail(), None, traverse_settings(events_csv=tmp_path / "x.csv", resume=True, **settings)
+        )
 
 
 @pytest.mark.parametrize("length", [1, 3])
@@ -443,7 +495,7 @@ def test_auto_search_switches_to_the_index_at_its_size():
     frames = places(seed=4, n=30)
     detector, _ = run(frames, search="auto", index_from=20, rule="raw", threshold=2.0)
     indexed = detector.candidates.indexed
-    assert indexed is not None and len(indexed) == 29   # every place but the newest
+    assert indexed is not None and len(indexed) == 29  # every place but the newest
     small, _ = run(frames, search="auto", rule="raw", threshold=2.0)
     assert small.candidates.indexed is None
 
@@ -452,10 +504,18 @@ def test_resume_with_the_index_replays_the_same_events(tmp_path):
     from fdnet.decisions.loop_traverse import run_traverse
 
     frames, revisit, folder = route_with_a_tunnel_a_stop_and_a_revisit_as_files(tmp_path / "route")
-    settings = {"exclude_last": 2, "rule": "raw", "threshold": 0.8, "sequence_length": 3, "batch_size": 4,
-                "workers": 0, "search": "index"}
-    whole = run_traverse(folder, RawThumbnail(), tmp_path / "whole.db",
-                         traverse_settings(events_csv=tmp_path / "whole.csv", **settings))
+    settings = {
+        "exclude_last": 2,
+        "rule": "raw",
+        "threshold": 0.8,
+        "sequence_length": 3,
+        "batch_size": 4,
+        "workers": 0,
+        "search": "index",
+    }
+    whole = run_traverse(
+        folder, RawThumbnail(), tmp_path / "whole.db", traverse_settings(events_csv=tmp_path / "whole.csv", **settings)
+    )
     assert whole.closures >= 9
     # a run interrupted after 40 frames (among the revisits): the database holds those frames only
     with PlaceDatabase.open(tmp_path / "whole.db") as stored:
@@ -463,8 +523,12 @@ def test_resume_with_the_index_replays_the_same_events(tmp_path):
     with PlaceDatabase.create(tmp_path / "cut.db", RawThumbnail()) as cut:
         cut.add(vectors[:40], names[:40], metadata=metadata[:40])
     (tmp_path / "cut.csv").write_text("")
-    run_traverse(folder, RawThumbnail(), tmp_path / "cut.db",
-                 traverse_settings(events_csv=tmp_path / "cut.csv", resume=True, **settings))
+    run_traverse(
+        folder,
+        RawThumbnail(),
+        tmp_path / "cut.db",
+        traverse_settings(events_csv=tmp_path / "cut.csv", resume=True, **settings),
+    )
     assert (tmp_path / "cut.csv").read_text() == (tmp_path / "whole.csv").read_text()
 
 

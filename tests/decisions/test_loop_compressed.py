@@ -24,8 +24,9 @@ def earlier_and_route():
     rng = np.random.default_rng(3)
     earlier = unit(rng.standard_normal((MAP, DIM)))
     route = unit(rng.standard_normal((ROUTE, DIM)))
-    frames = np.concatenate([unit(route + 0.1 * rng.standard_normal(route.shape)),
-                             unit(route + 0.1 * rng.standard_normal(route.shape))])
+    frames = np.concatenate(
+        [unit(route + 0.1 * rng.standard_normal(route.shape)), unit(route + 0.1 * rng.standard_normal(route.shape))]
+    )
     return earlier, frames
 
 
@@ -65,7 +66,7 @@ def test_a_resumed_traverse_over_compressed_codes_replays_the_same_decisions(tmp
     cut_db = tmp_path / "cut.db"
     with PlaceDatabase.create(cut_db, StoredVectors(DIM)) as db:
         db.add(earlier, [f"earlier/{i}" for i in range(MAP)])
-    decide(cut_db, frames[:ROUTE + 7], **settings)  # a run stopped among the revisits
+    decide(cut_db, frames[: ROUTE + 7], **settings)  # a run stopped among the revisits
     resumed = LoopClosureDetector(StoredVectors(DIM), cut_db, **SETTINGS, **settings)
     with resumed:
         resumed.resume(ROUTE + 7)

@@ -18,15 +18,21 @@ from fdnet.errors import ConfigError
 
 
 def test_settings_are_checked_and_parsed():
-    assert LoopGates().with_settings(["consistency=3", "still_difference=off", "exclude-seconds=2.5"]) == \
-        LoopGates(consistency=3, still_difference=None, exclude_seconds=2.5)
+    assert LoopGates().with_settings(["consistency=3", "still_difference=off", "exclude-seconds=2.5"]) == LoopGates(
+        consistency=3, still_difference=None, exclude_seconds=2.5
+    )
     assert LoopGates().with_settings(["decide_when_still=true"]).decide_when_still is True
-    for bad, message in ((["min_brightness=2"], "must be in [0, 1]"), (["consistency=0"], "at least 1"),
-                         (["consistency=x"], "not a number"), (["nosuch=1"], "unknown loop gate setting"),
-                         (["exclude_metres=-1"], "at least 0"), (["consistency"], "expected KEY=VALUE"),
-                         (["decide_when_still=maybe"], "true or false"),
-                         (["consistency=2.5"], "give a whole number of frames"),
-                         (["consistency_window=inf"], "give a whole number of frames")):
+    for bad, message in (
+        (["min_brightness=2"], "must be in [0, 1]"),
+        (["consistency=0"], "at least 1"),
+        (["consistency=x"], "not a number"),
+        (["nosuch=1"], "unknown loop gate setting"),
+        (["exclude_metres=-1"], "at least 0"),
+        (["consistency"], "expected KEY=VALUE"),
+        (["decide_when_still=maybe"], "true or false"),
+        (["consistency=2.5"], "give a whole number of frames"),
+        (["consistency_window=inf"], "give a whole number of frames"),
+    ):
         with pytest.raises(ConfigError, match=message.replace("[", r"\[").replace("]", r"\]")):
             LoopGates().with_settings(bad)
     with pytest.raises(ConfigError, match="unknown loop gate"):
@@ -38,8 +44,8 @@ def test_settings_are_checked_and_parsed():
 def test_signals_find_dark_and_blank_frames_whatever_the_dtype():
     rng = np.random.default_rng(0)
     textured = rng.integers(0, 256, size=(48, 64, 3)).astype(np.uint8)
-    dark = (textured // 20).astype(np.uint8)          # mean about 6 of 255: a tunnel
-    blank = np.full((48, 64, 3), 140, np.uint8)        # a covered lens or a white wall
+    dark = (textured // 20).astype(np.uint8)  # mean about 6 of 255: a tunnel
+    blank = np.full((48, 64, 3), 140, np.uint8)  # a covered lens or a white wall
     frames = np.stack([textured, dark, blank])
     for images in (frames, frames.astype(np.float32) / 255.0):
         signals = frame_signals(images)
@@ -56,7 +62,7 @@ def test_signals_find_dark_and_blank_frames_whatever_the_dtype():
 
 def test_the_recent_past_grows_back_over_a_stop_and_over_seconds_and_metres():
     recent = RecentPast(exclude_last=2, gates=LoopGates())
-    still = [False, False, False, True, True, True, False, False]   # the robot stands at frames 2..5
+    still = [False, False, False, True, True, True, False, False]  # the robot stands at frames 2..5
     firsts = [recent.first_excluded(t, None, s, None, None) for t, s in enumerate(still)]
     # moving: the last two frames; standing: back to the stop's first frame (2)
     assert firsts == [0, 0, 0, 1, 2, 2, 4, 5]
@@ -77,12 +83,12 @@ def test_consistency_gate_on_hand_made_decisions():
     # (match, score) per frame: three agreeing frames, then a jump, then agreement again
     frames = [(10, 0.5), (11, 0.6), (12, 0.4), (40, 0.9), (41, 0.8), (43, 0.7), (-1, math.nan), (44, 0.9)]
     gated = [gate.update(m, s) for m, s in frames]
-    assert gated[:2] == [-math.inf, -math.inf]          # not yet k frames
-    assert gated[2] == 0.4                              # the smallest of the three
-    assert gated[3] == gated[4] == -math.inf            # 12 -> 40 breaks the chain, and it is still in the window
-    assert gated[5] == 0.7                              # 40, 41, 43: steps of 1 and 2
-    assert gated[6] == gated[7] == -math.inf            # a frame without a candidate breaks it too
+    assert gated[:2] == [-math.inf, -math.inf]  # not yet k frames
+    assert gated[2] == 0.4  # the smallest of the three
+    assert gated[3] == gated[4] == -math.inf  # 12 -> 40 breaks the chain, and it is still in the window
+    assert gated[5] == 0.7  # 40, 41, 43: steps of 1 and 2
+    assert gated[6] == gated[7] == -math.inf  # a frame without a candidate breaks it too
     single = ConsistencyGate(k=1, window=0)
     assert single.update(5, 0.3) == 0.3 and single.update(-1, math.nan) == -math.inf
     backwards = ConsistencyGate(k=2, window=1)
-    assert backwards.update(9, 0.5) == -math.inf and backwards.update(8, 0.6) == 0.5   # a route driven backwards
+    assert backwards.update(9, 0.5) == -math.inf and backwards.update(8, 0.6) == 0.5  # a route driven backwards

@@ -25,40 +25,40 @@ def slow_route(n=200, dim=64, persistence=0.93, seed=0):
     state = np.zeros((n, dim))
     state[0] = rng.normal(size=dim)
     for t in range(1, n):
-        state[t] = persistence * state[t - 1] + math.sqrt(1 - persistence ** 2) * rng.normal(size=dim)
+        state[t] = persistence * state[t - 1] + math.sqrt(1 - persistence**2) * rng.normal(size=dim)
     return unit(state + 0.3 * rng.normal(size=(n, dim))), unit(state + 0.5 * rng.normal(size=(n, dim)))
 
 
 def drive(first, second, **settings):
-    detector = LoopClosureDetector(StoredVectors(first.shape[1]), rule="margin", threshold=math.inf,
-                                   sequence_length=10, **settings)
+    detector = LoopClosureDetector(
+        StoredVectors(first.shape[1]), rule="margin", threshold=math.inf, sequence_length=10, **settings
+    )
     for i, vector in enumerate(np.concatenate([first, second])):
         detector.process_vector(vector, name=f"frame_{i}", new_segment=i == len(first))
     return detector
 
 
 def revisit_truth(n):
-    return GroundTruth([np.zeros(0, np.int64)] * n + [np.arange(max(i - 1, 0), min(i + 2, n)) for i in range(n)],
-                       2 * n)
+    return GroundTruth([np.zeros(0, np.int64)] * n + [np.arange(max(i - 1, 0), min(i + 2, n)) for i in range(n)], 2 * n)
 
 
 def test_walk_back_passes_frames_above_the_level_and_stops_after_patience_below():
     back = np.array([0.9, 0.8, 0.2, 0.7, 0.6, 0.1, 0.1, 0.1, 0.1, 0.1, 0.9])
     assert walk_back(back, 0.5, patience=1) == 2
-    assert walk_back(back, 0.5, patience=2) == 5         # one frame below is noise
-    assert walk_back(back, 0.5, patience=5) == 5         # the far 0.9 is after 5 below: not reached
+    assert walk_back(back, 0.5, patience=2) == 5  # one frame below is noise
+    assert walk_back(back, 0.5, patience=5) == 5  # the far 0.9 is after 5 below: not reached
     assert walk_back(back, 0.95, patience=2) == 0
     assert walk_back(np.zeros(0), 0.5) == 0
 
 
 def test_similar_past_reaches_through_a_slow_decay_but_not_a_revisit_beyond_it():
     rng = np.random.default_rng(0)
-    row = rng.normal(0.2, 0.03, size=400)               # unrelated places
-    row[10] = 0.8                                        # a revisit, long ago
-    recent = np.arange(399, 299, -1)                     # the segment's frames, newest first
-    row[recent[:25]] = np.linspace(0.9, 0.35, 25)        # the recent past fades over 25 frames
+    row = rng.normal(0.2, 0.03, size=400)  # unrelated places
+    row[10] = 0.8  # a revisit, long ago
+    recent = np.arange(399, 299, -1)  # the segment's frames, newest first
+    row[recent[:25]] = np.linspace(0.9, 0.35, 25)  # the recent past fades over 25 frames
     reach = similar_past(row, recent)
-    assert 25 <= reach <= 35          # the whole fade, and at most a few unrelated frames after it
+    assert 25 <= reach <= 35  # the whole fade, and at most a few unrelated frames after it
     # a frame whose previous frames are already unlike it excludes nothing
     row[recent[:25]] = 0.2
     assert similar_past(row, recent) <= 2
@@ -72,14 +72,16 @@ def test_a_slow_robot_closes_no_loop_with_its_recent_past_and_needs_no_frame_cou
     truth = revisit_truth(len(first))
     by_count = drive(first, second, exclude_last=5, gates=LoopGates(similar_past=False))
     default = drive(first, second)
-    recall = {name: evaluate_decisions(d.decisions, truth, math.inf, "margin")["metrics"]["recall_at_100_precision"]
-              for name, d in (("count", by_count), ("default", default))}
+    recall = {
+        name: evaluate_decisions(d.decisions, truth, math.inf, "margin")["metrics"]["recall_at_100_precision"]
+        for name, d in (("count", by_count), ("default", default))
+    }
     assert recall["default"] >= 0.9 > 0.8 >= recall["count"]
     # the first pass's best score is below the revisits' median: no first-pass closure survives
-    first_pass = max(d.score for d in default.decisions[:len(first)] if math.isfinite(d.score))
-    revisits = np.median([d.score for d in default.decisions[len(first):] if math.isfinite(d.score)])
+    first_pass = max(d.score for d in default.decisions[: len(first)] if math.isfinite(d.score))
+    revisits = np.median([d.score for d in default.decisions[len(first) :] if math.isfinite(d.score)])
     assert first_pass < revisits
-    assert np.median(default.excluded_back[:len(first)]) >= 20
+    assert np.median(default.excluded_back[: len(first)]) >= 20
 
 
 def test_seams_lay_each_segment_after_its_own_padding():
@@ -105,8 +107,9 @@ def test_no_sequence_spans_the_start_of_a_new_pass():
     earlier = LoopClosureDetector(StoredVectors(64), rule="margin", threshold=math.inf, sequence_length=10)
     for i, vector in enumerate(first):
         earlier.process_vector(vector, name=f"frame_{i}")
-    later = LoopClosureDetector(StoredVectors(64), earlier.database, rule="margin", threshold=math.inf,
-                                sequence_length=10)
+    later = LoopClosureDetector(
+        StoredVectors(64), earlier.database, rule="margin", threshold=math.inf, sequence_length=10
+    )
     for i, vector in enumerate(second):
         later.process_vector(vector, name=f"frame_{80 + i}")
     assert [(d.match, d.score) for d in later.decisions] == [(d.match, d.score) for d in one_run.decisions[80:]]
@@ -129,13 +132,15 @@ def test_a_resumed_run_replays_its_segments(tmp_path, stop):
     first, second = slow_route(n=80)
     whole = drive(first, second)
     frames = np.concatenate([first, second])
-    detector = LoopClosureDetector(StoredVectors(64), tmp_path / "map.db", rule="margin", threshold=math.inf,
-                                   sequence_length=10)
+    detector = LoopClosureDetector(
+        StoredVectors(64), tmp_path / "map.db", rule="margin", threshold=math.inf, sequence_length=10
+    )
     with detector:
         for i in range(stop):
             detector.process_vector(frames[i], name=f"frame_{i}", new_segment=i == 80)
-    with LoopClosureDetector(StoredVectors(64), tmp_path / "map.db", rule="margin", threshold=math.inf,
-                             sequence_length=10) as resumed:
+    with LoopClosureDetector(
+        StoredVectors(64), tmp_path / "map.db", rule="margin", threshold=math.inf, sequence_length=10
+    ) as resumed:
         resumed.resume(stop)
         for i in range(stop, len(frames)):
             resumed.process_vector(frames[i], name=f"frame_{i}", new_segment=i == 80)

@@ -38,24 +38,35 @@ def test_the_guides_robot_node_loses_no_closure_when_killed_and_restarted(tmp_pa
     robot_node = robot_node_from_the_guide()
     first, second = slow_route(n=80)
     calibration = calibrate_decisions(drive(first, second).decisions, revisit_truth(80), drive(first, second), 1.0)
-    calibration.fingerprint = VectorFrames(64).fingerprint()   # the same vectors, fed as frames
+    calibration.fingerprint = VectorFrames(64).fingerprint()  # the same vectors, fed as frames
     calibration.method = VectorFrames.name
     save_calibration(calibration, tmp_path / "cal.yaml")
     other_first, other_second = slow_route(n=80, seed=3)
-    frames = [((v + 1) / 2).reshape(1, 64, 1).repeat(3, axis=2).astype(np.float32) for v in
-              np.concatenate([other_first, other_second])]
+    frames = [
+        ((v + 1) / 2).reshape(1, 64, 1).repeat(3, axis=2).astype(np.float32)
+        for v in np.concatenate([other_first, other_second])
+    ]
     # the frame's 'pixels' are its vector: the detector resizes nothing at (1, 64) and reads no gate
     monkeypatch.setattr("fdnet.decisions.loop_closure.frame_signals", lambda images: None)
-    monkeypatch.setattr(VectorFrames, "describe",
-                        lambda self, images: 2 * np.asarray(images, np.float32)[..., 0].reshape(len(images), -1) - 1)
+    monkeypatch.setattr(
+        VectorFrames,
+        "describe",
+        lambda self, images: 2 * np.asarray(images, np.float32)[..., 0].reshape(len(images), -1) - 1,
+    )
 
     def read(path):
         return [json.loads(line) for line in Path(path).read_text().splitlines()]
 
     whole = tmp_path / "whole"
     whole.mkdir()
-    robot_node(frames, VectorFrames(64), tmp_path / "cal.yaml", "run1", map_path=whole / "map.db",
-               events_path=whole / "closures.jsonl")
+    robot_node(
+        frames,
+        VectorFrames(64),
+        tmp_path / "cal.yaml",
+        "run1",
+        map_path=whole / "map.db",
+        events_path=whole / "closures.jsonl",
+    )
     expected = read(whole / "closures.jsonl")
     assert len(expected) > 10 and all(0.0 < e["p_correct"] < 1.0 for e in expected)
 
@@ -63,13 +74,25 @@ def test_the_guides_robot_node_loses_no_closure_when_killed_and_restarted(tmp_pa
     killed = tmp_path / "killed"
     killed.mkdir()
     stop = expected[5]["query_index"] + 1
-    robot_node(frames[:stop], VectorFrames(64), tmp_path / "cal.yaml", "run1", map_path=killed / "map.db",
-               events_path=killed / "closures.jsonl")
+    robot_node(
+        frames[:stop],
+        VectorFrames(64),
+        tmp_path / "cal.yaml",
+        "run1",
+        map_path=killed / "map.db",
+        events_path=killed / "closures.jsonl",
+    )
     lines = (killed / "closures.jsonl").read_text().splitlines(keepends=True)
     assert len(lines) == 6
-    (killed / "closures.jsonl").write_text("".join(lines[:5]) + lines[5][:20])   # and tore the last line
-    robot_node(frames, VectorFrames(64), tmp_path / "cal.yaml", "run1", map_path=killed / "map.db",
-               events_path=killed / "closures.jsonl")
+    (killed / "closures.jsonl").write_text("".join(lines[:5]) + lines[5][:20])  # and tore the last line
+    robot_node(
+        frames,
+        VectorFrames(64),
+        tmp_path / "cal.yaml",
+        "run1",
+        map_path=killed / "map.db",
+        events_path=killed / "closures.jsonl",
+    )
     text = (killed / "closures.jsonl").read_text()
     complete = [json.loads(line) for line in text.splitlines() if line.endswith("}")]
     assert [e["query"] for e in complete] == [e["query"] for e in expected]

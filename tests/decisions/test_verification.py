@@ -50,10 +50,12 @@ def save(path, image: np.ndarray):
 def scene(tmp_path):
     """query.png, its warped copy and two unrelated images, as files."""
     query = textured(1)
-    return {"query": save(tmp_path / "query.png", query),
-            "warped": save(tmp_path / "warped.png", warped(query)),
-            "other": save(tmp_path / "other.png", textured(2)),
-            "other2": save(tmp_path / "other2.png", textured(3))}
+    return {
+        "query": save(tmp_path / "query.png", query),
+        "warped": save(tmp_path / "warped.png", warped(query)),
+        "other": save(tmp_path / "other.png", textured(2)),
+        "other2": save(tmp_path / "other2.png", textured(3)),
+    }
 
 
 @pytest.mark.parametrize("features", FEATURES)
@@ -75,8 +77,9 @@ def test_default_settings_accept_the_warped_copy_and_reject_the_unrelated_image(
 def test_arrays_and_paths_give_the_same_inliers(scene):
     from_paths = Verifier().verify(scene["query"], [scene["warped"]])
     from_arrays = Verifier().verify(np.asarray(Image.open(scene["query"])), [np.asarray(Image.open(scene["warped"]))])
-    float_arrays = Verifier().verify(np.asarray(Image.open(scene["query"])) / 255.0,
-                                     [np.asarray(Image.open(scene["warped"])) / 255.0])
+    float_arrays = Verifier().verify(
+        np.asarray(Image.open(scene["query"])) / 255.0, [np.asarray(Image.open(scene["warped"])) / 255.0]
+    )
     assert from_paths[0] == from_arrays[0] == float_arrays[0]
 
 
@@ -134,8 +137,13 @@ def test_verify_candidates_reranks_or_only_scores(scene):
 
 def test_verify_candidates_only_top_k_and_skips_missing_candidates(scene):
     references = [scene["other"], scene["warped"], scene["other2"]]
-    result = verify_candidates([scene["query"]], references, np.array([[-1, 1, 0]]), np.array([[0.0, 0.9, 0.8]]),
-                               VerificationSettings(top_k=2, rerank=True))
+    result = verify_candidates(
+        [scene["query"]],
+        references,
+        np.array([[-1, 1, 0]]),
+        np.array([[0.0, 0.9, 0.8]]),
+        VerificationSettings(top_k=2, rerank=True),
+    )
     assert result.inliers.shape == (1, 2)
     assert result.retrieved[0, 0] == 1 and result.retrieved[0, 1] == -1  # the missing candidate goes last
     assert result.retrieved[0, 2] == 0  # beyond top_k: untouched
@@ -150,17 +158,20 @@ def test_verify_candidates_stops_on_thumbnails_before_describing(tmp_path, scene
     assert verifier.stats["images_described"] == 0
 
 
-@pytest.mark.parametrize("overrides, message", [
-    ({"features": "surf"}, "features='surf': unknown local features; choose one of sift, orb, akaze"),
-    ({"model": "affine"}, "model='affine': unknown geometric model"),
-    ({"estimator": "lmeds"}, "estimator='lmeds': unknown robust estimator"),
-    ({"ratio": "1.5"}, r"ratio=1.5: must be in \(0, 1\]"),
-    ({"top_k": "0"}, "top_k=0: must be a whole number >= 1"),
-    ({"max_side": "50"}, "min_side=80: is larger than max_side=50"),
-    ({"threshold": "-1"}, r"threshold=-1(\.0)?: must be a positive number of pixels"),
-    ({"rerank": "maybe"}, "rerank='maybe': must be true or false"),
-    ({"colour": "red"}, "verification setting 'colour' is unknown; valid: features"),
-])
+@pytest.mark.parametrize(
+    "overrides, message",
+    [
+        ({"features": "surf"}, "features='surf': unknown local features; choose one of sift, orb, akaze"),
+        ({"model": "affine"}, "model='affine': unknown geometric model"),
+        ({"estimator": "lmeds"}, "estimator='lmeds': unknown robust estimator"),
+        ({"ratio": "1.5"}, r"ratio=1.5: must be in \(0, 1\]"),
+        ({"top_k": "0"}, "top_k=0: must be a whole number >= 1"),
+        ({"max_side": "50"}, "min_side=80: is larger than max_side=50"),
+        ({"threshold": "-1"}, r"threshold=-1(\.0)?: must be a positive number of pixels"),
+        ({"rerank": "maybe"}, "rerank='maybe': must be true or false"),
+        ({"colour": "red"}, "verification setting 'colour' is unknown; valid: features"),
+    ],
+)
 def test_bad_settings_are_config_errors(overrides, message):
     with pytest.raises(ConfigError, match=message):
         settings_from_overrides(overrides)
@@ -183,17 +194,26 @@ def test_verified_rule_scores_by_inliers_and_gates_after_plus(scene):
     references = [scene["other"], scene["warped"], scene["query"]]
     # query 0: best candidate is the unrelated image, its warped copy second;
     # query 1 (unrelated to every reference): best candidate the warped copy
-    candidates = Candidates(retrieved=np.array([[0, 1, 2], [1, 0, 2]]), scores=np.array([[0.9, 0.8, 0.1],
-                                                                                         [0.7, 0.6, 0.5]]),
-                            query_paths=queries, reference_paths=references)
+    candidates = Candidates(
+        retrieved=np.array([[0, 1, 2], [1, 0, 2]]),
+        scores=np.array([[0.9, 0.8, 0.1], [0.7, 0.6, 0.5]]),
+        query_paths=queries,
+        reference_paths=references,
+    )
     scored = decide(parse_acceptance("verified", ["top_k=2"]), candidates)
     np.testing.assert_array_equal(scored.match, [0, 1])  # descriptor order kept
     assert scored.score[0] < 15 and scored.score[1] < 15
     reranked = decide(parse_acceptance("verified", ["top_k=2", "rerank=true"]), candidates)
     assert reranked.match[0] == 1 and reranked.score[0] >= 60
-    gated = decide(parse_acceptance("raw+verified"), Candidates(
-        retrieved=np.array([[1, 0], [1, 0]]), scores=np.array([[0.9, 0.1], [0.7, 0.6]]),
-        query_paths=queries, reference_paths=references))
+    gated = decide(
+        parse_acceptance("raw+verified"),
+        Candidates(
+            retrieved=np.array([[1, 0], [1, 0]]),
+            scores=np.array([[0.9, 0.1], [0.7, 0.6]]),
+            query_paths=queries,
+            reference_paths=references,
+        ),
+    )
     assert gated.score[0] == 0.9 and gated.score[1] == -np.inf
 
 
@@ -218,8 +238,20 @@ def textured_route(tmp_path):
 
 
 def _evaluate(root, *extra):
-    return ["evaluate", "--data", str(root), "--reference", "map", "--query", "moved", "--method", "hog",
-            "--workers", "0", *extra]
+    return [
+        "evaluate",
+        "--data",
+        str(root),
+        "--reference",
+        "map",
+        "--query",
+        "moved",
+        "--method",
+        "hog",
+        "--workers",
+        "0",
+        *extra,
+    ]
 
 
 def test_cli_evaluate_with_verified_rules(textured_route, tmp_path, capsys):
@@ -228,8 +260,20 @@ def test_cli_evaluate_with_verified_rules(textured_route, tmp_path, capsys):
     from fdnet.cli import main
 
     out = tmp_path / "results.json"
-    assert main(_evaluate(textured_route, "--accept", "verified,margin+verified", "--accept-set", "margin:radius=0",
-                          "--json", str(out))) == 0
+    assert (
+        main(
+            _evaluate(
+                textured_route,
+                "--accept",
+                "verified,margin+verified",
+                "--accept-set",
+                "margin:radius=0",
+                "--json",
+                str(out),
+            )
+        )
+        == 0
+    )
     printed = capsys.readouterr().out
     assert "verified" in printed and "margin+verified" in printed
     result = json.loads(out.read_text())["results"][0]
@@ -252,8 +296,22 @@ def test_cli_reranking_by_inliers(textured_route, tmp_path, capsys):
     from fdnet.cli import main
 
     out = tmp_path / "results.json"
-    assert main(_evaluate(textured_route, "--accept", "verified", "--accept-set", "verified:rerank=true",
-                          "--accept-set", "verified:features=orb", "--json", str(out))) == 0
+    assert (
+        main(
+            _evaluate(
+                textured_route,
+                "--accept",
+                "verified",
+                "--accept-set",
+                "verified:rerank=true",
+                "--accept-set",
+                "verified:features=orb",
+                "--json",
+                str(out),
+            )
+        )
+        == 0
+    )
     result = json.loads(out.read_text())["results"][0]
     assert result["acceptance_settings"]["verified"]["rerank"] is True
     assert result["acceptance_settings"]["verified"]["features"] == "orb"
@@ -261,12 +319,15 @@ def test_cli_reranking_by_inliers(textured_route, tmp_path, capsys):
     assert max(result["pr_curve"]["recall"]) >= 5 / 6 - 1e-6
 
 
-@pytest.mark.parametrize("setting, message", [
-    ("verified:features=surf", "verification setting features='surf': unknown local features"),
-    ("verified:ratio=2", r"verification setting ratio=2: must be in (0, 1]"),
-    ("verified:min_inliers=-3", "verification setting min_inliers=-3: must be a whole number >= 0"),
-    ("verified:colour=red", "no setting 'colour' in rule verified"),
-])
+@pytest.mark.parametrize(
+    "setting, message",
+    [
+        ("verified:features=surf", "verification setting features='surf': unknown local features"),
+        ("verified:ratio=2", r"verification setting ratio=2: must be in (0, 1]"),
+        ("verified:min_inliers=-3", "verification setting min_inliers=-3: must be a whole number >= 0"),
+        ("verified:colour=red", "no setting 'colour' in rule verified"),
+    ],
+)
 def test_cli_bad_verification_settings(textured_route, capsys, setting, message):
     from fdnet.cli import main
 
@@ -289,8 +350,21 @@ def test_cli_thumbnails_are_refused_before_describing(tmp_path, capsys, monkeypa
         (root / condition).mkdir(parents=True)
         for i in range(3):
             save(root / condition / f"images-{i:05d}.png", textured(i, 32, 64))
-    argv = ["evaluate", "--data", str(root), "--reference", "summer", "--query", "winter", "--method", "hog",
-            "--accept", "verified", "--workers", "0"]
+    argv = [
+        "evaluate",
+        "--data",
+        str(root),
+        "--reference",
+        "summer",
+        "--query",
+        "winter",
+        "--method",
+        "hog",
+        "--accept",
+        "verified",
+        "--workers",
+        "0",
+    ]
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert "\nfdnet evaluate: error: " in err and "Traceback" not in err

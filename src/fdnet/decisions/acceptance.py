@@ -127,8 +127,10 @@ class Candidates:
         if retrieved.ndim == 1 and scores.ndim == 1:  # one candidate per query
             retrieved, scores = retrieved[:, None], scores[:, None]
         if retrieved.ndim != 2 or retrieved.shape != scores.shape:
-            raise DataError(f"candidates: retrieved indices {retrieved.shape} and scores {scores.shape} must be "
-                            f"two (queries x k) arrays of one shape")
+            raise DataError(
+                f"candidates: retrieved indices {retrieved.shape} and scores {scores.shape} must be "
+                f"two (queries x k) arrays of one shape"
+            )
         if retrieved.shape[1] < 1:
             raise DataError("candidates: every query needs at least one candidate (k >= 1)")
         if not np.issubdtype(retrieved.dtype, np.integer):
@@ -235,8 +237,10 @@ def get_rule(name: str) -> Rule:
     try:
         return _RULES[name]
     except KeyError as exc:
-        raise ConfigError(f"unknown acceptance rule {name!r}; choose from {', '.join(rule_names())} "
-                          f"(combine a score with gates as A+B)") from exc
+        raise ConfigError(
+            f"unknown acceptance rule {name!r}; choose from {', '.join(rule_names())} "
+            f"(combine a score with gates as A+B)"
+        ) from exc
 
 
 # ---------------------------------------------------------------------------- parsing
@@ -277,12 +281,19 @@ class AcceptanceSpec:
         a rule's ``needs``, or the references' positions for ``radius_m`` / times for ``radius_s``."""
         for name, values in self.parts:
             if values.get("radius_m") is not None and "reference_positions" not in available:
-                raise ConfigError(f"--accept-set {name}:radius_m: {where} has no positions of the references (metres); "
-                                  f"use radius (frames) here")
-            if values.get("radius_m") is None and values.get("radius_s") is not None \
-                    and "reference_times" not in available:
-                raise ConfigError(f"--accept-set {name}:radius_s: {where} has no timestamps of the references "
-                                  f"(seconds); use radius (frames) here")
+                raise ConfigError(
+                    f"--accept-set {name}:radius_m: {where} has no positions of the references (metres); "
+                    f"use radius (frames) here"
+                )
+            if (
+                values.get("radius_m") is None
+                and values.get("radius_s") is not None
+                and "reference_times" not in available
+            ):
+                raise ConfigError(
+                    f"--accept-set {name}:radius_s: {where} has no timestamps of the references "
+                    f"(seconds); use radius (frames) here"
+                )
             if "images" in get_rule(name).needs and "images" not in available:
                 raise ConfigError(f"acceptance rule {name!r} looks at the images, but {where} has no image paths")
 
@@ -329,8 +340,9 @@ def _split_settings(items: Sequence[str] | Mapping[str, object] | None) -> list[
     return out
 
 
-def parse_acceptance_list(text: str | Sequence[str], settings: Sequence[str] | Mapping[str, object] | None = None
-                          ) -> list[AcceptanceSpec]:
+def parse_acceptance_list(
+    text: str | Sequence[str], settings: Sequence[str] | Mapping[str, object] | None = None
+) -> list[AcceptanceSpec]:
     """``"raw,margin+floor"`` (or a list of expressions) and ``--accept-set`` items -> one
     :class:`AcceptanceSpec` per expression. A setting ``RULE:KEY=VALUE`` goes to that rule, a
     bare ``KEY=VALUE`` to every listed rule that has KEY; a setting no listed rule has, or a
@@ -345,12 +357,16 @@ def parse_acceptance_list(text: str | Sequence[str], settings: Sequence[str] | M
             raise ConfigError(f"--accept {expr!r}: empty rule name around '+'")
         rules = [get_rule(n) for n in names]
         if rules[0].score is None:
-            raise ConfigError(f"--accept {expr!r}: {names[0]!r} is a gate and gives no score; put a score rule "
-                              f"first, e.g. margin+{names[0]}")
+            raise ConfigError(
+                f"--accept {expr!r}: {names[0]!r} is a gate and gives no score; put a score rule "
+                f"first, e.g. margin+{names[0]}"
+            )
         for n, r in zip(names[1:], rules[1:]):
             if r.gate is None:
-                raise ConfigError(f"--accept {expr!r}: {n!r} gives a score, not a gate; after '+' only gates "
-                                  f"(rules that pass or reject a match) can follow")
+                raise ConfigError(
+                    f"--accept {expr!r}: {n!r} gives a score, not a gate; after '+' only gates "
+                    f"(rules that pass or reject a match) can follow"
+                )
         if len(set(names)) != len(names):
             raise ConfigError(f"--accept {expr!r}: a rule appears twice")
         names_per_expr.append(names)
@@ -358,13 +374,17 @@ def parse_acceptance_list(text: str | Sequence[str], settings: Sequence[str] | M
     overrides = _split_settings(settings)
     for target, key, _ in overrides:
         if target is not None and target not in listed:
-            raise ConfigError(f"--accept-set {target}:{key}: rule {target!r} is not among the rules asked for "
-                              f"({', '.join(sorted(listed))})")
+            raise ConfigError(
+                f"--accept-set {target}:{key}: rule {target!r} is not among the rules asked for "
+                f"({', '.join(sorted(listed))})"
+            )
         owners = [target] if target is not None else sorted(listed)
         if not any(key in get_rule(n).defaults for n in owners):
             known = sorted({k for n in owners for k in get_rule(n).defaults})
-            raise ConfigError(f"--accept-set {key}: no setting {key!r} in rule {' or '.join(owners)} "
-                              f"(settings: {', '.join(known) or 'none'})")
+            raise ConfigError(
+                f"--accept-set {key}: no setting {key!r} in rule {' or '.join(owners)} "
+                f"(settings: {', '.join(known) or 'none'})"
+            )
     specs = []
     for names in names_per_expr:
         parts = []
@@ -394,8 +414,10 @@ def decide(spec: AcceptanceSpec | str, candidates: Candidates) -> Decision:
     if isinstance(spec, str):
         spec = parse_acceptance(spec)
     if "images" in spec.needs and (candidates.query_paths is None or candidates.reference_paths is None):
-        raise ConfigError(f"acceptance rule {spec.name!r} looks at the images, but these candidates come without "
-                          f"image paths (e.g. a precomputed similarity matrix)")
+        raise ConfigError(
+            f"acceptance rule {spec.name!r} looks at the images, but these candidates come without "
+            f"image paths (e.g. a precomputed similarity matrix)"
+        )
     (first, first_settings), *gates = spec.parts
     out = get_rule(first).score(candidates, **first_settings)
     if isinstance(out, tuple):
@@ -405,8 +427,10 @@ def decide(spec: AcceptanceSpec | str, candidates: Candidates) -> Decision:
     score = np.asarray(score, dtype=np.float64).copy()
     match = np.asarray(match, dtype=np.int64)
     if score.shape != (candidates.num_queries,) or match.shape != (candidates.num_queries,):
-        raise DataError(f"acceptance rule {first!r} returned {score.shape} scores and {match.shape} matches for "
-                        f"{candidates.num_queries} queries")
+        raise DataError(
+            f"acceptance rule {first!r} returned {score.shape} scores and {match.shape} matches for "
+            f"{candidates.num_queries} queries"
+        )
     if np.isnan(score).any():
         raise DataError(f"acceptance rule {first!r} gave NaN scores")
     score[candidates.retrieved[:, 0] < 0] = -np.inf  # a query with no candidate at all accepts nothing
@@ -467,9 +491,11 @@ def _ratio(candidates: Candidates, *, radius, radius_s=None, radius_m=None, ceil
     # a little slack for float32 round-off of unit-vector dot products (1.0000001)
     if (best > top + 1e-5 * max(1.0, abs(top))).any():
         q = int(np.argmax(best))
-        raise DataError(f"ratio: similarity {best[q]:.6g} (query {q}) is above the declared ceiling {top:g}, so "
-                        f"'ceiling - similarity' is no distance; set --accept-set ratio:ceiling=VALUE to the "
-                        f"similarity's largest possible value")
+        raise DataError(
+            f"ratio: similarity {best[q]:.6g} (query {q}) is above the declared ceiling {top:g}, so "
+            f"'ceiling - similarity' is no distance; set --accept-set ratio:ceiling=VALUE to the "
+            f"similarity's largest possible value"
+        )
     d_best = np.maximum(top - best, 0.0)
     d_out = np.maximum(top - _outside_scores(candidates, radius, radius_s, radius_m), 0.0)
     # d_out >= d_best always (the outside score is at most the best); both 0 = indistinguishable
@@ -487,8 +513,13 @@ def _number(settings, key, rule, minimum=0.0, integer=False, optional=False):
     value = settings.get(key)
     if value is None and optional:
         return
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or (integer and not isinstance(value, int)) \
-            or not math.isfinite(value) or value < minimum:
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, (int, float))
+        or (integer and not isinstance(value, int))
+        or not math.isfinite(value)
+        or value < minimum
+    ):
         kind = "an integer" if integer else "a number"
         raise ConfigError(f"--accept-set {rule}:{key}={value!r}: must be {kind} >= {minimum:g}")
 
@@ -501,6 +532,7 @@ def _validate_neighbourhood(rule: str):
         _number(settings, "depth", rule, minimum=2, integer=True, optional=True)
         if "ceiling" in settings:
             _number(settings, "ceiling", rule, minimum=-math.inf, optional=True)
+
     return validate
 
 
@@ -513,27 +545,44 @@ def _floor_gate(candidates: Candidates, match, *, min=None, **_) -> np.ndarray:
 
 def _validate_floor(settings):
     if settings.get("min") is None:
-        raise ConfigError("rule floor needs its threshold: --accept-set floor:min=VALUE (the lowest raw similarity "
-                          "a match may have)")
+        raise ConfigError(
+            "rule floor needs its threshold: --accept-set floor:min=VALUE (the lowest raw similarity "
+            "a match may have)"
+        )
     _number(settings, "min", "floor", minimum=-math.inf)
 
 
 _NEIGHBOURHOOD = {"radius": DEFAULT_RADIUS, "radius_s": None, "radius_m": None, "depth": None}
 
-register_rule(Rule(
-    name="raw", description="the best candidate's similarity", score=_raw))
-register_rule(Rule(
-    name="margin",
-    description="best similarity minus the best similarity outside the best candidate's neighbourhood "
-                "(index distance <= radius, or radius_s seconds / radius_m metres)",
-    defaults=dict(_NEIGHBOURHOOD), score=_margin, depth=_neighbourhood_depth,
-    validate=_validate_neighbourhood("margin")))
-register_rule(Rule(
-    name="ratio",
-    description="1 - d_best / d_outside with d = ceiling - similarity (Lowe's ratio, higher = more confident); "
-                "outside = as for margin",
-    defaults={**_NEIGHBOURHOOD, "ceiling": None}, score=_ratio, depth=_neighbourhood_depth,
-    validate=_validate_neighbourhood("ratio")))
-register_rule(Rule(
-    name="floor", description="gate: the match's raw similarity is at least min",
-    defaults={"min": None}, gate=_floor_gate, validate=_validate_floor))
+register_rule(Rule(name="raw", description="the best candidate's similarity", score=_raw))
+register_rule(
+    Rule(
+        name="margin",
+        description="best similarity minus the best similarity outside the best candidate's neighbourhood "
+        "(index distance <= radius, or radius_s seconds / radius_m metres)",
+        defaults=dict(_NEIGHBOURHOOD),
+        score=_margin,
+        depth=_neighbourhood_depth,
+        validate=_validate_neighbourhood("margin"),
+    )
+)
+register_rule(
+    Rule(
+        name="ratio",
+        description="1 - d_best / d_outside with d = ceiling - similarity (Lowe's ratio, higher = more confident); "
+        "outside = as for margin",
+        defaults={**_NEIGHBOURHOOD, "ceiling": None},
+        score=_ratio,
+        depth=_neighbourhood_depth,
+        validate=_validate_neighbourhood("ratio"),
+    )
+)
+register_rule(
+    Rule(
+        name="floor",
+        description="gate: the match's raw similarity is at least min",
+        defaults={"min": None},
+        gate=_floor_gate,
+        validate=_validate_floor,
+    )
+)

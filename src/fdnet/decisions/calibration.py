@@ -48,8 +48,12 @@ FORMAT_VERSION = 1
 
 def check_target(target: float, what: str = "--target-precision") -> float:
     """A target precision in (0, 1], else ConfigError."""
-    if isinstance(target, bool) or not isinstance(target, (int, float)) or not math.isfinite(target) \
-            or not 0.0 < float(target) <= 1.0:
+    if (
+        isinstance(target, bool)
+        or not isinstance(target, (int, float))
+        or not math.isfinite(target)
+        or not 0.0 < float(target) <= 1.0
+    ):
         raise ConfigError(f"{what} {target!r}: a precision must be in (0, 1] (e.g. 1.0, 0.99, 0.95)")
     return float(target)
 
@@ -114,23 +118,36 @@ class Calibration:
     @property
     def spec(self) -> AcceptanceSpec:
         """The rule expression with its stored settings."""
-        items = [f"{name}:{key}={yaml_text(value)}" for name, values in self.settings.items()
-                 for key, value in values.items()]
+        items = [
+            f"{name}:{key}={yaml_text(value)}"
+            for name, values in self.settings.items()
+            for key, value in values.items()
+        ]
         return parse_acceptance(self.rule, items)
 
-    def check(self, descriptor=None, method: str | None = None, fingerprint: str | None = None,
-              sequence_length: int | None = None, source: str = "calibration") -> None:
+    def check(
+        self,
+        descriptor=None,
+        method: str | None = None,
+        fingerprint: str | None = None,
+        sequence_length: int | None = None,
+        source: str = "calibration",
+    ) -> None:
         """Refuse to apply this calibration to another model or another sequence length."""
         if descriptor is not None:
             method, fingerprint = descriptor.name, descriptor.fingerprint()
         if fingerprint is not None and fingerprint != self.fingerprint:
-            raise ConfigError(f"{source}: calibrated for method {self.method!r} with descriptor fingerprint "
-                              f"{self.fingerprint[:12]}, but this is {method or 'a model'!s} with fingerprint "
-                              f"{fingerprint[:12]}: another model (or other weights or settings); calibrate this "
-                              f"one with `fdnet calibrate`")
+            raise ConfigError(
+                f"{source}: calibrated for method {self.method!r} with descriptor fingerprint "
+                f"{self.fingerprint[:12]}, but this is {method or 'a model'!s} with fingerprint "
+                f"{fingerprint[:12]}: another model (or other weights or settings); calibrate this "
+                f"one with `fdnet calibrate`"
+            )
         if sequence_length is not None and int(sequence_length) != int(self.sequence_length):
-            raise ConfigError(f"{source}: calibrated with --sequence-length {self.sequence_length}, used with "
-                              f"{sequence_length}: sequence scores and single-image scores need their own thresholds")
+            raise ConfigError(
+                f"{source}: calibrated with --sequence-length {self.sequence_length}, used with "
+                f"{sequence_length}: sequence scores and single-image scores need their own thresholds"
+            )
 
     def p_correct(self, scores) -> np.ndarray:
         """The fitted probability that a match with each score is right (NaN without a fit;
@@ -163,8 +180,10 @@ class Calibration:
         if not isinstance(data, dict) or data.get("format") != FORMAT:
             raise DataError(f"{source}: not an fdnet calibration (no 'format: {FORMAT}')")
         if data.get("version") != FORMAT_VERSION:
-            raise DataError(f"{source}: calibration format version {data.get('version')!r}; this fdnet reads "
-                            f"version {FORMAT_VERSION}")
+            raise DataError(
+                f"{source}: calibration format version {data.get('version')!r}; this fdnet reads "
+                f"version {FORMAT_VERSION}"
+            )
         names = [f for f in cls.__dataclass_fields__]
         required = ["rule", "settings", "threshold", "target_precision", "method", "fingerprint"]
         missing = [k for k in required if k not in data]
@@ -182,33 +201,42 @@ class Calibration:
         check_target(values["target_precision"], f"{source}: target_precision")
         if math.isnan(values["threshold"]) or values["threshold"] == -math.inf:
             # -inf would accept the queries a gate rejected (their score is -inf): never stored
-            raise DataError(f"{source}: threshold is {values['threshold']}; a threshold is a number or +inf "
-                            f"(accept nothing)")
+            raise DataError(
+                f"{source}: threshold is {values['threshold']}; a threshold is a number or +inf " f"(accept nothing)"
+            )
         for key in ("rule", "method", "fingerprint"):
             if not isinstance(values[key], str) or not values[key]:
                 raise DataError(f"{source}: {key} must be text, got {values[key]!r}")
-        if "sequence_length" in values and (isinstance(values["sequence_length"], bool)
-                                            or not isinstance(values["sequence_length"], int)
-                                            or values["sequence_length"] < 1):
-            raise DataError(f"{source}: sequence_length must be a whole number of frames, at least 1 (1 = single "
-                            f"images), got {values['sequence_length']!r}")
+        if "sequence_length" in values and (
+            isinstance(values["sequence_length"], bool)
+            or not isinstance(values["sequence_length"], int)
+            or values["sequence_length"] < 1
+        ):
+            raise DataError(
+                f"{source}: sequence_length must be a whole number of frames, at least 1 (1 = single "
+                f"images), got {values['sequence_length']!r}"
+            )
         for key in ("accepted", "num_queries"):
-            if key in values and (isinstance(values[key], bool) or not isinstance(values[key], int)
-                                  or values[key] < 0):
+            if key in values and (isinstance(values[key], bool) or not isinstance(values[key], int) or values[key] < 0):
                 raise DataError(f"{source}: {key} must be a whole number >= 0, got {values[key]!r}")
         for key in ("probability", "score_distribution"):
             value = values.get(key, {}) or {}
             if not isinstance(value, dict) or not all(
-                    isinstance(value.get(k, []), list) and all(_is_real(x) for x in value.get(k, []))
-                    for k in ("scores", "p_correct", "levels", "quantiles")):
-                raise DataError(f"{source}: {key} must map 'scores'/'p_correct' (or 'levels'/'quantiles') to lists "
-                                "of numbers")
+                isinstance(value.get(k, []), list) and all(_is_real(x) for x in value.get(k, []))
+                for k in ("scores", "p_correct", "levels", "quantiles")
+            ):
+                raise DataError(
+                    f"{source}: {key} must map 'scores'/'p_correct' (or 'levels'/'quantiles') to lists " "of numbers"
+                )
             values[key] = value
         fit = values.get("probability") or {}
-        if len(fit.get("scores", [])) != len(fit.get("p_correct", [])) \
-                or any(not 0.0 <= p <= 1.0 for p in fit.get("p_correct", [])):
-            raise DataError(f"{source}: probability: 'scores' and 'p_correct' must be lists of one length, "
-                            "probabilities in [0, 1]")
+        if len(fit.get("scores", [])) != len(fit.get("p_correct", [])) or any(
+            not 0.0 <= p <= 1.0 for p in fit.get("p_correct", [])
+        ):
+            raise DataError(
+                f"{source}: probability: 'scores' and 'p_correct' must be lists of one length, "
+                "probabilities in [0, 1]"
+            )
         if not isinstance(values.get("measured_on", {}), dict):
             raise DataError(f"{source}: measured_on must map names to values")
         notes = values.get("notes", [])
@@ -251,8 +279,11 @@ def score_distribution(scores: np.ndarray, below: float = math.inf) -> dict:
     scores = scores[np.isfinite(scores) & (scores < below)]
     if not len(scores):
         return {}
-    return {"levels": list(DISTRIBUTION_LEVELS),
-            "quantiles": [float(q) for q in np.quantile(scores, DISTRIBUTION_LEVELS)], "frames": int(len(scores))}
+    return {
+        "levels": list(DISTRIBUTION_LEVELS),
+        "quantiles": [float(q) for q in np.quantile(scores, DISTRIBUTION_LEVELS)],
+        "frames": int(len(scores)),
+    }
 
 
 #: a loop calibration for precision 1.0 also keeps the expected number of wrong closures among this
@@ -277,8 +308,14 @@ def tail_threshold(wrong_scores: np.ndarray, frames: int = EXTRAPOLATE_TO) -> di
     beta = float(np.mean(wrong[:k] - u))
     if beta <= 0:
         return None
-    return {"threshold": u + beta * math.log(frames * k / len(wrong)), "u": u, "beta": beta, "k": k,
-            "wrong": int(len(wrong)), "frames": int(frames)}
+    return {
+        "threshold": u + beta * math.log(frames * k / len(wrong)),
+        "u": u,
+        "beta": beta,
+        "k": k,
+        "wrong": int(len(wrong)),
+        "frames": int(frames),
+    }
 
 
 #: the upper levels of a stored distribution the drift check reads, and the z-score above which a
@@ -415,8 +452,10 @@ def load_calibration(path: str | Path) -> Calibration:
     if path.is_dir():
         path = path / CALIBRATION_FILE
         if not path.is_file():
-            raise DataError(f"{path.parent}: no {CALIBRATION_FILE} in this folder (run `fdnet calibrate ... "
-                            f"--store-in-run` or give the calibration file)")
+            raise DataError(
+                f"{path.parent}: no {CALIBRATION_FILE} in this folder (run `fdnet calibrate ... "
+                f"--store-in-run` or give the calibration file)"
+            )
     if not path.is_file():
         raise DataError(f"{path}: calibration file not found")
     try:
@@ -457,16 +496,23 @@ def candidate_specs(spec: AcceptanceSpec, choose: dict[str, Sequence] | None) ->
             raise ConfigError(f"--choose {key}: no values to choose from")
     out = []
     for combination in itertools.product(*choose.values()):
-        items = [f"{name}:{key}={yaml_text(value)}" for name, values in spec.parts for key, value in values.items()
-                 if key not in choose]
-        items += [f"{name}:{key}={yaml_text(value)}" for name, values in spec.parts
-                  for key, value in zip(choose, combination) if key in values]
+        items = [
+            f"{name}:{key}={yaml_text(value)}"
+            for name, values in spec.parts
+            for key, value in values.items()
+            if key not in choose
+        ]
+        items += [
+            f"{name}:{key}={yaml_text(value)}"
+            for name, values in spec.parts
+            for key, value in zip(choose, combination)
+            if key in values
+        ]
         out.append(parse_acceptance(spec.name, items))
     return out
 
 
-def apply_threshold(calibration: Calibration, scores: np.ndarray, correct: np.ndarray,
-                    has_match: np.ndarray) -> dict:
+def apply_threshold(calibration: Calibration, scores: np.ndarray, correct: np.ndarray, has_match: np.ndarray) -> dict:
     """Precision and recall a calibration's threshold reaches on another split's acceptance scores
     (``correct``: whether each accepted match is right): how well it transfers."""
     scores = np.asarray(scores, dtype=np.float64)
@@ -474,8 +520,12 @@ def apply_threshold(calibration: Calibration, scores: np.ndarray, correct: np.nd
     tp = int((accepted & np.asarray(correct, bool)).sum())
     n = int(accepted.sum())
     positives = int(np.count_nonzero(has_match))
-    return {"accepted": n, "true_positives": tp, "precision": tp / n if n else 1.0,
-            "recall": tp / positives if positives else math.nan}
+    return {
+        "accepted": n,
+        "true_positives": tp,
+        "precision": tp / n if n else 1.0,
+        "recall": tp / positives if positives else math.nan,
+    }
 
 
 def stored_calibration(database):

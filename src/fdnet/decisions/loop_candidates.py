@@ -136,8 +136,9 @@ class LoopCandidates:
     def _indexed_candidates(self, frame: FrameQuery, places, seams: Seams):
         v, t, count = frame.vector, frame.t, frame.count
         vectors = places.vectors.view()
-        previous = float(self.plan.similarity(v[None], vectors[count - 1:count])[0, 0]) \
-            if t > 0 and count > 0 else None
+        previous = (
+            float(self.plan.similarity(v[None], vectors[count - 1 : count])[0, 0]) if t > 0 and count > 0 else None
+        )
         back = self._similar_back(frame, places)
         searchable = self._searchable(frame, previous, back)
         mask = places.loop_column("informative").view(count)
@@ -159,9 +160,9 @@ class LoopCandidates:
         if not frame.informative:
             return (t - self._own_first[-1]) if self._own_first else 0
         if row is None:
-            recent = np.asarray(self.before[max(self.segment_first, t - RECENT_WINDOW):t], np.int64)[::-1]
+            recent = np.asarray(self.before[max(self.segment_first, t - RECENT_WINDOW) : t], np.int64)[::-1]
             return sampled_similar_past(self.plan.similarity, frame.vector, places.vectors.view(), recent)
-        return similar_past(row, np.asarray(self.before[self.segment_first:t], np.int64)[::-1])
+        return similar_past(row, np.asarray(self.before[self.segment_first : t], np.int64)[::-1])
 
     def _searchable(self, frame: FrameQuery, previous: float | None, back: int = 0) -> int:
         """How many places frame ``t`` may match (a prefix of the map): places from earlier
@@ -179,7 +180,7 @@ class LoopCandidates:
         self._own_first.append(first)
         length = self.plan.sequence_length
         if length > 1:
-            first = min(self._own_first[max(self.segment_first, t - length + 1):])
+            first = min(self._own_first[max(self.segment_first, t - length + 1) :])
             moved = first - (length - 1)
             first = max(moved, self.segment_first) if first >= self.segment_first else moved
         first = max(first, 0)

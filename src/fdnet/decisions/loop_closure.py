@@ -89,8 +89,10 @@ class LoopClosureDetector:
         if sequence_length is None:  # a calibration's own, else single images
             sequence_length = int(calibration.sequence_length) if calibration is not None else 1
         if descriptor.needs_fit:
-            raise ConfigError(f"method {descriptor.name!r} must be given what it learns from (--fit DIR, or dbow's "
-                              "--vocabulary) before it can describe frames online")
+            raise ConfigError(
+                f"method {descriptor.name!r} must be given what it learns from (--fit DIR, or dbow's "
+                "--vocabulary) before it can describe frames online"
+            )
         self.descriptor = descriptor
         self.settings = settings
         self.exclude_last = settings.exclude_last
@@ -109,9 +111,9 @@ class LoopClosureDetector:
         # frames decided but not yet stored (commit_every > 1): vectors, names, positions, metadata
         self._pending: list[tuple] = []
         self._calibration_source = source or "the calibration"
-        self.spec, self.threshold, self.calibration = decision_rule(descriptor, self.sequence_length, settings.rule,
-                                                                    settings.rule_settings, threshold, calibration,
-                                                                    source)
+        self.spec, self.threshold, self.calibration = decision_rule(
+            descriptor, self.sequence_length, settings.rule, settings.rule_settings, threshold, calibration, source
+        )
         self.gates = calibrated_gates(self.calibration, settings.gates, source)
         self._owns_database = not isinstance(database, PlaceDatabase)
         self.database = self._database(database, settings.method_options)
@@ -126,9 +128,16 @@ class LoopClosureDetector:
     def _start_traverse(self) -> None:
         # the search's state over this traverse: per frame, the places before it, its recent past,
         # its similarity row for sequences (:mod:`fdnet.decisions.loop_candidates`)
-        self.candidates = LoopCandidates(SearchPlan(self.descriptor.similarity, self.sequence_length,
-                                                    self._first_full, self.spec.depth, self.gates,
-                                                    self.exclude_last))
+        self.candidates = LoopCandidates(
+            SearchPlan(
+                self.descriptor.similarity,
+                self.sequence_length,
+                self._first_full,
+                self.spec.depth,
+                self.gates,
+                self.exclude_last,
+            )
+        )
         #: the rule scores under the threshold, checked against the calibration's
         self._drift = DriftCheck(self.calibration, self._calibration_source)
         self._consistency = ConsistencyGate(self.gates.consistency, self.gates.consistency_window)
@@ -144,9 +153,12 @@ class LoopClosureDetector:
         frames whose exclusion reached further back than exclude_last (a still robot),
         candidates the consistency gate held back (score at the threshold, matches not yet
         consistent)."""
-        return {"uninformative": self._gated["uninformative"], "still_frames": self._gated["still_frames"],
-                "still_exclusion": self.candidates.still_exclusions,
-                "held_by_consistency": self._gated["held_by_consistency"]}
+        return {
+            "uninformative": self._gated["uninformative"],
+            "still_frames": self._gated["still_frames"],
+            "still_exclusion": self.candidates.still_exclusions,
+            "held_by_consistency": self._gated["held_by_consistency"],
+        }
 
     @property
     def excluded_back(self) -> list[int]:
@@ -237,8 +249,14 @@ class LoopClosureDetector:
         with single_torch_thread(), self.descriptor.images_of(paths):
             return np.asarray(self.descriptor.describe(array[None]), dtype=np.float32)[0]
 
-    def process(self, image, timestamp: float | None = None, name: str | None = None,
-                position: tuple[float, float] | None = None, new_segment: bool = False) -> Closure | None:
+    def process(
+        self,
+        image,
+        timestamp: float | None = None,
+        name: str | None = None,
+        position: tuple[float, float] | None = None,
+        new_segment: bool = False,
+    ) -> Closure | None:
         """Describe the next frame, decide, add it to the database; the accepted closure or None.
         ``image``: a path or an (H, W, 3) RGB array (see :meth:`load`). ``name`` (default: the
         path of ``image``, else a name unique to this run) is the place's name in the database;
@@ -247,12 +265,25 @@ class LoopClosureDetector:
             name = place_name(image)
         array = self.load(image)
         vector = self._vector(image, array)
-        return self.process_vector(vector, timestamp=timestamp, name=name, position=position,
-                                   signals=frame_signals(array[None]), new_segment=new_segment)
+        return self.process_vector(
+            vector,
+            timestamp=timestamp,
+            name=name,
+            position=position,
+            signals=frame_signals(array[None]),
+            new_segment=new_segment,
+        )
 
-    def process_vector(self, vector: np.ndarray, timestamp: float | None = None, name: str | None = None,
-                       position: tuple[float, float] | None = None, signals: FrameSignals | None = None,
-                       new_segment: bool = False, _replay: dict | None = None) -> Closure | None:
+    def process_vector(
+        self,
+        vector: np.ndarray,
+        timestamp: float | None = None,
+        name: str | None = None,
+        position: tuple[float, float] | None = None,
+        signals: FrameSignals | None = None,
+        new_segment: bool = False,
+        _replay: dict | None = None,
+    ) -> Closure | None:
         """:meth:`process` for a frame already described by the detector's descriptor.
         ``signals``: the frame's :class:`~fdnet.decisions.loop_gates.FrameSignals` (from its
         pixels) for the uninformative-frame and still-robot gates; without them those gates
@@ -275,8 +306,11 @@ class LoopClosureDetector:
         new_segment = bool(new_segment) or gap or t == 0
         if new_segment:
             self.candidates.new_segment(t)
-        if self.candidates.indexed is None and self.search != "exact" \
-                and (self.search == "index" or count >= self.index_from):
+        if (
+            self.candidates.indexed is None
+            and self.search != "exact"
+            and (self.search == "index" or count >= self.index_from)
+        ):
             self.candidates.use_index(self.database.dim, self.settings.compressed_from)
         frame = FrameQuery(v, t, count, informative, still, timestamp, position)
         ids, scores, searchable = self.candidates.candidates(frame, self.map, self._seams)
@@ -292,21 +326,26 @@ class LoopClosureDetector:
         """The frame's vector as float32 and its place name, or a DataError saying what is wrong."""
         v = np.asarray(vector, dtype=np.float32).reshape(-1)
         if v.shape[0] != self.database.dim:
-            raise DataError(f"frame vector has {v.shape[0]} values, the {self.descriptor.name} places have "
-                            f"{self.database.dim}")
+            raise DataError(
+                f"frame vector has {v.shape[0]} values, the {self.descriptor.name} places have " f"{self.database.dim}"
+            )
         name = f"loop-closure-{self._session}/frame_{self.frames:06d}" if name is None else str(name)
         if not np.isfinite(v).all():
             raise DataError(f"{name}: its {self.descriptor.name} vector is not finite (NaN or inf)")
         if name in self.map and not self.allow_duplicates:
-            raise DataError(f"{self.database.path}: already holds a place named {name!r} (added in an earlier run?); "
-                            "give each frame a new name, or allow duplicates")
-        if timestamp is not None and (isinstance(timestamp, bool) or not isinstance(timestamp, (int, float))
-                                      or not math.isfinite(timestamp)):
+            raise DataError(
+                f"{self.database.path}: already holds a place named {name!r} (added in an earlier run?); "
+                "give each frame a new name, or allow duplicates"
+            )
+        if timestamp is not None and (
+            isinstance(timestamp, bool) or not isinstance(timestamp, (int, float)) or not math.isfinite(timestamp)
+        ):
             raise DataError(f"{name}: timestamp must be a finite number of seconds, got {timestamp!r}")
         return v, name
 
-    def _judge(self, frame: FrameQuery, name: str, ids: np.ndarray, scores: np.ndarray,
-               searchable: int) -> tuple[FrameDecision, Closure | None]:
+    def _judge(
+        self, frame: FrameQuery, name: str, ids: np.ndarray, scores: np.ndarray, searchable: int
+    ) -> tuple[FrameDecision, Closure | None]:
         """The gates, the rule and the consistency gate over the frame's candidates: its
         decision, and the closure when accepted."""
         t = frame.t
@@ -332,8 +371,9 @@ class LoopClosureDetector:
         accepted = bool(score >= self.threshold)
         if rule_score >= self.threshold and not accepted:
             self._gated["held_by_consistency"] += 1
-        decision = FrameDecision(t, match, score, accepted, int(searchable), best, best_similarity,
-                                 rule_score=rule_score)
+        decision = FrameDecision(
+            t, match, score, accepted, int(searchable), best, best_similarity, rule_score=rule_score
+        )
         if math.isfinite(rule_score) and rule_score < self.threshold:
             self._drift.add(rule_score)
         if not accepted:
@@ -341,9 +381,21 @@ class LoopClosureDetector:
         position = frame.position
         here = (None, None) if position is None else tuple(float(c) for c in list(position)[:2])
         there = (None, None) if self._positions is None else tuple(self._positions[match][:2])
-        closure = Closure(t, name, match, self.map.names[match], score, similarity, self.spec.name, self.threshold,
-                          frame.timestamp, None if self._times is None else float(self._times[match]),
-                          *here, *there, self._p_correct(score))
+        closure = Closure(
+            t,
+            name,
+            match,
+            self.map.names[match],
+            score,
+            similarity,
+            self.spec.name,
+            self.threshold,
+            frame.timestamp,
+            None if self._times is None else float(self._times[match]),
+            *here,
+            *there,
+            self._p_correct(score),
+        )
         return decision, closure
 
     def _p_correct(self, score: float) -> float | None:
@@ -358,23 +410,36 @@ class LoopClosureDetector:
         it vouches for, its acceptance score, that place's similarity)."""
         needs_images = "images" in self.spec.needs
         if needs_images and not Path(name).is_file():
-            raise ConfigError(f"rule {self.spec.name!r} verifies geometry on the images, but frame {name!r} is no "
-                              "image file; process frames by path (or give name=PATH)")
+            raise ConfigError(
+                f"rule {self.spec.name!r} verifies geometry on the images, but frame {name!r} is no "
+                "image file; process frames by path (or give name=PATH)"
+            )
         candidates = Candidates(
-            retrieved=np.asarray(ids, np.int64)[None], scores=np.asarray(scores, np.float64)[None],
+            retrieved=np.asarray(ids, np.int64)[None],
+            scores=np.asarray(scores, np.float64)[None],
             similarity_ceiling=float(self.descriptor.similarity_ceiling),
             reference_times=None if self._times is None else np.asarray(self._times[:searchable], np.float64),
             reference_positions=None if self._positions is None else np.asarray(self._positions[:searchable]),
             query_paths=[Path(name)] if needs_images else None,
             reference_paths=self.map.names if needs_images else None,
-            query_indices=np.array([self.frames]))
+            query_indices=np.array([self.frames]),
+        )
         decision = decide(self.spec, candidates)
         match = int(decision.match[0])
         similarity = float(np.asarray(scores)[np.flatnonzero(np.asarray(ids) == match)[0]])
         return match, float(decision.score[0]), similarity
 
-    def _add(self, v: np.ndarray, name: str, timestamp, position, informative: bool = True, still: bool = False,
-             new_segment: bool = False, store: bool = True) -> None:
+    def _add(
+        self,
+        v: np.ndarray,
+        name: str,
+        timestamp,
+        position,
+        informative: bool = True,
+        still: bool = False,
+        new_segment: bool = False,
+        store: bool = True,
+    ) -> None:
         metadata = {"loop_closure_frame": self.frames, "session": self._session}
         if new_segment:
             metadata["segment_start"] = True
@@ -427,9 +492,17 @@ class LoopClosureDetector:
         self._has_positions = all(p is not None for p in self.map.positions)
         self._start_traverse()
         for k in range(frames):
-            self.process_vector(vectors[k], timestamp=times[k], name=names[k], position=positions[k],
-                                _replay={"informative": bool(informative[k]), "still": bool(still[k]),
-                                         "segment_start": segment_start[k]})
+            self.process_vector(
+                vectors[k],
+                timestamp=times[k],
+                name=names[k],
+                position=positions[k],
+                _replay={
+                    "informative": bool(informative[k]),
+                    "still": bool(still[k]),
+                    "segment_start": segment_start[k],
+                },
+            )
         self._last_thumbnail = None if last_thumbnail is None else np.asarray(last_thumbnail, np.float32)
         return list(self.closures)
 
@@ -438,13 +511,19 @@ class LoopClosureDetector:
         if not self._pending:
             return
         vectors, names, positions, metadata = zip(*self._pending)
-        result = self.database.add(np.stack(vectors), list(names),
-                                   None if all(p is None for p in positions) else list(positions),
-                                   metadata=list(metadata), allow_duplicates=self.allow_duplicates)
+        result = self.database.add(
+            np.stack(vectors),
+            list(names),
+            None if all(p is None for p in positions) else list(positions),
+            metadata=list(metadata),
+            allow_duplicates=self.allow_duplicates,
+        )
         self._pending = []
         if result.added != len(names):
-            raise DataError(f"{self.database.path}: already holds place(s) named {', '.join(result.skipped[:3])} "
-                            "(added by another process?); they were not added again")
+            raise DataError(
+                f"{self.database.path}: already holds place(s) named {', '.join(result.skipped[:3])} "
+                "(added by another process?); they were not added again"
+            )
         if result.places != self.places:
             # Another process added places since we last looked: reload, so place indices stay
             # the database's (rare; the whole map is read again).

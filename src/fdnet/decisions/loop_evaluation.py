@@ -27,18 +27,24 @@ def _evaluable(decisions: Sequence[FrameDecision], ground_truth):
     from fdnet.data.groundtruth import GroundTruth
 
     if ground_truth.num_queries != len(decisions):
-        raise DataError(f"the ground truth has {ground_truth.num_queries} queries but the traverse has "
-                        f"{len(decisions)} frames")
+        raise DataError(
+            f"the ground truth has {ground_truth.num_queries} queries but the traverse has " f"{len(decisions)} frames"
+        )
     evaluated = [d for d in decisions if d.searchable > 0]
     if not evaluated:
         raise DataError("no frame had a place to search (exclude-last covers the whole traverse): nothing to evaluate")
     positives = [ground_truth.positives[d.query_index] for d in evaluated]
     positives = [p[p < d.searchable] for p, d in zip(positives, evaluated)]
-    truth = GroundTruth(positives, ground_truth.num_references,
-                        f"{ground_truth.description}; true matches cut to each frame's searchable places")
+    truth = GroundTruth(
+        positives,
+        ground_truth.num_references,
+        f"{ground_truth.description}; true matches cut to each frame's searchable places",
+    )
     if not truth.has_match.any():
-        raise DataError(f"no frame revisits a place it could search ({ground_truth.description}; frames after "
-                        "exclude-last): nothing to evaluate. Does the traverse return to a place it saw before?")
+        raise DataError(
+            f"no frame revisits a place it could search ({ground_truth.description}; frames after "
+            "exclude-last): nothing to evaluate. Does the traverse return to a place it saw before?"
+        )
     return evaluated, truth
 
 
@@ -58,9 +64,14 @@ def evaluate_decisions(decisions: Sequence[FrameDecision], ground_truth, thresho
     evaluated, truth = _evaluable(decisions, ground_truth)
     score = np.array([d.score for d in evaluated], dtype=np.float64)
     match = np.array([d.match for d in evaluated], dtype=np.int64)
-    metrics = evaluate_retrieval(np.array([[d.best] for d in evaluated]),
-                                 np.array([[d.best_similarity] for d in evaluated]), truth,
-                                 protocol=RECALL_OVER_QUERIES, ns=(1,), accepted=Accepted(score, match, rule))
+    metrics = evaluate_retrieval(
+        np.array([[d.best] for d in evaluated]),
+        np.array([[d.best_similarity] for d in evaluated]),
+        truth,
+        protocol=RECALL_OVER_QUERIES,
+        ns=(1,),
+        accepted=Accepted(score, match, rule),
+    )
     accepted = score >= float(threshold)
     correct = truth.correct_mask(match[:, None])[:, 0]
     true_closures = int((accepted & correct).sum())
@@ -83,14 +94,19 @@ def evaluate_decisions(decisions: Sequence[FrameDecision], ground_truth, thresho
             # frames that revisit no searchable place (a route's first pass): every closure
             # accepted there is false; and the revisits: right, wrong place, or missed
             "first_pass": {"frames": int(first_pass.sum()), "accepted": int((accepted & first_pass).sum())},
-            "revisits": {"frames": revisits, "true": true_closures,
-                         "wrong_place": int((accepted & ~correct & ~first_pass).sum()),
-                         "missed": int((~accepted & ~first_pass).sum())},
+            "revisits": {
+                "frames": revisits,
+                "true": true_closures,
+                "wrong_place": int((accepted & ~correct & ~first_pass).sum()),
+                "missed": int((~accepted & ~first_pass).sum()),
+            },
         },
         "gated_frames": int(gated.sum()),
-        "note": ("recall_at_n and R@xP count the frames that revisit a place they could search; "
-                 "metrics.top1_accuracy counts every evaluated frame, the first pass included, where no "
-                 "answer can be right, so it is lower"),
+        "note": (
+            "recall_at_n and R@xP count the frames that revisit a place they could search; "
+            "metrics.top1_accuracy counts every evaluated frame, the first pass included, where no "
+            "answer can be right, so it is lower"
+        ),
     }
 
 
@@ -104,8 +120,13 @@ def frame_outcomes(decisions: Sequence[FrameDecision], ground_truth):
     return score, truth.correct_mask(match[:, None])[:, 0], truth
 
 
-def calibrate_decisions(decisions: Sequence[FrameDecision], ground_truth, detector: "LoopClosureDetector",
-                        target_precision: float, measured_on: dict | None = None):
+def calibrate_decisions(
+    decisions: Sequence[FrameDecision],
+    ground_truth,
+    detector: "LoopClosureDetector",
+    target_precision: float,
+    measured_on: dict | None = None,
+):
     """A :class:`~fdnet.decisions.calibration.Calibration` of ``detector``'s rule from one
     traverse with ground truth: the threshold on its frames' acceptance scores that reaches
     ``target_precision`` with the largest recall
@@ -137,25 +158,50 @@ def calibrate_decisions(decisions: Sequence[FrameDecision], ground_truth, detect
     if tail is not None and math.isfinite(chosen.threshold) and tail["threshold"] > chosen.threshold:
         at = score >= tail["threshold"]
         right = int((at & correct).sum())
-        notes.append(f"raised from {chosen.threshold:.6g} (just above this traverse's most confident wrong frame, "
-                     f"of {tail['wrong']}) to {tail['threshold']:.6g}, where fewer than one wrong closure is expected "
-                     f"among {tail['frames']} wrong frames (exponential tail of this traverse's wrong scores)")
-        chosen = Threshold(tail["threshold"], right / int(at.sum()) if at.any() else 1.0,
-                           right / max(int(truth.has_match.sum()), 1), int(at.sum()))
+        notes.append(
+            f"raised from {chosen.threshold:.6g} (just above this traverse's most confident wrong frame, "
+            f"of {tail['wrong']}) to {tail['threshold']:.6g}, where fewer than one wrong closure is expected "
+            f"among {tail['frames']} wrong frames (exponential tail of this traverse's wrong scores)"
+        )
+        chosen = Threshold(
+            tail["threshold"],
+            right / int(at.sum()) if at.any() else 1.0,
+            right / max(int(truth.has_match.sum()), 1),
+            int(at.sum()),
+        )
     if not math.isfinite(chosen.threshold):
-        notes.append(f"no threshold reaches precision {target:g} on this traverse (its most confident frame is "
-                     "already wrong): nothing will be accepted")
+        notes.append(
+            f"no threshold reaches precision {target:g} on this traverse (its most confident frame is "
+            "already wrong): nothing will be accepted"
+        )
     length = detector.sequence_length
-    where = {"loop_closure": True, "ground_truth": truth.description, "exclude_last": detector.exclude_last,
-             "gates": detector.gates.to_dict(),
-             "frames": len(decisions), "frames_evaluated": len(score), "sequence_length": length,
-             **({"wrong_score_tail": tail} if tail is not None else {}),
-             **(measured_on or {})}
+    where = {
+        "loop_closure": True,
+        "ground_truth": truth.description,
+        "exclude_last": detector.exclude_last,
+        "gates": detector.gates.to_dict(),
+        "frames": len(decisions),
+        "frames_evaluated": len(score),
+        "sequence_length": length,
+        **({"wrong_score_tail": tail} if tail is not None else {}),
+        **(measured_on or {}),
+    }
     return Calibration(
-        rule=detector.spec.name, settings=detector.spec.settings, threshold=chosen.threshold,
-        target_precision=target, precision=chosen.precision, recall=chosen.recall, accepted=chosen.accepted,
-        num_queries=len(score), method=detector.descriptor.name, fingerprint=detector.descriptor.fingerprint(),
-        sequence_length=length, measured_on=where,
-        created=datetime.now(timezone.utc).isoformat(timespec="seconds"), fdnet_version=__version__, notes=notes,
+        rule=detector.spec.name,
+        settings=detector.spec.settings,
+        threshold=chosen.threshold,
+        target_precision=target,
+        precision=chosen.precision,
+        recall=chosen.recall,
+        accepted=chosen.accepted,
+        num_queries=len(score),
+        method=detector.descriptor.name,
+        fingerprint=detector.descriptor.fingerprint(),
+        sequence_length=length,
+        measured_on=where,
+        created=datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        fdnet_version=__version__,
+        notes=notes,
         probability=fit_probability(score, correct, wrong_tail),
-        score_distribution=score_distribution(score, chosen.threshold))
+        score_distribution=score_distribution(score, chosen.threshold),
+    )

@@ -27,8 +27,9 @@ class EventLog:
     final newline), which readers drop. One fsync per accepted closure, not per frame.
     """
 
-    def __init__(self, csv_path: str | os.PathLike, jsonl_path: str | os.PathLike | None = None,
-                 initial: Sequence[Closure] = ()):
+    def __init__(
+        self, csv_path: str | os.PathLike, jsonl_path: str | os.PathLike | None = None, initial: Sequence[Closure] = ()
+    ):
         from fdnet.io import atomic_write_text
 
         self.paths = [Path(csv_path)] + ([Path(jsonl_path)] if jsonl_path is not None else [])
@@ -59,9 +60,18 @@ class EventLog:
     def _lines(self, closure: Closure) -> tuple[str, str]:
         """The event's CSV line and JSON line."""
         event = closure.to_dict()
-        cells = ["" if event[c] is None else (f"{event[c]:.6f}" if isinstance(event[c], float) else
-                                              spreadsheet_text(event[c]) if c in ("query", "match") else event[c])
-                 for c in EVENT_COLUMNS]
+        cells = [
+            ""
+            if event[c] is None
+            else (
+                f"{event[c]:.6f}"
+                if isinstance(event[c], float)
+                else spreadsheet_text(event[c])
+                if c in ("query", "match")
+                else event[c]
+            )
+            for c in EVENT_COLUMNS
+        ]
         return self._csv_line(cells), json.dumps({c: event[c] for c in EVENT_COLUMNS}, allow_nan=False) + "\n"
 
     def write(self, closure: Closure) -> None:
@@ -83,8 +93,11 @@ class EventLog:
                         os.ftruncate(other, size)
                     except OSError:
                         pass
-                raise output_error(f"{path}: cannot write the loop-closure event ({exc.strerror or exc}); every "
-                                   "events file ends at the last whole event", exc) from exc
+                raise output_error(
+                    f"{path}: cannot write the loop-closure event ({exc.strerror or exc}); every "
+                    "events file ends at the last whole event",
+                    exc,
+                ) from exc
         self.count += 1
 
     def close(self) -> None:

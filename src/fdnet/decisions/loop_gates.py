@@ -81,8 +81,9 @@ class LoopGates:
             value = getattr(self, name)
             if value is not None and not (_is_number(value) and 0.0 <= float(value) <= 1.0):
                 raise ConfigError(f"loop gate {name} must be in [0, 1] (pixels are in [0, 1]), got {value!r}")
-        if self.segment_similarity is not None and not (_is_number(self.segment_similarity)
-                                                        and math.isfinite(float(self.segment_similarity))):
+        if self.segment_similarity is not None and not (
+            _is_number(self.segment_similarity) and math.isfinite(float(self.segment_similarity))
+        ):
             raise ConfigError(f"loop gate segment_similarity must be a finite number, got {self.segment_similarity!r}")
         for name in ("exclude_seconds", "exclude_metres"):
             value = getattr(self, name)
@@ -92,11 +93,14 @@ class LoopGates:
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"loop gate {name} must be true or false, got {getattr(self, name)!r}")
         if not _is_whole(self.consistency) or self.consistency < 1:
-            raise ConfigError(f"loop gate consistency must be a whole number of at least 1 (1 = off), got "
-                              f"{self.consistency!r}")
+            raise ConfigError(
+                f"loop gate consistency must be a whole number of at least 1 (1 = off), got " f"{self.consistency!r}"
+            )
         if not _is_whole(self.consistency_window) or self.consistency_window < 0:
-            raise ConfigError(f"loop gate consistency_window must be a whole number of at least 0, got "
-                              f"{self.consistency_window!r}")
+            raise ConfigError(
+                f"loop gate consistency_window must be a whole number of at least 0, got "
+                f"{self.consistency_window!r}"
+            )
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -169,7 +173,7 @@ class FrameSignals:
         return len(self.statistics)
 
     def __getitem__(self, index: int) -> "FrameSignals":
-        return FrameSignals(self.statistics[index:index + 1], self.thumbnails[index:index + 1])
+        return FrameSignals(self.statistics[index : index + 1], self.thumbnails[index : index + 1])
 
 
 def frame_signals(images: np.ndarray) -> FrameSignals:
@@ -184,8 +188,11 @@ def frame_signals(images: np.ndarray) -> FrameSignals:
     grey = to_grey(array.astype(np.float32)) * scale
     statistics = grey_levels(grey)
     h, w = THUMBNAIL
-    thumbnails = np.stack([cv2.resize(g, (w, h), interpolation=cv2.INTER_AREA) for g in grey]) if len(grey) \
+    thumbnails = (
+        np.stack([cv2.resize(g, (w, h), interpolation=cv2.INTER_AREA) for g in grey])
+        if len(grey)
         else np.zeros((0, h, w), np.float32)
+    )
     return FrameSignals(statistics, thumbnails.astype(np.float32))
 
 
@@ -223,8 +230,14 @@ class RecentPast:
         self._travelled: list[float | None] = []  # metres along the path up to each frame
         self._last_position: tuple[float, ...] | None = None
 
-    def first_excluded(self, frame: int, previous_similarity: float | None, still_pixels: bool,
-                       timestamp: float | None, position: Sequence[float] | None) -> int:
+    def first_excluded(
+        self,
+        frame: int,
+        previous_similarity: float | None,
+        still_pixels: bool,
+        timestamp: float | None,
+        position: Sequence[float] | None,
+    ) -> int:
         """Record frame ``frame`` (its descriptor similarity to the previous frame, whether its
         pixels say it is still (:func:`is_still`), time, position) and return the first frame it
         may not match (``frame`` itself when nothing earlier is excluded)."""
@@ -248,8 +261,9 @@ class RecentPast:
             self._travelled.append((last or 0.0) + step)
             self._last_position = here
             if gates.exclude_metres is not None:
-                first = min(first, self._first_within(self._travelled,
-                                                      self._travelled[-1] - float(gates.exclude_metres)))
+                first = min(
+                    first, self._first_within(self._travelled, self._travelled[-1] - float(gates.exclude_metres))
+                )
         return first
 
     @staticmethod

@@ -89,7 +89,7 @@ def similar_past(row: np.ndarray, recent: np.ndarray) -> int:
     reach = walk_back(back, null_level(row))
     for _ in range(MAX_ROUNDS):
         outside = np.ones(len(row), dtype=bool)
-        outside[recent[:reach + PATIENCE]] = False
+        outside[recent[: reach + PATIENCE]] = False
         if outside.sum() < 10:
             break
         again = walk_back(back, null_level(row[outside]))
@@ -193,5 +193,5 @@ class GapDetector:
         if typical is not None and typical > 0 and interval > GAP_FACTOR * typical:
             return True
         self._intervals.append(interval)
-        del self._intervals[:-self.history]
+        del self._intervals[: -self.history]
         return False

@@ -6,8 +6,23 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 #: columns of the events CSV, in order (the JSON lines carry the same keys)
-EVENT_COLUMNS = ("query_index", "query", "match_index", "match", "score", "similarity", "rule", "threshold",
-                 "timestamp", "match_timestamp", "x", "y", "match_x", "match_y", "p_correct")
+EVENT_COLUMNS = (
+    "query_index",
+    "query",
+    "match_index",
+    "match",
+    "score",
+    "similarity",
+    "rule",
+    "threshold",
+    "timestamp",
+    "match_timestamp",
+    "x",
+    "y",
+    "match_x",
+    "match_y",
+    "p_correct",
+)
 
 
 @dataclass(frozen=True)

@@ -57,8 +57,14 @@ class IndexedCandidates:
     """The index over a detector's places and the recent frames' neighbours (see the module
     docstring). ``vectors``: a callable giving the detector's (places, dim) vectors so far."""
 
-    def __init__(self, dim: int, sequence_length: int, neighbours: int = NEIGHBOURS, probe: int = 32,
-                 compressed_from: int = COMPRESSED_FROM):
+    def __init__(
+        self,
+        dim: int,
+        sequence_length: int,
+        neighbours: int = NEIGHBOURS,
+        probe: int = 32,
+        compressed_from: int = COMPRESSED_FROM,
+    ):
         from fdnet.matching.index import IndexSettings, VectorIndex
 
         self.dim = int(dim)
@@ -97,7 +103,7 @@ class IndexedCandidates:
             self._trained_on = count
         elif count > len(self._index):
             with _one_faiss_thread():  # a frame or a few: training and bulk adds keep every thread
-                self._index.add(vectors[len(self._index):count])
+                self._index.add(vectors[len(self._index) : count])
 
     def _compressed(self, count: int) -> bool:
         # below IVF_FROM places the index is exact anyway, and the codebooks would lack points
@@ -119,8 +125,16 @@ class IndexedCandidates:
         """The next frame starts a new recording: no sequence reaches back past it."""
         self._recent.clear()
 
-    def search(self, v: np.ndarray, vectors: np.ndarray, searchable: int, informative: np.ndarray,
-               neutral: float, frame_informative: bool = True, seams=None) -> tuple[np.ndarray, np.ndarray]:
+    def search(
+        self,
+        v: np.ndarray,
+        vectors: np.ndarray,
+        searchable: int,
+        informative: np.ndarray,
+        neutral: float,
+        frame_informative: bool = True,
+        seams=None,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Record the new frame and return its candidates: (place ids, scores) best first, all
         below ``searchable`` and informative; scores are single-image similarities, or with
         sequences the sequence scores of the proposed ends. ``seams``: the map's
@@ -172,8 +186,9 @@ class IndexedCandidates:
             ends.append((ids[:, None] + np.arange(low, high + 1)[None, :]).ravel())
         return np.concatenate(ends) if ends else np.zeros(0, np.int64)
 
-    def _sequence_scores(self, ends: np.ndarray, vectors: np.ndarray, informative: np.ndarray,
-                         exact: bool = True, seams=None) -> np.ndarray:
+    def _sequence_scores(
+        self, ends: np.ndarray, vectors: np.ndarray, informative: np.ndarray, exact: bool = True, seams=None
+    ) -> np.ndarray:
         """Sequence scores of ``ends`` over the recent frames by
         :func:`~fdnet.matching.sequence.online_sequence_scores`, each frame a
         :class:`_RecentRow` read from the stored vectors (the frame's row held the places that
@@ -195,8 +210,9 @@ class _RecentRow(SequenceRow):
     returned), neutral where a gate marked the place or the frame uninformative, and padding
     just before each end's segment."""
 
-    def __init__(self, recent: tuple, vectors: np.ndarray, informative: np.ndarray, first: np.ndarray,
-                 pad: int, exact: bool):
+    def __init__(
+        self, recent: tuple, vectors: np.ndarray, informative: np.ndarray, first: np.ndarray, pad: int, exact: bool
+    ):
         self.frame, self.ids, self.neutral, self.places_then, self.frame_informative, self.sims = recent
         self.vectors, self.informative, self.first, self.pad, self.exact = vectors, informative, first, pad, exact
 

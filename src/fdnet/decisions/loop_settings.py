@@ -84,8 +84,10 @@ class LoopClosureSettings:
         """These settings with ``options`` (field names) replaced; an unknown name is refused."""
         unknown = sorted(set(options) - {f.name for f in fields(self)})
         if unknown:
-            raise ConfigError(f"unknown loop-closure setting(s) {', '.join(unknown)}; known: "
-                              f"{', '.join(f.name for f in fields(self))}")
+            raise ConfigError(
+                f"unknown loop-closure setting(s) {', '.join(unknown)}; known: "
+                f"{', '.join(f.name for f in fields(self))}"
+            )
         return replace(self, **options) if options else self
 
 

@@ -61,15 +61,18 @@ class RouteTraverse:
             if block[0] == 0:
                 positives += [np.zeros(0, np.int64)] * len(block)
                 continue
-            aligned = GroundTruth.from_frames(self.frame_ids[block], self.frame_ids[:block[0]], self.tolerance)
+            aligned = GroundTruth.from_frames(self.frame_ids[block], self.frame_ids[: block[0]], self.tolerance)
             positives += [p + places_before for p in aligned.positives]
-        return GroundTruth(positives, places_before + len(self.paths),
-                           f"{self.description}: a frame revisits the frames of earlier conditions within "
-                           f"{self.tolerance} frames")
+        return GroundTruth(
+            positives,
+            places_before + len(self.paths),
+            f"{self.description}: a frame revisits the frames of earlier conditions within " f"{self.tolerance} frames",
+        )
 
 
-def route_traverse(data: str | os.PathLike, conditions: Sequence[str], frames: str | None = None,
-                   tolerance: int = 0) -> RouteTraverse:
+def route_traverse(
+    data: str | os.PathLike, conditions: Sequence[str], frames: str | None = None, tolerance: int = 0
+) -> RouteTraverse:
     """The conditions of the route in ``data`` (``DATA/<condition>/`` folders, videos or bags,
     frame-aligned) driven one after another, each cut to ``frames`` (``START:END``), as one
     traverse with frame-aligned ground truth (:class:`RouteTraverse`)."""
@@ -77,8 +80,10 @@ def route_traverse(data: str | os.PathLike, conditions: Sequence[str], frames: s
 
     conditions = [c.strip() for c in conditions if c.strip()]
     if len(conditions) < 2:
-        raise ConfigError(f"--conditions needs at least two conditions to drive one after another (the first "
-                          f"pass and a revisit), got {','.join(conditions) or 'none'}")
+        raise ConfigError(
+            f"--conditions needs at least two conditions to drive one after another (the first "
+            f"pass and a revisit), got {','.join(conditions) or 'none'}"
+        )
     if len(set(conditions)) != len(conditions):
         raise ConfigError(f"--conditions names a condition twice: {','.join(conditions)}")
     if isinstance(tolerance, bool) or not isinstance(tolerance, int) or tolerance < 0:
@@ -142,8 +147,13 @@ class TraverseReport:
         return out
 
 
-def run_traverse(images, descriptor, database=None, settings: TraverseSettings | None = None,
-                 log: Callable[[str], None] | None = None) -> TraverseReport:
+def run_traverse(
+    images,
+    descriptor,
+    database=None,
+    settings: TraverseSettings | None = None,
+    log: Callable[[str], None] | None = None,
+) -> TraverseReport:
     """Run a :class:`LoopClosureDetector` over one traverse, writing each accepted closure to
     ``settings.events_csv`` (and ``events_jsonl``) as it is accepted.
 
@@ -177,8 +187,9 @@ def run_traverse(images, descriptor, database=None, settings: TraverseSettings |
         places_before = detector.places - done
         truth = None
         if ground_truth is not None:
-            truth = GroundTruth.from_csv(ground_truth, num_references=places_before + len(paths),
-                                         num_queries=len(paths))
+            truth = GroundTruth.from_csv(
+                ground_truth, num_references=places_before + len(paths), num_queries=len(paths)
+            )
             truth.check_names(paths, [*detector.map.names[:places_before], *paths])
         elif route is not None:
             truth = route.ground_truth(places_before)
@@ -189,12 +200,16 @@ def run_traverse(images, descriptor, database=None, settings: TraverseSettings |
         detector.spec.check_images(paths, [*detector.map.names[:places_before], *names])
         initial = []
         if done:
-            last = _signals_of(paths[done - 1:done], descriptor)
+            last = _signals_of(paths[done - 1 : done], descriptor)
             initial = detector.resume(done, last_thumbnail=last.thumbnails[0])
-            say(f"resuming {where}: {done} of {len(paths)} frames were stored by the interrupted run "
-                f"({len(initial)} closures among them); continuing with frame {done}")
-        say(f"loop closure over {len(paths)} frames of {where} with {descriptor.name}, rule {detector.spec.name} "
-            f"(threshold {detector.threshold:g}), {places_before} places in {db.path} before the run")
+            say(
+                f"resuming {where}: {done} of {len(paths)} frames were stored by the interrupted run "
+                f"({len(initial)} closures among them); continuing with frame {done}"
+            )
+        say(
+            f"loop closure over {len(paths)} frames of {where} with {descriptor.name}, rule {detector.spec.name} "
+            f"(threshold {detector.threshold:g}), {places_before} places in {db.path} before the run"
+        )
         t0 = time.perf_counter()
         starts = set() if route is None else {int(i) for i in np.flatnonzero(np.diff(route.condition_of)) + 1}
         frames = TraverseFrames(paths, names, times, positions, frozenset(starts))
@@ -205,11 +220,15 @@ def run_traverse(images, descriptor, database=None, settings: TraverseSettings |
         if truth is not None:
             report.evaluation = evaluate_decisions(detector.decisions, truth, detector.threshold, detector.spec.name)
         if calibrate_to is not None:
-            source = {"images": where if route is not None else str(Path(images).resolve()),
-                      **({"ground_truth_file": str(Path(ground_truth).resolve())} if ground_truth is not None
-                         else {"ground_truth": truth.description})}
-            report.calibrated = _calibrate_on_traverse(detector, truth, settings.target_precision, source,
-                                                       calibrate_to)
+            source = {
+                "images": where if route is not None else str(Path(images).resolve()),
+                **(
+                    {"ground_truth_file": str(Path(ground_truth).resolve())}
+                    if ground_truth is not None
+                    else {"ground_truth": truth.description}
+                ),
+            }
+            report.calibrated = _calibrate_on_traverse(detector, truth, settings.target_precision, source, calibrate_to)
     return report
 
 
@@ -223,8 +242,10 @@ def _checked_settings(settings: TraverseSettings, route, database):
         from fdnet.decisions.calibration import check_target
 
         if settings.ground_truth is None and route is None:
-            raise ConfigError("calibrating on a traverse needs its ground truth (--ground-truth CSV, or a route "
-                              "given as --data DIR --conditions A,B)")
+            raise ConfigError(
+                "calibrating on a traverse needs its ground truth (--ground-truth CSV, or a route "
+                "given as --data DIR --conditions A,B)"
+            )
         check_target(settings.target_precision)
         ensure_writable(settings.calibrate_to, what="calibration file")
         if detector_settings.threshold is None and detector_settings.calibration is None:
@@ -233,21 +254,36 @@ def _checked_settings(settings: TraverseSettings, route, database):
         if path is not None:
             ensure_writable(path, what=what)
     if settings.resume and database is None:
-        raise ConfigError("resuming needs the place database the interrupted run wrote (--db FILE): an in-memory "
-                          "run keeps nothing to resume from")
+        raise ConfigError(
+            "resuming needs the place database the interrupted run wrote (--db FILE): an in-memory "
+            "run keeps nothing to resume from"
+        )
     return detector_settings
 
 
-def _report(detector: LoopClosureDetector, seconds: float, places_before: int, events: EventLog, resumed: int,
-            calibration) -> TraverseReport:
+def _report(
+    detector: LoopClosureDetector, seconds: float, places_before: int, events: EventLog, resumed: int, calibration
+) -> TraverseReport:
     return TraverseReport(
-        frames=detector.frames, closures=len(detector.closures), seconds=seconds, places_before=places_before,
-        places_after=detector.places, rule=detector.spec.name, rule_settings=detector.spec.settings,
-        threshold=detector.threshold, sequence_length=detector.sequence_length, exclude_last=detector.exclude_last,
-        database=str(detector.database.path), events=[str(p) for p in events.paths], gates=detector.gates.to_dict(),
-        gate_counts=dict(detector.gate_counts), resumed_frames=resumed, recent_past=recent_past_summary(detector),
+        frames=detector.frames,
+        closures=len(detector.closures),
+        seconds=seconds,
+        places_before=places_before,
+        places_after=detector.places,
+        rule=detector.spec.name,
+        rule_settings=detector.spec.settings,
+        threshold=detector.threshold,
+        sequence_length=detector.sequence_length,
+        exclude_last=detector.exclude_last,
+        database=str(detector.database.path),
+        events=[str(p) for p in events.paths],
+        gates=detector.gates.to_dict(),
+        gate_counts=dict(detector.gate_counts),
+        resumed_frames=resumed,
+        recent_past=recent_past_summary(detector),
         score_drift=detector.drift,
-        calibration=None if calibration is None else str(calibration))
+        calibration=None if calibration is None else str(calibration),
+    )
 
 
 def recent_past_summary(detector: LoopClosureDetector) -> dict:
@@ -258,9 +294,13 @@ def recent_past_summary(detector: LoopClosureDetector) -> dict:
     if not len(back):
         return {}
     bins = np.bincount(back // 5)
-    return {"median": float(np.median(back)), "p90": float(np.percentile(back, 90)), "max": int(back.max()),
-            "histogram": {f"{5 * i}-{5 * i + 4}": int(n) for i, n in enumerate(bins) if n},
-            "segments": int(detector.segments)}
+    return {
+        "median": float(np.median(back)),
+        "p90": float(np.percentile(back, 90)),
+        "max": int(back.max()),
+        "histogram": {f"{5 * i}-{5 * i + 4}": int(n) for i, n in enumerate(bins) if n},
+        "segments": int(detector.segments),
+    }
 
 
 def _check_searchable_revisit(truth, places_before: int, exclude_last: int, length: int) -> None:
@@ -268,12 +308,15 @@ def _check_searchable_revisit(truth, places_before: int, exclude_last: int, leng
     place it could ever search (its true places all within its own recent past): nothing could be
     evaluated, and a run would store every frame before saying so."""
     if truth.num_queries != 0 and any(
-            len(p) and int(p.min()) < places_before + max(q - exclude_last - (length - 1), 0)
-            for q, p in enumerate(truth.positives)):
+        len(p) and int(p.min()) < places_before + max(q - exclude_last - (length - 1), 0)
+        for q, p in enumerate(truth.positives)
+    ):
         return
-    raise DataError(f"no frame of the traverse revisits a place it could search ({truth.description}; frames "
-                    f"after exclude-last {exclude_last} and the sequence's {length - 1} more): nothing to evaluate. "
-                    "Does the traverse return to a place it saw before?")
+    raise DataError(
+        f"no frame of the traverse revisits a place it could search ({truth.description}; frames "
+        f"after exclude-last {exclude_last} and the sequence's {length - 1} more): nothing to evaluate. "
+        "Does the traverse return to a place it saw before?"
+    )
 
 
 def _traverse_frames(images, route: RouteTraverse | None):
@@ -305,15 +348,19 @@ def _frames_done(db, names: list[str], resume: bool) -> int:
         return 0
     first = next(n for n in names if n in already)
     if not resume:
-        raise DataError(f"{db.path}: already holds {len(already)} of these {len(names)} frames (e.g. {first}); "
-                        "a traverse is added once: to continue an interrupted run give --resume, otherwise use a "
-                        "copy of the database from before that run, or another database")
+        raise DataError(
+            f"{db.path}: already holds {len(already)} of these {len(names)} frames (e.g. {first}); "
+            "a traverse is added once: to continue an interrupted run give --resume, otherwise use a "
+            "copy of the database from before that run, or another database"
+        )
     done = len(already)
-    stored = db.names[len(db.names) - done:]
+    stored = db.names[len(db.names) - done :]
     if stored != names[:done]:
-        raise DataError(f"{db.path}: holds {done} of these frames, but not as the first {done} frames of this "
-                        "traverse stored last (another traverse was added after them, or the frames changed "
-                        "order): it cannot be resumed; use a copy of the database from before the run")
+        raise DataError(
+            f"{db.path}: holds {done} of these frames, but not as the first {done} frames of this "
+            "traverse stored last (another traverse was added after them, or the frames changed "
+            "order): it cannot be resumed; use a copy of the database from before the run"
+        )
     return done
 
 
@@ -339,8 +386,9 @@ class TraverseFrames:
     segment_starts: frozenset = frozenset()
 
 
-def _detect_over(detector: LoopClosureDetector, frames: TraverseFrames, settings: TraverseSettings,
-                 start: int = 0, initial=()) -> EventLog:
+def _detect_over(
+    detector: LoopClosureDetector, frames: TraverseFrames, settings: TraverseSettings, start: int = 0, initial=()
+) -> EventLog:
     """Describe ``frames.paths[start:]`` a batch at a time (with each frame's pixel signals) and
     feed each to ``detector``, writing each accepted closure to the event log as it is accepted
     (the log starts from the ``initial`` events of a resumed run); returns the (closed) log."""
@@ -355,19 +403,30 @@ def _detect_over(detector: LoopClosureDetector, frames: TraverseFrames, settings
     if pipeline.progress:
         from fdnet.progress import progress_bar
 
-        bar = progress_bar(total=len(frames.paths), initial=start, desc=f"loop closure [{descriptor.name}]",
-                           unit="frame", smoothing=0.1)
+        bar = progress_bar(
+            total=len(frames.paths),
+            initial=start,
+            desc=f"loop closure [{descriptor.name}]",
+            unit="frame",
+            smoothing=0.1,
+        )
     try:
         with EventLog(settings.events_csv, settings.events_jsonl, initial=initial) as events:
             # the stream shows no bar of its own: this loop's counts frames and closures
             quiet = PipelineSettings(pipeline.batch_size, pipeline.workers, progress=False)
-            for offset, (vectors, signals) in describe_stream(descriptor, frames.paths[start:], quiet,
-                                                              DescribeJob(describe)):
+            for offset, (vectors, signals) in describe_stream(
+                descriptor, frames.paths[start:], quiet, DescribeJob(describe)
+            ):
                 for i, vector in enumerate(np.asarray(vectors, dtype=np.float32)):
                     k = start + offset + i
-                    closure = detector.process_vector(vector, name=frames.names[k], timestamp=frames.times[k],
-                                                      position=frames.positions[k], signals=signals[i],
-                                                      new_segment=k in frames.segment_starts)
+                    closure = detector.process_vector(
+                        vector,
+                        name=frames.names[k],
+                        timestamp=frames.times[k],
+                        position=frames.positions[k],
+                        signals=signals[i],
+                        new_segment=k in frames.segment_starts,
+                    )
                     if closure is not None:
                         events.write(closure)
                 if bar is not None:
@@ -379,8 +438,9 @@ def _detect_over(detector: LoopClosureDetector, frames: TraverseFrames, settings
     return events
 
 
-def _calibrate_on_traverse(detector: LoopClosureDetector, truth, target_precision: float, source: dict,
-                           calibrate_to) -> dict:
+def _calibrate_on_traverse(
+    detector: LoopClosureDetector, truth, target_precision: float, source: dict, calibrate_to
+) -> dict:
     """Choose the threshold reaching ``target_precision`` on this traverse's decisions, write it
     to ``calibrate_to`` and return what :attr:`TraverseReport.calibrated` records."""
     from fdnet.decisions.calibration import save_calibration
@@ -389,9 +449,14 @@ def _calibrate_on_traverse(detector: LoopClosureDetector, truth, target_precisio
     written = save_calibration(calibrated, calibrate_to)
     fitted = calibrated.probability or {}
     at = float(calibrated.p_correct([calibrated.threshold])[0]) if math.isfinite(calibrated.threshold) else None
-    return {"path": str(written), "threshold": calibrated.threshold,
-            "target_precision": calibrated.target_precision,
-            "p_correct_frames": int(fitted.get("frames", 0)),
-            "p_correct_at_threshold": at if at is not None and math.isfinite(at) else None,
-            "precision": calibrated.precision, "recall": calibrated.recall,
-            "accepted": calibrated.accepted, "notes": list(calibrated.notes)}
+    return {
+        "path": str(written),
+        "threshold": calibrated.threshold,
+        "target_precision": calibrated.target_precision,
+        "p_correct_frames": int(fitted.get("frames", 0)),
+        "p_correct_at_threshold": at if at is not None and math.isfinite(at) else None,
+        "precision": calibrated.precision,
+        "recall": calibrated.recall,
+        "accepted": calibrated.accepted,
+        "notes": list(calibrated.notes),
+    }

@@ -38,9 +38,11 @@ def resolve_calibration(calibration, source: str | None):
     if path.is_dir():
         found = stored_in_run(path, (LOOP_CALIBRATION_FILE, CALIBRATION_FILE))
         if found is None:
-            raise DataError(f"{path}: no {LOOP_CALIBRATION_FILE} or {CALIBRATION_FILE} in this run directory (or its "
-                            "best/): calibrate on a loop with ground truth first, e.g. `fdnet loop-closure --data "
-                            f"ROUTE --conditions A,B --calibrate-out {path} ...`")
+            raise DataError(
+                f"{path}: no {LOOP_CALIBRATION_FILE} or {CALIBRATION_FILE} in this run directory (or its "
+                "best/): calibrate on a loop with ground truth first, e.g. `fdnet loop-closure --data "
+                f"ROUTE --conditions A,B --calibrate-out {path} ...`"
+            )
         path = found
     return load_calibration(path), str(path)
 
@@ -51,36 +53,50 @@ def decision_rule(descriptor, sequence_length: int, rule, rule_settings, thresho
     when one is named), else ``rule`` and ``threshold``."""
     if calibration is not None:
         if threshold is not None:
-            raise ConfigError("give a threshold or a calibration file, not both (the calibration sets the "
-                              "threshold)")
+            raise ConfigError(
+                "give a threshold or a calibration file, not both (the calibration sets the " "threshold)"
+            )
         calibrated, source = checked_calibration(calibration, descriptor, sequence_length, source)
         spec = calibrated.spec
         where = calibrated.measured_on or {}
         if not where.get("loop_closure"):
-            logger.warning(f"{source}: this calibration was measured on a pair of traverses, not on a loop: "
-                           "in loop closure the robot's own recent frames are look-alikes a pair never shows, "
-                           "and its precision is not reached there (docs/loop-closure.md). Calibrate on a loop: "
-                           "fdnet loop-closure ... --ground-truth CSV --calibrate-out FILE")
-        logger.info(f"{source}: threshold {calibrated.threshold:.6g} of rule {spec.name} reached precision "
-                    f"{calibrated.precision:.3f} at recall {calibrated.recall:.3f} on {calibrated.accepted} "
-                    f"accepted of {calibrated.num_queries} frames where it was measured")
+            logger.warning(
+                f"{source}: this calibration was measured on a pair of traverses, not on a loop: "
+                "in loop closure the robot's own recent frames are look-alikes a pair never shows, "
+                "and its precision is not reached there (docs/loop-closure.md). Calibrate on a loop: "
+                "fdnet loop-closure ... --ground-truth CSV --calibrate-out FILE"
+            )
+        logger.info(
+            f"{source}: threshold {calibrated.threshold:.6g} of rule {spec.name} reached precision "
+            f"{calibrated.precision:.3f} at recall {calibrated.recall:.3f} on {calibrated.accepted} "
+            f"accepted of {calibrated.num_queries} frames where it was measured"
+        )
         if rule is not None or rule_settings:
-            wanted = rule if isinstance(rule, AcceptanceSpec) else parse_acceptance(str(rule or spec.name),
-                                                                                   rule_settings)
+            wanted = (
+                rule if isinstance(rule, AcceptanceSpec) else parse_acceptance(str(rule or spec.name), rule_settings)
+            )
             if wanted.to_dict() != spec.to_dict():
-                raise ConfigError(f"{source}: calibrates rule {spec.name!r} with settings {spec.settings}, "
-                                  f"but rule {wanted.name!r} with settings {wanted.settings} was asked for; "
-                                  "its threshold means nothing for another rule")
+                raise ConfigError(
+                    f"{source}: calibrates rule {spec.name!r} with settings {spec.settings}, "
+                    f"but rule {wanted.name!r} with settings {wanted.settings} was asked for; "
+                    "its threshold means nothing for another rule"
+                )
         return spec, float(calibrated.threshold), calibrated
     if threshold is None:
-        raise ConfigError("a loop closure needs an acceptance threshold: give one (--threshold T), a "
-                          "calibration file (--calibration FILE), or a database holding a calibration "
-                          "(`fdnet calibrate --db`); or calibrate on a loop with ground truth first, e.g. "
-                          "`fdnet loop-closure --data ROUTE --conditions A,B --calibrate-out RUN_DIR ...`, which "
-                          f"writes RUN_DIR/{LOOP_CALIBRATION_FILE} that runs with --checkpoint RUN_DIR use")
+        raise ConfigError(
+            "a loop closure needs an acceptance threshold: give one (--threshold T), a "
+            "calibration file (--calibration FILE), or a database holding a calibration "
+            "(`fdnet calibrate --db`); or calibrate on a loop with ground truth first, e.g. "
+            "`fdnet loop-closure --data ROUTE --conditions A,B --calibrate-out RUN_DIR ...`, which "
+            f"writes RUN_DIR/{LOOP_CALIBRATION_FILE} that runs with --checkpoint RUN_DIR use"
+        )
     # +inf accepts nothing: a run that only measures (e.g. to calibrate: calibrate_decisions)
-    if isinstance(threshold, bool) or not isinstance(threshold, (int, float, np.floating, np.integer)) \
-            or math.isnan(float(threshold)) or float(threshold) == -math.inf:
+    if (
+        isinstance(threshold, bool)
+        or not isinstance(threshold, (int, float, np.floating, np.integer))
+        or math.isnan(float(threshold))
+        or float(threshold) == -math.inf
+    ):
         raise ConfigError(f"threshold must be a number (+inf accepts nothing), got {threshold!r}")
     if rule is None:
         raise ConfigError("name the acceptance rule (e.g. rule='margin'); `fdnet loop-closure --accept RULE`")
@@ -100,11 +116,14 @@ def calibrated_gates(calibration, gates: LoopGates | None, source: str | None) -
         return calibrated or LoopGates()
     if calibrated is not None and calibrated != gates:
         changed = {k: (v, gates.to_dict()[k]) for k, v in calibrated.to_dict().items() if gates.to_dict()[k] != v}
-        raise ConfigError(f"{source or 'the calibration'}: was measured with loop gates "
-                          + ", ".join(f"{k}={a}" for k, (a, _) in changed.items()) + ", but "
-                          + ", ".join(f"{k}={b}" for k, (_, b) in changed.items())
-                          + " were asked for; its threshold holds for its own gates (leave the gates out to "
-                          "use them)")
+        raise ConfigError(
+            f"{source or 'the calibration'}: was measured with loop gates "
+            + ", ".join(f"{k}={a}" for k, (a, _) in changed.items())
+            + ", but "
+            + ", ".join(f"{k}={b}" for k, (_, b) in changed.items())
+            + " were asked for; its threshold holds for its own gates (leave the gates out to "
+            "use them)"
+        )
     return gates
 
 
@@ -145,9 +164,11 @@ class DriftCheck:
         stored = self.stored
         self.drift = {**departed, "frames": n, "calibration_frames": int(stored.get("frames", 0))}
         where = (self.calibration.measured_on or {}).get("ground_truth") or "its calibration loop"
-        logger.warning(f"{self.source}: {100 * departed['share']:.0f} % of the scores this run rejected in its first "
-                       f"{n} rejections lie above {departed['quantile']:.4g}, where {100 * departed['expected']:.0f} % "
-                       f"did on the loop it was calibrated on ({where}; {stored.get('frames', 0)} rejections; "
-                       f"z = {departed['z']:.1f}): this route's wrong candidates stand out more than those the "
-                       "threshold was set against, so its precision may not hold here; calibrate on a loop like "
-                       "this one (--calibrate-out) when you can")
+        logger.warning(
+            f"{self.source}: {100 * departed['share']:.0f} % of the scores this run rejected in its first "
+            f"{n} rejections lie above {departed['quantile']:.4g}, where {100 * departed['expected']:.0f} % "
+            f"did on the loop it was calibrated on ({where}; {stored.get('frames', 0)} rejections; "
+            f"z = {departed['z']:.1f}): this route's wrong candidates stand out more than those the "
+            "threshold was set against, so its precision may not hold here; calibrate on a loop like "
+            "this one (--calibrate-out) when you can"
+        )

@@ -128,8 +128,9 @@ def _number(value) -> float:
     return float(value)
 
 
-def settings_from_overrides(overrides: dict[str, object] | Sequence[str] | None,
-                            base: VerificationSettings | None = None) -> VerificationSettings:
+def settings_from_overrides(
+    overrides: dict[str, object] | Sequence[str] | None, base: VerificationSettings | None = None
+) -> VerificationSettings:
     """:class:`VerificationSettings` with ``KEY=VALUE`` overrides (a dict or ``["k=v", ...]``),
     text values read as YAML scalars (``5`` a number, ``true`` a boolean); an unknown key or a bad
     value is a :class:`ConfigError` naming it."""
@@ -174,8 +175,10 @@ def _akaze_factory():
     if factory is None and hasattr(cv2, "xfeatures2d"):
         factory = getattr(cv2.xfeatures2d, "AKAZE_create", None)
     if factory is None:
-        raise ConfigError("verification setting features='akaze': this OpenCV build has no AKAZE "
-                          "(install opencv-contrib-python-headless)")
+        raise ConfigError(
+            "verification setting features='akaze': this OpenCV build has no AKAZE "
+            "(install opencv-contrib-python-headless)"
+        )
     return factory
 
 
@@ -202,8 +205,12 @@ class Verifier:
             self._detector = _akaze_factory()()
             self._norm = cv2.NORM_HAMMING
         self._clahe = cv2.createCLAHE(clipLimit=float(s.clahe_clip), tileGridSize=(8, 8)) if s.clahe else None
-        self._estimator = {"magsac": cv2.USAC_MAGSAC, "usac_accurate": cv2.USAC_ACCURATE,
-                           "usac_default": cv2.USAC_DEFAULT, "ransac": cv2.RANSAC}[s.estimator]
+        self._estimator = {
+            "magsac": cv2.USAC_MAGSAC,
+            "usac_accurate": cv2.USAC_ACCURATE,
+            "usac_default": cv2.USAC_DEFAULT,
+            "ransac": cv2.RANSAC,
+        }[s.estimator]
         self._cache: OrderedDict[Hashable, ImageFeatures] = OrderedDict()
         # inlier counts of pairs already verified, so a second rule over the same candidates
         # (``verified`` and ``margin+verified`` in one evaluation) verifies nothing twice
@@ -225,7 +232,8 @@ class Verifier:
                 f"{name}: {width}x{height} pixels{resized} is too small for geometric verification: local "
                 f"features ({self.settings.features}) need the shorter side to be at least "
                 f"{self.settings.min_side} pixels (verification setting min_side). Verify larger images, "
-                f"or use an acceptance rule without 'verified'")
+                f"or use an acceptance rule without 'verified'"
+            )
 
     def check_paths(self, paths: Sequence[str | os.PathLike]) -> None:
         """Check image sizes from the files' headers (no decoding) before any work; DataError at the
@@ -280,7 +288,7 @@ class Verifier:
             points = np.array([kp.pt for kp in keypoints], dtype=np.float32)
             if len(keypoints) > self.settings.max_features:
                 # AKAZE has no feature budget of its own: keep the strongest responses, as SIFT/ORB do
-                strongest = np.argsort([-kp.response for kp in keypoints], kind="stable")[:self.settings.max_features]
+                strongest = np.argsort([-kp.response for kp in keypoints], kind="stable")[: self.settings.max_features]
                 points, descriptors = points[strongest], descriptors[strongest]
             found = ImageFeatures(points, np.ascontiguousarray(descriptors), grey.shape[::-1])
         self.stats["seconds_describe"] += time.perf_counter() - t0
@@ -300,8 +308,9 @@ class Verifier:
             return np.zeros((0, 2), np.float32), np.zeros((0, 2), np.float32)
         distance_type = cv2.CV_32F if self._norm == cv2.NORM_L2 else cv2.CV_32S
         # batchDistance returns the two nearest as arrays: no per-match DMatch objects to unpack
-        distances, nearest = cv2.batchDistance(query.descriptors, reference.descriptors, distance_type,
-                                               normType=self._norm, K=2)
+        distances, nearest = cv2.batchDistance(
+            query.descriptors, reference.descriptors, distance_type, normType=self._norm, K=2
+        )
         keep = distances[:, 0] < self.settings.ratio * distances[:, 1]
         return query.points[keep], reference.points[nearest[keep, 0]]
 
@@ -315,18 +324,25 @@ class Verifier:
         count = 0
         if len(q) >= MINIMAL_MATCHES[s.model]:
             if s.model == "fundamental":
-                _, mask = cv2.findFundamentalMat(q, r, self._estimator, float(s.threshold), float(s.confidence),
-                                                 s.max_iterations)
+                _, mask = cv2.findFundamentalMat(
+                    q, r, self._estimator, float(s.threshold), float(s.confidence), s.max_iterations
+                )
             else:
-                _, mask = cv2.findHomography(q, r, self._estimator, float(s.threshold), maxIters=s.max_iterations,
-                                             confidence=float(s.confidence))
+                _, mask = cv2.findHomography(
+                    q, r, self._estimator, float(s.threshold), maxIters=s.max_iterations, confidence=float(s.confidence)
+                )
             count = 0 if mask is None else int(np.count_nonzero(mask))
         self.stats["seconds_match"] += time.perf_counter() - t0
         self.stats["pairs_verified"] += 1
         return count
 
-    def verify(self, query: ImageSource, candidates: Sequence[ImageSource], query_key: Hashable | None = None,
-               candidate_keys: Sequence[Hashable | None] | None = None) -> np.ndarray:
+    def verify(
+        self,
+        query: ImageSource,
+        candidates: Sequence[ImageSource],
+        query_key: Hashable | None = None,
+        candidate_keys: Sequence[Hashable | None] | None = None,
+    ) -> np.ndarray:
         """Inlier counts (len(candidates),) int of ``query`` against each candidate. Pairs of cached
         images (paths, or arrays with keys) verified before are not verified again."""
         keys = list(candidate_keys) if candidate_keys is not None else [None] * len(candidates)
@@ -395,8 +411,10 @@ def verify_candidates(
     retrieved = np.asarray(retrieved)
     scores = np.asarray(scores)
     if retrieved.ndim != 2 or retrieved.shape != scores.shape or retrieved.shape[0] != len(query_paths):
-        raise DataError(f"verification: retrieved {retrieved.shape} and scores {scores.shape} must both be "
-                        f"(queries={len(query_paths)}, k)")
+        raise DataError(
+            f"verification: retrieved {retrieved.shape} and scores {scores.shape} must both be "
+            f"(queries={len(query_paths)}, k)"
+        )
     say = log or (lambda message: None)
     num_queries, k = retrieved.shape
     top = min(settings.top_k, k)
@@ -410,8 +428,10 @@ def verify_candidates(
         candidates = [reference_paths[int(j)] for j in retrieved[i, :top][valid]]
         inliers[i, valid] = verifier.verify(query_paths[i], candidates)
         if (i + 1) % report_every == 0 or i + 1 == num_queries:
-            say(f"verification: {i + 1}/{num_queries} queries, "
-                f"{1000.0 * (time.perf_counter() - t0) / (i + 1):.0f} ms/query")
+            say(
+                f"verification: {i + 1}/{num_queries} queries, "
+                f"{1000.0 * (time.perf_counter() - t0) / (i + 1):.0f} ms/query"
+            )
     out_retrieved, out_scores = retrieved.copy(), scores.copy()
     reranked = bool(settings.rerank and top > 1)
     if reranked:
@@ -473,9 +493,15 @@ def _verified_score(candidates, **values):
     """``verified`` as a score: the inlier count of the best candidate (after re-ranking the
     top-K by inliers when ``rerank``), and that candidate as the match."""
     settings, _ = _rule_settings(values)
-    result = verify_candidates(candidates.query_paths, candidates.reference_paths, candidates.retrieved,
-                               candidates.scores, settings, shared_verifier(settings),
-                               log=lambda message: logger.info(message))
+    result = verify_candidates(
+        candidates.query_paths,
+        candidates.reference_paths,
+        candidates.retrieved,
+        candidates.scores,
+        settings,
+        shared_verifier(settings),
+        log=lambda message: logger.info(message),
+    )
     return result.inliers[:, 0].astype(np.float64), result.retrieved[:, 0]
 
 
@@ -509,12 +535,20 @@ def _depth(values) -> int:
 
 
 def _register() -> None:
-    register_rule(Rule(
-        name="verified",
-        description="geometric verification: inlier count of the best candidate (local features, ratio test, "
-                    "fundamental matrix or homography by MAGSAC); as a gate after '+': at least min_inliers",
-        defaults=dict(RULE_DEFAULTS), score=_verified_score, gate=_verified_gate, depth=_depth,
-        validate=_validate_rule, needs=frozenset({"images"}), check_images=_check_images))
+    register_rule(
+        Rule(
+            name="verified",
+            description="geometric verification: inlier count of the best candidate (local features, ratio test, "
+            "fundamental matrix or homography by MAGSAC); as a gate after '+': at least min_inliers",
+            defaults=dict(RULE_DEFAULTS),
+            score=_verified_score,
+            gate=_verified_gate,
+            depth=_depth,
+            validate=_validate_rule,
+            needs=frozenset({"images"}),
+            check_images=_check_images,
+        )
+    )
 
 
 _register()
