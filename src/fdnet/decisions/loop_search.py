@@ -37,6 +37,7 @@ from collections import deque
 
 import numpy as np
 
+from fdnet.matching.index import one_faiss_thread
 from fdnet.matching.sequence import DEFAULT_VELOCITIES, SequenceRow, sequence_reach
 
 #: maps of at least this many places are searched through the index (``search="auto"``)
@@ -92,7 +93,7 @@ class IndexedCandidates:
             if not isinstance(self._index, CompressedIndex):
                 self._index = CompressedIndex(self.dim)
             # a frame's add on one thread; training and the first bulk encoding keep every thread
-            with _one_faiss_thread() if len(self._index) else contextlib.nullcontext():
+            with one_faiss_thread() if len(self._index) else contextlib.nullcontext():
                 self._index.sync(vectors)  # it trains again itself as the map grows
             return
         if self._index is None or count >= 4 * max(self._trained_on, 1):
@@ -102,7 +103,7 @@ class IndexedCandidates:
             self._index.build()
             self._trained_on = count
         elif count > len(self._index):
-            with _one_faiss_thread():  # a frame or a few: training and bulk adds keep every thread
+            with one_faiss_thread():  # a frame or a few: training and bulk adds keep every thread
                 self._index.add(vectors[len(self._index) : count])
 
     def _compressed(self, count: int) -> bool:
@@ -144,7 +145,7 @@ class IndexedCandidates:
         self.sync(vectors)
         ids, sims = np.zeros(0, np.int64), np.zeros(0, np.float32)
         if count:
-            with _one_faiss_thread():
+            with one_faiss_thread():
                 if self._compressed(count):  # exact similarities of the short list's best
                     found, scores = self._index.search(v[None], min(self.neighbours, count), vectors)
                 else:
@@ -231,18 +232,3 @@ class _RecentRow(SequenceRow):
             hit = (self.ids[at] == wanted) & self.informative[wanted]
             values[inside] = np.where(hit, self.sims[at], self.neutral)
         return values, inside | padded
-
-
-class _one_faiss_thread:
-    """faiss on one thread for one frame's add and search: OpenMP's start and barrier cost more
-    than a single vector's work (7 ms against well under 1 ms on 2 shared cores)."""
-
-    def __enter__(self):
-        import faiss
-
-        self._faiss = faiss
-        self._threads = faiss.omp_get_max_threads()
-        faiss.omp_set_num_threads(1)
-
-    def __exit__(self, *exc):
-        self._faiss.omp_set_num_threads(self._threads)

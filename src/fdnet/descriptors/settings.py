@@ -200,20 +200,20 @@ class MethodSettings:
 
 def whole_number(value) -> int | None:
     """``value`` as an int when it is a whole number (an int, a float or text with no fraction;
-    not a bool), else None."""
-    if isinstance(value, bool):
-        return None
+    not a bool), else None: :func:`fdnet.data.images.whole_number`'s rule, with numeric text
+    read as YAML would and a refusal as None."""
+    from fdnet.data.images import whole_number as whole
+
     if isinstance(value, str):
         try:
             value = float(value) if any(c in value for c in ".eE") else int(value)
         except ValueError:
             return None
-    if isinstance(value, float):
-        return int(value) if math.isfinite(value) and value.is_integer() else None
     try:
-        return int(value) if int(value) == value else None
-    except (TypeError, ValueError):
+        number = whole(value)
+    except (TypeError, ValueError, OverflowError):
         return None
+    return number if number == value else None
 
 
 def _range_text(what: str, minimum, maximum) -> str:

@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from fdnet.errors import ConfigError, DataError
+from fdnet.matching.index import IndexSettings, ivf_lists_for, one_faiss_thread, serialised_bytes
 
 #: rows read from the vector file per chunk while (re-)encoding the map
 CHUNK_ROWS = 65_536
@@ -247,8 +248,6 @@ class CompressedIndex:
             self._index.add(_rows(vectors, start, min(count, start + CHUNK_ROWS)))
 
     def _train(self, vectors, count: int) -> None:
-        from fdnet.matching.index import IndexSettings, ivf_lists_for
-
         faiss = self._faiss
         s = self.settings
         # at least 39 points per cell and per 4-bit codebook entry (16 of them): faiss's k-means floor
@@ -274,12 +273,8 @@ class CompressedIndex:
             clustering = faiss.Clustering(self.dim, lists)
             clustering.train(sample, faiss.IndexFlatIP(self.dim))
             centroids = faiss.vector_float_to_array(clustering.centroids).reshape(lists, self.dim)
-            threads = faiss.omp_get_max_threads()
-            faiss.omp_set_num_threads(1)
-            try:
+            with one_faiss_thread():
                 quantizer.add(centroids)
-            finally:
-                faiss.omp_set_num_threads(threads)
         index.train(sample)  # the codebooks (and, below HNSW_LISTS, the cells)
         index.nprobe = min(s.probe, lists)
         self._index, self.trained_on = index, count
@@ -315,18 +310,7 @@ class CompressedIndex:
     def memory_bytes(self) -> int:
         """What the index holds in memory: its codes and ids, lists' centroids and codebooks (as
         faiss serialises them, counted without a copy)."""
-        if self._index is None:
-            return 0
-        counter = [0]
-
-        def count(data) -> int:
-            counter[0] += len(data)
-            return len(data)
-
-        writer = self._faiss.PyCallbackIOWriter(count)
-        self._faiss.write_index(self._index, writer)
-        del writer
-        return counter[0]
+        return 0 if self._index is None else serialised_bytes(self._index)
 
     def describe(self) -> dict:
         out = {

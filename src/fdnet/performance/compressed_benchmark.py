@@ -184,20 +184,16 @@ def compressed_rows(
 
 
 def _query_rows(index, file, queries, reference_ids, reference_scores) -> dict:
-    import faiss
+    from fdnet.matching.index import one_faiss_thread
 
     times, ids, scores = [], [], []
-    threads = faiss.omp_get_max_threads()
-    faiss.omp_set_num_threads(1)  # one query at a time, as a robot: OpenMP's start costs more than it saves
-    try:
+    with one_faiss_thread():  # one query at a time, as a robot: OpenMP's start costs more than it saves
         for q in queries:
             t0 = time.perf_counter()
             i, s = index.search(q[None], 2, file)
             times.append(time.perf_counter() - t0)
             ids.append(i[0])
             scores.append(s[0])
-    finally:
-        faiss.omp_set_num_threads(threads)
     ids, scores = np.array(ids), np.array(scores)
     same_place = ids[:, 0] == reference_ids[:, 0]
     margin = reference_scores[:, 0] - reference_scores[:, 1]
@@ -219,17 +215,10 @@ def _query_rows(index, file, queries, reference_ids, reference_scores) -> dict:
 def _gemv_ms_scaled(file, size: int, rows: int = 100_000) -> float:
     """ms of one matrix-vector product over ``rows`` places held in memory (one thread), scaled to
     ``size`` places: what the exhaustive search costs at the least."""
-    from threadpoolctl import threadpool_limits
+    from fdnet.performance.timing import gemv_ms
 
     block = file.read(0, min(rows, size))
-    v = block[0].copy()
-    times = []
-    with threadpool_limits(1, user_api="blas"):
-        for _ in range(5):
-            t0 = time.perf_counter()
-            block @ v
-            times.append(time.perf_counter() - t0)
-    return 1e3 * float(np.median(times)) * size / len(block)
+    return gemv_ms(block) * size / len(block)
 
 
 def _line(row: dict) -> str:

@@ -23,6 +23,7 @@ from typing import Callable
 import numpy as np
 
 from fdnet.descriptors.base import Descriptor
+from fdnet.performance.timing import gemv_ms
 
 DEFAULT_SIZES = (10_000, 100_000, 1_000_000)
 
@@ -104,7 +105,7 @@ def loop_rows(
             matches = np.array(decided[search])[revisits]
             decided[search + "_ms"] = 1e3 * float(np.median(times[route:]))
             decided[search + "_recall"] = float(np.mean(np.abs(matches - truth) <= 1))
-        gemv = _gemv_ms(earlier)
+        gemv = gemv_ms(earlier)
         # on the revisits, where a decision can be right (the first pass's best places are noise)
         agree = float(np.mean(np.array(decided["exact"])[route:] == np.array(decided["index"])[route:]))
         row = {
@@ -138,21 +139,6 @@ def loop_rows(
         )
         del earlier
     return rows
-
-
-def _gemv_ms(vectors: np.ndarray, repeats: int = 5) -> float:
-    """Median ms of one (places x dim) @ (dim,) product on one thread: the reference for the
-    exhaustive search, which reads every vector once per frame."""
-    from threadpoolctl import threadpool_limits
-
-    v = vectors[0].copy()
-    times = []
-    with threadpool_limits(1, user_api="blas"):
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            vectors @ v
-            times.append(time.perf_counter() - t0)
-    return 1e3 * float(np.median(times)) if times else math.nan
 
 
 def per_frame_rows(

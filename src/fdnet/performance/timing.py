@@ -9,6 +9,7 @@ are shared and noisy), the command prints what it measured.
 
 from __future__ import annotations
 
+import math
 import statistics
 import time
 from dataclasses import dataclass, field
@@ -61,6 +62,21 @@ def gemm_gflops(size: int = 1024, repeats: int = 5, dtype: str = "fp32", device=
 
     seconds = median_seconds(run, repeats=repeats, warmup=2)
     return 2 * size**3 / seconds / 1e9
+
+
+def gemv_ms(vectors: np.ndarray, repeats: int = 5) -> float:
+    """Median ms of one (places x dim) @ (dim,) product on one thread: the reference for the
+    exhaustive search, which reads every vector once per frame."""
+    from threadpoolctl import threadpool_limits
+
+    v = vectors[0].copy()
+    times = []
+    with threadpool_limits(1, user_api="blas"):
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            vectors @ v
+            times.append(time.perf_counter() - t0)
+    return 1e3 * float(np.median(times)) if times else math.nan
 
 
 def content_flops(config) -> int:

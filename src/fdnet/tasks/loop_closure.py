@@ -85,10 +85,6 @@ class LoopClosureRequest:
         if self.calibration is not None and self.threshold is not None:
             raise ConfigError("give --calibration or --threshold, not both")
 
-    @property
-    def traverse_name(self) -> str:
-        return self.images or self.data
-
 
 def default_calibration(request: LoopClosureRequest):
     """(the calibration to use, the loaded Calibration or None): ``calibration``; else, without
