@@ -164,3 +164,21 @@ def test_many_cells_are_found_through_a_graph_built_the_same_way(monkeypatch):
         runs.append(index.search(queries, 3, places)[0])
     np.testing.assert_array_equal(runs[0][:, 0], np.arange(100))
     np.testing.assert_array_equal(runs[0], runs[1])
+
+
+def test_a_full_disk_refuses_the_add_naming_the_file_and_keeps_the_rows_before(tmp_path, monkeypatch):
+    import errno
+
+    path = tmp_path / "map.vectors"
+    with VectorFile(path, 4) as file:
+        file.extend(np.ones((3, 4), np.float32))
+
+        def full(*args):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        monkeypatch.setattr(os, "pwrite", full)
+        with pytest.raises(DataError, match=r"map\.vectors: cannot write vectors \(No space left on device\)"):
+            file.extend(np.zeros((2, 4), np.float32))
+        monkeypatch.undo()
+        assert len(file) == 3
+        np.testing.assert_array_equal(file.read(0, 3), np.ones((3, 4), np.float32))

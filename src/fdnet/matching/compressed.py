@@ -98,7 +98,10 @@ class VectorFile:
         data = rows.tobytes()
         offset, written = self._count * self._row, 0
         while written < len(data):  # pwrite may write less than asked (a signal, a full disk)
-            done = os.pwrite(self._fd, data[written:], offset + written)
+            try:
+                done = os.pwrite(self._fd, data[written:], offset + written)
+            except OSError as exc:  # the rows counted so far stay; what was written past them is cut on open
+                raise DataError(f"{self.path}: cannot write vectors ({exc.strerror or exc})") from exc
             if done <= 0:
                 raise DataError(f"{self.path}: cannot write vectors (disk full?)")
             written += done
