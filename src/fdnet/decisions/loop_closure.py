@@ -56,6 +56,7 @@ from fdnet.decisions.loop_trust import (  # noqa: F401
 )
 from fdnet.errors import ConfigError, DataError
 from fdnet.matching.database.storage import place_name
+from fdnet.matching.file_rows import FileRows
 
 logger = logging.getLogger(__name__)
 
@@ -177,8 +178,13 @@ class LoopClosureDetector:
         path = Path(database)
         if holds_a_database(path):
             return PlaceDatabase.open(path, descriptor=self.descriptor)
-        # a new file, or what a failed create left (empty, or SQLite without tables): created there
-        return PlaceDatabase.create(path, self.descriptor, method_options=method_options)
+        # a new file, or what a failed create left (empty, or SQLite without tables): created there;
+        # compressed_from also sets from what size it keeps its vectors in a file
+        from fdnet.matching.index import IndexSettings
+
+        compressed_from = self.settings.compressed_from
+        index = None if compressed_from is None else IndexSettings(compressed_from=compressed_from)
+        return PlaceDatabase.create(path, self.descriptor, index=index, method_options=method_options)
 
     def _load_places(self) -> None:
         db = self.database
@@ -306,12 +312,14 @@ class LoopClosureDetector:
         new_segment = bool(new_segment) or gap or t == 0
         if new_segment:
             self.candidates.new_segment(t)
+        # a map whose vectors are in the database's vector file is searched through compressed codes
+        in_file = isinstance(self.map.vectors, FileRows)
         if (
             self.candidates.indexed is None
             and self.search != "exact"
-            and (self.search == "index" or count >= self.index_from)
+            and (self.search == "index" or count >= self.index_from or in_file)
         ):
-            self.candidates.use_index(self.database.dim, self.settings.compressed_from)
+            self.candidates.use_index(self.database.dim, 0 if in_file else self.settings.compressed_from)
         frame = FrameQuery(v, t, count, informative, still, timestamp, position)
         ids, scores, searchable = self.candidates.candidates(frame, self.map, self._seams)
         decision, closure = self._judge(frame, name, ids, scores, searchable)
@@ -528,6 +536,21 @@ class LoopClosureDetector:
             # Another process added places since we last looked: reload, so place indices stay
             # the database's (rare; the whole map is read again).
             self._load_places()
+        else:
+            self._read_stored_vectors(result.places)
+
+    def _read_stored_vectors(self, places: int) -> None:
+        """Once the database keeps its vectors in a file (from its ``compressed_from`` places),
+        the map reads the stored frames from there instead of keeping them in memory."""
+        stored = self.database.stored_vectors(places)
+        if stored is None:
+            return
+        if isinstance(self.map.vectors, FileRows):
+            self.map.vectors.stored(places)
+            return
+        self.map.vectors = stored  # this add reached the size: the copy in memory is dropped
+        if self.candidates.indexed is not None:
+            self.candidates.indexed.compressed_from = 0  # and the index keeps codes, not vectors
 
     def close(self) -> None:
         """Store the frames not stored yet; close the database if the detector opened it."""

@@ -45,7 +45,7 @@ from fdnet.errors import ConfigError, DataError
 
 INDEX_KINDS = ("flat", "hnsw", "ivf", "ivfpq")
 #: settings that only affect searching: may be changed on a saved index
-SEARCH_SETTINGS = ("hnsw_ef_search", "ivf_probe", "refine")
+SEARCH_SETTINGS = ("hnsw_ef_search", "ivf_probe", "refine", "compressed_from")
 MAGIC = b"FDNETIDX"
 FORMAT_VERSION = 1
 
@@ -69,6 +69,10 @@ class IndexSettings:
     refine: int = 0
     #: ivf/ivfpq: vectors k-means is trained on (0 = up to 64 per list, at least 39, all if fewer)
     train_points: int = 0
+    #: a place database (a file, dot-product vectors) of at least this many places keeps its
+    #: vectors in a file beside it and is searched through compressed codes instead of this
+    #: index (:mod:`fdnet.matching.database.vector_store`; never below 4096 places)
+    compressed_from: int = 2_000_000
 
 
 def ivf_lists_for(count: int, settings: IndexSettings) -> int:

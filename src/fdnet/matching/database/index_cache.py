@@ -24,7 +24,7 @@ from fdnet.matching.index import VectorIndex
 #: Suffix of the derived index cache beside a database file (approximate kinds only).
 INDEX_CACHE_SUFFIX = ".fdnet-index"
 #: Index settings that only change how a search runs, not what the built index holds.
-_SEARCH_SETTINGS = ("ivf_probe", "hnsw_ef_search", "refine")
+_SEARCH_SETTINGS = ("ivf_probe", "hnsw_ef_search", "refine", "compressed_from")
 
 
 def index_cache_path(database_path: str, identity: Identity) -> Path | None:

@@ -10,7 +10,7 @@ import uuid
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Callable, Iterable, Iterator, Sequence
+from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
@@ -23,7 +23,16 @@ from fdnet.matching.database.identity import (
     read_index_settings,
 )
 from fdnet.matching.database.index_cache import IndexCache
-from fdnet.matching.database.places import insert_rows, names_present, prepare_batch
+from fdnet.matching.database.places import (
+    ROWS_PER_FETCH,
+    check_query_settings,
+    chunk_parts,
+    insert_rows,
+    names_present,
+    prepare_batch,
+    query_vectors,
+    read_vectors,
+)
 from fdnet.matching.database.storage import (
     MEMORY,
     canonical_json,
@@ -38,11 +47,10 @@ from fdnet.matching.database.storage import (
     use_write_ahead_log,
     write_schema,
 )
+from fdnet.matching.database.vector_store import CompressedPlaces, VectorStore
+from fdnet.matching.file_rows import FileRows
 from fdnet.matching.index import IndexSettings, VectorIndex
 from fdnet.matching.place_map import PlaceMap
-
-#: Rows read from the file per fetch while loading places (bounded memory besides the index).
-_ROWS_PER_FETCH = 65536
 
 
 @dataclass
@@ -94,6 +102,13 @@ class PlaceDatabase:
         self._map = PlaceMap(None if identity.dot_product else identity.dim)
         # The derived index's cache file beside the database (see _refresh).
         self._index_cache = IndexCache(path, identity)
+        # From a size, the vectors' file beside the database (vector_store)
+        self._vector_store = VectorStore(
+            path,
+            identity.dim,
+            identity.database_id,
+            identity.index_settings.compressed_from if identity.dot_product and path != MEMORY else None,
+        )
 
     # ------------------------------------------------------------------ identity
     @property
@@ -187,7 +202,7 @@ class PlaceDatabase:
         db = cls(target, None, identity, similarity)
         # Before the file is touched: refused places given whole must not leave a file behind.
         prepared = (
-            [db._prepare(*_chunk_parts(db.path, chunk), None) for chunk in places]
+            [db._prepare(*chunk_parts(db.path, chunk), None) for chunk in places]
             if isinstance(places, (list, tuple))
             else None
         )
@@ -263,6 +278,7 @@ class PlaceDatabase:
         check_descriptor(self.path, self._identity, descriptor)
 
     def close(self) -> None:
+        self._vector_store.close()
         self._conn.close()
 
     def __enter__(self) -> "PlaceDatabase":
@@ -325,16 +341,12 @@ class PlaceDatabase:
     def _insert_batches(self, conn: sqlite3.Connection, batches: Iterable, allow_duplicates: bool) -> AddResult:
         added, skipped = 0, []
         for chunk in batches:
-            prepared = self._prepare(*_chunk_parts(self.path, chunk), None)
+            prepared = self._prepare(*chunk_parts(self.path, chunk), None)
             if prepared["names"]:
                 kept, refused = self._insert_rows(conn, prepared, allow_duplicates)
                 added += kept
                 skipped.extend(refused)
-        if added:
-            conn.execute("UPDATE fdnet_database SET data_version = data_version + 1")
-        version = conn.execute("SELECT data_version FROM fdnet_database").fetchone()[0]
-        total = conn.execute("SELECT count(*) FROM places").fetchone()[0]
-        return AddResult(added, skipped, int(total), int(version))
+        return self._finish_insert(conn, added, skipped)
 
     def _prepare(self, vectors, names, positions, metadata, fingerprint) -> dict:
         """Check a batch completely before the transaction starts, so a refusal changes nothing."""
@@ -351,10 +363,17 @@ class PlaceDatabase:
 
     def _insert(self, conn: sqlite3.Connection, batch: dict, allow_duplicates: bool) -> AddResult:
         added, skipped = self._insert_rows(conn, batch, allow_duplicates)
+        return self._finish_insert(conn, added, skipped)
+
+    def _finish_insert(self, conn: sqlite3.Connection, added: int, skipped: list[str]) -> AddResult:
+        """Inside the add's transaction: bump the data version and, from the size on, append the
+        new places' vectors to the vector file and record its row count (vector_store)."""
         if added:
             conn.execute("UPDATE fdnet_database SET data_version = data_version + 1")
         version = conn.execute("SELECT data_version FROM fdnet_database").fetchone()[0]
         total = conn.execute("SELECT count(*) FROM places").fetchone()[0]
+        if added and self._vector_store.wanted(total):
+            self._vector_store.store(conn)
         return AddResult(added, skipped, int(total), int(version))
 
     def _insert_rows(self, conn: sqlite3.Connection, batch: dict, allow_duplicates: bool) -> tuple[int, list[str]]:
@@ -371,78 +390,77 @@ class PlaceDatabase:
     def _save_index_cache(self, force: bool = False) -> bool:
         return self._index_cache.save(self._map.index, self._conn, self._loaded_version, self._last_id, force)
 
-    def build_index(self) -> VectorIndex | None:
+    def build_index(self) -> VectorIndex | CompressedPlaces | None:
         """Load every place and build (train) the search index now rather than at the first query,
         and for hnsw/ivf/ivfpq write its cache beside the file (``index_cache_path``) so later
         processes load it instead of building it again. Returns the index (None for methods
-        searched exhaustively with their own similarity)."""
+        searched exhaustively with their own similarity). Above ``compressed_from`` places the
+        compressed codes are trained and encoded here, for this process (they are not cached)."""
         self._refresh()
         if self._map.index is not None:
             self._map.index.build()
-            self._save_index_cache()
+            if not isinstance(self._map.index, CompressedPlaces):
+                self._save_index_cache()
         return self._map.index
 
     def _refresh(self) -> None:
         """Load the places committed since the last call, from one consistent snapshot, a
         bounded number of rows at a time. Vectors of a dot-product database go into its index
-        (loaded from the cache file when it is current, then extended by the newer places)."""
-        built_here = False
+        (loaded from the cache file when it is current, then extended by the newer places), or
+        from ``compressed_from`` places stay in its vector file (vector_store)."""
+        built_here = in_file = False
         with sqlite_errors(self.path, "reading places"):
             with transaction(self._conn, "DEFERRED") as conn:
                 self._check_same_database(conn)
                 version = conn.execute("SELECT data_version FROM fdnet_database").fetchone()[0]
                 if version == self._loaded_version:
                     return
-                vectors_after = self._last_id
-                if self.dot_product and self._map.index is None:
-                    self._map.index, cached_last = self._index_cache.load(conn)
-                    vectors_after = max(vectors_after, cached_last)
-                    if self._map.index is None:
-                        self._map.index = VectorIndex(self.dim, self.index_settings)
-                        built_here = True
                 rows = conn.execute(
                     "SELECT id, name, x, y, metadata FROM places WHERE id > ? ORDER BY id", (self._last_id,)
                 )
                 last = self._last_id
-                while chunk := rows.fetchmany(_ROWS_PER_FETCH):
+                while chunk := rows.fetchmany(ROWS_PER_FETCH):
                     self._map.extend(
                         [r[1] for r in chunk],
                         [None if r[2] is None else (r[2], r[3]) for r in chunk],
                         [r[4] for r in chunk],
                     )
                     last = chunk[-1][0]
-                for vectors in self._read_vectors(conn, vectors_after, last):
-                    if self.dot_product:
-                        self._map.index.add(vectors)
-                    else:
-                        self._map.vectors.extend(vectors)
+                in_file = not self.read_only and self._vector_store.wanted(len(self._map))
+                if in_file and not isinstance(self._map.index, CompressedPlaces):
+                    self._map.index = CompressedPlaces(self._vector_store)  # the vectors in memory are dropped
+                elif not in_file:
+                    built_here = self._load_vectors(conn, last)
                 self._last_id = last
                 self._loaded_version = version
         index = self._map.index
-        if built_here and index is not None and index.trainable and len(index) >= 10_000:
+        if in_file:
+            with sqlite_errors(self.path, "reading the vector file"):
+                self._vector_store.cover(self._conn, len(self._map))
+            index.places = len(self._map)
+        elif built_here and index is not None and index.trainable and len(index) >= 10_000:
             # an approximate index worth caching: train it once, here, and keep it
             index.build()
             self._save_index_cache(force=True)
 
-    def _read_vectors(self, conn: sqlite3.Connection, after_id: int, up_to_id: int) -> Iterator[np.ndarray]:
-        """Stored vectors of the places with after_id < id <= up_to_id, in id order, in chunks."""
-        rows = conn.execute(
-            "SELECT id, name, vector FROM places WHERE id > ? AND id <= ? ORDER BY id", (after_id, up_to_id)
-        )
-        width = 4 * self.dim
-        while chunk := rows.fetchmany(_ROWS_PER_FETCH):
-            for row in chunk:
-                if not isinstance(row[2], bytes) or len(row[2]) != width:
-                    raise DataError(
-                        f"{self.path}: place {row[1]!r} (id {row[0]}) has a vector of "
-                        f"{len(row[2]) if isinstance(row[2], bytes) else type(row[2]).__name__} bytes, "
-                        f"expected {width} ({self.dim} float32); the file is damaged"
-                    )
-            yield (
-                np.frombuffer(b"".join(r[2] for r in chunk), dtype="<f4")
-                .reshape(len(chunk), self.dim)
-                .astype(np.float32)
-            )
+    def _load_vectors(self, conn: sqlite3.Connection, last: int) -> bool:
+        """Add the vectors of the places after those loaded so far, up to id ``last``, to the map
+        (its index for a dot-product database, from the cache file when it is current); whether
+        the index was made here (not loaded from the cache)."""
+        built_here = False
+        vectors_after = self._last_id
+        if self.dot_product and self._map.index is None:
+            self._map.index, cached_last = self._index_cache.load(conn)
+            vectors_after = max(vectors_after, cached_last)
+            if self._map.index is None:
+                self._map.index = VectorIndex(self.dim, self.index_settings)
+                built_here = True
+        for vectors in read_vectors(conn, self.path, self.dim, vectors_after, last):
+            if self.dot_product:
+                self._map.index.add(vectors)
+            else:
+                self._map.vectors.extend(vectors)
+        return built_here
 
     @property
     def names(self) -> list[str]:
@@ -468,7 +486,7 @@ class PlaceDatabase:
         if self.dot_product:
             with sqlite_errors(self.path, "reading vectors"):
                 with transaction(self._conn, "DEFERRED") as conn:
-                    chunks = list(self._read_vectors(conn, 0, self._last_id))
+                    chunks = list(read_vectors(conn, self.path, self.dim, 0, self._last_id))
             return np.concatenate(chunks) if chunks else np.zeros((0, self.dim), dtype=np.float32)
         return self._map.vectors.view()
 
@@ -477,35 +495,35 @@ class PlaceDatabase:
         of its own, with the vectors when asked: the loop-closure detector appends its frames to
         this copy and searches it."""
         self._refresh()
-        out = PlaceMap(self.dim if vectors else None)
-        out.extend(self._map.names, self._map.positions, self._map.metadata_text, self.vectors if vectors else None)
+        in_file = vectors and isinstance(self._map.index, CompressedPlaces)
+        out = PlaceMap(self.dim if vectors and not in_file else None)
+        out.extend(
+            self._map.names,
+            self._map.positions,
+            self._map.metadata_text,
+            self.vectors if out.vectors is not None else None,
+        )
+        if in_file:  # read from the vector file as they are needed
+            out.vectors = self._vector_store.rows(len(out))
         return out
+
+    def stored_vectors(self, count: int) -> FileRows | None:
+        """The first ``count`` places' vectors as rows of the vector file, when the database keeps
+        its vectors there (above ``compressed_from`` places) and the file, as this process last
+        opened or wrote it, holds them; else None."""
+        file = self._vector_store.file()
+        return None if file is None or len(file) < count else self._vector_store.rows(count)
 
     def query(self, vectors: np.ndarray, k: int = 5, searchable: int | None = None) -> list[list[Match]]:
         """Top-``k`` stored places per query vector, best first, among the first ``searchable``
         places (None: every place; a robot's own last frames are left out by the caller, e.g.
         ``fdnet database query --exclude-last``). Places other processes added since the last
         call are included."""
-        if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
-            raise ConfigError(f"{self.path}: top-k must be a whole number of at least 1, got {k!r}")
-        if searchable is not None and (
-            isinstance(searchable, bool) or not isinstance(searchable, (int, np.integer)) or searchable < 0
-        ):
-            raise ConfigError(f"{self.path}: searchable must be a whole number of places, got {searchable!r}")
+        check_query_settings(self.path, k, searchable)
         self._refresh()
-        count = len(self._map)
-        if count == 0:
+        if len(self._map) == 0:
             raise ConfigError(f"{self.path}: the place database is empty: add places before querying")
-        q = np.asarray(vectors, dtype=np.float32)
-        if q.ndim == 1:
-            q = q[None]
-        if q.ndim != 2 or q.shape[1] != self.dim:
-            raise ConfigError(
-                f"{self.path}: holds {self.dim}-d vectors ({self.method}), " f"got queries of shape {q.shape}"
-            )
-        bad = np.flatnonzero(~np.isfinite(q).all(axis=1))
-        if len(bad):
-            raise DataError(f"{self.path}: query vector(s) {', '.join(map(str, bad[:5]))} are not finite (NaN or inf)")
+        q = query_vectors(self.path, self.dim, self.method, vectors)
         if self._map.index is None and self.similarity is None:
             raise ConfigError(
                 f"{self.path}: method {self.method!r} compares vectors with its own similarity; "
@@ -576,11 +594,3 @@ class PlaceDatabase:
             "created": ident.created,
             "fdnet_version": ident.fdnet_version,
         }
-
-
-def _chunk_parts(path, chunk) -> tuple:
-    """(vectors, names, positions, metadata) of a chunk of places given as (vectors, names) or
-    (vectors, names, positions, metadata)."""
-    if not isinstance(chunk, (tuple, list)) or len(chunk) not in (2, 4):
-        raise ConfigError(f"{path}: a batch must be (vectors, names) or (vectors, names, positions, metadata)")
-    return (chunk[0], chunk[1], *((chunk[2], chunk[3]) if len(chunk) == 4 else (None, None)))

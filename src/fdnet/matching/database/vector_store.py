@@ -1,0 +1,168 @@
+"""A large place database's vectors in a file beside it, searched through compressed codes.
+
+Below ``compressed_from`` places (an :class:`~fdnet.matching.index.IndexSettings` field, never
+below :data:`COMPRESSED_FLOOR`) a dot-product database keeps its vectors in memory, in its
+search index. From there on (a database in a file, opened writable):
+
+* every add also appends the new places' vectors to ``map.db.vectors``
+  (:class:`~fdnet.matching.compressed.VectorFile`: float32 rows in place order, no header),
+  made durable (fsync) and counted in the table ``fdnet_vector_file`` in the **same SQLite
+  transaction** as the places. A writer killed before its commit leaves the file longer than
+  the committed count; the next process that opens the file does so under the write lock with
+  that count, which cuts the extra rows off, so the file is the old state again. The add that
+  first reaches the size copies the places stored before it (their SQLite blobs, which stay the
+  database's own copy: export, the index cache's digest and ``vectors`` read them);
+* queries go through :class:`CompressedPlaces`: a
+  :class:`~fdnet.matching.compressed.CompressedIndex` (codes in memory) re-ranking its short
+  list exactly with rows read from the file. The codes are rebuilt by each process from the
+  committed rows on its first query (training, then encoding the file in chunks), not
+  persisted: they are derived from committed rows only, so no crash can leave them stale;
+* the loop-closure detector's map reads its vectors from the file
+  (:class:`~fdnet.matching.file_rows.FileRows`).
+"""
+
+from __future__ import annotations
+
+import logging
+import sqlite3
+from pathlib import Path
+
+import numpy as np
+
+from fdnet.errors import DataError
+from fdnet.matching.file_rows import FileRows
+
+logger = logging.getLogger(__name__)
+
+#: suffix of the vector file beside a database file (``map.db.vectors``)
+VECTOR_FILE_SUFFIX = ".vectors"
+#: no database keeps its vectors in a file below this many places: the compressed codes'
+#: codebooks need places to be trained on (as the loop-closure detector's compressed search)
+COMPRESSED_FLOOR = 4096
+#: rows copied from the SQLite blobs to the file per chunk
+_COPY_ROWS = 16_384
+
+_TABLE = """
+CREATE TABLE IF NOT EXISTS fdnet_vector_file (
+    singleton INTEGER PRIMARY KEY CHECK (singleton = 1),
+    database_id TEXT NOT NULL,
+    rows INTEGER NOT NULL,
+    last_id INTEGER NOT NULL
+)"""
+
+
+def vector_file_path(database_path: str | Path) -> Path:
+    return Path(f"{database_path}{VECTOR_FILE_SUFFIX}")
+
+
+def committed_rows(conn: sqlite3.Connection, database_id: str) -> tuple[int, int]:
+    """(rows, id of the last place among them) the database committed to its vector file; (0,
+    0) before its first add above the size (or for a database built again over the file)."""
+    exists = conn.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'fdnet_vector_file'").fetchone()
+    row = conn.execute("SELECT database_id, rows, last_id FROM fdnet_vector_file").fetchone() if exists else None
+    if row is None or row[0] != database_id:
+        return 0, 0
+    return int(row[1]), int(row[2])
+
+
+class VectorStore:
+    """One database's vector file (see the module docstring): whether the database uses it, and
+    the file opened at the committed row count."""
+
+    def __init__(self, database_path: str, dim: int, database_id: str, threshold: int | None):
+        #: None: this database never keeps its vectors in a file (in memory, not dot product)
+        self.threshold = None if threshold is None else max(int(threshold), COMPRESSED_FLOOR)
+        self.path = vector_file_path(database_path)
+        self.dim = int(dim)
+        self._database_id = database_id
+        self._file = None
+
+    def wanted(self, places: int) -> bool:
+        return self.threshold is not None and places >= self.threshold
+
+    def file(self):
+        """The vector file as last opened (it holds at least the places this process loaded)."""
+        return self._file
+
+    def rows(self, count: int) -> FileRows:
+        """The first ``count`` places' vectors, read from the file."""
+        return FileRows(self.file, count, self.dim)
+
+    def store(self, conn: sqlite3.Connection) -> int:
+        """Inside the caller's write transaction (it holds the lock): open the file at the
+        committed count (cutting off what a killed add left), append the vectors of the places
+        stored since (read from their blobs), fsync, and record the new count; the rows now in
+        the file."""
+        from fdnet.matching.compressed import VectorFile
+
+        rows, last_id = committed_rows(conn, self._database_id)
+        if self._file is None or len(self._file) != rows:
+            self.close()
+            self._file = VectorFile(self.path, self.dim, rows)
+        query = conn.execute("SELECT id, name, vector FROM places WHERE id > ? ORDER BY id", (last_id,))
+        width = 4 * self.dim
+        added = 0
+        while chunk := query.fetchmany(_COPY_ROWS):
+            bad = [r for r in chunk if not isinstance(r[2], bytes) or len(r[2]) != width]
+            if bad:
+                raise DataError(
+                    f"{self.path}: place {bad[0][1]!r} (id {bad[0][0]}) has no {self.dim}-float vector "
+                    "in the database; the file is damaged"
+                )
+            self._file.extend(np.frombuffer(b"".join(r[2] for r in chunk), "<f4").reshape(len(chunk), self.dim))
+            last_id, added = chunk[-1][0], added + len(chunk)
+        if added:
+            self._file.sync()  # durable before the count that promises the rows is committed
+            conn.execute(_TABLE)
+            conn.execute(
+                "INSERT OR REPLACE INTO fdnet_vector_file (singleton, database_id, rows, last_id) VALUES (1, ?, ?, ?)",
+                (self._database_id, rows + added, last_id),
+            )
+            if rows == 0:
+                logger.info("%s: the vectors of %d places are now kept here", self.path, added)
+        return len(self._file)
+
+    def cover(self, conn: sqlite3.Connection, places: int) -> None:
+        """Make the opened file hold at least the first ``places`` committed places (opening it
+        again, under the write lock, after other processes' adds)."""
+        from fdnet.matching.database.storage import transaction
+
+        if self._file is None or len(self._file) < places:
+            with transaction(conn, "IMMEDIATE"):
+                self.store(conn)
+
+    def close(self) -> None:
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+
+class CompressedPlaces:
+    """A database's search index above the size (see the module docstring): the interface of
+    :class:`~fdnet.matching.index.VectorIndex` that :class:`~fdnet.matching.place_map.PlaceMap`
+    and the database use (``len``, ``search``, ``build``), over the first :attr:`places` rows
+    of the store's file."""
+
+    trainable = False  # nothing to cache beside the database: rebuilt from the file
+
+    def __init__(self, store: VectorStore):
+        from fdnet.matching.compressed import CompressedIndex
+
+        self._store = store
+        self._index = CompressedIndex(store.dim)
+        #: places of the map (rows of the file) the index covers
+        self.places = 0
+
+    def __len__(self) -> int:
+        return self.places
+
+    def build(self) -> None:
+        """Train and encode now rather than at the first query."""
+        self._index.sync(self._store.rows(self.places))
+
+    def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        rows = self._store.rows(self.places)
+        return self._index.search(queries, int(k), rows)
+
+    def describe(self) -> dict:
+        return {**self._index.describe(), "vector_file": str(self._store.path)}

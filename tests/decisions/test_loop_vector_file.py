@@ -1,0 +1,148 @@
+"""Loop closure over a database that keeps its vectors in a file (``compressed_from``): the map reads
+them from there (not held in memory), decides as searching every place in memory, and a traverse
+killed with kill -9 while storing a frame resumes to the decisions of an uninterrupted run."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from fdnet.decisions.loop_closure import LoopClosureDetector
+from fdnet.matching.compressed import CompressedIndex
+from fdnet.matching.database import PlaceDatabase
+from fdnet.matching.database.vector_store import COMPRESSED_FLOOR, vector_file_path
+from fdnet.matching.file_rows import FileRows
+from fdnet.matching.index import IndexSettings
+from fdnet.performance.loop_benchmark import StoredVectors
+
+SRC = str(Path(__file__).resolve().parents[2] / "src")
+DIM, MAP, ROUTE = 32, 5000, 40
+SETTINGS = {"exclude_last": 5, "rule": "margin", "threshold": 0.0, "sequence_length": 5}
+
+
+def unit(v: np.ndarray) -> np.ndarray:
+    return (v / np.linalg.norm(v, axis=1, keepdims=True)).astype(np.float32)
+
+
+def earlier_and_route():
+    rng = np.random.default_rng(3)
+    earlier = unit(rng.standard_normal((MAP, DIM)))
+    route = unit(rng.standard_normal((ROUTE, DIM)))
+    frames = np.concatenate(
+        [unit(route + 0.1 * rng.standard_normal(route.shape)), unit(route + 0.1 * rng.standard_normal(route.shape))]
+    )
+    return earlier, frames
+
+
+def database(path, earlier, index=None):
+    db = (
+        PlaceDatabase.create(path, StoredVectors(DIM), index=index)
+        if path
+        else PlaceDatabase.for_descriptor(StoredVectors(DIM))
+    )
+    db.add(earlier, [f"earlier/{i}" for i in range(MAP)])
+    return db
+
+
+def decisions(detector) -> list[tuple[int, bool]]:
+    return [(d.match, d.accepted) for d in detector.decisions]
+
+
+def test_the_map_reads_its_vectors_from_the_file_and_decides_as_every_place(tmp_path):
+    earlier, frames = earlier_and_route()
+    with LoopClosureDetector(StoredVectors(DIM), database(None, earlier), search="exact", **SETTINGS) as exact:
+        for i, v in enumerate(frames):
+            exact.process_vector(v, name=f"traverse/{i}")
+    path = tmp_path / "map.db"
+    database(path, earlier, IndexSettings(compressed_from=COMPRESSED_FLOOR)).close()
+    with LoopClosureDetector(StoredVectors(DIM), path, **SETTINGS) as detector:
+        assert isinstance(detector.map.vectors, FileRows)
+        for i, v in enumerate(frames):
+            detector.process_vector(v, name=f"traverse/{i}")
+            assert detector.map.vectors.in_memory == 0  # each frame, once stored, is read from the file
+        assert isinstance(detector.candidates.indexed._index, CompressedIndex)
+    assert os.path.getsize(vector_file_path(path)) == (MAP + len(frames)) * 4 * DIM
+    # on the revisits whose sequence reaches the place seen before: the same place, accepted alike
+    want, got = decisions(exact)[ROUTE:], decisions(detector)[ROUTE:]
+    found = np.abs(np.array([m for m, _ in want]) - (MAP + np.arange(ROUTE))) <= 1
+    assert found.mean() > 0.9
+    assert [g for g, f in zip(got, found) if f] == [w for w, f in zip(want, found) if f]
+
+
+def test_a_detector_that_makes_its_database_keeps_the_vectors_in_a_file_from_compressed_from(tmp_path):
+    earlier, frames = earlier_and_route()
+    path = tmp_path / "new.db"
+    LoopClosureDetector(StoredVectors(DIM), path, compressed_from=COMPRESSED_FLOOR, **SETTINGS).close()
+    with PlaceDatabase.open(path) as db:
+        assert db.index_settings.compressed_from == COMPRESSED_FLOOR
+        db.add(earlier, [f"earlier/{i}" for i in range(MAP)])
+    assert vector_file_path(path).exists()
+    with LoopClosureDetector(StoredVectors(DIM), path, compressed_from=COMPRESSED_FLOOR, **SETTINGS) as detector:
+        for i, v in enumerate(frames[:3]):
+            detector.process_vector(v, name=f"traverse/{i}")
+        assert isinstance(detector.map.vectors, FileRows) and detector.map.vectors.in_memory == 0
+
+
+TRAVERSE = r"""
+import os, signal, sys
+import numpy as np
+from fdnet.decisions.loop_closure import LoopClosureDetector
+from fdnet.matching import compressed
+from fdnet.performance.loop_benchmark import StoredVectors
+
+path, frames_file, kill_at = sys.argv[1], sys.argv[2], int(sys.argv[3])
+syncs = [0]
+real_sync = compressed.VectorFile.sync
+
+def sync(self):
+    # the frame's row is in the vector file, the transaction that counts it not committed yet
+    syncs[0] += 1
+    if syncs[0] == kill_at:
+        os.kill(os.getpid(), signal.SIGKILL)
+    real_sync(self)
+
+compressed.VectorFile.sync = sync
+frames = np.load(frames_file)
+detector = LoopClosureDetector(StoredVectors(frames.shape[1]), path, exclude_last=5, rule="margin",
+                               threshold=0.0, sequence_length=5)
+with detector:
+    for i, v in enumerate(frames):
+        detector.process_vector(v, name=f"traverse/{i}")
+"""
+
+
+def test_a_traverse_killed_while_storing_a_frame_resumes_to_the_uninterrupted_decisions(tmp_path):
+    earlier, frames = earlier_and_route()
+    small = IndexSettings(compressed_from=COMPRESSED_FLOOR)
+    whole = tmp_path / "whole.db"
+    database(whole, earlier, small).close()
+    with LoopClosureDetector(StoredVectors(DIM), whole, **SETTINGS) as uninterrupted:
+        for i, v in enumerate(frames):
+            uninterrupted.process_vector(v, name=f"traverse/{i}")
+    cut = tmp_path / "cut.db"
+    database(cut, earlier, small).close()
+    np.save(tmp_path / "frames.npy", frames)
+    stop = ROUTE + 7  # among the revisits: frame 47 is killed while it is being stored
+    proc = subprocess.run(
+        [sys.executable, "-c", TRAVERSE, str(cut), str(tmp_path / "frames.npy"), str(stop + 1)],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": SRC},
+        timeout=300,
+    )
+    assert proc.returncode == -signal.SIGKILL, proc.stderr
+    row = 4 * DIM
+    assert os.path.getsize(vector_file_path(cut)) == (MAP + stop + 1) * row  # the killed frame's row
+    with LoopClosureDetector(StoredVectors(DIM), cut, **SETTINGS) as resumed:
+        assert resumed.places == MAP + stop  # ... is not a stored place, and is cut off the file
+        assert os.path.getsize(vector_file_path(cut)) == (MAP + stop) * row
+        resumed.resume(stop)
+        for i in range(stop, len(frames)):
+            resumed.process_vector(frames[i], name=f"traverse/{i}")
+    assert decisions(resumed) == decisions(uninterrupted)
+    assert vector_file_path(cut).read_bytes() == vector_file_path(whole).read_bytes()
