@@ -72,7 +72,9 @@ def register(sub) -> None:
         default=[],
         metavar="KEY=VALUE",
         help="an index setting (repeatable): ivf_lists, ivf_probe, pq_bytes, refine, train_points, "
-        "hnsw_neighbors, hnsw_ef_construction, hnsw_ef_search (see docs/performance.md)",
+        "hnsw_neighbors, hnsw_ef_construction, hnsw_ef_search (see docs/performance.md); "
+        "compressed_from (places, default 2000000: from there the vectors are kept in FILE.vectors "
+        "and searched through compressed codes, see docs/guide.md)",
     )
     add_pipeline_arguments(build)
     add_device_argument(build)

@@ -14,7 +14,9 @@ For each new frame, :class:`LoopClosureDetector`:
 
 **Causal.** Every number a frame's decision uses comes from that frame and frames processed
 before it, and nothing is revised later: the events up to frame t do not depend on frames after t.
-The detector keeps the database's vectors in memory (read once, then appended); which places a
+The detector keeps the database's vectors in memory (read once, then appended), or, once the
+database keeps them in its vector file (its ``compressed_from`` places,
+:mod:`fdnet.matching.database.vector_store`), reads the rows it needs from there; which places a
 frame may match and how each scores (every place, or through an index on large maps) is its
 search, :mod:`fdnet.decisions.loop_candidates`; the detector itself is gates, rule and
 consistency over those candidates, and the storage of each frame.

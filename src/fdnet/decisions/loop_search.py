@@ -24,7 +24,9 @@ Above a larger size (:data:`COMPRESSED_FROM` places by default, the detector's
 ``compressed_from``) step 1's index is :class:`fdnet.matching.compressed.CompressedIndex`
 instead: 4-bit product-quantised codes in memory (tens of bytes per place instead of 4 x dim),
 each frame's short list re-ranked by exact dot products with the stored vectors, so the
-neighbours and their similarities are exact and steps 2 and 3 are unchanged.
+neighbours and their similarities are exact and steps 2 and 3 are unchanged. When the
+database keeps its vectors in a file (:mod:`fdnet.matching.database.vector_store`), ``vectors``
+is a :class:`~fdnet.matching.file_rows.FileRows` and every step reads only the rows it needs.
 
 An approximate search can miss a place the exhaustive one would rank first: the figures of
 ``fdnet benchmark --parts loop`` give the agreement with exhaustive decisions next to the speed.

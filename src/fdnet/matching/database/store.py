@@ -394,13 +394,12 @@ class PlaceDatabase:
         """Load every place and build (train) the search index now rather than at the first query,
         and for hnsw/ivf/ivfpq write its cache beside the file (``index_cache_path``) so later
         processes load it instead of building it again. Returns the index (None for methods
-        searched exhaustively with their own similarity). Above ``compressed_from`` places the
-        compressed codes are trained and encoded here, for this process (they are not cached)."""
+        searched exhaustively with their own similarity). Above ``compressed_from`` places nothing
+        is built here: each process trains its compressed codes at its first query."""
         self._refresh()
-        if self._map.index is not None:
+        if self._map.index is not None and not isinstance(self._map.index, CompressedPlaces):
             self._map.index.build()
-            if not isinstance(self._map.index, CompressedPlaces):
-                self._save_index_cache()
+            self._save_index_cache()
         return self._map.index
 
     def _refresh(self) -> None:
