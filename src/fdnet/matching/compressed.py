@@ -10,17 +10,28 @@ floats). Two pieces keep it to a few tens of bytes per place:
     longer than the committed count, and opening it with that count cuts the rest off, so the
     file is the old state again and a resumed run appends the same rows.
 :class:`CompressedIndex`
-    faiss IVF-PQ fast-scan codes in memory (4-bit product quantisation, ``pq_subvectors`` / 2
-    bytes per place, plus its id in its cell's list); a query scans ``probe`` cells of codes,
-    keeps a short list of ``shortlist`` places and re-ranks them by exact dot products with
-    their float vectors read from the file. The scores returned are exact; only a place outside
-    the short list can be missed. Places are added as they come (one a frame); the cells and
-    codebooks are trained on the first places and trained again (every code re-encoded, read
-    from the file in chunks) when the map has grown ``retrain_growth``-fold since, from an
-    evenly spaced sample with faiss's fixed seeds, so the same map gives the same index and a
-    resumed run replays the same answers. From :data:`HNSW_LISTS` cells (about 4 x 10^6
-    places) a place's cell is found through an HNSW graph over the cells' centroids instead of
-    by comparing it with each of them, which is most of the time of encoding a large map.
+    two codes per place in memory, both in an OPQ rotation of the vectors (learned so that
+    product quantisation loses the least; inner products are unchanged by it): faiss IVF-PQ
+    fast-scan codes (4-bit, ``pq_subvectors`` / 2 bytes a place, plus its id in its cell's list)
+    and finer 8-bit PQ codes (``refine_subvectors`` bytes a place). A query scans ``probe``
+    cells of fast-scan codes (by default one cell: every code) for ``candidates`` places,
+    re-ranks them by the 8-bit codes to a short list of ``shortlist`` places, and re-ranks those
+    by exact dot products with their float vectors read from the file. The scores returned are
+    exact; only a place outside the short list can be missed. Places are added as they come (one
+    a frame); the rotation, cells and codebooks are trained on the first places and trained
+    again (every code re-encoded, read from the file in chunks) when the map has grown
+    ``retrain_growth``-fold since, from an evenly spaced sample with faiss's fixed seeds, so the
+    same map gives the same index and a resumed run replays the same answers. With cells
+    (``lists`` 0: about sqrt(N)), from :data:`HNSW_LISTS` of them (about 4 x 10^6 places) a
+    place's cell is found through an HNSW graph over the cells' centroids instead of by
+    comparing it with each of them, which is most of the time of encoding a large map.
+
+Why two codes: on the benchmark's maps (real FDNet vectors among distractors drawn from their
+Gaussian) the best place wins by 0.01-0.02 of a cosine. 4-bit codes alone, without a rotation,
+left the exhaustive best place out of a 256-place short list for 35 % of the queries at 10^6
+places; in the OPQ rotation they put the exhaustive best two in a 4096-place fast-scan list for
+99 % of them, and the 8-bit codes rank that list well enough that both stay among the 64
+re-ranked exactly (docs/performance.md, *Compressed places*).
 """
 
 from __future__ import annotations
@@ -34,7 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from fdnet.errors import ConfigError, DataError
-from fdnet.matching.index import IndexSettings, ivf_lists_for, one_faiss_thread, serialised_bytes
+from fdnet.matching.index import IndexSettings, ivf_lists_for, one_faiss_thread, pq_bits_for, serialised_bytes
 
 #: rows read from the vector file per chunk while (re-)encoding the map
 CHUNK_ROWS = 65_536
@@ -180,16 +191,43 @@ class CompressedSettings:
     #: 4-bit sub-quantizers per vector (bytes per code: half this), even, dividing the vector
     #: length; 0: dim / 8 (64 for 512 floats: 32 bytes a place), or the nearest even divisor below
     pq_subvectors: int = 0
-    #: inverted lists (0: about sqrt(N), as :func:`~fdnet.matching.index.ivf_lists_for`)
-    lists: int = 0
-    #: lists scanned per query
-    probe: int = 64
-    #: places re-ranked exactly per query (at least k)
-    shortlist: int = 256
+    #: 8-bit sub-quantizers of the second, finer code (its bytes a place), dividing the vector
+    #: length; 0: dim / 4 (128 for 512 floats), or the nearest divisor below
+    refine_subvectors: int = 0
+    #: inverted lists: 1 (the default) scans every code, one list of residuals from the map's
+    #: mean; 0: about sqrt(N), as :func:`~fdnet.matching.index.ivf_lists_for`. On the benchmark's
+    #: maps the exhaustive best two lie in the scanned cells only when about 70 % of them are
+    #: scanned, and scanning 70 % of sqrt(N) lists costs more than scanning one list of all codes
+    #: (3.7x at 2 x 10^5 places: faiss's fast-scan works per list); a map whose places cluster
+    #: (a city's streets) may gain from cells with fewer probed
+    lists: int = 1
+    #: lists scanned per query (0: :data:`PROBE_SHARE` of them)
+    probe: int = 0
+    #: places the fast-scan codes propose per query, re-ranked by the 8-bit codes
+    candidates: int = 4096
+    #: places re-ranked exactly per query (at least k), read from the vector file
+    shortlist: int = 64
+    #: learn an OPQ rotation before quantising (False: the vectors as they are)
+    rotate: bool = True
     #: train the cells and codebooks again when the map has grown this many times since
     retrain_growth: int = 4
-    #: vectors the training samples (0: 64 per list, at least 39 x 16 for the codebooks)
+    #: vectors the training samples (0: 64 per list, at least 39 x 256 for the 8-bit codebooks)
     train_points: int = 0
+
+
+#: share of the cells scanned when ``probe`` is 0: distractors without cluster structure (the
+#: benchmark's) need about this many for the exhaustive best two to lie in the scanned cells
+PROBE_SHARE = 0.7
+# Training on one thread: the rotation and the codebooks are trained on one thread. Their k-means runs many
+# short parallel steps, and on a machine whose cores are busy with other work OpenMP's threads
+# wait for each other at every step: 30-50x slower on two threads than on one, measured on
+# the 2 loaded cores of the benchmark's machine. Only the k-means of an HNSW-path map's many
+# cells (long steps, CompressedIndex._cells) and encoding keep every thread.
+
+#: OPQ's iterations (faiss's default is 50: a fifth of the time, nearly the same rotation) and
+#: the most points it learns from
+OPQ_ITERATIONS = 10
+OPQ_POINTS = 20_000
 
 
 def pq_subvectors_for(dim: int) -> int:
@@ -201,26 +239,39 @@ def pq_subvectors_for(dim: int) -> int:
     return 2
 
 
+def refine_subvectors_for(dim: int) -> int:
+    """The largest divisor of ``dim`` up to dim / 4 (at least 1)."""
+    return next(m for m in range(max(1, dim // 4), 0, -1) if dim % m == 0)
+
+
 def check_compressed(settings: CompressedSettings, dim: int, where: str = "compressed index") -> CompressedSettings:
     if settings.pq_subvectors == 0:
         settings = dataclasses.replace(settings, pq_subvectors=pq_subvectors_for(dim))
-    for name in ("pq_subvectors", "probe", "shortlist", "retrain_growth"):
+    if settings.refine_subvectors == 0:
+        settings = dataclasses.replace(settings, refine_subvectors=refine_subvectors_for(dim))
+    for name in ("pq_subvectors", "refine_subvectors", "candidates", "shortlist", "retrain_growth"):
         value = getattr(settings, name)
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
             raise ConfigError(f"{where}: {name} must be a positive whole number, got {value!r}")
-    if settings.lists < 0 or settings.train_points < 0:
-        raise ConfigError(f"{where}: lists and train_points must be >= 0")
+    if settings.lists < 0 or settings.train_points < 0 or settings.probe < 0:
+        raise ConfigError(f"{where}: lists, probe and train_points must be >= 0")
     if dim % settings.pq_subvectors or settings.pq_subvectors % 2:
         raise ConfigError(
             f"{where}: pq_subvectors={settings.pq_subvectors} must be even and divide the vector " f"length {dim}"
         )
+    if dim % settings.refine_subvectors:
+        raise ConfigError(
+            f"{where}: refine_subvectors={settings.refine_subvectors} must divide the vector length {dim}"
+        )
+    if not isinstance(settings.rotate, bool):
+        raise ConfigError(f"{where}: rotate must be true or false, got {settings.rotate!r}")
     return settings
 
 
 class CompressedIndex:
-    """IVF-PQ fast-scan codes of a map's places with an exact re-rank (see the module docstring).
-    The float vectors stay with the caller (a :class:`VectorFile`, a memory map or an array)
-    and are passed to :meth:`sync` and :meth:`search`."""
+    """Fast-scan and 8-bit codes of a map's places with an exact re-rank (see the module
+    docstring). The float vectors stay with the caller (a :class:`VectorFile`, a memory map or
+    an array) and are passed to :meth:`sync` and :meth:`search`."""
 
     def __init__(self, dim: int, settings: CompressedSettings | None = None):
         import faiss
@@ -228,7 +279,9 @@ class CompressedIndex:
         self.dim = int(dim)
         self.settings = check_compressed(settings or CompressedSettings(), self.dim)
         self._faiss = faiss
-        self._index = None
+        self._index = None  # faiss.IndexRefine: the fast-scan codes, re-ranked by the 8-bit ones
+        self._parts: tuple = ()  # its two indexes (kept referenced while it uses them)
+        self._rotation = None  # the learned OPQ rotation (None: the vectors as they are)
         self.trained_on = 0
 
     def __len__(self) -> int:
@@ -248,7 +301,10 @@ class CompressedIndex:
                 "with the map (rebuild it)"
             )
         for start in range(len(self), count, CHUNK_ROWS):
-            self._index.add(_rows(vectors, start, min(count, start + CHUNK_ROWS)))
+            self._index.add(self._rotated(_rows(vectors, start, min(count, start + CHUNK_ROWS))))
+
+    def _rotated(self, x: np.ndarray) -> np.ndarray:
+        return x if self._rotation is None else self._rotation.apply(np.ascontiguousarray(x, dtype=np.float32))
 
     def _train(self, vectors, count: int) -> None:
         faiss = self._faiss
@@ -258,37 +314,64 @@ class CompressedIndex:
         lists = max(1, min(lists, count // 39))
         # k-means costs lists x points: from HNSW_LISTS lists, 40 points a list (faiss's floor is 39)
         per_list = 64 if lists < HNSW_LISTS else 40
-        wanted = min(count, s.train_points or max(per_list * lists, 39 * 16, 4096))
+        wanted = min(count, s.train_points or max(per_list * lists, 39 * 256, 4096))
         sample = _rows(vectors, np.linspace(0, count - 1, wanted).astype(np.int64))
-        quantizer = faiss.IndexFlatIP(self.dim)
-        if lists >= HNSW_LISTS:
-            # assigning each place to a cell by comparing it with every centroid is most of the
-            # encoding time of a large map (10^7 places x 3162 cells); an HNSW graph over the
-            # centroids finds the nearest one in a few hundred comparisons. It is built on one
-            # thread, so the same centroids give the same graph and a resumed run the same cells.
-            quantizer = faiss.IndexHNSWFlat(self.dim, 32, faiss.METRIC_INNER_PRODUCT)
-            quantizer.hnsw.efSearch = 64
-        index = faiss.IndexIVFPQFastScan(quantizer, self.dim, lists, s.pq_subvectors, 4, faiss.METRIC_INNER_PRODUCT)
-        index.own_fields = True
+        with one_faiss_thread():  # see 'Training on one thread' above
+            self._rotation = self._learn_rotation(sample) if s.rotate else None
+        sample = self._rotated(sample)
+        quantizer = self._cells(sample, lists)
+        base = faiss.IndexIVFPQFastScan(quantizer, self.dim, lists, s.pq_subvectors, 4, faiss.METRIC_INNER_PRODUCT)
+        base.own_fields = True
         quantizer.this.disown()
-        if lists >= HNSW_LISTS:
-            # k-means as faiss's own IVF training runs it (every thread), then the graph on one
-            clustering = faiss.Clustering(self.dim, lists)
-            clustering.train(sample, faiss.IndexFlatIP(self.dim))
-            centroids = faiss.vector_float_to_array(clustering.centroids).reshape(lists, self.dim)
-            with one_faiss_thread():
-                quantizer.add(centroids)
-        index.train(sample)  # the codebooks (and, below HNSW_LISTS, the cells)
-        index.nprobe = min(s.probe, lists)
-        self._index, self.trained_on = index, count
+        # the finer codes: 8 bits a sub-vector once the sample can train 256 centroids each
+        refine = faiss.IndexPQ(self.dim, s.refine_subvectors, pq_bits_for(wanted), faiss.METRIC_INNER_PRODUCT)
+        with one_faiss_thread():  # see 'Training on one thread' above
+            base.train(sample)  # the codebooks (and, below HNSW_LISTS, the cells)
+            refine.train(sample)
+        base.nprobe = min(s.probe or int(np.ceil(PROBE_SHARE * lists)), lists)
+        self._index, self._parts, self.trained_on = faiss.IndexRefine(base, refine), (base, refine), count
+
+    def _learn_rotation(self, sample: np.ndarray):
+        """OPQ's rotation for the 4-bit codes, learned on at most :data:`OPQ_POINTS` of ``sample``."""
+        faiss = self._faiss
+        m = self.settings.pq_subvectors
+        rotation = faiss.OPQMatrix(self.dim, m)
+        codes = faiss.ProductQuantizer(self.dim, m, 4)  # the codes it is learned for: 4-bit
+        rotation.pq = codes
+        rotation.niter = OPQ_ITERATIONS
+        points = sample[np.linspace(0, len(sample) - 1, min(len(sample), OPQ_POINTS)).astype(np.int64)]
+        rotation.train(np.ascontiguousarray(points))
+        rotation.pq = None
+        return rotation
+
+    def _cells(self, sample: np.ndarray, lists: int):
+        """The coarse quantizer: a flat one (trained with the codebooks), or from HNSW_LISTS cells
+        an HNSW graph over centroids found here."""
+        faiss = self._faiss
+        if lists < HNSW_LISTS:
+            return faiss.IndexFlatIP(self.dim)
+        # assigning each place to a cell by comparing it with every centroid is most of the
+        # encoding time of a large map (10^7 places x 3162 cells); an HNSW graph over the
+        # centroids finds the nearest one in a few hundred comparisons. It is built on one
+        # thread, so the same centroids give the same graph and a resumed run the same cells.
+        quantizer = faiss.IndexHNSWFlat(self.dim, 32, faiss.METRIC_INNER_PRODUCT)
+        quantizer.hnsw.efSearch = 64
+        # k-means as faiss's own IVF training runs it (every thread), then the graph on one
+        clustering = faiss.Clustering(self.dim, lists)
+        clustering.train(sample, faiss.IndexFlatIP(self.dim))
+        centroids = faiss.vector_float_to_array(clustering.centroids).reshape(lists, self.dim)
+        with one_faiss_thread():
+            quantizer.add(centroids)
+        return quantizer
 
     def search(
         self, queries: np.ndarray, k: int, vectors, searchable: int | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
         """The best ``k`` of the first ``searchable`` places (None: all) for each query, as
         (place ids, exact dot products), each (Q, k), best first, ties to the lower id, -1 /
-        -inf where the short list held fewer. Codes rank the ``shortlist`` candidates; their
-        float vectors, read from ``vectors``, give the order and the scores."""
+        -inf where the short list held fewer. The fast-scan codes propose ``candidates``, the
+        8-bit codes keep ``shortlist`` of them, and their float vectors, read from ``vectors``,
+        give the order and the scores."""
         q = np.ascontiguousarray(queries, dtype=np.float32)
         self.sync(vectors)
         count = len(self)
@@ -298,8 +381,11 @@ class CompressedIndex:
         if searchable == 0 or k <= 0:
             return out_ids, out_scores
         # the excluded places are the last ones: ask for as many more, then drop them
-        wanted = min(count, max(self.settings.shortlist, k) + count - searchable)
-        _, found = self._index.search(q, wanted)
+        excluded = count - searchable
+        wanted = min(count, max(self.settings.shortlist, k) + excluded)
+        proposed = min(count, max(self.settings.candidates + excluded, wanted))
+        self._index.k_factor = proposed / wanted
+        _, found = self._index.search(self._rotated(q), wanted)
         for row, ids in enumerate(found):
             ids = np.unique(ids[(ids >= 0) & (ids < searchable)])  # sorted: the file is read in order
             if not len(ids):
@@ -311,22 +397,28 @@ class CompressedIndex:
         return out_ids, out_scores
 
     def memory_bytes(self) -> int:
-        """What the index holds in memory: its codes and ids, lists' centroids and codebooks (as
-        faiss serialises them, counted without a copy)."""
-        return 0 if self._index is None else serialised_bytes(self._index)
+        """What the index holds in memory: both codes and the ids, lists' centroids, codebooks (as
+        faiss serialises them, counted without a copy) and the rotation."""
+        if self._index is None:
+            return 0
+        rotation = 0 if self._rotation is None else 4 * self.dim * self.dim
+        return serialised_bytes(self._index) + rotation
 
     def describe(self) -> dict:
+        s = self.settings
         out = {
-            "kind": "ivfpq-fastscan",
+            "kind": "opq-ivfpq-fastscan+pq8" if s.rotate else "ivfpq-fastscan+pq8",
             "dim": self.dim,
             "count": len(self),
             "trained_on": self.trained_on,
-            "bytes_per_code": self.settings.pq_subvectors // 2,
-            "probe": self.settings.probe,
-            "shortlist": self.settings.shortlist,
+            "bytes_per_code": s.pq_subvectors // 2,
+            "refine_bytes_per_code": s.refine_subvectors,
+            "candidates": s.candidates,
+            "shortlist": s.shortlist,
         }
         if self._index is not None:
-            out["lists"] = int(self._index.nlist)
+            out["lists"] = int(self._parts[0].nlist)
+            out["probe"] = int(self._parts[0].nprobe)
         return out
 
 
