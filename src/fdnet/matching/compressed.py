@@ -27,11 +27,12 @@ floats). Two pieces keep it to a few tens of bytes per place:
     comparing it with each of them, which is most of the time of encoding a large map.
 
 Why two codes: on the benchmark's maps (real FDNet vectors among distractors drawn from their
-Gaussian) the best place wins by 0.01-0.02 of a cosine. 4-bit codes alone, without a rotation,
-left the exhaustive best place out of a 256-place short list for 35 % of the queries at 10^6
-places; in the OPQ rotation they put the exhaustive best two in a 4096-place fast-scan list for
-99 % of them, and the 8-bit codes rank that list well enough that both stay among the 64
-re-ranked exactly (docs/performance.md, *Compressed places*).
+Gaussian) the best place wins by 0.01-0.02 of a cosine. 4-bit codes alone (no rotation, 64 of
+about sqrt(N) cells scanned, a 256-place short list) missed the exhaustive best place for 35 %
+of the queries at 10^6 places; in the OPQ rotation, over every code, they put the exhaustive
+best two in a 4096-place fast-scan list for 99 % of them, and the 8-bit codes rank that list
+well enough that both stay among the 64 re-ranked exactly (docs/performance.md, *Compressed
+places*).
 """
 
 from __future__ import annotations
@@ -198,8 +199,8 @@ class CompressedSettings:
     #: mean; 0: about sqrt(N), as :func:`~fdnet.matching.index.ivf_lists_for`. On the benchmark's
     #: maps the exhaustive best two lie in the scanned cells only when about 70 % of them are
     #: scanned, and scanning 70 % of sqrt(N) lists costs more than scanning one list of all codes
-    #: (3.7x at 2 x 10^5 places: faiss's fast-scan works per list); a map whose places cluster
-    #: (a city's streets) may gain from cells with fewer probed
+    #: (faiss's fast-scan works list by list; a whole query at 2 x 10^5 places: 0.070 against
+    #: 0.057 x the exhaustive GEMV); a map whose places cluster may gain from cells, fewer probed
     lists: int = 1
     #: lists scanned per query (0: :data:`PROBE_SHARE` of them)
     probe: int = 0
