@@ -139,8 +139,8 @@ def test_a_traverse_killed_while_storing_a_frame_resumes_to_the_uninterrupted_de
     row = 4 * DIM
     assert os.path.getsize(vector_file_path(cut)) == (MAP + stop + 1) * row  # the killed frame's row
     with LoopClosureDetector(StoredVectors(DIM), cut, **SETTINGS) as resumed:
-        assert resumed.places == MAP + stop  # ... is not a stored place, and is cut off the file
-        assert os.path.getsize(vector_file_path(cut)) == (MAP + stop) * row
+        assert resumed.places == MAP + stop  # ... is not a stored place: read-only until the next
+        assert os.path.getsize(vector_file_path(cut)) == (MAP + stop + 1) * row  # add, which cuts it off
         resumed.resume(stop)
         for i in range(stop, len(frames)):
             resumed.process_vector(frames[i], name=f"traverse/{i}")

@@ -54,6 +54,49 @@ def test_vector_file_opened_at_its_committed_count_forgets_an_unfinished_add(tmp
         VectorFile(tmp_path / "v.f32", 4, committed=4)
 
 
+def test_vector_file_opened_read_only_reads_the_committed_rows_and_cuts_nothing(tmp_path):
+    rows = unit(5, 4, 1)
+    with VectorFile(tmp_path / "v.f32", 4) as f:
+        f.extend(rows)  # 5 rows written, 3 committed: an add in progress (or killed) past them
+    with VectorFile(tmp_path / "v.f32", 4, committed=3, read_only=True) as f:
+        assert len(f) == 3 and f.read_only
+        np.testing.assert_array_equal(f.view(), rows[:3])
+        np.testing.assert_array_equal(f.read(0, 10), rows[:3])
+        np.testing.assert_array_equal(f.rows(np.array([2, 0])), rows[[2, 0]])
+        with pytest.raises(ConfigError, match="row ids must be below 3"):
+            f.rows(np.array([3]))
+        for write in (lambda: f.extend(rows[:1]), lambda: f.append(rows[0]), f.sync, lambda: f.truncate(1)):
+            with pytest.raises(ConfigError, match="v.f32: the vector file was opened read-only"):
+                write()
+    assert (tmp_path / "v.f32").stat().st_size == 5 * 4 * 4  # nothing cut
+    with pytest.raises(DataError, match="v.f32: holds 5 vectors, its database committed 6"):
+        VectorFile(tmp_path / "v.f32", 4, committed=6, read_only=True)
+    with pytest.raises(DataError, match="missing.f32: cannot open"):
+        VectorFile(tmp_path / "missing.f32", 4, committed=0, read_only=True)
+    assert not (tmp_path / "missing.f32").exists()  # not created
+
+
+def test_compressed_index_saved_and_loaded_answers_the_same_and_grows_without_training(tmp_path):
+    vectors = unit(6000, 16, 3)
+    index = CompressedIndex(16)
+    index.sync(vectors[:5000])
+    index.save(tmp_path / "codes", {"who": "me"})
+    loaded = CompressedIndex.load(tmp_path / "codes")
+    assert len(loaded) == 5000 and loaded.trained_on == 5000 and loaded.trainings == 0
+    queries = vectors[::500] + 0.01
+    for a, b in zip(index.search(queries, 3, vectors[:5000]), loaded.search(queries, 3, vectors[:5000])):
+        np.testing.assert_array_equal(a, b)
+    loaded.sync(vectors)  # the new places encoded with the loaded codebooks
+    index.sync(vectors)
+    assert len(loaded) == 6000 and loaded.trainings == 0
+    np.testing.assert_array_equal(index.search(queries, 3, vectors)[0], loaded.search(queries, 3, vectors)[0])
+    with pytest.raises(DataError, match="other settings"):
+        CompressedIndex.load(tmp_path / "codes", CompressedSettings(pq_subvectors=4))
+    (tmp_path / "codes").write_bytes((tmp_path / "codes").read_bytes()[:-100])
+    with pytest.raises(DataError, match="codes: the compressed codes file is cut short or damaged"):
+        CompressedIndex.load(tmp_path / "codes")
+
+
 _WRITER = """
 import sys, numpy as np
 from fdnet.matching.compressed import VectorFile

@@ -141,11 +141,11 @@ def test_an_add_killed_after_writing_its_vectors_leaves_the_previous_state_and_a
     with sqlite3.connect(cut) as conn:
         assert conn.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
         assert conn.execute("SELECT rows FROM fdnet_vector_file").fetchone()[0] == 5 * BATCH
-    with PlaceDatabase.open(cut) as db:  # ...but not in the database, and cut off when it is read
+    with PlaceDatabase.open(cut) as db:  # ...but not in the database: a reader reads the committed rows
         assert len(db.names) == 5 * BATCH
-        db.query(batch(0)[0][:2], k=1)
-        assert file_rows(cut) == 5 * BATCH
-    resumed = write(cut)
+        assert db.query(batch(0)[0][:2], k=1)[0][0].index == 0
+        assert file_rows(cut) == 6 * BATCH  # opened read-only: nothing cut, no write lock taken
+    resumed = write(cut)  # the next add cuts the killed add's rows off, then appends the same ones
     assert resumed.returncode == 0 and resumed.stdout.split() == ["added", "5"]
     assert vector_file_path(cut).read_bytes() == vector_file_path(whole).read_bytes()
     with PlaceDatabase.open(cut) as a, PlaceDatabase.open(whole) as b:

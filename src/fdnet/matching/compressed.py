@@ -8,7 +8,8 @@ floats). Two pieces keep it to a few tens of bytes per place:
     append-only. Whoever owns the file records how many rows are committed (a place database:
     in the same transaction as the places); an add killed before that commit leaves the file
     longer than the committed count, and opening it with that count cuts the rest off, so the
-    file is the old state again and a resumed run appends the same rows.
+    file is the old state again and a resumed run appends the same rows. Opened ``read_only``
+    it reads the committed rows and cuts nothing (a reader needs no write lock).
 :class:`CompressedIndex`
     two codes per place in memory, both in an OPQ rotation of the vectors (learned so that
     product quantisation loses the least; inner products are unchanged by it): faiss IVF-PQ
@@ -73,14 +74,17 @@ class VectorFile:
     :class:`~fdnet.matching.place_map.GrowingArray`'s interface (``len``, ``append``,
     ``extend``, ``truncate``, ``view``). ``committed``: the rows the owner recorded as stored;
     longer files are cut to it (an add that was killed), shorter ones are refused (the file was
-    damaged or replaced). None: every whole row in the file counts."""
+    damaged or replaced). None: every whole row in the file counts. ``read_only``: the file must
+    exist, rows past the committed count (an add in progress or killed) are left alone and
+    unread, and writing is refused."""
 
-    def __init__(self, path: str | os.PathLike, dim: int, committed: int | None = None):
+    def __init__(self, path: str | os.PathLike, dim: int, committed: int | None = None, read_only: bool = False):
         self.path = Path(path)
         self.dim = int(dim)
+        self.read_only = bool(read_only)
         self._row = 4 * self.dim
         try:
-            self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+            self._fd = os.open(self.path, os.O_RDONLY if self.read_only else os.O_RDWR | os.O_CREAT, 0o644)
         except OSError as exc:
             raise DataError(f"{self.path}: cannot open the vector file ({exc.strerror or exc})") from exc
         size = os.fstat(self._fd).st_size
@@ -92,7 +96,7 @@ class VectorFile:
                 "file was damaged or replaced"
             )
         self._count = whole if committed is None else int(committed)
-        if size != self._count * self._row:
+        if size != self._count * self._row and not self.read_only:
             os.ftruncate(self._fd, self._count * self._row)  # a killed add's rows: the old state again
             os.fsync(self._fd)
         self._map: np.ndarray | None = None
@@ -103,7 +107,12 @@ class VectorFile:
     def append(self, row) -> None:
         self.extend(np.asarray(row, np.float32)[None])
 
+    def _writable(self) -> None:
+        if self.read_only:
+            raise ConfigError(f"{self.path}: the vector file was opened read-only")
+
     def extend(self, rows: np.ndarray) -> None:
+        self._writable()
         rows = np.ascontiguousarray(rows, dtype=np.float32)
         if rows.ndim != 2 or rows.shape[1] != self.dim:
             raise ConfigError(f"{self.path}: holds {self.dim}-d vectors, got an array of shape {rows.shape}")
@@ -121,10 +130,12 @@ class VectorFile:
 
     def sync(self) -> None:
         """Make the rows written so far durable (before the owner commits their count)."""
+        self._writable()
         os.fsync(self._fd)
 
     def truncate(self, count: int) -> None:
         """Forget the rows from ``count`` on (the file is cut too)."""
+        self._writable()
         self._count = min(int(count), self._count)
         os.ftruncate(self._fd, self._count * self._row)
         self._map = None
@@ -216,6 +227,9 @@ class CompressedSettings:
     train_points: int = 0
 
 
+#: the settings that change what the trained codes are (the others only how a search runs)
+_BUILD_SETTINGS = ("pq_subvectors", "refine_subvectors", "lists", "rotate", "retrain_growth", "train_points")
+
 #: share of the cells scanned when ``probe`` is 0: distractors without cluster structure (the
 #: benchmark's) need about this many for the exhaustive best two to lie in the scanned cells
 PROBE_SHARE = 0.7
@@ -284,6 +298,8 @@ class CompressedIndex:
         self._parts: tuple = ()  # its two indexes (kept referenced while it uses them)
         self._rotation = None  # the learned OPQ rotation (None: the vectors as they are)
         self.trained_on = 0
+        #: times this object trained its rotation, cells and codebooks (not when loaded: :meth:`load`)
+        self.trainings = 0
 
     def __len__(self) -> int:
         return 0 if self._index is None else int(self._index.ntotal)
@@ -331,6 +347,55 @@ class CompressedIndex:
             refine.train(sample)
         base.nprobe = min(s.probe or int(np.ceil(PROBE_SHARE * lists)), lists)
         self._index, self._parts, self.trained_on = faiss.IndexRefine(base, refine), (base, refine), count
+        self.trainings += 1
+
+    def save(self, path: str | os.PathLike, metadata: dict | None = None) -> None:
+        """Write the codes, rotation and settings to ``path`` (:mod:`fdnet.matching.compressed_file`:
+        atomically, checksummed) with ``metadata`` (JSON) for the caller to check on load."""
+        from fdnet.matching.compressed_file import write_codes
+
+        if self._index is None:
+            raise ConfigError("the compressed index holds no places yet: nothing to save")
+        header = {
+            "format": 1,
+            "dim": self.dim,
+            "settings": dataclasses.asdict(self.settings),
+            "count": len(self),
+            "trained_on": self.trained_on,
+            "metadata": metadata or {},
+        }
+        write_codes(path, header, self._rotation, self._index)
+
+    @classmethod
+    def load(
+        cls, path: str | os.PathLike, settings: CompressedSettings | None = None, header: dict | None = None
+    ) -> "CompressedIndex":
+        """The index :meth:`save` wrote to ``path`` (its trailer ``header`` when already read), for
+        ``settings``: a file trained with other build settings is refused (DataError), as is a
+        damaged one; the search settings (candidates, shortlist, probe) are ``settings``'."""
+        from fdnet.matching.compressed_file import read_codes, read_header
+
+        header = read_header(path) if header is None else header
+        index = cls(int(header["dim"]), settings)
+        saved = check_compressed(CompressedSettings(**header["settings"]), index.dim)
+        if any(getattr(saved, k) != getattr(index.settings, k) for k in _BUILD_SETTINGS):
+            raise DataError(f"{path}: the compressed codes were built with other settings")
+        rotation, whole = read_codes(path, header)
+        faiss = index._faiss
+        refined = faiss.downcast_index(whole)
+        base = faiss.downcast_index(refined.base_index) if isinstance(refined, faiss.IndexRefine) else None
+        if (
+            not isinstance(base, faiss.IndexIVFPQFastScan)
+            or int(whole.ntotal) != int(header["count"])
+            or whole.d != index.dim
+            or (rotation is None) == saved.rotate
+        ):
+            raise DataError(f"{path}: the compressed codes file does not hold what its header says")
+        base.nprobe = min(index.settings.probe or int(np.ceil(PROBE_SHARE * base.nlist)), base.nlist)
+        # ``whole`` owns the two indexes; the downcast views are kept with it
+        index._index, index._parts = refined, (base, faiss.downcast_index(refined.refine_index), whole)
+        index._rotation, index.trained_on = rotation, int(header["trained_on"])
+        return index
 
     def _learn_rotation(self, sample: np.ndarray):
         """OPQ's rotation for the 4-bit codes, learned on at most :data:`OPQ_POINTS` of ``sample``."""

@@ -12,6 +12,9 @@ The package, by concern:
   checks before a file is created or opened);
 * :mod:`~fdnet.matching.database.identity`: which model made the vectors (fingerprints);
 * :mod:`~fdnet.matching.database.index_cache`: the derived search index cached beside the file;
+* :mod:`~fdnet.matching.database.vector_store`: from ``compressed_from`` places, the vectors in
+  a file beside it searched through compressed codes, cached by
+  :mod:`~fdnet.matching.database.codes_cache`;
 * :mod:`~fdnet.matching.database.places`: a batch of places checked and inserted.
 
 ``fdnet database build|add|query|info`` as library functions (describe images into a

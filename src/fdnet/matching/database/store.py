@@ -394,12 +394,13 @@ class PlaceDatabase:
         """Load every place and build (train) the search index now rather than at the first query,
         and for hnsw/ivf/ivfpq write its cache beside the file (``index_cache_path``) so later
         processes load it instead of building it again. Returns the index (None for methods
-        searched exhaustively with their own similarity). Above ``compressed_from`` places nothing
-        is built here: each process trains its compressed codes at its first query."""
+        searched exhaustively with their own similarity). Above ``compressed_from`` places the
+        compressed codes are built (or loaded) and cached beside the file (``map.db.fdnet-codes``)."""
         self._refresh()
-        if self._map.index is not None and not isinstance(self._map.index, CompressedPlaces):
+        if self._map.index is not None:
             self._map.index.build()
-            self._save_index_cache()
+            if not isinstance(self._map.index, CompressedPlaces):
+                self._save_index_cache()
         return self._map.index
 
     def _refresh(self) -> None:
@@ -425,7 +426,8 @@ class PlaceDatabase:
                         [r[4] for r in chunk],
                     )
                     last = chunk[-1][0]
-                in_file = not self.read_only and self._vector_store.wanted(len(self._map))
+                in_file = isinstance(self._map.index, CompressedPlaces)
+                in_file = in_file or self._vector_store.usable(conn, len(self._map), self.read_only)
                 if in_file and not isinstance(self._map.index, CompressedPlaces):
                     self._map.index = CompressedPlaces(self._vector_store)  # the vectors in memory are dropped
                 elif not in_file:
@@ -435,7 +437,7 @@ class PlaceDatabase:
         index = self._map.index
         if in_file:
             with sqlite_errors(self.path, "reading the vector file"):
-                self._vector_store.cover(self._conn, len(self._map))
+                self._vector_store.cover(self._conn, len(self._map), self.read_only)
             index.places = len(self._map)
         elif built_here and index is not None and index.trainable and len(index) >= 10_000:
             # an approximate index worth caching: train it once, here, and keep it
