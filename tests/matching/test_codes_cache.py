@@ -6,7 +6,12 @@ a write lock (opened read-only at the committed count)."""
 from __future__ import annotations
 
 import logging
+import os
+import signal
 import sqlite3
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,6 +24,7 @@ from fdnet.matching.database.vector_store import COMPRESSED_FLOOR
 from fdnet.matching.index import IndexSettings
 from fdnet.performance.loop_benchmark import StoredVectors
 
+SRC = str(Path(__file__).resolve().parents[2] / "src")
 DIM, BATCH = 32, 1000
 SMALL = IndexSettings(compressed_from=COMPRESSED_FLOOR)
 
@@ -164,3 +170,46 @@ def test_a_read_only_database_above_the_size_searches_its_vector_file(tmp_path, 
         assert db.build_index().describe()["vector_file"].endswith("map.db.vectors")
     assert trainings[0] == 0  # the cache, read
     assert path.with_name("map.db.vectors").stat().st_size == size
+
+
+KILLED_SAVE = r"""
+import os, signal, sys
+import numpy as np
+from fdnet.matching import compressed_file
+from fdnet.matching.database import PlaceDatabase
+
+def replace(src, dst):  # the new cache is written and fsynced, not renamed yet: die here
+    os.kill(os.getpid(), signal.SIGKILL)
+
+compressed_file.os.replace = replace
+with PlaceDatabase.open(sys.argv[1]) as db:
+    db.build_index()
+"""
+
+
+def test_a_writer_killed_while_saving_the_cache_leaves_the_old_one(tmp_path, trainings):
+    path = tmp_path / "map.db"
+    stored = make(path)
+    with PlaceDatabase.open(path) as db:
+        db.build_index()
+    old = codes_cache_path(path).read_bytes()
+    with PlaceDatabase.open(path) as db:
+        db.add(*batch(5, 1500))  # grown enough that the next process writes the cache again
+    proc = subprocess.run(
+        [sys.executable, "-c", KILLED_SAVE, str(path)],
+        capture_output=True,
+        env={**os.environ, "PYTHONPATH": SRC},
+        timeout=300,
+    )
+    assert proc.returncode == -signal.SIGKILL, proc.stderr
+    assert codes_cache_path(path).read_bytes() == old  # the old cache, whole
+    (left,) = tmp_path.glob("map.db.fdnet-codes.*.tmp")  # and the killed writer's file
+    os.utime(left, (1, 1))  # long abandoned
+    trainings[0] = 0
+    stored = np.concatenate([stored, batch(5, 1500)[0]])
+    with PlaceDatabase.open(path) as db:
+        assert best(db, stored, [*TARGETS, 6499]) == [*TARGETS, 6499]
+        assert db.build_index().describe()["count"] == 6500
+    assert trainings[0] == 0  # the old cache loaded and extended
+    assert not left.exists()  # removed when the cache was written again
+    assert codes_cache_path(path).read_bytes() != old

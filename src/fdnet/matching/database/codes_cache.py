@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import time
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +32,8 @@ logger = logging.getLogger(__name__)
 CODES_CACHE_SUFFIX = ".fdnet-codes"
 #: rows of the vector file whose contents the cache's key includes
 SAMPLED_ROWS = 64
+#: a temporary cache file untouched this long (seconds) was left by a killed writer
+STALE_SECONDS = 3600
 
 
 def codes_cache_path(database_path: str | Path) -> Path:
@@ -90,6 +93,7 @@ class CodesCache:
         grown = len(index) - self.places
         if len(index) == 0 or grown <= 0 or (not force and self.places and grown < max(1000, 0.05 * self.places)):
             return False
+        self._remove_stale()
         try:
             index.save(self.path, {"database_id": self._database_id, "rows": rows_digest(file, len(index))})
         except (OSError, DataError) as exc:
@@ -97,3 +101,14 @@ class CodesCache:
             return False
         self.places = len(index)
         return True
+
+    def _remove_stale(self) -> None:
+        """Delete temporary cache files a killed writer left (a writer at work touches its own
+        every few seconds; one untouched for :data:`STALE_SECONDS` is abandoned)."""
+        for temporary in self.path.parent.glob(f"{self.path.name}.*.tmp"):
+            try:
+                if time.time() - temporary.stat().st_mtime > STALE_SECONDS:
+                    temporary.unlink()
+                    logger.info("%s: removed a cache file a killed writer left", temporary)
+            except OSError:
+                pass
