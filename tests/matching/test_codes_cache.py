@@ -175,13 +175,12 @@ def test_a_read_only_database_above_the_size_searches_its_vector_file(tmp_path, 
 KILLED_SAVE = r"""
 import os, signal, sys
 import numpy as np
-from fdnet.matching import compressed_file
 from fdnet.matching.database import PlaceDatabase
 
 def replace(src, dst):  # the new cache is written and fsynced, not renamed yet: die here
     os.kill(os.getpid(), signal.SIGKILL)
 
-compressed_file.os.replace = replace
+os.replace = replace  # the atomic write's rename (fdnet.io.atomic_path)
 with PlaceDatabase.open(sys.argv[1]) as db:
     db.build_index()
 """
@@ -203,7 +202,7 @@ def test_a_writer_killed_while_saving_the_cache_leaves_the_old_one(tmp_path, tra
     )
     assert proc.returncode == -signal.SIGKILL, proc.stderr
     assert codes_cache_path(path).read_bytes() == old  # the old cache, whole
-    (left,) = tmp_path.glob("map.db.fdnet-codes.*.tmp")  # and the killed writer's file
+    (left,) = tmp_path.glob(".map.db.fdnet-codes.*.tmp")  # and the killed writer's file
     os.utime(left, (1, 1))  # long abandoned
     trainings[0] = 0
     stored = np.concatenate([stored, batch(5, 1500)[0]])

@@ -16,13 +16,13 @@ from __future__ import annotations
 import json
 import os
 import struct
-import tempfile
 import zlib
 from pathlib import Path
 
 import numpy as np
 
 from fdnet.errors import DataError
+from fdnet.io import atomic_path
 
 MAGIC = b"FDNETCQ1"
 END = b"FDNETCQE"
@@ -43,47 +43,25 @@ def write_codes(path: str | os.PathLike, header: dict, rotation, index) -> None:
         writer = faiss.VectorIOWriter()
         faiss.write_VectorTransform(rotation, writer)
         rotation_bytes = faiss.vector_to_array(writer.data).tobytes()
-    fd, temporary = tempfile.mkstemp(dir=path.parent, prefix=f"{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as out:
-            out.write(MAGIC)
-            written = [0, 0]  # bytes, CRC-32
+    with atomic_path(path) as temporary, open(temporary, "wb") as out:
+        out.write(MAGIC)
+        written = [0, 0]  # bytes, CRC-32
 
-            def put(data: bytes) -> int:
-                out.write(data)
-                written[0] += len(data)
-                written[1] = zlib.crc32(data, written[1])
-                return len(data)
+        def put(data: bytes) -> int:
+            out.write(data)
+            written[0] += len(data)
+            written[1] = zlib.crc32(data, written[1])
+            return len(data)
 
-            put(rotation_bytes)
-            callback = faiss.PyCallbackIOWriter(put)
-            faiss.write_index(index, callback)
-            del callback  # flushes what it buffered
-            trailer = json.dumps(
-                {**header, "rotation_bytes": len(rotation_bytes), "payload_bytes": written[0], "crc32": written[1]}
-            ).encode()
-            out.write(trailer)
-            out.write(_TAIL.pack(len(trailer), END))
-            out.flush()
-            os.fsync(out.fileno())
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
-    _sync_folder(path.parent)
-
-
-def _sync_folder(folder: Path) -> None:
-    try:
-        fd = os.open(folder, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
+        put(rotation_bytes)
+        callback = faiss.PyCallbackIOWriter(put)
+        faiss.write_index(index, callback)
+        del callback  # flushes what it buffered
+        trailer = json.dumps(
+            {**header, "rotation_bytes": len(rotation_bytes), "payload_bytes": written[0], "crc32": written[1]}
+        ).encode()
+        out.write(trailer)
+        out.write(_TAIL.pack(len(trailer), END))
 
 
 def read_header(path: str | os.PathLike) -> dict:

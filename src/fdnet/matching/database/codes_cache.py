@@ -105,7 +105,7 @@ class CodesCache:
     def _remove_stale(self) -> None:
         """Delete temporary cache files a killed writer left (a writer at work touches its own
         every few seconds; one untouched for :data:`STALE_SECONDS` is abandoned)."""
-        for temporary in self.path.parent.glob(f"{self.path.name}.*.tmp"):
+        for temporary in self.path.parent.glob(f".{self.path.name}.*.tmp"):
             try:
                 if time.time() - temporary.stat().st_mtime > STALE_SECONDS:
                     temporary.unlink()
