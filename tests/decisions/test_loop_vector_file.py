@@ -19,24 +19,9 @@ from fdnet.matching.database.vector_store import COMPRESSED_FLOOR, vector_file_p
 from fdnet.matching.file_rows import FileRows
 from fdnet.matching.index import IndexSettings
 from fdnet.performance.loop_benchmark import StoredVectors
+from tests.decisions.test_loop_compressed import DIM, MAP, ROUTE, SETTINGS, earlier_and_route
 
 SRC = str(Path(__file__).resolve().parents[2] / "src")
-DIM, MAP, ROUTE = 32, 5000, 40
-SETTINGS = {"exclude_last": 5, "rule": "margin", "threshold": 0.0, "sequence_length": 5}
-
-
-def unit(v: np.ndarray) -> np.ndarray:
-    return (v / np.linalg.norm(v, axis=1, keepdims=True)).astype(np.float32)
-
-
-def earlier_and_route():
-    rng = np.random.default_rng(3)
-    earlier = unit(rng.standard_normal((MAP, DIM)))
-    route = unit(rng.standard_normal((ROUTE, DIM)))
-    frames = np.concatenate(
-        [unit(route + 0.1 * rng.standard_normal(route.shape)), unit(route + 0.1 * rng.standard_normal(route.shape))]
-    )
-    return earlier, frames
 
 
 def database(path, earlier, index=None):

@@ -254,6 +254,11 @@ def pq_subvectors_for(dim: int) -> int:
     return 2
 
 
+def probe_for(settings: CompressedSettings, lists: int) -> int:
+    """Lists a query scans: ``probe``, or :data:`PROBE_SHARE` of ``lists`` when it is 0."""
+    return min(settings.probe or int(np.ceil(PROBE_SHARE * lists)), lists)
+
+
 def refine_subvectors_for(dim: int) -> int:
     """The largest divisor of ``dim`` up to dim / 4 (at least 1)."""
     return next(m for m in range(max(1, dim // 4), 0, -1) if dim % m == 0)
@@ -345,7 +350,7 @@ class CompressedIndex:
         with one_faiss_thread():  # see 'Training on one thread' above
             base.train(sample)  # the codebooks (and, below HNSW_LISTS, the cells)
             refine.train(sample)
-        base.nprobe = min(s.probe or int(np.ceil(PROBE_SHARE * lists)), lists)
+        base.nprobe = probe_for(s, lists)
         self._index, self._parts, self.trained_on = faiss.IndexRefine(base, refine), (base, refine), count
         self.trainings += 1
 
@@ -391,7 +396,7 @@ class CompressedIndex:
             or (rotation is None) == saved.rotate
         ):
             raise DataError(f"{path}: the compressed codes file does not hold what its header says")
-        base.nprobe = min(index.settings.probe or int(np.ceil(PROBE_SHARE * base.nlist)), base.nlist)
+        base.nprobe = probe_for(index.settings, base.nlist)
         # ``whole`` owns the two indexes; the downcast views are kept with it
         index._index, index._parts = refined, (base, faiss.downcast_index(refined.refine_index), whole)
         index._rotation, index.trained_on = rotation, int(header["trained_on"])

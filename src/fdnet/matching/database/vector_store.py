@@ -34,6 +34,7 @@ import numpy as np
 
 from fdnet.errors import DataError
 from fdnet.matching.database.codes_cache import CodesCache
+from fdnet.matching.database.places import read_vectors
 from fdnet.matching.file_rows import FileRows
 
 logger = logging.getLogger(__name__)
@@ -43,8 +44,6 @@ VECTOR_FILE_SUFFIX = ".vectors"
 #: no database keeps its vectors in a file below this many places: the compressed codes'
 #: codebooks need places to be trained on (as the loop-closure detector's compressed search)
 COMPRESSED_FLOOR = 4096
-#: rows copied from the SQLite blobs to the file per chunk
-_COPY_ROWS = 16_384
 
 _TABLE = """
 CREATE TABLE IF NOT EXISTS fdnet_vector_file (
@@ -77,6 +76,7 @@ class VectorStore:
         #: None: this database never keeps its vectors in a file (in memory, not dot product)
         self.threshold = None if threshold is None else max(int(threshold), COMPRESSED_FLOOR)
         self.path = vector_file_path(database_path)
+        self._database_path = str(database_path)
         self.dim = int(dim)
         self._database_id = database_id
         self._file = None
@@ -111,18 +111,12 @@ class VectorStore:
         if self._file is None or len(self._file) != rows or self._file.read_only:
             self.close()
             self._file = VectorFile(self.path, self.dim, rows)
-        query = conn.execute("SELECT id, name, vector FROM places WHERE id > ? ORDER BY id", (last_id,))
-        width = 4 * self.dim
+        newest = conn.execute("SELECT max(id) FROM places").fetchone()[0] or 0
         added = 0
-        while chunk := query.fetchmany(_COPY_ROWS):
-            bad = [r for r in chunk if not isinstance(r[2], bytes) or len(r[2]) != width]
-            if bad:
-                raise DataError(
-                    f"{self.path}: place {bad[0][1]!r} (id {bad[0][0]}) has no {self.dim}-float vector "
-                    "in the database; the file is damaged"
-                )
-            self._file.extend(np.frombuffer(b"".join(r[2] for r in chunk), "<f4").reshape(len(chunk), self.dim))
-            last_id, added = chunk[-1][0], added + len(chunk)
+        for vectors in read_vectors(conn, self._database_path, self.dim, last_id, newest):
+            self._file.extend(vectors)
+            added += len(vectors)
+        last_id = max(last_id, newest)
         if added:
             self._file.sync()  # durable before the count that promises the rows is committed
             conn.execute(_TABLE)
