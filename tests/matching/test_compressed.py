@@ -42,6 +42,32 @@ def test_vector_file_appends_reads_and_truncates(tmp_path):
     assert (tmp_path / "v.f32").stat().st_size == 7 * 8 * 4
 
 
+@pytest.mark.parametrize("runs", [1, 10_000])  # read in this thread, or shared among threads
+def test_vector_file_reads_rows_in_any_order_with_repeats_one_read_per_run(tmp_path, monkeypatch, runs):
+    import fdnet.matching.compressed as compressed
+
+    monkeypatch.setattr(compressed, "THREADED_RUNS", runs)
+    rows = unit(3000, 8, 3)
+    rng = np.random.default_rng(4)
+    asked = [
+        np.arange(100, 2100),  # the recent past: one run
+        np.concatenate([np.arange(500, 520), np.arange(10, 14)[::-1], [2999, 0, 10, 500]]),
+        rng.integers(0, 3000, 700),  # scattered, with repeats
+        np.array([], np.int64),
+    ]
+    with VectorFile(tmp_path / "v.f32", 8) as f:
+        f.extend(rows)
+        calls = []
+        real = os.preadv
+        monkeypatch.setattr(os, "preadv", lambda *a: calls.append(a[2]) or real(*a))
+        for ids in asked:
+            np.testing.assert_array_equal(f.rows(ids), rows[ids])
+        scattered = np.unique(asked[2])
+        assert len(calls) == 1 + 4 + len(scattered) - np.count_nonzero(np.diff(scattered) == 1)
+        with pytest.raises(ConfigError, match="row ids must be below 3000"):
+            f.rows(np.array([3, 3000]))
+
+
 def test_vector_file_opened_at_its_committed_count_forgets_an_unfinished_add(tmp_path):
     rows = unit(5, 4, 1)
     with VectorFile(tmp_path / "v.f32", 4) as f:

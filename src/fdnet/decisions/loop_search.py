@@ -39,6 +39,7 @@ from collections import deque
 
 import numpy as np
 
+from fdnet.decisions.loop_recency import NULL_SAMPLE
 from fdnet.matching.index import one_faiss_thread
 from fdnet.matching.sequence import DEFAULT_VELOCITIES, SequenceRow, sequence_reach
 
@@ -54,6 +55,14 @@ NEIGHBOURS = 32
 RESCORED = 64
 #: places sampled to estimate a frame's median similarity (its neutral value)
 MEDIAN_SAMPLE = 512
+
+
+def sample_count(count: int) -> int:
+    """The map size an even sample of the map is drawn over: ``count`` rounded down to a
+    multiple of a sixteenth of its highest power of two (so within 1/16 of it, and the same
+    for every count up to the next multiple)."""
+    step = 1 << max(int(count).bit_length() - 5, 0)
+    return int(count) - int(count) % step
 
 
 class IndexedCandidates:
@@ -79,6 +88,8 @@ class IndexedCandidates:
         self._trained_on = 0
         # per recent frame: (its vector, its neighbours' place ids, its neutral value, places then)
         self._recent: deque = deque(maxlen=max(self.sequence_length, 1))
+        # (the map size it was drawn over, place ids, their vectors, the median's subset of them)
+        self._sample: tuple | None = None
 
     def __len__(self) -> int:
         return 0 if self._index is None else len(self._index)
@@ -112,17 +123,32 @@ class IndexedCandidates:
         # below IVF_FROM places the index is exact anyway, and the codebooks would lack points
         return count >= max(self.compressed_from, IVF_FROM)
 
-    def neutral(self, v: np.ndarray, vectors: np.ndarray, informative: np.ndarray) -> float:
-        """The frame's median similarity over an evenly spaced sample of the informative places."""
-        count = len(informative)
-        if count and informative.all():  # the usual map: every place, no index list to build per frame
-            sample = np.linspace(0, count - 1, min(MEDIAN_SAMPLE, count)).astype(np.int64)
-        else:
-            usable = np.flatnonzero(informative)
-            if not len(usable):
-                return 0.0
-            sample = usable[np.linspace(0, len(usable) - 1, min(MEDIAN_SAMPLE, len(usable))).astype(np.int64)]
-        return float(np.median(vectors[sample] @ v))
+    def map_sample(self, vectors) -> tuple[np.ndarray, np.ndarray]:
+        """(place ids, vectors) of an even sample of :data:`~fdnet.decisions.loop_recency.NULL_SAMPLE`
+        places of the map ``vectors``, held in memory: drawn over the first
+        :func:`sample_count` places, so it depends on the map's size alone (a resumed run draws
+        the same) and is read from the map again only when that has grown by a sixteenth. A map
+        kept in a file would otherwise be read at thousands of scattered rows a frame."""
+        count = sample_count(len(vectors))
+        if self._sample is None or self._sample[0] != count:
+            ids = np.linspace(0, count - 1, min(NULL_SAMPLE, count)).astype(np.int64)
+            rows = np.asarray(vectors[ids], dtype=np.float32)
+            pick = np.linspace(0, len(ids) - 1, min(MEDIAN_SAMPLE, len(ids))).astype(np.int64)
+            self._sample = (count, ids, rows, np.ascontiguousarray(rows[pick]))
+        return self._sample[1], self._sample[2]
+
+    def neutral(self, v: np.ndarray, vectors, informative: np.ndarray) -> float:
+        """The frame's median similarity over :data:`MEDIAN_SAMPLE` informative places of the
+        :meth:`map_sample` (all of its informative places when fewer)."""
+        ids, rows = self.map_sample(vectors)
+        usable = informative[ids]
+        if not usable.any():  # (an empty map too)
+            return 0.0
+        if usable.all():  # the usual map: the subset drawn with the sample
+            return float(np.median(self._sample[3] @ v))
+        rows = rows[usable]
+        pick = np.linspace(0, len(rows) - 1, min(MEDIAN_SAMPLE, len(rows))).astype(np.int64)
+        return float(np.median(rows[pick] @ v))
 
     def new_segment(self) -> None:
         """The next frame starts a new recording: no sequence reaches back past it."""

@@ -380,7 +380,7 @@ def _loop(plan: BenchmarkPlan, workdir: str, report: dict, out) -> None:
         )
     )
     report["loop"] = loop_rows(
-        plan.loop_map_sizes, dim=512, route=route, noise=plan.noise, describe_ms=describe, log=out
+        plan.loop_map_sizes, dim=512, route=route, noise=plan.noise, describe_ms=describe, log=out, workdir=workdir
     )
     if plan.loop_compressed_sizes:
         from fdnet.performance.compressed_benchmark import HEADLINE, compressed_rows

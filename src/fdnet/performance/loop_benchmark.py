@@ -22,7 +22,9 @@ from typing import Callable
 
 import numpy as np
 
+from fdnet.decisions.loop_search import IVF_FROM
 from fdnet.descriptors.base import Descriptor
+from fdnet.matching.database.storage import MEMORY
 from fdnet.performance.timing import gemv_ms
 
 DEFAULT_SIZES = (10_000, 100_000, 1_000_000)
@@ -56,10 +58,11 @@ def loop_rows(
     noise: float = 0.5,
     describe_ms: float | None = None,
     log: Callable[[str], None] = lambda line: None,
+    workdir: str | None = None,
 ) -> list[dict]:
-    """Measure the detector on each map size (see the module docstring); one row per size."""
-    from fdnet.decisions.loop_closure import LoopClosureDetector
-    from fdnet.matching.database import PlaceDatabase
+    """Measure the detector on each map size (see the module docstring); one row per size.
+    ``workdir``: where the compressed path's database and vector file are written (None: that
+    path is not measured)."""
     from fdnet.performance.timing import random_map, revisit_queries
 
     places = random_map(route, dim, seed=7)
@@ -77,68 +80,97 @@ def loop_rows(
         earlier = random_map(int(size), dim, seed=11)
         log(f"  {size:>9,} places: building the map ...")
         decided = {}
-        for search in ("exact", "index"):
-            db = PlaceDatabase.for_descriptor(descriptor)
-            for start in range(0, len(earlier), 100_000):
-                chunk = earlier[start : start + 100_000]
-                db.add(chunk, [f"earlier/{start + i}" for i in range(len(chunk))])
-            detector = LoopClosureDetector(
-                descriptor,
-                db,
-                exclude_last=5,
-                rule="margin",
-                threshold=0.0,
-                sequence_length=10,
-                commit_every=100,
-                search=search,
-            )
-            times = []
-            with detector:
-                for i, vector in enumerate(frames):
-                    t0 = time.perf_counter()
-                    detector.process_vector(vector, name=f"traverse/{i}")
-                    times.append(time.perf_counter() - t0)
-                decided[search] = [d.match for d in detector.decisions]
-            db.close()
+        searches = ("exact", "index", "compressed") if workdir is not None and size >= IVF_FROM else ("exact", "index")
+        for search in searches:
+            times, decided[search] = _decide_route(descriptor, earlier, frames, search, workdir)
             revisits = np.arange(route, 2 * route)
             truth = size + revisits - route
             matches = np.array(decided[search])[revisits]
             decided[search + "_ms"] = 1e3 * float(np.median(times[route:]))
+            decided[search + "_p99_ms"] = 1e3 * float(np.percentile(times[route:], 99))
             decided[search + "_recall"] = float(np.mean(np.abs(matches - truth) <= 1))
         gemv = gemv_ms(earlier)
-        # on the revisits, where a decision can be right (the first pass's best places are noise)
-        agree = float(np.mean(np.array(decided["exact"])[route:] == np.array(decided["index"])[route:]))
-        row = {
-            "map_size": int(size),
-            "dim": dim,
-            "frames": len(frames),
-            "exact_ms": decided["exact_ms"],
-            "index_ms": decided["index_ms"],
-            "gemv_ms": gemv,
-            "agreement": agree,
-            "exact_recall_at_1": decided["exact_recall"],
-            "index_recall_at_1": decided["index_recall"],
-        }
-        if describe_ms is not None:
-            row["describe_ms"] = describe_ms
-            row["fdnet_frames_per_s_exact"] = 1e3 / (describe_ms + row["exact_ms"])
-            row["fdnet_frames_per_s_index"] = 1e3 / (describe_ms + row["index_ms"])
+        row = {"map_size": int(size), "dim": dim, "frames": len(frames), "gemv_ms": gemv}
+        for search in searches:
+            row[f"{search}_ms"] = decided[f"{search}_ms"]
+            row[f"{search}_p99_ms"] = decided[f"{search}_p99_ms"]
+            row[f"{search}_recall_at_1"] = decided[f"{search}_recall"]
+            if search != "exact":
+                # on the revisits, where a decision can be right (the first pass's best places are noise)
+                same = np.array(decided["exact"])[route:] == np.array(decided[search])[route:]
+                row["agreement" if search == "index" else f"{search}_agreement"] = float(np.mean(same))
+            if describe_ms is not None:
+                row["describe_ms"] = describe_ms
+                row[f"fdnet_frames_per_s_{search}"] = 1e3 / (describe_ms + row[f"{search}_ms"])
         rows.append(row)
-        with_fdnet = (
-            ""
-            if describe_ms is None
-            else (
-                f" | with FDNet ({describe_ms:.1f} ms/frame): {row['fdnet_frames_per_s_exact']:.1f} -> "
-                f"{row['fdnet_frames_per_s_index']:.1f} frames/s"
-            )
-        )
-        log(
-            f"  {size:>9,} places: exact {row['exact_ms']:7.2f} ms/frame ({row['exact_ms'] / gemv:5.1f} x one "
-            f"{gemv:.2f} ms GEMV), index {row['index_ms']:6.2f} ms/frame, same place on the revisits {agree:.3f}, "
-            f"R@1 (+-1 place) exact {row['exact_recall_at_1']:.3f} index {row['index_recall_at_1']:.3f}{with_fdnet}"
-        )
+        log(_line(row, searches))
         del earlier
     return rows
+
+
+def _decide_route(descriptor, earlier: np.ndarray, frames: np.ndarray, search: str, workdir) -> tuple[list, list]:
+    """(seconds per frame, matched place per frame) of a detector deciding ``frames`` after the
+    map ``earlier``: ``exact`` / ``index`` in memory; ``compressed`` through a database in a
+    file of ``workdir`` that keeps its vectors in a vector file, searched through compressed codes
+    (the codes' training and first encoding happen on the first frame, which is not timed)."""
+    import tempfile
+
+    from fdnet.decisions.loop_closure import LoopClosureDetector
+    from fdnet.matching.database import PlaceDatabase
+    from fdnet.matching.index import IndexSettings
+
+    with tempfile.TemporaryDirectory(prefix="fdnet-loop-map-", dir=workdir) as scratch:
+        compressed = search == "compressed"
+        db = PlaceDatabase.for_descriptor(
+            descriptor,
+            index=IndexSettings(compressed_from=IVF_FROM) if compressed else None,
+            path=f"{scratch}/map.db" if compressed else MEMORY,
+        )
+        for start in range(0, len(earlier), 100_000):
+            chunk = earlier[start : start + 100_000]
+            db.add(chunk, [f"earlier/{start + i}" for i in range(len(chunk))])
+        detector = LoopClosureDetector(
+            descriptor,
+            db,
+            exclude_last=5,
+            rule="margin",
+            threshold=0.0,
+            sequence_length=10,
+            commit_every=100,
+            search="index" if compressed else search,
+            compressed_from=IVF_FROM if compressed else None,
+        )
+        times = []
+        with detector:
+            for i, vector in enumerate(frames):
+                t0 = time.perf_counter()
+                detector.process_vector(vector, name=f"traverse/{i}")
+                times.append(time.perf_counter() - t0)
+            matches = [d.match for d in detector.decisions]
+        db.close()
+    return times, matches
+
+
+def _line(row: dict, searches) -> str:
+    gemv = row["gemv_ms"]
+    parts = [
+        f"  {row['map_size']:>9,} places: exact {row['exact_ms']:7.2f} ms/frame ({row['exact_ms'] / gemv:5.1f} x one "
+        f"{gemv:.2f} ms GEMV)",
+        f"index {row['index_ms']:6.2f} ms/frame (p99 {row['index_p99_ms']:.2f}), same place on the revisits "
+        f"{row['agreement']:.3f}",
+    ]
+    if "compressed" in searches:
+        parts.append(
+            f"compressed {row['compressed_ms']:6.2f} ms/frame (p99 {row['compressed_p99_ms']:.2f}), same place "
+            f"{row['compressed_agreement']:.3f}"
+        )
+    recall = " ".join(f"{search} {row[f'{search}_recall_at_1']:.3f}" for search in searches)
+    parts.append(f"R@1 (+-1 place) {recall}")
+    line = ", ".join(parts)
+    if "describe_ms" in row:
+        fps = " -> ".join(f"{row[f'fdnet_frames_per_s_{search}']:.1f}" for search in searches)
+        line += f" | with FDNet ({row['describe_ms']:.1f} ms/frame): {fps} frames/s"
+    return line
 
 
 def per_frame_rows(
