@@ -78,3 +78,35 @@ def test_a_resumed_traverse_over_compressed_codes_replays_the_same_decisions(tmp
 def test_compressed_from_is_checked():
     with pytest.raises(ConfigError, match="compressed-from must be a whole number"):
         LoopClosureDetector(StoredVectors(DIM), None, compressed_from=-1, **SETTINGS)
+
+
+def test_the_map_sample_depends_on_the_map_size_alone_and_is_read_again_after_a_sixteenth():
+    from fdnet.decisions.loop_search import IndexedCandidates, sample_count
+
+    assert [sample_count(n) for n in (0, 31, 1000, 1023, 1024, 1087, 1088)] == [0, 31, 992, 992, 1024, 1024, 1088]
+    vectors = unit(np.random.default_rng(5).standard_normal((1200, DIM)))
+
+    class Counted(np.ndarray):
+        reads = 0
+
+        def __getitem__(self, key):
+            if isinstance(key, np.ndarray):
+                Counted.reads += 1
+            return np.asarray(self).__getitem__(key)
+
+    search = IndexedCandidates(DIM, 5)
+    for count, reads in ((1000, 1), (1023, 1), (1024, 2), (1087, 2), (1000, 3)):  # (1000 again: a resumed run)
+        ids, rows = search.map_sample(vectors[:count].view(Counted))
+        assert Counted.reads == reads
+        np.testing.assert_array_equal(ids, np.linspace(0, sample_count(count) - 1, len(ids)).astype(np.int64))
+        np.testing.assert_array_equal(rows, vectors[ids])
+    informative = np.ones(1000, bool)
+    v = vectors[0]
+    pick = np.linspace(0, len(rows) - 1, 512).astype(np.int64)  # the median's 512 of the sample
+    assert search.neutral(v, vectors[:1000], informative) == pytest.approx(float(np.median(rows[pick] @ v)))
+    informative[ids[::2]] = False  # a gate's uninformative places: the median of the sample's others
+    others = rows[1::2]
+    pick = np.linspace(0, len(others) - 1, 496).astype(np.int64)
+    assert search.neutral(v, vectors[:1000], informative) == pytest.approx(float(np.median(others[pick] @ v)))
+    informative[ids] = False
+    assert search.neutral(v, vectors[:1000], informative) == 0.0  # no informative place in the sample

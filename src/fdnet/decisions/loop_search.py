@@ -229,8 +229,28 @@ class IndexedCandidates:
         # just before its start as neutral padding, as the exhaustive path's padded rows do
         first = np.zeros(len(ends), np.int64) if seams is None else seams.first_places(ends)
         pad = sequence_reach(self.sequence_length)
+        if exact:  # every place the sums read, read once (a map in a file: one read, not one a frame)
+            vectors = _Gathered(vectors, self._places_read(ends, len(vectors)))
         rows = [_RecentRow(recent, vectors, informative, first, pad, exact) for recent in self._recent]
         return online_sequence_scores(rows, ends=ends, exact_sums=True)
+
+    def _places_read(self, ends: np.ndarray, count: int) -> np.ndarray:
+        """The places the sums over the recent frames read for ``ends``: each frame's
+        place ``round(end - k x v)``, k frames back, for every velocity (as the scorer reads them)."""
+        velocities = np.asarray(DEFAULT_VELOCITIES, dtype=np.float64)
+        steps = np.arange(len(self._recent))[:, None] * velocities[None, :]
+        places = np.unique(np.rint(ends[None, :] - steps.reshape(-1, 1)).astype(np.int64))
+        return places[(places >= 0) & (places < count)]
+
+
+class _Gathered:
+    """Rows ``ids`` of ``vectors`` read once; indexing by any of those ids reads from memory."""
+
+    def __init__(self, vectors, ids: np.ndarray):
+        self.ids, self.rows = ids, np.asarray(vectors[ids], dtype=np.float32)
+
+    def __getitem__(self, wanted: np.ndarray) -> np.ndarray:
+        return self.rows[np.searchsorted(self.ids, wanted)]
 
 
 class _RecentRow(SequenceRow):
