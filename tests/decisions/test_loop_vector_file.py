@@ -131,3 +131,26 @@ def test_a_traverse_killed_while_storing_a_frame_resumes_to_the_uninterrupted_de
             resumed.process_vector(frames[i], name=f"traverse/{i}")
     assert decisions(resumed) == decisions(uninterrupted)
     assert vector_file_path(cut).read_bytes() == vector_file_path(whole).read_bytes()
+
+
+def test_the_detector_leaves_its_codes_in_the_database_cache_and_the_next_run_loads_them(tmp_path):
+    from fdnet.matching.database.codes_cache import codes_cache_path
+
+    earlier, frames = earlier_and_route()
+    path = tmp_path / "map.db"
+    database(path, earlier, IndexSettings(compressed_from=COMPRESSED_FLOOR)).close()
+    runs = []
+    for run in range(2):  # the same route twice, each run a new session of the database
+        with LoopClosureDetector(StoredVectors(DIM), path, **SETTINGS) as detector:
+            for i, v in enumerate(frames):
+                detector.process_vector(v, name=f"run{run}/{i}")
+            runs.append((detector.candidates.indexed._index, decisions(detector)))
+        if run == 0:
+            cached = codes_cache_path(path).read_bytes()
+    first, second = runs
+    assert first[0].trainings == 1 and first[0].trained_on == MAP  # trained on the database's places ...
+    assert second[0].trainings == 0 and second[0].trained_on == MAP  # ... and loaded, not trained again
+    assert codes_cache_path(path).read_bytes() == cached  # a loaded cache is left as it was
+    # the second run's map holds the first run's frames: its first pass finds their places (either pass)
+    found, at = np.array([m for m, _ in second[1][5:ROUTE]]), MAP + np.arange(5, ROUTE)
+    assert np.mean(np.minimum(np.abs(found - at), np.abs(found - at - ROUTE)) <= 1) > 0.8

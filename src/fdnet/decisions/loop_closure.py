@@ -322,6 +322,9 @@ class LoopClosureDetector:
             and (self.search == "index" or count >= self.index_from or in_file)
         ):
             self.candidates.use_index(self.database.dim, 0 if in_file else self.settings.compressed_from)
+            # codes over the database's places come from (and go to) its codes cache: a run over a
+            # large database does not train them again (a minute at 10^6 places, 15 at 10^7)
+            self.candidates.indexed.codes_source = self.database.codes_cache
         frame = FrameQuery(v, t, count, informative, still, timestamp, position)
         ids, scores, searchable = self.candidates.candidates(frame, self.map, self._seams)
         decision, closure = self._judge(frame, name, ids, scores, searchable)

@@ -90,6 +90,10 @@ class IndexedCandidates:
         self._recent: deque = deque(maxlen=max(self.sequence_length, 1))
         # (the map size it was drawn over, place ids, their vectors, the median's subset of them)
         self._sample: tuple | None = None
+        #: a callable giving (a :class:`~fdnet.matching.database.codes_cache.CodesCache`, the
+        #: vector file it is for), or None: the compressed codes are loaded from that cache when
+        #: it matches the map's first places, and codes trained here are written to it
+        self.codes_source = None
 
     def __len__(self) -> int:
         return 0 if self._index is None else len(self._index)
@@ -103,11 +107,14 @@ class IndexedCandidates:
         if self._compressed(count):
             from fdnet.matching.compressed import CompressedIndex
 
-            if not isinstance(self._index, CompressedIndex):
-                self._index = CompressedIndex(self.dim)
+            first = not isinstance(self._index, CompressedIndex)
+            if first:
+                self._index = self._cached_codes(count) or CompressedIndex(self.dim)
             # a frame's add on one thread; training and the first bulk encoding keep every thread
             with one_faiss_thread() if len(self._index) else contextlib.nullcontext():
                 self._index.sync(vectors)  # it trains again itself as the map grows
+            if first and self._index.trainings:
+                self._save_codes()
             return
         if self._index is None or count >= 4 * max(self._trained_on, 1):
             # below IVF_FROM places exact search is as fast and k-means would have too few points
@@ -118,6 +125,19 @@ class IndexedCandidates:
         elif count > len(self._index):
             with one_faiss_thread():  # a frame or a few: training and bulk adds keep every thread
                 self._index.add(vectors[len(self._index) : count])
+
+    def _cached_codes(self, count: int):
+        """The database's cached codes (:attr:`codes_source`) when they were built from at most its
+        first ``count`` places (the rest are encoded, not trained); else None."""
+        source = self.codes_source() if self.codes_source is not None else None
+        return None if source is None else source[0].load(source[1], count)
+
+    def _save_codes(self) -> None:
+        """Leave codes trained here in the database's cache when each of their places is a row
+        the database has committed to its file (for the next run, and a resumed one)."""
+        source = self.codes_source() if self.codes_source is not None else None
+        if source is not None and len(self._index) <= len(source[1]):
+            source[0].save(self._index, source[1], force=True)
 
     def _compressed(self, count: int) -> bool:
         # below IVF_FROM places the index is exact anyway, and the codebooks would lack points

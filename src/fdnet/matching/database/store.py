@@ -515,6 +515,14 @@ class PlaceDatabase:
         file = self._vector_store.file()
         return None if file is None or len(file) < count else self._vector_store.rows(count)
 
+    def codes_cache(self):
+        """(its :class:`~fdnet.matching.database.codes_cache.CodesCache`, its vector file) when the
+        database keeps its vectors in a file, for a search over its places that builds compressed
+        codes of its own (the loop-closure detector's) to load them from the cache and leave them
+        there; else None."""
+        file = self._vector_store.file()
+        return None if file is None else (self._vector_store.codes, file)
+
     def query(self, vectors: np.ndarray, k: int = 5, searchable: int | None = None) -> list[list[Match]]:
         """Top-``k`` stored places per query vector, best first, among the first ``searchable``
         places (None: every place; a robot's own last frames are left out by the caller, e.g.
