@@ -492,9 +492,8 @@ class PlaceDatabase:
         return self._map.vectors.view()
 
     def place_map(self, vectors: bool = True) -> PlaceMap:
-        """Every place (up to the file's state) as a :class:`~fdnet.matching.place_map.PlaceMap`
-        of its own, with the vectors when asked: the loop-closure detector appends its frames to
-        this copy and searches it."""
+        """Every place (up to the file's state) as a :class:`~fdnet.matching.place_map.PlaceMap` of its
+        own, with the vectors when asked: the loop-closure detector appends its frames to it."""
         self._refresh()
         in_file = vectors and isinstance(self._map.index, CompressedPlaces)
         out = PlaceMap(self.dim if vectors and not in_file else None)
@@ -516,12 +515,8 @@ class PlaceDatabase:
         return None if file is None or len(file) < count else self._vector_store.rows(count)
 
     def codes_cache(self):
-        """(its :class:`~fdnet.matching.database.codes_cache.CodesCache`, its vector file) when the
-        database keeps its vectors in a file, for a search over its places that builds compressed
-        codes of its own (the loop-closure detector's) to load them from the cache and leave them
-        there; else None."""
-        file = self._vector_store.file()
-        return None if file is None else (self._vector_store.codes, file)
+        """(codes cache, vector file) when its vectors are in a file (for the loop detector's codes); else None."""
+        return None if (file := self._vector_store.file()) is None else (self._vector_store.codes, file)
 
     def query(self, vectors: np.ndarray, k: int = 5, searchable: int | None = None) -> list[list[Match]]:
         """Top-``k`` stored places per query vector, best first, among the first ``searchable``
