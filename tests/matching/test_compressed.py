@@ -66,6 +66,13 @@ def test_vector_file_reads_rows_in_any_order_with_repeats_one_read_per_run(tmp_p
         assert len(calls) == 1 + 4 + len(scattered) - np.count_nonzero(np.diff(scattered) == 1)
         with pytest.raises(ConfigError, match="row ids must be below 3000"):
             f.rows(np.array([3, 3000]))
+        # a read that returns less than asked (a 2 GB run, a signal) goes on where it stopped
+        monkeypatch.setattr(os, "preadv", lambda fd, buffers, offset: real(fd, [buffers[0][:100]], offset))
+        np.testing.assert_array_equal(f.rows(asked[1]), rows[asked[1]])
+        f.truncate(2000)  # rows past the end of the file: refused, naming it
+        monkeypatch.setattr(f, "_count", 3000)
+        with pytest.raises(DataError, match="v.f32: the vector file is shorter"):
+            f.rows(np.array([2999]))
 
 
 def test_vector_file_opened_at_its_committed_count_forgets_an_unfinished_add(tmp_path):

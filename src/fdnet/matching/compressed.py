@@ -187,10 +187,15 @@ class VectorFile:
         stops = np.append(starts[1:], len(wanted))
 
         def read(runs: np.ndarray) -> int:
-            return sum(
-                os.preadv(self._fd, [rows[a:b]], int(wanted[a]) * self._row)
-                for a, b in zip(starts[runs].tolist(), stops[runs].tolist())
-            )
+            done = 0
+            for a, b in zip(starts[runs].tolist(), stops[runs].tolist()):
+                buffer, offset = memoryview(rows[a:b]).cast("B"), int(wanted[a]) * self._row
+                while buffer:  # one call reads at most about 2 GB (Linux), or less when interrupted
+                    got = os.preadv(self._fd, [buffer], offset)
+                    if got <= 0:
+                        break  # the file ends early: counted below
+                    buffer, offset, done = buffer[got:], offset + got, done + got
+            return done
 
         runs = np.arange(len(starts))
         if len(runs) <= THREADED_RUNS:
