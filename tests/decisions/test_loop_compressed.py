@@ -110,3 +110,31 @@ def test_the_map_sample_depends_on_the_map_size_alone_and_is_read_again_after_a_
     assert search.neutral(v, vectors[:1000], informative) == pytest.approx(float(np.median(others[pick] @ v)))
     informative[ids] = False
     assert search.neutral(v, vectors[:1000], informative) == 0.0  # no informative place in the sample
+
+
+def test_frames_described_ahead_are_searched_in_one_call_and_decide_the_same(monkeypatch):
+    earlier, frames = earlier_and_route()
+    calls = []
+    real = CompressedIndex.search
+    monkeypatch.setattr(
+        CompressedIndex, "search", lambda self, q, *a, **k: calls.append(len(q)) or real(self, q, *a, **k)
+    )
+    decided = {}
+    for batch in (None, 16, 7):  # one frame at a time (a robot), or batches described ahead (the command)
+        calls.clear()
+        db = PlaceDatabase.for_descriptor(StoredVectors(DIM))
+        db.add(earlier, [f"earlier/{i}" for i in range(MAP)])
+        with LoopClosureDetector(StoredVectors(DIM), db, **SETTINGS, search="index", compressed_from=4096) as detector:
+            for i, v in enumerate(frames):
+                if batch:
+                    detector.look_ahead(frames[i + 1 : (i // batch + 1) * batch])
+                # the second pass is a new recording: a block starts again there
+                detector.process_vector(v, name=f"traverse/{i}", new_segment=i == ROUTE)
+        decided[batch] = [(d.match, d.accepted, d.score) for d in detector.decisions]
+        searched = list(calls)
+        assert sum(searched) == len(frames)  # every frame's neighbours were found once
+        if batch is None:
+            assert set(searched) == {1}
+        else:  # blocks of L - 1 = 4 frames, fewer where a batch or the first pass ends
+            assert max(searched) == 4 and len(searched) < len(frames) / 2
+    assert decided[16] == decided[None] and decided[7] == decided[None]

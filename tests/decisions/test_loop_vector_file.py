@@ -154,3 +154,40 @@ def test_the_detector_leaves_its_codes_in_the_database_cache_and_the_next_run_lo
     # the second run's map holds the first run's frames: its first pass finds their places (either pass)
     found, at = np.array([m for m, _ in second[1][5:ROUTE]]), MAP + np.arange(5, ROUTE)
     assert np.mean(np.minimum(np.abs(found - at), np.abs(found - at - ROUTE)) <= 1) > 0.8
+
+
+def test_a_resume_finds_the_codes_it_started_from_though_another_process_extended_the_cache(tmp_path):
+    from fdnet.matching.compressed_file import read_header
+    from fdnet.matching.database.codes_cache import codes_cache_path
+    from tests.decisions.test_loop_compressed import unit
+
+    earlier, frames = earlier_and_route()
+    later = unit(np.random.default_rng(9).standard_normal((1200, DIM)))  # a later session's places
+    stop = ROUTE + 7
+
+    def make(path):
+        with PlaceDatabase.create(
+            path, StoredVectors(DIM), index=IndexSettings(compressed_from=COMPRESSED_FLOOR)
+        ) as db:
+            db.add(earlier, [f"earlier/{i}" for i in range(MAP)])
+            db.build_index()  # codes trained on MAP places, cached
+            db.add(later, [f"later/{i}" for i in range(len(later))])  # the cache still holds MAP
+        return path
+
+    def run(path, until, resume=0):
+        with LoopClosureDetector(StoredVectors(DIM), path, **SETTINGS) as detector:
+            if resume:
+                detector.resume(resume)
+            for i in range(resume, until):
+                detector.process_vector(frames[i], name=f"traverse/{i}")
+        return detector
+
+    whole = run(make(tmp_path / "whole.db"), len(frames))
+    cut = make(tmp_path / "cut.db")
+    run(cut, stop)  # killed after frame stop - 1 (its frames are stored)
+    with PlaceDatabase.open(cut) as db:  # a query in between extends the cache to every stored place
+        db.build_index()
+    assert read_header(codes_cache_path(cut))["count"] == MAP + len(later) + stop
+    resumed = run(cut, len(frames), resume=stop)
+    assert resumed.candidates.indexed._index.trained_on == whole.candidates.indexed._index.trained_on == MAP
+    assert decisions(resumed) == decisions(whole)

@@ -62,3 +62,26 @@ def test_the_loop_part_measures_the_detector_through_a_file_database_and_compres
     assert "compressed" in lines[-1] and list(tmp_path.iterdir()) == []  # the database and its file are gone
     (small,) = loop_rows([1000], dim=32, route=30, workdir=str(tmp_path))
     assert "compressed_ms" not in small  # below 4096 places there is nothing to compress
+
+
+def test_a_failed_compressed_route_closes_its_database_before_its_folder_goes(tmp_path, monkeypatch):
+    import os
+
+    from fdnet.decisions.loop_closure import LoopClosureDetector
+    from fdnet.performance.loop_benchmark import StoredVectors, _decide_route
+
+    def fail(*args, **kwargs):
+        raise RuntimeError("a frame failed")
+
+    monkeypatch.setattr(LoopClosureDetector, "process_vector", fail)
+    vectors = np.random.default_rng(0).standard_normal((5000, 16)).astype(np.float32)
+    with pytest.raises(RuntimeError, match="a frame failed"):
+        _decide_route(StoredVectors(16), vectors, vectors[:3], "compressed", str(tmp_path))
+    assert list(tmp_path.iterdir()) == []
+    open_files = []
+    for fd in os.listdir("/proc/self/fd"):
+        try:
+            open_files.append(os.readlink(f"/proc/self/fd/{fd}"))
+        except OSError:  # (the listing's own descriptor, closed since)
+            pass
+    assert not [f for f in open_files if f.startswith(str(tmp_path))]  # no deleted file held open

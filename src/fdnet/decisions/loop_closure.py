@@ -126,6 +126,7 @@ class LoopClosureDetector:
             self.close()
             raise
         self._session = uuid.uuid4().hex[:8]
+        self._upcoming: list[np.ndarray] = []  # the next frames' vectors (look_ahead)
         self._start_traverse()
 
     def _start_traverse(self) -> None:
@@ -325,6 +326,9 @@ class LoopClosureDetector:
             # codes over the database's places come from (and go to) its codes cache: a run over a
             # large database does not train them again (a minute at 10^6 places, 15 at 10^7)
             self.candidates.indexed.codes_source = self.database.codes_cache
+        if self.candidates.indexed is not None:
+            self.candidates.indexed.look_ahead(self._upcoming)
+        self._upcoming = []
         frame = FrameQuery(v, t, count, informative, still, timestamp, position)
         ids, scores, searchable = self.candidates.candidates(frame, self.map, self._seams)
         decision, closure = self._judge(frame, name, ids, scores, searchable)
@@ -334,6 +338,12 @@ class LoopClosureDetector:
         if closure is not None:
             self.closures.append(closure)
         return closure
+
+    def look_ahead(self, vectors) -> None:
+        """The vectors of the frames :meth:`process_vector` will get next, in order (a batch
+        already described): on a map searched through compressed codes their neighbours are
+        found in one call with the next frame's. The decisions are the same without it."""
+        self._upcoming = [np.asarray(v, dtype=np.float32).reshape(-1) for v in vectors]
 
     def _checked_frame(self, vector, name: str | None, timestamp) -> tuple[np.ndarray, str]:
         """The frame's vector as float32 and its place name, or a DataError saying what is wrong."""

@@ -94,6 +94,12 @@ class IndexedCandidates:
         #: vector file it is for), or None: the compressed codes are loaded from that cache when
         #: it matches the map's first places, and codes trained here are written to it
         self.codes_source = None
+        # compressed search by blocks (see :meth:`_compressed_neighbours`): frames the block has
+        # left, the places the index holds for it, upcoming frames' results, upcoming vectors
+        self.block = max(self.sequence_length - 1, 1)
+        self._block_left, self._frozen = 0, 0
+        self._ahead: deque = deque()
+        self._upcoming: list = []
 
     def __len__(self) -> int:
         return 0 if self._index is None else len(self._index)
@@ -110,8 +116,9 @@ class IndexedCandidates:
             first = not isinstance(self._index, CompressedIndex)
             if first:
                 self._index = self._cached_codes(count) or CompressedIndex(self.dim)
-            # a frame's add on one thread; training and the first bulk encoding keep every thread
-            with one_faiss_thread() if len(self._index) else contextlib.nullcontext():
+            # a frame's add on one thread; training and bulk encoding (a loaded cache's missing
+            # places too) keep every thread
+            with one_faiss_thread() if count - len(self._index) < 1000 else contextlib.nullcontext():
                 self._index.sync(vectors)  # it trains again itself as the map grows
             if first and self._index.trainings:
                 self._save_codes()
@@ -171,8 +178,50 @@ class IndexedCandidates:
         return float(np.median(rows[pick] @ v))
 
     def new_segment(self) -> None:
-        """The next frame starts a new recording: no sequence reaches back past it."""
+        """The next frame starts a new recording: no sequence reaches back past it (and a new
+        block of the compressed search starts with it)."""
         self._recent.clear()
+        self._block_left = 0
+        self._ahead.clear()
+
+    def look_ahead(self, vectors) -> None:
+        """The vectors of the frames that will come next, in order (a batch already described):
+        the compressed search proposes their neighbours in the same call as the next block's
+        first frame's. Answers do not depend on it; only the time does."""
+        self._upcoming = list(vectors)
+
+    def _compressed_neighbours(self, v: np.ndarray, vectors, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """The compressed index's ``k`` neighbours of ``v`` (exact similarities), by blocks of
+        :attr:`block` = L - 1 frames: at a block's first frame the index takes every place of
+        the map, and every frame of the block is searched among those places only. The places
+        the block's own frames add are never searchable by them (a frame may match no place of
+        its own sequence's last L - 1 frames, and a block starts again at each segment), so the
+        answers are those of a search over the whole map; the block's frames can be searched in
+        one call (faiss's scan over the codes serves them all: :meth:`look_ahead`), and a robot
+        feeding one frame at a time gets the same answers."""
+        from fdnet.matching.file_rows import FileRows
+
+        if self._block_left == 0:
+            self.sync(vectors)
+            self._frozen, self._block_left = len(vectors), self.block
+            queries = np.stack([v, *self._upcoming[: self.block - 1]]).astype(np.float32, copy=False)
+            self._ahead.clear()
+        elif self._ahead and np.array_equal(self._ahead[0][0], v):
+            self._block_left -= 1
+            self._upcoming = []
+            _, ids, sims = self._ahead.popleft()
+            return ids[None], sims[None]
+        else:
+            self._ahead.clear()
+            queries = v[None]
+        self._block_left -= 1
+        self._upcoming = []
+        frozen = vectors.view(self._frozen) if isinstance(vectors, FileRows) else vectors[: self._frozen]
+        k = min(k, self._frozen)
+        with one_faiss_thread() if len(queries) == 1 else contextlib.nullcontext():
+            found, scores = self._index.search(queries, k, frozen)
+        self._ahead.extend(zip(queries[1:], found[1:], scores[1:]))
+        return found[:1], scores[:1]
 
     def search(
         self,
@@ -190,13 +239,16 @@ class IndexedCandidates:
         :class:`~fdnet.decisions.loop_recency.Seams`; a sequence ending in a segment counts the
         places before its start as missing (neutral), as the exhaustive path does."""
         count = len(vectors)
-        self.sync(vectors)
+        compressed = self._compressed(count)
+        if not compressed:
+            self.sync(vectors)
+            self._block_left = 0
         ids, sims = np.zeros(0, np.int64), np.zeros(0, np.float32)
         if count:
-            with one_faiss_thread():
-                if self._compressed(count):  # exact similarities of the short list's best
-                    found, scores = self._index.search(v[None], min(self.neighbours, count), vectors)
-                else:
+            if compressed:  # exact similarities of the short list's best
+                found, scores = self._compressed_neighbours(v, vectors, self.neighbours)
+            else:
+                with one_faiss_thread():
                     found, scores = self._index.search(v[None], min(self.neighbours, count))
             keep = found[0] >= 0
             order = np.argsort(found[0][keep])

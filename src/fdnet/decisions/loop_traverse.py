@@ -417,8 +417,10 @@ def _detect_over(
             for offset, (vectors, signals) in describe_stream(
                 descriptor, frames.paths[start:], quiet, DescribeJob(describe)
             ):
-                for i, vector in enumerate(np.asarray(vectors, dtype=np.float32)):
+                vectors = np.asarray(vectors, dtype=np.float32)
+                for i, vector in enumerate(vectors):
                     k = start + offset + i
+                    detector.look_ahead(vectors[i + 1 :])
                     closure = detector.process_vector(
                         vector,
                         name=frames.names[k],

@@ -377,6 +377,16 @@ class CompressedIndex:
         self._index, self._parts, self.trained_on = faiss.IndexRefine(base, refine), (base, refine), count
         self.trainings += 1
 
+    def truncate(self, count: int) -> None:
+        """Forget the codes of the places from ``count`` on (the last ones: a loaded cache that
+        covers more places than the map it is for); the codebooks stay as trained."""
+        if count >= len(self):
+            return
+        tail = self._faiss.IDSelectorRange(int(count), len(self))
+        for part in self._parts[:2]:
+            part.remove_ids(tail)
+        self._index.ntotal = int(count)
+
     def save(self, path: str | os.PathLike, metadata: dict | None = None) -> None:
         """Write the codes, rotation and settings to ``path`` (:mod:`fdnet.matching.compressed_file`:
         atomically, checksummed) with ``metadata`` (JSON) for the caller to check on load."""

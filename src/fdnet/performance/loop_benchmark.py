@@ -115,7 +115,6 @@ def _decide_route(descriptor, earlier: np.ndarray, frames: np.ndarray, search: s
     (the codes' training and first encoding happen on the first frame, which is not timed)."""
     import tempfile
 
-    from fdnet.decisions.loop_closure import LoopClosureDetector
     from fdnet.matching.database import PlaceDatabase
     from fdnet.matching.index import IndexSettings
 
@@ -126,29 +125,37 @@ def _decide_route(descriptor, earlier: np.ndarray, frames: np.ndarray, search: s
             index=IndexSettings(compressed_from=IVF_FROM) if compressed else None,
             path=f"{scratch}/map.db" if compressed else MEMORY,
         )
-        for start in range(0, len(earlier), 100_000):
-            chunk = earlier[start : start + 100_000]
-            db.add(chunk, [f"earlier/{start + i}" for i in range(len(chunk))])
-        detector = LoopClosureDetector(
-            descriptor,
-            db,
-            exclude_last=5,
-            rule="margin",
-            threshold=0.0,
-            sequence_length=10,
-            commit_every=100,
-            search="index" if compressed else search,
-            compressed_from=IVF_FROM if compressed else None,
-        )
-        times = []
-        with detector:
-            for i, vector in enumerate(frames):
-                t0 = time.perf_counter()
-                detector.process_vector(vector, name=f"traverse/{i}")
-                times.append(time.perf_counter() - t0)
-            matches = [d.match for d in detector.decisions]
-        db.close()
-    return times, matches
+        try:
+            return _decide_on(descriptor, db, earlier, frames, search, compressed)
+        finally:
+            db.close()  # (before its folder goes: a failed run leaves no open file behind)
+
+
+def _decide_on(descriptor, db, earlier: np.ndarray, frames: np.ndarray, search: str, compressed: bool):
+    """:func:`_decide_route`'s work on the database ``db``."""
+    from fdnet.decisions.loop_closure import LoopClosureDetector
+
+    for start in range(0, len(earlier), 100_000):
+        chunk = earlier[start : start + 100_000]
+        db.add(chunk, [f"earlier/{start + i}" for i in range(len(chunk))])
+    detector = LoopClosureDetector(
+        descriptor,
+        db,
+        exclude_last=5,
+        rule="margin",
+        threshold=0.0,
+        sequence_length=10,
+        commit_every=100,
+        search="index" if compressed else search,
+        compressed_from=IVF_FROM if compressed else None,
+    )
+    times = []
+    with detector:
+        for i, vector in enumerate(frames):
+            t0 = time.perf_counter()
+            detector.process_vector(vector, name=f"traverse/{i}")
+            times.append(time.perf_counter() - t0)
+    return times, [d.match for d in detector.decisions]
 
 
 def _line(row: dict, searches) -> str:

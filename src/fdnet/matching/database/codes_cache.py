@@ -60,9 +60,12 @@ class CodesCache:
         self.places = 0
 
     def load(self, file, places: int, settings=None):
-        """The cached :class:`~fdnet.matching.compressed.CompressedIndex` when it belongs to this
-        database and covers at most its first ``places`` rows of ``file``, as built from them;
-        else None."""
+        """The cached :class:`~fdnet.matching.compressed.CompressedIndex` of this database's first
+        ``places`` rows of ``file``, when it belongs to this database and was built from its rows
+        (else None). A cache that covers more rows but was trained on at most ``places`` is cut
+        to ``places`` (the codes of the others go): its codes for those places are the ones a
+        cache built on them alone would hold (a resumed loop closure finds the codes it started
+        from, though another process extended the cache since)."""
         from fdnet.matching.compressed import CompressedIndex
         from fdnet.matching.compressed_file import read_header
 
@@ -73,7 +76,8 @@ class CodesCache:
             meta, count = header.get("metadata", {}), int(header["count"])
             if (
                 meta.get("database_id") != self._database_id
-                or not 0 < count <= min(int(places), len(file))
+                or not 0 < count <= len(file)
+                or not 0 < int(header["trained_on"]) <= int(places)
                 or meta.get("rows") != rows_digest(file, count)
             ):
                 logger.info("%s: the cached compressed codes are not this database's; building them again", self.path)
@@ -82,8 +86,9 @@ class CodesCache:
         except (DataError, ConfigError, ValueError, TypeError, KeyError, AttributeError) as exc:
             logger.warning("%s: cannot use the cached compressed codes (%s); building them again", self.path, exc)
             return None
-        logger.info("%s: loaded the compressed codes of %d places", self.path, count)
-        self.places = count
+        logger.info("%s: loaded the compressed codes of %d places", self.path, min(count, int(places)))
+        self.places = count  # (what the file holds: a cut copy is not written back unless it grows past it)
+        index.truncate(int(places))
         return index
 
     def save(self, index, file, force: bool = False) -> bool:
