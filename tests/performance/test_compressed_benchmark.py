@@ -53,12 +53,16 @@ def test_the_loop_part_measures_the_detector_through_a_file_database_and_compres
 
     lines = []
     (row,) = loop_rows([5000], dim=32, route=30, describe_ms=10.0, log=lines.append, workdir=str(tmp_path))
-    for search in ("exact", "index", "compressed"):
+    for search in ("exact", "index", "compressed", "compressed_batched"):
         assert row[f"{search}_ms"] > 0 and row[f"{search}_p99_ms"] >= row[f"{search}_ms"]
-        assert row[f"fdnet_frames_per_s_{search}"] == pytest.approx(1e3 / (10.0 + row[f"{search}_ms"]))
+        ms = row[f"{search}_mean_ms" if search == "compressed_batched" else f"{search}_ms"]
+        assert row[f"fdnet_frames_per_s_{search}"] == pytest.approx(1e3 / (10.0 + ms))
     # revisits lie near their places (noise 0.5): the compressed path finds what the exact one finds
     assert row["compressed_recall_at_1"] == row["exact_recall_at_1"] >= 0.9
     assert row["compressed_agreement"] >= 0.9
+    # frames described ahead are searched in blocks: the same decisions as one at a time
+    assert row["compressed_batched_agreement"] == row["compressed_agreement"]
+    assert row["compressed_batched_recall_at_1"] == row["compressed_recall_at_1"]
     assert "compressed" in lines[-1] and list(tmp_path.iterdir()) == []  # the database and its file are gone
     (small,) = loop_rows([1000], dim=32, route=30, workdir=str(tmp_path))
     assert "compressed_ms" not in small  # below 4096 places there is nothing to compress

@@ -218,7 +218,7 @@ class IndexedCandidates:
         self._upcoming = []
         frozen = vectors.view(self._frozen) if isinstance(vectors, FileRows) else vectors[: self._frozen]
         k = min(k, self._frozen)
-        with one_faiss_thread() if len(queries) == 1 else contextlib.nullcontext():
+        with one_faiss_thread():
             found, scores = self._index.search(queries, k, frozen)
         self._ahead.extend(zip(queries[1:], found[1:], scores[1:]))
         return found[:1], scores[:1]
