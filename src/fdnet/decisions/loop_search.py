@@ -195,10 +195,10 @@ class IndexedCandidates:
         :attr:`block` = L - 1 frames: at a block's first frame the index takes every place of
         the map, and every frame of the block is searched among those places only. The places
         the block's own frames add are never searchable by them (a frame may match no place of
-        its own sequence's last L - 1 frames, and a block starts again at each segment), so the
-        answers are those of a search over the whole map; the block's frames can be searched in
-        one call (faiss's scan over the codes serves them all: :meth:`look_ahead`), and a robot
-        feeding one frame at a time gets the same answers."""
+        its own sequence's last L - 1 frames, and a block starts again at each segment), so no
+        place a frame may match is left out; the block's frames can be searched in one call
+        (faiss's scan over the codes serves them all: :meth:`look_ahead`), and a robot feeding
+        one frame at a time gets the same answers."""
         from fdnet.matching.file_rows import FileRows
 
         if self._block_left == 0:
