@@ -29,6 +29,7 @@ def test_compressed_rows_report_memory_speed_and_agreement(tmp_path):
     assert row["disk_bytes_per_place"] == 128 and row["memory_bytes_per_place"] < 64
     assert 0.9 <= row["same_place"] <= 1 and 0.9 <= row["decision_agreement"] <= 1 and row["recall_at_1"] > 0.9
     assert row["query_ms_median"] <= row["query_ms_p99"] and row["gemv_ms"] > 0 and row["fdnet_frames_per_s"] > 0
+    assert row["query_ms_in_blocks"] > 0 and row["blocks_answer_alike"]  # a block's queries in one call: the same
     assert "same decision" in lines[-1]
     assert not list(tmp_path.glob("*.f32"))  # each map's file is deleted after its row
 
