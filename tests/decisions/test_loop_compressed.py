@@ -138,3 +138,14 @@ def test_frames_described_ahead_are_searched_in_one_call_and_decide_the_same(mon
         else:  # blocks of L - 1 = 4 frames, fewer where a batch or the first pass ends
             assert max(searched) == 4 and len(searched) < len(frames) / 2
     assert decided[16] == decided[None] and decided[7] == decided[None]
+
+
+def test_look_ahead_refuses_vectors_of_another_length():
+    from fdnet.errors import DataError
+
+    with LoopClosureDetector(StoredVectors(DIM), None, **SETTINGS) as detector:
+        detector.look_ahead([])  # nothing ahead: fine
+        with pytest.raises(
+            DataError, match=rf"look_ahead: expected \(frames, {DIM}\) vectors .* shape \(2, {DIM + 1}\)"
+        ):
+            detector.look_ahead(np.zeros((2, DIM + 1)))

@@ -161,9 +161,10 @@ class LoopCandidates:
             return (t - self._own_first[-1]) if self._own_first else 0
         if row is None:
             recent = np.asarray(self.before[max(self.segment_first, t - RECENT_WINDOW) : t], np.int64)[::-1]
-            vectors = places.vectors.view()
-            sample = None if self.indexed is None else self.indexed.map_sample(vectors)
-            return sampled_similar_past(self.plan.similarity, frame.vector, vectors, recent, sample)
+            vectors = places.vectors.view()  # (the indexed path: it holds the map's sample)
+            return sampled_similar_past(
+                self.plan.similarity, frame.vector, vectors, recent, self.indexed.map_sample(vectors)
+            )
         return similar_past(row, np.asarray(self.before[self.segment_first : t], np.int64)[::-1])
 
     def _searchable(self, frame: FrameQuery, previous: float | None, back: int = 0) -> int:

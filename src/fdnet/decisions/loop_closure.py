@@ -126,7 +126,7 @@ class LoopClosureDetector:
             self.close()
             raise
         self._session = uuid.uuid4().hex[:8]
-        self._upcoming: list[np.ndarray] = []  # the next frames' vectors (look_ahead)
+        self._upcoming = np.zeros((0, self.database.dim), np.float32)  # the next frames' vectors (look_ahead)
         self._start_traverse()
 
     def _start_traverse(self) -> None:
@@ -328,7 +328,7 @@ class LoopClosureDetector:
             self.candidates.indexed.codes_source = self.database.codes_cache
         if self.candidates.indexed is not None:
             self.candidates.indexed.look_ahead(self._upcoming)
-        self._upcoming = []
+        self._upcoming = self._upcoming[:0]
         frame = FrameQuery(v, t, count, informative, still, timestamp, position)
         ids, scores, searchable = self.candidates.candidates(frame, self.map, self._seams)
         decision, closure = self._judge(frame, name, ids, scores, searchable)
@@ -343,7 +343,13 @@ class LoopClosureDetector:
         """The vectors of the frames :meth:`process_vector` will get next, in order (a batch
         already described): on a map searched through compressed codes their neighbours are
         found in one call with the next frame's. The decisions are the same without it."""
-        self._upcoming = [np.asarray(v, dtype=np.float32).reshape(-1) for v in vectors]
+        upcoming = np.asarray(vectors, dtype=np.float32)
+        if upcoming.size and (upcoming.ndim != 2 or upcoming.shape[1] != self.database.dim):
+            raise DataError(
+                f"look_ahead: expected (frames, {self.database.dim}) vectors of the {self.descriptor.name} places, "
+                f"got an array of shape {upcoming.shape}"
+            )
+        self._upcoming = upcoming.reshape(-1, self.database.dim)
 
     def _checked_frame(self, vector, name: str | None, timestamp) -> tuple[np.ndarray, str]:
         """The frame's vector as float32 and its place name, or a DataError saying what is wrong."""

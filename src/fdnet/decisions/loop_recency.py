@@ -103,18 +103,13 @@ def similar_past(row: np.ndarray, recent: np.ndarray) -> int:
 RECENT_WINDOW = 2000
 
 
-def sampled_similar_past(similarity, vector: np.ndarray, vectors: np.ndarray, recent: np.ndarray, sample=None) -> int:
+def sampled_similar_past(similarity, vector: np.ndarray, vectors, recent: np.ndarray, sample: tuple) -> int:
     """:func:`similar_past` on a map too large to score whole: the frame's similarity to its
-    ``recent`` places (newest first) and to an even sample of :data:`NULL_SAMPLE` places (the
-    null level), by the descriptor's ``similarity``. ``sample``: that sample as (place ids,
-    their vectors) when the caller holds one (None: drawn over the whole map and read here)."""
-    if sample is None:
-        ids = np.linspace(0, len(vectors) - 1, min(NULL_SAMPLE, len(vectors))).astype(np.int64)
-        sample = (ids, None)
+    ``recent`` places (newest first) and to an even ``sample`` of the map (the null level), as
+    (place ids, their vectors) held by the caller, its recent places left out; by the
+    descriptor's ``similarity``."""
     ids, rows = sample
     outside = ~np.isin(ids, recent, assume_unique=True)
-    if rows is None:
-        ids, rows, outside = ids[outside], vectors[ids[outside]], slice(None)
     # the whole sample is scored and its recent places dropped after: cheaper than copying the rest
     row = np.concatenate([similarity(vector[None], vectors[recent])[0], similarity(vector[None], rows)[0][outside]])
     return similar_past(np.asarray(row, np.float64), np.arange(len(recent)))

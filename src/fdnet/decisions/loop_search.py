@@ -41,7 +41,7 @@ import numpy as np
 
 from fdnet.decisions.loop_recency import NULL_SAMPLE
 from fdnet.matching.index import one_faiss_thread
-from fdnet.matching.sequence import DEFAULT_VELOCITIES, SequenceRow, sequence_reach
+from fdnet.matching.sequence import DEFAULT_VELOCITIES, SequenceRow, sequence_places, sequence_reach
 
 #: maps of at least this many places are searched through the index (``search="auto"``)
 INDEX_FROM = 20_000
@@ -99,7 +99,7 @@ class IndexedCandidates:
         self.block = max(self.sequence_length - 1, 1)
         self._block_left, self._frozen = 0, 0
         self._ahead: deque = deque()
-        self._upcoming: list = []
+        self._upcoming = np.zeros((0, self.dim), np.float32)
 
     def __len__(self) -> int:
         return 0 if self._index is None else len(self._index)
@@ -133,16 +133,20 @@ class IndexedCandidates:
             with one_faiss_thread():  # a frame or a few: training and bulk adds keep every thread
                 self._index.add(vectors[len(self._index) : count])
 
+    def _codes(self):
+        """(codes cache, vector file) from :attr:`codes_source`, or None."""
+        return None if self.codes_source is None else self.codes_source()
+
     def _cached_codes(self, count: int):
-        """The database's cached codes (:attr:`codes_source`) when they were built from at most its
-        first ``count`` places (the rest are encoded, not trained); else None."""
-        source = self.codes_source() if self.codes_source is not None else None
+        """The database's cached codes when they were built from at most its first ``count``
+        places (the rest are encoded, not trained); else None."""
+        source = self._codes()
         return None if source is None else source[0].load(source[1], count)
 
     def _save_codes(self) -> None:
         """Leave codes trained here in the database's cache when each of their places is a row
         the database has committed to its file (for the next run, and a resumed one)."""
-        source = self.codes_source() if self.codes_source is not None else None
+        source = self._codes()
         if source is not None and len(self._index) <= len(source[1]):
             source[0].save(self._index, source[1], force=True)
 
@@ -184,11 +188,11 @@ class IndexedCandidates:
         self._block_left = 0
         self._ahead.clear()
 
-    def look_ahead(self, vectors) -> None:
-        """The vectors of the frames that will come next, in order (a batch already described):
-        the compressed search proposes their neighbours in the same call as the next block's
-        first frame's. Answers do not depend on it; only the time does."""
-        self._upcoming = list(vectors)
+    def look_ahead(self, vectors: np.ndarray) -> None:
+        """The vectors (n, dim) of the frames that will come next, in order (a batch already
+        described): the compressed search proposes their neighbours in the same call as the next
+        block's first frame's. Answers do not depend on it; only the time does."""
+        self._upcoming = vectors
 
     def _compressed_neighbours(self, v: np.ndarray, vectors, k: int) -> tuple[np.ndarray, np.ndarray]:
         """The compressed index's ``k`` neighbours of ``v`` (exact similarities), by blocks of
@@ -201,25 +205,23 @@ class IndexedCandidates:
         one frame at a time gets the same answers."""
         from fdnet.matching.file_rows import FileRows
 
-        if self._block_left == 0:
+        starting = self._block_left == 0
+        upcoming, self._upcoming = self._upcoming, self._upcoming[:0]
+        self._block_left = (self.block if starting else self._block_left) - 1
+        if starting:
             self.sync(vectors)
-            self._frozen, self._block_left = len(vectors), self.block
-            queries = np.stack([v, *self._upcoming[: self.block - 1]]).astype(np.float32, copy=False)
+            self._frozen = len(vectors)
+            queries = np.concatenate([v[None], upcoming[: self.block - 1]]).astype(np.float32, copy=False)
             self._ahead.clear()
         elif self._ahead and np.array_equal(self._ahead[0][0], v):
-            self._block_left -= 1
-            self._upcoming = []
             _, ids, sims = self._ahead.popleft()
             return ids[None], sims[None]
         else:
             self._ahead.clear()
             queries = v[None]
-        self._block_left -= 1
-        self._upcoming = []
         frozen = vectors.view(self._frozen) if isinstance(vectors, FileRows) else vectors[: self._frozen]
-        k = min(k, self._frozen)
         with one_faiss_thread():
-            found, scores = self._index.search(queries, k, frozen)
+            found, scores = self._index.search(queries, min(k, self._frozen), frozen)
         self._ahead.extend(zip(queries[1:], found[1:], scores[1:]))
         return found[:1], scores[:1]
 
@@ -307,11 +309,10 @@ class IndexedCandidates:
         return online_sequence_scores(rows, ends=ends, exact_sums=True)
 
     def _places_read(self, ends: np.ndarray, count: int) -> np.ndarray:
-        """The places the sums over the recent frames read for ``ends``: each frame's
-        place ``round(end - k x v)``, k frames back, for every velocity (as the scorer reads them)."""
+        """The places the sums over the recent frames read for ``ends`` (the scorer's own
+        :func:`~fdnet.matching.sequence.sequence_places` for each frame k steps back)."""
         velocities = np.asarray(DEFAULT_VELOCITIES, dtype=np.float64)
-        steps = np.arange(len(self._recent))[:, None] * velocities[None, :]
-        places = np.unique(np.rint(ends[None, :] - steps.reshape(-1, 1)).astype(np.int64))
+        places = np.unique([sequence_places(ends, k, velocities) for k in range(len(self._recent))])
         return places[(places >= 0) & (places < count)]
 
 

@@ -132,6 +132,12 @@ class SequenceRow:
         raise NotImplementedError
 
 
+def sequence_places(ends: np.ndarray, k: int, velocities: np.ndarray) -> np.ndarray:
+    """(velocities, ends) place ids that the frame ``k`` steps back reads in the sums of the
+    sequences ending at ``ends``: ``round(end - k x v)`` for each velocity ``v``."""
+    return np.rint(ends[None, :] - k * velocities[:, None]).astype(np.int64)
+
+
 def online_sequence_scores(
     rows: Sequence[np.ndarray | SequenceRow],
     searchable: int | None = None,
@@ -173,8 +179,7 @@ def online_sequence_scores(
     for k in range(len(rows)):
         row = rows[-1 - k]
         if isinstance(row, SequenceRow):
-            places = np.rint(refs[None, :] - k * v[:, None]).astype(np.int64)
-            values, counted = row.values(places, refs)
+            values, counted = row.values(sequence_places(refs, k, v), refs)
             total += np.where(counted, values, 0.0)
             valid_count += counted
             continue
