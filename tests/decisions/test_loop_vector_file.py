@@ -191,3 +191,35 @@ def test_a_resume_finds_the_codes_it_started_from_though_another_process_extende
     resumed = run(cut, len(frames), resume=stop)
     assert resumed.candidates.indexed._index.trained_on == whole.candidates.indexed._index.trained_on == MAP
     assert decisions(resumed) == decisions(whole)
+
+
+def test_a_full_disk_while_the_detector_writes_its_codes_loses_no_decision_and_leaves_no_cache(tmp_path, monkeypatch):
+    import errno
+
+    from fdnet.matching import compressed_file
+    from fdnet.matching.database.codes_cache import codes_cache_path
+
+    earlier, frames = earlier_and_route()
+    path = tmp_path / "map.db"
+    database(path, earlier, IndexSettings(compressed_from=COMPRESSED_FLOOR)).close()
+    real_open = open
+
+    def full_disk_open(file, mode="r", *args, **kwargs):  # the codes file's temporary: no space left
+        if "w" in mode and ".fdnet-codes" in str(file):
+            raise OSError(errno.ENOSPC, "No space left on device", str(file))
+        return real_open(file, mode, *args, **kwargs)
+
+    monkeypatch.setattr(compressed_file, "open", full_disk_open, raising=False)
+    with LoopClosureDetector(StoredVectors(DIM), path, **SETTINGS) as full:
+        for i, v in enumerate(frames):
+            full.process_vector(v, name=f"traverse/{i}")
+    assert not codes_cache_path(path).exists() and not list(tmp_path.glob(".map.db.fdnet-codes*"))
+    monkeypatch.undo()
+    with PlaceDatabase.open(path) as db:  # every frame was stored
+        assert len(db) == MAP + len(frames)
+    whole = tmp_path / "whole.db"
+    database(whole, earlier, IndexSettings(compressed_from=COMPRESSED_FLOOR)).close()
+    with LoopClosureDetector(StoredVectors(DIM), whole, **SETTINGS) as spacious:
+        for i, v in enumerate(frames):
+            spacious.process_vector(v, name=f"traverse/{i}")
+    assert decisions(full) == decisions(spacious) and codes_cache_path(whole).exists()
