@@ -53,11 +53,15 @@ def test_the_loop_part_measures_the_detector_through_a_file_database_and_compres
     from fdnet.performance.loop_benchmark import loop_rows
 
     lines = []
-    (row,) = loop_rows([5000], dim=32, route=30, describe_ms=10.0, log=lines.append, workdir=str(tmp_path))
+    (row,) = loop_rows(
+        [5000], dim=32, route=30, describe_ms=10.0, log=lines.append, workdir=str(tmp_path), describe_bf16_ms=4.0
+    )
     for search in ("exact", "index", "compressed", "compressed_batched"):
         assert row[f"{search}_ms"] > 0 and row[f"{search}_p99_ms"] >= row[f"{search}_ms"]
         ms = row[f"{search}_mean_ms" if search == "compressed_batched" else f"{search}_ms"]
         assert row[f"fdnet_frames_per_s_{search}"] == pytest.approx(1e3 / (10.0 + ms))
+        assert row[f"fdnet_bf16_frames_per_s_{search}"] == pytest.approx(1e3 / (4.0 + ms))
+    assert "bf16 (4.0 ms/frame)" in lines[-1]
     # revisits lie near their places (noise 0.5): the compressed path finds what the exact one finds
     assert row["compressed_recall_at_1"] == row["exact_recall_at_1"] >= 0.9
     assert row["compressed_agreement"] >= 0.9
@@ -69,11 +73,35 @@ def test_the_loop_part_measures_the_detector_through_a_file_database_and_compres
     assert "compressed_ms" not in small  # below 4096 places there is nothing to compress
 
 
+def test_a_map_too_large_to_hold_is_streamed_to_the_file_database_and_decided_by_the_compressed_path(
+    tmp_path, monkeypatch
+):
+    from fdnet.performance import loop_benchmark
+    from fdnet.performance.timing import random_map, random_map_chunks
+
+    # the chunks are the held map's rows, in order
+    assert np.array_equal(np.concatenate(list(random_map_chunks(2500, 8, seed=3, chunk=1000))), random_map(2500, 8, 3))
+    monkeypatch.setattr(loop_benchmark, "IN_MEMORY_UP_TO", 4500)
+    monkeypatch.setattr(loop_benchmark, "CHUNK", 1000)
+    lines = []
+    held, streamed = loop_benchmark.loop_rows(
+        [4500, 5000], dim=32, route=30, describe_ms=10.0, log=lines.append, workdir=str(tmp_path)
+    )
+    assert not held["streamed"] and "exact_ms" in held and held["agreement_reference"] == "exact"
+    assert streamed["streamed"] and streamed["searches"] == ["compressed", "compressed_batched"]
+    assert "exact_ms" not in streamed and "index_ms" not in streamed and streamed["agreement_reference"] == "compressed"
+    assert streamed["compressed_recall_at_1"] >= 0.9 and streamed["compressed_batched_agreement"] == 1.0
+    assert streamed["gemv_ms"] > 0 and streamed["fdnet_frames_per_s_compressed"] > 0
+    assert "streamed to the file database" in lines[-1] and list(tmp_path.iterdir()) == []
+    assert loop_benchmark.loop_rows([5000], dim=32, route=30, log=lines.append) == []  # no folder to stream to
+    assert "skipped" in lines[-1]
+
+
 def test_a_failed_compressed_route_closes_its_database_before_its_folder_goes(tmp_path, monkeypatch):
     import os
 
     from fdnet.decisions.loop_closure import LoopClosureDetector
-    from fdnet.performance.loop_benchmark import StoredVectors, _decide_route
+    from fdnet.performance.loop_benchmark import MapSource, _decide_route
 
     def fail(*args, **kwargs):
         raise RuntimeError("a frame failed")
@@ -81,7 +109,7 @@ def test_a_failed_compressed_route_closes_its_database_before_its_folder_goes(tm
     monkeypatch.setattr(LoopClosureDetector, "process_vector", fail)
     vectors = np.random.default_rng(0).standard_normal((5000, 16)).astype(np.float32)
     with pytest.raises(RuntimeError, match="a frame failed"):
-        _decide_route(StoredVectors(16), vectors, vectors[:3], "compressed", str(tmp_path))
+        _decide_route(MapSource(5000, 16), vectors, vectors[:3], "compressed", str(tmp_path))
     assert list(tmp_path.iterdir()) == []
     open_files = []
     for fd in os.listdir("/proc/self/fd"):

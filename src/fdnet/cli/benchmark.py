@@ -94,7 +94,8 @@ def _add_scale_arguments(p) -> None:
         "--loop-map-size",
         default="10000,100000,1000000",
         help="map sizes of the loop part: the loop-closure detector's ms/frame with exhaustive search "
-        "and with the index (default 10000,100000,1000000; --quick: the smallest)",
+        "and with the index (default 10000,100000,1000000; --quick: the smallest); a map above "
+        "2000000 places is streamed to a file database and decided through compressed codes only",
     )
     p.add_argument(
         "--loop-compressed-size",

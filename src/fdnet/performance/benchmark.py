@@ -365,8 +365,11 @@ def _scale(plan: BenchmarkPlan, report: dict, out) -> None:
 def _loop(plan: BenchmarkPlan, workdir: str, report: dict, out) -> None:
     from fdnet.performance.loop_benchmark import loop_rows
 
-    # loop-closure describes frame batches in fp32 (the descriptor's default), not extract's bf16 path
-    describe = (report.get("cpu_preset_descriptor_ms") or {}).get("fp32_eager")
+    # loop-closure describes frame batches in fp32 (the descriptor's default); extract's bf16 path is
+    # what `--method-set fdnet:bf16=true` gives it, where the CPU runs bf16 natively
+    measured = report.get("cpu_preset_descriptor_ms") or {}
+    describe = measured.get("fp32_eager")
+    describe_bf16 = measured.get("extract") if measured.get("extract_bf16") else None
     route = 100 if plan.quick else 300
     out(
         f"\nLoop closure: a route of {route} places driven twice after an earlier session's map of random unit "
@@ -377,10 +380,18 @@ def _loop(plan: BenchmarkPlan, workdir: str, report: dict, out) -> None:
             if describe is None
             else f"; frames/s with the FDNet descriptor measured above, fp32 as loop-closure "
             f"runs it ({describe:.1f} ms)"
+            + ("" if describe_bf16 is None else f" and with bf16 autocast ({describe_bf16:.1f} ms)")
         )
     )
     report["loop"] = loop_rows(
-        plan.loop_map_sizes, dim=512, route=route, noise=plan.noise, describe_ms=describe, log=out, workdir=workdir
+        plan.loop_map_sizes,
+        dim=512,
+        route=route,
+        noise=plan.noise,
+        describe_ms=describe,
+        log=out,
+        workdir=workdir,
+        describe_bf16_ms=describe_bf16,
     )
     if plan.loop_compressed_sizes:
         from fdnet.performance.compressed_benchmark import HEADLINE, compressed_rows

@@ -1,5 +1,5 @@
 """``fdnet benchmark --parts loop``: the loop-closure detector's cost per frame on maps of 10^4 to
-10^6 places, exhaustive search against the index (:mod:`fdnet.decisions.loop_search`).
+10^7 places, exhaustive search against the index (:mod:`fdnet.decisions.loop_search`).
 
 The map is an earlier session's places (random unit vectors, as the scale benchmark's); the
 traverse is a route of ``route`` new places driven twice (the second pass is the first plus
@@ -11,6 +11,10 @@ the index's decision names the same place as the exhaustive one on the revisits,
 of each there. With an
 FDNet checkpoint (the ``fdnet`` part measured its ``cpu``-preset descriptor through the public
 API in the same run) it also gives frames/s of the whole loop: 1000 / (describe ms + decide ms).
+A map above :data:`IN_MEMORY_UP_TO` places is never held in memory: it is made and stored in
+the file database a chunk at a time, only the compressed path can decide on it (the exhaustive
+search would need the whole map in memory), and its agreement is the batched path's with one
+frame at a time; its GEMV reference is one chunk's, scaled to the map.
 Nothing is asserted by tests: the report holds figures measured side by side.
 """
 
@@ -18,6 +22,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
@@ -28,6 +33,13 @@ from fdnet.matching.database.storage import MEMORY
 from fdnet.performance.timing import gemv_ms
 
 DEFAULT_SIZES = (10_000, 100_000, 1_000_000)
+#: above this many places the map is not held in memory (4 GB of 512 floats at 2 x 10^6): it is
+#: streamed into a file database chunk by chunk, and only the compressed path is measured
+IN_MEMORY_UP_TO = 2_000_000
+#: what a streamed map measures: both compressed paths (agreement: of the batched with one at a time)
+STREAMED_SEARCHES = ("compressed", "compressed_batched")
+#: places made and stored at a time
+CHUNK = 100_000
 #: frames described ahead per batch on the compressed path's batched variant (the command's
 #: default ``--batch-size``)
 AHEAD = 64
@@ -62,10 +74,13 @@ def loop_rows(
     describe_ms: float | None = None,
     log: Callable[[str], None] = lambda line: None,
     workdir: str | None = None,
+    describe_bf16_ms: float | None = None,
 ) -> list[dict]:
     """Measure the detector on each map size (see the module docstring); one row per size.
     ``workdir``: where the compressed path's database and vector file are written (None: that
-    path is not measured)."""
+    path is not measured, nor any map above :data:`IN_MEMORY_UP_TO`). ``describe_bf16_ms``: the
+    descriptor's time with bf16 autocast (where the CPU runs bf16 natively; ``--method-set
+    fdnet:bf16=true``), for a second frames/s figure."""
     from fdnet.performance.timing import random_map, revisit_queries
 
     places = random_map(route, dim, seed=7)
@@ -77,56 +92,100 @@ def loop_rows(
     order = np.argsort(np.random.default_rng(9).choice(route, size=route, replace=False))
     second = second[order]
     frames = np.concatenate([first, second])
-    descriptor = StoredVectors(dim)
     rows = []
     for size in sizes:
-        earlier = random_map(int(size), dim, seed=11)
+        size = int(size)
+        streamed = size > IN_MEMORY_UP_TO
+        if streamed and workdir is None:
+            log(f"  {size:>9,} places: skipped (a map this large is only streamed to a file database)")
+            continue
         log(f"  {size:>9,} places: building the map ...")
-        decided = {}
-        searches = ("exact", "index")
-        if workdir is not None and size >= IVF_FROM:
-            searches += ("compressed", "compressed_batched")
-        for search in searches:
-            times, decided[search] = _decide_route(descriptor, earlier, frames, search, workdir)
-            revisits = np.arange(route, 2 * route)
-            truth = size + revisits - route
-            matches = np.array(decided[search])[revisits]
-            decided[search + "_ms"] = 1e3 * float(np.median(times[route:]))
-            decided[search + "_mean_ms"] = 1e3 * float(np.mean(times[route:]))
-            decided[search + "_p99_ms"] = 1e3 * float(np.percentile(times[route:], 99))
-            decided[search + "_recall"] = float(np.mean(np.abs(matches - truth) <= 1))
-        gemv = gemv_ms(earlier)
-        row = {"map_size": int(size), "dim": dim, "frames": len(frames), "gemv_ms": gemv}
-        for search in searches:
-            row[f"{search}_ms"] = decided[f"{search}_ms"]
-            row[f"{search}_mean_ms"] = decided[f"{search}_mean_ms"]
-            row[f"{search}_p99_ms"] = decided[f"{search}_p99_ms"]
-            row[f"{search}_recall_at_1"] = decided[f"{search}_recall"]
-            if search != "exact":
-                # on the revisits, where a decision can be right (the first pass's best places are noise)
-                same = np.array(decided["exact"])[route:] == np.array(decided[search])[route:]
-                row["agreement" if search == "index" else f"{search}_agreement"] = float(np.mean(same))
-            if describe_ms is not None:
-                row["describe_ms"] = describe_ms
-                # (from the mean where frames are searched in blocks: a block's first frame pays for all)
-                ms = row[f"{search}_mean_ms" if search == "compressed_batched" else f"{search}_ms"]
-                row[f"fdnet_frames_per_s_{search}"] = 1e3 / (describe_ms + ms)
+        row = _size_row(MapSource(size, dim, streamed), frames, route, workdir)
+        _frames_per_s(row, row["searches"], describe_ms, describe_bf16_ms)
         rows.append(row)
-        log(_line(row, searches))
-        del earlier
+        log(_line(row))
     return rows
 
 
-def _decide_route(descriptor, earlier: np.ndarray, frames: np.ndarray, search: str, workdir) -> tuple[list, list]:
+@dataclass
+class MapSource:
+    """The earlier session's map: ``size`` random unit vectors (seed 11), held in memory, or
+    ``streamed``: made chunk by chunk as they are stored, never all at once."""
+
+    size: int
+    dim: int
+    streamed: bool = False
+
+    def chunks(self, array: np.ndarray | None = None):
+        from fdnet.performance.timing import random_map_chunks
+
+        if array is not None:
+            return (array[s : s + CHUNK] for s in range(0, len(array), CHUNK))
+        return random_map_chunks(self.size, self.dim, seed=11, chunk=CHUNK)
+
+
+def _size_row(source: MapSource, frames: np.ndarray, route: int, workdir) -> dict:
+    """One map size's row: every search the size allows, decided over the same frames."""
+    from fdnet.performance.timing import random_map
+
+    earlier = None if source.streamed else random_map(source.size, source.dim, seed=11, chunk=CHUNK)
+    if source.streamed:
+        searches = STREAMED_SEARCHES
+        # one GEMV over the first chunk, scaled to the map: the map is never in memory at once
+        gemv = gemv_ms(random_map(CHUNK, source.dim, seed=11, chunk=CHUNK)) * source.size / CHUNK
+    else:
+        searches = ("exact", "index")
+        if workdir is not None and source.size >= IVF_FROM:
+            searches += ("compressed", "compressed_batched")
+        gemv = gemv_ms(earlier)
+    row = {"map_size": source.size, "dim": source.dim, "frames": len(frames), "gemv_ms": gemv}
+    row["searches"] = list(searches)
+    row["streamed"] = source.streamed
+    decided = {}
+    revisits = np.arange(route, 2 * route)
+    truth = source.size + revisits - route
+    for search in searches:
+        times, decided[search] = _decide_route(source, earlier, frames, search, workdir)
+        matches = np.array(decided[search])[revisits]
+        row[f"{search}_ms"] = 1e3 * float(np.median(times[route:]))
+        row[f"{search}_mean_ms"] = 1e3 * float(np.mean(times[route:]))
+        row[f"{search}_p99_ms"] = 1e3 * float(np.percentile(times[route:], 99))
+        row[f"{search}_recall_at_1"] = float(np.mean(np.abs(matches - truth) <= 1))
+    # on the revisits, where a decision can be right (the first pass's best places are noise)
+    reference = "exact" if "exact" in decided else "compressed"
+    for search in searches:
+        if search != reference:
+            same = np.array(decided[reference])[route:] == np.array(decided[search])[route:]
+            row["agreement" if search == "index" else f"{search}_agreement"] = float(np.mean(same))
+    row["agreement_reference"] = reference
+    return row
+
+
+def _frames_per_s(row: dict, searches, describe_ms: float | None, describe_bf16_ms: float | None) -> None:
+    """frames/s of the whole loop with the descriptor's time: 1000 / (describe ms + decide ms)."""
+    for search in searches:
+        # (from the mean where frames are searched in blocks: a block's first frame pays for all)
+        ms = row[f"{search}_mean_ms" if search == "compressed_batched" else f"{search}_ms"]
+        if describe_ms is not None:
+            row["describe_ms"] = describe_ms
+            row[f"fdnet_frames_per_s_{search}"] = 1e3 / (describe_ms + ms)
+        if describe_bf16_ms is not None:
+            row["describe_bf16_ms"] = describe_bf16_ms
+            row[f"fdnet_bf16_frames_per_s_{search}"] = 1e3 / (describe_bf16_ms + ms)
+
+
+def _decide_route(source: MapSource, earlier, frames: np.ndarray, search: str, workdir) -> tuple[list, list]:
     """(seconds per frame, matched place per frame) of a detector deciding ``frames`` after the
-    map ``earlier``: ``exact`` / ``index`` in memory; ``compressed`` through a database in a
-    file of ``workdir`` that keeps its vectors in a vector file, searched through compressed codes
-    (the codes' training and first encoding happen on the first frame, which is not timed)."""
+    map (``earlier``, or made by ``source`` chunk by chunk): ``exact`` / ``index`` in memory;
+    ``compressed`` through a database in a file of ``workdir`` that keeps its vectors in a
+    vector file, searched through compressed codes (the codes' training and first encoding
+    happen on the first frame, which is not timed)."""
     import tempfile
 
     from fdnet.matching.database import PlaceDatabase
     from fdnet.matching.index import IndexSettings
 
+    descriptor = StoredVectors(source.dim)
     with tempfile.TemporaryDirectory(prefix="fdnet-loop-map-", dir=workdir) as scratch:
         compressed = search.startswith("compressed")
         db = PlaceDatabase.for_descriptor(
@@ -135,21 +194,22 @@ def _decide_route(descriptor, earlier: np.ndarray, frames: np.ndarray, search: s
             path=f"{scratch}/map.db" if compressed else MEMORY,
         )
         try:
+            start = 0
+            for chunk in source.chunks(earlier):
+                db.add(chunk, [f"earlier/{start + i}" for i in range(len(chunk))])
+                start += len(chunk)
             ahead = AHEAD if search == "compressed_batched" else 0
-            return _decide_on(descriptor, db, earlier, frames, search, compressed, ahead)
+            return _decide_on(descriptor, db, frames, search, compressed, ahead)
         finally:
             db.close()  # (before its folder goes: a failed run leaves no open file behind)
 
 
-def _decide_on(descriptor, db, earlier: np.ndarray, frames: np.ndarray, search: str, compressed: bool, ahead: int):
-    """:func:`_decide_route`'s work on the database ``db``; ``ahead``: frames come in batches of
-    this many, each frame told the rest of its batch (:meth:`LoopClosureDetector.look_ahead`, as
-    ``fdnet loop-closure`` does), or 0: one at a time."""
+def _decide_on(descriptor, db, frames: np.ndarray, search: str, compressed: bool, ahead: int):
+    """:func:`_decide_route`'s work on the database ``db`` (the map already stored); ``ahead``:
+    frames come in batches of this many, each frame told the rest of its batch
+    (:meth:`LoopClosureDetector.look_ahead`, as ``fdnet loop-closure`` does), or 0: one at a time."""
     from fdnet.decisions.loop_closure import LoopClosureDetector
 
-    for start in range(0, len(earlier), 100_000):
-        chunk = earlier[start : start + 100_000]
-        db.add(chunk, [f"earlier/{start + i}" for i in range(len(chunk))])
     detector = LoopClosureDetector(
         descriptor,
         db,
@@ -172,20 +232,31 @@ def _decide_on(descriptor, db, earlier: np.ndarray, frames: np.ndarray, search: 
     return times, [d.match for d in detector.decisions]
 
 
-def _line(row: dict, searches) -> str:
-    gemv = row["gemv_ms"]
-    parts = [
-        f"  {row['map_size']:>9,} places: exact {row['exact_ms']:7.2f} ms/frame ({row['exact_ms'] / gemv:5.1f} x one "
-        f"{gemv:.2f} ms GEMV)",
-        f"index {row['index_ms']:6.2f} ms/frame (p99 {row['index_p99_ms']:.2f}), same place on the revisits "
-        f"{row['agreement']:.3f}",
-    ]
-    if "compressed" in searches:
+def _line(row: dict) -> str:
+    searches, gemv = row["searches"], row["gemv_ms"]
+    parts = []
+    if "exact" in searches:
         parts.append(
-            f"compressed {row['compressed_ms']:6.2f} ms/frame (p99 {row['compressed_p99_ms']:.2f}), same place "
-            f"{row['compressed_agreement']:.3f}; in batches of {AHEAD} described ahead: mean "
-            f"{row['compressed_batched_mean_ms']:.2f} ms/frame against {row['compressed_mean_ms']:.2f} one at a time "
-            f"(p99 {row['compressed_batched_p99_ms']:.2f}), same place {row['compressed_batched_agreement']:.3f}"
+            f"  {row['map_size']:>9,} places: exact {row['exact_ms']:7.2f} ms/frame ({row['exact_ms'] / gemv:5.1f} x "
+            f"one {gemv:.2f} ms GEMV)"
+        )
+        parts.append(
+            f"index {row['index_ms']:6.2f} ms/frame (p99 {row['index_p99_ms']:.2f}), same place on the revisits "
+            f"{row['agreement']:.3f}"
+        )
+    else:
+        parts.append(
+            f"  {row['map_size']:>9,} places (streamed to the file database; one GEMV over the map {gemv:.0f} ms, "
+            "scaled from its first chunk; no exhaustive search: the map is never in memory)"
+        )
+    if "compressed" in searches:
+        same = "" if row["agreement_reference"] != "exact" else f", same place {row['compressed_agreement']:.3f}"
+        parts.append(
+            f"compressed {row['compressed_ms']:6.2f} ms/frame (p99 {row['compressed_p99_ms']:.2f}){same}; in batches "
+            f"of {AHEAD} described ahead: mean {row['compressed_batched_mean_ms']:.2f} ms/frame against "
+            f"{row['compressed_mean_ms']:.2f} one at a time (p99 {row['compressed_batched_p99_ms']:.2f}), same place "
+            f"{row['compressed_batched_agreement']:.3f}"
+            + ("" if row["agreement_reference"] == "exact" else " as one at a time")
         )
     recall = " ".join(f"{search} {row[f'{search}_recall_at_1']:.3f}" for search in searches)
     parts.append(f"R@1 (+-1 place) {recall}")
@@ -193,6 +264,9 @@ def _line(row: dict, searches) -> str:
     if "describe_ms" in row:
         fps = " -> ".join(f"{row[f'fdnet_frames_per_s_{search}']:.1f}" for search in searches)
         line += f" | with FDNet ({row['describe_ms']:.1f} ms/frame): {fps} frames/s"
+    if "describe_bf16_ms" in row:
+        fps = " -> ".join(f"{row[f'fdnet_bf16_frames_per_s_{search}']:.1f}" for search in searches)
+        line += f"; bf16 ({row['describe_bf16_ms']:.1f} ms/frame): {fps} frames/s"
     return line
 
 

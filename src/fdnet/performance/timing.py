@@ -263,14 +263,22 @@ def descriptor_extraction(descriptor, images: np.ndarray, repeats: int = 3) -> f
 
 
 # ---------------------------------------------------------------------------- maps at scale
-def random_map(size: int, dim: int, seed: int = 0, chunk: int = 100_000) -> np.ndarray:
-    """``size`` random unit vectors of length ``dim`` (float32), made in chunks."""
+def random_map_chunks(size: int, dim: int, seed: int = 0, chunk: int = 100_000):
+    """:func:`random_map`'s vectors, ``chunk`` rows at a time (a map too large to hold)."""
     rng = np.random.default_rng(seed)
-    out = np.empty((size, dim), dtype=np.float32)
     for start in range(0, size, chunk):
         block = rng.standard_normal((min(chunk, size - start), dim), dtype=np.float32)
         block /= np.linalg.norm(block, axis=1, keepdims=True)
+        yield block
+
+
+def random_map(size: int, dim: int, seed: int = 0, chunk: int = 100_000) -> np.ndarray:
+    """``size`` random unit vectors of length ``dim`` (float32), made in chunks."""
+    out = np.empty((size, dim), dtype=np.float32)
+    start = 0
+    for block in random_map_chunks(size, dim, seed, chunk):
         out[start : start + len(block)] = block
+        start += len(block)
     return out
 
 

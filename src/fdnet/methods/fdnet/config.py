@@ -268,8 +268,8 @@ def _cpu() -> FDNetRunConfig:
     # FDNet on a frozen ImageNet trunk (model.backbone; an extension, see fdnet.methods.fdnet.trunk):
     # from scratch, the paper's pixel encoders did not beat SAD on Gardens Point's 100 training
     # images per condition (cpu-scratch below; docs/results.md, gp2-gp7). 128x256 keeps
-    # Nordland's 1:2 aspect. Blocks 7 (80 x 8 x 16) and 11 (112 x 8 x 16) are stride-16 maps,
-    # 11 the deeper one. With a validation pair a run starts on whichever validates better
+    # Nordland's 1:2 aspect. Block 7 is a stride-16 map (80 x 8 x 16), block 11 a deeper
+    # stride-32 one (192 x 4 x 8). With a validation pair a run starts on whichever validates better
     # (backbone_block_candidates): no one depth suits every route (with the mined-pair start,
     # Nordland held-out validation 0.92 for block 7 against 0.87 for 11; Gardens Point 0.90 for
     # block 11 against 0.84 for 7 and 0.88 for 14; docs/results.md). Without
