@@ -167,3 +167,26 @@ def test_the_add_that_reaches_the_size_killed_leaves_no_vector_file_rows(tmp_pat
     assert write(path).returncode == 0
     with PlaceDatabase.open(path) as db:
         assert np.array_equal(VectorFile(vector_file_path(path), DIM, BATCHES * BATCH).read(0, len(db)), db.vectors)
+
+
+def test_a_new_database_file_packs_512_float_places_into_large_pages(tmp_path):
+    # SQLite's default 4 KB pages hold one 2 KB vector row each and leave half of every page empty
+    from fdnet.matching.database.storage import PAGE_SIZE
+
+    path = tmp_path / "map.db"
+    db = PlaceDatabase.for_descriptor(StoredVectors(512), path=str(path))
+    vectors = unit(np.random.default_rng(0).standard_normal((3000, 512)))
+    db.add(vectors, [f"frames/{i:07d}.png" for i in range(len(vectors))])
+    db.close()
+    conn = sqlite3.connect(path)
+    try:
+        page_size, pages = (
+            conn.execute("PRAGMA page_size").fetchone()[0],
+            conn.execute("PRAGMA page_count").fetchone()[0],
+        )
+    finally:
+        conn.close()
+    assert page_size == PAGE_SIZE == 32768
+    assert page_size * pages / len(vectors) < 2400  # a 2048-byte vector, its name and the row's overhead
+    with PlaceDatabase.open(str(path)) as again:
+        assert np.array_equal(again.vectors, vectors)

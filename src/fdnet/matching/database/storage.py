@@ -293,11 +293,20 @@ def check_can_create(path: str | os.PathLike, overwrite: bool = False) -> None:
         )
 
 
+#: page size of a new database file. A place's row is its vector blob (2 KB at 512 float32) and a
+#: few dozen bytes: with SQLite's default 4 KB pages one row fits a page and a half of it is
+#: empty (4132 bytes a 512-d place, measured), with 32 KB pages 14 rows fill one (2218 bytes a
+#: place), which also makes adds and reads by id faster. Ignored for a file that has pages.
+PAGE_SIZE = 32768
+
+
 def use_write_ahead_log(conn: sqlite3.Connection, target: str) -> None:
     """Put a new database file in SQLite's write-ahead log (readers beside one writer, and a
-    commit survives a crash); refuse a file system that cannot (a network share)."""
+    commit survives a crash); refuse a file system that cannot (a network share). A file
+    without pages yet first gets :data:`PAGE_SIZE` (it cannot change once in the log)."""
     if target == MEMORY:
         return
+    conn.execute(f"PRAGMA page_size = {PAGE_SIZE}")
     mode = conn.execute("PRAGMA journal_mode = WAL").fetchone()[0]
     if str(mode).lower() != "wal":
         raise DataError(
