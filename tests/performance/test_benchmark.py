@@ -56,3 +56,33 @@ def test_scale_part_writes_its_table_to_out_and_returns_rows():
     assert report["scale"][0]["recall_at_1"] == 1.0
     assert any("Scale: a map of 300 random unit 8-d vectors" in line for line in lines)
     assert lines[0].startswith("fdnet benchmark: 1 threads")
+
+
+def test_a_benchmark_stopped_with_sigterm_removes_its_scratch_folder(tmp_path):
+    # the loop part's maps live there: tens of GB at 10^7 places must not outlive a killed run
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    src = str(Path(__file__).resolve().parents[2] / "src")
+    env = dict(os.environ, TMPDIR=str(tmp_path), PYTHONPATH=src)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "fdnet", "benchmark", "--parts", "loop", "--loop-map-size", "200000", "--threads", "1"],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while not list(tmp_path.glob("fdnet-benchmark-*/fdnet-loop-map-*")):
+            assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=60) == 128 + signal.SIGTERM
+    finally:
+        proc.kill()
+        proc.wait()
+    assert list(tmp_path.iterdir()) == []

@@ -95,6 +95,11 @@ def test_a_map_too_large_to_hold_is_streamed_to_the_file_database_and_decided_by
     assert "streamed to the file database" in lines[-1] and list(tmp_path.iterdir()) == []
     assert loop_benchmark.loop_rows([5000], dim=32, route=30, log=lines.append) == []  # no folder to stream to
     assert "skipped" in lines[-1]
+    # a map the folder has no room for is refused before anything is written
+    monkeypatch.setattr(loop_benchmark, "DISK_BYTES_OVER_VECTOR", 10**12)
+    with pytest.raises(DataError, match="needs about .* GB of disk there"):
+        loop_benchmark.loop_rows([5000], dim=32, route=30, workdir=str(tmp_path))
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_a_failed_compressed_route_closes_its_database_before_its_folder_goes(tmp_path, monkeypatch):

@@ -12,6 +12,7 @@ dict.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import platform
 import tempfile
@@ -71,6 +72,27 @@ def _read_vectors(path: str, what: str):
     return np.ascontiguousarray(v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12))
 
 
+@contextlib.contextmanager
+def _terminate_unwinds():
+    """SIGTERM (``kill``, a scheduler) ends the run as Ctrl-C does, so the scratch folder is
+    removed on the way out: it holds the loop part's maps, tens of GB at 10^7 places."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def stop(signum, frame):
+        raise SystemExit(128 + signum)
+
+    previous = signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def run_benchmark(plan: BenchmarkPlan, out: Callable[[str], None], json_path: str | None = None) -> dict:
     """Measure the parts of ``plan``, writing each table's lines to ``out``; returns every figure
     (and writes them to ``json_path`` as JSON, atomically, when given: checked writable first)."""
@@ -117,7 +139,7 @@ def run_benchmark(plan: BenchmarkPlan, out: Callable[[str], None], json_path: st
     lengths = [512] if plan.quick else plan.lengths
     if "fdnet" in plan.parts:
         _fdnet_extraction(plan, lengths, report, out)
-    with tempfile.TemporaryDirectory(prefix="fdnet-benchmark-") as workdir:
+    with _terminate_unwinds(), tempfile.TemporaryDirectory(prefix="fdnet-benchmark-") as workdir:
         if "api" in plan.parts:
             _public_api(plan, workdir, report, out)
         if "gpu" in plan.parts:

@@ -40,6 +40,9 @@ IN_MEMORY_UP_TO = 2_000_000
 STREAMED_SEARCHES = ("compressed", "compressed_batched")
 #: places made and stored at a time
 CHUNK = 100_000
+#: disk bytes a stored place takes beyond its vector's twice (the database row's name and
+#: overhead: 2218 bytes a 512-float place in 32 KB pages), with room to spare
+DISK_BYTES_OVER_VECTOR = 400
 #: frames described ahead per batch on the compressed path's batched variant (the command's
 #: default ``--batch-size``)
 AHEAD = 64
@@ -99,12 +102,32 @@ def loop_rows(
         if streamed and workdir is None:
             log(f"  {size:>9,} places: skipped (a map this large is only streamed to a file database)")
             continue
+        if streamed:
+            _check_room(workdir, size, dim)
         log(f"  {size:>9,} places: building the map ...")
         row = _size_row(MapSource(size, dim, streamed), frames, route, workdir)
         _frames_per_s(row, row["searches"], describe_ms, describe_bf16_ms)
         rows.append(row)
         log(_line(row))
     return rows
+
+
+def _check_room(workdir: str, size: int, dim: int) -> None:
+    """Refuse a streamed map the folder has no room for, before writing any of it: the database
+    keeps each vector twice (its row, 32 KB pages: :data:`DISK_BYTES_OVER_VECTOR` over the float
+    bytes, and the vector file)."""
+    import shutil
+
+    from fdnet.errors import DataError
+
+    needed = size * (2 * 4 * dim + DISK_BYTES_OVER_VECTOR)
+    free = shutil.disk_usage(workdir).free
+    if free < needed:
+        raise DataError(
+            f"{workdir}: a streamed map of {size:,} places needs about {needed / 1e9:.0f} GB of disk there "
+            f"(its database and vector file), {free / 1e9:.0f} GB are free; give a smaller --loop-map-size "
+            "or free space"
+        )
 
 
 @dataclass
