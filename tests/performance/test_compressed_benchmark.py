@@ -92,6 +92,8 @@ def test_a_map_too_large_to_hold_is_streamed_to_the_file_database_and_decided_by
     assert "exact_ms" not in streamed and "index_ms" not in streamed and streamed["agreement_reference"] == "compressed"
     assert streamed["compressed_recall_at_1"] >= 0.9 and streamed["compressed_batched_agreement"] == 1.0
     assert streamed["gemv_ms"] > 0 and streamed["fdnet_frames_per_s_compressed"] > 0
+    assert 0 < streamed["compressed_rss_anon_bytes"] <= streamed["compressed_rss_bytes"]
+    assert "compressed_rss_bytes" not in held  # a held map's memory is the map's
     assert "streamed to the file database" in lines[-1] and list(tmp_path.iterdir()) == []
     assert loop_benchmark.loop_rows([5000], dim=32, route=30, log=lines.append) == []  # no folder to stream to
     assert "skipped" in lines[-1]

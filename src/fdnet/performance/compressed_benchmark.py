@@ -121,16 +121,6 @@ def _best2(ids: np.ndarray, scores: np.ndarray) -> np.ndarray:
     return np.stack([np.lexsort((i, -s))[:2] for i, s in zip(ids, scores)])
 
 
-def _memory() -> dict:
-    fields = {}
-    with open("/proc/self/status") as fh:
-        for line in fh:
-            key, _, value = line.partition(":")
-            if key in ("VmRSS", "RssAnon", "RssFile", "VmHWM"):
-                fields[key] = int(value.split()[0]) * 1024
-    return fields
-
-
 def compressed_rows(
     sizes,
     workdir: str | os.PathLike,
@@ -142,6 +132,7 @@ def compressed_rows(
     """Measure each map size (see the module docstring) on maps made from the FDNet vectors of
     ``sources`` (.npz files); the vector file of each is deleted after."""
     from fdnet.matching.compressed import CompressedIndex, VectorFile
+    from fdnet.performance.timing import process_memory
 
     refs, queries, truth = real_vectors(sources)
     sample = np.concatenate([refs, queries])
@@ -160,7 +151,7 @@ def compressed_rows(
                 index.sync(file)
                 encoded = time.perf_counter() - t1
                 row = _query_rows(index, file, queries, reference_ids, reference_scores)
-                row.update(_memory())
+                row.update(process_memory())
                 row.update(
                     map_size=int(size),
                     build_s=written + encoded,

@@ -30,7 +30,7 @@ import numpy as np
 from fdnet.decisions.loop_search import IVF_FROM
 from fdnet.descriptors.base import Descriptor
 from fdnet.matching.database.storage import MEMORY
-from fdnet.performance.timing import gemv_ms
+from fdnet.performance.timing import gemv_ms, process_memory
 
 DEFAULT_SIZES = (10_000, 100_000, 1_000_000)
 #: above this many places the map is not held in memory (4 GB of 512 floats at 2 x 10^6): it is
@@ -168,7 +168,9 @@ def _size_row(source: MapSource, frames: np.ndarray, route: int, workdir) -> dic
     revisits = np.arange(route, 2 * route)
     truth = source.size + revisits - route
     for search in searches:
-        times, decided[search] = _decide_route(source, earlier, frames, search, workdir)
+        times, decided[search], memory = _decide_route(source, earlier, frames, search, workdir)
+        if source.streamed:  # (a held map's memory would count the map the exact search holds)
+            row[f"{search}_rss_bytes"], row[f"{search}_rss_anon_bytes"] = memory["VmRSS"], memory["RssAnon"]
         matches = np.array(decided[search])[revisits]
         row[f"{search}_ms"] = 1e3 * float(np.median(times[route:]))
         row[f"{search}_mean_ms"] = 1e3 * float(np.mean(times[route:]))
@@ -197,8 +199,9 @@ def _frames_per_s(row: dict, searches, describe_ms: float | None, describe_bf16_
             row[f"fdnet_bf16_frames_per_s_{search}"] = 1e3 / (describe_bf16_ms + ms)
 
 
-def _decide_route(source: MapSource, earlier, frames: np.ndarray, search: str, workdir) -> tuple[list, list]:
-    """(seconds per frame, matched place per frame) of a detector deciding ``frames`` after the
+def _decide_route(source: MapSource, earlier, frames: np.ndarray, search: str, workdir) -> tuple[list, list, dict]:
+    """(seconds per frame, matched place per frame, the process's memory after the last frame:
+    :func:`~fdnet.performance.timing.process_memory`) of a detector deciding ``frames`` after the
     map (``earlier``, or made by ``source`` chunk by chunk): ``exact`` / ``index`` in memory;
     ``compressed`` through a database in a file of ``workdir`` that keeps its vectors in a
     vector file, searched through compressed codes (the codes' training and first encoding
@@ -228,7 +231,7 @@ def _decide_route(source: MapSource, earlier, frames: np.ndarray, search: str, w
 
 
 def _decide_on(descriptor, db, frames: np.ndarray, search: str, compressed: bool, ahead: int):
-    """:func:`_decide_route`'s work on the database ``db`` (the map already stored); ``ahead``:
+    """:func:`_decide_route`'s work and result on the database ``db`` (the map already stored); ``ahead``:
     frames come in batches of this many, each frame told the rest of its batch
     (:meth:`LoopClosureDetector.look_ahead`, as ``fdnet loop-closure`` does), or 0: one at a time."""
     from fdnet.decisions.loop_closure import LoopClosureDetector
@@ -252,7 +255,8 @@ def _decide_on(descriptor, db, frames: np.ndarray, search: str, compressed: bool
                 detector.look_ahead(frames[i + 1 : (i // ahead + 1) * ahead])
             detector.process_vector(vector, name=f"traverse/{i}")
             times.append(time.perf_counter() - t0)
-    return times, [d.match for d in detector.decisions]
+        memory = process_memory()
+    return times, [d.match for d in detector.decisions], memory
 
 
 def _line(row: dict) -> str:
@@ -268,9 +272,12 @@ def _line(row: dict) -> str:
             f"{row['agreement']:.3f}"
         )
     else:
+        rss = max(row[f"{search}_rss_bytes"] for search in searches) / 2**30
+        anon = max(row[f"{search}_rss_anon_bytes"] for search in searches) / 2**30
         parts.append(
             f"  {row['map_size']:>9,} places (streamed to the file database; one GEMV over the map {gemv:.0f} ms, "
-            "scaled from its first chunk; no exhaustive search: the map is never in memory)"
+            f"scaled from its first chunk; no exhaustive search: the map is never in memory; RSS {rss:.2f} GB, "
+            f"anonymous {anon:.2f})"
         )
     if "compressed" in searches:
         same = "" if row["agreement_reference"] != "exact" else f", same place {row['compressed_agreement']:.3f}"

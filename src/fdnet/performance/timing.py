@@ -263,6 +263,19 @@ def descriptor_extraction(descriptor, images: np.ndarray, repeats: int = 3) -> f
 
 
 # ---------------------------------------------------------------------------- maps at scale
+def process_memory() -> dict:
+    """This process's memory now, bytes (Linux ``/proc/self/status``): ``VmRSS`` resident,
+    ``RssAnon`` of it not backed by a file, ``RssFile`` file pages mapped, ``VmHWM`` the peak
+    resident so far."""
+    fields = {}
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            key, _, value = line.partition(":")
+            if key in ("VmRSS", "RssAnon", "RssFile", "VmHWM"):
+                fields[key] = int(value.split()[0]) * 1024
+    return fields
+
+
 def random_map_chunks(size: int, dim: int, seed: int = 0, chunk: int = 100_000):
     """:func:`random_map`'s vectors, ``chunk`` rows at a time (a map too large to hold)."""
     rng = np.random.default_rng(seed)
