@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from fdnet.errors import ConfigError
-from fdnet.matching.place_map import GrowingArray, PlaceMap
+from fdnet.matching.place_map import GrowingArray, PlaceMap, StringColumn
 
 SRC = Path(__file__).resolve().parents[2] / "src" / "fdnet"
 
@@ -43,6 +43,28 @@ def test_growing_array_keeps_rows_across_growth():
         g.append(row)
     g.extend(rows[1500:])
     np.testing.assert_array_equal(g.view(), rows)
+
+
+def test_a_string_column_holds_any_name_or_none_and_reads_like_a_list():
+    odd = "frames/\udcff\udcfe caf\u00e9 \U0001f600.png"  # undecodable bytes as os.fsdecode gives them
+    values = ["a.png", None, "", odd, "b" * 3000]
+    column = StringColumn(values)
+    assert len(column) == 5 and column == values and list(column) == values
+    assert column[3] == odd and column[-1] == "b" * 3000 and column[1] is None and column[2] == ""
+    assert column[1:4] == values[1:4] and column[::-2] == values[::-2]
+    with pytest.raises(IndexError):
+        column[5]
+    column.extend(f"n{i}" for i in range(2000))  # past the first capacity
+    copy = StringColumn()
+    copy.extend(column)  # one column into another copies its buffers
+    assert copy == column and copy[2004] == "n1999"
+    copy.append(None)
+    del copy[3:]
+    assert copy == values[:3] and column[3] == odd
+    copy.append("again")
+    assert copy == [*values[:3], "again"]
+    with pytest.raises(TypeError):
+        del copy[1]
 
 
 def test_the_detector_searches_a_copy_of_the_database_map(tmp_path):
