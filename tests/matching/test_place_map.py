@@ -65,6 +65,16 @@ def test_a_string_column_holds_any_name_or_none_and_reads_like_a_list():
     assert copy == [*values[:3], "again"]
     with pytest.raises(TypeError):
         del copy[1]
+    # membership through the sorted hashes, then through the strings added since, then after a cut
+    assert column.contains(odd) and column.contains("n0") and not column.contains("n2000")
+    assert not column.contains("b" * 2999) and not column.contains("None")
+    column.extend(["n2000", odd + "x"])
+    assert column.contains("n2000") and column.contains(odd + "x")
+    column.truncate(4)
+    assert column.contains(odd) and not column.contains("n0") and not column.contains("n2000")
+    column.UNSORTED = 3  # past it the index is sorted again with the new strings
+    column.extend([f"m{i}" for i in range(10)])
+    assert all(column.contains(f"m{i}") for i in range(10)) and not column.contains("m10")
 
 
 def test_the_detector_searches_a_copy_of_the_database_map(tmp_path):

@@ -361,7 +361,7 @@ class LoopClosureDetector:
         name = f"loop-closure-{self._session}/frame_{self.frames:06d}" if name is None else str(name)
         if not np.isfinite(v).all():
             raise DataError(f"{name}: its {self.descriptor.name} vector is not finite (NaN or inf)")
-        if name in self.map and not self.allow_duplicates:
+        if not self.allow_duplicates and name in self.map:
             raise DataError(
                 f"{self.database.path}: already holds a place named {name!r} (added in an earlier run?); "
                 "give each frame a new name, or allow duplicates"

@@ -67,13 +67,20 @@ class StringColumn:
     offset: about 25 bytes a 16-character name, where a list of str objects costs about 70 and
     leaves the allocator one small object per place to keep (10^7 names loaded from a database
     held 0.7 GB so, and pinned more of the heap the load had freed). Indexes, slices (to lists),
-    iterates, and compares equal to a list of the same strings. Any str round-trips, lone
-    surrogates of undecodable file names included."""
+    iterates, and compares equal to a list of the same strings; :meth:`contains` looks a string
+    up through a sorted array of hashes (16 bytes a string, where a set of str objects costs
+    about 100). Any str round-trips, lone surrogates of undecodable file names included."""
+
+    #: strings added after the hash index was sorted that are looked up in a dict before it is
+    #: sorted again (a sort of 10^7 hashes takes about a second)
+    UNSORTED = 65_536
 
     def __init__(self, values: Sequence[str | None] = ()):
         self._bytes = GrowingArray(None, dtype=np.uint8)
         self._ends = GrowingArray(None, dtype=np.int64)
         self._present = GrowingArray(None, dtype=bool)
+        self._hashes = self._order = None  # the sorted hash index, made by the first lookup
+        self._unsorted: dict[int, list[int]] = {}
         self.extend(values)
 
     def __len__(self) -> int:
@@ -83,20 +90,27 @@ class StringColumn:
         return int(self._ends.view()[count - 1]) if count else 0
 
     def extend(self, values) -> None:
+        first = len(self)
         if isinstance(values, StringColumn):
-            offset = self._end(len(self))
+            offset = self._end(first)
             self._bytes.extend(values._bytes.view())
             self._ends.extend(values._ends.view() + offset)
             self._present.extend(values._present.view())
-            return
-        values = list(values)
-        if not values:
-            return
-        encoded = [b"" if v is None else v.encode("utf-8", "surrogatepass") for v in values]
-        lengths = np.fromiter((len(e) for e in encoded), np.int64, len(encoded))
-        self._ends.extend(self._end(len(self)) + np.cumsum(lengths))
-        self._bytes.extend(np.frombuffer(b"".join(encoded), np.uint8))
-        self._present.extend(np.fromiter((v is not None for v in values), bool, len(values)))
+        else:
+            values = list(values)
+            if not values:
+                return
+            encoded = [b"" if v is None else v.encode("utf-8", "surrogatepass") for v in values]
+            lengths = np.fromiter((len(e) for e in encoded), np.int64, len(encoded))
+            self._ends.extend(self._end(first) + np.cumsum(lengths))
+            self._bytes.extend(np.frombuffer(b"".join(encoded), np.uint8))
+            self._present.extend(np.fromiter((v is not None for v in values), bool, len(values)))
+        if self._hashes is not None:
+            for i, value in enumerate(self._range(first, len(self)), start=first):
+                if value is not None:
+                    self._unsorted.setdefault(hash(value), []).append(i)
+            if sum(len(v) for v in self._unsorted.values()) > self.UNSORTED:
+                self._hashes = None  # sorted again, with them, at the next lookup
 
     def append(self, value: str | None) -> None:
         self.extend([value])
@@ -107,25 +121,49 @@ class StringColumn:
         self._bytes.truncate(self._end(count))
         self._ends.truncate(count)
         self._present.truncate(count)
+        self._hashes = None
 
-    def _decode(self, start: int, end: int, present: bool) -> str | None:
-        return self._bytes.view()[start:end].tobytes().decode("utf-8", "surrogatepass") if present else None
+    def _range(self, start: int, stop: int):
+        """The strings start..stop - 1, decoded from one read of their bytes."""
+        if stop <= start:
+            return
+        base = self._end(start)
+        data = self._bytes.view()[base : self._end(stop)].tobytes()
+        previous = 0
+        ends = (self._ends.view()[start:stop] - base).tolist()
+        for end, present in zip(ends, self._present.view()[start:stop].tolist()):
+            yield data[previous:end].decode("utf-8", "surrogatepass") if present else None
+            previous = end
 
     def __getitem__(self, key):
         if isinstance(key, slice):
-            return [self[i] for i in range(*key.indices(len(self)))]
+            start, stop, step = key.indices(len(self))
+            if step == 1:
+                return list(self._range(start, stop))
+            return [self[i] for i in range(start, stop, step)]
         i = operator.index(key)
         i = i + len(self) if i < 0 else i
         if not 0 <= i < len(self):
             raise IndexError(f"place {key} of {len(self)}")
-        return self._decode(self._end(i), self._end(i + 1), bool(self._present.view()[i]))
+        return next(self._range(i, i + 1))
 
     def __iter__(self):
-        data = self._bytes.view().tobytes()
-        start = 0
-        for end, present in zip(self._ends.view().tolist(), self._present.view().tolist()):
-            yield data[start:end].decode("utf-8", "surrogatepass") if present else None
-            start = end
+        # in blocks, so iterating a long column never holds a decoded copy of all of it
+        for start in range(0, len(self), 65_536):
+            yield from self._range(start, min(start + 65_536, len(self)))
+
+    def contains(self, value: str) -> bool:
+        """Whether ``value`` is one of the strings (None is never looked up)."""
+        if self._hashes is None:
+            hashes = np.fromiter((hash(v) for v in self), np.int64, len(self))
+            present = np.flatnonzero(self._present.view())
+            self._order = present[np.argsort(hashes[present], kind="stable")]
+            self._hashes = hashes[self._order]
+            self._unsorted = {}
+        key = hash(value)
+        low, high = np.searchsorted(self._hashes, key, "left"), np.searchsorted(self._hashes, key, "right")
+        candidates = [*self._order[low:high].tolist(), *self._unsorted.get(key, ())]
+        return any(self[i] == value for i in candidates)
 
     def __delitem__(self, key) -> None:
         if not isinstance(key, slice) or key.stop is not None or key.step not in (None, 1):
@@ -173,7 +211,6 @@ class PlaceMap:
         self.names = StringColumn()
         self.positions: list[tuple[float, float] | None] = []
         self.metadata_text = StringColumn()
-        self._known: set[str] | None = None
         self._loop: dict | None = None  # loop closure's columns, made from the metadata when first read
 
     def __len__(self) -> int:
@@ -196,8 +233,6 @@ class PlaceMap:
         self.metadata_text.extend(metadata_text)
         if self.vectors is not None and vectors is not None:
             self.vectors.extend(vectors)
-        if self._known is not None:
-            self._known.update(names)
         if self._loop is not None:
             self._read_loop_columns(start, metadata)
 
@@ -211,7 +246,6 @@ class PlaceMap:
         del self.names[count:], self.positions[count:], self.metadata_text[count:]
         if self.vectors is not None:
             self.vectors.truncate(count)
-        self._known = None
         if self._loop is not None:
             for column in self._loop.values():
                 if isinstance(column, GrowingArray):
@@ -271,9 +305,7 @@ class PlaceMap:
         return [None if text is None else json.loads(text) for text in self.metadata_text]
 
     def __contains__(self, name: str) -> bool:
-        if self._known is None:
-            self._known = set(self.names)
-        return name in self._known
+        return self.names.contains(name)
 
     def loop_column(self, key: str):
         """What loop closure reads from each place's metadata: ``timestamp`` (float or None),

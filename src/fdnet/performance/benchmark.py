@@ -84,13 +84,15 @@ def _terminate_unwinds():
         return
 
     def stop(signum, frame):
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a repeated SIGTERM must not cut the clean-up short
         raise SystemExit(128 + signum)
 
     previous = signal.signal(signal.SIGTERM, stop)
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        # (None: a handler set outside Python, which cannot be put back; the default stands in)
+        signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
 
 
 def run_benchmark(plan: BenchmarkPlan, out: Callable[[str], None], json_path: str | None = None) -> dict:

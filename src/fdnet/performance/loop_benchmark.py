@@ -40,9 +40,10 @@ IN_MEMORY_UP_TO = 2_000_000
 STREAMED_SEARCHES = ("compressed", "compressed_batched")
 #: places made and stored at a time
 CHUNK = 100_000
-#: disk bytes a stored place takes beyond its vector's twice (the database row's name and
-#: overhead: 2218 bytes a 512-float place in 32 KB pages), with room to spare
-DISK_BYTES_OVER_VECTOR = 400
+#: disk bytes a stored place takes beyond its vector's twice: the database row's name and overhead
+#: (2212 bytes a 512-float place at 10^7 in 32 KB pages: 164), the codes cache beside it (168 at
+#: the default codes) and the write-ahead log of an add, with room to spare
+DISK_BYTES_OVER_VECTOR = 600
 #: frames described ahead per batch on the compressed path's batched variant (the command's
 #: default ``--batch-size``)
 AHEAD = 64
@@ -169,7 +170,7 @@ def _size_row(source: MapSource, frames: np.ndarray, route: int, workdir) -> dic
     truth = source.size + revisits - route
     for search in searches:
         times, decided[search], memory = _decide_route(source, earlier, frames, search, workdir)
-        if source.streamed:  # (a held map's memory would count the map the exact search holds)
+        if source.streamed and "RssAnon" in memory:  # (a held map's would count the map itself)
             row[f"{search}_rss_bytes"], row[f"{search}_rss_anon_bytes"] = memory["VmRSS"], memory["RssAnon"]
         matches = np.array(decided[search])[revisits]
         row[f"{search}_ms"] = 1e3 * float(np.median(times[route:]))
@@ -272,12 +273,14 @@ def _line(row: dict) -> str:
             f"{row['agreement']:.3f}"
         )
     else:
-        rss = max(row[f"{search}_rss_bytes"] for search in searches) / 2**30
-        anon = max(row[f"{search}_rss_anon_bytes"] for search in searches) / 2**30
+        memory = ""
+        if all(f"{search}_rss_bytes" in row for search in searches):
+            rss = max(row[f"{search}_rss_bytes"] for search in searches) / 2**30
+            anon = max(row[f"{search}_rss_anon_bytes"] for search in searches) / 2**30
+            memory = f"; RSS {rss:.2f} GB, anonymous {anon:.2f}"
         parts.append(
             f"  {row['map_size']:>9,} places (streamed to the file database; one GEMV over the map {gemv:.0f} ms, "
-            f"scaled from its first chunk; no exhaustive search: the map is never in memory; RSS {rss:.2f} GB, "
-            f"anonymous {anon:.2f})"
+            f"scaled from its first chunk; no exhaustive search: the map is never in memory{memory})"
         )
     if "compressed" in searches:
         same = "" if row["agreement_reference"] != "exact" else f", same place {row['compressed_agreement']:.3f}"

@@ -266,13 +266,16 @@ def descriptor_extraction(descriptor, images: np.ndarray, repeats: int = 3) -> f
 def process_memory() -> dict:
     """This process's memory now, bytes (Linux ``/proc/self/status``): ``VmRSS`` resident,
     ``RssAnon`` of it not backed by a file, ``RssFile`` file pages mapped, ``VmHWM`` the peak
-    resident so far."""
+    resident so far. Empty where the file is not (not Linux)."""
     fields = {}
-    with open("/proc/self/status") as fh:
-        for line in fh:
-            key, _, value = line.partition(":")
-            if key in ("VmRSS", "RssAnon", "RssFile", "VmHWM"):
-                fields[key] = int(value.split()[0]) * 1024
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                key, _, value = line.partition(":")
+                if key in ("VmRSS", "RssAnon", "RssFile", "VmHWM"):
+                    fields[key] = int(value.split()[0]) * 1024
+    except OSError:
+        pass
     return fields
 
 

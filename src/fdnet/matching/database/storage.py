@@ -296,7 +296,8 @@ def check_can_create(path: str | os.PathLike, overwrite: bool = False) -> None:
 #: page size of a new database file. A place's row is its vector blob (2 KB at 512 float32) and a
 #: few dozen bytes: with SQLite's default 4 KB pages one row fits a page and a half of it is
 #: empty (4132 bytes a 512-d place, measured), with 32 KB pages 14 rows fill one (2218 bytes a
-#: place), which also makes adds and reads by id faster. Ignored for a file that has pages.
+#: place), which also made bulk adds and reads by id faster. Ignored for a file that has pages
+#: (``build --overwrite`` keeps them).
 PAGE_SIZE = 32768
 
 
