@@ -80,6 +80,7 @@ class StringColumn:
         self._ends = GrowingArray(None, dtype=np.int64)
         self._present = GrowingArray(None, dtype=bool)
         self._hashes = self._order = None  # the sorted hash index, made by the first lookup
+        self._sorted_up_to = 0  # the strings it covers: those after it are in _unsorted
         self._unsorted: dict[int, list[int]] = {}
         self.extend(values)
 
@@ -109,7 +110,7 @@ class StringColumn:
             for i, value in enumerate(self._range(first, len(self)), start=first):
                 if value is not None:
                     self._unsorted.setdefault(hash(value), []).append(i)
-            if sum(len(v) for v in self._unsorted.values()) > self.UNSORTED:
+            if len(self) - self._sorted_up_to > self.UNSORTED:
                 self._hashes = None  # sorted again, with them, at the next lookup
 
     def append(self, value: str | None) -> None:
@@ -159,7 +160,7 @@ class StringColumn:
             present = np.flatnonzero(self._present.view())
             self._order = present[np.argsort(hashes[present], kind="stable")]
             self._hashes = hashes[self._order]
-            self._unsorted = {}
+            self._sorted_up_to, self._unsorted = len(self), {}
         key = hash(value)
         low, high = np.searchsorted(self._hashes, key, "left"), np.searchsorted(self._hashes, key, "right")
         candidates = [*self._order[low:high].tolist(), *self._unsorted.get(key, ())]

@@ -26,10 +26,13 @@ from typing import Callable
 
 import numpy as np
 
+from fdnet.decisions.loop_traverse import DEFAULT_SEQUENCE_LENGTH
+
 #: rows drawn, written and searched per chunk while building and while searching exhaustively
 CHUNK = 131_072
-#: queries searched in one call for the blocked timing: loop closure's block (sequences of 10)
-BLOCK = 9
+#: queries searched in one call for the blocked timing: loop closure's block at its default
+#: sequence length (:attr:`fdnet.decisions.loop_search.IndexedCandidates.block`)
+BLOCK = DEFAULT_SEQUENCE_LENGTH - 1
 
 
 HEADLINE = (

@@ -28,6 +28,7 @@ from typing import Callable
 import numpy as np
 
 from fdnet.decisions.loop_search import IVF_FROM
+from fdnet.decisions.loop_traverse import DEFAULT_SEQUENCE_LENGTH
 from fdnet.descriptors.base import Descriptor
 from fdnet.matching.database.storage import MEMORY
 from fdnet.performance.timing import gemv_ms, process_memory
@@ -133,30 +134,36 @@ def _check_room(workdir: str, size: int, dim: int) -> None:
 
 @dataclass
 class MapSource:
-    """The earlier session's map: ``size`` random unit vectors (seed 11), held in memory, or
-    ``streamed``: made chunk by chunk as they are stored, never all at once."""
+    """The earlier session's map: ``size`` random unit vectors, held in memory, or
+    ``streamed``: made chunk by chunk as they are stored, never all at once (the same vectors)."""
 
     size: int
     dim: int
     streamed: bool = False
+    seed: int = 11
+
+    def array(self, size: int | None = None) -> np.ndarray:
+        """The map's first ``size`` places (None: all) in memory."""
+        from fdnet.performance.timing import random_map
+
+        return random_map(self.size if size is None else size, self.dim, seed=self.seed, chunk=CHUNK)
 
     def chunks(self, array: np.ndarray | None = None):
+        """The map :data:`CHUNK` places at a time: sliced from ``array`` when it is held, else made."""
         from fdnet.performance.timing import random_map_chunks
 
         if array is not None:
             return (array[s : s + CHUNK] for s in range(0, len(array), CHUNK))
-        return random_map_chunks(self.size, self.dim, seed=11, chunk=CHUNK)
+        return random_map_chunks(self.size, self.dim, seed=self.seed, chunk=CHUNK)
 
 
 def _size_row(source: MapSource, frames: np.ndarray, route: int, workdir) -> dict:
     """One map size's row: every search the size allows, decided over the same frames."""
-    from fdnet.performance.timing import random_map
-
-    earlier = None if source.streamed else random_map(source.size, source.dim, seed=11, chunk=CHUNK)
+    earlier = None if source.streamed else source.array()
     if source.streamed:
         searches = STREAMED_SEARCHES
         # one GEMV over the first chunk, scaled to the map: the map is never in memory at once
-        gemv = gemv_ms(random_map(CHUNK, source.dim, seed=11, chunk=CHUNK)) * source.size / CHUNK
+        gemv = gemv_ms(source.array(CHUNK)) * source.size / CHUNK
     else:
         searches = ("exact", "index")
         if workdir is not None and source.size >= IVF_FROM:
@@ -189,15 +196,15 @@ def _size_row(source: MapSource, frames: np.ndarray, route: int, workdir) -> dic
 
 def _frames_per_s(row: dict, searches, describe_ms: float | None, describe_bf16_ms: float | None) -> None:
     """frames/s of the whole loop with the descriptor's time: 1000 / (describe ms + decide ms)."""
-    for search in searches:
-        # (from the mean where frames are searched in blocks: a block's first frame pays for all)
-        ms = row[f"{search}_mean_ms" if search == "compressed_batched" else f"{search}_ms"]
-        if describe_ms is not None:
-            row["describe_ms"] = describe_ms
-            row[f"fdnet_frames_per_s_{search}"] = 1e3 / (describe_ms + ms)
-        if describe_bf16_ms is not None:
-            row["describe_bf16_ms"] = describe_bf16_ms
-            row[f"fdnet_bf16_frames_per_s_{search}"] = 1e3 / (describe_bf16_ms + ms)
+    for key, describe in (("describe_ms", describe_ms), ("describe_bf16_ms", describe_bf16_ms)):
+        if describe is None:
+            continue
+        row[key] = describe
+        label = "fdnet_frames_per_s" if key == "describe_ms" else "fdnet_bf16_frames_per_s"
+        for search in searches:
+            # (from the mean where frames are searched in blocks: a block's first frame pays for all)
+            ms = row[f"{search}_mean_ms" if search == "compressed_batched" else f"{search}_ms"]
+            row[f"{label}_{search}"] = 1e3 / (describe + ms)
 
 
 def _decide_route(source: MapSource, earlier, frames: np.ndarray, search: str, workdir) -> tuple[list, list, dict]:
@@ -243,7 +250,7 @@ def _decide_on(descriptor, db, frames: np.ndarray, search: str, compressed: bool
         exclude_last=5,
         rule="margin",
         threshold=0.0,
-        sequence_length=10,
+        sequence_length=DEFAULT_SEQUENCE_LENGTH,
         commit_every=100,
         search="index" if compressed else search,
         compressed_from=IVF_FROM if compressed else None,
@@ -332,11 +339,14 @@ def per_frame_rows(
             (folder / Path(path).name).symlink_to(Path(path).resolve())
         for _ in range(repeats):
             settings = TraverseSettings(
-                Path(scratch) / "events.csv", LoopClosureSettings(rule="margin", threshold=math.inf, sequence_length=10)
+                Path(scratch) / "events.csv",
+                LoopClosureSettings(rule="margin", threshold=math.inf, sequence_length=DEFAULT_SEQUENCE_LENGTH),
             )
             report = run_traverse(folder, descriptor, None, settings)
             batched.append(report.frames_per_second)
-            detector = LoopClosureDetector(descriptor, None, rule="margin", threshold=math.inf, sequence_length=10)
+            detector = LoopClosureDetector(
+                descriptor, None, rule="margin", threshold=math.inf, sequence_length=DEFAULT_SEQUENCE_LENGTH
+            )
             with detector:
                 t0 = time.perf_counter()
                 for path in sorted(folder.iterdir()):
