@@ -88,7 +88,8 @@ def test_seams_lay_each_segment_after_its_own_padding():
     seams = Seams(pad=3)
     for new in (True, False, False, True, False):
         seams.add(new)
-    assert list(seams.columns()) == [3, 4, 5, 9, 10]
+    assert list(seams.columns()) == [3, 4, 5, 9, 10] and list(seams.columns(4)) == [3, 4, 5, 9]
+    assert [seams.width(n) for n in range(6)] == [0, 4, 5, 6, 10, 11]
     assert seams.segments == 2 and list(seams.first_places(np.array([4, 2, 3]))) == [3, 0, 3]
     assert list(seams.padded(np.array([1.0, 2, 3, 4, 5]), 0.5)) == [0.5, 0.5, 0.5, 1, 2, 3, 0.5, 0.5, 0.5, 4, 5]
     seams.truncate(3)

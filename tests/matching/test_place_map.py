@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from fdnet.errors import ConfigError
-from fdnet.matching.place_map import GrowingArray, PlaceMap, StringColumn
+from fdnet.matching.place_map import GrowingArray, OptionalFloats, PlaceMap, StringColumn
 
 SRC = Path(__file__).resolve().parents[2] / "src" / "fdnet"
 
@@ -28,7 +28,7 @@ def test_a_map_grows_truncates_and_reads_loop_columns():
     assert "c" in m and m.metadata(2)["uninformative"] is True
     assert m.loop_column("informative").view().tolist() == [True, True, False]
     assert m.loop_column("still").view().tolist() == [False, False, True]
-    assert m.loop_column("segment_start") == [False, False, True]
+    assert m.loop_column("segment_start").view().tolist() == [False, False, True]
     np.testing.assert_array_equal(m.vectors.view()[2], np.ones(3))
     m.truncate(1)
     assert m.names == ["a"] and "b" not in m and len(m.vectors) == 1
@@ -77,7 +77,7 @@ def test_a_string_column_holds_any_name_or_none_and_reads_like_a_list():
     assert all(column.contains(f"m{i}") for i in range(10)) and not column.contains("m10")
 
 
-def test_the_detector_searches_a_copy_of_the_database_map(tmp_path):
+def test_the_database_hands_its_map_over_and_reads_it_again_when_asked(tmp_path):
     from fdnet.decisions.loop_closure import LoopClosureDetector
     from fdnet.descriptors.classic import RawThumbnail
     from fdnet.matching.database import PlaceDatabase
@@ -86,16 +86,60 @@ def test_the_detector_searches_a_copy_of_the_database_map(tmp_path):
     rng = np.random.default_rng(0)
     v = rng.standard_normal((4, d.dim)).astype(np.float32)
     v /= np.linalg.norm(v, axis=1, keepdims=True)
+    names = [f"p{i}" for i in range(4)]
     with PlaceDatabase.create(tmp_path / "map.db", d) as db:
-        db.add(v, [f"p{i}" for i in range(4)], metadata=[{"timestamp": float(i)} for i in range(4)])
-        copy = db.place_map()
-        assert isinstance(db._map, PlaceMap) and copy is not db._map and copy.names == db.names
-        copy.append(v[0], "extra", None, None)
-        assert len(db) == 4 and db.names == [f"p{i}" for i in range(4)]  # the copy is the caller's
+        db.add(v, names, metadata=[{"timestamp": float(i)} for i in range(4)])
+        handed = db.place_map()
+        assert handed.names == names and len(db._map) == 0  # held once: the database let it go
+        np.testing.assert_array_equal(handed.vectors.view(), v)
+        handed.append(v[0], "extra", None, None)
+        assert len(db) == 4 and db.names == names  # the handed map is the caller's; the file's is read again
+        assert [m[0].name for m in db.query(v[[2]], k=1)] == ["p2"]
         with LoopClosureDetector(d, db, rule="margin", threshold=2.0) as detector:
-            assert isinstance(detector.map, PlaceMap) and detector.map.names == db.names
+            assert isinstance(detector.map, PlaceMap) and detector.map.names == names
             np.testing.assert_array_equal(detector.map.vectors.view(), v)
             assert detector._times == [0.0, 1.0, 2.0, 3.0]
+            np.testing.assert_array_equal(detector._times.array(3), [0.0, 1.0, 2.0])
+
+
+def test_a_string_column_keeps_no_offsets_until_a_byte_and_widens_them_past_four_gigabytes():
+    column = StringColumn([None, "", None])
+    assert column._ends is None and column == [None, "", None] and column[1] == ""
+    other = StringColumn(["ab", None])
+    column.extend(other)  # a column with offsets into one without
+    assert column._ends.view().dtype == np.uint32 and column == [None, "", None, "ab", None]
+    empty = StringColumn([None])
+    other.extend(empty)  # and one without into one with
+    assert other == ["ab", None, None] and other.contains("ab") and not other.contains("")
+    column.NARROW_UP_TO = 5  # (4 GB in production: the test's buffer passes 5 bytes)
+    column.extend(["cdef", "g"])
+    assert column._ends.view().dtype == np.int64
+    assert column == [None, "", None, "ab", None, "cdef", "g"] and column.contains("cdef")
+    column.truncate(4)
+    assert column == [None, "", None, "ab"] and not column.contains("cdef")
+
+
+def test_optional_floats_hold_nothing_until_a_value_and_read_like_a_list():
+    times = OptionalFloats()
+    times.extend([None] * 5)
+    assert times._values is None and times == [None] * 5 and not times.all_present()
+    assert np.isnan(times.array()).all() and times.array().shape == (5,)
+    times.append(2.5)
+    assert times[5] == 2.5 and times[-1] == 2.5 and times[0] is None and times[4:] == [None, 2.5]
+    times.truncate(0)
+    times.extend([1, 2.0])
+    assert times == [1.0, 2.0] and times.all_present() and times.array().dtype == np.float64
+    positions = OptionalFloats(2, [None, (1, 2), np.array([3.0, 4.0, 9.0])])
+    assert positions == [None, (1.0, 2.0), (3.0, 4.0)] and positions.array().shape == (3, 2)
+    del positions[1:]
+    assert positions == [None] and not positions.all_present()
+    del positions[0:]
+    positions.append((5, 6))
+    assert positions.all_present() and positions.array().tolist() == [[5.0, 6.0]]
+    with pytest.raises(IndexError):
+        positions[1]
+    with pytest.raises(TypeError):
+        del positions[0:1]
 
 
 def _definitions(name: str) -> list[str]:

@@ -59,6 +59,7 @@ from fdnet.decisions.loop_trust import (  # noqa: F401
 from fdnet.errors import ConfigError, DataError
 from fdnet.matching.database.storage import place_name
 from fdnet.matching.file_rows import FileRows
+from fdnet.matching.place_map import OptionalFloats
 
 logger = logging.getLogger(__name__)
 
@@ -194,21 +195,21 @@ class LoopClosureDetector:
         self.map = db.place_map(vectors=True)
         # times and positions are used (radius_s, radius_m, the events' columns) only while every
         # place has them
-        self._has_times = all(t is not None for t in self.map.loop_column("timestamp"))
-        self._has_positions = all(p is not None for p in self.map.positions)
+        self._has_times = self.map.loop_column("timestamp").all_present()
+        self._has_positions = self.map.positions.all_present()
         # an earlier session, or a segment an earlier run marked, starts a new segment of the map
         self._seams = Seams(self._first_full)
         previous = None
-        for start, session in zip(self.map.loop_column("segment_start"), self.map.loop_column("session")):
+        for start, session in zip(self.map.loop_column("segment_start").view(), self.map.loop_column("session")):
             self._seams.add(start or session != previous)
             previous = session
 
     @property
-    def _times(self) -> list | None:
+    def _times(self) -> OptionalFloats | None:
         return self.map.loop_column("timestamp") if self._has_times else None
 
     @property
-    def _positions(self) -> list | None:
+    def _positions(self) -> OptionalFloats | None:
         return self.map.positions if self._has_positions else None
 
     @property
@@ -447,8 +448,8 @@ class LoopClosureDetector:
             retrieved=np.asarray(ids, np.int64)[None],
             scores=np.asarray(scores, np.float64)[None],
             similarity_ceiling=float(self.descriptor.similarity_ceiling),
-            reference_times=None if self._times is None else np.asarray(self._times[:searchable], np.float64),
-            reference_positions=None if self._positions is None else np.asarray(self._positions[:searchable]),
+            reference_times=None if self._times is None else self._times.array(searchable),
+            reference_positions=None if self._positions is None else self._positions.array(searchable),
             query_paths=[Path(name)] if needs_images else None,
             reference_paths=self.map.names if needs_images else None,
             query_indices=np.array([self.frames]),
@@ -517,8 +518,8 @@ class LoopClosureDetector:
         positions = self.map.positions[start:]
         self.map.truncate(start)
         self._seams.truncate(start)
-        self._has_times = all(t is not None for t in self.map.loop_column("timestamp"))
-        self._has_positions = all(p is not None for p in self.map.positions)
+        self._has_times = self.map.loop_column("timestamp").all_present()
+        self._has_positions = self.map.positions.all_present()
         self._start_traverse()
         for k in range(frames):
             self.process_vector(

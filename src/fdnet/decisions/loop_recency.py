@@ -26,11 +26,10 @@ sequence scorer runs over those rows unchanged.
 
 from __future__ import annotations
 
+import bisect
 import math
 
 import numpy as np
-
-from fdnet.matching.place_map import GrowingArray
 
 #: below-level frames in a row that end the walk back through the recent past (a frame or two
 #: below can be noise: a passing car, a blink of the exposure, a 64x32 frame's grain)
@@ -118,37 +117,39 @@ def sampled_similar_past(similarity, vector: np.ndarray, vectors, recent: np.nda
 class Seams:
     """Which segment each place belongs to and its column in a padded row (see the module
     docstring): ``pad`` neutral columns before every segment, so that a sequence of
-    ``sequence_length`` frames at any velocity never reaches into the previous segment."""
+    ``sequence_length`` frames at any velocity never reaches into the previous segment. Only the
+    segments' first places are held: place i of the s-th segment (from 1) is column i + s x pad,
+    so a map of 10^7 places costs nothing per place here."""
 
     def __init__(self, pad: int):
         self.pad = int(pad)
-        self._columns = GrowingArray(None, None, dtype=np.int64)
+        self._count = 0
         self._segment_starts: list[int] = []  # place index of each segment's first place
 
     def __len__(self) -> int:
-        return len(self._columns)
+        return self._count
 
     def add(self, new_segment: bool) -> None:
         """Add the next place; ``new_segment``: it starts a segment (the first place always does)."""
-        count = len(self._columns)
-        if new_segment or count == 0:
-            self._segment_starts.append(count)
-            column = self.pad if count == 0 else int(self._columns.view()[-1]) + 1 + self.pad
-        else:
-            column = int(self._columns.view()[-1]) + 1
-        self._columns.append(column)
+        if new_segment or self._count == 0:
+            self._segment_starts.append(self._count)
+        self._count += 1
 
     def truncate(self, count: int) -> None:
         """Forget the places from ``count`` on (a traverse being replayed)."""
-        self._columns.truncate(count)
-        self._segment_starts = [s for s in self._segment_starts if s < count]
+        self._count = min(int(count), self._count)
+        self._segment_starts = [s for s in self._segment_starts if s < self._count]
 
     def columns(self, count: int | None = None) -> np.ndarray:
-        return self._columns.view(count)
+        """The first ``count`` places' columns (None: every place's)."""
+        count = self._count if count is None else min(int(count), self._count)
+        starts = [s for s in self._segment_starts if s < count]
+        segment = np.repeat(np.arange(1, len(starts) + 1), np.diff([*starts, count]))
+        return np.arange(count, dtype=np.int64) + self.pad * segment
 
     def width(self, count: int) -> int:
         """The padded row's length for the first ``count`` places."""
-        return int(self._columns.view()[count - 1]) + 1 if count else 0
+        return count + self.pad * bisect.bisect_right(self._segment_starts, count - 1) if count else 0
 
     def padded(self, row: np.ndarray, neutral: float) -> np.ndarray:
         """``row`` (the first len(row) places) laid out in columns, the padding ``neutral``."""

@@ -64,20 +64,25 @@ class GrowingArray:
 
 class StringColumn:
     """Strings (or None) in insertion order, held as one UTF-8 byte buffer and each string's end
-    offset: about 25 bytes a 16-character name, where a list of str objects costs about 70 and
+    offset: about 20 bytes a 16-character name, where a list of str objects costs about 70 and
     leaves the allocator one small object per place to keep (10^7 names loaded from a database
-    held 0.7 GB so, and pinned more of the heap the load had freed). Indexes, slices (to lists),
-    iterates, and compares equal to a list of the same strings; :meth:`contains` looks a string
-    up through a sorted array of hashes (16 bytes a string, where a set of str objects costs
-    about 100). Any str round-trips, lone surrogates of undecodable file names included."""
+    held 0.7 GB so, and pinned more of the heap the load had freed). The offsets are 4 bytes
+    until the buffer passes 4 GB, and a column that has held no string but "" or None keeps only
+    its presence flags (a map's metadata when no place has any: 1 byte a place). Indexes, slices
+    (to lists), iterates, and compares equal to a list of the same strings; :meth:`contains`
+    looks a string up through a sorted array of hashes (12 bytes a string, where a set of str
+    objects costs about 100). Any str round-trips, lone surrogates of undecodable file names
+    included."""
 
     #: strings added after the hash index was sorted that are looked up in a dict before it is
     #: sorted again (a sort of 10^7 hashes takes about a second)
     UNSORTED = 65_536
+    #: the largest end offset held in 4 bytes: past it the offsets become 8 bytes each
+    NARROW_UP_TO = int(np.iinfo(np.uint32).max)
 
     def __init__(self, values: Sequence[str | None] = ()):
         self._bytes = GrowingArray(None, dtype=np.uint8)
-        self._ends = GrowingArray(None, dtype=np.int64)
+        self._ends: GrowingArray | None = None  # None: every string so far is empty (ends all 0)
         self._present = GrowingArray(None, dtype=bool)
         self._hashes = self._order = None  # the sorted hash index, made by the first lookup
         self._sorted_up_to = 0  # the strings it covers: those after it are in _unsorted
@@ -85,17 +90,32 @@ class StringColumn:
         self.extend(values)
 
     def __len__(self) -> int:
-        return len(self._ends)
+        return len(self._present)
 
     def _end(self, count: int) -> int:
-        return int(self._ends.view()[count - 1]) if count else 0
+        return int(self._ends.view()[count - 1]) if count and self._ends is not None else 0
+
+    def _ends_of(self, start: int, stop: int) -> np.ndarray:
+        if self._ends is None:
+            return np.zeros(stop - start, np.int64)
+        return self._ends.view()[start:stop].astype(np.int64)
+
+    def _extend_ends(self, first: int, ends: np.ndarray) -> None:
+        """Append the end offsets of the strings from ``first`` on (int64 ``ends``)."""
+        if self._ends is None:
+            if not len(ends) or ends[-1] == 0:
+                return  # still no byte in the buffer
+            self._ends = GrowingArray(None, np.zeros(first, np.uint32), np.uint32)
+        if self._ends.view().dtype == np.uint32 and len(ends) and ends[-1] > self.NARROW_UP_TO:
+            self._ends = GrowingArray(None, self._ends.view().astype(np.int64), np.int64)
+        self._ends.extend(ends)
 
     def extend(self, values) -> None:
         first = len(self)
         if isinstance(values, StringColumn):
-            offset = self._end(first)
+            count = len(values)
             self._bytes.extend(values._bytes.view())
-            self._ends.extend(values._ends.view() + offset)
+            self._extend_ends(first, values._ends_of(0, count) + self._end(first))
             self._present.extend(values._present.view())
         else:
             values = list(values)
@@ -103,7 +123,7 @@ class StringColumn:
                 return
             encoded = [b"" if v is None else v.encode("utf-8", "surrogatepass") for v in values]
             lengths = np.fromiter((len(e) for e in encoded), np.int64, len(encoded))
-            self._ends.extend(self._end(first) + np.cumsum(lengths))
+            self._extend_ends(first, self._end(first) + np.cumsum(lengths))
             self._bytes.extend(np.frombuffer(b"".join(encoded), np.uint8))
             self._present.extend(np.fromiter((v is not None for v in values), bool, len(values)))
         if self._hashes is not None:
@@ -120,7 +140,8 @@ class StringColumn:
         """Forget the strings from ``count`` on."""
         count = max(0, min(int(count), len(self)))
         self._bytes.truncate(self._end(count))
-        self._ends.truncate(count)
+        if self._ends is not None:
+            self._ends.truncate(count)
         self._present.truncate(count)
         self._hashes = None
 
@@ -131,7 +152,7 @@ class StringColumn:
         base = self._end(start)
         data = self._bytes.view()[base : self._end(stop)].tobytes()
         previous = 0
-        ends = (self._ends.view()[start:stop] - base).tolist()
+        ends = (self._ends_of(start, stop) - base).tolist()
         for end, present in zip(ends, self._present.view()[start:stop].tolist()):
             yield data[previous:end].decode("utf-8", "surrogatepass") if present else None
             previous = end
@@ -158,8 +179,9 @@ class StringColumn:
         if self._hashes is None:
             hashes = np.fromiter((hash(v) for v in self), np.int64, len(self))
             present = np.flatnonzero(self._present.view())
-            self._order = present[np.argsort(hashes[present], kind="stable")]
-            self._hashes = hashes[self._order]
+            order = present[np.argsort(hashes[present], kind="stable")]
+            self._order = order.astype(np.uint32) if len(self) <= np.iinfo(np.uint32).max else order
+            self._hashes = hashes[order]
             self._sorted_up_to, self._unsorted = len(self), {}
         key = hash(value)
         low, high = np.searchsorted(self._hashes, key, "left"), np.searchsorted(self._hashes, key, "right")
@@ -180,6 +202,107 @@ class StringColumn:
 
     def __repr__(self) -> str:
         return f"StringColumn({len(self)} strings)"
+
+
+class OptionalFloats:
+    """A float per place (``width`` None: a timestamp) or a row of ``width`` floats (2: a
+    position), each possibly missing, held as one float64 array with NaN for a missing value. The
+    array is made by the first value, so a column that never held one (a map without times) keeps
+    only its count, where a list costs 8 bytes a place (80 MB at 10^7) and a list of (x, y) tuples
+    about 110. Indexes (a float or tuple, or None), slices (to lists), iterates, and compares equal
+    to a list of the same values; :meth:`array` gives the values as one array, without a copy."""
+
+    def __init__(self, width: int | None = None, values=()):
+        self.width = width
+        self._values: GrowingArray | None = None
+        self._count = 0
+        self._missing = 0
+        self.extend(values)
+
+    def __len__(self) -> int:
+        return self._count
+
+    def _row(self, value) -> list[float]:
+        if value is None:
+            return [np.nan] * (self.width or 1)
+        return [float(value)] if self.width is None else [float(c) for c in tuple(value)[: self.width]]
+
+    def extend(self, values) -> None:
+        rows = [self._row(v) for v in values]
+        if not rows:
+            return
+        missing = sum(1 for r in rows if np.isnan(r[0]))
+        if self._values is None and missing < len(rows):
+            self._values = GrowingArray(self.width, np.full((self._count, *self._shape), np.nan), np.float64)
+        if self._values is not None:
+            block = np.asarray(rows, np.float64)
+            self._values.extend(block[:, 0] if self.width is None else block)
+        self._count += len(rows)
+        self._missing += missing
+
+    @property
+    def _shape(self) -> tuple:
+        return () if self.width is None else (self.width,)
+
+    def append(self, value) -> None:
+        self.extend([value])
+
+    def all_present(self) -> bool:
+        """Whether every place has its value (so times or positions can be used)."""
+        return self._missing == 0
+
+    def array(self, count: int | None = None) -> np.ndarray:
+        """The first ``count`` values (None: all), NaN where missing: a view while any is held."""
+        count = self._count if count is None else min(int(count), self._count)
+        if self._values is None:
+            return np.full((count, *self._shape), np.nan)
+        return self._values.view(count)
+
+    def truncate(self, count: int) -> None:
+        """Forget the values from ``count`` on."""
+        self._count = max(0, min(int(count), self._count))
+        if self._values is None:
+            self._missing = self._count
+            return
+        self._values.truncate(self._count)
+        kept = self._values.view()
+        self._missing = int(np.isnan(kept if self.width is None else kept[:, 0]).sum())
+
+    def __delitem__(self, key) -> None:
+        if not isinstance(key, slice) or key.stop is not None or key.step not in (None, 1):
+            raise TypeError("a column only forgets its last values: del column[count:]")
+        self.truncate(key.indices(len(self))[0])
+
+    def _value(self, row):
+        if self.width is None:
+            return None if np.isnan(row) else float(row)
+        return None if np.isnan(row[0]) else tuple(float(c) for c in row)
+
+    def __getitem__(self, key):
+        if isinstance(key, slice):
+            start, stop, step = key.indices(len(self))
+            if self._values is None:
+                return [None] * len(range(start, stop, step))
+            return [self._value(r) for r in self._values.view()[start:stop:step]]
+        i = operator.index(key)
+        i = i + len(self) if i < 0 else i
+        if not 0 <= i < len(self):
+            raise IndexError(f"place {key} of {len(self)}")
+        return None if self._values is None else self._value(self._values.view()[i])
+
+    def __iter__(self):
+        for start in range(0, len(self), 65_536):
+            yield from self[start : min(start + 65_536, len(self))]
+
+    def __eq__(self, other) -> bool:
+        if isinstance(other, (OptionalFloats, list, tuple)):
+            return len(self) == len(other) and list(self) == list(other)
+        return NotImplemented
+
+    __hash__ = None
+
+    def __repr__(self) -> str:
+        return f"OptionalFloats({len(self)} places, {self._missing} missing)"
 
 
 def _first_within(idx: np.ndarray, scores: np.ndarray, searchable: int, want: int) -> tuple[np.ndarray, np.ndarray]:
@@ -210,7 +333,7 @@ class PlaceMap:
         self.vectors = GrowingArray(dim) if dim is not None else None
         self.index = index
         self.names = StringColumn()
-        self.positions: list[tuple[float, float] | None] = []
+        self.positions = OptionalFloats(2)
         self.metadata_text = StringColumn()
         self._loop: dict | None = None  # loop closure's columns, made from the metadata when first read
 
@@ -230,7 +353,7 @@ class PlaceMap:
         with ``metadata``, the same already parsed), and their vectors when the map keeps them."""
         start = len(self.names)
         self.names.extend(names)
-        self.positions.extend(None if p is None else (float(p[0]), float(p[1])) for p in positions)
+        self.positions.extend(positions)
         self.metadata_text.extend(metadata_text)
         if self.vectors is not None and vectors is not None:
             self.vectors.extend(vectors)
@@ -249,10 +372,7 @@ class PlaceMap:
             self.vectors.truncate(count)
         if self._loop is not None:
             for column in self._loop.values():
-                if isinstance(column, GrowingArray):
-                    column.truncate(count)
-                else:
-                    del column[count:]
+                column.truncate(count)
 
     @classmethod
     def of_vectors(cls, names: Sequence[str], vectors: np.ndarray | None = None, index=None) -> "PlaceMap":
@@ -309,29 +429,37 @@ class PlaceMap:
         return self.names.contains(name)
 
     def loop_column(self, key: str):
-        """What loop closure reads from each place's metadata: ``timestamp`` (float or None),
+        """What loop closure reads from each place's metadata: ``timestamp`` (:class:`OptionalFloats`),
         ``informative``/``still`` (GrowingArray of bool: the gates' flags an earlier run stored),
-        ``segment_start`` (bool list: the place starts a recording), ``session`` (the run that
-        added it, or None)."""
+        ``segment_start`` (GrowingArray of bool: the place starts a recording), ``session`` (the
+        run that added it, or None: a :class:`StringColumn`)."""
         if self._loop is None:
             self._loop = {
-                "timestamp": [],
+                "timestamp": OptionalFloats(),
                 "informative": GrowingArray(None),
                 "still": GrowingArray(None),
-                "segment_start": [],
+                "segment_start": GrowingArray(None),
                 "session": StringColumn(),
             }
             self._read_loop_columns(0)
         return self._loop[key]
 
     def _read_loop_columns(self, start: int, parsed: Sequence[dict | None] | None = None) -> None:
+        # a block of places at a time, each column extended once per block (10^7 places load in
+        # seconds, where a column append per place took minutes)
+        for first in range(start, len(self.metadata_text), 65_536):
+            texts = self.metadata_text[first : first + 65_536]
+            if parsed is not None:
+                metadata = [m or {} for m in parsed[first - start : first - start + len(texts)]]
+            else:
+                metadata = [(None if text is None else json.loads(text)) or {} for text in texts]
+            self._extend_loop_columns(metadata)
+
+    def _extend_loop_columns(self, metadata: list[dict]) -> None:
         loop = self._loop
-        texts = self.metadata_text[start:]
-        for k, text in enumerate(texts):
-            m = (parsed[k] if parsed is not None else None if text is None else json.loads(text)) or {}
-            loop["timestamp"].append(_number(m.get("timestamp")))
-            loop["informative"].append(not m.get("uninformative", False))
-            loop["still"].append(bool(m.get("still", False)))
-            loop["segment_start"].append(bool(m.get("segment_start")))
-            session = m.get("session")
-            loop["session"].append(session if session is None or isinstance(session, str) else str(session))
+        loop["timestamp"].extend([_number(m.get("timestamp")) for m in metadata])
+        loop["informative"].extend([not m.get("uninformative", False) for m in metadata])
+        loop["still"].extend([bool(m.get("still", False)) for m in metadata])
+        loop["segment_start"].extend([bool(m.get("segment_start")) for m in metadata])
+        sessions = [m.get("session") for m in metadata]
+        loop["session"].extend([s if s is None or isinstance(s, str) else str(s) for s in sessions])

@@ -31,7 +31,7 @@ from fdnet.decisions.loop_search import IVF_FROM
 from fdnet.decisions.loop_traverse import DEFAULT_SEQUENCE_LENGTH
 from fdnet.descriptors.base import Descriptor
 from fdnet.matching.database.storage import MEMORY
-from fdnet.performance.timing import gemv_ms, process_memory
+from fdnet.performance.timing import gemv_ms, process_memory, release_free_heap
 
 DEFAULT_SIZES = (10_000, 100_000, 1_000_000)
 #: above this many places the map is not held in memory (4 GB of 512 floats at 2 x 10^6): it is
@@ -232,6 +232,9 @@ def _decide_route(source: MapSource, earlier, frames: np.ndarray, search: str, w
             for chunk in source.chunks(earlier):
                 db.add(chunk, [f"earlier/{start + i}" for i in range(len(chunk))])
                 start += len(chunk)
+            # the detector's memory, not the heap the build freed (a robot's node would start
+            # in a process of its own, over a database written before)
+            release_free_heap()
             ahead = AHEAD if search == "compressed_batched" else 0
             return _decide_on(descriptor, db, frames, search, compressed, ahead)
         finally:

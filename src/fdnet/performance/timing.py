@@ -279,6 +279,20 @@ def process_memory() -> dict:
     return fields
 
 
+def release_free_heap() -> None:
+    """Hand the allocator's free heap back to the system (glibc's ``malloc_trim``; nothing where
+    there is none), after collecting garbage: what a process measures after it is what it holds,
+    not what an earlier step (a map's build) freed and the allocator kept."""
+    import ctypes
+    import gc
+
+    gc.collect()
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+
+
 def random_map_chunks(size: int, dim: int, seed: int = 0, chunk: int = 100_000):
     """:func:`random_map`'s vectors, ``chunk`` rows at a time (a map too large to hold)."""
     rng = np.random.default_rng(seed)

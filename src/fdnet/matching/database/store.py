@@ -50,7 +50,7 @@ from fdnet.matching.database.storage import (
 from fdnet.matching.database.vector_store import CompressedPlaces, VectorStore
 from fdnet.matching.file_rows import FileRows
 from fdnet.matching.index import IndexSettings, VectorIndex
-from fdnet.matching.place_map import PlaceMap
+from fdnet.matching.place_map import GrowingArray, PlaceMap
 
 
 @dataclass
@@ -493,18 +493,18 @@ class PlaceDatabase:
 
     def place_map(self, vectors: bool = True) -> PlaceMap:
         """Every place (up to the file's state) as a :class:`~fdnet.matching.place_map.PlaceMap` of its
-        own, with the vectors when asked: the loop-closure detector appends its frames to it."""
+        own, with the vectors when asked: the loop-closure detector appends its frames to it. The
+        places loaded here are handed over, not copied, and forgotten here (a later read loads them
+        again), so a map of 10^7 places is held once, not twice."""
         self._refresh()
-        in_file = vectors and isinstance(self._map.index, CompressedPlaces)
+        loaded, in_file = self._map, vectors and isinstance(self._map.index, CompressedPlaces)
         out = PlaceMap(self.dim if vectors and not in_file else None)
-        out.extend(
-            self._map.names,
-            self._map.positions,
-            self._map.metadata_text,
-            self.vectors if out.vectors is not None else None,
-        )
-        if in_file:  # read from the vector file as they are needed
+        out.names, out.positions, out.metadata_text = loaded.names, loaded.positions, loaded.metadata_text
+        if out.vectors is not None:
+            out.vectors = loaded.vectors if not self.dot_product else GrowingArray(self.dim, self.vectors)
+        elif in_file:  # read from the vector file as they are needed
             out.vectors = self._vector_store.rows(len(out))
+        self._map, self._last_id, self._loaded_version = PlaceMap(None if self.dot_product else self.dim), 0, -1
         return out
 
     def stored_vectors(self, count: int) -> FileRows | None:
