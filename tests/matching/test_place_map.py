@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from fdnet.errors import ConfigError
-from fdnet.matching.place_map import GrowingArray, OptionalFloats, PlaceMap, StringColumn
+from fdnet.matching.place_map import CategoryColumn, GrowingArray, OptionalFloats, PlaceMap, StringColumn
 
 SRC = Path(__file__).resolve().parents[2] / "src" / "fdnet"
 
@@ -117,6 +117,29 @@ def test_a_string_column_keeps_no_offsets_until_a_byte_and_widens_them_past_four
     assert column == [None, "", None, "ab", None, "cdef", "g"] and column.contains("cdef")
     column.truncate(4)
     assert column == [None, "", None, "ab"] and not column.contains("cdef")
+
+
+def test_a_category_column_codes_repeated_strings():
+    column = CategoryColumn(["s1", None, "s1", "s2"])
+    assert column == ["s1", None, "s1", "s2"] and column[-1] == "s2" and column[1:3] == [None, "s1"]
+    assert column._codes.view().dtype == np.int32 and column._values == ["s1", "s2"]
+    del column[2:]
+    column.append("s3")
+    assert list(column) == ["s1", None, "s3"] and len(column) == 3
+    with pytest.raises(IndexError):
+        column[3]
+
+
+def test_a_map_for_loop_closure_only_keeps_its_loop_columns_not_the_metadata_text():
+    m = PlaceMap(None)
+    m.extend(["a", "b"], [None, None], [json.dumps({"timestamp": 1.0, "session": "s"}), None])
+    m.keep_loop_columns_only()
+    assert m.metadata(0) is None and m.metadata_text._ends is None and len(m.metadata_text) == 2
+    m.append(None, "c", None, {"timestamp": 3.0, "still": True, "session": "s"})
+    assert m.loop_column("timestamp") == [1.0, None, 3.0] and m.loop_column("session") == ["s", None, "s"]
+    assert m.loop_column("still").view().tolist() == [False, False, True] and m.metadata(2) is None
+    m.truncate(1)
+    assert len(m.metadata_text) == 1 and m.loop_column("session") == ["s"]
 
 
 def test_optional_floats_hold_nothing_until_a_value_and_read_like_a_list():

@@ -193,6 +193,7 @@ class LoopClosureDetector:
     def _load_places(self) -> None:
         db = self.database
         self.map = db.place_map(vectors=True)
+        self.map.keep_loop_columns_only()
         # times and positions are used (radius_s, radius_m, the events' columns) only while every
         # place has them
         self._has_times = self.map.loop_column("timestamp").all_present()

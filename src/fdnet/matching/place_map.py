@@ -204,6 +204,71 @@ class StringColumn:
         return f"StringColumn({len(self)} strings)"
 
 
+class CategoryColumn:
+    """Strings (or None) that repeat, such as the session that added each place: each place holds
+    a 4-byte code into the distinct values (a 32-character session id costs 4 bytes a place, not
+    37). Indexes, slices (to lists), iterates, and compares equal to a list of the same strings."""
+
+    def __init__(self, values: Sequence[str | None] = ()):
+        self._codes = GrowingArray(None, dtype=np.int32)  # -1: None
+        self._values: list[str] = []
+        self._code_of: dict[str, int] = {}
+        self.extend(values)
+
+    def __len__(self) -> int:
+        return len(self._codes)
+
+    def _code(self, value: str | None) -> int:
+        if value is None:
+            return -1
+        code = self._code_of.get(value)
+        if code is None:
+            code = self._code_of[value] = len(self._values)
+            self._values.append(value)
+        return code
+
+    def extend(self, values) -> None:
+        codes = [self._code(v) for v in values]
+        if codes:
+            self._codes.extend(np.asarray(codes, np.int32))
+
+    def append(self, value: str | None) -> None:
+        self.extend([value])
+
+    def truncate(self, count: int) -> None:
+        """Forget the values from ``count`` on (the distinct values stay known)."""
+        self._codes.truncate(max(0, min(int(count), len(self))))
+
+    def __delitem__(self, key) -> None:
+        if not isinstance(key, slice) or key.stop is not None or key.step not in (None, 1):
+            raise TypeError("a column only forgets its last values: del column[count:]")
+        self.truncate(key.indices(len(self))[0])
+
+    def __getitem__(self, key):
+        if isinstance(key, slice):
+            return [None if c < 0 else self._values[c] for c in self._codes.view()[key].tolist()]
+        i = operator.index(key)
+        i = i + len(self) if i < 0 else i
+        if not 0 <= i < len(self):
+            raise IndexError(f"place {key} of {len(self)}")
+        code = int(self._codes.view()[i])
+        return None if code < 0 else self._values[code]
+
+    def __iter__(self):
+        for start in range(0, len(self), 65_536):
+            yield from self[start : start + 65_536]
+
+    def __eq__(self, other) -> bool:
+        if isinstance(other, (CategoryColumn, list, tuple)):
+            return len(self) == len(other) and list(self) == list(other)
+        return NotImplemented
+
+    __hash__ = None
+
+    def __repr__(self) -> str:
+        return f"CategoryColumn({len(self)} places, {len(self._values)} values)"
+
+
 class OptionalFloats:
     """A float per place (``width`` None: a timestamp) or a row of ``width`` floats (2: a
     position), each possibly missing, held as one float64 array with NaN for a missing value. The
@@ -336,6 +401,8 @@ class PlaceMap:
         self.positions = OptionalFloats(2)
         self.metadata_text = StringColumn()
         self._loop: dict | None = None  # loop closure's columns, made from the metadata when first read
+        #: False once :meth:`keep_loop_columns_only`: the metadata's text is no longer held
+        self.keeps_metadata_text = True
 
     def __len__(self) -> int:
         return len(self.names)
@@ -351,18 +418,26 @@ class PlaceMap:
     ) -> None:
         """Append places: names, positions ((x, y) or None), metadata as stored JSON text (or None;
         with ``metadata``, the same already parsed), and their vectors when the map keeps them."""
-        start = len(self.names)
+        if self._loop is not None:
+            self._read_loop_columns(metadata_text, metadata)
         self.names.extend(names)
         self.positions.extend(positions)
-        self.metadata_text.extend(metadata_text)
+        self.metadata_text.extend(metadata_text if self.keeps_metadata_text else [None] * len(names))
         if self.vectors is not None and vectors is not None:
             self.vectors.extend(vectors)
-        if self._loop is not None:
-            self._read_loop_columns(start, metadata)
+
+    def keep_loop_columns_only(self) -> None:
+        """Read loop closure's columns and stop holding the metadata's text, which a map only loop
+        closure searches never reads again (JSON of some 100 bytes a place: 1 GB at 10^7 places);
+        :meth:`metadata` then gives None."""
+        self.loop_column("session")
+        self.metadata_text = StringColumn()
+        self.metadata_text.extend([None] * len(self))
+        self.keeps_metadata_text = False
 
     def append(self, vector: np.ndarray | None, name: str, position, metadata: dict | None) -> None:
         """Append one place (its metadata as a dict, stored as the JSON a database would hold)."""
-        text = None if metadata is None else json.dumps(metadata, sort_keys=True)
+        text = None if metadata is None or not self.keeps_metadata_text else json.dumps(metadata, sort_keys=True)
         self.extend([name], [position], [text], None if vector is None else np.asarray(vector)[None], [metadata])
 
     def truncate(self, count: int) -> None:
@@ -432,27 +507,28 @@ class PlaceMap:
         """What loop closure reads from each place's metadata: ``timestamp`` (:class:`OptionalFloats`),
         ``informative``/``still`` (GrowingArray of bool: the gates' flags an earlier run stored),
         ``segment_start`` (GrowingArray of bool: the place starts a recording), ``session`` (the
-        run that added it, or None: a :class:`StringColumn`)."""
+        run that added it, or None: a :class:`CategoryColumn`)."""
         if self._loop is None:
             self._loop = {
                 "timestamp": OptionalFloats(),
                 "informative": GrowingArray(None),
                 "still": GrowingArray(None),
                 "segment_start": GrowingArray(None),
-                "session": StringColumn(),
+                "session": CategoryColumn(),
             }
-            self._read_loop_columns(0)
+            self._read_loop_columns(self.metadata_text)
         return self._loop[key]
 
-    def _read_loop_columns(self, start: int, parsed: Sequence[dict | None] | None = None) -> None:
+    def _read_loop_columns(self, texts: Sequence[str | None], parsed: Sequence[dict | None] | None = None) -> None:
+        """Extend loop closure's columns by the places of metadata ``texts`` (or the same, ``parsed``)."""
         # a block of places at a time, each column extended once per block (10^7 places load in
         # seconds, where a column append per place took minutes)
-        for first in range(start, len(self.metadata_text), 65_536):
-            texts = self.metadata_text[first : first + 65_536]
+        for first in range(0, len(texts), 65_536):
+            block = texts[first : first + 65_536]
             if parsed is not None:
-                metadata = [m or {} for m in parsed[first - start : first - start + len(texts)]]
+                metadata = [m or {} for m in parsed[first : first + len(block)]]
             else:
-                metadata = [(None if text is None else json.loads(text)) or {} for text in texts]
+                metadata = [(None if text is None else json.loads(text)) or {} for text in block]
             self._extend_loop_columns(metadata)
 
     def _extend_loop_columns(self, metadata: list[dict]) -> None:
