@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from fdnet.errors import ConfigError, DataError
-from fdnet.matching.compressed import CompressedIndex, CompressedSettings, VectorFile
+from fdnet.matching.compressed import CompressedIndex, CompressedSettings, VectorFile, candidates_for
 
 
 def unit(n: int, dim: int, seed: int) -> np.ndarray:
@@ -231,8 +231,19 @@ def test_compressed_index_grows_and_trains_again_the_same_way(tmp_path):
 def test_compressed_settings_are_checked():
     with pytest.raises(ConfigError, match="pq_subvectors=10 must be even and divide the vector length 32"):
         CompressedIndex(32, CompressedSettings(pq_subvectors=10))
-    with pytest.raises(ConfigError, match="candidates must be a positive whole number"):
-        CompressedIndex(32, CompressedSettings(candidates=0))
+    with pytest.raises(ConfigError, match="candidates must be a whole number >= 0"):
+        CompressedIndex(32, CompressedSettings(candidates=-1))
+    with pytest.raises(ConfigError, match="shortlist must be a whole number >= 1"):
+        CompressedIndex(32, CompressedSettings(shortlist=0))
+
+
+def test_candidates_double_with_each_tenfold_growth_of_the_map_past_a_million():
+    auto = CompressedSettings()
+    sizes = (1_000, 10**6, 2 * 10**6, 10**7 - 1, 10**7, 10**8)
+    assert [candidates_for(auto, n) for n in sizes] == [4096, 4096, 5120, 8192, 8192, 16384]
+    assert candidates_for(CompressedSettings(candidates=100), 10**8) == 100
+    index = CompressedIndex(32)
+    assert index.describe()["candidates"] == 4096
     with pytest.raises(ConfigError, match="lists, probe and train_points must be >= 0"):
         CompressedIndex(32, CompressedSettings(probe=-1))
     with pytest.raises(ConfigError, match="refine_subvectors=5 must divide the vector length 32"):
