@@ -119,6 +119,16 @@ def test_a_string_column_keeps_no_offsets_until_a_byte_and_widens_them_past_four
     assert column == [None, "", None, "ab"] and not column.contains("cdef")
 
 
+def test_a_string_column_finds_strings_whose_hashes_collide(monkeypatch):
+    import fdnet.matching.place_map as place_map
+
+    monkeypatch.setattr(place_map, "_hash32", lambda value: 7)  # every string one hash
+    column = StringColumn(["a", None, "b"])
+    assert column.contains("a") and column.contains("b") and not column.contains("c")
+    column.extend(["c"])  # after the index was sorted
+    assert column.contains("c") and not column.contains("d")
+
+
 def test_a_category_column_codes_repeated_strings():
     column = CategoryColumn(["s1", None, "s1", "s2"])
     assert column == ["s1", None, "s1", "s2"] and column[-1] == "s2" and column[1:3] == [None, "s1"]

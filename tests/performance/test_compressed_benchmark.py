@@ -125,3 +125,16 @@ def test_a_failed_compressed_route_closes_its_database_before_its_folder_goes(tm
         except OSError:  # (the listing's own descriptor, closed since)
             pass
     assert not [f for f in open_files if f.startswith(str(tmp_path))]  # no deleted file held open
+
+
+def test_the_streamed_map_is_written_by_a_process_of_its_own_and_its_failure_is_an_error(tmp_path):
+    from fdnet.matching.database import PlaceDatabase
+    from fdnet.performance.loop_benchmark import MapSource, StoredVectors, _store_in_a_process_of_its_own
+
+    source = MapSource(3000, 8, streamed=True)
+    _store_in_a_process_of_its_own(source, str(tmp_path / "map.db"))
+    with PlaceDatabase.open(tmp_path / "map.db", StoredVectors(8)) as db:
+        assert len(db) == 3000 and db.names[:2] == ["earlier/0", "earlier/1"]
+        np.testing.assert_array_equal(db.vectors, source.array())
+    with pytest.raises(DataError, match="storing the benchmark's map failed"):
+        _store_in_a_process_of_its_own(source, str(tmp_path / "map.db"))  # it exists: refused there

@@ -62,6 +62,10 @@ class GrowingArray:
         return self._data[: self._count if count is None else count]
 
 
+def _hash32(value) -> int:
+    return hash(value) & 0xFFFF_FFFF
+
+
 class StringColumn:
     """Strings (or None) in insertion order, held as one UTF-8 byte buffer and each string's end
     offset: about 20 bytes a 16-character name, where a list of str objects costs about 70 and
@@ -70,8 +74,9 @@ class StringColumn:
     until the buffer passes 4 GB, and a column that has held no string but "" or None keeps only
     its presence flags (a map's metadata when no place has any: 1 byte a place). Indexes, slices
     (to lists), iterates, and compares equal to a list of the same strings; :meth:`contains`
-    looks a string up through a sorted array of hashes (12 bytes a string, where a set of str
-    objects costs about 100). Any str round-trips, lone surrogates of undecodable file names
+    looks a string up through a sorted array of 4-byte hashes and 4-byte places (8 bytes a
+    string, where a set of str objects costs about 100; among 10^7 strings a lookup meets another's
+    hash about once in 400). Any str round-trips, lone surrogates of undecodable file names
     included."""
 
     #: strings added after the hash index was sorted that are looked up in a dict before it is
@@ -129,7 +134,7 @@ class StringColumn:
         if self._hashes is not None:
             for i, value in enumerate(self._range(first, len(self)), start=first):
                 if value is not None:
-                    self._unsorted.setdefault(hash(value), []).append(i)
+                    self._unsorted.setdefault(_hash32(value), []).append(i)
             if len(self) - self._sorted_up_to > self.UNSORTED:
                 self._hashes = None  # sorted again, with them, at the next lookup
 
@@ -177,13 +182,13 @@ class StringColumn:
     def contains(self, value: str) -> bool:
         """Whether ``value`` is one of the strings (None is never looked up)."""
         if self._hashes is None:
-            hashes = np.fromiter((hash(v) for v in self), np.int64, len(self))
+            hashes = np.fromiter((_hash32(v) for v in self), np.uint32, len(self))
             present = np.flatnonzero(self._present.view())
             order = present[np.argsort(hashes[present], kind="stable")]
             self._order = order.astype(np.uint32) if len(self) <= np.iinfo(np.uint32).max else order
             self._hashes = hashes[order]
             self._sorted_up_to, self._unsorted = len(self), {}
-        key = hash(value)
+        key = _hash32(value)
         low, high = np.searchsorted(self._hashes, key, "left"), np.searchsorted(self._hashes, key, "right")
         candidates = [*self._order[low:high].tolist(), *self._unsorted.get(key, ())]
         return any(self[i] == value for i in candidates)

@@ -11,8 +11,10 @@ the index's decision names the same place as the exhaustive one on the revisits,
 of each there. With an
 FDNet checkpoint (the ``fdnet`` part measured its ``cpu``-preset descriptor through the public
 API in the same run) it also gives frames/s of the whole loop: 1000 / (describe ms + decide ms).
-A map above :data:`IN_MEMORY_UP_TO` places is never held in memory: it is made and stored in
-the file database a chunk at a time, only the compressed path can decide on it (the exhaustive
+A map above :data:`IN_MEMORY_UP_TO` places is never held in memory: a process of its own (the
+earlier session's) makes and stores it in the file database a chunk at a time, so the memory
+measured is the detector's over a database written before; only the compressed path can decide
+on it (the exhaustive
 search would need the whole map in memory), and its agreement is the batched path's with one
 frame at a time; its GEMV reference is one chunk's, scaled to the map.
 Nothing is asserted by tests: the report holds figures measured side by side.
@@ -30,6 +32,7 @@ import numpy as np
 from fdnet.decisions.loop_search import IVF_FROM
 from fdnet.decisions.loop_traverse import DEFAULT_SEQUENCE_LENGTH
 from fdnet.descriptors.base import Descriptor
+from fdnet.errors import DataError
 from fdnet.matching.database.storage import MEMORY
 from fdnet.performance.timing import gemv_ms, process_memory, release_free_heap
 
@@ -119,8 +122,6 @@ def _check_room(workdir: str, size: int, dim: int) -> None:
     keeps each vector twice (its row, 32 KB pages: :data:`DISK_BYTES_OVER_VECTOR` over the float
     bytes, and the vector file)."""
     import shutil
-
-    from fdnet.errors import DataError
 
     needed = size * (2 * 4 * dim + DISK_BYTES_OVER_VECTOR)
     free = shutil.disk_usage(workdir).free
@@ -222,23 +223,57 @@ def _decide_route(source: MapSource, earlier, frames: np.ndarray, search: str, w
     descriptor = StoredVectors(source.dim)
     with tempfile.TemporaryDirectory(prefix="fdnet-loop-map-", dir=workdir) as scratch:
         compressed = search.startswith("compressed")
-        db = PlaceDatabase.for_descriptor(
-            descriptor,
-            index=IndexSettings(compressed_from=IVF_FROM) if compressed else None,
-            path=f"{scratch}/map.db" if compressed else MEMORY,
-        )
+        if source.streamed:  # the earlier session's process wrote it; this one only opens it
+            _store_in_a_process_of_its_own(source, f"{scratch}/map.db")
+            db = PlaceDatabase.open(f"{scratch}/map.db", descriptor)
+        else:
+            db = PlaceDatabase.for_descriptor(
+                descriptor,
+                index=IndexSettings(compressed_from=IVF_FROM) if compressed else None,
+                path=f"{scratch}/map.db" if compressed else MEMORY,
+            )
         try:
-            start = 0
-            for chunk in source.chunks(earlier):
-                db.add(chunk, [f"earlier/{start + i}" for i in range(len(chunk))])
-                start += len(chunk)
-            # the detector's memory, not the heap the build freed (a robot's node would start
-            # in a process of its own, over a database written before)
-            release_free_heap()
+            if not source.streamed:
+                _store(db, source.chunks(earlier))
+            release_free_heap()  # the detector's memory, not what earlier parts freed
             ahead = AHEAD if search == "compressed_batched" else 0
             return _decide_on(descriptor, db, frames, search, compressed, ahead)
         finally:
             db.close()  # (before its folder goes: a failed run leaves no open file behind)
+
+
+def _store(db, chunks) -> None:
+    start = 0
+    for chunk in chunks:
+        db.add(chunk, [f"earlier/{start + i}" for i in range(len(chunk))])
+        start += len(chunk)
+
+
+def _store_map(source: MapSource, path: str) -> None:
+    """The earlier session: ``source``'s map stored in a new file database at ``path``."""
+    from fdnet.matching.database import PlaceDatabase
+    from fdnet.matching.index import IndexSettings
+
+    index = IndexSettings(compressed_from=IVF_FROM)
+    with PlaceDatabase.for_descriptor(StoredVectors(source.dim), index=index, path=path) as db:
+        _store(db, source.chunks())
+
+
+def _store_in_a_process_of_its_own(source: MapSource, path: str) -> None:
+    """:func:`_store_map` in a new process, so the memory measured after is what a robot's node
+    holds over a database written before (10^7 places: the build's heap is not the detector's)."""
+    import multiprocessing
+
+    process = multiprocessing.get_context("spawn").Process(target=_store_map, args=(source, path))
+    process.start()
+    try:
+        process.join()
+    finally:
+        if process.is_alive():  # the benchmark was stopped (Ctrl-C, SIGTERM): the build stops with it
+            process.terminate()
+            process.join()
+    if process.exitcode != 0:
+        raise DataError(f"{path}: storing the benchmark's map failed (its process exited with {process.exitcode})")
 
 
 def _decide_on(descriptor, db, frames: np.ndarray, search: str, compressed: bool, ahead: int):
