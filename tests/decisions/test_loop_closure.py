@@ -458,12 +458,14 @@ def test_resume_replays_to_the_events_of_an_uninterrupted_run(tmp_path):
         # without --resume the traverse is refused; with it, the events are those of one whole run
         with pytest.raises(DataError, match="give --resume"):
             run_traverse(folder, RawThumbnail(), db, traverse_settings(events_csv=csv_path, **settings))
-        report = run_traverse(
-            folder,
-            RawThumbnail(),
-            db,
-            traverse_settings(events_csv=csv_path, events_jsonl=jsonl, resume=True, **settings),
-        )
+        with PlaceDatabase.open(db) as handed:
+            report = run_traverse(
+                folder,
+                RawThumbnail(),
+                handed,
+                traverse_settings(events_csv=csv_path, events_jsonl=jsonl, resume=True, **settings),
+            )
+            assert len(handed._map) == 0  # its places went to the detector once, not read again
         assert report.resumed_frames == cut and report.frames == len(frames)
         assert csv_path.read_text() == (tmp_path / "whole.csv").read_text()
         assert jsonl.read_text() == (tmp_path / "whole.jsonl").read_text()

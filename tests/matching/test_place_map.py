@@ -173,6 +173,10 @@ def test_optional_floats_hold_nothing_until_a_value_and_read_like_a_list():
         positions[1]
     with pytest.raises(TypeError):
         del positions[0:1]
+    with pytest.raises(ConfigError, match=r"a position needs 2 values \(x, y\), got \(5.0,\)"):
+        positions.append((5.0,))
+    assert OptionalFloats(None, [1.0, 2.0, 3.0])[::-1] == [3.0, 2.0, 1.0]
+    assert OptionalFloats(None, [1.0, None, 3.0])[::2] == [1.0, 3.0]
 
 
 def _definitions(name: str) -> list[str]:

@@ -183,7 +183,7 @@ def run_traverse(
     paths, where, names, times, positions = _traverse_frames(images, route)
     with LoopClosureDetector(descriptor, database, detector_settings) as detector:
         db = detector.database
-        done = _frames_done(db, names, settings.resume)
+        done = _frames_done(db, detector.map.names, names, settings.resume)
         places_before = detector.places - done
         truth = None
         if ground_truth is not None:
@@ -339,9 +339,10 @@ def _traverse_frames(images, route: RouteTraverse | None):
     return paths, where, names, [r.timestamp for r in records], positions_in_metres(records)
 
 
-def _frames_done(db, names: list[str], resume: bool) -> int:
+def _frames_done(db, places, names: list[str], resume: bool) -> int:
     """How many of the traverse's frames an interrupted run stored (with ``resume``), checking
-    that they are its first frames and the database's last places; a traverse already in the
+    that they are its first frames and the database's last places (``places``: the names of the
+    detector's map, which holds them: the database handed them over); a traverse already in the
     database without ``resume`` is refused."""
     already = db.existing_names(names)
     if not already:
@@ -354,7 +355,7 @@ def _frames_done(db, names: list[str], resume: bool) -> int:
             "copy of the database from before that run, or another database"
         )
     done = len(already)
-    stored = db.names[len(db.names) - done :]
+    stored = places[len(places) - done :]
     if stored != names[:done]:
         raise DataError(
             f"{db.path}: holds {done} of these frames, but not as the first {done} frames of this "

@@ -295,7 +295,12 @@ class OptionalFloats:
     def _row(self, value) -> list[float]:
         if value is None:
             return [np.nan] * (self.width or 1)
-        return [float(value)] if self.width is None else [float(c) for c in tuple(value)[: self.width]]
+        if self.width is None:
+            return [float(value)]
+        row = [float(c) for c in tuple(value)[: self.width]]
+        if len(row) != self.width:
+            raise ConfigError(f"a position needs {self.width} values (x, y), got {tuple(value)!r}")
+        return row
 
     def extend(self, values) -> None:
         rows = [self._row(v) for v in values]
@@ -350,10 +355,12 @@ class OptionalFloats:
 
     def __getitem__(self, key):
         if isinstance(key, slice):
-            start, stop, step = key.indices(len(self))
+            rows = range(*key.indices(len(self)))
             if self._values is None:
-                return [None] * len(range(start, stop, step))
-            return [self._value(r) for r in self._values.view()[start:stop:step]]
+                return [None] * len(rows)
+            if rows.step == 1:
+                return [self._value(r) for r in self._values.view()[rows.start : rows.stop]]
+            return [self._value(self._values.view()[i]) for i in rows]
         i = operator.index(key)
         i = i + len(self) if i < 0 else i
         if not 0 <= i < len(self):
