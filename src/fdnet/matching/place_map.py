@@ -66,7 +66,46 @@ def _hash32(value) -> int:
     return hash(value) & 0xFFFF_FFFF
 
 
-class StringColumn:
+class _Column:
+    """What the per-place columns below share: a column reads like a list of its values (indexes,
+    slices to lists, iterates in blocks, compares equal to a list of the same values) and forgets
+    only its last values. A column gives ``__len__``, ``extend``, ``truncate`` and
+    ``_slice(start, stop)``: the values start..stop - 1 as a list, read at once."""
+
+    def append(self, value) -> None:
+        self.extend([value])
+
+    def __getitem__(self, key):
+        if isinstance(key, slice):
+            rows = range(*key.indices(len(self)))
+            if rows.step == 1:
+                return self._slice(rows.start, max(rows.start, rows.stop))
+            return [self._slice(i, i + 1)[0] for i in rows]
+        i = operator.index(key)
+        i = i + len(self) if i < 0 else i
+        if not 0 <= i < len(self):
+            raise IndexError(f"place {key} of {len(self)}")
+        return self._slice(i, i + 1)[0]
+
+    def __iter__(self):
+        # in blocks, so iterating a long column never holds a decoded copy of all of it
+        for start in range(0, len(self), 65_536):
+            yield from self._slice(start, min(start + 65_536, len(self)))
+
+    def __delitem__(self, key) -> None:
+        if not isinstance(key, slice) or key.stop is not None or key.step not in (None, 1):
+            raise TypeError("a column only forgets its last values: del column[count:]")
+        self.truncate(key.indices(len(self))[0])
+
+    def __eq__(self, other) -> bool:
+        if isinstance(other, (_Column, list, tuple)):
+            return len(self) == len(other) and list(self) == list(other)
+        return NotImplemented
+
+    __hash__ = None
+
+
+class StringColumn(_Column):
     """Strings (or None) in insertion order, held as one UTF-8 byte buffer and each string's end
     offset: about 20 bytes a 16-character name, where a list of str objects costs about 70 and
     leaves the allocator one small object per place to keep (10^7 names loaded from a database
@@ -138,9 +177,6 @@ class StringColumn:
             if len(self) - self._sorted_up_to > self.UNSORTED:
                 self._hashes = None  # sorted again, with them, at the next lookup
 
-    def append(self, value: str | None) -> None:
-        self.extend([value])
-
     def truncate(self, count: int) -> None:
         """Forget the strings from ``count`` on."""
         count = max(0, min(int(count), len(self)))
@@ -162,22 +198,8 @@ class StringColumn:
             yield data[previous:end].decode("utf-8", "surrogatepass") if present else None
             previous = end
 
-    def __getitem__(self, key):
-        if isinstance(key, slice):
-            start, stop, step = key.indices(len(self))
-            if step == 1:
-                return list(self._range(start, stop))
-            return [self[i] for i in range(start, stop, step)]
-        i = operator.index(key)
-        i = i + len(self) if i < 0 else i
-        if not 0 <= i < len(self):
-            raise IndexError(f"place {key} of {len(self)}")
-        return next(self._range(i, i + 1))
-
-    def __iter__(self):
-        # in blocks, so iterating a long column never holds a decoded copy of all of it
-        for start in range(0, len(self), 65_536):
-            yield from self._range(start, min(start + 65_536, len(self)))
+    def _slice(self, start: int, stop: int) -> list:
+        return list(self._range(start, stop))
 
     def contains(self, value: str) -> bool:
         """Whether ``value`` is one of the strings (None is never looked up)."""
@@ -193,23 +215,11 @@ class StringColumn:
         candidates = [*self._order[low:high].tolist(), *self._unsorted.get(key, ())]
         return any(self[i] == value for i in candidates)
 
-    def __delitem__(self, key) -> None:
-        if not isinstance(key, slice) or key.stop is not None or key.step not in (None, 1):
-            raise TypeError("a column only forgets its last strings: del column[count:]")
-        self.truncate(key.indices(len(self))[0])
-
-    def __eq__(self, other) -> bool:
-        if isinstance(other, (StringColumn, list, tuple)):
-            return len(self) == len(other) and list(self) == list(other)
-        return NotImplemented
-
-    __hash__ = None
-
     def __repr__(self) -> str:
         return f"StringColumn({len(self)} strings)"
 
 
-class CategoryColumn:
+class CategoryColumn(_Column):
     """Strings (or None) that repeat, such as the session that added each place: each place holds
     a 4-byte code into the distinct values (a 32-character session id costs 4 bytes a place, not
     37). Indexes, slices (to lists), iterates, and compares equal to a list of the same strings."""
@@ -237,44 +247,18 @@ class CategoryColumn:
         if codes:
             self._codes.extend(np.asarray(codes, np.int32))
 
-    def append(self, value: str | None) -> None:
-        self.extend([value])
-
     def truncate(self, count: int) -> None:
         """Forget the values from ``count`` on (the distinct values stay known)."""
         self._codes.truncate(max(0, min(int(count), len(self))))
 
-    def __delitem__(self, key) -> None:
-        if not isinstance(key, slice) or key.stop is not None or key.step not in (None, 1):
-            raise TypeError("a column only forgets its last values: del column[count:]")
-        self.truncate(key.indices(len(self))[0])
-
-    def __getitem__(self, key):
-        if isinstance(key, slice):
-            return [None if c < 0 else self._values[c] for c in self._codes.view()[key].tolist()]
-        i = operator.index(key)
-        i = i + len(self) if i < 0 else i
-        if not 0 <= i < len(self):
-            raise IndexError(f"place {key} of {len(self)}")
-        code = int(self._codes.view()[i])
-        return None if code < 0 else self._values[code]
-
-    def __iter__(self):
-        for start in range(0, len(self), 65_536):
-            yield from self[start : start + 65_536]
-
-    def __eq__(self, other) -> bool:
-        if isinstance(other, (CategoryColumn, list, tuple)):
-            return len(self) == len(other) and list(self) == list(other)
-        return NotImplemented
-
-    __hash__ = None
+    def _slice(self, start: int, stop: int) -> list:
+        return [None if c < 0 else self._values[c] for c in self._codes.view()[start:stop].tolist()]
 
     def __repr__(self) -> str:
         return f"CategoryColumn({len(self)} places, {len(self._values)} values)"
 
 
-class OptionalFloats:
+class OptionalFloats(_Column):
     """A float per place (``width`` None: a timestamp) or a row of ``width`` floats (2: a
     position), each possibly missing, held as one float64 array with NaN for a missing value. The
     array is made by the first value, so a column that never held one (a map without times) keeps
@@ -319,9 +303,6 @@ class OptionalFloats:
     def _shape(self) -> tuple:
         return () if self.width is None else (self.width,)
 
-    def append(self, value) -> None:
-        self.extend([value])
-
     def all_present(self) -> bool:
         """Whether every place has its value (so times or positions can be used)."""
         return self._missing == 0
@@ -343,40 +324,15 @@ class OptionalFloats:
         kept = self._values.view()
         self._missing = int(np.isnan(kept if self.width is None else kept[:, 0]).sum())
 
-    def __delitem__(self, key) -> None:
-        if not isinstance(key, slice) or key.stop is not None or key.step not in (None, 1):
-            raise TypeError("a column only forgets its last values: del column[count:]")
-        self.truncate(key.indices(len(self))[0])
-
     def _value(self, row):
         if self.width is None:
             return None if np.isnan(row) else float(row)
         return None if np.isnan(row[0]) else tuple(float(c) for c in row)
 
-    def __getitem__(self, key):
-        if isinstance(key, slice):
-            rows = range(*key.indices(len(self)))
-            if self._values is None:
-                return [None] * len(rows)
-            if rows.step == 1:
-                return [self._value(r) for r in self._values.view()[rows.start : rows.stop]]
-            return [self._value(self._values.view()[i]) for i in rows]
-        i = operator.index(key)
-        i = i + len(self) if i < 0 else i
-        if not 0 <= i < len(self):
-            raise IndexError(f"place {key} of {len(self)}")
-        return None if self._values is None else self._value(self._values.view()[i])
-
-    def __iter__(self):
-        for start in range(0, len(self), 65_536):
-            yield from self[start : min(start + 65_536, len(self))]
-
-    def __eq__(self, other) -> bool:
-        if isinstance(other, (OptionalFloats, list, tuple)):
-            return len(self) == len(other) and list(self) == list(other)
-        return NotImplemented
-
-    __hash__ = None
+    def _slice(self, start: int, stop: int) -> list:
+        if self._values is None:
+            return [None] * (stop - start)
+        return [self._value(row) for row in self._values.view()[start:stop]]
 
     def __repr__(self) -> str:
         return f"OptionalFloats({len(self)} places, {self._missing} missing)"
