@@ -128,3 +128,44 @@ def test_bad_backbone_or_block_names_the_choices():
         backbone.check_backbone("efficientnet-lite4")
     with pytest.raises(ConfigError, match="efficientnet-lite1 has blocks 0..20"):
         backbone.block_channels("efficientnet-lite1", 21)
+
+
+def test_cache_passes_split_by_the_widest_activation_and_keep_every_row():
+    import torch
+
+    conv = torch.nn.Conv2d(3, 8, 3, padding=1).eval()
+    widest = 8 * 16 * 16 * 4  # one image's output, float32: the widest (and only) leaf's
+    passes = backbone.CachePasses(cache_bytes=2 * widest * 3)
+    sizes = []
+
+    def forward(part):
+        sizes.append(len(part))
+        return conv(part)
+
+    x = torch.rand(7, 3, 16, 16)
+    with torch.inference_mode():
+        whole = conv(x)
+        assert passes.images_per_pass(conv, conv, x) == 3
+        out = passes.run(conv, forward, x)
+        assert sizes == [3, 3, 1]
+        sizes.clear()
+        padded = passes.run(conv, forward, x, pad=8)
+        assert sizes == [3, 3, 3]  # a compiled graph's one batch size: the last pass filled up
+        sizes.clear()
+        passes.run(conv, forward, x[:5], pad=2)
+        assert sizes == [2, 2, 2]  # never more than the graph's batch
+    torch.testing.assert_close(out, whole)
+    torch.testing.assert_close(padded, whole)
+    assert not conv._forward_hooks  # the measuring hooks are gone
+    # a cache smaller than one image: one image a pass, never none
+    assert backbone.CachePasses(cache_bytes=1).images_per_pass(conv, conv, x) == 1
+    assert backbone.last_level_cache_bytes() > 0
+
+
+def test_trunk_maps_are_the_same_in_passes_as_in_one(rng):
+    images = rng.integers(0, 256, (5, 64, 96, 3), dtype=np.uint8)
+    fe = backbone.FeatureExtractor(bf16=False)
+    fe._passes = backbone.CachePasses(cache_bytes=1 << 40)
+    one = fe.features(images)
+    fe._passes = backbone.CachePasses(cache_bytes=1)
+    np.testing.assert_allclose(fe.features(images), one, rtol=1e-4, atol=1e-4)  # oneDNN: batch-size kernels

@@ -233,6 +233,17 @@ def test_compiled_content_pads_short_batches_and_matches_eager(fdnet_run, rng):
     assert compiled.fingerprint() == eager.fingerprint()
 
 
+def test_content_vectors_are_the_same_in_passes_as_in_one(fdnet_run, rng):
+    from fdnet.backbones import CachePasses
+
+    d = create("fdnet", checkpoint=fdnet_run, device="cpu")
+    u8 = rng.integers(0, 256, size=(5, 16, 32, 3), dtype=np.uint8)
+    d._passes = CachePasses(cache_bytes=1 << 40)
+    one = d.describe(u8)
+    d._passes = CachePasses(cache_bytes=1)  # one image a pass
+    np.testing.assert_allclose(d.describe(u8), one, atol=1e-5)
+
+
 def test_a_failing_compile_falls_back_to_eager_once(fdnet_run, rng):
     d = create("fdnet", checkpoint=fdnet_run, device="cpu", batch_size=4, compile=True)
 

@@ -41,6 +41,7 @@ def test_quick_benchmark_reports_figures_and_ratios(tmp_path, capsys):
     assert fdnet_512["fraction_of_bf16_gemm"] > 0 and fdnet_512["fraction_of_fp32_gemm"] > 0
     api = report["cpu_preset_descriptor_ms"]
     assert api["fp32_eager"] > 0 and api["extract"] > 0 and api["speedup"] > 0 and api["images"] == 4
+    assert api["fp32"] > 0 and api["fp32_one"] > 0 and api["fp32_one_pass"] > 0 and api["fp32_images_per_pass"] >= 1
     assert report["matching_ms"]["512"]["paper_gpu"] == 0.35
     assert set(report["method_extraction_ms"]) == {"raw", "sad"}
     assert report["ratio_vs_sad"]["sad"] == 1.0

@@ -50,18 +50,28 @@ def test_compressed_sizes_need_real_vectors(tmp_path):
 
 
 def test_the_loop_part_measures_the_detector_through_a_file_database_and_compressed_codes(tmp_path):
-    from fdnet.performance.loop_benchmark import loop_rows
+    from fdnet.performance.loop_benchmark import DescribeMs, loop_rows
 
     lines = []
     (row,) = loop_rows(
-        [5000], dim=32, route=30, describe_ms=10.0, log=lines.append, workdir=str(tmp_path), describe_bf16_ms=4.0
+        [5000],
+        dim=32,
+        route=30,
+        describe_ms=DescribeMs(one=10.0, batch=6.0),
+        log=lines.append,
+        workdir=str(tmp_path),
+        describe_bf16_ms=4.0,
     )
     for search in ("exact", "index", "compressed", "compressed_batched"):
         assert row[f"{search}_ms"] > 0 and row[f"{search}_p99_ms"] >= row[f"{search}_ms"]
-        ms = row[f"{search}_mean_ms" if search == "compressed_batched" else f"{search}_ms"]
-        assert row[f"fdnet_frames_per_s_{search}"] == pytest.approx(1e3 / (10.0 + ms))
+        batched = search == "compressed_batched"
+        ms = row[f"{search}_mean_ms" if batched else f"{search}_ms"]
+        # one image a call where frames come one at a time, the command's batches where they do not
+        assert row[f"fdnet_frames_per_s_{search}"] == pytest.approx(1e3 / ((6.0 if batched else 10.0) + ms))
         assert row[f"fdnet_bf16_frames_per_s_{search}"] == pytest.approx(1e3 / (4.0 + ms))
-    assert "bf16 (4.0 ms/frame)" in lines[-1]
+    assert row["describe_ms"] == 10.0 and row["describe_batch_ms"] == 6.0
+    assert "fp32 (10.0 ms an image one a call, 6.0 in batches)" in lines[-1]
+    assert "bf16 (4.0 ms an image one a call, 4.0 in batches)" in lines[-1]
     # revisits lie near their places (noise 0.5): the compressed path finds what the exact one finds
     assert row["compressed_recall_at_1"] == row["exact_recall_at_1"] >= 0.9
     assert row["compressed_agreement"] >= 0.9

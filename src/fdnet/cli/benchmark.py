@@ -77,8 +77,8 @@ def _add_method_arguments(p) -> None:
         choices=("auto", "on", "off"),
         default="auto",
         help="also time `fdnet extract --compile` (torch.compile; compiling takes about a minute): on, "
-        "off, or auto (default: as `fdnet extract` decides, on from its folder size, so here on "
-        "only when --num-images reaches it); a bare --compile means on",
+        "off, or auto (default: as `fdnet extract` decides, on a GPU from its folder size, so here on "
+        "only when --num-images reaches it; off on the CPU); a bare --compile means on",
     )
 
 
@@ -158,7 +158,7 @@ def run(args) -> int:
     import os
     import sys
 
-    from fdnet.cli.extract import COMPILE_FROM
+    from fdnet.cli.extract import compiles
     from fdnet.performance.benchmark import run_benchmark
     from fdnet.performance.benchmark_plan import BenchmarkRequest, plan_benchmark
 
@@ -180,7 +180,7 @@ def run(args) -> int:
             map_vectors=args.map_vectors,
             query_vectors=args.query_vectors,
             lengths=args.lengths,
-            compile=args.compile == "on" or (args.compile == "auto" and args.num_images >= COMPILE_FROM),
+            compile=compiles(args, args.num_images),
             quick=args.quick,
             threads=args.threads or os.cpu_count() or 1,
             device=args.device,

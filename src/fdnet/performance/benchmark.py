@@ -242,10 +242,17 @@ def _public_api(plan: BenchmarkPlan, workdir: str, report: dict, out) -> None:
     )
     out(f"  fp32 eager (float32 images, no autocast)   {t['fp32_eager']:8.2f}")
     out(
-        f"  fdnet extract's path (uint8, {'bf16' if t['extract_bf16'] else 'fp32'})        "
+        f"  every command's default (uint8, fp32)      {t['fp32']:8.2f}   in forward passes of "
+        f"{t['fp32_images_per_pass']} images (sized to the CPU's cache): {t['fp32_one_pass'] / t['fp32']:.2f}x "
+        f"all {len(images)} in one pass ({t['fp32_one_pass']:.2f}); one image a call (a robot node): "
+        f"{t['fp32_one']:.2f}"
+    )
+    out(
+        f"  {'fdnet extract --bf16 (uint8, bf16)' if t['extract_bf16'] else 'native bf16 absent: fp32 (uint8)'}"
+        "        "
         f"{t['extract']:8.2f}   {speedup:.2f}x the fp32 eager path, {rate:.1f} GFLOP/s = "
         f"{100 * rate / reference:.0f}% of the {'bf16' if t['extract_bf16'] else 'fp32'} GEMM rate; "
-        f"paper FDNet_512 on a TITAN X 21.2 ms: {21.2 / t['extract']:.1f}x"
+        f"paper FDNet_512 on a TITAN X 21.2 ms: {21.2 / t['extract']:.1f}x; one image a call: {t['extract_one']:.2f}"
     )
     if "extract_compiled" in t:
         report["cpu_preset_descriptor_ms"]["speedup_compiled"] = t["fp32_eager"] / t["extract_compiled"]
@@ -387,13 +394,14 @@ def _scale(plan: BenchmarkPlan, report: dict, out) -> None:
 
 
 def _loop(plan: BenchmarkPlan, workdir: str, report: dict, out) -> None:
-    from fdnet.performance.loop_benchmark import loop_rows
+    from fdnet.performance.loop_benchmark import DescribeMs, loop_rows
 
-    # loop-closure describes frame batches in fp32 (the descriptor's default); extract's bf16 path is
-    # what `--method-set fdnet:bf16=true` gives it, where the CPU runs bf16 natively
+    # loop-closure describes frames in fp32 (the descriptor's default) and uint8, a batch a call;
+    # a robot node one frame a call. extract's bf16 path is what `--method-set fdnet:bf16=true`
+    # gives it, where the CPU runs bf16 natively
     measured = report.get("cpu_preset_descriptor_ms") or {}
-    describe = measured.get("fp32_eager")
-    describe_bf16 = measured.get("extract") if measured.get("extract_bf16") else None
+    describe = DescribeMs(measured["fp32_one"], measured["fp32"]) if "fp32" in measured else None
+    describe_bf16 = DescribeMs(measured["extract_one"], measured["extract"]) if measured.get("extract_bf16") else None
     route = 100 if plan.quick else 300
     out(
         f"\nLoop closure: a route of {route} places driven twice after an earlier session's map of random unit "
@@ -402,9 +410,13 @@ def _loop(plan: BenchmarkPlan, workdir: str, report: dict, out) -> None:
         + (
             ""
             if describe is None
-            else f"; frames/s with the FDNet descriptor measured above, fp32 as loop-closure "
-            f"runs it ({describe:.1f} ms)"
-            + ("" if describe_bf16 is None else f" and with bf16 autocast ({describe_bf16:.1f} ms)")
+            else f"; frames/s with the FDNet descriptor measured above, fp32 (uint8 images) as loop-closure "
+            f"runs it ({describe.one:.1f} ms an image one a call, {describe.batch:.1f} in batches)"
+            + (
+                ""
+                if describe_bf16 is None
+                else f" and with bf16 autocast ({describe_bf16.one:.1f} / {describe_bf16.batch:.1f} ms)"
+            )
         )
     )
     report["loop"] = loop_rows(
@@ -422,7 +434,11 @@ def _loop(plan: BenchmarkPlan, workdir: str, report: dict, out) -> None:
 
         out(HEADLINE)
         report["loop_compressed"] = compressed_rows(
-            plan.loop_compressed_sizes, workdir, plan.loop_real_vectors, describe_ms=describe, log=out
+            plan.loop_compressed_sizes,
+            workdir,
+            plan.loop_real_vectors,
+            describe_ms=None if describe is None else describe.one,
+            log=out,
         )
     _loop_per_frame(plan, workdir, report, out)
 

@@ -10,7 +10,9 @@ the reference of one (places x dim) matrix-vector product measured in the same r
 the index's decision names the same place as the exhaustive one on the revisits, and Recall@1
 of each there. With an
 FDNet checkpoint (the ``fdnet`` part measured its ``cpu``-preset descriptor through the public
-API in the same run) it also gives frames/s of the whole loop: 1000 / (describe ms + decide ms).
+API in the same run) it also gives frames/s of the whole loop: 1000 / (describe ms + decide ms),
+with the descriptor's time one image a call for the paths fed one frame at a time (a robot
+node's) and in the command's batches for the batched path (:class:`DescribeMs`).
 A map above :data:`IN_MEMORY_UP_TO` places is never held in memory: a process of its own (the
 earlier session's) makes and stores it in the file database a chunk at a time, so the memory
 measured is the detector's over a database written before; only the compressed path can decide
@@ -25,7 +27,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import numpy as np
 
@@ -51,6 +53,21 @@ DISK_BYTES_OVER_VECTOR = 600
 #: frames described ahead per batch on the compressed path's batched variant (the command's
 #: default ``--batch-size``)
 AHEAD = 64
+
+
+class DescribeMs(NamedTuple):
+    """A descriptor's ms/image given one image a call (what a robot node's ``process`` pays) and
+    given the command's batches (``fdnet loop-closure`` describes ``--batch-size`` frames a call)."""
+
+    one: float
+    batch: float
+
+    @classmethod
+    def of(cls, value) -> "DescribeMs | None":
+        """``value`` as a pair (a single number: the same both ways; None stays None)."""
+        if value is None or isinstance(value, cls):
+            return value
+        return cls(float(value), float(value))
 
 
 class StoredVectors(Descriptor):
@@ -79,16 +96,17 @@ def loop_rows(
     dim: int = 512,
     route: int = 300,
     noise: float = 0.5,
-    describe_ms: float | None = None,
+    describe_ms: DescribeMs | float | None = None,
     log: Callable[[str], None] = lambda line: None,
     workdir: str | None = None,
-    describe_bf16_ms: float | None = None,
+    describe_bf16_ms: DescribeMs | float | None = None,
 ) -> list[dict]:
     """Measure the detector on each map size (see the module docstring); one row per size.
     ``workdir``: where the compressed path's database and vector file are written (None: that
-    path is not measured, nor any map above :data:`IN_MEMORY_UP_TO`). ``describe_bf16_ms``: the
-    descriptor's time with bf16 autocast (where the CPU runs bf16 natively; ``--method-set
-    fdnet:bf16=true``), for a second frames/s figure."""
+    path is not measured, nor any map above :data:`IN_MEMORY_UP_TO`). ``describe_ms``: the
+    descriptor's fp32 time (a :class:`DescribeMs`, or one number for both ways);
+    ``describe_bf16_ms``: its time with bf16 autocast (where the CPU runs bf16 natively;
+    ``--method-set fdnet:bf16=true``), for a second frames/s figure."""
     from fdnet.performance.timing import random_map, revisit_queries
 
     places = random_map(route, dim, seed=7)
@@ -195,17 +213,22 @@ def _size_row(source: MapSource, frames: np.ndarray, route: int, workdir) -> dic
     return row
 
 
-def _frames_per_s(row: dict, searches, describe_ms: float | None, describe_bf16_ms: float | None) -> None:
-    """frames/s of the whole loop with the descriptor's time: 1000 / (describe ms + decide ms)."""
+def _frames_per_s(row: dict, searches, describe_ms, describe_bf16_ms) -> None:
+    """frames/s of the whole loop with the descriptor's time: 1000 / (describe ms + decide ms),
+    describing one image a call where frames are decided one at a time and in the command's
+    batches where they are searched in blocks."""
     for key, describe in (("describe_ms", describe_ms), ("describe_bf16_ms", describe_bf16_ms)):
+        describe = DescribeMs.of(describe)
         if describe is None:
             continue
-        row[key] = describe
+        row[key] = describe.one
+        row[key.replace("_ms", "_batch_ms")] = describe.batch
         label = "fdnet_frames_per_s" if key == "describe_ms" else "fdnet_bf16_frames_per_s"
         for search in searches:
             # (from the mean where frames are searched in blocks: a block's first frame pays for all)
-            ms = row[f"{search}_mean_ms" if search == "compressed_batched" else f"{search}_ms"]
-            row[f"{label}_{search}"] = 1e3 / (describe + ms)
+            batched = search == "compressed_batched"
+            ms = row[f"{search}_mean_ms" if batched else f"{search}_ms"]
+            row[f"{label}_{search}"] = 1e3 / ((describe.batch if batched else describe.one) + ms)
 
 
 def _decide_route(source: MapSource, earlier, frames: np.ndarray, search: str, workdir) -> tuple[list, list, dict]:
@@ -339,12 +362,16 @@ def _line(row: dict) -> str:
     recall = " ".join(f"{search} {row[f'{search}_recall_at_1']:.3f}" for search in searches)
     parts.append(f"R@1 (+-1 place) {recall}")
     line = ", ".join(parts)
-    if "describe_ms" in row:
-        fps = " -> ".join(f"{row[f'fdnet_frames_per_s_{search}']:.1f}" for search in searches)
-        line += f" | with FDNet ({row['describe_ms']:.1f} ms/frame): {fps} frames/s"
-    if "describe_bf16_ms" in row:
-        fps = " -> ".join(f"{row[f'fdnet_bf16_frames_per_s_{search}']:.1f}" for search in searches)
-        line += f"; bf16 ({row['describe_bf16_ms']:.1f} ms/frame): {fps} frames/s"
+    for key, label, name in (
+        ("describe_ms", "fdnet_frames_per_s", " | with FDNet fp32"),
+        ("describe_bf16_ms", "fdnet_bf16_frames_per_s", "; bf16"),
+    ):
+        if key in row:
+            fps = " -> ".join(f"{row[f'{label}_{search}']:.1f}" for search in searches)
+            line += (
+                f"{name} ({row[key]:.1f} ms an image one a call, {row[key.replace('_ms', '_batch_ms')]:.1f} in "
+                f"batches): {fps} frames/s"
+            )
     return line
 
 

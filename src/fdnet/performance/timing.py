@@ -17,7 +17,7 @@ from typing import Callable
 
 import numpy as np
 
-from fdnet.backbones import autocast, resolve_device, synchronize
+from fdnet.backbones import CachePasses, autocast, resolve_device, synchronize
 
 
 def cpu_model() -> str:
@@ -163,31 +163,79 @@ def temporary_fdnet_run(folder, preset_name: str = "cpu", vector_length: int | N
     return run, config
 
 
+#: seconds each descriptor path runs before it is timed
+WARMUP_SECONDS = 1.0
+
+
 def descriptor_paths(
     run_dir, images_u8: np.ndarray, repeats: int = 3, device="cpu", compiled: bool = False
 ) -> dict[str, float]:
     """ms/image of FDNet's descriptor (the public API) on preloaded images: ``fp32_eager`` is
-    the float32 path (float32 images, no autocast: what ``describe`` did before devices), and
-    ``extract`` what ``fdnet extract`` runs (uint8 images, bf16 autocast and channels_last where
-    the device runs bf16 natively); with ``compiled``, ``extract_compiled`` is ``fdnet extract
+    the float32 path (float32 images, no autocast: what ``describe`` did before devices);
+    ``fp32`` what every command runs by default (uint8 images, float32), all images in one call
+    as ``fdnet loop-closure`` describes a batch (in forward passes of ``fp32_images_per_pass``
+    images: :class:`fdnet.backbones.CachePasses`; ``fp32_one_pass`` the same call in one forward
+    pass, as before passes were sized), and ``fp32_one`` one image a call (a robot node's
+    ``process``); ``extract`` what ``fdnet extract --bf16`` runs (uint8 images, bf16
+    autocast and channels_last where the device runs bf16 natively) and ``extract_one`` the same
+    one image a call; with ``compiled``, ``extract_compiled`` is ``fdnet extract --bf16
     --compile`` (and ``compile_seconds`` what compiling took)."""
     from fdnet.methods.fdnet.descriptor import FDNetDescriptor
 
     out = {}
+    count = len(images_u8)
     fp32 = FDNetDescriptor(checkpoint=run_dir, device=device, bf16=False)
     as_float = images_u8.astype(np.float32) / np.float32(255.0)
-    out["fp32_eager"] = median_seconds(lambda: fp32.describe(as_float), repeats=repeats) / len(images_u8) * 1e3
+    out["fp32_eager"] = _settled_median_seconds(lambda: fp32.describe(as_float), repeats=repeats) / count * 1e3
+    out["fp32"] = _settled_median_seconds(lambda: fp32.describe(images_u8), repeats=repeats) / count * 1e3
+    out["fp32_one"] = _one_at_a_time_ms(fp32, images_u8, repeats)
+    out["fp32_images_per_pass"] = _images_per_pass(fp32, images_u8)
+    whole = FDNetDescriptor(checkpoint=run_dir, device=device, bf16=False)
+    whole._passes = CachePasses(cache_bytes=1 << 62)  # every call's images in one forward pass
+    out["fp32_one_pass"] = _settled_median_seconds(lambda: whole.describe(images_u8), repeats=repeats) / count * 1e3
     fast = FDNetDescriptor(checkpoint=run_dir, device=device, bf16=None)
-    out["extract"] = median_seconds(lambda: fast.describe(images_u8), repeats=repeats) / len(images_u8) * 1e3
+    out["extract"] = _settled_median_seconds(lambda: fast.describe(images_u8), repeats=repeats) / count * 1e3
+    out["extract_one"] = _one_at_a_time_ms(fast, images_u8, repeats)
     out["extract_bf16"] = bool(fast.bf16)
     if compiled:
         t0 = time.perf_counter()
-        comp = FDNetDescriptor(checkpoint=run_dir, device=device, bf16=None, compile=True, batch_size=len(images_u8))
+        comp = FDNetDescriptor(checkpoint=run_dir, device=device, bf16=None, compile=True, batch_size=count)
         comp.describe(images_u8)
         out["compile_seconds"] = time.perf_counter() - t0
-        compiled_seconds = median_seconds(lambda: comp.describe(images_u8), repeats=repeats)
-        out["extract_compiled"] = compiled_seconds / len(images_u8) * 1e3
+        compiled_seconds = _settled_median_seconds(lambda: comp.describe(images_u8), repeats=repeats)
+        out["extract_compiled"] = compiled_seconds / count * 1e3
     return out
+
+
+def _images_per_pass(descriptor, images_u8: np.ndarray) -> int:
+    """The images a CPU forward pass of the fp32 ``descriptor`` holds (measured as it measures)."""
+    import torch
+
+    from fdnet.backbones import images_to_device
+
+    with torch.inference_mode():
+        x = images_to_device(images_u8[:1], "cpu", channels_last=True)
+        return CachePasses().images_per_pass(descriptor.model, descriptor.model.content, x)
+
+
+def _one_at_a_time_ms(descriptor, images: np.ndarray, repeats: int) -> float:
+    """ms/image of ``descriptor`` given one image a call (the median call over the images)."""
+
+    def each():
+        for i in range(len(images)):
+            descriptor.describe(images[i : i + 1])
+
+    return _settled_median_seconds(each, repeats=repeats) / len(images) * 1e3
+
+
+def _settled_median_seconds(fn: Callable[[], object], repeats: int) -> float:
+    """:func:`median_seconds` after ``fn`` has run for :data:`WARMUP_SECONDS`: the first calls of
+    a path map fresh pages for its activations (the allocator settles after a few), and one
+    warm-up call left some paths 1.5-2x slower than a long traverse runs them."""
+    start = time.perf_counter()
+    while time.perf_counter() - start < WARMUP_SECONDS:
+        fn()
+    return median_seconds(fn, repeats=repeats, warmup=0)
 
 
 def gpu_figures(device, run_dir, batch_sizes=(64, 256), seconds: float = 3.0) -> dict:

@@ -42,7 +42,8 @@ class FDNetSettings(MethodSettings):
     device: str | None = "auto"
     #: bfloat16 autocast with channels_last tensors (none = where the device runs it natively)
     bf16: bool | None = False
-    #: images per forward pass (a compiled graph's fixed batch)
+    #: images moved to the device at a time: one forward pass on a GPU (a compiled graph's fixed
+    #: batch); on the CPU, passes sized to its cache (:class:`fdnet.backbones.CachePasses`)
     batch_size: int = 256
     #: torch.compile the content encoder (about a minute on 2 CPU cores: for large folders)
     compile: bool = False
@@ -73,7 +74,7 @@ class FDNetDescriptor(Descriptor):
             )
         import torch
 
-        from fdnet.backbones import bf16_native, resolve_device
+        from fdnet.backbones import CachePasses, bf16_native, resolve_device
         from fdnet.methods.fdnet.config import FDNetRunConfig
         from fdnet.methods.fdnet.model import FDNet
         from fdnet.runs import load_config, load_weights, weights_folder
@@ -98,6 +99,7 @@ class FDNetDescriptor(Descriptor):
         # keep its semantics); one graph for batches of exactly batch_size, so a shorter batch
         # is padded. Compiling takes about a minute on 2 CPU cores: for large folders.
         self.compiled = conf.compile
+        self._passes = CachePasses()
         self._content = torch.compile(self.model.content, dynamic=False) if self.compiled else self.model.content
 
     @classmethod
@@ -134,14 +136,19 @@ class FDNetDescriptor(Descriptor):
             for start in range(0, len(images), self.batch_size):
                 batch = images[start : start + self.batch_size]
                 count = len(batch)
-                if self.compiled and count < self.batch_size:
+                if self.compiled and count < self.batch_size and self.device.type != "cpu":
                     # the compiled graph's batch size; rows are independent in eval mode
                     batch = np.concatenate([batch, np.zeros((self.batch_size - count, *batch.shape[1:]), batch.dtype)])
                 # NHWC images viewed as NCHW are channels_last already (what the model always got)
                 x = images_to_device(batch, self.device, channels_last=True)
                 with autocast(self.device, self.bf16):
                     for part in parts:
-                        v = self.model.appearance(x) if part == "appearance" else self._compiled_content(x)
+                        forward = self.model.appearance if part == "appearance" else self._compiled_content
+                        # on the CPU in passes that fit its cache (a compiled graph: one per pass size)
+                        measure = self.model.content if forward == self._compiled_content else None
+                        v = self._passes.run(
+                            self.model, forward, x, measure, pad=self.batch_size if self.compiled else 0
+                        )
                         out[part].append(v[:count].float())
         result = []
         for part in parts:
