@@ -42,6 +42,17 @@ def test_user_weights_give_conv4_of_caffenet_layout(tmp_path, rng):
     assert projected.describe(images).shape == (2, 512)
 
 
+def test_hybridnet_vectors_are_the_same_in_passes_as_in_one(tmp_path, rng):
+    from fdnet.backbones import CachePasses
+
+    d = create("hybridnet", weights=str(_caffenet_file(tmp_path)))
+    images = rng.integers(0, 256, (3, 227, 227, 3), dtype=np.uint8)
+    d.trunk._passes = CachePasses(cache_bytes=1 << 40)
+    one = d.describe(images)
+    d.trunk._passes = CachePasses(cache_bytes=1)  # one image a pass
+    np.testing.assert_allclose(d.describe(images), one, atol=1e-6)
+
+
 def test_wrong_shapes_are_config_errors(tmp_path):
     import torch
     from safetensors.torch import save_file

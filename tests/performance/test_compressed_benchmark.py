@@ -69,6 +69,8 @@ def test_the_loop_part_measures_the_detector_through_a_file_database_and_compres
         # one image a call where frames come one at a time, the command's batches where they do not
         assert row[f"fdnet_frames_per_s_{search}"] == pytest.approx(1e3 / ((6.0 if batched else 10.0) + ms))
         assert row[f"fdnet_bf16_frames_per_s_{search}"] == pytest.approx(1e3 / (4.0 + ms))
+        if search in ("exact", "index"):  # the command: described in batches, decided frame by frame
+            assert row[f"fdnet_frames_per_s_{search}_command"] == pytest.approx(1e3 / (6.0 + ms))
     assert row["describe_ms"] == 10.0 and row["describe_batch_ms"] == 6.0
     assert "fp32 (10.0 ms an image one a call, 6.0 in batches)" in lines[-1]
     assert "bf16 (4.0 ms an image one a call, 4.0 in batches)" in lines[-1]

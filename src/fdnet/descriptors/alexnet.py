@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from fdnet.backbones import CachePasses
 from fdnet.errors import ConfigError, NotAvailableError
 
 #: layer name -> index in ``features`` of torchvision's AlexNet (the ReLU follows at index + 1)
@@ -124,6 +125,11 @@ class AlexNetTrunk:
         self.model = full[: ALEXNET_CONV_INDEX[layer] + 2].eval().to(self.device)
         for p in self.model.parameters():
             p.requires_grad_(False)
+        self._passes = CachePasses()
+
+    def run(self, x):
+        """The maps of ``x`` (from :meth:`input_tensor`), in forward passes sized to the CPU's cache."""
+        return self._passes.run(self.model, self.model, x)
 
     def input_tensor(self, images):
         """(N, H, W, 3) RGB, float32 in [0, 1] or uint8 -> ImageNet-normalised NCHW on the device."""
@@ -170,6 +176,11 @@ class CaffeNetTrunk:
         for p in self.convs.parameters():
             p.requires_grad_(False)
         self.layer = layer
+        self._passes = CachePasses()
+
+    def run(self, x):
+        """:meth:`forward` in passes sized to the CPU's cache."""
+        return self._passes.run(self.convs, self.forward, x)
 
     def forward(self, x):
         import torch.nn.functional as F

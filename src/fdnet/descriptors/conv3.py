@@ -162,7 +162,7 @@ class Conv3Descriptor(Descriptor):
         from fdnet.backbones import torch_threads
 
         with torch_threads(self.threads), torch.inference_mode():
-            return self._alexnet.model(self._alexnet.input_tensor(images)).float()
+            return self._alexnet.run(self._alexnet.input_tensor(images)).float()
 
     def describe(self, images: np.ndarray) -> np.ndarray:
         """(N, H, W, 3) at ``input_size``, float32 in [0, 1] or uint8 -> (N, dim) unit vectors."""

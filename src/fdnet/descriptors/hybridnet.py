@@ -136,7 +136,7 @@ class HybridNetDescriptor(Descriptor):
             images = images.astype(np.float32, copy=False)
         with torch_threads(self.threads), torch.inference_mode():
             x = self.trunk.input_tensor(images, self.mean_bgr)
-            maps = self.trunk.forward(x).reshape(len(images), -1).float()
+            maps = self.trunk.run(x).reshape(len(images), -1).float()
             if maps.device.type != "cpu":
                 if self._projection is not None:
                     maps = maps @ self._on_device.get(self._projection, maps.device)
