@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from fdnet.decisions.loop_closure import LoopClosureDetector
+from fdnet.decisions.loop_search import COMPRESSED_FROM
 from fdnet.errors import ConfigError
 from fdnet.matching.compressed import CompressedIndex
 from fdnet.matching.database import PlaceDatabase
@@ -112,13 +113,24 @@ def test_the_map_sample_depends_on_the_map_size_alone_and_is_read_again_after_a_
     assert search.neutral(v, vectors[:1000], informative) == 0.0  # no informative place in the sample
 
 
-def test_frames_described_ahead_are_searched_in_one_call_and_decide_the_same(monkeypatch):
+@pytest.mark.parametrize("all_threads_from", [COMPRESSED_FROM, 0])
+def test_frames_described_ahead_are_searched_in_one_call_and_decide_the_same(monkeypatch, all_threads_from):
+    import faiss
+
+    import fdnet.decisions.loop_search as loop_search
+
+    # 0: every block of frames is searched on all of faiss's threads (the default from 2 x 10^6 places)
+    monkeypatch.setattr(loop_search, "BLOCK_ON_ALL_THREADS_FROM", all_threads_from)
     earlier, frames = earlier_and_route()
-    calls = []
+    calls, threads = [], []
     real = CompressedIndex.search
-    monkeypatch.setattr(
-        CompressedIndex, "search", lambda self, q, *a, **k: calls.append(len(q)) or real(self, q, *a, **k)
-    )
+
+    def counted(self, q, *a, **k):
+        calls.append(len(q))
+        threads.append(faiss.omp_get_max_threads())
+        return real(self, q, *a, **k)
+
+    monkeypatch.setattr(CompressedIndex, "search", counted)
     decided = {}
     for batch in (None, 16, 7):  # one frame at a time (a robot), or batches described ahead (the command)
         calls.clear()
@@ -137,6 +149,10 @@ def test_frames_described_ahead_are_searched_in_one_call_and_decide_the_same(mon
             assert set(searched) == {1}
         else:  # blocks of L - 1 = 4 frames, fewer where a batch or the first pass ends
             assert max(searched) == 4 and len(searched) < len(frames) / 2
+        # one frame on one thread; a block on all of them where the map is large enough
+        expected = [1 if n == 1 or all_threads_from else faiss.omp_get_max_threads() for n in searched]
+        assert threads == expected
+        threads.clear()
     assert decided[16] == decided[None] and decided[7] == decided[None]
 
 

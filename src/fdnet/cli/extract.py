@@ -66,7 +66,7 @@ def register(sub) -> None:
     precision.add_argument(
         "--bf16",
         action="store_true",
-        help="bfloat16 autocast (methods with a bf16 setting: fdnet, calc, ...): about 3x faster "
+        help="bfloat16 autocast (methods with a bf16 setting: fdnet, calc, ...): about 2x faster "
         "where the device runs bf16 natively (CPUs with AVX512-BF16/AMX, Ampere and newer "
         "GPUs); vectors within cosine 0.999 of fp32, R@1 within 0.5 points "
         "(docs/performance.md)",

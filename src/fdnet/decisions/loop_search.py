@@ -56,10 +56,11 @@ RESCORED = 64
 #: places sampled to estimate a frame's median similarity (its neutral value)
 MEDIAN_SAMPLE = 512
 
-#: search a block of frames described ahead on all of faiss's threads (one frame: on one). The scan
-#: of the fast-scan codes for 9 frames ran 1.6-1.8x faster on 2 threads at 10^6-10^7 places on an
-#: idle 2-core machine (docs/performance.md, *Compressed places*)
-BLOCK_ON_ALL_THREADS = True
+#: a block of frames described ahead is searched on all of faiss's threads from this many places
+#: (one frame, or a smaller map: on one). The scan of the fast-scan codes for 9 frames ran 1.5-1.8x
+#: faster on 2 threads at 3 x 10^6-10^7 places on an idle 2-core machine; at 10^6 the detector's
+#: decision gained nothing and its blocks' first frames were slower (docs/performance.md)
+BLOCK_ON_ALL_THREADS_FROM = COMPRESSED_FROM
 
 
 def sample_count(count: int) -> int:
@@ -227,7 +228,8 @@ class IndexedCandidates:
         frozen = vectors.view(self._frozen) if isinstance(vectors, FileRows) else vectors[: self._frozen]
         # a block's frames share the scan over every code on all of faiss's threads (each takes
         # some of the frames); a single frame's search does not split, and OpenMP's start costs
-        with one_faiss_thread() if len(queries) == 1 or not BLOCK_ON_ALL_THREADS else contextlib.nullcontext():
+        alone = len(queries) == 1 or self._frozen < BLOCK_ON_ALL_THREADS_FROM
+        with one_faiss_thread() if alone else contextlib.nullcontext():
             found, scores = self._index.search(queries, min(k, self._frozen), frozen)
         self._ahead.extend(zip(queries[1:], found[1:], scores[1:]))
         return found[:1], scores[:1]
