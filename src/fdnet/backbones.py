@@ -391,18 +391,13 @@ def last_level_cache_bytes() -> int:
 
 
 class CachePasses:
-    """Forward passes of a CNN on the CPU, each of as many images as keep its largest
-    activation (and the layer's input beside it) within the last-level cache.
-
-    A CPU convolution over a batch whose activations spill from the cache runs at memory speed:
-    FDNet's cpu preset (128x256, 3 MB of fp32 activation an image at its widest layer) took
-    17-20 ms an image in one pass of 64 on a 2-core EPYC with 32 MB of L3, and 5-6 ms in passes of
-    4 (bf16: 7.8 against 2.8 ms in passes of 8; docs/performance.md). Each row of a batch is
-    computed alone in eval mode, so the vectors are the same. No library sizes CPU inference
-    batches by the cache, hence by hand: the widest leaf module's output for one image is measured
-    by forward hooks on the first pass of each image size. GPUs take the whole batch.
-    ``__slots__``: no weights here, so :meth:`Descriptor.fingerprint` has nothing to read.
-    """
+    """Forward passes of a CNN on the CPU, each of as many images as keep its widest activation
+    (with the layer's input beside it) within the last-level cache: a batch that spills from it
+    runs at memory speed (FDNet's cpu preset, 3 MB of fp32 activation an image: 17-20 ms an image
+    in one pass of 64 on 32 MB of L3, 5-6 in passes of 4; docs/performance.md). Rows are computed
+    alone in eval mode, so the vectors are the same. No library sizes CPU batches by the cache,
+    hence by hand: forward hooks measure the widest leaf output of one image, once per image size.
+    GPUs take the whole batch. ``__slots__``: no weights for :meth:`Descriptor.fingerprint`."""
 
     __slots__ = ("_sizes", "cache_bytes")
 
