@@ -276,3 +276,20 @@ def test_match_and_the_database_query_are_one_search(tmp_path):
         answers = db.query(queries, k=4)
     np.testing.assert_array_equal([[m.index for m in row] for row in answers], ranked[0])
     np.testing.assert_allclose([[m.score for m in row] for row in answers], ranked[1], atol=1e-6)
+
+
+def test_a_name_is_looked_up_in_the_hashes_own_dtype(monkeypatch):
+    # a Python int against the uint32 hashes made numpy convert every hash on each lookup: 10 ms
+    # a frame at 10^7 places, twice a frame in the loop detector
+    column = StringColumn([f"place/{i}" for i in range(1000)])
+    assert column.contains("place/5")  # the index is built
+    seen = []
+    real = np.searchsorted
+
+    def spy(array, value, *args, **kwargs):
+        seen.append((np.asarray(array).dtype, np.asarray(value).dtype))
+        return real(array, value, *args, **kwargs)
+
+    monkeypatch.setattr(np, "searchsorted", spy)
+    assert column.contains("place/999") and not column.contains("place/1000")
+    assert seen and all(array == value for array, value in seen), seen

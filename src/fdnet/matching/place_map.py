@@ -211,7 +211,10 @@ class StringColumn(_Column):
             self._hashes = hashes[order]
             self._sorted_up_to, self._unsorted = len(self), {}
         key = _hash32(value)
-        low, high = np.searchsorted(self._hashes, key, "left"), np.searchsorted(self._hashes, key, "right")
+        # the key in the hashes' own dtype: a Python int makes numpy convert all of them on each
+        # call (10 ms at 10^7 places, against microseconds)
+        probe = np.uint32(key)
+        low, high = np.searchsorted(self._hashes, probe, "left"), np.searchsorted(self._hashes, probe, "right")
         candidates = [*self._order[low:high].tolist(), *self._unsorted.get(key, ())]
         return any(self[i] == value for i in candidates)
 
