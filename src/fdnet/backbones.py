@@ -427,17 +427,17 @@ class CachePasses:
         return self._sizes[key]
 
     def run(self, module, forward, x, measure=None, pad: int = 0):
-        """``forward(x)`` in passes of :meth:`images_per_pass` images on the CPU (at once
-        elsewhere). ``measure``: the eager forward to measure the pass size with, where
-        ``forward`` is a compiled graph; ``pad``: a compiled graph's batch (it takes one size):
-        passes of at most ``pad`` images, the last filled up with zero images (rows are
-        independent in eval mode)."""
+        """``forward(x)`` in passes of :meth:`images_per_pass` images on the CPU (one elsewhere).
+        ``measure``: the eager forward that sizes the passes where ``forward`` is a compiled graph;
+        ``pad``: that graph's batch (it takes one size): passes of at most ``pad`` images, the
+        last filled up with zero images (rows are independent in eval mode)."""
         import torch
 
-        if x.device.type != "cpu" or (len(x) <= 1 and not pad):
-            return forward(x)
-        size = self.images_per_pass(module, measure or forward, x)
-        size = min(size, pad) if pad else size
+        if x.device.type == "cpu" and (pad or len(x) > 1):
+            size = self.images_per_pass(module, measure or forward, x)
+            size = min(size, pad) if pad else size
+        else:
+            size = pad or len(x)
         if size >= len(x) and not pad:
             return forward(x)
         out = []

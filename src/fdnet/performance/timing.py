@@ -219,7 +219,8 @@ def _images_per_pass(descriptor, images_u8: np.ndarray) -> int:
 
 
 def _one_at_a_time_ms(descriptor, images: np.ndarray, repeats: int) -> float:
-    """ms/image of ``descriptor`` given one image a call (the median call over the images)."""
+    """ms/image of ``descriptor`` given one image a call (the median of ``repeats`` runs over all
+    ``images``, per image)."""
 
     def each():
         for i in range(len(images)):
@@ -229,9 +230,8 @@ def _one_at_a_time_ms(descriptor, images: np.ndarray, repeats: int) -> float:
 
 
 def _settled_median_seconds(fn: Callable[[], object], repeats: int) -> float:
-    """:func:`median_seconds` after ``fn`` has run for :data:`WARMUP_SECONDS`: the first calls of
-    a path map fresh pages for its activations (the allocator settles after a few), and one
-    warm-up call left some paths 1.5-2x slower than a long traverse runs them."""
+    """:func:`median_seconds` after ``fn`` has run for :data:`WARMUP_SECONDS`: with one warm-up
+    call, some paths timed 1.5-2x slower than the same calls later in the same process."""
     start = time.perf_counter()
     while time.perf_counter() - start < WARMUP_SECONDS:
         fn()

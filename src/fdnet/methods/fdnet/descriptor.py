@@ -134,22 +134,17 @@ class FDNetDescriptor(Descriptor):
         out: dict[str, list] = {part: [] for part in parts}
         with torch.inference_mode():
             for start in range(0, len(images), self.batch_size):
-                batch = images[start : start + self.batch_size]
-                count = len(batch)
-                if self.compiled and count < self.batch_size and self.device.type != "cpu":
-                    # the compiled graph's batch size; rows are independent in eval mode
-                    batch = np.concatenate([batch, np.zeros((self.batch_size - count, *batch.shape[1:]), batch.dtype)])
                 # NHWC images viewed as NCHW are channels_last already (what the model always got)
-                x = images_to_device(batch, self.device, channels_last=True)
+                x = images_to_device(images[start : start + self.batch_size], self.device, channels_last=True)
                 with autocast(self.device, self.bf16):
                     for part in parts:
-                        forward = self.model.appearance if part == "appearance" else self._compiled_content
-                        # on the CPU in passes that fit its cache (a compiled graph: one per pass size)
-                        measure = self.model.content if forward == self._compiled_content else None
-                        v = self._passes.run(
-                            self.model, forward, x, measure, pad=self.batch_size if self.compiled else 0
-                        )
-                        out[part].append(v[:count].float())
+                        compiled = part != "appearance" and self.compiled
+                        forward = self._compiled_content if part != "appearance" else self.model.appearance
+                        # on the CPU in passes that fit its cache; a compiled graph takes one batch
+                        # size (the whole batch elsewhere, the pass size on the CPU): filled up to it
+                        pad = self.batch_size if compiled else 0
+                        v = self._passes.run(self.model, forward, x, self.model.content if compiled else None, pad)
+                        out[part].append(v.float())
         result = []
         for part in parts:
             if not out[part]:
