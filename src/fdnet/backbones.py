@@ -325,11 +325,10 @@ def images_to_device(images, device, channels_last: bool = False, mean=None, std
     """(N, H, W, 3) images -> float32 (N, 3, H, W) tensor on ``device``, in [0, 1] or, with
     ``mean``/``std`` (per channel, on the [0, 1] scale), normalised.
 
-    uint8 images (what the loading pipeline makes) travel to the device as uint8 and are
-    converted there (``x / 255`` in float32: the same values as
-    :func:`fdnet.data.images.load_image`'s float path); float images in [0, 1] travel as they
-    are. A numpy array or a CPU tensor is accepted; pinned CPU tensors are copied asynchronously.
-    The NHWC -> NCHW permute is a view, so ``channels_last`` costs no copy.
+    uint8 images (what the loading pipeline makes) travel to the device as uint8 and are converted there (``x / 255``
+    in float32: :func:`fdnet.data.images.load_image`'s float path's values); float images in [0, 1] travel as they
+    are. A numpy array or a CPU tensor is accepted; pinned CPU tensors are copied asynchronously. The NHWC -> NCHW
+    permute is a view, so ``channels_last`` costs no copy.
     """
     import numpy as np
     import torch
@@ -348,7 +347,8 @@ def images_to_device(images, device, channels_last: bool = False, mean=None, std
     x = x.to(device, non_blocking=x.device.type == "cpu" and x.is_pinned())
     x = x.permute(0, 3, 1, 2)
     if x.dtype == torch.uint8:
-        x = x.float().div_(255.0)
+        # by a device tensor: CUDA divides by a host scalar as a product with its reciprocal (1 bit off)
+        x = x.float().div_(torch.full((), 255.0, device=x.device))
     elif x.dtype != torch.float32:
         x = x.float()
     if mean is not None:

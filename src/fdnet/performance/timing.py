@@ -238,7 +238,7 @@ def _settled_median_seconds(fn: Callable[[], object], repeats: int) -> float:
     return median_seconds(fn, repeats=repeats, warmup=0)
 
 
-def gpu_figures(device, run_dir, batch_sizes=(64, 256), seconds: float = 3.0) -> dict:
+def gpu_figures(device, run_dir, batch_sizes=(64, 256, 1024), seconds: float = 3.0) -> dict:
     """Images/s of FDNet's descriptor on a GPU ``device``: through the public API
     (``describe`` of uint8 numpy images on the host: transfer, conversion, model, normalisation
     and the copy back) and forward-only (``FDNet.content`` on images already on the device),
@@ -248,7 +248,8 @@ def gpu_figures(device, run_dir, batch_sizes=(64, 256), seconds: float = 3.0) ->
     from fdnet.methods.fdnet.descriptor import FDNetDescriptor
 
     device = resolve_device(device)
-    out: dict = {"device": str(device), "name": torch.cuda.get_device_name(device)}
+    name = torch.cuda.get_device_name(device) if device.type == "cuda" else str(device)
+    out: dict = {"device": str(device), "name": name}
     for bf16 in (False, True):
         d = FDNetDescriptor(checkpoint=run_dir, device=device, bf16=bf16, batch_size=max(batch_sizes))
         h, w = d.input_size
