@@ -48,7 +48,7 @@ from fdnet.decisions.loop_gates import (  # noqa: F401
 from fdnet.decisions.loop_recency import GapDetector, Seams
 from fdnet.decisions.loop_records import EVENT_COLUMNS, Closure, FrameDecision  # noqa: F401
 from fdnet.decisions.loop_settings import SEARCH_KINDS, LoopClosureSettings  # noqa: F401
-from fdnet.decisions.loop_threads import single_torch_thread
+from fdnet.decisions.loop_threads import FrameThreads
 from fdnet.decisions.loop_trust import (  # noqa: F401
     LOOP_CALIBRATION_FILE,
     DriftCheck,
@@ -108,6 +108,7 @@ class LoopClosureDetector:
         self._first_full = sequence_reach(self.sequence_length)
         self.allow_duplicates = settings.allow_duplicates
         self.commit_every = settings.commit_every
+        self._frame_threads = FrameThreads(settings.frame_threads)
         from fdnet.decisions.loop_search import INDEX_FROM
 
         self.search = settings.search
@@ -233,6 +234,11 @@ class LoopClosureDetector:
         return self._seams.segments
 
     @property
+    def frame_threads(self) -> FrameThreads:
+        """The torch threads frames are described on (``used``: frames per count)."""
+        return self._frame_threads
+
+    @property
     def frames(self) -> int:
         """Frames of this traverse processed so far."""
         return len(self.candidates.before)
@@ -257,8 +263,9 @@ class LoopClosureDetector:
     def _vector(self, image, array: np.ndarray) -> np.ndarray:
         # a descriptor of vectors computed elsewhere finds them by the frame's path
         paths = [image] if isinstance(image, (str, os.PathLike)) else []
-        with single_torch_thread(), self.descriptor.images_of(paths):
-            return np.asarray(self.descriptor.describe(array[None]), dtype=np.float32)[0]
+        with self.descriptor.images_of(paths):
+            vector = self._frame_threads.run(lambda: self.descriptor.describe(array[None]))
+        return np.asarray(vector, dtype=np.float32)[0]
 
     def process(
         self,

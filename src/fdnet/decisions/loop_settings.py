@@ -48,6 +48,8 @@ class LoopClosureSettings:
     rebuilds the descriptor, recorded in a database created by the detector.
     ``allow_duplicates``: add a frame whose name the database already holds. ``commit_every``:
     frames stored per database transaction (1: every frame durable before ``process`` returns).
+    ``frame_threads``: torch threads describing a frame in ``process`` (None: one or torch's own
+    count, whichever measures faster, :class:`~fdnet.decisions.loop_threads.FrameThreads`).
     """
 
     exclude_last: int = 0
@@ -63,6 +65,7 @@ class LoopClosureSettings:
     method_options: dict | None = None
     allow_duplicates: bool = False
     commit_every: int = 1
+    frame_threads: int | None = None
 
     def __post_init__(self):
         _whole(self.exclude_last, 0, "exclude-last")
@@ -77,6 +80,8 @@ class LoopClosureSettings:
             _whole(self.index_from, 0, "index-from")
         if self.compressed_from is not None:
             _whole(self.compressed_from, 0, "compressed-from")
+        if self.frame_threads is not None:
+            _whole(self.frame_threads, 1, "frame-threads")
         if self.gates is not None and not isinstance(self.gates, LoopGates):
             raise ConfigError(f"gates must be a LoopGates, got {type(self.gates).__name__}")
 

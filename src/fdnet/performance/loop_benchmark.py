@@ -405,7 +405,7 @@ def per_frame_rows(
 
     paths = list_images(images_folder)[:frames]
     descriptor = create("fdnet", checkpoint=str(run_dir))
-    batched, single, latency = [], [], []
+    batched, single, latency, threads = [], [], [], {}
     with tempfile.TemporaryDirectory(prefix="fdnet-loop-") as scratch:
         folder = Path(scratch) / "frames"
         folder.mkdir()
@@ -428,6 +428,8 @@ def per_frame_rows(
                     detector.process(path)
                     latency.append(time.perf_counter() - t1)
                 single.append(len(paths) / (time.perf_counter() - t0))
+                for count, frames_on in detector.frame_threads.used.items():
+                    threads[count] = threads.get(count, 0) + frames_on
     row = {
         "frames": len(paths),
         "command_frames_per_s": max(batched),
@@ -436,6 +438,7 @@ def per_frame_rows(
         "process_latency_ms_p99": 1e3 * float(np.percentile(latency, 99)),
         "command_runs": batched,
         "process_runs": single,
+        "process_frames_per_thread_count": threads,
     }
     row["ratio"] = row["process_frames_per_s"] / row["command_frames_per_s"]
     log(
@@ -443,6 +446,7 @@ def per_frame_rows(
         f"{row['command_frames_per_s']:.1f} frames/s (batched); LoopClosureDetector.process one frame at a time "
         f"{row['process_frames_per_s']:.1f} frames/s = {row['ratio']:.2f} x the command, latency per frame median "
         f"{row['process_latency_ms_median']:.1f} ms, p99 {row['process_latency_ms_p99']:.1f} ms (best of {repeats} "
-        "alternated runs each)"
+        "alternated runs each); frames described on 1 / more torch threads: "
+        + " / ".join(str(threads.get(count, 0)) for count in sorted(set(threads) | {1}))
     )
     return row
