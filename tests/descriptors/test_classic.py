@@ -106,6 +106,20 @@ def test_hog_rejects_inconsistent_geometry():
         HOGDescriptor(size=(60, 64), block_size=16, block_stride=8)
 
 
+def test_an_opencv_without_hog_is_one_clear_error_for_hog_and_calc(monkeypatch):
+    # OpenCV 5 keeps HOGDescriptor in the contrib build; a plain opencv-python lacks it
+    import cv2
+
+    from fdnet.methods.calc.config import HOGTargetConfig
+    from fdnet.methods.calc.model import hog_descriptor
+
+    monkeypatch.delattr(cv2, "HOGDescriptor")
+    with pytest.raises(ConfigError, match=r"^hog: this OpenCV \(.*\) has no HOGDescriptor; install opencv-contrib"):
+        HOGDescriptor(size=(64, 64))
+    with pytest.raises(ConfigError, match=r"^calc: model.hog: this OpenCV"):
+        hog_descriptor(HOGTargetConfig())
+
+
 def _recall_at_1(method, split):
     d = create(method)
     refs = describe_paths(d, split.reference.paths)

@@ -226,8 +226,17 @@ def check_opencv_hog(window_wh, block_wh, stride_wh, cell_wh, bins, where: str) 
     exabyte allocation) or that OpenCV rejects later: every size is (width, height) in whole
     pixels >= 1, the cell divides the block, the block fits the window and steps along it by the
     stride, 1 <= bins <= 360. The one check for every OpenCV HOG fdnet builds (the ``hog``
-    baseline, CALC's reconstruction target)."""
+    baseline, CALC's reconstruction target). Also refuses an OpenCV without ``HOGDescriptor``
+    (OpenCV 5 keeps it in the contrib build that fdnet depends on)."""
+    import cv2
+
     from fdnet.data.images import whole_number
+
+    if not hasattr(cv2, "HOGDescriptor"):
+        raise ConfigError(
+            f"{where}: this OpenCV ({cv2.__version__}) has no HOGDescriptor; install "
+            "opencv-contrib-python-headless, fdnet's OpenCV, in place of the OpenCV build installed"
+        )
 
     named = {"window": window_wh, "block": block_wh, "block stride": stride_wh, "cell": cell_wh}
     sizes = {}
