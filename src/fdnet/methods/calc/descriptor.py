@@ -85,7 +85,7 @@ class CALCDescriptor(Descriptor):
         return self.network.descriptor_dim
 
     def describe(self, images: np.ndarray) -> np.ndarray:
-        from fdnet.backbones import autocast, torch_threads
+        from fdnet.backbones import autocast, torch_threads, unit_from_bytes
 
         torch = self._torch
         images = np.asarray(images)
@@ -97,7 +97,7 @@ class CALCDescriptor(Descriptor):
             raise ConfigError(f"CALC expects images of size {self.input_size}, got {tuple(grey.shape[-2:])}")
         with torch_threads(self.threads), torch.inference_mode():
             # grey uint8 crosses to the device; / 255 there gives what the CPU path computed
-            x = torch.from_numpy(np.ascontiguousarray(grey))[:, None].to(self.device).float().div_(255.0)
+            x = unit_from_bytes(torch.from_numpy(np.ascontiguousarray(grey))[:, None].to(self.device))
             with autocast(self.device, self.bf16):
                 out = self.network.encode(x.contiguous(memory_format=torch.channels_last) if self.bf16 else x)
             return l2_normalize(out.float().cpu().numpy())

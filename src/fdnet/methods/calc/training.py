@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from fdnet.backbones import unit_from_bytes
 from fdnet.errors import ConfigError, DataError
 from fdnet.methods.calc import model as calc
 from fdnet.methods.calc.config import CALCRunConfig
@@ -117,7 +118,7 @@ class CALCTraining(TrainingMethod):
             else:
                 inputs[row] = warped
                 target[row] = self.targets[index]
-        x = torch.from_numpy(inputs).to(self.device)[:, None].float().div_(255.0)
+        x = unit_from_bytes(torch.from_numpy(inputs).to(self.device)[:, None])
         x = x.contiguous(memory_format=torch.channels_last)
         y = torch.from_numpy(target).to(self.device)
         with autocast(self.device, self.use_bf16):
@@ -141,7 +142,7 @@ class CALCTraining(TrainingMethod):
 
     def validation_vectors(self, images: torch.Tensor) -> np.ndarray:
         grey = calc.to_grey_u8(images.permute(0, 2, 3, 1).numpy().astype(np.float32) / 255.0)
-        x = torch.from_numpy(grey).to(self.device)[:, None].float().div_(255.0)
+        x = unit_from_bytes(torch.from_numpy(grey).to(self.device)[:, None])
         was_training = self.network.training
         self.network.eval()
         with torch.inference_mode():

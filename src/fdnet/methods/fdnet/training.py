@@ -40,6 +40,7 @@ import logging
 import numpy as np
 import torch
 
+from fdnet.backbones import unit_from_bytes
 from fdnet.config import replace_dotted
 from fdnet.data.appearance import SEPARATOR, with_synthetic_conditions
 from fdnet.errors import ConfigError
@@ -233,7 +234,7 @@ class FDNetTraining(TrainingMethod):
         out = []
         bar = progress_bar(total=len(images), desc=desc, unit="img", leave=False) if desc else None
         for start in range(0, len(images), chunk):
-            x = images[start : start + chunk].float().div_(255.0)
+            x = unit_from_bytes(images[start : start + chunk])
             if self.config.runtime.channels_last:
                 x = x.contiguous(memory_format=torch.channels_last)
             with torch.no_grad(), _autocast(self.config, self.device):
@@ -400,7 +401,7 @@ def content_vectors(
     out = []
     with torch.inference_mode():
         for start in range(0, len(images), batch):
-            x = images[start : start + batch].to(device).float().div_(255.0)
+            x = unit_from_bytes(images[start : start + batch].to(device))
             if channels_last:
                 x = x.contiguous(memory_format=torch.channels_last)
             with autocast(device, bf16):
