@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from fdnet.decisions.loop_closure import LoopClosureDetector
-from fdnet.decisions.loop_threads import FrameThreads, torch_threads
+from fdnet.decisions.loop_threads import FrameThreads
 from fdnet.descriptors.classic import RawThumbnail
 from fdnet.errors import ConfigError
 
@@ -57,9 +57,10 @@ def test_a_fixed_count_or_one_own_thread_never_probes():
 
 def test_torch_threads_are_restored_after_the_frame():
     before = torch.get_num_threads()
-    with torch_threads(1 if before != 1 else 2):
-        assert torch.get_num_threads() == (1 if before != 1 else 2)
-    assert torch.get_num_threads() == before
+    other = 1 if before != 1 else 2
+    seen = []
+    FrameThreads(fixed=other).run(lambda: seen.append(torch.get_num_threads()))
+    assert seen == [other] and torch.get_num_threads() == before
 
 
 class ThreadsSeen(RawThumbnail):

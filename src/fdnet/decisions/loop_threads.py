@@ -5,10 +5,13 @@ measure faster."""
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import time
 
 import numpy as np
+
+from fdnet.backbones import torch_threads
 
 _BLAS = None
 
@@ -25,25 +28,6 @@ def single_blas_thread():
 
         _BLAS = ThreadpoolController()
     return _BLAS.limit(limits=1, user_api="blas")
-
-
-class torch_threads:
-    """torch on ``count`` intra-op threads inside the context (nothing when torch is not loaded:
-    a descriptor without torch never loads it)."""
-
-    def __init__(self, count: int):
-        self.count = int(count)
-
-    def __enter__(self):
-        self._torch = sys.modules.get("torch")
-        if self._torch is not None:
-            self._threads = self._torch.get_num_threads()
-            if self._threads != self.count:
-                self._torch.set_num_threads(self.count)
-
-    def __exit__(self, *exc):
-        if self._torch is not None and self._threads != self.count:
-            self._torch.set_num_threads(self._threads)
 
 
 class FrameThreads:
@@ -87,7 +71,8 @@ class FrameThreads:
         """``describe()`` on the count :meth:`next` gives, timed by :attr:`clock` and recorded."""
         count = self.next()
         start = self.clock()
-        with torch_threads(count):
+        # a descriptor without torch never loads it
+        with torch_threads(count) if "torch" in sys.modules else contextlib.nullcontext():
             result = describe()
         self.record(count, self.clock() - start)
         self.used[count] = self.used.get(count, 0) + 1
