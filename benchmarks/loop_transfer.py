@@ -139,6 +139,8 @@ def main(argv=None) -> int:
                 "AUC-PR": m["auc_pr"],
                 "R@1": m["recall_at_n"]["1"],
                 "revisits": ev["frames_with_revisit"],
+                "recall_ceiling": ev["reachable"]["recall_ceiling"],
+                "revisits_gated": ev["reachable"]["gated"],
                 "threshold": c.threshold,
                 "calibration_recall": c.recall,
                 "calibration_accepted": c.accepted,
@@ -149,7 +151,8 @@ def main(argv=None) -> int:
             results["loops"].setdefault(name, {})[loop_name] = row
             print(
                 f"{name:16s} {loop_name:8s} R@100P {row['R@100P']:.3f} R@99P {row['R@99P']:.3f} AUC-PR "
-                f"{row['AUC-PR']:.3f} R@1 {row['R@1']:.3f} ({row['revisits']} revisits); recent past excluded: "
+                f"{row['AUC-PR']:.3f} R@1 {row['R@1']:.3f} ({row['revisits']} revisits; recall ceiling "
+                f"{row['recall_ceiling']:.3f}, gated {row['revisits_gated']}); recent past excluded: "
                 f"median {row['excluded_back_median']:.0f}, p90 {row['excluded_back_p90']:.0f}, max "
                 f"{row['excluded_back_max']} frames; threshold for precision {args.target_precision:g}: "
                 f"{c.threshold:.4g} ({time.perf_counter() - t0:.0f} s)",

@@ -233,10 +233,44 @@ def test_evaluation_by_hand():
         "first_pass": {"frames": 2, "accepted": 1},
         "revisits": {"frames": 2, "true": 1, "wrong_place": 0, "missed": 1},
     }
+    # whatever the threshold: frame 3 vouched for the right place, frame 4 for a wrong one
+    assert out["reachable"] == {
+        "revisits": 2,
+        "right_place": 1,
+        "wrong_place": 1,
+        "gated": {},
+        "held_by_consistency": 0,
+        "recall_ceiling": 0.5,
+    }
     with pytest.raises(DataError, match="3 queries but the traverse has 5"):
         evaluate_decisions(decisions, GroundTruth([[], [], []], 5), 0.2, "margin")
     with pytest.raises(DataError, match="no frame revisits"):
         evaluate_decisions(decisions, GroundTruth([[], [], [], [], []], 5), 0.2, "margin")
+
+
+def test_reachable_recall_counts_gated_and_held_revisits():
+    # four revisits: one right, one gated as still, one gated as uninformative, one whose candidate
+    # the consistency gate held back (score -inf, no gate); a first-pass frame counts nowhere
+    inf = float("inf")
+    decisions = [
+        FrameDecision(0, -1, float("nan"), False, 0),
+        FrameDecision(1, 0, 0.5, True, 1, 0, 0.9),  # first pass: revisits nothing
+        FrameDecision(2, 0, 0.4, True, 2, 0, 0.9),  # right
+        FrameDecision(3, -1, -inf, False, 3, 1, 0.7, gated="still"),
+        FrameDecision(4, -1, -inf, False, 4, 1, 0.2, gated="uninformative"),
+        FrameDecision(5, 1, -inf, False, 5, 1, 0.8, rule_score=0.3),  # held by consistency
+    ]
+    truth = GroundTruth([[], [], [0], [1], [1], [1]], 6)
+    out = evaluate_decisions(decisions, truth, threshold=0.2, rule="margin")
+    assert out["reachable"] == {
+        "revisits": 4,
+        "right_place": 1,
+        "wrong_place": 0,
+        "gated": {"still": 1, "uninformative": 1},
+        "held_by_consistency": 1,
+        "recall_ceiling": 0.25,
+    }
+    assert out["metrics"]["recall_at_100_precision"] <= out["reachable"]["recall_ceiling"]
 
 
 def calibration_for(descriptor, threshold=0.2, rule="margin", sequence_length=1):

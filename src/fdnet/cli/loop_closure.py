@@ -287,6 +287,14 @@ def _print_report(args, report) -> None:
             f"(all false); revisits: {back['frames']} frames, {back['true']} closed right, {back['wrong_place']} "
             f"closed to a wrong place, {back['missed']} missed"
         )
+        reach = ev["reachable"]
+        gated = ", ".join(f"{reason} {count}" for reason, count in reach["gated"].items()) or "none"
+        print(
+            f"revisits by decision, whatever the threshold: {reach['right_place']} vouched for the right place "
+            f"(recall ceiling {reach['recall_ceiling']:.3f}: no threshold recalls more), {reach['wrong_place']} "
+            f"for a wrong place, {sum(reach['gated'].values())} held by a gate ({gated})"
+            + (f", {reach['held_by_consistency']} by the consistency gate" if reach["held_by_consistency"] else "")
+        )
     counts = report.gate_counts
     print(
         f"gates: {counts['uninformative']} uninformative frames skipped, {counts['still_frames']} still frames "

@@ -48,6 +48,31 @@ def _evaluable(decisions: Sequence[FrameDecision], ground_truth):
     return evaluated, truth
 
 
+def reachable_recall(evaluated: Sequence[FrameDecision], correct, revisit, score) -> dict:
+    """Where the revisiting frames' recall goes, whatever the threshold: each revisit either
+    vouched for the right place, vouched for a wrong one, was held by a gate (by reason: the
+    robot still, an uninformative frame, a sequence not yet complete after a seam...) or had its
+    candidate held back by the consistency gate. ``recall_ceiling`` (right / revisits) is the
+    most recall any threshold can reach, R@100P included: it says how much of a shortfall is
+    the ranking's and how much is frames that never decided."""
+    revisit = np.asarray(revisit, dtype=bool)
+    gate = np.array([d.gated for d in evaluated], dtype=object)
+    decided = (gate == "") & np.isfinite(score)
+    right = int((decided & correct & revisit).sum())
+    revisits = int(revisit.sum())
+    reasons = {}
+    for reason in gate[revisit & (gate != "")]:
+        reasons[reason] = reasons.get(reason, 0) + 1
+    return {
+        "revisits": revisits,
+        "right_place": right,
+        "wrong_place": int((decided & ~correct & revisit).sum()),
+        "gated": dict(sorted(reasons.items())),
+        "held_by_consistency": int((~decided & (gate == "") & revisit).sum()),
+        "recall_ceiling": right / revisits if revisits else 0.0,
+    }
+
+
 def evaluate_decisions(decisions: Sequence[FrameDecision], ground_truth, threshold: float, rule: str) -> dict:
     """Every frame's decision against ``ground_truth`` (queries = this traverse's frames in
     order, references = the database's places by index), with the metrics of
@@ -102,6 +127,7 @@ def evaluate_decisions(decisions: Sequence[FrameDecision], ground_truth, thresho
             },
         },
         "gated_frames": int(gated.sum()),
+        "reachable": reachable_recall(evaluated, correct, truth.has_match, score),
         "note": (
             "recall_at_n and R@xP count the frames that revisit a place they could search; "
             "metrics.top1_accuracy counts every evaluated frame, the first pass included, where no "

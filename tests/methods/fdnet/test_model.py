@@ -138,3 +138,24 @@ def test_projection_head_vector_has_the_paper_length():
     assert sum(p.numel() for p in model.content_encoder.parameters()) == 512 * 512  # only R trains
     with torch.no_grad():
         assert model.content(torch.rand(2, 3, 128, 256)).shape == (2, 512)
+
+
+@pytest.mark.parametrize(
+    "backbone, block, channels", [("efficientnet-lite1", 12, 112), ("efficientnet-lite2", 12, 120)]
+)
+def test_a_larger_lite_trunk_sets_the_map_fdnet_reads(backbone, block, channels):
+    from fdnet.methods.fdnet.trunk import FrozenTrunk
+
+    config = FDNetConfig(
+        **{**TRUNK_HEAD, "input_size": (64, 128), "backbone": backbone, "backbone_block": block, "vector_length": 16}
+    )
+    validate_architecture(config)
+    assert config.encoder_input_size() == (4, 8)  # stride 16, as Lite0's block 7
+    model = FDNet(config).eval()
+    assert model.trunk.backbone == backbone and model.trunk.channels == channels
+    images = torch.rand(2, 3, 64, 128)
+    with torch.no_grad():
+        assert torch.equal(model.trunk(images), FrozenTrunk(block, backbone)(images))
+        assert model.content(images).shape == (2, channels * 4 * 8)  # the residual head keeps the map's length
+    with pytest.raises(ConfigError, match="backbone block 21 does not exist"):
+        validate_architecture(FDNetConfig(**{**TRUNK_HEAD, "backbone": backbone, "backbone_block": 21}))

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from fdnet.backbones import BLOCK_CHANNELS
+from fdnet.backbones import block_channels
 from fdnet.errors import ConfigError
 from fdnet.methods.fdnet.decoder import Decoder
 from fdnet.methods.fdnet.discriminator import PairDiscriminator
@@ -57,13 +57,14 @@ class FDNetConfig:
     #: so only the direction matters; an unnormalised v_c lets the encoder fool the critic by
     #: scaling), "raw" = the encoder output as the paper's text implies
     critic_input: str = "l2"
-    #: "none" = the paper's encoders on pixels; "efficientnet-lite0" = a frozen ImageNet trunk in
-    #: front of both encoders, whose map they encode and the decoder reconstructs (an extension
-    #: for small training sets, see :mod:`fdnet.methods.fdnet.trunk`); input_size is then the image size
-    #: given to the trunk, and input_norm applies to the trunk's map ("none" or "per_image")
+    #: "none" = the paper's encoders on pixels; "efficientnet-lite0" (or the larger -lite1 and
+    #: -lite2) = a frozen ImageNet trunk in front of both encoders, whose map they encode and the
+    #: decoder reconstructs (an extension for small training sets, see
+    #: :mod:`fdnet.methods.fdnet.trunk`); input_size is then the image size given to the trunk, and
+    #: input_norm applies to the trunk's map ("none" or "per_image")
     backbone: str = "none"
     #: with a backbone: its last block used (EfficientNet-Lite0: 4 = 40 ch at stride 8,
-    #: 7 = 80 ch at stride 16, the conv3-like map)
+    #: 7 = 80 ch at stride 16, the conv3-like map; each backbone's table: :mod:`fdnet.backbones`)
     backbone_block: int = 7
     #: with a backbone, the residual content head and a validation pair: the trunk blocks a fresh
     #: run chooses ``backbone_block`` from before it trains. Each candidate's closed-form content
@@ -110,7 +111,7 @@ class FDNetConfig:
         """(H, W) of what the encoders read: the image, or the trunk's map of it."""
         if self.backbone == "none":
             return tuple(int(v) for v in self.input_size)
-        return trunk_map_size(self.input_size, self.backbone_block)
+        return trunk_map_size(self.input_size, self.backbone_block, self.backbone)
 
 
 #: the most weights one layer may have: 4e8 float32 weights are 1.6 GB, about 6.4 GB with their
@@ -124,7 +125,7 @@ def largest_layer_weights(config: FDNetConfig) -> int:
     """Weights in the largest fully connected layer the config builds (the decoder's first layer,
     or the critic's first layer on a pair of content vectors)."""
     height, width = config.encoder_input_size()
-    channels = 3 if config.backbone == "none" else BLOCK_CHANNELS[int(config.backbone_block)]
+    channels = 3 if config.backbone == "none" else block_channels(config.backbone, int(config.backbone_block))
     map_values = channels * height * width
     content = map_values if config.content_head == "trunk_residual" else int(config.vector_length)
     scale = 2 ** len(config.widths)
@@ -175,7 +176,7 @@ def _check_sizes(config: FDNetConfig) -> tuple[int, int]:
                 "(it normalises pixel patches; the trunk sees the image as on ImageNet); "
                 "use none or per_image (which standardises the trunk's map)"
             )
-        stride = trunk_stride(config.backbone_block)
+        stride = trunk_stride(config.backbone_block, config.backbone)
         scale *= stride
     for name, value in (("height", height), ("width", width)):
         if value < scale or value % scale:
@@ -247,8 +248,8 @@ def _check_content_head(config: FDNetConfig, height: int, width: int) -> None:
             raise ConfigError(
                 f"model.projection_init: {config.projection_init!r}; choose one of " f"{', '.join(PROJECTION_INITS)}"
             )
-        channels = BLOCK_CHANNELS[int(config.backbone_block)]
-        map_length = channels * height * width // trunk_stride(config.backbone_block) ** 2
+        channels = block_channels(config.backbone, int(config.backbone_block))
+        map_length = channels * height * width // trunk_stride(config.backbone_block, config.backbone) ** 2
         if config.vector_length > map_length:
             raise ConfigError(
                 f"model.vector_length: L = {config.vector_length} is longer than the trunk map it "
@@ -367,7 +368,7 @@ class FDNet(nn.Module):
         validate_architecture(config)
         self.config = config
         size, widths, length = config.encoder_input_size(), tuple(config.widths), config.vector_length
-        trunk = None if config.backbone == "none" else FrozenTrunk(config.backbone_block)
+        trunk = None if config.backbone == "none" else FrozenTrunk(config.backbone_block, config.backbone)
         channels = 3 if trunk is None else trunk.channels
         self.appearance_encoder = Encoder(size, widths, length, config.encoder_dropout, in_channels=channels)
         if config.content_head == "trunk_residual":

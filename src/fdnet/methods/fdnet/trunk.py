@@ -4,8 +4,9 @@ The paper trains E_c and E_a from scratch on hundreds of thousands of images. Wi
 hundred training images a user often has per condition (Gardens Point: 100), an encoder learnt
 from scratch sees too little to generalise; the usual remedy in VPR (NetVLAD, HybridNet, CALC's
 successors) is to start from ImageNet features. ``FDNetConfig.backbone = "efficientnet-lite0"``
-puts the first ``backbone_block + 1`` blocks of EfficientNet-Lite0 (the only ImageNet weights
-available offline here, see :mod:`fdnet.backbones`) in front of both encoders. The
+puts the first ``backbone_block + 1`` blocks of EfficientNet-Lite0 (or of the larger -lite1 or
+-lite2: the only ImageNet weights available offline here, see :mod:`fdnet.backbones`) in front of
+both encoders. The
 whole FDNet objective is unchanged but acts on the trunk's feature map instead of pixels: the
 encoders read the map, the decoder reconstructs the map (L_r is the MSE between maps), and the
 critic and triplet loss act on the content and appearance vectors as they do without a trunk.
@@ -35,10 +36,8 @@ from fdnet.backbones import (
     trunk_forward,
 )
 
-#: what FDNet's model.backbone accepts today (model.py checks channels with the Lite0 table)
-BACKBONES = ("none", "efficientnet-lite0")
-#: every trunk this module can build: "none" plus each shipped EfficientNet-Lite
-ALL_BACKBONES = ("none", *PRETRAINED_BACKBONES)
+#: what FDNet's model.backbone accepts: no trunk, or any shipped EfficientNet-Lite
+BACKBONES = ("none", *PRETRAINED_BACKBONES)
 
 
 def trunk_stride(block: int, backbone: str = DEFAULT_BACKBONE) -> int:
