@@ -9,7 +9,16 @@ from fdnet.data.groundtruth import GroundTruth
 from fdnet.decisions.loop_closure import LoopClosureDetector
 from fdnet.decisions.loop_evaluation import evaluate_decisions
 from fdnet.decisions.loop_gates import LoopGates
-from fdnet.decisions.loop_recency import GapDetector, Seams, similar_past, walk_back
+from fdnet.decisions.loop_recency import (
+    LEVEL_PLACES,
+    NULL_QUANTILE,
+    GapDetector,
+    Seams,
+    relative_to_segments,
+    segment_levels,
+    similar_past,
+    walk_back,
+)
 from fdnet.performance.loop_benchmark import StoredVectors
 
 
@@ -147,3 +156,45 @@ def test_a_resumed_run_replays_its_segments(tmp_path, stop):
             resumed.process_vector(frames[i], name=f"frame_{i}", new_segment=i == 80)
         assert list(map(repr, resumed.decisions)) == list(map(repr, whole.decisions))
         assert resumed.excluded_back == whole.excluded_back
+
+
+def test_segment_levels_put_each_segment_on_its_own_scale():
+    rng = np.random.default_rng(0)
+    low, high = rng.normal(0.1, 0.05, 60), rng.normal(0.5, 0.05, 50)
+    small = rng.normal(0.9, 0.05, LEVEL_PLACES - 1)
+    row = np.concatenate([low, high, small]).astype(np.float32)
+    places, starts = np.arange(len(row)), np.array([0, 60, 110])
+    levels = segment_levels(row, places, starts)
+    assert levels[0] == pytest.approx(np.quantile(low, NULL_QUANTILE))
+    assert levels[1] == pytest.approx(np.quantile(high, NULL_QUANTILE))
+    assert levels[2] == pytest.approx(np.quantile(row, NULL_QUANTILE))  # too few places: the level of all
+    relative = relative_to_segments(row, places, starts, levels)
+    assert relative.dtype == np.float32
+    np.testing.assert_allclose(relative[60:110], high - levels[1], atol=1e-6)
+    # one segment: nothing to put on one scale, the similarities stay as they are
+    assert segment_levels(row, places, np.array([0])) is None
+    assert relative_to_segments(row, places, np.array([0]), None) is row
+
+
+@pytest.mark.parametrize("search", ["exact", "index"])
+def test_a_second_pass_does_not_close_with_its_own_look_alikes(search):
+    """The second pass's frames share its conditions, so each resembles the pass's own earlier
+    (unrelated) frames more than its revisited place in the first pass; scored against each
+    recording's own level, every revisit closes with its place."""
+    dim, first, new, back = 64, 60, 50, 20
+    rng = np.random.default_rng(1)
+    content = rng.normal(size=(first + new, dim))
+    summer, winter = rng.normal(size=dim), rng.normal(size=dim)
+    first_pass = unit(content[:first] + summer)
+    second_pass = unit(
+        np.concatenate([content[first:] + winter, content[:back] + winter + 0.3 * rng.normal(size=(back, dim))])
+    )
+    revisits = second_pass[new:]
+    # the premise: by raw similarity, a revisit's best searchable place is mostly in its own pass
+    own = revisits @ second_pass[: new - 3].T
+    assert (own.max(axis=1) > (revisits * first_pass[:back]).sum(axis=1)).sum() >= back * 3 // 4
+    settings = dict(exclude_last=3, rule="raw", threshold=math.inf, gates=LoopGates(similar_past=False))
+    with LoopClosureDetector(StoredVectors(dim), search=search, **settings) as detector:
+        for i, v in enumerate(np.concatenate([first_pass, second_pass])):
+            detector.process_vector(v, name=f"f{i}", new_segment=i == first)
+    assert [d.match for d in detector.decisions[first + new :]] == list(range(back))

@@ -192,6 +192,23 @@ def test_compressed_search_leaves_out_the_last_places_and_pads(tmp_path):
     assert (ids == -1).all() and np.isneginf(scores).all()
 
 
+def test_compressed_search_below_a_place_skips_the_later_codes_in_the_same_scan():
+    places = unit(6000, 32, 5)
+    queries = places[4000::300] + 0.05 * unit(len(places[4000::300]), 32, 6)  # each near a late place
+    index = CompressedIndex(32, small_settings())
+    ids, scores = index.search(queries, 3, places, below=4000)
+    assert (ids >= 0).all() and (ids < 4000).all()
+    # the best places before 4000 by brute force (the codes' short list holds them here)
+    best = np.argsort(-(queries @ places[:4000].T), axis=1)[:, :3]
+    np.testing.assert_array_equal(ids, best)
+    np.testing.assert_allclose(scores, np.einsum("qkd,qd->qk", places[ids], queries), rtol=1e-5)
+    # searchable counts within what is below: the last 10 of those are left out too
+    ids, _ = index.search(queries, 3, places, searchable=3990, below=4000)
+    assert (ids < 3990).all()
+    whole, _ = index.search(queries, 1, places)
+    np.testing.assert_array_equal(whole[:, 0], np.arange(4000, 6000, 300))  # without: their own places
+
+
 def test_the_8_bit_codes_keep_the_exhaustive_best_two_where_4_bit_codes_alone_lose_them():
     # the benchmark's hard case in small: distractors from a Gaussian, queries drawn alike, so the
     # best place wins by a hair. 4-byte fast-scan codes alone, their best 16 re-ranked exactly,

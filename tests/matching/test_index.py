@@ -41,3 +41,20 @@ def test_index_rejects_wrong_dimension_and_kind(rng):
         index.search(unit(rng, 1, 8), 1)
     with pytest.raises(ConfigError, match="unknown index kind"):
         VectorIndex(8, IndexSettings(kind="lsh"))
+
+
+@pytest.mark.parametrize("kind", ["flat", "ivf"])
+def test_search_below_an_index_keeps_the_earlier_vectors_only(kind):
+    rng = np.random.default_rng(7)
+    x = rng.standard_normal((5000, 16)).astype(np.float32)
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    index = VectorIndex(16, IndexSettings(kind=kind, ivf_probe=64))
+    index.add(x)
+    ids, scores = index.search(x[4000:4010], 3, below=4000)
+    assert (ids >= 0).all() and (ids < 4000).all()
+    np.testing.assert_array_equal(ids, np.argsort(-(x[4000:4010] @ x[:4000].T), axis=1)[:, :3])
+    assert (index.search(x[4000:4010], 1)[0][:, 0] == np.arange(4000, 4010)).all()  # without: themselves
+    hnsw = VectorIndex(16, IndexSettings(kind="hnsw"))
+    hnsw.add(x[:100])
+    with pytest.raises(ConfigError, match="cannot search a prefix"):
+        hnsw.search(x[:1], 1, below=50)

@@ -20,7 +20,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from fdnet.decisions.loop_gates import LoopGates, RecentPast
-from fdnet.decisions.loop_recency import RECENT_WINDOW, Seams, sampled_similar_past, similar_past
+from fdnet.decisions.loop_recency import (
+    RECENT_WINDOW,
+    Seams,
+    relative_to_segments,
+    sampled_similar_past,
+    segment_levels,
+    similar_past,
+)
 from fdnet.decisions.loop_threads import single_blas_thread
 
 
@@ -105,9 +112,14 @@ class LoopCandidates:
             row = np.zeros(0, np.float32)
         previous = float(row[count - 1]) if t > 0 and count > 0 else None
         informative = places.loop_column("informative")
+        raw = row
         row, neutral = _mask_uninformative(row, frame.informative, informative)
         back = self._similar_back(frame, places, row)
         searchable = self._searchable(frame, previous, back)
+        levels = segment_levels(raw, np.arange(len(raw)), seams.starts)
+        if levels is not None:  # each segment's places against the frame's level there
+            relative = relative_to_segments(raw, np.arange(len(raw)), seams.starts, levels)
+            row, neutral = _mask_uninformative(relative, frame.informative, informative)
         if self.plan.sequence_length > 1:
             from fdnet.matching.sequence import online_sequence_scores
 
@@ -134,6 +146,8 @@ class LoopCandidates:
         return idx[0], top[0], searchable
 
     def _indexed_candidates(self, frame: FrameQuery, places, seams: Seams):
+        from fdnet.decisions.loop_search import MapSegments
+
         v, t, count = frame.vector, frame.t, frame.count
         vectors = places.vectors.view()
         previous = (
@@ -142,10 +156,14 @@ class LoopCandidates:
         back = self._similar_back(frame, places)
         searchable = self._searchable(frame, previous, back)
         mask = places.loop_column("informative").view(count)
-        neutral = self.indexed.neutral(v, vectors, mask)
+        starts = seams.starts
+        levels = self.indexed.levels(v, vectors, starts)
+        neutral = self.indexed.neutral(v, vectors, mask, starts, levels)
         if t == self.segment_first:
             self.indexed.new_segment()
-        ids, scores = self.indexed.search(v, vectors, searchable, mask, neutral, frame.informative, seams)
+        own_start = self.before[self.segment_first] if self.segment_first < t else count
+        segments = MapSegments(seams, levels, own_start)
+        ids, scores = self.indexed.search(v, vectors, searchable, mask, neutral, frame.informative, segments)
         depth = max(self.plan.depth, 1)
         return ids[:depth], scores[:depth], searchable
 

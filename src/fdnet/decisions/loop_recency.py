@@ -22,6 +22,15 @@ first frame of the second pass never reads the last frames of the first as its p
 (as if the robot had driven from the end of the line to its start). This is done with *columns*:
 every place has a column in a row that leaves ``pad`` neutral columns before each segment, and the
 sequence scorer runs over those rows unchanged.
+
+**One scale across segments** (:func:`segment_levels`). A frame resembles the places of a
+recording driven in its own light or season more than those of another, whatever the place: a
+summer frame's similarities to the summer pass run higher than to the winter pass, so a look-alike
+in its own recording can outscore the true place in another. So, once the map holds more than one
+segment, each similarity is taken relative to the frame's null level against that segment (the
+same 90th percentile as above, of its similarities to that segment's places): each recording is
+scored by how much more the frame resembles a place there than it resembles that recording's
+unrelated places. The walk back through the recent past reads the similarities themselves.
 """
 
 from __future__ import annotations
@@ -39,6 +48,9 @@ PATIENCE = 5
 NULL_QUANTILE = 0.9
 #: places sampled (evenly) for the null level on large maps
 NULL_SAMPLE = 4096
+#: a segment's own level (:func:`segment_levels`) needs this many of its places, so that four lie
+#: above its 90th percentile; a smaller one is measured against the level of all of them
+LEVEL_PLACES = 40
 #: the level is re-estimated without the frames the walk passed, until the walk stops changing
 #: (it converges in 2-3 rounds on the development routes)
 MAX_ROUNDS = 5
@@ -100,6 +112,35 @@ def similar_past(row: np.ndarray, recent: np.ndarray) -> int:
 
 #: how many recent frames of its segment a frame walks back through at most on the indexed path
 RECENT_WINDOW = 2000
+
+
+def segment_levels(similarities: np.ndarray, places: np.ndarray, starts: np.ndarray) -> np.ndarray | None:
+    """The frame's null level against each segment of the map (``starts``: each segment's first
+    place, in order), from its ``similarities`` to ``places`` (every place, or a sample): the
+    :data:`NULL_QUANTILE` quantile of those in the segment, or of all of them for a segment with
+    fewer than :data:`LEVEL_PLACES` (an even sample of :data:`NULL_SAMPLE` when more are given).
+    None for a map of one segment: there is nothing to put on one scale."""
+    starts = np.asarray(starts, np.int64)
+    if len(starts) < 2:
+        return None
+    values, places = np.asarray(similarities, np.float64), np.asarray(places, np.int64)
+    if len(values) > NULL_SAMPLE:
+        pick = np.linspace(0, len(values) - 1, NULL_SAMPLE).astype(np.int64)
+        values, places = values[pick], places[pick]
+    levels = np.full(len(starts), float(np.quantile(values, NULL_QUANTILE)) if len(values) else 0.0)
+    segment = np.searchsorted(starts, places, side="right") - 1
+    for s in np.flatnonzero(np.bincount(segment, minlength=len(starts)) >= LEVEL_PLACES):
+        levels[s] = np.quantile(values[segment == s], NULL_QUANTILE)
+    return levels
+
+
+def relative_to_segments(similarities: np.ndarray, places: np.ndarray, starts: np.ndarray, levels) -> np.ndarray:
+    """``similarities`` to ``places`` minus the level (:func:`segment_levels`) of each place's
+    segment; unchanged when ``levels`` is None."""
+    if levels is None:
+        return similarities
+    segment = np.searchsorted(np.asarray(starts, np.int64), np.asarray(places, np.int64), side="right") - 1
+    return (np.asarray(similarities) - levels[segment]).astype(np.asarray(similarities).dtype, copy=False)
 
 
 def sampled_similar_past(similarity, vector: np.ndarray, vectors, recent: np.ndarray, sample: tuple) -> int:

@@ -36,10 +36,11 @@ from __future__ import annotations
 
 import contextlib
 from collections import deque
+from dataclasses import dataclass
 
 import numpy as np
 
-from fdnet.decisions.loop_recency import NULL_SAMPLE
+from fdnet.decisions.loop_recency import NULL_SAMPLE, relative_to_segments, segment_levels
 from fdnet.matching.index import one_faiss_thread
 from fdnet.matching.sequence import DEFAULT_VELOCITIES, SequenceRow, sequence_places, sequence_reach
 
@@ -69,6 +70,18 @@ def sample_count(count: int) -> int:
     for every count up to the next multiple)."""
     step = 1 << max(int(count).bit_length() - 5, 0)
     return int(count) - int(count) % step
+
+
+@dataclass(frozen=True)
+class MapSegments:
+    """The map's segments as one frame sees them: ``seams``
+    (:class:`~fdnet.decisions.loop_recency.Seams`), the frame's ``levels`` against each
+    (:meth:`IndexedCandidates.levels`; None: one segment, nothing to put on one scale) and
+    ``own_start``, the first place of the frame's own segment."""
+
+    seams: object = None
+    levels: np.ndarray | None = None
+    own_start: int | None = None
 
 
 class IndexedCandidates:
@@ -171,21 +184,34 @@ class IndexedCandidates:
             ids = np.linspace(0, count - 1, min(NULL_SAMPLE, count)).astype(np.int64)
             rows = np.asarray(vectors[ids], dtype=np.float32)
             pick = np.linspace(0, len(ids) - 1, min(MEDIAN_SAMPLE, len(ids))).astype(np.int64)
-            self._sample = (count, ids, rows, np.ascontiguousarray(rows[pick]))
+            self._sample = (count, ids, rows, np.ascontiguousarray(rows[pick]), ids[pick])
         return self._sample[1], self._sample[2]
 
-    def neutral(self, v: np.ndarray, vectors, informative: np.ndarray) -> float:
+    def levels(self, v: np.ndarray, vectors, starts: np.ndarray) -> np.ndarray | None:
+        """The frame's null level against each segment of the map
+        (:func:`~fdnet.decisions.loop_recency.segment_levels`) over the :meth:`map_sample`; None
+        for a map of one segment."""
+        if len(starts) < 2:
+            return None
+        ids, rows = self.map_sample(vectors)
+        return segment_levels(rows @ v, ids, starts)
+
+    def neutral(
+        self, v: np.ndarray, vectors, informative: np.ndarray, starts: np.ndarray | None = None, levels=None
+    ) -> float:
         """The frame's median similarity over :data:`MEDIAN_SAMPLE` informative places of the
-        :meth:`map_sample` (all of its informative places when fewer)."""
+        :meth:`map_sample` (all of its informative places when fewer), each relative to its
+        segment's level when ``levels`` are given."""
         ids, rows = self.map_sample(vectors)
         usable = informative[ids]
         if not usable.any():  # (an empty map too)
             return 0.0
         if usable.all():  # the usual map: the subset drawn with the sample
-            return float(np.median(self._sample[3] @ v))
-        rows = rows[usable]
-        pick = np.linspace(0, len(rows) - 1, min(MEDIAN_SAMPLE, len(rows))).astype(np.int64)
-        return float(np.median(rows[pick] @ v))
+            rows, ids = self._sample[3], self._sample[4]
+        else:
+            pick = np.linspace(0, int(usable.sum()) - 1, min(MEDIAN_SAMPLE, int(usable.sum()))).astype(np.int64)
+            rows, ids = rows[usable][pick], ids[usable][pick]
+        return float(np.median(relative_to_segments(rows @ v, ids, starts, levels)))
 
     def new_segment(self) -> None:
         """The next frame starts a new recording: no sequence reaches back past it (and a new
@@ -200,7 +226,9 @@ class IndexedCandidates:
         block's first frame's. Answers do not depend on it; only the time does."""
         self._upcoming = vectors
 
-    def _compressed_neighbours(self, v: np.ndarray, vectors, k: int) -> tuple[np.ndarray, np.ndarray]:
+    def _compressed_neighbours(
+        self, v: np.ndarray, vectors, k: int, below: int | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """The compressed index's ``k`` neighbours of ``v`` (exact similarities), by blocks of
         :attr:`block` = L - 1 frames: at a block's first frame the index takes every place of
         the map, and every frame of the block is searched among those places only. The places
@@ -208,7 +236,8 @@ class IndexedCandidates:
         its own sequence's last L - 1 frames, and a block starts again at each segment), so no
         place a frame may match is left out; the block's frames can be searched in one call
         (faiss's scan over the codes serves them all: :meth:`look_ahead`), and a robot feeding
-        one frame at a time gets the same answers."""
+        one frame at a time gets the same answers. ``below``: only places before that one (the
+        block's frames are in one segment, so they share it)."""
         from fdnet.matching.file_rows import FileRows
 
         starting = self._block_left == 0
@@ -230,7 +259,7 @@ class IndexedCandidates:
         # some of the frames); a single frame's search does not split, and OpenMP's start costs
         alone = len(queries) == 1 or self._frozen < BLOCK_ON_ALL_THREADS_FROM
         with one_faiss_thread() if alone else contextlib.nullcontext():
-            found, scores = self._index.search(queries, min(k, self._frozen), frozen)
+            found, scores = self._index.search(queries, min(k, self._frozen), frozen, below=below)
         self._ahead.extend(zip(queries[1:], found[1:], scores[1:]))
         return found[:1], scores[:1]
 
@@ -242,13 +271,18 @@ class IndexedCandidates:
         informative: np.ndarray,
         neutral: float,
         frame_informative: bool = True,
-        seams=None,
+        segments: "MapSegments | None" = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Record the new frame and return its candidates: (place ids, scores) best first, all
         below ``searchable`` and informative; scores are single-image similarities, or with
-        sequences the sequence scores of the proposed ends. ``seams``: the map's
-        :class:`~fdnet.decisions.loop_recency.Seams`; a sequence ending in a segment counts the
-        places before its start as missing (neutral), as the exhaustive path does."""
+        sequences the sequence scores of the proposed ends. ``segments``: the map's segments as
+        the frame sees them (:class:`MapSegments`): a sequence ending in a segment counts the
+        places before its start as missing (neutral), every similarity read is taken relative to
+        the frame's level against its place's segment, and with levels the frame's neighbours
+        are found among the earlier segments' places and, exactly, among its own segment's
+        (:meth:`_neighbours`), all as on the exhaustive path."""
+        segments = segments or MapSegments()
+        seams, levels, own_start = segments.seams, segments.levels, segments.own_start
         count = len(vectors)
         compressed = self._compressed(count)
         if not compressed:
@@ -256,15 +290,13 @@ class IndexedCandidates:
             self._block_left = 0
         ids, sims = np.zeros(0, np.int64), np.zeros(0, np.float32)
         if count:
-            if compressed:  # exact similarities of the short list's best
-                found, scores = self._compressed_neighbours(v, vectors, self.neighbours)
-            else:
-                with one_faiss_thread():
-                    found, scores = self._index.search(v[None], min(self.neighbours, count))
-            keep = found[0] >= 0
-            order = np.argsort(found[0][keep])
-            ids, sims = found[0][keep][order], scores[0][keep][order]  # sorted by place, for look-ups
-        self._recent.append((v, ids, neutral, count, frame_informative, sims))
+            split = levels is not None and own_start is not None and 0 < own_start < count
+            found, scores = self._neighbours(v, vectors, compressed, own_start if split else None)
+            keep = found >= 0
+            order = np.argsort(found[keep])
+            ids, sims = found[keep][order], scores[keep][order]  # sorted by place, for look-ups
+        offsets = None if levels is None else (seams.starts, levels)
+        self._recent.append((v, ids, neutral, count, frame_informative, sims, offsets))
         if searchable <= 0:
             return np.zeros(0, np.int64), np.zeros(0, np.float32)
         if self.sequence_length <= 1:
@@ -277,6 +309,8 @@ class IndexedCandidates:
             return ends, np.zeros(0, np.float32)
         if self.sequence_length <= 1:
             scores = vectors[ends] @ v
+            if offsets is not None:
+                scores = relative_to_segments(scores, ends, *offsets)
         else:
             if len(ends) > RESCORED:
                 # a first ranking from the similarities the index already returned (a pair it did
@@ -286,6 +320,29 @@ class IndexedCandidates:
             scores = self._sequence_scores(ends, vectors, informative, seams=seams)
         order = np.lexsort((ends, -scores))  # best first, ties to the lower place
         return ends[order], scores[order].astype(np.float32)
+
+    def _neighbours(self, v: np.ndarray, vectors, compressed: bool, own_start: int | None):
+        """The frame's :attr:`neighbours` nearest places (ids, exact similarities). With
+        ``own_start`` the map holds other segments than the frame's own, whose places resemble
+        the frame more by their shared conditions alone and could fill its whole list: then the
+        index gives the nearest places of the earlier segments, and the own segment's places
+        (while fewer than :data:`INDEX_FROM`, the size up to which a whole map is scored
+        exactly) are scored exactly and give theirs."""
+        count = len(vectors)
+        if own_start is not None and count - own_start > INDEX_FROM:
+            own_start = None
+        if compressed:  # exact similarities of the short list's best
+            found, scores = self._compressed_neighbours(v, vectors, self.neighbours, below=own_start)
+        else:
+            with one_faiss_thread():
+                found, scores = self._index.search(v[None], min(self.neighbours, count), below=own_start)
+        found, scores = found[0], scores[0]
+        if own_start is None:
+            return found, scores
+        own = np.arange(own_start, count)
+        similarity = np.asarray(vectors[own], dtype=np.float32) @ v
+        best = np.argsort(-similarity, kind="stable")[: self.neighbours]
+        return np.concatenate([found, own[best]]), np.concatenate([scores, similarity[best]])
 
     def _sequence_ends(self, searchable: int) -> np.ndarray:
         """Proposed sequence ends: each recent frame's neighbours moved on by the frames since
@@ -344,8 +401,14 @@ class _RecentRow(SequenceRow):
     def __init__(
         self, recent: tuple, vectors: np.ndarray, informative: np.ndarray, first: np.ndarray, pad: int, exact: bool
     ):
-        self.frame, self.ids, self.neutral, self.places_then, self.frame_informative, self.sims = recent
+        self.frame, self.ids, self.neutral, self.places_then, self.frame_informative, self.sims, offsets = recent
         self.vectors, self.informative, self.first, self.pad, self.exact = vectors, informative, first, pad, exact
+        # (segment starts, the frame's level against each): similarities relative to their segment
+        self.relative = (
+            (lambda values, places: values)
+            if offsets is None
+            else (lambda values, places: relative_to_segments(values, places, *offsets))
+        )
 
     def values(self, places: np.ndarray, end: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         first = self.first[None, :]
@@ -354,11 +417,11 @@ class _RecentRow(SequenceRow):
         values = np.full(places.shape, self.neutral)
         if inside.any() and self.frame_informative and self.exact:
             needed, where = np.unique(places[inside], return_inverse=True)
-            found = self.vectors[needed] @ self.frame
+            found = self.relative(self.vectors[needed] @ self.frame, needed)
             values[inside] = np.where(self.informative[needed], found, self.neutral)[where]
         elif inside.any() and self.frame_informative and len(self.ids):
             wanted = places[inside]
             at = np.minimum(np.searchsorted(self.ids, wanted), len(self.ids) - 1)
             hit = (self.ids[at] == wanted) & self.informative[wanted]
-            values[inside] = np.where(hit, self.sims[at], self.neutral)
+            values[inside] = np.where(hit, self.relative(self.sims[at], wanted), self.neutral)
         return values, inside | padded

@@ -488,27 +488,37 @@ class CompressedIndex:
         return quantizer
 
     def search(
-        self, queries: np.ndarray, k: int, vectors, searchable: int | None = None
+        self, queries: np.ndarray, k: int, vectors, searchable: int | None = None, below: int | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
         """The best ``k`` of the first ``searchable`` places (None: all) for each query, as
         (place ids, exact dot products), each (Q, k), best first, ties to the lower id, -1 /
         -inf where the short list held fewer. The fast-scan codes propose ``candidates``, the
         8-bit codes keep ``shortlist`` of them, and their float vectors, read from ``vectors``,
-        give the order and the scores."""
+        give the order and the scores. ``below``: the codes of the places from that one on are
+        skipped in the scan (the same scan, fewer places), and ``searchable`` counts within the rest."""
         q = np.ascontiguousarray(queries, dtype=np.float32)
         self.sync(vectors)
         count = len(self)
-        searchable = count if searchable is None else max(0, min(int(searchable), count))
+        limit = count if below is None else max(0, min(int(below), count))
+        searchable = limit if searchable is None else max(0, min(int(searchable), limit))
         out_ids = np.full((len(q), k), -1, np.int64)
         out_scores = np.full((len(q), k), -np.inf, np.float32)
         if searchable == 0 or k <= 0:
             return out_ids, out_scores
         # the excluded places are the last ones: ask for as many more, then drop them
-        excluded = count - searchable
-        wanted = min(count, max(self.settings.shortlist, k) + excluded)
-        proposed = min(count, max(candidates_for(self.settings, count) + excluded, wanted))
-        self._index.k_factor = proposed / wanted
-        _, found = self._index.search(self._rotated(q), wanted)
+        excluded = limit - searchable
+        wanted = min(limit, max(self.settings.shortlist, k) + excluded)
+        proposed = min(limit, max(candidates_for(self.settings, count) + excluded, wanted))
+        if limit == count:
+            self._index.k_factor = proposed / wanted
+            _, found = self._index.search(self._rotated(q), wanted)
+        else:
+            import faiss
+
+            selector = faiss.IDSelectorRange(0, limit)
+            base = faiss.SearchParametersIVF(sel=selector, nprobe=self._parts[0].nprobe)
+            params = faiss.IndexRefineSearchParameters(k_factor=proposed / wanted, base_index_params=base)
+            _, found = self._index.search(self._rotated(q), wanted, params=params)
         for row, ids in enumerate(found):
             ids = np.unique(ids[(ids >= 0) & (ids < searchable)])  # sorted: the file is read in order
             if not len(ids):

@@ -282,14 +282,32 @@ class VectorIndex:
         if self._index is not None:
             self._apply_search_settings()
 
-    def search(self, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """Best ``k`` per query: (indices (Q, k) int64, scores (Q, k) float32); -1 where fewer exist."""
+    def search(self, queries: np.ndarray, k: int, below: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Best ``k`` per query: (indices (Q, k) int64, scores (Q, k) float32); -1 where fewer exist.
+        ``below``: only among the vectors added before that index (a flat or IVF index)."""
         self.build()
         q = self._check(queries)
         if len(self) == 0:
             raise ConfigError("the index is empty: add reference vectors before searching")
-        scores, indices = self._index.search(q, int(min(k, len(self))))
+        k = int(min(k, len(self)))
+        if below is None or below >= len(self):
+            scores, indices = self._index.search(q, k)
+        else:
+            scores, indices = self._index.search(q, k, params=self._below(int(below)))
         return indices.astype(np.int64), scores.astype(np.float32)
+
+    def _below(self, below: int):
+        """faiss search parameters keeping the ids under ``below`` (with the index's own probe)."""
+        faiss, index = self._faiss, self._index
+        selector = faiss.IDSelectorRange(0, max(below, 0))
+        if isinstance(index, faiss.IndexIVF):
+            params = faiss.SearchParametersIVF(sel=selector, nprobe=index.nprobe)
+        elif isinstance(index, faiss.IndexFlat):
+            params = faiss.SearchParameters(sel=selector)
+        else:
+            raise ConfigError(f"a {self.settings.kind} index cannot search a prefix of its vectors (flat or ivf can)")
+        params.keep_alive = selector  # the parameters hold a raw pointer to it
+        return params
 
     def reconstruct_all(self) -> np.ndarray:
         """All stored vectors in insertion order (exact for flat, hnsw and ivf; ivfpq without
