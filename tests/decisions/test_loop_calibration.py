@@ -64,6 +64,24 @@ def test_p_correct_counts_the_wrong_frames_the_wrong_score_tail_expects_in_a_blo
     assert Calibration.from_dict(calibration.to_dict()).probability["wrong_score_tail"] == with_tail["wrong_score_tail"]
 
 
+def test_p_correct_expects_the_wrong_frames_of_a_route_of_a_thousand():
+    # 300 right frames above the wrong ones' exponential tail, drawn from 3000 wrong frames or from
+    # 300: the top block counts the wrong frames the tail expects above it on a route of 1000
+    # wrong frames (the threshold's), so the 300-frame loop's expectation is scaled up 10/3
+    from scipy.stats import beta
+
+    from fdnet.decisions.calibration import EXTRAPOLATE_TO, P_CORRECT_CONFIDENCE
+
+    right = np.linspace(0.01, 1.0, 300) + 9.0  # above the largest of 3000 wrong (8.7)
+    for frames, scale in ((3000, 1.0), (300, EXTRAPOLATE_TO / 300)):
+        wrong = -np.log((np.arange(frames) + 0.5) / frames)
+        tail = tail_threshold(wrong)
+        assert tail["wrong"] == frames
+        fit = fit_probability(np.r_[wrong, right], np.r_[np.zeros(frames, bool), np.ones(300, bool)], tail)
+        expected = expected_wrong(tail, float(right.min())) * scale
+        assert max(fit["p_correct"]) == pytest.approx(beta.ppf(1.0 - P_CORRECT_CONFIDENCE, 300, expected + 1))
+
+
 def test_score_distribution_and_a_departure_into_its_tail():
     rng = np.random.default_rng(0)
     stored = score_distribution(np.r_[rng.normal(0, 1, 1000), -math.inf, 5.0], below=4.0)

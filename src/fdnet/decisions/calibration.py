@@ -393,9 +393,11 @@ def fit_probability(scores: np.ndarray, correct: np.ndarray, wrong_tail: dict | 
 
     ``wrong_tail`` (:func:`tail_threshold` of the loop's wrong scores): a block counts at least
     as many wrong frames as that tail expects within its scores (:func:`expected_wrong`; the top
-    block's reach to any higher score). A loop's few hundred wrong frames rarely reach its top
-    scores, so the top blocks would count none by the luck of the draw; the tail that sets the
-    threshold says how many the loop should be expected to hold there."""
+    block's reach to any higher score) on a route of :data:`EXTRAPOLATE_TO` wrong frames, the
+    route the threshold is set for (a loop with fewer wrong frames has its expectation scaled
+    up). A loop's few hundred wrong frames rarely reach its top scores, so the top blocks would
+    count none by the luck of the draw; the tail that sets the threshold says how many a route
+    should be expected to hold there."""
     from scipy.stats import beta
     from sklearn.isotonic import IsotonicRegression
 
@@ -406,6 +408,7 @@ def fit_probability(scores: np.ndarray, correct: np.ndarray, wrong_tail: dict | 
     if len(scores) < 2 or len(np.unique(scores)) < 2:
         return {}
     fitted = IsotonicRegression(out_of_bounds="clip").fit(scores, correct).predict(scores)
+    per_route = max(1.0, EXTRAPOLATE_TO / float(wrong_tail["wrong"])) if wrong_tail and wrong_tail.get("wrong") else 1.0
     order = np.argsort(scores, kind="stable")
     scores, correct, fitted = scores[order], correct[order], fitted[order]
     xs, ps = [], []
@@ -414,7 +417,8 @@ def fit_probability(scores: np.ndarray, correct: np.ndarray, wrong_tail: dict | 
         block = fitted == value
         n, right = int(block.sum()), int(correct[block].sum())
         lo, hi = float(scores[block].min()), float(scores[block].max())
-        wrong = max(float(n - right), expected_wrong(wrong_tail, lo, hi if i < len(values) - 1 else math.inf))
+        expected = expected_wrong(wrong_tail, lo, hi if i < len(values) - 1 else math.inf) * per_route
+        wrong = max(float(n - right), expected)
         p = float(beta.ppf(1.0 - P_CORRECT_CONFIDENCE, right, wrong + 1)) if right else 0.0
         xs += [lo, hi] if hi > lo else [lo]
         ps += [p, p] if hi > lo else [p]
