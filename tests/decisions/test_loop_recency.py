@@ -171,6 +171,18 @@ def test_segment_levels_put_each_segment_on_its_own_scale():
     relative = relative_to_segments(row, places, starts, levels)
     assert relative.dtype == np.float32
     np.testing.assert_allclose(relative[60:110], high - levels[1], atol=1e-6)
+    # many segments of any size, in any order of places: each its own quantile, as numpy's
+    many = rng.normal(size=3000)
+    places = rng.permutation(3000)
+    starts = np.r_[0, np.sort(rng.choice(np.arange(1, 3000), 99, replace=False))]
+    levels = segment_levels(many, places, starts)
+    segment = np.searchsorted(starts, places, side="right") - 1
+    for k in range(len(starts)):
+        inside = many[segment == k]
+        expected = (
+            np.quantile(inside, NULL_QUANTILE) if len(inside) >= LEVEL_PLACES else np.quantile(many, NULL_QUANTILE)
+        )
+        assert levels[k] == pytest.approx(expected)
     # one segment: nothing to put on one scale, the similarities stay as they are
     assert segment_levels(row, places, np.array([0])) is None
     assert relative_to_segments(row, places, np.array([0]), None) is row

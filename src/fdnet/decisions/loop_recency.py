@@ -129,8 +129,17 @@ def segment_levels(similarities: np.ndarray, places: np.ndarray, starts: np.ndar
         values, places = values[pick], places[pick]
     levels = np.full(len(starts), float(np.quantile(values, NULL_QUANTILE)) if len(values) else 0.0)
     segment = np.searchsorted(starts, places, side="right") - 1
-    for s in np.flatnonzero(np.bincount(segment, minlength=len(starts)) >= LEVEL_PLACES):
-        levels[s] = np.quantile(values[segment == s], NULL_QUANTILE)
+    # every segment's quantile from one sort (a map of many sessions has many segments): values
+    # sorted within segments, then numpy's linear interpolation between order statistics
+    ordered = values[np.lexsort((values, segment))]
+    counts = np.bincount(segment, minlength=len(starts))
+    first = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    own = np.flatnonzero(counts >= LEVEL_PLACES)
+    position = NULL_QUANTILE * (counts[own] - 1)
+    below = np.floor(position).astype(np.int64)
+    above = np.minimum(below + 1, counts[own] - 1)
+    low, high = ordered[first[own] + below], ordered[first[own] + above]
+    levels[own] = low + (high - low) * (position - below)
     return levels
 
 
