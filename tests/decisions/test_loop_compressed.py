@@ -103,14 +103,19 @@ def test_the_map_sample_depends_on_the_map_size_alone_and_is_read_again_after_a_
         np.testing.assert_array_equal(rows, vectors[ids])
     informative = np.ones(1000, bool)
     v = vectors[0]
+    one_segment = np.zeros(1, np.int64)  # every place in one segment: no levels
     pick = np.linspace(0, len(rows) - 1, 512).astype(np.int64)  # the median's 512 of the sample
-    assert search.neutral(v, vectors[:1000], informative) == pytest.approx(float(np.median(rows[pick] @ v)))
+    assert search.scale(v, vectors[:1000], informative, one_segment)[1] == pytest.approx(
+        float(np.median(rows[pick] @ v))
+    )
     informative[ids[::2]] = False  # a gate's uninformative places: the median of the sample's others
     others = rows[1::2]
     pick = np.linspace(0, len(others) - 1, 496).astype(np.int64)
-    assert search.neutral(v, vectors[:1000], informative) == pytest.approx(float(np.median(others[pick] @ v)))
+    assert search.scale(v, vectors[:1000], informative, one_segment)[1] == pytest.approx(
+        float(np.median(others[pick] @ v))
+    )
     informative[ids] = False
-    assert search.neutral(v, vectors[:1000], informative) == 0.0  # no informative place in the sample
+    assert search.scale(v, vectors[:1000], informative, one_segment)[1] == 0.0  # no informative place in the sample
 
 
 @pytest.mark.parametrize("all_threads_from", [COMPRESSED_FROM, 0])

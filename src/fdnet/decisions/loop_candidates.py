@@ -116,9 +116,10 @@ class LoopCandidates:
         row, neutral = _mask_uninformative(row, frame.informative, informative)
         back = self._similar_back(frame, places, row)
         searchable = self._searchable(frame, previous, back)
-        levels = segment_levels(raw, np.arange(len(raw)), seams.starts)
+        every = np.arange(len(raw))
+        levels = segment_levels(raw, every, seams.starts)
         if levels is not None:  # each segment's places against the frame's level there
-            relative = relative_to_segments(raw, np.arange(len(raw)), seams.starts, levels)
+            relative = relative_to_segments(raw, every, seams.starts, levels)
             row, neutral = _mask_uninformative(relative, frame.informative, informative)
         if self.plan.sequence_length > 1:
             from fdnet.matching.sequence import online_sequence_scores
@@ -156,9 +157,7 @@ class LoopCandidates:
         back = self._similar_back(frame, places)
         searchable = self._searchable(frame, previous, back)
         mask = places.loop_column("informative").view(count)
-        starts = seams.starts
-        levels = self.indexed.levels(v, vectors, starts)
-        neutral = self.indexed.neutral(v, vectors, mask, starts, levels)
+        levels, neutral = self.indexed.scale(v, vectors, mask, seams.starts)
         if t == self.segment_first:
             self.indexed.new_segment()
         own_start = self.before[self.segment_first] if self.segment_first < t else count

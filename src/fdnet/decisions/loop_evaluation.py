@@ -10,6 +10,7 @@ place its rule vouches for, so a loop's R@100P means what a pair's does.
 from __future__ import annotations
 
 import math
+from collections import Counter
 from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
@@ -60,9 +61,7 @@ def reachable_recall(evaluated: Sequence[FrameDecision], correct, revisit, score
     decided = (gate == "") & np.isfinite(score)
     right = int((decided & correct & revisit).sum())
     revisits = int(revisit.sum())
-    reasons = {}
-    for reason in gate[revisit & (gate != "")]:
-        reasons[reason] = reasons.get(reason, 0) + 1
+    reasons = Counter(gate[revisit & (gate != "")])
     return {
         "revisits": revisits,
         "right_place": right,

@@ -119,6 +119,8 @@ class IndexedCandidates:
         self._block_left, self._frozen = 0, 0
         self._ahead: deque = deque()
         self._upcoming = np.zeros((0, self.dim), np.float32)
+        # (the first place of the frames' own segment, its rows read so far): see _own_segment_rows
+        self._own = None
 
     def __len__(self) -> int:
         return 0 if self._index is None else len(self._index)
@@ -184,34 +186,30 @@ class IndexedCandidates:
             ids = np.linspace(0, count - 1, min(NULL_SAMPLE, count)).astype(np.int64)
             rows = np.asarray(vectors[ids], dtype=np.float32)
             pick = np.linspace(0, len(ids) - 1, min(MEDIAN_SAMPLE, len(ids))).astype(np.int64)
-            self._sample = (count, ids, rows, np.ascontiguousarray(rows[pick]), ids[pick])
+            self._sample = (count, ids, rows, np.ascontiguousarray(rows[pick]), pick)
         return self._sample[1], self._sample[2]
 
-    def levels(self, v: np.ndarray, vectors, starts: np.ndarray) -> np.ndarray | None:
-        """The frame's null level against each segment of the map
-        (:func:`~fdnet.decisions.loop_recency.segment_levels`) over the :meth:`map_sample`; None
-        for a map of one segment."""
-        if len(starts) < 2:
-            return None
+    def scale(self, v: np.ndarray, vectors, informative: np.ndarray, starts: np.ndarray) -> tuple:
+        """(the frame's null level against each segment of the map, its neutral value), both over
+        the :meth:`map_sample`. The levels: :func:`~fdnet.decisions.loop_recency.segment_levels`,
+        None for a map of one segment (``starts``: each segment's first place). The neutral value:
+        the frame's median similarity over :data:`MEDIAN_SAMPLE` informative places of the sample
+        (all of its informative places when fewer), each relative to its segment's level. With
+        levels, one product with the whole sample serves both."""
         ids, rows = self.map_sample(vectors)
-        return segment_levels(rows @ v, ids, starts)
-
-    def neutral(
-        self, v: np.ndarray, vectors, informative: np.ndarray, starts: np.ndarray | None = None, levels=None
-    ) -> float:
-        """The frame's median similarity over :data:`MEDIAN_SAMPLE` informative places of the
-        :meth:`map_sample` (all of its informative places when fewer), each relative to its
-        segment's level when ``levels`` are given."""
-        ids, rows = self.map_sample(vectors)
+        sims = rows @ v if len(starts) >= 2 else None
+        levels = None if sims is None else segment_levels(sims, ids, starts)
         usable = informative[ids]
         if not usable.any():  # (an empty map too)
-            return 0.0
+            return levels, 0.0
         if usable.all():  # the usual map: the subset drawn with the sample
-            rows, ids = self._sample[3], self._sample[4]
+            pick = self._sample[4]
+            values = self._sample[3] @ v if sims is None else sims[pick]
         else:
-            pick = np.linspace(0, int(usable.sum()) - 1, min(MEDIAN_SAMPLE, int(usable.sum()))).astype(np.int64)
-            rows, ids = rows[usable][pick], ids[usable][pick]
-        return float(np.median(relative_to_segments(rows @ v, ids, starts, levels)))
+            kept = np.flatnonzero(usable)
+            pick = kept[np.linspace(0, len(kept) - 1, min(MEDIAN_SAMPLE, len(kept))).astype(np.int64)]
+            values = rows[pick] @ v if sims is None else sims[pick]
+        return levels, float(np.median(relative_to_segments(values, ids[pick], starts, levels)))
 
     def new_segment(self) -> None:
         """The next frame starts a new recording: no sequence reaches back past it (and a new
@@ -339,10 +337,21 @@ class IndexedCandidates:
         found, scores = found[0], scores[0]
         if own_start is None:
             return found, scores
-        own = np.arange(own_start, count)
-        similarity = np.asarray(vectors[own], dtype=np.float32) @ v
+        similarity = self._own_segment_rows(vectors, own_start) @ v
         best = np.argsort(-similarity, kind="stable")[: self.neighbours]
-        return np.concatenate([found, own[best]]), np.concatenate([scores, similarity[best]])
+        return np.concatenate([found, own_start + best]), np.concatenate([scores, similarity[best]])
+
+    def _own_segment_rows(self, vectors, own_start: int) -> np.ndarray:
+        """The rows of the places from ``own_start`` on (the frame's own segment), each read from
+        the map once: a map in a file would otherwise be read at the whole segment every frame."""
+        from fdnet.matching.place_map import GrowingArray
+
+        if self._own is None or self._own[0] != own_start or len(self._own[1]) > len(vectors) - own_start:
+            self._own = (own_start, GrowingArray(self.dim))
+        rows = self._own[1]
+        if own_start + len(rows) < len(vectors):
+            rows.extend(np.asarray(vectors[np.arange(own_start + len(rows), len(vectors))], dtype=np.float32))
+        return rows.view()
 
     def _sequence_ends(self, searchable: int) -> np.ndarray:
         """Proposed sequence ends: each recent frame's neighbours moved on by the frames since
@@ -403,12 +412,12 @@ class _RecentRow(SequenceRow):
     ):
         self.frame, self.ids, self.neutral, self.places_then, self.frame_informative, self.sims, offsets = recent
         self.vectors, self.informative, self.first, self.pad, self.exact = vectors, informative, first, pad, exact
-        # (segment starts, the frame's level against each): similarities relative to their segment
-        self.relative = (
-            (lambda values, places: values)
-            if offsets is None
-            else (lambda values, places: relative_to_segments(values, places, *offsets))
-        )
+        #: (segment starts, the frame's level against each), or None: one segment
+        self.offsets = offsets
+
+    def relative(self, values: np.ndarray, places: np.ndarray) -> np.ndarray:
+        """The frame's similarities to ``places`` relative to their segments' levels."""
+        return values if self.offsets is None else relative_to_segments(values, places, *self.offsets)
 
     def values(self, places: np.ndarray, end: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         first = self.first[None, :]
